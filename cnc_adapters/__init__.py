@@ -1,0 +1,1 @@
+"""Controller links for thermocomp: OPC UA, serial, LinuxCNC and a virtual machine tool."""

@@ -1,0 +1,283 @@
+"""A virtual spindle plant: a lumped thermal network richer than any model we fit.
+
+Nodes (temperatures in degC):
+
+1. shaft and rear bearings (rotor);
+2. spindle nose with the front bearings;
+3. housing and motor stator;
+4. coolant jacket (water), pulled toward the chiller set point;
+5. machine structure (head/column), slowly following the ambient air.
+
+Heat input per node is a polynomial in n (krpm): motor hysteresis ~ n, eddy
+currents and windage ~ n**2, bearing friction ~ n**3 (paper 001, eq. 10).
+Convection from the rotating shaft and nose grows with speed as
+``h0 + h1*n**0.8``. The ambient air drifts slowly (a daily sine plus a seeded
+random walk). Axial elongation is a weighted sum of node temperature rises
+plus an instantaneous elastic term ``e1*n + e2*n**2`` (centrifugal and
+preload change), which is what makes the paper's 27 000 -> 12 000 rpm drop
+lose more than 10 um within a minute. The eddy-current reading adds Gaussian
+noise and quantisation.
+
+The network is linear in temperature for a held speed, so each step is the
+exact zero-order-hold solution (a cached matrix exponential): any step size
+gives the same trajectory at the shared instants.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.linalg import expm
+
+N_NODES = 5
+NODE_NAMES = ("shaft", "nose", "housing", "coolant", "structure")
+
+
+@dataclass(frozen=True)
+class PlantParams:
+    """Physical parameters of one spindle. Units in the names; n in krpm."""
+
+    name: str
+    description: str
+    max_rpm: float
+    capacity_j_per_k: tuple[float, float, float, float, float]
+    # conductances between nodes [W/K]
+    g_shaft_nose: float
+    g_shaft_housing: float
+    g_nose_housing: float
+    g_housing_coolant: float
+    g_coolant_chiller: float
+    g_housing_structure: float
+    g_structure_air: float
+    # convection to air [W/K]: h0 + h1 * n**0.8
+    h_shaft_air: tuple[float, float]
+    h_nose_air: tuple[float, float]
+    h_housing_air: float
+    # heat inputs [W] as (c1, c2, c3) for c1*n + c2*n**2 + c3*n**3, per node
+    heat_shaft_w: tuple[float, float, float]
+    heat_nose_w: tuple[float, float, float]
+    heat_housing_w: tuple[float, float, float]
+    # axial growth per kelvin of each node [um/K]
+    growth_um_per_k: tuple[float, float, float, float, float]
+    elastic_um: tuple[float, float]  # e1 [um/krpm], e2 [um/krpm**2]
+    ambient_c: float = 22.0
+    chiller_c: float = 24.0
+    ambient_daily_amplitude_k: float = 0.5
+    ambient_walk_k_per_sqrt_h: float = 0.05
+    noise_um: float = 0.05
+    quantum_um: float = 0.1
+
+
+PRESETS: dict[str, PlantParams] = {
+    # A 5-axis-centre motorized spindle like paper 001's JUST SF260H:
+    # ~34 um at 27 000 rpm after the staircase, > 10 um lost within a minute
+    # of the drop to 12 000 rpm.
+    "motorized-27k": PlantParams(
+        name="motorized-27k",
+        description="high-speed motorized spindle, 27 000 rpm, water-cooled (paper 001)",
+        max_rpm=27000.0,
+        capacity_j_per_k=(6000.0, 5000.0, 60000.0, 30000.0, 2.0e6),
+        g_shaft_nose=6.0,
+        g_shaft_housing=5.0,
+        g_nose_housing=8.0,
+        g_housing_coolant=120.0,
+        g_coolant_chiller=200.0,
+        g_housing_structure=15.0,
+        g_structure_air=60.0,
+        h_shaft_air=(0.5, 0.35),
+        h_nose_air=(1.0, 0.4),
+        h_housing_air=4.0,
+        heat_shaft_w=(0.6, 0.02, 0.0045),
+        heat_nose_w=(0.3, 0.01, 0.0040),
+        heat_housing_w=(5.0, 0.9, 0.0),
+        growth_um_per_k=(0.9, 0.38, 0.25, 0.0, 0.4),
+        elastic_um=(0.05, 0.0205),
+    ),
+    # A larger belt-driven mechanical spindle: slow, hours-long time constants.
+    "mechanical-8k": PlantParams(
+        name="mechanical-8k",
+        description="belt-driven mechanical spindle, 8 000 rpm, air-cooled, slow",
+        max_rpm=8000.0,
+        capacity_j_per_k=(40000.0, 30000.0, 250000.0, 60000.0, 4.0e6),
+        g_shaft_nose=10.0,
+        g_shaft_housing=8.0,
+        g_nose_housing=12.0,
+        g_housing_coolant=20.0,
+        g_coolant_chiller=30.0,
+        g_housing_structure=25.0,
+        g_structure_air=80.0,
+        h_shaft_air=(0.8, 0.5),
+        h_nose_air=(1.5, 0.6),
+        h_housing_air=10.0,
+        heat_shaft_w=(2.0, 0.5, 0.25),
+        heat_nose_w=(1.0, 0.4, 0.22),
+        heat_housing_w=(4.0, 1.2, 0.0),
+        growth_um_per_k=(1.4, 0.7, 0.45, 0.0, 0.6),
+        elastic_um=(0.0, 0.04),
+    ),
+}
+
+
+def preset(name: str) -> PlantParams:
+    try:
+        return PRESETS[name]
+    except KeyError as err:
+        raise KeyError(f"unknown plant preset {name!r}; choose from {', '.join(PRESETS)}") from err
+
+
+def _system(p: PlantParams, n_krpm: float) -> tuple[np.ndarray, np.ndarray]:
+    """dT/dt = A T + B u with u = (1, T_air, T_chiller), for a held speed."""
+    hs = p.h_shaft_air[0] + p.h_shaft_air[1] * n_krpm**0.8
+    hn = p.h_nose_air[0] + p.h_nose_air[1] * n_krpm**0.8
+    g = np.zeros((N_NODES, N_NODES))
+
+    def link(i: int, j: int, val: float) -> None:
+        g[i, j] += val
+        g[j, i] += val
+
+    link(0, 1, p.g_shaft_nose)
+    link(0, 2, p.g_shaft_housing)
+    link(1, 2, p.g_nose_housing)
+    link(2, 3, p.g_housing_coolant)
+    link(2, 4, p.g_housing_structure)
+    to_air = np.array([hs, hn, p.h_housing_air, 0.0, p.g_structure_air])
+    to_chiller = np.array([0.0, 0.0, 0.0, p.g_coolant_chiller, 0.0])
+    cond = g - np.diag(g.sum(axis=1) + to_air + to_chiller)
+
+    def poly(c: tuple[float, float, float]) -> float:
+        return c[0] * n_krpm + c[1] * n_krpm**2 + c[2] * n_krpm**3
+
+    heat = np.array([poly(p.heat_shaft_w), poly(p.heat_nose_w), poly(p.heat_housing_w), 0.0, 0.0])
+    cap = np.asarray(p.capacity_j_per_k)
+    a = cond / cap[:, None]
+    b = np.column_stack([heat, to_air, to_chiller]) / cap[:, None]
+    return a, b
+
+
+@dataclass
+class SpindlePlant:
+    """One simulated spindle. Seeded: the same seed gives the same run."""
+
+    params: PlantParams
+    seed: int = 0
+    time_s: float = 0.0
+    temps_c: np.ndarray = field(init=False)
+    _ref_c: np.ndarray = field(init=False)
+    _rng: np.random.Generator = field(init=False)
+    _walk_k: float = field(init=False, default=0.0)
+    _speed_rpm: float = field(init=False, default=0.0)
+    _cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = field(
+        init=False, default_factory=dict
+    )
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+        self._phase = float(self._rng.uniform(0, 2 * math.pi))
+        self.reset_cold()
+
+    def reset_cold(self) -> None:
+        """Every node at its idle equilibrium: a spindle rested overnight."""
+        p = self.params
+        air = self.air_c(self.time_s)
+        a, b = _system(p, 0.0)
+        self.temps_c = np.linalg.solve(a, -b @ np.array([1.0, air, p.chiller_c]))
+        self._ref_c = self.temps_c.copy()
+
+    def air_c(self, t_s: float) -> float:
+        p = self.params
+        return (
+            p.ambient_c
+            + p.ambient_daily_amplitude_k * math.sin(2 * math.pi * t_s / 86400.0 + self._phase)
+            + self._walk_k
+        )
+
+    def _transition(self, n_krpm: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (round(n_krpm, 9), round(dt_s, 12))
+        hit = self._cache.get(key)
+        if hit is None:
+            a, b = _system(self.params, n_krpm)
+            m = np.zeros((N_NODES + 3, N_NODES + 3))
+            m[:N_NODES, :N_NODES] = a
+            m[:N_NODES, N_NODES:] = b
+            e = expm(m * dt_s)
+            hit = (e[:N_NODES, :N_NODES].copy(), e[:N_NODES, N_NODES:].copy())
+            if len(self._cache) > 4096:
+                self._cache.clear()
+            self._cache[key] = hit
+        return hit
+
+    def advance(self, speed_rpm: float, dt_s: float) -> None:
+        """Hold ``speed_rpm`` for ``dt_s`` seconds."""
+        if not (math.isfinite(speed_rpm) and math.isfinite(dt_s)) or dt_s < 0:
+            raise ValueError(f"bad plant step: speed {speed_rpm}, dt {dt_s}")
+        if dt_s == 0:
+            self._speed_rpm = speed_rpm
+            return
+        p = self.params
+        self._walk_k += p.ambient_walk_k_per_sqrt_h * math.sqrt(dt_s / 3600.0) * float(
+            self._rng.standard_normal()
+        )
+        air = self.air_c(self.time_s + dt_s / 2)
+        phi, gam = self._transition(abs(speed_rpm) / 1000.0, dt_s)
+        self.temps_c = phi @ self.temps_c + gam @ np.array([1.0, air, p.chiller_c])
+        self.time_s += dt_s
+        self._speed_rpm = speed_rpm
+
+    def elastic_um(self, speed_rpm: float | None = None) -> float:
+        n = abs(self._speed_rpm if speed_rpm is None else speed_rpm) / 1000.0
+        e1, e2 = self.params.elastic_um
+        return e1 * n + e2 * n * n
+
+    def true_elongation_um(self) -> float:
+        """Axial growth of the tool tip relative to the cold start [um]."""
+        rise = self.temps_c - self._ref_c
+        return float(np.dot(self.params.growth_um_per_k, rise)) + self.elastic_um()
+
+    def measure_um(self, true_um: float | np.ndarray) -> float | np.ndarray:
+        """What an eddy-current sensor reads: noise, then quantisation."""
+        p = self.params
+        noisy = true_um + p.noise_um * self._rng.standard_normal(np.shape(true_um))
+        return np.round(noisy / p.quantum_um) * p.quantum_um if p.quantum_um > 0 else noisy
+
+    def run(self, times_s: np.ndarray, speeds_rpm: np.ndarray) -> PlantRun:
+        """Drive the plant over a sampled program (speeds[k] held up to times[k])."""
+        t = np.asarray(times_s, dtype=float)
+        n = np.asarray(speeds_rpm, dtype=float)
+        true = np.empty_like(t)
+        temps = np.empty((t.size, N_NODES))
+        air = np.empty_like(t)
+        prev = t[0]
+        self.time_s = float(prev)
+        for k in range(t.size):
+            self.advance(float(n[k]), float(t[k] - prev))
+            prev = t[k]
+            true[k] = self.true_elongation_um()
+            temps[k] = self.temps_c
+            air[k] = self.air_c(self.time_s)
+        measured = np.asarray(self.measure_um(true), dtype=float)
+        return PlantRun(t, n, true, measured, temps, air)
+
+    def with_params(self, **changes: float) -> SpindlePlant:
+        return SpindlePlant(replace(self.params, **changes), seed=self.seed)
+
+
+@dataclass(frozen=True)
+class PlantRun:
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    true_um: np.ndarray
+    measured_um: np.ndarray
+    temps_c: np.ndarray
+    air_c: np.ndarray
+
+    def columns(self, measured: bool = True) -> dict[str, np.ndarray]:
+        """Run-log columns in the common format."""
+        cols = {
+            "time_s": self.time_s,
+            "speed_rpm": self.speed_rpm,
+            "elongation_um": self.measured_um if measured else self.true_um,
+            "ambient_c": np.round(self.air_c, 3),
+        }
+        return cols

@@ -1,0 +1,47 @@
+"""One exception tree for all of thermocomp.
+
+Every error also subclasses the builtin it refines (python-control style), so
+callers that only know ``ValueError`` or ``OSError`` still catch them.
+"""
+
+from __future__ import annotations
+
+
+class ThermocompError(Exception):
+    """Root of every error raised on purpose by thermocomp."""
+
+
+class ModelError(ThermocompError, ValueError):
+    """A thermal model is invalid."""
+
+
+class UnstableModelError(ModelError):
+    """A state's pole |a(n)| >= 1 somewhere in the calibrated speed range."""
+
+
+class ModelFileError(ModelError):
+    """A model file is unreadable, of an unknown schema, or tampered with."""
+
+
+class NonFiniteInputError(ThermocompError, ValueError):
+    """A speed, time step or elongation is NaN or infinite."""
+
+
+class RunLogError(ThermocompError, ValueError):
+    """A run log is malformed. ``path`` and ``line`` locate the fault."""
+
+    def __init__(self, message: str, path: str | None = None, line: int | None = None):
+        self.path = path
+        self.line = line
+        where = ""
+        if path is not None:
+            where = f"{path}:{line}: " if line is not None else f"{path}: "
+        super().__init__(f"{where}{message}")
+
+
+class ConfigError(ThermocompError, ValueError):
+    """A configuration value is invalid."""
+
+
+class CalibrationError(ThermocompError, ValueError):
+    """Calibration data cannot produce a trustworthy model."""

@@ -1,0 +1,357 @@
+"""All file I/O of thermocomp in one place: run logs and model files.
+
+Run-log format (shared by calibration, replay, the runtime journal and the
+simulator)::
+
+    # spindle_id: sp1            <- optional '# key: value' metadata lines
+    time_s,speed_rpm,elongation_um,ambient_c
+    0,0,0.00,22.0
+    60,3000,1.52,22.0
+
+``time_s`` and ``speed_rpm`` are required; ``elongation_um`` is optional; any
+other column is kept. Time must strictly increase. Gaps are allowed and
+reported. Every error names the file and line.
+
+Model files are the JSON of :class:`~compensator.model.ThermalModel` with a
+``sha256`` over the canonical content, so a hand-edited file is refused.
+All writes are atomic: temporary file, fsync, rename.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import tempfile
+import warnings
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from .errors import ModelError, ModelFileError, RunLogError, UnstableModelError
+from .model import MODEL_FORMAT, ThermalModel
+
+REQUIRED_COLUMNS = ("time_s", "speed_rpm")
+ELONGATION_COLUMN = "elongation_um"
+GAP_FACTOR = 5.0
+"""A step longer than this many median steps is reported as a gap."""
+
+
+@dataclass(frozen=True)
+class Gap:
+    line: int
+    start_s: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class RunLog:
+    """A parsed run log. Arrays are float64 and share one length."""
+
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    elongation_um: np.ndarray | None = None
+    extras: Mapping[str, np.ndarray] = field(default_factory=dict)
+    metadata: Mapping[str, str] = field(default_factory=dict)
+    gaps: tuple[Gap, ...] = ()
+    source: str | None = None
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.time_s[-1] - self.time_s[0]) if len(self) else 0.0
+
+    @property
+    def median_dt_s(self) -> float:
+        return float(np.median(np.diff(self.time_s))) if len(self) > 1 else 0.0
+
+    def line_of(self, row: int) -> int | None:
+        """File line of data row ``row``, when the log came from a file."""
+        if self.source is None:
+            return None
+        return _line_of_row(self.source, row)
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[Any]]:
+    """Write to a temporary file beside ``path``, fsync, then rename over it.
+
+    A crash at any moment leaves either the old file or the new one, never a
+    partial file.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):
+        dfd = os.open(target.parent, os.O_DIRECTORY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+# -- run logs -----------------------------------------------------------------
+
+
+def _is_skipped(line: str) -> bool:
+    s = line.strip()
+    return not s or s.startswith("#")
+
+
+def _lines_of_rows(path: str, rows: list[int]) -> dict[int, int]:
+    """1-based file lines of data rows (0-based), skipping comments and blanks."""
+    wanted = set(rows)
+    found: dict[int, int] = {}
+    last = max(wanted, default=-1)
+    seen = -1  # the header is row -1
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if _is_skipped(line):
+                continue
+            if seen in wanted:
+                found[seen] = lineno
+            if seen >= last:
+                break
+            seen += 1
+    return found
+
+
+def _line_of_row(path: str, row: int) -> int | None:
+    return _lines_of_rows(path, [row]).get(row)
+
+
+def _first_ragged_line(path: str) -> tuple[int | None, int, int]:
+    """(line, fields, header fields) of the first row whose width differs from the header."""
+    width = None
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if _is_skipped(line):
+                continue
+            fields = len(line.split("#", 1)[0].rstrip("\r\n").split(","))
+            if width is None:
+                width = fields
+            elif fields != width:
+                return lineno, fields, width
+    return None, 0, width or 0
+
+
+def _read_metadata(path: str) -> tuple[dict[str, str], int | None]:
+    """Leading '# key: value' lines, and the line number of the header."""
+    meta: dict[str, str] = {}
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            s = line.strip()
+            if not s:
+                continue
+            if s.startswith("#"):
+                key, sep, value = s.lstrip("#").partition(":")
+                if sep and key.strip():
+                    meta[key.strip()] = value.strip()
+                continue
+            return meta, lineno
+    return meta, None
+
+
+def read_run_log(path: str | os.PathLike[str]) -> RunLog:
+    """Read a run log; raise :class:`RunLogError` naming file and line on any fault."""
+    import pandas as pd  # heavy; only the reader needs it
+
+    src = os.fspath(path)
+    try:
+        meta, header_line = _read_metadata(src)
+    except OSError as err:
+        raise RunLogError(f"cannot read: {err.strerror or err}", src) from err
+    except UnicodeError as err:
+        raise RunLogError("not a text file", src) from err
+    if header_line is None:
+        raise RunLogError("no header line (expected time_s,speed_rpm[,elongation_um,...])", src)
+    try:
+        with warnings.catch_warnings():
+            # a row longer than the header must not silently become an index
+            warnings.simplefilter("error", pd.errors.ParserWarning)
+            df = pd.read_csv(
+                src,
+                comment="#",
+                skip_blank_lines=True,
+                skipinitialspace=True,
+                index_col=False,
+                engine="c",
+                low_memory=False,
+            )
+    except pd.errors.EmptyDataError as err:
+        raise RunLogError("empty file", src) from err
+    except (pd.errors.ParserError, pd.errors.ParserWarning, ValueError, UnicodeError) as err:
+        line, fields, width = _first_ragged_line(src)
+        if line is not None:
+            raise RunLogError(
+                f"malformed CSV: {fields} fields where the header has {width}", src, line
+            ) from err
+        msg = str(err).strip().splitlines()[-1]
+        raise RunLogError(f"malformed CSV: {msg}", src) from err
+    df.columns = [str(c).strip() for c in df.columns]
+    dupes = sorted({c for c in df.columns if list(df.columns).count(c) > 1})
+    if dupes:
+        raise RunLogError(f"duplicate column(s) {', '.join(dupes)}", src, header_line)
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise RunLogError(
+            f"missing column(s) {', '.join(missing)} in header {','.join(df.columns)}",
+            src,
+            header_line,
+        )
+    if len(df) == 0:
+        raise RunLogError("no data rows", src)
+
+    def numeric(col: str, allow_nan: bool = False) -> np.ndarray:
+        raw = df[col]
+        values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
+        bad = ~np.isfinite(values)
+        if bad.any() and not allow_nan:
+            row = int(np.flatnonzero(bad)[0])
+            cell = raw.iloc[row]
+            what = "empty cell" if cell is None or (isinstance(cell, float) and math.isnan(cell)) else f"'{cell}'"
+            raise RunLogError(
+                f"column {col}: {what} is not a finite number", src, _line_of_row(src, row)
+            )
+        return values
+
+    time_s = numeric("time_s")
+    speed = numeric("speed_rpm")
+    elong = numeric(ELONGATION_COLUMN) if ELONGATION_COLUMN in df.columns else None
+    dt = np.diff(time_s)
+    back = np.flatnonzero(dt <= 0)
+    if back.size:
+        row = int(back[0]) + 1
+        raise RunLogError(
+            f"time does not increase ({time_s[row]:g} s after {time_s[row - 1]:g} s)",
+            src,
+            _line_of_row(src, row),
+        )
+    extras: dict[str, np.ndarray] = {}
+    for col in df.columns:
+        if col in REQUIRED_COLUMNS or col == ELONGATION_COLUMN:
+            continue
+        conv = pd.to_numeric(df[col], errors="coerce")
+        extras[col] = (
+            conv.to_numpy(dtype=float)
+            if conv.notna().sum() == df[col].notna().sum()
+            else df[col].to_numpy(dtype=object)
+        )
+    gaps: tuple[Gap, ...] = ()
+    if dt.size:
+        idx = np.flatnonzero(dt > GAP_FACTOR * float(np.median(dt)))
+        lines = _lines_of_rows(src, [int(k) + 1 for k in idx[:100]])
+        gaps = tuple(
+            Gap(lines.get(int(k) + 1, -1), float(time_s[k]), float(dt[k])) for k in idx
+        )
+    return RunLog(
+        time_s=time_s,
+        speed_rpm=speed,
+        elongation_um=elong,
+        extras=extras,
+        metadata=meta,
+        gaps=gaps,
+        source=src,
+    )
+
+
+def format_run_log(
+    columns: Mapping[str, np.ndarray], metadata: Mapping[str, Any] | None = None
+) -> str:
+    """The text of a run log. ``columns`` must start with time_s, speed_rpm."""
+    names = list(columns)
+    if names[:2] != list(REQUIRED_COLUMNS):
+        raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}, got {names[:2]}")
+    import pandas as pd
+
+    head = "".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items())
+    frame = pd.DataFrame({k: np.asarray(v) for k, v in columns.items()})
+    # 9 significant digits: sub-nanometre for um, exact for seconds up to years
+    body = frame.to_csv(index=False, float_format="%.9g", lineterminator="\n")
+    return head + body
+
+
+def write_run_log(
+    path: str | os.PathLike[str],
+    columns: Mapping[str, np.ndarray],
+    metadata: Mapping[str, Any] | None = None,
+) -> None:
+    """Atomically write a run log."""
+    text = format_run_log(columns, metadata)
+    with atomic_write(path) as fh:
+        fh.write(text)
+
+
+# -- model files -----------------------------------------------------------------
+
+
+def _canonical(payload: Mapping[str, Any]) -> str:
+    return json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def model_to_json(model: ThermalModel) -> str:
+    payload = model.model_dump(mode="json")
+    payload["sha256"] = hashlib.sha256(_canonical(payload).encode()).hexdigest()
+    return json.dumps(payload, indent=2, sort_keys=False, allow_nan=False) + "\n"
+
+
+def save_model(path: str | os.PathLike[str], model: ThermalModel) -> None:
+    """Atomically write a model file with its checksum."""
+    text = model_to_json(model)
+    with atomic_write(path) as fh:
+        fh.write(text)
+
+
+def load_model(path: str | os.PathLike[str]) -> ThermalModel:
+    """Read and verify a model file.
+
+    Raises :class:`ModelFileError` for an unreadable, unknown or tampered file
+    and :class:`UnstableModelError` for an unstable one.
+    """
+    src = os.fspath(path)
+    try:
+        with open(src, encoding="utf-8") as fh:
+            payload = json.load(fh)
+    except OSError as err:
+        raise ModelFileError(f"{src}: cannot read: {err.strerror or err}") from err
+    except (json.JSONDecodeError, UnicodeError) as err:
+        raise ModelFileError(f"{src}: not a JSON model file ({err})") from err
+    if not isinstance(payload, dict):
+        raise ModelFileError(f"{src}: not a JSON model file (top level is not an object)")
+    fmt = payload.get("format")
+    if fmt != MODEL_FORMAT:
+        raise ModelFileError(
+            f"{src}: unknown model format {fmt!r} (this thermocomp reads {MODEL_FORMAT})"
+        )
+    digest = payload.pop("sha256", None)
+    if digest is None:
+        raise ModelFileError(f"{src}: no sha256 checksum; refusing an unverified model")
+    try:
+        actual = hashlib.sha256(_canonical(payload).encode()).hexdigest()
+    except ValueError as err:
+        raise ModelFileError(f"{src}: non-finite number in model file") from err
+    if actual != digest:
+        raise ModelFileError(f"{src}: checksum mismatch: the file was modified after it was written")
+    try:
+        return ThermalModel.model_validate(payload)
+    except UnstableModelError as err:
+        raise UnstableModelError(f"{src}: {err}") from err
+    except ModelError as err:
+        raise ModelFileError(f"{src}: invalid model: {err}") from err

@@ -1,0 +1,490 @@
+"""The cumulative thermal-elongation model: a pure, immutable value.
+
+The model follows eq. 10 of paper 001 (see ``shared/MODEL.md``), generalised to
+one or more parallel first-order thermal states plus an instantaneous (elastic)
+speed-dependent term. For state *j*, with the speed held at n over a step::
+
+    dx_j/dt = -lambda_j(n) * x_j + u_j(n)
+    lambda_j(n) = d0 + d1*n                      [1/s]      dissipation
+    u_j(n)      = g0 + g1*n + g2*n**2 + g3*n**3  [um/s]     heat generation
+    S           = sum_j x_j + e1*n + e2*n**2     [um]       elongation
+
+n is |speed| in krpm (the internal scale keeps n**3 well conditioned). ``d1``
+is the paper's speed x state term, extra entries in ``states`` are extra
+thermal states, and ``e1``/``e2`` are the elastic (centrifugal or preload) part,
+which is not a state and therefore never filtered.
+
+Stepping uses the exact zero-order-hold solution of that linear system::
+
+    a = exp(-lambda*dt),   x' = a*x + (1 - a)/lambda * u
+
+so a model fitted at 60 s steps correctly at 0.1 s, 1 s or irregular
+intervals: ``a' = a**(dt'/dt)`` and the input gain scales by
+``(1 - a')/(1 - a)`` (MODEL.md, "Sample period").
+
+Convention: ``speed_rpm`` passed to :meth:`ThermalModel.step` is held over the
+whole step; in :meth:`ThermalModel.simulate` ``speeds[k]`` is held over
+``(times[k-1], times[k]]``, which is the paper's ``S_k = a*S_{k-1} + f(n_k)``.
+
+This module does no I/O; reading and writing model files lives in
+:mod:`compensator.io`.
+
+References
+----------
+Paper 001 in ``shared/papers`` (cumulative model, eqs. 10-13).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from scipy.signal import lfilter
+
+from .errors import ModelError, NonFiniteInputError, UnstableModelError
+
+MODEL_FORMAT = "thermocomp.model/1"
+SPEED_SCALE_RPM = 1000.0
+"""Speeds are scaled to krpm internally: coefficients are per krpm**i."""
+
+_CHUNK = 1 << 16  # samples per block: keeps the per-block temporaries in cache
+_MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
+
+
+class ThermalStateCoefficients(BaseModel):
+    """Coefficients of one first-order thermal state (n in krpm)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    dissipation_per_s: tuple[float, float] = Field(
+        description="(d0 [1/s], d1 [1/(s*krpm)]): lambda(n) = d0 + d1*n"
+    )
+    generation_um_per_s: tuple[float, float, float, float] = Field(
+        description="(g0, g1, g2, g3) [um/s per krpm**i]: u(n) = sum g_i*n**i"
+    )
+
+    @field_validator("dissipation_per_s", "generation_um_per_s")
+    @classmethod
+    def _finite(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(v) for v in value):
+            raise ValueError("coefficients must be finite")
+        return value
+
+    def rate_per_s(self, n_krpm: float) -> float:
+        d0, d1 = self.dissipation_per_s
+        return d0 + d1 * n_krpm
+
+    def generation(self, n_krpm: float) -> float:
+        g0, g1, g2, g3 = self.generation_um_per_s
+        return ((g3 * n_krpm + g2) * n_krpm + g1) * n_krpm + g0
+
+
+class ThermalModel(BaseModel):
+    """Immutable model value; see the module docstring for the equations.
+
+    Construction validates stability over ``speed_range_rpm``: a state with
+    lambda(n) <= 0, i.e. a discrete pole |a(n)| >= 1, anywhere in the range
+    raises :class:`~compensator.errors.UnstableModelError`; any other invalid
+    field raises :class:`~compensator.errors.ModelError`.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["thermocomp.model/1"] = MODEL_FORMAT
+    spindle_id: str = "unknown"
+    machine_id: str = ""
+    form: str = Field("paper", description="name of the model form chosen by calibration")
+    fitted_dt_s: float = Field(gt=0, description="sample period of the calibration data [s]")
+    speed_range_rpm: tuple[float, float] = Field(
+        description="(min, max) |speed| seen in calibration [rpm]"
+    )
+    states: tuple[ThermalStateCoefficients, ...] = Field(min_length=1)
+    elastic_um: tuple[float, float] = Field(
+        (0.0, 0.0), description="(e1 [um/krpm], e2 [um/krpm**2]): instantaneous e(n)"
+    )
+    fit: dict[str, Any] = Field(default_factory=dict, description="fit statistics")
+    created_utc: str | None = None
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as err:
+            raise _model_error(err) from err
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> ThermalModel:  # type: ignore[override]
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as err:
+            raise _model_error(err) from err
+
+    @field_validator("speed_range_rpm")
+    @classmethod
+    def _range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo:
+            raise ValueError(f"speed_range_rpm must satisfy 0 <= min <= max, got {value}")
+        return value
+
+    @field_validator("elastic_um")
+    @classmethod
+    def _elastic_finite(cls, value: tuple[float, float]) -> tuple[float, float]:
+        if not all(math.isfinite(v) for v in value):
+            raise ValueError("elastic coefficients must be finite")
+        return value
+
+    @model_validator(mode="after")
+    def _stable(self) -> ThermalModel:
+        lo, hi = (v / SPEED_SCALE_RPM for v in self.speed_range_rpm)
+        for j, st in enumerate(self.states, start=1):
+            # lambda is linear in n, so its minimum over the range is at an end
+            for n in (lo, hi):
+                lam = st.rate_per_s(n)
+                if not lam > 0:
+                    a = math.exp(-lam * self.fitted_dt_s) if lam > -50 else math.inf
+                    raise UnstableModelError(
+                        f"state {j} is unstable at {n * SPEED_SCALE_RPM:.0f} rpm: "
+                        f"a(n) = {a:.6g} >= 1 at dt = {self.fitted_dt_s:g} s "
+                        f"(dissipation {lam:.3g} 1/s)"
+                    )
+        return self
+
+    # -- construction -------------------------------------------------------
+
+    @classmethod
+    def from_discrete(
+        cls,
+        a: float,
+        beta_um: tuple[float, float, float, float],
+        dt_s: float,
+        *,
+        speed_range_rpm: tuple[float, float],
+        elastic_um: tuple[float, float] = (0.0, 0.0),
+        **fields: Any,
+    ) -> ThermalModel:
+        """Exact continuous equivalent of the paper's discrete form (eqs. 11-12).
+
+        ``S_k = a*S_{k-1} + b0 + b1*n + b2*n**2 + b3*n**3`` at period ``dt_s``,
+        with ``beta_um = (b0, b1, b2, b3)`` per krpm**i.
+        """
+        if not (math.isfinite(a) and all(math.isfinite(b) for b in beta_um)):
+            raise NonFiniteInputError("discrete coefficients must be finite")
+        if a >= 1.0:
+            raise UnstableModelError(f"pole a = {a:.6g} >= 1: the model is unstable")
+        if a <= 0.0:
+            raise ModelError(f"pole a = {a:.6g} <= 0 has no continuous-time equivalent")
+        lam = -math.log(a) / dt_s
+        gain = lam / (1.0 - a)  # u = beta * lambda / (1 - a)
+        state = ThermalStateCoefficients(
+            dissipation_per_s=(lam, 0.0),
+            generation_um_per_s=tuple(b * gain for b in beta_um),  # type: ignore[arg-type]
+        )
+        return cls(
+            fitted_dt_s=dt_s,
+            speed_range_rpm=speed_range_rpm,
+            states=(state,),
+            elastic_um=elastic_um,
+            **fields,
+        )
+
+    def replace(self, **changes: Any) -> ThermalModel:
+        """A new, re-validated model with some fields changed."""
+        return type(self).model_validate({**self.model_dump(), **changes})
+
+    # -- derived quantities -----------------------------------------------
+
+    @property
+    def order(self) -> int:
+        return len(self.states)
+
+    def elastic(self, speed_rpm: float) -> float:
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        e1, e2 = self.elastic_um
+        return (e2 * n + e1) * n
+
+    def time_constants_s(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        return tuple(1.0 / st.rate_per_s(n) for st in self.states)
+
+    def steady_state_um(self, speed_rpm: float) -> float:
+        """Equilibrium elongation when ``speed_rpm`` is held forever [um]."""
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        return sum(st.generation(n) / st.rate_per_s(n) for st in self.states) + self.elastic(
+            speed_rpm
+        )
+
+    def in_range(self, speed_rpm: float, tolerance: float = 0.02) -> bool:
+        lo, hi = self.speed_range_rpm
+        n = abs(speed_rpm)
+        return lo * (1 - tolerance) <= n <= hi * (1 + tolerance) or n == 0.0
+
+    def discretize(self, dt_s: float) -> DiscreteModel:
+        """The exact zero-order-hold model at a fixed period: a new value."""
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise ModelError(f"dt_s must be finite and > 0, got {dt_s}")
+        return DiscreteModel(self, float(dt_s))
+
+    # -- state --------------------------------------------------------------
+
+    def cold_state(self, speed_rpm: float = 0.0) -> ModelState:
+        """All thermal states at zero: the spindle at ambient."""
+        return ModelState((0.0,) * self.order, self.elastic(speed_rpm))
+
+    def state_at(self, elongation_um: float, speed_rpm: float = 0.0) -> ModelState:
+        """A state whose elongation equals ``elongation_um``.
+
+        The thermal part is split across states in proportion to their
+        equilibrium shares at ``speed_rpm`` (the spindle is assumed near
+        equilibrium); where those shares are not all of one sign it is split
+        evenly.
+        """
+        _check_finite("elongation_um", elongation_um)
+        _check_finite("speed_rpm", speed_rpm)
+        elastic = self.elastic(speed_rpm)
+        thermal = elongation_um - elastic
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        shares = [st.generation(n) / st.rate_per_s(n) for st in self.states]
+        total = sum(shares)
+        if total != 0 and (all(s >= 0 for s in shares) or all(s <= 0 for s in shares)):
+            weights = [s / total for s in shares]
+        else:
+            weights = [1.0 / self.order] * self.order
+        return ModelState(tuple(thermal * w for w in weights), elastic)
+
+    # -- stepping -----------------------------------------------------------
+
+    def step(self, state: ModelState, speed_rpm: float, dt_s: float) -> ModelState:
+        """Advance ``state`` by ``dt_s`` seconds with ``speed_rpm`` held.
+
+        Negative speed is reverse rotation (|n| is used); NaN or inf raises
+        :class:`NonFiniteInputError`, as does a negative ``dt_s``.
+        """
+        _check_finite("speed_rpm", speed_rpm)
+        _check_finite("dt_s", dt_s)
+        if dt_s < 0:
+            raise NonFiniteInputError(f"dt_s must be >= 0, got {dt_s}")
+        if len(state.thermal_um) != self.order:
+            raise ModelError(
+                f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
+            )
+        speed_rpm, dt_s = float(speed_rpm), float(dt_s)
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        new = []
+        for x, st in zip(state.thermal_um, self.states):
+            lam = st.rate_per_s(n)
+            ld = lam * dt_s
+            gain = -math.expm1(-ld) / lam if lam != 0.0 else dt_s
+            new.append(math.exp(-ld) * x + gain * st.generation(n))
+        return ModelState(tuple(new), self.elastic(speed_rpm))
+
+    def simulate(
+        self,
+        speeds_rpm: np.ndarray,
+        times_s: np.ndarray,
+        state: ModelState | None = None,
+    ) -> Simulation:
+        """Free-run the model over a whole log (vectorised).
+
+        ``elongation_um[0]`` is the initial state's elongation at
+        ``speeds_rpm[0]``; ``speeds_rpm[k]`` drives the step that ends at
+        ``times_s[k]``. ``state`` defaults to :meth:`cold_state`.
+        """
+        speeds = np.asarray(speeds_rpm, dtype=float)
+        times = np.asarray(times_s, dtype=float)
+        if speeds.ndim != 1 or speeds.shape != times.shape:
+            raise ModelError("speeds_rpm and times_s must be 1-D arrays of one length")
+        if speeds.size == 0:
+            raise ModelError("cannot simulate an empty log")
+        if not np.isfinite(speeds).all():
+            k = int(np.flatnonzero(~np.isfinite(speeds))[0])
+            raise NonFiniteInputError(f"speed at sample {k} is {speeds[k]}")
+        if not np.isfinite(times).all():
+            k = int(np.flatnonzero(~np.isfinite(times))[0])
+            raise NonFiniteInputError(f"time at sample {k} is {times[k]}")
+        dt = np.diff(times)
+        if (dt < 0).any():
+            k = int(np.flatnonzero(dt < 0)[0]) + 1
+            raise NonFiniteInputError(f"time goes backwards at sample {k}")
+        if state is None:
+            state = self.cold_state(float(speeds[0]))
+        elif len(state.thermal_um) != self.order:
+            raise ModelError(
+                f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
+            )
+
+        n = np.abs(speeds)
+        n *= 1.0 / SPEED_SCALE_RPM
+        out = np.zeros_like(n)
+        e1, e2 = self.elastic_um
+        if e1 or e2:
+            out += e2 * n
+            out += e1
+            out *= n
+        uniform = dt.size == 0 or (dt.max() - dt.min()) <= 1e-12 * max(dt.mean(), 1e-300)
+        finals = []
+        for x0, st in zip(state.thermal_um, self.states):
+            if uniform and st.dissipation_per_s[1] == 0.0:
+                x = _filter_uniform(st, n, float(dt[0]) if dt.size else 0.0, x0)
+            else:
+                x = _filter_general(st, n, dt, x0)
+            out += x
+            finals.append(float(x[-1]))
+        final = ModelState(tuple(finals), self.elastic(float(speeds[-1])))
+        return Simulation(out, final)
+
+
+def _model_error(err: ValidationError) -> ModelError:
+    """Our own error from pydantic's: the original if we raised one, else one line."""
+    for item in err.errors():
+        original = (item.get("ctx") or {}).get("error")
+        if isinstance(original, ModelError):
+            return original
+    item = err.errors()[0]
+    where = ".".join(str(p) for p in item["loc"]) or "model"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return ModelError(f"{where}: {item['msg']}{more}")
+
+
+def _check_finite(name: str, value: float) -> None:
+    if not math.isfinite(value):
+        raise NonFiniteInputError(f"{name} is {value}")
+
+
+def _generation(st: ThermalStateCoefficients, n: np.ndarray, out: np.ndarray) -> np.ndarray:
+    g0, g1, g2, g3 = st.generation_um_per_s
+    np.multiply(n, g3, out=out)
+    out += g2
+    out *= n
+    out += g1
+    out *= n
+    out += g0
+    return out
+
+
+def _filter_uniform(
+    st: ThermalStateCoefficients, n: np.ndarray, dt: float, x0: float
+) -> np.ndarray:
+    """Constant pole: one lfilter pass, blocked so the polynomial stays in cache."""
+    lam = st.dissipation_per_s[0]
+    a = math.exp(-lam * dt)
+    gain = -math.expm1(-lam * dt) / lam
+    x = np.empty_like(n)
+    x[0] = x0
+    zi = np.array([a * x0])
+    buf = np.empty(min(_CHUNK, n.size))
+    for s in range(1, n.size, _CHUNK):
+        blk = n[s : s + _CHUNK]
+        u = _generation(st, blk, buf[: blk.size])
+        x[s : s + blk.size], zi = lfilter([gain], [1.0, -a], u, zi=zi)
+    return x
+
+
+def _filter_general(
+    st: ThermalStateCoefficients, n: np.ndarray, dt: np.ndarray, x0: float
+) -> np.ndarray:
+    """Time-varying pole a_k = exp(-lambda(n_k)*dt_k), solved in closed form.
+
+    Within a block, x_k = exp(-L_k) * (x_start + sum_{j<=k} b_j * exp(L_j)) with
+    L_k = cumsum(lambda*dt). Blocks are cut so that L spans at most
+    ``_MAX_LOG_SPAN``, which keeps every exponential finite.
+    """
+    d0, d1 = st.dissipation_per_s
+    x = np.empty_like(n)
+    x[0] = x0
+    nn = n[1:]
+    total = nn.size
+    s = 0
+    xs = x0
+    while s < total:
+        e = min(s + _CHUNK, total)
+        blk_n = nn[s:e]
+        lam = blk_n * d1
+        lam += d0
+        ld = lam * dt[s:e]
+        L = np.cumsum(ld)
+        if L[-1] > _MAX_LOG_SPAN:
+            e = s + max(1, int(np.searchsorted(L, _MAX_LOG_SPAN)))
+            blk_n, lam, ld, L = blk_n[: e - s], lam[: e - s], ld[: e - s], L[: e - s]
+        g = np.empty_like(blk_n)
+        _generation(st, blk_n, g)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = -np.expm1(-ld) / lam
+        zero = lam == 0.0
+        if zero.any():
+            gain[zero] = dt[s:e][zero]
+        g *= gain
+        w = np.exp(L)
+        g *= w
+        c = np.cumsum(g)
+        c += xs
+        np.exp(-L, out=w)
+        c *= w
+        x[s + 1 : e + 1] = c
+        xs = float(c[-1])
+        s = e
+    return x
+
+
+@dataclass(frozen=True, slots=True)
+class ModelState:
+    """Runtime state, kept apart from the coefficients.
+
+    ``thermal_um`` holds each thermal state; ``elastic_um`` the instantaneous
+    part at the last speed.
+    """
+
+    thermal_um: tuple[float, ...]
+    elastic_um: float = 0.0
+
+    @property
+    def elongation_um(self) -> float:
+        return math.fsum(self.thermal_um) + self.elastic_um
+
+
+@dataclass(frozen=True, slots=True)
+class Simulation:
+    """Result of :meth:`ThermalModel.simulate`."""
+
+    elongation_um: np.ndarray
+    final: ModelState
+
+
+@dataclass(frozen=True, slots=True)
+class DiscreteModel:
+    """A model sampled at a fixed period ``dt_s`` (exact zero-order hold)."""
+
+    continuous: ThermalModel
+    dt_s: float
+
+    def poles(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
+        """a_j(n) = exp(-lambda_j(n)*dt) per state."""
+        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        return tuple(math.exp(-st.rate_per_s(n) * self.dt_s) for st in self.continuous.states)
+
+    def paper_coefficients(self) -> dict[str, float]:
+        """(a, b0..b3 per krpm**i) of ``S_k = a*S_{k-1} + f(n_k)``.
+
+        Only defined for the paper's form: one state, no speed x state term.
+        """
+        m = self.continuous
+        if m.order != 1 or m.states[0].dissipation_per_s[1] != 0.0:
+            raise ModelError("paper coefficients exist only for one state without n*S term")
+        st = m.states[0]
+        lam = st.dissipation_per_s[0]
+        a = math.exp(-lam * self.dt_s)
+        gain = -math.expm1(-lam * self.dt_s) / lam
+        g0, g1, g2, g3 = st.generation_um_per_s
+        return {"a": a, "b0": gain * g0, "b1": gain * g1, "b2": gain * g2, "b3": gain * g3}
+
+    def step(self, state: ModelState, speed_rpm: float) -> ModelState:
+        return self.continuous.step(state, speed_rpm, self.dt_s)

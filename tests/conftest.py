@@ -1,0 +1,51 @@
+"""Shared fixtures: hand-built models of each form."""
+
+from __future__ import annotations
+
+import pytest
+
+from compensator import ThermalModel, ThermalStateCoefficients
+
+
+def first_order(**kw) -> ThermalModel:
+    return ThermalModel(
+        fitted_dt_s=60.0,
+        speed_range_rpm=(0.0, 27000.0),
+        states=(
+            ThermalStateCoefficients(
+                dissipation_per_s=(1 / 1200.0, 0.0),
+                generation_um_per_s=(0.0005, 0.0004, 0.00003, 0.0000012),
+            ),
+        ),
+        **kw,
+    )
+
+
+def rich_form() -> ThermalModel:
+    """Two states, a speed x state term and an elastic part."""
+    return ThermalModel(
+        form="two-state+nS+elastic",
+        fitted_dt_s=60.0,
+        speed_range_rpm=(0.0, 27000.0),
+        states=(
+            ThermalStateCoefficients(
+                dissipation_per_s=(1 / 300.0, 2e-5),
+                generation_um_per_s=(0.0, 0.0008, 0.00004, 0.000002),
+            ),
+            ThermalStateCoefficients(
+                dissipation_per_s=(1 / 3600.0, 0.0),
+                generation_um_per_s=(0.0001, 0.0001, 0.00001, 0.0),
+            ),
+        ),
+        elastic_um=(0.05, 0.02),
+    )
+
+
+@pytest.fixture
+def model1() -> ThermalModel:
+    return first_order()
+
+
+@pytest.fixture
+def model_rich() -> ThermalModel:
+    return rich_form()

@@ -1,0 +1,173 @@
+"""Offset shaping: clamp, slew, deadband and the transient policy."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from compensator import Flag, NonFiniteInputError, OffsetShaper, ShaperConfig, TransientPolicy
+
+NO_TRANSIENT = TransientPolicy(enabled=False)
+
+
+def run(shaper: OffsetShaper, samples, state=None):
+    """samples: (elongation_um, speed_rpm, dt_s). Returns outputs, results, final state."""
+    state = state or shaper.initial()
+    outs, results = [], []
+    for s, n, dt in samples:
+        state, res = shaper.update(state, s, n, dt)
+        outs.append(res.offset_um)
+        results.append(res)
+    return outs, results, state
+
+
+def test_offset_is_minus_elongation_when_unconstrained():
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=100, deadband_um=0, transient=NO_TRANSIENT))
+    outs, res, _ = run(sh, [(5.0, 1000, 1.0), (7.5, 1000, 1.0)])
+    assert outs == [-5.0, -7.5]
+    assert all(r.write for r in res)
+
+
+def test_clamp():
+    sh = OffsetShaper(ShaperConfig(max_offset_um=20, max_rate_um_per_s=100, deadband_um=0,
+                                   transient=NO_TRANSIENT))
+    outs, res, _ = run(sh, [(15, 0, 1.0), (35, 0, 1.0), (-50, 0, 1.0)])
+    assert outs == [-15, -20, 20]
+    assert Flag.CLAMPED in res[1].flags and Flag.CLAMPED in res[2].flags
+    assert Flag.CLAMPED not in res[0].flags
+
+
+def test_slew_limit_ramps_a_step():
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=0.5, deadband_um=0, transient=NO_TRANSIENT))
+    outs, res, _ = run(sh, [(10.0, 0, 1.0)] * 25)
+    assert outs[:3] == pytest.approx([-0.5, -1.0, -1.5])
+    assert outs[-1] == pytest.approx(-10.0)
+    assert Flag.SLEW_LIMITED in res[0].flags
+    assert Flag.SLEW_LIMITED not in res[-1].flags
+
+
+def test_deadband_suppresses_small_changes_but_never_stalls():
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=0.05, deadband_um=0.3, transient=NO_TRANSIENT))
+    # below the deadband: nothing is written
+    outs, res, st = run(sh, [(0.2, 0, 1.0)] * 5)
+    assert outs == [0.0] * 5 and not any(r.write for r in res)
+    assert Flag.DEADBAND in res[0].flags
+    # above it, the output keeps moving even though each slew step (0.05) < deadband
+    outs, res, _ = run(sh, [(1.0, 0, 1.0)] * 40, state=st)
+    assert outs[-1] < -0.69 and all(r.write for r in res[:10])
+
+
+def test_hold_mode_freezes_the_offset_during_a_transient_then_releases_smoothly():
+    pol = TransientPolicy(mode="hold", window_s=30, speed_step_rpm=5000, speed_rate_rpm_per_s=2000,
+                          release_rate_um_per_s=0.2)
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=2.0, deadband_um=0, transient=pol))
+    warm = [(30.0, 27000, 1.0)] * 60  # settle at -30
+    drop = [(14.0, 12000, 1.0)] * 200  # elastic drop: 16 um at once
+    outs, res, _ = run(sh, warm + drop)
+    assert outs[59] == pytest.approx(-30.0)
+    window = outs[60:90]
+    assert all(o == pytest.approx(-30.0) for o in window)  # held
+    assert all(Flag.TRANSIENT in r.flags for r in res[60:90])
+    after = outs[91:]
+    steps = [abs(b - a) for a, b in zip(outs[90:], after)]
+    assert max(steps) <= 0.2 + 1e-12  # released at the release rate, not max rate
+    assert any(Flag.RELEASING in r.flags for r in res[91:])
+    assert outs[-1] == pytest.approx(-14.0)
+
+
+def test_slow_mode_lengthens_the_target_update_cycle():
+    pol = TransientPolicy(mode="slow", window_s=60, slow_period_s=20, speed_step_rpm=5000,
+                          speed_rate_rpm_per_s=2000, release_rate_um_per_s=1.0)
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=1.0, deadband_um=0, transient=pol))
+    warm = [(30.0, 27000, 1.0)] * 40
+    # during the window the prediction keeps falling; targets are latched every 20 s
+    falling = [(14.0 - 0.05 * k, 12000, 1.0) for k in range(60)]
+    _, res, _ = run(sh, warm + falling)
+    window = res[40:100]
+    latched = {round(r.desired_um, 6) for r in window}
+    assert len(latched) > 10  # desired kept changing every sample ...
+    outs = [r.offset_um for r in window]
+    # ... but the output only started moving after the first slow period
+    assert all(o == pytest.approx(-30.0) for o in outs[:20])
+    assert outs[-1] > -30.0 + 10
+
+
+def test_transient_detected_from_speed_rate_on_short_samples():
+    pol = TransientPolicy(mode="hold", window_s=5, speed_step_rpm=20000, speed_rate_rpm_per_s=1000)
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=10, deadband_um=0, transient=pol))
+    _, res, _ = run(sh, [(1.0, 0, 0.1), (1.0, 500, 0.1)])  # 5000 rpm/s, a 500 rpm step
+    assert Flag.TRANSIENT in res[1].flags
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_non_finite_prediction_raises_and_never_reaches_the_output(bad):
+    sh = OffsetShaper()
+    with pytest.raises(NonFiniteInputError):
+        sh.update(sh.initial(), bad, 0, 1.0)
+
+
+def test_config_rejects_extra_keys_and_inconsistent_limits():
+    with pytest.raises(ValueError):
+        ShaperConfig(max_offset_um=10, bogus=1)  # type: ignore[call-arg]
+    with pytest.raises(ValueError):
+        ShaperConfig(max_offset_um=10, deadband_um=10)
+    with pytest.raises(ValueError):
+        ShaperConfig(max_rate_um_per_s=1, transient=TransientPolicy(release_rate_um_per_s=2))
+
+
+samples = st.lists(
+    st.tuples(
+        st.floats(-500, 500, allow_nan=False),
+        st.floats(-30000, 30000, allow_nan=False),
+        st.floats(0, 30, allow_nan=False),
+    ),
+    min_size=1,
+    max_size=80,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    samples=samples,
+    clamp=st.floats(1, 200),
+    rate=st.floats(0.01, 20),
+    deadband=st.floats(0, 0.9),
+    mode=st.sampled_from(["hold", "slow"]),
+    enabled=st.booleans(),
+    start=st.floats(-1000, 1000),
+)
+def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, deadband, mode, enabled, start):
+    cfg = ShaperConfig(
+        max_offset_um=clamp,
+        max_rate_um_per_s=rate,
+        deadband_um=deadband,
+        transient=TransientPolicy(enabled=enabled, mode=mode, window_s=20, slow_period_s=7),
+    )
+    sh = OffsetShaper(cfg)
+    state = sh.initial(start)
+    assert abs(state.output_um) <= clamp
+    prev = state.output_um
+    for s, n, dt in samples:
+        state, res = sh.update(state, s, n, dt)
+        y = res.offset_um
+        assert math.isfinite(y)
+        assert abs(y) <= clamp
+        assert abs(y - prev) <= rate * dt * (1 + 1e-12) + 1e-12
+        assert res.write == (y != prev)
+        if not res.write:
+            assert y == prev
+        # a write never moves by less than needed to cross the deadband, unless it lands on target
+        if res.write and abs(y - prev) < deadband:
+            assert Flag.SLEW_LIMITED in res.flags or y == pytest.approx(state.target_um)
+        prev = y
+
+
+@settings(max_examples=100, deadline=None)
+@given(target=st.floats(-80, 80), rate=st.floats(0.1, 5), deadband=st.floats(0, 0.5))
+def test_converges_to_within_deadband_of_a_steady_target(target, rate, deadband):
+    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=rate, deadband_um=deadband, transient=NO_TRANSIENT))
+    outs, _, _ = run(sh, [(target, 0, 1.0)] * int(100 / rate + 5))
+    assert abs(outs[-1] - (-target)) <= deadband + 1e-9
