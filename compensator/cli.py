@@ -23,7 +23,7 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", help="write a PNG plot")
     p.add_argument("--initial-um", type=float, help="initial elongation (default: first measured, else 0)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    p.set_defaults(handler="calibration.commands:replay")
+    p.set_defaults(handler="calibration.commands:replay_cmd")
 
 
 def _add_fit(sub: argparse._SubParsersAction) -> None:

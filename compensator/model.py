@@ -57,7 +57,7 @@ MODEL_FORMAT = "thermocomp.model/1"
 SPEED_SCALE_RPM = 1000.0
 """Speeds are scaled to krpm internally: coefficients are per krpm**i."""
 
-_CHUNK = 1 << 16  # samples per block: keeps the per-block temporaries in cache
+_CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
 _MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
 
 
@@ -204,6 +204,10 @@ class ThermalModel(BaseModel):
     # -- derived quantities -----------------------------------------------
 
     @property
+    def _speed_state(self) -> bool:
+        return any(st.dissipation_per_s[1] != 0.0 for st in self.states)
+
+    @property
     def order(self) -> int:
         return len(self.states)
 
@@ -305,40 +309,58 @@ class ThermalModel(BaseModel):
             raise ModelError("speeds_rpm and times_s must be 1-D arrays of one length")
         if speeds.size == 0:
             raise ModelError("cannot simulate an empty log")
-        if not np.isfinite(speeds).all():
-            k = int(np.flatnonzero(~np.isfinite(speeds))[0])
-            raise NonFiniteInputError(f"speed at sample {k} is {speeds[k]}")
-        if not np.isfinite(times).all():
-            k = int(np.flatnonzero(~np.isfinite(times))[0])
-            raise NonFiniteInputError(f"time at sample {k} is {times[k]}")
-        dt = np.diff(times)
-        if (dt < 0).any():
-            k = int(np.flatnonzero(dt < 0)[0]) + 1
-            raise NonFiniteInputError(f"time goes backwards at sample {k}")
+        if not math.isfinite(float(times[0])):
+            raise NonFiniteInputError(f"time at sample 0 is {times[0]}")
         if state is None:
             state = self.cold_state(float(speeds[0]))
         elif len(state.thermal_um) != self.order:
             raise ModelError(
                 f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
             )
+        if not math.isfinite(float(speeds[0])):
+            raise NonFiniteInputError(f"speed at sample 0 is {speeds[0]}")
 
-        n = np.abs(speeds)
-        n *= 1.0 / SPEED_SCALE_RPM
-        out = np.zeros_like(n)
-        e1, e2 = self.elastic_um
-        if e1 or e2:
-            out += e2 * n
-            out += e1
-            out *= n
-        uniform = dt.size == 0 or (dt.max() - dt.min()) <= 1e-12 * max(dt.mean(), 1e-300)
-        finals = []
-        for x0, st in zip(state.thermal_um, self.states):
-            if uniform and st.dissipation_per_s[1] == 0.0:
-                x = _filter_uniform(st, n, float(dt[0]) if dt.size else 0.0, x0)
-            else:
-                x = _filter_general(st, n, dt, x0)
-            out += x
-            finals.append(float(x[-1]))
+        out = np.empty_like(speeds)
+        out[0] = math.fsum(state.thermal_um) + self.elastic(float(speeds[0]))
+        x = list(state.thermal_um)
+        k = 1.0 / SPEED_SCALE_RPM
+        e1, e2 = self.elastic_um[0] * k, self.elastic_um[1] * k * k
+        nbuf = np.empty(min(_CHUNK, speeds.size))
+        dbuf = np.empty(min(_CHUNK, speeds.size))
+        # one pass over the log in cache-sized blocks: checks, then every state
+        for s in range(1, speeds.size, _CHUNK):
+            e = min(s + _CHUNK, speeds.size)
+            sp = speeds[s:e]
+            # a sum is finite only if every term is: a cheap check without a mask
+            if not math.isfinite(float(np.add.reduce(sp))):
+                i = s + int(np.flatnonzero(~np.isfinite(sp))[0])
+                raise NonFiniteInputError(f"speed at sample {i} is {speeds[i]}")
+            dtb = np.subtract(times[s:e], times[s - 1 : e - 1], out=dbuf[: e - s])
+            dmin, dmax = float(dtb.min()), float(dtb.max())
+            if not (math.isfinite(dmin) and math.isfinite(dmax)):
+                i = s + int(np.flatnonzero(~np.isfinite(times[s:e]))[0])
+                raise NonFiniteInputError(f"time at sample {i} is {times[i]}")
+            if dmin < 0:
+                i = s + int(np.flatnonzero(dtb < 0)[0])
+                raise NonFiniteInputError(f"time goes backwards at sample {i}")
+            uniform = dmax - dmin <= 1e-12 * max(dmax, 1e-300)
+            # the closed form needs the time since the block start; lfilter does not
+            elapsed = None if uniform and not self._speed_state else times[s:e] - times[s - 1]
+            nb = np.abs(sp, out=nbuf[: e - s])  # |rpm|; coefficients are scaled instead
+            ob = out[s:e]
+            for j, st in enumerate(self.states):
+                xb = _advance_block(st, nb, dtb, x[j], elapsed, uniform, k)
+                if j == 0:
+                    ob[:] = xb
+                else:
+                    ob += xb
+                x[j] = float(xb[-1])
+            if e1 or e2:
+                el = nb * e2
+                el += e1
+                el *= nb
+                ob += el
+        finals = x
         final = ModelState(tuple(finals), self.elastic(float(speeds[-1])))
         return Simulation(out, final)
 
@@ -360,79 +382,139 @@ def _check_finite(name: str, value: float) -> None:
         raise NonFiniteInputError(f"{name} is {value}")
 
 
-def _generation(st: ThermalStateCoefficients, n: np.ndarray, out: np.ndarray) -> np.ndarray:
+def _generation(
+    st: ThermalStateCoefficients, n: np.ndarray, out: np.ndarray, scale: float = 1.0
+) -> np.ndarray:
+    """u(n) by Horner; ``scale`` converts ``n`` to krpm inside the coefficients."""
     g0, g1, g2, g3 = st.generation_um_per_s
+    g1, g2, g3 = g1 * scale, g2 * scale * scale, g3 * scale**3
     np.multiply(n, g3, out=out)
     out += g2
     out *= n
     out += g1
     out *= n
-    out += g0
+    if g0:
+        out += g0
     return out
 
 
-def _filter_uniform(
-    st: ThermalStateCoefficients, n: np.ndarray, dt: float, x0: float
+def filter_state(
+    st: ThermalStateCoefficients, n_krpm: np.ndarray, dt_s: np.ndarray, x0: float = 0.0
 ) -> np.ndarray:
-    """Constant pole: one lfilter pass, blocked so the polynomial stays in cache."""
-    lam = st.dissipation_per_s[0]
-    a = math.exp(-lam * dt)
-    gain = -math.expm1(-lam * dt) / lam
+    """Free response of one thermal state to a speed sequence (n in krpm).
+
+    ``dt_s[k-1]`` is the step ending at sample k (``len(dt_s) == len(n) - 1``);
+    ``n_krpm[k]`` is held over that step. Returns x at every sample, x[0] = x0.
+    The building block of output-error fitting: x is linear in the gains.
+    """
+    return _filter(st, np.abs(np.asarray(n_krpm, dtype=float)), np.asarray(dt_s, dtype=float), x0)
+
+
+def _filter(st: ThermalStateCoefficients, n: np.ndarray, dt: np.ndarray, x0: float) -> np.ndarray:
     x = np.empty_like(n)
     x[0] = x0
-    zi = np.array([a * x0])
-    buf = np.empty(min(_CHUNK, n.size))
     for s in range(1, n.size, _CHUNK):
-        blk = n[s : s + _CHUNK]
-        u = _generation(st, blk, buf[: blk.size])
-        x[s : s + blk.size], zi = lfilter([gain], [1.0, -a], u, zi=zi)
+        e = min(s + _CHUNK, n.size)
+        dtb = dt[s - 1 : e - 1]
+        uniform = float(dtb.max() - dtb.min()) <= 1e-12 * max(float(dtb.max()), 1e-300)
+        x[s:e] = _advance_block(st, n[s:e], dtb, x0, np.cumsum(dtb), uniform, 1.0)
+        x0 = float(x[e - 1])
     return x
 
 
-def _filter_general(
-    st: ThermalStateCoefficients, n: np.ndarray, dt: np.ndarray, x0: float
+def _one_minus_exp(ld: np.ndarray) -> np.ndarray:
+    """1 - exp(-ld), accurate for tiny ld; much faster than np.expm1."""
+    out = np.exp(-ld)
+    np.subtract(1.0, out, out=out)
+    small = ld < 1e-4
+    if small.any():
+        x = ld[small]
+        out[small] = x * (1.0 - x * (0.5 - x * (1.0 / 6.0)))
+    return out
+
+
+def _advance_block(
+    st: ThermalStateCoefficients,
+    n: np.ndarray,
+    dt: np.ndarray,
+    x0: float,
+    elapsed: np.ndarray,
+    uniform: bool,
+    scale: float,
+) -> np.ndarray:
+    """States after each step of a block: speed n[k] >= 0 held for dt[k], from x0.
+
+    ``n * scale`` is in krpm; ``elapsed[k]`` is the time from the block start
+    to the end of step k; ``uniform`` says every dt is the same.
+    """
+    d0, d1 = st.dissipation_per_s
+    if d1 == 0.0 and uniform:
+        # constant pole: one lfilter pass
+        h = float(dt[0])
+        a = math.exp(-d0 * h)
+        gain = -math.expm1(-d0 * h) / d0
+        u = _generation(st, n, np.empty_like(n), scale)
+        y, _ = lfilter([gain], [1.0, -a], u, zi=[a * x0])
+        return y
+    return _advance_general(st, n, dt, x0, elapsed, scale)
+
+
+def _advance_general(
+    st: ThermalStateCoefficients,
+    n: np.ndarray,
+    dt: np.ndarray,
+    x0: float,
+    elapsed: np.ndarray,
+    scale: float,
 ) -> np.ndarray:
     """Time-varying pole a_k = exp(-lambda(n_k)*dt_k), solved in closed form.
 
-    Within a block, x_k = exp(-L_k) * (x_start + sum_{j<=k} b_j * exp(L_j)) with
-    L_k = cumsum(lambda*dt). Blocks are cut so that L spans at most
-    ``_MAX_LOG_SPAN``, which keeps every exponential finite.
+    x_k = exp(-L_k) * (x0 + sum_{j<=k} b_j * exp(L_j)) with L_k = cumsum(lambda*dt)
+    (= d0 * elapsed when lambda does not depend on speed). The block is cut
+    where L spans ``_MAX_LOG_SPAN``, which keeps every exponential finite.
     """
     d0, d1 = st.dissipation_per_s
-    x = np.empty_like(n)
-    x[0] = x0
-    nn = n[1:]
-    total = nn.size
-    s = 0
+    out = np.empty_like(n)
+    s, total = 0, n.size
     xs = x0
     while s < total:
-        e = min(s + _CHUNK, total)
-        blk_n = nn[s:e]
-        lam = blk_n * d1
-        lam += d0
-        ld = lam * dt[s:e]
-        L = np.cumsum(ld)
+        blk_n, blk_dt = n[s:], dt[s:]
+        if d1 == 0.0:
+            lam = None
+            ld = blk_dt * d0
+            L = elapsed[s:] - (elapsed[s - 1] if s else 0.0)
+            L *= d0
+        else:
+            lam = blk_n * (d1 * scale)
+            lam += d0
+            ld = lam * blk_dt
+            L = np.cumsum(ld)
+        e = total
         if L[-1] > _MAX_LOG_SPAN:
             e = s + max(1, int(np.searchsorted(L, _MAX_LOG_SPAN)))
-            blk_n, lam, ld, L = blk_n[: e - s], lam[: e - s], ld[: e - s], L[: e - s]
-        g = np.empty_like(blk_n)
-        _generation(st, blk_n, g)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gain = -np.expm1(-ld) / lam
-        zero = lam == 0.0
-        if zero.any():
-            gain[zero] = dt[s:e][zero]
+            m = e - s
+            blk_n, blk_dt, ld, L = blk_n[:m], blk_dt[:m], ld[:m], L[:m]
+            lam = None if lam is None else lam[:m]
+        g = _generation(st, blk_n, np.empty_like(blk_n), scale)
+        gain = _one_minus_exp(ld)
+        if lam is None:
+            gain *= 1.0 / d0
+        else:
+            zero = lam == 0.0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                gain /= lam
+            if zero.any():
+                gain[zero] = blk_dt[zero]
         g *= gain
         w = np.exp(L)
         g *= w
         c = np.cumsum(g)
         c += xs
-        np.exp(-L, out=w)
-        c *= w
-        x[s + 1 : e + 1] = c
+        c /= w
+        out[s:e] = c
         xs = float(c[-1])
         s = e
-    return x
+    return out
 
 
 @dataclass(frozen=True, slots=True)

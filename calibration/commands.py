@@ -1,0 +1,190 @@
+"""``thermocomp fit`` and ``thermocomp replay``: file I/O, progress and reports."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from compensator.io import load_model, read_run_log, save_model, write_run_log
+
+from .calibrate import Calibration, calibrate
+from .data import run_from_log
+from .plots import Panel, plot_panels
+from .replay import Replay, replay
+
+
+def _console() -> Console:
+    """Readable tables also when piped: a fixed width instead of 80 columns."""
+    c = Console()
+    return c if c.is_terminal else Console(width=130)
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        if math.isinf(v) or math.isnan(v):
+            return "-"
+        return f"{v:.{digits}g}" if abs(v) >= 1e4 or (v != 0 and abs(v) < 1e-2) else f"{v:.{digits}f}"
+    return str(v)
+
+
+@contextmanager
+def progress(enabled: bool, total: int | None = None) -> Iterator[Callable[[str], None]]:
+    """A rich spinner on stderr; silent when not a terminal or in --json mode."""
+    err = Console(stderr=True)
+    if not enabled or not err.is_terminal:
+        yield lambda _msg: None
+        return
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                  console=err, transient=True) as bar:
+        task = bar.add_task("starting", total=total)
+
+        def say(msg: str) -> None:
+            bar.update(task, description=msg, advance=1)
+
+        yield say
+
+
+def print_fit_report(cal: Calibration, report: dict[str, Any], out: Console) -> None:
+    m = cal.model
+    out.print(f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  "
+              f"{len(cal.runs)} run(s), fitted at {cal.fit_dt_s:g} s, scored by {report['scored_by']}")
+    t = Table(title="Candidates (free run: the model feeds on its own output)")
+    for col in ("form", "1-step R²", "free-run RMS", "free-run max", "held-out RMS", "held-out max", "note"):
+        t.add_column(col, justify="left" if col in ("form", "note") else "right")
+    for c in report["candidates"]:
+        fr, cv = c["free_run"] or {}, c["cross_validation"] or {}
+        name = c["form"] + (" [bold green]<- chosen[/]" if c["form"] == report["chosen"] else "")
+        t.add_row(name, _fmt(c["one_step_r2"], 4), _fmt(fr.get("rms_um")), _fmt(fr.get("max_abs_um")),
+                  _fmt(cv.get("rms_um")), _fmt(cv.get("max_abs_um")), c["note"])
+    out.print(t)
+    out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {report['reason']}")
+    ct = Table(title=f"Coefficients of {report['chosen']} (n in krpm)")
+    for col in ("name", "value", "std. error", "unit"):
+        ct.add_column(col)
+    for c in report["coefficients"]:
+        ct.add_row(c["name"], f"{c['value']:.6g}", _fmt(c["stderr"], 3), c["unit"])
+    out.print(ct)
+    if report["reference_one_step_r2"] is not None:
+        out.print(f"Paper's OLS reference, one step ahead: R² = {report['reference_one_step_r2']:.5f} "
+                  "(a one-step R² says little about free run)")
+    rt = Table(title="Free-run residuals of the chosen model (um)")
+    for col in ("run", "RMS", "max |r|", "mean |r|", "steady RMS", "steady max", "transient RMS", "transient max"):
+        rt.add_column(col, justify="right" if col != "run" else "left")
+    for r in report["residuals"]:
+        st, tr = r["phases"]["steady"], r["phases"]["transient"]
+        rt.add_row(Path(r["run"]).name, _fmt(r["rms_um"]), _fmt(r["max_abs_um"]), _fmt(r["mean_abs_um"]),
+                   _fmt(st["rms_um"]), _fmt(st["max_abs_um"]), _fmt(tr["rms_um"]), _fmt(tr["max_abs_um"]))
+    out.print(rt)
+    for w in report["warnings"]:
+        out.print(f"[yellow]warning:[/yellow] {w}")
+
+
+def fit(args: argparse.Namespace) -> int:
+    logs = [read_run_log(p) for p in args.runs]
+    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
+    meta: dict[str, Any] = {}
+    spindle = args.spindle_id or next((lg.metadata.get("spindle_id") for lg in logs if lg.metadata.get("spindle_id")), None)
+    machine = args.machine_id or next((lg.metadata.get("machine_id") for lg in logs if lg.metadata.get("machine_id")), None)
+    if spindle:
+        meta["spindle_id"] = spindle
+    if machine:
+        meta["machine_id"] = machine
+    from datetime import datetime, timezone
+
+    meta["created_utc"] = datetime.now(timezone.utc).replace(microsecond=0).isoformat()
+    with progress(not args.json) as say:
+        cal = calibrate(runs, dt_s=args.dt, form=args.form, progress=say, **meta)
+    report = cal.report()
+    save_model(args.output, cal.model)
+    report["model_file"] = str(args.output)
+    if args.plot:
+        panels = [Panel(Path(r.name).name, r.time_s, r.speed_rpm, cal.predictions[r.name], r.elongation_um)
+                  for r in cal.runs]
+        plot_panels(args.plot, panels, f"fit: {cal.model.form} (spindle {cal.model.spindle_id})",
+                    max_rpm=cal.model.speed_range_rpm[1])
+        report["plot"] = str(args.plot)
+    if args.json:
+        print(json.dumps(report, indent=2, allow_nan=False, default=_json_default))
+    else:
+        out = _console()
+        print_fit_report(cal, report, out)
+        out.print(f"Model written to {args.output}" + (f"; plot {args.plot}" if args.plot else ""))
+    return 0
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "item"):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def print_replay_report(rep: Replay, out: Console) -> None:
+    r = rep.report
+    t = Table(title=f"Replay of {r['samples']} samples, {r['duration_s'] / 3600:.2f} h, model {r['model_form']}")
+    t.add_column("figure")
+    t.add_column("value", justify="right")
+    rows = [
+        ("initial elongation [um]", r["initial_um"]),
+        ("predicted range [um]", f"{r['min_predicted_um']:.2f} .. {r['max_predicted_um']:.2f}"),
+        ("max |residual| [um]", r["max_abs_residual_um"]),
+        ("RMS residual [um]", r["rms_residual_um"]),
+        ("mean |residual| [um]", r["mean_abs_residual_um"]),
+        ("std uncompensated [um]", r["std_uncompensated_um"]),
+        ("std compensated [um]", r["std_compensated_um"]),
+        ("std reduction [%]", r["std_reduction_pct"]),
+        (f"thermal equilibrium after [min] ({r['ste_source']})",
+         None if r["equilibrium_time_s"] is None else r["equilibrium_time_s"] / 60),
+        ("TEVR after equilibrium [um]", r["tevr_um"]),
+    ]
+    for k, v in rows:
+        t.add_row(k, _fmt(v) if not isinstance(v, str) else v)
+    out.print(t)
+    for w in r["warnings"]:
+        out.print(f"[yellow]warning:[/yellow] {w}")
+
+
+def replay_cmd(args: argparse.Namespace) -> int:
+    model = load_model(args.model)
+    log = read_run_log(args.log)
+    with progress(not args.json) as say:
+        say("replaying")
+        rep = replay(model, log, args.initial_um)
+        if args.output:
+            say("writing predictions")
+            write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})
+        if args.plot:
+            say("plotting")
+            plot_panels(args.plot, [Panel(Path(args.log).name, rep.time_s, rep.speed_rpm,
+                                          rep.predicted_um, rep.measured_um)],
+                        f"replay: model {model.form} (spindle {model.spindle_id})",
+                        max_rpm=model.speed_range_rpm[1])
+    report = dict(rep.report)
+    if args.output:
+        report["output"] = str(args.output)
+    if args.plot:
+        report["plot"] = str(args.plot)
+    if args.json:
+        print(json.dumps(report, indent=2, allow_nan=False, default=_json_default))
+    else:
+        out = _console()
+        print_replay_report(rep, out)
+        for key in ("output", "plot"):
+            if key in report:
+                out.print(f"{key}: {report[key]}")
+    if args.json:
+        for w in report["warnings"]:
+            print(f"thermocomp: warning: {w}", file=sys.stderr)
+    return 0

@@ -1,0 +1,138 @@
+"""Calibration data: checks and resampling of logged runs. No file I/O here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from compensator.errors import CalibrationError
+from compensator.io import RunLog
+from compensator.model import SPEED_SCALE_RPM
+
+MIN_ROWS = 20
+MAX_PLAUSIBLE_UM = 5000.0  # 5 mm: no spindle grows that much
+IDLE_RPM = 1.0
+TRANSIENT_WINDOW_S = 300.0
+TRANSIENT_STEP_FRACTION = 0.1
+
+
+@dataclass(frozen=True)
+class Run:
+    """One calibration run: time, speed and measured elongation, all finite."""
+
+    name: str
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    elongation_um: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @property
+    def n_krpm(self) -> np.ndarray:
+        return np.abs(self.speed_rpm) / SPEED_SCALE_RPM
+
+    @property
+    def dt_s(self) -> np.ndarray:
+        return np.diff(self.time_s)
+
+    @property
+    def median_dt_s(self) -> float:
+        return float(np.median(self.dt_s))
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.time_s[-1] - self.time_s[0])
+
+
+def run_from_log(log: RunLog, name: str | None = None) -> Run:
+    """Check that a log can calibrate: elongation present, enough rows, plausible units."""
+    src = log.source or name or "run"
+    if log.elongation_um is None:
+        raise CalibrationError(f"{src}: no elongation_um column: a calibration run needs the measured growth")
+    if len(log) < MIN_ROWS:
+        raise CalibrationError(f"{src}: {len(log)} rows; a calibration run needs at least {MIN_ROWS}")
+    speed = np.abs(log.speed_rpm)
+    top = float(speed.max())
+    if top <= 0:
+        raise CalibrationError(f"{src}: the spindle never turns (speed is 0 throughout)")
+    if top < 100:
+        raise CalibrationError(
+            f"{src}: highest speed is {top:g} rpm; is speed_rpm in krpm? (multiply by 1000)"
+        )
+    if np.ptp(speed) == 0:
+        raise CalibrationError(
+            f"{src}: constant speed only ({top:g} rpm): speed must vary to identify the model"
+        )
+    peak = float(np.abs(log.elongation_um).max())
+    if peak > MAX_PLAUSIBLE_UM:
+        row = int(np.argmax(np.abs(log.elongation_um)))
+        line = log.line_of(row)
+        where = f"{src}:{line}" if line else src
+        raise CalibrationError(
+            f"{where}: elongation {log.elongation_um[row]:g} um is over 5 mm; "
+            "is elongation_um in nm, or the sensor off range?"
+        )
+    return Run(name or src, log.time_s.copy(), log.speed_rpm.copy(), log.elongation_um.copy())
+
+
+def resample(run: Run, dt_s: float) -> Run:
+    """A run on a uniform grid of period ``dt_s``.
+
+    Speed is the time average of |n| over each interval (the logged speed is
+    taken as held over the interval that ends at its sample); elongation is
+    interpolated at the grid instants. Sub-sampling a finer log is exact for
+    speed changes on interval edges.
+    """
+    t0, t1 = run.time_s[0], run.time_s[-1]
+    k = int(np.floor((t1 - t0) / dt_s + 1e-9))
+    if k < 2:
+        raise CalibrationError(f"{run.name}: shorter than two periods of {dt_s:g} s")
+    grid = t0 + np.arange(k + 1) * dt_s
+    if np.allclose(np.diff(run.time_s), dt_s, rtol=1e-9, atol=1e-9) and len(run) == grid.size:
+        return run
+    # integral of the held speed: speed[k] holds over (t[k-1], t[k]]
+    n = np.abs(run.speed_rpm)
+    cum = np.concatenate([[0.0], np.cumsum(n[1:] * np.diff(run.time_s))])
+
+    def integral(t: np.ndarray) -> np.ndarray:
+        idx = np.clip(np.searchsorted(run.time_s, t, side="left"), 1, len(run) - 1)
+        return cum[idx - 1] + n[idx] * (t - run.time_s[idx - 1])
+
+    speed = np.empty_like(grid)
+    speed[0] = n[0]
+    speed[1:] = np.diff(integral(grid)) / dt_s
+    elong = np.interp(grid, run.time_s, run.elongation_um)
+    return Run(run.name, grid, speed, elong)
+
+
+def transient_mask(time_s: np.ndarray, speed_rpm: np.ndarray, max_rpm: float,
+                   window_s: float = TRANSIENT_WINDOW_S) -> np.ndarray:
+    """True within ``window_s`` after a speed step of more than 10 % of ``max_rpm``."""
+    n = np.abs(speed_rpm)
+    steps = np.flatnonzero(np.abs(np.diff(n)) > TRANSIENT_STEP_FRACTION * max(max_rpm, 1.0)) + 1
+    mask = np.zeros(n.size, dtype=bool)
+    if steps.size == 0:
+        return mask
+    starts = time_s[steps]
+    idx = np.searchsorted(starts, time_s, side="right") - 1
+    ok = idx >= 0
+    mask[ok] = time_s[ok] - starts[idx[ok]] < window_s
+    return mask
+
+
+def has_cooldown(run: Run, min_s: float = 600.0) -> bool:
+    """A stretch at rest of ``min_s`` or longer after the spindle has run."""
+    idle = np.abs(run.speed_rpm) < IDLE_RPM
+    ran = np.cumsum(~idle) > 0
+    seg = idle & ran
+    if not seg.any():
+        return False
+    edges = np.diff(np.concatenate([[0], seg.astype(np.int8), [0]]))
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1) - 1
+    t = run.time_s
+    # a stretch at rest begins when the previous sample ended the last step at speed
+    begin = t[np.maximum(starts - 1, 0)]
+    return bool(np.max(t[ends] - begin) >= min_s)

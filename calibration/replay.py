@@ -1,0 +1,162 @@
+"""Offline replay: what compensation would have done on a logged speed profile.
+
+Also the thermal-equilibrium figures of paper 000: STE (stability of thermal
+error) is the slope of a least-squares smooth fit of the error; equilibrium is
+reached once |STE| stays below 0.5e-3 um/s; TEVR is max - min of the error
+after that.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.interpolate import make_lsq_spline
+
+from compensator.io import RunLog
+from compensator.model import ThermalModel
+
+from .calibrate import residual_stats
+
+STE_LIMIT_UM_PER_S = 0.5e-3
+SMOOTH_KNOT_S = 600.0
+"""Knot spacing of the least-squares spline used for STE (10 min)."""
+
+
+def _block_means(t: np.ndarray, y: np.ndarray, width_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Averages over blocks of ``width_s``: keeps the spline fit cheap on month-long logs."""
+    idx = np.floor((t - t[0]) / width_s).astype(np.int64)
+    counts = np.bincount(idx)
+    keep = counts > 0
+    tm = np.bincount(idx, weights=t)[keep] / counts[keep]
+    ym = np.bincount(idx, weights=y)[keep] / counts[keep]
+    return tm, ym
+
+
+def equilibrium(time_s: np.ndarray, error_um: np.ndarray) -> tuple[float | None, float | None]:
+    """(equilibrium time [s from start], TEVR [um]) per paper 000, or None where undefined."""
+    if time_s.size < 8 or time_s[-1] - time_s[0] < 4 * SMOOTH_KNOT_S:
+        return None, None
+    tm, ym = _block_means(time_s, error_um, 60.0)
+    if tm.size < 8:
+        tm, ym = time_s, error_um
+    k = 3
+    n_inner = max(1, int((tm[-1] - tm[0]) // SMOOTH_KNOT_S) - 1)
+    inner = np.linspace(tm[0], tm[-1], n_inner + 2)[1:-1]
+    knots = np.concatenate([[tm[0]] * (k + 1), inner, [tm[-1]] * (k + 1)])
+    try:
+        spline = make_lsq_spline(tm, ym, knots, k=k)
+    except (ValueError, np.linalg.LinAlgError):
+        return None, None
+    slope = spline.derivative()(tm)
+    unstable = np.flatnonzero(np.abs(slope) >= STE_LIMIT_UM_PER_S)
+    if unstable.size == 0:
+        start = 0
+    elif unstable[-1] == tm.size - 1:
+        return None, None  # still drifting at the end of the log
+    else:
+        start = int(unstable[-1]) + 1
+    t_eq = float(tm[start] - time_s[0])
+    stable = error_um[time_s >= tm[start]]
+    return t_eq, float(np.ptp(stable)) if stable.size else None
+
+
+@dataclass
+class Replay:
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    predicted_um: np.ndarray
+    measured_um: np.ndarray | None
+    initial_um: float
+    report: dict[str, Any]
+
+    @property
+    def offset_um(self) -> np.ndarray:
+        return -self.predicted_um  # paper 001 eq. 13: A = -S
+
+    @property
+    def residual_um(self) -> np.ndarray | None:
+        return None if self.measured_um is None else self.measured_um - self.predicted_um
+
+    def columns(self) -> dict[str, np.ndarray]:
+        cols = {"time_s": self.time_s, "speed_rpm": self.speed_rpm}
+        if self.measured_um is not None:
+            cols["elongation_um"] = self.measured_um
+        cols["predicted_um"] = self.predicted_um
+        cols["offset_um"] = self.offset_um
+        if self.measured_um is not None:
+            cols["residual_um"] = self.residual_um  # type: ignore[assignment]
+        return cols
+
+
+def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) -> Replay:
+    """Free-run ``model`` over the log's own time stamps."""
+    measured = log.elongation_um
+    if initial_um is None:
+        initial_um = float(measured[0]) if measured is not None else 0.0
+    if not math.isfinite(initial_um):
+        from compensator.errors import NonFiniteInputError
+
+        raise NonFiniteInputError(f"initial elongation is {initial_um}")
+    state = model.state_at(initial_um, float(log.speed_rpm[0]))
+    pred = model.simulate(log.speed_rpm, log.time_s, state).elongation_um
+
+    warnings: list[str] = []
+    lo, hi = model.speed_range_rpm
+    speed = np.abs(log.speed_rpm)
+    over = speed > hi * 1.02
+    if over.any():
+        k = int(np.flatnonzero(over)[0])
+        line = log.line_of(k)
+        warnings.append(
+            f"{over.sum()} samples ({100 * over.mean():.1f} %) above the calibrated range "
+            f"(max {hi:.0f} rpm; {speed.max():.0f} rpm"
+            + (f", first at line {line})" if line else ")")
+            + ": predictions there are extrapolated"
+        )
+    if log.gaps:
+        total = sum(g.duration_s for g in log.gaps)
+        warnings.append(
+            f"{len(log.gaps)} gap(s) in the log, {total:.0f} s in all; the speed is taken as "
+            "held across each gap"
+        )
+
+    report: dict[str, Any] = {
+        "format": "thermocomp.replay-report/1",
+        "model_form": model.form,
+        "spindle_id": model.spindle_id,
+        "samples": int(len(log)),
+        "duration_s": log.duration_s,
+        "initial_um": initial_um,
+        "max_predicted_um": float(np.max(pred)),
+        "min_predicted_um": float(np.min(pred)),
+    }
+    if measured is not None:
+        res = measured - pred
+        st = residual_stats(res)
+        std_u = float(np.std(measured))
+        std_c = float(np.std(res))
+        report.update(
+            max_abs_residual_um=st["max_abs_um"],
+            rms_residual_um=st["rms_um"],
+            mean_abs_residual_um=st["mean_abs_um"],
+            std_uncompensated_um=std_u,
+            std_compensated_um=std_c,
+            std_reduction_pct=100.0 * (1 - std_c / std_u) if std_u > 0 else None,
+            max_abs_uncompensated_um=float(np.max(np.abs(measured))),
+        )
+        error = measured
+    else:
+        for key in ("max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
+                    "std_uncompensated_um", "std_compensated_um", "std_reduction_pct",
+                    "max_abs_uncompensated_um"):
+            report[key] = None
+        error = pred
+    t_eq, tevr = equilibrium(log.time_s, error)
+    report["equilibrium_time_s"] = t_eq
+    report["tevr_um"] = tevr
+    report["ste_source"] = "measured" if measured is not None else "predicted"
+    report["warnings"] = warnings
+    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report)

@@ -1,0 +1,165 @@
+"""The thermocomp command end to end, as a user runs it: real processes, real files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from compensator.io import load_model, read_run_log, save_model, write_run_log
+from conftest import first_order
+
+REPLAY_KEYS = {
+    "samples", "duration_s", "max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
+    "std_uncompensated_um", "std_compensated_um", "std_reduction_pct", "equilibrium_time_s",
+    "tevr_um",
+}
+
+
+def tc(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "compensator.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("logs")
+    for prog, seed, dt, name in (("paper-calibration", 0, 60, "cal.csv"),
+                                 ("random-validation", 1, 60, "val.csv"),
+                                 ("job-shop-day", 2, 1, "day.csv")):
+        r = tc("simulate", "--program", prog, "--seed", seed, "--dt", dt, "--output", d / name)
+        assert r.returncode == 0, r.stderr
+    return d
+
+
+@pytest.fixture(scope="module")
+def fitted(logs):
+    out = logs / "model.json"
+    r = tc("fit", logs / "cal.csv", logs / "val.csv", "--output", out, "--json", "--plot", logs / "fit.png")
+    assert r.returncode == 0, r.stderr
+    return out, json.loads(r.stdout)
+
+
+def test_fit_writes_a_loadable_model_and_a_json_report(fitted, logs):
+    path, rep = fitted
+    model = load_model(path)
+    assert model.form == rep["chosen"]
+    assert model.spindle_id == "sim-motorized-27k"  # from the logs' metadata
+    assert (logs / "fit.png").stat().st_size > 10000
+    assert rep["candidates"] and rep["coefficients"] and rep["reason"]
+
+
+def test_fit_human_report_names_the_winner_and_the_reference(logs, tmp_path):
+    r = tc("fit", logs / "cal.csv", logs / "val.csv", "--output", tmp_path / "m.json")
+    assert r.returncode == 0, r.stderr
+    assert "Chosen:" in r.stdout and "paper-ols" in r.stdout and "R²" in r.stdout
+
+
+def test_replay_json_keys_and_outputs(fitted, logs, tmp_path):
+    path, _ = fitted
+    r = tc("replay", "--model", path, logs / "day.csv", "--json", "--output", tmp_path / "p.csv",
+           "--plot", tmp_path / "p.png")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert REPLAY_KEYS <= set(rep)
+    assert rep["samples"] == len(read_run_log(logs / "day.csv"))
+    assert rep["rms_residual_um"] < 1.0 and rep["std_reduction_pct"] > 80
+    pred = read_run_log(tmp_path / "p.csv")
+    np.testing.assert_allclose(pred.extras["offset_um"], -pred.extras["predicted_um"])
+    np.testing.assert_allclose(pred.extras["residual_um"], pred.elongation_um - pred.extras["predicted_um"], atol=1e-6)
+    assert (tmp_path / "p.png").stat().st_size > 10000
+
+
+def test_replay_without_measurement_has_null_residuals_and_warns_out_of_range(fitted, tmp_path):
+    path, _ = fitted
+    t = np.arange(0, 7200, 1.0)
+    write_run_log(tmp_path / "speeds.csv", {"time_s": t, "speed_rpm": np.where(t > 3600, 30000.0, 9000.0)})
+    r = tc("replay", "--model", path, tmp_path / "speeds.csv", "--json", "--initial-um", "2.5")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["rms_residual_um"] is None and rep["std_reduction_pct"] is None
+    assert rep["initial_um"] == 2.5
+    assert any("above the calibrated range" in w for w in rep["warnings"])
+    assert "above the calibrated range" in r.stderr
+
+
+BAD_LOGS = {
+    "malformed.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,3000,1,7\n", ":3: malformed CSV"),
+    "nan.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,nan,1\n", ":3: column speed_rpm"),
+    "unsorted.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,10,1\n30,10,1\n", ":4: time does not increase"),
+    "short.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,3000,1\n", "at least 20"),
+    "text.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,fast,1\n", ":3: column speed_rpm: 'fast'"),
+}
+
+
+def rows(speed, elong, n=40):
+    return "time_s,speed_rpm,elongation_um\n" + "".join(
+        f"{60 * k},{speed(k)},{elong(k)}\n" for k in range(n))
+
+
+BAD_LOGS["constant.csv"] = (rows(lambda k: 6000, lambda k: k * 0.1), "constant speed")
+BAD_LOGS["krpm.csv"] = (rows(lambda k: k % 27, lambda k: k * 0.1), "krpm")
+BAD_LOGS["nm.csv"] = (rows(lambda k: 1000 * (k % 27), lambda k: k * 900.0), "over 5 mm")
+
+
+@pytest.mark.parametrize("name", sorted(BAD_LOGS))
+def test_bad_calibration_input_one_line_error_no_model_file(tmp_path, name):
+    text, expected = BAD_LOGS[name]
+    (tmp_path / name).write_text(text)
+    out = tmp_path / "model.json"
+    r = tc("fit", tmp_path / name, "--output", out)
+    assert r.returncode == 2
+    err = r.stderr.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    assert err.startswith("thermocomp: error: ") and expected in err and name in err
+    assert list(tmp_path.iterdir()) == [tmp_path / name]  # no model, no temp file
+
+
+def test_bad_model_files(tmp_path, logs):
+    good = tmp_path / "good.json"
+    save_model(good, first_order())
+    tampered = tmp_path / "tampered.json"
+    tampered.write_text(good.read_text().replace('"spindle_id": "unknown"', '"spindle_id": "x"'))
+    unknown = tmp_path / "unknown.json"
+    unknown.write_text(json.dumps({"format": "other/2"}))
+    missing = tmp_path / "missing.json"
+    for path, expected in ((tampered, "checksum mismatch"), (unknown, "unknown model format"),
+                           (missing, "cannot read")):
+        r = tc("replay", "--model", path, logs / "cal.csv")
+        assert r.returncode == 2
+        assert r.stderr.count("\n") == 1 and expected in r.stderr, r.stderr
+
+
+def test_unstable_model_file_is_refused(tmp_path, logs):
+    import hashlib
+
+    from compensator.io import _canonical
+
+    data = first_order().model_dump(mode="json")
+    data["states"][0]["dissipation_per_s"] = [1e-4, -1e-5]  # unstable above 10 000 rpm
+    data["sha256"] = hashlib.sha256(_canonical(data).encode()).hexdigest()
+    p = tmp_path / "unstable.json"
+    p.write_text(json.dumps(data))
+    r = tc("replay", "--model", p, logs / "cal.csv")
+    assert r.returncode == 2 and "unstable at 27000 rpm" in r.stderr
+
+
+def test_model_command_shows_schema_and_a_model(fitted):
+    path, _ = fitted
+    r = tc("model", "--schema")
+    assert r.returncode == 0
+    schema = json.loads(r.stdout)
+    assert "states" in schema["properties"]
+    r = tc("model", path, "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["form"]
+
+
+def test_examples_schema_file_is_current():
+    from compensator.model import ThermalModel
+
+    on_disk = json.loads((Path(__file__).parents[1] / "examples" / "model.schema.json").read_text())
+    assert on_disk == ThermalModel.model_json_schema()
