@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import make_lsq_spline
+from scipy.signal import savgol_filter
 
 from compensator.io import RunLog
 from compensator.model import ThermalModel
@@ -21,46 +21,38 @@ from compensator.model import ThermalModel
 from .calibrate import residual_stats
 
 STE_LIMIT_UM_PER_S = 0.5e-3
-SMOOTH_KNOT_S = 600.0
-"""Knot spacing of the least-squares spline used for STE (10 min)."""
-
-
-def _block_means(t: np.ndarray, y: np.ndarray, width_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Averages over blocks of ``width_s``: keeps the spline fit cheap on month-long logs."""
-    idx = np.floor((t - t[0]) / width_s).astype(np.int64)
-    counts = np.bincount(idx)
-    keep = counts > 0
-    tm = np.bincount(idx, weights=t)[keep] / counts[keep]
-    ym = np.bincount(idx, weights=y)[keep] / counts[keep]
-    return tm, ym
+BIN_S = 60.0
+"""The error is averaged over 1-min bins before smoothing."""
+SMOOTH_WINDOW_BINS = 31
+"""Savitzky-Golay window: a least-squares quadratic over 31 min."""
 
 
 def equilibrium(time_s: np.ndarray, error_um: np.ndarray) -> tuple[float | None, float | None]:
-    """(equilibrium time [s from start], TEVR [um]) per paper 000, or None where undefined."""
-    if time_s.size < 8 or time_s[-1] - time_s[0] < 4 * SMOOTH_KNOT_S:
+    """(equilibrium time [s from start], TEVR [um]) per paper 000, or None where undefined.
+
+    STE is the slope of a least-squares smooth fit (Savitzky-Golay, quadratic
+    over 31 min of 1-min means). Equilibrium starts where |STE| falls below
+    0.5e-3 um/s for good; TEVR is max - min of the error from there on.
+    """
+    if time_s.size < 8 or time_s[-1] - time_s[0] < 2 * SMOOTH_WINDOW_BINS * BIN_S:
         return None, None
-    tm, ym = _block_means(time_s, error_um, 60.0)
-    if tm.size < 8:
-        tm, ym = time_s, error_um
-    k = 3
-    n_inner = max(1, int((tm[-1] - tm[0]) // SMOOTH_KNOT_S) - 1)
-    inner = np.linspace(tm[0], tm[-1], n_inner + 2)[1:-1]
-    knots = np.concatenate([[tm[0]] * (k + 1), inner, [tm[-1]] * (k + 1)])
-    try:
-        spline = make_lsq_spline(tm, ym, knots, k=k)
-    except (ValueError, np.linalg.LinAlgError):
-        return None, None
-    slope = spline.derivative()(tm)
+    idx = np.floor((time_s - time_s[0]) / BIN_S).astype(np.int64)
+    counts = np.bincount(idx)
+    sums = np.bincount(idx, weights=error_um)
+    centres = time_s[0] + (np.arange(counts.size) + 0.5) * BIN_S
+    have = counts > 0
+    means = np.interp(centres, centres[have], sums[have] / counts[have])  # bridge gaps
+    slope = savgol_filter(means, SMOOTH_WINDOW_BINS, 2, deriv=1, delta=BIN_S, mode="interp")
     unstable = np.flatnonzero(np.abs(slope) >= STE_LIMIT_UM_PER_S)
     if unstable.size == 0:
         start = 0
-    elif unstable[-1] == tm.size - 1:
+    elif unstable[-1] == slope.size - 1:
         return None, None  # still drifting at the end of the log
     else:
         start = int(unstable[-1]) + 1
-    t_eq = float(tm[start] - time_s[0])
-    stable = error_um[time_s >= tm[start]]
-    return t_eq, float(np.ptp(stable)) if stable.size else None
+    t_start = time_s[0] + start * BIN_S
+    stable = error_um[time_s >= t_start]
+    return float(t_start - time_s[0]), float(np.ptp(stable)) if stable.size else None
 
 
 @dataclass

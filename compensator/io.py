@@ -272,31 +272,30 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
     )
 
 
-def format_run_log(
-    columns: Mapping[str, np.ndarray], metadata: Mapping[str, Any] | None = None
-) -> str:
-    """The text of a run log. ``columns`` must start with time_s, speed_rpm."""
-    names = list(columns)
-    if names[:2] != list(REQUIRED_COLUMNS):
-        raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}, got {names[:2]}")
-    import pandas as pd
-
-    head = "".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items())
-    frame = pd.DataFrame({k: np.asarray(v) for k, v in columns.items()})
-    # 9 significant digits: sub-nanometre for um, exact for seconds up to years
-    body = frame.to_csv(index=False, float_format="%.9g", lineterminator="\n")
-    return head + body
-
-
 def write_run_log(
     path: str | os.PathLike[str],
     columns: Mapping[str, np.ndarray],
     metadata: Mapping[str, Any] | None = None,
 ) -> None:
-    """Atomically write a run log."""
-    text = format_run_log(columns, metadata)
+    """Atomically write a run log. ``columns`` must start with time_s, speed_rpm."""
+    names = list(columns)
+    if names[:2] != list(REQUIRED_COLUMNS):
+        raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}, got {names[:2]}")
+    arrays = [np.asarray(columns[name]) for name in names]
+    shapes = {a.shape for a in arrays}
+    if len(shapes) != 1:
+        raise RunLogError(f"columns differ in length: {sorted(shapes)}")
+    # 9 significant digits: sub-nanometre for um, exact for seconds up to years
+    fmt = ",".join(
+        "%.9g" if a.dtype.kind == "f" else "%d" if a.dtype.kind in "iub" else "%s" for a in arrays
+    )
+    rows = arrays[0].shape[0]
     with atomic_write(path) as fh:
-        fh.write(text)
+        fh.write("".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items()))
+        fh.write(",".join(names) + "\n")
+        for s in range(0, rows, 100_000):  # bounded memory on month-long logs
+            block = zip(*(a[s : s + 100_000].tolist() for a in arrays))
+            fh.write("\n".join(map(fmt.__mod__, block)) + "\n")
 
 
 # -- model files -----------------------------------------------------------------

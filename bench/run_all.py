@@ -1,0 +1,11 @@
+"""Run every benchmark in bench/ and print its figures."""
+
+import runpy
+import sys
+from pathlib import Path
+
+here = Path(__file__).resolve().parent
+for script in sorted(here.glob("bench_*.py")):
+    print(f"== {script.name}", flush=True)
+    sys.argv = [str(script)]
+    runpy.run_path(str(script), run_name="__main__")
