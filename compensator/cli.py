@@ -91,7 +91,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    import logging
+
     from .errors import ThermocompError
+
+    logging.basicConfig(level=logging.WARNING, format="thermocomp: %(levelname)s: %(name)s: %(message)s")
+    # asyncua warns about every unsecured session; the adapters report what matters
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
 
     try:
         return int(resolve(args.handler)(args) or 0)

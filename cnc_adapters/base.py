@@ -1,0 +1,169 @@
+"""The adapter family: one abstract base with a small template method (python-can style).
+
+Public :meth:`Adapter.read_speed` and :meth:`Adapter.write_offset_um` validate values,
+convert units and sign, and log; backends override only the raw calls
+``_connect``, ``_read_speed_raw``, ``_write_offset_raw`` and ``_disconnect``.
+
+Backends are registered by name here and, for third parties, through the entry-point
+group ``thermocomp.adapters``. :func:`open_adapter` builds one from a URL
+(``opc.tcp://…``, ``sim://…``) or a configuration mapping.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from typing import Any, ClassVar
+from urllib.parse import parse_qsl, urlsplit
+
+from compensator.errors import ThermocompError
+
+log = logging.getLogger("thermocomp.adapters")
+
+
+class AdapterError(ThermocompError, OSError):
+    """A controller link failed."""
+
+
+class UnreachableError(AdapterError, ConnectionError):
+    """The controller cannot be reached (refused, unplugged, lost)."""
+
+
+class AdapterTimeoutError(AdapterError, TimeoutError):
+    """The controller did not answer in time."""
+
+
+class WriteRejectedError(AdapterError, PermissionError):
+    """The controller refused a write (access denied, type mismatch, out of range)."""
+
+
+class BadValueError(AdapterError, ValueError):
+    """A value read from the controller, or about to be written, is not usable."""
+
+
+class Adapter(ABC):
+    """A link to one spindle on one controller.
+
+    ``offset_scale`` converts um to the controller's unit (0.001 for mm) and
+    ``offset_sign`` flips the sign for controllers whose thermal offset points
+    the other way. ``speed_scale`` converts the controller's speed unit to rpm.
+    """
+
+    name: ClassVar[str] = "abstract"
+
+    def __init__(self, *, offset_scale: float = 1.0, offset_sign: int = 1, speed_scale: float = 1.0):
+        if offset_sign not in (1, -1):
+            raise ValueError("offset_sign must be +1 or -1")
+        if not (math.isfinite(offset_scale) and offset_scale != 0):
+            raise ValueError("offset_scale must be finite and non-zero")
+        self.offset_scale = offset_scale
+        self.offset_sign = offset_sign
+        self.speed_scale = speed_scale
+        self._open = False
+        self._closed = False
+
+    # -- template methods ------------------------------------------------------
+
+    def open(self) -> Adapter:
+        if self._closed:
+            raise AdapterError(f"{self.name} adapter is closed")
+        if not self._open:
+            self._connect()
+            self._open = True
+        return self
+
+    def read_speed(self) -> float:
+        """Actual spindle speed [rpm]; raises :class:`BadValueError` on NaN or inf."""
+        self.open()
+        raw = self._read_speed_raw()
+        try:
+            rpm = float(raw) * self.speed_scale
+        except (TypeError, ValueError) as err:
+            raise BadValueError(f"{self.name}: speed {raw!r} is not a number") from err
+        if not math.isfinite(rpm):
+            raise BadValueError(f"{self.name}: speed is {rpm}")
+        return rpm
+
+    def write_offset_um(self, offset_um: float) -> None:
+        """Write the thermal offset [um]; a non-finite value never leaves this method."""
+        if not isinstance(offset_um, (int, float)) or not math.isfinite(offset_um):
+            raise BadValueError(f"{self.name}: refusing to write offset {offset_um!r}")
+        self.open()
+        raw = offset_um * self.offset_scale * self.offset_sign
+        log.debug("%s: write offset %.4f um (raw %r)", self.name, offset_um, raw)
+        self._write_offset_raw(raw)
+
+    def close(self) -> None:
+        """Idempotent."""
+        if self._open:
+            try:
+                self._disconnect()
+            finally:
+                self._open = False
+        self._closed = True
+
+    def __enter__(self) -> Adapter:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- backend hooks ----------------------------------------------------------
+
+    @abstractmethod
+    def _connect(self) -> None: ...
+
+    @abstractmethod
+    def _read_speed_raw(self) -> Any: ...
+
+    @abstractmethod
+    def _write_offset_raw(self, value: float) -> None: ...
+
+    @abstractmethod
+    def _disconnect(self) -> None: ...
+
+
+BACKENDS: dict[str, str] = {
+    "sim": "cnc_adapters.sim.adapter:SimAdapter",
+    "opcua": "cnc_adapters.opcua:OpcUaAdapter",
+}
+SCHEMES = {"opc.tcp": "opcua", "sim": "sim"}
+
+
+def backend(name: str) -> type[Adapter]:
+    """The adapter class registered as ``name`` (built in, or by entry point)."""
+    spec = BACKENDS.get(name)
+    if spec is None:
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group="thermocomp.adapters"):
+            if ep.name == name:
+                return ep.load()
+        known = sorted(set(BACKENDS) | {ep.name for ep in entry_points(group="thermocomp.adapters")})
+        raise AdapterError(f"unknown adapter {name!r}; known: {', '.join(known)}")
+    module, _, cls = spec.partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
+    """An adapter from a URL or a mapping with a ``type`` key (not yet connected)."""
+    if isinstance(target, str):
+        parts = urlsplit(target)
+        kind = SCHEMES.get(parts.scheme)
+        if kind is None:
+            raise AdapterError(f"no adapter for URL scheme {parts.scheme!r} in {target!r}")
+        cls = backend(kind)
+        return cls.from_url(target, **overrides)  # type: ignore[attr-defined]
+    cfg = dict(target)
+    kind = cfg.pop("type", None)
+    if not kind:
+        raise AdapterError("adapter configuration needs a 'type'")
+    cfg.update(overrides)
+    return backend(kind)(**cfg)
+
+
+def query_params(url: str) -> dict[str, str]:
+    return dict(parse_qsl(urlsplit(url).query))

@@ -1,0 +1,158 @@
+"""OPC UA controller link (asyncua, used through its synchronous wrapper).
+
+Node ids come from configuration. ``{ns}`` in a node id is replaced by the index of
+``namespace_uri`` on the server, so one configuration works whatever index the server gives
+its namespace. Presets:
+
+- ``virtual-cnc``: thermocomp's own virtual CNC (``cnc_adapters.sim.vcnc``);
+- ``sinumerik``: SINUMERIK Operate, speed ``/Channel/Spindle/actSpeed[u1,1]`` and the offset in
+  an R parameter (``r_parameter`` selects which);
+- ``generic``: give ``speed_node`` and ``offset_node``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import math
+from typing import Any
+
+from .base import (
+    Adapter,
+    AdapterError,
+    AdapterTimeoutError,
+    BadValueError,
+    UnreachableError,
+    WriteRejectedError,
+    query_params,
+)
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "virtual-cnc": {
+        "namespace_uri": "urn:thermocomp:virtual-cnc",
+        "speed_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
+        "offset_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
+    },
+    "sinumerik": {
+        "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
+        "offset_node": "ns=2;s=/Channel/Parameter/R[u1,{r}]",
+        "offset_scale": 0.001,  # R parameters hold mm
+    },
+    "generic": {},
+}
+
+
+class OpcUaAdapter(Adapter):
+    name = "opcua"
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        preset: str = "generic",
+        speed_node: str | None = None,
+        offset_node: str | None = None,
+        namespace_uri: str | None = None,
+        r_parameter: int = 1,
+        timeout_s: float = 4.0,
+        verify_writes: bool = True,
+        **scaling: Any,
+    ):
+        if preset not in PRESETS:
+            raise AdapterError(f"unknown OPC UA preset {preset!r}; known: {', '.join(PRESETS)}")
+        p = dict(PRESETS[preset])
+        for key in ("offset_scale", "offset_sign", "speed_scale"):
+            if key in p and key not in scaling:
+                scaling[key] = p[key]
+        super().__init__(**scaling)
+        self.url = url
+        self.speed_node = speed_node or p.get("speed_node")
+        self.offset_node = offset_node or p.get("offset_node")
+        if not self.speed_node or not self.offset_node:
+            raise AdapterError("OPC UA adapter needs speed_node and offset_node (or a preset)")
+        self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
+        self.namespace_uri = namespace_uri or p.get("namespace_uri")
+        self.timeout_s = timeout_s
+        self.verify_writes = verify_writes
+        self._client = None
+        self._speed = None
+        self._offset = None
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: Any) -> OpcUaAdapter:
+        q = query_params(url)
+        base = url.split("?", 1)[0]
+        kw: dict[str, Any] = {k: v for k, v in q.items() if k in ("preset", "speed_node", "offset_node", "namespace_uri")}
+        for k in ("offset_scale", "speed_scale", "timeout_s"):
+            if k in q:
+                kw[k] = float(q[k])
+        if "offset_sign" in q:
+            kw["offset_sign"] = int(q["offset_sign"])
+        kw.update(overrides)
+        return cls(base, **kw)
+
+    def _call(self, what: str, fn, *args):
+        from asyncua import ua
+
+        try:
+            return fn(*args)
+        except ua.UaStatusCodeError as err:
+            raise AdapterError(f"opcua {what}: {type(err).__name__}") from err
+        except (TimeoutError, concurrent.futures.TimeoutError) as err:
+            raise AdapterTimeoutError(f"opcua {what}: no answer from {self.url} within {self.timeout_s:g} s") from err
+        except (ConnectionError, OSError, EOFError) as err:
+            raise UnreachableError(f"opcua {what}: {self.url}: {err or type(err).__name__}") from err
+
+    def _connect(self) -> None:
+        from asyncua.sync import Client
+
+        client = Client(self.url, timeout=self.timeout_s)
+        try:
+            self._call("connect", client.connect)
+        except AdapterError:
+            self._client = client
+            self._disconnect()  # also stops the client's own event-loop thread
+            raise
+        self._client = client
+        try:
+            ns = ""
+            if self.namespace_uri:
+                ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri))
+            self._speed = client.get_node(self.speed_node.replace("{ns}", ns))
+            self._offset = client.get_node(self.offset_node.replace("{ns}", ns))
+            self._call("read speed node", self._speed.read_value)
+        except (AdapterError, ValueError) as err:
+            self._disconnect()
+            if isinstance(err, AdapterError):
+                raise
+            raise AdapterError(f"opcua: bad node id: {err}") from err
+
+    def _read_speed_raw(self) -> Any:
+        value = self._call("read speed", self._speed.read_value)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
+        return abs(value)
+
+    def _write_offset_raw(self, value: float) -> None:
+        from asyncua import ua
+
+        dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
+        try:
+            self._offset.write_value(dv)
+        except ua.UaStatusCodeError as err:
+            raise WriteRejectedError(f"opcua: write refused: {type(err).__name__}") from err
+        except (TimeoutError, concurrent.futures.TimeoutError) as err:
+            raise AdapterTimeoutError(f"opcua write: no answer within {self.timeout_s:g} s") from err
+        except (ConnectionError, OSError, EOFError) as err:
+            raise UnreachableError(f"opcua write: {self.url}: {err or type(err).__name__}") from err
+        if self.verify_writes:
+            back = self._call("read back", self._offset.read_value)
+            if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
+                raise WriteRejectedError(f"opcua: wrote {value!r}, controller holds {back!r}")
+
+    def _disconnect(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            try:
+                client.disconnect()
+            except Exception:  # noqa: BLE001 - a dead link cannot be closed more cleanly
+                pass

@@ -1,0 +1,314 @@
+"""A virtual CNC served over a real OPC UA server (asyncua), driven by the spindle plant.
+
+Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
+
+    Objects/
+      CncInterface/                       (CncInterfaceType-like)
+        CncSpindleList/
+          Spindle1/                       (CncSpindleType-like)
+            ActSpeed          Double  rpm   the spindle's actual speed (read-only)
+            CmdSpeed          Double  rpm   the programmed speed (read-only)
+            ThermalOffset     Double  um    thermal tool-length offset (writable)
+            Displacement      Double  um    eddy-current reading at the nose (read-only)
+        Simulation/
+          SimTime             Double  s     simulated time
+          TrueElongation      Double  um    the plant's true growth, for scoring
+          ToolTipError        Double  um    true growth + applied offset: what the part sees
+
+Every node id is a string node id ``ns=<ns>;s=/<path>`` so that configurations can name
+them; ``NODE_PATHS`` lists them. Positive elongation moves the tool tip toward the workpiece;
+an offset written here moves it back by the same amount, so a perfect compensator writes
+``-elongation`` and ``ToolTipError`` reads 0.
+
+Time runs accelerated (``time_scale`` x wall time) on an injected clock, and a
+:class:`~cnc_adapters.sim.programs.Program` drives the speed. The plant is stepped on a fixed
+sim-time grid (``plant_dt_s``), which keeps its matrix exponentials cached.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from .plant import SpindlePlant
+from .programs import Program
+
+NAMESPACE_URI = "urn:thermocomp:virtual-cnc"
+NODE_PATHS = {
+    "act_speed": "/CncInterface/CncSpindleList/Spindle1/ActSpeed",
+    "cmd_speed": "/CncInterface/CncSpindleList/Spindle1/CmdSpeed",
+    "thermal_offset": "/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
+    "displacement": "/CncInterface/CncSpindleList/Spindle1/Displacement",
+    "sim_time": "/CncInterface/Simulation/SimTime",
+    "true_elongation": "/CncInterface/Simulation/TrueElongation",
+    "tool_tip_error": "/CncInterface/Simulation/ToolTipError",
+}
+OFFSET_LIMIT_UM = 1000.0
+"""The virtual CNC, like a real one, ignores offsets beyond this (and non-finite ones)."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+class SimClock:
+    """Simulated seconds, ``scale`` times faster than ``base``. Shared by the plant and its
+    clients; the scale can change without a jump in simulated time."""
+
+    def __init__(self, scale: float = 60.0, base: Callable[[], float] = time.monotonic):
+        if not scale > 0:
+            raise ValueError("time scale must be > 0")
+        self.scale = float(scale)
+        self._base = base
+        self._b0 = base()
+        self._s0 = 0.0
+
+    def __call__(self) -> float:
+        return self._s0 + (self._base() - self._b0) * self.scale
+
+    def set_scale(self, scale: float) -> None:
+        if not scale > 0:
+            raise ValueError("time scale must be > 0")
+        now = self()
+        self._b0, self._s0, self.scale = self._base(), now, float(scale)
+
+
+@dataclass
+class History:
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    true_um: np.ndarray
+    measured_um: np.ndarray
+    offset_um: np.ndarray
+
+    @property
+    def tool_tip_error_um(self) -> np.ndarray:
+        return self.true_um + self.offset_um
+
+
+class VirtualMachine:
+    """The plant, its speed program, the applied offset and the scoring history.
+
+    Protocol-free: the OPC UA :class:`VirtualCNC` and the in-process ``sim`` adapter both
+    drive one of these.
+    """
+
+    def __init__(
+        self,
+        plant: SpindlePlant,
+        program: Program | None = None,
+        *,
+        clock: Callable[[], float] | None = None,
+        plant_dt_s: float = 0.5,
+    ):
+        self.plant = plant
+        self.program = program
+        self._program_start_s = 0.0
+        self.clock = clock or SimClock(60.0)
+        self.plant_dt_s = plant_dt_s
+        self.offset_um = 0.0
+        self.rejected_writes = 0
+        self._override_rpm: float | None = None
+        self._hist: list[tuple[float, float, float, float, float]] = []
+        self._lock = threading.Lock()
+
+    def load_program(self, program: Program | None) -> None:
+        """Start ``program`` now (sim time); None idles the spindle."""
+        self.program = program
+        self._program_start_s = self.plant.time_s
+
+    def override_speed(self, rpm: float | None) -> None:
+        """Force a speed regardless of the program (None: follow the program)."""
+        self._override_rpm = rpm
+
+    def commanded_rpm(self, t_s: float) -> float:
+        if self._override_rpm is not None:
+            return self._override_rpm
+        if self.program is None:
+            return 0.0
+        rel = t_s - self._program_start_s
+        if rel >= self.program.duration_s:
+            return 0.0
+        return self.program.speed_at(rel + 1e-9)
+
+    @property
+    def program_done(self) -> bool:
+        return (self.program is None
+                or self.plant.time_s - self._program_start_s >= self.program.duration_s)
+
+    @property
+    def speed_rpm(self) -> float:
+        return abs(self.plant._speed_rpm)
+
+    @property
+    def measured_um(self) -> float:
+        return self._hist[-1][3] if self._hist else self.plant.true_elongation_um()
+
+    def apply_offset(self, offset_um: object) -> bool:
+        """Take a written offset, as a CNC would: False (and ignored) if not acceptable."""
+        if (isinstance(offset_um, (int, float)) and not isinstance(offset_um, bool)
+                and math.isfinite(offset_um) and abs(offset_um) <= OFFSET_LIMIT_UM):
+            self.offset_um = float(offset_um)
+            return True
+        self.rejected_writes += 1
+        return False
+
+    def advance(self) -> None:
+        """Step the plant on its fixed grid up to the clock."""
+        with self._lock:
+            target = self.clock()
+            h = self.plant_dt_s
+            while self.plant.time_s + h <= target + 1e-9:
+                rpm = self.commanded_rpm(self.plant.time_s + h / 2)
+                self.plant.advance(rpm, h)
+                true = self.plant.true_elongation_um()
+                meas = float(self.plant.measure_um(true))
+                self._hist.append((self.plant.time_s, rpm, true, meas, self.offset_um))
+
+    def history(self, clear: bool = False) -> History:
+        with self._lock:
+            arr = np.array(self._hist, dtype=float).reshape(-1, 5)
+            if clear:
+                self._hist.clear()
+        return History(*(arr[:, i].copy() for i in range(5)))
+
+
+class VirtualCNC:
+    """A :class:`VirtualMachine` behind an asyncua server. Use from asyncio, or via :func:`running`."""
+
+    def __init__(
+        self,
+        machine: VirtualMachine,
+        *,
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        tick_s: float = 0.005,
+    ):
+        self.machine = machine
+        self.host = host
+        self.port = port or free_port(host)
+        self.tick_s = tick_s
+        self.url = f"opc.tcp://{host}:{self.port}/thermocomp/virtual-cnc/"
+        self._server = None
+        self._nodes: dict = {}
+        self._task: asyncio.Task | None = None
+        self.ns = 2
+
+    # -- server ----------------------------------------------------------------
+
+    async def start(self) -> None:
+        from asyncua import Server, ua
+
+        server = Server()
+        await server.init()
+        server.set_endpoint(self.url)
+        server.set_server_name("thermocomp virtual CNC")
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        self.ns = await server.register_namespace(NAMESPACE_URI)
+        objects = server.nodes.objects
+        folders = {}
+
+        async def folder(path: str):
+            if path in folders:
+                return folders[path]
+            parent_path, _, name = path.rpartition("/")
+            parent = objects if not parent_path else await folder(parent_path)
+            node = await parent.add_object(f"ns={self.ns};s={path}", f"{self.ns}:{name}")
+            folders[path] = node
+            return node
+
+        for key, path in NODE_PATHS.items():
+            parent_path, _, name = path.rpartition("/")
+            parent = await folder(parent_path)
+            node = await parent.add_variable(
+                f"ns={self.ns};s={path}", f"{self.ns}:{name}", ua.Variant(0.0, ua.VariantType.Double)
+            )
+            if key == "thermal_offset":
+                await node.set_writable()
+            self._nodes[key] = node
+        await server.start()
+        self._server = server
+        await self._publish()
+        self._task = asyncio.create_task(self._run())
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        if self._server is not None:
+            await self._server.stop()
+            self._server = None
+
+    async def _run(self) -> None:
+        while True:
+            await self.tick()
+            await asyncio.sleep(self.tick_s)
+
+    async def tick(self) -> None:
+        """Take the offset a client wrote, advance the plant to the clock, publish."""
+        m = self.machine
+        written = await self._nodes["thermal_offset"].read_value()
+        if written != m.offset_um and not m.apply_offset(written):
+            await self._nodes["thermal_offset"].write_value(m.offset_um)
+        m.advance()
+        await self._publish()
+
+    async def _publish(self) -> None:
+        from asyncua import ua
+
+        m = self.machine
+        true = m.plant.true_elongation_um()
+        values = {
+            "act_speed": m.speed_rpm,
+            "cmd_speed": m.commanded_rpm(m.plant.time_s),
+            "displacement": m.measured_um,
+            "sim_time": m.plant.time_s,
+            "true_elongation": true,
+            "tool_tip_error": true + m.offset_um,
+        }
+        for key, v in values.items():
+            await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
+
+
+@contextlib.contextmanager
+def running(vcnc: VirtualCNC) -> Iterator[VirtualCNC]:
+    """Run ``vcnc`` on an event loop in a background thread, for synchronous callers."""
+    loop = asyncio.new_event_loop()
+    ready = threading.Event()
+    error: list[BaseException] = []
+
+    def main() -> None:
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_until_complete(vcnc.start())
+        except BaseException as err:  # noqa: BLE001 - handed to the caller
+            error.append(err)
+            ready.set()
+            return
+        ready.set()
+        loop.run_forever()
+
+    thread = threading.Thread(target=main, name="virtual-cnc", daemon=True)
+    thread.start()
+    ready.wait(30)
+    if error:
+        raise error[0]
+    try:
+        yield vcnc
+    finally:
+        asyncio.run_coroutine_threadsafe(vcnc.stop(), loop).result(30)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(30)
+        loop.close()

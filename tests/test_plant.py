@@ -1,0 +1,81 @@
+"""The virtual spindle plant reproduces its documented figures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cnc_adapters.sim import PRESETS, SpindlePlant, paper_calibration, preset
+from cnc_adapters.sim.plant import _system
+
+
+def run(name, dt, seed=0, **changes):
+    p = preset(name)
+    plant = SpindlePlant(p, seed=seed)
+    if changes:
+        plant = plant.with_params(**changes)
+    t, n = paper_calibration(p.max_rpm).sample(dt)
+    return t, n, plant.run(t, n)
+
+
+def test_motorized_preset_matches_the_paper_figures():
+    t, n, r = run("motorized-27k", 1.0)
+    at = lambda minutes: r.true_um[int(minutes * 60)]  # noqa: E731
+    assert at(180) == pytest.approx(34.4, abs=1.5)  # paper: 34.4 um at 27 000 rpm
+    assert at(180) - at(181) > 10.0  # paper: -16.5 um within a minute of the drop to 12 000
+    assert n[180 * 60] == 27000 and n[181 * 60] == 12000
+
+
+def test_elastic_jump_is_instantaneous():
+    p = preset("motorized-27k")
+    plant = SpindlePlant(p, seed=0)
+    plant.advance(27000, 3600)
+    before = plant.true_elongation_um()
+    plant.advance(12000, 0.001)
+    e1, e2 = p.elastic_um
+    expected = e1 * (27 - 12) + e2 * (27**2 - 12**2)
+    assert before - plant.true_elongation_um() == pytest.approx(expected, rel=0.01)
+
+
+@pytest.mark.parametrize("name,fast_min,slow_min", [("motorized-27k", 1.0, 10), ("mechanical-8k", 10, 90)])
+def test_time_constants(name, fast_min, slow_min):
+    p = preset(name)
+    taus = sorted(-1 / np.linalg.eigvals(_system(p, p.max_rpm / 1000)[0]).real / 60)
+    assert taus[0] > fast_min
+    assert taus[-2] > slow_min  # the slowest spindle mode (the structure is slower still)
+    assert taus[-1] > 6 * 60
+
+
+def test_mechanical_preset_is_slow_and_large():
+    p = preset("mechanical-8k")
+    plant = SpindlePlant(p, seed=0, ).with_params(ambient_daily_amplitude_k=0, ambient_walk_k_per_sqrt_h=0)
+    plant.advance(8000, 3600)
+    one_hour = plant.true_elongation_um()
+    plant.advance(8000, 5 * 3600)
+    six_hours = plant.true_elongation_um()
+    assert six_hours > 20 and one_hour < 0.75 * six_hours  # still warming after an hour
+
+
+def test_step_size_invariance_of_the_plant():
+    calm = dict(ambient_daily_amplitude_k=0.0, ambient_walk_k_per_sqrt_h=0.0)
+    _, _, fine = run("motorized-27k", 1.0, **calm)
+    _, _, coarse = run("motorized-27k", 60.0, **calm)
+    np.testing.assert_allclose(fine.true_um[::60], coarse.true_um, rtol=1e-9, atol=1e-9)
+
+
+def test_seeded_and_reproducible_with_noise_and_quantisation():
+    _, _, a = run("motorized-27k", 60.0, seed=3)
+    _, _, b = run("motorized-27k", 60.0, seed=3)
+    _, _, c = run("motorized-27k", 60.0, seed=4)
+    np.testing.assert_array_equal(a.measured_um, b.measured_um)
+    assert not np.array_equal(a.measured_um, c.measured_um)
+    q = preset("motorized-27k").quantum_um
+    np.testing.assert_allclose(a.measured_um / q, np.round(a.measured_um / q), atol=1e-9)
+    noise = a.measured_um - a.true_um
+    assert 0.03 < noise.std() < 0.1
+    assert np.ptp(a.air_c) > 0  # the ambient drifts
+
+
+def test_presets_are_documented():
+    for p in PRESETS.values():
+        assert p.description and p.max_rpm > 0

@@ -1,0 +1,140 @@
+"""The virtual CNC over a real OPC UA server on loopback: asyncua and node-opcua clients."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cnc_adapters.base import BadValueError, UnreachableError, open_adapter
+from cnc_adapters.opcua import OpcUaAdapter
+from cnc_adapters.sim import SpindlePlant, job_shop_day, preset
+from cnc_adapters.sim.programs import Program
+from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, free_port, running
+from compensator import OffsetShaper, ShaperConfig, TransientPolicy
+from compensator.runtime import Compensator
+
+JS = Path(__file__).parent / "js"
+
+
+def machine(scale=600.0, program=None):
+    p = preset("motorized-27k")
+    prog = program or Program("steady", ((3600.0, 20000.0),))
+    return VirtualMachine(SpindlePlant(p, seed=1), prog, clock=SimClock(scale))
+
+
+def wait_for(pred, timeout=20.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_asyncua_client_reads_speed_and_writes_the_offset():
+    from asyncua.sync import Client
+
+    vm = machine()
+    with running(VirtualCNC(vm)) as cnc, Client(cnc.url, timeout=10) as c:
+        ns = c.get_namespace_index(NAMESPACE_URI)
+        node = {k: c.get_node(f"ns={ns};s={p}") for k, p in NODE_PATHS.items()}
+        assert wait_for(lambda: node["act_speed"].read_value() == 20000.0)
+        node["thermal_offset"].write_value(-7.25)
+        assert wait_for(lambda: vm.offset_um == -7.25)
+        assert wait_for(lambda: abs(node["tool_tip_error"].read_value()
+                                    - (node["true_elongation"].read_value() - 7.25)) < 1e-9)
+        t0 = node["sim_time"].read_value()
+        time.sleep(0.2)
+        assert node["sim_time"].read_value() > t0  # accelerated time runs
+    h = vm.history()
+    assert (h.offset_um[-5:] == -7.25).all()
+    np.testing.assert_allclose(h.tool_tip_error_um, h.true_um + h.offset_um)
+
+
+def test_virtual_cnc_ignores_a_non_finite_or_huge_offset():
+    from asyncua.sync import Client
+
+    vm = machine()
+    with running(VirtualCNC(vm)) as cnc, Client(cnc.url, timeout=10) as c:
+        ns = c.get_namespace_index(NAMESPACE_URI)
+        off = c.get_node(f"ns={ns};s={NODE_PATHS['thermal_offset']}")
+        off.write_value(5e6)
+        assert wait_for(lambda: vm.rejected_writes >= 1)
+        assert wait_for(lambda: off.read_value() == 0.0)
+    assert vm.offset_um == 0.0
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="Node.js is not installed (make test installs it)")
+def test_independent_node_opcua_client_reads_and_writes():
+    assert (JS / "node_modules" / "node-opcua-client").is_dir(), "run scripts/system-deps.sh"
+    vm = machine()
+    with running(VirtualCNC(vm)) as cnc:
+        r = subprocess.run(["node", str(JS / "vcnc_client.mjs"), cnc.url, "-4.5"],
+                           capture_output=True, text=True, timeout=120)
+        out = json.loads(r.stdout.strip().splitlines()[-1])
+        assert r.returncode == 0, (out, r.stderr[-2000:])
+        assert out["browse_status"] == "Good"
+        assert out["act_speed_rpm"] == 20000
+        assert out["write_status"] == "Good" and out["offset_readback_um"] == -4.5
+        # both read in one request; the server may publish between the two nodes (one tick)
+        assert out["tool_tip_error_um"] == pytest.approx(out["true_elongation_um"] - 4.5, abs=0.3)
+        assert out["true_elongation_um"] > 1.0
+        assert wait_for(lambda: vm.offset_um == -4.5)
+
+
+def test_opcua_adapter_against_the_virtual_cnc():
+    vm = machine()
+    with running(VirtualCNC(vm)) as cnc:
+        with open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+            assert isinstance(link, OpcUaAdapter)
+            assert wait_for(lambda: link.read_speed() == 20000.0)
+            link.write_offset_um(-3.0)
+            with pytest.raises(BadValueError):
+                link.write_offset_um(float("nan"))
+            assert wait_for(lambda: vm.offset_um == -3.0)
+        link.close()  # idempotent
+
+
+def test_opcua_adapter_unreachable():
+    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{free_port()}/nothing", preset="virtual-cnc", timeout_s=2)
+    with pytest.raises(UnreachableError):
+        link.read_speed()
+    with pytest.raises(ConnectionError):  # also the builtin it refines
+        link.open()
+
+
+def test_compensation_over_opcua_halves_the_error_within_clamp_and_slew():
+    """End to end: model + shaper + OPC UA adapter against the virtual CNC, accelerated time."""
+    from calibration.calibrate import calibrate
+    from plantdata import plant_run
+
+    model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
+    cfg = ShaperConfig(max_offset_um=30.0, max_rate_um_per_s=2.0, deadband_um=0.1,
+                       transient=TransientPolicy(mode="slow", window_s=20, slow_period_s=5))
+    clock = SimClock(600.0)
+    p = preset("motorized-27k")
+    vm = VirtualMachine(SpindlePlant(p, seed=21), None, clock=clock)
+    prog = job_shop_day(p.max_rpm, seed=21, hours=1.5)
+    cycles = []
+    with running(VirtualCNC(vm)) as cnc, OpcUaAdapter(cnc.url, preset="virtual-cnc") as link:
+        comp = Compensator(model, OffsetShaper(cfg), link, clock)
+        comp.cycle()
+        vm.history(clear=True)
+        vm.load_program(prog)
+        while not vm.program_done:
+            cycles.append(comp.cycle())
+            time.sleep(0.001)
+    h = vm.history()
+    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
+    offsets = np.array([c.offset_um for c in cycles])
+    dts = np.array([c.dt_s for c in cycles])
+    assert np.isfinite(offsets).all() and np.abs(offsets).max() <= 30.0
+    assert (np.abs(np.diff(offsets)) <= 2.0 * dts[1:] + 1e-9).all()
+    assert np.abs(h.offset_um).max() <= 30.0
