@@ -90,13 +90,14 @@ class OpcUaAdapter(Adapter):
         kw.update(overrides)
         return cls(base, **kw)
 
-    def _call(self, what: str, fn, *args):
+    def _call(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError):
+        """Run one client call; map its failures onto the adapter exception tree."""
         from asyncua import ua
 
         try:
             return fn(*args)
         except ua.UaStatusCodeError as err:
-            raise AdapterError(f"opcua {what}: {type(err).__name__}") from err
+            raise refused(f"opcua {what}: {type(err).__name__}") from err
         except (TimeoutError, concurrent.futures.TimeoutError) as err:
             raise AdapterTimeoutError(f"opcua {what}: no answer from {self.url} within {self.timeout_s:g} s") from err
         except (ConnectionError, OSError, EOFError) as err:
@@ -136,14 +137,7 @@ class OpcUaAdapter(Adapter):
         from asyncua import ua
 
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
-        try:
-            self._offset.write_value(dv)
-        except ua.UaStatusCodeError as err:
-            raise WriteRejectedError(f"opcua: write refused: {type(err).__name__}") from err
-        except (TimeoutError, concurrent.futures.TimeoutError) as err:
-            raise AdapterTimeoutError(f"opcua write: no answer within {self.timeout_s:g} s") from err
-        except (ConnectionError, OSError, EOFError) as err:
-            raise UnreachableError(f"opcua write: {self.url}: {err or type(err).__name__}") from err
+        self._call("write refused", self._offset.write_value, dv, refused=WriteRejectedError)
         if self.verify_writes:
             back = self._call("read back", self._offset.read_value)
             if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
