@@ -49,6 +49,18 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="cnc_adapters.sim.commands:simulate")
 
 
+def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("virtual-cnc", help="serve the virtual machine tool over OPC UA")
+    p.add_argument("--preset", default="motorized-27k", help="plant preset")
+    p.add_argument("--program", default="job-shop-day", help="speed program")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--time-scale", type=float, default=60.0, help="simulated seconds per second")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
+    p.add_argument("--port", type=int, default=4840, help="TCP port")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.set_defaults(handler="cnc_adapters.sim.commands:virtual_cnc")
+
+
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
@@ -70,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_fit, _add_replay, _add_simulate, _add_model):
+    for add in (_add_demo, _add_fit, _add_replay, _add_simulate, _add_virtual_cnc, _add_model):
         add(sub)
     return parser
 

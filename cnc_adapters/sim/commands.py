@@ -9,6 +9,7 @@ from compensator.io import write_run_log
 
 from .plant import SpindlePlant, preset
 from .programs import program
+from .vcnc import NODE_PATHS
 
 
 def simulate(args: argparse.Namespace) -> int:
@@ -31,4 +32,27 @@ def simulate(args: argparse.Namespace) -> int:
     }
     write_run_log(args.output, run.columns(), meta)
     print(f"wrote {t.size} rows, {prog.duration_s / 3600:.2f} h of {prog.name} on {params.name} to {args.output}")
+    return 0
+
+
+def virtual_cnc(args: argparse.Namespace) -> int:
+    import time
+
+    from .vcnc import SimClock, VirtualCNC, VirtualMachine, running
+
+    try:
+        params = preset(args.preset)
+        prog = program(args.program, params.max_rpm, seed=args.seed)
+    except KeyError as err:
+        raise ConfigError(str(err.args[0])) from err
+    vm = VirtualMachine(SpindlePlant(params, seed=args.seed), prog, clock=SimClock(args.time_scale))
+    with running(VirtualCNC(vm, host=args.host, port=args.port)) as cnc:
+        print(f"virtual CNC ({params.name}, {prog.name}, {args.time_scale:g}x) at {cnc.url}", flush=True)
+        print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
+        end = None if args.duration is None else time.monotonic() + args.duration
+        while end is None or time.monotonic() < end:
+            time.sleep(0.2)
+            if vm.program is not None and vm.program_done:
+                print("program finished; the spindle idles", flush=True)
+                vm.load_program(None)
     return 0
