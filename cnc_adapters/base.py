@@ -6,7 +6,7 @@ convert units and sign, and log; backends override only the raw calls
 
 Backends are registered by name here and, for third parties, through the entry-point
 group ``thermocomp.adapters``. :func:`open_adapter` builds one from a URL
-(``opc.tcp://…``, ``sim://…``) or a configuration mapping.
+(``opc.tcp://…``, ``serial:///dev/ttyUSB0?protocol=haas``, ``sim://…``) or a configuration mapping.
 """
 
 from __future__ import annotations
@@ -105,6 +105,16 @@ class Adapter(ABC):
                 self._open = False
         self._closed = True
 
+    def _link_lost(self, message: str) -> UnreachableError:
+        """Drop a dead link so that the next call reconnects; the error to raise."""
+        try:
+            self._disconnect()
+        except Exception:  # noqa: BLE001 - it is already dead
+            pass
+        self._open = False
+        log.warning("%s", message)
+        return UnreachableError(message)
+
     def __enter__(self) -> Adapter:
         return self.open()
 
@@ -129,6 +139,9 @@ class Adapter(ABC):
 BACKENDS: dict[str, str] = {
     "sim": "cnc_adapters.sim.adapter:SimAdapter",
     "opcua": "cnc_adapters.opcua:OpcUaAdapter",
+    "line": "cnc_adapters.serial_link:LineAdapter",
+    "haas": "cnc_adapters.serial_link:HaasAdapter",
+    "modbus": "cnc_adapters.modbus:ModbusRtuAdapter",
 }
 SCHEMES = {"opc.tcp": "opcua", "sim": "sim"}
 
@@ -152,6 +165,10 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
     """An adapter from a URL or a mapping with a ``type`` key (not yet connected)."""
     if isinstance(target, str):
         parts = urlsplit(target)
+        if parts.scheme == "serial":
+            from .serial_link import serial_from_url
+
+            return serial_from_url(target, **overrides)
         kind = SCHEMES.get(parts.scheme)
         if kind is None:
             raise AdapterError(f"no adapter for URL scheme {parts.scheme!r} in {target!r}")

@@ -101,7 +101,10 @@ class OpcUaAdapter(Adapter):
         except (TimeoutError, concurrent.futures.TimeoutError) as err:
             raise AdapterTimeoutError(f"opcua {what}: no answer from {self.url} within {self.timeout_s:g} s") from err
         except (ConnectionError, OSError, EOFError) as err:
-            raise UnreachableError(f"opcua {what}: {self.url}: {err or type(err).__name__}") from err
+            msg = f"opcua {what}: {self.url}: {err or type(err).__name__}"
+            if self._client is None:
+                raise UnreachableError(msg) from err
+            raise self._link_lost(msg) from err
 
     def _connect(self) -> None:
         from asyncua.sync import Client

@@ -1,0 +1,157 @@
+"""Modbus RTU controller link (pymodbus): a PLC or gateway that holds speed and offset in registers.
+
+Speed comes from an input or holding register block, the offset goes to holding registers.
+Each value has a data type (``int16``, ``uint16``, ``int32``, ``uint32``, ``float32``), a word
+order (``big``: high word first) and a byte order inside each register (``big`` is the Modbus
+standard; ``little`` swaps the two bytes). Integer types take ``speed_scale`` and
+``offset_scale`` to reach rpm and the register's unit.
+
+A reply with a bad CRC is dropped by the framer, so it surfaces as a timeout; a Modbus
+exception reply (illegal address, device failure) is an :class:`AdapterError`, or a
+:class:`WriteRejectedError` for a write.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+from .base import (
+    Adapter,
+    AdapterError,
+    AdapterTimeoutError,
+    BadValueError,
+    UnreachableError,
+    WriteRejectedError,
+    query_params,
+)
+
+_WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
+_RANGE = {"int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
+          "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
+
+
+def _swap(regs: list[int]) -> list[int]:
+    return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+
+
+class ModbusRtuAdapter(Adapter):
+    name = "modbus"
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 19200,
+        parity: Literal["N", "E", "O"] = "N",
+        device_id: int = 1,
+        speed_table: Literal["input", "holding"] = "input",
+        speed_register: int = 0,
+        speed_type: str = "float32",
+        offset_register: int = 0,
+        offset_type: str = "float32",
+        word_order: Literal["big", "little"] = "big",
+        byte_order: Literal["big", "little"] = "big",
+        timeout_s: float = 0.5,
+        **scaling: Any,
+    ):
+        super().__init__(**scaling)
+        for t in (speed_type, offset_type):
+            if t not in _WIDTH:
+                raise AdapterError(f"modbus: unknown data type {t!r}; known: {', '.join(_WIDTH)}")
+        if speed_table not in ("input", "holding"):
+            raise AdapterError("modbus: speed_table is 'input' or 'holding'")
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.parity = parity
+        self.device_id = int(device_id)
+        self.speed_table = speed_table
+        self.speed_register = int(speed_register)
+        self.speed_type = speed_type
+        self.offset_register = int(offset_register)
+        self.offset_type = offset_type
+        self.word_order = word_order
+        self.byte_order = byte_order
+        self.timeout_s = float(timeout_s)
+        self._client = None
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: Any) -> ModbusRtuAdapter:
+        q = query_params(url)
+        q.pop("protocol", None)
+        kw: dict[str, Any] = {}
+        for k, v in q.items():
+            if k in ("baudrate", "device_id", "speed_register", "offset_register", "offset_sign"):
+                kw[k] = int(v)
+            elif k in ("timeout_s", "offset_scale", "speed_scale"):
+                kw[k] = float(v)
+            else:
+                kw[k] = v
+        kw.update(overrides)
+        return cls(urlsplit(url).path, **kw)
+
+    def _connect(self) -> None:
+        from pymodbus.client import ModbusSerialClient
+
+        client = ModbusSerialClient(port=self.port, baudrate=self.baudrate, parity=self.parity,
+                                    timeout=self.timeout_s, retries=0)
+        if not client.connect():
+            client.close()
+            raise UnreachableError(f"modbus: cannot open {self.port}")
+        self._client = client
+
+    def _disconnect(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            try:
+                client.close()
+            except Exception:  # noqa: BLE001 - the device may already be gone
+                pass
+
+    def _request(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError, **kw):
+        from pymodbus.exceptions import ConnectionException, ModbusIOException
+        from serial import SerialException
+
+        try:
+            rr = fn(*args, device_id=self.device_id, **kw)
+        except (SerialException, ConnectionException, OSError) as err:
+            raise self._link_lost(f"modbus {what}: {self.port} vanished: {err}") from err
+        except ModbusIOException as err:
+            raise AdapterTimeoutError(f"modbus {what}: no valid reply (timeout or CRC error): {err}") from err
+        if rr.isError():
+            raise refused(f"modbus {what}: exception reply {rr}")
+        return rr
+
+    def _decode(self, regs: list[int], dtype: str) -> float:
+        from pymodbus.client import ModbusSerialClient as C
+
+        regs = _swap(list(regs)) if self.byte_order == "little" else list(regs)
+        return float(C.convert_from_registers(regs, getattr(C.DATATYPE, dtype.upper()),
+                                              word_order=self.word_order))
+
+    def _encode(self, value: float, dtype: str) -> list[int]:
+        from pymodbus.client import ModbusSerialClient as C
+
+        if dtype != "float32":
+            lo, hi = _RANGE[dtype]
+            value = round(value)
+            if not lo <= value <= hi:
+                raise BadValueError(f"modbus: {value} does not fit {dtype}")
+            value = int(value)
+        regs = C.convert_to_registers(value, getattr(C.DATATYPE, dtype.upper()), word_order=self.word_order)
+        return _swap(regs) if self.byte_order == "little" else regs
+
+    def _read_speed_raw(self) -> float:
+        c = self._client
+        fn = c.read_input_registers if self.speed_table == "input" else c.read_holding_registers
+        rr = self._request("read speed", fn, self.speed_register, count=_WIDTH[self.speed_type])
+        value = self._decode(rr.registers, self.speed_type)
+        if not math.isfinite(value):
+            raise BadValueError(f"modbus: speed register holds {value}")
+        return abs(value)
+
+    def _write_offset_raw(self, value: float) -> None:
+        regs = self._encode(value, self.offset_type)
+        self._request("write offset", self._client.write_registers, self.offset_register, regs,
+                      refused=WriteRejectedError)
