@@ -184,3 +184,21 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
 
 def query_params(url: str) -> dict[str, str]:
     return dict(parse_qsl(urlsplit(url).query))
+
+
+INT_PARAMS = frozenset({"baudrate", "device_id", "speed_register", "offset_register", "offset_sign",
+                        "speed_var", "offset_var", "r_parameter"})
+FLOAT_PARAMS = frozenset({"timeout_s", "offset_scale", "speed_scale", "time_scale"})
+
+
+def typed_params(url: str, drop: tuple[str, ...] = ("protocol",)) -> dict[str, Any]:
+    """URL query parameters as constructor keywords, numbers converted."""
+    out: dict[str, Any] = {}
+    for k, v in query_params(url).items():
+        if k in drop:
+            continue
+        try:
+            out[k] = int(v) if k in INT_PARAMS else float(v) if k in FLOAT_PARAMS else v
+        except ValueError as err:
+            raise AdapterError(f"URL parameter {k}={v!r} is not a number") from err
+    return out

@@ -24,7 +24,7 @@ from .base import (
     BadValueError,
     UnreachableError,
     WriteRejectedError,
-    query_params,
+    typed_params,
 )
 
 _WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
@@ -78,17 +78,7 @@ class ModbusRtuAdapter(Adapter):
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> ModbusRtuAdapter:
-        q = query_params(url)
-        q.pop("protocol", None)
-        kw: dict[str, Any] = {}
-        for k, v in q.items():
-            if k in ("baudrate", "device_id", "speed_register", "offset_register", "offset_sign"):
-                kw[k] = int(v)
-            elif k in ("timeout_s", "offset_scale", "speed_scale"):
-                kw[k] = float(v)
-            else:
-                kw[k] = v
-        kw.update(overrides)
+        kw = {**typed_params(url), **overrides}
         return cls(urlsplit(url).path, **kw)
 
     def _connect(self) -> None:

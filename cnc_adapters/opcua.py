@@ -23,7 +23,7 @@ from .base import (
     BadValueError,
     UnreachableError,
     WriteRejectedError,
-    query_params,
+    typed_params,
 )
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -79,15 +79,8 @@ class OpcUaAdapter(Adapter):
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> OpcUaAdapter:
-        q = query_params(url)
         base = url.split("?", 1)[0]
-        kw: dict[str, Any] = {k: v for k, v in q.items() if k in ("preset", "speed_node", "offset_node", "namespace_uri")}
-        for k in ("offset_scale", "speed_scale", "timeout_s"):
-            if k in q:
-                kw[k] = float(q[k])
-        if "offset_sign" in q:
-            kw["offset_sign"] = int(q["offset_sign"])
-        kw.update(overrides)
+        kw = {**typed_params(url), **overrides}
         return cls(base, **kw)
 
     def _call(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError):

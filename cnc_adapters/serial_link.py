@@ -32,6 +32,7 @@ from .base import (
     UnreachableError,
     WriteRejectedError,
     query_params,
+    typed_params,
 )
 
 try:
@@ -84,17 +85,7 @@ class LineAdapter(Adapter):
     def from_url(cls, url: str, **overrides: Any) -> LineAdapter:
         """``serial:///dev/ttyUSB0?protocol=haas&baudrate=9600&offset_var=10500``."""
         parts = urlsplit(url)
-        q = query_params(url)
-        q.pop("protocol", None)
-        kw: dict[str, Any] = {}
-        for k, v in q.items():
-            if k in ("baudrate", "speed_var", "offset_var", "offset_sign"):
-                kw[k] = int(v)
-            elif k in ("timeout_s", "offset_scale", "speed_scale"):
-                kw[k] = float(v)
-            else:
-                kw[k] = v
-        kw.update(overrides)
+        kw = {**typed_params(url), **overrides}
         return cls(parts.path, **kw)
 
     # -- the line exchange -------------------------------------------------------
