@@ -8,12 +8,21 @@ its namespace. Presets:
 - ``sinumerik``: SINUMERIK Operate, speed ``/Channel/Spindle/actSpeed[u1,1]`` and the offset in
   an R parameter (``r_parameter`` selects which);
 - ``generic``: give ``speed_node`` and ``offset_node``.
+
+Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
+``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
+a server whose certificate is not in the trust list is refused. The user name and password
+come from the environment (``THERMOCOMP_OPCUA_USER``, ``THERMOCOMP_OPCUA_PASSWORD`` by
+default) or from a ``password_file``, never from the configuration itself.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 from .base import (
@@ -55,6 +64,14 @@ class OpcUaAdapter(Adapter):
         r_parameter: int = 1,
         timeout_s: float = 4.0,
         verify_writes: bool = True,
+        security: str = "None",
+        certificate: str | None = None,
+        private_key: str | None = None,
+        trust_dir: str | None = None,
+        username_env: str = "THERMOCOMP_OPCUA_USER",
+        password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
+        password_file: str | None = None,
+        application_uri: str = "urn:thermocomp:client",
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -73,6 +90,21 @@ class OpcUaAdapter(Adapter):
         self.namespace_uri = namespace_uri or p.get("namespace_uri")
         self.timeout_s = timeout_s
         self.verify_writes = verify_writes
+        self.security = security
+        if security != "None":
+            policy, _, mode = security.partition(",")
+            if policy != "Basic256Sha256" or mode not in ("Sign", "SignAndEncrypt"):
+                raise AdapterError(f"opcua: security {security!r}: use None, Basic256Sha256,Sign "
+                                   "or Basic256Sha256,SignAndEncrypt")
+            if not (certificate and private_key and trust_dir):
+                raise AdapterError("opcua: a secure link needs certificate, private_key and trust_dir")
+        self.certificate = certificate
+        self.private_key = private_key
+        self.trust_dir = trust_dir
+        self.username_env = username_env
+        self.password_env = password_env
+        self.password_file = password_file
+        self.application_uri = application_uri
         self._client = None
         self._speed = None
         self._offset = None
@@ -99,12 +131,74 @@ class OpcUaAdapter(Adapter):
                 raise UnreachableError(msg) from err
             raise self._link_lost(msg) from err
 
+    def _credentials(self) -> tuple[str | None, str | None]:
+        user = os.environ.get(self.username_env)
+        password = os.environ.get(self.password_env)
+        if self.password_file:
+            try:
+                password = Path(self.password_file).read_text(encoding="utf-8").rstrip("\r\n")
+            except OSError as err:
+                raise AdapterError(f"opcua: cannot read password_file: {err.strerror}") from err
+        return user, password
+
+    def _trusted(self) -> set[str]:
+        """SHA-256 fingerprints (DER) of the certificates in the trust list."""
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import Encoding
+
+        prints = set()
+        directory = Path(self.trust_dir or "")
+        if not directory.is_dir():
+            raise AdapterError(f"opcua: trust_dir {directory} is not a directory")
+        for f in sorted(directory.iterdir()):
+            data = f.read_bytes()
+            try:
+                cert = (x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data
+                        else x509.load_der_x509_certificate(data))
+            except ValueError:
+                continue
+            prints.add(hashlib.sha256(cert.public_bytes(Encoding.DER)).hexdigest())
+        if not prints:
+            raise AdapterError(f"opcua: no certificate in trust_dir {directory}")
+        return prints
+
+    def _secure(self, client) -> None:
+        from asyncua import ua
+        from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+        from cryptography.hazmat.primitives.serialization import Encoding
+
+        trusted = self._trusted()
+
+        async def validate(cert, _app) -> None:
+            fp = hashlib.sha256(cert.public_bytes(Encoding.DER)).hexdigest()
+            if fp not in trusted:
+                raise ua.UaError(f"server certificate {fp[:16]}... is not in the trust list")
+
+        client.aio_obj.certificate_validator = validate
+        client.aio_obj.application_uri = self.application_uri
+        mode = (ua.MessageSecurityMode.Sign if self.security.endswith(",Sign")
+                else ua.MessageSecurityMode.SignAndEncrypt)
+        self._call("security", client.set_security, SecurityPolicyBasic256Sha256,
+                   self.certificate, self.private_key, None, None, mode)
+
     def _connect(self) -> None:
+        from asyncua import ua
         from asyncua.sync import Client
 
         client = Client(self.url, timeout=self.timeout_s)
         try:
+            user, password = self._credentials()
+            if user:
+                client.set_user(user)
+            if password:
+                client.set_password(password)
+            if self.security != "None":
+                self._secure(client)
             self._call("connect", client.connect)
+        except ua.UaError as err:
+            self._client = client
+            self._disconnect()
+            raise UnreachableError(f"opcua connect: {self.url}: {err}") from err
         except AdapterError:
             self._client = client
             self._disconnect()  # also stops the client's own event-loop thread

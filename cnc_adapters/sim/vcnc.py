@@ -193,8 +193,17 @@ class VirtualCNC:
         host: str = "127.0.0.1",
         port: int | None = None,
         tick_s: float = 0.005,
+        certificate: str | None = None,
+        private_key: str | None = None,
+        users: dict[str, str] | None = None,
     ):
+        """With ``certificate`` and ``private_key`` the server accepts only
+        Basic256Sha256 (Sign, SignAndEncrypt); with ``users`` only those user names and
+        passwords, never anonymous."""
         self.machine = machine
+        self.certificate = certificate
+        self.private_key = private_key
+        self.users = users
         self.host = host
         self.port = port or free_port(host)
         self.tick_s = tick_s
@@ -209,11 +218,33 @@ class VirtualCNC:
     async def start(self) -> None:
         from asyncua import Server, ua
 
-        server = Server()
+        user_manager = None
+        if self.users is not None:
+            from asyncua.server.user_managers import UserManager
+            from asyncua.crypto.permission_rules import User, UserRole
+
+            users = dict(self.users)
+
+            class Passwords(UserManager):
+                def get_user(self, iserver, username=None, password=None, certificate=None):
+                    if username in users and users[username] == password:
+                        return User(role=UserRole.User, name=username)
+                    return None
+
+            user_manager = Passwords()
+        server = Server(user_manager=user_manager)
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("thermocomp virtual CNC")
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        if self.certificate and self.private_key:
+            await server.load_certificate(self.certificate)
+            await server.load_private_key(self.private_key)
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+                                        ua.SecurityPolicyType.Basic256Sha256_Sign])
+        else:
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        if self.users is not None:
+            server.set_identity_tokens([ua.UserNameIdentityToken])
         self.ns = await server.register_namespace(NAMESPACE_URI)
         objects = server.nodes.objects
         folders = {}
