@@ -14,8 +14,10 @@ from __future__ import annotations
 import importlib
 import logging
 import math
+import random
+import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
@@ -50,11 +52,29 @@ class Adapter(ABC):
     ``offset_scale`` converts um to the controller's unit (0.001 for mm) and
     ``offset_sign`` flips the sign for controllers whose thermal offset points
     the other way. ``speed_scale`` converts the controller's speed unit to rpm.
+
+    A lost link is reopened on the next call, with exponential back-off and jitter
+    between failed attempts (``backoff_s`` doubling up to ``max_backoff_s``, +-``jitter``);
+    during the back-off calls fail at once with :class:`UnreachableError`.
+    ``on_link_change(up, reason)`` tells the runtime when the link goes down or comes back.
+    ``clock`` is injectable for tests.
     """
 
     name: ClassVar[str] = "abstract"
 
-    def __init__(self, *, offset_scale: float = 1.0, offset_sign: int = 1, speed_scale: float = 1.0):
+    def __init__(
+        self,
+        *,
+        offset_scale: float = 1.0,
+        offset_sign: int = 1,
+        speed_scale: float = 1.0,
+        backoff_s: float = 0.5,
+        max_backoff_s: float = 30.0,
+        jitter: float = 0.2,
+        on_link_change: Callable[[bool, str], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        rng: random.Random | None = None,
+    ):
         if offset_sign not in (1, -1):
             raise ValueError("offset_sign must be +1 or -1")
         if not (math.isfinite(offset_scale) and offset_scale != 0):
@@ -62,18 +82,60 @@ class Adapter(ABC):
         self.offset_scale = offset_scale
         self.offset_sign = offset_sign
         self.speed_scale = speed_scale
+        self.backoff_s = backoff_s
+        self.max_backoff_s = max_backoff_s
+        self.jitter = jitter
+        self.on_link_change = on_link_change
+        self._clock = clock
+        self._rng = rng or random.Random()
         self._open = False
         self._closed = False
+        self._failures = 0
+        self._next_attempt = -math.inf
+        self._down = False
+        self.reconnects = 0
 
     # -- template methods ------------------------------------------------------
 
     def open(self) -> Adapter:
         if self._closed:
             raise AdapterError(f"{self.name} adapter is closed")
-        if not self._open:
+        if self._open:
+            return self
+        now = self._clock()
+        if now < self._next_attempt:
+            raise UnreachableError(
+                f"{self.name}: link down, next attempt in {self._next_attempt - now:.1f} s "
+                f"({self._failures} failed)")
+        try:
             self._connect()
-            self._open = True
+        except AdapterError as err:
+            self._failures += 1
+            delay = min(self.max_backoff_s, self.backoff_s * 2 ** (self._failures - 1))
+            delay *= 1 + self.jitter * self._rng.uniform(-1, 1)
+            self._next_attempt = now + delay
+            self._set_down(str(err))
+            raise
+        self._open = True
+        if self._down:
+            self.reconnects += 1
+            self._down = False
+            self._notify(True, "link restored")
+        self._failures = 0
+        self._next_attempt = -math.inf
         return self
+
+    def _notify(self, up: bool, reason: str) -> None:
+        if self.on_link_change is not None:
+            try:
+                self.on_link_change(up, reason)
+            except Exception:  # noqa: BLE001 - a faulty listener must not break the link
+                log.exception("%s: on_link_change failed", self.name)
+
+    def _set_down(self, reason: str) -> None:
+        if not self._down:
+            self._down = True
+            self._notify(False, reason)
 
     def read_speed(self) -> float:
         """Actual spindle speed [rpm]; raises :class:`BadValueError` on NaN or inf."""
@@ -113,6 +175,7 @@ class Adapter(ABC):
             pass
         self._open = False
         log.warning("%s", message)
+        self._set_down(message)
         return UnreachableError(message)
 
     def __enter__(self) -> Adapter:

@@ -7,7 +7,10 @@ its namespace. Presets:
 - ``virtual-cnc``: thermocomp's own virtual CNC (``cnc_adapters.sim.vcnc``);
 - ``sinumerik``: SINUMERIK Operate, speed ``/Channel/Spindle/actSpeed[u1,1]`` and the offset in
   an R parameter (``r_parameter`` selects which);
-- ``generic``: give ``speed_node`` and ``offset_node``.
+- ``opc40502``: OPC UA for CNC systems; ``ActSpeed`` of the ``CncSpindleType`` object named
+  ``spindle`` is found by browse path; give the offset's ``offset_node`` or ``offset_path``;
+- ``generic``: give ``speed_node``/``speed_path`` and ``offset_node``/``offset_path``
+  (a browse path is ``0:Objects/2:Machine/2:Speed``, with ``{ns}`` for ``namespace_uri``).
 
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
@@ -46,6 +49,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         "offset_node": "ns=2;s=/Channel/Parameter/R[u1,{r}]",
         "offset_scale": 0.001,  # R parameters hold mm
     },
+    # OPC 40502 (OPC UA for CNC systems): the spindle found by browse path; the standard has
+    # no thermal-offset variable, so offset_node or offset_path must name one
+    "opc40502": {
+        "namespace_uri": "http://opcfoundation.org/UA/CNC/",
+        "speed_path": "0:Objects/{ns}:CncInterface/{ns}:CncSpindleList/{ns}:{spindle}/{ns}:ActSpeed",
+    },
     "generic": {},
 }
 
@@ -60,6 +69,9 @@ class OpcUaAdapter(Adapter):
         preset: str = "generic",
         speed_node: str | None = None,
         offset_node: str | None = None,
+        speed_path: str | None = None,
+        offset_path: str | None = None,
+        spindle: str = "Spindle1",
         namespace_uri: str | None = None,
         r_parameter: int = 1,
         timeout_s: float = 4.0,
@@ -72,6 +84,8 @@ class OpcUaAdapter(Adapter):
         password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
         password_file: str | None = None,
         application_uri: str = "urn:thermocomp:client",
+        read_mode: str = "poll",
+        publish_interval_ms: float = 50.0,
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -82,11 +96,17 @@ class OpcUaAdapter(Adapter):
                 scaling[key] = p[key]
         super().__init__(**scaling)
         self.url = url
-        self.speed_node = speed_node or p.get("speed_node")
-        self.offset_node = offset_node or p.get("offset_node")
-        if not self.speed_node or not self.offset_node:
-            raise AdapterError("OPC UA adapter needs speed_node and offset_node (or a preset)")
-        self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
+        self.speed_node = speed_node or (None if speed_path else p.get("speed_node"))
+        self.offset_node = offset_node or (None if offset_path else p.get("offset_node"))
+        self.speed_path = None if self.speed_node else (speed_path or p.get("speed_path"))
+        self.offset_path = None if self.offset_node else (offset_path or p.get("offset_path"))
+        if self.speed_path:
+            self.speed_path = self.speed_path.replace("{spindle}", spindle)
+        if not (self.speed_node or self.speed_path) or not (self.offset_node or self.offset_path):
+            raise AdapterError("OPC UA adapter needs the speed and offset nodes (node id or browse "
+                               "path), or a preset that names them")
+        if self.offset_node:
+            self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
         self.namespace_uri = namespace_uri or p.get("namespace_uri")
         self.timeout_s = timeout_s
         self.verify_writes = verify_writes
@@ -105,6 +125,11 @@ class OpcUaAdapter(Adapter):
         self.password_env = password_env
         self.password_file = password_file
         self.application_uri = application_uri
+        if read_mode not in ("poll", "subscribe"):
+            raise AdapterError("opcua: read_mode is 'poll' or 'subscribe'")
+        self.read_mode = read_mode
+        self.publish_interval_ms = publish_interval_ms
+        self._latest: _Latest | None = None
         self._client = None
         self._speed = None
         self._offset = None
@@ -208,17 +233,35 @@ class OpcUaAdapter(Adapter):
             ns = ""
             if self.namespace_uri:
                 ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri))
-            self._speed = client.get_node(self.speed_node.replace("{ns}", ns))
-            self._offset = client.get_node(self.offset_node.replace("{ns}", ns))
+            self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
+            self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
             self._call("read speed node", self._speed.read_value)
+            if self.read_mode == "subscribe":
+                self._latest = _Latest()
+                sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
+                                 self._latest)
+                self._call("subscribe", sub.subscribe_data_change, self._speed)
         except (AdapterError, ValueError) as err:
             self._disconnect()
             if isinstance(err, AdapterError):
                 raise
             raise AdapterError(f"opcua: bad node id: {err}") from err
 
+    def _resolve(self, client, node_id: str | None, path: str | None, ns: str):
+        if node_id:
+            return client.get_node(node_id.replace("{ns}", ns))
+        parts = path.replace("{ns}", ns).strip("/").split("/")  # type: ignore[union-attr]
+        return self._call(f"browse {path}", client.nodes.root.get_child, parts)
+
     def _read_speed_raw(self) -> Any:
-        value = self._call("read speed", self._speed.read_value)
+        if self._latest is not None:
+            value = self._latest.get(self.timeout_s)
+            if isinstance(value, BaseException):
+                raise self._link_lost(f"opcua subscription: {self.url}: {value}")
+            if value is None:
+                raise AdapterTimeoutError(f"opcua: no speed notification within {self.timeout_s:g} s")
+        else:
+            value = self._call("read speed", self._speed.read_value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
         return abs(value)
@@ -234,9 +277,32 @@ class OpcUaAdapter(Adapter):
                 raise WriteRejectedError(f"opcua: wrote {value!r}, controller holds {back!r}")
 
     def _disconnect(self) -> None:
+        self._latest = None
         client, self._client = self._client, None
         if client is not None:
             try:
                 client.disconnect()
             except Exception:  # noqa: BLE001 - a dead link cannot be closed more cleanly
                 pass
+
+
+class _Latest:
+    """Subscription handler: keeps the last speed notification (or the link's failure)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._value: Any = None
+        self._event = threading.Event()
+
+    def datachange_notification(self, node, val, data) -> None:  # noqa: ARG002 - asyncua's API
+        self._value = val
+        self._event.set()
+
+    def status_change_notification(self, status) -> None:
+        self._value = UnreachableError(f"subscription status {status}")
+        self._event.set()
+
+    def get(self, timeout_s: float) -> Any:
+        self._event.wait(timeout_s)
+        return self._value

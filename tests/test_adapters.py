@@ -181,7 +181,9 @@ def test_opcua_server_killed_mid_session_and_restarted():
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
     vm.override_speed(8000.0)
     port = free_port()
-    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", preset="virtual-cnc", timeout_s=2)
+    events = []
+    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", preset="virtual-cnc",
+                        timeout_s=2, on_link_change=lambda up, why: events.append(up))
     with running(VirtualCNC(vm, port=port)):
         assert wait_for(lambda: link.read_speed() == 8000.0)
         link.write_offset_um(-2.0)
@@ -196,6 +198,7 @@ def test_opcua_server_killed_mid_session_and_restarted():
         assert wait_for(lambda: link.read_speed() == 8000.0, timeout=30)  # recovered
         link.write_offset_um(-4.0)
         assert wait_for(lambda: vm.offset_um == -4.0)
+    assert events == [False, True] and link.reconnects == 1
     link.close()
 
 
@@ -315,3 +318,77 @@ def test_modbus_exception_reply_on_a_bad_address(tmp_path):
     finally:
         dev.close()
         pty.close()
+
+
+# -- reading by subscription; reconnect back-off ------------------------------------------
+
+
+def test_opcua_subscription_follows_the_speed():
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    vm.override_speed(3000.0)
+    with running(VirtualCNC(vm)) as cnc:
+        with OpcUaAdapter(cnc.url, preset="virtual-cnc", read_mode="subscribe") as link:
+            assert wait_for(lambda: link.read_speed() == 3000.0)
+            vm.override_speed(21000.0)
+            assert wait_for(lambda: link.read_speed() == 21000.0)
+            link.write_offset_um(-1.25)
+            assert wait_for(lambda: vm.offset_um == -1.25)
+
+
+class FakeClock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_reconnect_backs_off_exponentially_with_jitter_and_tells_the_runtime():
+    import random
+
+    clock = FakeClock()
+    events = []
+    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{free_port()}/x", preset="virtual-cnc", timeout_s=1,
+                        backoff_s=1.0, max_backoff_s=8.0, jitter=0.2, clock=clock,
+                        rng=random.Random(1), on_link_change=lambda up, why: events.append(up))
+    attempts = []
+    real = link._connect
+
+    def counting():
+        attempts.append(clock.t)
+        real()
+
+    link._connect = counting  # type: ignore[method-assign]
+    delays = []
+    for _ in range(6):
+        with pytest.raises(UnreachableError):
+            link.read_speed()
+        wait = link._next_attempt - clock.t
+        delays.append(wait)
+        with pytest.raises(UnreachableError, match="next attempt"):
+            link.read_speed()  # inside the back-off: fails at once, no network attempt
+        clock.t += wait + 1e-6
+    assert len(attempts) == 6
+    nominal = [1, 2, 4, 8, 8, 8]
+    assert all(0.8 * n <= d <= 1.2 * n for d, n in zip(delays, nominal)), delays
+    assert len({round(d / n, 6) for d, n in zip(delays, nominal)}) > 1  # jittered
+    assert events == [False]  # told once that the link is down
+    link.close()
+
+
+def test_opc40502_preset_finds_the_spindle_by_browse_path():
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    vm.override_speed(17000.0)
+    with running(VirtualCNC(vm)) as cnc:
+        path = "0:Objects/{ns}:CncInterface/{ns}:CncSpindleList/{ns}:Spindle1/{ns}:ThermalOffset"
+        # the virtual CNC keeps the 40502 browse names in its own namespace
+        with OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
+                          offset_path=path) as link:
+            assert wait_for(lambda: link.read_speed() == 17000.0)
+            link.write_offset_um(-2.5)
+            assert wait_for(lambda: vm.offset_um == -2.5)
+        bad = OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
+                           spindle="Spindle9", offset_path=path)
+        with pytest.raises(AdapterError, match="BadNoMatch|browse"):
+            bad.read_speed()
+        bad.close()
