@@ -89,7 +89,7 @@ class LineDevice(threading.Thread):
                     self.ready.set()
                     buf = b""
                     while not self._halt.is_set():
-                        chunk = ser.read(256)
+                        chunk = ser.read(ser.in_waiting or 1)  # return as soon as bytes arrive
                         if not chunk:
                             continue
                         buf += chunk
