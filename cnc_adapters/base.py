@@ -239,8 +239,10 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
         return cls.from_url(target, **overrides)  # type: ignore[attr-defined]
     cfg = dict(target)
     kind = cfg.pop("type", None)
+    if not kind and "url" in cfg:
+        return open_adapter(cfg.pop("url"), **cfg, **overrides)
     if not kind:
-        raise AdapterError("adapter configuration needs a 'type'")
+        raise AdapterError("adapter configuration needs a 'type' or a 'url'")
     cfg.update(overrides)
     return backend(kind)(**cfg)
 

@@ -61,6 +61,14 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="cnc_adapters.sim.commands:virtual_cnc")
 
 
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run the compensation service")
+    p.add_argument("--config", required=True, help="runtime configuration (TOML)")
+    p.add_argument("--check", action="store_true",
+                   help="validate, connect, read one speed, and exit without writing")
+    p.set_defaults(handler="compensator.service:main")
+
+
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
@@ -82,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_fit, _add_replay, _add_simulate, _add_virtual_cnc, _add_model):
+    for add in (_add_demo, _add_fit, _add_replay, _add_run, _add_simulate, _add_virtual_cnc, _add_model):
         add(sub)
     return parser
 

@@ -354,3 +354,83 @@ def load_model(path: str | os.PathLike[str]) -> ThermalModel:
         raise UnstableModelError(f"{src}: {err}") from err
     except ModelError as err:
         raise ModelFileError(f"{src}: invalid model: {err}") from err
+
+
+# -- runtime state -------------------------------------------------------------------
+
+STATE_FORMAT = "thermocomp.state/1"
+
+
+def model_digest(model: ThermalModel) -> str:
+    return hashlib.sha256(_canonical(model.model_dump(mode="json")).encode()).hexdigest()
+
+
+def save_state(path: str | os.PathLike[str], payload: Mapping[str, Any]) -> None:
+    """Atomically write a runtime state file with its checksum."""
+    body = {"format": STATE_FORMAT, **payload}
+    body["sha256"] = hashlib.sha256(_canonical(body).encode()).hexdigest()
+    text = json.dumps(body, allow_nan=False)
+    with atomic_write(path) as fh:
+        fh.write(text)
+
+
+def load_state(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The saved state, or None when missing; :class:`ModelFileError` when unreadable."""
+    src = os.fspath(path)
+    try:
+        with open(src, encoding="utf-8") as fh:
+            body = json.load(fh)
+    except FileNotFoundError:
+        return None
+    except (OSError, json.JSONDecodeError, UnicodeError) as err:
+        raise ModelFileError(f"{src}: unreadable state file ({err})") from err
+    if not isinstance(body, dict) or body.get("format") != STATE_FORMAT:
+        raise ModelFileError(f"{src}: not a {STATE_FORMAT} file")
+    digest = body.pop("sha256", None)
+    if digest != hashlib.sha256(_canonical(body).encode()).hexdigest():
+        raise ModelFileError(f"{src}: state file checksum mismatch")
+    return body
+
+
+class Journal:
+    """The runtime's journal: the common run-log format, one file per UTC day, flushed per row."""
+
+    COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms")
+
+    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any]):
+        self.directory = Path(directory)
+        self.name = name
+        self.metadata = dict(metadata)
+        self._fh: IO[str] | None = None
+        self._day: str | None = None
+        self._last_t = -math.inf
+
+    def path_for(self, day: str) -> Path:
+        return self.directory / f"{self.name}-{day}.csv"
+
+    def write(self, wall_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
+              written: bool, flags: int, alarms: int) -> None:
+        import time as _time
+
+        day = _time.strftime("%Y-%m-%d", _time.gmtime(wall_s))
+        if day != self._day:
+            self.close()
+            self.directory.mkdir(parents=True, exist_ok=True)
+            path = self.path_for(day)
+            new = not path.exists() or path.stat().st_size == 0
+            self._fh = open(path, "a", encoding="utf-8")
+            if new:
+                self._fh.write("".join(f"# {k}: {v}\n" for k, v in self.metadata.items()))
+                self._fh.write(",".join(self.COLUMNS) + "\n")
+            self._day = day
+        t = max(wall_s, self._last_t + 1e-3)  # the run-log format needs increasing time
+        self._last_t = t
+        assert self._fh is not None
+        self._fh.write(f"{t:.3f},{speed_rpm:.9g},{predicted_um:.9g},{offset_um:.9g},"
+                       f"{int(written)},{int(flags)},{int(alarms)}\n")
+        self._fh.flush()
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None

@@ -38,7 +38,9 @@ class SimAdapter(Adapter):
                 prog = make_program(program, params.max_rpm, seed=seed) if program else None
             except KeyError as err:
                 raise AdapterError(str(err.args[0])) from err
-            machine = VirtualMachine(SpindlePlant(params, seed=seed), prog, clock=SimClock(time_scale))
+            # a clock handed in (the runtime's) drives the plant too, so both share one time
+            machine = VirtualMachine(SpindlePlant(params, seed=seed), prog,
+                                     clock=scaling.get("clock") or SimClock(time_scale))
         self.machine = machine
 
     @classmethod

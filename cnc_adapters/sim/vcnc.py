@@ -212,6 +212,7 @@ class VirtualCNC:
         self._nodes: dict = {}
         self._task: asyncio.Task | None = None
         self.ns = 2
+        self.loop: asyncio.AbstractEventLoop | None = None  # set by running()
 
     # -- server ----------------------------------------------------------------
 
@@ -313,6 +314,12 @@ class VirtualCNC:
             await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
 
 
+def call(vcnc: VirtualCNC, coro_fn) -> None:
+    """Run ``vcnc.stop`` or ``vcnc.start`` on its own loop (under :func:`running`): an outage."""
+    assert vcnc.loop is not None
+    asyncio.run_coroutine_threadsafe(coro_fn(), vcnc.loop).result(30)
+
+
 @contextlib.contextmanager
 def running(vcnc: VirtualCNC) -> Iterator[VirtualCNC]:
     """Run ``vcnc`` on an event loop in a background thread, for synchronous callers."""
@@ -336,6 +343,7 @@ def running(vcnc: VirtualCNC) -> Iterator[VirtualCNC]:
     ready.wait(30)
     if error:
         raise error[0]
+    vcnc.loop = loop
     try:
         yield vcnc
     finally:

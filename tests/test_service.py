@@ -1,0 +1,209 @@
+"""The compensation service: configuration, end to end over OPC UA, restarts, outages, crashes."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cnc_adapters.sim import SpindlePlant, job_shop_day, preset
+from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
+from compensator import ConfigError
+from compensator.config import load_config
+from compensator.io import load_state, read_run_log, save_model
+from compensator.service import Alarm, Service, SpindleRuntime
+
+EXAMPLES = Path(__file__).parents[1] / "examples"
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    from calibration.calibrate import calibrate
+    from plantdata import plant_run
+
+    model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
+    p = tmp_path_factory.mktemp("m") / "model.json"
+    save_model(p, model)
+    return p
+
+
+def write_config(tmp_path: Path, model: Path, adapter: str, **extra) -> Path:
+    lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false"]
+    lines += [f"{k} = {json.dumps(v)}" for k, v in extra.pop("top", {}).items()]
+    lines += ["[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0",
+              f"state_save_every_s = {extra.pop('save_every', 5.0)}", adapter,
+              "[spindle.shaping]", "max_offset_um = 40.0", "max_rate_um_per_s = 2.0", "deadband_um = 0.1"]
+    p = tmp_path / "machine.toml"
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def test_example_configuration_is_valid():
+    cfg = load_config(EXAMPLES / "machine.toml")
+    assert cfg.spindle[0].adapter["preset"] == "sinumerik"
+    assert cfg.spindle[0].shaping.transient.mode == "slow"
+
+
+@pytest.mark.parametrize("text,match", [
+    ('state_dir = "x"\nbogus = 1\n[[spindle]]\nname="a"\nmodel="m"\nadapter={url="sim://"}\n', "bogus"),
+    ('[[spindle]]\nname="a"\nmodel="m"\nadapter={type="opcua", password="x"}\n', "password"),
+    ('[[spindle]]\nname="a b"\nmodel="m"\nadapter={url="sim://"}\n', "name"),
+    ("[[spindle\n", "not valid TOML"),
+])
+def test_bad_configuration_is_one_line(tmp_path, text, match):
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=match) as exc:
+        load_config(p)
+    assert "\n" not in str(exc.value)
+
+
+def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outage=None):
+    """The service against the OPC UA virtual CNC in accelerated time. ``outage`` =
+    (start, length) in simulated seconds: the server goes away and comes back."""
+    from cnc_adapters.sim.vcnc import call
+
+    clock = SimClock(scale)
+    p = preset("motorized-27k")
+    vm = VirtualMachine(SpindlePlant(p, seed=31), None, clock=clock)
+    port = free_port()
+    cfg = write_config(tmp_path, model_file,
+                       f'adapter = {{url = "opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", '
+                       'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}')
+    cnc = VirtualCNC(vm, port=port)
+    with running(cnc):
+        svc = Service(cfg, clock=clock, wall=lambda: 1.7e9 + clock())
+        vm.history(clear=True)
+        vm.load_program(job_shop_day(p.max_rpm, seed=31, hours=hours))
+        start = clock()
+        phase = "before"
+        while not vm.program_done:
+            if outage and phase == "before" and clock() - start > outage[0]:
+                call(cnc, cnc.stop)
+                phase, down_at = "down", clock()
+            elif outage and phase == "down" and clock() - down_at > outage[1]:
+                call(cnc, cnc.start)
+                phase = "after"
+            wait = svc.tick()
+            time.sleep(min(wait, 1.0) / scale)
+        svc.close()
+    journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))
+    return vm, svc, journal
+
+
+def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5)
+    h = vm.history()
+    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
+    # the run starts at 22:13 UTC, so the journal rotates at midnight
+    assert [p.name for p in journal] == ["s1-2023-11-14.csv", "s1-2023-11-15.csv"]
+    logs = [read_run_log(p) for p in journal]  # each file is a run log replay can read
+    assert logs[0].time_s[-1] < 1700006400.0 <= logs[1].time_s[0]
+    off = np.concatenate([lg.extras["offset_um"] for lg in logs])
+    dt = np.diff(np.concatenate([lg.time_s for lg in logs]))
+    assert np.isfinite(off).all() and np.abs(off).max() <= 40.0
+    assert (np.abs(np.diff(off)) <= 2.0 * dt + 1e-6).all()
+    assert np.abs(h.offset_um).max() <= 40.0
+    state = load_state(tmp_path / "state" / "s1.state.json")
+    assert state is not None and state["spindle"] == "s1"
+
+
+def test_outage_of_the_controller(tmp_path, model_file):
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=0.5, outage=(600, 600))
+    assert len(journal) == 1
+    log = read_run_log(journal[0])
+    alarms = log.extras["alarms"].astype(int)
+    written = log.extras["written"].astype(int)
+    down = (alarms & int(Alarm.LINK_DOWN)) != 0
+    assert down.any(), "the outage was not noticed"
+    assert not written[down].any(), "a write was attempted while the link was down"
+    assert ((alarms & int(Alarm.IDLE_ASSUMED)) != 0).any()  # after speed_hold_s
+    after = np.flatnonzero(down)[-1] + 1
+    assert written[after:].any(), "writing did not resume after the outage"
+    off = log.extras["offset_um"]
+    assert np.isfinite(off).all()
+    assert (np.abs(np.diff(off)) <= 2.0 * np.diff(log.time_s) + 1e-6).all()
+
+
+def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
+    from compensator.model import ModelState
+
+    t = {"now": 0.0}
+    clock = lambda: t["now"]  # noqa: E731
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
+    vm.override_speed(20000.0)
+    from cnc_adapters.sim.adapter import SimAdapter
+
+    cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
+    sc = cfg.spindle[0]
+    a = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
+                       adapter=SimAdapter(machine=vm))
+    assert a.alarms & Alarm.COLD_START
+    for _ in range(1800):
+        t["now"] += 1.0
+        a.cycle()
+    a.close()
+    saved = a.state
+    # two hours of downtime; the reference keeps running at 0 rpm in 1-s cycles
+    ref = saved
+    for _ in range(7200):
+        ref = a.model.step(ref, 0.0, 1.0)
+    t["now"] += 7200.0
+    b = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
+                       adapter=SimAdapter(machine=vm))
+    assert not b.alarms & Alarm.COLD_START
+    assert abs(b.state.elongation_um - ref.elongation_um) < 1e-6
+    assert saved.elongation_um - b.state.elongation_um > 1.0  # it did cool
+    b.close()
+    # too old: cold start, and said so
+    t["now"] += 3 * 86400.0
+    c = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
+                       adapter=SimAdapter(machine=vm))
+    assert c.alarms & Alarm.COLD_START and c.state == c.model.cold_state()
+    c.close()
+
+
+def test_kill_9_while_writing_state(tmp_path, model_file):
+    """100 hard kills at random moments: every restart finds a valid state file, and the
+    restored elongation is within 0.5 um of what the killed run last computed."""
+    cfg = write_config(tmp_path, model_file,
+                       'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}',
+                       save_every=0.5, top={"time_scale": 300.0})
+    rng = random.Random(7)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    state_path = tmp_path / "state" / "s1.state.json"
+    checked = progressed = 0
+    last_saved = None
+    for i in range(100):
+        proc = subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        if i % 10 != 9:  # most kills land while it cycles and saves; every tenth during start-up
+            before = state_path.stat().st_mtime_ns if state_path.exists() else 0
+            end = time.monotonic() + 60
+            while time.monotonic() < end and (
+                    not state_path.exists() or state_path.stat().st_mtime_ns == before):
+                time.sleep(0.01)
+        time.sleep(rng.uniform(0.0, 0.3))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        state = load_state(state_path)  # raises on a torn or corrupt file
+        assert state is not None and np.isfinite(state["thermal_um"]).all()
+        progressed += state["saved_wall_s"] != last_saved
+        last_saved = state["saved_wall_s"]
+        journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))
+        if journal:
+            lines = [ln for ln in journal[-1].read_text().splitlines() if ln and ln[0].isdigit()]
+            last_pred = float(lines[-1].split(",")[2])
+            assert abs(state["elongation_um"] - last_pred) <= 0.5
+            checked += 1
+    assert checked >= 90
+    assert progressed >= 80  # most kills landed while the service was cycling and saving
