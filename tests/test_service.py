@@ -207,3 +207,108 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
             checked += 1
     assert checked >= 90
     assert progressed >= 80  # most kills landed while the service was cycling and saving
+
+
+def start_service(cfg: Path, env_extra=None):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
+    return subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def wait_file(path: Path, timeout=60.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if path.exists():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_two_spindles_sigterm_sighup_and_systemd_notify(tmp_path, model_file):
+    import socket
+
+    state = tmp_path / "state"
+    cfg = tmp_path / "two.toml"
+    body = f"""state_dir = "{state}"
+time_scale = 120.0
+log_file = "{tmp_path / 'log.jsonl'}"
+[[spindle]]
+name = "a"
+model = "{model_file}"
+state_save_every_s = 10
+adapter = {{url = "sim://motorized-27k?program=job-shop-day&seed=1"}}
+[[spindle]]
+name = "b"
+model = "{model_file}"
+period_s = 2.0
+state_save_every_s = 10
+adapter = {{url = "sim://mechanical-8k?program=job-shop-day&seed=2"}}
+"""
+    cfg.write_text(body)
+    sock_path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(sock_path)
+    sock.settimeout(60)
+    proc = start_service(cfg, {"NOTIFY_SOCKET": sock_path})
+    try:
+        assert sock.recv(100) == b"READY=1"
+        assert sock.recv(100) == b"WATCHDOG=1"
+        assert wait_file(state / "a.state.json") and wait_file(state / "b.state.json")
+        # SIGHUP: reload a changed configuration (spindle b removed) without stopping
+        cfg.write_text(body.split('[[spindle]]\nname = "b"')[0])
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(2.0)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    lines = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    msgs = [x["msg"] for x in lines]
+    assert any("reloaded: 1 spindle" in m for m in msgs)
+    assert msgs[-1] == "stopped; state saved"
+    assert all({"ts", "level", "logger", "msg"} <= set(x) for x in lines)
+    journals = sorted(p.name.split("-")[0] for p in (state / "journal").glob("*.csv"))
+    assert set(journals) == {"a", "b"}
+
+
+def test_run_check_reads_one_speed_and_writes_nothing(tmp_path, model_file):
+    cfg = write_config(tmp_path, model_file, 'adapter = {url = "sim://motorized-27k?program=job-shop-day"}')
+    r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg), "--check"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "link ok" in r.stdout and "nothing was written" in r.stdout
+    assert not (tmp_path / "state").exists()
+
+
+def test_run_check_unreachable_controller_is_one_line(tmp_path, model_file):
+    cfg = write_config(tmp_path, model_file,
+                       f'adapter = {{url = "opc.tcp://127.0.0.1:{free_port()}/x", preset = "virtual-cnc", timeout_s = 1.0}}')
+    r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg), "--check"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "thermocomp: error:" in r.stderr
+
+
+def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
+    from cnc_adapters.sim.adapter import SimAdapter
+
+    t = {"now": 0.0}
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: t["now"])
+    vm.override_speed(20000.0)
+    cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
+    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
+                        wall=lambda: 1e9 + t["now"], adapter=SimAdapter(machine=vm))
+    real = vm.apply_offset
+    vm.apply_offset = lambda v: False  # the controller refuses every write
+    for _ in range(20):
+        t["now"] += 1.0
+        rec = rt.cycle()
+    assert rec["alarms"] & Alarm.WRITE_REJECTED and rt.counters["write_rejected"] >= 19
+    vm.apply_offset = real
+    t["now"] += 1.0
+    rt.cycle()
+    assert vm.offset_um == rt.shaper_state.output_um != 0.0  # retried once accepted
+    rt.close()
