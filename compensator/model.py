@@ -49,7 +49,6 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from scipy.signal import lfilter
 
 from .errors import ModelError, NonFiniteInputError, UnstableModelError
 
@@ -453,6 +452,8 @@ def _advance_block(
         h = float(dt[0])
         a = math.exp(-d0 * h)
         gain = -math.expm1(-d0 * h) / d0
+        from scipy.signal import lfilter  # only batch work needs scipy: the runtime stays small
+
         u = _generation(st, n, np.empty_like(n), scale)
         y, _ = lfilter([gain], [1.0, -a], u, zi=[a * x0])
         return y

@@ -117,8 +117,9 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     assert state is not None and state["spindle"] == "s1"
 
 
-def test_outage_of_the_controller(tmp_path, model_file):
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=0.5, outage=(600, 600))
+@pytest.mark.parametrize("outage_s", [30.0, 600.0])
+def test_outage_of_the_controller(tmp_path, model_file, outage_s):
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=0.5, outage=(600, outage_s))
     assert len(journal) == 1
     log = read_run_log(journal[0])
     alarms = log.extras["alarms"].astype(int)
@@ -126,7 +127,11 @@ def test_outage_of_the_controller(tmp_path, model_file):
     down = (alarms & int(Alarm.LINK_DOWN)) != 0
     assert down.any(), "the outage was not noticed"
     assert not written[down].any(), "a write was attempted while the link was down"
-    assert ((alarms & int(Alarm.IDLE_ASSUMED)) != 0).any()  # after speed_hold_s
+    # the last speed is held for speed_hold_s (30 s), then the spindle is taken as idle. (At
+    # 600x a 1-s network timeout is 10 simulated minutes, so even the short outage can last
+    # longer than the hold in simulated time: only the long one is asserted.)
+    if outage_s > 60:
+        assert ((alarms & int(Alarm.IDLE_ASSUMED)) != 0).any()
     after = np.flatnonzero(down)[-1] + 1
     assert written[after:].any(), "writing did not resume after the outage"
     off = log.extras["offset_um"]
