@@ -6,8 +6,9 @@ and save the state every ``state_save_every_s``. Faults never produce a wrong wr
 
 - speed read fails: hold the last speed up to ``faults.speed_hold_s``, then assume idle
   (n = 0), with an alarm; the model keeps running on that assumption;
-- the link is down: no write at all (never a stale value); after it comes back the offset
-  returns to the model value through the slew limit;
+- the link is down: no write at all (never a stale value); the shaper stays at what the
+  controller holds, so after the link returns the offset ramps to the model value through
+  the slew limit;
 - a write is refused: alarm, count, retry next cycle;
 - speed above the calibrated range: clamp to its top (default) or extrapolate, with an alarm;
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing or
@@ -19,6 +20,7 @@ simulated time without sleeping.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import json
 import logging
@@ -101,6 +103,7 @@ class SpindleRuntime:
         if reason is not None:
             self.state = self.model.cold_state()
             self.shaper_state = self.shaper.initial(0.0)
+            self._held_um = 0.0
             self.alarms |= Alarm.COLD_START
             log.warning("%s: cold start (%s)", self.cfg.name, reason)
             return
@@ -110,6 +113,7 @@ class SpindleRuntime:
         # the spindle stood still while we were down: the model's own cooling
         self.state = self.model.step(state, 0.0, downtime)
         self.shaper_state = self.shaper.initial(float(saved.get("offset_um", 0.0)))
+        self._held_um = self.shaper_state.output_um
         log.info("%s: restored state, advanced %.0f s idle: S = %.2f um", self.cfg.name, downtime,
                  self.state.elongation_um)
 
@@ -120,7 +124,7 @@ class SpindleRuntime:
             "saved_wall_s": self.wall(),
             "thermal_um": list(self.state.thermal_um),
             "elongation_um": self.state.elongation_um,
-            "offset_um": self.shaper_state.output_um,
+            "offset_um": self._held_um,
         })
         self._last_save = self.clock()
 
@@ -195,13 +199,18 @@ class SpindleRuntime:
                 log.error("%s: write failed: %s", self.cfg.name, err)
         elif self._link_down_since is not None:
             self.counters["link_down_cycles"] += 1
+        if wrote:
+            self._held_um = shaped.offset_um
+        elif self.shaper_state.output_um != self._held_um:
+            # the controller still holds the old value: ramp from there once writes resume
+            self.shaper_state = dataclasses.replace(self.shaper_state, output_um=self._held_um)
         self.alarms = alarms
         self.counters["cycles"] += 1
-        self.journal.write(wall_now, speed, s, shaped.offset_um, wrote, int(shaped.flags), int(alarms))
+        self.journal.write(wall_now, speed, s, self._held_um, wrote, int(shaped.flags), int(alarms))
         if now - self._last_save >= self.cfg.state_save_every_s:
             self.save_state()
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
-                "offset_um": shaped.offset_um, "written": wrote, "flags": shaped.flags, "alarms": alarms}
+                "offset_um": self._held_um, "written": wrote, "flags": shaped.flags, "alarms": alarms}
 
     def close(self) -> None:
         try:
