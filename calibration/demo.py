@@ -17,6 +17,7 @@ Exit status 0 only if compensation reduced the RMS error.
 from __future__ import annotations
 
 import argparse
+import shutil
 import time
 from pathlib import Path
 
@@ -24,12 +25,11 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.sim import SpindlePlant, job_shop_day, paper_calibration, preset, random_validation
 from cnc_adapters.sim.vcnc import NODE_PATHS, NAMESPACE_URI, SimClock, VirtualCNC, VirtualMachine, running
 from compensator.io import read_run_log, save_model, write_run_log
-from compensator.runtime import Compensator
-from compensator.shaping import Flag, OffsetShaper, ShaperConfig, TransientPolicy
+from compensator.service import Service
+from compensator.shaping import Flag
 
 from .calibrate import calibrate
 from .data import run_from_log, transient_mask
@@ -39,6 +39,24 @@ PRESET = "motorized-27k"
 RECORD_SCALE = 1500.0  # simulated seconds per wall second while recording
 RUN_SCALE = 400.0  # ... while compensating
 RECORD_DT_S = 10.0
+RUNTIME_CONFIG = """# written by thermocomp demo: the runtime configuration it runs
+state_dir = "{state_dir}"
+watchdog = false
+[[spindle]]
+name = "demo"
+model = "{model}"
+period_s = 1.0
+adapter = {{url = "{url}", preset = "virtual-cnc"}}
+[spindle.shaping]
+max_offset_um = 80.0
+max_rate_um_per_s = 2.0
+deadband_um = 0.1
+[spindle.shaping.transient]
+mode = "slow"
+window_s = 20.0
+slow_period_s = 5.0
+release_rate_um_per_s = 1.0
+"""
 
 
 def record(url: str, machine: VirtualMachine, path: Path, say) -> None:
@@ -111,32 +129,33 @@ def main(args: argparse.Namespace) -> int:
     out.print(f"chosen: {fit.reason}")
 
     model = fit.model
-    shaper = OffsetShaper(ShaperConfig(max_offset_um=80, max_rate_um_per_s=2.0, deadband_um=0.1,
-                                       transient=TransientPolicy(mode="slow", window_s=20,
-                                                                 slow_period_s=5,
-                                                                 release_rate_um_per_s=1.0)))
     prog = job_shop_day(params.max_rpm, seed=13, hours=5)
     clock = SimClock(RUN_SCALE)
     vm = VirtualMachine(SpindlePlant(params, seed=13), None, clock=clock)  # at rest until linked
-    cycles = []
-    with running(VirtualCNC(vm)) as cnc, OpcUaAdapter(cnc.url, preset="virtual-cnc") as link:
-        out.print(f"3/3 compensating {prog.duration_s / 3600:.1f} h of a job-shop day over OPC UA "
-                  f"({cnc.url}, {RUN_SCALE:.0f}x real time, 1 s cycle) ...")
-        comp = Compensator(model, shaper, link, clock)
-        comp.cycle()
+    state_dir = outdir / "runtime"
+    if state_dir.exists():
+        shutil.rmtree(state_dir)  # a fresh run: no state or journal from an earlier demo
+    with running(VirtualCNC(vm)) as cnc:
+        config = outdir / "machine.toml"
+        config.write_text(RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json",
+                                                url=cnc.url))
+        out.print(f"3/3 `thermocomp run` with {config}: compensating {prog.duration_s / 3600:.1f} h "
+                  f"of a job-shop day over OPC UA ({cnc.url}, {RUN_SCALE:.0f}x real time, 1 s cycle) ...")
+        w0 = time.time()
+        svc = Service(config, clock=clock, wall=lambda: w0 + clock())
+        rt = svc.spindles["demo"]
+        svc.tick()
         vm.history(clear=True)
         vm.load_program(prog)
-        next_report = 0.0
+        next_report = clock()
         while not vm.program_done:
-            cyc = comp.cycle()
-            cycles.append(cyc)
-            if cyc.time_s >= next_report:
-                out.print(f"   {cyc.time_s / 3600:5.2f} h  {cyc.speed_rpm:7.0f} rpm  "
-                          f"S = {cyc.predicted_um:6.2f} um  offset {cyc.offset_um:7.2f} um")
+            wait = svc.tick()
+            if clock() >= next_report:
+                out.print(f"   {vm.plant.time_s / 3600:5.2f} h  {vm.speed_rpm:7.0f} rpm  "
+                          f"S = {rt.state.elongation_um:6.2f} um  offset {vm.offset_um:7.2f} um")
                 next_report += 3600.0
-            wait = (cyc.time_s + 1.0 - clock()) / clock.scale
-            if wait > 0:
-                time.sleep(wait)
+            time.sleep(wait / clock.scale)
+        svc.close()
     hist = vm.history()
     times, speeds, true, offset = hist.time_s, hist.speed_rpm, hist.true_um, hist.offset_um
     compensated = hist.tool_tip_error_um
@@ -144,14 +163,10 @@ def main(args: argparse.Namespace) -> int:
                   {"time_s": times, "speed_rpm": speeds, "elongation_um": true, "offset_um": offset,
                    "tool_tip_error_um": compensated},
                   {"source": "virtual CNC, every plant step", "program": prog.name})
-    flags = np.array([int(c.flags) for c in cycles])
-    cyc_t = np.array([c.time_s for c in cycles])
-    write_run_log(outdir / "compensation_journal.csv",
-                  {"time_s": cyc_t, "speed_rpm": np.array([c.speed_rpm for c in cycles]),
-                   "predicted_um": np.array([c.predicted_um for c in cycles]),
-                   "offset_um": np.array([c.offset_um for c in cycles]), "flags": flags},
-                  {"model": str(outdir / "model.json"), "program": prog.name})
-    periods = np.diff(cyc_t)
+    journal = [read_run_log(p) for p in sorted((state_dir / "journal").glob("demo-*.csv"))]
+    flags = np.concatenate([j.extras["flags"] for j in journal]).astype(int)
+    offsets = np.concatenate([j.extras["offset_um"] for j in journal])
+    periods = np.diff(np.concatenate([j.time_s for j in journal]))
 
     def stats(e: np.ndarray) -> tuple[float, float, float]:
         return float(np.max(np.abs(e))), float(np.sqrt(np.mean(e**2))), float(np.std(e))
@@ -171,10 +186,10 @@ def main(args: argparse.Namespace) -> int:
     out.print("* 5 min or more after a speed step. Right after one, the offset lags the elastic "
               "jump on purpose: the transient policy slows it to avoid witness marks")
     trans = int(np.count_nonzero(flags & int(Flag.TRANSIENT)))
-    rates = np.abs(np.diff(np.array([c.offset_um for c in cycles]))) / np.maximum(periods, 1e-9)
-    out.print(f"{len(cycles)} cycles, median period {np.median(periods):.2f} s (sim); "
+    rates = np.abs(np.diff(offsets)) / np.maximum(periods, 1e-9)
+    out.print(f"{flags.size} cycles, median period {np.median(periods):.2f} s (sim); "
               f"transient policy active on {trans}; max offset rate {rates.max():.2f} um/s "
-              f"(limit {shaper.config.max_rate_um_per_s:g})")
+              f"(limit {rt.cfg.shaping.max_rate_um_per_s:g}); journal in {state_dir / 'journal'}")
     png = outdir / "demo.png"
     plot_panels(png, [Panel(prog.name, times, speeds, predicted_um=-offset, measured_um=true,
                             measured_label="true elongation (uncompensated error)",

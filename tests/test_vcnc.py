@@ -13,11 +13,9 @@ import pytest
 
 from cnc_adapters.base import BadValueError, UnreachableError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, job_shop_day, preset
+from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.programs import Program
 from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, free_port, running
-from compensator import OffsetShaper, ShaperConfig, TransientPolicy
-from compensator.runtime import Compensator
 
 JS = Path(__file__).parent / "js"
 
@@ -107,34 +105,3 @@ def test_opcua_adapter_unreachable():
         link.read_speed()
     with pytest.raises(ConnectionError):  # also the builtin it refines
         link.open()
-
-
-def test_compensation_over_opcua_halves_the_error_within_clamp_and_slew():
-    """End to end: model + shaper + OPC UA adapter against the virtual CNC, accelerated time."""
-    from calibration.calibrate import calibrate
-    from plantdata import plant_run
-
-    model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
-    cfg = ShaperConfig(max_offset_um=30.0, max_rate_um_per_s=2.0, deadband_um=0.1,
-                       transient=TransientPolicy(mode="slow", window_s=20, slow_period_s=5))
-    clock = SimClock(600.0)
-    p = preset("motorized-27k")
-    vm = VirtualMachine(SpindlePlant(p, seed=21), None, clock=clock)
-    prog = job_shop_day(p.max_rpm, seed=21, hours=1.5)
-    cycles = []
-    with running(VirtualCNC(vm)) as cnc, OpcUaAdapter(cnc.url, preset="virtual-cnc") as link:
-        comp = Compensator(model, OffsetShaper(cfg), link, clock)
-        comp.cycle()
-        vm.history(clear=True)
-        vm.load_program(prog)
-        while not vm.program_done:
-            cycles.append(comp.cycle())
-            time.sleep(0.001)
-    h = vm.history()
-    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
-    assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
-    offsets = np.array([c.offset_um for c in cycles])
-    dts = np.array([c.dt_s for c in cycles])
-    assert np.isfinite(offsets).all() and np.abs(offsets).max() <= 30.0
-    assert (np.abs(np.diff(offsets)) <= 2.0 * dts[1:] + 1e-9).all()
-    assert np.abs(h.offset_um).max() <= 30.0
