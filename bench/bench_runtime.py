@@ -76,7 +76,7 @@ def main() -> dict:
         server.stdout.readline()
         url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
         try:
-            cfg = load_config(config(tmp, f'{{url = "{url}", preset = "virtual-cnc"}}', 0.1))
+            cfg = load_config(config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 0.1))
             rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
             lat = []
             next_t = time.monotonic()
@@ -90,7 +90,7 @@ def main() -> dict:
             out["cycle_10hz_ms_p50"], out["cycle_10hz_ms_p99"] = np.percentile(lat, [50, 99])
             out["cycle_10hz_written"] = bool(rec["written"])
 
-            svc_cfg = config(tmp, f'{{url = "{url}", preset = "virtual-cnc"}}', 1.0)
+            svc_cfg = config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 1.0)
             svc = subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(svc_cfg)],
                                    stderr=subprocess.DEVNULL)
             time.sleep(8)  # imports and connection

@@ -158,6 +158,11 @@ class Adapter(ABC):
         log.debug("%s: write offset %.4f um (raw %r)", self.name, offset_um, raw)
         self._write_offset_raw(raw)
 
+    def take_write_mismatch(self) -> float | None:
+        """For backends that check writes later: the offset [um] the controller holds when it
+        did not take the last write, reported once; None when all is well."""
+        return None
+
     def close(self) -> None:
         """Idempotent."""
         if self._open:

@@ -28,6 +28,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import logging
+
 from .base import (
     Adapter,
     AdapterError,
@@ -37,6 +39,8 @@ from .base import (
     WriteRejectedError,
     typed_params,
 )
+
+log = logging.getLogger("thermocomp.adapters.opcua")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "virtual-cnc": {
@@ -75,7 +79,7 @@ class OpcUaAdapter(Adapter):
         namespace_uri: str | None = None,
         r_parameter: int = 1,
         timeout_s: float = 4.0,
-        verify_writes: bool = True,
+        verify_writes: bool | str = True,
         security: str = "None",
         certificate: str | None = None,
         private_key: str | None = None,
@@ -109,7 +113,13 @@ class OpcUaAdapter(Adapter):
             self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
         self.namespace_uri = namespace_uri or p.get("namespace_uri")
         self.timeout_s = timeout_s
-        self.verify_writes = verify_writes
+        # True/"immediate": read the offset back after each write (one more round trip);
+        # "deferred": check it within the next speed read (one batched request); False: never
+        if verify_writes not in (True, False, "immediate", "deferred"):
+            raise AdapterError("opcua: verify_writes is true, false, 'immediate' or 'deferred'")
+        self.verify_writes = "immediate" if verify_writes is True else verify_writes
+        self._unverified: float | None = None
+        self._mismatch: float | None = None
         self.security = security
         if security != "None":
             policy, _, mode = security.partition(",")
@@ -260,6 +270,13 @@ class OpcUaAdapter(Adapter):
                 raise self._link_lost(f"opcua subscription: {self.url}: {value}")
             if value is None:
                 raise AdapterTimeoutError(f"opcua: no speed notification within {self.timeout_s:g} s")
+        elif self._unverified is not None:
+            value, held = self._call("read speed and offset", self._client.read_values,
+                                     [self._speed, self._offset])
+            wrote, self._unverified = self._unverified, None
+            if not (isinstance(held, (int, float)) and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)):
+                self._mismatch = held
+                log.warning("opcua: wrote %r, controller holds %r", wrote, held)
         else:
             value = self._call("read speed", self._speed.read_value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -271,13 +288,24 @@ class OpcUaAdapter(Adapter):
 
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
         self._call("write refused", self._offset.write_value, dv, refused=WriteRejectedError)
-        if self.verify_writes:
+        if self.verify_writes == "deferred" and self._latest is None:
+            self._unverified = value
+        elif self.verify_writes:
             back = self._call("read back", self._offset.read_value)
             if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
                 raise WriteRejectedError(f"opcua: wrote {value!r}, controller holds {back!r}")
 
+    def take_write_mismatch(self) -> float | None:
+        """The offset [um] the controller holds, if a deferred check found that it did not
+        take the last write; None otherwise. Reported once."""
+        held, self._mismatch = self._mismatch, None
+        if held is None or not isinstance(held, (int, float)):
+            return None
+        return held / (self.offset_scale * self.offset_sign)
+
     def _disconnect(self) -> None:
         self._latest = None
+        self._unverified = None
         client, self._client = self._client, None
         if client is not None:
             try:

@@ -138,6 +138,15 @@ class SpindleRuntime:
             speed = self.adapter.read_speed()
             self._last_good_read = now
             self._last_speed = speed
+            held = getattr(self.adapter, "take_write_mismatch", lambda: None)()
+            if held is not None:  # a deferred check: the controller did not take our last write
+                self.counters["write_rejected"] += 1
+                alarms |= Alarm.WRITE_REJECTED
+                self._pending_write = True
+                self._held_um = float(held)
+                self.shaper_state = dataclasses.replace(self.shaper_state, output_um=self._held_um)
+                log.error("%s: the controller holds %.3f um, not the offset written; retrying",
+                          self.cfg.name, held)
             if self._link_down_since is not None:
                 log.info("%s: link restored after %.0f s", self.cfg.name, now - self._link_down_since)
                 self._link_down_since = None

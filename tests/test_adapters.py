@@ -392,3 +392,21 @@ def test_opc40502_preset_finds_the_spindle_by_browse_path():
         with pytest.raises(AdapterError, match="BadNoMatch|browse"):
             bad.read_speed()
         bad.close()
+
+
+def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take():
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    vm.override_speed(9000.0)
+    with running(VirtualCNC(vm)) as cnc:
+        with OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes="deferred") as link:
+            link.write_offset_um(-3.0)  # taken
+            assert wait_for(lambda: vm.offset_um == -3.0)
+            assert link.read_speed() == 9000.0 and link.take_write_mismatch() is None
+            link.write_offset_um(-5000.0)  # beyond what this CNC accepts: it reverts the variable
+            assert wait_for(lambda: vm.rejected_writes >= 1)
+            time.sleep(0.1)
+            assert link.read_speed() == 9000.0
+            assert link.take_write_mismatch() == -3.0  # what it holds, reported once
+            assert link.take_write_mismatch() is None
+    with pytest.raises(AdapterError, match="verify_writes"):
+        OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", verify_writes="sometimes")

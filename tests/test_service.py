@@ -329,3 +329,29 @@ def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
     rt.cycle()
     assert vm.offset_um == rt.shaper_state.output_um != 0.0  # retried once accepted
     rt.close()
+
+
+def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file):
+    clock = SimClock(60.0)
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
+    vm.override_speed(20000.0)
+    with running(VirtualCNC(vm)) as cnc:
+        cfg = load_config(write_config(
+            tmp_path, model_file,
+            f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc", verify_writes = "deferred"}}'))
+        rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock,
+                            wall=lambda: 1e9 + clock())
+        real = vm.apply_offset
+        vm.apply_offset = lambda v: False  # this CNC now refuses every offset (and reverts it)
+        alarms = Alarm.NONE
+        for _ in range(40):
+            time.sleep(0.02)
+            alarms |= rt.cycle()["alarms"]
+        assert alarms & Alarm.WRITE_REJECTED and rt.counters["write_rejected"] > 0
+        assert vm.offset_um == 0.0
+        vm.apply_offset = real
+        for _ in range(40):
+            time.sleep(0.02)
+            rt.cycle()
+        assert vm.offset_um != 0.0 and abs(vm.offset_um - rt.shaper_state.output_um) < 0.5
+        rt.close()
