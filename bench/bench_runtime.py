@@ -78,16 +78,18 @@ def main() -> dict:
         try:
             cfg = load_config(config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 0.1))
             rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
-            lat = []
+            lat, r2w = [], []
             next_t = time.monotonic()
             for _ in range(300):  # 30 s at 10 Hz; every cycle writes (deadband 0)
                 t0 = time.perf_counter()
                 rec = rt.cycle()
                 lat.append((time.perf_counter() - t0) * 1e3)
+                r2w.append(rec["read_to_write_ms"])
                 next_t += 0.1
                 time.sleep(max(0.0, next_t - time.monotonic()))
             rt.close()
             out["cycle_10hz_ms_p50"], out["cycle_10hz_ms_p99"] = np.percentile(lat, [50, 99])
+            out["read_to_write_10hz_ms_p50"], out["read_to_write_10hz_ms_p99"] = np.percentile(r2w, [50, 99])
             out["cycle_10hz_written"] = bool(rec["written"])
 
             svc_cfg = config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 1.0)

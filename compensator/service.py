@@ -179,6 +179,7 @@ class SpindleRuntime:
     def cycle(self) -> dict[str, Any]:
         from cnc_adapters.base import AdapterError, UnreachableError, WriteRejectedError
 
+        t_read = time.perf_counter()  # a measurement only: the read->write latency
         now = self.clock()
         wall_now = self.wall()  # journal the cycle at the instant its dt was measured
         dt = 0.0 if self._last_t is None else max(0.0, now - self._last_t)
@@ -208,6 +209,7 @@ class SpindleRuntime:
                 log.error("%s: write failed: %s", self.cfg.name, err)
         elif self._link_down_since is not None:
             self.counters["link_down_cycles"] += 1
+        latency_ms = (time.perf_counter() - t_read) * 1e3
         if wrote:
             self._held_um = shaped.offset_um
         elif self.shaper_state.output_um != self._held_um:
@@ -219,7 +221,8 @@ class SpindleRuntime:
         if now - self._last_save >= self.cfg.state_save_every_s:
             self.save_state()
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
-                "offset_um": self._held_um, "written": wrote, "flags": shaped.flags, "alarms": alarms}
+                "offset_um": self._held_um, "written": wrote, "flags": shaped.flags, "alarms": alarms,
+                "read_to_write_ms": latency_ms}
 
     def close(self) -> None:
         try:
