@@ -152,7 +152,6 @@ def test_outage_of_the_controller(tmp_path, model_file, outage_s):
 
 
 def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
-    from compensator.model import ModelState
 
     t = {"now": 0.0}
     clock = lambda: t["now"]  # noqa: E731
