@@ -96,7 +96,7 @@ def record(url: str, machine: VirtualMachine, path: Path, say) -> None:
 
 def main(args: argparse.Namespace) -> int:
     out = Console(width=None if Console().is_terminal else 110)
-    outdir = Path(args.output_dir)
+    outdir = Path(args.output_dir).resolve()  # the runtime config it writes names absolute paths
     outdir.mkdir(parents=True, exist_ok=True)
     params = preset(PRESET)
     started = time.monotonic()
