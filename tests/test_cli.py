@@ -163,3 +163,20 @@ def test_examples_schema_file_is_current():
 
     on_disk = json.loads((Path(__file__).parents[1] / "examples" / "model.schema.json").read_text())
     assert on_disk == ThermalModel.model_json_schema()
+
+
+def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
+    """What `make demo` runs: record over OPC UA, fit, run the service, score; exit 0 only if
+    compensation reduced the RMS error."""
+    r = subprocess.run([sys.executable, "-m", "compensator.cli", "demo", "--output-dir", "out"],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    out = tmp_path / "out"
+    for name in ("calibration_run.csv", "validation_run.csv", "model.json", "machine.toml", "demo.png",
+                 "virtual_cnc_history.csv"):
+        assert (out / name).stat().st_size > 0, name
+    assert list((out / "runtime" / "journal").glob("demo-*.csv"))
+    assert "reduction" in r.stdout and "compensated" in r.stdout
+    hist = read_run_log(out / "virtual_cnc_history.csv")
+    err = hist.extras["tool_tip_error_um"]
+    assert np.sqrt(np.mean(err**2)) < 0.5 * np.sqrt(np.mean(hist.elongation_um**2))
