@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -351,5 +351,3 @@ def fit_form(form: FormSpec, fit_runs: Sequence[Run], **meta) -> FitResult:
             raise
         return FitResult(form, None, note=f"fit failed: {err}")
 
-
-ProgressFn = Callable[[str], None]

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from compensator.io import RunLog
-from compensator.model import ThermalModel
+from compensator.model import RANGE_TOLERANCE, ThermalModel
 
 from .calibrate import residual_stats
 
@@ -98,7 +98,7 @@ def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) ->
     warnings: list[str] = []
     lo, hi = model.speed_range_rpm
     speed = np.abs(log.speed_rpm)
-    over = speed > hi * 1.02
+    over = speed > hi * (1 + RANGE_TOLERANCE)
     if over.any():
         k = int(np.flatnonzero(over)[0])
         line = log.line_of(k)

@@ -19,7 +19,6 @@ offset (for example ``#2000 + T`` wear, via ``G10``).
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Any
 from urllib.parse import urlsplit
@@ -160,16 +159,6 @@ class HaasAdapter(LineAdapter):
         kw.setdefault("reject_reply", r"^>?\s*(\?|INVALID|ERROR|NOT ALLOWED).*")
         kw.setdefault("eol", "\r\n")
         super().__init__(port, **kw)
-
-    def read_macro(self, var: int) -> float:
-        reply = self.exchange(f"?Q600 {int(var)}")
-        m = re.match(rf"^>?\s*MACRO,\s*{int(var)},\s*(?P<value>{NUMBER})$", reply)
-        if m is None:
-            raise BadValueError(f"haas: unexpected reply {reply!r} to ?Q600 {var}")
-        value = float(m.group("value"))
-        if not math.isfinite(value):
-            raise BadValueError(f"haas: macro #{var} is {value}")
-        return value
 
 
 def serial_from_url(url: str, **overrides: Any) -> Adapter:

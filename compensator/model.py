@@ -56,6 +56,8 @@ MODEL_FORMAT = "thermocomp.model/1"
 SPEED_SCALE_RPM = 1000.0
 """Speeds are scaled to krpm internally: coefficients are per krpm**i."""
 
+RANGE_TOLERANCE = 0.02
+"""Speeds up to 2 % above the calibrated maximum still count as in range."""
 _CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
 _MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
 
@@ -226,10 +228,9 @@ class ThermalModel(BaseModel):
             speed_rpm
         )
 
-    def in_range(self, speed_rpm: float, tolerance: float = 0.02) -> bool:
-        lo, hi = self.speed_range_rpm
-        n = abs(speed_rpm)
-        return lo * (1 - tolerance) <= n <= hi * (1 + tolerance) or n == 0.0
+    def above_range(self, speed_rpm: float) -> bool:
+        """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation."""
+        return abs(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
 
     def discretize(self, dt_s: float) -> DiscreteModel:
         """The exact zero-order-hold model at a fixed period: a new value."""

@@ -169,11 +169,10 @@ class SpindleRuntime:
             else:
                 speed = 0.0
                 alarms |= Alarm.IDLE_ASSUMED
-        top = self.model.speed_range_rpm[1]
-        if abs(speed) > top * 1.02:
+        if self.model.above_range(speed):
             alarms |= Alarm.OVER_RANGE
             if self.cfg.faults.over_range == "clamp":
-                speed = math.copysign(top, speed)
+                speed = math.copysign(self.model.speed_range_rpm[1], speed)
         return speed, alarms
 
     def cycle(self) -> dict[str, Any]:

@@ -32,7 +32,6 @@ import numpy as np
 from scipy.linalg import expm
 
 N_NODES = 5
-NODE_NAMES = ("shaft", "nose", "housing", "coolant", "structure")
 
 
 @dataclass(frozen=True)

@@ -42,9 +42,6 @@ class Program:
         out[0] = 0.0  # the log starts with the spindle at rest
         return t, out
 
-    def scaled(self, factor: float, name: str | None = None) -> Program:
-        return Program(name or self.name, tuple((d, s * factor) for d, s in self.segments))
-
 
 MIN = 60.0
 
