@@ -46,18 +46,14 @@ class BadValueError(AdapterError, ValueError):
     """A value read from the controller, or about to be written, is not usable."""
 
 
-class Adapter(ABC):
-    """A link to one spindle on one controller.
-
-    ``offset_scale`` converts um to the controller's unit (0.001 for mm) and
-    ``offset_sign`` flips the sign for controllers whose thermal offset points
-    the other way. ``speed_scale`` converts the controller's speed unit to rpm.
+class Link(ABC):
+    """A connection to one device that reopens itself after a failure.
 
     A lost link is reopened on the next call, with exponential back-off and jitter
     between failed attempts (``backoff_s`` doubling up to ``max_backoff_s``, +-``jitter``);
     during the back-off calls fail at once with :class:`UnreachableError`.
-    ``on_link_change(up, reason)`` tells the runtime when the link goes down or comes back.
-    ``clock`` is injectable for tests.
+    ``on_link_change(up, reason)`` tells the owner when the link goes down or comes back.
+    ``clock`` is injectable for tests. Subclasses implement ``_connect`` and ``_disconnect``.
     """
 
     name: ClassVar[str] = "abstract"
@@ -65,9 +61,6 @@ class Adapter(ABC):
     def __init__(
         self,
         *,
-        offset_scale: float = 1.0,
-        offset_sign: int = 1,
-        speed_scale: float = 1.0,
         backoff_s: float = 0.5,
         max_backoff_s: float = 30.0,
         jitter: float = 0.2,
@@ -75,13 +68,6 @@ class Adapter(ABC):
         clock: Callable[[], float] = time.monotonic,
         rng: random.Random | None = None,
     ):
-        if offset_sign not in (1, -1):
-            raise ValueError("offset_sign must be +1 or -1")
-        if not (math.isfinite(offset_scale) and offset_scale != 0):
-            raise ValueError("offset_scale must be finite and non-zero")
-        self.offset_scale = offset_scale
-        self.offset_sign = offset_sign
-        self.speed_scale = speed_scale
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
         self.jitter = jitter
@@ -95,11 +81,9 @@ class Adapter(ABC):
         self._down = False
         self.reconnects = 0
 
-    # -- template methods ------------------------------------------------------
-
-    def open(self) -> Adapter:
+    def open(self) -> Link:
         if self._closed:
-            raise AdapterError(f"{self.name} adapter is closed")
+            raise AdapterError(f"{self.name} link is closed")
         if self._open:
             return self
         now = self._clock()
@@ -137,6 +121,67 @@ class Adapter(ABC):
             self._down = True
             self._notify(False, reason)
 
+    def close(self) -> None:
+        """Idempotent."""
+        if self._open:
+            try:
+                self._disconnect()
+            finally:
+                self._open = False
+        self._closed = True
+
+    def _link_lost(self, message: str) -> UnreachableError:
+        """Drop a dead link so that the next call reconnects; the error to raise."""
+        try:
+            self._disconnect()
+        except Exception:  # noqa: BLE001 - it is already dead
+            pass
+        self._open = False
+        log.warning("%s", message)
+        self._set_down(message)
+        return UnreachableError(message)
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @abstractmethod
+    def _connect(self) -> None: ...
+
+    @abstractmethod
+    def _disconnect(self) -> None: ...
+
+
+class Adapter(Link):
+    """A link to one spindle on one controller.
+
+    ``offset_scale`` converts um to the controller's unit (0.001 for mm) and
+    ``offset_sign`` flips the sign for controllers whose thermal offset points
+    the other way. ``speed_scale`` converts the controller's speed unit to rpm.
+    Reconnection, back-off and ``on_link_change`` are those of :class:`Link`.
+    """
+
+    def __init__(
+        self,
+        *,
+        offset_scale: float = 1.0,
+        offset_sign: int = 1,
+        speed_scale: float = 1.0,
+        **link: Any,
+    ):
+        if offset_sign not in (1, -1):
+            raise ValueError("offset_sign must be +1 or -1")
+        if not (math.isfinite(offset_scale) and offset_scale != 0):
+            raise ValueError("offset_scale must be finite and non-zero")
+        super().__init__(**link)
+        self.offset_scale = offset_scale
+        self.offset_sign = offset_sign
+        self.speed_scale = speed_scale
+
+    # -- template methods ------------------------------------------------------
+
     def read_speed(self) -> float:
         """Actual spindle speed [rpm]; raises :class:`BadValueError` on NaN or inf."""
         self.open()
@@ -163,45 +208,13 @@ class Adapter(ABC):
         did not take the last write, reported once; None when all is well."""
         return None
 
-    def close(self) -> None:
-        """Idempotent."""
-        if self._open:
-            try:
-                self._disconnect()
-            finally:
-                self._open = False
-        self._closed = True
-
-    def _link_lost(self, message: str) -> UnreachableError:
-        """Drop a dead link so that the next call reconnects; the error to raise."""
-        try:
-            self._disconnect()
-        except Exception:  # noqa: BLE001 - it is already dead
-            pass
-        self._open = False
-        log.warning("%s", message)
-        self._set_down(message)
-        return UnreachableError(message)
-
-    def __enter__(self) -> Adapter:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- backend hooks ----------------------------------------------------------
-
-    @abstractmethod
-    def _connect(self) -> None: ...
 
     @abstractmethod
     def _read_speed_raw(self) -> Any: ...
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
-
-    @abstractmethod
-    def _disconnect(self) -> None: ...
 
 
 BACKENDS: dict[str, str] = {

@@ -36,7 +36,88 @@ def _swap(regs: list[int]) -> list[int]:
     return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
 
 
-class ModbusRtuAdapter(Adapter):
+class ModbusLink:
+    """Mixin for :class:`~cnc_adapters.base.Link` subclasses: a Modbus RTU client on a serial
+    port. Call :meth:`_init_modbus` from ``__init__``."""
+
+    name: str
+
+    def _init_modbus(self, port: str, baudrate: int, parity: str, device_id: int,
+                     word_order: str, byte_order: str, timeout_s: float) -> None:
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.parity = parity
+        self.device_id = int(device_id)
+        self.word_order = word_order
+        self.byte_order = byte_order
+        self.timeout_s = float(timeout_s)
+        self._client = None
+
+    def _connect(self) -> None:
+        from pymodbus.client import ModbusSerialClient
+
+        client = ModbusSerialClient(port=self.port, baudrate=self.baudrate, parity=self.parity,
+                                    timeout=self.timeout_s, retries=0)
+        if not client.connect():
+            client.close()
+            raise UnreachableError(f"{self.name}: cannot open {self.port}")
+        self._client = client
+
+    def _disconnect(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            try:
+                client.close()
+            except Exception:  # noqa: BLE001 - the device may already be gone
+                pass
+
+    def _request(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError, **kw):
+        from pymodbus.exceptions import ConnectionException, ModbusIOException
+        from serial import SerialException
+
+        try:
+            rr = fn(*args, device_id=self.device_id, **kw)
+        except (SerialException, ConnectionException, OSError) as err:
+            raise self._link_lost(f"{self.name} {what}: {self.port} vanished: {err}") from err  # type: ignore[attr-defined]
+        except ModbusIOException as err:
+            raise AdapterTimeoutError(f"{self.name} {what}: no valid reply (timeout or CRC error): {err}") from err
+        if rr.isError():
+            raise refused(f"{self.name} {what}: exception reply {rr}")
+        return rr
+
+    def _read_value(self, what: str, table: str, register: int, dtype: str) -> float:
+        c = self._client
+        fn = c.read_input_registers if table == "input" else c.read_holding_registers
+        rr = self._request(what, fn, register, count=_WIDTH[dtype])
+        return self._decode(rr.registers, dtype)
+
+    def _decode(self, regs: list[int], dtype: str) -> float:
+        from pymodbus.client import ModbusSerialClient as C
+
+        regs = _swap(list(regs)) if self.byte_order == "little" else list(regs)
+        return float(C.convert_from_registers(regs, getattr(C.DATATYPE, dtype.upper()),
+                                              word_order=self.word_order))
+
+    def _encode(self, value: float, dtype: str) -> list[int]:
+        from pymodbus.client import ModbusSerialClient as C
+
+        if dtype != "float32":
+            lo, hi = _RANGE[dtype]
+            value = round(value)
+            if not lo <= value <= hi:
+                raise BadValueError(f"{self.name}: {value} does not fit {dtype}")
+            value = int(value)
+        regs = C.convert_to_registers(value, getattr(C.DATATYPE, dtype.upper()), word_order=self.word_order)
+        return _swap(regs) if self.byte_order == "little" else regs
+
+
+def check_types(name: str, *types: str) -> None:
+    for t in types:
+        if t not in _WIDTH:
+            raise AdapterError(f"{name}: unknown data type {t!r}; known: {', '.join(_WIDTH)}")
+
+
+class ModbusRtuAdapter(ModbusLink, Adapter):
     name = "modbus"
 
     def __init__(
@@ -57,86 +138,23 @@ class ModbusRtuAdapter(Adapter):
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        for t in (speed_type, offset_type):
-            if t not in _WIDTH:
-                raise AdapterError(f"modbus: unknown data type {t!r}; known: {', '.join(_WIDTH)}")
+        check_types("modbus", speed_type, offset_type)
         if speed_table not in ("input", "holding"):
             raise AdapterError("modbus: speed_table is 'input' or 'holding'")
-        self.port = port
-        self.baudrate = int(baudrate)
-        self.parity = parity
-        self.device_id = int(device_id)
+        self._init_modbus(port, baudrate, parity, device_id, word_order, byte_order, timeout_s)
         self.speed_table = speed_table
         self.speed_register = int(speed_register)
         self.speed_type = speed_type
         self.offset_register = int(offset_register)
         self.offset_type = offset_type
-        self.word_order = word_order
-        self.byte_order = byte_order
-        self.timeout_s = float(timeout_s)
-        self._client = None
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> ModbusRtuAdapter:
         kw = {**typed_params(url), **overrides}
         return cls(urlsplit(url).path, **kw)
 
-    def _connect(self) -> None:
-        from pymodbus.client import ModbusSerialClient
-
-        client = ModbusSerialClient(port=self.port, baudrate=self.baudrate, parity=self.parity,
-                                    timeout=self.timeout_s, retries=0)
-        if not client.connect():
-            client.close()
-            raise UnreachableError(f"modbus: cannot open {self.port}")
-        self._client = client
-
-    def _disconnect(self) -> None:
-        client, self._client = self._client, None
-        if client is not None:
-            try:
-                client.close()
-            except Exception:  # noqa: BLE001 - the device may already be gone
-                pass
-
-    def _request(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError, **kw):
-        from pymodbus.exceptions import ConnectionException, ModbusIOException
-        from serial import SerialException
-
-        try:
-            rr = fn(*args, device_id=self.device_id, **kw)
-        except (SerialException, ConnectionException, OSError) as err:
-            raise self._link_lost(f"modbus {what}: {self.port} vanished: {err}") from err
-        except ModbusIOException as err:
-            raise AdapterTimeoutError(f"modbus {what}: no valid reply (timeout or CRC error): {err}") from err
-        if rr.isError():
-            raise refused(f"modbus {what}: exception reply {rr}")
-        return rr
-
-    def _decode(self, regs: list[int], dtype: str) -> float:
-        from pymodbus.client import ModbusSerialClient as C
-
-        regs = _swap(list(regs)) if self.byte_order == "little" else list(regs)
-        return float(C.convert_from_registers(regs, getattr(C.DATATYPE, dtype.upper()),
-                                              word_order=self.word_order))
-
-    def _encode(self, value: float, dtype: str) -> list[int]:
-        from pymodbus.client import ModbusSerialClient as C
-
-        if dtype != "float32":
-            lo, hi = _RANGE[dtype]
-            value = round(value)
-            if not lo <= value <= hi:
-                raise BadValueError(f"modbus: {value} does not fit {dtype}")
-            value = int(value)
-        regs = C.convert_to_registers(value, getattr(C.DATATYPE, dtype.upper()), word_order=self.word_order)
-        return _swap(regs) if self.byte_order == "little" else regs
-
     def _read_speed_raw(self) -> float:
-        c = self._client
-        fn = c.read_input_registers if self.speed_table == "input" else c.read_holding_registers
-        rr = self._request("read speed", fn, self.speed_register, count=_WIDTH[self.speed_type])
-        value = self._decode(rr.registers, self.speed_type)
+        value = self._read_value("read speed", self.speed_table, self.speed_register, self.speed_type)
         if not math.isfinite(value):
             raise BadValueError(f"modbus: speed register holds {value}")
         return abs(value)

@@ -44,7 +44,68 @@ except ImportError:  # not POSIX
 NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 
-class LineAdapter(Adapter):
+class SerialLine:
+    """Mixin for :class:`~cnc_adapters.base.Link` subclasses: one ASCII line per request
+    and per reply on a serial port. Call :meth:`_init_serial` from ``__init__``."""
+
+    name: str
+
+    def _init_serial(self, port: str, baudrate: int, timeout_s: float, eol: str) -> None:
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.eol = eol
+        self._ser = None
+
+    def _connect(self) -> None:
+        import serial
+
+        try:
+            self._ser = serial.Serial(self.port, self.baudrate, timeout=self.timeout_s,
+                                      write_timeout=self.timeout_s)
+        except (serial.SerialException, OSError) as err:
+            raise UnreachableError(f"{self.name}: cannot open {self.port}: {err}") from err
+
+    def _disconnect(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001 - the device may already be gone
+                pass
+
+    def exchange(self, request: str | None) -> str:
+        """Send one line and return the reply line (without its end of line).
+
+        With ``request=None`` the device talks on its own (a streaming amplifier): the
+        input buffer is dropped and the first whole line after it is returned.
+        """
+        import serial
+
+        self.open()  # type: ignore[attr-defined]
+        ser = self._ser
+        end = self.eol[-1].encode("ascii")
+        what = repr(request) if request is not None else "the stream"
+        try:
+            ser.reset_input_buffer()
+            if request is not None:
+                ser.write((request + self.eol).encode("ascii"))
+            else:
+                ser.read_until(end)  # most likely the tail of a line: dropped
+            raw = ser.read_until(end)
+        except (serial.SerialException, *_PORT_ERRORS) as err:
+            raise self._link_lost(f"{self.name}: {self.port} vanished: {err}") from err  # type: ignore[attr-defined]
+        if not raw:
+            raise AdapterTimeoutError(f"{self.name}: no reply to {what} within {self.timeout_s:g} s")
+        if not raw.endswith(end):
+            raise AdapterTimeoutError(f"{self.name}: partial reply {raw!r} to {what}")
+        try:
+            return raw.decode("ascii").strip()
+        except UnicodeDecodeError as err:
+            raise BadValueError(f"{self.name}: garbage reply {raw!r} to {what}") from err
+
+
+class LineAdapter(SerialLine, Adapter):
     """A generic request/response ASCII protocol on a serial line."""
 
     name = "line"
@@ -64,9 +125,7 @@ class LineAdapter(Adapter):
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        self.port = port
-        self.baudrate = int(baudrate)
-        self.timeout_s = float(timeout_s)
+        self._init_serial(port, baudrate, timeout_s, eol)
         self.speed_request = speed_request
         self.offset_request = offset_request
         try:
@@ -77,8 +136,6 @@ class LineAdapter(Adapter):
             raise AdapterError(f"{self.name}: bad reply pattern: {err}") from err
         if "value" not in self.speed_reply.groupindex:
             raise AdapterError(f"{self.name}: speed_reply needs a (?P<value>...) group")
-        self.eol = eol
-        self._ser = None
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> LineAdapter:
@@ -86,46 +143,6 @@ class LineAdapter(Adapter):
         parts = urlsplit(url)
         kw = {**typed_params(url), **overrides}
         return cls(parts.path, **kw)
-
-    # -- the line exchange -------------------------------------------------------
-
-    def _connect(self) -> None:
-        import serial
-
-        try:
-            self._ser = serial.Serial(self.port, self.baudrate, timeout=self.timeout_s,
-                                      write_timeout=self.timeout_s)
-        except (serial.SerialException, OSError) as err:
-            raise UnreachableError(f"{self.name}: cannot open {self.port}: {err}") from err
-
-    def _disconnect(self) -> None:
-        ser, self._ser = self._ser, None
-        if ser is not None:
-            try:
-                ser.close()
-            except Exception:  # noqa: BLE001 - the device may already be gone
-                pass
-
-    def exchange(self, request: str) -> str:
-        """Send one line, return the reply line (without its end of line)."""
-        import serial
-
-        self.open()
-        ser = self._ser
-        try:
-            ser.reset_input_buffer()
-            ser.write((request + self.eol).encode("ascii"))
-            raw = ser.read_until(self.eol[-1].encode("ascii"))
-        except (serial.SerialException, *_PORT_ERRORS) as err:
-            raise self._link_lost(f"{self.name}: {self.port} vanished: {err}") from err
-        if not raw:
-            raise AdapterTimeoutError(f"{self.name}: no reply to {request!r} within {self.timeout_s:g} s")
-        if not raw.endswith(self.eol[-1].encode("ascii")):
-            raise AdapterTimeoutError(f"{self.name}: partial reply {raw!r} to {request!r}")
-        try:
-            return raw.decode("ascii").strip()
-        except UnicodeDecodeError as err:
-            raise BadValueError(f"{self.name}: garbage reply {raw!r} to {request!r}") from err
 
     def _read_speed_raw(self) -> float:
         reply = self.exchange(self.speed_request)
