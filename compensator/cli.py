@@ -52,7 +52,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
 def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("virtual-cnc", help="serve the virtual machine tool over OPC UA")
     p.add_argument("--preset", default="motorized-27k", help="plant preset")
-    p.add_argument("--program", default="job-shop-day", help="speed program")
+    p.add_argument("--program", default="job-shop-day",
+                   help="speed program: a built-in name, or an NC program file (any of the four dialects)")
+    p.add_argument("--wait-start", action="store_true",
+                   help="load the program and wait for a client to write true to CycleStart")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--time-scale", type=float, default=60.0, help="simulated seconds per second")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
@@ -75,6 +78,68 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="calibration.demo:main")
 
 
+def _add_profile(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("profile", help="write the NC program of the calibration (or validation) profile")
+    p.add_argument("--max-rpm", type=float, required=True, help="the spindle's maximum speed [rpm]")
+    p.add_argument("--dialect", required=True, help="fanuc, sinumerik, heidenhain or linuxcnc")
+    p.add_argument("--output", required=True, help="NC program to write")
+    p.add_argument("--validation", action="store_true", help="the validation profile (random, unlike calibration)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the validation profile")
+    p.add_argument("--step-min", type=float, default=20.0, help="minutes per staircase step (paper: 20)")
+    p.add_argument("--cooldown-min", type=float, default=60.0, help="cool-down at 0 rpm at the end [min]")
+    p.add_argument("--name", default="THERMOCOMP", help="program name")
+    p.add_argument("--model", help="a former model of this spindle: sets the rest time before a cold start")
+    p.set_defaults(handler="calibration.wizard:profile_cmd")
+
+
+def _add_wizard(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("wizard", help="guided calibration of one spindle: program, record, fit, save",
+                       description="Every question has a flag; --yes runs unattended.")
+    p.add_argument("--workdir", default="calibrations", help="sessions live in WORKDIR/<machine>/<spindle>/")
+    p.add_argument("--yes", action="store_true", help="unattended: never ask; missing answers are errors")
+    p.add_argument("--new", action="store_true", help="start a new session (the old one is kept aside)")
+    p.add_argument("--resume", action="store_true", help="resume the session without asking")
+    g = p.add_argument_group("1 identify")
+    g.add_argument("--machine-id")
+    g.add_argument("--spindle-id")
+    g.add_argument("--max-rpm", type=float)
+    g.add_argument("--source", choices=["sensor", "import"], help="live sensor, or import DAQ CSV logs")
+    g.add_argument("--controller", help="controller link URL (as in the runtime configuration)")
+    g.add_argument("--sensor", help="displacement sensor URL: serial:///dev/ttyUSB1?scale=-1&range_um=-500,500, "
+                   "serial:///dev/ttyUSB1?protocol=modbus&register=0&scale=0.1, opc.tcp://host:port/?node=...")
+    g.add_argument("--rate-s", type=float, help="sample period [s] (default 1)")
+    g.add_argument("--no-connection-test", action="store_true", help="skip the connection test")
+    g = p.add_argument_group("2 program")
+    g.add_argument("--dialect", help="NC dialect: fanuc, sinumerik, heidenhain, linuxcnc")
+    g.add_argument("--step-min", type=float, help="minutes per staircase step (paper: 20)")
+    g.add_argument("--cooldown-min", type=float, help="cool-down at 0 rpm [min] (default 60)")
+    g.add_argument("--validation", dest="validation", action="store_true", default=None,
+                   help="also record a different validation profile")
+    g.add_argument("--no-validation", dest="validation", action="store_false")
+    g.add_argument("--validation-seed", type=int, default=1)
+    g.add_argument("--programs-only", action="store_true", help="stop after writing the NC programs")
+    g = p.add_argument_group("3 record")
+    g.add_argument("--frozen-s", type=float, help="same reading this long: frozen (default 900)")
+    g.add_argument("--frozen-after-step-s", type=float,
+                   help="same reading this long across a speed step: frozen (default 120)")
+    g.add_argument("--abort-frozen-s", type=float, help="stop after frozen this long (default 300)")
+    g.add_argument("--abort-saturated-s", type=float, help="stop after saturated this long (default 30)")
+    g.add_argument("--sensor-grace-s", type=float, help="stop after the sensor is silent this long (default 30)")
+    g.add_argument("--start-timeout-s", type=float, help="stop if the spindle has not started (default 3600)")
+    g.add_argument("--import-calibration", help="DAQ CSV of the calibration run (--source import)")
+    g.add_argument("--import-validation", help="DAQ CSV of the validation run (--source import)")
+    g.add_argument("--import-time-column", default="time_s", help="seconds or ISO date-times")
+    g.add_argument("--import-displacement-column", default="displacement_um")
+    g.add_argument("--import-speed-column", help="speed column in the DAQ file, if it has one")
+    g.add_argument("--import-speed-log", help="else a controller run log (time_s,speed_rpm) on the same clock")
+    g.add_argument("--import-scale", type=float, default=1.0, help="um per DAQ unit (negative for a gap probe)")
+    g.add_argument("--import-offset-um", type=float, default=0.0)
+    g = p.add_argument_group("5 save")
+    g.add_argument("--report-format", choices=["html", "md"], default="html")
+    p.add_argument("--time-scale", type=float, default=1.0, help=argparse.SUPPRESS)  # virtual machine tool only
+    p.set_defaults(handler="calibration.wizard:main")
+
+
 def _add_model(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("model", help="show or check a model file")
     p.add_argument("model", nargs="?", help="model file (JSON)")
@@ -90,7 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_fit, _add_replay, _add_run, _add_simulate, _add_virtual_cnc, _add_model):
+    for add in (_add_demo, _add_wizard, _add_profile, _add_fit, _add_replay, _add_run, _add_simulate,
+                _add_virtual_cnc, _add_model):
         add(sub)
     return parser
 

@@ -45,3 +45,7 @@ class ConfigError(ThermocompError, ValueError):
 
 class CalibrationError(ThermocompError, ValueError):
     """Calibration data cannot produce a trustworthy model."""
+
+
+class AcquisitionError(ThermocompError, RuntimeError):
+    """A recording stopped on a fault (sensor lost, saturated, frozen). What was recorded is kept."""

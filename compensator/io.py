@@ -33,7 +33,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from .errors import ModelError, ModelFileError, RunLogError, UnstableModelError
+from .errors import ConfigError, ModelError, ModelFileError, RunLogError, UnstableModelError
 from .model import MODEL_FORMAT, ThermalModel
 
 REQUIRED_COLUMNS = ("time_s", "speed_rpm")
@@ -434,3 +434,180 @@ class Journal:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+# -- recording ------------------------------------------------------------------
+
+
+class RunLogAppender:
+    """Append rows to a run log as they are measured, so an interruption loses nothing.
+
+    A new file gets the metadata and header; an existing one must have the same header, and
+    a half-written last line (a crash mid-write) is cut off before appending. Each row is
+    flushed; the file is fsynced every ``fsync_every_s`` of ``clock`` and on close.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...],
+                 metadata: Mapping[str, Any] | None = None, *, fsync_every_s: float = 5.0,
+                 clock: Any = None):
+        import time as _time
+
+        if tuple(columns[:2]) != REQUIRED_COLUMNS:
+            raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}")
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        self._clock = clock or _time.monotonic
+        self.fsync_every_s = fsync_every_s
+        self.rows_before = 0
+        self.last_row: tuple[float, ...] | None = None
+        self.first_row: tuple[float, ...] | None = None
+        self.metadata: dict[str, str] = {}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists() and self.path.stat().st_size > 0:
+            self._adopt()
+            self._fh = open(self.path, "a", encoding="utf-8")
+        else:
+            self._fh = open(self.path, "w", encoding="utf-8")
+            self.metadata = {k: str(v) for k, v in (metadata or {}).items()}
+            self._fh.write("".join(f"# {k}: {v}\n" for k, v in self.metadata.items()))
+            self._fh.write(",".join(self.columns) + "\n")
+            self._sync()
+        self._last_sync = self._clock()
+
+    def _adopt(self) -> None:
+        src = str(self.path)
+        data = self.path.read_bytes()
+        if not data.endswith(b"\n"):
+            cut = data.rfind(b"\n") + 1
+            with open(self.path, "r+b") as fh:
+                fh.truncate(cut)
+        meta, header_line = _read_metadata(src)
+        self.metadata = meta
+        if header_line is None:
+            raise RunLogError("no header line", src)
+        with open(self.path, encoding="utf-8") as fh:
+            lines = fh.read().splitlines()
+        header = tuple(c.strip() for c in lines[header_line - 1].split(","))
+        if header != self.columns:
+            raise RunLogError(f"header {','.join(header)} differs from {','.join(self.columns)}: "
+                              "not a log of this recording", src, header_line)
+        rows = [ln for ln in lines[header_line:] if not _is_skipped(ln)]
+        self.rows_before = len(rows)
+        if rows:
+            try:
+                self.first_row = tuple(float(v) for v in rows[0].split(","))
+                self.last_row = tuple(float(v) for v in rows[-1].split(","))
+            except ValueError as err:
+                raise RunLogError(f"unreadable row: {err}", src, header_line + len(rows)) from err
+
+    def append(self, values: tuple[float, ...] | list[float]) -> None:
+        if len(values) != len(self.columns):
+            raise RunLogError(f"{len(values)} values for {len(self.columns)} columns", str(self.path))
+        if self.last_row is not None and not values[0] > self.last_row[0]:
+            return  # the format needs increasing time; a repeated instant adds nothing
+        self._fh.write(",".join("%.9g" % v for v in values) + "\n")
+        self._fh.flush()
+        self.last_row = tuple(float(v) for v in values)
+        if self.first_row is None:
+            self.first_row = self.last_row
+        if self._clock() - self._last_sync >= self.fsync_every_s:
+            self._sync()
+
+    def _sync(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._last_sync = self._clock()
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._sync()
+            self._fh.close()
+
+    def __enter__(self) -> RunLogAppender:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_daq_csv(path: str | os.PathLike[str], time_column: str,
+                 columns: Mapping[str, str]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Time [s] and named columns from a CSV a data-acquisition system wrote.
+
+    ``columns`` maps the names wanted to the file's column names. The time column may hold
+    seconds or date-times (ISO 8601); date-times become seconds since the epoch. Rows are
+    sorted by time; an unreadable cell is reported with its line.
+    """
+    import pandas as pd
+
+    src = os.fspath(path)
+    try:
+        df = pd.read_csv(src, comment="#", skipinitialspace=True, sep=None, engine="python")
+    except OSError as err:
+        raise RunLogError(f"cannot read: {err.strerror or err}", src) from err
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError, UnicodeError) as err:
+        raise RunLogError(f"not a readable CSV: {str(err).strip().splitlines()[-1]}", src) from err
+    df.columns = [str(c).strip() for c in df.columns]
+    want = {"time": time_column, **columns}
+    missing = [c for c in want.values() if c not in df.columns]
+    if missing:
+        raise RunLogError(f"no column(s) {', '.join(missing)}; the file has {', '.join(df.columns)}", src)
+    header_line = (_read_metadata(src)[1] or 1)
+
+    def bad(row: int, col: str, cell: Any) -> RunLogError:
+        return RunLogError(f"column {col}: {cell!r} is not a finite number", src, header_line + 1 + row)
+
+    raw_t = df[time_column]
+    t = pd.to_numeric(raw_t, errors="coerce").to_numpy(dtype=float)
+    if np.isnan(t).all():
+        stamps = pd.to_datetime(raw_t, errors="coerce", utc=True, format="ISO8601")
+        if stamps.isna().any():
+            row = int(np.flatnonzero(stamps.isna().to_numpy())[0])
+            raise RunLogError(f"column {time_column}: {raw_t.iloc[row]!r} is neither seconds nor a "
+                              "date-time", src, header_line + 1 + row)
+        t = (stamps - pd.Timestamp("1970-01-01", tz="UTC")).dt.total_seconds().to_numpy(dtype=float)
+    elif not np.isfinite(t).all():
+        row = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise bad(row, time_column, raw_t.iloc[row])
+    out: dict[str, np.ndarray] = {}
+    for name, col in columns.items():
+        v = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float)
+        if not np.isfinite(v).all():
+            row = int(np.flatnonzero(~np.isfinite(v))[0])
+            raise bad(row, col, df[col].iloc[row])
+        out[name] = v
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    keep = np.r_[True, np.diff(t) > 0]  # repeated instants: the first reading is kept
+    return t[keep], {k: v[order][keep] for k, v in out.items()}
+
+
+def versioned_path(path: str | os.PathLike[str]) -> Path:
+    """``path`` if free, else the first free ``stem.v2.suffix``, ``stem.v3.suffix``, ...:
+    a model or report is never overwritten."""
+    p = Path(path)
+    if not p.exists():
+        return p
+    k = 2
+    while True:
+        q = p.with_name(f"{p.stem}.v{k}{p.suffix}")
+        if not q.exists():
+            return q
+        k += 1
+
+
+def write_text(path: str | os.PathLike[str], text: str, *, overwrite: bool = True) -> Path:
+    """Atomically write a text file; with ``overwrite=False`` a taken name gets a version suffix."""
+    target = Path(path) if overwrite else versioned_path(path)
+    with atomic_write(target) as fh:
+        fh.write(text)
+    return target
+
+
+def read_text(path: str | os.PathLike[str]) -> str:
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from err
+    except UnicodeError as err:
+        raise ConfigError(f"{path}: not a text file") from err

@@ -9,7 +9,7 @@ from compensator.io import write_run_log
 
 from .plant import SpindlePlant, preset
 from .programs import program
-from .vcnc import NODE_PATHS
+from .vcnc import CYCLE_START_PATH, NODE_PATHS
 
 
 def simulate(args: argparse.Namespace) -> int:
@@ -40,19 +40,35 @@ def virtual_cnc(args: argparse.Namespace) -> int:
 
     from .vcnc import SimClock, VirtualCNC, VirtualMachine, running
 
+    from pathlib import Path
+
+    from compensator.io import read_text
+
+    from .nc import NcSyntaxError, parse_nc
+
     try:
         params = preset(args.preset)
-        prog = program(args.program, params.max_rpm, seed=args.seed)
+        if Path(args.program).is_file():
+            prog = parse_nc(read_text(args.program), name=Path(args.program).name)
+        else:
+            prog = program(args.program, params.max_rpm, seed=args.seed)
     except KeyError as err:
         raise ConfigError(str(err.args[0])) from err
-    vm = VirtualMachine(SpindlePlant(params, seed=args.seed), prog, clock=SimClock(args.time_scale))
+    except NcSyntaxError as err:
+        raise ConfigError(f"{args.program}: {err}") from err
+    vm = VirtualMachine(SpindlePlant(params, seed=args.seed), None if args.wait_start else prog,
+                        clock=SimClock(args.time_scale))
+    if args.wait_start:
+        vm.load_pending(prog)
     with running(VirtualCNC(vm, host=args.host, port=args.port)) as cnc:
         print(f"virtual CNC ({params.name}, {prog.name}, {args.time_scale:g}x) at {cnc.url}", flush=True)
+        if args.wait_start:
+            print(f"program loaded; write true to ns={cnc.ns};s={CYCLE_START_PATH} to start it", flush=True)
         print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
         end = None if args.duration is None else time.monotonic() + args.duration
         while end is None or time.monotonic() < end:
             time.sleep(0.2)
-            if vm.program is not None and vm.program_done:
+            if vm.program is not None and vm.pending is None and vm.program_done:
                 print("program finished; the spindle idles", flush=True)
                 vm.load_program(None)
     return 0

@@ -46,8 +46,10 @@ class Program:
 MIN = 60.0
 
 
-def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0) -> Program:
-    """Paper 001, Fig. 3, scaled to ``max_rpm`` (27 000 rpm in the paper).
+def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0,
+                      step_min: float = 20.0) -> Program:
+    """Paper 001, Fig. 3, scaled to ``max_rpm`` (27 000 rpm in the paper) and in time to
+    ``step_min`` per staircase step (20 min in the paper).
 
     Phase 1 (0-180 min): 3000 rpm, +3000 every 20 min up to 27 000.
     Phase 2 (180-240 min): abrupt drop to 12 000, then 18 000, then 0.
@@ -55,12 +57,13 @@ def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0) -> P
     Then a cool-down at 0 rpm, which pins the dissipation (MODEL.md).
     """
     k = max_rpm / 27000.0
+    c = step_min / 20.0
     segs = [(20 * MIN, 3000.0 * i) for i in range(1, 10)]
     segs += [(20 * MIN, 12000.0), (20 * MIN, 18000.0), (20 * MIN, 0.0)]
     segs += [(10 * MIN, 6000.0), (15 * MIN, 21000.0), (10 * MIN, 9000.0), (15 * MIN, 24000.0)]
     if cooldown_min > 0:
         segs.append((cooldown_min * MIN, 0.0))
-    return Program("paper-calibration", tuple((d, s * k) for d, s in segs))
+    return Program("paper-calibration", tuple((d * c if i < 16 else d, s * k) for i, (d, s) in enumerate(segs)))
 
 
 def random_validation(

@@ -14,6 +14,7 @@ Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
           SimTime             Double  s     simulated time
           TrueElongation      Double  um    the plant's true growth, for scoring
           ToolTipError        Double  um    true growth + applied offset: what the part sees
+          CycleStart          Boolean       write true to start the loaded program (writable)
 
 Every node id is a string node id ``ns=<ns>;s=/<path>`` so that configurations can name
 them; ``NODE_PATHS`` lists them. Positive elongation moves the tool tip toward the workpiece;
@@ -51,6 +52,7 @@ NODE_PATHS = {
     "true_elongation": "/CncInterface/Simulation/TrueElongation",
     "tool_tip_error": "/CncInterface/Simulation/ToolTipError",
 }
+CYCLE_START_PATH = "/CncInterface/Simulation/CycleStart"
 OFFSET_LIMIT_UM = 1000.0
 """The virtual CNC, like a real one, ignores offsets beyond this (and non-finite ones)."""
 
@@ -117,6 +119,7 @@ class VirtualMachine:
         self.clock = clock or SimClock(60.0)
         self.plant_dt_s = plant_dt_s
         self.offset_um = 0.0
+        self.pending: Program | None = None  # loaded, waiting for cycle start
         self.rejected_writes = 0
         self._override_rpm: float | None = None
         self._hist: list[tuple[float, float, float, float, float]] = []
@@ -126,6 +129,17 @@ class VirtualMachine:
         """Start ``program`` now (sim time); None idles the spindle."""
         self.program = program
         self._program_start_s = self.plant.time_s
+
+    def load_pending(self, program: Program) -> None:
+        """Load ``program`` to start on :meth:`cycle_start` (the operator's button)."""
+        self.pending = program
+
+    def cycle_start(self) -> bool:
+        if self.pending is None:
+            return False
+        self.load_program(self.pending)
+        self.pending = None
+        return True
 
     def override_speed(self, rpm: float | None) -> None:
         """Force a speed regardless of the program (None: follow the program)."""
@@ -268,6 +282,11 @@ class VirtualCNC:
             if key == "thermal_offset":
                 await node.set_writable()
             self._nodes[key] = node
+        start = await (await folder("/CncInterface/Simulation")).add_variable(
+            f"ns={self.ns};s={CYCLE_START_PATH}", f"{self.ns}:CycleStart",
+            ua.Variant(False, ua.VariantType.Boolean))
+        await start.set_writable()
+        self._nodes["cycle_start"] = start
         await server.start()
         self._server = server
         await self._publish()
@@ -294,6 +313,10 @@ class VirtualCNC:
         written = await self._nodes["thermal_offset"].read_value()
         if written != m.offset_um and not m.apply_offset(written):
             await self._nodes["thermal_offset"].write_value(m.offset_um)
+        if m.pending is not None and await self._nodes["cycle_start"].read_value():
+            m.advance()  # the program starts now, not at the last tick
+            m.cycle_start()
+            await self._nodes["cycle_start"].write_value(False)
         m.advance()
         await self._publish()
 

@@ -1,0 +1,362 @@
+"""Recording a calibration run: speed from the controller, displacement from the sensor.
+
+Each sample the recorder reads both, checks the reading, and appends one row to the run
+log (flushed per row, fsynced every few seconds), so an interruption loses at most the row
+being written and the recording can resume into the same log.
+
+Checks, each reported once when it begins (and again when it clears):
+
+- **sensor fault**: the sensor does not answer (unplugged, silent, garbage); after
+  ``sensor_grace_s`` the recording stops;
+- **saturation**: the reading is at the end of the sensor's range or the sensor reports
+  over-range; after ``abort_saturated_s`` the recording stops (re-set the probe gap);
+- **frozen**: the very same value for ``frozen_s``, or for ``frozen_after_step_s`` across a
+  speed step, where the elastic growth alone must move it (a hung amplifier or a stale
+  buffer); after another ``abort_frozen_s`` the recording stops;
+- **jump**: a step larger than the spindle can grow in one sample (``max_rate_um_per_s``
+  plus ``jump_um``; more at a speed step, where the elastic term jumps);
+- **not following**: the spindle speed differs from the program for ``follow_alarm_s``
+  (override not at 100 %, feed hold, another program).
+
+Rows carry these as a ``flags`` column (:class:`Problem`); the fit leaves out rows flagged
+saturated, frozen or jump. Time is ``clock()`` minus the recording's start, so a resumed
+recording shows the interruption as a gap. Injected ``clock`` and ``sleep`` let tests run
+without waiting.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from cnc_adapters.base import Adapter, AdapterError
+from cnc_adapters.sensors import Sensor, SensorOverRangeError
+from cnc_adapters.sim.programs import Program
+from compensator.errors import AcquisitionError
+from compensator.io import RunLogAppender
+
+COLUMNS = ("time_s", "speed_rpm", "elongation_um", "sensor_um", "commanded_rpm", "flags")
+IDLE_RPM = 1.0
+
+
+class Problem(enum.IntFlag):
+    SENSOR_FAULT = 1
+    SATURATED = 2
+    FROZEN = 4
+    JUMP = 8
+    NOT_FOLLOWING = 16
+    SPEED_FAULT = 32
+
+
+EXCLUDED = Problem.SATURATED | Problem.FROZEN | Problem.JUMP
+"""Rows with these flags are left out of the fit."""
+
+
+class AcquireConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    rate_s: float = Field(1.0, gt=0, description="sample period")
+    max_rate_um_per_s: float = Field(0.5, gt=0, description="fastest thermal growth the spindle can show")
+    jump_um: float = Field(3.0, gt=0, description="allowed step on top of that (noise, quantisation)")
+    elastic_jump_um: float = Field(15.0, ge=0, description="extra allowed at a speed step (centrifugal growth)")
+    frozen_s: float = Field(900.0, gt=0, description="same reading this long: frozen")
+    frozen_after_step_s: float = Field(120.0, gt=0, description="... or this long across a speed step")
+    abort_frozen_s: float = Field(300.0, ge=0, description="frozen this long: the recording stops")
+    saturation_margin: float = Field(0.002, ge=0, lt=0.5, description="fraction of the range counted as its end")
+    abort_saturated_s: float = Field(30.0, ge=0)
+    sensor_grace_s: float = Field(30.0, ge=0, description="a silent sensor this long stops the recording")
+    speed_grace_s: float = Field(30.0, ge=0, description="a silent controller this long stops the recording")
+    follow_tolerance_rpm: float | None = Field(None, gt=0, description="default: 3 % of max speed, >= 50 rpm")
+    follow_window_s: float = Field(30.0, ge=0, description="lag allowed around a programmed speed change")
+    follow_alarm_s: float = Field(60.0, gt=0)
+    start_timeout_s: float = Field(3600.0, gt=0, description="stop if the spindle has not started by then")
+
+
+@dataclass
+class Sample:
+    time_s: float
+    speed_rpm: float | None
+    sensor_um: float | None
+    elongation_um: float | None
+    commanded_rpm: float | None
+    flags: Problem
+    program_time_s: float | None
+
+
+@dataclass
+class Event:
+    time_s: float
+    problem: Problem
+    message: str
+    begins: bool = True
+
+
+@dataclass
+class Recording:
+    path: Path
+    rows: int
+    rows_before: int
+    events: list[Event] = field(default_factory=list)
+    flagged: dict[str, int] = field(default_factory=dict)
+    program_start_s: float | None = None
+    complete: bool = False
+
+
+class Recorder:
+    """Record ``program`` on ``controller`` and ``sensor`` into ``path`` (resumes if it exists)."""
+
+    def __init__(self, controller: Adapter, sensor: Sensor, path: str | Path, program: Program,
+                 *, max_rpm: float, config: AcquireConfig = AcquireConfig(),
+                 metadata: dict[str, Any] | None = None,
+                 clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
+                 on_sample: Callable[[Sample, Recorder], None] | None = None,
+                 on_event: Callable[[Event], None] | None = None,
+                 should_stop: Callable[[], bool] | None = None):
+        self.controller, self.sensor = controller, sensor
+        self.path = Path(path)
+        self.program = program
+        self.max_rpm = float(max_rpm)
+        self.cfg = config
+        self.metadata = dict(metadata or {})
+        self.clock, self.sleep = clock, sleep
+        self.on_sample, self.on_event = on_sample, on_event
+        self.should_stop = should_stop or (lambda: False)
+        self.tol_rpm = config.follow_tolerance_rpm or max(0.03 * self.max_rpm, 50.0)
+        self._edges = np.cumsum([d for d, _ in program.segments])
+        self._speeds = np.array([s for _, s in program.segments], dtype=float)
+        self.events: list[Event] = []
+        self._active: dict[Problem, float] = {}  # problem -> since (time_s)
+        self.recent: list[float] = []  # last elongations, for a live sparkline
+        self.last: Sample | None = None
+
+    # -- the checks -----------------------------------------------------------
+
+    def _event(self, t: float, problem: Problem, message: str, begins: bool = True) -> None:
+        ev = Event(t, problem, message, begins)
+        self.events.append(ev)
+        if self.on_event is not None:
+            self.on_event(ev)
+
+    def _raise(self, t: float, problem: Problem, message: str) -> None:
+        if problem not in self._active:
+            self._active[problem] = t
+            self._event(t, problem, message)
+
+    def _clear(self, t: float, problem: Problem, message: str) -> None:
+        if problem in self._active:
+            del self._active[problem]
+            self._event(t, problem, message, begins=False)
+
+    def _lasted(self, problem: Problem, t: float) -> float:
+        return t - self._active[problem] if problem in self._active else 0.0
+
+    def commanded_between(self, t0: float, t1: float) -> np.ndarray:
+        """Programmed speeds over program time [t0, t1] (0 after the end)."""
+        d = self.program.duration_s
+        i0 = int(np.searchsorted(self._edges, max(t0, 0.0), side="right"))
+        i1 = int(np.searchsorted(self._edges, max(t1, 0.0), side="right"))
+        speeds = list(self._speeds[min(i0, len(self._speeds) - 1): min(i1, len(self._speeds) - 1) + 1])
+        if t1 >= d:
+            speeds.append(0.0)
+        return np.array(speeds)
+
+    # -- the loop -------------------------------------------------------------
+
+    def run(self) -> Recording:
+        cfg = self.cfg
+        appender = RunLogAppender(self.path, COLUMNS, {**self.metadata, "start_epoch_s": f"{self.clock():.3f}",
+                                                       "columns": "flags: calibration.acquire.Problem"},
+                                  clock=self.clock)
+        start = float(appender.metadata.get("start_epoch_s", self.clock()))
+        program_start: float | None = None
+        reference: float | None = None
+        prev_value: float | None = None
+        prev_speed: float | None = None
+        same_since: float | None = None
+        same_speed: float | None = None
+        last_sensor_ok = last_speed_ok = self.clock() - start
+        if appender.first_row is not None:
+            reference = appender.first_row[3]
+            prev_value = appender.last_row[3] if appender.last_row else None
+            program_start = self._program_start_from(appender)
+        rec = Recording(self.path, 0, appender.rows_before)
+        next_t = self.clock()
+        try:
+            while True:
+                if self.should_stop():
+                    raise KeyboardInterrupt
+                t = self.clock() - start
+                flags = Problem(0)
+                speed: float | None = None
+                value: float | None = None
+                try:
+                    speed = abs(self.controller.read_speed())
+                    last_speed_ok = t
+                    self._clear(t, Problem.SPEED_FAULT, "controller answers again")
+                except AdapterError as err:
+                    flags |= Problem.SPEED_FAULT
+                    self._raise(t, Problem.SPEED_FAULT, f"controller: {err}")
+                    if t - last_speed_ok > cfg.speed_grace_s:
+                        raise AcquisitionError(f"no spindle speed from the controller for "
+                                               f"{t - last_speed_ok:.0f} s ({err})") from err
+                try:
+                    value = self.sensor.read_um()
+                    last_sensor_ok = t
+                    self._clear(t, Problem.SENSOR_FAULT, "sensor answers again")
+                    lo_hi = self.sensor.range_um
+                    if lo_hi is not None:
+                        margin = cfg.saturation_margin * (lo_hi[1] - lo_hi[0])
+                        if value <= lo_hi[0] + margin or value >= lo_hi[1] - margin:
+                            raise SensorOverRangeError(f"reading {value:.2f} um at the end of the "
+                                                       f"range {lo_hi[0]:g}..{lo_hi[1]:g} um")
+                    self._clear(t, Problem.SATURATED, "sensor back in range")
+                except SensorOverRangeError as err:
+                    flags |= Problem.SATURATED
+                    self._raise(t, Problem.SATURATED, f"sensor saturated: {err}")
+                    if self._lasted(Problem.SATURATED, t) >= cfg.abort_saturated_s:
+                        raise AcquisitionError(f"sensor saturated for {self._lasted(Problem.SATURATED, t):.0f} s "
+                                               f"({err}): re-set the probe gap to mid-range") from err
+                except AdapterError as err:
+                    value = None
+                    flags |= Problem.SENSOR_FAULT
+                    self._raise(t, Problem.SENSOR_FAULT, f"sensor: {err}")
+                    if t - last_sensor_ok > cfg.sensor_grace_s:
+                        raise AcquisitionError(f"no reading from the sensor for {t - last_sensor_ok:.0f} s "
+                                               f"({err}): is it unplugged?") from err
+
+                # the program starts when the spindle first turns
+                if program_start is None and speed is not None and speed > IDLE_RPM:
+                    program_start = t - min(cfg.rate_s, t)
+                    rec.program_start_s = program_start
+                    if rec.rows == 0 and appender.rows_before == 0:
+                        self._event(t, Problem(0), "the spindle was already turning when the recording "
+                                    "started: the cold start and the program's first seconds are missed")
+                    else:
+                        self._event(t, Problem(0), "spindle started: program clock running")
+                if program_start is None and t > cfg.start_timeout_s:
+                    raise AcquisitionError(f"the spindle did not start within {cfg.start_timeout_s:.0f} s: "
+                                           "is the program loaded and cycle start pressed?")
+                ptime = None if program_start is None else t - program_start
+                commanded = None
+                if ptime is not None:
+                    commanded = float(self.commanded_between(ptime, ptime)[-1])
+                    if speed is not None:
+                        window = self.commanded_between(ptime - cfg.follow_window_s, ptime)
+                        if np.min(np.abs(window - speed)) > self.tol_rpm:
+                            if Problem.NOT_FOLLOWING not in self._active:
+                                self._active[Problem.NOT_FOLLOWING] = t
+                            if self._lasted(Problem.NOT_FOLLOWING, t) >= cfg.follow_alarm_s:
+                                flags |= Problem.NOT_FOLLOWING
+                                if not getattr(self, "_follow_told", False):
+                                    self._follow_told = True
+                                    self._event(t, Problem.NOT_FOLLOWING,
+                                                f"spindle not following the program: {speed:.0f} rpm where "
+                                                f"{commanded:.0f} rpm is programmed (override not 100 %, feed "
+                                                "hold, or another program?)")
+                        elif Problem.NOT_FOLLOWING in self._active:
+                            del self._active[Problem.NOT_FOLLOWING]
+                            if getattr(self, "_follow_told", False):
+                                self._follow_told = False
+                                self._event(t, Problem.NOT_FOLLOWING, "spindle follows the program again",
+                                            begins=False)
+
+                if value is not None:
+                    if prev_value is not None and same_since is not None and value == prev_value:
+                        # a live probe has noise, but a fine quantisation step can hold at a
+                        # steady temperature; no change across a speed step is never physical
+                        stepped = (speed is not None and same_speed is not None
+                                   and abs(speed - same_speed) > 0.1 * self.max_rpm)
+                        if t - same_since >= (cfg.frozen_after_step_s if stepped else cfg.frozen_s):
+                            flags |= Problem.FROZEN
+                            self._raise(t, Problem.FROZEN, f"sensor frozen: {value:.3f} um unchanged for "
+                                        f"{t - same_since:.0f} s")
+                            if self._lasted(Problem.FROZEN, t) >= cfg.abort_frozen_s:
+                                raise AcquisitionError(f"sensor frozen at {value:.3f} um for "
+                                                       f"{t - same_since:.0f} s: check the amplifier and cable")
+                    else:
+                        same_since, same_speed = t, speed
+                        self._clear(t, Problem.FROZEN, "sensor reading changes again")
+                    if prev_value is not None and appender.last_row is not None:
+                        dt = max(t - appender.last_row[0], 0.0)
+                        allowed = cfg.jump_um + cfg.max_rate_um_per_s * dt
+                        # speed and probe are read one after the other: a step may show in one
+                        # sample's reading and the next sample's speed, so the program says too
+                        near = (self.commanded_between(ptime - 3 * cfg.rate_s, ptime + 3 * cfg.rate_s)
+                                if ptime is not None else np.zeros(1))
+                        if ((speed is not None and prev_speed is not None
+                                and abs(speed - prev_speed) > 0.02 * self.max_rpm)
+                                or np.ptp(near) > 0.02 * self.max_rpm):
+                            allowed += cfg.elastic_jump_um
+                        if abs(value - prev_value) > allowed:
+                            flags |= Problem.JUMP
+                            self._event(t, Problem.JUMP, f"sensor jumped {value - prev_value:+.2f} um in "
+                                        f"{dt:.1f} s (at most {allowed:.1f} um is physical): probe or bracket knocked?")
+                    prev_value = value
+                    if reference is None:
+                        reference = value  # growth is counted from the cold start
+                if speed is not None:
+                    prev_speed = speed
+                elong = None if value is None or reference is None else value - reference
+                sample = Sample(t, speed, value, elong, commanded, flags, ptime)
+                self.last = sample
+                if speed is not None and value is not None:
+                    appender.append((t, speed, elong, value, commanded if commanded is not None else 0.0,
+                                     int(flags)))
+                    rec.rows += 1
+                    for p in Problem:
+                        if flags & p:
+                            rec.flagged[p.name] = rec.flagged.get(p.name, 0) + 1
+                    self.recent.append(float(elong))
+                    del self.recent[:-120]
+                if self.on_sample is not None:
+                    self.on_sample(sample, self)
+                if ptime is not None and ptime >= self.program.duration_s:
+                    rec.complete = True
+                    break
+                next_t += cfg.rate_s
+                wait = next_t - self.clock()
+                if wait < -cfg.rate_s:
+                    next_t = self.clock()  # fell behind (a slow link): no burst of catch-up reads
+                elif wait > 0:
+                    self.sleep(wait)
+        finally:
+            appender.close()
+            rec.events = self.events
+            rec.program_start_s = program_start
+        return rec
+
+    def _program_start_from(self, appender: RunLogAppender) -> float | None:
+        """On resume: the instant of the first logged row at speed."""
+        from compensator.io import read_run_log
+
+        log = read_run_log(self.path)
+        moving = np.flatnonzero(np.abs(log.speed_rpm) > IDLE_RPM)
+        if moving.size == 0:
+            return None
+        k = int(moving[0])
+        return float(log.time_s[k - 1] if k > 0 else log.time_s[0] - self.cfg.rate_s)
+
+
+def progress_fraction(sample: Sample, program: Program) -> float:
+    if sample.program_time_s is None:
+        return 0.0
+    return float(min(max(sample.program_time_s / program.duration_s, 0.0), 1.0))
+
+
+def sparkline(values: list[float], width: int = 60) -> str:
+    """Unicode block sparkline of the last ``width`` values."""
+    blocks = "▁▂▃▄▅▆▇█"
+    v = values[-width:]
+    if not v:
+        return ""
+    lo, hi = min(v), max(v)
+    span = hi - lo if hi > lo else 1.0
+    return "".join(blocks[min(int((x - lo) / span * 7.999), 7)] for x in v if math.isfinite(x))

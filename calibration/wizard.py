@@ -1,0 +1,607 @@
+"""``thermocomp wizard``: one guided calibration session per spindle, blank to validated model.
+
+Steps: 1 identify the spindle and its links, 2 write the NC programs, 3 record (or import)
+the runs, 4 fit and validate in free run, 5 save a versioned model, a report and a runtime
+configuration. Every question has a flag; with ``--yes`` (or without a terminal) nothing is
+asked and a missing answer is an error. The session lives in
+``<workdir>/<machine>/<spindle>/session.json``: after an interruption the wizard resumes
+where it stopped, appending to the same run log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.prompt import Confirm, FloatPrompt, Prompt
+from rich.table import Table
+
+from compensator.errors import AcquisitionError, CalibrationError, ConfigError, ThermocompError
+from compensator.io import (
+    RunLog,
+    atomic_write,
+    load_model,
+    read_daq_csv,
+    read_run_log,
+    read_text,
+    save_model,
+    versioned_path,
+    write_run_log,
+    write_text,
+)
+
+from .acquire import EXCLUDED, AcquireConfig, Event, Problem, Recorder, Sample, progress_fraction, sparkline
+from .profile import DIALECTS, EXTENSIONS, calibration_profile, rest_hours, to_nc, validation_profile
+
+SESSION_FORMAT = "thermocomp.wizard/1"
+RUNS = ("calibration", "validation")
+
+
+class Wizard:
+    def __init__(self, args: argparse.Namespace, console: Console | None = None,
+                 clock: Callable[[], float] | None = None, sleep: Callable[[float], None] = time.sleep):
+        self.args = args
+        self.out = console or _console()
+        self.interactive = not args.yes and sys.stdin.isatty()
+        self.clock = clock or _clock(args.time_scale)
+        self.sleep = sleep if args.time_scale == 1.0 else (lambda s: time.sleep(s / args.time_scale))
+        self.session: dict[str, Any] = {}
+        self.dir: Path = Path()
+
+    # -- questions ---------------------------------------------------------------
+
+    def ask(self, key: str, question: str, *, flag: str, default: Any = None, kind: type = str,
+            choices: list[str] | None = None) -> Any:
+        """The answer from the flag, else the resumed session, else a prompt (or an error)."""
+        from rich.markup import escape
+
+        question = escape(question)
+        value = getattr(self.args, key.replace("-", "_"), None)
+        if value is not None:
+            self.out.print(f"  {question}: [cyan]{value}[/]  (from {flag})")
+            return value
+        if key in self.session:
+            self.out.print(f"  {question}: [cyan]{self.session[key]}[/]  (from the session)")
+            return self.session[key]
+        if not self.interactive:
+            if default is not None:
+                self.out.print(f"  {question}: [cyan]{default}[/]  (default)")
+                return default
+            raise ConfigError(f"{flag} is needed when the wizard runs unattended")
+        while True:
+            if kind is float:
+                answer = FloatPrompt.ask(f"  {question}", console=self.out, default=default)
+            else:
+                answer = Prompt.ask(f"  {question}", console=self.out, default=default, choices=choices)
+            if answer not in (None, ""):
+                return answer
+
+    def confirm(self, question: str, *, default: bool = True) -> bool:
+        if not self.interactive:
+            return default
+        return Confirm.ask(f"  {question}", console=self.out, default=default)
+
+    def save_session(self) -> None:
+        self.session["format"] = SESSION_FORMAT
+        self.session["updated_utc"] = _now()
+        with atomic_write(self.dir / "session.json") as fh:
+            json.dump(self.session, fh, indent=2)
+
+    # -- step 1 ------------------------------------------------------------------
+
+    def step_identify(self) -> None:
+        a = self.args
+        self.out.rule("[bold]1/5 Identify the spindle")
+        machine = _ident(self.ask("machine_id", "Machine id", flag="--machine-id"), "--machine-id")
+        spindle = _ident(self.ask("spindle_id", "Spindle id", flag="--spindle-id"), "--spindle-id")
+        self.dir = Path(a.workdir).resolve() / machine / spindle
+        path = self.dir / "session.json"
+        if path.exists() and not a.new:
+            try:
+                self.session = json.loads(read_text(path))
+            except ValueError as err:
+                raise ConfigError(f"{path}: not a wizard session: {err}") from err
+            if self.session.get("format") != SESSION_FORMAT:
+                raise ConfigError(f"{path}: not a wizard session ({self.session.get('format')!r})")
+            done = [r for r in RUNS if self.session.get("runs", {}).get(r, {}).get("complete")]
+            self.out.print(f"  resuming the session of {self.session.get('updated_utc', '?')} in {self.dir} "
+                           f"(recorded: {', '.join(done) or 'nothing yet'})")
+            if self.interactive and not a.resume and not self.confirm("Resume this session?"):
+                self.session = {}
+        elif path.exists() and a.new:
+            old = versioned_path(self.dir / "session-old.json")
+            path.rename(old)
+            self.out.print(f"  the earlier session was kept as {old.name}")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.session.update(machine_id=machine, spindle_id=spindle)
+        max_rpm = float(self.ask("max_rpm", "Maximum spindle speed [rpm]", flag="--max-rpm", kind=float))
+        if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):
+            raise ConfigError(f"--max-rpm {max_rpm:g}: not a plausible spindle speed (100 to 200000)")
+        self.session["max_rpm"] = max_rpm
+        source = self.ask("source", "Displacement from (sensor: live eddy-current reading; import: "
+                          "a CSV a DAQ recorded)", flag="--source", default="sensor",
+                          choices=["sensor", "import"])
+        if source not in ("sensor", "import"):
+            raise ConfigError(f"--source {source!r}: sensor or import")
+        self.session["source"] = source
+        if source == "sensor":
+            self.session["controller"] = self.ask(
+                "controller", "Controller link (URL, as in the runtime configuration)", flag="--controller")
+            self.session["sensor"] = self.ask(
+                "sensor", "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
+                "opc.tcp://...)", flag="--sensor")
+            self.session["rate_s"] = float(self.ask("rate_s", "Sample period [s]", flag="--rate-s",
+                                                    default=1.0, kind=float))
+            if not self.session["rate_s"] > 0:
+                raise ConfigError("--rate-s must be > 0")
+            if not a.no_connection_test and (self.interactive is False or self.confirm("Test the connections now?")):
+                self.test_connections()
+        else:
+            self.session["controller"] = a.controller or self.session.get("controller")
+        self.save_session()
+
+    def _links(self):
+        from cnc_adapters.base import open_adapter
+        from cnc_adapters.sensors import open_sensor
+
+        return open_adapter(self.session["controller"]), open_sensor(self.session["sensor"])
+
+    def test_connections(self) -> None:
+        from cnc_adapters.base import AdapterError
+
+        try:
+            ctl, sensor = self._links()
+        except AdapterError as err:
+            raise ConfigError(f"connection settings: {err}") from err
+        try:
+            with ctl:
+                rpm = ctl.read_speed()
+            self.out.print(f"  controller: [green]ok[/], spindle at {rpm:.0f} rpm")
+        except AdapterError as err:
+            raise ConfigError(f"controller {self.session['controller']}: {err}") from err
+        try:
+            with sensor:
+                um = sensor.read_um()
+            rng = sensor.range_um
+            where = ""
+            if rng is not None:
+                frac = (um - rng[0]) / (rng[1] - rng[0])
+                where = f", {frac:.0%} of its range"
+                if not 0.2 <= frac <= 0.8:
+                    self.out.print(f"  [yellow]warning:[/] the probe reads {um:.1f} um{where}: set the gap "
+                                   "near mid-range so the growth cannot saturate it")
+            self.out.print(f"  sensor: [green]ok[/], {um:.2f} um{where}")
+        except AdapterError as err:
+            raise ConfigError(f"sensor {self.session['sensor']}: {err}") from err
+
+    # -- step 2 ------------------------------------------------------------------
+
+    def programs(self) -> dict[str, Any]:
+        s = self.session
+        cal = calibration_profile(s["max_rpm"], step_min=s["step_min"], cooldown_min=s["cooldown_min"])
+        progs = {"calibration": cal}
+        if s["validation"]:
+            progs["validation"] = validation_profile(s["max_rpm"], seed=s["validation_seed"])
+        return progs
+
+    def step_programs(self) -> None:
+        a = self.args
+        self.out.rule("[bold]2/5 Calibration program")
+        s = self.session
+        s["dialect"] = self.ask("dialect", "NC dialect", flag="--dialect", default="fanuc", choices=list(DIALECTS))
+        if s["dialect"] not in DIALECTS:
+            raise ConfigError(f"--dialect {s['dialect']!r}: choose from {', '.join(DIALECTS)}")
+        s["step_min"] = float(a.step_min if a.step_min is not None else s.get("step_min", 20.0))
+        s["cooldown_min"] = float(a.cooldown_min if a.cooldown_min is not None else s.get("cooldown_min", 60.0))
+        if "validation" not in s or a.validation is not None:
+            s["validation"] = bool(a.validation) if a.validation is not None else (
+                self.confirm("Also record a different validation profile (recommended)?"))
+        s["validation_seed"] = int(s.get("validation_seed", a.validation_seed))
+        rest = rest_hours(self._former_time_constants())
+        s["rest_h"] = rest
+        ext = EXTENSIONS[s["dialect"]]
+        t = Table(title="NC programs")
+        for col in ("run", "file", "duration", "top speed"):
+            t.add_column(col)
+        files = {}
+        for name, prog in self.programs().items():
+            text = to_nc(prog, s["dialect"], name=f"TC_{name[:5]}",
+                         notes=(f"MACHINE {s['machine_id']} SPINDLE {s['spindle_id']}",
+                                f"COLD START: SPINDLE AT REST FOR {rest:g} H BEFOREHAND"))
+            path = self.dir / f"{name}{ext}"
+            write_text(path, text)
+            files[name] = str(path)
+            t.add_row(name, str(path), f"{prog.duration_s / 3600:.2f} h",
+                      f"{max(sp for _, sp in prog.segments):.0f} rpm")
+        s["programs"] = files
+        self.out.print(t)
+        self.out.print(f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
+                       f"{rest:g} h (five of its slowest time constants, or a night when no model exists "
+                       "yet). A warm spindle biases the model.")
+        self.save_session()
+
+    def _former_time_constants(self) -> tuple[float, ...] | None:
+        models = sorted((self.dir / "models").glob("*.json")) if (self.dir / "models").is_dir() else []
+        for p in reversed(models):
+            try:
+                return load_model(p).time_constants_s()
+            except ThermocompError:
+                continue
+        return None
+
+    # -- step 3 ------------------------------------------------------------------
+
+    def step_acquire(self) -> None:
+        self.out.rule("[bold]3/5 Record")
+        runs = self.session.setdefault("runs", {})
+        for name, prog in self.programs().items():
+            info = runs.setdefault(name, {"log": str(self.dir / "runs" / f"{name}.csv"), "complete": False})
+            self.save_session()
+            if info.get("complete"):
+                self.out.print(f"  {name}: already recorded ({info['log']})")
+                continue
+            if self.session["source"] == "import":
+                self.import_run(name, info)
+                continue
+            self.record_run(name, prog, info)
+
+    def record_run(self, name: str, prog, info: dict[str, Any]) -> None:
+        s = self.session
+        log = Path(info["log"])
+        resuming = log.exists() and log.stat().st_size > 0
+        self.out.print(f"  [bold]{name}[/]: load [cyan]{s['programs'][name]}[/] on the controller "
+                       f"({prog.duration_s / 3600:.2f} h); the spindle must be cold (rested {s['rest_h']:g} h).")
+        if resuming:
+            self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
+        elif self.interactive and not self.confirm("Spindle cold, probe set, program loaded: start recording?"):
+            raise AcquisitionError(f"{name}: recording not started")
+        ctl, sensor = self._links()
+        cfg = AcquireConfig(rate_s=s["rate_s"], **_acquire_overrides(self.args))
+        meta = {"source": "thermocomp wizard", "machine_id": s["machine_id"], "spindle_id": s["spindle_id"],
+                "run": name, "program": s["programs"][name], "controller": s["controller"],
+                "sensor": s["sensor"], "max_rpm": s["max_rpm"]}
+        live = _LiveView(self.out, prog, name)
+        rec = Recorder(ctl, sensor, log, prog, max_rpm=s["max_rpm"], config=cfg, metadata=meta,
+                       clock=self.clock, sleep=self.sleep, on_sample=live.sample, on_event=live.event)
+        self.out.print("  recording: waiting for the spindle to start (press Cycle Start)", highlight=False)
+        try:
+            with live:
+                result = rec.run()
+        except AcquisitionError as err:
+            kept = _rows(log)
+            raise AcquisitionError(f"{name}: recording stopped: {err}; {kept} rows kept in {log}; fix it and "
+                                   "run the wizard again to resume") from err
+        except KeyboardInterrupt:
+            self.out.print(f"\n  interrupted: {_rows(log)} rows kept in {log}; run the wizard again to resume")
+            raise
+        finally:
+            ctl.close()
+            sensor.close()
+        info.update(complete=result.complete, rows=_rows(log), flagged=result.flagged,
+                    events=[f"{e.time_s:.0f} s: {e.message}" for e in result.events if e.problem][:50])
+        self.save_session()
+        self.out.print(f"  {name}: [green]recorded[/] {info['rows']} rows to {log}"
+                       + (f"; flagged: {result.flagged}" if result.flagged else ""))
+
+    def import_run(self, name: str, info: dict[str, Any]) -> None:
+        a = self.args
+        src = getattr(a, f"import_{name}", None)
+        if src is None:
+            if name == "validation":
+                self.out.print("  validation: no --import-validation file; skipped")
+                self.session["validation"] = False
+                return
+            raise ConfigError("--import-calibration is needed with --source import")
+        cols = {"displacement": a.import_displacement_column}
+        if a.import_speed_column:
+            cols["speed"] = a.import_speed_column
+        t, data = read_daq_csv(src, a.import_time_column, cols)
+        disp = data["displacement"] * a.import_scale + a.import_offset_um
+        if "speed" in data:
+            speed = np.abs(data["speed"])
+        elif a.import_speed_log:
+            ctl = read_run_log(a.import_speed_log)
+            # the controller logs the speed held up to each of its samples
+            idx = np.clip(np.searchsorted(ctl.time_s, t, side="left"), 0, len(ctl) - 1)
+            speed = np.abs(ctl.speed_rpm[idx])
+            outside = (t < ctl.time_s[0]) | (t > ctl.time_s[-1])
+            if outside.mean() > 0.05:
+                raise CalibrationError(f"{src}: {outside.mean():.0%} of its rows fall outside the speed log "
+                                       f"{a.import_speed_log}: do both use the same clock?")
+        else:
+            raise ConfigError("give --import-speed-column or --import-speed-log: a DAQ file needs the speed too")
+        elong = disp - disp[0]
+        write_run_log(info["log"], {"time_s": t - t[0], "speed_rpm": speed, "elongation_um": elong,
+                                    "sensor_um": disp, "flags": np.zeros(t.size, dtype=int)},
+                      {"source": f"imported from {src}", "machine_id": self.session["machine_id"],
+                       "spindle_id": self.session["spindle_id"], "run": name})
+        info.update(complete=True, rows=int(t.size), imported_from=str(src))
+        self.save_session()
+        self.out.print(f"  {name}: imported {t.size} rows from {src} into {info['log']}")
+
+    # -- step 4 ------------------------------------------------------------------
+
+    def step_fit(self) -> dict[str, Any]:
+        from .calibrate import calibrate, residual_stats
+        from .commands import print_fit_report
+        from .data import run_from_log
+        from .plots import Panel, plot_panels
+        from .replay import replay
+
+        self.out.rule("[bold]4/5 Fit and validate (free run)")
+        s = self.session
+        logs = {name: _clean(read_run_log(info["log"])) for name, info in s["runs"].items()
+                if info.get("complete")}
+        if "calibration" not in logs:
+            raise CalibrationError("no complete calibration run to fit")
+        cal_log, dropped = logs["calibration"]
+        if dropped:
+            self.out.print(f"  {dropped} calibration rows left out (flagged saturated, frozen or jump)")
+        run = run_from_log(cal_log, name="calibration")
+        cal = calibrate([run], spindle_id=s["spindle_id"], machine_id=s["machine_id"], created_utc=_now())
+        report = cal.report()
+        print_fit_report(cal, report, self.out)
+        summary: dict[str, Any] = {"form": cal.model.form, "reason": cal.reason,
+                                   "calibration": residual_stats(run.elongation_um - cal.predictions["calibration"]),
+                                   "warnings": list(cal.warnings), "report": report}
+        panels = [Panel("calibration run", run.time_s, run.speed_rpm, cal.predictions["calibration"],
+                        run.elongation_um)]
+        peak = float(np.max(np.abs(run.elongation_um)))
+        if "validation" in logs:
+            vlog, vdrop = logs["validation"]
+            rep = replay(cal.model, vlog)
+            res = rep.residual_um
+            summary["validation"] = residual_stats(res)
+            summary["validation_report"] = rep.report
+            panels.append(Panel("validation run (held out)", rep.time_s, rep.speed_rpm, rep.predicted_um,
+                                rep.measured_um))
+            v = summary["validation"]
+            self.out.print(f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
+                           f"max {v['max_abs_um']:.2f} um over {v['samples']} samples"
+                           + (f" ({vdrop} flagged rows left out)" if vdrop else ""))
+        plot = self.dir / "fit.png"
+        plot_panels(plot, panels, f"{s['machine_id']} / {s['spindle_id']}: {cal.model.form}",
+                    max_rpm=s["max_rpm"])
+        summary["plot"] = str(plot)
+        summary["peak_um"] = peak
+        summary["advice"] = advise(summary, s)
+        self.out.print(f"  plot: {plot}")
+        for line in summary["advice"]:
+            self.out.print(f"  [yellow]advice:[/] {line}")
+        if not summary["advice"]:
+            self.out.print("  [green]the model is good[/]: no re-run needed")
+        self._cal = cal
+        return summary
+
+    # -- step 5 ------------------------------------------------------------------
+
+    def step_save(self, summary: dict[str, Any]) -> dict[str, str]:
+        from .report import calibration_report, runtime_config
+
+        self.out.rule("[bold]5/5 Save")
+        s = self.session
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d")
+        base = f"{s['machine_id']}_{s['spindle_id']}_{stamp}"
+        model_path = versioned_path(self.dir / "models" / f"{base}.json")
+        model_path.parent.mkdir(parents=True, exist_ok=True)
+        save_model(model_path, self._cal.model)
+        version = model_path.stem[len(base):].lstrip(".") or "v1"
+        fmt = self.args.report_format
+        report_path = versioned_path(self.dir / "reports" / f"{base}.{fmt}")
+        write_text(report_path, calibration_report(s, summary, self._cal.model, model_path, fmt, version))
+        config_path = versioned_path(self.dir / "config" / f"{base}.toml")
+        write_text(config_path, runtime_config(s, self._cal.model, model_path))
+        older = sorted(p.name for p in (self.dir / "models").glob("*.json") if p != model_path)
+        s["saved"] = {"model": str(model_path), "report": str(report_path), "config": str(config_path),
+                      "version": version, "at_utc": _now()}
+        self.save_session()
+        t = Table(title="Written")
+        t.add_column("what")
+        t.add_column("file")
+        t.add_row("model", str(model_path))
+        t.add_row("report", str(report_path))
+        t.add_row("runtime config", str(config_path))
+        self.out.print(t)
+        if older:
+            self.out.print(f"  earlier models kept: {', '.join(older)}")
+        self.out.print(f"  next: check it with [bold]thermocomp run --config {config_path} --check[/], "
+                       f"or replay a logged day with [bold]thermocomp replay LOG --model {model_path}[/]")
+        return s["saved"]
+
+    def run(self) -> int:
+        self.step_identify()
+        self.step_programs()
+        if self.args.programs_only:
+            self.out.print("  programs written; stopping as asked (--programs-only)")
+            return 0
+        self.step_acquire()
+        summary = self.step_fit()
+        self.step_save(summary)
+        return 0
+
+
+# -- helpers ------------------------------------------------------------------------
+
+
+def advise(summary: dict[str, Any], session: dict[str, Any]) -> list[str]:
+    """What to re-run when the fit is poor, from the figures and warnings."""
+    out: list[str] = []
+    peak = max(summary.get("peak_um", 0.0), 1e-9)
+    cal = summary["calibration"]
+    val = summary.get("validation")
+    limit = max(1.0, 0.1 * peak)
+    warnings = " ".join(summary.get("warnings", []))
+    if "cool-down" in warnings:
+        out.append("record the calibration run again with its cool-down (>= 60 min at 0 rpm at the end)")
+    if "speed levels" in warnings:
+        out.append("the run has too few speed levels: run the full staircase")
+    if cal["rms_um"] is not None and cal["rms_um"] > limit:
+        out.append(f"the model misses the calibration run itself (RMS {cal['rms_um']:.2f} um > {limit:.2f} um): "
+                   "check the probe bracket for its own thermal drift (Invar bracket, coolant off the probe) "
+                   "and that the spindle was cold at the start")
+    if val is None:
+        if not session.get("validation"):
+            out.append("no validation run: record one (a different profile) to see how the model does "
+                       "on speeds it was not fitted on")
+    elif val["rms_um"] is not None and val["rms_um"] > limit:
+        out.append(f"the model does not carry over to the validation run (RMS {val['rms_um']:.2f} um > "
+                   f"{limit:.2f} um): record a second calibration run and fit both with "
+                   "`thermocomp fit cal1.csv cal2.csv`, or check that ambient and coolant were steady")
+    for name, info in session.get("runs", {}).items():
+        bad = sum(v for k, v in (info.get("flagged") or {}).items() if Problem[k] & EXCLUDED)
+        if bad > 0.05 * max(info.get("rows", 1), 1):
+            out.append(f"{name}: {bad} flagged samples (saturated, frozen, jumps): fix the sensor set-up and "
+                       "record it again")
+    return out
+
+
+def _clean(log: RunLog) -> tuple[RunLog, int]:
+    """The log without rows flagged saturated, frozen or jump (by the recorder)."""
+    flags = log.extras.get("flags")
+    if flags is None or flags.dtype == object:
+        return log, 0
+    keep = (flags.astype(int) & int(EXCLUDED)) == 0
+    if keep.all():
+        return log, 0
+    return RunLog(log.time_s[keep], log.speed_rpm[keep],
+                  None if log.elongation_um is None else log.elongation_um[keep],
+                  {k: v[keep] for k, v in log.extras.items()}, log.metadata, log.gaps, log.source), int((~keep).sum())
+
+
+def _rows(path: Path) -> int:
+    try:
+        return len(read_run_log(path))
+    except ThermocompError:
+        return 0
+
+
+def _ident(value: Any, flag: str) -> str:
+    import re
+
+    text = str(value).strip()
+    if not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", text):
+        raise ConfigError(f"{flag} {text!r}: use letters, digits, '_', '-', '.' (it names files)")
+    return text
+
+
+def _console() -> Console:
+    c = Console(highlight=False)
+    return c if c.is_terminal else Console(highlight=False, width=130)
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).replace(microsecond=0).isoformat()
+
+
+def _clock(scale: float) -> Callable[[], float]:
+    """Wall time, or a faster one for the virtual machine tool."""
+    if scale == 1.0:
+        return time.time
+    w0, m0 = time.time(), time.monotonic()
+    return lambda: w0 + (time.monotonic() - m0) * scale
+
+
+def _acquire_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    out = {}
+    for key in ("frozen_s", "frozen_after_step_s", "abort_frozen_s", "abort_saturated_s", "sensor_grace_s", "start_timeout_s"):
+        v = getattr(args, key, None)
+        if v is not None:
+            out[key] = v
+    return out
+
+
+class _LiveView:
+    """Progress, the latest reading and a sparkline: a rich live panel on a terminal, a plain
+    line every 5 % otherwise."""
+
+    def __init__(self, console: Console, program, name: str):
+        self.out, self.program, self.name = console, program, name
+        self.live = None
+        self.next_mark = 0.0
+        self.lines: list[str] = []
+
+    def __enter__(self) -> _LiveView:
+        if self.out.is_terminal:
+            from rich.live import Live
+
+            self.live = Live(console=self.out, refresh_per_second=4, transient=False)
+            self.live.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.live is not None:
+            self.live.__exit__(*exc)
+
+    def event(self, ev: Event) -> None:
+        tag = "[red]problem[/]" if ev.problem and ev.begins else "[green]ok[/]" if ev.problem else "[cyan]info[/]"
+        msg = f"  {tag} t={ev.time_s:.0f} s: {ev.message}"
+        if self.live is not None:
+            self.live.console.print(msg)
+        else:
+            self.out.print(msg)
+
+    def sample(self, s: Sample, rec: Recorder) -> None:
+        frac = progress_fraction(s, self.program)
+        speed = "-" if s.speed_rpm is None else f"{s.speed_rpm:.0f}"
+        cmd = "-" if s.commanded_rpm is None else f"{s.commanded_rpm:.0f}"
+        el = "-" if s.elongation_um is None else f"{s.elongation_um:+.2f}"
+        flags = f" [red]{Problem(s.flags).name}[/]" if s.flags else ""
+        if self.live is not None:
+            from rich.progress_bar import ProgressBar
+            from rich.table import Table as T
+
+            g = T.grid(padding=(0, 1))
+            g.add_row(f"[bold]{self.name}[/]", ProgressBar(total=1.0, completed=frac, width=40),
+                      f"{frac:.0%}", f"t {s.time_s / 3600:.2f} h")
+            g.add_row("speed", f"{speed} rpm (programmed {cmd})", "", "")
+            g.add_row("growth", f"{el} um{flags}", "", "")
+            g.add_row("", sparkline(rec.recent, 60), "", "")
+            self.live.update(g)
+        elif frac >= self.next_mark:
+            self.next_mark = math.floor(frac * 20 + 1) / 20
+            self.out.print(f"  {self.name} {frac:4.0%}  t {s.time_s / 3600:5.2f} h  {speed:>6} rpm "
+                           f"(programmed {cmd})  growth {el} um  {sparkline(rec.recent, 30)}")
+
+
+def main(args: argparse.Namespace) -> int:
+    from .profile import DIALECTS  # noqa: F401 - imported for its check of choices
+
+    if args.time_scale <= 0:
+        raise ConfigError("--time-scale must be > 0")
+    wiz = Wizard(args)
+    try:
+        return wiz.run()
+    except AcquisitionError as err:
+        print(f"thermocomp: error: {err}", file=sys.stderr)
+        return 3
+
+
+def profile_cmd(args: argparse.Namespace) -> int:
+    """``thermocomp profile``: write the NC program for a calibration (or validation) profile."""
+    if args.dialect not in DIALECTS:
+        raise ConfigError(f"--dialect {args.dialect!r}: choose from {', '.join(DIALECTS)}")
+    try:
+        if args.validation:
+            prog = validation_profile(args.max_rpm, seed=args.seed)
+        else:
+            prog = calibration_profile(args.max_rpm, step_min=args.step_min, cooldown_min=args.cooldown_min)
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+    rest = rest_hours(load_model(args.model).time_constants_s() if args.model else None)
+    text = to_nc(prog, args.dialect, name=args.name,
+                 notes=(f"COLD START: SPINDLE AT REST FOR {rest:g} H BEFOREHAND",))
+    write_text(args.output, text)
+    out = Console(highlight=False)
+    out.print(f"wrote {args.output}: {prog.name} profile, {args.dialect}, {prog.duration_s / 3600:.2f} h, "
+              f"up to {max(sp for _, sp in prog.segments):.0f} rpm")
+    out.print(f"[yellow]cold start:[/] the spindle must have rested for {rest:g} h before this run")
+    return 0

@@ -1,0 +1,234 @@
+"""Displacement sensors for calibration: the eddy-current probe at the spindle nose.
+
+One base class, :class:`Sensor`, with the template method :meth:`Sensor.read_um`: it reads a
+raw value from the backend, converts it (``um = raw * scale + offset_um``), refuses
+non-finite values and reports a reading beyond the sensor's measuring range
+(``range_um``) as :class:`SensorOverRangeError`. Backends, registered by name:
+
+- ``ascii``: an amplifier on a serial line that sends one ASCII reading per line, polled
+  with ``request`` or streaming on its own (``request`` empty). Typical reply
+  ``+0123.45``; ``over_range`` matches the amplifier's out-of-range token (``OVER``,
+  ``----``, ...).
+- ``modbus``: a Modbus RTU input (or holding) register of a DAQ module or amplifier.
+- ``opcua``: a node on an OPC UA server (a DAQ gateway, or the virtual machine tool's
+  ``Displacement`` with ``preset=virtual-cnc``).
+
+:func:`open_sensor` builds one from a URL (``serial:///dev/ttyUSB1?baudrate=9600&scale=-1``,
+``serial:///dev/ttyUSB1?protocol=modbus&register=2&type=int16&scale=0.1``,
+``opc.tcp://host:4840/?preset=virtual-cnc``) or a mapping with a ``type``. Sign: positive
+elongation moves the tool tip toward the workpiece; a probe facing the nose reads a smaller
+gap as the spindle grows, so such a probe needs a negative ``scale``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from abc import abstractmethod
+from collections.abc import Mapping
+from typing import Any, Literal
+from urllib.parse import unquote, urlsplit
+
+from .base import AdapterError, BadValueError, Link, query_params
+from .modbus import ModbusLink, check_types
+from .serial_link import NUMBER, SerialLine
+
+ABSOLUTE_LIMIT_UM = 1e6  # 1 m: anything beyond is a unit or wiring fault, not a reading
+
+
+class SensorOverRangeError(BadValueError):
+    """The sensor reports its measuring range exceeded (the probe is saturated)."""
+
+
+def _range(value: Any) -> tuple[float, float] | None:
+    if value is None or value == "":
+        return None
+    if isinstance(value, str):
+        value = value.split(",")
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError) as err:
+        raise AdapterError(f"sensor range_um {value!r}: give two numbers 'low,high'") from err
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise AdapterError(f"sensor range_um {value!r}: need finite low < high")
+    return lo, hi
+
+
+class Sensor(Link):
+    """A displacement reading in um: ``raw * scale + offset_um``, within ``range_um``."""
+
+    def __init__(self, *, scale: float = 1.0, offset_um: float = 0.0,
+                 range_um: tuple[float, float] | str | None = None, **link: Any):
+        scale, offset_um = float(scale), float(offset_um)
+        if not (math.isfinite(scale) and scale != 0 and math.isfinite(offset_um)):
+            raise AdapterError(f"{self.name} sensor: scale must be finite and non-zero, offset finite")
+        super().__init__(**link)
+        self.scale = scale
+        self.offset_um = offset_um
+        self.range_um = _range(range_um)
+
+    def read_um(self) -> float:
+        """One reading [um]. :class:`SensorOverRangeError` when out of range,
+        :class:`BadValueError` when not a finite number."""
+        self.open()
+        raw = self._read_raw()
+        try:
+            value = float(raw) * self.scale + self.offset_um
+        except (TypeError, ValueError) as err:
+            raise BadValueError(f"{self.name} sensor: reading {raw!r} is not a number") from err
+        if not math.isfinite(value) or abs(value) > ABSOLUTE_LIMIT_UM:
+            raise BadValueError(f"{self.name} sensor: reading is {value}")
+        if self.range_um is not None and not self.range_um[0] <= value <= self.range_um[1]:
+            lo, hi = self.range_um
+            raise SensorOverRangeError(
+                f"{self.name} sensor: {value:.2f} um is outside its range {lo:g}..{hi:g} um")
+        return value
+
+    @abstractmethod
+    def _read_raw(self) -> Any: ...
+
+
+class AsciiSensor(SerialLine, Sensor):
+    """An amplifier that gives one ASCII reading per line on a serial port."""
+
+    name = "ascii"
+
+    def __init__(self, port: str, *, baudrate: int = 9600, timeout_s: float = 1.0,
+                 request: str | None = None, reply: str = rf"(?P<value>{NUMBER})",
+                 over_range: str = r"(?i)(OVER|UNDER|OUT\s*OF\s*RANGE|OVR|OOR|-{3,}|\+{3,})",
+                 eol: str = "\r\n", **kw: Any):
+        super().__init__(**kw)
+        self._init_serial(port, baudrate, timeout_s, eol)
+        self.request = request or None
+        try:
+            self.reply = re.compile(reply)
+            self.over_range = re.compile(over_range)
+        except re.error as err:
+            raise AdapterError(f"ascii sensor: bad pattern: {err}") from err
+        if "value" not in self.reply.groupindex:
+            raise AdapterError("ascii sensor: reply needs a (?P<value>...) group")
+
+    def _read_raw(self) -> float:
+        line = self.exchange(self.request)
+        if self.over_range.search(line):
+            raise SensorOverRangeError(f"ascii sensor: amplifier reports out of range ({line!r})")
+        m = self.reply.search(line)
+        if m is None:
+            raise BadValueError(f"ascii sensor: no reading in {line!r}")
+        return float(m.group("value"))
+
+
+class ModbusSensor(ModbusLink, Sensor):
+    """A Modbus RTU register holding the displacement (raw counts times ``scale``)."""
+
+    name = "modbus"
+
+    def __init__(self, port: str, *, baudrate: int = 19200,
+                 parity: Literal["N", "E", "O"] = "N", device_id: int = 1,
+                 table: Literal["input", "holding"] = "input", register: int = 0,
+                 type: str = "int16", word_order: Literal["big", "little"] = "big",  # noqa: A002
+                 byte_order: Literal["big", "little"] = "big", timeout_s: float = 0.5,
+                 saturated_raw: tuple[float, ...] | str | None = None, **kw: Any):
+        super().__init__(**kw)
+        check_types("modbus sensor", type)
+        if table not in ("input", "holding"):
+            raise AdapterError("modbus sensor: table is 'input' or 'holding'")
+        self._init_modbus(port, baudrate, parity, device_id, word_order, byte_order, timeout_s)
+        self.table, self.register, self.dtype = table, int(register), type
+        if isinstance(saturated_raw, str):
+            saturated_raw = tuple(float(v) for v in saturated_raw.split(",") if v)
+        # raw codes a module sends for over/under range (e.g. 32767 / -32768 on many AI modules)
+        self.saturated_raw = tuple(saturated_raw or ())
+
+    def _read_raw(self) -> float:
+        value = self._read_value("read displacement", self.table, self.register, self.dtype)
+        if value in self.saturated_raw:
+            raise SensorOverRangeError(f"modbus sensor: register {self.register} holds the "
+                                       f"over-range code {value:g}")
+        return value
+
+
+class OpcUaSensor(Sensor):
+    """A displacement node on an OPC UA server (same options as the OPC UA adapter)."""
+
+    name = "opcua"
+    PRESETS = {"virtual-cnc": {"namespace_uri": "urn:thermocomp:virtual-cnc",
+                               "node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Displacement"}}
+
+    def __init__(self, url: str, *, preset: str | None = None, node: str | None = None,
+                 path: str | None = None, namespace_uri: str | None = None,
+                 timeout_s: float = 4.0, **kw: Any):
+        link = {k: kw.pop(k) for k in ("backoff_s", "max_backoff_s", "jitter", "on_link_change",
+                                       "clock", "rng") if k in kw}
+        scaling = {k: kw.pop(k) for k in ("scale", "offset_um", "range_um") if k in kw}
+        super().__init__(**scaling, **link)
+        p = self.PRESETS.get(preset or "", {})
+        if preset and not p:
+            raise AdapterError(f"opcua sensor: unknown preset {preset!r}; known: {', '.join(self.PRESETS)}")
+        node = node or (None if path else p.get("node"))
+        if not (node or path):
+            raise AdapterError("opcua sensor: give node (node id), path (browse path) or a preset")
+        from .opcua import OpcUaAdapter
+
+        # the adapter's connection, security and node lookup; its offset node is never written
+        self._ua = OpcUaAdapter(url, speed_node=node, offset_node=node or None, speed_path=path,
+                                offset_path=path, namespace_uri=namespace_uri or p.get("namespace_uri"),
+                                timeout_s=timeout_s, verify_writes=False, backoff_s=0.0, jitter=0.0,
+                                **kw)
+        self.url = url
+
+    def _connect(self) -> None:
+        self._ua.open()
+
+    def _read_raw(self) -> Any:
+        self._ua.open()  # reopens after a lost link
+        value = self._ua._call("read displacement", self._ua._speed.read_value)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise BadValueError(f"opcua sensor: node holds {type(value).__name__}, not a number")
+        return value
+
+    def _disconnect(self) -> None:
+        self._ua._disconnect()
+        self._ua._open = False
+
+
+SENSORS: dict[str, type[Sensor]] = {"ascii": AsciiSensor, "modbus": ModbusSensor, "opcua": OpcUaSensor}
+_INT = frozenset({"baudrate", "device_id", "register"})
+_FLOAT = frozenset({"scale", "offset_um", "timeout_s"})
+
+
+def _url_params(url: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in query_params(url).items():
+        if k == "protocol":
+            continue
+        try:
+            out[k] = int(v) if k in _INT else float(v) if k in _FLOAT else unquote(v)
+        except ValueError as err:
+            raise AdapterError(f"sensor URL parameter {k}={v!r} is not a number") from err
+    return out
+
+
+def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
+    """A sensor from a URL or a mapping with a ``type`` (not yet connected)."""
+    if isinstance(target, str):
+        parts = urlsplit(target)
+        kw = {**_url_params(target), **overrides}
+        if parts.scheme == "serial":
+            kind = query_params(target).get("protocol", "ascii")
+            cls = SENSORS.get(kind)
+            if cls is None or kind == "opcua":
+                raise AdapterError(f"unknown serial sensor protocol {kind!r}; known: ascii, modbus")
+            return cls(parts.path, **kw)
+        if parts.scheme == "opc.tcp":
+            return OpcUaSensor(target.split("?", 1)[0], **kw)
+        raise AdapterError(f"no sensor for URL scheme {parts.scheme!r} in {target!r}")
+    cfg = dict(target)
+    kind = cfg.pop("type", None)
+    if kind is None and "url" in cfg:
+        return open_sensor(cfg.pop("url"), **cfg, **overrides)
+    cls = SENSORS.get(str(kind))
+    if cls is None:
+        raise AdapterError(f"unknown sensor type {kind!r}; known: {', '.join(SENSORS)}")
+    cfg.update(overrides)
+    return cls(**cfg)
