@@ -205,6 +205,9 @@ class ModbusDevice:
         regs = C.convert_to_registers(float(rpm), C.DATATYPE.FLOAT32)
         self._run(self.server.context.async_setValues(1, 4, 0, regs))  # input registers 0-1
 
+    def set_input(self, address: int, regs: list[int]) -> None:
+        self._run(self.server.context.async_setValues(1, 4, address, [r & 0xFFFF for r in regs]))
+
     def offset(self) -> float:
         from pymodbus.client import ModbusSerialClient as C
 
