@@ -52,7 +52,7 @@ class Wizard:
         self.args = args
         self.out = console or _console()
         self.interactive = not args.yes and sys.stdin.isatty()
-        self.clock = clock or _clock(args.time_scale)
+        self._clock = clock
         self.sleep = sleep if args.time_scale == 1.0 else (lambda s: time.sleep(s / args.time_scale))
         self.session: dict[str, Any] = {}
         self.dir: Path = Path()
@@ -123,6 +123,9 @@ class Wizard:
             self.out.print(f"  the earlier session was kept as {old.name}")
         self.dir.mkdir(parents=True, exist_ok=True)
         self.session.update(machine_id=machine, spindle_id=spindle)
+        # a faster clock (virtual machine tool) must read the same in a resumed process
+        anchor = self.session.setdefault("time_anchor_s", time.time())
+        self.clock = self._clock or _clock(a.time_scale, anchor)
         max_rpm = float(self.ask("max_rpm", "Maximum spindle speed [rpm]", flag="--max-rpm", kind=float))
         if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):
             raise ConfigError(f"--max-rpm {max_rpm:g}: not a plausible spindle speed (100 to 200000)")
@@ -346,6 +349,12 @@ class Wizard:
         cal_log, dropped = logs["calibration"]
         if dropped:
             self.out.print(f"  {dropped} calibration rows left out (flagged saturated, frozen or jump)")
+        for name, (lg, _) in logs.items():
+            long = [g for g in lg.gaps if g.duration_s > 60]
+            if long:
+                self.out.print(f"  [yellow]warning:[/] {name} run has {len(long)} gap(s) (interruptions), "
+                               f"{sum(g.duration_s for g in long):.0f} s in all: the speed over a gap is "
+                               "taken from the sample after it")
         run = run_from_log(cal_log, name="calibration")
         cal = calibrate([run], spindle_id=s["spindle_id"], machine_id=s["machine_id"], created_utc=_now())
         report = cal.report()
@@ -502,12 +511,12 @@ def _now() -> str:
     return datetime.now(timezone.utc).replace(microsecond=0).isoformat()
 
 
-def _clock(scale: float) -> Callable[[], float]:
-    """Wall time, or a faster one for the virtual machine tool."""
+def _clock(scale: float, anchor_s: float) -> Callable[[], float]:
+    """Wall time, or for the virtual machine tool a faster one that runs ``scale`` times
+    wall time from ``anchor_s`` (the session's start), so every process agrees on it."""
     if scale == 1.0:
         return time.time
-    w0, m0 = time.time(), time.monotonic()
-    return lambda: w0 + (time.monotonic() - m0) * scale
+    return lambda: anchor_s + (time.time() - anchor_s) * scale
 
 
 def _acquire_overrides(args: argparse.Namespace) -> dict[str, Any]:

@@ -285,9 +285,11 @@ def write_run_log(
     shapes = {a.shape for a in arrays}
     if len(shapes) != 1:
         raise RunLogError(f"columns differ in length: {sorted(shapes)}")
-    # 9 significant digits: sub-nanometre for um, exact for seconds up to years
+    # 9 significant digits: sub-nanometre for um; time gets 15, so that epoch seconds
+    # (a controller's own clock) keep their milliseconds
     fmt = ",".join(
-        "%.9g" if a.dtype.kind == "f" else "%d" if a.dtype.kind in "iub" else "%s" for a in arrays
+        ("%.15g" if i == 0 else "%.9g") if a.dtype.kind == "f" else "%d" if a.dtype.kind in "iub" else "%s"
+        for i, a in enumerate(arrays)
     )
     rows = arrays[0].shape[0]
     with atomic_write(path) as fh:
@@ -505,7 +507,7 @@ class RunLogAppender:
             raise RunLogError(f"{len(values)} values for {len(self.columns)} columns", str(self.path))
         if self.last_row is not None and not values[0] > self.last_row[0]:
             return  # the format needs increasing time; a repeated instant adds nothing
-        self._fh.write(",".join("%.9g" % v for v in values) + "\n")
+        self._fh.write(",".join(("%.15g" if i == 0 else "%.9g") % v for i, v in enumerate(values)) + "\n")
         self._fh.flush()
         self.last_row = tuple(float(v) for v in values)
         if self.first_row is None:

@@ -1,0 +1,252 @@
+"""``thermocomp wizard`` end to end against the virtual machine tool over OPC UA: unattended
+by flags (killed mid-recording and resumed), interactively under a real terminal (pexpect),
+and from imported DAQ logs. The model it saves then works in ``thermocomp replay`` and
+``thermocomp run --check``."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cnc_adapters.sim import SpindlePlant, preset
+from cnc_adapters.sim.nc import parse_nc
+from cnc_adapters.sim.vcnc import CYCLE_START_PATH, NAMESPACE_URI, SimClock, VirtualCNC, VirtualMachine, running
+from compensator.io import read_run_log, write_run_log
+
+SCALE = 1500.0
+THERMOCOMP = [sys.executable, "-m", "compensator.cli"]
+
+
+@pytest.fixture
+def vcnc():
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=21), None, clock=SimClock(SCALE))
+    with running(VirtualCNC(vm)) as cnc:
+        yield vm, cnc
+
+
+def press_cycle_start(url: str) -> None:
+    """What the operator does: the CycleStart button, over OPC UA."""
+    from asyncua import ua
+    from asyncua.sync import Client
+
+    with Client(url, timeout=10) as c:
+        ns = c.get_namespace_index(NAMESPACE_URI)
+        c.get_node(f"ns={ns};s={CYCLE_START_PATH}").write_value(ua.DataValue(ua.Variant(True, ua.VariantType.Boolean)))
+
+
+def operator(vm, cnc, session_dir: Path):
+    """On the wizard's 'waiting for the spindle', load the next NC program it wrote and start it."""
+    def on_line(line: str) -> None:
+        if "waiting for the spindle" not in line:
+            return
+        session = json.loads((session_dir / "session.json").read_text())
+        name = "validation" if session["runs"].get("calibration", {}).get("complete") else "calibration"
+        if name == "calibration" and vm.program is not None and not vm.program_done:
+            return  # resumed mid-program: the spindle is already running it
+        end = time.monotonic() + 30
+        while vm.program is not None and not vm.program_done and time.monotonic() < end:
+            time.sleep(0.01)  # the last seconds of the previous program's cool-down
+        vm.load_pending(parse_nc(Path(session["programs"][name]).read_text()))
+        press_cycle_start(cnc.url)
+    return on_line
+
+
+def wizard_cmd(work: Path, cnc, *extra: str) -> list[str]:
+    return [*THERMOCOMP, "wizard", "--yes", "--workdir", str(work), "--machine-id", "vmc-7",
+            "--spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
+            "--controller", cnc.url + "?preset=virtual-cnc",
+            "--sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250",
+            "--rate-s", "10", "--dialect", "linuxcnc", "--step-min", "10", "--time-scale", str(SCALE), *extra]
+
+
+def start(cmd: list[str], on_line, cwd: Path) -> tuple[subprocess.Popen, list[str], threading.Thread]:
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=cwd)
+    lines: list[str] = []
+
+    def pump() -> None:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            lines.append(line)
+            on_line(line)
+
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    return proc, lines, th
+
+
+def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(vcnc, tmp_path):
+    vm, cnc = vcnc
+    work = tmp_path / "cal"
+    sdir = work / "vmc-7" / "main"
+    cmd = wizard_cmd(work, cnc, "--validation", "--cooldown-min", "120")
+    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
+    log = sdir / "runs" / "calibration.csv"
+    end = time.monotonic() + 120
+    # killed in the cool-down: a restart costs seconds of wall time, hours of simulated time
+    # at this time scale, and the model would miss whatever phase the gap covers
+    while time.monotonic() < end and proc.poll() is None:
+        rows = log.read_text().splitlines()[-1].split(",") if log.exists() else []
+        if rows and rows[0] != "time_s" and float(rows[0]) > 145 * 60 + 600 and float(rows[1]) == 0:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, "".join(lines)
+    proc.send_signal(signal.SIGKILL)  # the worst case: no clean-up at all
+    proc.wait(10)
+    th.join(10)
+    kept = read_run_log(log)  # readable, and nothing recorded is lost
+    assert len(kept) >= 300 and kept.speed_rpm.max() == 27000
+
+    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
+    assert proc.wait(240) == 0, "".join(lines)
+    th.join(10)
+    out = "".join(lines)
+    assert "resuming the session" in out and "resuming into" in out
+    full = read_run_log(log)
+    assert len(full) > len(kept) and np.array_equal(full.time_s[: len(kept)], kept.time_s)
+    assert any(g.duration_s > 60 for g in full.gaps)  # the interruption is visible, not papered over
+    assert "validation run, free run on data the fit never saw" in out
+    session = json.loads((sdir / "session.json").read_text())
+    saved = session["saved"]
+    model, report, config = Path(saved["model"]), Path(saved["report"]), Path(saved["config"])
+    assert model.name.startswith("vmc-7_main_") and model.suffix == ".json"
+    html = report.read_text()
+    assert "data:image/png;base64," in html and "validation (held out)" in html
+
+    # the model works in replay, on the held-out validation run
+    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "validation.csv"), "--model", str(model),
+                        "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    peak = float(np.abs(read_run_log(sdir / "runs" / "validation.csv").elongation_um).max())
+    assert peak > 15 and rep["rms_residual_um"] < 0.15 * peak
+    # the runtime configuration is valid and reaches the controller
+    r = subprocess.run([*THERMOCOMP, "run", "--config", str(config), "--check"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+    # a second save never overwrites the first model
+    first = model.read_bytes()
+    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
+    assert proc.wait(120) == 0, "".join(lines)
+    second = Path(json.loads((sdir / "session.json").read_text())["saved"]["model"])
+    assert second != model and second.name.endswith(".v2.json") and model.read_bytes() == first
+    assert "earlier models kept" in "".join(lines)
+
+
+def test_interactive_wizard_under_a_real_terminal(vcnc, tmp_path):
+    pexpect = pytest.importorskip("pexpect")
+    vm, cnc = vcnc
+    work = tmp_path / "cal"
+    env = {**os.environ, "TERM": "xterm", "COLUMNS": "160", "LINES": "50"}
+    child = pexpect.spawn(THERMOCOMP[0], [*THERMOCOMP[1:], "wizard", "--workdir", str(work), "--step-min", "10",
+                                          "--time-scale", str(SCALE)],
+                          cwd=str(tmp_path), env=env, encoding="utf-8", timeout=60, dimensions=(50, 160))
+    answers = [
+        ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
+        ("Displacement from", "sensor"), ("Controller link", cnc.url + "?preset=virtual-cnc"),
+        ("Sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", "10"),
+        ("Test the connections now", "y"),
+    ]
+    for prompt, answer in answers:
+        child.expect(prompt)
+        child.sendline(answer)
+    child.expect("controller: .*ok")
+    child.expect("sensor: .*ok")
+    child.expect("NC dialect")
+    child.sendline("sinumerik")
+    child.expect("validation profile")
+    child.sendline("n")
+    child.expect("start recording")
+    child.sendline("y")
+    child.expect("waiting for the spindle")
+    sdir = work / "vmc-9" / "sp1"
+    session = json.loads((sdir / "session.json").read_text())
+    assert session["programs"]["calibration"].endswith(".mpf")
+    vm.load_pending(parse_nc(Path(session["programs"]["calibration"]).read_text()))
+    press_cycle_start(cnc.url)
+    child.expect("recorded", timeout=120)
+    child.expect("Chosen", timeout=120)
+    child.expect("Written", timeout=120)
+    child.expect(pexpect.EOF, timeout=60)
+    child.close()
+    assert child.exitstatus == 0, child.before
+    saved = json.loads((sdir / "session.json").read_text())["saved"]
+    assert Path(saved["model"]).exists() and Path(saved["config"]).exists()
+    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "calibration.csv"), "--model", saved["model"],
+                        "--json"], capture_output=True, text=True)
+    assert r.returncode == 0 and json.loads(r.stdout)["rms_residual_um"] < 1.5
+
+
+def test_wizard_imports_daq_logs(tmp_path):
+    from cnc_adapters.sim.programs import paper_calibration, random_validation
+
+    params = preset("motorized-27k")
+    epoch = 1.78e9
+    speed_t, speed_n = [], []
+    for name, prog, seed, day in (("cal", paper_calibration(params.max_rpm), 1, 0),
+                                  ("val", random_validation(params.max_rpm, seed=5), 2, 1),
+                                  ("late", random_validation(params.max_rpm, seed=5), 2, 30)):
+        t, n = prog.sample(1.0)
+        run = SpindlePlant(params, seed=seed).run(t, n)
+        t0 = epoch + day * 86400.0
+        if name != "late":  # the controller's own speed log, 1 s, epoch seconds, both days
+            speed_t.append(t0 + t)
+            speed_n.append(n)
+        # the DAQ: a gap probe in mm every 5 s, with ISO time stamps
+        k = slice(0, None, 5)
+        stamps = (np.datetime64("1970-01-01T00:00:00", "ms")
+                  + ((t0 + t[k]) * 1000).astype("int64").astype("timedelta64[ms]"))
+        gap_mm = 1.0 - run.measured_um[k] / 1000.0
+        with open(tmp_path / f"{name}-daq.csv", "w") as fh:
+            fh.write("timestamp;gap_mm;temp\n")
+            fh.writelines(f"{s}Z;{g:.6f};21.0\n" for s, g in zip(stamps.astype(str), gap_mm))
+    write_run_log(tmp_path / "speed.csv", {"time_s": np.concatenate(speed_t), "speed_rpm": np.concatenate(speed_n)})
+    sdir = tmp_path / "w" / "m1" / "s1"
+    base = [*THERMOCOMP, "wizard", "--yes", "--workdir", str(tmp_path / "w"), "--machine-id", "m1",
+            "--spindle-id", "s1", "--max-rpm", "27000", "--source", "import", "--dialect", "fanuc",
+            "--import-time-column", "timestamp", "--import-displacement-column", "gap_mm",
+            "--import-scale", "-1000", "--validation", "--import-speed-log", str(tmp_path / "speed.csv"),
+            "--report-format", "md", "--import-calibration", str(tmp_path / "cal-daq.csv")]
+    # a DAQ file from another day than the speed log: refused in one line, what was imported kept
+    r = subprocess.run([*base, "--import-validation", str(tmp_path / "late-daq.csv")], capture_output=True, text=True)
+    assert r.returncode == 2 and "same clock" in r.stderr and r.stderr.count("\n") == 1, r.stdout + r.stderr
+    assert json.loads((sdir / "session.json").read_text())["runs"]["calibration"]["complete"]
+    r = subprocess.run([*base, "--import-validation", str(tmp_path / "val-daq.csv")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "imported" in r.stdout and "calibration: already recorded" in r.stdout
+    saved = json.loads((sdir / "session.json").read_text())["saved"]
+    md = Path(saved["report"]).read_text()
+    assert saved["report"].endswith(".md") and "![fit](data:image/png;base64," in md
+    cal = read_run_log(sdir / "runs" / "calibration.csv")
+    assert cal.elongation_um.max() > 20  # the gap probe's sign was turned into growth
+    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "validation.csv"), "--model", saved["model"],
+                        "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["rms_residual_um"] < 2.0
+
+
+def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
+    vm, cnc = vcnc
+    cases = [
+        (["--workdir", str(tmp_path), "--spindle-id", "s"], "--machine-id is needed"),
+        (["--workdir", str(tmp_path), "--machine-id", "m/x", "--spindle-id", "s"], "--machine-id 'm/x'"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "5",
+          "--source", "sensor"], "not a plausible spindle speed"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "9000",
+          "--source", "sensor", "--controller", "opc.tcp://127.0.0.1:1/x?preset=virtual-cnc",
+          "--sensor", cnc.url + "?preset=virtual-cnc"], "controller opc.tcp://127.0.0.1:1"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "9000",
+          "--source", "sensor", "--controller", cnc.url + "?preset=virtual-cnc",
+          "--sensor", "serial:///dev/nonexistent-probe"], "sensor serial:///dev/nonexistent-probe"),
+    ]
+    for args, message in cases:
+        r = subprocess.run([*THERMOCOMP, "wizard", "--yes", *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, (args, r.stdout, r.stderr)
+        assert message in r.stderr and r.stderr.count("\n") == 1, r.stderr
