@@ -56,6 +56,8 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
                    help="speed program: a built-in name, or an NC program file (any of the four dialects)")
     p.add_argument("--wait-start", action="store_true",
                    help="load the program and wait for a client to write true to CycleStart")
+    p.add_argument("--start-delay", type=float, default=None,
+                   help="with --wait-start: press cycle start by itself after this many wall seconds")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--time-scale", type=float, default=60.0, help="simulated seconds per second")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")

@@ -65,9 +65,16 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         if args.wait_start:
             print(f"program loaded; write true to ns={cnc.ns};s={CYCLE_START_PATH} to start it", flush=True)
         print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
-        end = None if args.duration is None else time.monotonic() + args.duration
+        if args.wait_start and args.start_delay is not None:
+            print(f"... or it starts by itself in {args.start_delay:g} s", flush=True)
+        t0 = time.monotonic()
+        end = None if args.duration is None else t0 + args.duration
         while end is None or time.monotonic() < end:
             time.sleep(0.2)
+            if vm.pending is not None and args.start_delay is not None and time.monotonic() - t0 >= args.start_delay:
+                vm.advance()
+                vm.cycle_start()
+                print("cycle start", flush=True)
             if vm.program is not None and vm.pending is None and vm.program_done:
                 print("program finished; the spindle idles", flush=True)
                 vm.load_program(None)
