@@ -66,7 +66,7 @@ def test_bad_configuration_is_one_line(tmp_path, text, match):
     assert "\n" not in str(exc.value)
 
 
-def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outage=None):
+def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outage=None, wall0=1699923600.0):
     """The service against the OPC UA virtual CNC in accelerated time. ``outage`` =
     (start, length) in simulated seconds: the server goes away and comes back."""
     from cnc_adapters.sim.vcnc import call
@@ -80,8 +80,8 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outag
                        'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}')
     cnc = VirtualCNC(vm, port=port)
     with running(cnc):
-        # 01:00 UTC: the run never crosses midnight into a second journal file, even when slow
-        svc = Service(cfg, clock=clock, wall=lambda: 1699923600.0 + clock())
+        # default 01:00 UTC: a run never crosses midnight into a second journal file, even slow
+        svc = Service(cfg, clock=clock, wall=lambda: wall0 + clock())
         vm.history(clear=True)
         vm.load_program(job_shop_day(p.max_rpm, seed=31, hours=hours))
         start = clock()
@@ -101,7 +101,7 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outag
 
 
 def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5)
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5, wall0=1.7e9)
     h = vm.history()
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
