@@ -208,6 +208,12 @@ class Adapter(Link):
         did not take the last write, reported once; None when all is well."""
         return None
 
+    def not_ready_offset_um(self) -> float | None:
+        """For controllers whose offset depends on the machine state (LinuxCNC zeroes external
+        offsets at machine-on and ignores them until homed): the offset [um] it applies while
+        not ready to take ours; None when it is ready."""
+        return None
+
     # -- backend hooks ----------------------------------------------------------
 
     @abstractmethod
@@ -223,8 +229,9 @@ BACKENDS: dict[str, str] = {
     "line": "cnc_adapters.serial_link:LineAdapter",
     "haas": "cnc_adapters.serial_link:HaasAdapter",
     "modbus": "cnc_adapters.modbus:ModbusRtuAdapter",
+    "linuxcnc": "cnc_adapters.linuxcnc:LinuxCncAdapter",
 }
-SCHEMES = {"opc.tcp": "opcua", "sim": "sim"}
+SCHEMES = {"opc.tcp": "opcua", "sim": "sim", "linuxcnc": "linuxcnc"}
 
 
 def backend(name: str) -> type[Adapter]:

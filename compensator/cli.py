@@ -66,6 +66,16 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="cnc_adapters.sim.commands:virtual_cnc")
 
 
+def _add_hal_plant(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("hal-plant", help="the virtual spindle as a LinuxCNC HAL component (sim configs)")
+    p.add_argument("--name", default="thermocomp-plant", help="HAL component name")
+    p.add_argument("--preset", default="motorized-27k", help="plant preset")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--time-scale", type=float, default=1.0, help="simulated seconds per second")
+    p.add_argument("--step-s", type=float, default=0.5, help="plant step [simulated s]")
+    p.set_defaults(handler="cnc_adapters.sim.halplant:hal_plant")
+
+
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the compensation service")
     p.add_argument("--config", required=True, help="runtime configuration (TOML)")
@@ -158,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_demo, _add_wizard, _add_profile, _add_fit, _add_replay, _add_run, _add_simulate,
-                _add_virtual_cnc, _add_model):
+                _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
 

@@ -51,6 +51,7 @@ class Alarm(enum.IntFlag):
     WRITE_REJECTED = 16
     COLD_START = 32
     OUTAGE = 64
+    NOT_READY = 128
 
 
 class SpindleRuntime:
@@ -188,7 +189,14 @@ class SpindleRuntime:
         s = self.state.elongation_um
         self.shaper_state, shaped = self.shaper.update(self.shaper_state, s, speed, dt)
         wrote = False
-        if self._link_down_since is None and (shaped.write or self._pending_write):
+        held = self.adapter.not_ready_offset_um() if self._link_down_since is None else None
+        if held is not None:
+            # machine off, in E-stop or not homed: the controller applies `held`; once it is
+            # ready the offset is re-seeded from there through the slew limit
+            alarms |= Alarm.NOT_READY
+            self._held_um = float(held)
+            self._pending_write = True
+        elif self._link_down_since is None and (shaped.write or self._pending_write):
             try:
                 self.adapter.write_offset_um(shaped.offset_um)
                 wrote = True

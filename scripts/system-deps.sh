@@ -1,23 +1,63 @@
 #!/usr/bin/env bash
-# Install what the test suite needs from outside PyPI: Node.js and npm (for the independent
-# OPC UA implementation, node-opcua), socat (pseudo-terminal pairs for the serial links),
-# then the npm packages pinned in tests/js.
+# Install what the test suite needs from outside PyPI:
+# - Node.js and npm (the independent OPC UA implementation, node-opcua), and the npm packages
+#   pinned in tests/js;
+# - socat (pseudo-terminal pairs for the serial links);
+# - LinuxCNC (Debian's linuxcnc-uspace) for the LinuxCNC integration tests, and a virtual
+#   environment on Debian's own python3 that sees LinuxCNC's `hal` and `linuxcnc` modules
+#   (--system-site-packages), from which LinuxCNC starts `thermocomp` as a HAL component.
+#   rtapi refuses to run as root, so as root a system user `thermocomp-ci` is created to run it
+#   and the environment goes to /opt/thermocomp/linuxcnc-venv (readable by that user).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+root=0
+[ "$(id -u)" -eq 0 ] && root=1
 need=()
 command -v node >/dev/null 2>&1 || need+=(nodejs)
 command -v npm >/dev/null 2>&1 || need+=(npm)
 command -v socat >/dev/null 2>&1 || need+=(socat)
+optional=()
+command -v linuxcnc >/dev/null 2>&1 || optional+=(linuxcnc-uspace)
+/usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || optional+=(python3-venv)
+if [ $root -eq 1 ]; then
+  need+=("${optional[@]}")
+  optional=()
+fi
 if [ ${#need[@]} -gt 0 ]; then
-  if [ "$(id -u)" -eq 0 ]; then
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
+  if [ $root -eq 1 ]; then
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
   else
     echo "system-deps: missing ${need[*]}; run as root or: sudo apt-get install ${need[*]}" >&2
     exit 1
   fi
 fi
+if [ ${#optional[@]} -gt 0 ]; then
+  echo "system-deps: ${optional[*]} missing: the LinuxCNC tests will be skipped" \
+       "(sudo apt-get install --no-install-recommends ${optional[*]})" >&2
+fi
 
 if [ ! -f tests/js/node_modules/.package-lock.json ] || [ tests/js/package-lock.json -nt tests/js/node_modules/.package-lock.json ]; then
   npm ci --prefix tests/js --no-audit --no-fund --loglevel=error
 fi
+
+if command -v linuxcnc >/dev/null 2>&1 && /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1; then
+  if [ $root -eq 1 ]; then
+    id thermocomp-ci >/dev/null 2>&1 || useradd --system --create-home --shell /usr/sbin/nologin thermocomp-ci
+    lvenv=/opt/thermocomp/linuxcnc-venv
+  else
+    lvenv="$PWD/.venv-linuxcnc"
+  fi
+  if [ ! -x "$lvenv/bin/python" ] || [ pyproject.toml -nt "$lvenv/.deps-stamp" ]; then
+    /usr/bin/python3 -m venv --system-site-packages "$lvenv"
+    "$lvenv/bin/pip" install --quiet --disable-pip-version-check . 2>&1 | grep -v "^WARNING: Location" || true
+    touch "$lvenv/.deps-stamp"
+  fi
+  # this checkout's code, every time (dependencies as above)
+  "$lvenv/bin/pip" install --quiet --disable-pip-version-check --no-deps --force-reinstall . \
+    2>&1 | grep -v "^WARNING: Location" || true
+  "$lvenv/bin/python" -c 'import hal, linuxcnc, compensator' >/dev/null
+  [ $root -eq 1 ] && chmod -R a+rX /opt/thermocomp
+fi
+exit 0

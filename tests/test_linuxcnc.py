@@ -1,0 +1,288 @@
+"""LinuxCNC itself, headless: the example sim configuration (examples/linuxcnc) with thermocomp
+started by LinuxCNC as a HAL userspace component, driven through linuxcncrsh (LinuxCNC's own
+remote shell) on a free loopback port. LinuxCNC's rs274 interpreter checks the wizard's NC dialect.
+
+LinuxCNC (Debian's linuxcnc-uspace) and the virtual environment it starts thermocomp from are
+installed by scripts/system-deps.sh; rtapi refuses root, so as root LinuxCNC runs as the
+``thermocomp-ci`` user that script creates."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from compensator.io import read_run_log
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "linuxcnc"
+USER = "thermocomp-ci"
+TIME_SCALE = 60.0
+MAX_RATE = 0.5  # um per simulated second, as examples/linuxcnc/thermocomp.toml
+
+
+def linuxcnc_venv() -> Path:
+    env = os.environ.get("THERMOCOMP_LINUXCNC_VENV")
+    if env:
+        return Path(env)
+    return Path("/opt/thermocomp/linuxcnc-venv") if os.geteuid() == 0 else ROOT / ".venv-linuxcnc"
+
+
+def why_not() -> str | None:
+    if shutil.which("linuxcnc") is None:
+        return "LinuxCNC is not installed (scripts/system-deps.sh installs linuxcnc-uspace as root)"
+    if not (linuxcnc_venv() / "bin" / "thermocomp").exists():
+        return f"no LinuxCNC virtual environment at {linuxcnc_venv()} (scripts/system-deps.sh makes it)"
+    if os.geteuid() == 0:
+        try:
+            import pwd
+
+            pwd.getpwnam(USER)
+        except KeyError:
+            return f"running as root and no user {USER} to run LinuxCNC (scripts/system-deps.sh creates it)"
+    return None
+
+
+pytestmark = pytest.mark.skipif(why_not() is not None, reason=why_not() or "")
+
+
+def as_user(cmd: list[str]) -> list[str]:
+    return ["runuser", "-u", USER, "--", *cmd] if os.geteuid() == 0 else cmd
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Rsh:
+    """A linuxcncrsh session: one command, one reply line (verbose mode: ACK or NAK)."""
+
+    def __init__(self, port: int):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.buf = b""
+        assert self.cmd("hello EMC thermocomp-test 1.0").startswith("HELLO ACK")
+        # verbose first: without it a `set` answers nothing but its echo
+        assert self.cmd("set verbose on") == "SET VERBOSE ACK"
+        assert self.cmd("set echo off").endswith("ACK")
+        assert self.cmd("set enable EMCTOO").endswith("ACK")
+
+    def _line(self) -> str:
+        while b"\n" not in self.buf:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                raise ConnectionError("linuxcncrsh closed the session")
+            self.buf += chunk
+        line, self.buf = self.buf.split(b"\n", 1)
+        return line.decode().strip()
+
+    def cmd(self, text: str) -> str:
+        self.sock.sendall(text.encode() + b"\r\n")
+        while True:
+            line = self._line()
+            if line and line.lower() != text.lower():  # skip an echo
+                return line
+
+    def set(self, what: str) -> None:
+        reply = self.cmd(f"set {what}")
+        assert reply.endswith("ACK") and "NAK" not in reply, f"set {what}: {reply}"
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class LinuxCnc:
+    def __init__(self, directory: Path):
+        self.dir = directory
+        self.port = free_port()
+        ini = (directory / "thermocomp_sim.ini").read_text()
+        ini = ini.replace("DISPLAY = axis", f"DISPLAY = linuxcncrsh --port {self.port}")
+        (directory / "thermocomp_sim.ini").write_text(ini)
+        env = {"PATH": f"{linuxcnc_venv() / 'bin'}:/usr/bin:/bin", "HOME": str(directory),
+               "LANG": "C.UTF-8"}
+        self.proc = subprocess.Popen(as_user(["env", *(f"{k}={v}" for k, v in env.items()),
+                                              "linuxcnc", "thermocomp_sim.ini"]),
+                                     cwd=directory, stdout=open(directory / "linuxcnc.out", "w"),
+                                     stderr=subprocess.STDOUT, start_new_session=True)
+        end = time.monotonic() + 90
+        while True:
+            try:
+                self.rsh = Rsh(self.port)
+                break
+            except OSError:
+                if self.proc.poll() is not None or time.monotonic() > end:
+                    raise RuntimeError("LinuxCNC did not start:\n" + self.log()) from None
+                time.sleep(0.5)
+
+    def log(self) -> str:
+        out = (self.dir / "linuxcnc.out").read_text(errors="replace")[-3000:]
+        for f in ("linuxcnc_debug.txt", "thermocomp.jsonl"):
+            p = self.dir / f
+            if p.exists():
+                out += f"\n--- {f}\n" + p.read_text(errors="replace")[-3000:]
+        return out
+
+    def getps(self, pins: tuple[str, ...]) -> list[float | bool]:
+        """Several pins read by one halcmd, microseconds apart."""
+        r = subprocess.run(as_user(["halcmd", "-s", "-f"]), input="".join(f"getp {p}\n" for p in pins),
+                           capture_output=True, text=True, timeout=20)
+        assert r.returncode == 0, r.stderr
+        values = r.stdout.split()
+        assert len(values) == len(pins), r.stdout
+        return [v == "TRUE" if v in ("TRUE", "FALSE") else float(v) for v in values]
+
+    def getp(self, pin: str) -> float | bool:
+        return self.getps((pin,))[0]
+
+    def wait(self, what, timeout: float = 30.0, every: float = 0.1):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            value = what()
+            if value:
+                return value
+            time.sleep(every)
+        raise AssertionError(f"timed out waiting\n{self.log()}")
+
+    def stop(self) -> None:
+        try:
+            self.rsh.cmd("shutdown")
+        except Exception:  # noqa: BLE001 - it goes down anyway
+            pass
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, 9)
+            self.proc.wait(10)
+
+
+@pytest.fixture
+def cnc():
+    directory = Path(tempfile.mkdtemp(prefix="thermocomp-linuxcnc-", dir="/tmp"))
+    shutil.copytree(EXAMPLE, directory, dirs_exist_ok=True)
+    if os.geteuid() == 0:
+        shutil.chown(directory, USER)
+        for p in directory.rglob("*"):
+            shutil.chown(p, USER)
+    rig = LinuxCnc(directory)
+    yield rig
+    rig.stop()
+    shutil.rmtree(directory, ignore_errors=True)
+
+
+def sample(cnc: LinuxCnc, seconds: float, pins: tuple[str, ...]) -> np.ndarray:
+    rows = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        rows.append([time.monotonic(), *(float(v) for v in cnc.getps(pins))])
+    return np.array(rows)
+
+
+def journal(cnc: LinuxCnc):
+    files = sorted((cnc.dir / "state" / "journal").glob("sim-mill-*.csv"))
+    logs = [read_run_log(f) for f in files]
+    cat = {k: np.concatenate([getattr(lg, k) if k in ("time_s", "speed_rpm") else lg.extras[k] for lg in logs])
+           for k in ("time_s", "speed_rpm", "offset_um", "alarms", "written")}
+    return cat
+
+
+def test_linuxcnc_compensates_z_through_external_offsets(cnc):
+    r = cnc.rsh
+    assert cnc.getp("thermocomp.ready") is False  # in E-stop at start: nothing applied
+    r.set("estop off")
+    r.set("machine on")
+    r.set("mode manual")
+    for joint in (0, 1, 2):
+        r.set(f"home {joint}")
+    assert cnc.wait(lambda: r.cmd("get joint_homed").startswith("JOINT_HOMED YES YES YES"))
+    r.set("mode mdi")
+    r.set("mdi m3 s12000")
+
+    # the component reads the actual spindle speed (spindle.0.speed-in, rps), not the command
+    cnc.wait(lambda: abs(cnc.getp("thermocomp.speed-in") * 60 - 12000) < 120)
+    assert cnc.wait(lambda: cnc.getp("thermocomp.ready"))
+    cnc.wait(lambda: cnc.getp("thermocomp-plant.growth-um") > 3.0, timeout=60)
+    pins = ("thermocomp.offset-um", "axis.z.eoffset", "axis.z.eoffset-request", "thermocomp-plant.growth-um",
+            "thermocomp-plant.tip-error-um", "thermocomp.eoffset-counts")
+    data = sample(cnc, 6.0, pins)
+    t, offset, eoffset, request, growth, tip, counts = data.T
+    # axis.z.eoffset follows the model's offset: +Z by the growth (A = -S, offset_sign -1)
+    # counts x scale at 0.01 um resolution; a read may fall between the component's pin writes
+    # and the next servo period, so one cycle's step (0.5 um at most) now and then
+    miss = np.abs(request * 1000 + offset)
+    assert np.mean(miss < 0.011) > 0.9 and miss.max() <= MAX_RATE + 0.011, miss
+    assert np.all(np.abs(eoffset * 1000 + offset) < 0.6)
+    # ... within the slew limit (um per simulated second, the runtime's clock runs 60x)
+    rate_um_per_wall_s = np.abs(np.diff(eoffset * 1000)) / np.maximum(np.diff(t), 1e-3)
+    steps = np.abs(np.diff(eoffset * 1000))
+    assert np.all((rate_um_per_wall_s <= MAX_RATE * TIME_SCALE * 1.3) | (steps < 0.05)), rate_um_per_wall_s.max()
+    # and it cancels the growth: what the part sees is a fraction of it
+    assert growth[-1] > 3.0 and abs(tip[-1]) < 0.2 * growth[-1], (growth[-1], tip[-1])
+
+    # machine off: counts to zero, the runtime told that the controller applies nothing
+    r.set("machine off")
+    cnc.wait(lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0)
+    time.sleep(1.0)
+    assert cnc.getp("thermocomp.eoffset-counts") == 0
+    # machine on again: LinuxCNC zeroes the offset; thermocomp re-seeds it from zero at its slew
+    r.set("machine on")
+    data = sample(cnc, 3.0, ("axis.z.eoffset", "thermocomp.ready"))
+    t2, eo2, ready2 = data.T
+    assert eo2[0] * 1000 < 0.5 * (-offset[-1])  # re-seeded from (near) zero, not jumped back
+    assert np.all(np.abs(np.diff(eo2 * 1000)) / np.maximum(np.diff(t2), 1e-3) <= MAX_RATE * TIME_SCALE * 1.3 + 1.0)
+    assert ready2[-1] == 1.0
+    # the spindle stopped with the machine: start it again, and let it settle
+    r.set("mode mdi")
+    r.set("mdi m3 s15000")
+    cnc.wait(lambda: abs(cnc.getp("thermocomp.speed-in") * 60 - 15000) < 150)
+
+    # E-stop: the same
+    r.set("estop on")
+    cnc.wait(lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0)
+    r.set("estop off")
+    r.set("machine on")
+    assert cnc.wait(lambda: cnc.getp("thermocomp.ready"))
+
+    # the runtime's journal: speed read, alarms, and every written offset within clamp and slew
+    time.sleep(1.0)
+    j = journal(cnc)
+    assert np.max(j["speed_rpm"]) == pytest.approx(15000, rel=0.02)
+    not_ready = (j["alarms"].astype(int) & 128) != 0
+    assert not_ready[0] and not_ready.sum() > 3 and (~not_ready).sum() > 100
+    off = j["offset_um"]
+    assert np.all(np.isfinite(off)) and np.all(np.abs(off) <= 60.0)
+    both = ~not_ready[1:] & ~not_ready[:-1]
+    rate = np.abs(np.diff(off))[both] / np.maximum(np.diff(j["time_s"])[both], 1e-3)
+    assert rate.max() <= MAX_RATE * 1.001 + 1e-6, rate.max()
+    text = (cnc.dir / "thermocomp.jsonl").read_text()
+    assert text.count("re-seeding from 0") >= 3 and "counts held at 0" in text
+
+
+def test_linuxcnc_interpreter_accepts_the_wizards_programs(tmp_path):
+    from calibration.profile import calibration_profile, to_nc, validation_profile
+
+    for prog in (calibration_profile(18000), validation_profile(18000, seed=4)):
+        path = tmp_path / f"{prog.name}.ngc"
+        path.write_text(to_nc(prog, "linuxcnc"))
+        r = subprocess.run(["rs274", "-g", str(path)], input="\n\n\n", capture_output=True, text=True,
+                           timeout=60, cwd=tmp_path)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr
+        canon = r.stdout
+        dwell = sum(float(x) for x in re.findall(r"DWELL\(([\d.]+)\)", canon))
+        assert dwell == pytest.approx(prog.duration_s)
+        speeds = [float(x) for x in re.findall(r"SET_SPINDLE_SPEED\(0, ([\d.]+)\)", canon)]
+        assert speeds == [s for _, s in prog.segments if s > 0]
+        assert canon.count("STOP_SPINDLE_TURNING") >= 1
+        assert not re.search(r"STRAIGHT_(TRAVERSE|FEED)", canon)  # no axis moves
+    bad = tmp_path / "bad.ngc"
+    bad.write_text("%\nG1 X10 F100 Q\nM2\n%\n")
+    r = subprocess.run(["rs274", "-g", str(bad)], input="\n\n\n", capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0
