@@ -11,10 +11,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from compensator.io import load_model, read_run_log, save_model, write_run_log
+from compensator.io import load_any_model, read_run_log, save_model, write_run_log
 
 from .calibrate import Calibration, calibrate
 from .data import run_from_log
@@ -105,11 +106,17 @@ def fit(args: argparse.Namespace) -> int:
     from datetime import datetime, timezone
 
     meta["created_utc"] = datetime.now(timezone.utc).replace(microsecond=0).isoformat()
+    names = [n.strip() for n in (args.inputs or "").split(",") if n.strip()]
     with progress(not args.json) as say:
         cal = calibrate(runs, dt_s=args.dt, form=args.form, progress=say, **meta)
+        fitted = None
+        if names:
+            fitted = _fit_inputs(cal, logs, runs, names, args, say)
     report = cal.report()
-    save_model(args.output, cal.model)
+    save_model(args.output, fitted.model if fitted else cal.model)
     report["model_file"] = str(args.output)
+    if fitted:
+        report["inputs"] = fitted.report()
     if args.plot:
         panels = [Panel(Path(r.name).name, r.time_s, r.speed_rpm, cal.predictions[r.name], r.elongation_um)
                   for r in cal.runs]
@@ -121,8 +128,65 @@ def fit(args: argparse.Namespace) -> int:
     else:
         out = _console()
         print_fit_report(cal, report, out)
+        if fitted:
+            print_input_report(fitted, out)
         out.print(f"Model written to {args.output}" + (f"; plot {args.plot}" if args.plot else ""))
     return 0
+
+
+def _fit_inputs(cal: Calibration, logs, runs, names: list[str], args: argparse.Namespace, say):
+    from compensator.errors import CalibrationError
+
+    from .inputs import InputRun, fit_with_inputs
+
+    input_runs = []
+    for log, run in zip(logs, runs):
+        chans = {}
+        for n in names:
+            col = log.extras.get(n)
+            if col is None:
+                raise CalibrationError(f"{log.source}: no column {n!r} for --inputs "
+                                       f"(columns: {', '.join(log.extras) or 'none'})")
+            if col.dtype == object:
+                raise CalibrationError(f"{log.source}: column {n} is not numeric")
+            chans[n] = np.asarray(col, dtype=float)
+        input_runs.append(InputRun(run, chans))
+    fixed = {}
+    for item in (args.input_reference_values or "").split(","):
+        if item.strip():
+            k, _, v = item.partition("=")
+            try:
+                fixed[k.strip()] = float(v)
+            except ValueError as err:
+                raise CalibrationError(f"--reference-values: {item!r} is not name=number") from err
+    return fit_with_inputs(cal, input_runs, names, reference=args.input_reference, fixed=fixed,
+                           max_inputs=args.max_inputs, progress=say)
+
+
+def print_input_report(fitted, out: Console) -> None:
+    t = Table(title="Inputs: forward selection judged on held-out runs (leave-one-run-out free run)")
+    for col in ("step", "input", "dynamics", "held-out RMS [um]", "why"):
+        t.add_column(col, justify="right" if "RMS" in col or col == "step" else "left")
+    for s in fitted.steps:
+        name = s.get("added") or (f"({s['best_next']})" if s.get("stopped") else "speed only")
+        tau = s.get("tau_s")
+        dyn = "-" if tau is None else "static" if tau == 0 else f"lag {tau:g} s"
+        t.add_row(str(s["step"]), name, dyn, _fmt(s["held_out_rms_um"]), s["note"])
+    out.print(t)
+    m = fitted.model
+    kt = Table(title=f"Model with inputs (fallback: {m.fallback.form}, speed only)")
+    for col in ("input", "unit", "reference", "gain", "tau [s]", "valid range"):
+        kt.add_column(col)
+    for term in m.inputs:
+        ref = f"{term.reference:.3f}" + (" (run start)" if term.reference_mode == "start" else "")
+        kt.add_row(term.name, term.unit, ref, f"{term.gain_um_per_unit:.4g} um/{term.unit}",
+                   f"{term.tau_s:g}", f"{term.valid_range[0]:.3g}..{term.valid_range[1]:.3g}")
+    out.print(kt)
+    so, au = fitted.speed_only_cv["rms_um"], fitted.augmented_cv["rms_um"]
+    out.print(f"Held-out free-run RMS: speed only {so:.3f} um, with inputs {au:.3f} um "
+              f"({100 * (1 - au / so):.0f} % less)")
+    for w in fitted.warnings:
+        out.print(f"[yellow]warning:[/yellow] {w}")
 
 
 def _json_default(o: Any) -> Any:
@@ -157,7 +221,7 @@ def print_replay_report(rep: Replay, out: Console) -> None:
 
 
 def replay_cmd(args: argparse.Namespace) -> int:
-    model = load_model(args.model)
+    model = load_any_model(args.model)
     log = read_run_log(args.log)
     with progress(not args.json) as say:
         say("replaying")

@@ -78,6 +78,8 @@ class FitResult:
     one_step_r2: float | None = None
     note: str = ""
     theta: np.ndarray | None = None  # nonlinear parameters of an output-error fit
+    extra_gains: np.ndarray | None = None  # gains of extra columns (input terms), with
+    extra_stderr: np.ndarray | None = None  # their standard errors
 
 
 # -- helpers -----------------------------------------------------------------------
@@ -249,15 +251,29 @@ def fit_output_error(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
     return solve_output_error(form, best, runs, **meta)
 
 
-def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], **meta) -> FitResult:
-    """Gains by OLS (statsmodels, with standard errors) for fixed nonlinear parameters."""
+def speed_design(form: FormSpec, theta: np.ndarray, runs: Sequence[Run]) -> tuple[np.ndarray, np.ndarray]:
+    """Free-run columns of the speed part for fixed nonlinear parameters, and the target
+    (measured elongation less the fixed initial decay), rows of all runs stacked."""
+    x, _, states = _design(form, theta, runs, _n_max_krpm(runs))
+    y = np.concatenate([r.elongation_um for r in runs]) - _initial_response(states, runs)
+    return x, y
+
+
+def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
+                       extra: np.ndarray | None = None, **meta) -> FitResult:
+    """Gains by OLS (statsmodels, with standard errors) for fixed nonlinear parameters;
+    ``extra`` columns (input terms) are fitted jointly and their gains returned apart."""
     n_max = _n_max_krpm(runs)
     dt = _fit_dt(runs)
     y = np.concatenate([r.elongation_um for r in runs])
     x, n_gain, states = _design(form, theta, runs, n_max)
+    if extra is not None:
+        x = np.column_stack([x, extra])
     ols = _ols(x, y - _initial_response(states, runs))
     gains = np.asarray(ols.params)
     se = np.asarray(ols.bse)
+    extra_gains, extra_se = (gains[n_gain:], se[n_gain:]) if extra is not None else (None, None)
+    gains, se = gains[:n_gain], se[:n_gain]
     assert gains.size == n_gain
     st_coefs, coefs, k = [], [], 0
     for j, (d0, d1) in enumerate(states):
@@ -284,7 +300,8 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], *
     except ModelError as err:
         return FitResult(form, None, coefs, note=f"not usable: {err}", theta=theta)
     taus = ", ".join(f"{1 / d0 / 60:.1f}" for d0, _ in states)
-    return FitResult(form, model, coefs, note=f"tau = {taus} min", theta=theta)
+    return FitResult(form, model, coefs, note=f"tau = {taus} min", theta=theta,
+                     extra_gains=extra_gains, extra_stderr=extra_se)
 
 
 # -- the exponential baseline (paper 001 eqs. 1-3) ----------------------------------

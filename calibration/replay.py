@@ -92,8 +92,25 @@ def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) ->
         from compensator.errors import NonFiniteInputError
 
         raise NonFiniteInputError(f"initial elongation is {initial_um}")
-    state = model.state_at(initial_um, float(log.speed_rpm[0]))
-    pred = model.simulate(log.speed_rpm, log.time_s, state).elongation_um
+    from compensator.inputs import AugmentedModel
+
+    if isinstance(model, AugmentedModel):
+        missing = [n for n in model.input_names if n not in log.extras]
+        if missing:
+            from compensator.errors import RunLogError
+
+            raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
+        inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
+        bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
+        if bad:
+            from compensator.errors import RunLogError
+
+            row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
+            raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
+        pred = model.simulate_um(log.speed_rpm, log.time_s, inputs, initial_um)
+    else:
+        state = model.state_at(initial_um, float(log.speed_rpm[0]))
+        pred = model.simulate(log.speed_rpm, log.time_s, state).elongation_um
 
     warnings: list[str] = []
     lo, hi = model.speed_range_rpm

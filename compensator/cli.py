@@ -36,6 +36,12 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dt", type=float, default=None, help="resample runs to this period [s]")
     p.add_argument("--form", default="auto", help="force a model form (default: best in free run)")
     p.add_argument("--plot", help="write a PNG plot of the fit")
+    p.add_argument("--inputs", help="extra run-log columns to consider as inputs, comma separated "
+                   "(temperatures, spindle load, ambient); kept only if they help on held-out runs")
+    p.add_argument("--input-reference", choices=["start", "fixed"], default="start",
+                   help="inputs relative to each run's start (default) or to stated values")
+    p.add_argument("--input-reference-values", help="with --input-reference fixed: name=value,...")
+    p.add_argument("--max-inputs", type=int, default=6, help="keep at most this many inputs")
     p.set_defaults(handler="calibration.commands:fit")
 
 

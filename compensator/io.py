@@ -307,13 +307,13 @@ def _canonical(payload: Mapping[str, Any]) -> str:
     return json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
-def model_to_json(model: ThermalModel) -> str:
+def model_to_json(model: Any) -> str:
     payload = model.model_dump(mode="json")
     payload["sha256"] = hashlib.sha256(_canonical(payload).encode()).hexdigest()
     return json.dumps(payload, indent=2, sort_keys=False, allow_nan=False) + "\n"
 
 
-def save_model(path: str | os.PathLike[str], model: ThermalModel) -> None:
+def save_model(path: str | os.PathLike[str], model: Any) -> None:
     """Atomically write a model file with its checksum."""
     text = model_to_json(model)
     with atomic_write(path) as fh:
@@ -321,11 +321,22 @@ def save_model(path: str | os.PathLike[str], model: ThermalModel) -> None:
 
 
 def load_model(path: str | os.PathLike[str]) -> ThermalModel:
-    """Read and verify a model file.
+    """Read and verify a speed-only model file.
 
     Raises :class:`ModelFileError` for an unreadable, unknown or tampered file
     and :class:`UnstableModelError` for an unstable one.
     """
+    model = load_any_model(path)
+    if not isinstance(model, ThermalModel):
+        raise ModelFileError(f"{os.fspath(path)}: a model with extra inputs "
+                             f"({', '.join(model.input_names)}); this command takes speed-only models")
+    return model
+
+
+def load_any_model(path: str | os.PathLike[str]):
+    """A speed-only :class:`ThermalModel` or an :class:`~compensator.inputs.AugmentedModel`."""
+    from .inputs import AUGMENTED_FORMAT, AugmentedModel
+
     src = os.fspath(path)
     try:
         with open(src, encoding="utf-8") as fh:
@@ -337,9 +348,10 @@ def load_model(path: str | os.PathLike[str]) -> ThermalModel:
     if not isinstance(payload, dict):
         raise ModelFileError(f"{src}: not a JSON model file (top level is not an object)")
     fmt = payload.get("format")
-    if fmt != MODEL_FORMAT:
+    if fmt not in (MODEL_FORMAT, AUGMENTED_FORMAT):
         raise ModelFileError(
-            f"{src}: unknown model format {fmt!r} (this thermocomp reads {MODEL_FORMAT})"
+            f"{src}: unknown model format {fmt!r} (this thermocomp reads {MODEL_FORMAT} "
+            f"and {AUGMENTED_FORMAT})"
         )
     digest = payload.pop("sha256", None)
     if digest is None:
@@ -351,6 +363,8 @@ def load_model(path: str | os.PathLike[str]) -> ThermalModel:
     if actual != digest:
         raise ModelFileError(f"{src}: checksum mismatch: the file was modified after it was written")
     try:
+        if fmt == AUGMENTED_FORMAT:
+            return AugmentedModel(**payload)
         return ThermalModel.model_validate(payload)
     except UnstableModelError as err:
         raise UnstableModelError(f"{src}: {err}") from err
@@ -363,7 +377,7 @@ def load_model(path: str | os.PathLike[str]) -> ThermalModel:
 STATE_FORMAT = "thermocomp.state/1"
 
 
-def model_digest(model: ThermalModel) -> str:
+def model_digest(model: Any) -> str:
     return hashlib.sha256(_canonical(model.model_dump(mode="json")).encode()).hexdigest()
 
 

@@ -258,8 +258,46 @@ class SpindlePlant:
         measured = np.asarray(self.measure_um(true), dtype=float)
         return PlantRun(t, n, true, measured, temps, air)
 
+    def heat_w(self, speed_rpm: float | np.ndarray) -> float | np.ndarray:
+        """Total heat the spindle dissipates at a speed [W]: what the drive's load shows."""
+        n = np.abs(np.asarray(speed_rpm, dtype=float)) / 1000.0
+        p = self.params
+        c = np.add(np.add(p.heat_shaft_w, p.heat_nose_w), p.heat_housing_w)
+        return c[0] * n + c[1] * n**2 + c[2] * n**3
+
+    def sensor_channels(self, run: PlantRun, seed: int | None = None) -> dict[str, np.ndarray]:
+        """What the machine's own sensors would publish over the run, each with its lag, noise
+        and resolution: the front-bearing temperature (nose node), the motor (stator and
+        housing), the coolant return, the ambient air, and the spindle load in % of the load at
+        full speed."""
+        rng = np.random.default_rng(self.seed + 7919 if seed is None else seed)
+        t = run.time_s
+        dt = np.diff(t, prepend=t[0])
+        out: dict[str, np.ndarray] = {}
+        for name, source, lag_s, noise, step in SENSORS:
+            x = run.air_c if source is None else run.temps_c[:, source]
+            y = np.empty_like(x)
+            y[0] = x[0]
+            a = np.exp(-dt / lag_s)
+            for k in range(1, x.size):  # exact first-order lag of a held input
+                y[k] = a[k] * y[k - 1] + (1.0 - a[k]) * x[k]
+            y = y + noise * rng.standard_normal(y.size)
+            out[name] = np.round(y / step) * step
+        load = 100.0 * self.heat_w(run.speed_rpm) / float(self.heat_w(self.params.max_rpm))
+        out["spindle_load_pct"] = np.round(np.clip(load + 0.5 * rng.standard_normal(load.size), 0, None), 1)
+        return out
+
     def with_params(self, **changes: float) -> SpindlePlant:
         return SpindlePlant(replace(self.params, **changes), seed=self.seed)
+
+
+SENSORS: tuple[tuple[str, int | None, float, float, float], ...] = (
+    # name, node (None: the air), sensor lag [s], noise [K], resolution [K]
+    ("bearing_temp_c", 1, 30.0, 0.02, 0.01),
+    ("motor_temp_c", 2, 60.0, 0.02, 0.01),
+    ("coolant_temp_c", 3, 20.0, 0.02, 0.01),
+    ("ambient_c", None, 120.0, 0.02, 0.01),
+)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,191 @@
+"""Models that use more than speed: temperatures, spindle load, ambient. Pure: no I/O.
+
+``S = S_speed(n) + sum_j x_j`` where ``S_speed`` is a :class:`~compensator.model.ThermalModel`
+fitted jointly with the input terms, and each input term ``j`` is
+
+- static (``tau_s = 0``): ``x_j = g_j * (u_j - ref_j)``;
+- dynamic: ``dx_j/dt = (g_j * (u_j - ref_j) - x_j) / tau_j``, stepped exactly with ``u_j`` held
+  over each interval (the run-log convention, as for speed).
+
+``u_j`` is the input in its own unit (degC, %), ``ref_j`` its stated reference (the mean value at
+the start of the calibration runs: a spindle at rest overnight), ``g_j`` in um per unit.
+
+The same value also carries ``fallback``: the best speed-only model, which the runtime uses when a
+sensor fails (stale, out of range, NaN), so it never writes an offset built on garbage.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .errors import ModelError, NonFiniteInputError
+from .model import ModelState, ThermalModel
+
+AUGMENTED_FORMAT = "thermocomp.augmented-model/1"
+
+
+class InputTerm(BaseModel):
+    """One extra input and how it enters the elongation."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="run-log column / runtime channel")
+    unit: str = Field(description="unit of the input: degC, %, ...")
+    reference_mode: Literal["start", "fixed"] = Field(
+        "start", description="start: relative to the value at a cold start (each calibration run's "
+        "first sample; the runtime's first reading after a cold start); fixed: to `reference`")
+    reference: float = Field(description="the fixed reference; in start mode the calibration runs' mean start")
+    gain_um_per_unit: float
+    tau_s: float = Field(ge=0, description="first-order time constant; 0 = static term")
+    valid_range: tuple[float, float] = Field(description="plausible values; outside: sensor fault")
+
+    @field_validator("reference", "gain_um_per_unit", "tau_s")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("must be finite")
+        return v
+
+
+class AugmentedModel(BaseModel):
+    """A speed model plus input terms, and the speed-only model to fall back on."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["thermocomp.augmented-model/1"] = AUGMENTED_FORMAT
+    spindle_id: str = "unknown"
+    machine_id: str = ""
+    speed_model: ThermalModel
+    inputs: tuple[InputTerm, ...] = Field(min_length=1)
+    fallback: ThermalModel
+    selection: list[dict[str, Any]] = Field(default_factory=list, description="how the inputs were chosen")
+    fit: dict[str, Any] = Field(default_factory=dict)
+    created_utc: str | None = None
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as err:
+            e = err.errors()[0]
+            raise ModelError(f"augmented model: {'.'.join(str(x) for x in e['loc'])}: {e['msg']}") from err
+        names = [t.name for t in self.inputs]
+        if len(set(names)) != len(names):
+            raise ModelError("augmented model: an input appears twice")
+
+    @property
+    def form(self) -> str:
+        return f"{self.speed_model.form}+" + "+".join(t.name for t in self.inputs)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.inputs)
+
+    @property
+    def speed_range_rpm(self) -> tuple[float, float]:
+        return self.speed_model.speed_range_rpm
+
+    def above_range(self, speed_rpm: float) -> bool:
+        return self.speed_model.above_range(speed_rpm)
+
+    def check_inputs(self, values: Mapping[str, float]) -> str | None:
+        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
+        for t in self.inputs:
+            v = values.get(t.name)
+            if v is None:
+                return f"{t.name}: no value"
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                return f"{t.name}: {v!r} is not a finite number"
+            lo, hi = t.valid_range
+            if not lo <= v <= hi:
+                return f"{t.name}: {v:g} {t.unit} is outside {lo:g}..{hi:g}"
+        return None
+
+    # -- free run over a log ------------------------------------------------------
+
+    def references(self, first: Mapping[str, float]) -> dict[str, float]:
+        """The reference of each input, given the values at a cold start."""
+        return {t.name: float(first[t.name]) if t.reference_mode == "start" else t.reference
+                for t in self.inputs}
+
+    def input_response(self, time_s: np.ndarray, inputs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Sum of the input terms over ``time_s`` (inputs held over each interval), each term at
+        its equilibrium at the first sample, the log's first sample taken as the cold start."""
+        t = np.asarray(time_s, dtype=float)
+        total = np.zeros_like(t)
+        for term in self.inputs:
+            if term.name not in inputs:
+                raise ModelError(f"the model needs input {term.name!r}, which the log lacks")
+            u = np.asarray(inputs[term.name], dtype=float)
+            if u.shape != t.shape:
+                raise ModelError(f"input {term.name}: {u.size} values for {t.size} times")
+            if not np.isfinite(u).all():
+                raise NonFiniteInputError(f"input {term.name} has non-finite values")
+            ref = u[0] if term.reference_mode == "start" else term.reference
+            drive = term.gain_um_per_unit * (u - ref)
+            total += first_order(drive, np.diff(t, prepend=t[0]), term.tau_s, float(drive[0]))
+        return total
+
+    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray, inputs: Mapping[str, np.ndarray],
+                    initial_um: float = 0.0) -> np.ndarray:
+        """Free-run elongation; the speed part starts from ``initial_um`` less the input terms'
+        share at the first sample (each input term starts at its equilibrium)."""
+        response = self.input_response(time_s, inputs)
+        state = self.speed_model.state_at(initial_um - float(response[0]), float(np.abs(speed_rpm[0])))
+        base = self.speed_model.simulate(np.asarray(speed_rpm, float), np.asarray(time_s, float),
+                                         state).elongation_um
+        return base + response
+
+    # -- the runtime's step ---------------------------------------------------------
+
+    def start(self, speed_state: ModelState, inputs: Mapping[str, float],
+              references: Mapping[str, float]) -> AugmentedState:
+        """Input terms at their equilibrium for ``inputs``."""
+        x = tuple(t.gain_um_per_unit * (float(inputs[t.name]) - references[t.name]) for t in self.inputs)
+        return AugmentedState(speed_state, x)
+
+    def step(self, state: AugmentedState, speed_rpm: float, inputs: Mapping[str, float],
+             references: Mapping[str, float], dt_s: float) -> AugmentedState:
+        speed_state = self.speed_model.step(state.speed, speed_rpm, dt_s)
+        x = []
+        for term, xj in zip(self.inputs, state.inputs):
+            drive = term.gain_um_per_unit * (float(inputs[term.name]) - references[term.name])
+            if term.tau_s == 0:
+                x.append(drive)
+            else:
+                a = math.exp(-dt_s / term.tau_s)
+                x.append(a * xj + (1 - a) * drive)
+        return AugmentedState(speed_state, tuple(x))
+
+
+@dataclass(frozen=True)
+class AugmentedState:
+    speed: ModelState
+    inputs: tuple[float, ...]
+
+    @property
+    def elongation_um(self) -> float:
+        return self.speed.elongation_um + float(sum(self.inputs))
+
+
+def first_order(drive: np.ndarray, dt_s: np.ndarray, tau_s: float, x0: float) -> np.ndarray:
+    """``x' = (drive - x)/tau``, exact for a drive held over each interval; tau 0: x = drive."""
+    if tau_s == 0:
+        return np.asarray(drive, dtype=float).copy()
+    from scipy.signal import lfilter
+
+    a = np.exp(-np.asarray(dt_s, dtype=float) / tau_s)
+    if a.size > 1 and np.allclose(a[1:], a[-1]):  # uniform steps: one linear filter
+        k = float(a[-1])
+        y, _ = lfilter([1 - k], [1, -k], drive[1:], zi=[k * x0])
+        return np.concatenate([[x0], y])
+    x = np.empty_like(drive, dtype=float)
+    x[0] = x0
+    for i in range(1, drive.size):
+        x[i] = a[i] * x[i - 1] + (1 - a[i]) * drive[i]
+    return x
