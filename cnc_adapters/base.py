@@ -208,6 +208,28 @@ class Adapter(Link):
         did not take the last write, reported once; None when all is well."""
         return None
 
+    def input_channels(self) -> tuple[str, ...]:
+        """Names of the extra input channels this link is configured to read (temperatures,
+        load, ambient), for models that use them."""
+        return ()
+
+    def read_inputs(self) -> dict[str, float]:
+        """The extra channels, by name; a value that is not a number comes back as NaN (the
+        runtime treats it as a sensor fault)."""
+        if not self.input_channels():
+            return {}
+        self.open()
+        out = {}
+        for name, raw in self._read_inputs_raw().items():
+            try:
+                out[name] = float(raw)
+            except (TypeError, ValueError):
+                out[name] = math.nan
+        return out
+
+    def _read_inputs_raw(self) -> dict[str, Any]:
+        raise AdapterError(f"{self.name}: this adapter reads no input channels")
+
     def not_ready_offset_um(self) -> float | None:
         """For controllers whose offset depends on the machine state (LinuxCNC zeroes external
         offsets at machine-on and ignores them until homed): the offset [um] it applies while

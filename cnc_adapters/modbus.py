@@ -135,10 +135,23 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         word_order: Literal["big", "little"] = "big",
         byte_order: Literal["big", "little"] = "big",
         timeout_s: float = 0.5,
+        input_registers: dict[str, dict[str, Any]] | None = None,
         **scaling: Any,
     ):
         super().__init__(**scaling)
         check_types("modbus", speed_type, offset_type)
+        # extra channels: name -> {register, type (int16...), table (input/holding), scale}
+        self.input_registers = {}
+        for name, spec in (input_registers or {}).items():
+            spec = dict(spec)
+            bad = set(spec) - {"register", "type", "table", "scale"}
+            if bad or "register" not in spec:
+                raise AdapterError(f"modbus input {name}: give register [type, table, scale], not {sorted(bad)}")
+            spec.setdefault("type", "int16")
+            spec.setdefault("table", "input")
+            spec.setdefault("scale", 1.0)
+            check_types(f"modbus input {name}", spec["type"])
+            self.input_registers[name] = spec
         if speed_table not in ("input", "holding"):
             raise AdapterError("modbus: speed_table is 'input' or 'holding'")
         self._init_modbus(port, baudrate, parity, device_id, word_order, byte_order, timeout_s)
@@ -158,6 +171,13 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         if not math.isfinite(value):
             raise BadValueError(f"modbus: speed register holds {value}")
         return abs(value)
+
+    def input_channels(self) -> tuple[str, ...]:
+        return tuple(self.input_registers)
+
+    def _read_inputs_raw(self) -> dict[str, float]:
+        return {name: self._read_value(f"read {name}", spec["table"], int(spec["register"]), spec["type"])
+                * float(spec["scale"]) for name, spec in self.input_registers.items()}
 
     def _write_offset_raw(self, value: float) -> None:
         regs = self._encode(value, self.offset_type)

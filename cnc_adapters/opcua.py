@@ -47,6 +47,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "namespace_uri": "urn:thermocomp:virtual-cnc",
         "speed_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
         "offset_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
+        "input_nodes": {k: f"ns={{ns}};s=/CncInterface/CncSpindleList/Spindle1/Sensors/{v}" for k, v in (
+            ("bearing_temp_c", "BearingTemp"), ("motor_temp_c", "MotorTemp"), ("coolant_temp_c", "CoolantTemp"),
+            ("ambient_c", "AmbientTemp"), ("spindle_load_pct", "Load"))},
     },
     "sinumerik": {
         "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
@@ -90,6 +93,7 @@ class OpcUaAdapter(Adapter):
         application_uri: str = "urn:thermocomp:client",
         read_mode: str = "poll",
         publish_interval_ms: float = 50.0,
+        input_nodes: dict[str, str] | None = None,
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -140,6 +144,9 @@ class OpcUaAdapter(Adapter):
         self.read_mode = read_mode
         self.publish_interval_ms = publish_interval_ms
         self._latest: _Latest | None = None
+        # extra channels (temperatures, load) by name: node ids ({ns} allowed) or browse paths
+        self.input_nodes = dict(input_nodes if input_nodes is not None else p.get("input_nodes", {}))
+        self._inputs: dict[str, Any] = {}
         self._client = None
         self._speed = None
         self._offset = None
@@ -246,6 +253,11 @@ class OpcUaAdapter(Adapter):
             self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
             self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
             self._call("read speed node", self._speed.read_value)
+            self._inputs = {name: (self._resolve(client, ref, None, ns) if not ref.startswith("0:")
+                                   else self._resolve(client, None, ref, ns))
+                            for name, ref in self.input_nodes.items()}
+            if self._inputs:
+                self._call("read input nodes", client.read_values, list(self._inputs.values()))
             if self.read_mode == "subscribe":
                 self._latest = _Latest()
                 sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
@@ -282,6 +294,14 @@ class OpcUaAdapter(Adapter):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
         return abs(value)
+
+    def input_channels(self) -> tuple[str, ...]:
+        return tuple(self.input_nodes)
+
+    def _read_inputs_raw(self) -> dict[str, Any]:
+        values = self._call("read inputs", self._client.read_values, list(self._inputs.values()))
+        return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
+                for name, v in zip(self._inputs, values)}
 
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua

@@ -25,6 +25,10 @@ class FaultPolicy(BaseModel):
     over_range: Literal["clamp", "extrapolate"] = Field(
         "clamp", description="speed above the calibrated range: clamp to its top, or trust the model beyond it")
     max_outage_s: float = Field(600.0, gt=0, description="a link outage longer than this is logged as an outage alarm")
+    input_stale_s: float = Field(300.0, gt=0, description="an input (temperature, load) unchanged this long "
+                                 "is stale: the speed-only fallback takes over")
+    input_recover_s: float = Field(60.0, ge=0, description="after an input fault, inputs must be good "
+                                   "this long before the model with inputs takes over again")
 
 
 class SpindleConfig(BaseModel):

@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from .config import RuntimeConfig, SpindleConfig, load_config
-from .errors import ModelFileError, ThermocompError
-from .io import Journal, load_model, load_state, model_digest, save_state
+from .errors import ConfigError, ModelFileError, ThermocompError
+from .io import Journal, load_any_model, load_state, model_digest, save_state
 from .model import ModelState
 from .shaping import OffsetShaper
 
@@ -52,6 +52,7 @@ class Alarm(enum.IntFlag):
     COLD_START = 32
     OUTAGE = 64
     NOT_READY = 128
+    INPUT_FALLBACK = 256
 
 
 class SpindleRuntime:
@@ -65,11 +66,26 @@ class SpindleRuntime:
         self.cfg = cfg
         self.clock = clock
         self.wall = wall
-        self.model = load_model(cfg.model)
-        self.digest = model_digest(self.model)
+        from .inputs import AugmentedModel
+
+        loaded = load_any_model(cfg.model)
+        self.digest = model_digest(loaded)
+        # a model with inputs runs beside its speed-only fallback, which is always stepped
+        self.aug: AugmentedModel | None = loaded if isinstance(loaded, AugmentedModel) else None
+        self.model = loaded.fallback if self.aug is not None else loaded
+        self.aug_state = None
+        self.refs: dict[str, float] | None = None
+        self._inputs_good_since: float | None = None
+        self._last_inputs: dict[str, tuple[float, float]] = {}  # name -> (value, unchanged since)
         self.shaper = OffsetShaper(cfg.shaping)
         self.state_path = Path(state_dir) / f"{cfg.name}.state.json"
         self.adapter = adapter if adapter is not None else open_adapter(cfg.adapter, clock=clock)
+        if self.aug is not None:
+            missing = sorted(set(self.aug.input_names) - set(self.adapter.input_channels()))
+            if missing:
+                raise ConfigError(f"spindle {cfg.name}: the model needs input(s) {', '.join(missing)}; "
+                                  "map them in the adapter (input_nodes for OPC UA, input_registers "
+                                  "for Modbus)")
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
                                                        "source": "thermocomp run"})
         self.counters = {"cycles": 0, "writes": 0, "write_rejected": 0, "read_failed": 0,
@@ -113,6 +129,9 @@ class SpindleRuntime:
         state = ModelState(tuple(float(x) for x in saved["thermal_um"]), 0.0)
         # the spindle stood still while we were down: the model's own cooling
         self.state = self.model.step(state, 0.0, downtime)
+        refs = saved.get("input_references")
+        if self.aug is not None and isinstance(refs, dict) and set(refs) >= set(self.aug.input_names):
+            self.refs = {k: float(v) for k, v in refs.items()}  # the cold start's, kept across restarts
         self.shaper_state = self.shaper.initial(float(saved.get("offset_um", 0.0)))
         self._held_um = self.shaper_state.output_um
         log.info("%s: restored state, advanced %.0f s idle: S = %.2f um", self.cfg.name, downtime,
@@ -126,6 +145,7 @@ class SpindleRuntime:
             "thermal_um": list(self.state.thermal_um),
             "elongation_um": self.state.elongation_um,
             "offset_um": self._held_um,
+            **({"input_references": self.refs} if self.refs else {}),
         })
         self._last_save = self.clock()
 
@@ -187,6 +207,12 @@ class SpindleRuntime:
         speed, alarms = self._speed(now)
         self.state = self.model.step(self.state, speed, dt)
         s = self.state.elongation_um
+        if self.aug is not None:
+            s_inputs, why = self._with_inputs(now, speed, dt)
+            if s_inputs is None:
+                alarms |= Alarm.INPUT_FALLBACK
+            else:
+                s = s_inputs
         self.shaper_state, shaped = self.shaper.update(self.shaper_state, s, speed, dt)
         wrote = False
         held = self.adapter.not_ready_offset_um() if self._link_down_since is None else None
@@ -230,6 +256,50 @@ class SpindleRuntime:
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
                 "offset_um": self._held_um, "written": wrote, "flags": shaped.flags, "alarms": alarms,
                 "read_to_write_ms": latency_ms}
+
+    def _with_inputs(self, now: float, speed: float, dt: float) -> tuple[float | None, str | None]:
+        """The elongation from the model with inputs, or None (and why) when an input is faulty:
+        the speed-only fallback then stands. After a fault the inputs must be good for
+        ``input_recover_s`` again; the model with inputs then restarts from the fallback's
+        elongation, so the switch does not jump."""
+        from cnc_adapters.base import AdapterError
+
+        assert self.aug is not None
+        faults = self.cfg.faults
+        try:
+            values = self.adapter.read_inputs()
+            why = self.aug.check_inputs(values)
+        except AdapterError as err:
+            values, why = {}, f"inputs not read: {err}"
+        if why is None:
+            for name in self.aug.input_names:
+                v = values[name]
+                prev = self._last_inputs.get(name)
+                since = prev[1] if prev is not None and prev[0] == v else now
+                self._last_inputs[name] = (v, since)
+                if now - since >= faults.input_stale_s:
+                    why = f"{name}: stale, {v:g} for {now - since:.0f} s"
+        if why is not None:
+            if self.aug_state is not None or self._inputs_good_since is not None:
+                log.error("%s: %s; speed-only fallback", self.cfg.name, why)
+            self.aug_state = None
+            self._inputs_good_since = None
+            return None, why
+        if self.aug_state is None:
+            if self._inputs_good_since is None:
+                self._inputs_good_since = now
+            if now - self._inputs_good_since < faults.input_recover_s and self.counters["cycles"] > 0:
+                return None, "inputs recovering"
+            if self.refs is None:
+                self.refs = self.aug.references(values)  # a cold start: these are the cold values
+            start = self.aug.start(self.aug.speed_model.cold_state(speed), values, self.refs)
+            base = self.state.elongation_um - sum(start.inputs)  # continue from the fallback's S
+            speed_state = self.aug.speed_model.state_at(base, speed)
+            self.aug_state = type(start)(speed_state, start.inputs)
+            log.info("%s: inputs good: model with %s", self.cfg.name, ", ".join(self.aug.input_names))
+            return self.aug_state.elongation_um, None
+        self.aug_state = self.aug.step(self.aug_state, speed, values, self.refs, dt)
+        return self.aug_state.elongation_um, None
 
     def close(self) -> None:
         try:
@@ -375,12 +445,21 @@ def check(config_path: str) -> int:
     """Validate the configuration, load the models, connect, read one speed; write nothing."""
     cfg = load_config(config_path)
     for sc in cfg.spindle:
-        model = load_model(sc.model)
+        model = load_any_model(sc.model)
         from cnc_adapters.base import open_adapter
 
         with open_adapter(sc.adapter) as link:
             speed = link.read_speed()
-        print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm")
+            extra = ""
+            names = getattr(model, "input_names", ())
+            if names:
+                missing = sorted(set(names) - set(link.input_channels()))
+                if missing:
+                    raise ConfigError(f"spindle {sc.name}: the model needs input(s) {', '.join(missing)}; "
+                                      "map them in the adapter")
+                values = link.read_inputs()
+                extra = ", inputs " + ", ".join(f"{n} {values[n]:g}" for n in names)
+        print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
 

@@ -186,6 +186,14 @@ def sample(cnc: LinuxCnc, seconds: float, pins: tuple[str, ...]) -> np.ndarray:
     return np.array(rows)
 
 
+def assert_slew(t_wall: np.ndarray, offset_um: np.ndarray) -> None:
+    """Within the slew limit, in wall time (the runtime's clock runs TIME_SCALE x faster). A
+    sample's time stamp is taken before its halcmd call, which takes some 20 ms: allow 50 ms."""
+    allowed = MAX_RATE * TIME_SCALE * (np.diff(t_wall) + 0.05) + 0.02
+    step = np.abs(np.diff(offset_um))
+    assert np.all(step <= allowed), (step - allowed).max()
+
+
 def journal(cnc: LinuxCnc):
     files = sorted((cnc.dir / "state" / "journal").glob("sim-mill-*.csv"))
     logs = [read_run_log(f) for f in files]
@@ -221,9 +229,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     assert np.mean(miss < 0.011) > 0.9 and miss.max() <= MAX_RATE + 0.011, miss
     assert np.all(np.abs(eoffset * 1000 + offset) < 0.6)
     # ... within the slew limit (um per simulated second, the runtime's clock runs 60x)
-    rate_um_per_wall_s = np.abs(np.diff(eoffset * 1000)) / np.maximum(np.diff(t), 1e-3)
-    steps = np.abs(np.diff(eoffset * 1000))
-    assert np.all((rate_um_per_wall_s <= MAX_RATE * TIME_SCALE * 1.3) | (steps < 0.05)), rate_um_per_wall_s.max()
+    assert_slew(t, eoffset * 1000)
     # and it cancels the growth: what the part sees is a fraction of it
     assert growth[-1] > 3.0 and abs(tip[-1]) < 0.2 * growth[-1], (growth[-1], tip[-1])
 
@@ -237,7 +243,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     data = sample(cnc, 3.0, ("axis.z.eoffset", "thermocomp.ready"))
     t2, eo2, ready2 = data.T
     assert eo2[0] * 1000 < 0.5 * (-offset[-1])  # re-seeded from (near) zero, not jumped back
-    assert np.all(np.abs(np.diff(eo2 * 1000)) / np.maximum(np.diff(t2), 1e-3) <= MAX_RATE * TIME_SCALE * 1.3 + 1.0)
+    assert_slew(t2, eo2 * 1000)
     assert ready2[-1] == 1.0
     # the spindle stopped with the machine: start it again, and let it settle
     r.set("mode mdi")

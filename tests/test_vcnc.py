@@ -22,7 +22,8 @@ JS = Path(__file__).parent / "js"
 
 def machine(scale=600.0, program=None):
     p = preset("motorized-27k")
-    prog = program or Program("steady", ((3600.0, 20000.0),))
+    # ten simulated hours: a slow client start (a loaded machine) must not outlive the program
+    prog = program or Program("steady", ((36000.0, 20000.0),))
     return VirtualMachine(SpindlePlant(p, seed=1), prog, clock=SimClock(scale))
 
 

@@ -68,5 +68,14 @@ class SimAdapter(Adapter):
         if not self.machine.apply_offset(value):
             raise WriteRejectedError(f"sim: offset {value!r} refused by the virtual CNC")
 
+    def input_channels(self) -> tuple[str, ...]:
+        from .vcnc import SENSOR_KEYS
+
+        return SENSOR_KEYS
+
+    def _read_inputs_raw(self) -> dict[str, float]:
+        self.machine.advance()
+        return self.machine.sensor_values()
+
     def _disconnect(self) -> None:
         pass

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .plant import SpindlePlant
+from .plant import SENSORS, SpindlePlant
 from .programs import Program
 
 NAMESPACE_URI = "urn:thermocomp:virtual-cnc"
@@ -51,7 +51,14 @@ NODE_PATHS = {
     "sim_time": "/CncInterface/Simulation/SimTime",
     "true_elongation": "/CncInterface/Simulation/TrueElongation",
     "tool_tip_error": "/CncInterface/Simulation/ToolTipError",
+    # the machine's own sensors, as a drive or PLC would publish them
+    "bearing_temp_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/BearingTemp",
+    "motor_temp_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/MotorTemp",
+    "coolant_temp_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/CoolantTemp",
+    "ambient_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/AmbientTemp",
+    "spindle_load_pct": "/CncInterface/CncSpindleList/Spindle1/Sensors/Load",
 }
+SENSOR_KEYS = ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct")
 CYCLE_START_PATH = "/CncInterface/Simulation/CycleStart"
 OFFSET_LIMIT_UM = 1000.0
 """The virtual CNC, like a real one, ignores offsets beyond this (and non-finite ones)."""
@@ -124,6 +131,12 @@ class VirtualMachine:
         self._override_rpm: float | None = None
         self._hist: list[tuple[float, float, float, float, float]] = []
         self._lock = threading.Lock()
+        # the machine's own sensors (temperatures, load), lagged like the real ones
+        self._lagged = {name: float(plant.air_c(0) if node is None else plant.temps_c[node])
+                        for name, node, *_ in SENSORS}
+        self._sensor_rng = np.random.default_rng(plant.seed + 104729)
+        self.sensor_faults: dict[str, str] = {}  # name -> "nan" | "frozen"
+        self._frozen: dict[str, float] = {}
 
     def load_program(self, program: Program | None) -> None:
         """Start ``program`` now (sim time); None idles the spindle."""
@@ -185,9 +198,31 @@ class VirtualMachine:
             while self.plant.time_s + h <= target + 1e-9:
                 rpm = self.commanded_rpm(self.plant.time_s + h / 2)
                 self.plant.advance(rpm, h)
+                for name, node, lag_s, *_ in SENSORS:
+                    x = self.plant.air_c(self.plant.time_s) if node is None else self.plant.temps_c[node]
+                    a = math.exp(-h / lag_s)
+                    self._lagged[name] = a * self._lagged[name] + (1 - a) * float(x)
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
                 self._hist.append((self.plant.time_s, rpm, true, meas, self.offset_um))
+
+    def sensor_values(self) -> dict[str, float]:
+        """What the machine's sensors read now (noise, resolution, injected faults)."""
+        out = {}
+        for name, _node, _lag, noise, step in SENSORS:
+            v = self._lagged[name] + noise * float(self._sensor_rng.standard_normal())
+            out[name] = round(v / step) * step
+        load = 100.0 * float(self.plant.heat_w(self.speed_rpm)) / float(self.plant.heat_w(self.plant.params.max_rpm))
+        out["spindle_load_pct"] = round(max(0.0, load + 0.5 * float(self._sensor_rng.standard_normal())), 1)
+        for name, mode in self.sensor_faults.items():
+            if mode == "nan":
+                out[name] = math.nan
+            elif mode == "frozen":
+                out[name] = self._frozen.setdefault(name, out[name])
+        for name in list(self._frozen):
+            if self.sensor_faults.get(name) != "frozen":
+                del self._frozen[name]
+        return out
 
     def history(self, clear: bool = False) -> History:
         with self._lock:
@@ -333,6 +368,7 @@ class VirtualCNC:
             "true_elongation": true,
             "tool_tip_error": true + m.offset_um,
         }
+        values.update(m.sensor_values())
         for key, v in values.items():
             await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
 
