@@ -5,6 +5,8 @@ the speed-only model when a sensor fails."""
 from __future__ import annotations
 
 import json
+import math
+import time
 import subprocess
 import sys
 
@@ -136,18 +138,20 @@ def test_model_file_replay_and_fit_command(trained, tmp_path):
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
 
 
-def test_runtime_falls_back_to_speed_only_within_one_cycle(trained, tmp_path):
-    _, fit, _ = trained
+def runtime_config(tmp_path, fit, body: str):
+    """A runtime configuration for one spindle with the model of ``fit``; ``body`` follows ``model``."""
     model = tmp_path / "aug.json"
     save_model(model, fit.model)
-    cfg_path = tmp_path / "machine.toml"
-    cfg_path.write_text(f"""state_dir = "{tmp_path / 'state'}"
-watchdog = false
-[[spindle]]
-name = "s1"
-model = "{model}"
-period_s = 1.0
-adapter = {{url = "sim://"}}
+    path = tmp_path / "machine.toml"
+    path.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
+                    f'model = "{model}"\n' + body)
+    return path
+
+
+def test_runtime_falls_back_to_speed_only_within_one_cycle(trained, tmp_path):
+    _, fit, _ = trained
+    cfg_path = runtime_config(tmp_path, fit, """period_s = 1.0
+adapter = {url = "sim://"}
 [spindle.shaping]
 max_offset_um = 40.0
 max_rate_um_per_s = 0.5
@@ -204,15 +208,7 @@ input_recover_s = 60.0
 
 def test_a_model_with_inputs_refuses_to_start_without_their_mapping(trained, tmp_path):
     _, fit, _ = trained
-    model = tmp_path / "aug.json"
-    save_model(model, fit.model)
-    cfg_path = tmp_path / "machine.toml"
-    cfg_path.write_text(f"""state_dir = "{tmp_path / 'state'}"
-watchdog = false
-[[spindle]]
-name = "s1"
-model = "{model}"
-[spindle.adapter]
+    cfg_path = runtime_config(tmp_path, fit, """[spindle.adapter]
 type = "opcua"
 url = "opc.tcp://127.0.0.1:4840"
 preset = "generic"
@@ -225,3 +221,39 @@ offset_node = "ns=2;s=Offset"
     r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg_path)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_input_channels_over_opcua_and_modbus(tmp_path):
+    from cnc_adapters.base import open_adapter
+    from cnc_adapters.modbus import ModbusRtuAdapter
+    from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, running
+
+    from devices import ModbusDevice, PtyPair
+
+    vm = VirtualMachine(SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=SimClock(600.0))
+    with running(VirtualCNC(vm)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+        assert set(link.input_channels()) == set(SENSORS)
+        values = link.read_inputs()
+        truth = vm.sensor_values()
+        assert all(math.isfinite(values[n]) for n in SENSORS)
+        assert abs(values["bearing_temp_c"] - truth["bearing_temp_c"]) < 0.5
+        assert values["spindle_load_pct"] > 10
+        vm.sensor_faults["motor_temp_c"] = "nan"
+        time.sleep(0.1)
+        assert math.isnan(link.read_inputs()["motor_temp_c"])  # a NaN reaches the runtime as NaN
+    pty = PtyPair(tmp_path)
+    dev = ModbusDevice(pty.dev)
+    try:
+        dev.set_input(4, [254])  # 25.4 degC in 0.1 K counts
+        a = ModbusRtuAdapter(pty.ctl, baudrate=115200,
+                             input_registers={"bearing_temp_c": {"register": 4, "type": "int16", "scale": 0.1}})
+        with a:
+            assert a.input_channels() == ("bearing_temp_c",)
+            assert a.read_inputs() == {"bearing_temp_c": pytest.approx(25.4)}
+        from cnc_adapters.base import AdapterError
+
+        with pytest.raises(AdapterError, match="give register"):
+            ModbusRtuAdapter(pty.ctl, input_registers={"x": {"reg": 1}})
+    finally:
+        dev.close()
+        pty.close()
