@@ -136,6 +136,13 @@ class Recorder:
         self._active: dict[Problem, float] = {}  # problem -> since (time_s)
         self.recent: list[float] = []  # last elongations, for a live sparkline
         self.last: Sample | None = None
+        # whatever else the controller publishes (temperatures, load) is logged too, for
+        # `thermocomp fit --inputs`; a failed read of them is a NaN cell, never a lost row
+        try:
+            self.channels = tuple(controller.input_channels())
+        except AdapterError:
+            self.channels = ()
+        self.columns = COLUMNS + tuple(c for c in self.channels if c not in COLUMNS)
 
     # -- the checks -----------------------------------------------------------
 
@@ -172,7 +179,7 @@ class Recorder:
 
     def run(self) -> Recording:
         cfg = self.cfg
-        appender = RunLogAppender(self.path, COLUMNS, {**self.metadata, "start_epoch_s": f"{self.clock():.3f}",
+        appender = RunLogAppender(self.path, self.columns, {**self.metadata, "start_epoch_s": f"{self.clock():.3f}",
                                                        "columns": "flags: calibration.acquire.Problem"},
                                   clock=self.clock)
         start = float(appender.metadata.get("start_epoch_s", self.clock()))
@@ -308,8 +315,15 @@ class Recorder:
                 sample = Sample(t, speed, value, elong, commanded, flags, ptime)
                 self.last = sample
                 if speed is not None and value is not None:
+                    extra: tuple[float, ...] = ()
+                    if len(self.columns) > len(COLUMNS):
+                        try:
+                            got = self.controller.read_inputs()
+                        except AdapterError:
+                            got = {}
+                        extra = tuple(float(got.get(c, math.nan)) for c in self.columns[len(COLUMNS):])
                     appender.append((t, speed, elong, value, commanded if commanded is not None else 0.0,
-                                     int(flags)))
+                                     int(flags), *extra))
                     rec.rows += 1
                     for p in Problem:
                         if flags & p:

@@ -292,6 +292,8 @@ class Wizard:
         info.update(complete=result.complete, rows=_rows(log), flagged=result.flagged,
                     events=[f"{e.time_s:.0f} s: {e.message}" for e in result.events if e.problem][:50])
         self.save_session()
+        if rec.channels:
+            info["inputs"] = list(rec.channels)
         self.out.print(f"  {name}: [green]recorded[/] {info['rows']} rows to {log}"
                        + (f"; flagged: {result.flagged}" if result.flagged else ""))
 
@@ -384,6 +386,12 @@ class Wizard:
         summary["peak_um"] = peak
         summary["advice"] = advise(summary, s)
         self.out.print(f"  plot: {plot}")
+        chans = sorted({c for info in s["runs"].values() for c in info.get("inputs", [])})
+        if chans and len(logs) > 1:
+            files = " ".join(str(info["log"]) for info in s["runs"].values() if info.get("complete"))
+            self.out.print(f"  the controller's own channels were logged too ({', '.join(chans)}): "
+                           f"`thermocomp fit {files} --inputs {','.join(chans)} --output …` keeps those "
+                           "that help on held-out runs")
         for line in summary["advice"]:
             self.out.print(f"  [yellow]advice:[/] {line}")
         if not summary["advice"]:

@@ -21,6 +21,7 @@ eoffset-enable      bit    out to axis.L.eoffset-enable
 eoffset-clear       bit    out to axis.L.eoffset-clear
 offset-um           float  out the offset requested now [um] (thermocomp's sign: A = -S)
 ready               bit    out machine on and homed: external offsets are honoured
+input.<name>        float  in  extra channels (``inputs = [...]``) for a model with inputs
 machine-on, homed   bit    in  only with ``machine_state = "pins"`` (else from linuxcnc.stat)
 =================== ====== === ===========================================================
 
@@ -72,7 +73,7 @@ class LinuxCncAdapter(Adapter):
 
     def __init__(self, *, component: str = "thermocomp", speed_unit: str = "rps",
                  axis_units: str = "mm", count_um: float = 0.01, machine_state: str = "stat",
-                 **kw: Any):
+                 inputs: list[str] | tuple[str, ...] = (), **kw: Any):
         if speed_unit not in ("rps", "rpm"):
             raise AdapterError("linuxcnc: speed_unit is 'rps' (spindle.N.speed-in) or 'rpm'")
         if axis_units not in ("mm", "inch"):
@@ -86,6 +87,11 @@ class LinuxCncAdapter(Adapter):
         kw.setdefault("offset_scale", 0.001 if axis_units == "mm" else 1 / 25400.0)
         super().__init__(**kw)
         self.component = component
+        # extra channels for models with inputs: float IN pins `input.<name>` to net sensors to
+        self.inputs = tuple(inputs)
+        for name in self.inputs:
+            if not name.replace("_", "").replace("-", "").isalnum():
+                raise AdapterError(f"linuxcnc: input name {name!r}: letters, digits, '_' and '-' only")
         self.machine_state = machine_state
         self.count = count_um * self.offset_scale  # machine units per count
         self._comp = None
@@ -119,6 +125,8 @@ class LinuxCncAdapter(Adapter):
             c.newpin("eoffset-clear", hal.HAL_BIT, hal.HAL_OUT)
             c.newpin("offset-um", hal.HAL_FLOAT, hal.HAL_OUT)
             c.newpin("ready", hal.HAL_BIT, hal.HAL_OUT)
+            for name in self.inputs:
+                c.newpin(f"input.{name}", hal.HAL_FLOAT, hal.HAL_IN)
             if self.machine_state == "pins":
                 c.newpin("machine-on", hal.HAL_BIT, hal.HAL_IN)
                 c.newpin("homed", hal.HAL_BIT, hal.HAL_IN)
@@ -176,6 +184,12 @@ class LinuxCncAdapter(Adapter):
         c["offset-um"] = value / (self.offset_scale * self.offset_sign)
         if self._ready:
             c["eoffset-counts"] = counts
+
+    def input_channels(self) -> tuple[str, ...]:
+        return self.inputs
+
+    def _read_inputs_raw(self) -> dict[str, float]:
+        return {name: self._comp[f"input.{name}"] for name in self.inputs}
 
     def not_ready_offset_um(self) -> float | None:
         """0 while the machine is off, in E-stop or not homed (the controller applies no

@@ -172,6 +172,8 @@ def cnc():
         shutil.chown(directory, USER)
         for p in directory.rglob("*"):
             shutil.chown(p, USER)
+    toml = directory / "thermocomp.toml"  # an extra input pin, as a model with inputs would need
+    toml.write_text(toml.read_text().replace('axis_units = "mm"', 'axis_units = "mm"\ninputs = ["ambient_c"]'))
     rig = LinuxCnc(directory)
     yield rig
     rig.stop()
@@ -205,6 +207,8 @@ def journal(cnc: LinuxCnc):
 def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     r = cnc.rsh
     assert cnc.getp("thermocomp.ready") is False  # in E-stop at start: nothing applied
+    subprocess.run(as_user(["halcmd", "setp", "thermocomp.input.ambient_c", "21.5"]), check=True, timeout=20)
+    assert cnc.getp("thermocomp.input.ambient_c") == 21.5
     r.set("estop off")
     r.set("machine on")
     r.set("mode manual")
@@ -239,11 +243,13 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     time.sleep(1.0)
     assert cnc.getp("thermocomp.eoffset-counts") == 0
     # machine on again: LinuxCNC zeroes the offset; thermocomp re-seeds it from zero at its slew
+    t_on = time.monotonic()
     r.set("machine on")
-    data = sample(cnc, 3.0, ("axis.z.eoffset", "thermocomp.ready"))
-    t2, eo2, ready2 = data.T
-    assert eo2[0] * 1000 < 0.5 * (-offset[-1])  # re-seeded from (near) zero, not jumped back
-    assert_slew(t2, eo2 * 1000)
+    data = sample(cnc, 3.0, ("axis.z.eoffset", "thermocomp.ready", "thermocomp.offset-um"))
+    t2, eo2, ready2, off2 = data.T
+    # re-seeded from zero, not jumped back: no faster than the slew limit since machine-on
+    assert_slew(np.r_[t_on, t2], np.r_[0.0, eo2 * 1000])
+    assert eo2[-1] > 0.0005 and abs(eo2[-1] * 1000 + off2[-1]) < 0.6  # and it comes back to the model
     assert ready2[-1] == 1.0
     # the spindle stopped with the machine: start it again, and let it settle
     r.set("mode mdi")
@@ -268,6 +274,10 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     both = ~not_ready[1:] & ~not_ready[:-1]
     rate = np.abs(np.diff(off))[both] / np.maximum(np.diff(j["time_s"])[both], 1e-3)
     assert rate.max() <= MAX_RATE * 1.001 + 1e-6, rate.max()
+    # every re-seed starts from zero: the first ready cycle moves at most one slew step
+    first = np.flatnonzero(not_ready[:-1] & ~not_ready[1:]) + 1
+    assert first.size >= 3
+    assert np.all(np.abs(off[first]) <= MAX_RATE * np.diff(j["time_s"])[first - 1] * 1.001 + 1e-6)
     text = (cnc.dir / "thermocomp.jsonl").read_text()
     assert text.count("re-seeding from 0") >= 3 and "counts held at 0" in text
 

@@ -112,6 +112,8 @@ def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(vcnc, tmp
     full = read_run_log(log)
     assert len(full) > len(kept) and np.array_equal(full.time_s[: len(kept)], kept.time_s)
     assert any(g.duration_s > 60 for g in full.gaps)  # the interruption is visible, not papered over
+    # the controller's own sensor channels are logged beside, ready for `fit --inputs`
+    assert np.isfinite(full.extras["bearing_temp_c"]).all() and np.ptp(full.extras["bearing_temp_c"]) > 3
     assert "validation run, free run on data the fit never saw" in out
     session = json.loads((sdir / "session.json").read_text())
     saved = session["saved"]
