@@ -168,7 +168,8 @@ def print_input_report(fitted, out: Console) -> None:
     for col in ("step", "input", "dynamics", "held-out RMS [um]", "why"):
         t.add_column(col, justify="right" if "RMS" in col or col == "step" else "left")
     for s in fitted.steps:
-        name = s.get("added") or (f"({s['best_next']})" if s.get("stopped") else "speed only")
+        name = s.get("added") or (f"({s['best_next']})" if s.get("stopped") else
+                                  "refined" if s.get("refined") else "speed only")
         tau = s.get("tau_s")
         dyn = "-" if tau is None else "static" if tau == 0 else f"lag {tau:g} s"
         t.add_row(str(s["step"]), name, dyn, _fmt(s["held_out_rms_um"]), s["note"])

@@ -204,7 +204,8 @@ def _tau_bounds(runs: Sequence[Run]) -> tuple[float, float]:
     return math.log(max(dt, 1.0) * 0.5), math.log(max(duration, 10 * dt) * 3)
 
 
-def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, n_max: float) -> float:
+def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, n_max: float,
+         extra: np.ndarray | None = None) -> float:
     lo, hi = _tau_bounds(runs)
     if not all(lo <= v <= hi for v in theta[: form.n_states]):
         return math.inf
@@ -213,6 +214,8 @@ def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, 
     if form.n_states == 2 and abs(theta[1] - theta[0]) < math.log(1.5):
         return math.inf  # two states must differ to be two
     x, _, states = _design(form, theta, runs, n_max)
+    if extra is not None:
+        x = np.column_stack([x, extra])
     y = y - _initial_response(states, runs)
     coef, *_ = np.linalg.lstsq(x, y, rcond=None)
     r = y - x @ coef
@@ -257,6 +260,20 @@ def speed_design(form: FormSpec, theta: np.ndarray, runs: Sequence[Run]) -> tupl
     x, _, states = _design(form, theta, runs, _n_max_krpm(runs))
     y = np.concatenate([r.elongation_um for r in runs]) - _initial_response(states, runs)
     return x, y
+
+
+def refine_theta(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], extra: np.ndarray) -> np.ndarray:
+    """The speed part's nonlinear parameters re-optimised with extra (input) columns present."""
+    n_max = _n_max_krpm(runs)
+    y = np.concatenate([r.elongation_um for r in runs])
+
+    def obj(th: np.ndarray) -> float:
+        return _rss(form, np.asarray(th, dtype=float), runs, y, n_max, extra)
+
+    start = obj(theta)
+    res = minimize(obj, theta, method="Nelder-Mead",
+                   options={"xatol": 1e-4, "fatol": 1e-10 * max(start, 1e-12), "maxiter": 300})
+    return np.asarray(res.x) if res.fun < start else np.asarray(theta)
 
 
 def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],

@@ -4,7 +4,8 @@ Each candidate input enters as a static term or through a first-order lag (``TAU
 to the run's start (``reference="start"``) or to a stated value. The speed part keeps the time
 constants of the best speed-only output-error form; its gains are refitted jointly with the input
 gains (one least-squares solve per evaluation, the variable-projection idea of
-:mod:`calibration.fitting`).
+:mod:`calibration.fitting`). Once the inputs are chosen, the time constants and each input's lag
+are re-optimised with the inputs in, and kept if the held-out error does not grow.
 
 Selection is forward stepwise, judged on held-out runs: at each step every remaining input at
 every lag is scored by leave-one-run-out free-run RMS, and the best is added only if it cuts that
@@ -27,7 +28,7 @@ from compensator.inputs import AugmentedModel, InputTerm, first_order
 
 from .calibrate import Calibration, residual_stats
 from .data import Run
-from .fitting import solve_output_error, speed_design
+from .fitting import refine_theta, solve_output_error, speed_design
 
 TAUS_S = (0.0, 300.0, 900.0, 1800.0, 3600.0)
 MIN_GAIN = 0.03
@@ -175,6 +176,28 @@ def fit_with_inputs(cal: Calibration, runs: Sequence[InputRun], names: Sequence[
     if not chosen:
         raise CalibrationError("no input improves the model on held-out runs: keep the speed-only model "
                                f"(held-out RMS {speed_only_cv['rms_um']:.3f} um)")
+
+    # the speed part's time constants were the speed-only fit's, which had to explain what the
+    # inputs now explain: re-optimise them with the inputs in, then each input's lag once more;
+    # kept only if the held-out error does not grow
+    say("refining the time constants with the inputs")
+    stack = lambda sel: np.vstack([np.column_stack([cols[c][j] for c in sel]) for j in range(len(rs))])  # noqa: E731
+    theta2 = refine_theta(form, theta, rs, stack(chosen))
+    xs_old, ys_old = xs, ys
+    parts2 = [speed_design(form, theta2, [r]) for r in rs]
+    xs, ys = [p[0] for p in parts2], [p[1] for p in parts2]
+    refined = list(chosen)
+    for k, (n, _tau) in enumerate(refined):
+        scores = [(held_out([*refined[:k], (n, tau), *refined[k + 1:]])["rms_um"], tau) for tau in TAUS_S]
+        refined[k] = (n, min(scores)[1])
+    st = held_out(refined)
+    if st["rms_um"] <= current["rms_um"]:
+        steps.append({"step": len(steps), "refined": True, "held_out_rms_um": st["rms_um"],
+                      "note": "time constants re-optimised with the inputs; lags "
+                              + ", ".join(f"{n} {'static' if tau == 0 else f'{tau:g} s'}" for n, tau in refined)})
+        chosen, current, theta = refined, st, theta2
+    else:
+        xs, ys = xs_old, ys_old
 
     extra = np.vstack([np.column_stack([cols[c][j] for c in chosen]) for j in range(len(rs))])
     meta = {k: v for k, v in (("spindle_id", cal.model.spindle_id), ("machine_id", cal.model.machine_id),
