@@ -136,6 +136,7 @@ class Recorder:
         self._active: dict[Problem, float] = {}  # problem -> since (time_s)
         self.recent: list[float] = []  # last elongations, for a live sparkline
         self.last: Sample | None = None
+        self._follow_told = False  # "not following" reported and not yet cleared
         # whatever else the controller publishes (temperatures, load) is logged too, for
         # `thermocomp fit --inputs`; a failed read of them is a NaN cell, never a lost row
         try:
@@ -242,7 +243,6 @@ class Recorder:
                 # the program starts when the spindle first turns
                 if program_start is None and speed is not None and speed > IDLE_RPM:
                     program_start = t - min(cfg.rate_s, t)
-                    rec.program_start_s = program_start
                     if rec.rows == 0 and appender.rows_before == 0:
                         self._event(t, Problem(0), "the spindle was already turning when the recording "
                                     "started: the cold start and the program's first seconds are missed")
@@ -262,7 +262,7 @@ class Recorder:
                                 self._active[Problem.NOT_FOLLOWING] = t
                             if self._lasted(Problem.NOT_FOLLOWING, t) >= cfg.follow_alarm_s:
                                 flags |= Problem.NOT_FOLLOWING
-                                if not getattr(self, "_follow_told", False):
+                                if not self._follow_told:
                                     self._follow_told = True
                                     self._event(t, Problem.NOT_FOLLOWING,
                                                 f"spindle not following the program: {speed:.0f} rpm where "
@@ -270,7 +270,7 @@ class Recorder:
                                                 "hold, or another program?)")
                         elif Problem.NOT_FOLLOWING in self._active:
                             del self._active[Problem.NOT_FOLLOWING]
-                            if getattr(self, "_follow_told", False):
+                            if self._follow_told:
                                 self._follow_told = False
                                 self._event(t, Problem.NOT_FOLLOWING, "spindle follows the program again",
                                             begins=False)

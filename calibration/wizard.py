@@ -590,8 +590,6 @@ class _LiveView:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .profile import DIALECTS  # noqa: F401 - imported for its check of choices
-
     if args.time_scale <= 0:
         raise ConfigError("--time-scale must be > 0")
     wiz = Wizard(args)

@@ -303,14 +303,15 @@ INT_PARAMS = frozenset({"baudrate", "device_id", "speed_register", "offset_regis
 FLOAT_PARAMS = frozenset({"timeout_s", "offset_scale", "speed_scale", "time_scale"})
 
 
-def typed_params(url: str, drop: tuple[str, ...] = ("protocol",)) -> dict[str, Any]:
-    """URL query parameters as constructor keywords, numbers converted."""
+def typed_params(url: str, drop: tuple[str, ...] = ("protocol",), ints: frozenset[str] = INT_PARAMS,
+                 floats: frozenset[str] = FLOAT_PARAMS) -> dict[str, Any]:
+    """URL query parameters as constructor keywords, the ``ints`` and ``floats`` converted."""
     out: dict[str, Any] = {}
     for k, v in query_params(url).items():
         if k in drop:
             continue
         try:
-            out[k] = int(v) if k in INT_PARAMS else float(v) if k in FLOAT_PARAMS else v
+            out[k] = int(v) if k in ints else float(v) if k in floats else v
         except ValueError as err:
             raise AdapterError(f"URL parameter {k}={v!r} is not a number") from err
     return out

@@ -42,7 +42,7 @@ import sys
 from typing import Any
 from urllib.parse import urlsplit
 
-from .base import Adapter, AdapterError, BadValueError, UnreachableError, query_params
+from .base import Adapter, AdapterError, BadValueError, UnreachableError, typed_params
 
 log = logging.getLogger("thermocomp.adapters.linuxcnc")
 
@@ -104,9 +104,9 @@ class LinuxCncAdapter(Adapter):
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> LinuxCncAdapter:
         """``linuxcnc://thermocomp?speed_unit=rps&axis_units=mm``."""
-        kw: dict[str, Any] = {"component": urlsplit(url).netloc or "thermocomp"}
-        for k, v in query_params(url).items():
-            kw[k] = float(v) if k in ("count_um", "offset_scale", "speed_scale") else v
+        kw: dict[str, Any] = {"component": urlsplit(url).netloc or "thermocomp",
+                              **typed_params(url, ints=frozenset({"offset_sign"}),
+                                             floats=frozenset({"count_um", "offset_scale", "speed_scale"}))}
         kw.update(overrides)
         return cls(**kw)
 

@@ -27,9 +27,9 @@ import re
 from abc import abstractmethod
 from collections.abc import Mapping
 from typing import Any, Literal
-from urllib.parse import unquote, urlsplit
+from urllib.parse import urlsplit
 
-from .base import AdapterError, BadValueError, Link, query_params
+from .base import AdapterError, BadValueError, Link, query_params, typed_params
 from .modbus import ModbusLink, check_types
 from .serial_link import NUMBER, SerialLine
 
@@ -197,23 +197,11 @@ _INT = frozenset({"baudrate", "device_id", "register"})
 _FLOAT = frozenset({"scale", "offset_um", "timeout_s"})
 
 
-def _url_params(url: str) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in query_params(url).items():
-        if k == "protocol":
-            continue
-        try:
-            out[k] = int(v) if k in _INT else float(v) if k in _FLOAT else unquote(v)
-        except ValueError as err:
-            raise AdapterError(f"sensor URL parameter {k}={v!r} is not a number") from err
-    return out
-
-
 def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
     """A sensor from a URL or a mapping with a ``type`` (not yet connected)."""
     if isinstance(target, str):
         parts = urlsplit(target)
-        kw = {**_url_params(target), **overrides}
+        kw = {**typed_params(target, ints=_INT, floats=_FLOAT), **overrides}
         if parts.scheme == "serial":
             kind = query_params(target).get("protocol", "ascii")
             cls = SENSORS.get(kind)

@@ -264,6 +264,8 @@ class SpindleRuntime:
         elongation, so the switch does not jump."""
         from cnc_adapters.base import AdapterError
 
+        from .inputs import AugmentedState
+
         assert self.aug is not None
         faults = self.cfg.faults
         try:
@@ -295,7 +297,7 @@ class SpindleRuntime:
             start = self.aug.start(self.aug.speed_model.cold_state(speed), values, self.refs)
             base = self.state.elongation_um - sum(start.inputs)  # continue from the fallback's S
             speed_state = self.aug.speed_model.state_at(base, speed)
-            self.aug_state = type(start)(speed_state, start.inputs)
+            self.aug_state = AugmentedState(speed_state, start.inputs)
             log.info("%s: inputs good: model with %s", self.cfg.name, ", ".join(self.aug.input_names))
             return self.aug_state.elongation_um, None
         self.aug_state = self.aug.step(self.aug_state, speed, values, self.refs, dt)

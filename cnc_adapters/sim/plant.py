@@ -31,6 +31,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.linalg import expm
 
+from compensator.inputs import first_order
+
 N_NODES = 5
 
 
@@ -276,12 +278,7 @@ class SpindlePlant:
         out: dict[str, np.ndarray] = {}
         for name, source, lag_s, noise, step in SENSORS:
             x = run.air_c if source is None else run.temps_c[:, source]
-            y = np.empty_like(x)
-            y[0] = x[0]
-            a = np.exp(-dt / lag_s)
-            for k in range(1, x.size):  # exact first-order lag of a held input
-                y[k] = a[k] * y[k - 1] + (1.0 - a[k]) * x[k]
-            y = y + noise * rng.standard_normal(y.size)
+            y = first_order(x, dt, lag_s, float(x[0])) + noise * rng.standard_normal(x.size)
             out[name] = np.round(y / step) * step
         load = 100.0 * self.heat_w(run.speed_rpm) / float(self.heat_w(self.params.max_rpm))
         out["spindle_load_pct"] = np.round(np.clip(load + 0.5 * rng.standard_normal(load.size), 0, None), 1)
