@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-deps
+.PHONY: demo test bench venv clean system-deps lint-imports
 
 venv: $(STAMP)
 
@@ -22,7 +22,10 @@ demo: $(STAMP)
 system-deps:
 	bash scripts/system-deps.sh
 
-test: $(STAMP) system-deps
+lint-imports: $(STAMP)
+	$(VENV)/bin/lint-imports
+
+test: $(STAMP) system-deps lint-imports
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

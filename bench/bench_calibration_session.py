@@ -28,7 +28,8 @@ from calibration.inputs import InputRun, fit_with_inputs  # noqa: E402
 from calibration.profile import calibration_profile  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.sensors import AsciiSensor  # noqa: E402
-from cnc_adapters.sim import SpindlePlant, paper_calibration, preset, random_validation  # noqa: E402
+from cnc_adapters.sim import SpindlePlant, preset  # noqa: E402
+from compensator.programs import paper_calibration, random_validation  # noqa: E402
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
 from devices import LineDevice, PtyPair  # noqa: E402
 

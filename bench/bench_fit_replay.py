@@ -23,7 +23,7 @@ from calibration.calibrate import calibrate  # noqa: E402
 from calibration.data import Run  # noqa: E402
 from calibration.fitting import fit_paper_ols  # noqa: E402
 from calibration.replay import replay  # noqa: E402
-from cnc_adapters.sim import job_shop_day  # noqa: E402
+from compensator.programs import job_shop_day  # noqa: E402
 from compensator.io import read_run_log, save_model, write_run_log  # noqa: E402
 from conftest import rich_form  # noqa: E402
 
@@ -73,7 +73,7 @@ def main() -> dict:
         res["replay_end_to_end_s"] = res["parse_s"] + res["replay_compute_s"]
         res["write_predictions_s"], _ = timed(lambda: write_run_log(Path(tmp) / "p.csv", rep.columns()))
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "compensator.cli", "replay", "--model", str(mfile),
+        subprocess.run([sys.executable, "-m", "thermocomp", "replay", "--model", str(mfile),
                         str(log), "--json"], check=True, capture_output=True)
         res["replay_cli_wall_s"] = time.perf_counter() - t0
         res["replay_rms_um"] = rep.report["rms_residual_um"]

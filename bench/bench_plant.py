@@ -7,7 +7,9 @@ import time
 
 import numpy as np
 
-from cnc_adapters.sim import SpindlePlant, job_shop_day, preset
+from cnc_adapters.sim import SpindlePlant, preset
+
+from compensator.programs import job_shop_day
 
 
 def main() -> dict:

@@ -19,9 +19,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from compensator.config import load_config  # noqa: E402
+from thermocomp.runtime.config import load_config  # noqa: E402
 from compensator.io import save_model  # noqa: E402
-from compensator.service import SpindleRuntime  # noqa: E402
+from thermocomp.runtime import SpindleRuntime  # noqa: E402
 from conftest import rich_form  # noqa: E402
 from cnc_adapters.sim.vcnc import free_port  # noqa: E402
 
@@ -71,7 +71,7 @@ def main() -> dict:
         out["compute_ms_p50"], out["compute_ms_p99"] = np.percentile(ms, [50, 99])
 
         port = free_port()
-        server = subprocess.Popen([sys.executable, "-m", "compensator.cli", "virtual-cnc", "--port",
+        server = subprocess.Popen([sys.executable, "-m", "thermocomp", "virtual-cnc", "--port",
                                    str(port), "--time-scale", "1"], stdout=subprocess.PIPE, text=True)
         server.stdout.readline()
         url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
@@ -93,7 +93,7 @@ def main() -> dict:
             out["cycle_10hz_written"] = bool(rec["written"])
 
             svc_cfg = config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 1.0)
-            svc = subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(svc_cfg)],
+            svc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(svc_cfg)],
                                    stderr=subprocess.DEVNULL)
             time.sleep(8)  # imports and connection
             c0, w0 = cpu_s(svc.pid), time.monotonic()

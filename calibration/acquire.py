@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from cnc_adapters.base import Adapter, AdapterError
 from cnc_adapters.sensors import Sensor, SensorOverRangeError
-from cnc_adapters.sim.programs import Program
+from compensator.programs import Program
 from compensator.errors import AcquisitionError
 from compensator.io import RunLogAppender
 

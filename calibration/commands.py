@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from compensator.io import load_any_model, read_run_log, save_model, write_run_log
+from compensator.shaping import ShaperConfig
 
 from .calibrate import Calibration, calibrate
 from .data import run_from_log
@@ -210,6 +211,9 @@ def print_replay_report(rep: Replay, out: Console) -> None:
         ("std uncompensated [um]", r["std_uncompensated_um"]),
         ("std compensated [um]", r["std_compensated_um"]),
         ("std reduction [%]", r["std_reduction_pct"]),
+        *([("RMS error of the applied offset [um]", r["applied_rms_residual_um"]),
+           ("max |error| of the applied offset [um]", r["applied_max_abs_residual_um"])]
+          if "applied_rms_residual_um" in r else []),
         (f"thermal equilibrium after [min] ({r['ste_source']})",
          None if r["equilibrium_time_s"] is None else r["equilibrium_time_s"] / 60),
         ("TEVR after equilibrium [um]", r["tevr_um"]),
@@ -226,7 +230,7 @@ def replay_cmd(args: argparse.Namespace) -> int:
     log = read_run_log(args.log)
     with progress(not args.json) as say:
         say("replaying")
-        rep = replay(model, log, args.initial_um)
+        rep = replay(model, log, args.initial_um, ShaperConfig() if args.applied else None)
         if args.output:
             say("writing predictions")
             write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})

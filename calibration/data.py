@@ -8,7 +8,7 @@ import numpy as np
 
 from compensator.errors import CalibrationError
 from compensator.io import RunLog
-from compensator.model import SPEED_SCALE_RPM
+from compensator.units import SPEED_SCALE_RPM
 
 MIN_ROWS = 20
 MAX_PLAUSIBLE_UM = 5000.0  # 5 mm: no spindle grows that much

@@ -3,7 +3,7 @@
 Every candidate is turned into a :class:`~compensator.model.ThermalModel` and
 judged in **free run** (the model feeds on its own output), with
 leave-one-run-out cross-validation when there are two or more runs
-(``shared/MODEL.md``, "One-step vs free run").
+(a one-step fit can score R² = 0.9999 and still drift in free run).
 
 Output-error fitting uses variable projection: for fixed time constants the
 free-run output is linear in every gain, so each evaluation filters the speed
@@ -22,12 +22,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 from compensator.errors import CalibrationError, ModelError
-from compensator.model import (
-    SPEED_SCALE_RPM,
-    ThermalModel,
-    ThermalStateCoefficients,
-    filter_state,
-)
+from compensator.model import ThermalModel, ThermalStateCoefficients, filter_state
+from compensator.units import SPEED_SCALE_RPM
 
 from .data import Run
 
@@ -46,10 +42,6 @@ class FormSpec:
     n_states: int = 1
     speed_state: bool = False
     elastic: bool = False
-
-    @property
-    def n_nonlinear(self) -> int:
-        return self.n_states + (1 if self.speed_state else 0)
 
 
 FORMS: tuple[FormSpec, ...] = (

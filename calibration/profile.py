@@ -1,6 +1,6 @@
 """Calibration speed profiles and the NC programs that run them. Pure: text in, text out.
 
-The calibration profile is the paper's (paper 001, Fig. 3; MODEL.md), scaled to the
+The calibration profile is the paper's (paper 001, Fig. 3; ``docs/REFERENCES.md``), scaled to the
 spindle's maximum speed: a staircase up, abrupt drops, a fluctuating phase, then a
 cool-down at 0 rpm. The validation profile is a different, random one.
 
@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
-from cnc_adapters.sim.programs import Program, paper_calibration, random_validation
+from compensator.programs import Program, paper_calibration, random_validation
 
 DIALECTS = ("fanuc", "sinumerik", "heidenhain", "linuxcnc")
 EXTENSIONS = {"fanuc": ".nc", "sinumerik": ".mpf", "heidenhain": ".h", "linuxcnc": ".ngc"}

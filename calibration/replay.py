@@ -15,8 +15,11 @@ from typing import Any
 import numpy as np
 from scipy.signal import savgol_filter
 
+from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.io import RunLog
-from compensator.model import RANGE_TOLERANCE, ThermalModel
+from compensator.predictor import Predictor
+from compensator.shaping import ShaperConfig, shape_series
+from compensator.units import RANGE_TOLERANCE
 
 from .calibrate import residual_stats
 
@@ -63,6 +66,8 @@ class Replay:
     measured_um: np.ndarray | None
     initial_um: float
     report: dict[str, Any]
+    applied_offset_um: np.ndarray | None = None
+    """The offset the runtime's shaper would have written (with ``shaping``), else None."""
 
     @property
     def offset_um(self) -> np.ndarray:
@@ -80,42 +85,43 @@ class Replay:
         cols["offset_um"] = self.offset_um
         if self.measured_um is not None:
             cols["residual_um"] = self.residual_um  # type: ignore[assignment]
+        if self.applied_offset_um is not None:
+            cols["applied_offset_um"] = self.applied_offset_um
+            if self.measured_um is not None:
+                cols["applied_residual_um"] = self.measured_um + self.applied_offset_um
         return cols
 
 
-def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) -> Replay:
-    """Free-run ``model`` over the log's own time stamps."""
+def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
+           shaping: ShaperConfig | None = None) -> Replay:
+    """Free-run ``model`` over the log's own time stamps.
+
+    With ``shaping``, the offset is also passed through the runtime's own shaper
+    (:func:`compensator.shaping.shape_series`): the report then gives the error of the offset
+    the machine would have held (``applied_*``) beside the model's.
+    """
     measured = log.elongation_um
     if initial_um is None:
         initial_um = float(measured[0]) if measured is not None else 0.0
     if not math.isfinite(initial_um):
-        from compensator.errors import NonFiniteInputError
-
         raise NonFiniteInputError(f"initial elongation is {initial_um}")
-    from compensator.inputs import AugmentedModel
-
-    if isinstance(model, AugmentedModel):
-        missing = [n for n in model.input_names if n not in log.extras]
-        if missing:
-            from compensator.errors import RunLogError
-
-            raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
-        inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
-        bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
-        if bad:
-            from compensator.errors import RunLogError
-
-            row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
-            raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
-        pred = model.simulate_um(log.speed_rpm, log.time_s, inputs, initial_um)
-    else:
-        state = model.state_at(initial_um, float(log.speed_rpm[0]))
-        pred = model.simulate(log.speed_rpm, log.time_s, state).elongation_um
+    missing = [n for n in model.input_names if n not in log.extras]
+    if missing:
+        raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
+    inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
+    bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
+    if bad:
+        row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
+        raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
+    pred = model.simulate_um(log.speed_rpm, log.time_s, inputs, initial_um)
+    applied = None
+    if shaping is not None:
+        applied, _ = shape_series(shaping, log.time_s, log.speed_rpm, pred)
 
     warnings: list[str] = []
     lo, hi = model.speed_range_rpm
     speed = np.abs(log.speed_rpm)
-    over = speed > hi * (1 + RANGE_TOLERANCE)
+    over = speed > hi * (1 + RANGE_TOLERANCE)  # Predictor.above_range, vectorised
     if over.any():
         k = int(np.flatnonzero(over)[0])
         line = log.line_of(k)
@@ -156,6 +162,10 @@ def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) ->
             std_reduction_pct=100.0 * (1 - std_c / std_u) if std_u > 0 else None,
             max_abs_uncompensated_um=float(np.max(np.abs(measured))),
         )
+        if applied is not None:
+            ast = residual_stats(measured + applied)
+            report.update(applied_rms_residual_um=ast["rms_um"],
+                          applied_max_abs_residual_um=ast["max_abs_um"])
         error = measured
     else:
         for key in ("max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
@@ -168,4 +178,4 @@ def replay(model: ThermalModel, log: RunLog, initial_um: float | None = None) ->
     report["tevr_um"] = tevr
     report["ste_source"] = "measured" if measured is not None else "predicted"
     report["warnings"] = warnings
-    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report)
+    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied)

@@ -153,7 +153,7 @@ class Wizard:
         self.save_session()
 
     def _links(self):
-        from cnc_adapters.base import open_adapter
+        from cnc_adapters import open_adapter
         from cnc_adapters.sensors import open_sensor
 
         return open_adapter(self.session["controller"]), open_sensor(self.session["sensor"])

@@ -1,49 +1,38 @@
 """The adapter family: one abstract base with a small template method (python-can style).
 
-Public :meth:`Adapter.read_speed` and :meth:`Adapter.write_offset_um` validate values,
-convert units and sign, and log; backends override only the raw calls
-``_connect``, ``_read_speed_raw``, ``_write_offset_raw`` and ``_disconnect``.
+Public :meth:`Adapter.read_speed` and :meth:`Adapter.write_offset_um` validate values
+(finite, sign), convert units and sign (:class:`compensator.units.ControllerUnits`, the only
+place um meet controller units) and log; backends override only the raw calls ``_connect``,
+``_read_speed_raw``, ``_write_offset_raw`` and ``_disconnect``. :class:`Link` is the
+reconnecting connection that adapters and sensors share.
 
-Backends are registered by name here and, for third parties, through the entry-point
-group ``thermocomp.adapters``. :func:`open_adapter` builds one from a URL
-(``opc.tcp://…``, ``serial:///dev/ttyUSB0?protocol=haas``, ``sim://…``) or a configuration mapping.
+Backends are registered by name in :mod:`cnc_adapters.registry`.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
 import random
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
-from compensator.errors import ThermocompError
+from compensator.errors import (
+    AdapterError,
+    AdapterTimeoutError,
+    BadValueError,
+    UnreachableError,
+    WriteRejectedError,
+)
+from compensator.units import ControllerUnits
+
+__all__ = ["Adapter", "AdapterError", "AdapterTimeoutError", "BadValueError", "Link",
+           "UnreachableError", "WriteRejectedError", "query_params", "typed_params"]
 
 log = logging.getLogger("thermocomp.adapters")
-
-
-class AdapterError(ThermocompError, OSError):
-    """A controller link failed."""
-
-
-class UnreachableError(AdapterError, ConnectionError):
-    """The controller cannot be reached (refused, unplugged, lost)."""
-
-
-class AdapterTimeoutError(AdapterError, TimeoutError):
-    """The controller did not answer in time."""
-
-
-class WriteRejectedError(AdapterError, PermissionError):
-    """The controller refused a write (access denied, type mismatch, out of range)."""
-
-
-class BadValueError(AdapterError, ValueError):
-    """A value read from the controller, or about to be written, is not usable."""
 
 
 class Link(ABC):
@@ -159,8 +148,8 @@ class Adapter(Link):
 
     ``offset_scale`` converts um to the controller's unit (0.001 for mm) and
     ``offset_sign`` flips the sign for controllers whose thermal offset points
-    the other way. ``speed_scale`` converts the controller's speed unit to rpm.
-    Reconnection, back-off and ``on_link_change`` are those of :class:`Link`.
+    the other way (:attr:`units`). ``speed_scale`` converts the controller's speed unit to
+    rpm. Reconnection, back-off and ``on_link_change`` are those of :class:`Link`.
     """
 
     def __init__(
@@ -171,23 +160,30 @@ class Adapter(Link):
         speed_scale: float = 1.0,
         **link: Any,
     ):
-        if offset_sign not in (1, -1):
-            raise ValueError("offset_sign must be +1 or -1")
-        if not (math.isfinite(offset_scale) and offset_scale != 0):
-            raise ValueError("offset_scale must be finite and non-zero")
+        self.units = ControllerUnits(float(offset_scale), int(offset_sign))
         super().__init__(**link)
-        self.offset_scale = offset_scale
-        self.offset_sign = offset_sign
         self.speed_scale = speed_scale
+        self.offset_um_requested: float | None = None
+
+    @property
+    def offset_scale(self) -> float:
+        return self.units.scale
+
+    @property
+    def offset_sign(self) -> int:
+        return self.units.sign
 
     # -- template methods ------------------------------------------------------
 
     def read_speed(self) -> float:
-        """Actual spindle speed [rpm]; raises :class:`BadValueError` on NaN or inf."""
+        """Actual spindle speed [rpm], as a magnitude (reverse rotation heats alike);
+        :class:`BadValueError` when not a finite number. The one check of every backend's speed."""
         self.open()
         raw = self._read_speed_raw()
+        if isinstance(raw, bool):
+            raise BadValueError(f"{self.name}: speed {raw!r} is not a number")
         try:
-            rpm = float(raw) * self.speed_scale
+            rpm = abs(float(raw) * self.speed_scale)
         except (TypeError, ValueError) as err:
             raise BadValueError(f"{self.name}: speed {raw!r} is not a number") from err
         if not math.isfinite(rpm):
@@ -196,16 +192,25 @@ class Adapter(Link):
 
     def write_offset_um(self, offset_um: float) -> None:
         """Write the thermal offset [um]; a non-finite value never leaves this method."""
-        if not isinstance(offset_um, (int, float)) or not math.isfinite(offset_um):
+        if isinstance(offset_um, bool) or not isinstance(offset_um, (int, float)) \
+                or not math.isfinite(offset_um):
             raise BadValueError(f"{self.name}: refusing to write offset {offset_um!r}")
         self.open()
-        raw = offset_um * self.offset_scale * self.offset_sign
+        raw = self.units.to_controller(offset_um)
         log.debug("%s: write offset %.4f um (raw %r)", self.name, offset_um, raw)
+        self.offset_um_requested = float(offset_um)
         self._write_offset_raw(raw)
 
     def take_write_mismatch(self) -> float | None:
         """For backends that check writes later: the offset [um] the controller holds when it
         did not take the last write, reported once; None when all is well."""
+        raw = self._take_mismatch_raw()
+        if raw is None or isinstance(raw, bool) or not isinstance(raw, (int, float)):
+            return None
+        return self.units.to_um(raw)
+
+    def _take_mismatch_raw(self) -> Any:
+        """Backend hook: the raw value the controller holds after a failed deferred check."""
         return None
 
     def input_channels(self) -> tuple[str, ...]:
@@ -243,55 +248,6 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
-
-
-BACKENDS: dict[str, str] = {
-    "sim": "cnc_adapters.sim.adapter:SimAdapter",
-    "opcua": "cnc_adapters.opcua:OpcUaAdapter",
-    "line": "cnc_adapters.serial_link:LineAdapter",
-    "haas": "cnc_adapters.serial_link:HaasAdapter",
-    "modbus": "cnc_adapters.modbus:ModbusRtuAdapter",
-    "linuxcnc": "cnc_adapters.linuxcnc:LinuxCncAdapter",
-}
-SCHEMES = {"opc.tcp": "opcua", "sim": "sim", "linuxcnc": "linuxcnc"}
-
-
-def backend(name: str) -> type[Adapter]:
-    """The adapter class registered as ``name`` (built in, or by entry point)."""
-    spec = BACKENDS.get(name)
-    if spec is None:
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group="thermocomp.adapters"):
-            if ep.name == name:
-                return ep.load()
-        known = sorted(set(BACKENDS) | {ep.name for ep in entry_points(group="thermocomp.adapters")})
-        raise AdapterError(f"unknown adapter {name!r}; known: {', '.join(known)}")
-    module, _, cls = spec.partition(":")
-    return getattr(importlib.import_module(module), cls)
-
-
-def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
-    """An adapter from a URL or a mapping with a ``type`` key (not yet connected)."""
-    if isinstance(target, str):
-        parts = urlsplit(target)
-        if parts.scheme == "serial":
-            from .serial_link import serial_from_url
-
-            return serial_from_url(target, **overrides)
-        kind = SCHEMES.get(parts.scheme)
-        if kind is None:
-            raise AdapterError(f"no adapter for URL scheme {parts.scheme!r} in {target!r}")
-        cls = backend(kind)
-        return cls.from_url(target, **overrides)  # type: ignore[attr-defined]
-    cfg = dict(target)
-    kind = cfg.pop("type", None)
-    if not kind and "url" in cfg:
-        return open_adapter(cfg.pop("url"), **cfg, **overrides)
-    if not kind:
-        raise AdapterError("adapter configuration needs a 'type' or a 'url'")
-    cfg.update(overrides)
-    return backend(kind)(**cfg)
 
 
 def query_params(url: str) -> dict[str, str]:

@@ -98,8 +98,6 @@ class LinuxCncAdapter(Adapter):
         self._stat = None
         self._lcnc = None
         self._ready = False
-        self._target = 0.0  # machine units, sign applied
-        self.reseeds = 0
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> LinuxCncAdapter:
@@ -161,8 +159,6 @@ class LinuxCncAdapter(Adapter):
         if ready != self._ready:
             log.info("linuxcnc: machine %s", "on and homed: external offsets honoured, re-seeding from 0"
                      if ready else "off, in E-stop or not homed: counts held at 0")
-            if ready:
-                self.reseeds += 1
             self._ready = ready
         if not ready:
             c["eoffset-counts"] = 0  # zeroed at machine-on anyway: no jump when it comes back
@@ -170,18 +166,14 @@ class LinuxCncAdapter(Adapter):
 
     def _read_speed_raw(self) -> float:
         self._update()
-        value = self._comp["speed-in"]
-        if not isinstance(value, (int, float)):
-            raise BadValueError(f"linuxcnc: speed-in holds {value!r}")
-        return abs(value)
+        return self._comp["speed-in"]
 
     def _write_offset_raw(self, value: float) -> None:
         counts = round(value / self.count)
         if abs(counts) > S32:
             raise BadValueError(f"linuxcnc: offset {value:g} does not fit the s32 counts at this scale")
-        self._target = value
         c = self._comp
-        c["offset-um"] = value / (self.offset_scale * self.offset_sign)
+        c["offset-um"] = self.offset_um_requested
         if self._ready:
             c["eoffset-counts"] = counts
 

@@ -13,7 +13,6 @@ exception reply (illegal address, device failure) is an :class:`AdapterError`, o
 
 from __future__ import annotations
 
-import math
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
@@ -167,10 +166,7 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         return cls(urlsplit(url).path, **kw)
 
     def _read_speed_raw(self) -> float:
-        value = self._read_value("read speed", self.speed_table, self.speed_register, self.speed_type)
-        if not math.isfinite(value):
-            raise BadValueError(f"modbus: speed register holds {value}")
-        return abs(value)
+        return self._read_value("read speed", self.speed_table, self.speed_register, self.speed_type)
 
     def input_channels(self) -> tuple[str, ...]:
         return tuple(self.input_registers)

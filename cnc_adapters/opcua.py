@@ -66,64 +66,20 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-class OpcUaAdapter(Adapter):
-    name = "opcua"
+class OpcUaLink:
+    """Mixin for :class:`~cnc_adapters.base.Link` subclasses: an asyncua client session with
+    optional security and credentials, shared by the adapter and the OPC UA sensor. Call
+    :meth:`_init_opcua` from ``__init__``; implement :meth:`_on_connected` to look up nodes."""
 
-    def __init__(
-        self,
-        url: str,
-        *,
-        preset: str = "generic",
-        speed_node: str | None = None,
-        offset_node: str | None = None,
-        speed_path: str | None = None,
-        offset_path: str | None = None,
-        spindle: str = "Spindle1",
-        namespace_uri: str | None = None,
-        r_parameter: int = 1,
-        timeout_s: float = 4.0,
-        verify_writes: bool | str = True,
-        security: str = "None",
-        certificate: str | None = None,
-        private_key: str | None = None,
-        trust_dir: str | None = None,
-        username_env: str = "THERMOCOMP_OPCUA_USER",
-        password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
-        password_file: str | None = None,
-        application_uri: str = "urn:thermocomp:client",
-        read_mode: str = "poll",
-        publish_interval_ms: float = 50.0,
-        input_nodes: dict[str, str] | None = None,
-        **scaling: Any,
-    ):
-        if preset not in PRESETS:
-            raise AdapterError(f"unknown OPC UA preset {preset!r}; known: {', '.join(PRESETS)}")
-        p = dict(PRESETS[preset])
-        for key in ("offset_scale", "offset_sign", "speed_scale"):
-            if key in p and key not in scaling:
-                scaling[key] = p[key]
-        super().__init__(**scaling)
+    name: str
+
+    def _init_opcua(self, url: str, *, namespace_uri: str | None, timeout_s: float, security: str,
+                    certificate: str | None, private_key: str | None, trust_dir: str | None,
+                    username_env: str, password_env: str, password_file: str | None,
+                    application_uri: str) -> None:
         self.url = url
-        self.speed_node = speed_node or (None if speed_path else p.get("speed_node"))
-        self.offset_node = offset_node or (None if offset_path else p.get("offset_node"))
-        self.speed_path = None if self.speed_node else (speed_path or p.get("speed_path"))
-        self.offset_path = None if self.offset_node else (offset_path or p.get("offset_path"))
-        if self.speed_path:
-            self.speed_path = self.speed_path.replace("{spindle}", spindle)
-        if not (self.speed_node or self.speed_path) or not (self.offset_node or self.offset_path):
-            raise AdapterError("OPC UA adapter needs the speed and offset nodes (node id or browse "
-                               "path), or a preset that names them")
-        if self.offset_node:
-            self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
-        self.namespace_uri = namespace_uri or p.get("namespace_uri")
+        self.namespace_uri = namespace_uri
         self.timeout_s = timeout_s
-        # True/"immediate": read the offset back after each write (one more round trip);
-        # "deferred": check it within the next speed read (one batched request); False: never
-        if verify_writes not in (True, False, "immediate", "deferred"):
-            raise AdapterError("opcua: verify_writes is true, false, 'immediate' or 'deferred'")
-        self.verify_writes = "immediate" if verify_writes is True else verify_writes
-        self._unverified: float | None = None
-        self._mismatch: float | None = None
         self.security = security
         if security != "None":
             policy, _, mode = security.partition(",")
@@ -139,23 +95,7 @@ class OpcUaAdapter(Adapter):
         self.password_env = password_env
         self.password_file = password_file
         self.application_uri = application_uri
-        if read_mode not in ("poll", "subscribe"):
-            raise AdapterError("opcua: read_mode is 'poll' or 'subscribe'")
-        self.read_mode = read_mode
-        self.publish_interval_ms = publish_interval_ms
-        self._latest: _Latest | None = None
-        # extra channels (temperatures, load) by name: node ids ({ns} allowed) or browse paths
-        self.input_nodes = dict(input_nodes if input_nodes is not None else p.get("input_nodes", {}))
-        self._inputs: dict[str, Any] = {}
         self._client = None
-        self._speed = None
-        self._offset = None
-
-    @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> OpcUaAdapter:
-        base = url.split("?", 1)[0]
-        kw = {**typed_params(url), **overrides}
-        return cls(base, **kw)
 
     def _call(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError):
         """Run one client call; map its failures onto the adapter exception tree."""
@@ -250,30 +190,124 @@ class OpcUaAdapter(Adapter):
             ns = ""
             if self.namespace_uri:
                 ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri))
-            self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
-            self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
-            self._call("read speed node", self._speed.read_value)
-            self._inputs = {name: (self._resolve(client, ref, None, ns) if not ref.startswith("0:")
-                                   else self._resolve(client, None, ref, ns))
-                            for name, ref in self.input_nodes.items()}
-            if self._inputs:
-                self._call("read input nodes", client.read_values, list(self._inputs.values()))
-            if self.read_mode == "subscribe":
-                self._latest = _Latest()
-                sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
-                                 self._latest)
-                self._call("subscribe", sub.subscribe_data_change, self._speed)
+            self._on_connected(client, ns)
         except (AdapterError, ValueError) as err:
             self._disconnect()
             if isinstance(err, AdapterError):
                 raise
             raise AdapterError(f"opcua: bad node id: {err}") from err
 
+    def _on_connected(self, client: Any, ns: str) -> None:
+        """Look up the nodes of this link (``ns``: the index of ``namespace_uri``)."""
+
+    def _close_client(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            try:
+                client.disconnect()
+            except Exception:  # noqa: BLE001 - a dead link cannot be closed more cleanly
+                pass
+
+    def _disconnect(self) -> None:
+        self._close_client()
+
     def _resolve(self, client, node_id: str | None, path: str | None, ns: str):
         if node_id:
             return client.get_node(node_id.replace("{ns}", ns))
         parts = path.replace("{ns}", ns).strip("/").split("/")  # type: ignore[union-attr]
         return self._call(f"browse {path}", client.nodes.root.get_child, parts)
+
+
+class OpcUaAdapter(OpcUaLink, Adapter):
+    name = "opcua"
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        preset: str = "generic",
+        speed_node: str | None = None,
+        offset_node: str | None = None,
+        speed_path: str | None = None,
+        offset_path: str | None = None,
+        spindle: str = "Spindle1",
+        namespace_uri: str | None = None,
+        r_parameter: int = 1,
+        timeout_s: float = 4.0,
+        verify_writes: bool | str = True,
+        security: str = "None",
+        certificate: str | None = None,
+        private_key: str | None = None,
+        trust_dir: str | None = None,
+        username_env: str = "THERMOCOMP_OPCUA_USER",
+        password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
+        password_file: str | None = None,
+        application_uri: str = "urn:thermocomp:client",
+        read_mode: str = "poll",
+        publish_interval_ms: float = 50.0,
+        input_nodes: dict[str, str] | None = None,
+        **scaling: Any,
+    ):
+        if preset not in PRESETS:
+            raise AdapterError(f"unknown OPC UA preset {preset!r}; known: {', '.join(PRESETS)}")
+        p = dict(PRESETS[preset])
+        for key in ("offset_scale", "offset_sign", "speed_scale"):
+            if key in p and key not in scaling:
+                scaling[key] = p[key]
+        super().__init__(**scaling)
+        self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
+                         security=security, certificate=certificate, private_key=private_key,
+                         trust_dir=trust_dir, username_env=username_env, password_env=password_env,
+                         password_file=password_file, application_uri=application_uri)
+        self.speed_node = speed_node or (None if speed_path else p.get("speed_node"))
+        self.offset_node = offset_node or (None if offset_path else p.get("offset_node"))
+        self.speed_path = None if self.speed_node else (speed_path or p.get("speed_path"))
+        self.offset_path = None if self.offset_node else (offset_path or p.get("offset_path"))
+        if self.speed_path:
+            self.speed_path = self.speed_path.replace("{spindle}", spindle)
+        if not (self.speed_node or self.speed_path) or not (self.offset_node or self.offset_path):
+            raise AdapterError("OPC UA adapter needs the speed and offset nodes (node id or browse "
+                               "path), or a preset that names them")
+        if self.offset_node:
+            self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
+        # True/"immediate": read the offset back after each write (one more round trip);
+        # "deferred": check it within the next speed read (one batched request); False: never
+        if verify_writes not in (True, False, "immediate", "deferred"):
+            raise AdapterError("opcua: verify_writes is true, false, 'immediate' or 'deferred'")
+        self.verify_writes = "immediate" if verify_writes is True else verify_writes
+        self._unverified: float | None = None
+        self._mismatch: float | None = None
+        if read_mode not in ("poll", "subscribe"):
+            raise AdapterError("opcua: read_mode is 'poll' or 'subscribe'")
+        self.read_mode = read_mode
+        self.publish_interval_ms = publish_interval_ms
+        self._latest: _Latest | None = None
+        # extra channels (temperatures, load) by name: node ids ({ns} allowed) or browse paths
+        self.input_nodes = dict(input_nodes if input_nodes is not None else p.get("input_nodes", {}))
+        self._inputs: dict[str, Any] = {}
+        self._speed = None
+        self._offset = None
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: Any) -> OpcUaAdapter:
+        base = url.split("?", 1)[0]
+        kw = {**typed_params(url), **overrides}
+        return cls(base, **kw)
+
+    def _on_connected(self, client: Any, ns: str) -> None:
+        self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
+        self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
+        self._call("read speed node", self._speed.read_value)
+        self._inputs = {name: (self._resolve(client, ref, None, ns) if not ref.startswith("0:")
+                               else self._resolve(client, None, ref, ns))
+                        for name, ref in self.input_nodes.items()}
+        if self._inputs:
+            self._call("read input nodes", client.read_values, list(self._inputs.values()))
+        if self.read_mode == "subscribe":
+            self._latest = _Latest()
+            sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
+                             self._latest)
+            self._call("subscribe", sub.subscribe_data_change, self._speed)
 
     def _read_speed_raw(self) -> Any:
         if self._latest is not None:
@@ -293,7 +327,7 @@ class OpcUaAdapter(Adapter):
             value = self._call("read speed", self._speed.read_value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
-        return abs(value)
+        return value
 
     def input_channels(self) -> tuple[str, ...]:
         return tuple(self.input_nodes)
@@ -315,23 +349,16 @@ class OpcUaAdapter(Adapter):
             if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
                 raise WriteRejectedError(f"opcua: wrote {value!r}, controller holds {back!r}")
 
-    def take_write_mismatch(self) -> float | None:
-        """The offset [um] the controller holds, if a deferred check found that it did not
-        take the last write; None otherwise. Reported once."""
+    def _take_mismatch_raw(self) -> Any:
+        """What the controller holds, if a deferred check found that it did not take the last
+        write; reported once."""
         held, self._mismatch = self._mismatch, None
-        if held is None or not isinstance(held, (int, float)):
-            return None
-        return held / (self.offset_scale * self.offset_sign)
+        return held
 
     def _disconnect(self) -> None:
         self._latest = None
         self._unverified = None
-        client, self._client = self._client, None
-        if client is not None:
-            try:
-                client.disconnect()
-            except Exception:  # noqa: BLE001 - a dead link cannot be closed more cleanly
-                pass
+        self._close_client()
 
 
 class _Latest:

@@ -29,15 +29,14 @@ from collections.abc import Mapping
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
+from compensator.errors import SensorOverRangeError
+
 from .base import AdapterError, BadValueError, Link, query_params, typed_params
 from .modbus import ModbusLink, check_types
+from .opcua import OpcUaLink
 from .serial_link import NUMBER, SerialLine
 
 ABSOLUTE_LIMIT_UM = 1e6  # 1 m: anything beyond is a unit or wiring fault, not a reading
-
-
-class SensorOverRangeError(BadValueError):
-    """The sensor reports its measuring range exceeded (the probe is saturated)."""
 
 
 def _range(value: Any) -> tuple[float, float] | None:
@@ -148,8 +147,8 @@ class ModbusSensor(ModbusLink, Sensor):
         return value
 
 
-class OpcUaSensor(Sensor):
-    """A displacement node on an OPC UA server (same options as the OPC UA adapter)."""
+class OpcUaSensor(OpcUaLink, Sensor):
+    """A displacement node on an OPC UA server (the OPC UA adapter's session and security)."""
 
     name = "opcua"
     PRESETS = {"virtual-cnc": {"namespace_uri": "urn:thermocomp:virtual-cnc",
@@ -157,39 +156,38 @@ class OpcUaSensor(Sensor):
 
     def __init__(self, url: str, *, preset: str | None = None, node: str | None = None,
                  path: str | None = None, namespace_uri: str | None = None,
-                 timeout_s: float = 4.0, **kw: Any):
-        link = {k: kw.pop(k) for k in ("backoff_s", "max_backoff_s", "jitter", "on_link_change",
-                                       "clock", "rng") if k in kw}
-        scaling = {k: kw.pop(k) for k in ("scale", "offset_um", "range_um") if k in kw}
-        super().__init__(**scaling, **link)
+                 timeout_s: float = 4.0, security: str = "None", certificate: str | None = None,
+                 private_key: str | None = None, trust_dir: str | None = None,
+                 username_env: str = "THERMOCOMP_OPCUA_USER",
+                 password_env: str = "THERMOCOMP_OPCUA_PASSWORD", password_file: str | None = None,
+                 application_uri: str = "urn:thermocomp:client", **kw: Any):
+        super().__init__(**kw)
         p = self.PRESETS.get(preset or "", {})
         if preset and not p:
             raise AdapterError(f"opcua sensor: unknown preset {preset!r}; known: {', '.join(self.PRESETS)}")
-        node = node or (None if path else p.get("node"))
-        if not (node or path):
+        self.node_id = node or (None if path else p.get("node"))
+        self.path = None if self.node_id else path
+        if not (self.node_id or self.path):
             raise AdapterError("opcua sensor: give node (node id), path (browse path) or a preset")
-        from .opcua import OpcUaAdapter
+        self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
+                         security=security, certificate=certificate, private_key=private_key,
+                         trust_dir=trust_dir, username_env=username_env, password_env=password_env,
+                         password_file=password_file, application_uri=application_uri)
+        self._node = None
 
-        # the adapter's connection, security and node lookup; its offset node is never written
-        self._ua = OpcUaAdapter(url, speed_node=node, offset_node=node or None, speed_path=path,
-                                offset_path=path, namespace_uri=namespace_uri or p.get("namespace_uri"),
-                                timeout_s=timeout_s, verify_writes=False, backoff_s=0.0, jitter=0.0,
-                                **kw)
-        self.url = url
-
-    def _connect(self) -> None:
-        self._ua.open()
+    def _on_connected(self, client: Any, ns: str) -> None:
+        self._node = self._resolve(client, self.node_id, self.path, ns)
+        self._call("read displacement node", self._node.read_value)
 
     def _read_raw(self) -> Any:
-        self._ua.open()  # reopens after a lost link
-        value = self._ua._call("read displacement", self._ua._speed.read_value)
+        value = self._call("read displacement", self._node.read_value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua sensor: node holds {type(value).__name__}, not a number")
         return value
 
     def _disconnect(self) -> None:
-        self._ua._disconnect()
-        self._ua._open = False
+        self._node = None
+        self._close_client()
 
 
 SENSORS: dict[str, type[Sensor]] = {"ascii": AsciiSensor, "modbus": ModbusSensor, "opcua": OpcUaSensor}

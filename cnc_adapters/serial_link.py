@@ -30,7 +30,6 @@ from .base import (
     BadValueError,
     UnreachableError,
     WriteRejectedError,
-    query_params,
     typed_params,
 )
 
@@ -149,7 +148,7 @@ class LineAdapter(SerialLine, Adapter):
         m = self.speed_reply.match(reply)
         if m is None:
             raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {self.speed_request!r}")
-        return abs(float(m.group("value")))
+        return float(m.group("value"))
 
     def _write_offset_raw(self, value: float) -> None:
         request = self.offset_request.format(value=value)
@@ -176,15 +175,3 @@ class HaasAdapter(LineAdapter):
         kw.setdefault("reject_reply", r"^>?\s*(\?|INVALID|ERROR|NOT ALLOWED).*")
         kw.setdefault("eol", "\r\n")
         super().__init__(port, **kw)
-
-
-def serial_from_url(url: str, **overrides: Any) -> Adapter:
-    protocol = query_params(url).get("protocol", "line")
-    cls = {"line": LineAdapter, "haas": HaasAdapter}.get(protocol)
-    if cls is None:
-        from .modbus import ModbusRtuAdapter
-
-        if protocol == "modbus":
-            return ModbusRtuAdapter.from_url(url, **overrides)
-        raise AdapterError(f"unknown serial protocol {protocol!r}; known: line, haas, modbus")
-    return cls.from_url(url, **overrides)

@@ -1,4 +1,5 @@
-"""thermocomp compensator: the pure thermal model, offset shaping and the runtime."""
+"""thermocomp's pure core: the thermal models, the predictor interface, offset shaping, units,
+speed programs and the clock protocol. No I/O here; files live in :mod:`compensator.io`."""
 
 from .errors import (
     CalibrationError,
@@ -12,22 +13,22 @@ from .errors import (
 )
 from .model import (
     MODEL_FORMAT,
-    SPEED_SCALE_RPM,
     DiscreteModel,
     ModelState,
     Simulation,
     ThermalModel,
     ThermalStateCoefficients,
 )
+from .predictor import Predictor
 from .shaping import Flag, OffsetShaper, ShapedOffset, ShaperConfig, ShaperState, TransientPolicy
-
-__version__ = "0.1.0"
+from .units import SPEED_SCALE_RPM, ControllerUnits
 
 __all__ = [
     "MODEL_FORMAT",
     "SPEED_SCALE_RPM",
     "CalibrationError",
     "ConfigError",
+    "ControllerUnits",
     "DiscreteModel",
     "Flag",
     "ModelError",
@@ -35,6 +36,7 @@ __all__ = [
     "ModelState",
     "NonFiniteInputError",
     "OffsetShaper",
+    "Predictor",
     "RunLogError",
     "ShapedOffset",
     "ShaperConfig",

@@ -49,3 +49,30 @@ class CalibrationError(ThermocompError, ValueError):
 
 class AcquisitionError(ThermocompError, RuntimeError):
     """A recording stopped on a fault (sensor lost, saturated, frozen). What was recorded is kept."""
+
+
+# -- controller and sensor links (raised by cnc_adapters) ---------------------------------
+
+
+class AdapterError(ThermocompError, OSError):
+    """A controller or sensor link failed."""
+
+
+class UnreachableError(AdapterError, ConnectionError):
+    """The controller cannot be reached (refused, unplugged, lost)."""
+
+
+class AdapterTimeoutError(AdapterError, TimeoutError):
+    """The controller did not answer in time."""
+
+
+class WriteRejectedError(AdapterError, PermissionError):
+    """The controller refused a write (access denied, type mismatch, out of range)."""
+
+
+class BadValueError(AdapterError, ValueError):
+    """A value read from the controller, or about to be written, is not usable."""
+
+
+class SensorOverRangeError(BadValueError):
+    """The sensor reports its measuring range exceeded (the probe is saturated)."""

@@ -12,6 +12,8 @@ the start of the calibration runs: a spindle at rest overnight), ``g_j`` in um p
 
 The same value also carries ``fallback``: the best speed-only model, which the runtime uses when a
 sensor fails (stale, out of range, NaN), so it never writes an offset built on garbage.
+:class:`AugmentedModel` implements :class:`~compensator.predictor.Predictor`; its state carries the
+references of the cold start, so the runtime keeps them across restarts.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .errors import ModelError, NonFiniteInputError
 from .model import ModelState, ThermalModel
+from .units import require_dt
 
 AUGMENTED_FORMAT = "thermocomp.augmented-model/1"
 
@@ -90,6 +93,10 @@ class AugmentedModel(BaseModel):
     def speed_range_rpm(self) -> tuple[float, float]:
         return self.speed_model.speed_range_rpm
 
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> AugmentedModel:  # type: ignore[override]
+        return cls(**obj) if isinstance(obj, Mapping) else super().model_validate(obj, **kwargs)
+
     def above_range(self, speed_rpm: float) -> bool:
         return self.speed_model.above_range(speed_rpm)
 
@@ -131,11 +138,12 @@ class AugmentedModel(BaseModel):
             total += first_order(drive, np.diff(t, prepend=t[0]), term.tau_s, float(drive[0]))
         return total
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray, inputs: Mapping[str, np.ndarray],
+    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
+                    inputs: Mapping[str, np.ndarray] | None = None,
                     initial_um: float = 0.0) -> np.ndarray:
         """Free-run elongation; the speed part starts from ``initial_um`` less the input terms'
         share at the first sample (each input term starts at its equilibrium)."""
-        response = self.input_response(time_s, inputs)
+        response = self.input_response(time_s, inputs or {})
         state = self.speed_model.state_at(initial_um - float(response[0]), float(np.abs(speed_rpm[0])))
         base = self.speed_model.simulate(np.asarray(speed_rpm, float), np.asarray(time_s, float),
                                          state).elongation_um
@@ -143,30 +151,68 @@ class AugmentedModel(BaseModel):
 
     # -- the runtime's step ---------------------------------------------------------
 
-    def start(self, speed_state: ModelState, inputs: Mapping[str, float],
-              references: Mapping[str, float]) -> AugmentedState:
-        """Input terms at their equilibrium for ``inputs``."""
-        x = tuple(t.gain_um_per_unit * (float(inputs[t.name]) - references[t.name]) for t in self.inputs)
-        return AugmentedState(speed_state, x)
+    def start(self, elongation_um: float, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+              references: Mapping[str, float] | None = None) -> AugmentedState:
+        """Input terms at their equilibrium for ``inputs``, the speed part at ``elongation_um`` less
+        their share. Without ``references`` these inputs are the cold start's (:meth:`references`)."""
+        if inputs is None:
+            raise ModelError(f"the model needs inputs {', '.join(self.input_names)} to start")
+        refs = dict(references) if references is not None else self.references(inputs)
+        x = tuple(t.gain_um_per_unit * (float(inputs[t.name]) - refs[t.name]) for t in self.inputs)
+        speed = self.speed_model.state_at(elongation_um - float(sum(x)), speed_rpm)
+        return AugmentedState(speed, x, refs)
 
-    def step(self, state: AugmentedState, speed_rpm: float, inputs: Mapping[str, float],
-             references: Mapping[str, float], dt_s: float) -> AugmentedState:
+    def step(self, state: AugmentedState, speed_rpm: float, dt_s: float,
+             inputs: Mapping[str, float] | None = None) -> AugmentedState:
+        if inputs is None:
+            raise ModelError(f"the model needs inputs {', '.join(self.input_names)} to step")
+        dt_s = require_dt(dt_s)
         speed_state = self.speed_model.step(state.speed, speed_rpm, dt_s)
+        refs = state.references
         x = []
         for term, xj in zip(self.inputs, state.inputs):
-            drive = term.gain_um_per_unit * (float(inputs[term.name]) - references[term.name])
+            drive = term.gain_um_per_unit * (float(inputs[term.name]) - refs[term.name])
             if term.tau_s == 0:
                 x.append(drive)
             else:
                 a = math.exp(-dt_s / term.tau_s)
                 x.append(a * xj + (1 - a) * drive)
-        return AugmentedState(speed_state, tuple(x))
+        return AugmentedState(speed_state, tuple(x), refs)
+
+    def state_dict(self, state: AugmentedState) -> dict[str, Any]:
+        return {"speed": self.speed_model.state_dict(state.speed), "inputs_um": list(state.inputs),
+                "references": dict(state.references)}
+
+    def state_from_dict(self, data: Mapping[str, Any]) -> AugmentedState:
+        try:
+            x = tuple(float(v) for v in data["inputs_um"])
+            refs = {t.name: float(data["references"][t.name]) for t in self.inputs}
+            speed = self.speed_model.state_from_dict(data["speed"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ModelError(f"saved state is not a state of this model ({err})") from err
+        if len(x) != len(self.inputs) or not all(math.isfinite(v) for v in (*x, *refs.values())):
+            raise ModelError("saved state does not fit the model's inputs")
+        return AugmentedState(speed, x, refs)
+
+    def describe(self) -> list[str]:
+        lines = [f"{self.format}, inputs {', '.join(self.input_names)}, spindle {self.spindle_id!r}"]
+        for t in self.inputs:
+            dyn = "static" if t.tau_s == 0 else f"lag {t.tau_s:g} s"
+            ref = "its value at a cold start" if t.reference_mode == "start" else f"{t.reference:g} {t.unit}"
+            lines.append(f"  {t.name}: {t.gain_um_per_unit:.4g} um/{t.unit}, {dyn}, relative to {ref}, "
+                         f"valid {t.valid_range[0]:.3g}..{t.valid_range[1]:.3g} {t.unit}")
+        if self.fit:
+            lines.append("  fit: " + ", ".join(f"{k}={v}" for k, v in self.fit.items()))
+        lines.append("  speed part (fitted with the inputs):")
+        lines.append(f"  fallback when a sensor fails: {self.fallback.form} (speed only)")
+        return lines + self.speed_model.describe()
 
 
 @dataclass(frozen=True)
 class AugmentedState:
     speed: ModelState
     inputs: tuple[float, ...]
+    references: Mapping[str, float]
 
     @property
     def elongation_um(self) -> float:

@@ -1,6 +1,6 @@
 """The cumulative thermal-elongation model: a pure, immutable value.
 
-The model follows eq. 10 of paper 001 (see ``shared/MODEL.md``), generalised to
+The model follows eq. 10 of paper 001 (``docs/REFERENCES.md``), generalised to
 one or more parallel first-order thermal states plus an instantaneous (elastic)
 speed-dependent term. For state *j*, with the speed held at n over a step::
 
@@ -20,23 +20,25 @@ Stepping uses the exact zero-order-hold solution of that linear system::
 
 so a model fitted at 60 s steps correctly at 0.1 s, 1 s or irregular
 intervals: ``a' = a**(dt'/dt)`` and the input gain scales by
-``(1 - a')/(1 - a)`` (MODEL.md, "Sample period").
+``(1 - a')/(1 - a)``.
 
 Convention: ``speed_rpm`` passed to :meth:`ThermalModel.step` is held over the
 whole step; in :meth:`ThermalModel.simulate` ``speeds[k]`` is held over
 ``(times[k-1], times[k]]``, which is the paper's ``S_k = a*S_{k-1} + f(n_k)``.
 
 This module does no I/O; reading and writing model files lives in
-:mod:`compensator.io`.
+:mod:`compensator.io.modelfile`. :class:`ThermalModel` implements
+:class:`~compensator.predictor.Predictor`.
 
 References
 ----------
-Paper 001 in ``shared/papers`` (cumulative model, eqs. 10-13).
+Paper 001, the cumulative thermal-error model, eqs. 10-13 (``docs/REFERENCES.md``).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -51,13 +53,10 @@ from pydantic import (
 )
 
 from .errors import ModelError, NonFiniteInputError, UnstableModelError
+from .units import RANGE_TOLERANCE, SPEED_SCALE_RPM, require_dt, require_finite, speed_krpm, speed_magnitude_rpm
 
 MODEL_FORMAT = "thermocomp.model/1"
-SPEED_SCALE_RPM = 1000.0
-"""Speeds are scaled to krpm internally: coefficients are per krpm**i."""
 
-RANGE_TOLERANCE = 0.02
-"""Speeds up to 2 % above the calibrated maximum still count as in range."""
 _CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
 _MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
 
@@ -213,30 +212,77 @@ class ThermalModel(BaseModel):
         return len(self.states)
 
     def elastic(self, speed_rpm: float) -> float:
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        n = speed_krpm(speed_rpm)
         e1, e2 = self.elastic_um
         return (e2 * n + e1) * n
 
     def time_constants_s(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        n = speed_krpm(speed_rpm)
         return tuple(1.0 / st.rate_per_s(n) for st in self.states)
 
     def steady_state_um(self, speed_rpm: float) -> float:
         """Equilibrium elongation when ``speed_rpm`` is held forever [um]."""
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        n = speed_krpm(speed_rpm)
         return sum(st.generation(n) / st.rate_per_s(n) for st in self.states) + self.elastic(
             speed_rpm
         )
 
     def above_range(self, speed_rpm: float) -> bool:
         """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation."""
-        return abs(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
+        return speed_magnitude_rpm(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
 
     def discretize(self, dt_s: float) -> DiscreteModel:
         """The exact zero-order-hold model at a fixed period: a new value."""
         if not (math.isfinite(dt_s) and dt_s > 0):
             raise ModelError(f"dt_s must be finite and > 0, got {dt_s}")
         return DiscreteModel(self, float(dt_s))
+
+    # -- the Predictor interface (speed only: no inputs, no fallback) -----------
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return ()
+
+    @property
+    def fallback(self) -> None:
+        return None
+
+    def check_inputs(self, values: Mapping[str, float]) -> str | None:
+        return None
+
+    def start(self, elongation_um: float, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+              references: Mapping[str, float] | None = None) -> ModelState:
+        return self.state_at(elongation_um, speed_rpm)
+
+    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
+                    inputs: Mapping[str, np.ndarray] | None = None,
+                    initial_um: float = 0.0) -> np.ndarray:
+        state = self.state_at(initial_um, float(np.asarray(speed_rpm, dtype=float)[0]))
+        return self.simulate(speed_rpm, time_s, state).elongation_um
+
+    def state_dict(self, state: ModelState) -> dict[str, Any]:
+        return {"thermal_um": list(state.thermal_um)}
+
+    def state_from_dict(self, data: Mapping[str, Any]) -> ModelState:
+        """A state saved by :meth:`state_dict`; :class:`ModelError` if it does not fit this model."""
+        try:
+            thermal = tuple(require_finite("thermal_um", x) for x in data["thermal_um"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ModelError(f"saved state is not a state of this model ({err})") from err
+        if len(thermal) != self.order:
+            raise ModelError(f"saved state has {len(thermal)} thermal states, the model {self.order}")
+        return ModelState(thermal, 0.0)
+
+    def describe(self) -> list[str]:
+        lo, hi = self.speed_range_rpm
+        lines = [f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
+                 f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; stable over that range"]
+        for n in (0.0, hi / 2, hi):
+            taus = ", ".join(f"{t / 60:.1f}" for t in self.time_constants_s(n))
+            lines.append(f"  at {n:7.0f} rpm: tau = {taus} min, equilibrium {self.steady_state_um(n):7.2f} um")
+        if self.fit:
+            lines.append("  fit: " + ", ".join(f"{k}={v}" for k, v in self.fit.items()))
+        return lines
 
     # -- state --------------------------------------------------------------
 
@@ -252,11 +298,10 @@ class ThermalModel(BaseModel):
         equilibrium); where those shares are not all of one sign it is split
         evenly.
         """
-        _check_finite("elongation_um", elongation_um)
-        _check_finite("speed_rpm", speed_rpm)
+        require_finite("elongation_um", elongation_um)
         elastic = self.elastic(speed_rpm)
         thermal = elongation_um - elastic
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
+        n = speed_krpm(speed_rpm)
         shares = [st.generation(n) / st.rate_per_s(n) for st in self.states]
         total = sum(shares)
         if total != 0 and (all(s >= 0 for s in shares) or all(s <= 0 for s in shares)):
@@ -267,22 +312,20 @@ class ThermalModel(BaseModel):
 
     # -- stepping -----------------------------------------------------------
 
-    def step(self, state: ModelState, speed_rpm: float, dt_s: float) -> ModelState:
+    def step(self, state: ModelState, speed_rpm: float, dt_s: float,
+             inputs: Mapping[str, float] | None = None) -> ModelState:
         """Advance ``state`` by ``dt_s`` seconds with ``speed_rpm`` held.
 
         Negative speed is reverse rotation (|n| is used); NaN or inf raises
-        :class:`NonFiniteInputError`, as does a negative ``dt_s``.
+        :class:`NonFiniteInputError`, as does a negative ``dt_s``. ``inputs`` is ignored:
+        this model uses speed only.
         """
-        _check_finite("speed_rpm", speed_rpm)
-        _check_finite("dt_s", dt_s)
-        if dt_s < 0:
-            raise NonFiniteInputError(f"dt_s must be >= 0, got {dt_s}")
+        n = speed_krpm(speed_rpm)
+        dt_s = require_dt(dt_s)
         if len(state.thermal_um) != self.order:
             raise ModelError(
                 f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
             )
-        speed_rpm, dt_s = float(speed_rpm), float(dt_s)
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
         new = []
         for x, st in zip(state.thermal_um, self.states):
             lam = st.rate_per_s(n)
@@ -375,11 +418,6 @@ def _model_error(err: ValidationError) -> ModelError:
     where = ".".join(str(p) for p in item["loc"]) or "model"
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return ModelError(f"{where}: {item['msg']}{more}")
-
-
-def _check_finite(name: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise NonFiniteInputError(f"{name} is {value}")
 
 
 def _generation(
@@ -549,11 +587,6 @@ class DiscreteModel:
 
     continuous: ThermalModel
     dt_s: float
-
-    def poles(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
-        """a_j(n) = exp(-lambda_j(n)*dt) per state."""
-        n = abs(speed_rpm) / SPEED_SCALE_RPM
-        return tuple(math.exp(-st.rate_per_s(n) * self.dt_s) for st in self.continuous.states)
 
     def paper_coefficients(self) -> dict[str, float]:
         """(a, b0..b3 per krpm**i) of ``S_k = a*S_{k-1} + f(n_k)``.

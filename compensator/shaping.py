@@ -1,8 +1,10 @@
 """Offset shaping: from a predicted elongation S to the offset A = -S written to the CNC.
 
 Kept apart from the model: the model says where the tool tip is, the shaper
-decides what the controller may be told and when. Pure functions over an
-immutable :class:`ShaperState`; no clock, no I/O.
+decides what the controller may be told and when. :func:`shape` is the pure
+transition over an immutable :class:`ShaperState`; :class:`OffsetShaper` owns
+that state and is the one shaping path of the runtime and of replay
+(:func:`shape_series`). No clock, no I/O.
 
 Order of operations each sample:
 
@@ -24,12 +26,13 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .errors import NonFiniteInputError
+from .units import require_dt, require_finite, speed_magnitude_rpm
 
 
 class Flag(enum.IntFlag):
@@ -110,87 +113,131 @@ class ShapedOffset:
     desired_um: float
 
 
+def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
+    """State for a controller that currently holds ``offset_um`` (clamped)."""
+    require_finite("initial offset", offset_um)
+    m = config.max_offset_um
+    held = min(max(offset_um, -m), m)
+    return ShaperState(output_um=held, target_um=held)
+
+
+def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,
+          dt_s: float) -> tuple[ShaperState, ShapedOffset]:
+    """One sample, ``dt_s`` seconds after the previous one: the new state and what to write."""
+    require_finite("elongation_um", elongation_um)
+    n = speed_magnitude_rpm(speed_rpm)
+    dt_s = require_dt(dt_s)
+    cfg = config
+    pol = cfg.transient
+    m = cfg.max_offset_um
+    flags = Flag.NONE
+
+    desired = -elongation_um
+    if abs(desired) > m:
+        desired = math.copysign(m, desired)
+        flags |= Flag.CLAMPED
+
+    triggered = False
+    if pol.enabled and state.speed_rpm is not None:
+        dn = abs(n - state.speed_rpm)
+        triggered = dn > pol.speed_step_rpm or (dt_s > 0 and dn / dt_s > pol.speed_rate_rpm_per_s)
+    was_open = state.window_left_s > 0
+    window = pol.window_s if triggered else max(state.window_left_s - dt_s, 0.0)
+    in_transient = triggered or window > 0
+
+    latch_age = state.latch_age_s + dt_s
+    if not in_transient:
+        target, latch_age = desired, 0.0
+    elif triggered and not was_open:
+        # entering a window: stop where we are, whatever the mode
+        target, latch_age = state.output_um, 0.0
+    elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
+        target, latch_age = desired, 0.0
+    else:
+        target = state.target_um
+    if in_transient:
+        flags |= Flag.TRANSIENT
+
+    releasing = in_transient or state.releasing
+    rate = cfg.release_rate_um_per_s if releasing else cfg.max_rate_um_per_s
+    if releasing and not in_transient:
+        flags |= Flag.RELEASING
+
+    y = state.output_um
+    diff = target - y
+    if abs(diff) < cfg.deadband_um or diff == 0.0:
+        new_y = y
+        if diff != 0.0:
+            flags |= Flag.DEADBAND
+    else:
+        limit = rate * dt_s
+        step = min(max(diff, -limit), limit)
+        if step != diff:
+            flags |= Flag.SLEW_LIMITED
+        new_y = min(max(y + step, -m), m)
+    if releasing and not in_transient and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
+        releasing = False
+
+    new_state = ShaperState(
+        output_um=new_y,
+        target_um=target,
+        speed_rpm=n,
+        window_left_s=window,
+        latch_age_s=latch_age,
+        releasing=releasing,
+    )
+    return new_state, ShapedOffset(new_y, new_y != y, flags, desired)
+
+
 class OffsetShaper:
-    """Applies a :class:`ShaperConfig`; holds no state of its own."""
+    """Applies a :class:`ShaperConfig` and owns the :class:`ShaperState` between samples."""
 
-    def __init__(self, config: ShaperConfig | None = None):
+    def __init__(self, config: ShaperConfig | None = None, offset_um: float = 0.0):
         self.config = config or ShaperConfig()
+        self._state = initial_state(self.config, offset_um)
 
-    def initial(self, offset_um: float = 0.0) -> ShaperState:
-        """State for a controller that currently holds ``offset_um``."""
-        if not math.isfinite(offset_um):
-            raise NonFiniteInputError(f"initial offset is {offset_um}")
-        m = self.config.max_offset_um
-        held = min(max(offset_um, -m), m)
-        return ShaperState(output_um=held, target_um=held)
+    @property
+    def state(self) -> ShaperState:
+        return self._state
 
-    def update(
-        self, state: ShaperState, elongation_um: float, speed_rpm: float, dt_s: float
-    ) -> tuple[ShaperState, ShapedOffset]:
+    @property
+    def output_um(self) -> float:
+        """The offset the controller holds now, as far as the shaper knows."""
+        return self._state.output_um
+
+    def update(self, elongation_um: float, speed_rpm: float, dt_s: float) -> ShapedOffset:
         """One sample: ``dt_s`` seconds after the previous call."""
-        for name, v in (("elongation_um", elongation_um), ("speed_rpm", speed_rpm), ("dt_s", dt_s)):
-            if not math.isfinite(v):
-                raise NonFiniteInputError(f"{name} is {v}")
-        if dt_s < 0:
-            raise NonFiniteInputError(f"dt_s must be >= 0, got {dt_s}")
-        cfg = self.config
-        pol = cfg.transient
-        m = cfg.max_offset_um
-        flags = Flag.NONE
+        self._state, shaped = shape(self.config, self._state, elongation_um, speed_rpm, dt_s)
+        return shaped
 
-        desired = -elongation_um
-        if abs(desired) > m:
-            desired = math.copysign(m, desired)
-            flags |= Flag.CLAMPED
+    def hold(self, offset_um: float) -> None:
+        """The controller holds ``offset_um``, not what the shaper last produced (a write failed
+        or was refused, the machine applies its own value): move on from there, through the
+        slew limit. The transient window and latched target are kept."""
+        held = initial_state(self.config, offset_um).output_um
+        if held != self._state.output_um:
+            self._state = replace(self._state, output_um=held)
 
-        n = abs(speed_rpm)
-        triggered = False
-        if pol.enabled and state.speed_rpm is not None:
-            dn = abs(n - state.speed_rpm)
-            triggered = dn > pol.speed_step_rpm or (dt_s > 0 and dn / dt_s > pol.speed_rate_rpm_per_s)
-        was_open = state.window_left_s > 0
-        window = pol.window_s if triggered else max(state.window_left_s - dt_s, 0.0)
-        in_transient = triggered or window > 0
 
-        latch_age = state.latch_age_s + dt_s
-        if not in_transient:
-            target, latch_age = desired, 0.0
-        elif triggered and not was_open:
-            # entering a window: stop where we are, whatever the mode
-            target, latch_age = state.output_um, 0.0
-        elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
-            target, latch_age = desired, 0.0
-        else:
-            target = state.target_um
-        if in_transient:
-            flags |= Flag.TRANSIENT
+def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
+                 elongation_um: np.ndarray, initial_offset_um: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets a controller would hold over a whole log, and their flags.
 
-        releasing = in_transient or state.releasing
-        rate = cfg.release_rate_um_per_s if releasing else cfg.max_rate_um_per_s
-        if releasing and not in_transient:
-            flags |= Flag.RELEASING
-
-        y = state.output_um
-        diff = target - y
-        if abs(diff) < cfg.deadband_um or diff == 0.0:
-            new_y = y
-            if diff != 0.0:
-                flags |= Flag.DEADBAND
-        else:
-            limit = rate * dt_s
-            step = min(max(diff, -limit), limit)
-            if step != diff:
-                flags |= Flag.SLEW_LIMITED
-            new_y = min(max(y + step, -m), m)
-        if releasing and not in_transient and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
-            releasing = False
-
-        new_state = ShaperState(
-            output_um=new_y,
-            target_um=target,
-            speed_rpm=n,
-            window_left_s=window,
-            latch_age_s=latch_age,
-            releasing=releasing,
-        )
-        return new_state, ShapedOffset(new_y, new_y != y, flags, desired)
+    The runtime's own shaper run sample by sample on the log's time stamps (each sample a
+    write that succeeds). ``initial_offset_um`` defaults to the first ideal offset ``-S[0]``,
+    a compensator already running when the log starts.
+    """
+    t = np.asarray(time_s, dtype=float)
+    n = np.asarray(speed_rpm, dtype=float)
+    s = np.asarray(elongation_um, dtype=float)
+    start = -float(s[0]) if initial_offset_um is None else initial_offset_um
+    shaper = OffsetShaper(config, start)
+    out = np.empty_like(s)
+    flags = np.zeros(s.size, dtype=np.int64)
+    prev = float(t[0])
+    for k in range(s.size):
+        res = shaper.update(float(s[k]), float(n[k]), float(t[k]) - prev)
+        prev = float(t[k])
+        out[k], flags[k] = res.offset_um, int(res.flags)
+    return out, flags

@@ -14,7 +14,7 @@ from typing import Callable
 
 import pytest
 
-from cnc_adapters.base import (
+from cnc_adapters import (
     Adapter,
     AdapterError,
     AdapterTimeoutError,

@@ -21,7 +21,7 @@ REPLAY_KEYS = {
 
 
 def tc(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "compensator.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "thermocomp", *map(str, args)],
                           capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
@@ -137,7 +137,7 @@ def test_bad_model_files(tmp_path, logs):
 def test_unstable_model_file_is_refused(tmp_path, logs):
     import hashlib
 
-    from compensator.io import _canonical
+    from compensator.io.checksum import canonical as _canonical
 
     data = first_order().model_dump(mode="json")
     data["states"][0]["dissipation_per_s"] = [1e-4, -1e-5]  # unstable above 10 000 rpm
@@ -168,7 +168,7 @@ def test_examples_schema_file_is_current():
 def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     """What `make demo` runs: record over OPC UA, fit, run the service, score; exit 0 only if
     compensation reduced the RMS error."""
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "demo", "--output-dir", "out"],
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out"],
                        capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = tmp_path / "out"
@@ -180,3 +180,23 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     hist = read_run_log(out / "virtual_cnc_history.csv")
     err = hist.extras["tool_tip_error_um"]
     assert np.sqrt(np.mean(err**2)) < 0.5 * np.sqrt(np.mean(hist.elongation_um**2))
+
+
+def test_replay_applied_runs_the_runtime_shaper_over_the_log(fitted, logs, tmp_path):
+    """`--applied`: the error of the offset the machine would hold, beside the model's."""
+    path, _ = fitted
+    out = tmp_path / "pred.csv"
+    r = tc("replay", logs / "day.csv", "--model", path, "--json", "--applied", "--output", out)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["applied_rms_residual_um"] >= rep["rms_residual_um"] * 0.9
+    assert rep["applied_max_abs_residual_um"] >= rep["max_abs_residual_um"]  # slewed at steps
+    cols = read_run_log(out).extras
+    applied, ideal = cols["applied_offset_um"], cols["offset_um"]
+    t = read_run_log(out).time_s
+    rate = np.abs(np.diff(applied)) / np.diff(t)
+    assert rate.max() <= 1.0 + 1e-9  # the runtime's default slew limit
+    assert np.max(np.abs(applied - ideal)) > 1.0  # it does lag the model at speed steps
+    plain = json.loads(tc("replay", logs / "day.csv", "--model", path, "--json").stdout)
+    assert "applied_rms_residual_um" not in plain
+    assert plain["rms_residual_um"] == rep["rms_residual_um"]

@@ -16,15 +16,16 @@ import pytest
 from calibration.calibrate import calibrate, residual_stats
 from calibration.data import Run
 from calibration.inputs import InputRun, fit_with_inputs
-from cnc_adapters.sim import SpindlePlant, paper_calibration, preset, random_validation
+from cnc_adapters.sim import SpindlePlant, preset
+from compensator.programs import paper_calibration, random_validation
 from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.programs import Program, job_shop_day
+from compensator.programs import Program, job_shop_day
 from cnc_adapters.sim.vcnc import VirtualMachine
-from compensator.config import load_config
+from thermocomp.runtime.config import load_config
 from compensator.errors import CalibrationError, ConfigError
 from compensator.inputs import AugmentedModel
 from compensator.io import load_any_model, load_model, read_run_log, save_model, write_run_log
-from compensator.service import Alarm, SpindleRuntime
+from thermocomp.runtime import Alarm, SpindleRuntime
 
 P = preset("motorized-27k")
 SENSORS = ["bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct"]
@@ -126,14 +127,14 @@ def test_model_file_replay_and_fit_command(trained, tmp_path):
     _, cols = plant_run(short_stairs(), 11)
     log = tmp_path / "day.csv"
     write_run_log(log, cols)
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "replay", str(log), "--model", str(path),
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", str(log), "--model", str(path),
                         "--json"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["rms_residual_um"] < 0.3
     # a log without the column: one line, exit 2
     del cols["bearing_temp_c"]
     write_run_log(tmp_path / "bare.csv", cols)
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "replay", str(tmp_path / "bare.csv"),
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", str(tmp_path / "bare.csv"),
                         "--model", str(path)], capture_output=True, text=True)
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
 
@@ -172,7 +173,7 @@ input_recover_s = 60.0
     def cycle():
         t["now"] += 1.0
         out = rt.cycle()
-        rows.append((t["now"], out["offset_um"], int(out["alarms"]), rt.aug_state is not None,
+        rows.append((t["now"], out["offset_um"], int(out["alarms"]), rt.input_state is not None,
                      vm.plant.true_elongation_um()))
 
     for _ in range(2400):
@@ -218,13 +219,13 @@ offset_node = "ns=2;s=Offset"
     cfg = load_config(cfg_path)
     with pytest.raises(ConfigError, match="needs input\\(s\\) bearing_temp_c; map them"):
         SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg_path)],
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg_path)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
 
 
 def test_input_channels_over_opcua_and_modbus(tmp_path):
-    from cnc_adapters.base import open_adapter
+    from cnc_adapters import open_adapter
     from cnc_adapters.modbus import ModbusRtuAdapter
     from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, running
 

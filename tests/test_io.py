@@ -140,7 +140,7 @@ def test_unknown_format_and_garbage_are_refused(tmp_path):
 def test_unstable_model_file_is_refused_with_checksum_intact(tmp_path):
     import hashlib
 
-    from compensator.io import _canonical
+    from compensator.io.checksum import canonical as _canonical
 
     data = first_order().model_dump(mode="json")
     data["states"][0]["dissipation_per_s"] = [-1e-4, 0.0]

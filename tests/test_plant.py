@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cnc_adapters.sim import PRESETS, SpindlePlant, paper_calibration, preset
+from cnc_adapters.sim import PRESETS, SpindlePlant, preset
+
+from compensator.programs import paper_calibration
 from cnc_adapters.sim.plant import _system
 
 

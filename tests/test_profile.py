@@ -109,12 +109,12 @@ def test_the_interpreter_refuses_what_a_control_would(text, match):
 
 def test_profile_command(tmp_path):
     out = tmp_path / "calib.h"
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "profile", "--max-rpm", "12000",
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "profile", "--max-rpm", "12000",
                         "--dialect", "heidenhain", "--output", str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "5.83 h" in r.stdout and "rested for 8 h" in r.stdout
     assert parse_nc(out.read_text()).duration_s == pytest.approx(350 * 60)
-    bad = subprocess.run([sys.executable, "-m", "compensator.cli", "profile", "--max-rpm", "12000",
+    bad = subprocess.run([sys.executable, "-m", "thermocomp", "profile", "--max-rpm", "12000",
                           "--dialect", "mazak", "--output", str(tmp_path / "x")], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "mazak" in bad.stderr
     assert not (tmp_path / "x").exists()

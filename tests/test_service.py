@@ -14,12 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnc_adapters.sim import SpindlePlant, job_shop_day, preset
+from cnc_adapters.sim import SpindlePlant, preset
+
+from compensator.programs import job_shop_day
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
-from compensator.config import load_config
+from thermocomp.runtime.config import load_config
 from compensator.io import load_state, read_run_log, save_model
-from compensator.service import Alarm, Service, SpindleRuntime
+from thermocomp.runtime import Alarm, Service, SpindleRuntime
 
 EXAMPLES = Path(__file__).parents[1] / "examples"
 
@@ -117,7 +119,7 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     state = load_state(tmp_path / "state" / "s1.state.json")
     assert state is not None and state["spindle"] == "s1"
     # `thermocomp replay` reads the journal directly
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "replay", "--model", str(model_file),
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", "--model", str(model_file),
                         str(journal[1]), "--json"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["samples"] == len(logs[1])
@@ -201,7 +203,7 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
     checked = progressed = 0
     last_saved = None
     for i in range(100):
-        proc = subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg)],
+        proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
         if i % 10 != 9:  # most kills land while it cycles and saves; every tenth during start-up
             before = state_path.stat().st_mtime_ns if state_path.exists() else 0
@@ -228,7 +230,7 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
 
 def start_service(cfg: Path, env_extra=None):
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
-    return subprocess.Popen([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg)],
+    return subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
@@ -293,7 +295,7 @@ adapter = {{url = "sim://mechanical-8k?program=job-shop-day&seed=2"}}
 
 def test_run_check_reads_one_speed_and_writes_nothing(tmp_path, model_file):
     cfg = write_config(tmp_path, model_file, 'adapter = {url = "sim://motorized-27k?program=job-shop-day"}')
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg), "--check"],
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "link ok" in r.stdout and "nothing was written" in r.stdout
@@ -303,7 +305,7 @@ def test_run_check_reads_one_speed_and_writes_nothing(tmp_path, model_file):
 def test_run_check_unreachable_controller_is_one_line(tmp_path, model_file):
     cfg = write_config(tmp_path, model_file,
                        f'adapter = {{url = "opc.tcp://127.0.0.1:{free_port()}/x", preset = "virtual-cnc", timeout_s = 1.0}}')
-    r = subprocess.run([sys.executable, "-m", "compensator.cli", "run", "--config", str(cfg), "--check"],
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "thermocomp: error:" in r.stderr
@@ -327,7 +329,7 @@ def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
     vm.apply_offset = real
     t["now"] += 1.0
     rt.cycle()
-    assert vm.offset_um == rt.shaper_state.output_um != 0.0  # retried once accepted
+    assert vm.offset_um == rt.offset.shaper.output_um != 0.0  # retried once accepted
     rt.close()
 
 
@@ -353,5 +355,5 @@ def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file
         for _ in range(40):
             time.sleep(0.02)
             rt.cycle()
-        assert vm.offset_um != 0.0 and abs(vm.offset_um - rt.shaper_state.output_um) < 0.5
+        assert vm.offset_um != 0.0 and abs(vm.offset_um - rt.offset.shaper.output_um) < 0.5
         rt.close()

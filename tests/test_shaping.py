@@ -13,15 +13,15 @@ from compensator import Flag, NonFiniteInputError, OffsetShaper, ShaperConfig, T
 NO_TRANSIENT = TransientPolicy(enabled=False)
 
 
-def run(shaper: OffsetShaper, samples, state=None):
-    """samples: (elongation_um, speed_rpm, dt_s). Returns outputs, results, final state."""
-    state = state or shaper.initial()
+def run(shaper: OffsetShaper, samples):
+    """samples: (elongation_um, speed_rpm, dt_s), fed to the shaper, which keeps its state.
+    Returns outputs, results, final state."""
     outs, results = [], []
     for s, n, dt in samples:
-        state, res = shaper.update(state, s, n, dt)
+        res = shaper.update(s, n, dt)
         outs.append(res.offset_um)
         results.append(res)
-    return outs, results, state
+    return outs, results, shaper.state
 
 
 def test_offset_is_minus_elongation_when_unconstrained():
@@ -52,11 +52,12 @@ def test_slew_limit_ramps_a_step():
 def test_deadband_suppresses_small_changes_but_never_stalls():
     sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=0.05, deadband_um=0.3, transient=NO_TRANSIENT))
     # below the deadband: nothing is written
-    outs, res, st = run(sh, [(0.2, 0, 1.0)] * 5)
+    outs, res, _ = run(sh, [(0.2, 0, 1.0)] * 5)
     assert outs == [0.0] * 5 and not any(r.write for r in res)
     assert Flag.DEADBAND in res[0].flags
-    # above it, the output keeps moving even though each slew step (0.05) < deadband
-    outs, res, _ = run(sh, [(1.0, 0, 1.0)] * 40, state=st)
+    # above it (the same shaper, continuing), the output keeps moving even though each slew
+    # step (0.05) < deadband
+    outs, res, _ = run(sh, [(1.0, 0, 1.0)] * 40)
     assert outs[-1] < -0.69 and all(r.write for r in res[:10])
 
 
@@ -106,7 +107,8 @@ def test_transient_detected_from_speed_rate_on_short_samples():
 def test_non_finite_prediction_raises_and_never_reaches_the_output(bad):
     sh = OffsetShaper()
     with pytest.raises(NonFiniteInputError):
-        sh.update(sh.initial(), bad, 0, 1.0)
+        sh.update(bad, 0, 1.0)
+    assert sh.output_um == 0.0
 
 
 def test_config_rejects_extra_keys_and_inconsistent_limits():
@@ -146,12 +148,12 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, deadband, m
         deadband_um=deadband,
         transient=TransientPolicy(enabled=enabled, mode=mode, window_s=20, slow_period_s=7),
     )
-    sh = OffsetShaper(cfg)
-    state = sh.initial(start)
-    assert abs(state.output_um) <= clamp
-    prev = state.output_um
+    sh = OffsetShaper(cfg, start)
+    assert abs(sh.output_um) <= clamp
+    prev = sh.output_um
     for s, n, dt in samples:
-        state, res = sh.update(state, s, n, dt)
+        res = sh.update(s, n, dt)
+        state = sh.state
         y = res.offset_um
         assert math.isfinite(y)
         assert abs(y) <= clamp
@@ -171,3 +173,31 @@ def test_converges_to_within_deadband_of_a_steady_target(target, rate, deadband)
     sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=rate, deadband_um=deadband, transient=NO_TRANSIENT))
     outs, _, _ = run(sh, [(target, 0, 1.0)] * int(100 / rate + 5))
     assert abs(outs[-1] - (-target)) <= deadband + 1e-9
+
+
+def test_hold_moves_on_from_what_the_controller_holds_through_the_slew_limit():
+    sh = OffsetShaper(ShaperConfig(max_offset_um=50, max_rate_um_per_s=1.0, deadband_um=0,
+                                   transient=NO_TRANSIENT))
+    run(sh, [(10.0, 0, 1.0)] * 20)
+    assert sh.output_um == pytest.approx(-10.0)
+    sh.hold(0.0)  # the controller was reset: it holds 0, not -10
+    assert sh.output_um == 0.0
+    outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 3)
+    assert outs == pytest.approx([-1.0, -2.0, -3.0])
+    sh.hold(999.0)  # an outside write beyond the clamp: clamped
+    assert sh.output_um == 50.0
+
+
+def test_shape_series_is_the_runtime_shaper_over_a_log():
+    import numpy as np
+
+    from compensator.shaping import shape_series
+
+    cfg = ShaperConfig(max_rate_um_per_s=0.5, deadband_um=0, transient=NO_TRANSIENT)
+    t = np.arange(30.0)
+    s = np.where(t < 10, 0.0, 5.0)
+    out, flags = shape_series(cfg, t, np.zeros_like(t), s)
+    expected, _, _ = run(OffsetShaper(cfg), [(float(v), 0, 1.0 if k else 0.0) for k, v in enumerate(s)])
+    assert out.tolist() == pytest.approx(expected)
+    assert out[-1] == pytest.approx(-5.0) and out[12] == pytest.approx(-1.5)
+    assert int(flags[10]) & int(Flag.SLEW_LIMITED)

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnc_adapters.base import BadValueError, UnreachableError, open_adapter
+from cnc_adapters import BadValueError, UnreachableError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.programs import Program
+from compensator.programs import Program
 from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, free_port, running
 
 JS = Path(__file__).parent / "js"

@@ -1,18 +1,7 @@
-"""The virtual machine tool: a spindle plant, speed programs, and (later) a virtual CNC."""
+"""The virtual machine tool, one adapter backend among the others (python-can's ``virtual`` bus):
+a spindle plant, a virtual CNC over OPC UA, an NC interpreter and the in-process ``sim`` adapter.
+Speed programs live in :mod:`compensator.programs`, below every layer that uses them."""
 
 from .plant import PRESETS, PlantParams, PlantRun, SpindlePlant, preset
-from .programs import PROGRAMS, Program, job_shop_day, paper_calibration, program, random_validation
 
-__all__ = [
-    "PRESETS",
-    "PROGRAMS",
-    "PlantParams",
-    "PlantRun",
-    "Program",
-    "SpindlePlant",
-    "job_shop_day",
-    "paper_calibration",
-    "preset",
-    "program",
-    "random_validation",
-]
+__all__ = ["PRESETS", "PlantParams", "PlantRun", "SpindlePlant", "preset"]

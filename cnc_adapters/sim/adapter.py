@@ -12,7 +12,7 @@ from urllib.parse import urlsplit
 
 from ..base import Adapter, AdapterError, WriteRejectedError, query_params
 from .plant import PRESETS, SpindlePlant
-from .programs import program as make_program
+from compensator.programs import program as make_program
 from .vcnc import SimClock, VirtualMachine
 
 

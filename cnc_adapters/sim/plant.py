@@ -32,6 +32,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from compensator.inputs import first_order
+from compensator.units import speed_krpm
 
 N_NODES = 5
 
@@ -221,13 +222,13 @@ class SpindlePlant:
             self._rng.standard_normal()
         )
         air = self.air_c(self.time_s + dt_s / 2)
-        phi, gam = self._transition(abs(speed_rpm) / 1000.0, dt_s)
+        phi, gam = self._transition(speed_krpm(speed_rpm), dt_s)
         self.temps_c = phi @ self.temps_c + gam @ np.array([1.0, air, p.chiller_c])
         self.time_s += dt_s
         self._speed_rpm = speed_rpm
 
     def elastic_um(self, speed_rpm: float | None = None) -> float:
-        n = abs(self._speed_rpm if speed_rpm is None else speed_rpm) / 1000.0
+        n = speed_krpm(self._speed_rpm if speed_rpm is None else speed_rpm)
         e1, e2 = self.params.elastic_um
         return e1 * n + e2 * n * n
 

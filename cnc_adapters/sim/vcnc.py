@@ -22,7 +22,7 @@ an offset written here moves it back by the same amount, so a perfect compensato
 ``-elongation`` and ``ToolTipError`` reads 0.
 
 Time runs accelerated (``time_scale`` x wall time) on an injected clock, and a
-:class:`~cnc_adapters.sim.programs.Program` drives the speed. The plant is stepped on a fixed
+:class:`~compensator.programs.Program` drives the speed. The plant is stepped on a fixed
 sim-time grid (``plant_dt_s``), which keeps its matrix exponentials cached.
 """
 
@@ -39,8 +39,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from compensator.clock import ScaledClock
+from compensator.programs import Program
+
 from .plant import SENSORS, SpindlePlant
-from .programs import Program
 
 NAMESPACE_URI = "urn:thermocomp:virtual-cnc"
 NODE_PATHS = {
@@ -70,26 +72,12 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(s.getsockname()[1])
 
 
-class SimClock:
-    """Simulated seconds, ``scale`` times faster than ``base``. Shared by the plant and its
-    clients; the scale can change without a jump in simulated time."""
+class SimClock(ScaledClock):
+    """Simulated seconds, ``scale`` times faster than ``base`` (the monotonic clock by default).
+    Shared by the plant and its clients."""
 
     def __init__(self, scale: float = 60.0, base: Callable[[], float] = time.monotonic):
-        if not scale > 0:
-            raise ValueError("time scale must be > 0")
-        self.scale = float(scale)
-        self._base = base
-        self._b0 = base()
-        self._s0 = 0.0
-
-    def __call__(self) -> float:
-        return self._s0 + (self._base() - self._b0) * self.scale
-
-    def set_scale(self, scale: float) -> None:
-        if not scale > 0:
-            raise ValueError("time scale must be > 0")
-        now = self()
-        self._b0, self._s0, self.scale = self._base(), now, float(scale)
+        super().__init__(scale, base)
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 Subcommands are declared here (arguments only); their handlers are named by
 ``"module:function"`` and imported on use, so ``thermocomp --help`` stays fast
-and this module depends on no package but the standard library.
+and a command loads only the layers it needs.
 """
 
 from __future__ import annotations
@@ -23,6 +23,9 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", help="write a PNG plot")
     p.add_argument("--initial-um", type=float, help="initial elongation (default: first measured, else 0)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--applied", action="store_true",
+                   help="also pass the offset through the runtime's shaper (default shaping) and "
+                        "report the error of the offset the machine would hold")
     p.set_defaults(handler="calibration.commands:replay_cmd")
 
 
@@ -52,7 +55,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dt", type=float, default=60.0, help="sample period [s]")
     p.add_argument("--seed", type=int, default=0, help="random seed (noise, ambient, program)")
     p.add_argument("--output", required=True, help="run log to write (CSV)")
-    p.set_defaults(handler="cnc_adapters.sim.commands:simulate")
+    p.set_defaults(handler="thermocomp.commands.sim:simulate")
 
 
 def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
@@ -69,7 +72,7 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     p.add_argument("--port", type=int, default=4840, help="TCP port")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
-    p.set_defaults(handler="cnc_adapters.sim.commands:virtual_cnc")
+    p.set_defaults(handler="thermocomp.commands.sim:virtual_cnc")
 
 
 def _add_hal_plant(sub: argparse._SubParsersAction) -> None:
@@ -79,7 +82,7 @@ def _add_hal_plant(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--time-scale", type=float, default=1.0, help="simulated seconds per second")
     p.add_argument("--step-s", type=float, default=0.5, help="plant step [simulated s]")
-    p.set_defaults(handler="cnc_adapters.sim.halplant:hal_plant")
+    p.set_defaults(handler="thermocomp.commands.halplant:hal_plant")
 
 
 def _add_run(sub: argparse._SubParsersAction) -> None:
@@ -87,13 +90,13 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", required=True, help="runtime configuration (TOML)")
     p.add_argument("--check", action="store_true",
                    help="validate, connect, read one speed, and exit without writing")
-    p.set_defaults(handler="compensator.service:main")
+    p.set_defaults(handler="thermocomp.runtime.service:main")
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
-    p.set_defaults(handler="calibration.demo:main")
+    p.set_defaults(handler="thermocomp.demo:main")
 
 
 def _add_profile(sub: argparse._SubParsersAction) -> None:
@@ -163,7 +166,7 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.add_argument("model", nargs="?", help="model file (JSON)")
     p.add_argument("--schema", action="store_true", help="print the model file's JSON schema")
     p.add_argument("--json", action="store_true", help="print as JSON")
-    p.set_defaults(handler="compensator.commands:model")
+    p.set_defaults(handler="thermocomp.commands.model:model")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -197,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     import logging
 
-    from .errors import ThermocompError
+    from compensator.errors import ThermocompError
 
     logging.basicConfig(level=logging.WARNING, format="thermocomp: %(levelname)s: %(name)s: %(message)s")
     # asyncua warns about every unsecured session; the adapters report what matters

@@ -1,15 +1,19 @@
-"""``thermocomp simulate``: write a run log from the virtual spindle plant."""
+"""``thermocomp simulate`` and ``thermocomp virtual-cnc``: the virtual machine tool from the
+command line."""
 
 from __future__ import annotations
 
 import argparse
 
-from compensator.errors import ConfigError
-from compensator.io import write_run_log
+import time
+from pathlib import Path
 
-from .plant import SpindlePlant, preset
-from .programs import program
-from .vcnc import CYCLE_START_PATH, NODE_PATHS
+from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
+from cnc_adapters.sim.plant import SpindlePlant, preset
+from cnc_adapters.sim.vcnc import CYCLE_START_PATH, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, running
+from compensator.errors import ConfigError
+from compensator.io import read_text, write_run_log
+from compensator.programs import program
 
 
 def simulate(args: argparse.Namespace) -> int:
@@ -36,16 +40,6 @@ def simulate(args: argparse.Namespace) -> int:
 
 
 def virtual_cnc(args: argparse.Namespace) -> int:
-    import time
-
-    from .vcnc import SimClock, VirtualCNC, VirtualMachine, running
-
-    from pathlib import Path
-
-    from compensator.io import read_text
-
-    from .nc import NcSyntaxError, parse_nc
-
     try:
         params = preset(args.preset)
         if Path(args.program).is_file():

@@ -18,15 +18,13 @@ import argparse
 import signal
 import time
 
+from cnc_adapters.linuxcnc import import_linuxcnc
+from cnc_adapters.sim.plant import SpindlePlant, preset
+from cnc_adapters.sim.vcnc import SimClock
 from compensator.errors import ConfigError
-
-from .plant import SpindlePlant, preset
-from .vcnc import SimClock
 
 
 def hal_plant(args: argparse.Namespace) -> int:
-    from cnc_adapters.linuxcnc import import_linuxcnc
-
     try:
         params = preset(args.preset)
     except KeyError as err:

@@ -54,7 +54,7 @@ def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0,
     Phase 1 (0-180 min): 3000 rpm, +3000 every 20 min up to 27 000.
     Phase 2 (180-240 min): abrupt drop to 12 000, then 18 000, then 0.
     Phase 3 (240-300 min): accelerate, decelerate, accelerate, stop.
-    Then a cool-down at 0 rpm, which pins the dissipation (MODEL.md).
+    Then a cool-down at 0 rpm, which pins the dissipation (the decay at rest identifies it).
     """
     k = max_rpm / 27000.0
     c = step_min / 20.0

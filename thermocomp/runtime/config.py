@@ -12,8 +12,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .errors import ConfigError
-from .shaping import ShaperConfig
+from compensator.errors import ConfigError
+from compensator.shaping import ShaperConfig
 
 
 class FaultPolicy(BaseModel):

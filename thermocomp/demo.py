@@ -25,15 +25,16 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from cnc_adapters.sim import SpindlePlant, job_shop_day, paper_calibration, preset, random_validation
-from cnc_adapters.sim.vcnc import NODE_PATHS, NAMESPACE_URI, SimClock, VirtualCNC, VirtualMachine, running
+from calibration.calibrate import calibrate
+from calibration.data import run_from_log, transient_mask
+from calibration.plots import Panel, plot_panels
+from cnc_adapters.sim import SpindlePlant, preset
+from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, running
 from compensator.io import read_run_log, save_model, write_run_log
-from compensator.service import Service
+from compensator.programs import job_shop_day, paper_calibration, random_validation
 from compensator.shaping import Flag
 
-from .calibrate import calibrate
-from .data import run_from_log, transient_mask
-from .plots import Panel, plot_panels
+from .runtime.service import Service
 
 PRESET = "motorized-27k"
 RECORD_SCALE = 1500.0  # simulated seconds per wall second while recording

@@ -1,6 +1,6 @@
-"""All file I/O of thermocomp in one place: run logs and model files.
+"""Run logs: the one format of calibration runs, replays, the journal and the simulator.
 
-Run-log format (shared by calibration, replay, the runtime journal and the
+Format (shared by calibration, replay, the runtime journal and the
 simulator)::
 
     # spindle_id: sp1            <- optional '# key: value' metadata lines
@@ -12,29 +12,25 @@ simulator)::
 other column is kept. Time must strictly increase. Gaps are allowed and
 reported. Every error names the file and line.
 
-Model files are the JSON of :class:`~compensator.model.ThermalModel` with a
-``sha256`` over the canonical content, so a hand-edited file is refused.
-All writes are atomic: temporary file, fsync, rename.
+Whole files are written atomically (:mod:`compensator.io.atomic`); a recording appends a
+row at a time (:class:`RunLogAppender`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import json
 import math
 import os
-import tempfile
+import time
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, ModelError, ModelFileError, RunLogError, UnstableModelError
-from .model import MODEL_FORMAT, ThermalModel
+from ..errors import RunLogError
+from .atomic import atomic_write
 
 REQUIRED_COLUMNS = ("time_s", "speed_rpm")
 ELONGATION_COLUMN = "elongation_um"
@@ -79,35 +75,21 @@ class RunLog:
         return _line_of_row(self.source, row)
 
 
-@contextlib.contextmanager
-def atomic_write(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[Any]]:
-    """Write to a temporary file beside ``path``, fsync, then rename over it.
-
-    A crash at any moment leaves either the old file or the new one, never a
-    partial file.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, mode) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):
-        dfd = os.open(target.parent, os.O_DIRECTORY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+def cell_format(column: int, kind: str) -> str:
+    """printf format of one cell by column position and numpy dtype kind: 9 significant
+    digits (sub-nanometre for um); time gets 15, so that epoch seconds keep their milliseconds."""
+    if kind == "f":
+        return "%.15g" if column == 0 else "%.9g"
+    return "%d" if kind in "iub" else "%s"
 
 
-# -- run logs -----------------------------------------------------------------
+def row_format(kinds: Sequence[str]) -> str:
+    return ",".join(cell_format(i, k) for i, k in enumerate(kinds))
+
+
+def header_text(columns: Sequence[str], metadata: Mapping[str, Any] | None) -> str:
+    """The ``# key: value`` metadata lines and the header line of a run log."""
+    return "".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items()) + ",".join(columns) + "\n"
 
 
 def _is_skipped(line: str) -> bool:
@@ -285,174 +267,13 @@ def write_run_log(
     shapes = {a.shape for a in arrays}
     if len(shapes) != 1:
         raise RunLogError(f"columns differ in length: {sorted(shapes)}")
-    # 9 significant digits: sub-nanometre for um; time gets 15, so that epoch seconds
-    # (a controller's own clock) keep their milliseconds
-    fmt = ",".join(
-        ("%.15g" if i == 0 else "%.9g") if a.dtype.kind == "f" else "%d" if a.dtype.kind in "iub" else "%s"
-        for i, a in enumerate(arrays)
-    )
+    fmt = row_format([a.dtype.kind for a in arrays])
     rows = arrays[0].shape[0]
     with atomic_write(path) as fh:
-        fh.write("".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items()))
-        fh.write(",".join(names) + "\n")
+        fh.write(header_text(names, metadata))
         for s in range(0, rows, 100_000):  # bounded memory on month-long logs
             block = zip(*(a[s : s + 100_000].tolist() for a in arrays))
             fh.write("\n".join(map(fmt.__mod__, block)) + "\n")
-
-
-# -- model files -----------------------------------------------------------------
-
-
-def _canonical(payload: Mapping[str, Any]) -> str:
-    return json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
-
-
-def model_to_json(model: Any) -> str:
-    payload = model.model_dump(mode="json")
-    payload["sha256"] = hashlib.sha256(_canonical(payload).encode()).hexdigest()
-    return json.dumps(payload, indent=2, sort_keys=False, allow_nan=False) + "\n"
-
-
-def save_model(path: str | os.PathLike[str], model: Any) -> None:
-    """Atomically write a model file with its checksum."""
-    text = model_to_json(model)
-    with atomic_write(path) as fh:
-        fh.write(text)
-
-
-def load_model(path: str | os.PathLike[str]) -> ThermalModel:
-    """Read and verify a speed-only model file.
-
-    Raises :class:`ModelFileError` for an unreadable, unknown or tampered file
-    and :class:`UnstableModelError` for an unstable one.
-    """
-    model = load_any_model(path)
-    if not isinstance(model, ThermalModel):
-        raise ModelFileError(f"{os.fspath(path)}: a model with extra inputs "
-                             f"({', '.join(model.input_names)}); this command takes speed-only models")
-    return model
-
-
-def load_any_model(path: str | os.PathLike[str]):
-    """A speed-only :class:`ThermalModel` or an :class:`~compensator.inputs.AugmentedModel`."""
-    from .inputs import AUGMENTED_FORMAT, AugmentedModel
-
-    src = os.fspath(path)
-    try:
-        with open(src, encoding="utf-8") as fh:
-            payload = json.load(fh)
-    except OSError as err:
-        raise ModelFileError(f"{src}: cannot read: {err.strerror or err}") from err
-    except (json.JSONDecodeError, UnicodeError) as err:
-        raise ModelFileError(f"{src}: not a JSON model file ({err})") from err
-    if not isinstance(payload, dict):
-        raise ModelFileError(f"{src}: not a JSON model file (top level is not an object)")
-    fmt = payload.get("format")
-    if fmt not in (MODEL_FORMAT, AUGMENTED_FORMAT):
-        raise ModelFileError(
-            f"{src}: unknown model format {fmt!r} (this thermocomp reads {MODEL_FORMAT} "
-            f"and {AUGMENTED_FORMAT})"
-        )
-    digest = payload.pop("sha256", None)
-    if digest is None:
-        raise ModelFileError(f"{src}: no sha256 checksum; refusing an unverified model")
-    try:
-        actual = hashlib.sha256(_canonical(payload).encode()).hexdigest()
-    except ValueError as err:
-        raise ModelFileError(f"{src}: non-finite number in model file") from err
-    if actual != digest:
-        raise ModelFileError(f"{src}: checksum mismatch: the file was modified after it was written")
-    try:
-        if fmt == AUGMENTED_FORMAT:
-            return AugmentedModel(**payload)
-        return ThermalModel.model_validate(payload)
-    except UnstableModelError as err:
-        raise UnstableModelError(f"{src}: {err}") from err
-    except ModelError as err:
-        raise ModelFileError(f"{src}: invalid model: {err}") from err
-
-
-# -- runtime state -------------------------------------------------------------------
-
-STATE_FORMAT = "thermocomp.state/1"
-
-
-def model_digest(model: Any) -> str:
-    return hashlib.sha256(_canonical(model.model_dump(mode="json")).encode()).hexdigest()
-
-
-def save_state(path: str | os.PathLike[str], payload: Mapping[str, Any]) -> None:
-    """Atomically write a runtime state file with its checksum."""
-    body = {"format": STATE_FORMAT, **payload}
-    body["sha256"] = hashlib.sha256(_canonical(body).encode()).hexdigest()
-    text = json.dumps(body, allow_nan=False)
-    with atomic_write(path) as fh:
-        fh.write(text)
-
-
-def load_state(path: str | os.PathLike[str]) -> dict[str, Any] | None:
-    """The saved state, or None when missing; :class:`ModelFileError` when unreadable."""
-    src = os.fspath(path)
-    try:
-        with open(src, encoding="utf-8") as fh:
-            body = json.load(fh)
-    except FileNotFoundError:
-        return None
-    except (OSError, json.JSONDecodeError, UnicodeError) as err:
-        raise ModelFileError(f"{src}: unreadable state file ({err})") from err
-    if not isinstance(body, dict) or body.get("format") != STATE_FORMAT:
-        raise ModelFileError(f"{src}: not a {STATE_FORMAT} file")
-    digest = body.pop("sha256", None)
-    if digest != hashlib.sha256(_canonical(body).encode()).hexdigest():
-        raise ModelFileError(f"{src}: state file checksum mismatch")
-    return body
-
-
-class Journal:
-    """The runtime's journal: the common run-log format, one file per UTC day, flushed per row."""
-
-    COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms")
-
-    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any]):
-        self.directory = Path(directory)
-        self.name = name
-        self.metadata = dict(metadata)
-        self._fh: IO[str] | None = None
-        self._day: str | None = None
-        self._last_t = -math.inf
-
-    def path_for(self, day: str) -> Path:
-        return self.directory / f"{self.name}-{day}.csv"
-
-    def write(self, wall_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
-              written: bool, flags: int, alarms: int) -> None:
-        import time as _time
-
-        day = _time.strftime("%Y-%m-%d", _time.gmtime(wall_s))
-        if day != self._day:
-            self.close()
-            self.directory.mkdir(parents=True, exist_ok=True)
-            path = self.path_for(day)
-            new = not path.exists() or path.stat().st_size == 0
-            self._fh = open(path, "a", encoding="utf-8")
-            if new:
-                self._fh.write("".join(f"# {k}: {v}\n" for k, v in self.metadata.items()))
-                self._fh.write(",".join(self.COLUMNS) + "\n")
-            self._day = day
-        t = max(wall_s, self._last_t + 1e-3)  # the run-log format needs increasing time
-        self._last_t = t
-        assert self._fh is not None
-        self._fh.write(f"{t:.3f},{speed_rpm:.9g},{predicted_um:.9g},{offset_um:.9g},"
-                       f"{int(written)},{int(flags)},{int(alarms)}\n")
-        self._fh.flush()
-
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
-
-
-# -- recording ------------------------------------------------------------------
 
 
 class RunLogAppender:
@@ -466,13 +287,12 @@ class RunLogAppender:
     def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...],
                  metadata: Mapping[str, Any] | None = None, *, fsync_every_s: float = 5.0,
                  clock: Any = None):
-        import time as _time
-
         if tuple(columns[:2]) != REQUIRED_COLUMNS:
             raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}")
         self.path = Path(path)
         self.columns = tuple(columns)
-        self._clock = clock or _time.monotonic
+        self._fmt = row_format("f" * len(self.columns))
+        self._clock = clock or time.monotonic
         self.fsync_every_s = fsync_every_s
         self.rows_before = 0
         self.last_row: tuple[float, ...] | None = None
@@ -485,8 +305,7 @@ class RunLogAppender:
         else:
             self._fh = open(self.path, "w", encoding="utf-8")
             self.metadata = {k: str(v) for k, v in (metadata or {}).items()}
-            self._fh.write("".join(f"# {k}: {v}\n" for k, v in self.metadata.items()))
-            self._fh.write(",".join(self.columns) + "\n")
+            self._fh.write(header_text(self.columns, self.metadata))
             self._sync()
         self._last_sync = self._clock()
 
@@ -521,7 +340,7 @@ class RunLogAppender:
             raise RunLogError(f"{len(values)} values for {len(self.columns)} columns", str(self.path))
         if self.last_row is not None and not values[0] > self.last_row[0]:
             return  # the format needs increasing time; a repeated instant adds nothing
-        self._fh.write(",".join(("%.15g" if i == 0 else "%.9g") % v for i, v in enumerate(values)) + "\n")
+        self._fh.write(self._fmt % tuple(values) + "\n")
         self._fh.flush()
         self.last_row = tuple(float(v) for v in values)
         if self.first_row is None:
@@ -596,34 +415,3 @@ def read_daq_csv(path: str | os.PathLike[str], time_column: str,
     t = t[order]
     keep = np.r_[True, np.diff(t) > 0]  # repeated instants: the first reading is kept
     return t[keep], {k: v[order][keep] for k, v in out.items()}
-
-
-def versioned_path(path: str | os.PathLike[str]) -> Path:
-    """``path`` if free, else the first free ``stem.v2.suffix``, ``stem.v3.suffix``, ...:
-    a model or report is never overwritten."""
-    p = Path(path)
-    if not p.exists():
-        return p
-    k = 2
-    while True:
-        q = p.with_name(f"{p.stem}.v{k}{p.suffix}")
-        if not q.exists():
-            return q
-        k += 1
-
-
-def write_text(path: str | os.PathLike[str], text: str, *, overwrite: bool = True) -> Path:
-    """Atomically write a text file; with ``overwrite=False`` a taken name gets a version suffix."""
-    target = Path(path) if overwrite else versioned_path(path)
-    with atomic_write(target) as fh:
-        fh.write(text)
-    return target
-
-
-def read_text(path: str | os.PathLike[str]) -> str:
-    try:
-        return Path(path).read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from err
-    except UnicodeError as err:
-        raise ConfigError(f"{path}: not a text file") from err

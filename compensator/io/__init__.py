@@ -1,0 +1,50 @@
+"""Every file thermocomp reads or writes, one module per format (pvlib's ``iotools`` idea).
+
+- :mod:`.runlog`: run logs (calibration runs, replays, the simulator), DAQ CSV import;
+- :mod:`.modelfile`: model files with their checksum;
+- :mod:`.state`: the runtime's state file;
+- :mod:`.journal`: the runtime's daily journal;
+- :mod:`.atomic`: atomic writes and plain text files.
+
+The pure model layer above never imports this package.
+"""
+
+from .atomic import atomic_write, read_text, versioned_path, write_text
+from .journal import Journal
+from .modelfile import MODEL_TYPES, load_any_model, load_model, model_digest, model_to_json, save_model
+from .runlog import (
+    ELONGATION_COLUMN,
+    REQUIRED_COLUMNS,
+    Gap,
+    RunLog,
+    RunLogAppender,
+    read_daq_csv,
+    read_run_log,
+    write_run_log,
+)
+from .state import STATE_FORMAT, load_state, save_state
+
+__all__ = [
+    "ELONGATION_COLUMN",
+    "MODEL_TYPES",
+    "REQUIRED_COLUMNS",
+    "STATE_FORMAT",
+    "Gap",
+    "Journal",
+    "RunLog",
+    "RunLogAppender",
+    "atomic_write",
+    "load_any_model",
+    "load_model",
+    "load_state",
+    "model_digest",
+    "model_to_json",
+    "read_daq_csv",
+    "read_run_log",
+    "read_text",
+    "save_model",
+    "save_state",
+    "versioned_path",
+    "write_run_log",
+    "write_text",
+]

@@ -1,0 +1,91 @@
+"""The runtime's two state machines alone, and the import contracts that keep the layers apart."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from compensator.shaping import Flag, ShaperConfig, TransientPolicy
+from thermocomp.runtime.link import LinkHealth, LinkState
+from thermocomp.runtime.offset import OffsetMode, OffsetTracker
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("thermocomp", "calibration", "cnc_adapters", "compensator")
+
+
+def test_link_health_connected_retrying_outage_and_back():
+    link = LinkHealth(max_outage_s=600)
+    assert link.state is LinkState.CONNECTED and link.up
+    assert link.succeeded(0.0) is None  # up stays up
+    assert link.failed(10.0) is LinkState.RETRYING and not link.up
+    assert link.failed(300.0) is LinkState.RETRYING
+    assert link.failed(610.0) is LinkState.RETRYING  # exactly 600 s: not yet
+    assert link.failed(611.0) is LinkState.OUTAGE
+    assert link.succeeded(700.0) == pytest.approx(690.0)  # how long it was down
+    assert link.state is LinkState.CONNECTED and link.down_since is None
+    assert link.failed(800.0) is LinkState.RETRYING  # a new outage counts from its own start
+
+
+def _cfg(rate=1.0):
+    return ShaperConfig(max_offset_um=40, max_rate_um_per_s=rate, deadband_um=0,
+                        transient=TransientPolicy(enabled=False))
+
+
+def test_offset_tracks_ramps_and_holds():
+    off = OffsetTracker(_cfg(), held_um=0.0)
+    shaped = off.plan(0.5, 1000, 1.0)
+    assert off.wants_write(shaped)
+    off.written(shaped)
+    assert off.mode is OffsetMode.TRACKING and off.held_um == pytest.approx(-0.5)
+    shaped = off.plan(5.0, 1000, 1.0)  # a step larger than the slew limit
+    assert Flag.SLEW_LIMITED in shaped.flags
+    off.written(shaped)
+    assert off.mode is OffsetMode.RAMPING and off.held_um == pytest.approx(-1.5)
+    # the write fails: the controller keeps -1.5 and the shaper moves on from there
+    shaped = off.plan(5.0, 1000, 1.0)
+    off.kept(wanted=off.wants_write(shaped))
+    assert off.mode is OffsetMode.HOLDING and off.pending
+    assert off.shaper.output_um == pytest.approx(-1.5) and off.held_um == pytest.approx(-1.5)
+    # ten cycles later the write goes through: one slew step from what the controller holds
+    for _ in range(10):
+        off.kept(wanted=off.wants_write(off.plan(5.0, 1000, 1.0)))
+    shaped = off.plan(5.0, 1000, 1.0)
+    assert shaped.offset_um == pytest.approx(-2.5)
+    off.written(shaped)
+    assert not off.pending and off.mode is OffsetMode.RAMPING
+
+
+def test_offset_after_the_controller_lost_it_rewrites_from_what_it_holds():
+    off = OffsetTracker(_cfg(rate=2.0), held_um=-10.0)
+    assert off.held_um == -10.0
+    off.controller_holds(0.0)  # an NC reset cleared the variable
+    assert off.mode is OffsetMode.HOLDING and off.pending and off.shaper.output_um == 0.0
+    shaped = off.plan(10.0, 0, 1.0)
+    assert off.wants_write(shaped) and shaped.offset_um == pytest.approx(-2.0)  # no jump back
+    off.written(shaped)
+    # nothing to change and nothing pending: no write wanted
+    off2 = OffsetTracker(_cfg(), held_um=-3.0)
+    assert not off2.wants_write(off2.plan(3.0, 0, 1.0))
+    off2.rewrite()  # a link came back: write again even though nothing changed
+    assert off2.wants_write(off2.plan(3.0, 0, 1.0))
+
+
+def test_import_contracts_hold_and_a_wrong_way_import_breaks_them(tmp_path):
+    """`lint-imports` passes on this tree and fails once the pure core imports the runtime."""
+    lint = Path(sys.executable).with_name("lint-imports")
+    ok = subprocess.run([str(lint)], cwd=ROOT, capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stdout[-2000:]
+    for pkg in PACKAGES:
+        shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    units = tmp_path / "compensator" / "units.py"
+    units.write_text(units.read_text() + "\nfrom thermocomp.runtime import spindle  # wrong way\n")
+    env = {"PATH": str(lint.parent), "PYTHONPATH": str(tmp_path), "HOME": str(tmp_path)}
+    bad = subprocess.run([str(lint), "--no-cache"], cwd=tmp_path, capture_output=True, text=True,
+                         env=env)
+    assert bad.returncode != 0
+    assert "compensator.units -> thermocomp.runtime" in bad.stdout
