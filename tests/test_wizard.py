@@ -22,8 +22,11 @@ from cnc_adapters.sim.nc import parse_nc
 from cnc_adapters.sim.vcnc import CYCLE_START_PATH, NAMESPACE_URI, SimClock, VirtualCNC, VirtualMachine, running
 from compensator.io import read_run_log, write_run_log
 
-SCALE = 1500.0
-THERMOCOMP = [sys.executable, "-m", "compensator.cli"]
+# simulated seconds per wall second: a sample (three OPC UA reads, a flushed row) must fit in
+# rate_s / SCALE of wall time, 33 ms here, with room for a slow or loaded machine
+SCALE = 600.0
+RATE_S = 20
+THERMOCOMP = [sys.executable, "-m", "thermocomp"]
 
 
 @pytest.fixture
@@ -65,7 +68,7 @@ def wizard_cmd(work: Path, cnc, *extra: str) -> list[str]:
             "--spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
             "--controller", cnc.url + "?preset=virtual-cnc",
             "--sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250",
-            "--rate-s", "10", "--dialect", "linuxcnc", "--step-min", "10", "--time-scale", str(SCALE), *extra]
+            "--rate-s", str(RATE_S), "--dialect", "linuxcnc", "--step-min", "10", "--time-scale", str(SCALE), *extra]
 
 
 def start(cmd: list[str], on_line, cwd: Path) -> tuple[subprocess.Popen, list[str], threading.Thread]:
@@ -153,7 +156,7 @@ def test_interactive_wizard_under_a_real_terminal(vcnc, tmp_path):
     answers = [
         ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
         ("Displacement from", "sensor"), ("Controller link", cnc.url + "?preset=virtual-cnc"),
-        ("Sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", "10"),
+        ("Sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", str(RATE_S)),
         ("Test the connections now", "y"),
     ]
     for prompt, answer in answers:
@@ -187,7 +190,7 @@ def test_interactive_wizard_under_a_real_terminal(vcnc, tmp_path):
 
 
 def test_wizard_imports_daq_logs(tmp_path):
-    from cnc_adapters.sim.programs import paper_calibration, random_validation
+    from compensator.programs import paper_calibration, random_validation
 
     params = preset("motorized-27k")
     epoch = 1.78e9
