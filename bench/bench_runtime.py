@@ -23,19 +23,25 @@ from thermocomp.runtime.config import load_config  # noqa: E402
 from compensator.io import save_model  # noqa: E402
 from thermocomp.runtime import SpindleRuntime  # noqa: E402
 from conftest import rich_form  # noqa: E402
+from cnc_adapters import Adapter  # noqa: E402
 from cnc_adapters.sim.vcnc import free_port  # noqa: E402
 
 
-class ConstantSpeed:
-    """No I/O at all: isolates the compute part of a cycle."""
+class ConstantSpeed(Adapter):
+    """An adapter with no I/O at all: isolates the compute part of a cycle."""
 
-    def read_speed(self) -> float:
-        return 15000.0
+    name = "constant"
 
-    def write_offset_um(self, offset_um: float) -> None:
+    def _connect(self) -> None:
         pass
 
-    def close(self) -> None:
+    def _disconnect(self) -> None:
+        pass
+
+    def _read_speed_raw(self) -> float:
+        return 15000.0
+
+    def _write_offset_raw(self, value: float) -> None:
         pass
 
 
