@@ -32,4 +32,4 @@ bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache .hypothesis tests/js/node_modules
+	rm -rf $(VENV) demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info

@@ -17,12 +17,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from devices import LineDevice, ModbusDevice, PtyPair, Registers, haas_handler  # noqa: E402
+
 from cnc_adapters.modbus import ModbusRtuAdapter  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.serial_link import HaasAdapter  # noqa: E402
 from cnc_adapters.sim import SpindlePlant, preset  # noqa: E402
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
-from devices import LineDevice, ModbusDevice, PtyPair, Registers, haas_handler  # noqa: E402
 
 N = 1000
 

@@ -21,6 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from devices import LineDevice, PtyPair  # noqa: E402
+
 from calibration.acquire import AcquireConfig, Recorder  # noqa: E402
 from calibration.calibrate import calibrate  # noqa: E402
 from calibration.data import Run  # noqa: E402
@@ -29,9 +31,8 @@ from calibration.profile import calibration_profile  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.sensors import AsciiSensor  # noqa: E402
 from cnc_adapters.sim import SpindlePlant, preset  # noqa: E402
-from compensator.programs import paper_calibration, random_validation  # noqa: E402
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
-from devices import LineDevice, PtyPair  # noqa: E402
+from compensator.programs import paper_calibration, random_validation  # noqa: E402
 
 P = preset("motorized-27k")
 

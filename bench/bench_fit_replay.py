@@ -19,13 +19,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+from conftest import rich_form  # noqa: E402
+
 from calibration.calibrate import calibrate  # noqa: E402
 from calibration.data import Run  # noqa: E402
 from calibration.fitting import fit_paper_ols  # noqa: E402
 from calibration.replay import replay  # noqa: E402
-from compensator.programs import job_shop_day  # noqa: E402
 from compensator.io import read_run_log, save_model, write_run_log  # noqa: E402
-from conftest import rich_form  # noqa: E402
+from compensator.programs import job_shop_day  # noqa: E402
 
 
 def month_of_speeds(days: int = 30) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,6 @@ import time
 import numpy as np
 
 from cnc_adapters.sim import SpindlePlant, preset
-
 from compensator.programs import job_shop_day
 
 

@@ -39,8 +39,24 @@ from compensator.io import (
     write_text,
 )
 
-from .acquire import EXCLUDED, AcquireConfig, Event, Problem, Recorder, Sample, progress_fraction, sparkline
-from .profile import DIALECTS, EXTENSIONS, calibration_profile, rest_hours, to_nc, validation_profile
+from .acquire import (
+    EXCLUDED,
+    AcquireConfig,
+    Event,
+    Problem,
+    Recorder,
+    Sample,
+    progress_fraction,
+    sparkline,
+)
+from .profile import (
+    DIALECTS,
+    EXTENSIONS,
+    calibration_profile,
+    rest_hours,
+    to_nc,
+    validation_profile,
+)
 
 SESSION_FORMAT = "thermocomp.wizard/1"
 RUNS = ("calibration", "validation")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import math
 import random
+import re
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -160,7 +161,7 @@ class Adapter(Link):
         speed_scale: float = 1.0,
         **link: Any,
     ):
-        self.units = ControllerUnits(float(offset_scale), int(offset_sign))
+        self.units = ControllerUnits(float(offset_scale), offset_sign)
         super().__init__(**link)
         self.speed_scale = speed_scale
         self.offset_um_requested: float | None = None
@@ -248,6 +249,18 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
+
+
+def construct(label: str, factory: Any, *args: Any, **kw: Any) -> Any:
+    """``factory(*args, **kw)``, an option the backend does not know reported as an
+    :class:`AdapterError` that names it (a URL or configuration typo), not a ``TypeError``."""
+    try:
+        return factory(*args, **kw)
+    except TypeError as err:
+        m = re.search(r"unexpected keyword argument '(\w+)'", str(err))
+        if m is None:
+            raise
+        raise AdapterError(f"{label}: unknown option {m.group(1)!r}") from err
 
 
 def query_params(url: str) -> dict[str, str]:

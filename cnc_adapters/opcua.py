@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import concurrent.futures
 import hashlib
+import logging
 import math
 import os
 from pathlib import Path
 from typing import Any
-
-import logging
 
 from .base import (
     Adapter,

@@ -14,7 +14,7 @@ from importlib.metadata import entry_points
 from typing import Any
 from urllib.parse import urlsplit
 
-from .base import Adapter, AdapterError, query_params
+from .base import Adapter, AdapterError, construct, query_params
 
 BACKENDS: dict[str, str] = {
     "sim": "cnc_adapters.sim.adapter:SimAdapter",
@@ -62,7 +62,8 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
             kind = SCHEMES.get(scheme)
             if kind is None:
                 raise AdapterError(f"no adapter for URL scheme {scheme!r} in {target!r}")
-        return backend(kind).from_url(target, **overrides)  # type: ignore[attr-defined]
+        return construct(f"{kind} adapter", backend(kind).from_url,  # type: ignore[attr-defined]
+                         target, **overrides)
     cfg = dict(target)
     kind = cfg.pop("type", None)
     if not kind and "url" in cfg:
@@ -70,4 +71,4 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
     if not kind:
         raise AdapterError("adapter configuration needs a 'type' or a 'url'")
     cfg.update(overrides)
-    return backend(kind)(**cfg)
+    return construct(f"{kind} adapter", backend(kind), **cfg)

@@ -31,7 +31,7 @@ from urllib.parse import urlsplit
 
 from compensator.errors import SensorOverRangeError
 
-from .base import AdapterError, BadValueError, Link, query_params, typed_params
+from .base import AdapterError, BadValueError, Link, construct, query_params, typed_params
 from .modbus import ModbusLink, check_types
 from .opcua import OpcUaLink
 from .serial_link import NUMBER, SerialLine
@@ -205,9 +205,9 @@ def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
             cls = SENSORS.get(kind)
             if cls is None or kind == "opcua":
                 raise AdapterError(f"unknown serial sensor protocol {kind!r}; known: ascii, modbus")
-            return cls(parts.path, **kw)
+            return construct(f"{kind} sensor", cls, parts.path, **kw)
         if parts.scheme == "opc.tcp":
-            return OpcUaSensor(target.split("?", 1)[0], **kw)
+            return construct("opcua sensor", OpcUaSensor, target.split("?", 1)[0], **kw)
         raise AdapterError(f"no sensor for URL scheme {parts.scheme!r} in {target!r}")
     cfg = dict(target)
     kind = cfg.pop("type", None)
@@ -217,4 +217,4 @@ def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
     if cls is None:
         raise AdapterError(f"unknown sensor type {kind!r}; known: {', '.join(SENSORS)}")
     cfg.update(overrides)
-    return cls(**cfg)
+    return construct(f"{kind} sensor", cls, **cfg)

@@ -53,7 +53,14 @@ from pydantic import (
 )
 
 from .errors import ModelError, NonFiniteInputError, UnstableModelError
-from .units import RANGE_TOLERANCE, SPEED_SCALE_RPM, require_dt, require_finite, speed_krpm, speed_magnitude_rpm
+from .units import (
+    RANGE_TOLERANCE,
+    SPEED_SCALE_RPM,
+    require_dt,
+    require_finite,
+    speed_krpm,
+    speed_magnitude_rpm,
+)
 
 MODEL_FORMAT = "thermocomp.model/1"
 

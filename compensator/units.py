@@ -58,8 +58,9 @@ class ControllerUnits:
     sign: int = 1
 
     def __post_init__(self) -> None:
-        if self.sign not in (1, -1):
-            raise ConfigError("offset_sign must be +1 or -1")
+        if isinstance(self.sign, bool) or self.sign not in (1, -1):
+            raise ConfigError(f"offset_sign must be +1 or -1, not {self.sign!r}")
+        object.__setattr__(self, "sign", int(self.sign))  # 1.0 -> 1
         if not (math.isfinite(self.scale) and self.scale != 0):
             raise ConfigError("offset_scale must be finite and non-zero")
 

@@ -49,6 +49,8 @@ if command -v linuxcnc >/dev/null 2>&1 && /usr/bin/python3 -c 'import ensurepip,
   else
     lvenv="$PWD/.venv-linuxcnc"
   fi
+  # setuptools builds in ./build and would carry modules this checkout has since removed
+  rm -rf build ./*.egg-info
   if [ ! -x "$lvenv/bin/python" ] || [ pyproject.toml -nt "$lvenv/.deps-stamp" ]; then
     /usr/bin/python3 -m venv --system-site-packages "$lvenv"
     "$lvenv/bin/pip" install --quiet --disable-pip-version-check . 2>&1 | grep -v "^WARNING: Location" || true

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from devices import LineDevice, ModbusDevice, PtyPair
 
 from calibration.acquire import COLUMNS, AcquireConfig, Problem, Recorder
 from calibration.profile import calibration_profile
@@ -15,8 +16,6 @@ from cnc_adapters.sim.adapter import SimAdapter
 from cnc_adapters.sim.vcnc import VirtualMachine
 from compensator.errors import AcquisitionError
 from compensator.io import RunLogAppender, read_run_log
-
-from devices import LineDevice, ModbusDevice, PtyPair
 
 MAX_RPM = 27000.0
 

@@ -13,6 +13,15 @@ from dataclasses import dataclass
 from typing import Callable
 
 import pytest
+from devices import (
+    LineDevice,
+    ModbusDevice,
+    NodeOpcuaServer,
+    PtyPair,
+    Registers,
+    haas_handler,
+    line_handler,
+)
 
 from cnc_adapters import (
     Adapter,
@@ -30,7 +39,6 @@ from cnc_adapters.serial_link import HaasAdapter, LineAdapter
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.adapter import SimAdapter
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
-from devices import LineDevice, ModbusDevice, NodeOpcuaServer, PtyPair, Registers, haas_handler, line_handler
 
 
 def wait_for(pred: Callable[[], bool], timeout: float = 15.0) -> bool:

@@ -74,6 +74,29 @@ def test_offset_after_the_controller_lost_it_rewrites_from_what_it_holds():
     assert off2.wants_write(off2.plan(3.0, 0, 1.0))
 
 
+def test_a_controller_value_that_is_not_a_number_is_rewritten_not_followed():
+    off = OffsetTracker(_cfg(rate=2.0), held_um=-4.0)
+    off.controller_holds(float("nan"))
+    assert off.pending and off.mode is OffsetMode.HOLDING
+    assert off.held_um == -4.0 and off.shaper.output_um == -4.0  # still moves on from -4
+    shaped = off.plan(4.0, 0, 1.0)
+    assert off.wants_write(shaped) and shaped.offset_um == pytest.approx(-4.0)
+
+
+def test_a_backend_option_typo_is_a_one_line_adapter_error():
+    from cnc_adapters import open_adapter
+    from cnc_adapters.sensors import open_sensor
+    from compensator.errors import AdapterError, ConfigError
+
+    with pytest.raises(AdapterError, match="unknown option 'speed_nod'"):
+        open_adapter("opc.tcp://127.0.0.1:4840?speed_nod=ns=2;s=x")
+    with pytest.raises(AdapterError, match="unknown option 'bogus'"):
+        open_sensor({"type": "ascii", "port": "/dev/null", "bogus": 1})
+    with pytest.raises(ConfigError, match="offset_sign must be"):
+        open_adapter({"type": "sim", "offset_sign": 1.7})
+    assert open_adapter({"type": "sim", "offset_sign": -1.0}).offset_sign == -1
+
+
 def test_import_contracts_hold_and_a_wrong_way_import_breaks_them(tmp_path):
     """`lint-imports` passes on this tree and fails once the pure core imports the runtime."""
     lint = Path(sys.executable).with_name("lint-imports")

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from plantdata import plant_run
 
 from calibration.calibrate import calibrate, free_run
 from calibration.data import Run, has_cooldown, resample
 from calibration.fitting import FORM_BY_NAME, fit_paper_ols
 from calibration.replay import equilibrium
 from compensator import CalibrationError
-from plantdata import plant_run
 
 
 def rms(x):

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import first_order
 
 from compensator.io import load_model, read_run_log, save_model, write_run_log
-from conftest import first_order
 
 REPLAY_KEYS = {
     "samples", "duration_s", "max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 import math
-import time
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -17,15 +17,14 @@ from calibration.calibrate import calibrate, residual_stats
 from calibration.data import Run
 from calibration.inputs import InputRun, fit_with_inputs
 from cnc_adapters.sim import SpindlePlant, preset
-from compensator.programs import paper_calibration, random_validation
 from cnc_adapters.sim.adapter import SimAdapter
-from compensator.programs import Program, job_shop_day
 from cnc_adapters.sim.vcnc import VirtualMachine
-from thermocomp.runtime.config import load_config
 from compensator.errors import CalibrationError, ConfigError
 from compensator.inputs import AugmentedModel
 from compensator.io import load_any_model, load_model, read_run_log, save_model, write_run_log
+from compensator.programs import Program, job_shop_day, paper_calibration, random_validation
 from thermocomp.runtime import Alarm, SpindleRuntime
+from thermocomp.runtime.config import load_config
 
 P = preset("motorized-27k")
 SENSORS = ["bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct"]
@@ -225,11 +224,11 @@ offset_node = "ns=2;s=Offset"
 
 
 def test_input_channels_over_opcua_and_modbus(tmp_path):
+    from devices import ModbusDevice, PtyPair
+
     from cnc_adapters import open_adapter
     from cnc_adapters.modbus import ModbusRtuAdapter
     from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, running
-
-    from devices import ModbusDevice, PtyPair
 
     vm = VirtualMachine(SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=SimClock(600.0))
     with running(VirtualCNC(vm)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:

@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 import pytest
+from conftest import first_order, rich_form
 
 from compensator import ModelFileError, RunLogError, UnstableModelError
 from compensator.io import load_model, read_run_log, save_model, write_run_log
-from conftest import first_order, rich_form
 
 
 def write(tmp_path, text, name="run.csv"):

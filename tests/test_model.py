@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import first_order, rich_form
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -16,7 +17,6 @@ from compensator import (
     ThermalStateCoefficients,
     UnstableModelError,
 )
-from conftest import first_order, rich_form
 
 FORMS = {"first-order": first_order, "rich": rich_form}
 

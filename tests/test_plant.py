@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from cnc_adapters.sim import PRESETS, SpindlePlant, preset
-
-from compensator.programs import paper_calibration
 from cnc_adapters.sim.plant import _system
+from compensator.programs import paper_calibration
 
 
 def run(name, dt, seed=0, **changes):

@@ -9,7 +9,14 @@ import sys
 
 import pytest
 
-from calibration.profile import DIALECTS, MAX_DWELL_S, calibration_profile, rest_hours, to_nc, validation_profile
+from calibration.profile import (
+    DIALECTS,
+    MAX_DWELL_S,
+    calibration_profile,
+    rest_hours,
+    to_nc,
+    validation_profile,
+)
 from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
 
 # What each control's manual allows for the blocks we write (no axis words anywhere).

@@ -15,21 +15,21 @@ import numpy as np
 import pytest
 
 from cnc_adapters.sim import SpindlePlant, preset
-
-from compensator.programs import job_shop_day
 from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
-from thermocomp.runtime.config import load_config
 from compensator.io import load_state, read_run_log, save_model
+from compensator.programs import job_shop_day
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
+from thermocomp.runtime.config import load_config
 
 EXAMPLES = Path(__file__).parents[1] / "examples"
 
 
 @pytest.fixture(scope="module")
 def model_file(tmp_path_factory):
-    from calibration.calibrate import calibrate
     from plantdata import plant_run
+
+    from calibration.calibrate import calibrate
 
     model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
     p = tmp_path_factory.mktemp("m") / "model.json"

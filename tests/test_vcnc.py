@@ -14,8 +14,16 @@ import pytest
 from cnc_adapters import BadValueError, UnreachableError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.sim import SpindlePlant, preset
+from cnc_adapters.sim.vcnc import (
+    NAMESPACE_URI,
+    NODE_PATHS,
+    SimClock,
+    VirtualCNC,
+    VirtualMachine,
+    free_port,
+    running,
+)
 from compensator.programs import Program
-from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, free_port, running
 
 JS = Path(__file__).parent / "js"
 

@@ -19,7 +19,14 @@ import pytest
 
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.nc import parse_nc
-from cnc_adapters.sim.vcnc import CYCLE_START_PATH, NAMESPACE_URI, SimClock, VirtualCNC, VirtualMachine, running
+from cnc_adapters.sim.vcnc import (
+    CYCLE_START_PATH,
+    NAMESPACE_URI,
+    SimClock,
+    VirtualCNC,
+    VirtualMachine,
+    running,
+)
 from compensator.io import read_run_log, write_run_log
 
 # simulated seconds per wall second: a sample (three OPC UA reads, a flushed row) must fit in

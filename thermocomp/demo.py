@@ -29,7 +29,14 @@ from calibration.calibrate import calibrate
 from calibration.data import run_from_log, transient_mask
 from calibration.plots import Panel, plot_panels
 from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, running
+from cnc_adapters.sim.vcnc import (
+    NAMESPACE_URI,
+    NODE_PATHS,
+    SimClock,
+    VirtualCNC,
+    VirtualMachine,
+    running,
+)
 from compensator.io import read_run_log, save_model, write_run_log
 from compensator.programs import job_shop_day, paper_calibration, random_validation
 from compensator.shaping import Flag

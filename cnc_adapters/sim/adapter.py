@@ -10,9 +10,10 @@ from __future__ import annotations
 from typing import Any
 from urllib.parse import urlsplit
 
+from compensator.programs import program as make_program
+
 from ..base import Adapter, AdapterError, WriteRejectedError, query_params
 from .plant import PRESETS, SpindlePlant
-from compensator.programs import program as make_program
 from .vcnc import SimClock, VirtualMachine
 
 

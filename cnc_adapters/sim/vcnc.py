@@ -258,8 +258,8 @@ class VirtualCNC:
 
         user_manager = None
         if self.users is not None:
-            from asyncua.server.user_managers import UserManager
             from asyncua.crypto.permission_rules import User, UserRole
+            from asyncua.server.user_managers import UserManager
 
             users = dict(self.users)
 

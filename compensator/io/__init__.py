@@ -4,14 +4,23 @@
 - :mod:`.modelfile`: model files with their checksum;
 - :mod:`.state`: the runtime's state file;
 - :mod:`.journal`: the runtime's daily journal;
-- :mod:`.atomic`: atomic writes and plain text files.
+- :mod:`.atomic`: atomic writes and plain text files;
+- :mod:`.checksum`: the canonical JSON and digest that model files and state carry.
 
-The pure model layer above never imports this package.
+The pure model layer beside it never imports this package; the adapters below the
+application do not either.
 """
 
 from .atomic import atomic_write, read_text, versioned_path, write_text
 from .journal import Journal
-from .modelfile import MODEL_TYPES, load_any_model, load_model, model_digest, model_to_json, save_model
+from .modelfile import (
+    MODEL_TYPES,
+    load_any_model,
+    load_model,
+    model_digest,
+    model_to_json,
+    save_model,
+)
 from .runlog import (
     ELONGATION_COLUMN,
     REQUIRED_COLUMNS,

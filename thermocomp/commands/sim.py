@@ -4,13 +4,19 @@ command line."""
 from __future__ import annotations
 
 import argparse
-
 import time
 from pathlib import Path
 
 from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
 from cnc_adapters.sim.plant import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import CYCLE_START_PATH, NODE_PATHS, SimClock, VirtualCNC, VirtualMachine, running
+from cnc_adapters.sim.vcnc import (
+    CYCLE_START_PATH,
+    NODE_PATHS,
+    SimClock,
+    VirtualCNC,
+    VirtualMachine,
+    running,
+)
 from compensator.errors import ConfigError
 from compensator.io import read_text, write_run_log
 from compensator.programs import program

@@ -16,6 +16,7 @@ write check, a machine that is off and applies 0), :meth:`rewrite` for a link th
 from __future__ import annotations
 
 import enum
+import math
 
 from compensator.shaping import Flag, OffsetShaper, ShapedOffset, ShaperConfig
 
@@ -57,10 +58,12 @@ class OffsetTracker:
             self.mode = OffsetMode.HOLDING
 
     def controller_holds(self, offset_um: float) -> None:
-        """The controller holds ``offset_um``: move on from there and write again."""
-        self.held_um = float(offset_um)
-        self.shaper.hold(self.held_um)
+        """The controller holds ``offset_um``: move on from there and write again. A value that
+        is not a finite number is not moved on from: the offset is only written again."""
         self.pending = True
+        if math.isfinite(offset_um):
+            self.shaper.hold(float(offset_um))
+            self.held_um = float(offset_um)
         self.mode = OffsetMode.HOLDING
 
     def rewrite(self) -> None:
