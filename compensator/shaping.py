@@ -19,7 +19,9 @@ Order of operations each sample:
 4. slew: |change| <= rate * dt.
 
 Invariants (checked by property tests): the output is finite, within the clamp,
-and never changes faster than ``max_rate_um_per_s``, whatever the input.
+and never changes faster than ``max_rate_um_per_s``, whatever the input. A controller that
+holds a value beyond the clamp (an outside write, a lowered clamp) is led into it at the
+slew limit: every output is then closer to the clamp than the one before.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ class Flag(enum.IntFlag):
 class TransientPolicy(BaseModel):
     """Lengthen the update cycle while the spindle speed changes fast."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     enabled: bool = True
     speed_rate_rpm_per_s: float = Field(500.0, gt=0, description="|dn/dt| threshold")
@@ -65,7 +67,7 @@ class TransientPolicy(BaseModel):
 class ShaperConfig(BaseModel):
     """Limits of the written offset. Units: um and um/s."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     max_offset_um: float = Field(100.0, gt=0, description="clamp: |A| <= max_offset_um")
     max_rate_um_per_s: float = Field(1.0, gt=0, description="slew limit")
@@ -113,12 +115,17 @@ class ShapedOffset:
     desired_um: float
 
 
-def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
-    """State for a controller that currently holds ``offset_um`` (clamped)."""
-    require_finite("initial offset", offset_um)
+def _clamp(config: ShaperConfig, offset_um: float) -> float:
     m = config.max_offset_um
-    held = min(max(offset_um, -m), m)
-    return ShaperState(output_um=held, target_um=held)
+    return min(max(offset_um, -m), m)
+
+
+def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
+    """State for a controller that currently holds ``offset_um``. A value beyond the clamp (an
+    outside write, a clamp lowered by a reload) is kept: the output enters the clamp through
+    the slew limit, it never jumps."""
+    require_finite("initial offset", offset_um)
+    return ShaperState(output_um=offset_um, target_um=_clamp(config, offset_um))
 
 
 def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,
@@ -149,8 +156,8 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
     if not in_transient:
         target, latch_age = desired, 0.0
     elif triggered and not was_open:
-        # entering a window: stop where we are, whatever the mode
-        target, latch_age = state.output_um, 0.0
+        # entering a window: stop where we are (inside the clamp), whatever the mode
+        target, latch_age = _clamp(cfg, state.output_um), 0.0
     elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
         target, latch_age = desired, 0.0
     else:
@@ -165,7 +172,7 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
 
     y = state.output_um
     diff = target - y
-    if abs(diff) < cfg.deadband_um or diff == 0.0:
+    if diff == 0.0 or (abs(diff) < cfg.deadband_um and abs(y) <= m):
         new_y = y
         if diff != 0.0:
             flags |= Flag.DEADBAND
@@ -174,7 +181,8 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
         step = min(max(diff, -limit), limit)
         if step != diff:
             flags |= Flag.SLEW_LIMITED
-        new_y = min(max(y + step, -m), m)
+        # from beyond the clamp the step itself leads in (the target is inside): no jump
+        new_y = min(max(y + step, -m), m) if abs(y) <= m else y + step
     if releasing and not in_transient and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
         releasing = False
 

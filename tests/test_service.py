@@ -218,7 +218,9 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
         assert state is not None and np.isfinite(state["thermal_um"]).all()
         progressed += state["saved_wall_s"] != last_saved
         last_saved = state["saved_wall_s"]
-        journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))
+        # newest part: under time_scale each restart's time starts behind the last run's
+        journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"),
+                         key=lambda p: p.stat().st_mtime_ns)
         if journal:
             lines = [ln for ln in journal[-1].read_text().splitlines() if ln and ln[0].isdigit()]
             last_pred = float(lines[-1].split(",")[2])

@@ -149,14 +149,17 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, deadband, m
         transient=TransientPolicy(enabled=enabled, mode=mode, window_s=20, slow_period_s=7),
     )
     sh = OffsetShaper(cfg, start)
-    assert abs(sh.output_um) <= clamp
+    assert sh.output_um == start  # what the controller holds, even beyond the clamp
     prev = sh.output_um
     for s, n, dt in samples:
         res = sh.update(s, n, dt)
         state = sh.state
         y = res.offset_um
         assert math.isfinite(y)
-        assert abs(y) <= clamp
+        if abs(prev) <= clamp:
+            assert abs(y) <= clamp
+        else:  # led into the clamp: never further out, never a jump
+            assert abs(y) <= abs(prev)
         assert abs(y - prev) <= rate * dt * (1 + 1e-12) + 1e-12
         assert res.write == (y != prev)
         if not res.write:
@@ -184,8 +187,14 @@ def test_hold_moves_on_from_what_the_controller_holds_through_the_slew_limit():
     assert sh.output_um == 0.0
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 3)
     assert outs == pytest.approx([-1.0, -2.0, -3.0])
-    sh.hold(999.0)  # an outside write beyond the clamp: clamped
-    assert sh.output_um == 50.0
+    sh.hold(80.0)  # an outside write beyond the clamp: entered by a ramp, never a jump
+    assert sh.output_um == 80.0
+    outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 40)
+    assert outs[:3] == pytest.approx([79.0, 78.0, 77.0])
+    assert all(b < a for a, b in zip(outs, outs[1:]))
+    assert outs[-1] == pytest.approx(40.0)
+    outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 60)
+    assert outs[-1] == pytest.approx(-10.0)  # and on to the model's value
 
 
 def test_shape_series_is_the_runtime_shaper_over_a_log():

@@ -31,7 +31,7 @@ from .runlog import (
     read_run_log,
     write_run_log,
 )
-from .state import STATE_FORMAT, load_state, save_state
+from .state import STATE_FORMAT, load_state, quarantine, save_state
 
 __all__ = [
     "ELONGATION_COLUMN",
@@ -52,6 +52,7 @@ __all__ = [
     "read_run_log",
     "read_text",
     "save_model",
+    "quarantine",
     "save_state",
     "versioned_path",
     "write_run_log",

@@ -1,53 +1,197 @@
-"""The runtime's journal: one run-log file per spindle and UTC day, a row per cycle."""
+"""The runtime's journal: one run-log file per spindle and UTC day, a row per cycle.
+
+The journal must never stop compensation. :meth:`Journal.write` does not raise: a row that
+cannot be written (full disk, a file-size limit, a read-only directory) stays queued in
+memory and is written, in order, once the disk takes it again, retried with back-off. A
+partial row left by a failed write is cut off again, so the file stays a valid run log.
+
+``time_s`` is the runtime's monotonic clock anchored to the wall clock once, at start: it
+always increases, and its differences are exactly the ``dt_s`` the model and the shaper used.
+``wall_s`` is the wall clock as read, so a clock step shows and is flagged by the runtime,
+not fatal. A day file that already ends later than the first new row (the clock was set
+back between two runs) is continued in a new part, ``<name>-<day>.p2.csv``.
+"""
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import math
 import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from .runlog import header_text
 
+MAX_PENDING_ROWS = 250_000
+"""Rows kept in memory while the disk refuses them (about 3 days at one cycle a second)."""
+
 
 class Journal:
-    """The runtime's journal: the common run-log format, one file per UTC day, flushed per row."""
+    """The runtime's journal: the common run-log format, one file per UTC day."""
 
-    COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms")
+    COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms",
+               "dt_s", "wall_s")
 
-    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any]):
+    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], *,
+                 fsync_every_s: float = 10.0, retry_s: float = 1.0, max_retry_s: float = 60.0,
+                 max_pending_rows: int = MAX_PENDING_ROWS):
         self.directory = Path(directory)
         self.name = name
         self.metadata = dict(metadata)
-        self._fh: IO[str] | None = None
+        self.fsync_every_s = fsync_every_s
+        self.retry_s = retry_s
+        self.max_retry_s = max_retry_s
+        self._pending: collections.deque[tuple[float, str]] = collections.deque(maxlen=max_pending_rows)
+        self.dropped_rows = 0
+        self._fd: int | None = None
         self._day: str | None = None
+        self._path: Path | None = None
         self._last_t = -math.inf
+        self._last_sync: float | None = None
+        self._failures = 0
+        self._next_try = -math.inf
+        self.error: str | None = None
+        """Why the last write failed (file and OS error); None while the journal is writing."""
 
-    def path_for(self, day: str) -> Path:
-        return self.directory / f"{self.name}-{day}.csv"
+    @property
+    def path(self) -> Path | None:
+        """The file being written."""
+        return self._path
 
-    def write(self, wall_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
-              written: bool, flags: int, alarms: int) -> None:
-        day = time.strftime("%Y-%m-%d", time.gmtime(wall_s))
-        if day != self._day:
-            self.close()
-            self.directory.mkdir(parents=True, exist_ok=True)
-            path = self.path_for(day)
-            new = not path.exists() or path.stat().st_size == 0
-            self._fh = open(path, "a", encoding="utf-8")
-            if new:
-                self._fh.write(header_text(self.COLUMNS, self.metadata))
-            self._day = day
-        t = max(wall_s, self._last_t + 1e-3)  # the run-log format needs increasing time
+    @property
+    def pending_rows(self) -> int:
+        return len(self._pending)
+
+    def path_for(self, day: str, part: int = 1) -> Path:
+        return self.directory / (f"{self.name}-{day}.csv" if part == 1 else f"{self.name}-{day}.p{part}.csv")
+
+    def write(self, time_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
+              written: bool, flags: int, alarms: int, *, dt_s: float = 0.0,
+              wall_s: float | None = None, now_s: float | None = None) -> bool:
+        """Queue one row and write what the disk takes; True when nothing is left queued.
+
+        ``now_s`` (monotonic seconds, default ``time_s``) paces the retries and the fsync.
+        """
+        t = max(time_s, self._last_t + 1e-3)  # the run-log format needs increasing time
         self._last_t = t
-        assert self._fh is not None
-        self._fh.write(f"{t:.3f},{speed_rpm:.9g},{predicted_um:.9g},{offset_um:.9g},"
-                       f"{int(written)},{int(flags)},{int(alarms)}\n")
-        self._fh.flush()
+        wall = t if wall_s is None else wall_s
+        row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.9g},{offset_um:.9g},{int(written)},"
+               f"{int(flags)},{int(alarms)},{dt_s:.6f},{wall:.3f}\n")
+        if len(self._pending) == self._pending.maxlen:
+            self.dropped_rows += 1
+        self._pending.append((t, row))
+        now = t if now_s is None else now_s
+        if now < self._next_try:
+            return False
+        return self.flush(now)
 
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
+    def flush(self, now_s: float) -> bool:
+        """Write the queued rows; on failure keep them and set :attr:`error`."""
+        try:
+            while self._pending:
+                day = time.strftime("%Y-%m-%d", time.gmtime(self._pending[0][0]))
+                if day != self._day:
+                    self._open(day, self._pending[0][0])
+                batch = []
+                for t, row in self._pending:
+                    if time.strftime("%Y-%m-%d", time.gmtime(t)) != day:
+                        break
+                    batch.append(row)
+                self._append("".join(batch))
+                for _ in batch:
+                    self._pending.popleft()
+            if self.fsync_every_s >= 0 and (self._last_sync is None
+                                            or now_s - self._last_sync >= self.fsync_every_s):
+                self._sync(now_s)
+        except OSError as err:
+            self._failures += 1
+            self._next_try = now_s + min(self.max_retry_s, self.retry_s * 2 ** (self._failures - 1))
+            where = err.filename or self._path or self.directory
+            self.error = f"{where}: {err.strerror or err}"
+            return False
+        self._failures = 0
+        self._next_try = -math.inf
+        self.error = None
+        return True
+
+    def _open(self, day: str, first_t: float) -> None:
+        self._close_fd()
+        self.directory.mkdir(parents=True, exist_ok=True)
+        part = 1
+        while True:
+            path = self.path_for(day, part)
+            last = _last_time(path)
+            if last is None or last < first_t:
+                break
+            part += 1  # the clock was set back: a new part keeps every file increasing
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            if os.fstat(fd).st_size == 0:
+                self._write_all(fd, header_text(self.COLUMNS, self.metadata))
+        except OSError:
+            os.close(fd)
+            raise
+        self._fd, self._day, self._path = fd, day, path
+
+    def _append(self, text: str) -> None:
+        assert self._fd is not None
+        self._write_all(self._fd, text)
+
+    @staticmethod
+    def _write_all(fd: int, text: str) -> None:
+        """Write all of ``text`` or none of it: a partial write is cut off again."""
+        data = text.encode("utf-8")
+        size = os.fstat(fd).st_size
+        try:
+            done = 0
+            while done < len(data):
+                done += os.write(fd, data[done:])
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise
+
+    def _sync(self, now_s: float) -> None:
+        if self._fd is not None:
+            os.fsync(self._fd)
+        self._last_sync = now_s
+
+    def _close_fd(self) -> None:
+        fd, self._fd, self._day = self._fd, None, None
+        if fd is not None:
+            try:
+                os.fsync(fd)  # on rotation and close
+            except OSError:
+                pass
+            finally:
+                os.close(fd)
+
+    def close(self, now_s: float | None = None) -> None:
+        """Write what is queued (one last try) and close."""
+        if self._pending:
+            self.flush(now_s if now_s is not None else self._last_t)
+        self._close_fd()
+
+
+def _last_time(path: Path) -> float | None:
+    """``time_s`` of the last row of an existing run log, or None (missing, empty, no rows)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 4096))
+            tail = fh.read().decode("utf-8", "replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(tail):
+        cell = line.split(",", 1)[0].strip()
+        if not cell or cell.startswith("#"):
+            continue
+        try:
+            return float(cell)
+        except ValueError:
+            return None  # the header: no rows yet
+    return None

@@ -6,9 +6,11 @@ See ``examples/machine.toml`` for an annotated example.
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -16,32 +18,54 @@ from compensator.errors import ConfigError
 from compensator.shaping import ShaperConfig
 
 
+_FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
 class FaultPolicy(BaseModel):
-    """What the runtime does when the inputs are bad."""
+    """What the runtime does when the inputs, the controller or the disk misbehave."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = _FROZEN
 
-    speed_hold_s: float = Field(30.0, ge=0, description="hold the last speed this long after a failed read, then assume idle")
+    speed_hold_s: float = Field(30.0, ge=0, le=86400, description="hold the last speed this long after a failed read, then assume idle")
     over_range: Literal["clamp", "extrapolate"] = Field(
         "clamp", description="speed above the calibrated range: clamp to its top, or trust the model beyond it")
-    max_outage_s: float = Field(600.0, gt=0, description="a link outage longer than this is logged as an outage alarm")
-    input_stale_s: float = Field(300.0, gt=0, description="an input (temperature, load) unchanged this long "
+    max_outage_s: float = Field(600.0, gt=0, le=86400, description="a link outage (refused, lost or timing out) "
+                                "longer than this raises the OUTAGE alarm")
+    input_stale_s: float = Field(300.0, gt=0, le=86400, description="an input (temperature, load) unchanged this long "
                                  "is stale: the speed-only fallback takes over")
-    input_recover_s: float = Field(60.0, ge=0, description="after an input fault, inputs must be good "
+    input_recover_s: float = Field(60.0, ge=0, le=86400, description="after an input fault, inputs must be good "
                                    "this long before the model with inputs takes over again")
+    readback_every: int = Field(1, ge=0, le=1_000_000, description="read back the offset the controller holds "
+                                "every this many cycles (also at start and after every reconnect); 0: only then. "
+                                "1 (one more read a cycle) sees a reset before the next write could jump")
+    offset_tolerance_um: float = Field(0.5, gt=0, le=1000, description="a held offset further than this from the "
+                                       "one written raises OFFSET_MISMATCH (covers the controller's rounding)")
+    max_mismatches: int = Field(3, ge=1, le=1000, description="this many mismatches in a row: the controller keeps "
+                                "refusing; writes back off (doubling, up to max_write_backoff_s)")
+    max_write_backoff_s: float = Field(300.0, gt=0, le=86400)
+    state_retry_s: float = Field(5.0, gt=0, le=3600, description="first retry after a failed state save (doubling)")
+    state_stale_s: float = Field(600.0, gt=0, le=7 * 86400, description="no state saved this long: the "
+                                 "STATE_STALE alarm (a restart would then start further from the truth)")
 
 
 class SpindleConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = _FROZEN
 
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="used in file names and logs")
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="used in file names and logs")
     model: Path = Field(description="model file (JSON) written by thermocomp fit")
     adapter: dict[str, Any] = Field(description="adapter settings: a 'type' key and its options, or a 'url'")
-    period_s: float = Field(1.0, gt=0, description="cycle period")
+    period_s: float = Field(1.0, ge=0.01, le=3600, description="cycle period")
     shaping: ShaperConfig = ShaperConfig()
     faults: FaultPolicy = FaultPolicy()
-    state_save_every_s: float = Field(30.0, gt=0)
-    max_state_age_s: float = Field(2 * 86400.0, gt=0, description="older saved state: start cold")
+    state_save_every_s: float = Field(30.0, gt=0, le=86400)
+    max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if ".." in v:
+            raise ValueError("a name may not contain '..'")
+        return v
 
     @field_validator("adapter")
     @classmethod
@@ -51,25 +75,46 @@ class SpindleConfig(BaseModel):
         for secret in ("password", "passwd", "secret"):
             if secret in v:
                 raise ValueError(f"adapter.{secret}: passwords never go in the configuration file; "
-                                 "use the environment or a password_file")
+                                 "use password_file, password_credential (systemd LoadCredential=) "
+                                 "or the environment")
+        url = v.get("url")
+        if isinstance(url, str):
+            try:
+                has_password = urlsplit(url).password is not None
+            except ValueError:
+                has_password = False
+            if has_password:
+                raise ValueError("adapter.url carries a password: refused; put it in password_file, "
+                                 "password_credential (systemd LoadCredential=) or the environment")
         return v
 
 
 class RuntimeConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = _FROZEN
 
     state_dir: Path = Path("/var/lib/thermocomp")
     journal_dir: Path | None = Field(None, description="default: <state_dir>/journal")
+    journal_fsync_s: float = Field(10.0, ge=0, le=3600, description="fsync the journal this often (0: every "
+                                   "row); always on rotation and at stop")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_file: Path | None = Field(None, description="JSON-lines log; default stderr")
     watchdog: bool = True
-    time_scale: float = Field(1.0, gt=0, description="simulated seconds per second: for the "
+    time_scale: float = Field(1.0, gt=0, le=10000, description="simulated seconds per second: for the "
                               "virtual machine tool only; 1 on a real machine")
-    spindle: list[SpindleConfig] = Field(min_length=1)
+    spindle: list[SpindleConfig] = Field(min_length=1, max_length=64)
 
     @property
     def journal_path(self) -> Path:
         return self.journal_dir or self.state_dir / "journal"
+
+
+_USERINFO = re.compile(r"(//[^/:@\s'\"]*):[^@/\s'\"]*@")
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    """A value for an error message: short, and never a password carried in a URL."""
+    text = _USERINFO.sub(r"\1:***@", repr(value))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
@@ -94,7 +139,8 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
         e = err.errors()[0]
         where = ".".join(str(x) for x in e["loc"])
         more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
-        raise ConfigError(f"{p}: {where}: {e['msg']}{more}") from err
+        given = "" if e["type"] == "missing" else f" (given {_short(e.get('input'))})"
+        raise ConfigError(f"{p}: {where}: {e['msg']}{given}{more}") from err
     names = [s.name for s in cfg.spindle]
     if len(set(names)) != len(names):
         raise ConfigError(f"{p}: spindle names must be unique")

@@ -66,6 +66,16 @@ class OffsetTracker:
             self.held_um = float(offset_um)
         self.mode = OffsetMode.HOLDING
 
+    def observe(self, held_um: float, tolerance_um: float) -> float | None:
+        """The controller was read back and holds ``held_um``. Within ``tolerance_um`` of what
+        it should hold: None. Otherwise the difference (held - expected); the offset then
+        moves on from the held value through the slew limit, and is written again."""
+        expected = self.held_um
+        if not math.isfinite(held_um) or abs(held_um - expected) <= tolerance_um:
+            return None
+        self.controller_holds(held_um)
+        return held_um - expected
+
     def rewrite(self) -> None:
         """Write the offset again at the next chance (the controller may have lost it)."""
         self.pending = True

@@ -1,15 +1,17 @@
 """``thermocomp run``: the compensation service an edge box runs for months.
 
 All spindles of one configuration in one process, each run by a
-:class:`~thermocomp.runtime.spindle.SpindleRuntime` every ``period_s``; JSON logs, systemd's
-notify protocol and watchdog, SIGTERM to stop and SIGHUP to reload. Time is injected
-(``clock`` monotonic seconds, ``wall`` epoch seconds, ``sleep``) so tests run in simulated
-time without sleeping.
+:class:`~thermocomp.runtime.spindle.SpindleRuntime` every ``period_s``; JSON logs with one
+structured event per transition, systemd's notify protocol and watchdog, SIGTERM to stop and
+SIGHUP to reload. One instance per state directory (:mod:`.lock`). A reload that does not
+validate (bad configuration, a model that cannot be loaded or is implausible) keeps the running
+one and raises ``RELOAD_FAILED``. A full disk never stops it: ``SIGXFSZ`` is ignored so a file
+size limit is an error on the write, which the spindle turns into an alarm. Time is injected
+(``clock`` monotonic seconds, ``wall`` epoch seconds, ``sleep``) so tests run in simulated time.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -23,21 +25,15 @@ from compensator.errors import ConfigError, ThermocompError
 from compensator.io import load_any_model
 
 from .config import RuntimeConfig, load_config
-from .spindle import SpindleRuntime
+from .events import JsonLines, event
+from .lock import AlreadyRunningError, StateDirLock
+from .spindle import Alarm, SpindleRuntime
 
 log = logging.getLogger("thermocomp.runtime")
 
-
-# -- logging, systemd, the loop ----------------------------------------------------
-
-
-class JsonLines(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        out = {"ts": round(record.created, 3), "level": record.levelname.lower(),
-               "logger": record.name, "msg": record.getMessage()}
-        if record.exc_info:
-            out["exc"] = self.formatException(record.exc_info).splitlines()[-1]
-        return json.dumps(out)
+PLAUSIBLE_ELONGATION_UM = 5000.0
+"""A model whose steady elongation anywhere in its speed range exceeds this (5 mm) is not a
+spindle's: a reload refuses it."""
 
 
 def setup_logging(cfg: RuntimeConfig) -> None:
@@ -50,6 +46,7 @@ def setup_logging(cfg: RuntimeConfig) -> None:
     root.addHandler(handler)
     root.setLevel(cfg.log_level.upper())
     logging.getLogger("asyncua").setLevel(logging.ERROR)
+    logging.raiseExceptions = False  # a log that cannot be written must not stop compensation
 
 
 def sd_notify(message: str) -> None:
@@ -67,31 +64,70 @@ def sd_notify(message: str) -> None:
         log.debug("sd_notify %s failed: %s", message, err)
 
 
+def plausible(model, name: str) -> None:
+    """Refuse a model that loads but cannot be a spindle's (ConfigError)."""
+    lo, hi = model.speed_range_rpm
+    for n in (lo, (lo + hi) / 2, hi):
+        s = model.steady_state_um(n)
+        if not math.isfinite(s) or abs(s) > PLAUSIBLE_ELONGATION_UM:
+            raise ConfigError(f"spindle {name}: model predicts {s:g} um at {n:g} rpm: not plausible")
+
+
 class Service:
     """All spindles of one configuration, in one process."""
 
     def __init__(self, config_path: str | os.PathLike[str], *, clock=time.monotonic, wall=time.time,
-                 sleep=time.sleep):
+                 sleep=time.sleep, cfg: RuntimeConfig | None = None, lock: bool = True):
         self.config_path = config_path
-        self.cfg = load_config(config_path)
+        self.cfg = cfg if cfg is not None else load_config(config_path)
         if self.cfg.time_scale != 1.0 and clock is time.monotonic:
             sim = ScaledClock(self.cfg.time_scale, time.monotonic)
             w0 = wall()
             clock, wall = sim, (lambda: w0 + sim())
             sleep = (lambda s, _k=self.cfg.time_scale: time.sleep(s / _k))
         self.clock, self.wall, self.sleep = clock, wall, sleep
+        self.anchor_s = wall() - clock()  # one journal time base for every spindle and reload
         self.spindles: dict[str, SpindleRuntime] = {}
         self._stop = False
         self._reload = False
         self._due: dict[str, float] = {}
         self._last_beat = -math.inf
-        self._build()
+        self.reload_failed = False
+        self._lock = StateDirLock(self.cfg.state_dir) if lock else None
+        self._prepare_state_dir()
+        self.spindles = self._build(self.cfg)
 
-    def _build(self) -> None:
-        self.cfg.state_dir.mkdir(parents=True, exist_ok=True)
-        for sc in self.cfg.spindle:
-            self.spindles[sc.name] = SpindleRuntime(sc, self.cfg.state_dir, self.cfg.journal_path,
-                                                    clock=self.clock, wall=self.wall)
+    def _prepare_state_dir(self) -> None:
+        try:
+            self.cfg.state_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            log.error("state directory %s: %s; running without saving state",
+                      self.cfg.state_dir, err.strerror or err)
+        if self._lock is None:
+            return
+        try:
+            self._lock.acquire()
+        except AlreadyRunningError:
+            raise
+        except OSError as err:
+            # nothing can write there either; compensation matters more than the lock
+            event("lock_failed", None, "cannot lock %s: %s; running unlocked", self._lock.path,
+                  err.strerror or err, level=logging.ERROR, path=str(self._lock.path))
+
+    def _build(self, cfg: RuntimeConfig) -> dict[str, SpindleRuntime]:
+        out: dict[str, SpindleRuntime] = {}
+        try:
+            for sc in cfg.spindle:
+                out[sc.name] = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=self.clock,
+                                              wall=self.wall, anchor_s=self.anchor_s,
+                                              journal_fsync_s=cfg.journal_fsync_s)
+                plausible(out[sc.name].model, sc.name)
+        except BaseException:
+            for rt in out.values():
+                rt.journal.close()
+                rt.adapter.close()
+            raise
+        return out
 
     def request_stop(self, *_: object) -> None:
         self._stop = True
@@ -100,18 +136,26 @@ class Service:
         self._reload = True
 
     def reload(self) -> None:
-        """SIGHUP: re-read the configuration; each spindle keeps its thermal state via its file."""
+        """SIGHUP: re-read the configuration and the models. Each spindle keeps its thermal
+        state through its state file, and the offset the controller holds is read back. Anything
+        that does not validate keeps the running configuration, with ``RELOAD_FAILED``."""
+        for rt in self.spindles.values():
+            rt.save_state()  # the new runtimes start from here
         try:
             new = load_config(self.config_path)
-        except ThermocompError as err:
-            log.error("reload refused, keeping the running configuration: %s", err)
+            if new.state_dir.resolve() != self.cfg.state_dir.resolve():
+                raise ConfigError("state_dir cannot change on reload; restart the service")
+            built = self._build(new)
+        except (ThermocompError, OSError) as err:
+            self.reload_failed = True
+            event("reload_refused", None, "reload refused, keeping the running configuration: %s",
+                  err, level=logging.ERROR, error=str(err)[:300])
             return
         for rt in self.spindles.values():
             rt.close()
-        self.cfg = new
-        self.spindles = {}
-        self._build()
-        log.info("configuration reloaded: %d spindle(s)", len(self.spindles))
+        self.cfg, self.spindles, self.reload_failed = new, built, False
+        event("reload", None, "configuration reloaded: %d spindle(s)", len(self.spindles),
+              spindles=list(self.spindles))
 
     def tick(self) -> float:
         """Run every spindle that is due; the seconds until the next one is."""
@@ -123,6 +167,7 @@ class Service:
         for name, rt in self.spindles.items():
             due = self._due.setdefault(name, now)
             if now >= due:
+                rt.sticky_alarms = Alarm.RELOAD_FAILED if self.reload_failed else Alarm.NONE
                 try:
                     rt.cycle()
                 except ThermocompError as err:  # a bad value: skip the cycle, never write it
@@ -140,8 +185,11 @@ class Service:
         signal.signal(signal.SIGINT, self.request_stop)
         if hasattr(signal, "SIGHUP"):
             signal.signal(signal.SIGHUP, self.request_reload)
+        if hasattr(signal, "SIGXFSZ"):
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a size limit: EFBIG, not death
         sd_notify("READY=1")
-        log.info("running %d spindle(s)", len(self.spindles))
+        event("started", None, "running %d spindle(s), pid %d", len(self.spindles), os.getpid(),
+              spindles=list(self.spindles), pid=os.getpid())
         try:
             while not self._stop:
                 wait = self.tick()
@@ -155,7 +203,9 @@ class Service:
     def close(self) -> None:
         for rt in self.spindles.values():
             rt.close()
-        log.info("stopped; state saved")
+        if self._lock is not None:
+            self._lock.release()
+        event("stopped", None, "stopped; state saved")
 
 
 def check(config_path: str) -> int:
@@ -163,6 +213,7 @@ def check(config_path: str) -> int:
     cfg = load_config(config_path)
     for sc in cfg.spindle:
         model = load_any_model(sc.model)
+        plausible(model.fallback or model, sc.name)
         with open_adapter(sc.adapter) as link:
             speed = link.read_speed()
             extra = ""
@@ -174,6 +225,8 @@ def check(config_path: str) -> int:
                                       "map them in the adapter")
                 values = link.read_inputs()
                 extra = ", inputs " + ", ".join(f"{n} {values[n]:g}" for n in names)
+            if getattr(link, "can_read_offset", False):
+                extra += f", holds offset {link.read_offset_um():.3f} um"
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
@@ -182,6 +235,7 @@ def check(config_path: str) -> int:
 def main(args) -> int:
     if args.check:
         return check(args.config)
-    service = Service(args.config)
-    setup_logging(service.cfg)
+    cfg = load_config(args.config)
+    setup_logging(cfg)  # before anything else is said
+    service = Service(args.config, cfg=cfg)
     return service.run()

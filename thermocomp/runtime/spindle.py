@@ -1,24 +1,31 @@
-"""One spindle's cycle: read -> step -> shape -> write -> journal.
+"""One spindle's cycle: read -> read back -> step -> shape -> write -> journal -> save.
 
 Each period :meth:`SpindleRuntime.cycle` reads the speed through the adapter
-(:meth:`_read_speed`), steps the model on the measured elapsed time (``Predictor.step``), shapes
-the offset (:meth:`OffsetTracker.plan`), writes ``A = -S`` (``Adapter.write_offset_um``) and
-journals the cycle (:class:`compensator.io.Journal`). Faults never produce a wrong write:
+(:meth:`_read_speed`), checks the offset the controller holds (:meth:`_read_back`), steps the
+model on the measured elapsed time (``Predictor.step``), shapes the offset
+(:meth:`OffsetTracker.plan`), writes ``A = -S`` (``Adapter.write_offset_um``), journals the
+cycle and saves the state when due. The controller's offset is the truth:
 
+- it is read back at start, after every reconnect and every ``faults.readback_every`` cycles;
+  a value further than ``faults.offset_tolerance_um`` from the one written raises
+  ``OFFSET_MISMATCH`` (cause: reset to zero, or an outside write) and the offset ramps from
+  there to the model's through the slew limit, written again in the same cycle. A controller
+  that keeps refusing (``faults.max_mismatches`` in a row) is not fought: writes back off;
 - speed read fails: hold the last speed up to ``faults.speed_hold_s``, then assume idle
   (n = 0), with an alarm; the model keeps running on that assumption;
-- the link is down (:class:`LinkHealth`): no write at all (never a stale value); the offset
-  machine (:class:`OffsetTracker`) stays at what the controller holds, so after the link
-  returns the offset ramps to the model value through the slew limit;
-- a write is refused: alarm, count, retry next cycle;
+- the link is down or times out (:class:`LinkHealth`): no write at all (never a stale value),
+  ``OUTAGE`` after ``faults.max_outage_s``;
 - speed above the calibrated range: clamp to its top (default) or extrapolate, with an alarm;
 - a model with inputs: its speed-only fallback is always stepped and stands in, with an alarm,
   while an input is missing, out of range or stale;
-- start-up: the saved state is advanced through the downtime as an idle spindle; missing or
-  older than ``max_state_age_s``: a cold start, said in the log.
+- the disk fails: a journal row or a state save that cannot be written raises an alarm naming
+  the file and the OS error and is retried with back-off; compensation goes on;
+- start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
+  than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start.
 
-Time is injected (``clock`` monotonic seconds, ``wall`` epoch seconds): tests run in simulated
-time without sleeping.
+Every transition is a structured event (:mod:`.events`). Time is injected (``clock`` monotonic
+seconds, ``wall`` epoch seconds): tests run in simulated time without sleeping. The journal's
+``time_s`` is the monotonic clock anchored to the wall once, so its steps are the model's dt.
 """
 
 from __future__ import annotations
@@ -32,15 +39,19 @@ from pathlib import Path
 from typing import Any
 
 from cnc_adapters import AdapterError, UnreachableError, WriteRejectedError, open_adapter
-from compensator.errors import ConfigError, ModelError, ModelFileError
-from compensator.io import Journal, load_any_model, load_state, model_digest, save_state
+from compensator.errors import AdapterTimeoutError, ConfigError, ModelError, ModelFileError
+from compensator.io import Journal, load_any_model, load_state, model_digest, quarantine, save_state
 from compensator.predictor import Predictor
 
 from .config import SpindleConfig
+from .events import event
 from .link import LinkHealth, LinkState
 from .offset import OffsetTracker
 
 log = logging.getLogger("thermocomp.runtime")
+
+CLOCK_STEP_S = 2.0
+"""A jump of the wall clock against the monotonic clock larger than this is a clock step."""
 
 
 class Alarm(enum.IntFlag):
@@ -54,6 +65,25 @@ class Alarm(enum.IntFlag):
     OUTAGE = 64
     NOT_READY = 128
     INPUT_FALLBACK = 256
+    OFFSET_MISMATCH = 512
+    WRITE_BACKOFF = 1024
+    JOURNAL_FAILED = 2048
+    STATE_SAVE_FAILED = 4096
+    STATE_STALE = 8192
+    STATE_CORRUPT = 16384
+    CLOCK_STEP = 32768
+    RELOAD_FAILED = 65536
+
+
+_LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
+"""Failures that mean the controller cannot be reached: refused, lost, or not answering."""
+
+
+def mismatch_cause(held_um: float, expected_um: float, tolerance_um: float) -> str:
+    """Who probably changed the controller's offset."""
+    if abs(held_um) <= tolerance_um:
+        return "reset to zero (controller restart, NC reset or power cycle)"
+    return "an outside write (operator, NC program or another client)"
 
 
 class SpindleRuntime:
@@ -61,10 +91,13 @@ class SpindleRuntime:
 
     def __init__(self, cfg: SpindleConfig, state_dir: Path, journal_dir: Path, *,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
-                 adapter: Any = None):
+                 adapter: Any = None, anchor_s: float | None = None, journal_fsync_s: float = 10.0):
         self.cfg = cfg
         self.clock = clock
         self.wall = wall
+        # journal time = monotonic + anchor: increasing, and its steps are the model's dt
+        self.anchor_s = wall() - clock() if anchor_s is None else anchor_s
+        self._skew_s: float | None = None
         loaded: Predictor = load_any_model(cfg.model)
         self.digest = model_digest(loaded)
         # a model with inputs runs beside its speed-only fallback, which is always stepped
@@ -83,69 +116,142 @@ class SpindleRuntime:
                                   "map them in the adapter (input_nodes for OPC UA, input_registers "
                                   "for Modbus)")
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
-                                                       "source": "thermocomp run"})
+                                                       "source": "thermocomp run"},
+                               fsync_every_s=journal_fsync_s)
         self.counters = {"cycles": 0, "writes": 0, "write_rejected": 0, "read_failed": 0,
-                         "link_down_cycles": 0}
+                         "link_down_cycles": 0, "readbacks": 0, "mismatches": 0,
+                         "journal_failed": 0, "state_save_failed": 0}
         self.alarms = Alarm.NONE
+        self._startup_alarms = Alarm.NONE  # journaled with the first cycle
+        self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
         self.link = LinkHealth(cfg.faults.max_outage_s)
         self._last_t: float | None = None
+        self._first_t: float | None = None
         self._last_good_read: float | None = None
         self._last_speed = 0.0
+        self._idle_assumed = False
         self._last_save = -math.inf
+        self._last_good_save: float | None = None
+        self._save_failures = 0
+        self._next_save_try = -math.inf
+        self._save_error: str | None = None
+        self._state_alarms = Alarm.NONE
+        self._stale = False
+        self._journal_error: str | None = None
+        self._need_readback = True
+        self._since_readback = 0
+        self._reconnects = getattr(self.adapter, "reconnects", 0)
+        self._mismatch_streak = 0
+        self._wrote_since_check = False
+        self._writes_paused_until = -math.inf
         self.restore()
+        self.alarms = self._startup_alarms
+
+    @property
+    def can_read_offset(self) -> bool:
+        return bool(getattr(self.adapter, "can_read_offset", False))
 
     # -- state -------------------------------------------------------------------------
 
+    def _cold(self, reason: str) -> None:
+        self.state = self.model.start(0.0, 0.0)
+        self.offset = OffsetTracker(self.cfg.shaping, 0.0)
+        self._startup_alarms |= Alarm.COLD_START
+        event("cold_start", self.cfg.name, "%s: cold start (%s)", self.cfg.name, reason,
+              level=logging.WARNING, reason=reason)
+
     def restore(self) -> None:
+        """The saved state, advanced through the downtime; a cold start when there is none
+        that fits. A corrupt file is moved aside and never crashes the start."""
+        now = self.wall()
         try:
             saved = load_state(self.state_path)
-        except ModelFileError as err:
-            log.warning("%s: %s; cold start", self.cfg.name, err)
-            saved = None
-        now = self.wall()
-        reason = None
-        state = None
-        if saved is None:
-            reason = "no saved state"
-        elif saved.get("model_sha256") != self.digest:
-            reason = "saved state belongs to another model"
-        else:
-            try:
-                state = self.model.state_from_dict(saved)
-            except ModelError:
-                reason = "saved state does not fit the model"
-            else:
-                if now - float(saved["saved_wall_s"]) > self.cfg.max_state_age_s:
-                    reason = f"saved state is {(now - float(saved['saved_wall_s'])) / 3600:.1f} h old"
-        if reason is not None:
-            self.state = self.model.start(0.0, 0.0)
-            self.offset = OffsetTracker(self.cfg.shaping, 0.0)
-            self.alarms |= Alarm.COLD_START
-            log.warning("%s: cold start (%s)", self.cfg.name, reason)
-            return
-        assert saved is not None
-        downtime = max(0.0, now - float(saved["saved_wall_s"]))
+            if saved is None:
+                return self._cold("no saved state")
+            if saved.get("model_sha256") != self.digest:
+                return self._cold("saved state belongs to another model")
+            saved_wall = float(saved["saved_wall_s"])
+            held = float(saved.get("offset_um", 0.0))
+            if not (math.isfinite(saved_wall) and math.isfinite(held)):
+                raise ModelFileError("non-finite time or offset")
+            state = self.model.state_from_dict(saved)
+            refs = saved.get("input_references")
+            refs = ({k: float(v) for k, v in refs.items()} if isinstance(refs, dict) else None)
+        except (ModelError, ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
+            moved = quarantine(self.state_path, stamp)
+            self._startup_alarms |= Alarm.STATE_CORRUPT
+            event("state_corrupt", self.cfg.name, "%s: state file %s is corrupt (%s); kept as %s",
+                  self.cfg.name, self.state_path, str(err)[:200], moved or "(could not be moved)",
+                  level=logging.ERROR, path=str(self.state_path), kept_as=moved)
+            return self._cold("corrupt state file")
+        age = now - saved_wall
+        if age > self.cfg.max_state_age_s:
+            return self._cold(f"saved state is {age / 3600:.1f} h old")
+        downtime = max(0.0, age)
         # the spindle stood still while we were down: the model's own cooling
         self.state = self.model.step(state, 0.0, downtime)
-        refs = saved.get("input_references")
-        if self.with_inputs is not None and isinstance(refs, dict) \
-                and set(refs) >= set(self.with_inputs.input_names):
-            self.refs = {k: float(v) for k, v in refs.items()}  # the cold start's, kept across restarts
-        self.offset = OffsetTracker(self.cfg.shaping, float(saved.get("offset_um", 0.0)))
-        log.info("%s: restored state, advanced %.0f s idle: S = %.2f um", self.cfg.name, downtime,
-                 self.state.elongation_um)
+        if self.with_inputs is not None and refs is not None \
+                and set(refs) >= set(self.with_inputs.input_names) \
+                and all(math.isfinite(v) for v in refs.values()):
+            self.refs = refs  # the cold start's, kept across restarts
+        # what we last wrote; the first cycle reads back what the controller really holds
+        self.offset = OffsetTracker(self.cfg.shaping, held)
+        event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
+              self.cfg.name, downtime, self.state.elongation_um, downtime_s=round(downtime, 3),
+              elongation_um=self.state.elongation_um, offset_um=held)
 
-    def save_state(self) -> None:
-        save_state(self.state_path, {
-            "spindle": self.cfg.name,
-            "model_sha256": self.digest,
-            "saved_wall_s": self.wall(),
-            **self.model.state_dict(self.state),
-            "elongation_um": self.state.elongation_um,
-            "offset_um": self.offset.held_um,
-            **({"input_references": self.refs} if self.refs else {}),
-        })
-        self._last_save = self.clock()
+    def save_state(self, now: float | None = None) -> bool:
+        """Save the state; a failure is an alarm and a retry with back-off, never an exception."""
+        now = self.clock() if now is None else now
+        try:
+            save_state(self.state_path, {
+                "spindle": self.cfg.name,
+                "model_sha256": self.digest,
+                "saved_wall_s": self.wall(),
+                **self.model.state_dict(self.state),
+                "elongation_um": self.state.elongation_um,
+                "offset_um": self.offset.held_um,
+                **({"input_references": self.refs} if self.refs else {}),
+            })
+        except (OSError, ValueError) as err:
+            self.counters["state_save_failed"] += 1
+            self._save_failures += 1
+            faults = self.cfg.faults
+            self._next_save_try = now + min(faults.max_write_backoff_s,
+                                            faults.state_retry_s * 2 ** (self._save_failures - 1))
+            why = f"{self.state_path}: {getattr(err, 'strerror', None) or err}"  # not the temp file
+            if why != self._save_error:
+                event("state_save_failed", self.cfg.name, "%s: cannot save the state: %s; "
+                      "compensation goes on, retrying", self.cfg.name, why, level=logging.ERROR,
+                      path=str(self.state_path), error=why)
+            self._save_error = why
+            return False
+        self._last_save = now
+        self._last_good_save = now
+        if self._save_error is not None:
+            event("state_saved_again", self.cfg.name, "%s: state saved again after %d failure(s)",
+                  self.cfg.name, self._save_failures, path=str(self.state_path))
+        self._save_error, self._save_failures, self._stale = None, 0, False
+        self._next_save_try = -math.inf
+        return True
+
+    def _save_if_due(self, now: float) -> Alarm:
+        due = now - self._last_save >= self.cfg.state_save_every_s
+        if due and now >= self._next_save_try:
+            self.save_state(now)
+        if self._save_error is None:
+            return Alarm.NONE
+        alarms = Alarm.STATE_SAVE_FAILED
+        since = self._last_good_save if self._last_good_save is not None else self._first_t
+        if since is not None and now - since > self.cfg.faults.state_stale_s:
+            alarms |= Alarm.STATE_STALE
+            if not self._stale:
+                self._stale = True
+                event("state_stale", self.cfg.name, "%s: no state saved for %.0f s: %s",
+                      self.cfg.name, now - since, self._save_error, level=logging.CRITICAL,
+                      path=str(self.state_path), error=self._save_error)
+        return alarms
 
     # -- the cycle -------------------------------------------------------------------
 
@@ -156,21 +262,22 @@ class SpindleRuntime:
             speed = self.adapter.read_speed()
             self._last_good_read = now
             self._last_speed = speed
+            if self._idle_assumed:
+                self._idle_assumed = False
+                event("speed_restored", self.cfg.name, "%s: speed read again", self.cfg.name)
             held = self.adapter.take_write_mismatch()
             if held is not None:  # a deferred check: the controller did not take our last write
                 self.counters["write_rejected"] += 1
-                alarms |= Alarm.WRITE_REJECTED
-                self.offset.controller_holds(held)
-                log.error("%s: the controller holds %.3f um, not the offset written; retrying",
-                          self.cfg.name, held)
+                alarms |= Alarm.WRITE_REJECTED | self._mismatch(now, held, "deferred write check")
             down_s = self.link.succeeded(now)
             if down_s is not None:
-                log.info("%s: link restored after %.0f s", self.cfg.name, down_s)
-                self.offset.rewrite()  # the controller may have lost it: write again
+                event("link_restored", self.cfg.name, "%s: link restored after %.1f s",
+                      self.cfg.name, down_s, down_s=round(down_s, 3))
+                self._reconnected()
         except AdapterError as err:
             self.counters["read_failed"] += 1
             alarms |= Alarm.SPEED_READ_FAILED
-            if isinstance(err, UnreachableError):
+            if isinstance(err, _LINK_ERRORS):
                 alarms |= self._link_failed(now, err)
             else:
                 log.warning("%s: speed read failed: %s", self.cfg.name, err)
@@ -180,44 +287,134 @@ class SpindleRuntime:
             else:
                 speed = 0.0
                 alarms |= Alarm.IDLE_ASSUMED
+                if not self._idle_assumed:
+                    self._idle_assumed = True
+                    event("idle_assumed", self.cfg.name, "%s: no speed for %.0f s: assuming idle",
+                          self.cfg.name, since, level=logging.WARNING, since_s=round(since, 3))
         if self.model.above_range(speed):
             alarms |= Alarm.OVER_RANGE
             if self.cfg.faults.over_range == "clamp":
                 speed = math.copysign(self.model.speed_range_rpm[1], speed)
         return speed, alarms
 
+    def _reconnected(self) -> None:
+        """The controller may have lost the offset (a restart clears it): read it back, or,
+        where it cannot be read, write it again."""
+        self._need_readback = True
+        if not self.can_read_offset:
+            self.offset.rewrite()
+
     def _link_failed(self, now: float, err: Exception) -> Alarm:
-        first = self.link.down_since is None
+        before = self.link.state
         state = self.link.failed(now)
-        if first:
-            log.error("%s: link down: %s", self.cfg.name, err)
+        if before is LinkState.CONNECTED:
+            name = "timeout" if isinstance(err, AdapterTimeoutError) else "link_down"
+            event(name, self.cfg.name, "%s: link down: %s", self.cfg.name, err, level=logging.ERROR,
+                  error=str(err)[:200])
+        if state is LinkState.OUTAGE and before is not LinkState.OUTAGE:
+            event("outage", self.cfg.name, "%s: OUTAGE: the controller has not answered for %.0f s; "
+                  "no offset is written", self.cfg.name, now - (self.link.down_since or now),
+                  level=logging.CRITICAL, down_s=round(now - (self.link.down_since or now), 3))
         return Alarm.LINK_DOWN | (Alarm.OUTAGE if state is LinkState.OUTAGE else Alarm.NONE)
 
+    def _mismatch(self, now: float, held_um: float, when: str) -> Alarm:
+        """The controller holds ``held_um``; act on it if it is not what we wrote."""
+        expected = self.offset.held_um
+        diff = self.offset.observe(held_um, self.cfg.faults.offset_tolerance_um)
+        wrote_since, self._wrote_since_check = self._wrote_since_check, False
+        if diff is None:
+            if wrote_since:  # it took a write of ours: not refusing
+                self._mismatch_streak = 0
+            return Alarm.NONE
+        self.counters["mismatches"] += 1
+        self._mismatch_streak += 1
+        faults = self.cfg.faults
+        cause = mismatch_cause(held_um, expected, faults.offset_tolerance_um)
+        if self._mismatch_streak <= faults.max_mismatches:  # then write_backoff speaks for it
+            event("offset_mismatch", self.cfg.name, "%s: OFFSET_MISMATCH (%s): the controller "
+                  "holds %.3f um, expected %.3f um; probably %s; ramping from there", self.cfg.name,
+                  when, held_um, expected, cause, level=logging.ERROR, held_um=held_um,
+                  expected_um=expected, cause=cause, when=when, streak=self._mismatch_streak)
+        if self._mismatch_streak >= faults.max_mismatches:
+            k = self._mismatch_streak - faults.max_mismatches
+            pause = min(faults.max_write_backoff_s, self.cfg.period_s * 2 ** (k + 1))
+            self._writes_paused_until = now + pause
+            event("write_backoff", self.cfg.name, "%s: the controller keeps refusing the offset "
+                  "(%d mismatches in a row): no write for %.0f s", self.cfg.name,
+                  self._mismatch_streak, pause, level=logging.ERROR, pause_s=pause,
+                  streak=self._mismatch_streak)
+        return Alarm.OFFSET_MISMATCH
+
+    def _read_back(self, now: float) -> Alarm:
+        """Compare the offset the controller holds with ours, when due."""
+        reconnects = getattr(self.adapter, "reconnects", 0)
+        if reconnects != self._reconnects:  # the adapter reconnected on its own
+            self._reconnects = reconnects
+            self._reconnected()
+        every = self.cfg.faults.readback_every
+        self._since_readback += 1
+        due = self._need_readback or (every > 0 and self._since_readback >= every)
+        if not (due and self.link.up and self.can_read_offset):
+            return Alarm.NONE
+        when = "at start" if self.counters["readbacks"] == 0 else (
+            "after a reconnect" if self._need_readback else "periodic check")
+        try:
+            held = self.adapter.read_offset_um()
+        except AdapterError as err:
+            if isinstance(err, _LINK_ERRORS):
+                return self._link_failed(now, err)
+            log.warning("%s: offset read-back failed: %s", self.cfg.name, err)
+            return Alarm.NONE
+        self.counters["readbacks"] += 1
+        self._need_readback = False
+        self._since_readback = 0
+        return self._mismatch(now, held, when)
+
     def _write(self, now: float, offset_um: float) -> tuple[bool, Alarm]:
+        if now < self._writes_paused_until:
+            return False, Alarm.WRITE_BACKOFF
         try:
             self.adapter.write_offset_um(offset_um)
         except WriteRejectedError as err:
             self.counters["write_rejected"] += 1
-            log.error("%s: write refused (%d so far): %s", self.cfg.name,
-                      self.counters["write_rejected"], err)
+            self._need_readback = True  # what does it hold now?
+            event("write_rejected", self.cfg.name, "%s: write refused (%d so far): %s",
+                  self.cfg.name, self.counters["write_rejected"], err, level=logging.ERROR,
+                  error=str(err)[:200])
             return False, Alarm.WRITE_REJECTED
         except AdapterError as err:
             alarms = Alarm.NONE
-            if isinstance(err, UnreachableError):
-                self.link.failed(now)
-                alarms |= Alarm.LINK_DOWN
-            log.error("%s: write failed: %s", self.cfg.name, err)
+            if isinstance(err, _LINK_ERRORS):
+                alarms |= self._link_failed(now, err)
+            else:
+                log.error("%s: write failed: %s", self.cfg.name, err)
             return False, alarms
         self.counters["writes"] += 1
+        self._wrote_since_check = True
         return True, Alarm.NONE
+
+    def _clock_step(self, now: float, wall_now: float) -> Alarm:
+        skew = wall_now - (self.anchor_s + now)
+        prev, self._skew_s = self._skew_s, skew
+        if prev is None or abs(skew - prev) <= CLOCK_STEP_S:
+            return Alarm.NONE
+        event("clock_step", self.cfg.name, "%s: the wall clock stepped by %+.1f s; the journal "
+              "keeps its monotonic time", self.cfg.name, skew - prev, level=logging.WARNING,
+              step_s=round(skew - prev, 3))
+        return Alarm.CLOCK_STEP
 
     def cycle(self) -> dict[str, Any]:
         t_read = time.perf_counter()  # a measurement only: the read->write latency
         now = self.clock()
-        wall_now = self.wall()  # journal the cycle at the instant its dt was measured
+        wall_now = self.wall()
+        if self._first_t is None:
+            self._first_t = now
         dt = 0.0 if self._last_t is None else max(0.0, now - self._last_t)
         self._last_t = now
-        speed, alarms = self._read_speed(now)
+        alarms = self._startup_alarms | self.sticky_alarms | self._clock_step(now, wall_now)
+        self._startup_alarms = Alarm.NONE
+        speed, read_alarms = self._read_speed(now)
+        alarms |= read_alarms | self._read_back(now)
         self.state = self.model.step(self.state, speed, dt)
         s = self.state.elongation_um
         if self.with_inputs is not None:
@@ -245,16 +442,40 @@ class SpindleRuntime:
             self.offset.written(shaped)
         elif not_ready is None:
             self.offset.kept(wanted)
-        self.alarms = alarms
+        if now < self._writes_paused_until:
+            alarms |= Alarm.WRITE_BACKOFF
         self.counters["cycles"] += 1
         held = self.offset.held_um
-        self.journal.write(wall_now, speed, s, held, wrote, int(shaped.flags), int(alarms))
-        if now - self._last_save >= self.cfg.state_save_every_s:
-            self.save_state()
+        alarms |= self._state_alarms  # of the last save: a row is journaled before the save
+        alarms |= self._journal(now, dt, wall_now, speed, s, held, wrote, int(shaped.flags), alarms)
+        self._state_alarms = self._save_if_due(now)
+        self.alarms = alarms | self._state_alarms
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
                 "offset_um": held, "written": wrote, "flags": shaped.flags, "alarms": alarms,
                 "read_to_write_ms": latency_ms, "offset_mode": self.offset.mode.value,
                 "link": self.link.state.value}
+
+    def _journal(self, now: float, dt: float, wall_now: float, speed: float, s: float, held: float,
+                 wrote: bool, flags: int, alarms: Alarm) -> Alarm:
+        """One journal row; a disk that refuses it is an alarm, the row waits in memory."""
+        j = self.journal
+        if self._journal_error is not None:
+            alarms |= Alarm.JOURNAL_FAILED  # the row says so itself once it lands
+        ok = j.write(self.anchor_s + now, speed, s, held, wrote, flags, int(alarms), dt_s=dt,
+                     wall_s=wall_now, now_s=now)
+        if ok:
+            if self._journal_error is not None:
+                event("journal_restored", self.cfg.name, "%s: journal writing again (%s)",
+                      self.cfg.name, j.path, path=str(j.path), dropped_rows=j.dropped_rows)
+                self._journal_error = None
+            return Alarm.NONE
+        if j.error is not None and j.error != self._journal_error:
+            self.counters["journal_failed"] += 1
+            event("journal_failed", self.cfg.name, "%s: cannot write the journal: %s; rows kept "
+                  "in memory (%d), compensation goes on", self.cfg.name, j.error, j.pending_rows,
+                  level=logging.ERROR, error=j.error, pending_rows=j.pending_rows)
+            self._journal_error = j.error
+        return Alarm.JOURNAL_FAILED if self._journal_error is not None else Alarm.NONE
 
     def _with_inputs(self, now: float, speed: float, dt: float) -> float | None:
         """The elongation from the model with inputs, or None when an input is faulty: the
@@ -279,7 +500,8 @@ class SpindleRuntime:
                     why = f"{name}: stale, {v:g} for {now - since:.0f} s"
         if why is not None:
             if self.input_state is not None or self._inputs_good_since is not None:
-                log.error("%s: %s; speed-only fallback", self.cfg.name, why)
+                event("input_fallback", self.cfg.name, "%s: %s; speed-only fallback", self.cfg.name,
+                      why, level=logging.ERROR, reason=why)
             self.input_state = None
             self._inputs_good_since = None
             return None
@@ -291,14 +513,21 @@ class SpindleRuntime:
             # continue from the fallback's elongation; a cold start takes these values as references
             self.input_state = model.start(self.state.elongation_um, speed, values, self.refs)
             self.refs = dict(self.input_state.references)
-            log.info("%s: inputs good: model with %s", self.cfg.name, ", ".join(model.input_names))
+            event("inputs_restored", self.cfg.name, "%s: inputs good: model with %s", self.cfg.name,
+                  ", ".join(model.input_names), inputs=list(model.input_names))
             return self.input_state.elongation_um
         self.input_state = model.step(self.input_state, speed, dt, values)
         return self.input_state.elongation_um
 
     def close(self) -> None:
+        """Save the state and close; a failing disk or link never raises here."""
         try:
             self.save_state()
         finally:
-            self.journal.close()
-            self.adapter.close()
+            try:
+                self.journal.close(self.clock())
+            finally:
+                try:
+                    self.adapter.close()
+                except AdapterError as err:
+                    log.warning("%s: closing the link: %s", self.cfg.name, err)
