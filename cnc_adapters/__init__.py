@@ -8,23 +8,31 @@ calibration or the runtime.
 from .base import (
     Adapter,
     AdapterError,
+    AdapterSettings,
     AdapterTimeoutError,
     BadValueError,
+    ConfigError,
     Link,
     UnreachableError,
     WriteRejectedError,
+    redact_url,
 )
-from .registry import BACKENDS, backend, open_adapter
+from .registry import BACKENDS, backend, check_adapter, open_adapter, settings_model
 
 __all__ = [
     "BACKENDS",
     "Adapter",
     "AdapterError",
+    "AdapterSettings",
     "AdapterTimeoutError",
     "BadValueError",
+    "ConfigError",
     "Link",
     "UnreachableError",
     "WriteRejectedError",
     "backend",
+    "check_adapter",
     "open_adapter",
+    "redact_url",
+    "settings_model",
 ]

@@ -1,39 +1,84 @@
 """The adapter family: one abstract base with a small template method (python-can style).
 
-Public :meth:`Adapter.read_speed` and :meth:`Adapter.write_offset_um` validate values
-(finite, sign), convert units and sign (:class:`compensator.units.ControllerUnits`, the only
-place um meet controller units) and log; backends override only the raw calls ``_connect``,
-``_read_speed_raw``, ``_write_offset_raw`` and ``_disconnect``. :class:`Link` is the
-reconnecting connection that adapters and sensors share.
+Public :meth:`Adapter.read_speed`, :meth:`Adapter.read_offset_um` and
+:meth:`Adapter.write_offset_um` validate values (finite, sign), convert units and sign
+(:class:`compensator.units.ControllerUnits`, the only place um meet controller units) and log;
+backends override only the raw calls ``_connect``, ``_read_speed_raw``, ``_read_offset_raw``,
+``_write_offset_raw`` and ``_disconnect``. :class:`Link` is the reconnecting connection that
+adapters and sensors share.
+
+Every backend declares its options as a pydantic model, ``Settings`` (:class:`AdapterSettings`
+and the helpers here); :func:`build` checks a configuration against it before the backend is
+constructed, so a misspelt key or a bad value is one :class:`ConfigError` line that names the
+key, the value and what is allowed.
 
 Backends are registered by name in :mod:`cnc_adapters.registry`.
 """
 
 from __future__ import annotations
 
+import difflib
+import inspect
 import logging
 import math
+import numbers
 import random
 import re
 import time
+import typing
 from abc import ABC, abstractmethod
-from collections.abc import Callable
-from typing import Any, ClassVar
+from collections.abc import Callable, Mapping
+from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
+
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 
 from compensator.errors import (
     AdapterError,
     AdapterTimeoutError,
     BadValueError,
+    ConfigError,
     UnreachableError,
     WriteRejectedError,
 )
 from compensator.units import ControllerUnits
 
-__all__ = ["Adapter", "AdapterError", "AdapterTimeoutError", "BadValueError", "Link",
-           "UnreachableError", "WriteRejectedError", "query_params", "typed_params"]
+__all__ = [
+    "RUNTIME_ONLY",
+    "Adapter",
+    "AdapterError",
+    "AdapterSettings",
+    "AdapterTimeoutError",
+    "Allowed",
+    "BadValueError",
+    "ConfigError",
+    "Link",
+    "LinkSettings",
+    "UnreachableError",
+    "WriteRejectedError",
+    "build",
+    "check_settings",
+    "option_names",
+    "query_params",
+    "redact_url",
+    "serial_options",
+    "typed_params",
+]
 
 log = logging.getLogger("thermocomp.adapters")
+
+
+def redact_url(text: str) -> str:
+    """``text`` with the user information of a URL in it replaced by ``***``: a URL that goes
+    into a log line or an error message never carries a user name or password."""
+    # greedy up to the last '@': a password with a raw '/' or '@' in it is hidden all the same
+    return re.sub(r"(?s)://.*@", "://***@", text)
+
+
+def short(value: Any, limit: int = 60) -> str:
+    """``repr(value)``, cut to ``limit`` characters, any URL user information hidden."""
+    text = redact_url(repr(value))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class Link(ABC):
@@ -43,7 +88,8 @@ class Link(ABC):
     between failed attempts (``backoff_s`` doubling up to ``max_backoff_s``, +-``jitter``);
     during the back-off calls fail at once with :class:`UnreachableError`.
     ``on_link_change(up, reason)`` tells the owner when the link goes down or comes back.
-    ``clock`` is injectable for tests. Subclasses implement ``_connect`` and ``_disconnect``.
+    ``clock`` is injectable for tests. Subclasses implement ``_connect`` and ``_disconnect``,
+    and ``_abort`` where a dead link can be dropped faster than it can be closed.
     """
 
     name: ClassVar[str] = "abstract"
@@ -120,16 +166,21 @@ class Link(ABC):
                 self._open = False
         self._closed = True
 
-    def _link_lost(self, message: str) -> UnreachableError:
-        """Drop a dead link so that the next call reconnects; the error to raise."""
+    def _link_lost(self, message: str, error: type[AdapterError] = UnreachableError) -> AdapterError:
+        """Drop a dead link so that the next call reconnects; the error to raise (``error``:
+        :class:`UnreachableError`, or :class:`AdapterTimeoutError` for a peer that hangs)."""
         try:
-            self._disconnect()
+            self._abort()
         except Exception:  # noqa: BLE001 - it is already dead
             pass
         self._open = False
         log.warning("%s", message)
         self._set_down(message)
-        return UnreachableError(message)
+        return error(message)
+
+    def _abort(self) -> None:
+        """Drop a link that is dead or hung; by default the same as closing it."""
+        self._disconnect()
 
     def __enter__(self):
         return self.open()
@@ -144,6 +195,224 @@ class Link(ABC):
     def _disconnect(self) -> None: ...
 
 
+# -- settings -----------------------------------------------------------------------------
+
+
+class Allowed:
+    """Field metadata: what a value must be, for the one-line error (``timeout_s must be a
+    number > 0, not 'abc'``)."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __repr__(self) -> str:
+        return f"Allowed({self.text!r})"
+
+
+SETTINGS_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False,
+                             hide_input_in_errors=True)
+"""Every settings model: no unknown key, immutable, no NaN or infinity; and the input is kept
+out of pydantic's own message, which is chained to ours and might hold a secret."""
+
+
+def _nonzero(v: float) -> float:
+    if v == 0:
+        raise ValueError("a finite number other than 0")
+    return v
+
+
+def _sign(v: Any) -> Any:
+    if isinstance(v, bool):
+        raise ValueError("+1 or -1")  # noqa: TRY004 - pydantic reports a ValueError, not a TypeError
+    if isinstance(v, str):
+        try:
+            v = float(v)
+        except ValueError:
+            raise ValueError("+1 or -1") from None
+    if isinstance(v, (int, float)) and v in (1, -1):
+        return int(v)
+    raise ValueError("+1 or -1")
+
+
+def one_of(*choices: str) -> Any:
+    """A string field that takes one of ``choices``."""
+    text = ", ".join(repr(c) for c in choices)
+
+    def check(v: str) -> str:
+        if v not in choices:
+            raise ValueError(f"one of {text}")
+        return v
+
+    return Annotated[str, AfterValidator(check), Allowed(f"one of {text}")]
+
+
+def _pattern(v: str) -> str:
+    try:
+        re.compile(v)
+    except re.error as err:
+        raise ValueError(f"a regular expression ({err})") from None
+    return v
+
+
+def _value_pattern(v: str) -> str:
+    if "value" not in re.compile(_pattern(v)).groupindex:
+        raise ValueError("a regular expression with a (?P<value>...) group")
+    return v
+
+
+Seconds = Annotated[float, Field(gt=0), Allowed("a number > 0 (seconds)")]
+Positive = Annotated[float, Field(gt=0), Allowed("a number > 0")]
+NonZero = Annotated[float, AfterValidator(_nonzero), Allowed("a finite number other than 0")]
+Finite = Annotated[float, Allowed("a finite number")]
+Fraction = Annotated[float, Field(ge=0, lt=1), Allowed("a number from 0 up to (not including) 1")]
+Sign = Annotated[int, BeforeValidator(_sign), Allowed("+1 or -1")]
+Count = Annotated[int, Field(ge=0), Allowed("a whole number >= 0")]
+Baud = Annotated[int, Field(gt=0), Allowed("a whole number > 0 (bits per second)")]
+Text = Annotated[str, Field(min_length=1), Allowed("a non-empty string")]
+Pattern = Annotated[str, AfterValidator(_pattern), Allowed("a regular expression")]
+ValuePattern = Annotated[str, AfterValidator(_value_pattern),
+                         Allowed("a regular expression with a (?P<value>...) group")]
+
+
+class LinkSettings(BaseModel):
+    """Options of every link: reconnection back-off."""
+
+    model_config = SETTINGS_CONFIG
+
+    backoff_s: Seconds = Field(0.5, description="first wait after a failed connect; doubles")
+    max_backoff_s: Seconds = Field(30.0, description="longest wait between connect attempts")
+    jitter: Fraction = Field(0.2, description="the wait varies by +-this fraction")
+
+
+class AdapterSettings(LinkSettings):
+    """Options of every controller adapter: units and sign, and the link's back-off. A default
+    of None means the backend's own (a preset's, or one derived from another option); None
+    cannot be given."""
+
+    # the defaults are not validated, so None stands for "the backend's own" here only
+    offset_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="controller unit per um (0.001: mm); default 1, or the preset's")
+    offset_sign: Sign = Field(  # type: ignore[assignment]
+        None, description="-1 for a controller whose offset points the other way; default +1")
+    speed_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="rpm per controller speed unit; default 1")
+
+
+RUNTIME_ONLY = frozenset({"clock", "rng", "on_link_change", "machine"})
+"""Constructor keywords that are objects of the running program, never configuration: passed
+through, not validated."""
+
+
+def _allowed_of(field: Any) -> str | None:
+    return next((m.text for m in field.metadata if isinstance(m, Allowed)), None)
+
+
+def _nested_model(annotation: Any) -> Any:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _nested_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def option_names(model: type[BaseModel]) -> list[str]:
+    """The options of ``model``, its own first, then those it inherits (the common ones last)."""
+    names: list[str] = []
+    for klass in model.__mro__:
+        for name in inspect.get_annotations(klass):
+            if name in model.model_fields and name not in names:
+                names.append(name)
+    return names
+
+
+def _locate(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[str, str | None, list[str]]:
+    """Where an error is: its dotted key (pydantic's union and type tags left out), the
+    :class:`Allowed` text of that option and the names of the options beside it."""
+    top = model.model_fields.get(str(loc[0])) if loc else None
+    if top is None:
+        return (str(loc[0]) if loc else ""), None, option_names(model)
+    nested = _nested_model(top.annotation)
+    if nested is None:
+        return str(loc[0]), _allowed_of(top), option_names(model)
+    parts = [str(loc[0])]
+    for part in loc[1:]:  # dict keys, then a field of the nested model
+        parts.append(str(part))
+        sub = nested.model_fields.get(str(part))
+        if sub is not None:
+            return ".".join(parts), _allowed_of(sub), option_names(nested)
+    return ".".join(parts), _allowed_of(top), option_names(nested)
+
+
+def describe(label: str, model: type[BaseModel], err: ValidationError) -> str:
+    """The first error of ``err`` as one line: the key, the value given and what is allowed."""
+    # a misspelt key first: a required option it was meant to be is "missing" only for that
+    errors = sorted(err.errors(), key=lambda x: x["type"] != "extra_forbidden")
+    e = errors[0]
+    key, allowed, beside = _locate(model, tuple(e["loc"]))
+    msg = re.sub(r"^(Value error, |Assertion failed, )", "", e["msg"])
+    others = len({tuple(x["loc"][:1]) for x in errors}) - 1  # a union fails once per member
+    more = f" (and {others} more)" if others > 0 else ""
+    if e["type"] == "extra_forbidden":
+        near = difflib.get_close_matches(key.rpartition(".")[2], beside, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        return f"{label}: unknown option {key!r}{hint}; allowed: {', '.join(beside)}{more}"
+    if not key:  # a check across options
+        return f"{label}: {msg}{more}"
+    if e["type"] == "value_error":  # our own validators say what is allowed
+        allowed = msg
+    if e["type"] == "missing":
+        return f"{label}: {key} is required" + (f": {allowed}" if allowed else "") + more
+    if allowed is None:  # pydantic's own words, then
+        return f"{label}: {key}={short(e.get('input'))}: {msg}{more}"
+    return f"{label}: {key} must be {allowed}, not {short(e.get('input'))}{more}"
+
+
+def check_settings(label: str, model: type[BaseModel], options: Mapping[str, Any]) -> BaseModel:
+    """``options`` (runtime-only keywords left out) validated by ``model``; one
+    :class:`ConfigError` line naming the key, the value and what is allowed when they do not.
+    A runtime-only keyword given as plain data (``clock = 1`` in a file) is refused too."""
+    for key in sorted(RUNTIME_ONLY & options.keys()):
+        # plain data under such a key came from a file or a URL, where it means nothing
+        if isinstance(options[key], (str, bytes, int, float, list, tuple, dict)):
+            raise ConfigError(f"{label}: {key!r} is no configuration option (the running program "
+                              f"passes its own), not {short(options[key])}")
+    try:
+        return model.model_validate({k: v for k, v in options.items() if k not in RUNTIME_ONLY})
+    except ValidationError as err:
+        raise ConfigError(describe(label, model, err)) from err
+
+
+def build(label: str, cls: Any, options: Mapping[str, Any]) -> Any:
+    """``cls`` built from ``options``, checked first against ``cls.Settings`` (when the class
+    has one). Only the options given reach the constructor, so the backend's and a preset's
+    defaults stay in force; runtime-only keywords (clock, rng, ...) pass through unchecked."""
+    model = getattr(cls, "Settings", None)
+    if model is None:  # a third-party backend without a settings model
+        return construct(label, cls, **options)
+    checked = check_settings(label, model, options).model_dump(exclude_unset=True)
+    runtime = {k: v for k, v in options.items() if k in RUNTIME_ONLY}
+    return construct(label, cls, **checked, **runtime)
+
+
+def construct(label: str, factory: Any, *args: Any, **kw: Any) -> Any:
+    """``factory(*args, **kw)``, an option the backend does not know reported as a
+    :class:`ConfigError` that names it (a URL or configuration typo), not a ``TypeError``."""
+    try:
+        return factory(*args, **kw)
+    except TypeError as err:
+        m = re.search(r"unexpected keyword argument '(\w+)'", str(err))
+        if m is None:
+            raise
+        raise ConfigError(f"{label}: unknown option {m.group(1)!r}") from err
+
+
+# -- the adapter --------------------------------------------------------------------------
+
+
 class Adapter(Link):
     """A link to one spindle on one controller.
 
@@ -151,7 +420,17 @@ class Adapter(Link):
     ``offset_sign`` flips the sign for controllers whose thermal offset points
     the other way (:attr:`units`). ``speed_scale`` converts the controller's speed unit to
     rpm. Reconnection, back-off and ``on_link_change`` are those of :class:`Link`.
+
+    A backend declares ``Settings`` (its options, an :class:`AdapterSettings`), ``url_options``
+    (the options a URL carries) and whether it ``can_read_offset``.
     """
+
+    Settings: ClassVar[type[AdapterSettings] | None] = None
+    """The backend's options as a pydantic model (None: a backend that declares none)."""
+
+    can_read_offset: ClassVar[bool] = False
+    """Whether :meth:`read_offset_um` reads the offset the controller holds. An instance whose
+    configuration names no way to read it (a line protocol without a query) says False."""
 
     def __init__(
         self,
@@ -165,6 +444,17 @@ class Adapter(Link):
         super().__init__(**link)
         self.speed_scale = speed_scale
         self.offset_um_requested: float | None = None
+
+    @classmethod
+    def url_options(cls, url: str) -> dict[str, Any]:
+        """The options ``url`` carries, values as given (query values are strings; ``Settings``
+        converts them)."""
+        raise NotImplementedError(f"{cls.name} adapter: no URL form")
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: Any) -> Adapter:
+        """An adapter from its URL (``overrides`` win), checked against ``Settings``."""
+        return build(f"{cls.name} adapter", cls, {**cls.url_options(url), **overrides})
 
     @property
     def offset_scale(self) -> float:
@@ -190,6 +480,22 @@ class Adapter(Link):
         if not math.isfinite(rpm):
             raise BadValueError(f"{self.name}: speed is {rpm}")
         return rpm
+
+    def read_offset_um(self) -> float:
+        """The offset [um] the controller holds now, read back from it (not what was last
+        written): :class:`BadValueError` when it is not a finite number, :class:`AdapterError`
+        from a link that cannot read it (:attr:`can_read_offset` False)."""
+        if not self.can_read_offset:
+            raise AdapterError(f"{self.name}: this link cannot read back the offset the "
+                               "controller holds (can_read_offset is false)")
+        self.open()
+        raw = self._read_offset_raw()
+        if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
+            raise BadValueError(f"{self.name}: the controller's offset {short(raw)} is not a number")
+        value = float(raw)
+        if not math.isfinite(value):
+            raise BadValueError(f"{self.name}: the controller's offset is {value}")
+        return self.units.to_um(value)
 
     def write_offset_um(self, offset_um: float) -> None:
         """Write the thermal offset [um]; a non-finite value never leaves this method."""
@@ -247,24 +553,24 @@ class Adapter(Link):
     @abstractmethod
     def _read_speed_raw(self) -> Any: ...
 
+    def _read_offset_raw(self) -> Any:
+        """The offset the controller holds, in its unit; backends that can read it override
+        this and set ``can_read_offset``."""
+        raise AdapterError(f"{self.name}: this link cannot read back the offset")
+
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
 
 
-def construct(label: str, factory: Any, *args: Any, **kw: Any) -> Any:
-    """``factory(*args, **kw)``, an option the backend does not know reported as an
-    :class:`AdapterError` that names it (a URL or configuration typo), not a ``TypeError``."""
-    try:
-        return factory(*args, **kw)
-    except TypeError as err:
-        m = re.search(r"unexpected keyword argument '(\w+)'", str(err))
-        if m is None:
-            raise
-        raise AdapterError(f"{label}: unknown option {m.group(1)!r}") from err
-
-
 def query_params(url: str) -> dict[str, str]:
     return dict(parse_qsl(urlsplit(url).query))
+
+
+def serial_options(url: str) -> dict[str, Any]:
+    """``serial:///dev/ttyUSB0?protocol=haas&baudrate=9600``: the port and the query (the
+    protocol picks the backend, so it is no option of it)."""
+    return {"port": urlsplit(url).path,
+            **{k: v for k, v in query_params(url).items() if k != "protocol"}}
 
 
 INT_PARAMS = frozenset({"baudrate", "device_id", "speed_register", "offset_register", "offset_sign",
@@ -274,7 +580,8 @@ FLOAT_PARAMS = frozenset({"timeout_s", "offset_scale", "speed_scale", "time_scal
 
 def typed_params(url: str, drop: tuple[str, ...] = ("protocol",), ints: frozenset[str] = INT_PARAMS,
                  floats: frozenset[str] = FLOAT_PARAMS) -> dict[str, Any]:
-    """URL query parameters as constructor keywords, the ``ints`` and ``floats`` converted."""
+    """URL query parameters as constructor keywords, the ``ints`` and ``floats`` converted (for
+    backends without a ``Settings`` model; built-in ones let it convert)."""
     out: dict[str, Any] = {}
     for k, v in query_params(url).items():
         if k in drop:

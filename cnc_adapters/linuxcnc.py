@@ -33,16 +33,35 @@ runtime re-seeds the offset from zero through its slew limit.
 
 Sign: thermocomp's offset is ``A = -S`` with positive ``S`` toward the workpiece. On a vertical
 spindle that is -Z, so the Z external offset is ``+S``: ``offset_sign = -1`` (the default).
+
+Reading the offset back: the component's own pins only say what thermocomp wrote, which is no
+check at all. What motion holds is LinuxCNC's ``axis.L.eoffset-request`` (the accumulated counts
+times the scale, in machine units), read by name (``held_pin``, default
+``axis.z.eoffset-request``; name the axis the counts are netted to, or ``""`` for no read-back).
+While the machine is not ready it applies no external offset, so the read-back is 0 then.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
-from typing import Any
+from typing import Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
-from .base import Adapter, AdapterError, BadValueError, UnreachableError, typed_params
+from pydantic import BeforeValidator, Field
+
+from .base import (
+    Adapter,
+    AdapterError,
+    AdapterSettings,
+    Allowed,
+    BadValueError,
+    Positive,
+    Sign,
+    UnreachableError,
+    one_of,
+    query_params,
+)
 
 log = logging.getLogger("thermocomp.adapters.linuxcnc")
 
@@ -68,12 +87,47 @@ def import_linuxcnc(module: str):
                                "is linuxcnc-uspace installed?") from err
 
 
+HAL_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
+
+
+def _names(v: Any) -> Any:
+    # a URL gives the names as one comma-separated string
+    return [n.strip() for n in v.split(",") if n.strip()] if isinstance(v, str) else v
+
+
+InputName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$"), Allowed("letters, digits, '_' and '-'")]
+ComponentName = Annotated[str, Field(pattern=HAL_NAME), Allowed("a HAL component name")]
+PinName = Annotated[str, Field(pattern=r"^$|" + HAL_NAME), Allowed("a HAL pin name, or '' for none")]
+SpeedUnit = one_of("rps", "rpm")
+AxisUnits = one_of("mm", "inch")
+MachineState = one_of("stat", "pins")
+
+
+class LinuxCncSettings(AdapterSettings):
+    """The options of :class:`LinuxCncAdapter`."""
+
+    component: ComponentName = "thermocomp"
+    speed_unit: SpeedUnit = Field("rps", description="of speed-in: rps, as spindle.N.speed-in")
+    axis_units: AxisUnits = Field("mm", description="[TRAJ]LINEAR_UNITS")
+    count_um: Positive = Field(0.01, description="um per external-offset count")
+    machine_state: MachineState = Field("stat", description="linuxcnc.stat, or pins machine-on/homed")
+    inputs: Annotated[list[InputName], BeforeValidator(_names),
+                      Allowed("names of letters, digits, '_' and '-' ('a,b' in a URL)")] = Field(
+        default_factory=list, description="extra channels: float IN pins input.<name>")
+    held_pin: PinName = Field("axis.z.eoffset-request", description="the pin holding the external "
+                              "offset motion applies (machine units); '' for no read-back")
+    offset_sign: Sign = Field(-1, description="-1 for a vertical Z spindle (the default)")
+
+
 class LinuxCncAdapter(Adapter):
     name = "linuxcnc"
+    Settings: ClassVar[type[AdapterSettings]] = LinuxCncSettings
+    can_read_offset: ClassVar[bool] = True  # an instance with held_pin = "" cannot
 
     def __init__(self, *, component: str = "thermocomp", speed_unit: str = "rps",
                  axis_units: str = "mm", count_um: float = 0.01, machine_state: str = "stat",
-                 inputs: list[str] | tuple[str, ...] = (), **kw: Any):
+                 inputs: list[str] | tuple[str, ...] = (), held_pin: str = "axis.z.eoffset-request",
+                 **kw: Any):
         if speed_unit not in ("rps", "rpm"):
             raise AdapterError("linuxcnc: speed_unit is 'rps' (spindle.N.speed-in) or 'rpm'")
         if axis_units not in ("mm", "inch"):
@@ -93,6 +147,8 @@ class LinuxCncAdapter(Adapter):
             if not name.replace("_", "").replace("-", "").isalnum():
                 raise AdapterError(f"linuxcnc: input name {name!r}: letters, digits, '_' and '-' only")
         self.machine_state = machine_state
+        self.held_pin = held_pin or None
+        self.can_read_offset = self.held_pin is not None  # type: ignore[misc]
         self.count = count_um * self.offset_scale  # machine units per count
         self._comp = None
         self._stat = None
@@ -100,13 +156,9 @@ class LinuxCncAdapter(Adapter):
         self._ready = False
 
     @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> LinuxCncAdapter:
+    def url_options(cls, url: str) -> dict[str, Any]:
         """``linuxcnc://thermocomp?speed_unit=rps&axis_units=mm``."""
-        kw: dict[str, Any] = {"component": urlsplit(url).netloc or "thermocomp",
-                              **typed_params(url, ints=frozenset({"offset_sign"}),
-                                             floats=frozenset({"count_um", "offset_scale", "speed_scale"}))}
-        kw.update(overrides)
-        return cls(**kw)
+        return {"component": urlsplit(url).netloc or "thermocomp", **query_params(url)}
 
     def _connect(self) -> None:
         hal = import_linuxcnc("hal")
@@ -167,6 +219,20 @@ class LinuxCncAdapter(Adapter):
     def _read_speed_raw(self) -> float:
         self._update()
         return self._comp["speed-in"]
+
+    def _read_offset_raw(self) -> float:
+        self._update()
+        if not self._ready:
+            return 0.0  # off, in E-stop or not homed: motion applies none (and zeroes it at machine-on)
+        hal = import_linuxcnc("hal")
+        try:
+            return hal.get_value(self.held_pin)
+        except AttributeError as err:  # hal.get_value came with LinuxCNC 2.8
+            raise AdapterError("linuxcnc: this LinuxCNC's hal module cannot read other pins; "
+                               'set held_pin = "" (no read-back)') from err
+        except RuntimeError as err:
+            raise AdapterError(f"linuxcnc: cannot read {self.held_pin}: {err} (held_pin names "
+                               "axis.<L>.eoffset-request of the axis the counts drive)") from err
 
     def _write_offset_raw(self, value: float) -> None:
         counts = round(value / self.count)

@@ -8,27 +8,86 @@ standard; ``little`` swaps the two bytes). Integer types take ``speed_scale`` an
 
 A reply with a bad CRC is dropped by the framer, so it surfaces as a timeout; a Modbus
 exception reply (illegal address, device failure) is an :class:`AdapterError`, or a
-:class:`WriteRejectedError` for a write.
+:class:`WriteRejectedError` for a write. The offset is read back from the holding registers
+it is written to (an integer type holds it rounded to its unit).
 """
 
 from __future__ import annotations
 
-from typing import Any, Literal
-from urllib.parse import urlsplit
+import warnings
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import BaseModel, Field
 
 from .base import (
+    SETTINGS_CONFIG,
     Adapter,
     AdapterError,
+    AdapterSettings,
     AdapterTimeoutError,
+    Allowed,
     BadValueError,
+    Baud,
+    Finite,
+    Seconds,
     UnreachableError,
     WriteRejectedError,
-    typed_params,
+    one_of,
+    serial_options,
 )
 
 _WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
 _RANGE = {"int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
           "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
+
+
+DataType = one_of(*_WIDTH)
+Table = one_of("input", "holding")
+Order = one_of("big", "little")
+Parity = one_of("N", "E", "O")
+Register = Annotated[int, Field(ge=0, le=65535), Allowed("a register address 0..65535")]
+
+
+class ModbusLinkSettings(BaseModel):
+    """The options of a Modbus RTU line (adapters and sensors alike)."""
+
+    model_config = SETTINGS_CONFIG
+
+    port: Annotated[str, Field(min_length=1), Allowed("a serial device such as /dev/ttyUSB0")]
+    baudrate: Baud = 19200
+    parity: Parity = "N"
+    device_id: Annotated[int, Field(ge=0, le=247), Allowed("a Modbus device address 0..247")] = 1
+    word_order: Order = Field("big", description="big: high word first")
+    byte_order: Order = Field("big", description="inside each register; big is the standard")
+    timeout_s: Seconds = 0.5
+
+
+with warnings.catch_warnings():
+    # the option is called "register"; it shadows ABCMeta.register, which nothing calls here
+    warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
+
+    class InputRegister(BaseModel):
+        """One extra channel of :class:`ModbusRtuAdapter`."""
+
+        model_config = SETTINGS_CONFIG
+
+        # a Field, not a bare annotation: else pydantic takes ABCMeta.register for its default
+        register: Register = Field(description="the register's address")
+        type: DataType = "int16"
+        table: Table = "input"
+        scale: Finite = 1.0
+
+
+class ModbusSettings(ModbusLinkSettings, AdapterSettings):
+    """The options of :class:`ModbusRtuAdapter`."""
+
+    speed_table: Table = "input"
+    speed_register: Register = 0
+    speed_type: DataType = "float32"
+    offset_register: Register = Field(0, description="holding register(s) written and read back")
+    offset_type: DataType = "float32"
+    input_registers: dict[str, InputRegister] | None = None
+
 
 
 def _swap(regs: list[int]) -> list[int]:
@@ -118,6 +177,8 @@ def check_types(name: str, *types: str) -> None:
 
 class ModbusRtuAdapter(ModbusLink, Adapter):
     name = "modbus"
+    Settings: ClassVar[type[AdapterSettings]] = ModbusSettings
+    can_read_offset: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -161,9 +222,8 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         self.offset_type = offset_type
 
     @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> ModbusRtuAdapter:
-        kw = {**typed_params(url), **overrides}
-        return cls(urlsplit(url).path, **kw)
+    def url_options(cls, url: str) -> dict[str, Any]:
+        return serial_options(url)
 
     def _read_speed_raw(self) -> float:
         return self._read_value("read speed", self.speed_table, self.speed_register, self.speed_type)
@@ -174,6 +234,9 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
     def _read_inputs_raw(self) -> dict[str, float]:
         return {name: self._read_value(f"read {name}", spec["table"], int(spec["register"]), spec["type"])
                 * float(spec["scale"]) for name, spec in self.input_registers.items()}
+
+    def _read_offset_raw(self) -> float:
+        return self._read_value("read offset", "holding", self.offset_register, self.offset_type)
 
     def _write_offset_raw(self, value: float) -> None:
         regs = self._encode(value, self.offset_type)

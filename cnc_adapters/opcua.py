@@ -16,7 +16,14 @@ Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a cli
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
 a server whose certificate is not in the trust list is refused. The user name and password
 come from the environment (``THERMOCOMP_OPCUA_USER``, ``THERMOCOMP_OPCUA_PASSWORD`` by
-default) or from a ``password_file``, never from the configuration itself.
+default), from a ``password_file``, or from a systemd credential (``password_credential =
+"<name>"`` reads ``$CREDENTIALS_DIRECTORY/<name>``, which a unit's ``LoadCredential=`` provides),
+never from the configuration itself: a URL with a password in it is refused, and URLs in log
+lines and messages have their user information redacted.
+
+A call that times out drops the session (a hung server, e.g. a stopped process, rarely answers
+on the same session again) and raises :class:`AdapterTimeoutError`; the next call reconnects,
+within ``timeout_s`` per request, connecting included.
 """
 
 from __future__ import annotations
@@ -27,16 +34,28 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar, Literal
+from urllib.parse import urlsplit
+
+from pydantic import AfterValidator, BaseModel, Field, model_validator
 
 from .base import (
+    SETTINGS_CONFIG,
     Adapter,
     AdapterError,
+    AdapterSettings,
     AdapterTimeoutError,
+    Allowed,
     BadValueError,
+    Count,
+    Positive,
+    Seconds,
+    Text,
     UnreachableError,
     WriteRejectedError,
-    typed_params,
+    one_of,
+    query_params,
+    redact_url,
 )
 
 log = logging.getLogger("thermocomp.adapters.opcua")
@@ -65,6 +84,135 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+CREDENTIALS_ENV = "CREDENTIALS_DIRECTORY"
+"""Where systemd puts a unit's ``LoadCredential=`` secrets, one file per credential name."""
+
+
+def url_has_password(url: str) -> bool:
+    """Whether ``url`` carries a password (``opc.tcp://user:secret@host``), as asyncua would
+    read it."""
+    userinfo, at, _ = urlsplit(url).netloc.rpartition("@")
+    return bool(at) and ":" in userinfo
+
+
+def url_password_refusal(password_env: str = "THERMOCOMP_OPCUA_PASSWORD") -> str:
+    """Why a URL with a password is refused, and where the password goes instead."""
+    return ("the URL carries a password: refused (it would end up in logs); put it in "
+            f"password_file, in a systemd credential (password_credential = \"<name>\" with "
+            f"LoadCredential=<name>:<file> in the unit) or in the environment variable {password_env}")
+
+
+def quiet_asyncua_debug() -> None:
+    """Hold asyncua's loggers at INFO: at DEBUG they repeat every request verbatim, the
+    ActivateSession with the user's password in it included."""
+    tree = [logging.getLogger("asyncua")]
+    tree += [lg for name, lg in logging.root.manager.loggerDict.items()
+             if name.startswith("asyncua.") and isinstance(lg, logging.Logger)]
+    quieted = False
+    for lg in tree:
+        if lg.getEffectiveLevel() < logging.INFO:
+            lg.setLevel(logging.INFO)
+            quieted = True
+    if quieted:
+        log.info("opcua: asyncua's debug log held at INFO while a password is in use")
+
+
+def _opc_url(v: str) -> str:
+    try:
+        parts = urlsplit(v)
+        parts.port  # noqa: B018 - raises on a port that is not a number
+    except ValueError:
+        raise ValueError("an opc.tcp://host:port URL") from None
+    if parts.scheme != "opc.tcp" or not parts.hostname:
+        raise ValueError("an opc.tcp://host:port URL")
+    return v
+
+
+def _security(v: str) -> str:
+    if v != "None" and v not in ("Basic256Sha256,Sign", "Basic256Sha256,SignAndEncrypt"):
+        raise ValueError("None, Basic256Sha256,Sign or Basic256Sha256,SignAndEncrypt")
+    return v
+
+
+OpcUrl = Annotated[str, AfterValidator(_opc_url), Allowed("an opc.tcp://host:port URL")]
+Security = Annotated[str, AfterValidator(_security),
+                     Allowed("None, Basic256Sha256,Sign or Basic256Sha256,SignAndEncrypt")]
+EnvName = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$"),
+                    Allowed("an environment variable name (letters, digits, '_')")]
+
+
+def _credential(v: str) -> str:
+    if not v or len(v) > 255 or "/" in v or "\x00" in v or v in (".", ".."):
+        raise ValueError("a systemd credential name (a file name: no '/')")
+    return v
+
+
+CredentialName = Annotated[str, AfterValidator(_credential),
+                           Allowed("a systemd credential name (a file name: no '/')")]
+VerifyWrites = Annotated[bool | Literal["immediate", "deferred"],
+                         Allowed("true, false, 'immediate' or 'deferred'")]
+Preset = one_of(*PRESETS)
+ReadMode = one_of("poll", "subscribe")
+
+
+class OpcUaLinkSettings(BaseModel):
+    """The options of an OPC UA session (adapter and sensor alike)."""
+
+    model_config = SETTINGS_CONFIG
+
+    url: OpcUrl = Field(description="opc.tcp://host:port/path; never with a password in it")
+    namespace_uri: str | None = Field(None, description="its index replaces {ns} in node ids")
+    timeout_s: Seconds = Field(4.0, description="per request, connecting included")
+    security: Security = "None"
+    certificate: str | None = Field(None, description="client certificate (secure links)")
+    private_key: str | None = Field(None, description="client private key (secure links)")
+    trust_dir: str | None = Field(None, description="server certificates to trust (secure links)")
+    username_env: EnvName = "THERMOCOMP_OPCUA_USER"
+    password_env: EnvName = "THERMOCOMP_OPCUA_PASSWORD"
+    password_file: str | None = Field(None, description="a file holding the password")
+    password_credential: CredentialName | None = Field(
+        None, description="a systemd credential holding the password: $CREDENTIALS_DIRECTORY/<name>")
+    application_uri: Text = "urn:thermocomp:client"
+
+    @model_validator(mode="after")
+    def _session(self) -> OpcUaLinkSettings:
+        if url_has_password(self.url):
+            raise ValueError(url_password_refusal(self.password_env))
+        if self.security != "None" and not (self.certificate and self.private_key and self.trust_dir):
+            raise ValueError("a secure link (security other than None) needs certificate, "
+                             "private_key and trust_dir")
+        if self.password_file and self.password_credential:
+            raise ValueError("give password_file or password_credential, not both")
+        return self
+
+
+class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
+    """The options of :class:`OpcUaAdapter`."""
+
+    preset: Preset = "generic"
+    speed_node: str | None = Field(None, description="node id of the actual speed ({ns} allowed)")
+    offset_node: str | None = Field(None, description="node id of the thermal offset")
+    speed_path: str | None = Field(None, description="browse path of the actual speed")
+    offset_path: str | None = Field(None, description="browse path of the thermal offset")
+    spindle: Text = Field("Spindle1", description="opc40502: the CncSpindleType object's name")
+    r_parameter: Count = Field(1, description="sinumerik: the R parameter holding the offset")
+    verify_writes: VerifyWrites = True
+    read_mode: ReadMode = "poll"
+    publish_interval_ms: Positive = 50.0
+    input_nodes: dict[str, str] | None = Field(None, description="extra channels: name = node "
+                                               "id or browse path")
+
+    @model_validator(mode="after")
+    def _nodes(self) -> OpcUaSettings:
+        p = PRESETS[self.preset]
+        speed = self.speed_node or self.speed_path or p.get("speed_node") or p.get("speed_path")
+        offset = self.offset_node or self.offset_path or p.get("offset_node") or p.get("offset_path")
+        if not (speed and offset):
+            raise ValueError(f"preset {self.preset!r} needs the speed and offset nodes: give "
+                             "speed_node or speed_path and offset_node or offset_path")
+        return self
+
+
 class OpcUaLink:
     """Mixin for :class:`~cnc_adapters.base.Link` subclasses: an asyncua client session with
     optional security and credentials, shared by the adapter and the OPC UA sensor. Call
@@ -75,8 +223,13 @@ class OpcUaLink:
     def _init_opcua(self, url: str, *, namespace_uri: str | None, timeout_s: float, security: str,
                     certificate: str | None, private_key: str | None, trust_dir: str | None,
                     username_env: str, password_env: str, password_file: str | None,
-                    application_uri: str) -> None:
+                    application_uri: str, password_credential: str | None = None) -> None:
+        if url_has_password(url):
+            raise AdapterError(f"opcua: {url_password_refusal(password_env)}")
+        if password_file and password_credential:
+            raise AdapterError("opcua: give password_file or password_credential, not both")
         self.url = url
+        self.shown_url = redact_url(url)  # the one that goes into messages
         self.namespace_uri = namespace_uri
         self.timeout_s = timeout_s
         self.security = security
@@ -93,34 +246,56 @@ class OpcUaLink:
         self.username_env = username_env
         self.password_env = password_env
         self.password_file = password_file
+        self.password_credential = password_credential
         self.application_uri = application_uri
         self._client = None
 
     def _call(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError):
-        """Run one client call; map its failures onto the adapter exception tree."""
+        """Run one client call; map its failures onto the adapter exception tree. A timeout or
+        a lost connection drops the session (the next call reconnects)."""
         from asyncua import ua
+        from asyncua.sync import ThreadLoopNotRunning
 
         try:
             return fn(*args)
         except ua.UaStatusCodeError as err:
             raise refused(f"opcua {what}: {type(err).__name__}") from err
         except (TimeoutError, concurrent.futures.TimeoutError) as err:
-            raise AdapterTimeoutError(f"opcua {what}: no answer from {self.url} within {self.timeout_s:g} s") from err
-        except (ConnectionError, OSError, EOFError) as err:
-            msg = f"opcua {what}: {self.url}: {err or type(err).__name__}"
+            # a server that does not answer in time has most likely hung (a stopped process):
+            # its session will not answer again, so drop it, but still say it was a timeout
+            msg = f"opcua {what}: no answer from {self.shown_url} within {self.timeout_s:g} s"
+            if self._client is None:
+                raise AdapterTimeoutError(msg) from err
+            raise self._link_lost(msg, AdapterTimeoutError) from err
+        except (ConnectionError, OSError, EOFError, ThreadLoopNotRunning) as err:
+            msg = f"opcua {what}: {self.shown_url}: {redact_url(str(err)) or type(err).__name__}"
             if self._client is None:
                 raise UnreachableError(msg) from err
             raise self._link_lost(msg) from err
 
     def _credentials(self) -> tuple[str | None, str | None]:
+        """The user name and password: a systemd credential, a password file or the environment.
+        No message here ever holds the password."""
         user = os.environ.get(self.username_env)
-        password = os.environ.get(self.password_env)
-        if self.password_file:
-            try:
-                password = Path(self.password_file).read_text(encoding="utf-8").rstrip("\r\n")
-            except OSError as err:
-                raise AdapterError(f"opcua: cannot read password_file: {err.strerror}") from err
-        return user, password
+        if self.password_credential:
+            directory = os.environ.get(CREDENTIALS_ENV)
+            if not directory:
+                raise AdapterError(
+                    f"opcua: password_credential {self.password_credential!r}: ${CREDENTIALS_ENV} "
+                    f"is not set; systemd sets it for a unit with LoadCredential="
+                    f"{self.password_credential}:<file>")
+            path, what = Path(directory) / self.password_credential, \
+                f"credential {self.password_credential!r} in ${CREDENTIALS_ENV}"
+        elif self.password_file:
+            path, what = Path(self.password_file), "password_file"
+        else:
+            return user, os.environ.get(self.password_env)
+        try:
+            return user, path.read_text(encoding="utf-8").rstrip("\r\n")
+        except OSError as err:
+            raise AdapterError(f"opcua: cannot read {what}: {err.strerror}") from err
+        except UnicodeDecodeError as err:
+            raise AdapterError(f"opcua: {what} is not UTF-8 text") from err
 
     def _trusted(self) -> set[str]:
         """SHA-256 fingerprints (DER) of the certificates in the trust list."""
@@ -166,23 +341,26 @@ class OpcUaLink:
         from asyncua import ua
         from asyncua.sync import Client
 
-        client = Client(self.url, timeout=self.timeout_s)
+        # every request waits timeout_s at most (connecting: one per step, and a hung server
+        # stalls only one); the wrapper's own limit is a backstop, not the normal way out
+        client = Client(self.url, timeout=self.timeout_s, sync_wrapper_timeout=3 * self.timeout_s + 1)
         try:
             user, password = self._credentials()
             if user:
                 client.set_user(user)
             if password:
+                quiet_asyncua_debug()
                 client.set_password(password)
             if self.security != "None":
                 self._secure(client)
             self._call("connect", client.connect)
         except ua.UaError as err:
             self._client = client
-            self._disconnect()
-            raise UnreachableError(f"opcua connect: {self.url}: {err}") from err
+            self._abort()
+            raise UnreachableError(f"opcua connect: {self.shown_url}: {redact_url(str(err))}") from err
         except AdapterError:
             self._client = client
-            self._disconnect()  # also stops the client's own event-loop thread
+            self._abort()  # also stops the client's own event-loop thread
             raise
         self._client = client
         try:
@@ -191,7 +369,7 @@ class OpcUaLink:
                 ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri))
             self._on_connected(client, ns)
         except (AdapterError, ValueError) as err:
-            self._disconnect()
+            self._abort()
             if isinstance(err, AdapterError):
                 raise
             raise AdapterError(f"opcua: bad node id: {err}") from err
@@ -199,16 +377,44 @@ class OpcUaLink:
     def _on_connected(self, client: Any, ns: str) -> None:
         """Look up the nodes of this link (``ns``: the index of ``namespace_uri``)."""
 
-    def _close_client(self) -> None:
+    def _close_client(self, graceful: bool = True) -> None:
         client, self._client = self._client, None
-        if client is not None:
+        if client is None:
+            return
+        if graceful:
             try:
                 client.disconnect()
             except Exception:  # noqa: BLE001 - a dead link cannot be closed more cleanly
                 pass
+            return
+        aio = client.aio_obj
+
+        async def drop() -> None:
+            # a dead or hung session: no CloseSession round trip to wait a timeout for
+            aio.disconnect_socket()
+            try:
+                await aio.close_session()  # stops asyncua's own tasks; the request fails at once
+            except Exception:  # noqa: BLE001 - there is no socket any more: expected
+                pass
+
+        try:
+            client.tloop.post(drop())
+        except Exception:  # noqa: BLE001 - the client's loop may be gone already
+            pass
+        finally:
+            if client.close_tloop:
+                client.tloop.stop()
+
+    def _forget(self) -> None:
+        """Drop what belongs to one session (nodes, notifications); subclasses extend."""
 
     def _disconnect(self) -> None:
+        self._forget()
         self._close_client()
+
+    def _abort(self) -> None:
+        self._forget()
+        self._close_client(graceful=False)
 
     def _resolve(self, client, node_id: str | None, path: str | None, ns: str):
         if node_id:
@@ -219,6 +425,8 @@ class OpcUaLink:
 
 class OpcUaAdapter(OpcUaLink, Adapter):
     name = "opcua"
+    Settings = OpcUaSettings
+    can_read_offset: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -241,6 +449,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         username_env: str = "THERMOCOMP_OPCUA_USER",
         password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
         password_file: str | None = None,
+        password_credential: str | None = None,
         application_uri: str = "urn:thermocomp:client",
         read_mode: str = "poll",
         publish_interval_ms: float = 50.0,
@@ -257,7 +466,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
                          security=security, certificate=certificate, private_key=private_key,
                          trust_dir=trust_dir, username_env=username_env, password_env=password_env,
-                         password_file=password_file, application_uri=application_uri)
+                         password_file=password_file, application_uri=application_uri,
+                         password_credential=password_credential)
         self.speed_node = speed_node or (None if speed_path else p.get("speed_node"))
         self.offset_node = offset_node or (None if offset_path else p.get("offset_node"))
         self.speed_path = None if self.speed_node else (speed_path or p.get("speed_path"))
@@ -288,10 +498,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._offset = None
 
     @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> OpcUaAdapter:
-        base = url.split("?", 1)[0]
-        kw = {**typed_params(url), **overrides}
-        return cls(base, **kw)
+    def url_options(cls, url: str) -> dict[str, Any]:
+        """``opc.tcp://host:4840/path?preset=virtual-cnc&timeout_s=2``."""
+        return {"url": url.split("?", 1)[0], **query_params(url)}
 
     def _on_connected(self, client: Any, ns: str) -> None:
         self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
@@ -312,9 +521,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self._latest is not None:
             value = self._latest.get(self.timeout_s)
             if isinstance(value, BaseException):
-                raise self._link_lost(f"opcua subscription: {self.url}: {value}")
+                raise self._link_lost(f"opcua subscription: {self.shown_url}: {value}")
             if value is None:
-                raise AdapterTimeoutError(f"opcua: no speed notification within {self.timeout_s:g} s")
+                raise self._link_lost(f"opcua: no speed notification within {self.timeout_s:g} s",
+                                      AdapterTimeoutError)
         elif self._unverified is not None:
             value, held = self._call("read speed and offset", self._client.read_values,
                                      [self._speed, self._offset])
@@ -336,6 +546,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
                 for name, v in zip(self._inputs, values)}
 
+    def _read_offset_raw(self) -> Any:
+        return self._call("read offset", self._offset.read_value)
+
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua
 
@@ -354,10 +567,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         held, self._mismatch = self._mismatch, None
         return held
 
-    def _disconnect(self) -> None:
+    def _forget(self) -> None:
         self._latest = None
         self._unverified = None
-        self._close_client()
 
 
 class _Latest:

@@ -4,6 +4,11 @@ Built-in backends are named here as ``"module:Class"`` and imported only when us
 backend's library (asyncua, pyserial, pymodbus, LinuxCNC's ``hal``) loads only where it is
 configured. Third parties register theirs through the entry-point group
 ``thermocomp.adapters``.
+
+Every built-in backend declares its options as a pydantic model (:func:`settings_model`);
+:func:`check_adapter` validates a configuration against it without constructing anything, and
+:func:`open_adapter` does the same before it constructs, so a misspelt key or a bad value is
+one :class:`~compensator.errors.ConfigError` line.
 """
 
 from __future__ import annotations
@@ -14,7 +19,17 @@ from importlib.metadata import entry_points
 from typing import Any
 from urllib.parse import urlsplit
 
-from .base import Adapter, AdapterError, construct, query_params
+from pydantic import BaseModel
+
+from .base import (
+    Adapter,
+    ConfigError,
+    build,
+    check_settings,
+    construct,
+    query_params,
+    redact_url,
+)
 
 BACKENDS: dict[str, str] = {
     "sim": "cnc_adapters.sim.adapter:SimAdapter",
@@ -45,30 +60,87 @@ def backend(name: str) -> type[Adapter]:
         if ep.name == name:
             return ep.load()
     known = sorted(set(BACKENDS) | {ep.name for ep in plugins})
-    raise AdapterError(f"unknown adapter {name!r}; known: {', '.join(known)}")
+    raise ConfigError(f"unknown adapter {name!r}; known: {', '.join(known)}")
 
 
-def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
-    """An adapter from a URL or a mapping with a ``type`` key (not yet connected)."""
+def settings_model(kind: str) -> type[BaseModel] | None:
+    """The pydantic model of the options of backend ``kind`` (``"opcua"``, ``"sim"``, ...);
+    None for a third-party backend that declares none. Imports the backend's module, not its
+    library."""
+    return getattr(backend(kind), "Settings", None)
+
+
+def _url_kind(url: str) -> str:
+    try:
+        scheme = urlsplit(url).scheme
+    except ValueError as err:
+        raise ConfigError(f"adapter URL {redact_url(url)!r}: {err}") from err
+    if scheme == "serial":
+        protocol = query_params(url).get("protocol", "line")
+        kind = SERIAL_PROTOCOLS.get(protocol)
+        if kind is None:
+            raise ConfigError(f"unknown serial protocol {protocol!r}; known: "
+                              f"{', '.join(SERIAL_PROTOCOLS)}")
+        return kind
+    kind = SCHEMES.get(scheme)
+    if kind is None:
+        raise ConfigError(f"no adapter for URL scheme {scheme!r} in {redact_url(url)!r}")
+    return kind
+
+
+def _refuse_password(kind: str, url: str, options: Mapping[str, Any]) -> None:
+    """A password in a URL ends up in logs and process lists: refused, and never repeated."""
+    userinfo, at, _ = urlsplit(url).netloc.rpartition("@")
+    if not (at and ":" in userinfo):
+        return
+    if kind == "opcua":
+        from .opcua import url_password_refusal  # only where OPC UA is configured
+
+        env = options.get("password_env") or "THERMOCOMP_OPCUA_PASSWORD"
+        raise ConfigError(f"opcua adapter: {url_password_refusal(str(env))}")
+    raise ConfigError(f"{kind} adapter: the URL carries a password, which this backend never "
+                      "uses: refused")
+
+
+def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
+             ) -> tuple[str, type[Adapter], dict[str, Any] | None]:
+    """The backend name, its class and its options (None: a third-party backend that parses
+    its URL itself)."""
     if isinstance(target, str):
-        scheme = urlsplit(target).scheme
-        if scheme == "serial":
-            protocol = query_params(target).get("protocol", "line")
-            kind = SERIAL_PROTOCOLS.get(protocol)
-            if kind is None:
-                raise AdapterError(f"unknown serial protocol {protocol!r}; known: "
-                                   f"{', '.join(SERIAL_PROTOCOLS)}")
-        else:
-            kind = SCHEMES.get(scheme)
-            if kind is None:
-                raise AdapterError(f"no adapter for URL scheme {scheme!r} in {target!r}")
-        return construct(f"{kind} adapter", backend(kind).from_url,  # type: ignore[attr-defined]
-                         target, **overrides)
+        kind = _url_kind(target)
+        _refuse_password(kind, target, {**query_params(target), **overrides})
+        cls = backend(kind)
+        if getattr(cls, "Settings", None) is None:
+            return kind, cls, None
+        return kind, cls, {**cls.url_options(target), **overrides}
     cfg = dict(target)
     kind = cfg.pop("type", None)
     if not kind and "url" in cfg:
-        return open_adapter(cfg.pop("url"), **cfg, **overrides)
+        url = cfg.pop("url")
+        if not isinstance(url, str):
+            raise ConfigError(f"adapter url must be a string, not {type(url).__name__}")
+        return _resolve(url, {**cfg, **overrides})
     if not kind:
-        raise AdapterError("adapter configuration needs a 'type' or a 'url'")
-    cfg.update(overrides)
-    return construct(f"{kind} adapter", backend(kind), **cfg)
+        raise ConfigError("adapter configuration needs a 'type' or a 'url'")
+    return str(kind), backend(str(kind)), {**cfg, **overrides}
+
+
+def check_adapter(target: str | Mapping[str, Any], **overrides: Any) -> BaseModel | None:
+    """Validate an adapter configuration (a URL, or a mapping with a ``type`` or a ``url``)
+    against its backend's settings model, constructing nothing and connecting nowhere: the
+    validated settings (only the options given are set), or None for a third-party backend
+    without a model. One :class:`ConfigError` line naming the key, the value and what is
+    allowed when they do not validate; runtime-only keywords (clock, rng, ...) are ignored."""
+    kind, cls, options = _resolve(target, overrides)
+    if options is None:
+        return None
+    return check_settings(f"{kind} adapter", cls.Settings, options)  # type: ignore[arg-type]
+
+
+def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
+    """An adapter from a URL or a mapping with a ``type`` key (not yet connected), its options
+    validated first (:func:`check_adapter`)."""
+    kind, cls, options = _resolve(target, overrides)
+    if options is None:
+        return construct(f"{kind} adapter", cls.from_url, target, **overrides)  # type: ignore[arg-type]
+    return build(f"{kind} adapter", cls, options)

@@ -15,7 +15,9 @@ non-finite values and reports a reading beyond the sensor's measuring range
 
 :func:`open_sensor` builds one from a URL (``serial:///dev/ttyUSB1?baudrate=9600&scale=-1``,
 ``serial:///dev/ttyUSB1?protocol=modbus&register=2&type=int16&scale=0.1``,
-``opc.tcp://host:4840/?preset=virtual-cnc``) or a mapping with a ``type``. Sign: positive
+``opc.tcp://host:4840/?preset=virtual-cnc``) or a mapping with a ``type``, its options checked
+first against the sensor's settings model (:func:`settings_model`): one
+:class:`~compensator.errors.ConfigError` line for a misspelt key or a bad value. Sign: positive
 elongation moves the tool tip toward the workpiece; a probe facing the nose reads a smaller
 gap as the spindle grows, so such a probe needs a negative ``scale``.
 """
@@ -24,17 +26,37 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from abc import abstractmethod
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 from urllib.parse import urlsplit
+
+from pydantic import BaseModel, BeforeValidator, Field, model_validator
 
 from compensator.errors import SensorOverRangeError
 
-from .base import AdapterError, BadValueError, Link, construct, query_params, typed_params
-from .modbus import ModbusLink, check_types
-from .opcua import OpcUaLink
-from .serial_link import NUMBER, SerialLine
+from .base import (
+    AdapterError,
+    Allowed,
+    BadValueError,
+    ConfigError,
+    Finite,
+    Link,
+    LinkSettings,
+    NonZero,
+    Pattern,
+    Seconds,
+    ValuePattern,
+    build,
+    one_of,
+    query_params,
+    redact_url,
+    serial_options,
+)
+from .modbus import DataType, ModbusLink, ModbusLinkSettings, Register, Table, check_types
+from .opcua import OpcUaLink, OpcUaLinkSettings, url_has_password, url_password_refusal
+from .serial_link import NUMBER, SerialLine, SerialSettings
 
 ABSOLUTE_LIMIT_UM = 1e6  # 1 m: anything beyond is a unit or wiring fault, not a reading
 
@@ -53,8 +75,75 @@ def _range(value: Any) -> tuple[float, float] | None:
     return lo, hi
 
 
+def _range_option(v: Any) -> Any:
+    try:
+        return _range(v)
+    except AdapterError:
+        raise ValueError("two finite numbers 'low,high' with low < high") from None
+
+
+def _codes(v: Any) -> Any:
+    # a URL gives the codes as one comma-separated string
+    return tuple(float(c) for c in v.split(",") if c.strip()) if isinstance(v, str) else v
+
+
+RangeUm = Annotated[tuple[float, float] | None, BeforeValidator(_range_option),
+                    Allowed("two finite numbers 'low,high' with low < high")]
+
+
+class SensorSettings(LinkSettings):
+    """Options of every displacement sensor."""
+
+    scale: NonZero = Field(1.0, description="um per raw unit; negative for a probe facing the nose")
+    offset_um: Finite = Field(0.0, description="added after scaling")
+    range_um: RangeUm = Field(None, description="the measuring range: beyond it, over-range")
+
+
+class AsciiSettings(SerialSettings, SensorSettings):
+    """The options of :class:`AsciiSensor`."""
+
+    baudrate: Annotated[int, Field(gt=0), Allowed("a whole number > 0 (bits per second)")] = 9600
+    timeout_s: Seconds = 1.0
+    request: str | None = Field(None, description="sent to poll a reading; none: it streams")
+    reply: ValuePattern = rf"(?P<value>{NUMBER})"
+    over_range: Pattern = r"(?i)(OVER|UNDER|OUT\s*OF\s*RANGE|OVR|OOR|-{3,}|\+{3,})"
+
+
+with warnings.catch_warnings():
+    # the option is called "register"; it shadows ABCMeta.register, which nothing calls here
+    warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
+
+    class ModbusSensorSettings(ModbusLinkSettings, SensorSettings):
+        """The options of :class:`ModbusSensor`."""
+
+        table: Table = "input"
+        register: Register = 0
+        type: DataType = "int16"
+        saturated_raw: Annotated[tuple[Finite, ...] | None, BeforeValidator(_codes),
+                                 Allowed("raw codes 'a,b' the module sends when over range")] = None
+
+
+SensorPreset = one_of("virtual-cnc")
+
+
+class OpcUaSensorSettings(OpcUaLinkSettings, SensorSettings):
+    """The options of :class:`OpcUaSensor`."""
+
+    preset: SensorPreset | None = None
+    node: str | None = Field(None, description="node id of the displacement ({ns} allowed)")
+    path: str | None = Field(None, description="browse path of the displacement")
+
+    @model_validator(mode="after")
+    def _where(self) -> OpcUaSensorSettings:
+        if not (self.node or self.path or self.preset):
+            raise ValueError("give node (a node id), path (a browse path) or a preset")
+        return self
+
+
 class Sensor(Link):
     """A displacement reading in um: ``raw * scale + offset_um``, within ``range_um``."""
+
+    Settings: ClassVar[type[BaseModel] | None] = None
 
     def __init__(self, *, scale: float = 1.0, offset_um: float = 0.0,
                  range_um: tuple[float, float] | str | None = None, **link: Any):
@@ -91,6 +180,7 @@ class AsciiSensor(SerialLine, Sensor):
     """An amplifier that gives one ASCII reading per line on a serial port."""
 
     name = "ascii"
+    Settings = AsciiSettings
 
     def __init__(self, port: str, *, baudrate: int = 9600, timeout_s: float = 1.0,
                  request: str | None = None, reply: str = rf"(?P<value>{NUMBER})",
@@ -121,6 +211,7 @@ class ModbusSensor(ModbusLink, Sensor):
     """A Modbus RTU register holding the displacement (raw counts times ``scale``)."""
 
     name = "modbus"
+    Settings = ModbusSensorSettings
 
     def __init__(self, port: str, *, baudrate: int = 19200,
                  parity: Literal["N", "E", "O"] = "N", device_id: int = 1,
@@ -151,6 +242,7 @@ class OpcUaSensor(OpcUaLink, Sensor):
     """A displacement node on an OPC UA server (the OPC UA adapter's session and security)."""
 
     name = "opcua"
+    Settings = OpcUaSensorSettings
     PRESETS = {"virtual-cnc": {"namespace_uri": "urn:thermocomp:virtual-cnc",
                                "node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Displacement"}}
 
@@ -160,6 +252,7 @@ class OpcUaSensor(OpcUaLink, Sensor):
                  private_key: str | None = None, trust_dir: str | None = None,
                  username_env: str = "THERMOCOMP_OPCUA_USER",
                  password_env: str = "THERMOCOMP_OPCUA_PASSWORD", password_file: str | None = None,
+                 password_credential: str | None = None,
                  application_uri: str = "urn:thermocomp:client", **kw: Any):
         super().__init__(**kw)
         p = self.PRESETS.get(preset or "", {})
@@ -172,7 +265,8 @@ class OpcUaSensor(OpcUaLink, Sensor):
         self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
                          security=security, certificate=certificate, private_key=private_key,
                          trust_dir=trust_dir, username_env=username_env, password_env=password_env,
-                         password_file=password_file, application_uri=application_uri)
+                         password_file=password_file, application_uri=application_uri,
+                         password_credential=password_credential)
         self._node = None
 
     def _on_connected(self, client: Any, ns: str) -> None:
@@ -185,36 +279,50 @@ class OpcUaSensor(OpcUaLink, Sensor):
             raise BadValueError(f"opcua sensor: node holds {type(value).__name__}, not a number")
         return value
 
-    def _disconnect(self) -> None:
+    def _forget(self) -> None:
         self._node = None
-        self._close_client()
 
 
 SENSORS: dict[str, type[Sensor]] = {"ascii": AsciiSensor, "modbus": ModbusSensor, "opcua": OpcUaSensor}
-_INT = frozenset({"baudrate", "device_id", "register"})
-_FLOAT = frozenset({"scale", "offset_um", "timeout_s"})
 
 
-def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
-    """A sensor from a URL or a mapping with a ``type`` (not yet connected)."""
+def settings_model(kind: str) -> type[BaseModel]:
+    """The pydantic model of the options of sensor ``kind`` (``ascii``, ``modbus``, ``opcua``)."""
+    cls = SENSORS.get(kind)
+    if cls is None:
+        raise ConfigError(f"unknown sensor type {kind!r}; known: {', '.join(SENSORS)}")
+    return cls.Settings  # type: ignore[return-value]
+
+
+def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
+             ) -> tuple[str, dict[str, Any]]:
+    """The sensor type and its options, from a URL or a mapping."""
     if isinstance(target, str):
         parts = urlsplit(target)
-        kw = {**typed_params(target, ints=_INT, floats=_FLOAT), **overrides}
         if parts.scheme == "serial":
             kind = query_params(target).get("protocol", "ascii")
-            cls = SENSORS.get(kind)
-            if cls is None or kind == "opcua":
-                raise AdapterError(f"unknown serial sensor protocol {kind!r}; known: ascii, modbus")
-            return construct(f"{kind} sensor", cls, parts.path, **kw)
+            if kind not in ("ascii", "modbus"):
+                raise ConfigError(f"unknown serial sensor protocol {kind!r}; known: ascii, modbus")
+            return kind, {**serial_options(target), **overrides}
         if parts.scheme == "opc.tcp":
-            return construct("opcua sensor", OpcUaSensor, target.split("?", 1)[0], **kw)
-        raise AdapterError(f"no sensor for URL scheme {parts.scheme!r} in {target!r}")
+            if url_has_password(target):
+                env = {**query_params(target), **overrides}.get("password_env") or "THERMOCOMP_OPCUA_PASSWORD"
+                raise ConfigError(f"opcua sensor: {url_password_refusal(str(env))}")
+            return "opcua", {"url": target.split("?", 1)[0], **query_params(target), **overrides}
+        raise ConfigError(f"no sensor for URL scheme {parts.scheme!r} in {redact_url(target)!r}")
     cfg = dict(target)
     kind = cfg.pop("type", None)
     if kind is None and "url" in cfg:
-        return open_sensor(cfg.pop("url"), **cfg, **overrides)
-    cls = SENSORS.get(str(kind))
-    if cls is None:
-        raise AdapterError(f"unknown sensor type {kind!r}; known: {', '.join(SENSORS)}")
-    cfg.update(overrides)
-    return construct(f"{kind} sensor", cls, **cfg)
+        url = cfg.pop("url")
+        if not isinstance(url, str):
+            raise ConfigError(f"sensor url must be a string, not {type(url).__name__}")
+        return _resolve(url, {**cfg, **overrides})
+    settings_model(str(kind))  # an unknown type, said as such
+    return str(kind), {**cfg, **overrides}
+
+
+def open_sensor(target: str | Mapping[str, Any], **overrides: Any) -> Sensor:
+    """A sensor from a URL or a mapping with a ``type`` (not yet connected), its options
+    validated first."""
+    kind, options = _resolve(target, overrides)
+    return build(f"{kind} sensor", SENSORS[kind], options)

@@ -10,27 +10,41 @@ returns. A silent or half-finished reply raises :class:`AdapterTimeoutError`; a 
 does not match raises :class:`BadValueError`; a refused write raises
 :class:`WriteRejectedError`.
 
+Reading the offset back: the generic protocol has no standard query, so ``offset_query`` (e.g.
+``?OFFSET``, answered ``OFFSET=<value>`` by default ``offset_query_reply``) turns it on; without
+one the link cannot read back (``can_read_offset`` is false).
+
 Haas (NGC "machine data collection" Q/E commands): ``?Q600 <var>`` reads a macro variable,
 answered ``MACRO, <var>, <value>`` (a leading ``>`` is allowed); ``?E<var> <value>`` writes
 one, answered ``!``. The spindle speed is macro #3027 by default; the offset goes to a
 configurable macro variable, which the part program or a macro applies as a tool-length
-offset (for example ``#2000 + T`` wear, via ``G10``).
+offset (for example ``#2000 + T`` wear, via ``G10``), and is read back with ``?Q600`` too.
 """
 
 from __future__ import annotations
 
 import re
-from typing import Any
-from urllib.parse import urlsplit
+from typing import Annotated, Any, ClassVar
+
+from pydantic import AfterValidator, BaseModel, Field
 
 from .base import (
+    SETTINGS_CONFIG,
     Adapter,
     AdapterError,
+    AdapterSettings,
     AdapterTimeoutError,
+    Allowed,
     BadValueError,
+    Baud,
+    Count,
+    Pattern,
+    Seconds,
+    Text,
     UnreachableError,
+    ValuePattern,
     WriteRejectedError,
-    typed_params,
+    serial_options,
 )
 
 try:
@@ -41,6 +55,44 @@ except ImportError:  # not POSIX
     _PORT_ERRORS = (OSError,)
 
 NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+class SerialSettings(BaseModel):
+    """The options of a serial line (adapters and sensors alike)."""
+
+    model_config = SETTINGS_CONFIG
+
+    port: Annotated[str, Field(min_length=1), Allowed("a serial device such as /dev/ttyUSB0")]
+    baudrate: Baud = 115200
+    timeout_s: Seconds = Field(0.5, description="for one reply line")
+    eol: Text = Field("\r\n", description="end of line, sent and expected")
+
+
+def _offset_request(v: str) -> str:
+    try:
+        v.format(value=1.0)
+    except (KeyError, IndexError, ValueError):
+        raise ValueError("a request with {value} in it, e.g. 'OFFSET {value:.4f}'") from None
+    if "{value" not in v:
+        raise ValueError("a request with {value} in it, e.g. 'OFFSET {value:.4f}'")
+    return v
+
+
+OffsetRequest = Annotated[str, AfterValidator(_offset_request),
+                          Allowed("a request with {value} in it, e.g. 'OFFSET {value:.4f}'")]
+
+
+class LineSettings(SerialSettings, AdapterSettings):
+    """The options of :class:`LineAdapter`."""
+
+    speed_request: Text = "?SPEED"
+    speed_reply: ValuePattern = rf"^SPEED\s*=?\s*(?P<value>{NUMBER})$"
+    offset_request: OffsetRequest = "OFFSET {value:.4f}"
+    offset_reply: Pattern = r"^OK$"
+    reject_reply: Pattern = r"^(ERR|ERROR|NAK|\?).*"
+    offset_query: str = Field("", description="reads the offset back (e.g. '?OFFSET'); empty: "
+                              "the device has no such query")
+    offset_query_reply: ValuePattern = rf"^OFFSET\s*=?\s*(?P<value>{NUMBER})$"
 
 
 class SerialLine:
@@ -108,6 +160,8 @@ class LineAdapter(SerialLine, Adapter):
     """A generic request/response ASCII protocol on a serial line."""
 
     name = "line"
+    Settings: ClassVar[type[AdapterSettings]] = LineSettings
+    can_read_offset: ClassVar[bool] = False  # an instance with an offset_query can
 
     def __init__(
         self,
@@ -121,27 +175,32 @@ class LineAdapter(SerialLine, Adapter):
         offset_reply: str = r"^OK$",
         reject_reply: str = r"^(ERR|ERROR|NAK|\?).*",
         eol: str = "\r\n",
+        offset_query: str = "",
+        offset_query_reply: str = rf"^OFFSET\s*=?\s*(?P<value>{NUMBER})$",
         **scaling: Any,
     ):
         super().__init__(**scaling)
         self._init_serial(port, baudrate, timeout_s, eol)
         self.speed_request = speed_request
         self.offset_request = offset_request
+        self.offset_query = offset_query or None
+        self.can_read_offset = self.offset_query is not None  # type: ignore[misc]
         try:
             self.speed_reply = re.compile(speed_reply)
             self.offset_reply = re.compile(offset_reply)
             self.reject_reply = re.compile(reject_reply)
+            self.offset_query_reply = re.compile(offset_query_reply)
         except re.error as err:
             raise AdapterError(f"{self.name}: bad reply pattern: {err}") from err
         if "value" not in self.speed_reply.groupindex:
             raise AdapterError(f"{self.name}: speed_reply needs a (?P<value>...) group")
+        if "value" not in self.offset_query_reply.groupindex:
+            raise AdapterError(f"{self.name}: offset_query_reply needs a (?P<value>...) group")
 
     @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> LineAdapter:
+    def url_options(cls, url: str) -> dict[str, Any]:
         """``serial:///dev/ttyUSB0?protocol=haas&baudrate=9600&offset_var=10500``."""
-        parts = urlsplit(url)
-        kw = {**typed_params(url), **overrides}
-        return cls(parts.path, **kw)
+        return serial_options(url)
 
     def _read_speed_raw(self) -> float:
         reply = self.exchange(self.speed_request)
@@ -149,6 +208,17 @@ class LineAdapter(SerialLine, Adapter):
         if m is None:
             raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {self.speed_request!r}")
         return float(m.group("value"))
+
+    def _read_offset_raw(self) -> float:
+        if self.offset_query is None:  # read_offset_um checks can_read_offset first
+            return super()._read_offset_raw()
+        reply = self.exchange(self.offset_query)
+        m = self.offset_query_reply.match(reply)
+        if m is not None:
+            return float(m.group("value"))
+        if self.reject_reply.match(reply):
+            raise AdapterError(f"{self.name}: controller refused {self.offset_query!r}: {reply!r}")
+        raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {self.offset_query!r}")
 
     def _write_offset_raw(self, value: float) -> None:
         request = self.offset_request.format(value=value)
@@ -159,19 +229,47 @@ class LineAdapter(SerialLine, Adapter):
             raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {request!r}")
 
 
+class HaasSettings(LineSettings):
+    """The options of :class:`HaasAdapter`; the requests and replies (line options) default to
+    the Q/E commands for ``speed_var`` and ``offset_var``."""
+
+    speed_var: Count = Field(3027, description="macro variable of the actual speed")
+    offset_var: Count = Field(10500, description="macro variable the offset goes to")
+    offset_decimals: Annotated[int, Field(ge=0, le=8), Allowed("a whole number 0..8")] = 4
+    speed_request: Text | None = None
+    speed_reply: ValuePattern | None = None
+    offset_request: OffsetRequest | None = None
+    offset_reply: Pattern | None = None
+    reject_reply: Pattern | None = None
+    offset_query: str | None = Field(None, description="default '?Q600 <offset_var>'; empty: "
+                                     "no read-back")
+    offset_query_reply: ValuePattern | None = None
+
+
 class HaasAdapter(LineAdapter):
-    """Haas Q/E commands: speed from macro #3027, offset to a configurable macro variable."""
+    """Haas Q/E commands: speed from macro #3027, offset to a configurable macro variable, read
+    back with Q600 like any macro variable."""
 
     name = "haas"
+    Settings: ClassVar[type[AdapterSettings]] = HaasSettings
+    can_read_offset: ClassVar[bool] = True
 
     def __init__(self, port: str, *, speed_var: int = 3027, offset_var: int = 10500,
                  offset_decimals: int = 4, **kw: Any):
         self.speed_var = int(speed_var)
         self.offset_var = int(offset_var)
-        kw.setdefault("speed_request", f"?Q600 {self.speed_var}")
-        kw.setdefault("speed_reply", rf"^>?\s*MACRO,\s*{self.speed_var},\s*(?P<value>{NUMBER})$")
-        kw.setdefault("offset_request", f"?E{self.offset_var} {{value:.{int(offset_decimals)}f}}")
-        kw.setdefault("offset_reply", r"^>?\s*!$")
-        kw.setdefault("reject_reply", r"^>?\s*(\?|INVALID|ERROR|NOT ALLOWED).*")
-        kw.setdefault("eol", "\r\n")
+        macro = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER})$"
+        defaults = {
+            "speed_request": f"?Q600 {self.speed_var}",
+            "speed_reply": macro.format(self.speed_var),
+            "offset_request": f"?E{self.offset_var} {{value:.{int(offset_decimals)}f}}",
+            "offset_reply": r"^>?\s*!$",
+            "reject_reply": r"^>?\s*(\?|INVALID|ERROR|NOT ALLOWED).*",
+            "eol": "\r\n",
+            "offset_query": f"?Q600 {self.offset_var}",
+            "offset_query_reply": macro.format(self.offset_var),
+        }
+        for key, value in defaults.items():
+            if kw.get(key) is None:
+                kw[key] = value
         super().__init__(port, **kw)

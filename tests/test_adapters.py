@@ -2,14 +2,24 @@
 
 Backends: sim (in process), OPC UA against asyncua's server (the virtual CNC) and against
 node-opcua's server, Haas Q/E and a generic line protocol over socat pseudo-terminals, and
-Modbus RTU against pymodbus's own server over a pseudo-terminal.
+Modbus RTU against pymodbus's own server over a pseudo-terminal; LinuxCNC's read-back against
+a real HAL (halrun) where LinuxCNC is installed.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import pytest
@@ -28,6 +38,7 @@ from cnc_adapters import (
     AdapterError,
     AdapterTimeoutError,
     BadValueError,
+    ConfigError,
     UnreachableError,
     WriteRejectedError,
     backend,
@@ -58,9 +69,35 @@ class Rig:
     make: Callable[..., Adapter]  # builds an unopened adapter; kwargs: scaling
     set_speed: Callable[[float], None]
     held_offset: Callable[[], float | None]  # in the controller's unit
+    outside_write: Callable[[float], None]  # someone else sets the controller's offset (its unit)
 
 
 BACKENDS = ["sim", "opcua-asyncua", "opcua-node", "haas", "line", "modbus"]
+
+
+def opcua_write(url: str, node_id: str, value: float) -> None:
+    """Another OPC UA client (an operator's HMI, a fault test) writes a node."""
+    from asyncua import ua
+    from asyncua.sync import Client
+
+    with Client(url, timeout=10) as c:
+        node_id = node_id.replace("{ns}", str(c.get_namespace_index("urn:thermocomp:virtual-cnc"))) \
+            if "{ns}" in node_id else node_id
+        c.get_node(node_id).write_value(ua.DataValue(ua.Variant(float(value), ua.VariantType.Double)))
+
+
+def line_handler_with_query(regs: Registers):
+    """The generic line protocol with the optional read-back query ``?OFFSET``."""
+    base = line_handler(regs)
+
+    def handle(text: str, mode: str) -> str | None:
+        if text == "?OFFSET":
+            return "ERR locked" if mode == "reject" else f"OFFSET={regs.offset or 0.0:.6f}"
+        return base(text, mode)
+    return handle
+
+
+VCNC_OFFSET = "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset"
 
 
 @pytest.fixture(params=BACKENDS)
@@ -68,38 +105,52 @@ def rig(request, tmp_path):
     kind = request.param
     if kind == "sim":
         vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
-        yield Rig(lambda **kw: SimAdapter(machine=vm, **kw), vm.override_speed, lambda: vm.offset_um)
+        yield Rig(lambda **kw: SimAdapter(machine=vm, **kw), vm.override_speed, lambda: vm.offset_um,
+                  vm.apply_offset)
     elif kind == "opcua-asyncua":
         vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
         with running(VirtualCNC(vm)) as cnc:
             yield Rig(lambda **kw: OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw),
-                      vm.override_speed, lambda: vm.offset_um)
+                      vm.override_speed, lambda: vm.offset_um,
+                      lambda v: opcua_write(cnc.url, VCNC_OFFSET, v))
     elif kind == "opcua-node":
         srv = NodeOpcuaServer(free_port())
         try:
             yield Rig(lambda **kw: OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
                                                 offset_node="ns=1;s=Spindle1.ThermalOffset", **kw),
-                      srv.set_speed, srv.offset)
+                      srv.set_speed, srv.offset,
+                      lambda v: opcua_write(srv.url, "ns=1;s=Spindle1.ThermalOffset", v))
         finally:
             srv.close()
     elif kind in ("haas", "line"):
         pty = PtyPair(tmp_path)
         regs = Registers()
-        dev = LineDevice(pty.dev, haas_handler(regs) if kind == "haas" else line_handler(regs))
-        cls = HaasAdapter if kind == "haas" else LineAdapter
+        dev = LineDevice(pty.dev, haas_handler(regs) if kind == "haas" else line_handler_with_query(regs))
+
+        def make(**kw):
+            if kind == "haas":
+                return HaasAdapter(pty.ctl, **kw)
+            return LineAdapter(pty.ctl, offset_query="?OFFSET", **kw)  # with its read-back query
+
         try:
-            yield Rig(lambda **kw: cls(pty.ctl, **kw), lambda v: setattr(regs, "speed_rpm", v),
-                      lambda: regs.offset)
+            yield Rig(make, lambda v: setattr(regs, "speed_rpm", v), lambda: regs.offset,
+                      lambda v: setattr(regs, "offset", v))
         finally:
             dev.stop()
             pty.close()
     else:
+        from pymodbus.client import ModbusSerialClient as C
+
         pty = PtyPair(tmp_path)
         dev = ModbusDevice(pty.dev)
+
+        def outside_write(v: float) -> None:  # the PLC's own program sets holding registers 0-1
+            dev._run(dev.server.context.async_setValues(1, 3, 0, C.convert_to_registers(v, C.DATATYPE.FLOAT32)))
+
         try:
             yield Rig(lambda **kw: ModbusRtuAdapter(pty.ctl, baudrate=115200, speed_register=0,
                                                     offset_register=0, **kw),
-                      dev.set_speed, dev.offset)
+                      dev.set_speed, dev.offset, outside_write)
         finally:
             dev.close()
             pty.close()
@@ -146,6 +197,30 @@ def test_unit_sign_and_scale(rig):
         assert wait_for(lambda: rig.held_offset() == pytest.approx(0.012, abs=1e-6))
 
 
+def test_reads_back_the_offset_the_controller_holds(rig):
+    with rig.make() as link:
+        assert link.can_read_offset
+        link.write_offset_um(-7.5)
+        assert wait_for(lambda: rig.held_offset() == pytest.approx(-7.5, abs=1e-4))
+        assert link.read_offset_um() == pytest.approx(-7.5, abs=1e-4)
+        link.write_offset_um(3.25)
+        assert wait_for(lambda: link.read_offset_um() == pytest.approx(3.25, abs=1e-4))
+        # what the controller holds, not what was written: someone else changed it
+        rig.outside_write(999.0)
+        assert wait_for(lambda: link.read_offset_um() == pytest.approx(999.0, abs=1e-3))
+        assert link.offset_um_requested == 3.25
+
+
+def test_read_back_is_in_um_whatever_the_controller_unit_and_sign(rig):
+    # a controller that holds millimetres with the opposite sign convention
+    with rig.make(offset_scale=0.001, offset_sign=-1) as link:
+        link.write_offset_um(-12.0)
+        assert wait_for(lambda: rig.held_offset() == pytest.approx(0.012, abs=1e-6))
+        assert link.read_offset_um() == pytest.approx(-12.0, abs=1e-3)
+        rig.outside_write(0.5)  # 0.5 mm, its sign
+        assert wait_for(lambda: link.read_offset_um() == pytest.approx(-500.0, abs=1e-3))
+
+
 def test_close_is_idempotent_and_final(rig):
     link = rig.make()
     with link:
@@ -168,10 +243,15 @@ def test_registry_by_name_and_url(tmp_path):
     assert isinstance(m, ModbusRtuAdapter) and m.device_id == 3 and m.speed_scale == 10
     o = open_adapter({"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "preset": "sinumerik", "r_parameter": 7})
     assert o.offset_node.endswith("R[u1,7]") and o.offset_scale == 0.001
-    with pytest.raises(AdapterError, match="unknown adapter"):
+    with pytest.raises(ConfigError, match="unknown adapter"):
         open_adapter({"type": "nope"})
-    with pytest.raises(AdapterError, match="scheme"):
+    with pytest.raises(ConfigError, match="scheme"):
         open_adapter("ftp://x")
+    with pytest.raises(ConfigError, match="unknown serial protocol 'fanuc'"):
+        open_adapter("serial:///dev/ttyX?protocol=fanuc")
+    # a URL's query values are converted by the backend's settings model
+    line = open_adapter("serial:///dev/ttyX?protocol=line&timeout_s=0.25&offset_query=%3FOFFSET")
+    assert isinstance(line, LineAdapter) and line.timeout_s == 0.25 and line.can_read_offset
 
 
 def test_exceptions_refine_builtins():
@@ -418,3 +498,233 @@ def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take(
             assert link.take_write_mismatch() is None
     with pytest.raises(AdapterError, match="verify_writes"):
         OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", verify_writes="sometimes")
+
+
+# -- reading the offset back: what cannot, and what is not a number -------------------------
+
+
+def test_a_link_without_a_read_command_says_so_and_opens_nothing(tmp_path):
+    link = LineAdapter(str(tmp_path / "no-such-port"))  # the generic protocol, no offset_query
+    assert not link.can_read_offset and HaasAdapter.can_read_offset
+    with pytest.raises(AdapterError, match="cannot read back") as info:
+        link.read_offset_um()
+    assert not isinstance(info.value, UnreachableError)  # it did not even try the port
+    link.close()
+
+
+@pytest.mark.parametrize("held", [math.nan, math.inf, True, "12"])
+def test_a_held_offset_that_is_not_a_finite_number_is_a_bad_value(held):
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    vm.offset_um = held  # type: ignore[assignment] - a controller that holds garbage
+    with SimAdapter(machine=vm) as link, pytest.raises(BadValueError):
+        link.read_offset_um()
+
+
+def test_a_refused_read_query_is_an_adapter_error(tmp_path):
+    pty = PtyPair(tmp_path)
+    regs = Registers()
+    dev = LineDevice(pty.dev, line_handler_with_query(regs))
+    try:
+        with LineAdapter(pty.ctl, offset_query="?OFFSET") as link:
+            dev.mode = "reject"
+            with pytest.raises(AdapterError, match="refused '\\?OFFSET'"):
+                link.read_offset_um()
+            dev.mode = "ok"
+            regs.offset = -2.5
+            assert link.read_offset_um() == -2.5
+    finally:
+        dev.stop()
+        pty.close()
+
+
+def test_modbus_reads_back_an_integer_register_in_its_unit(tmp_path):
+    pty = PtyPair(tmp_path)
+    dev = ModbusDevice(pty.dev)
+    try:
+        # 0.1 um counts in an int16: -7.46 um is written as -75 counts and read back as -7.5 um
+        with ModbusRtuAdapter(pty.ctl, baudrate=115200, offset_register=4, offset_type="int16",
+                              offset_scale=10) as link:
+            link.write_offset_um(-7.46)
+            assert link.read_offset_um() == pytest.approx(-7.5)
+    finally:
+        dev.close()
+        pty.close()
+
+
+# -- a hung controller (its process stopped) ------------------------------------------------
+
+SERVE_VCNC = """
+import sys
+from cnc_adapters.sim import SpindlePlant, preset
+from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
+vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+vm.override_speed(float(sys.argv[2]))
+with running(VirtualCNC(vm, port=int(sys.argv[1]))):
+    print("ready", flush=True)
+    sys.stdin.read()
+"""
+
+
+@pytest.fixture
+def vcnc_process():
+    """The virtual CNC in a process of its own, so that it can be stopped (SIGSTOP) like a
+    controller that hangs: its socket stays open, nothing answers."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", SERVE_VCNC, str(port), "7000"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"  # type: ignore[union-attr]
+        yield proc, f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
+    finally:
+        os.kill(proc.pid, signal.SIGCONT)
+        proc.stdin.close()  # type: ignore[union-attr]
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+
+
+def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_process):
+    proc, url = vcnc_process
+    clock = FakeClock()
+    events = []
+    timeout_s = 0.5
+    link = OpcUaAdapter(url, preset="virtual-cnc", timeout_s=timeout_s, clock=clock, backoff_s=1.0,
+                        on_link_change=lambda up, why: events.append((up, why)))
+    assert link.read_speed() == 7000.0
+    link.write_offset_um(-4.0)
+    os.kill(proc.pid, signal.SIGSTOP)
+    # the call times out, and says so (the runtime counts it as a link failure) ...
+    start = time.monotonic()
+    with pytest.raises(AdapterTimeoutError, match="no answer"):
+        link.read_speed()
+    # ... within about timeout_s: nothing waits for a goodbye the server will never answer
+    assert time.monotonic() - start < timeout_s + 5.0
+    assert events == [(False, events[0][1])] and "no answer" in events[0][1]  # the session is dropped
+    # the next call reconnects, and connecting to the stopped server honours timeout_s too
+    start = time.monotonic()
+    with pytest.raises(AdapterTimeoutError, match="opcua connect: no answer"):
+        link.read_offset_um()
+    assert time.monotonic() - start < timeout_s + 5.0
+    with pytest.raises(UnreachableError, match="next attempt"):
+        link.read_offset_um()  # during the back-off after a failed connect: at once, no network
+    os.kill(proc.pid, signal.SIGCONT)
+    clock.t += 10.0
+    assert wait_for(lambda: link.read_speed() == 7000.0)  # back, on a new session
+    assert link.read_offset_um() == -4.0 and link.reconnects == 1 and events[-1][0] is True
+    link.close()
+
+
+# -- LinuxCNC: the offset motion holds, read from a real HAL ---------------------------------
+
+HAL_USER = "thermocomp-ci"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _linuxcnc_python() -> Path:
+    env = os.environ.get("THERMOCOMP_LINUXCNC_VENV")
+    venv = Path(env) if env else (Path("/opt/thermocomp/linuxcnc-venv") if os.geteuid() == 0
+                                  else ROOT / ".venv-linuxcnc")
+    return venv / "bin" / "python"
+
+
+def _no_hal() -> str | None:
+    if shutil.which("halrun") is None:
+        return "LinuxCNC is not installed (scripts/system-deps.sh installs linuxcnc-uspace as root)"
+    if not _linuxcnc_python().exists():
+        return f"no LinuxCNC virtual environment at {_linuxcnc_python().parents[1]}"
+    if os.geteuid() == 0:
+        import pwd
+
+        try:
+            pwd.getpwnam(HAL_USER)
+        except KeyError:
+            return f"running as root and no user {HAL_USER} to run HAL (scripts/system-deps.sh creates it)"
+    return None
+
+
+# the adapter in a HAL of its own (halrun), as LinuxCNC starts it; motion's
+# axis.z.eoffset-request (accumulated counts x scale) stood in for by conv_s32_float and mult2
+HAL_SCRIPT = """
+import json, sys, time
+import hal
+from cnc_adapters.linuxcnc import LinuxCncAdapter
+
+out = {}
+a = LinuxCncAdapter(component="tc-readback", machine_state="pins", held_pin="mult2.0.out")
+a.open()
+for sig, kind, pins in (("tc-counts", hal.HAL_S32, ("tc-readback.eoffset-counts", "conv-s32-float.0.in")),
+                        ("tc-countsf", hal.HAL_FLOAT, ("conv-s32-float.0.out", "mult2.0.in0")),
+                        ("tc-scale", hal.HAL_FLOAT, ("tc-readback.eoffset-scale", "mult2.0.in1"))):
+    hal.new_sig(sig, kind)
+    for pin in pins:
+        hal.connect(pin, sig)
+
+
+def settle(want):
+    end = time.monotonic() + 10  # the servo thread runs every millisecond
+    while time.monotonic() < end:
+        got = a.read_offset_um()
+        if abs(got - want) < 1e-6:
+            return got
+        time.sleep(0.005)
+    return a.read_offset_um()
+
+
+out["not_ready"] = a.read_offset_um()  # machine off: motion applies none
+hal.set_p("tc-readback.machine-on", "1")
+hal.set_p("tc-readback.homed", "1")
+a.read_speed()  # the runtime's cycle: notices the machine is ready
+a.write_offset_um(-12.0)
+out["counts"] = hal.get_value("tc-readback.eoffset-counts")
+out["held"] = settle(-12.0)
+a.write_offset_um(3.5)
+out["held2"] = settle(3.5)
+b = LinuxCncAdapter(component="tc-readback2", machine_state="pins", held_pin="no.such.pin")
+b.open()
+hal.set_p("tc-readback2.machine-on", "1")
+hal.set_p("tc-readback2.homed", "1")
+try:
+    b.read_offset_um()
+except Exception as err:
+    out["missing_pin"] = f"{type(err).__name__}: {err}"
+print("@@", json.dumps(out), flush=True)
+"""
+
+HAL_FILE = """
+loadrt threads name1=servo-thread period1=1000000
+loadrt conv_s32_float
+loadrt mult2
+addf conv-s32-float.0 servo-thread
+addf mult2.0 servo-thread
+start
+loadusr -w {python} {script}
+"""
+
+
+@pytest.mark.skipif(_no_hal() is not None, reason=_no_hal() or "")
+def test_linuxcnc_reads_back_what_motion_holds_not_what_it_wrote():
+    directory = Path(tempfile.mkdtemp(prefix="thermocomp-hal-", dir="/tmp"))
+    try:
+        (directory / "readback.py").write_text(HAL_SCRIPT)
+        (directory / "readback.hal").write_text(HAL_FILE.format(python=_linuxcnc_python(),
+                                                                script=directory / "readback.py"))
+        cmd = ["env", f"PYTHONPATH={ROOT}", f"HOME={directory}", "halrun", "-f", str(directory / "readback.hal")]
+        if os.geteuid() == 0:  # rtapi refuses root
+            shutil.chown(directory, HAL_USER)
+            for f in directory.iterdir():
+                shutil.chown(f, HAL_USER)
+            cmd = ["runuser", "-u", HAL_USER, "--", *cmd]
+        r = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120, cwd=directory)
+        lines = [x for x in r.stdout.splitlines() if x.startswith("@@ ")]
+        assert lines, r.stdout[-2000:] + r.stderr[-2000:]
+        out = json.loads(lines[-1][3:])
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
+    assert out["not_ready"] == 0.0
+    # -12 um: +0.012 mm on Z (offset_sign -1), 1200 counts of 0.01 um; read back through HAL
+    assert out["counts"] == 1200
+    assert out["held"] == pytest.approx(-12.0, abs=1e-6)
+    assert out["held2"] == pytest.approx(3.5, abs=1e-6)
+    assert re.match(r"AdapterError: linuxcnc: cannot read no\.such\.pin", out["missing_pin"])

@@ -83,14 +83,14 @@ def test_a_controller_value_that_is_not_a_number_is_rewritten_not_followed():
     assert off.wants_write(shaped) and shaped.offset_um == pytest.approx(-4.0)
 
 
-def test_a_backend_option_typo_is_a_one_line_adapter_error():
+def test_a_backend_option_typo_is_a_one_line_config_error():
     from cnc_adapters import open_adapter
     from cnc_adapters.sensors import open_sensor
-    from compensator.errors import AdapterError, ConfigError
+    from compensator.errors import ConfigError
 
-    with pytest.raises(AdapterError, match="unknown option 'speed_nod'"):
+    with pytest.raises(ConfigError, match="unknown option 'speed_nod'"):
         open_adapter("opc.tcp://127.0.0.1:4840?speed_nod=ns=2;s=x")
-    with pytest.raises(AdapterError, match="unknown option 'bogus'"):
+    with pytest.raises(ConfigError, match="unknown option 'bogus'"):
         open_sensor({"type": "ascii", "port": "/dev/null", "bogus": 1})
     with pytest.raises(ConfigError, match="offset_sign must be"):
         open_adapter({"type": "sim", "offset_sign": 1.7})

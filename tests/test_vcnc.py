@@ -114,3 +114,40 @@ def test_opcua_adapter_unreachable():
         link.read_speed()
     with pytest.raises(ConnectionError):  # also the builtin it refines
         link.open()
+
+
+def test_any_client_can_write_the_offset_and_the_adapter_reads_it_back():
+    from asyncua.sync import Client
+
+    vm = machine()
+    with running(VirtualCNC(vm)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+        link.write_offset_um(-3.0)
+        assert link.read_offset_um() == -3.0
+        # an operator's HMI (another client) writes 999 um: the controller takes it
+        with Client(cnc.url, timeout=10) as other:
+            ns = other.get_namespace_index(NAMESPACE_URI)
+            other.get_node(f"ns={ns};s={NODE_PATHS['thermal_offset']}").write_value(999.0)
+        assert wait_for(lambda: vm.offset_um == 999.0)
+        assert link.read_offset_um() == 999.0
+
+
+def test_a_restarted_virtual_cnc_starts_with_offset_zero():
+    vm = machine()
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
+    link = OpcUaAdapter(url, preset="virtual-cnc", timeout_s=2)
+    with running(VirtualCNC(vm, port=port)):
+        link.write_offset_um(-6.0)
+        assert wait_for(lambda: vm.offset_um == -6.0)
+    assert vm.offset_um == -6.0  # stopped: the machine still holds it
+    with running(VirtualCNC(vm, port=port)):
+        assert vm.offset_um == 0.0  # a controller restart clears the variable
+        assert wait_for(lambda: _read_back(link) == 0.0)  # after the adapter reconnects
+    link.close()
+
+
+def _read_back(link):
+    try:
+        return link.read_offset_um()
+    except UnreachableError:
+        return None

@@ -2,23 +2,50 @@
 
 ``sim://motorized-27k?program=job-shop-day&seed=3&time_scale=60`` builds a plant, a speed
 program and a simulated clock. Reading the speed advances the plant to the clock; the
-written offset moves the virtual tool tip (``machine.history().tool_tip_error_um``).
+written offset moves the virtual tool tip (``machine.history().tool_tip_error_um``) and is
+read back from the machine (:attr:`VirtualMachine.offset_um`).
 """
 
 from __future__ import annotations
 
-from typing import Any
-from urllib.parse import urlsplit
+from typing import Annotated, Any, ClassVar
+from urllib.parse import parse_qsl, urlsplit
 
+from pydantic import Field
+
+from compensator.programs import PROGRAMS
 from compensator.programs import program as make_program
 
-from ..base import Adapter, AdapterError, WriteRejectedError, query_params
+from ..base import (
+    Adapter,
+    AdapterError,
+    AdapterSettings,
+    Allowed,
+    Positive,
+    WriteRejectedError,
+    one_of,
+)
 from .plant import PRESETS, SpindlePlant
 from .vcnc import SimClock, VirtualMachine
+
+PlantPreset = one_of(*PRESETS)
+ProgramName = one_of(*PROGRAMS)
+
+
+class SimSettings(AdapterSettings):
+    """The options of :class:`SimAdapter` (``machine``, an existing virtual machine, is a
+    runtime-only keyword)."""
+
+    preset: PlantPreset = "motorized-27k"
+    program: ProgramName | None = Field("job-shop-day", description="speed program; none: idle")
+    seed: Annotated[int, Field(ge=0), Allowed("a whole number >= 0")] = 0
+    time_scale: Positive = Field(60.0, description="simulated seconds per second")
 
 
 class SimAdapter(Adapter):
     name = "sim"
+    Settings: ClassVar[type[AdapterSettings]] = SimSettings
+    can_read_offset: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -45,18 +72,14 @@ class SimAdapter(Adapter):
         self.machine = machine
 
     @classmethod
-    def from_url(cls, url: str, **overrides: Any) -> SimAdapter:
+    def url_options(cls, url: str) -> dict[str, Any]:
+        """``sim://motorized-27k?program=job-shop-day&seed=3``; ``program=`` (empty): idle."""
         parts = urlsplit(url)
-        q = query_params(url)
-        kw: dict[str, Any] = {"preset": parts.netloc or "motorized-27k"}
-        if "program" in q:
-            kw["program"] = q["program"] or None
-        if "seed" in q:
-            kw["seed"] = int(q["seed"])
-        if "time_scale" in q:
-            kw["time_scale"] = float(q["time_scale"])
-        kw.update(overrides)
-        return cls(**kw)
+        kw: dict[str, Any] = {"preset": parts.netloc or "motorized-27k",
+                              **dict(parse_qsl(parts.query, keep_blank_values=True))}
+        if kw.get("program") == "":
+            kw["program"] = None
+        return kw
 
     def _connect(self) -> None:
         self.machine.advance()
@@ -64,6 +87,9 @@ class SimAdapter(Adapter):
     def _read_speed_raw(self) -> float:
         self.machine.advance()
         return self.machine.speed_rpm
+
+    def _read_offset_raw(self) -> float:
+        return self.machine.offset_um
 
     def _write_offset_raw(self, value: float) -> None:
         if not self.machine.apply_offset(value):

@@ -8,7 +8,7 @@ Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
           Spindle1/                       (CncSpindleType-like)
             ActSpeed          Double  rpm   the spindle's actual speed (read-only)
             CmdSpeed          Double  rpm   the programmed speed (read-only)
-            ThermalOffset     Double  um    thermal tool-length offset (writable)
+            ThermalOffset     Double  um    thermal tool-length offset (writable by any client)
             Displacement      Double  um    eddy-current reading at the nose (read-only)
         Simulation/
           SimTime             Double  s     simulated time
@@ -17,7 +17,9 @@ Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
           CycleStart          Boolean       write true to start the loaded program (writable)
 
 Every node id is a string node id ``ns=<ns>;s=/<path>`` so that configurations can name
-them; ``NODE_PATHS`` lists them. Positive elongation moves the tool tip toward the workpiece;
+them; ``NODE_PATHS`` lists them. Like a real CNC's variable, ``ThermalOffset`` takes a write from
+any client (an operator's or a fault test's, up to ``OFFSET_LIMIT_UM``) and starts at 0 when
+the virtual CNC (re)starts. Positive elongation moves the tool tip toward the workpiece;
 an offset written here moves it back by the same amount, so a perfect compensator writes
 ``-elongation`` and ``ToolTipError`` reads 0.
 
@@ -303,13 +305,15 @@ class VirtualCNC:
                 f"ns={self.ns};s={path}", f"{self.ns}:{name}", ua.Variant(0.0, ua.VariantType.Double)
             )
             if key == "thermal_offset":
-                await node.set_writable()
+                await node.set_writable()  # for every client, like the CNC's own variable
             self._nodes[key] = node
         start = await (await folder("/CncInterface/Simulation")).add_variable(
             f"ns={self.ns};s={CYCLE_START_PATH}", f"{self.ns}:CycleStart",
             ua.Variant(False, ua.VariantType.Boolean))
         await start.set_writable()
         self._nodes["cycle_start"] = start
+        # a controller that restarts has lost the variable: 0, whatever the machine held before
+        self.machine.apply_offset(0.0)
         await server.start()
         self._server = server
         await self._publish()

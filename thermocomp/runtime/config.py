@@ -14,7 +14,8 @@ from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from compensator.errors import ConfigError
+from cnc_adapters import check_adapter
+from compensator.errors import ConfigError, clip
 from compensator.shaping import ShaperConfig
 
 
@@ -86,6 +87,7 @@ class SpindleConfig(BaseModel):
             if has_password:
                 raise ValueError("adapter.url carries a password: refused; put it in password_file, "
                                  "password_credential (systemd LoadCredential=) or the environment")
+        check_adapter(v)  # the backend's own typed settings: one line naming key, value, what is allowed
         return v
 
 
@@ -139,8 +141,12 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
         e = err.errors()[0]
         where = ".".join(str(x) for x in e["loc"])
         more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
-        given = "" if e["type"] == "missing" else f" (given {_short(e.get('input'))})"
-        raise ConfigError(f"{p}: {where}: {e['msg']}{given}{more}") from err
+        if e["type"] == "value_error":  # our own validators: their message says it all
+            msg, given = str(e.get("ctx", {}).get("error", e["msg"])), ""
+        else:
+            msg = e["msg"]
+            given = "" if e["type"] == "missing" else f" (given {_short(e.get('input'))})"
+        raise ConfigError(clip(f"{p}: {where}: {msg}{given}{more}", 400)) from err
     names = [s.name for s in cfg.spindle]
     if len(set(names)) != len(names):
         raise ConfigError(f"{p}: spindle names must be unique")

@@ -39,7 +39,13 @@ from pathlib import Path
 from typing import Any
 
 from cnc_adapters import AdapterError, UnreachableError, WriteRejectedError, open_adapter
-from compensator.errors import AdapterTimeoutError, ConfigError, ModelError, ModelFileError
+from compensator.errors import (
+    AdapterTimeoutError,
+    BadValueError,
+    ConfigError,
+    ModelError,
+    ModelFileError,
+)
 from compensator.io import Journal, load_any_model, load_state, model_digest, quarantine, save_state
 from compensator.predictor import Predictor
 
@@ -360,6 +366,13 @@ class SpindleRuntime:
             "after a reconnect" if self._need_readback else "periodic check")
         try:
             held = self.adapter.read_offset_um()
+        except BadValueError as err:
+            # it holds something that is not a number: write ours again, from where we were
+            log.warning("%s: offset read-back: %s; writing it again", self.cfg.name, err)
+            self._need_readback = False
+            self._since_readback = 0
+            self.offset.rewrite()
+            return Alarm.OFFSET_MISMATCH
         except AdapterError as err:
             if isinstance(err, _LINK_ERRORS):
                 return self._link_failed(now, err)
@@ -414,7 +427,10 @@ class SpindleRuntime:
         alarms = self._startup_alarms | self.sticky_alarms | self._clock_step(now, wall_now)
         self._startup_alarms = Alarm.NONE
         speed, read_alarms = self._read_speed(now)
-        alarms |= read_alarms | self._read_back(now)
+        alarms |= read_alarms
+        not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
+        if not_ready is None:  # a machine that is off applies its own value: nothing to compare
+            alarms |= self._read_back(now)
         self.state = self.model.step(self.state, speed, dt)
         s = self.state.elongation_um
         if self.with_inputs is not None:
@@ -426,7 +442,6 @@ class SpindleRuntime:
         shaped = self.offset.plan(s, speed, dt)
         wanted = self.offset.wants_write(shaped)
         wrote = False
-        not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
         if not_ready is not None:
             # machine off, in E-stop or not homed: the controller applies `not_ready`; once it
             # is ready the offset is re-seeded from there through the slew limit
