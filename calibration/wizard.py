@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -25,7 +26,13 @@ from rich.console import Console
 from rich.prompt import Confirm, FloatPrompt, Prompt
 from rich.table import Table
 
-from compensator.errors import AcquisitionError, CalibrationError, ConfigError, ThermocompError
+from compensator.errors import (
+    AcquisitionError,
+    CalibrationError,
+    ConfigError,
+    ThermocompError,
+    clip,
+)
 from compensator.io import (
     RunLog,
     atomic_write,
@@ -61,6 +68,10 @@ from .profile import (
 SESSION_FORMAT = "thermocomp.wizard/1"
 RUNS = ("calibration", "validation")
 
+ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+"""A machine or spindle id (and no ``..`` in it): it names a directory and files, so nothing
+that could leave the work directory or trouble a shell (``/``, ``\\``, NUL, spaces, ...)."""
+
 
 class Wizard:
     def __init__(self, args: argparse.Namespace, console: Console | None = None,
@@ -71,7 +82,8 @@ class Wizard:
         self._clock = clock
         self.sleep = sleep if args.time_scale == 1.0 else (lambda s: time.sleep(s / args.time_scale))
         self.session: dict[str, Any] = {}
-        self.dir: Path = Path()
+        self.workdir: Path = Path(args.workdir).resolve()
+        self.dir: Path = self.workdir
 
     # -- questions ---------------------------------------------------------------
 
@@ -80,17 +92,21 @@ class Wizard:
         """The answer from the flag, else the resumed session, else a prompt (or an error)."""
         from rich.markup import escape
 
+        def shown(answer: Any) -> str:
+            # an answer is checked after it is echoed: a huge or markup-laden one must echo safely
+            return escape(clip(str(answer), 120))
+
         question = escape(question)
         value = getattr(self.args, key.replace("-", "_"), None)
         if value is not None:
-            self.out.print(f"  {question}: [cyan]{value}[/]  (from {flag})")
+            self.out.print(f"  {question}: [cyan]{shown(value)}[/]  (from {flag})")
             return value
         if key in self.session:
-            self.out.print(f"  {question}: [cyan]{self.session[key]}[/]  (from the session)")
+            self.out.print(f"  {question}: [cyan]{shown(self.session[key])}[/]  (from the session)")
             return self.session[key]
         if not self.interactive:
             if default is not None:
-                self.out.print(f"  {question}: [cyan]{default}[/]  (default)")
+                self.out.print(f"  {question}: [cyan]{shown(default)}[/]  (default)")
                 return default
             raise ConfigError(f"{flag} is needed when the wizard runs unattended")
         while True:
@@ -109,7 +125,8 @@ class Wizard:
     def save_session(self) -> None:
         self.session["format"] = SESSION_FORMAT
         self.session["updated_utc"] = _now()
-        with atomic_write(self.dir / "session.json") as fh:
+        # private: it keeps the controller and sensor links as typed, which may carry credentials
+        with atomic_write(self.dir / "session.json", mode=0o600) as fh:
             json.dump(self.session, fh, indent=2)
 
     # -- step 1 ------------------------------------------------------------------
@@ -119,7 +136,7 @@ class Wizard:
         self.out.rule("[bold]1/5 Identify the spindle")
         machine = _ident(self.ask("machine_id", "Machine id", flag="--machine-id"), "--machine-id")
         spindle = _ident(self.ask("spindle_id", "Spindle id", flag="--spindle-id"), "--spindle-id")
-        self.dir = Path(a.workdir).resolve() / machine / spindle
+        self.dir = _inside(self.workdir, self.workdir / machine / spindle, "the session directory")
         path = self.dir / "session.json"
         if path.exists() and not a.new:
             try:
@@ -264,6 +281,7 @@ class Wizard:
         runs = self.session.setdefault("runs", {})
         for name, prog in self.programs().items():
             info = runs.setdefault(name, {"log": str(self.dir / "runs" / f"{name}.csv"), "complete": False})
+            _inside(self.workdir, info["log"], f"the {name} run log")  # session.json is editable
             self.save_session()
             if info.get("complete"):
                 self.out.print(f"  {name}: already recorded ({info['log']})")
@@ -360,8 +378,8 @@ class Wizard:
 
         self.out.rule("[bold]4/5 Fit and validate (free run)")
         s = self.session
-        logs = {name: _clean(read_run_log(info["log"])) for name, info in s["runs"].items()
-                if info.get("complete")}
+        logs = {name: _clean(read_run_log(_inside(self.workdir, info["log"], f"the {name} run log")))
+                for name, info in s["runs"].items() if info.get("complete")}
         if "calibration" not in logs:
             raise CalibrationError("no complete calibration run to fit")
         cal_log, dropped = logs["calibration"]
@@ -518,12 +536,23 @@ def _rows(path: Path) -> int:
 
 
 def _ident(value: Any, flag: str) -> str:
-    import re
-
+    """``value`` as an id (surrounding blanks dropped), or a one-line ConfigError naming it."""
     text = str(value).strip()
-    if not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", text):
-        raise ConfigError(f"{flag} {text!r}: use letters, digits, '_', '-', '.' (it names files)")
+    if not ID_PATTERN.fullmatch(text) or ".." in text:
+        raise ConfigError(f"{flag} {clip(repr(text), 80)}: an id names files, so 1 to 64 of A-Z a-z 0-9 "
+                          "'_' '.' '-', starting with a letter or digit, without '..'")
     return text
+
+
+def _inside(root: Path, path: str | Path, what: str) -> Path:
+    """``path`` resolved, if it stays inside ``root`` (a resolved directory); else a ConfigError."""
+    try:
+        resolved = Path(path).resolve()
+    except (OSError, ValueError) as err:  # a NUL byte, a symlink loop
+        raise ConfigError(f"{what} {clip(repr(str(path)), 200)}: not a usable path ({err})") from err
+    if not resolved.is_relative_to(root):
+        raise ConfigError(f"{what} {clip(str(resolved), 200)} is outside the work directory {root}")
+    return resolved
 
 
 def _console() -> Console:
@@ -612,7 +641,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         return wiz.run()
     except AcquisitionError as err:
-        print(f"thermocomp: error: {err}", file=sys.stderr)
+        print(f"thermocomp: error: {clip(str(err))}", file=sys.stderr)
         return 3
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ModelError, NonFiniteInputError
-from .model import ModelState, ThermalModel
+from .model import ModelState, ThermalModel, saved_numbers
 from .units import require_dt
 
 AUGMENTED_FORMAT = "thermocomp.augmented-model/1"
@@ -185,8 +185,9 @@ class AugmentedModel(BaseModel):
 
     def state_from_dict(self, data: Mapping[str, Any]) -> AugmentedState:
         try:
-            x = tuple(float(v) for v in data["inputs_um"])
-            refs = {t.name: float(data["references"][t.name]) for t in self.inputs}
+            x = saved_numbers("inputs_um", data["inputs_um"])
+            refs = {t.name: saved_numbers("references", [data["references"][t.name]], 1e9)[0]
+                    for t in self.inputs}
             speed = self.speed_model.state_from_dict(data["speed"])
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved state is not a state of this model ({err})") from err

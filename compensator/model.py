@@ -62,6 +62,28 @@ from .units import (
     speed_magnitude_rpm,
 )
 
+SAVED_LIMIT_UM = 1e4
+"""No thermal state of a spindle is 10 mm: a saved value beyond this is a corrupt file."""
+
+
+def saved_numbers(name: str, values: Any, limit: float = SAVED_LIMIT_UM) -> tuple[float, ...]:
+    """Numbers read back from a saved state: a list of real numbers (not bools, not strings),
+    finite and within ``limit``; :class:`ModelError` naming ``name`` otherwise."""
+    if not isinstance(values, (list, tuple)):
+        raise ModelError(f"saved {name} is a {type(values).__name__}, not a list of numbers")
+    out = []
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ModelError(f"saved {name} holds a {type(v).__name__}, not a number")
+        try:
+            f = float(v)
+        except OverflowError as err:
+            raise ModelError(f"saved {name} holds a number too large") from err
+        if not (math.isfinite(f) and abs(f) <= limit):
+            raise ModelError(f"saved {name} holds {f:g}, beyond {limit:g}")
+        out.append(f)
+    return tuple(out)
+
 MODEL_FORMAT = "thermocomp.model/1"
 
 _CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
@@ -273,7 +295,7 @@ class ThermalModel(BaseModel):
     def state_from_dict(self, data: Mapping[str, Any]) -> ModelState:
         """A state saved by :meth:`state_dict`; :class:`ModelError` if it does not fit this model."""
         try:
-            thermal = tuple(require_finite("thermal_um", x) for x in data["thermal_um"])
+            thermal = saved_numbers("thermal_um", data["thermal_um"])
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved state is not a state of this model ({err})") from err
         if len(thermal) != self.order:

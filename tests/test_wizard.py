@@ -230,10 +230,16 @@ def test_wizard_imports_daq_logs(tmp_path):
     r = subprocess.run([*base, "--import-validation", str(tmp_path / "late-daq.csv")], capture_output=True, text=True)
     assert r.returncode == 2 and "same clock" in r.stderr and r.stderr.count("\n") == 1, r.stdout + r.stderr
     assert json.loads((sdir / "session.json").read_text())["runs"]["calibration"]["complete"]
-    r = subprocess.run([*base, "--import-validation", str(tmp_path / "val-daq.csv")], capture_output=True, text=True)
+    r = subprocess.run([*base, "--import-validation", str(tmp_path / "val-daq.csv")], capture_output=True, text=True,
+                       umask=0o022)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "imported" in r.stdout and "calibration: already recorded" in r.stdout
     saved = json.loads((sdir / "session.json").read_text())["saved"]
+    # the model, its report and config are readable by all (no secret in them); the session,
+    # which keeps the links as typed, by its owner only
+    modes = {k: Path(saved[k]).stat().st_mode & 0o777 for k in ("model", "report", "config")}
+    assert modes == {"model": 0o644, "report": 0o644, "config": 0o644}
+    assert (sdir / "session.json").stat().st_mode & 0o777 == 0o600
     md = Path(saved["report"]).read_text()
     assert saved["report"].endswith(".md") and "![fit](data:image/png;base64," in md
     cal = read_run_log(sdir / "runs" / "calibration.csv")
@@ -249,6 +255,8 @@ def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
     cases = [
         (["--workdir", str(tmp_path), "--spindle-id", "s"], "--machine-id is needed"),
         (["--workdir", str(tmp_path), "--machine-id", "m/x", "--spindle-id", "s"], "--machine-id 'm/x'"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", ".."], "--spindle-id '..'"),
+        (["--workdir", str(tmp_path), "--machine-id", "../../up", "--spindle-id", "s"], "--machine-id '../../up'"),
         (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "5",
           "--source", "sensor"], "not a plausible spindle speed"),
         (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "9000",
@@ -262,3 +270,87 @@ def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
         r = subprocess.run([*THERMOCOMP, "wizard", "--yes", *args], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2, (args, r.stdout, r.stderr)
         assert message in r.stderr and r.stderr.count("\n") == 1, r.stderr
+
+
+# -- ids and paths: nothing outside the work directory ------------------------------------
+
+
+def wizard_args(work: Path, *extra: str):
+    from thermocomp.cli import build_parser
+
+    return build_parser().parse_args(["wizard", "--yes", "--workdir", str(work), *extra])
+
+
+def quiet_wizard(args):
+    import io
+
+    from rich.console import Console
+
+    from calibration.wizard import Wizard
+
+    return Wizard(args, console=Console(file=io.StringIO()))
+
+
+BAD_IDS = ["..", ".", "../x", "x/..", "a/b", "/etc", "a\\b", "a\x00b", "a b", " ", "", "a\nb", "-rf", "_x",
+           ".hidden", "a..b", "x" * 65, "ä", "a;b", "$(id)", "a*", "x" * 1_000_000]
+
+
+@pytest.mark.parametrize("bad", BAD_IDS, ids=[repr(b[:8]) for b in BAD_IDS])
+@pytest.mark.parametrize("flag", ["--machine-id", "--spindle-id"])
+def test_an_unsafe_id_is_refused_in_one_line_and_nothing_is_written(tmp_path, flag, bad):
+    from compensator.errors import ConfigError
+
+    work = tmp_path / "w" / "calibrations"
+    ids = {"--machine-id": "m1", "--spindle-id": "s1", flag: bad}
+    wiz = quiet_wizard(wizard_args(work, *(f"{k}={v}" for k, v in ids.items()), "--max-rpm", "9000"))
+    with pytest.raises(ConfigError) as info:
+        wiz.step_identify()
+    msg = str(info.value)
+    assert msg.startswith(f"{flag} ") and "A-Z a-z 0-9 '_' '.' '-'" in msg and "'..'" in msg, msg
+    assert repr(bad.strip())[:20] in msg and "\n" not in msg and len(msg) < 300
+    assert list(tmp_path.rglob("*")) == []  # not even the work directory
+
+
+@pytest.mark.parametrize("good", ["vmc-7", "A.b_c-9", "0", "x" * 64, "  padded  "])
+def test_a_safe_id_names_the_session_directory(tmp_path, good):
+    work = tmp_path / "w"
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", good, "--spindle-id", "s1", "--max-rpm", "9000",
+                                   "--source", "import"))
+    wiz.step_identify()
+    assert wiz.dir == work.resolve() / good.strip() / "s1"
+    assert (wiz.dir / "session.json").is_file()
+
+
+def test_a_symlink_out_of_the_work_directory_is_refused(tmp_path):
+    from compensator.errors import ConfigError
+
+    work, outside = tmp_path / "w", tmp_path / "outside"
+    work.mkdir()
+    outside.mkdir()
+    (work / "m1").symlink_to(outside)
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--spindle-id", "s1", "--max-rpm", "9000"))
+    with pytest.raises(ConfigError, match="the session directory .* is outside the work directory"):
+        wiz.step_identify()
+    assert list(outside.iterdir()) == []
+
+
+def test_an_edited_session_cannot_send_a_run_log_outside(tmp_path):
+    from calibration.wizard import SESSION_FORMAT
+    from compensator.errors import ConfigError
+
+    work, outside = tmp_path / "w", tmp_path / "outside.csv"
+    sdir = work / "m1" / "s1"
+    sdir.mkdir(parents=True)
+    (sdir / "session.json").write_text(json.dumps({
+        "format": SESSION_FORMAT, "runs": {"calibration": {"log": str(sdir / ".." / ".." / ".." / "outside.csv"),
+                                                           "complete": False}}}))
+    (tmp_path / "daq.csv").write_text("time_s,displacement_um,speed_rpm\n0,0,0\n1,0,0\n")
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--spindle-id", "s1", "--max-rpm", "9000",
+                                   "--source", "import", "--dialect", "fanuc", "--no-validation",
+                                   "--import-calibration", str(tmp_path / "daq.csv"),
+                                   "--import-speed-column", "speed_rpm"))
+    wiz.step_identify()
+    wiz.step_programs()
+    with pytest.raises(ConfigError, match=f"the calibration run log {outside} is outside the work directory"):
+        wiz.step_acquire()
+    assert not outside.exists()

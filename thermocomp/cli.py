@@ -9,10 +9,48 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 Handler = Callable[[argparse.Namespace], int]
+
+ERROR_CHARS = 300
+"""An error prints as one line of at most this many characters after ``thermocomp: error: ``."""
+
+LOG_CHARS = 1000
+"""A logged message is clipped to this many characters (warnings run longer than errors)."""
+
+
+def fail(message: str) -> None:
+    """Print ``thermocomp: error: <message>`` on stderr, clipped to one line: an error may
+    echo a bad value, and one was found 50 MB long."""
+    from compensator.errors import clip
+
+    print(f"thermocomp: error: {clip(message, ERROR_CHARS)}", file=sys.stderr)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse echoes a bad argument whole ("invalid float value: '...'"): clip it too.
+    Subcommand parsers are made of this class as well."""
+
+    def error(self, message: str) -> NoReturn:
+        from compensator.errors import clip
+
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{self.prog}: error: {clip(message, ERROR_CHARS)}\n")
+
+
+class _OneLineFormatter(logging.Formatter):
+    """A logged message (a warning may quote a bad value too) as one bounded line; a
+    traceback, if any, still follows it."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        from compensator.errors import clip
+
+        record.message = clip(record.message, LOG_CHARS)
+        return super().formatMessage(record)
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
@@ -170,7 +208,7 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="thermocomp",
         description="Cancel the thermal growth of machine-tool spindles from spindle speed.",
     )
@@ -198,22 +236,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
-    import logging
-
     from compensator.errors import ThermocompError
 
-    logging.basicConfig(level=logging.WARNING, format="thermocomp: %(levelname)s: %(name)s: %(message)s")
+    handler = logging.StreamHandler()
+    handler.setFormatter(_OneLineFormatter("thermocomp: %(levelname)s: %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     # asyncua warns about every unsecured session; the adapters report what matters
     logging.getLogger("asyncua").setLevel(logging.ERROR)
 
     try:
         return int(resolve(args.handler)(args) or 0)
     except ThermocompError as err:
-        print(f"thermocomp: error: {err}", file=sys.stderr)
+        fail(str(err))
         return 2
     except OSError as err:
-        name = f" {err.filename}" if getattr(err, "filename", None) else ""
-        print(f"thermocomp: error:{name}: {err.strerror or err}", file=sys.stderr)
+        name = f"{err.filename}: " if getattr(err, "filename", None) else ""
+        fail(f"{name}{err.strerror or err}")
         return 2
     except KeyboardInterrupt:
         print("thermocomp: interrupted", file=sys.stderr)

@@ -4,26 +4,50 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
 from ..errors import ConfigError
 
+_TMP_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[Any]]:
+def atomic_write(path: str | os.PathLike[str], open_mode: str = "w", *,
+                 mode: int = 0o666) -> Iterator[IO[Any]]:
     """Write to a temporary file beside ``path``, fsync, then rename over it.
 
     A crash at any moment leaves either the old file or the new one, never a
-    partial file.
+    partial file. ``open_mode`` is ``"w"`` (UTF-8 text) or ``"wb"``. The file gets the
+    permission bits ``mode`` less the process umask, as ``open()`` gives: by default
+    readable by all under the usual umask 022; ``mode=0o600`` for a file that may hold a
+    secret. An overwritten file's own mode is not kept.
     """
+    if isinstance(mode, str):  # the open mode was once the keyword ``mode``
+        raise TypeError(f"atomic_write: mode is the permission bits (e.g. 0o600), not {mode!r}; "
+                        "the open mode is open_mode")
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    # os.open lets the kernel apply the umask (and any default ACL) at creation, where
+    # mkstemp would force 0600 and reading the umask would race other threads
+    for _ in range(100):
+        tmp = target.parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
+        try:
+            fd = os.open(tmp, _TMP_FLAGS, mode)
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise FileExistsError(f"{target.parent}: no free temporary name for {target.name}")
     try:
-        with os.fdopen(fd, mode) as fh:
+        try:
+            fh = os.fdopen(fd, open_mode, encoding=None if "b" in open_mode else "utf-8")
+        except BaseException:
+            os.close(fd)  # fdopen took no ownership
+            raise
+        with fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())

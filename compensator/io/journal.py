@@ -78,8 +78,8 @@ class Journal:
         t = max(time_s, self._last_t + 1e-3)  # the run-log format needs increasing time
         self._last_t = t
         wall = t if wall_s is None else wall_s
-        row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.9g},{offset_um:.9g},{int(written)},"
-               f"{int(flags)},{int(alarms)},{dt_s:.6f},{wall:.3f}\n")
+        row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
+               f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f}\n")
         if len(self._pending) == self._pending.maxlen:
             self.dropped_rows += 1
         self._pending.append((t, row))

@@ -18,7 +18,6 @@ from cnc_adapters import check_adapter
 from compensator.errors import ConfigError, clip
 from compensator.shaping import ShaperConfig
 
-
 _FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 

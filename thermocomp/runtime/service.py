@@ -115,13 +115,16 @@ class Service:
                   err.strerror or err, level=logging.ERROR, path=str(self._lock.path))
 
     def _build(self, cfg: RuntimeConfig) -> dict[str, SpindleRuntime]:
+        for sc in cfg.spindle:  # every model first: a refused reload leaves no trace
+            loaded = load_any_model(sc.model)
+            plausible(loaded.fallback or loaded, sc.name)
         out: dict[str, SpindleRuntime] = {}
         try:
             for sc in cfg.spindle:
                 out[sc.name] = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=self.clock,
                                               wall=self.wall, anchor_s=self.anchor_s,
-                                              journal_fsync_s=cfg.journal_fsync_s)
-                plausible(out[sc.name].model, sc.name)
+                                              journal_fsync_s=cfg.journal_fsync_s,
+                                              previous=self.spindles.get(sc.name))
         except BaseException:
             for rt in out.values():
                 rt.journal.close()
@@ -140,7 +143,7 @@ class Service:
         state through its state file, and the offset the controller holds is read back. Anything
         that does not validate keeps the running configuration, with ``RELOAD_FAILED``."""
         for rt in self.spindles.values():
-            rt.save_state()  # the new runtimes start from here
+            rt.save_state()  # a spindle whose model changed starts from here
         try:
             new = load_config(self.config_path)
             if new.state_dir.resolve() != self.cfg.state_dir.resolve():
@@ -151,7 +154,9 @@ class Service:
             event("reload_refused", None, "reload refused, keeping the running configuration: %s",
                   err, level=logging.ERROR, error=str(err)[:300])
             return
-        for rt in self.spindles.values():
+        for name, rt in self.spindles.items():
+            if name in built:
+                built[name].take_journal(rt)
             rt.close()
         self.cfg, self.spindles, self.reload_failed = new, built, False
         event("reload", None, "configuration reloaded: %d spindle(s)", len(self.spindles),

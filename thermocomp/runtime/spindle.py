@@ -33,6 +33,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -47,6 +48,7 @@ from compensator.errors import (
     ModelFileError,
 )
 from compensator.io import Journal, load_any_model, load_state, model_digest, quarantine, save_state
+from compensator.model import SAVED_LIMIT_UM, saved_numbers
 from compensator.predictor import Predictor
 
 from .config import SpindleConfig
@@ -55,6 +57,8 @@ from .link import LinkHealth, LinkState
 from .offset import OffsetTracker
 
 log = logging.getLogger("thermocomp.runtime")
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 CLOCK_STEP_S = 2.0
 """A jump of the wall clock against the monotonic clock larger than this is a clock step."""
@@ -97,7 +101,8 @@ class SpindleRuntime:
 
     def __init__(self, cfg: SpindleConfig, state_dir: Path, journal_dir: Path, *,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
-                 adapter: Any = None, anchor_s: float | None = None, journal_fsync_s: float = 10.0):
+                 adapter: Any = None, anchor_s: float | None = None, journal_fsync_s: float = 10.0,
+                 previous: SpindleRuntime | None = None):
         self.cfg = cfg
         self.clock = clock
         self.wall = wall
@@ -150,7 +155,10 @@ class SpindleRuntime:
         self._mismatch_streak = 0
         self._wrote_since_check = False
         self._writes_paused_until = -math.inf
-        self.restore()
+        if previous is not None and previous.digest == self.digest:
+            self._carry_over(previous)  # a reload: the state in memory, not the one on disk
+        else:
+            self.restore()
         self.alarms = self._startup_alarms
 
     @property
@@ -174,16 +182,23 @@ class SpindleRuntime:
             saved = load_state(self.state_path)
             if saved is None:
                 return self._cold("no saved state")
-            if saved.get("model_sha256") != self.digest:
+            sha = saved.get("model_sha256")
+            if not (isinstance(sha, str) and _SHA256.fullmatch(sha)):
+                raise ModelFileError(f"model_sha256 is {str(sha)[:70]!r}, not a digest")
+            if sha != self.digest:
                 return self._cold("saved state belongs to another model")
-            saved_wall = float(saved["saved_wall_s"])
-            held = float(saved.get("offset_um", 0.0))
-            if not (math.isfinite(saved_wall) and math.isfinite(held)):
-                raise ModelFileError("non-finite time or offset")
+            saved_wall = saved_numbers("saved_wall_s", [saved["saved_wall_s"]], 1e11)[0]
+            held = saved_numbers("offset_um", [saved.get("offset_um", 0.0)])[0]
+            if saved_wall <= 0:
+                raise ModelFileError(f"saved_wall_s {saved_wall:g} is not a time")
             state = self.model.state_from_dict(saved)
+            if not abs(state.elongation_um) <= SAVED_LIMIT_UM:
+                raise ModelFileError(f"elongation {state.elongation_um:g} um is not a spindle's")
             refs = saved.get("input_references")
-            refs = ({k: float(v) for k, v in refs.items()} if isinstance(refs, dict) else None)
-        except (ModelError, ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
+            refs = ({str(k): saved_numbers("input_references", [v], 1e9)[0] for k, v in refs.items()}
+                    if isinstance(refs, dict) else None)
+        except (ModelError, ValueError, TypeError, KeyError, AttributeError, RecursionError,
+                OverflowError) as err:
             stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
             moved = quarantine(self.state_path, stamp)
             self._startup_alarms |= Alarm.STATE_CORRUPT
@@ -206,6 +221,26 @@ class SpindleRuntime:
         event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
               self.cfg.name, downtime, self.state.elongation_um, downtime_s=round(downtime, 3),
               elongation_um=self.state.elongation_um, offset_um=held)
+
+    def _carry_over(self, old: SpindleRuntime) -> None:
+        """Continue ``old`` (same model) after a reload: its thermal and input state, the offset
+        the controller holds, the timing of the last cycle and the state-save bookkeeping. The
+        new link reads the offset back first."""
+        self.state, self.input_state, self.refs = old.state, old.input_state, old.refs
+        self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
+        self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
+        self._last_t, self._first_t = old._last_t, old._first_t
+        self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
+        self._skew_s = old._skew_s
+        for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
+                     "_save_error", "_stale", "_state_alarms", "_journal_error"):
+            setattr(self, name, getattr(old, name))
+
+    def take_journal(self, old: SpindleRuntime) -> None:
+        """Write on through ``old``'s journal: the rows it still holds in memory are not lost."""
+        if old.journal.directory == self.journal.directory:
+            self.journal.close()  # never opened: nothing written yet
+            self.journal, old.journal = old.journal, self.journal
 
     def save_state(self, now: float | None = None) -> bool:
         """Save the state; a failure is an alarm and a retry with back-off, never an exception."""
@@ -541,6 +576,12 @@ class SpindleRuntime:
         finally:
             try:
                 self.journal.close(self.clock())
+                if self.journal.pending_rows or self.journal.dropped_rows:
+                    event("journal_failed", self.cfg.name, "%s: stopping with %d journal row(s) not "
+                          "written (%s)", self.cfg.name, self.journal.pending_rows
+                          + self.journal.dropped_rows, self.journal.error, level=logging.ERROR,
+                          lost_rows=self.journal.pending_rows + self.journal.dropped_rows,
+                          error=self.journal.error)
             finally:
                 try:
                     self.adapter.close()

@@ -1,0 +1,1 @@
+"""Fault-injection suite: the compensation service under real faults, real processes."""
