@@ -1,0 +1,318 @@
+"""The identification prototype (calibration.ident, issue 16): cycles, the exact filter bank,
+free-run prediction that does not depend on where a log starts, the state-space forms, the
+paper's OLS for the comparison, and finite output for any finite input."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from calibration.ident import (
+    BASELINE_TAUS_S,
+    CYCLE_RULE,
+    TauGrid,
+    auto_grid,
+    describe_cycles,
+    filter_bank,
+    fit_paper_ols,
+    fit_ridge_cv,
+    hac_stderr,
+    paper_ols_cv,
+    split_cycles,
+)
+from compensator.errors import CalibrationError, NonFiniteInputError
+
+H = 3600.0
+
+
+def profile(segments: list[tuple[float, float]], dt_s: float = 60.0, t0: float = 0.0):
+    """(time_s, speed_rpm) of held speeds: ``segments`` of (duration_s, rpm)."""
+    t, n, now = [t0], [0.0], t0
+    for dur, rpm in segments:
+        k = round(dur / dt_s)
+        t += [now + dt_s * (i + 1) for i in range(k)]
+        n += [rpm] * k
+        now += dt_s * k
+    return np.array(t), np.array(n)
+
+
+# -- cycles ---------------------------------------------------------------------------------
+
+
+def test_split_cycles_synthetic_profile():
+    t, n = profile([
+        (1800, 0),                        # leading rest: joins the first cycle
+        (3600, 6000), (300, 0), (3600, 9000),  # a 5 min pause inside a heat-up: bridged
+        (3 * H, 0),
+        (2 * H, 12000),
+        (H, 0), (300, 3000), (2 * H, 0),  # a 5 min blip during the cool-down: ignored
+        (2 * H, 8000),                    # the log ends running: a cycle without cool-down
+    ])
+    cycles = split_cycles(t, n)
+    starts = [a for a, _ in cycles]
+    # the second and third cycles start at the first sample of their heat-ups
+    assert len(cycles) == 3
+    assert starts[0] == 0 and cycles[-1][1] == t.size
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(cycles))
+    assert n[starts[1]] == 12000 and n[starts[1] - 1] == 0
+    assert n[starts[2]] == 8000 and n[starts[2] - 1] == 0
+    assert t[starts[1]] == pytest.approx(1800 + 3600 + 300 + 3600 + 3 * H + 60)
+    lines = describe_cycles(t, n, cycles)
+    assert len(lines) == 3 and "up to 9000 rpm" in lines[0]
+    assert "heat-up and the cool-down" in CYCLE_RULE
+
+
+def test_split_cycles_edge_cases():
+    t, n = profile([(4 * H, 0)])
+    assert split_cycles(t, n) == [(0, t.size)]  # never runs: one cycle
+    assert split_cycles([], []) == []
+    t, n = profile([(H, 5000), (H, 0), (H, -5000), (H, 0)])  # reverse rotation runs too
+    assert len(split_cycles(t, n)) == 2
+    # a longer pause is a rest when the threshold says so
+    t, n = profile([(H, 5000), (900, 0), (H, 5000), (H, 0)])
+    assert len(split_cycles(t, n)) == 1
+    assert len(split_cycles(t, n, min_rest_s=600)) == 2
+    with pytest.raises(NonFiniteInputError):
+        split_cycles([0, 1, 2], [0, math.nan, 0])
+    with pytest.raises(CalibrationError):
+        split_cycles([0, 2, 1], [0, 1, 0])
+
+
+# -- the filter bank -----------------------------------------------------------------------------
+
+
+def reference_filter(t: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
+    """The zero-order-hold recursion, one step at a time."""
+    y = np.empty_like(u)
+    y[0] = u[0]
+    for k in range(1, u.size):
+        a = math.exp(-(t[k] - t[k - 1]) / tau)
+        y[k] = a * y[k - 1] + (1 - a) * u[k]
+    return y
+
+
+def test_filter_bank_exact_at_mixed_dt():
+    rng = np.random.default_rng(1)
+    dt = rng.choice([0.1, 1.0, 15.0, 60.0, 600.0], size=3000)
+    t = np.concatenate([[100.0], 100.0 + np.cumsum(dt)])
+    # a step: u0 up to and including sample ks, u1 held over every later interval
+    ks = 1200
+    u = np.where(np.arange(t.size) <= ks, 2.0, 7.0)
+    taus = (0.0, 30.0, 900.0, 4 * H, 30 * 86400.0)
+    y = filter_bank(t, u, taus)
+    elapsed = np.clip(t - t[ks], 0, None)
+    for j, tau in enumerate(taus):
+        exact = u.copy() if tau == 0 else np.where(
+            np.arange(t.size) <= ks, 2.0, 7.0 + (2.0 - 7.0) * np.exp(-elapsed / tau))
+        np.testing.assert_allclose(y[:, j], exact, rtol=0, atol=1e-11)
+    # an arbitrary input at mixed steps: the recursion itself
+    v = rng.normal(size=t.size).cumsum()
+    got = filter_bank(t, v, (45.0, 2 * H))
+    for j, tau in enumerate((45.0, 2 * H)):
+        np.testing.assert_allclose(got[:, j], reference_filter(t, v, tau), rtol=0, atol=1e-10)
+
+
+def test_filter_bank_over_a_ten_hour_gap():
+    t = np.concatenate([np.arange(0, 1800, 15.0), 1785 + 10 * H + np.arange(1, 121) * 15.0])
+    k = int(np.flatnonzero(np.diff(t) > H)[0]) + 1  # first sample after the gap
+    u = np.where(np.arange(t.size) < k, 0.0, 5.0)  # 5 held over the gap and after it
+    taus = (60.0, H, 30 * 86400.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow, no underflow warning, no NaN
+        y = filter_bank(t, u, taus)
+    elapsed = t[k:] - t[k - 1]
+    for j, tau in enumerate(taus):
+        exact = 5.0 * -np.expm1(-elapsed / tau)  # from 0 toward 5, starting at the gap's start
+        np.testing.assert_allclose(y[k:, j], exact, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(y[:k, j], 0.0, atol=1e-12)
+    assert y[k, 0] == 5.0  # 10 h is 600 time constants of 60 s: fully settled
+    # a gap of a century in one step
+    y = filter_bank([0.0, 3.2e9, 3.2e9 + 15], [1.0, 2.0, 2.0], (15.0, 86400.0))
+    assert np.all(np.isfinite(y)) and y[1, 0] == 2.0
+
+
+def test_filter_bank_zero_dt_and_constant_input():
+    y = filter_bank([0.0, 0.0, 10.0], [1.0, 9.0, 9.0], (10.0,))
+    assert y[1, 0] == 1.0  # no time passed: no change
+    assert y[2, 0] == pytest.approx(9 + (1 - 9) * math.exp(-1))
+    np.testing.assert_array_equal(filter_bank([0, 1, 2], [3.0, 3.0, 3.0], (0.0, 5.0)), 3.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    u=st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=1, max_size=40),
+    dts=st.lists(st.floats(0.0, 1e9, allow_nan=False), min_size=39, max_size=39),
+    tau=st.floats(1e-3, 1e7),
+)
+def test_filter_bank_finite_and_bounded_for_any_finite_input(u, dts, tau):
+    u = np.array(u)
+    t = np.concatenate([[0.0], np.cumsum(dts)])[: u.size]
+    y = filter_bank(t, u, (0.0, tau))
+    assert np.all(np.isfinite(y))
+    assert np.all(y >= u.min()) and np.all(y <= u.max())
+
+
+# -- the ridge identification ---------------------------------------------------------------------
+
+
+def synthetic(seed: int = 0, dt_s: float = 60.0):
+    """Four cycles of a plant that the bank can represent exactly, plus an ambient input."""
+    t, n = profile([(H, 6000), (H, 9000), (2.5 * H, 0), (2 * H, 12000), (2.5 * H, 0),
+                    (H, 3000), (H, 15000), (2.5 * H, 0), (H, 9000), (H, 4000), (2.5 * H, 0)], dt_s)
+    rng = np.random.default_rng(seed)
+    amb = 21 + 1.5 * np.sin(2 * np.pi * t / (9 * H)) + 0.05 * rng.normal(size=t.size)
+    k = n / 1000
+    bank = lambda u, tau: filter_bank(t, u, (tau,))[:, 0]
+    y = (0.4 + 0.08 * k + 0.9 * bank(k, 600.0) + 0.05 * bank(k * k, 1800.0)
+         + 1.2 * bank(amb - 21.0, 1800.0) + 0.3 * (amb - 21.0))
+    return t, n, {"amb_c": amb}, y + 0.02 * rng.normal(size=t.size)
+
+
+GRID = TauGrid((0.0, 600.0, 1800.0), (0.0, 1800.0))
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    t, n, inputs, y = synthetic()
+    return fit_ridge_cv(t, n, y, inputs, grids=[GRID], nested=True), (t, n, inputs, y)
+
+
+def test_ridge_recovers_a_representable_plant(fitted):
+    res, (t, n, inputs, y) = fitted
+    assert len(res.cycles) == 4 and len(res.folds) == 4
+    assert res.cv_rms_um < 0.05 and res.nested_rms_um < 0.05
+    assert all(f.rms_um <= f.max_abs_um for f in res.folds)
+    assert res.accepted and not res.refusals and "accepted" in res.describe()[0]
+    assert res.baseline["cv_rms_um"] > 3 * res.cv_rms_um
+    assert res.references["amb_c"] == pytest.approx(float(np.mean(inputs["amb_c"])))
+    pred = res.predict(t, n, inputs)
+    assert float(np.sqrt(np.mean((pred - y) ** 2))) < 0.04
+    se = hac_stderr(res, t, n, y, inputs)
+    assert se.shape == res.gains.shape and np.all(np.isfinite(se))
+
+
+def test_hac_stderr_is_statsmodels_newey_west_at_alpha_zero():
+    import statsmodels.api as sm
+
+    t, n, inputs, y = synthetic()
+    res = fit_ridge_cv(t, n, y, inputs, grids=[GRID], alphas=(0.0,))
+    x = np.column_stack([filter_bank(t, n / 1000, GRID.speed_taus_s),
+                         filter_bank(t, (n / 1000) ** 2, GRID.speed_taus_s),
+                         filter_bank(t, inputs["amb_c"] - res.references["amb_c"], GRID.input_taus_s)])
+    ols = sm.OLS(y, sm.add_constant(x)).fit(cov_type="HAC",
+                                           cov_kwds={"maxlags": 30, "use_correction": False})
+    np.testing.assert_allclose(res.gains, ols.params[1:], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(hac_stderr(res, t, n, y, inputs, maxlags=30), ols.bse[1:], rtol=1e-6)
+
+
+def test_predict_is_a_free_run_of_the_state_space(fitted):
+    res, (t, n, inputs, _) = fitted
+    ss = res.state_space()
+    assert ss.taus_s == (600.0, 1800.0)  # one state per distinct time constant
+    tt, nn = t[::7], n[::7]  # irregular steps
+    tt = tt + np.linspace(0, 50, tt.size)
+    uu = {k: v[::7] for k, v in inputs.items()}
+    pred = res.predict(tt, nn, uu)
+    first = {k: float(v[0]) for k, v in uu.items()}
+    x = ss.equilibrium(nn[0], first)
+    out = [ss.output_um(x, nn[0], first)]
+    for k in range(1, tt.size):
+        now = {key: float(v[k]) for key, v in uu.items()}
+        x = ss.step(x, nn[k], tt[k] - tt[k - 1], now)
+        out.append(ss.output_um(x, nn[k], now))
+    np.testing.assert_allclose(pred, out, rtol=0, atol=1e-9)
+
+
+def test_suffix_replay_invariance_after_settling(fitted):
+    res, (t, n, inputs, _) = fitted
+    full = res.predict(t, n, inputs)
+    settle = res.settling_time_s(1e-8)
+    assert settle == pytest.approx(1800 * math.log(1e8))
+    for m in (37, 200, 400):  # start the log later: hot, cold, in a transient
+        part = res.predict(t[m:], n[m:], {k: v[m:] for k, v in inputs.items()})
+        late = t[m:] - t[m] >= settle
+        assert late.any()
+        np.testing.assert_allclose(part[late], full[m:][late], rtol=0, atol=1e-6)
+    # at the start itself it differs: the state starts at equilibrium with the first sample
+    assert abs(res.predict(t[400:], n[400:], {"amb_c": inputs["amb_c"][400:]})[0] - full[400]) > 1e-3
+
+
+def test_speed_only_maps_onto_the_runtime_model():
+    t, n, _, y = synthetic(1)
+    res = fit_ridge_cv(t, n, y, grids=[TauGrid((0.0, 600.0, 1800.0))])
+    model, state, offset_um = res.to_thermal_model(60.0)
+    assert model.order == 2 and model.elastic_um != (0.0, 0.0)
+    sim = model.simulate(n, t, state).elongation_um + offset_um
+    np.testing.assert_allclose(sim, res.predict(t, n), rtol=0, atol=1e-9)
+    assert res.steady_range_um() < 10 * res.max_measured_um
+
+
+def test_sanity_checks_and_refusals():
+    t, n, _, y = synthetic(2)
+    with pytest.raises(CalibrationError, match="outside"):
+        fit_ridge_cv(t, n, y, grids=[TauGrid((0.0, 5.0))])  # below the sample period
+    with pytest.raises(CalibrationError, match="outside"):
+        fit_ridge_cv(t, n, y, grids=[TauGrid((0.0, 30 * 86400.0))])  # beyond days
+    with pytest.raises(CalibrationError, match="one cycle"):
+        fit_ridge_cv(t, n, y, cycles=[(0, t.size)])
+    # a plant with a 1 h lag and a candidate with static terms only: worse than the exponential
+    # baseline (one lag), so it is refused
+    k = n / 1000
+    lagged = 2.0 + filter_bank(t, 0.8 * k + 0.05 * k * k, (BASELINE_TAUS_S[8],))[:, 0]
+    res = fit_ridge_cv(t, n, lagged, grids=[TauGrid((0.0,))])
+    assert res.baseline["cv_rms_um"] < 1e-6 < res.cv_rms_um
+    assert not res.accepted and "exponential baseline" in res.refusals[0]
+    assert "REFUSED" in res.describe()[0]
+    grid = auto_grid(t, n, split_cycles(t, n), True)
+    assert grid.speed_taus_s[0] == 0 and all(60.0 <= x <= 10 * 86400 for x in grid.speed_taus_s[1:])
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    speed=st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=2, max_size=30),
+    amb=st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=30, max_size=30),
+    dts=st.lists(st.floats(0.0, 1e8, allow_nan=False), min_size=29, max_size=29),
+)
+def test_predict_finite_for_any_finite_input(fitted, speed, amb, dts):
+    res, _ = fitted
+    k = len(speed)
+    t = np.concatenate([[0.0], np.cumsum(dts)])[:k]
+    pred = res.predict(t, speed, {"amb_c": amb[:k]})
+    assert pred.shape == (k,) and np.all(np.isfinite(pred))
+
+
+def test_predict_refuses_nan_and_missing_inputs(fitted):
+    res, (t, n, inputs, _) = fitted
+    with pytest.raises(NonFiniteInputError):
+        res.predict(t[:3], [0.0, math.nan, 0.0], {"amb_c": inputs["amb_c"][:3]})
+    with pytest.raises(CalibrationError, match="amb_c"):
+        res.predict(t[:3], n[:3])
+
+
+# -- the paper's OLS, for the comparison --------------------------------------------------------
+
+
+def test_paper_ols_recovers_its_own_form_and_runs_free():
+    t, n = profile([(H, 3000), (H, 6000), (H, 12000), (2 * H, 0),
+                    (H, 15000), (H, 9000), (H, 4000), (2 * H, 0)], 60.0)
+    k = n / 1000
+    a, b = 0.97, (0.01, 0.02, 0.003, 0.0001)
+    s = np.empty(t.size)
+    s[0] = 0.0
+    for i in range(1, t.size):
+        s[i] = a * s[i - 1] + b[0] + b[1] * k[i] + b[2] * k[i] ** 2 + b[3] * k[i] ** 3
+    fit = fit_paper_ols(t, n, s)
+    assert fit.a == pytest.approx(a, abs=1e-9) and fit.one_step_r2 > 0.9999
+    np.testing.assert_allclose(fit.b_um, b, atol=1e-8)
+    np.testing.assert_allclose(fit.predict(t, n, 0.0), s, atol=1e-6)
+    # the same model stepped at irregular times: its exact zero-order-hold form
+    tt = t + np.concatenate([[0.0], np.full(t.size - 1, 1e-3)])
+    assert np.max(np.abs(fit.predict(tt, n, 0.0) - s)) < 1e-3
+    cv = paper_ols_cv(t, n, s, split_cycles(t, n))
+    assert cv["cv_rms_um"] < 1e-5 and len(cv["folds"]) == 2
