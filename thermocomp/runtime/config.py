@@ -6,7 +6,6 @@ See ``examples/machine.toml`` for an annotated example.
 from __future__ import annotations
 
 import os
-import re
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -15,6 +14,7 @@ from urllib.parse import urlsplit
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from cnc_adapters import check_adapter
+from cnc_adapters.base import short
 from compensator.errors import ConfigError, clip
 from compensator.shaping import ShaperConfig
 
@@ -109,15 +109,6 @@ class RuntimeConfig(BaseModel):
         return self.journal_dir or self.state_dir / "journal"
 
 
-_USERINFO = re.compile(r"(//[^/:@\s'\"]*):[^@/\s'\"]*@")
-
-
-def _short(value: Any, limit: int = 60) -> str:
-    """A value for an error message: short, and never a password carried in a URL."""
-    text = _USERINFO.sub(r"\1:***@", repr(value))
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     """Read and validate; one-line :class:`ConfigError` on any problem."""
     p = Path(path)
@@ -144,7 +135,7 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
             msg, given = str(e.get("ctx", {}).get("error", e["msg"])), ""
         else:
             msg = e["msg"]
-            given = "" if e["type"] == "missing" else f" (given {_short(e.get('input'))})"
+            given = "" if e["type"] == "missing" else f" (given {short(e.get('input'))})"
         raise ConfigError(clip(f"{p}: {where}: {msg}{given}{more}", 400)) from err
     names = [s.name for s in cfg.spindle]
     if len(set(names)) != len(names):

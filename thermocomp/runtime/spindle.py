@@ -89,7 +89,7 @@ _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
 """Failures that mean the controller cannot be reached: refused, lost, or not answering."""
 
 
-def mismatch_cause(held_um: float, expected_um: float, tolerance_um: float) -> str:
+def mismatch_cause(held_um: float, tolerance_um: float) -> str:
     """Who probably changed the controller's offset."""
     if abs(held_um) <= tolerance_um:
         return "reset to zero (controller restart, NC reset or power cycle)"
@@ -370,7 +370,7 @@ class SpindleRuntime:
         self.counters["mismatches"] += 1
         self._mismatch_streak += 1
         faults = self.cfg.faults
-        cause = mismatch_cause(held_um, expected, faults.offset_tolerance_um)
+        cause = mismatch_cause(held_um, faults.offset_tolerance_um)
         if self._mismatch_streak <= faults.max_mismatches:  # then write_backoff speaks for it
             event("offset_mismatch", self.cfg.name, "%s: OFFSET_MISMATCH (%s): the controller "
                   "holds %.3f um, expected %.3f um; probably %s; ramping from there", self.cfg.name,
