@@ -48,8 +48,10 @@ from typing import Any
 
 import numpy as np
 
-from compensator.errors import CalibrationError, NonFiniteInputError
+from compensator.errors import CalibrationError, ModelError, NonFiniteInputError
+from compensator.filters import filter_bank, series, times
 from compensator.model import ModelState, ThermalModel, ThermalStateCoefficients
+from compensator.statespace import GAIN_BOUND, MAX_TAU_S, SPEED_CLIP, InputChannel, StateSpaceModel
 from compensator.units import SPEED_SCALE_RPM
 
 # -- constants ------------------------------------------------------------------------------
@@ -71,19 +73,9 @@ CYCLE_RULE = (
     "that ends at its sample."
 )
 
-MAX_TAU_S = 10 * 86400.0
-"""Longest time constant a grid may hold: ten days."""
-GAIN_BOUND = 10.0
-"""Steady elongation implied by the gains: at most this many times the largest measured."""
-SPEED_CLIP = 2.0
-"""``predict`` clips |speed| to this many times the calibrated maximum (a finite result for any
-finite input; above the range the runtime flags an extrapolation anyway)."""
 PARSIMONY = 0.02
 """A simpler grid (or a larger α) wins when its CV RMS is within 2 % of the best."""
 
-_SPAN = 50.0  # largest exponent inside one closed-form block: exp(50) ~ 5e21, far from overflow
-_BLOCK = 8192  # samples per closed-form block: keeps the cumulative sums precise
-_LD_MAX = 1e4  # dt/tau beyond this is a full reset (exp(-1e4) == 0); keeps sums finite
 
 H = 3600.0
 
@@ -167,33 +159,21 @@ def candidate_grids(base: TauGrid) -> list[TauGrid]:
 
 
 def _series(name: str, values: Any, size: int | None = None) -> np.ndarray:
-    a = np.asarray(values, dtype=float)
-    if a.ndim != 1:
-        raise CalibrationError(f"{name} must be one-dimensional")
-    if size is not None and a.size != size:
-        raise CalibrationError(f"{name} has {a.size} values for {size} time stamps")
-    if not np.isfinite(a).all():
-        i = int(np.flatnonzero(~np.isfinite(a))[0])
-        raise NonFiniteInputError(f"{name} at sample {i} is {a[i]}")
-    return a
+    try:
+        return series(name, values, size)
+    except NonFiniteInputError:
+        raise
+    except ModelError as err:
+        raise CalibrationError(str(err)) from err
 
 
 def _times(time_s: Any) -> np.ndarray:
-    t = _series("time_s", time_s)
-    if t.size > 1:
-        d = np.diff(t)
-        if not np.isfinite(d).all():
-            raise NonFiniteInputError("time_s spans more than a float can hold")
-        if (d < 0).any():
-            raise CalibrationError(f"time goes backwards at sample {int(np.flatnonzero(d < 0)[0]) + 1}")
-    return t
-
-
-def _check_taus(taus_s: Sequence[float]) -> tuple[float, ...]:
-    out = tuple(float(t) for t in taus_s)
-    if not all(math.isfinite(t) and t >= 0 for t in out):
-        raise CalibrationError(f"time constants must be finite and >= 0, got {out}")
-    return out
+    try:
+        return times(time_s)
+    except NonFiniteInputError:
+        raise
+    except ModelError as err:
+        raise CalibrationError(str(err)) from err
 
 
 # -- cycles ---------------------------------------------------------------------------------
@@ -256,76 +236,6 @@ def describe_cycles(time_s: Any, speed_rpm: Any, cycles: Sequence[tuple[int, int
 # -- the filter bank -------------------------------------------------------------------------
 
 
-def _lowpass(dt_s: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
-    """y_k = a_k*y_{k-1} + (1 - a_k)*w_k, a_k = exp(-dt_k/tau), y_0 = w_0; |w| <= 1.
-
-    Closed form per block, ``y_k = exp(-R_k) * (y_s + sum_j b_j*w_j*exp(R_j))`` with R the
-    cumulative dt/tau since the block's first sample s, itself reached by one direct step: so one
-    step as long as a gap of hours is exact, and no exponent exceeds ``_SPAN``.
-    """
-    n = w.size
-    y = np.empty(n)
-    y[0] = w[0]
-    if n == 1:
-        return y
-    with np.errstate(over="ignore"):  # a tiny tau: dt/tau is inf, capped like any full reset
-        ld = np.minimum(dt_s / tau_s, _LD_MAX)
-    a = np.exp(-ld)
-    b = -np.expm1(-ld)
-    big = np.concatenate([[0.0], np.cumsum(ld)])  # only to find block ends
-    s = 1
-    while s < n:
-        y[s] = a[s - 1] * y[s - 1] + b[s - 1] * w[s]
-        e = int(np.searchsorted(big, big[s] + _SPAN, side="right")) - 1
-        e = min(e, s + _BLOCK, n - 1)
-        if e > s:
-            rel = np.cumsum(ld[s:e])  # steps s+1..e, from sample s
-            if rel[-1] > _SPAN:  # rounding in the global sum: cut where the local one says
-                m = max(1, int(np.searchsorted(rel, _SPAN, side="right")))
-                rel, e = rel[:m], s + m
-            g = np.exp(rel)
-            c = np.cumsum(b[s:e] * w[s + 1:e + 1] * g)
-            c += y[s]
-            c /= g
-            y[s + 1:e + 1] = c
-        s = e + 1
-    return y
-
-
-def filter_bank(time_s: Any, u: Any, taus_s: Sequence[float]) -> np.ndarray:
-    """``u`` through first-order filters, one column per time constant: shape (len(u), len(taus)).
-
-    Exact zero-order hold at any Δt: ``u[k]`` is held over ``(time_s[k-1], time_s[k]]`` and
-    ``y_k = exp(-dt_k/tau)*y_{k-1} + (1 - exp(-dt_k/tau))*u_k``; each filter starts at
-    equilibrium with the first input (``y_0 = u_0``); tau = 0 is the input itself. A gap of hours
-    is one exact step (no overflow: exponents stay below 50). Every output lies within the range
-    of ``u`` (it is a convex combination of its values), which the result is clipped to, so any
-    finite input gives a finite output.
-    """
-    t = _times(time_s)
-    x = _series("u", u, t.size)
-    taus = _check_taus(taus_s)
-    out = np.empty((x.size, len(taus)))
-    if x.size == 0:
-        return out
-    lo, hi = float(x.min()), float(x.max())
-    centre = lo / 2 + hi / 2
-    half = hi / 2 - lo / 2
-    dt = np.diff(t)
-    w = (x - centre) / half if half > 0 else None
-    for j, tau in enumerate(taus):
-        if tau == 0 or w is None:
-            out[:, j] = x
-            continue
-        y = np.clip(_lowpass(dt, w, tau), -1.0, 1.0)
-        with np.errstate(over="ignore"):  # only at the very ends of the float range
-            y *= half
-            y += centre
-        np.clip(y, lo, hi, out=y)
-        out[:, j] = y
-    return out
-
-
 # -- design ------------------------------------------------------------------------------------
 
 
@@ -336,17 +246,22 @@ def speed_terms(speed_rpm: np.ndarray) -> dict[str, np.ndarray]:
 
 
 class _Bank:
-    """Filtered columns of one log, computed once per (drive, tau) and reused across grids."""
+    """Filtered columns of one log (or of several files, one segment each: every filter restarts
+    at equilibrium at a segment's start), computed once per (drive, tau) and reused."""
 
-    def __init__(self, time_s: np.ndarray, drives: Mapping[str, np.ndarray]):
+    def __init__(self, time_s: np.ndarray, drives: Mapping[str, np.ndarray],
+                 segments: Sequence[tuple[int, int]] | None = None):
         self.time_s = time_s
         self.drives = drives
+        self.segments = tuple(segments) if segments else ((0, int(time_s.size)),)
         self.cache: dict[tuple[str, float], np.ndarray] = {}
 
     def column(self, drive: str, tau: float) -> np.ndarray:
         key = (drive, tau)
         if key not in self.cache:
-            self.cache[key] = filter_bank(self.time_s, self.drives[drive], (tau,))[:, 0]
+            u = self.drives[drive]
+            self.cache[key] = np.concatenate([filter_bank(self.time_s[a:b], u[a:b], (tau,))[:, 0]
+                                              for a, b in self.segments])
         return self.cache[key]
 
     def design(self, grid: TauGrid, names: Sequence[str]) -> np.ndarray:
@@ -522,6 +437,8 @@ class IdentResult:
     refusals: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
     fit_cpu_s: float = 0.0
+    fitted_dt_s: float = 0.0
+    segments: tuple[tuple[int, int], ...] = ()
 
     # -- prediction ---------------------------------------------------------------------
 
@@ -537,14 +454,15 @@ class IdentResult:
             drives[f"in:{nm}"] = u - self.references[nm]
         return drives
 
-    def predict(self, time_s: Any, speed_rpm: Any, inputs: Mapping[str, Any] | None = None) -> np.ndarray:
+    def predict(self, time_s: Any, speed_rpm: Any, inputs: Mapping[str, Any] | None = None,
+                segments: Sequence[tuple[int, int]] | None = None) -> np.ndarray:
         """Free-run elongation [um] over a log: no measured elongation is used. Every state starts
         at equilibrium with the first sample; inputs are deviations from the stored references,
         so after :meth:`settling_time_s` the prediction does not depend on where the log starts.
         |speed| is clipped to ``SPEED_CLIP`` times the calibrated maximum and inputs to their
         valid ranges, so any finite input gives a finite output."""
         t = _times(time_s)
-        x = _Bank(t, self._drives(t, speed_rpm, inputs)).design(self.grid, self.input_names)
+        x = _Bank(t, self._drives(t, speed_rpm, inputs), segments).design(self.grid, self.input_names)
         return self.intercept_um + x @ self.gains
 
     @property
@@ -591,6 +509,26 @@ class IdentResult:
                              states=states, elastic_um=(float(ss.feedthrough[0]), float(ss.feedthrough[1])),
                              form="ident-ridge", **fields)
         return model, ModelState((0.0,) * len(states), 0.0), self.intercept_um
+
+    def to_model(self, form: str, units: Mapping[str, str] | None = None,
+                 fallback: Any = None, fit: Mapping[str, Any] | None = None,
+                 **fields: Any) -> StateSpaceModel:
+        """The runtime's :class:`~compensator.statespace.StateSpaceModel`: exact (the same
+        states, gains, references and ranges), so it free-runs a log to :meth:`predict`."""
+        ss = self.state_space()
+        inputs = []
+        for nm in self.input_names:
+            lo, hi = self.valid_ranges[nm]
+            span = (hi - lo) / 3
+            inputs.append(InputChannel(name=nm, unit=(units or {}).get(nm, "1"),
+                                       reference=float(self.references[nm]),
+                                       trained_range=(lo + span, hi - span), valid_range=(lo, hi)))
+        return StateSpaceModel(
+            form=form, fitted_dt_s=self.fitted_dt_s, speed_range_rpm=(0.0, self.speed_max_rpm),
+            taus_s=ss.taus_s, drive_um=tuple(tuple(float(v) for v in row) for row in ss.drive),
+            feedthrough_um=tuple(float(v) for v in ss.feedthrough), offset_um=float(ss.offset_um),
+            inputs=tuple(inputs), max_measured_um=max(self.max_measured_um, 1e-3),
+            fallback=fallback, fit=dict(fit or {}), **fields)
 
     # -- sanity -----------------------------------------------------------------------------
 
@@ -646,14 +584,16 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
                  cycles: Sequence[tuple[int, int]] | None = None,
                  grids: Sequence[TauGrid] | None = None,
                  alphas: Sequence[float] = DEFAULT_ALPHAS,
-                 nested: bool = False, rule: str = "parsimony") -> IdentResult:
+                 nested: bool = False, rule: str = "parsimony",
+                 segments: Sequence[tuple[int, int]] | None = None) -> IdentResult:
     """Joint ridge identification, α and grid chosen by leave-one-cycle-out free-run RMS.
 
     ``inputs`` maps a name to a column of the log (temperatures...); their references are the
     log's means. ``cycles`` defaults to :func:`split_cycles`; two or more are needed. ``grids``
     are candidates ordered from simple to rich (default: the one :func:`auto_grid`;
     :func:`candidate_grids` for a search). With ``nested`` every cycle is also predicted by a
-    model whose α and grid were chosen without it (the honest figure).
+    model whose α and grid were chosen without it (the honest figure). ``segments`` are the
+    files a log was joined from: the filters restart at each (default: one file).
     """
     cpu0 = time.process_time()
     t = _times(time_s)
@@ -668,6 +608,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
             or any(a[1] != b[0] for a, b in itertools.pairwise(cyc))):
         raise CalibrationError("cycles must be non-empty and cover the log in order")
     dt_s = float(np.median(np.diff(t)))
+    segs = tuple(segments) if segments else ((0, int(t.size)),)
     cand = list(grids) if grids is not None else [auto_grid(t, sp, cyc, bool(names))]
     for g in cand:
         _validate_grid(g, dt_s)
@@ -683,7 +624,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
         span = hi - lo
         ranges[nm] = (lo - span, hi + span)
         drives[f"in:{nm}"] = u - refs[nm]
-    bank = _Bank(t, drives)
+    bank = _Bank(t, drives, segments)
     configs = [_Config(g, tuple(alphas), names) for g in cand]
     base_cfgs = [_Config(TauGrid((tau,)), (0.0,), ()) for tau in BASELINE_TAUS_S]
     everything = np.ones(t.size, bool)
@@ -727,7 +668,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
         speed_max_rpm=float(np.abs(sp).max()), valid_ranges=ranges,
         max_measured_um=float(np.abs(y).max()), baseline=baseline,
         nested_folds=nested_folds, nested_rms_um=nested_rms, nested_max_abs_um=nested_max,
-        selection=tuple(table),
+        selection=tuple(table), fitted_dt_s=dt_s, segments=segs,
     )
     refusals, notes = [], []
     if cv_rms > brms:
@@ -764,7 +705,8 @@ def hac_covariance(result: IdentResult, time_s: Any, speed_rpm: Any, elongation_
 
     t = _times(time_s)
     y = _series("elongation_um", elongation_um, t.size)
-    x = _Bank(t, result._drives(t, speed_rpm, inputs)).design(result.grid, result.input_names)
+    segs = result.segments if result.segments and result.segments[-1][1] == t.size else None
+    x = _Bank(t, result._drives(t, speed_rpm, inputs), segs).design(result.grid, result.input_names)
     e = y - (result.intercept_um + x @ result.gains)
     mu, sd = x.mean(axis=0), x.std(axis=0)
     keep = sd > 1e-12 * np.maximum(np.abs(mu), 1.0)

@@ -101,9 +101,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     the machine would have held (``applied_*``) beside the model's.
     """
     measured = log.elongation_um
-    if initial_um is None:
-        initial_um = float(measured[0]) if measured is not None else 0.0
-    if not math.isfinite(initial_um):
+    if initial_um is None and measured is not None:
+        initial_um = float(measured[0])
+    if initial_um is not None and not math.isfinite(initial_um):
         raise NonFiniteInputError(f"initial elongation is {initial_um}")
     missing = [n for n in model.input_names if n not in log.extras]
     if missing:

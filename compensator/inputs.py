@@ -140,23 +140,24 @@ class AugmentedModel(BaseModel):
 
     def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
                     inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float = 0.0) -> np.ndarray:
-        """Free-run elongation; the speed part starts from ``initial_um`` less the input terms'
+                    initial_um: float | None = None) -> np.ndarray:
+        """Free-run elongation; the speed part starts from ``initial_um`` (None: 0) less the input terms'
         share at the first sample (each input term starts at its equilibrium)."""
         response = self.input_response(time_s, inputs or {})
-        state = self.speed_model.state_at(initial_um - float(response[0]), float(np.abs(speed_rpm[0])))
+        state = self.speed_model.state_at((initial_um or 0.0) - float(response[0]), float(np.abs(speed_rpm[0])))
         base = self.speed_model.simulate(np.asarray(speed_rpm, float), np.asarray(time_s, float),
                                          state).elongation_um
         return base + response
 
     # -- the runtime's step ---------------------------------------------------------
 
-    def start(self, elongation_um: float, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
               references: Mapping[str, float] | None = None) -> AugmentedState:
         """Input terms at their equilibrium for ``inputs``, the speed part at ``elongation_um`` less
         their share. Without ``references`` these inputs are the cold start's (:meth:`references`)."""
         if inputs is None:
             raise ModelError(f"the model needs inputs {', '.join(self.input_names)} to start")
+        elongation_um = 0.0 if elongation_um is None else elongation_um
         refs = dict(references) if references is not None else self.references(inputs)
         x = tuple(t.gain_um_per_unit * (float(inputs[t.name]) - refs[t.name]) for t in self.inputs)
         speed = self.speed_model.state_at(elongation_um - float(sum(x)), speed_rpm)

@@ -279,14 +279,14 @@ class ThermalModel(BaseModel):
     def check_inputs(self, values: Mapping[str, float]) -> str | None:
         return None
 
-    def start(self, elongation_um: float, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
               references: Mapping[str, float] | None = None) -> ModelState:
-        return self.state_at(elongation_um, speed_rpm)
+        return self.state_at(0.0 if elongation_um is None else elongation_um, speed_rpm)
 
     def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
                     inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float = 0.0) -> np.ndarray:
-        state = self.state_at(initial_um, float(np.asarray(speed_rpm, dtype=float)[0]))
+                    initial_um: float | None = None) -> np.ndarray:
+        state = self.state_at(0.0 if initial_um is None else initial_um, float(np.asarray(speed_rpm, dtype=float)[0]))
         return self.simulate(speed_rpm, time_s, state).elongation_um
 
     def state_dict(self, state: ModelState) -> dict[str, Any]:

@@ -54,10 +54,11 @@ class Predictor(Protocol):
         """Why these input values cannot be used (missing, non-finite, out of range), or None."""
         ...
 
-    def start(self, elongation_um: float, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
               references: Mapping[str, float] | None = None) -> Any:
-        """A state whose elongation is ``elongation_um``; input terms at their equilibrium, relative
-        to ``references`` (default: the model's own, or these values for a cold start)."""
+        """A state whose elongation is ``elongation_um`` (None: none measured, the model's own
+        equilibrium); input terms at their equilibrium, relative to ``references`` (default: the
+        model's own, or these values for a cold start)."""
         ...
 
     def step(self, state: Any, speed_rpm: float, dt_s: float,
@@ -67,8 +68,9 @@ class Predictor(Protocol):
 
     def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
                     inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float = 0.0) -> np.ndarray:
-        """Free run over a whole log; ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``."""
+                    initial_um: float | None = None) -> np.ndarray:
+        """Free run over a whole log; ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
+        ``initial_um`` as ``elongation_um`` in :meth:`start`."""
         ...
 
     def state_dict(self, state: Any) -> dict[str, Any]:

@@ -17,10 +17,12 @@ from ..errors import ModelError, ModelFileError, UnstableModelError, clip
 from ..inputs import AUGMENTED_FORMAT, AugmentedModel
 from ..model import MODEL_FORMAT, ThermalModel
 from ..predictor import Predictor
+from ..statespace import STATE_SPACE_FORMAT, StateSpaceModel
 from .atomic import atomic_write
 from .checksum import digest
 
-MODEL_TYPES: dict[str, Any] = {MODEL_FORMAT: ThermalModel, AUGMENTED_FORMAT: AugmentedModel}
+MODEL_TYPES: dict[str, Any] = {MODEL_FORMAT: ThermalModel, AUGMENTED_FORMAT: AugmentedModel,
+                               STATE_SPACE_FORMAT: StateSpaceModel}
 """Model classes by the ``format`` their files carry: a new model form registers here."""
 
 

@@ -1,0 +1,353 @@
+"""A linear state-space model of the elongation, driven by speed and measured inputs. Pure: no I/O.
+
+The form the identification (``calibration.ident``, ``docs/IDENTIFICATION.md``) fits::
+
+    S      = c + D.v + sum_j x_j + r                      [um]
+    dx_j/dt = (B_j.v - x_j) / tau_j                        one first-order state per time constant
+    dr/dt   = -r / max(tau)                                what the inputs do not explain at a start
+    v       = [n, n^2, u_1 - ref_1, ..., u_m - ref_m]      n = |speed| in krpm, u in its own unit
+
+``c`` is a constant (``offset_um``), ``D`` a static (instantaneous) feed-through and ``B`` the
+drive of each state. Stepping is the exact zero-order hold with v held over the step, so the
+model steps at any Δt. The references ``ref_i`` are absolute, fixed at the fit and stored here:
+a prediction never depends on where a log starts, once the states have settled.
+
+Starting (:meth:`StateSpaceModel.start`) puts every state at its equilibrium with the current
+speed and inputs. A measured elongation, when given, goes to ``r`` only: the part of the state
+that the speed and inputs do not explain, which decays with the model's slowest time constant.
+It never goes into the speed states.
+
+Checked at construction (and so at load): finite coefficients with matching shapes; every time
+constant between the sample period of the fit and :data:`MAX_TAU_S`; the steady elongation the
+gains imply over the trained speed and input ranges at most :data:`GAIN_BOUND` times the largest
+measured. A model that fails is a one-line :class:`~compensator.errors.ModelError`.
+
+It implements :class:`~compensator.predictor.Predictor`; ``fallback`` is the speed-only model the
+runtime uses when an input fails.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import ModelError
+from .filters import decay, filter_bank, series, times
+from .model import MODEL_FORMAT, ThermalModel, _model_error, saved_numbers
+from .units import RANGE_TOLERANCE, SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
+
+STATE_SPACE_FORMAT = "thermocomp.state-space-model/1"
+
+MAX_TAU_S = 10 * 86400.0
+"""Longest time constant a model may hold: ten days. Slower cannot be told from drift."""
+GAIN_BOUND = 10.0
+"""The steady elongation the gains imply over the trained ranges: at most this many times the
+largest elongation measured in calibration."""
+SPEED_CLIP = 2.0
+"""|speed| is clipped to this many times the calibrated maximum inside the model, so any finite
+input gives a finite output (above the range the runtime raises an extrapolation alarm anyway)."""
+
+
+def _finite(values: Any) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+class InputChannel(BaseModel):
+    """A measured input (a temperature...) as the model uses it."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="run-log column / runtime channel")
+    unit: str = Field(description="unit of the input: degC, %, ...")
+    reference: float = Field(description="absolute reference, fixed at the fit: the training mean")
+    trained_range: tuple[float, float] = Field(description="(min, max) seen in calibration")
+    valid_range: tuple[float, float] = Field(description="plausible values; outside: sensor fault")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> InputChannel:
+        values = (self.reference, *self.trained_range, *self.valid_range)
+        if not _finite(values):
+            raise ValueError(f"input {self.name}: reference and ranges must be finite")
+        (tlo, thi), (vlo, vhi) = self.trained_range, self.valid_range
+        if not (vlo <= tlo <= thi <= vhi):
+            raise ValueError(f"input {self.name}: need valid min <= trained min <= trained max <= valid max")
+        return self
+
+
+Fallback = Annotated[Union["StateSpaceModel", ThermalModel], Field(discriminator="format")]
+
+
+class StateSpaceModel(BaseModel):
+    """Immutable coefficients; the module docstring gives the equations. Gains per krpm (n),
+    per krpm² (n²) and per input unit."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["thermocomp.state-space-model/1"] = STATE_SPACE_FORMAT
+    spindle_id: str = "unknown"
+    machine_id: str = ""
+    form: str = Field("ridge", description="how it was fitted: ridge, exp-baseline, ...")
+    fitted_dt_s: float = Field(gt=0, description="median sample period of the calibration data [s]")
+    speed_range_rpm: tuple[float, float] = Field(description="(min, max) |speed| seen in calibration [rpm]")
+    taus_s: tuple[float, ...] = Field(min_length=1, description="time constant of each state [s]")
+    drive_um: tuple[tuple[float, ...], ...] = Field(
+        description="B: per state, the gains on [n, n^2, inputs...] [um per krpm**p or per unit]")
+    feedthrough_um: tuple[float, ...] = Field(description="D: static gains on [n, n^2, inputs...]")
+    offset_um: float = Field(0.0, description="c: constant elongation [um]")
+    inputs: tuple[InputChannel, ...] = ()
+    max_measured_um: float = Field(gt=0, description="largest |elongation| measured in calibration [um]")
+    fallback: Fallback | None = Field(None, description="speed-only model used when an input fails")
+    fit: dict[str, Any] = Field(default_factory=dict, description="how it was fitted and judged")
+    created_utc: str | None = None
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as err:
+            raise _model_error(err) from err
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> StateSpaceModel:  # type: ignore[override]
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as err:
+            raise _model_error(err) from err
+
+    @field_validator("speed_range_rpm")
+    @classmethod
+    def _range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
+        if not _finite(value) or lo < 0 or hi < lo or hi <= 0:
+            raise ValueError(f"speed_range_rpm must satisfy 0 <= min <= max, max > 0, got {value}")
+        return value
+
+    @model_validator(mode="after")
+    def _sane(self) -> StateSpaceModel:
+        width = 2 + len(self.inputs)
+        names = [c.name for c in self.inputs]
+        if len(set(names)) != len(names):
+            raise ModelError("an input appears twice")
+        if len(self.drive_um) != len(self.taus_s):
+            raise ModelError(f"{len(self.drive_um)} drive rows for {len(self.taus_s)} time constants")
+        for row in (*self.drive_um, self.feedthrough_um):
+            if len(row) != width:
+                raise ModelError(f"a gain row has {len(row)} entries; speed n, n^2 and "
+                                 f"{len(self.inputs)} input(s) need {width}")
+        gains = [v for row in self.drive_um for v in row] + list(self.feedthrough_um) + [self.offset_um]
+        if not _finite(gains) or not math.isfinite(self.max_measured_um):
+            raise ModelError("gains must be finite")
+        for tau in self.taus_s:
+            if not (math.isfinite(tau) and self.fitted_dt_s <= tau <= MAX_TAU_S):
+                raise ModelError(f"time constant {tau:g} s is outside {self.fitted_dt_s:g} s (the "
+                                 f"sample period) .. {MAX_TAU_S / 86400:g} days")
+        steady = self.steady_range_um()
+        if not steady <= GAIN_BOUND * self.max_measured_um:
+            raise ModelError(f"the gains imply a steady elongation of {steady:.4g} um, over "
+                             f"{GAIN_BOUND:g} x the largest measured ({self.max_measured_um:.4g} um)")
+        if self.fallback is not None and self.fallback.input_names:
+            raise ModelError("the fallback must be a speed-only model")
+        if self.fallback is not None and not self.inputs:
+            raise ModelError("a speed-only model has no fallback")
+        if self.inputs and self.fallback is None:
+            raise ModelError("a model with inputs needs a speed-only fallback")
+        return self
+
+    # -- derived quantities -----------------------------------------------------------
+
+    @property
+    def order(self) -> int:
+        return len(self.taus_s)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.inputs)
+
+    @property
+    def _b(self) -> np.ndarray:
+        return np.array(self.drive_um, dtype=float).reshape(len(self.taus_s), 2 + len(self.inputs))
+
+    @property
+    def _d(self) -> np.ndarray:
+        return np.array(self.feedthrough_um, dtype=float)
+
+    @property
+    def _slowest_s(self) -> float:
+        return max(self.taus_s)
+
+    def total_gains(self) -> np.ndarray:
+        """Steady gains on [n, n^2, inputs...]: the feed-through plus every state's drive."""
+        return self._d + self._b.sum(axis=0)
+
+    def steady_range_um(self) -> float:
+        """Largest |steady elongation change| the gains imply over the trained speed range, each
+        input at the worse end of its trained range."""
+        g = self.total_gains()
+        n = np.linspace(0.0, self.speed_range_rpm[1] / SPEED_SCALE_RPM, 201)
+        total = float(np.max(np.abs(g[0] * n + g[1] * n * n)))
+        for gi, ch in zip(g[2:], self.inputs):
+            lo, hi = ch.trained_range
+            total += abs(float(gi)) * max(abs(lo - ch.reference), abs(hi - ch.reference))
+        return total
+
+    def steady_state_um(self, speed_rpm: float, inputs: Mapping[str, float] | None = None) -> float:
+        """Equilibrium elongation with ``speed_rpm`` held, inputs at ``inputs`` (default: at
+        their references) [um]."""
+        v = self._signals(speed_rpm, inputs or {c.name: c.reference for c in self.inputs})
+        return float(self.offset_um + self.total_gains() @ v)
+
+    def time_constants_s(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
+        return tuple(self.taus_s)
+
+    def above_range(self, speed_rpm: float) -> bool:
+        """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation."""
+        return speed_magnitude_rpm(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
+
+    def outside_trained(self, values: Mapping[str, float]) -> str | None:
+        """Which input lies outside the range seen in calibration (valid, but extrapolated)."""
+        for c in self.inputs:
+            v = values.get(c.name)
+            lo, hi = c.trained_range
+            if v is not None and math.isfinite(v) and not lo <= v <= hi:
+                return f"{c.name}: {v:g} {c.unit} is outside the trained {lo:g}..{hi:g}"
+        return None
+
+    def check_inputs(self, values: Mapping[str, float]) -> str | None:
+        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
+        for c in self.inputs:
+            v = values.get(c.name)
+            if v is None:
+                return f"{c.name}: no value"
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                return f"{c.name}: {v!r} is not a finite number"
+            lo, hi = c.valid_range
+            if not lo <= v <= hi:
+                return f"{c.name}: {v:g} {c.unit} is outside {lo:g}..{hi:g}"
+        return None
+
+    def _signals(self, speed_rpm: float, inputs: Mapping[str, float] | None) -> np.ndarray:
+        n = min(speed_magnitude_rpm(speed_rpm), SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
+        v = [n, n * n]
+        for c in self.inputs:
+            if inputs is None or c.name not in inputs:
+                raise ModelError(f"the model needs input {c.name!r}")
+            u = require_finite(c.name, float(inputs[c.name]))
+            lo, hi = c.valid_range
+            v.append(min(max(u, lo), hi) - c.reference)
+        return np.array(v)
+
+    # -- the Predictor interface -----------------------------------------------------------
+
+    def start(self, elongation_um: float | None, speed_rpm: float,
+              inputs: Mapping[str, float] | None = None,
+              references: Mapping[str, float] | None = None) -> StateSpaceState:
+        """Every state at equilibrium with ``speed_rpm`` and ``inputs``; ``elongation_um`` (None:
+        none measured) minus that equilibrium goes to the unexplained part, which decays with the
+        slowest time constant. ``references`` is ignored: this model's are absolute and stored."""
+        v = self._signals(speed_rpm, inputs)
+        x = self._b @ v
+        static = float(self.offset_um + self._d @ v)
+        residual = 0.0
+        if elongation_um is not None:
+            residual = require_finite("elongation_um", elongation_um) - (math.fsum(x) + static)
+        return StateSpaceState(tuple(float(e) for e in x), residual, static)
+
+    def step(self, state: StateSpaceState, speed_rpm: float, dt_s: float,
+             inputs: Mapping[str, float] | None = None) -> StateSpaceState:
+        """Advance by ``dt_s`` with the speed and inputs held (exact zero-order hold)."""
+        dt_s = require_dt(dt_s)
+        if len(state.states_um) != self.order:
+            raise ModelError(f"state has {len(state.states_um)} states, the model {self.order}")
+        v = self._signals(speed_rpm, inputs)
+        a = np.exp(-dt_s / np.asarray(self.taus_s))
+        x = a * np.asarray(state.states_um) + (1.0 - a) * (self._b @ v)
+        r = state.residual_um * math.exp(-dt_s / self._slowest_s)
+        return StateSpaceState(tuple(float(e) for e in x), r, float(self.offset_um + self._d @ v))
+
+    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
+                    inputs: Mapping[str, np.ndarray] | None = None,
+                    initial_um: float | None = None) -> np.ndarray:
+        """Free run over a whole log, ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
+        states at equilibrium with the first sample, ``initial_um`` as in :meth:`start`.
+        Vectorised: one closed-form filter per state (:func:`compensator.filters.filter_bank`)."""
+        t = times(time_s)
+        if t.size == 0:
+            raise ModelError("cannot simulate an empty log")
+        sp = np.abs(series("speed_rpm", speed_rpm, t.size))
+        n = np.minimum(sp, SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
+        cols = [n, n * n]
+        for c in self.inputs:
+            if inputs is None or c.name not in inputs:
+                raise ModelError(f"the model needs input {c.name!r}, which the log lacks")
+            u = series(c.name, inputs[c.name], t.size)
+            cols.append(np.clip(u, *c.valid_range) - c.reference)
+        v = np.column_stack(cols)
+        out = self.offset_um + v @ self._d
+        for tau, b in zip(self.taus_s, self._b):
+            out += filter_bank(t, v @ b, (tau,))[:, 0]
+        if initial_um is not None:
+            out += (require_finite("initial_um", initial_um) - out[0]) * decay(t, self._slowest_s)
+        return out
+
+    def state_dict(self, state: StateSpaceState) -> dict[str, Any]:
+        return {"states_um": list(state.states_um), "residual_um": state.residual_um,
+                "static_um": state.static_um}
+
+    def state_from_dict(self, data: Mapping[str, Any]) -> StateSpaceState:
+        """A state saved by :meth:`state_dict`; :class:`ModelError` if it does not fit this model."""
+        try:
+            x = saved_numbers("states_um", data["states_um"])
+            r, s = saved_numbers("residual_um/static_um", [data["residual_um"], data["static_um"]])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ModelError(f"saved state is not a state of this model ({err})") from err
+        if len(x) != self.order:
+            raise ModelError(f"saved state has {len(x)} states, the model {self.order}")
+        return StateSpaceState(x, r, s)
+
+    def describe(self) -> list[str]:
+        lo, hi = self.speed_range_rpm
+        taus = ", ".join(f"{t / 60:.1f}" for t in self.taus_s)
+        lines = [f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
+                 f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; {self.order} state(s), "
+                 f"tau = {taus} min; constant {self.offset_um:.2f} um",
+                 f"  steady elongation range {self.steady_range_um():.1f} um (bound {GAIN_BOUND:g} x "
+                 f"{self.max_measured_um:.1f} um measured)"]
+        for n in (0.0, hi / 2, hi):
+            lines.append(f"  at {n:7.0f} rpm, inputs at their references: equilibrium "
+                         f"{self.steady_state_um(n):7.2f} um")
+        g = self.total_gains()
+        for gi, c in zip(g[2:], self.inputs):
+            lines.append(f"  {c.name}: {gi:+.3g} um/{c.unit} in steady state, reference {c.reference:.3f} "
+                         f"{c.unit}, trained {c.trained_range[0]:.3g}..{c.trained_range[1]:.3g}, "
+                         f"valid {c.valid_range[0]:.3g}..{c.valid_range[1]:.3g}")
+        for key in ("method", "folds", "alpha", "cv_rms_um", "cv_max_abs_um", "nested_rms_um"):
+            if key in self.fit:
+                lines.append(f"  fit {key}: {self.fit[key]}")
+        if self.fallback is not None:
+            lines.append(f"  fallback when an input fails: {self.fallback.form} (speed only)")
+        return lines
+
+
+StateSpaceModel.model_rebuild()
+
+
+@dataclass(frozen=True, slots=True)
+class StateSpaceState:
+    """Runtime state, kept apart from the coefficients: each state, the unexplained part, and
+    the static part (constant and feed-through) at the last step."""
+
+    states_um: tuple[float, ...]
+    residual_um: float
+    static_um: float
+
+    @property
+    def elongation_um(self) -> float:
+        return math.fsum(self.states_um) + self.residual_um + self.static_um
+
+
+__all__ = ["GAIN_BOUND", "MAX_TAU_S", "MODEL_FORMAT", "STATE_SPACE_FORMAT", "InputChannel",
+           "StateSpaceModel", "StateSpaceState"]
