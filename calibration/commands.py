@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from compensator.io import load_any_model, read_run_log, save_model, write_run_log
@@ -94,9 +95,7 @@ def print_fit_report(cal: Calibration, report: dict[str, Any], out: Console) -> 
         out.print(f"[yellow]warning:[/yellow] {w}")
 
 
-def fit(args: argparse.Namespace) -> int:
-    logs = [read_run_log(p) for p in args.runs]
-    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
+def _meta(args: argparse.Namespace, logs) -> dict[str, Any]:
     meta: dict[str, Any] = {}
     spindle = args.spindle_id or next((lg.metadata.get("spindle_id") for lg in logs if lg.metadata.get("spindle_id")), None)
     machine = args.machine_id or next((lg.metadata.get("machine_id") for lg in logs if lg.metadata.get("machine_id")), None)
@@ -107,7 +106,129 @@ def fit(args: argparse.Namespace) -> int:
     from datetime import datetime, timezone
 
     meta["created_utc"] = datetime.now(timezone.utc).replace(microsecond=0).isoformat()
-    names = [n.strip() for n in (args.inputs or "").split(",") if n.strip()]
+    return meta
+
+
+def _input_names(args: argparse.Namespace, logs) -> list[str]:
+    from compensator.errors import CalibrationError
+
+    spec = (args.inputs or "").strip()
+    if spec == "all":
+        names = [k for k, v in logs[0].extras.items() if v.dtype != object]
+        if not names:
+            raise CalibrationError(f"{logs[0].source}: --inputs all, but the log has no numeric extra column")
+    else:
+        names = [n.strip() for n in spec.split(",") if n.strip()]
+    for log in logs:
+        for n in names:
+            col = log.extras.get(n)
+            if col is None:
+                raise CalibrationError(f"{log.source}: no column {n!r} for --inputs "
+                                       f"(columns: {', '.join(log.extras) or 'none'})")
+            if col.dtype == object or not np.isfinite(np.asarray(col, dtype=float)).all():
+                bad = np.flatnonzero(~np.isfinite(np.asarray(col, dtype=float))) if col.dtype != object else [0]
+                line = log.line_of(int(bad[0])) if len(bad) else None
+                raise CalibrationError(f"{log.source}{f':{line}' if line else ''}: column {n} is not a "
+                                       "finite number on every row")
+    return names
+
+
+def fit(args: argparse.Namespace) -> int:
+    if args.method == "forms":
+        return fit_forms(args)
+    from compensator.errors import CalibrationError
+
+    from .identify import LogData, identify
+    from .inputs import unit_of
+
+    for flag, value in (("--dt", args.dt), ("--form", None if args.form == "auto" else args.form)):
+        if value is not None:
+            raise CalibrationError(f"{flag} applies to --method forms; the cycles method fits at the "
+                                   "logs' own sample period")
+    logs = [read_run_log(p) for p in args.runs]
+    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
+    names = _input_names(args, logs)
+    data = [LogData(Path(p).name, r.time_s, r.speed_rpm, r.elongation_um,
+                    {n: np.asarray(lg.extras[n], dtype=float) for n in names})
+            for p, r, lg in zip(args.runs, runs, logs)]
+    with progress(not args.json) as say:
+        result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
+                          nested=not args.no_nested, physical=not args.no_physical, **_meta(args, logs))
+    model = result.model
+    # validated before it is written: the same checks a load makes
+    type(model).model_validate(model.model_dump(mode="json"))
+    report = result.report()
+    save_model(args.output, model)
+    report["model_file"] = str(args.output)
+    if args.plot:
+        j = result.joined
+        pred = np.empty_like(j.time_s)
+        for a, b in j.segments:
+            inputs = {n: v[a:b] for n, v in j.inputs.items()} if model.input_names else None
+            pred[a:b] = model.simulate_um(j.speed_rpm[a:b], j.time_s[a:b], inputs, None)
+        panels = [Panel(Path(nm).name, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[a:b],
+                        j.elongation_um[a:b]) for nm, (a, b) in zip(j.names, j.segments)]
+        plot_panels(args.plot, panels, f"fit: {result.chosen.name} (spindle {model.spindle_id}), "
+                    "in-sample free run", max_rpm=model.speed_range_rpm[1])
+        report["plot"] = str(args.plot)
+    return _emit(args, report, lambda out: print_identification(result, report, out))
+
+
+def _emit(args: argparse.Namespace, report: dict[str, Any], show: Callable[[Console], None]) -> int:
+    """The fit report: one JSON object, or tables and where the model went."""
+    if args.json:
+        print(json.dumps(report, indent=2, allow_nan=False, default=_json_default))
+    else:
+        out = _console()
+        show(out)
+        out.print(f"Model written to {args.output}" + (f"; plot {args.plot}" if args.plot else ""))
+    return 0
+
+
+def print_identification(result, report: dict[str, Any], out: Console) -> None:
+    m = result.model
+    j = result.joined
+    out.print(f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  {len(j.names)} log(s), "
+              f"{j.time_s.size} rows, scored by {report['scored_by']}")
+    out.print(f"Cycle rule: {report['cycle_rule']}")
+    for line in report["cycles"]:
+        out.print(f"  {line}")
+    t = Table(title="Candidates, free run (the model feeds on its own output; no measured elongation)")
+    for col in ("candidate", "CV RMS", "CV max", "nested RMS", "in-sample RMS", "per fold RMS", "verdict"):
+        t.add_column(col, justify="left" if col in ("candidate", "verdict", "per fold RMS") else "right")
+    for c in report["candidates"]:
+        name = c["name"] + (" [bold green]<- chosen[/]" if c["name"] == report["chosen"] else "")
+        verdict = escape("reference only" if c["family"] == "reference" else
+                         "accepted" if c["accepted"] else "refused: " + "; ".join(c["refusals"]))
+        folds = " ".join(_fmt(v, 2) for v in c["folds_rms_um"])
+        t.add_row(name, _fmt(c["cv_rms_um"]), _fmt(c["cv_max_abs_um"]), _fmt(c["nested_rms_um"]),
+                  _fmt(c["in_sample_rms_um"]), folds, verdict)
+    out.print(t)
+    out.print("CV: gains fitted without the held-out fold; nested: the fold also took no part in "
+              "choosing alpha (the honest figure). One-step R² is not used.")
+    out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {escape(report['reason'])}")
+    for c in report["candidates"]:
+        if c["name"] == report["chosen"] and "alpha" in c:
+            out.print(f"  grid {c['grid']}, alpha {c['alpha']:.3g}, {c['states']} state(s)", markup=False)
+    if report["derived"]:
+        dt = Table(title="Derived quantities, HAC (Newey-West) standard errors")
+        for col in ("quantity", "value", "std. error", "unit"):
+            dt.add_column(col)
+        for d in report["derived"]:
+            dt.add_row(d["quantity"], f"{d['value']:.3g}", f"{d['hac_stderr']:.2g}", d["unit"])
+        out.print(dt)
+    for line in m.describe():
+        out.print(line, markup=False, highlight=False)
+    for w in report["warnings"]:
+        out.print(f"[yellow]warning:[/yellow] {w}")
+
+
+def fit_forms(args: argparse.Namespace) -> int:
+    """The earlier method: every output-error form on whole runs, inputs by forward selection."""
+    logs = [read_run_log(p) for p in args.runs]
+    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
+    meta = _meta(args, logs)
+    names = _input_names(args, logs) if args.inputs else []
     with progress(not args.json) as say:
         cal = calibrate(runs, dt_s=args.dt, form=args.form, progress=say, **meta)
         fitted = None
@@ -124,15 +245,12 @@ def fit(args: argparse.Namespace) -> int:
         plot_panels(args.plot, panels, f"fit: {cal.model.form} (spindle {cal.model.spindle_id})",
                     max_rpm=cal.model.speed_range_rpm[1])
         report["plot"] = str(args.plot)
-    if args.json:
-        print(json.dumps(report, indent=2, allow_nan=False, default=_json_default))
-    else:
-        out = _console()
+    def show(out: Console) -> None:
         print_fit_report(cal, report, out)
         if fitted:
             print_input_report(fitted, out)
-        out.print(f"Model written to {args.output}" + (f"; plot {args.plot}" if args.plot else ""))
-    return 0
+
+    return _emit(args, report, show)
 
 
 def _fit_inputs(cal: Calibration, logs, runs, names: list[str], args: argparse.Namespace, say):
