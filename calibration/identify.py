@@ -276,6 +276,7 @@ class Identification:
             "logs": list(j.names),
             "candidates": [c.row() for c in self.candidates],
             "chosen": self.chosen.name,
+            "model_form": self.model.form,
             "reason": self.reason,
             "derived": self.derived,
             "warnings": self.warnings,
