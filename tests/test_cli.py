@@ -47,10 +47,12 @@ def fitted(logs):
 def test_fit_writes_a_loadable_model_and_a_json_report(fitted, logs):
     path, rep = fitted
     model = load_model(path)
-    assert model.form == rep["chosen"]
+    assert model.form == rep["model_form"]
     assert model.spindle_id == "sim-motorized-27k"  # from the logs' metadata
     assert (logs / "fit.png").stat().st_size > 10000
-    assert rep["candidates"] and rep["coefficients"] and rep["reason"]
+    assert rep["candidates"] and rep["reason"] and rep["chosen"] in [c["name"] for c in rep["candidates"]]
+    assert model.fit["cv_rms_um"] == pytest.approx(
+        next(c for c in rep["candidates"] if c["name"] == rep["chosen"])["cv_rms_um"], abs=1e-3)
 
 
 def test_fit_human_report_names_the_winner_and_the_reference(logs, tmp_path):
