@@ -42,6 +42,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {clip(message, ERROR_CHARS)}\n")
 
 
+class _IntermixedParser(_Parser):
+    """Positionals may follow options (``model check --json FILE``): plain argparse takes a run
+    of optional positionals once and calls a later one unrecognized."""
+
+    _inside = False
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        if self._inside:  # parse_known_intermixed_args calls back here
+            return super().parse_known_args(args, namespace)
+        self._inside = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._inside = False
+
+
 class _OneLineFormatter(logging.Formatter):
     """A logged message (a warning may quote a bad value too) as one bounded line; a
     traceback, if any, still follows it."""
@@ -209,10 +225,19 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("model", help="show or check a model file")
-    p.add_argument("model", nargs="?", help="model file (JSON)")
-    p.add_argument("--schema", action="store_true", help="print the model file's JSON schema")
-    p.add_argument("--json", action="store_true", help="print as JSON")
+    p = sub.add_parser("model", help="show or check a model file",
+                       usage="%(prog)s [-h] [--json] FILE | check FILE | --schema [--format FORMAT]",
+                       description="FILE: describe the model. check FILE: verify it as the runtime "
+                       "would load it (checksum, sanity, plausibility); exit 0 if it is ok, else 2 "
+                       "with a one-line reason.")
+    p.__class__ = _IntermixedParser  # add_parser makes every subparser of one class
+    p.add_argument("model", nargs="?", metavar="FILE", help="model file (JSON), or 'check'")
+    p.add_argument("file", nargs="?", metavar="FILE", help=argparse.SUPPRESS)  # after 'check'
+    p.add_argument("--schema", action="store_true", help="print a model format's JSON schema")
+    p.add_argument("--format", help="with --schema: the format (default: the speed-only model's), "
+                   "or 'all' for every format keyed by name")
+    p.add_argument("--json", action="store_true",
+                   help="print as JSON (check: {file, ok, reason, format, form, ...})")
     p.set_defaults(handler="thermocomp.commands.model:model")
 
 

@@ -1,21 +1,33 @@
-"""``thermocomp model``: show a model file or print its JSON schema."""
+"""``thermocomp model``: show or check a model file, or print the JSON schema of a format."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
-from compensator.errors import ConfigError
-from compensator.io import load_any_model
-from compensator.model import ThermalModel
+from compensator.errors import ConfigError, ThermocompError, clip
+from compensator.io import MODEL_TYPES, load_any_model, model_digest
+from compensator.model import MODEL_FORMAT
+
+REASON_CHARS = 500
 
 
 def model(args: argparse.Namespace) -> int:
     if args.schema:
-        print(json.dumps(ThermalModel.model_json_schema(), indent=2))
-        return 0
+        return _schema(args.format)
+    if args.format is not None:
+        raise ConfigError("--format goes with --schema")
+    if args.model == "check":
+        if not args.file:
+            raise ConfigError("give the model file to check: thermocomp model check FILE "
+                              "(a model file named check: ./check)")
+        return check(args.file, as_json=args.json)
+    if args.file is not None:
+        raise ConfigError(f"one model file at a time ({args.model!r} is not a subcommand; "
+                          "thermocomp model check FILE checks one)")
     if not args.model:
-        raise ConfigError("give a model file, or --schema")
+        raise ConfigError("give a model file, check FILE, or --schema")
     m = load_any_model(args.model)
     if args.json:
         print(json.dumps(m.model_dump(mode="json"), indent=2))
@@ -24,4 +36,56 @@ def model(args: argparse.Namespace) -> int:
     print(f"{args.model}: {first}")
     for line in rest:
         print(line)
+    return 0
+
+
+def _schema(fmt: str | None) -> int:
+    """One format's schema (default: the speed-only model's, as before), or every registered
+    format's keyed by format name (``all``)."""
+    if fmt == "all":
+        print(json.dumps({name: cls.model_json_schema() for name, cls in MODEL_TYPES.items()}, indent=2))
+        return 0
+    cls = MODEL_TYPES.get(fmt or MODEL_FORMAT)
+    if cls is None:
+        raise ConfigError(clip(f"--format {fmt!r}: not a model format; known: "
+                               f"{', '.join(MODEL_TYPES)}, or all", 500))
+    print(json.dumps(cls.model_json_schema(), indent=2))
+    return 0
+
+
+def summary(m: Any) -> dict[str, Any]:
+    """What a checked model is, for people and for ``--json``."""
+    lo, hi = m.speed_range_rpm
+    return {"format": m.format, "form": m.form, "spindle_id": m.spindle_id, "machine_id": m.machine_id,
+            "states": getattr(m, "order", None), "inputs": list(m.input_names),
+            "speed_range_rpm": [lo, hi], "fallback": m.fallback.form if m.fallback is not None else None,
+            "sha256": model_digest(m)}
+
+
+def check(path: str, as_json: bool = False) -> int:
+    """Would the runtime take this file: verified and sane (:func:`load_any_model`) and
+    plausible (the runtime's own check). Exit 0, or 2 with a one-line reason, as any refusal."""
+    from thermocomp.runtime.service import implausible  # the runtime's own rule, loaded only here
+
+    try:
+        m = load_any_model(path)
+        why = implausible(m.fallback or m)
+        if why is not None:
+            raise ConfigError(f"{path}: {why}")
+    except ThermocompError as err:
+        if not as_json:
+            raise  # the CLI prints it as one line and exits 2
+        reason = str(err)
+        reason = reason[len(path) + 2:] if reason.startswith(f"{path}: ") else reason  # "file" says it
+        print(json.dumps({"file": path, "ok": False, "reason": clip(reason, REASON_CHARS)}))
+        return 2
+    info = summary(m)
+    if as_json:
+        print(json.dumps({"file": path, "ok": True, "reason": None, **info}))
+        return 0
+    states = f", {info['states']} states" if info["states"] is not None else ""
+    inputs = ", inputs " + ", ".join(info["inputs"]) if info["inputs"] else ", speed only"
+    lo, hi = info["speed_range_rpm"]
+    print(clip(f"{path}: ok: {info['form']} ({info['format']}), spindle {info['spindle_id']!r}"
+               f"{states}{inputs}, {lo:.0f}..{hi:.0f} rpm", 1000))
     return 0

@@ -53,6 +53,12 @@ class SpindleConfig(BaseModel):
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="used in file names and logs")
     model: Path = Field(description="model file (JSON) written by thermocomp fit")
+    spindle_id: str | None = Field(
+        None, min_length=1, max_length=200,
+        description="the spindle id the model file must carry (thermocomp fit --spindle-id, the "
+        "wizard's): a model for any other spindle, or one that names none ('unknown'), is refused "
+        "at start and at reload. Unset: not checked; the name above is only a label and need not "
+        "match the model's spindle id")
     adapter: dict[str, Any] = Field(description="adapter settings: a 'type' key and its options, or a 'url'")
     period_s: float = Field(1.0, ge=0.01, le=3600, description="cycle period")
     shaping: ShaperConfig = ShaperConfig()
@@ -66,6 +72,12 @@ class SpindleConfig(BaseModel):
         if ".." in v:
             raise ValueError("a name may not contain '..'")
         return v
+
+    def refuse_other_spindle(self, model_spindle_id: str) -> None:
+        """ConfigError when ``spindle_id`` is set and the model file is for another spindle."""
+        if self.spindle_id is not None and model_spindle_id != self.spindle_id:
+            raise ConfigError(clip(f"spindle {self.name}: model file {self.model} is for spindle "
+                                   f"{model_spindle_id!r}, not {self.spindle_id!r}", 500))
 
     @field_validator("adapter")
     @classmethod

@@ -19,7 +19,8 @@ EVENTS = (
     "started", "stopped", "cold_start", "state_restored", "state_corrupt",
     "link_down", "outage", "link_restored", "timeout",
     "idle_assumed", "speed_restored", "offset_mismatch", "write_rejected", "write_backoff",
-    "input_fallback", "inputs_restored", "journal_failed", "journal_restored",
+    "input_fallback", "inputs_restored", "inputs_extrapolated", "inputs_within_training",
+    "journal_failed", "journal_restored",
     "state_save_failed", "state_stale", "state_saved_again", "clock_step",
     "reload", "reload_refused", "lock_failed",
 )

@@ -64,13 +64,22 @@ def sd_notify(message: str) -> None:
         log.debug("sd_notify %s failed: %s", message, err)
 
 
-def plausible(model, name: str) -> None:
-    """Refuse a model that loads but cannot be a spindle's (ConfigError)."""
+def implausible(model) -> str | None:
+    """Why a model that loads cannot be a spindle's, or None. ``model``: a speed-only one (the
+    fallback of a model with inputs)."""
     lo, hi = model.speed_range_rpm
     for n in (lo, (lo + hi) / 2, hi):
         s = model.steady_state_um(n)
         if not math.isfinite(s) or abs(s) > PLAUSIBLE_ELONGATION_UM:
-            raise ConfigError(f"spindle {name}: model predicts {s:g} um at {n:g} rpm: not plausible")
+            return f"model predicts {s:g} um at {n:g} rpm: not plausible"
+    return None
+
+
+def plausible(model, name: str) -> None:
+    """Refuse a model that loads but cannot be a spindle's (ConfigError)."""
+    why = implausible(model)
+    if why is not None:
+        raise ConfigError(f"spindle {name}: {why}")
 
 
 class Service:
@@ -117,6 +126,7 @@ class Service:
     def _build(self, cfg: RuntimeConfig) -> dict[str, SpindleRuntime]:
         for sc in cfg.spindle:  # every model first: a refused reload leaves no trace
             loaded = load_any_model(sc.model)
+            sc.refuse_other_spindle(loaded.spindle_id)
             plausible(loaded.fallback or loaded, sc.name)
         out: dict[str, SpindleRuntime] = {}
         try:
@@ -218,6 +228,7 @@ def check(config_path: str) -> int:
     cfg = load_config(config_path)
     for sc in cfg.spindle:
         model = load_any_model(sc.model)
+        sc.refuse_other_spindle(model.spindle_id)
         plausible(model.fallback or model, sc.name)
         with open_adapter(sc.adapter) as link:
             speed = link.read_speed()

@@ -17,11 +17,14 @@ cycle and saves the state when due. The controller's offset is the truth:
   ``OUTAGE`` after ``faults.max_outage_s``;
 - speed above the calibrated range: clamp to its top (default) or extrapolate, with an alarm;
 - a model with inputs: its speed-only fallback is always stepped and stands in, with an alarm,
-  while an input is missing, out of range or stale;
+  while an input is missing, out of range or stale; an input outside the range seen in
+  calibration (but valid) raises ``INPUTS_EXTRAPOLATED``;
 - the disk fails: a journal row or a state save that cannot be written raises an alarm naming
   the file and the OS error and is retried with back-off; compensation goes on;
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
-  than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start.
+  than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start, every
+  model at its own equilibrium (the one with inputs at the first speed and inputs read);
+- a model file for another spindle than the configured ``spindle_id`` is refused.
 
 Every transition is a structured event (:mod:`.events`). Time is injected (``clock`` monotonic
 seconds, ``wall`` epoch seconds): tests run in simulated time without sleeping. The journal's
@@ -83,10 +86,18 @@ class Alarm(enum.IntFlag):
     STATE_CORRUPT = 16384
     CLOCK_STEP = 32768
     RELOAD_FAILED = 65536
+    INPUTS_EXTRAPOLATED = 131072
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
 """Failures that mean the controller cannot be reached: refused, lost, or not answering."""
+
+
+def _references(state: Any) -> dict[str, float] | None:
+    """The input references a state carries, for a model whose inputs count from a cold start's
+    values (kept across restarts); None for a model that stores absolute references itself."""
+    refs = getattr(state, "references", None)
+    return dict(refs) if refs is not None else None
 
 
 def mismatch_cause(held_um: float, tolerance_um: float) -> str:
@@ -110,12 +121,16 @@ class SpindleRuntime:
         self.anchor_s = wall() - clock() if anchor_s is None else anchor_s
         self._skew_s: float | None = None
         loaded: Predictor = load_any_model(cfg.model)
+        cfg.refuse_other_spindle(loaded.spindle_id)
         self.digest = model_digest(loaded)
         # a model with inputs runs beside its speed-only fallback, which is always stepped
         self.with_inputs: Predictor | None = loaded if loaded.input_names else None
         self.model: Predictor = loaded.fallback or loaded
         self.input_state: Any = None
         self.refs: dict[str, float] | None = None
+        self._input_cold = False  # no estimate of our own yet: the input model starts at equilibrium
+        self._saved_input: tuple[Any, float] | None = None  # (input state, its wall time) from the file
+        self._extrapolated: str | None = None  # why the inputs lie outside the trained range
         self._inputs_good_since: float | None = None
         self._last_inputs: dict[str, tuple[float, float]] = {}  # name -> (value, unchanged since)
         self.state_path = Path(state_dir) / f"{cfg.name}.state.json"
@@ -168,7 +183,9 @@ class SpindleRuntime:
     # -- state -------------------------------------------------------------------------
 
     def _cold(self, reason: str) -> None:
-        self.state = self.model.start(0.0, 0.0)
+        # nothing known: the model's own equilibrium at rest (0 um for a speed-only ThermalModel)
+        self.state = self.model.start(None, 0.0)
+        self._input_cold = True
         self.offset = OffsetTracker(self.cfg.shaping, 0.0)
         self._startup_alarms |= Alarm.COLD_START
         event("cold_start", self.cfg.name, "%s: cold start (%s)", self.cfg.name, reason,
@@ -197,6 +214,13 @@ class SpindleRuntime:
             refs = saved.get("input_references")
             refs = ({str(k): saved_numbers("input_references", [v], 1e9)[0] for k, v in refs.items()}
                     if isinstance(refs, dict) else None)
+            input_state, input_wall = None, saved_wall
+            if self.with_inputs is not None and saved.get("input_state") is not None:
+                input_state = self.with_inputs.state_from_dict(saved["input_state"])
+                if not abs(input_state.elongation_um) <= SAVED_LIMIT_UM:
+                    raise ModelFileError(f"input model's elongation {input_state.elongation_um:g} um "
+                                         "is not a spindle's")
+                input_wall = saved_numbers("input_wall_s", [saved.get("input_wall_s", saved_wall)], 1e11)[0]
         except (ModelError, ValueError, TypeError, KeyError, AttributeError, RecursionError,
                 OverflowError) as err:
             stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
@@ -216,6 +240,8 @@ class SpindleRuntime:
                 and set(refs) >= set(self.with_inputs.input_names) \
                 and all(math.isfinite(v) for v in refs.values()):
             self.refs = refs  # the cold start's, kept across restarts
+        if input_state is not None and now - input_wall <= self.cfg.max_state_age_s:
+            self._saved_input = (input_state, input_wall)  # advanced once the inputs are read
         # what we last wrote; the first cycle reads back what the controller really holds
         self.offset = OffsetTracker(self.cfg.shaping, held)
         event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
@@ -227,6 +253,8 @@ class SpindleRuntime:
         the controller holds, the timing of the last cycle and the state-save bookkeeping. The
         new link reads the offset back first."""
         self.state, self.input_state, self.refs = old.state, old.input_state, old.refs
+        self._input_cold, self._saved_input = old._input_cold, old._saved_input
+        self._extrapolated = old._extrapolated
         self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
         self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
         self._last_t, self._first_t = old._last_t, old._first_t
@@ -254,6 +282,7 @@ class SpindleRuntime:
                 "elongation_um": self.state.elongation_um,
                 "offset_um": self.offset.held_um,
                 **({"input_references": self.refs} if self.refs else {}),
+                **self._input_state_dict(),
             })
         except (OSError, ValueError) as err:
             self.counters["state_save_failed"] += 1
@@ -276,6 +305,19 @@ class SpindleRuntime:
         self._save_error, self._save_failures, self._stale = None, 0, False
         self._next_save_try = -math.inf
         return True
+
+    def _input_state_dict(self) -> dict[str, Any]:
+        """The model with inputs' own state for the state file (its wall time: a state restored
+        but not yet resumed keeps its own)."""
+        if self.with_inputs is None:
+            return {}
+        if self.input_state is not None:
+            state, wall_s = self.input_state, self.wall()
+        elif self._saved_input is not None:
+            state, wall_s = self._saved_input
+        else:
+            return {}
+        return {"input_state": self.with_inputs.state_dict(state), "input_wall_s": wall_s}
 
     def _save_if_due(self, now: float) -> Alarm:
         due = now - self._last_save >= self.cfg.state_save_every_s
@@ -469,7 +511,8 @@ class SpindleRuntime:
         self.state = self.model.step(self.state, speed, dt)
         s = self.state.elongation_um
         if self.with_inputs is not None:
-            s_inputs = self._with_inputs(now, speed, dt)
+            s_inputs, input_alarms = self._with_inputs(now, wall_now, speed, dt)
+            alarms |= input_alarms
             if s_inputs is None:
                 alarms |= Alarm.INPUT_FALLBACK
             else:
@@ -527,7 +570,8 @@ class SpindleRuntime:
             self._journal_error = j.error
         return Alarm.JOURNAL_FAILED if self._journal_error is not None else Alarm.NONE
 
-    def _with_inputs(self, now: float, speed: float, dt: float) -> float | None:
+    def _with_inputs(self, now: float, wall_now: float, speed: float,
+                     dt: float) -> tuple[float | None, Alarm]:
         """The elongation from the model with inputs, or None when an input is faulty: the
         speed-only fallback then stands. After a fault the inputs must be good for
         ``input_recover_s`` again; the model with inputs then restarts from the fallback's
@@ -554,20 +598,52 @@ class SpindleRuntime:
                       why, level=logging.ERROR, reason=why)
             self.input_state = None
             self._inputs_good_since = None
-            return None
+            # from now on the fallback's elongation is the estimate to continue from
+            self._input_cold, self._saved_input, self._extrapolated = False, None, None
+            return None, Alarm.NONE
         if self.input_state is None:
             if self._inputs_good_since is None:
                 self._inputs_good_since = now
             if now - self._inputs_good_since < faults.input_recover_s and self.counters["cycles"] > 0:
-                return None
-            # continue from the fallback's elongation; a cold start takes these values as references
-            self.input_state = model.start(self.state.elongation_um, speed, values, self.refs)
-            self.refs = dict(self.input_state.references)
+                return None, Alarm.NONE
+            self.input_state = self._start_inputs(wall_now, speed, values)
+            self.refs = _references(self.input_state)
             event("inputs_restored", self.cfg.name, "%s: inputs good: model with %s", self.cfg.name,
                   ", ".join(model.input_names), inputs=list(model.input_names))
-            return self.input_state.elongation_um
-        self.input_state = model.step(self.input_state, speed, dt, values)
-        return self.input_state.elongation_um
+        else:
+            self.input_state = model.step(self.input_state, speed, dt, values)
+        return self.input_state.elongation_um, self._extrapolation(values)
+
+    def _start_inputs(self, wall_now: float, speed: float, values: dict[str, float]) -> Any:
+        """The input model's state when it takes over: the saved one advanced idle through the
+        downtime (inputs held at today's); at a cold start its equilibrium with this speed and
+        these inputs; else the fallback's elongation (no jump at the switch)."""
+        model = self.with_inputs
+        assert model is not None
+        saved, cold = self._saved_input, self._input_cold
+        self._saved_input, self._input_cold = None, False
+        if saved is not None:
+            state, since = saved
+            return model.step(state, 0.0, max(0.0, wall_now - since), values)
+        # a model with cold-start references takes these values as references (self.refs None)
+        return model.start(None if cold else self.state.elongation_um, speed, values, self.refs)
+
+    def _extrapolation(self, values: dict[str, float]) -> Alarm:
+        """INPUTS_EXTRAPOLATED while a valid input lies outside the range seen in calibration
+        (for models that know it); one event per entry, one when back inside."""
+        outside = getattr(self.with_inputs, "outside_trained", None)
+        why = outside(values) if outside is not None else None
+        if why is None:
+            if self._extrapolated is not None:
+                event("inputs_within_training", self.cfg.name, "%s: inputs back inside the trained "
+                      "range", self.cfg.name)
+            self._extrapolated = None
+            return Alarm.NONE
+        if self._extrapolated is None:
+            event("inputs_extrapolated", self.cfg.name, "%s: INPUTS_EXTRAPOLATED: %s; the model "
+                  "with inputs extrapolates", self.cfg.name, why, level=logging.WARNING, reason=why)
+        self._extrapolated = why
+        return Alarm.INPUTS_EXTRAPOLATED
 
     def close(self) -> None:
         """Save the state and close; a failing disk or link never raises here."""
