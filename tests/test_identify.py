@@ -207,3 +207,15 @@ def test_no_finite_input_gives_a_non_finite_output(speed, dt, temp, start):
     sim = m.simulate_um(np.array([0.0, speed, speed]), np.array([0.0, dt / 2, dt]),
                         {"temp1_c": np.array([25.0, temp, temp])}, start)
     assert np.isfinite(sim).all()
+
+
+def test_json_mode_never_prints_a_traceback_even_for_a_bug(real, tmp_path):
+    code = ("import sys, calibration.identify as m\n"
+            "def boom(*a, **k): raise RuntimeError('boom')\n"
+            "m.identify = boom\n"
+            "from thermocomp.cli import main\n"
+            f"sys.exit(main(['fit', {str(real['ch1'])!r}, '--output', {str(tmp_path / 'm.json')!r}, '--json']))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr == "thermocomp: error: internal error: RuntimeError: boom\n"
+    assert not (tmp_path / "m.json").exists()

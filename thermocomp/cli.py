@@ -290,6 +290,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("thermocomp: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:
+        if not getattr(args, "json", False):
+            raise
+        # a machine reads --json output: one line, never a traceback, even for a bug of ours
+        fail(f"internal error: {type(err).__name__}: {err}")
+        return 1
 
 
 if __name__ == "__main__":
