@@ -558,6 +558,10 @@ def _advance_general(
             lam += d0
             ld = lam * blk_dt
             L = np.cumsum(ld)
+        if float(ld.max()) > _MAX_LOG_SPAN:
+            # one step longer than the span (a gap of months): exp(-span) is already 0 in floats
+            ld = np.minimum(ld, _MAX_LOG_SPAN)
+            L = np.cumsum(ld)
         e = total
         if L[-1] > _MAX_LOG_SPAN:
             e = s + max(1, int(np.searchsorted(L, _MAX_LOG_SPAN)))
