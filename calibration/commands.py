@@ -20,7 +20,7 @@ from compensator.io import load_any_model, read_run_log, save_model, write_run_l
 from compensator.shaping import ShaperConfig
 
 from .calibrate import Calibration, calibrate
-from .data import run_from_log
+from .data import bridge_gaps, run_from_log
 from .plots import Panel, plot_panels
 from .replay import Replay, replay
 
@@ -148,12 +148,18 @@ def fit(args: argparse.Namespace) -> int:
     logs = [read_run_log(p) for p in args.runs]
     runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
     names = _input_names(args, logs)
-    data = [LogData(Path(p).name, r.time_s, r.speed_rpm, r.elongation_um,
-                    {n: np.asarray(lg.extras[n], dtype=float) for n in names})
-            for p, r, lg in zip(args.runs, runs, logs)]
+    data, gap_notes = [], []
+    for p, r, lg in zip(args.runs, runs, logs):
+        speed, gaps = bridge_gaps(r.time_s, r.speed_rpm)  # missing rows: cooling at zero speed
+        if gaps:
+            gap_notes.append(f"{Path(p).name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
+                             "integrated as cooling at zero speed")
+        data.append(LogData(Path(p).name, r.time_s, speed, r.elongation_um,
+                            {n: np.asarray(lg.extras[n], dtype=float) for n in names}))
     with progress(not args.json) as say:
         result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
                           nested=not args.no_nested, physical=not args.no_physical, **_meta(args, logs))
+    result.warnings[:0] = gap_notes
     model = result.model
     # validated before it is written: the same checks a load makes
     type(model).model_validate(model.model_dump(mode="json"))

@@ -8,6 +8,7 @@ import numpy as np
 
 from compensator.errors import CalibrationError
 from compensator.io import RunLog
+from compensator.io.runlog import MAX_ABS_TIME_S, MAX_SPEED_RPM
 from compensator.units import SPEED_SCALE_RPM
 
 MIN_ROWS = 20
@@ -15,6 +16,13 @@ MAX_PLAUSIBLE_UM = 5000.0  # 5 mm: no spindle grows that much
 IDLE_RPM = 1.0
 TRANSIENT_WINDOW_S = 300.0
 TRANSIENT_STEP_FRACTION = 0.1
+GAP_MEDIAN_STEPS = 10.0
+MIN_GAP_S = 600.0
+"""A time step longer than max(GAP_MEDIAN_STEPS x median step, MIN_GAP_S) is a gap in the
+log (:func:`bridge_gaps`), and a gap is integrated as cooling at zero speed: rows missing
+for that long mean the logger, and most likely the machine, was off. Holding the last speed
+instead would heat the model for hours with no evidence the spindle turned. 600 s keeps a
+coarse log (a step of a minute or more) from calling a single late sample a gap."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,61 @@ class Run:
         return float(self.time_s[-1] - self.time_s[0])
 
 
+def gap_threshold_s(time_s: np.ndarray) -> float:
+    """The shortest time step that is a gap: max(10 x median step, 600 s) (:data:`MIN_GAP_S`)."""
+    dt = np.diff(np.asarray(time_s, dtype=float))
+    return max(GAP_MEDIAN_STEPS * float(np.median(dt)), MIN_GAP_S) if dt.size else MIN_GAP_S
+
+
+def bridge_gaps(time_s: np.ndarray, speed_rpm: np.ndarray,
+                gap_s: float | None = None) -> tuple[np.ndarray, list[tuple[int, float]]]:
+    """The speed with every gap in the log integrated as cooling at zero speed.
+
+    ``speed_rpm[k]`` is held over ``(time_s[k-1], time_s[k]]``, so a sample ending a step
+    longer than ``gap_s`` (default :func:`gap_threshold_s`) gets speed 0: the model cools
+    across the gap and the logged speeds resume at the next sample. Returns the new speed (a
+    copy) and the (row, gap length [s]) of each gap. Pure: no I/O, inputs untouched.
+    """
+    t = np.asarray(time_s, dtype=float)
+    speed = np.array(speed_rpm, dtype=float)  # a copy: the caller keeps the logged speed
+    if t.shape != speed.shape or t.ndim != 1:
+        raise CalibrationError(f"time_s {t.shape} and speed_rpm {speed.shape} differ in shape")
+    limit_s = gap_threshold_s(t) if gap_s is None else float(gap_s)
+    if not limit_s > 0 or not np.isfinite(limit_s):
+        raise CalibrationError(f"gap threshold {gap_s!r} s is not a positive number")
+    dt = np.diff(t)
+    rows = np.flatnonzero(dt > limit_s) + 1
+    speed[rows] = 0.0
+    return speed, [(int(k), float(dt[k - 1])) for k in rows]
+
+
+def _at(log: RunLog, src: str, row: int) -> str:
+    line = log.line_of(row)
+    return f"{src}:{line}" if line else f"{src} (row {row})"
+
+
+def _check_values(log: RunLog, src: str, elongation_um: np.ndarray) -> None:
+    """The reader's checks again, for a RunLog built in memory rather than read from a file."""
+    cols = {"time_s": log.time_s, "speed_rpm": log.speed_rpm, "elongation_um": elongation_um}
+    for col, values in cols.items():
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            row = int(bad[0])
+            raise CalibrationError(f"{_at(log, src, row)}: column {col}: {values[row]} is not a finite number")
+    for col, values, limit in (("time_s", log.time_s, MAX_ABS_TIME_S),
+                               ("speed_rpm", log.speed_rpm, MAX_SPEED_RPM)):
+        over = np.flatnonzero(np.abs(values) > limit)
+        if over.size:
+            row = int(over[0])
+            raise CalibrationError(f"{_at(log, src, row)}: column {col}: {values[row]:g} is beyond "
+                                   f"{limit:g} (wrong unit?)")
+    back = np.flatnonzero(np.diff(log.time_s) <= 0)
+    if back.size:
+        row = int(back[0]) + 1
+        raise CalibrationError(f"{_at(log, src, row)}: time does not increase "
+                               f"({log.time_s[row]:g} s after {log.time_s[row - 1]:g} s)")
+
+
 def run_from_log(log: RunLog, name: str | None = None) -> Run:
     """Check that a log can calibrate: elongation present, enough rows, plausible units."""
     src = log.source or name or "run"
@@ -53,6 +116,7 @@ def run_from_log(log: RunLog, name: str | None = None) -> Run:
         raise CalibrationError(f"{src}: no elongation_um column: a calibration run needs the measured growth")
     if len(log) < MIN_ROWS:
         raise CalibrationError(f"{src}: {len(log)} rows; a calibration run needs at least {MIN_ROWS}")
+    _check_values(log, src, log.elongation_um)
     speed = np.abs(log.speed_rpm)
     top = float(speed.max())
     if top <= 0:
@@ -68,10 +132,8 @@ def run_from_log(log: RunLog, name: str | None = None) -> Run:
     peak = float(np.abs(log.elongation_um).max())
     if peak > MAX_PLAUSIBLE_UM:
         row = int(np.argmax(np.abs(log.elongation_um)))
-        line = log.line_of(row)
-        where = f"{src}:{line}" if line else src
         raise CalibrationError(
-            f"{where}: elongation {log.elongation_um[row]:g} um is over 5 mm; "
+            f"{_at(log, src, row)}: elongation {log.elongation_um[row]:g} um is over 5 mm; "
             "is elongation_um in nm, or the sensor off range?"
         )
     return Run(name or src, log.time_s.copy(), log.speed_rpm.copy(), log.elongation_um.copy())

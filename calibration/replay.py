@@ -22,6 +22,7 @@ from compensator.shaping import ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
 
 from .calibrate import residual_stats
+from .data import bridge_gaps, gap_threshold_s
 
 STE_LIMIT_UM_PER_S = 0.5e-3
 BIN_S = 60.0
@@ -92,9 +93,16 @@ class Replay:
         return cols
 
 
+def _duration(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
+
+
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
            shaping: ShaperConfig | None = None) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
+
+    Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated as cooling at
+    zero speed, with a warning; :attr:`Replay.speed_rpm` keeps the logged speed.
 
     With ``shaping``, the offset is also passed through the runtime's own shaper
     (:func:`compensator.shaping.shape_series`): the report then gives the error of the offset
@@ -109,14 +117,27 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     if missing:
         raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
     inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
-    bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
+    checked = dict(inputs)
+    if measured is not None:  # the reader checks it; a RunLog built in memory may not be
+        checked["elongation_um"] = np.asarray(measured, dtype=float)
+    bad = [n for n, v in checked.items() if not np.isfinite(v).all()]
     if bad:
-        row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
+        row = int(np.flatnonzero(~np.isfinite(checked[bad[0]]))[0])
         raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
-    pred = model.simulate_um(log.speed_rpm, log.time_s, inputs, initial_um)
+    # a gap of missing rows is the spindle at rest: hours of held speed would be invented heat
+    speed_sim, gaps = bridge_gaps(log.time_s, log.speed_rpm)
+    pred = model.simulate_um(speed_sim, log.time_s, inputs, initial_um)
     applied = None
     if shaping is not None:
-        applied, _ = shape_series(shaping, log.time_s, log.speed_rpm, pred)
+        applied, _ = shape_series(shaping, log.time_s, speed_sim, pred)
+    for name, values in (("predicted elongation", pred), ("applied offset", applied)):
+        if values is not None and not np.isfinite(values).all():  # no NaN reaches a report
+            row = int(np.flatnonzero(~np.isfinite(values))[0])
+            line = log.line_of(row)
+            raise NonFiniteInputError(
+                f"{log.source or 'log'}: the {name} is not finite from row {row}"
+                + (f" (line {line})" if line else "")
+                + ": the model overflows on the log's values or time steps")
 
     warnings: list[str] = []
     lo, hi = model.speed_range_rpm
@@ -131,10 +152,19 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             + (f", first at line {line})" if line else ")")
             + ": predictions there are extrapolated"
         )
-    if log.gaps:
-        total = sum(g.duration_s for g in log.gaps)
+    if gaps:
+        line = log.line_of(gaps[0][0])
         warnings.append(
-            f"{len(log.gaps)} gap(s) in the log, {total:.0f} s in all; the speed is taken as "
+            f"{len(gaps)} gap(s) of up to {_duration(max(g for _, g in gaps))} in the log"
+            + (f" (first ending at line {line})" if line else "")
+            + ": integrated as cooling at zero speed"
+        )
+    limit_s = gap_threshold_s(log.time_s)
+    held = [g for g in log.gaps if g.duration_s <= limit_s]  # short ones: bridge_gaps left them
+    if held:
+        total = sum(g.duration_s for g in held)
+        warnings.append(
+            f"{len(held)} short gap(s) in the log, {total:.0f} s in all; the speed is taken as "
             "held across each gap"
         )
 
@@ -147,6 +177,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "initial_um": initial_um,
         "max_predicted_um": float(np.max(pred)),
         "min_predicted_um": float(np.min(pred)),
+        "gaps": len(gaps),
     }
     if measured is not None:
         res = measured - pred

@@ -219,3 +219,16 @@ def test_json_mode_never_prints_a_traceback_even_for_a_bug(real, tmp_path):
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr == "thermocomp: error: internal error: RuntimeError: boom\n"
     assert not (tmp_path / "m.json").exists()
+
+
+def test_a_log_with_hours_missing_fits_and_says_how_the_gap_was_taken(real, tmp_path):
+    lines = Path(real["ch1"]).read_text().splitlines(keepends=True)
+    gappy = tmp_path / "gappy.csv"
+    gappy.write_text("".join(lines[:4000] + lines[6400:]))  # 10 h of rows missing
+    r = tc("fit", gappy, "--no-physical", "--no-nested", "--output", tmp_path / "m.json", "--json")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert any("gap" in w and "zero speed" in w and "10.0 h" in w for w in rep["warnings"]), rep["warnings"]
+    log = read_run_log(gappy)
+    pred = load_any_model(tmp_path / "m.json").simulate_um(log.speed_rpm, log.time_s, None, None)
+    assert np.isfinite(pred).all() and np.abs(pred).max() < 100

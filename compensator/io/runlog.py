@@ -9,8 +9,10 @@ simulator)::
     60,3000,1.52,22.0
 
 ``time_s`` and ``speed_rpm`` are required; ``elongation_um`` is optional; any
-other column is kept. Time must strictly increase. Gaps are allowed and
-reported. Every error names the file and line.
+other column is kept. Time must strictly increase and be in seconds (see
+:data:`MAX_ABS_TIME_S`); speed and elongation must be physically possible
+(:data:`MAX_SPEED_RPM`, :data:`MAX_ABS_ELONGATION_UM`). Gaps are allowed and
+reported. Every error is one line naming the file and line.
 
 Whole files are written atomically (:mod:`compensator.io.atomic`); a recording appends a
 row at a time (:class:`RunLogAppender`).
@@ -36,6 +38,30 @@ REQUIRED_COLUMNS = ("time_s", "speed_rpm")
 ELONGATION_COLUMN = "elongation_um"
 GAP_FACTOR = 5.0
 """A step longer than this many median steps is reported as a gap."""
+
+MAX_ABS_TIME_S = 1e11
+"""Largest |time_s| read as seconds; a larger stamp is refused, not converted.
+
+1e11 s after the epoch is the year 5138, so no time in seconds (relative, or epoch seconds,
+~1.7e9 today) comes near it, while epoch milliseconds exceed it for any date after
+1973-03-03 (~1.7e12 today): those are refused with "divide by 1000" (and microseconds and
+nanoseconds with their factor). The rule uses magnitude only, never the step: a log sampled
+every 1000 s is legitimate, so milliseconds counted from 0 are not detectable from the
+numbers; a header that says so (a ``time_ms`` column) is refused by name.
+"""
+
+TIME_UNIT_COLUMNS = {"time_ms": 1e3, "time_us": 1e6, "time_ns": 1e9}
+"""Time columns in another unit, each with the factor that turns them into seconds."""
+
+MAX_SPEED_RPM = 1e6
+"""Largest |speed_rpm| accepted: the fastest spindles turn ~3e5 rpm; beyond is a unit or
+column mix-up (or a garbage reading), and would overflow the model's arithmetic."""
+
+MAX_ABS_ELONGATION_UM = 1e6
+"""Largest |elongation_um| the reader accepts (1 m): beyond, no sensor reads micrometres.
+Calibration holds runs to a much tighter bound (``calibration.data.MAX_PLAUSIBLE_UM``)."""
+
+_YEAR_S = 365.2425 * 86400.0
 
 
 @dataclass(frozen=True)
@@ -151,6 +177,56 @@ def _read_metadata(path: str) -> tuple[dict[str, str], int | None]:
     return meta, None
 
 
+def _raw_cell(path: str, line: int | None, column: int) -> str:
+    """The text of one cell, stripped; '' when it cannot be found."""
+    if line is None:
+        return ""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, text in enumerate(fh, start=1):
+            if lineno == line:
+                cells = text.split("#", 1)[0].rstrip("\r\n").split(",")
+                return cells[column].strip() if column < len(cells) else ""
+    return ""
+
+
+def _factor_text(factor: float) -> str:
+    return "1000" if factor == 1e3 else f"1e{round(math.log10(factor))}"
+
+
+def _check_time_unit(time_s: np.ndarray, src: str) -> None:
+    """Refuse time stamps that cannot be seconds (:data:`MAX_ABS_TIME_S`), naming the first."""
+    beyond = np.flatnonzero(np.abs(time_s) > MAX_ABS_TIME_S)
+    if not beyond.size:
+        return
+    row = int(beyond[0])
+    t = float(time_s[row])
+    line = _line_of_row(src, row)
+    for factor, unit in ((1e3, "milliseconds"), (1e6, "microseconds"), (1e9, "nanoseconds")):
+        if 0 < t / factor <= MAX_ABS_TIME_S:
+            raise RunLogError(
+                f"time_s looks like {unit} ({t:.15g} s would be the year "
+                f"{1970 + t / _YEAR_S:,.0f}); divide by {_factor_text(factor)}",
+                src,
+                line,
+            )
+    raise RunLogError(
+        f"time_s {t:g} s is beyond {MAX_ABS_TIME_S:g} s (the year 5138): not seconds", src, line
+    )
+
+
+def _check_magnitude(values: np.ndarray, limit: float, col: str, unit: str, why: str,
+                     src: str) -> None:
+    """Refuse the first |value| over ``limit``: a unit mix-up or garbage, not a measurement."""
+    over = np.flatnonzero(np.abs(values) > limit)
+    if over.size:
+        row = int(over[0])
+        raise RunLogError(
+            f"column {col}: {values[row]:g} {unit} is beyond {limit:g} {unit} ({why})",
+            src,
+            _line_of_row(src, row),
+        )
+
+
 def read_run_log(path: str | os.PathLike[str]) -> RunLog:
     """Read a run log; raise :class:`RunLogError` naming file and line on any fault."""
     import pandas as pd  # heavy; only the reader needs it
@@ -192,6 +268,15 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
     if dupes:
         raise RunLogError(f"duplicate column(s) {', '.join(dupes)}", src, header_line)
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    other_unit = [c for c in TIME_UNIT_COLUMNS if c in df.columns]
+    if "time_s" in missing and other_unit:
+        col = other_unit[0]
+        raise RunLogError(
+            f"column {col}: time must be in seconds, in a column time_s; divide by "
+            f"{_factor_text(TIME_UNIT_COLUMNS[col])} and rename",
+            src,
+            header_line,
+        )
     if missing:
         raise RunLogError(
             f"missing column(s) {', '.join(missing)} in header {','.join(df.columns)}",
@@ -207,16 +292,21 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
         bad = ~np.isfinite(values)
         if bad.any() and not allow_nan:
             row = int(np.flatnonzero(bad)[0])
+            line = _line_of_row(src, row)
             cell = raw.iloc[row]
-            what = "empty cell" if cell is None or (isinstance(cell, float) and math.isnan(cell)) else f"'{cell}'"
-            raise RunLogError(
-                f"column {col}: {what} is not a finite number", src, _line_of_row(src, row)
-            )
+            if cell is None or (isinstance(cell, float) and math.isnan(cell)):
+                # pandas reads 'nan', 'NA', 'null' and an empty cell alike: show the text
+                text = _raw_cell(src, line, list(df.columns).index(col))
+                what = f"'{text}'" if text else "empty cell"
+            else:
+                what = f"'{cell}'"
+            raise RunLogError(f"column {col}: {what} is not a finite number", src, line)
         return values
 
     time_s = numeric("time_s")
     speed = numeric("speed_rpm")
     elong = numeric(ELONGATION_COLUMN) if ELONGATION_COLUMN in df.columns else None
+    _check_time_unit(time_s, src)
     dt = np.diff(time_s)
     back = np.flatnonzero(dt <= 0)
     if back.size:
@@ -226,6 +316,10 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
             src,
             _line_of_row(src, row),
         )
+    _check_magnitude(speed, MAX_SPEED_RPM, "speed_rpm", "rpm", "no spindle turns that fast", src)
+    if elong is not None:
+        _check_magnitude(elong, MAX_ABS_ELONGATION_UM, ELONGATION_COLUMN, "um",
+                         "over 1 m: wrong unit or a sensor fault?", src)
     extras: dict[str, np.ndarray] = {}
     for col in df.columns:
         if col in REQUIRED_COLUMNS or col == ELONGATION_COLUMN:
