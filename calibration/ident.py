@@ -439,6 +439,7 @@ class IdentResult:
     fit_cpu_s: float = 0.0
     fitted_dt_s: float = 0.0
     segments: tuple[tuple[int, int], ...] = ()
+    trained_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     # -- prediction ---------------------------------------------------------------------
 
@@ -520,9 +521,10 @@ class IdentResult:
         for nm in self.input_names:
             lo, hi = self.valid_ranges[nm]
             span = (hi - lo) / 3
+            tlo, thi = self.trained_ranges.get(nm, (lo + span, hi - span))
             inputs.append(InputChannel(name=nm, unit=(units or {}).get(nm, "1"),
                                        reference=float(self.references[nm]),
-                                       trained_range=(lo + span, hi - span), valid_range=(lo, hi)))
+                                       trained_range=(min(tlo, thi), max(tlo, thi)), valid_range=(lo, hi)))
         return StateSpaceModel(
             form=form, fitted_dt_s=self.fitted_dt_s, speed_range_rpm=(0.0, self.speed_max_rpm),
             taus_s=ss.taus_s, drive_um=tuple(tuple(float(v) for v in row) for row in ss.drive),
@@ -616,6 +618,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
             raise CalibrationError(f"grid {g.label} has no input bank")
     refs: dict[str, float] = {}
     ranges: dict[str, tuple[float, float]] = {}
+    trained: dict[str, tuple[float, float]] = {}
     drives = speed_terms(sp)
     for nm in names:
         u = _series(nm, inputs[nm], t.size)  # type: ignore[index]
@@ -623,6 +626,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
         lo, hi = float(u.min()), float(u.max())
         span = hi - lo
         ranges[nm] = (lo - span, hi + span)
+        trained[nm] = (lo, hi)
         drives[f"in:{nm}"] = u - refs[nm]
     bank = _Bank(t, drives, segments)
     configs = [_Config(g, tuple(alphas), names) for g in cand]
@@ -668,7 +672,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
         speed_max_rpm=float(np.abs(sp).max()), valid_ranges=ranges,
         max_measured_um=float(np.abs(y).max()), baseline=baseline,
         nested_folds=nested_folds, nested_rms_um=nested_rms, nested_max_abs_um=nested_max,
-        selection=tuple(table), fitted_dt_s=dt_s, segments=segs,
+        selection=tuple(table), fitted_dt_s=dt_s, segments=segs, trained_ranges=trained,
     )
     refusals, notes = [], []
     if cv_rms > brms:

@@ -152,6 +152,16 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             + (f", first at line {line})" if line else ")")
             + ": predictions there are extrapolated"
         )
+    outside = getattr(model, "outside_trained", None)  # models that record trained input ranges
+    for name in model.input_names if outside is not None else ():
+        col = inputs[name]
+        for k in (int(np.argmin(col)), int(np.argmax(col))):
+            why = outside({name: float(col[k])})
+            if why is not None:
+                line = log.line_of(k)
+                warnings.append(f"{why}" + (f" (line {line})" if line else "")
+                                + ": predictions there are extrapolated")
+                break
     if gaps:
         line = log.line_of(gaps[0][0])
         warnings.append(

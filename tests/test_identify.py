@@ -232,3 +232,19 @@ def test_a_log_with_hours_missing_fits_and_says_how_the_gap_was_taken(real, tmp_
     log = read_run_log(gappy)
     pred = load_any_model(tmp_path / "m.json").simulate_um(log.speed_rpm, log.time_s, None, None)
     assert np.isfinite(pred).all() and np.abs(pred).max() < 100
+
+
+def test_replay_warns_when_an_input_leaves_its_trained_range(ch3_fit, real, tmp_path):
+    lines = Path(real["ch3"]).read_text().splitlines(keepends=True)
+    head = lines[0].rstrip("\n").split(",")
+    j = head.index("temp5_c")
+    row = lines[5].rstrip("\n").split(",")
+    row[j] = "45.0"  # trained up to ~42 degC, valid up to ~55
+    hot = tmp_path / "hot.csv"
+    hot.write_text("".join(lines[:5]) + ",".join(row) + "\n" + "".join(lines[6:]))
+    r = tc("replay", hot, "--model", ch3_fit[0], "--json")
+    assert r.returncode == 0, r.stderr
+    warnings = json.loads(r.stdout)["warnings"]
+    assert any(w.startswith("temp5_c: 45 degC is outside the trained") and "line 6" in w for w in warnings), warnings
+    r = tc("replay", real["ch3"], "--model", ch3_fit[0], "--json")
+    assert not any("trained" in w for w in json.loads(r.stdout)["warnings"])
