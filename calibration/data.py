@@ -94,7 +94,8 @@ def _check_values(log: RunLog, src: str, elongation_um: np.ndarray) -> None:
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             row = int(bad[0])
-            raise CalibrationError(f"{_at(log, src, row)}: column {col}: {values[row]} is not a finite number")
+            raise CalibrationError(
+                f"{_at(log, src, row)}: column {col}: {values[row]} is not a finite number")
     for col, values, limit in (("time_s", log.time_s, MAX_ABS_TIME_S),
                                ("speed_rpm", log.speed_rpm, MAX_SPEED_RPM)):
         over = np.flatnonzero(np.abs(values) > limit)

@@ -29,6 +29,9 @@ BIN_S = 60.0
 """The error is averaged over 1-min bins before smoothing."""
 SMOOTH_WINDOW_BINS = 31
 """Savitzky-Golay window: a least-squares quadratic over 31 min."""
+MAX_BINS = 1_000_000
+"""Equilibrium figures only for logs spanning up to this many bins (~1.9 years): the bins
+cover the whole span, gaps included, and a log spanning a century would need gigabytes."""
 
 
 def equilibrium(time_s: np.ndarray, error_um: np.ndarray) -> tuple[float | None, float | None]:
@@ -36,9 +39,12 @@ def equilibrium(time_s: np.ndarray, error_um: np.ndarray) -> tuple[float | None,
 
     STE is the slope of a least-squares smooth fit (Savitzky-Golay, quadratic
     over 31 min of 1-min means). Equilibrium starts where |STE| falls below
-    0.5e-3 um/s for good; TEVR is max - min of the error from there on.
+    0.5e-3 um/s for good; TEVR is max - min of the error from there on. None also for a
+    log spanning more than :data:`MAX_BINS` minutes.
     """
-    if time_s.size < 8 or time_s[-1] - time_s[0] < 2 * SMOOTH_WINDOW_BINS * BIN_S:
+    if time_s.size < 8:
+        return None, None
+    if not 2 * SMOOTH_WINDOW_BINS * BIN_S <= time_s[-1] - time_s[0] <= MAX_BINS * BIN_S:
         return None, None
     idx = np.floor((time_s - time_s[0]) / BIN_S).astype(np.int64)
     counts = np.bincount(idx)
@@ -102,7 +108,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     """Free-run ``model`` over the log's own time stamps.
 
     Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated as cooling at
-    zero speed, with a warning; :attr:`Replay.speed_rpm` keeps the logged speed.
+    zero speed, with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
+    number returned is finite, or a one-line error says where the model overflowed.
 
     With ``shaping``, the offset is also passed through the runtime's own shaper
     (:func:`compensator.shaping.shape_series`): the report then gives the error of the offset
@@ -162,6 +169,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                 warnings.append(f"{why}" + (f" (line {line})" if line else "")
                                 + ": predictions there are extrapolated")
                 break
+    if log.duration_s > MAX_BINS * BIN_S:
+        warnings.append(f"the log spans {log.duration_s / 86400:.0f} days: no equilibrium time or "
+                        f"TEVR beyond {MAX_BINS * BIN_S / 86400:.0f} days")
     if gaps:
         line = log.line_of(gaps[0][0])
         warnings.append(

@@ -44,7 +44,8 @@ def write(tmp_path, text, name="log.csv"):
 
 
 def cli_replay(log, model_path):
-    return subprocess.run([str(THERMOCOMP), "replay", str(log), "--model", str(model_path), "--json"],
+    return subprocess.run([str(THERMOCOMP), "replay", str(log), "--model", str(model_path),
+                           "--json"],
                           capture_output=True, text=True, timeout=300, check=False)
 
 
@@ -64,7 +65,8 @@ BAD = {
                  3, r"time_s looks like milliseconds \(.*\); divide by 1000"),
     "epoch_us": (HEADER + rows(EPOCH_MS * 1e3 + 6e7 * np.arange(5), [0] * 5),
                  3, r"time_s looks like microseconds .*divide by 1e6"),
-    "absurd_time": (HEADER + "0,0\n60,0\n1e21,0\n1e22,0\n", 5, r"time_s 1e\+21 s is beyond 1e\+11 s"),
+    "absurd_time": (HEADER + "0,0\n60,0\n1e21,0\n1e22,0\n", 5,
+                    r"time_s 1e\+21 s is beyond 1e\+11 s"),
     "speed_1e12": (HEADER + "0,0\n60,3000\n120,1e12\n180,3000\n", 5,
                    r"column speed_rpm: 1e\+12 rpm is beyond 1e\+06 rpm"),
     "negative_speed_1e12": (HEADER + "0,0\n60,-1e12\n", 4, r"speed_rpm: -1e\+12 rpm is beyond"),
@@ -114,7 +116,8 @@ def test_seconds_are_not_mistaken_for_milliseconds(tmp_path):
     # the bound itself is seconds; just above it is not
     read_run_log(write(tmp_path, HEADER + rows([0.0, MAX_ABS_TIME_S], [0, 0]), "edge.csv"))
     with pytest.raises(RunLogError, match="milliseconds"):
-        read_run_log(write(tmp_path, HEADER + rows([0.0, 1.01 * MAX_ABS_TIME_S], [0, 0]), "over.csv"))
+        over = HEADER + rows([0.0, 1.01 * MAX_ABS_TIME_S], [0, 0])
+        read_run_log(write(tmp_path, over, "over.csv"))
 
 
 def test_fast_but_possible_speed_is_read(tmp_path):
@@ -128,7 +131,8 @@ def test_run_from_log_names_the_line_of_an_implausible_elongation(tmp_path):
     e = np.linspace(0, 20, 30)
     e[17] = 8000.0  # 8 mm: nm taken for um
     write_run_log(tmp_path / "cal.csv", {"time_s": t, "speed_rpm": n, "elongation_um": e})
-    with pytest.raises(CalibrationError, match=r"cal\.csv:19: elongation 8000 um is over 5 mm") as err:
+    with pytest.raises(CalibrationError,
+                       match=r"cal\.csv:19: elongation 8000 um is over 5 mm") as err:
         run_from_log(read_run_log(tmp_path / "cal.csv"))
     assert "\n" not in str(err.value)
 
@@ -228,10 +232,10 @@ def test_replay_output_is_finite_or_refused(tmp_path, seed):
     every number it returns is finite."""
     rng = np.random.default_rng(seed)
     size = int(rng.integers(2, 400))
-    # gaps up to a week: longer ones hit a model.py overflow (test_a_gap_of_months_... below)
-    dt = rng.choice([1e-3, 1.0, 60.0, 10 * H, 7 * 24 * H], size=size - 1,
-                    p=[0.2, 0.4, 0.3, 0.07, 0.03])
-    t = rng.choice([0.0, 1.7e9]) + np.concatenate([[0.0], np.cumsum(dt * rng.uniform(0.5, 1.5, size - 1))])
+    dt = rng.choice([1e-3, 1.0, 60.0, 10 * H, 60 * 24 * H, 3e9], size=size - 1,
+                    p=[0.2, 0.4, 0.3, 0.06, 0.03, 0.01])
+    steps_s = dt * rng.uniform(0.5, 1.5, size - 1)
+    t = rng.choice([0.0, 1.7e9]) + np.concatenate([[0.0], np.cumsum(steps_s)])
     top = rng.choice([12000.0, 3e5, MAX_SPEED_RPM])
     speed = rng.uniform(-top, top, size) * (rng.random(size) < 0.8)
     elong = rng.normal(0, 50, size)
@@ -257,16 +261,17 @@ def month_gap_log(tmp_path) -> Path:
     return p
 
 
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # as in production: no warning filter
-def test_a_gap_of_months_never_gives_nan(tmp_path):
-    try:
-        rep = replay(model(), read_run_log(month_gap_log(tmp_path)), initial_um=0.0)
-    except ThermocompError as err:  # refused is safe: one line, naming where
-        assert "\n" not in str(err) and "months.csv" in str(err)
-        return
-    assert np.isfinite(rep.predicted_um).all()
+def test_a_log_spanning_a_century_replays_quickly_without_equilibrium(tmp_path):
+    t = np.concatenate([np.arange(100) * 60.0, 3e9 + np.arange(100) * 60.0])
+    log = RunLog(t, np.full(t.size, 5000.0), np.zeros(t.size))
+    rep = replay(model(), log)  # the 1-min bins of the equilibrium figures would need gigabytes
+    assert rep.report["equilibrium_time_s"] is None and rep.report["tevr_um"] is None
+    assert any("no equilibrium time or TEVR" in w for w in rep.report["warnings"])
+    assert np.isfinite(rep.predicted_um).all() and rep.report["gaps"] == 1
 
 
 def test_a_gap_of_months_cools_completely(tmp_path):
+    # one step of 60 days at rest: the exponent of the free run spans far beyond exp()'s range
     rep = replay(model(), read_run_log(month_gap_log(tmp_path)), initial_um=0.0)
-    assert abs(rep.predicted_um[3]) < 1e-9  # fully cooled after two months at rest
+    assert np.isfinite(rep.predicted_um).all()
+    assert rep.predicted_um[2] > 0.1 and abs(rep.predicted_um[3]) < 1e-9  # heated, then cooled
