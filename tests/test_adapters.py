@@ -585,6 +585,12 @@ def vcnc_process():
             proc.wait(10)
 
 
+def _proc_state(pid: int) -> str:
+    """The process state letter from /proc (R running, S sleeping, T stopped, ...)."""
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return stat[stat.rindex(")") + 2]
+
+
 def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_process):
     proc, url = vcnc_process
     clock = FakeClock()
@@ -595,6 +601,9 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
     assert link.read_speed() == 7000.0
     link.write_offset_um(-4.0)
     os.kill(proc.pid, signal.SIGSTOP)
+    # kill() returns before the signal lands: under load the server could still answer one
+    # request, so wait until the kernel reports it stopped
+    assert wait_for(lambda: _proc_state(proc.pid) in ("T", "t"))
     # the call times out, and says so (the runtime counts it as a link failure) ...
     start = time.monotonic()
     with pytest.raises(AdapterTimeoutError, match="no answer"):
