@@ -150,10 +150,10 @@ def fit(args: argparse.Namespace) -> int:
     names = _input_names(args, logs)
     data, gap_notes = [], []
     for p, r, lg in zip(args.runs, runs, logs):
-        speed, gaps = bridge_gaps(r.time_s, r.speed_rpm)  # missing rows: cooling at zero speed
+        speed, gaps = bridge_gaps(r.time_s, r.speed_rpm)  # missing rows: the last logged speed
         if gaps:
             gap_notes.append(f"{Path(p).name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
-                             "integrated as cooling at zero speed")
+                             "integrated at the last logged speed (a gap that begins at rest cools)")
         data.append(LogData(Path(p).name, r.time_s, speed, r.elongation_um,
                             {n: np.asarray(lg.extras[n], dtype=float) for n in names}))
     with progress(not args.json) as say:

@@ -19,10 +19,12 @@ TRANSIENT_STEP_FRACTION = 0.1
 GAP_MEDIAN_STEPS = 10.0
 MIN_GAP_S = 600.0
 """A time step longer than max(GAP_MEDIAN_STEPS x median step, MIN_GAP_S) is a gap in the
-log (:func:`bridge_gaps`), and a gap is integrated as cooling at zero speed: rows missing
-for that long mean the logger, and most likely the machine, was off. Holding the last speed
-instead would heat the model for hours with no evidence the spindle turned. 600 s keeps a
-coarse log (a step of a minute or more) from calling a single late sample a gap."""
+log (:func:`bridge_gaps`), and a gap is integrated at the **last logged speed**: a gap that
+begins at rest (a logger left off overnight, a machine switched off) is a cool-down, and a
+recording that stalls while the spindle runs keeps it running. The run-log convention would
+otherwise hold the speed of the sample *after* the gap over all of it, heating a machine that
+was off. 600 s keeps a coarse log (a step of a minute or more) from calling a single late
+sample a gap."""
 
 
 @dataclass(frozen=True)
@@ -62,11 +64,11 @@ def gap_threshold_s(time_s: np.ndarray) -> float:
 
 def bridge_gaps(time_s: np.ndarray, speed_rpm: np.ndarray,
                 gap_s: float | None = None) -> tuple[np.ndarray, list[tuple[int, float]]]:
-    """The speed with every gap in the log integrated as cooling at zero speed.
+    """The speed with every gap in the log integrated at the last logged speed.
 
     ``speed_rpm[k]`` is held over ``(time_s[k-1], time_s[k]]``, so a sample ending a step
-    longer than ``gap_s`` (default :func:`gap_threshold_s`) gets speed 0: the model cools
-    across the gap and the logged speeds resume at the next sample. Returns the new speed (a
+    longer than ``gap_s`` (default :func:`gap_threshold_s`) gets the speed of the sample before
+    the gap: at rest, the model cools across it; the logged speeds resume at the next sample. Returns the new speed (a
     copy) and the (row, gap length [s]) of each gap. Pure: no I/O, inputs untouched.
     """
     t = np.asarray(time_s, dtype=float)
@@ -78,7 +80,7 @@ def bridge_gaps(time_s: np.ndarray, speed_rpm: np.ndarray,
         raise CalibrationError(f"gap threshold {gap_s!r} s is not a positive number")
     dt = np.diff(t)
     rows = np.flatnonzero(dt > limit_s) + 1
-    speed[rows] = 0.0
+    speed[rows] = speed[rows - 1]
     return speed, [(int(k), float(dt[k - 1])) for k in rows]
 
 

@@ -107,8 +107,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
            shaping: ShaperConfig | None = None) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
-    Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated as cooling at
-    zero speed, with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
+    Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated at the last logged
+    speed (a gap that begins at rest cools), with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
     number returned is finite, or a one-line error says where the model overflowed.
 
     With ``shaping``, the offset is also passed through the runtime's own shaper
@@ -177,7 +177,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         warnings.append(
             f"{len(gaps)} gap(s) of up to {_duration(max(g for _, g in gaps))} in the log"
             + (f" (first ending at line {line})" if line else "")
-            + ": integrated as cooling at zero speed"
+            + ": integrated at the last logged speed (a gap that begins at rest cools)"
         )
     limit_s = gap_threshold_s(log.time_s)
     held = [g for g in log.gaps if g.duration_s <= limit_s]  # short ones: bridge_gaps left them

@@ -228,7 +228,7 @@ def test_a_log_with_hours_missing_fits_and_says_how_the_gap_was_taken(real, tmp_
     r = tc("fit", gappy, "--no-physical", "--no-nested", "--output", tmp_path / "m.json", "--json")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
-    assert any("gap" in w and "zero speed" in w and "10.0 h" in w for w in rep["warnings"]), rep["warnings"]
+    assert any("gap" in w and "last logged speed" in w and "10.0 h" in w for w in rep["warnings"]), rep["warnings"]
     log = read_run_log(gappy)
     pred = load_any_model(tmp_path / "m.json").simulate_um(log.speed_rpm, log.time_s, None, None)
     assert np.isfinite(pred).all() and np.abs(pred).max() < 100
