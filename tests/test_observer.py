@@ -1,0 +1,64 @@
+"""The probe observer (compensator.observer): exact at any Δt, bounded under an unmodelled
+drift, outliers gated. Pure: no plant process needed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from compensator.errors import ModelError
+from compensator.observer import (
+    ObserverConfig,
+    ObserverState,
+    fuse_series,
+    measurement_update,
+    time_update,
+)
+
+
+def test_time_update_is_exact_at_any_step_partition():
+    cfg = ObserverConfig(bias_q_um2_per_s=1e-3, drift_q_um2_per_s3=1e-9)
+    z = ObserverState(1.0, 1e-4, ((2.0, 0.01), (0.01, 1e-6)))
+    one = time_update(cfg, z, 1800.0)
+    many = z
+    for dt in (1.0, 99.0, 700.0, 1000.0):
+        many = time_update(cfg, many, dt)
+    assert one.bias_um == pytest.approx(many.bias_um)
+    assert np.allclose(one.cov, many.cov, rtol=1e-9)
+
+
+def test_fused_error_stays_bounded_while_the_open_loop_grows():
+    t = np.arange(0, 12 * 3600.0 + 1, 15.0)
+    model = 10 * (1 - np.exp(-t / 3600.0))  # what the model predicts
+    truth = model + 1.5 * t / 3600.0  # an unmodelled ambient drift: 1.5 um per hour
+    rng = np.random.default_rng(3)
+    pt = t[::120][1:]  # a probe every 30 min
+    py = np.interp(pt, t, truth) + rng.normal(0, 0.5, pt.size)
+    f = fuse_series(ObserverConfig(), t, model, pt, py, np.full(pt.size, 0.5))
+    open_loop = np.abs(truth - model)
+    fused = np.abs(truth - f.fused_um)
+    late = t > 6 * 3600
+    assert open_loop[late].max() > 9.0  # the open loop has drifted away
+    assert fused[late].max() < 2.5 and np.sqrt(np.mean(fused[late] ** 2)) < 1.2
+    assert f.accepted == pt.size and f.rejected == 0
+
+
+def test_an_outlier_is_refused_by_the_gate():
+    cfg = ObserverConfig()
+    z = measurement_update(cfg, ObserverState.prior(cfg), 5.0, 4.0, 0.5).state
+    z = time_update(cfg, z, 900.0)
+    sd = np.sqrt(z.cov[0][0] + 0.25)
+    bad = measurement_update(cfg, z, 4.0 + z.bias_um + 6 * sd, 4.0, 0.5)
+    assert not bad.accepted and bad.state == z and bad.innovation_um > 5 * bad.innovation_sd_um
+    good = measurement_update(cfg, z, 4.0 + z.bias_um + 2 * sd, 4.0, 0.5)
+    assert good.accepted and good.state.bias_um > z.bias_um
+
+
+def test_bad_measurements_are_one_line_errors():
+    cfg = ObserverConfig()
+    with pytest.raises(ModelError, match="sigma must be > 0"):
+        measurement_update(cfg, ObserverState.prior(cfg), 1.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="measured_um"):
+        measurement_update(cfg, ObserverState.prior(cfg), float("nan"), 0.0, 0.5)
+    with pytest.raises(ModelError, match="gate_sigma"):
+        ObserverConfig(gate_sigma=0.0)
