@@ -354,7 +354,12 @@ def replay_cmd(args: argparse.Namespace) -> int:
     log = read_run_log(args.log)
     with progress(not args.json) as say:
         say("replaying")
-        rep = replay(model, log, args.initial_um, ShaperConfig() if args.applied else None)
+        probes = None
+        if args.probe_every is not None:
+            from .replay import probes_every
+
+            probes = probes_every(log, args.probe_every, args.probe_noise_um, args.probe_seed)
+        rep = replay(model, log, args.initial_um, ShaperConfig() if args.applied else None, probes)
         if args.output:
             say("writing predictions")
             write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})

@@ -17,6 +17,7 @@ from scipy.signal import savgol_filter
 
 from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.io import RunLog
+from compensator.observer import ObserverConfig, fuse_series
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
@@ -103,8 +104,37 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
 
 
+@dataclass(frozen=True)
+class Probes:
+    """Measurements to fuse (issue 17): times [s] on the log's clock, values and sigma [um]."""
+
+    time_s: np.ndarray
+    elongation_um: np.ndarray
+    sigma_um: np.ndarray
+    source: str
+
+
+def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int = 0) -> Probes:
+    """Simulated tool-setter measurements: the log's measured elongation every ``every_s``
+    seconds (at the first sample at or after each instant) plus Gaussian noise of ``noise_um``."""
+    if log.elongation_um is None:
+        raise RunLogError("--probe-every needs a measured elongation_um column", log.source)
+    if not (math.isfinite(every_s) and every_s > 0):
+        raise NonFiniteInputError(f"--probe-every must be > 0 s, got {every_s}")
+    if not (math.isfinite(noise_um) and noise_um > 0):
+        raise NonFiniteInputError(f"--probe-noise-um must be > 0, got {noise_um}")
+    t = log.time_s
+    want = t[0] + every_s * np.arange(1, int((t[-1] - t[0]) // every_s) + 1)
+    idx = np.unique(np.searchsorted(t, want))
+    idx = idx[idx < t.size]
+    rng = np.random.default_rng(seed)
+    values = np.asarray(log.elongation_um, float)[idx] + rng.normal(0.0, noise_um, idx.size)
+    return Probes(t[idx], values, np.full(idx.size, noise_um),
+                  f"every {every_s:g} s from the measured column, noise {noise_um:g} um, seed {seed}")
+
+
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
-           shaping: ShaperConfig | None = None) -> Replay:
+           shaping: ShaperConfig | None = None, probes: Probes | None = None) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
     Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated at the last logged
@@ -134,6 +164,12 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     # a gap of missing rows is the spindle at rest: hours of held speed would be invented heat
     speed_sim, gaps = bridge_gaps(log.time_s, log.speed_rpm)
     pred = model.simulate_um(speed_sim, log.time_s, inputs, initial_um)
+    open_loop = pred
+    fusion = None
+    if probes is not None:  # the closed loop: the fused estimate replaces the model's
+        fusion = fuse_series(ObserverConfig(), log.time_s, pred, probes.time_s, probes.elongation_um,
+                             probes.sigma_um)
+        pred = fusion.fused_um
     applied = None
     if shaping is not None:
         applied, _ = shape_series(shaping, log.time_s, speed_sim, pred)
@@ -199,6 +235,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "min_predicted_um": float(np.min(pred)),
         "gaps": len(gaps),
     }
+    if probes is not None and fusion is not None:
+        report.update(probes=int(probes.time_s.size), probes_rejected=fusion.rejected,
+                      probe_source=probes.source)
     if measured is not None:
         res = measured - pred
         st = residual_stats(res)
@@ -213,6 +252,10 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             std_reduction_pct=100.0 * (1 - std_c / std_u) if std_u > 0 else None,
             max_abs_uncompensated_um=float(np.max(np.abs(measured))),
         )
+        if fusion is not None:
+            ost = residual_stats(measured - open_loop)
+            report.update(open_loop_rms_residual_um=ost["rms_um"],
+                          open_loop_max_abs_residual_um=ost["max_abs_um"])
         if applied is not None:
             ast = residual_stats(measured + applied)
             report.update(applied_rms_residual_um=ast["rms_um"],

@@ -62,3 +62,27 @@ def test_bad_measurements_are_one_line_errors():
         measurement_update(cfg, ObserverState.prior(cfg), float("nan"), 0.0, 0.5)
     with pytest.raises(ModelError, match="gate_sigma"):
         ObserverConfig(gate_sigma=0.0)
+
+
+def test_replay_probe_every_fuses_and_keeps_the_open_loop_beside(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from compensator.io import save_model
+    from compensator.model import ThermalModel
+
+    run = lambda *a: subprocess.run([sys.executable, "-m", "thermocomp", *map(str, a)],  # noqa: E731
+                                    capture_output=True, text=True)
+    assert run("simulate", "--dt", 60, "--output", tmp_path / "cal.csv").returncode == 0
+    # a deliberately poor model: half the plant's gain, so the open loop drifts away
+    save_model(tmp_path / "m.json", ThermalModel.from_discrete(
+        0.98, (0.0, 0.002, 0.0004, 0.0), 60.0, speed_range_rpm=(0.0, 27000.0)))
+    r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--probe-every", 900, "--json")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["probes"] >= 10 and 0 <= rep["probes_rejected"] < rep["probes"] // 4
+    assert rep["rms_residual_um"] < 0.8 * rep["open_loop_rms_residual_um"]
+    assert rep["max_abs_residual_um"] < rep["open_loop_max_abs_residual_um"]
+    r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--probe-every", 0, "--json")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--probe-every must be > 0" in r.stderr

@@ -77,6 +77,11 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", help="write a PNG plot")
     p.add_argument("--initial-um", type=float, help="initial elongation (default: first measured, else 0)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--probe-every", type=float, metavar="SECONDS",
+                   help="simulate the closed loop: a tool-setter measurement every SECONDS, drawn "
+                   "from the log's elongation_um plus noise, fused by the observer")
+    p.add_argument("--probe-noise-um", type=float, default=0.5, help="noise (sigma) of those measurements")
+    p.add_argument("--probe-seed", type=int, default=0, help="random seed of that noise")
     p.add_argument("--applied", action="store_true",
                    help="also pass the offset through the runtime's shaper (default shaping) and "
                         "report the error of the offset the machine would hold")
