@@ -51,7 +51,14 @@ import numpy as np
 from compensator.errors import CalibrationError, ModelError, NonFiniteInputError
 from compensator.filters import filter_bank, series, times
 from compensator.model import ModelState, ThermalModel, ThermalStateCoefficients
-from compensator.statespace import GAIN_BOUND, MAX_TAU_S, SPEED_CLIP, InputChannel, StateSpaceModel
+from compensator.statespace import (
+    GAIN_BOUND,
+    MAX_TAU_S,
+    SPEED_CLIP,
+    InputChannel,
+    StateSpaceModel,
+    steady_range_um,
+)
 from compensator.units import SPEED_SCALE_RPM
 
 # -- constants ------------------------------------------------------------------------------
@@ -305,16 +312,19 @@ class FoldScore:
     max_abs_um: float
 
 
-def _scores(residual: np.ndarray, cycles: Sequence[tuple[int, int]]) -> tuple[FoldScore, ...]:
-    out = []
-    for i, (a, b) in enumerate(cycles, start=1):
-        r = residual[a:b]
-        out.append(FoldScore(i, a, b, float(np.sqrt(np.mean(r * r))), float(np.max(np.abs(r)))))
-    return tuple(out)
+def _finite(residual: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(residual), residual, 1e9)  # a diverging free run scores huge, not NaN
 
 
-def _pooled(residual: np.ndarray) -> tuple[float, float]:
-    return float(np.sqrt(np.mean(residual * residual))), float(np.max(np.abs(residual)))
+def fold_scores(residual: np.ndarray, cycles: Sequence[tuple[int, int]]) -> tuple[FoldScore, ...]:
+    """RMS and max |residual| on each fold; a non-finite residual counts as 1e9 um."""
+    return tuple(FoldScore(i, a, b, *pooled_stats(residual[a:b])) for i, (a, b) in enumerate(cycles, start=1))
+
+
+def pooled_stats(residual: np.ndarray) -> tuple[float, float]:
+    """RMS and max |residual| over all rows; a non-finite residual counts as 1e9 um."""
+    r = _finite(residual)
+    return float(np.sqrt(np.mean(r * r))), float(np.max(np.abs(r)))
 
 
 def _cv_residuals(x: np.ndarray, y: np.ndarray, cycles: Sequence[tuple[int, int]],
@@ -536,18 +546,14 @@ class IdentResult:
 
     def steady_range_um(self) -> float:
         """Largest |steady elongation change| the gains imply over the calibrated speed range and
-        the inputs' measured ranges (each input at the worse end of its range)."""
-        n = np.linspace(0.0, self.speed_max_rpm / SPEED_SCALE_RPM, 201)
-        g = self.speed_gains_um.sum(axis=1)
-        speed = float(np.max(np.abs(g[0] * n + g[1] * n * n)))
-        total = speed
-        for i, nm in enumerate(self.input_names):
+        the inputs' measured ranges (:func:`compensator.statespace.steady_range_um`)."""
+        gains = [*self.speed_gains_um.sum(axis=1), *self.input_gains_um.sum(axis=1)]
+        inputs = []
+        for nm in self.input_names:
             lo, hi = self.valid_ranges[nm]
             span = (hi - lo) / 3  # valid range = measured range widened by its span each side
-            mlo, mhi = lo + span, hi - span
-            ref = self.references[nm]
-            total += abs(float(self.input_gains_um[i].sum())) * max(abs(mlo - ref), abs(mhi - ref))
-        return total
+            inputs.append((self.references[nm], self.trained_ranges.get(nm, (lo + span, hi - span))))
+        return steady_range_um(gains, self.speed_max_rpm, inputs)
 
     def describe(self) -> list[str]:
         lines = [(f"grid {self.grid.label}, alpha {self.alpha:.3g}, "
@@ -636,12 +642,12 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
     k, alpha, table = _select(bank, y, configs, cyc, rule=rule)
     cfg = configs[k]
     res = _cv_residuals(bank.design(cfg.grid, names), y, cyc, (alpha,))[:, 0]
-    folds = _scores(res, cyc)
-    cv_rms, cv_max = _pooled(res)
+    folds = fold_scores(res, cyc)
+    cv_rms, cv_max = pooled_stats(res)
 
     kb, _, _ = _select(bank, y, base_cfgs, cyc, rule="min")
     bres = _cv_residuals(bank.design(base_cfgs[kb].grid, ()), y, cyc, (0.0,))[:, 0]
-    brms, bmax = _pooled(bres)
+    brms, bmax = pooled_stats(bres)
     baseline = {"tau_s": base_cfgs[kb].grid.speed_taus_s[0], "cv_rms_um": brms, "cv_max_abs_um": bmax}
 
     nested_folds = nested_rms = nested_max = None
@@ -658,9 +664,9 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
             kbi, _, _ = _select(bank, y, base_cfgs, inner, mask, rule="min")
             g, c = _fit_config(bank, y, base_cfgs[kbi], 0.0, mask)
             bouter[a:b] = y[a:b] - (bank.design(base_cfgs[kbi].grid, ())[a:b] @ g + c)
-        nested_folds = _scores(outer, cyc)
-        nested_rms, nested_max = _pooled(outer)
-        baseline = {**baseline, "nested_rms_um": _pooled(bouter)[0], "nested_max_abs_um": _pooled(bouter)[1]}
+        nested_folds = fold_scores(outer, cyc)
+        nested_rms, nested_max = pooled_stats(outer)
+        baseline = {**baseline, "nested_rms_um": pooled_stats(bouter)[0], "nested_max_abs_um": pooled_stats(bouter)[1]}
 
     gains, intercept = _fit_config(bank, y, cfg, alpha, everything)
     ns = len(cfg.grid.speed_taus_s)
@@ -815,7 +821,6 @@ def paper_ols_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
             else:
                 pred = fit.predict(t, speed_rpm, float(y[0]))[a:b]
         res[a:b] = y[a:b] - pred
-    res = np.where(np.isfinite(res), res, 1e9)  # a diverging free run scores as huge, not NaN
-    rms, mx = _pooled(res)
-    return {"folds": _scores(res, cycles), "cv_rms_um": rms, "cv_max_abs_um": mx,
+    rms, mx = pooled_stats(res)
+    return {"folds": fold_scores(res, cycles), "cv_rms_um": rms, "cv_max_abs_um": mx,
             "a": [f.a for f in fits], "one_step_r2": [f.one_step_r2 for f in fits]}

@@ -154,20 +154,11 @@ class Candidate:
                 "fit_cpu_s": round(self.fit_cpu_s, 3)}
 
 
-def _stats(residual: np.ndarray) -> tuple[float, float]:
-    r = np.where(np.isfinite(residual), residual, 1e9)  # a diverging free run scores huge, not NaN
-    return float(np.sqrt(np.mean(r * r))), float(np.max(np.abs(r)))
-
-
-def _fold_rms(residual: np.ndarray, folds: Sequence[tuple[int, int]]) -> list[float]:
-    return [_stats(residual[a:b])[0] for a, b in folds]
-
-
 def _from_ident(name: str, family: str, description: str, res: ident.IdentResult, j: Joined) -> Candidate:
     c = Candidate(name, family, description, res.cv_rms_um, res.cv_max_abs_um, res.nested_rms_um,
                   res.nested_max_abs_um, [f.rms_um for f in res.folds], fit_cpu_s=res.fit_cpu_s)
     pred = res.predict(j.time_s, j.speed_rpm, j.inputs if res.input_names else None, j.segments)
-    c.in_sample_rms_um, c.in_sample_max_abs_um = _stats(j.elongation_um - pred)
+    c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - pred)
     c.details = {"grid": res.grid.label, "alpha": res.alpha,
                  "states": len({t for t in (*res.grid.speed_taus_s, *res.grid.input_taus_s) if t > 0}),
                  "steady_range_um": res.steady_range_um()}
@@ -213,14 +204,14 @@ def _physical(j: Joined, dt_s: float, meta: Mapping[str, Any]) -> Candidate:
             c.fit_cpu_s = time.process_time() - cpu0
             return c
         res[a:b] = (j.elongation_um - _free_run(fit.model, j))[a:b]
-    c.cv_rms_um, c.cv_max_abs_um = _stats(res)
-    c.folds_rms_um = _fold_rms(res, j.folds)
+    c.cv_rms_um, c.cv_max_abs_um = ident.pooled_stats(res)
+    c.folds_rms_um = [f.rms_um for f in ident.fold_scores(res, j.folds)]
     full = fit_classic_form(spec, _runs_of(j, np.ones(j.time_s.size, bool), dt_s), **meta)
     if full.model is None:
         c.refusals.append(f"no stable fit on all rows ({full.note})")
     else:
         c.model = full.model
-        c.in_sample_rms_um, c.in_sample_max_abs_um = _stats(j.elongation_um - _free_run(full.model, j))
+        c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - _free_run(full.model, j))
         c.details = {"coefficients": full.coefficients}
         top = abs(full.model.steady_state_um(full.model.speed_range_rpm[1]))
         bound = ident.GAIN_BOUND * float(np.max(np.abs(j.elongation_um)))
@@ -245,7 +236,7 @@ def _paper(j: Joined) -> Candidate:
     c.folds_rms_um = [f.rms_um for f in cv["folds"]]
     with np.errstate(all="ignore"):
         pred = fit.predict(j.time_s, j.speed_rpm, float(j.elongation_um[0]))
-    c.in_sample_rms_um, c.in_sample_max_abs_um = _stats(j.elongation_um - pred)
+    c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - pred)
     c.details = {"a": fit.a, "one_step_r2": fit.one_step_r2, "a_per_fold": cv["a"]}
     if fit.a >= 1:
         c.notes.append(f"pole a = {fit.a:.6f} >= 1: its free run diverges")
@@ -394,7 +385,7 @@ def _with_fit(c: Candidate, j: Joined, reason: str) -> Any:
     if "alpha" in c.details:
         fit["alpha"] = c.details["alpha"]
         fit["grid"] = c.details["grid"]
-    return c.model.model_copy(update={"fit": fit}) if hasattr(c.model, "model_copy") else c.model
+    return c.model.model_copy(update={"fit": fit})
 
 
 def _derived(c: Candidate, res: ident.IdentResult | None, j: Joined) -> list[dict[str, Any]]:

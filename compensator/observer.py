@@ -142,6 +142,6 @@ def fuse_series(cfg: ObserverConfig, time_s: np.ndarray, predicted_um: np.ndarra
             acc += up.accepted
             rej += not up.accepted
             j += 1
-        zk = time_update(cfg, z, max(t[k] - t_z, 0.0))
-        bias[k] = zk.bias_um
+        # the mean of the time update; its covariance is not needed between probes
+        bias[k] = z.bias_um + max(t[k] - t_z, 0.0) * z.drift_um_per_s
     return Fusion(s + bias, bias, acc, rej)

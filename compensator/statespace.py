@@ -57,6 +57,19 @@ def _finite(values: Any) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+def steady_range_um(gains: Any, speed_max_rpm: float,
+                    inputs: list[tuple[float, tuple[float, float]]]) -> float:
+    """Largest |steady elongation change| that steady gains on [n, n^2, inputs...] imply over
+    0..``speed_max_rpm``, each input (reference, (min, max)) at the worse end of its range [um]:
+    the bound the fit and the model file are both held to."""
+    g = np.asarray(gains, dtype=float)
+    n = np.linspace(0.0, speed_max_rpm / SPEED_SCALE_RPM, 201)
+    total = float(np.max(np.abs(g[0] * n + g[1] * n * n)))
+    for gi, (ref, (lo, hi)) in zip(g[2:], inputs):
+        total += abs(float(gi)) * max(abs(lo - ref), abs(hi - ref))
+    return total
+
+
 class InputChannel(BaseModel):
     """A measured input (a temperature...) as the model uses it."""
 
@@ -184,15 +197,9 @@ class StateSpaceModel(BaseModel):
         return self._d + self._b.sum(axis=0)
 
     def steady_range_um(self) -> float:
-        """Largest |steady elongation change| the gains imply over the trained speed range, each
-        input at the worse end of its trained range."""
-        g = self.total_gains()
-        n = np.linspace(0.0, self.speed_range_rpm[1] / SPEED_SCALE_RPM, 201)
-        total = float(np.max(np.abs(g[0] * n + g[1] * n * n)))
-        for gi, ch in zip(g[2:], self.inputs):
-            lo, hi = ch.trained_range
-            total += abs(float(gi)) * max(abs(lo - ch.reference), abs(hi - ch.reference))
-        return total
+        """Largest |steady elongation change| the gains imply over the trained ranges."""
+        return steady_range_um(self.total_gains(), self.speed_range_rpm[1],
+                               [(c.reference, c.trained_range) for c in self.inputs])
 
     def steady_state_um(self, speed_rpm: float, inputs: Mapping[str, float] | None = None) -> float:
         """Equilibrium elongation with ``speed_rpm`` held, inputs at ``inputs`` (default: at
