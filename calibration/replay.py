@@ -17,7 +17,7 @@ from scipy.signal import savgol_filter
 
 from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.io import RunLog
-from compensator.observer import ObserverConfig, fuse_series
+from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
@@ -163,12 +163,14 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
     # a gap of missing rows is the spindle at rest: hours of held speed would be invented heat
     speed_sim, gaps = bridge_gaps(log.time_s, log.speed_rpm)
-    pred = model.simulate_um(speed_sim, log.time_s, inputs, initial_um)
-    open_loop = pred
     fusion = None
-    if probes is not None:  # the closed loop: the fused estimate replaces the model's
-        fusion = fuse_series(ObserverConfig(), log.time_s, pred, probes.time_s, probes.elongation_um,
-                             probes.sigma_um)
+    if probes is None:
+        pred = model.simulate_um(speed_sim, log.time_s, inputs, initial_um)
+        open_loop = pred
+    else:  # the closed loop: the fused estimate replaces the model's
+        fused = model if isinstance(model, FusedPredictor) else FusedPredictor(model, observer_config_of(model))
+        open_loop, fusion = fused.fuse_um(speed_sim, log.time_s, inputs, initial_um, probes.time_s,
+                                          probes.elongation_um, probes.sigma_um)
         pred = fusion.fused_um
     applied = None
     if shaping is not None:
@@ -237,6 +239,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     }
     if probes is not None and fusion is not None:
         report.update(probes=int(probes.time_s.size), probes_rejected=fusion.rejected,
+                      probe_restarts=fusion.restarts,
                       probe_source=probes.source)
     if measured is not None:
         res = measured - pred

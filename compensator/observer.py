@@ -1,17 +1,26 @@
 """Fusing occasional tool-setter or probe measurements with a model: a Kalman filter on
-disturbance states. Pure: numpy only, no I/O.
+disturbance states. Pure: numpy and pydantic only, no I/O.
 
 The model's free-run prediction S(t) misses what it does not see (coolant, ambient, load,
-wear). The observer estimates that miss as a disturbance d(t) = b(t) added to the prediction,
-with b a random walk plus, optionally, a drift rate r (an integrated random walk)::
+wear). The observer estimates that miss as a disturbance b(t) added to the prediction: a random
+walk plus, optionally, a drift rate r (an integrated random walk)::
 
     b' = r + w_b,   r' = w_r,     E[w_b^2] = q_b [um^2/s],  E[w_r^2] = q_r [um^2/s^3]
-    y  = S + b + v,               E[v^2] = sigma^2 (the stated sigma of the measurement)
+    y  = S + b + e + v,           E[v^2] = sigma^2 (the stated sigma of the measurement),
+                                  E[e^2] = model_sd^2 (the model's fast misses, minutes long)
+
+``e`` is the part of the model's residual that changes faster than probes come (coolant
+cycling, a few minutes long on the real record): no disturbance state can follow it, so it
+counts as measurement noise. ``q_b`` and ``model_sd`` are fitted from the calibration residuals
+(:func:`calibration.ident`'s variogram, ``docs/PROBING.md``); the defaults are the order of the
+real record's speed-only residuals.
 
 The time update is the exact discretisation over the real Δt (F = [[1, Δt], [0, 1]], Q from the
-continuous noise); the measurement update is exact at any time. An innovation beyond ``gate``
-standard deviations is rejected (the caller raises ``PROBE_REJECTED``). The fused estimate is
-S + b at every sample, using only the measurements taken up to that sample.
+continuous noise); the measurement update is exact at any time (Joseph form). An innovation
+beyond ``gate_sigma`` standard deviations is rejected (the runtime raises ``PROBE_REJECTED``);
+``reaccept_after`` consecutive rejected measurements that agree with each other are taken as a
+real change (a step the model cannot know, e.g. a crash or a new tool holder) and the bias
+restarts from them, so that one early refusal cannot lock the filter out for good.
 """
 
 from __future__ import annotations
@@ -20,48 +29,62 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import ModelError
 from .units import require_dt, require_finite
 
+COV_LIMIT = 1e12  # um^2: a gap of years forgets the prior; the numbers stay finite
 
-@dataclass(frozen=True)
-class ObserverConfig:
-    """Noise levels of the disturbance model and the outlier gate."""
 
-    bias_q_um2_per_s: float = 25.0 / 3600.0
-    """Random-walk intensity of the bias: (5 um)^2 per hour, the order of the speed-only model's
-    free-run residual increments on the real record (21-36 um^2/h at 15 min to 1 h lags, ch3).
-    Too small a value makes the gate refuse the real changes and the filter diverge."""
-    drift_q_um2_per_s3: float = 0.0
-    """Random-walk intensity of the drift rate [um^2/s^3]; 0 (default) = no drift state: on the
-    real record a drift state did not help (in-sample, ch3, probes every 15 min to 2 h)."""
-    gate_sigma: float = 5.0
-    """Innovations beyond this many standard deviations are rejected."""
-    initial_bias_sd_um: float = 10.0
-    """Prior spread of the bias before the first measurement."""
+class ObserverConfig(BaseModel):
+    """Noise levels of the disturbance model and the outlier gate (immutable)."""
 
-    def __post_init__(self) -> None:
-        for name in ("bias_q_um2_per_s", "drift_q_um2_per_s3", "gate_sigma", "initial_bias_sd_um"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ModelError(f"observer {name} must be finite and >= 0, got {v}")
-        if self.gate_sigma <= 0:
-            raise ModelError("observer gate_sigma must be > 0")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    bias_q_um2_per_s: float = Field(
+        25.0 / 3600.0, ge=0,
+        description="random-walk intensity of the bias [um^2/s]; default (5 um)^2 per hour, the "
+                    "order of the speed-only residual's increments on the real record")
+    drift_q_um2_per_s3: float = Field(
+        0.0, ge=0, description="random-walk intensity of a drift rate [um^2/s^3]; 0 = no drift state")
+    model_sd_um: float = Field(
+        0.0, ge=0, description="the model's fast misses, counted as measurement noise [um]")
+    gate_sigma: float = Field(5.0, gt=0, description="innovations beyond this many sd are rejected")
+    initial_bias_sd_um: float = Field(
+        30.0, gt=0, description="prior spread of the bias before the first measurement [um]")
+    reaccept_after: int = Field(
+        2, ge=0, description="consecutive rejected measurements that agree restart the bias "
+                             "(0 = never)")
+
+    def noise_var_um2(self, sigma_um: float) -> float:
+        """Variance of one measurement's error as the filter sees it [um^2]."""
+        return sigma_um * sigma_um + self.model_sd_um ** 2
 
 
 @dataclass(frozen=True)
 class ObserverState:
-    """Disturbance estimate (bias [um], drift rate [um/s]) and its covariance."""
+    """Disturbance estimate (bias [um], drift rate [um/s]), its covariance, and the implied
+    biases of the rejected measurements since the last accepted one."""
 
     bias_um: float
     drift_um_per_s: float
     cov: tuple[tuple[float, float], tuple[float, float]]
+    pending_um: tuple[float, ...] = ()
 
     @classmethod
     def prior(cls, cfg: ObserverConfig) -> ObserverState:
         v = cfg.initial_bias_sd_um ** 2
         return cls(0.0, 0.0, ((v, 0.0), (0.0, 0.0 if cfg.drift_q_um2_per_s3 == 0 else v / 3600.0**2)))
+
+    @property
+    def bias_sd_um(self) -> float:
+        return math.sqrt(max(self.cov[0][0], 0.0))
+
+
+def _cov(p: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    p = np.minimum(p, COV_LIMIT)
+    return ((float(p[0, 0]), float(p[0, 1])), (float(p[1, 0]), float(p[1, 1])))
 
 
 def time_update(cfg: ObserverConfig, z: ObserverState, dt_s: float) -> ObserverState:
@@ -71,10 +94,8 @@ def time_update(cfg: ObserverConfig, z: ObserverState, dt_s: float) -> ObserverS
     f = np.array([[1.0, dt], [0.0, 1.0]])
     qb, qr = cfg.bias_q_um2_per_s, cfg.drift_q_um2_per_s3
     q = np.array([[qb * dt + qr * dt**3 / 3, qr * dt**2 / 2], [qr * dt**2 / 2, qr * dt]])
-    p = f @ p @ f.T + q
-    p = np.minimum(p, 1e12)  # a gap of years: the prior is forgotten, the numbers stay finite
-    return ObserverState(z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s,
-                         ((float(p[0, 0]), float(p[0, 1])), (float(p[1, 0]), float(p[1, 1]))))
+    return ObserverState(z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s, _cov(f @ p @ f.T + q),
+                         z.pending_um)
 
 
 @dataclass(frozen=True)
@@ -83,6 +104,9 @@ class Update:
     accepted: bool
     innovation_um: float
     innovation_sd_um: float
+    restarted: bool = False
+    """The measurement was outside the gate but agreed with the ones rejected before it: the
+    bias restarted from them."""
 
 
 def measurement_update(cfg: ObserverConfig, z: ObserverState, measured_um: float,
@@ -93,20 +117,26 @@ def measurement_update(cfg: ObserverConfig, z: ObserverState, measured_um: float
     sigma = require_finite("sigma_um", sigma_um)
     if sigma <= 0:
         raise ModelError(f"a measurement's sigma must be > 0, got {sigma}")
+    r = cfg.noise_var_um2(sigma)
     p = np.array(z.cov)
     nu = y - (s_model + z.bias_um)
-    s = float(p[0, 0]) + sigma * sigma
+    s = float(p[0, 0]) + r
     sd = math.sqrt(s)
     if abs(nu) > cfg.gate_sigma * sd:
-        return Update(z, False, nu, sd)
+        pending = (*z.pending_um, y - s_model)[-max(cfg.reaccept_after, 1):]
+        agree = (cfg.reaccept_after > 0 and len(pending) == cfg.reaccept_after
+                 and max(pending) - min(pending) <= cfg.gate_sigma * math.sqrt(2.0 * r))
+        if not agree:
+            return Update(ObserverState(z.bias_um, z.drift_um_per_s, z.cov, pending), False, nu, sd)
+        # a real change: start again from the agreeing measurements, drift forgotten
+        n = len(pending)
+        p0 = np.array([[r / n, 0.0], [0.0, ObserverState.prior(cfg).cov[1][1]]])
+        return Update(ObserverState(float(np.mean(pending)), 0.0, _cov(p0)), False, nu, sd, True)
     k = p[:, 0] / s
     x = np.array([z.bias_um, z.drift_um_per_s]) + k * nu
-    # Joseph form: stays symmetric and positive
-    i_kh = np.eye(2) - np.outer(k, [1.0, 0.0])
-    p = i_kh @ p @ i_kh.T + np.outer(k, k) * sigma * sigma
-    return Update(ObserverState(float(x[0]), float(x[1]),
-                                ((float(p[0, 0]), float(p[0, 1])), (float(p[1, 0]), float(p[1, 1])))),
-                  True, nu, sd)
+    i_kh = np.eye(2) - np.outer(k, [1.0, 0.0])  # Joseph form: stays symmetric and positive
+    p = i_kh @ p @ i_kh.T + np.outer(k, k) * r
+    return Update(ObserverState(float(x[0]), float(x[1]), _cov(p)), True, nu, sd)
 
 
 @dataclass(frozen=True)
@@ -115,13 +145,14 @@ class Fusion:
     bias_um: np.ndarray
     accepted: int
     rejected: int
+    restarts: int = 0
 
 
 def fuse_series(cfg: ObserverConfig, time_s: np.ndarray, predicted_um: np.ndarray,
                 probe_time_s: np.ndarray, probe_um: np.ndarray, probe_sigma_um: np.ndarray) -> Fusion:
     """The fused estimate at every sample of a log: the model's free run plus the bias
-    estimated from the probes taken at or before each sample (causal). Probe times must lie in
-    the log's span and increase."""
+    estimated from the probes taken at or before each sample (causal). Probe times must
+    increase; a probe between two samples meets the model interpolated to its instant."""
     t = np.asarray(time_s, float)
     s = np.asarray(predicted_um, float)
     pt, py, ps = (np.asarray(a, float) for a in (probe_time_s, probe_um, probe_sigma_um))
@@ -130,18 +161,17 @@ def fuse_series(cfg: ObserverConfig, time_s: np.ndarray, predicted_um: np.ndarra
     z = ObserverState.prior(cfg)
     t_z = float(t[0])
     bias = np.empty(t.size)
-    j, acc, rej = 0, 0, 0
+    j, acc, rej, restarts = 0, 0, 0, 0
     for k in range(t.size):
         while j < pt.size and pt[j] <= t[k]:
             z = time_update(cfg, z, max(pt[j] - t_z, 0.0))
             t_z = max(t_z, float(pt[j]))
-            # the model at the probe's instant: interpolated between samples
-            s_at = float(np.interp(pt[j], t, s))
-            up = measurement_update(cfg, z, float(py[j]), s_at, float(ps[j]))
+            up = measurement_update(cfg, z, float(py[j]), float(np.interp(pt[j], t, s)), float(ps[j]))
             z = up.state
             acc += up.accepted
             rej += not up.accepted
+            restarts += up.restarted
             j += 1
         # the mean of the time update; its covariance is not needed between probes
         bias[k] = z.bias_um + max(t[k] - t_z, 0.0) * z.drift_um_per_s
-    return Fusion(s + bias, bias, acc, rej)
+    return Fusion(s + bias, bias, acc, rej, restarts)

@@ -1,0 +1,188 @@
+"""A model with probe measurements fused in: the observer behind the one Predictor interface.
+Pure: no I/O.
+
+:class:`FusedPredictor` wraps any :class:`~compensator.predictor.Predictor` (speed only, with
+inputs) and a :class:`~compensator.observer.ObserverConfig`. Its state carries the model's own
+state and the observer's; its elongation is the model's plus the estimated bias. Between
+measurements it steps like the model (the observer's time update runs with it, exact at the
+real Δt); :meth:`FusedPredictor.measure` fuses one measurement. The runtime and replay use it
+like any model, so a closed loop needs no special case.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from .errors import ModelError
+from .observer import COV_LIMIT, Fusion, ObserverConfig, ObserverState, Update, fuse_series, measurement_update, time_update
+from .predictor import Predictor
+from .model import saved_numbers
+
+OBSERVER_KEY = "observer"
+"""Where a model's fit keeps the observer settings fitted at calibration."""
+
+
+def observer_config_of(model: Predictor, override: Mapping[str, Any] | None = None) -> ObserverConfig:
+    """The observer settings fitted with ``model`` (``fit["observer"]``), else the defaults;
+    ``override`` (the runtime's configuration) wins key by key. ``ModelError`` if invalid."""
+    fit = getattr(model, "fit", None) or {}
+    stored = fit.get(OBSERVER_KEY) or {}
+    data = {k: v for k, v in dict(stored).items() if k in ObserverConfig.model_fields}
+    data.update(override or {})
+    try:
+        return ObserverConfig(**data)
+    except ValueError as err:
+        raise ModelError(f"observer settings: {str(err).splitlines()[-1].strip()}") from err
+
+
+@dataclass(frozen=True)
+class FusedState:
+    """The model's state, the observer's, and the age of the last accepted measurement."""
+
+    model: Any
+    observer: ObserverState
+    since_measurement_s: float | None = None
+    """Seconds since the last accepted measurement; None before the first."""
+
+    @property
+    def elongation_um(self) -> float:
+        return float(self.model.elongation_um) + self.observer.bias_um
+
+    @property
+    def bias_um(self) -> float:
+        return self.observer.bias_um
+
+
+@dataclass(frozen=True)
+class FusedPredictor:
+    """``model`` with measurements fused in by the observer ``config``."""
+
+    model: Predictor
+    config: ObserverConfig
+
+    def __post_init__(self) -> None:
+        if isinstance(self.model, FusedPredictor):
+            raise ModelError("a fused model cannot be fused again")
+
+    # -- what the wrapped model says --------------------------------------------------
+    @property
+    def format(self) -> str:
+        return self.model.format
+
+    @property
+    def spindle_id(self) -> str:
+        return self.model.spindle_id
+
+    @property
+    def machine_id(self) -> str:
+        return self.model.machine_id
+
+    @property
+    def form(self) -> str:
+        return f"{self.model.form}+observer"
+
+    @property
+    def speed_range_rpm(self) -> tuple[float, float]:
+        return self.model.speed_range_rpm
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.model.input_names
+
+    @property
+    def fallback(self) -> FusedPredictor | None:
+        fb = self.model.fallback
+        return None if fb is None else FusedPredictor(fb, self.config)
+
+    def above_range(self, speed_rpm: float) -> bool:
+        return self.model.above_range(speed_rpm)
+
+    def check_inputs(self, values: Mapping[str, float]) -> str | None:
+        return self.model.check_inputs(values)
+
+    def outside_trained(self, values: Mapping[str, float]) -> str | None:
+        outside = getattr(self.model, "outside_trained", None)
+        return None if outside is None else outside(values)
+
+    def model_dump(self, **kwargs: Any) -> dict[str, Any]:
+        return self.model.model_dump(**kwargs)
+
+    # -- the Predictor interface -----------------------------------------------------------
+    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
+              references: Mapping[str, float] | None = None) -> FusedState:
+        return FusedState(self.model.start(elongation_um, speed_rpm, inputs, references),
+                          ObserverState.prior(self.config))
+
+    def step(self, state: FusedState, speed_rpm: float, dt_s: float,
+             inputs: Mapping[str, float] | None = None) -> FusedState:
+        inner = self.model.step(state.model, speed_rpm, dt_s, inputs)
+        age = None if state.since_measurement_s is None else state.since_measurement_s + dt_s
+        return FusedState(inner, time_update(self.config, state.observer, dt_s), age)
+
+    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
+                    inputs: Mapping[str, np.ndarray] | None = None,
+                    initial_um: float | None = None) -> np.ndarray:
+        """Without measurements the fused model is the model."""
+        return self.model.simulate_um(speed_rpm, time_s, inputs, initial_um)
+
+    def measure(self, state: FusedState, measured_um: float, sigma_um: float) -> tuple[FusedState, Update]:
+        """Fuse one measurement of the elongation [um] taken now, with its sigma [um]."""
+        up = measurement_update(self.config, state.observer, measured_um, float(state.model.elongation_um),
+                                sigma_um)
+        age = 0.0 if up.accepted or up.restarted else state.since_measurement_s
+        return FusedState(state.model, up.state, age), up
+
+    def rebase(self, state: FusedState, model_state: Any) -> FusedState:
+        """``model_state`` in place of the model's (a switch between a model and its fallback),
+        the bias shifted so that the fused elongation does not jump."""
+        shift = float(state.model.elongation_um) - float(model_state.elongation_um)
+        return replace(state, model=model_state,
+                       observer=replace(state.observer, bias_um=state.observer.bias_um + shift))
+
+    def fuse_um(self, speed_rpm: np.ndarray, time_s: np.ndarray, inputs: Mapping[str, np.ndarray] | None,
+                initial_um: float | None, probe_time_s: np.ndarray, probe_um: np.ndarray,
+                probe_sigma_um: np.ndarray) -> tuple[np.ndarray, Fusion]:
+        """Replay: the model's free run and the causal fused estimate over a whole log."""
+        open_loop = self.model.simulate_um(speed_rpm, time_s, inputs, initial_um)
+        return open_loop, fuse_series(self.config, time_s, open_loop, probe_time_s, probe_um, probe_sigma_um)
+
+    def is_stale(self, state: FusedState, max_age_s: float) -> bool:
+        """No accepted measurement for longer than ``max_age_s`` (or none yet)."""
+        return state.since_measurement_s is None or state.since_measurement_s > max_age_s
+
+    def state_dict(self, state: FusedState) -> dict[str, Any]:
+        z = state.observer
+        return {**self.model.state_dict(state.model),
+                OBSERVER_KEY: {"bias_um": z.bias_um, "drift_um_per_s": z.drift_um_per_s,
+                               "cov": [list(r) for r in z.cov],
+                               "since_measurement_s": state.since_measurement_s}}
+
+    def state_from_dict(self, data: Mapping[str, Any]) -> FusedState:
+        """A state saved by :meth:`state_dict`, or the model's own (observer at its prior)."""
+        inner = self.model.state_from_dict({k: v for k, v in data.items() if k != OBSERVER_KEY})
+        saved = data.get(OBSERVER_KEY)
+        if saved is None:
+            return FusedState(inner, ObserverState.prior(self.config))
+        try:
+            b, r = saved_numbers("observer bias/drift", [saved["bias_um"], saved["drift_um_per_s"]])
+            c = saved_numbers("observer cov", [v for row in saved["cov"] for v in row], COV_LIMIT)
+            age = saved.get("since_measurement_s")
+            if age is not None:
+                (age,) = saved_numbers("observer age", [age])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ModelError(f"saved observer state is not valid ({err})") from err
+        if len(c) != 4 or c[0] < 0 or c[3] < 0 or (age is not None and age < 0):
+            raise ModelError("saved observer state is not valid (covariance or age)")
+        return FusedState(inner, ObserverState(b, r, ((c[0], c[1]), (c[2], c[3]))), age)
+
+    def describe(self) -> list[str]:
+        c = self.config
+        return [*self.model.describe(),
+                f"  observer: bias random walk {math.sqrt(c.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
+                f"drift {'on' if c.drift_q_um2_per_s3 > 0 else 'off'}, model sd {c.model_sd_um:.2f} um, "
+                f"gate {c.gate_sigma:g} sd, restart after {c.reaccept_after} agreeing refusals"]
