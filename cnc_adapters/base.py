@@ -27,6 +27,7 @@ import re
 import time
 import typing
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from collections.abc import Callable, Mapping
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
@@ -413,6 +414,26 @@ def construct(label: str, factory: Any, *args: Any, **kw: Any) -> Any:
 # -- the adapter --------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class RawMeasurement:
+    """What a controller's probe cycle left: its sequence counter and value, in its unit."""
+
+    sequence: int
+    value: Any
+    sigma: Any = None
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A new tool-setter or probe measurement of the elongation [um] (positive: the tool grew
+    toward the workpiece), its sigma [um] when the controller states one, and its sequence."""
+
+    elongation_um: float
+    sigma_um: float | None
+    sequence: int
+    source: str
+
+
 class Adapter(Link):
     """A link to one spindle on one controller.
 
@@ -444,6 +465,7 @@ class Adapter(Link):
         super().__init__(**link)
         self.speed_scale = speed_scale
         self.offset_um_requested: float | None = None
+        self._measurement_seq: int | None = None  # the counter last seen; kept across reconnects
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -541,6 +563,47 @@ class Adapter(Link):
 
     def _read_inputs_raw(self) -> dict[str, Any]:
         raise AdapterError(f"{self.name}: this adapter reads no input channels")
+
+    can_read_measurement: ClassVar[bool] = False
+    """Whether this backend can take tool-setter or probe measurements from the controller
+    (:meth:`read_measurement`). An instance configured without a measurement source says False."""
+
+    def read_measurement(self) -> Measurement | None:
+        """A new measurement of the elongation written by the controller's probe cycle, or None.
+
+        The handshake: the cycle writes the value, then changes a sequence counter; a value is
+        returned once, when the counter differs from the one seen before. The counter found at
+        the first read after (re)connecting is taken as seen: a value left from before is stale.
+        The value is in the controller's length unit (the offset's ``offset_scale``), positive
+        when the tool grew toward the workpiece. :class:`BadValueError` for a value that is not
+        a finite number (the counter is then taken as seen, so it is refused once)."""
+        if not self.can_read_measurement:
+            return None
+        self.open()
+        raw = self._read_measurement_raw()
+        if raw is None:
+            return None
+        seq = raw.sequence
+        last = self._measurement_seq
+        self._measurement_seq = seq
+        if last is None or seq == last:
+            return None
+        if isinstance(raw.value, bool) or not isinstance(raw.value, numbers.Real) \
+                or not math.isfinite(float(raw.value)):
+            raise BadValueError(f"{self.name}: measurement {short(raw.value)} (sequence {seq}) is "
+                                "not a finite number")
+        sigma = None
+        if raw.sigma is not None:
+            sigma = abs(float(raw.sigma)) / self.units.scale
+            if not (math.isfinite(sigma) and sigma > 0):
+                raise BadValueError(f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
+                                    f"{seq}) is not a positive number")
+        return Measurement(float(raw.value) / self.units.scale, sigma, seq, self.name)
+
+    def _read_measurement_raw(self) -> RawMeasurement | None:
+        """Backend hook: the controller's (sequence, value[, sigma]) as they stand now, in its
+        unit, or None when it holds none."""
+        raise AdapterError(f"{self.name}: this adapter takes no measurements")
 
     def not_ready_offset_um(self) -> float | None:
         """For controllers whose offset depends on the machine state (LinuxCNC zeroes external
