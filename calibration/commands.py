@@ -145,6 +145,8 @@ def fit(args: argparse.Namespace) -> int:
         if value is not None:
             raise CalibrationError(f"{flag} applies to --method forms; the cycles method fits at the "
                                    "logs' own sample period")
+    if not (math.isfinite(args.probe_target_um) and args.probe_target_um > 0):
+        raise CalibrationError(f"--probe-target-um must be > 0, got {args.probe_target_um}")
     logs = [read_run_log(p) for p in args.runs]
     runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
     names = _input_names(args, logs)
@@ -158,7 +160,8 @@ def fit(args: argparse.Namespace) -> int:
                             {n: np.asarray(lg.extras[n], dtype=float) for n in names}))
     with progress(not args.json) as say:
         result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
-                          nested=not args.no_nested, physical=not args.no_physical, **_meta(args, logs))
+                          nested=not args.no_nested, physical=not args.no_physical,
+                          probe_target_um=args.probe_target_um, **_meta(args, logs))
     result.warnings[:0] = gap_notes
     model = result.model
     # validated before it is written: the same checks a load makes
@@ -224,6 +227,8 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
             dt.add_row(d["quantity"], f"{d['value']:.3g}", f"{d['hac_stderr']:.2g}", d["unit"])
         out.print(dt)
     for line in m.describe():
+        out.print(line, markup=False, highlight=False)
+    for line in result.closed_loop.lines() if result.closed_loop is not None else ():
         out.print(line, markup=False, highlight=False)
     for w in report["warnings"]:
         out.print(f"[yellow]warning:[/yellow] {w}")

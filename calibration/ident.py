@@ -450,6 +450,8 @@ class IdentResult:
     fitted_dt_s: float = 0.0
     segments: tuple[tuple[int, int], ...] = ()
     trained_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    held_out_residual_um: np.ndarray | None = None
+    """Each cycle's free-run residual from a model fitted without it (nested when done)."""
 
     # -- prediction ---------------------------------------------------------------------
 
@@ -650,7 +652,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
     brms, bmax = pooled_stats(bres)
     baseline = {"tau_s": base_cfgs[kb].grid.speed_taus_s[0], "cv_rms_um": brms, "cv_max_abs_um": bmax}
 
-    nested_folds = nested_rms = nested_max = None
+    nested_folds = nested_rms = nested_max = outer = None
     if nested and len(cyc) >= 3:
         outer = np.empty(t.size)
         bouter = np.empty(t.size)
@@ -679,6 +681,7 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
         max_measured_um=float(np.abs(y).max()), baseline=baseline,
         nested_folds=nested_folds, nested_rms_um=nested_rms, nested_max_abs_um=nested_max,
         selection=tuple(table), fitted_dt_s=dt_s, segments=segs, trained_ranges=trained,
+        held_out_residual_um=outer if nested_folds is not None else res,
     )
     refusals, notes = [], []
     if cv_rms > brms:

@@ -34,7 +34,7 @@ import numpy as np
 from compensator.errors import CalibrationError, ModelError
 from compensator.model import ThermalModel
 
-from . import ident
+from . import closedloop, ident
 from .calibrate import _fit as fit_classic_form
 from .data import Run, resample
 from .fitting import FORM_BY_NAME
@@ -136,6 +136,8 @@ class Candidate:
     model: Any = None
     details: dict[str, Any] = field(default_factory=dict)
     fit_cpu_s: float = 0.0
+    held_out_residual_um: np.ndarray | None = None
+    slowest_tau_s: float = 0.0
 
     @property
     def honest_rms_um(self) -> float:
@@ -164,6 +166,8 @@ def _from_ident(name: str, family: str, description: str, res: ident.IdentResult
                  "steady_range_um": res.steady_range_um()}
     c.notes += list(res.notes)
     c.refusals += [r for r in res.refusals if "baseline" not in r]  # judged below, one way for all
+    c.held_out_residual_um = res.held_out_residual_um
+    c.slowest_tau_s = max((*res.grid.speed_taus_s, *res.grid.input_taus_s))
     return c
 
 
@@ -206,6 +210,7 @@ def _physical(j: Joined, dt_s: float, meta: Mapping[str, Any]) -> Candidate:
         res[a:b] = (j.elongation_um - _free_run(fit.model, j))[a:b]
     c.cv_rms_um, c.cv_max_abs_um = ident.pooled_stats(res)
     c.folds_rms_um = [f.rms_um for f in ident.fold_scores(res, j.folds)]
+    c.held_out_residual_um = res
     full = fit_classic_form(spec, _runs_of(j, np.ones(j.time_s.size, bool), dt_s), **meta)
     if full.model is None:
         c.refusals.append(f"no stable fit on all rows ({full.note})")
@@ -254,6 +259,7 @@ class Identification:
     warnings: list[str]
     fit_cpu_s: float
     derived: list[dict[str, Any]] = field(default_factory=list)
+    closed_loop: closedloop.Plan | None = None
 
     def report(self) -> dict[str, Any]:
         j = self.joined
@@ -270,6 +276,7 @@ class Identification:
             "model_form": self.model.form,
             "reason": self.reason,
             "derived": self.derived,
+            "closed_loop": None if self.closed_loop is None else self.closed_loop.report(),
             "warnings": self.warnings,
             "fit_cpu_s": round(self.fit_cpu_s, 2),
         }
@@ -277,6 +284,7 @@ class Identification:
 
 def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
              units: Mapping[str, str] | None = None, physical: bool = True, nested: bool = True,
+             probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
              progress: Callable[[str], None] | None = None, **meta: Any) -> Identification:
     """Fit every candidate, score it on the same folds in free run, choose, and build the model.
 
@@ -373,7 +381,14 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
     derived = _derived(final, ridge_in if final.name == "ridge+inputs" else ridge if final.name == "ridge"
                        else None, j)
-    return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0, derived)
+    loop = None
+    if probe_target_um is not None and final.held_out_residual_um is not None and len(j.folds) >= 2:
+        say("planning the closed loop (probe intervals)")
+        loop = closedloop.plan(j.time_s, final.held_out_residual_um, j.folds,
+                               max(model.time_constants_s(0.0)), probe_target_um)
+        model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
+    return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0, derived,
+                          loop)
 
 
 def _with_fit(c: Candidate, j: Joined, reason: str) -> Any:

@@ -108,6 +108,14 @@ def test_speed_only_fit_beats_the_papers_method_on_ch1(real, tmp_path):
     assert rep["chosen"] in ("ridge", "exp-baseline") and not load_any_model(tmp_path / "m.json").input_names
     assert chosen["honest_rms_um"] < _cand(rep, "paper-ols")["cv_rms_um"] / 2
     assert rep["derived"] and all(d["hac_stderr"] > 0 for d in rep["derived"])
+    # the closed-loop plan: an interval table by held-out cycles, its observer kept in the model
+    loop = rep["closed_loop"]
+    never, *rows = loop["intervals"]
+    assert never["interval_s"] is None and all(r["rms_um"] < never["rms_um"] for r in rows)
+    assert load_any_model(tmp_path / "m.json").fit["observer"] == loop["observer"]
+    r = tc("replay", real["ch1"], "--model", tmp_path / "m.json", "--probe-every", 1800, "--json")
+    rp = json.loads(r.stdout)
+    assert rp["rms_residual_um"] < rp["open_loop_rms_residual_um"] / 2, rp
 
 
 def test_virtual_plant_targets_at_60_s_and_at_1_s(tmp_path):

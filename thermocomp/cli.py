@@ -107,6 +107,9 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                    help="skip the nested cross-validation (faster; the choice then uses plain CV)")
     p.add_argument("--no-physical", action="store_true",
                    help="leave the output-error physical form out of the candidates (faster)")
+    p.add_argument("--probe-target-um", type=float, default=2.0,
+                   help="closed loop: the RMS a recommended probe interval must meet in "
+                   "cross-validation [um] (the fit report tabulates interval -> RMS and max)")
     p.add_argument("--dt", type=float, default=None, help="forms method: resample runs to this period [s]")
     p.add_argument("--form", default="auto", help="forms method: force a model form")
     p.add_argument("--input-reference", choices=["start", "fixed"], default="start",
