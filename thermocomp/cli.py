@@ -184,6 +184,42 @@ def _add_profile(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="calibration.wizard:profile_cmd")
 
 
+def _add_probe_program(sub: argparse._SubParsersAction) -> None:
+    # values stay text: the handler checks them per dialect, each refusal one line (docs/PROBING.md)
+    p = sub.add_parser("probe-program", help="write an NC tool-setter cycle that hands the tool's growth "
+                       "since the cold reference to the service (closed loop)",
+                       description="Measures the tool on the tool setter, writes (length now - cold "
+                       "reference) in um to --value-var, then adds 1 to --counter-var. See docs/PROBING.md.")
+    p.add_argument("--dialect", required=True, metavar="{fanuc,sinumerik,heidenhain,linuxcnc}")
+    p.add_argument("--output", help="NC program to write (default: standard output)")
+    p.add_argument("--reference", action="store_true",
+                   help="write the program that takes the cold reference instead (run it cold)")
+    p.add_argument("--tool", default="1", metavar="N", help="tool measured (default 1; best a gauge tool)")
+    p.add_argument("--value-var", metavar="VAR", help="the growth [um] (default #521, R21, QR21, #3021)")
+    p.add_argument("--counter-var", metavar="VAR", help="the counter (default #522, R22, QR22, #3022)")
+    p.add_argument("--reference-var", metavar="VAR",
+                   help="the cold reference [mm], kept through power cycles (default #520, R20, QR20, #3020)")
+    p.add_argument("--spindle", default="stop", metavar="{stop,low}",
+                   help="stop: contact setter (default); low: laser setter, at --low-rpm")
+    p.add_argument("--low-rpm", metavar="RPM", help="spindle speed with --spindle low")
+    p.add_argument("--settle-s", default="2", metavar="S", help="dwell before probing (spindle run-down) [s]")
+    p.add_argument("--setter-x-mm", metavar="MM", help="setter centre, machine X (default: probe in place)")
+    p.add_argument("--setter-y-mm", metavar="MM", help="setter centre, machine Y")
+    p.add_argument("--approach-z-mm", metavar="MM",
+                   help="machine Z to rise to before moving across and after probing; heidenhain: "
+                   "the clearance height Q260")
+    p.add_argument("--travel-mm", metavar="MM", help="longest search down from the approach (default 10)")
+    p.add_argument("--backoff-mm", metavar="MM", help="back-off before the slow touch (default 1)")
+    p.add_argument("--fast-feed-mm-min", metavar="F", help="search feed (default 200)")
+    p.add_argument("--slow-feed-mm-min", metavar="F", help="measuring feed (default 20)")
+    p.add_argument("--max-um", default="300", metavar="UM", help="a larger growth: alarm, nothing written")
+    p.add_argument("--probe-input", metavar="N", help="sinumerik: the setter's input, 1 or 2 (default 1)")
+    p.add_argument("--value-aout", metavar="N", help="linuxcnc: M68 analog output, value (default 0)")
+    p.add_argument("--counter-aout", metavar="N", help="linuxcnc: M68 analog output, counter (default 1)")
+    p.add_argument("--name", help="program name (default TCPROBE, or TCREF with --reference)")
+    p.set_defaults(handler="calibration.probeprog:probe_program_cmd")
+
+
 def _add_wizard(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("wizard", help="guided calibration of one spindle: program, record, fit, save",
                        description="Every question has a flag; --yes runs unattended.")
@@ -256,8 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_wizard, _add_profile, _add_fit, _add_replay, _add_run, _add_simulate,
-                _add_virtual_cnc, _add_hal_plant, _add_model):
+    for add in (_add_demo, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
+                _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
 
