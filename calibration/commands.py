@@ -355,15 +355,23 @@ def print_replay_report(rep: Replay, out: Console) -> None:
 
 
 def replay_cmd(args: argparse.Namespace) -> int:
+    from compensator.errors import CalibrationError
+
     model = load_any_model(args.model)
     log = read_run_log(args.log)
     with progress(not args.json) as say:
         say("replaying")
         probes = None
+        if args.probe_every is not None and args.measurements is not None:
+            raise CalibrationError("--probe-every and --measurements exclude each other")
         if args.probe_every is not None:
             from .replay import probes_every
 
             probes = probes_every(log, args.probe_every, args.probe_noise_um, args.probe_seed)
+        elif args.measurements is not None:
+            from .replay import probes_from_file
+
+            probes = probes_from_file(log, args.measurements, args.probe_noise_um)
         rep = replay(model, log, args.initial_um, ShaperConfig() if args.applied else None, probes)
         if args.output:
             say("writing predictions")

@@ -17,6 +17,7 @@ from scipy.signal import savgol_filter
 
 from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.io import RunLog
+from compensator.io.measurements import read_measurements
 from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig, shape_series
@@ -131,6 +132,21 @@ def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int =
     values = np.asarray(log.elongation_um, float)[idx] + rng.normal(0.0, noise_um, idx.size)
     return Probes(t[idx], values, np.full(idx.size, noise_um),
                   f"every {every_s:g} s from the measured column, noise {noise_um:g} um, seed {seed}")
+
+
+def probes_from_file(log: RunLog, path: str, default_sigma_um: float = 0.5) -> Probes:
+    """Real measurements (:func:`compensator.io.measurements.read_measurements`), on the log's
+    clock; one outside the log's span is a one-line error (a different clock or another run)."""
+    if not (math.isfinite(default_sigma_um) and default_sigma_um > 0):
+        raise NonFiniteInputError(f"--probe-noise-um must be > 0, got {default_sigma_um}")
+    m = read_measurements(path, default_sigma_um)
+    t0, t1 = float(log.time_s[0]), float(log.time_s[-1])
+    out = (m.time_s < t0) | (m.time_s > t1)
+    if out.any():
+        k = int(np.flatnonzero(out)[0])
+        raise RunLogError(f"measurement at time_s {m.time_s[k]:g} lies outside the log's "
+                          f"{t0:g}..{t1:g} s: not on the log's clock", path)
+    return Probes(m.time_s, m.elongation_um, m.sigma_um, f"{m.time_s.size} measurement(s) from {path}")
 
 
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,

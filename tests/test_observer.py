@@ -86,3 +86,43 @@ def test_replay_probe_every_fuses_and_keeps_the_open_loop_beside(tmp_path):
     assert rep["max_abs_residual_um"] < rep["open_loop_max_abs_residual_um"]
     r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--probe-every", 0, "--json")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--probe-every must be > 0" in r.stderr
+
+
+def test_replay_fuses_real_measurements_from_a_file(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from compensator.io import read_run_log, save_model
+    from compensator.model import ThermalModel
+
+    run = lambda *a: subprocess.run([sys.executable, "-m", "thermocomp", *map(str, a)],  # noqa: E731
+                                    capture_output=True, text=True)
+    assert run("simulate", "--dt", 60, "--output", tmp_path / "cal.csv").returncode == 0
+    save_model(tmp_path / "m.json", ThermalModel.from_discrete(
+        0.98, (0.0, 0.002, 0.0004, 0.0), 60.0, speed_range_rpm=(0.0, 27000.0)))
+    log = read_run_log(tmp_path / "cal.csv")
+    k = np.arange(15, log.time_s.size, 15)
+    rows = [f"{log.time_s[i]:.3f},{log.elongation_um[i]:.4f},0.5,setter,{n},accepted" for n, i in enumerate(k)]
+    rows.insert(3, f"{log.time_s[k[2]] + 1:.3f},,,setter,99,refused")  # the journal's unusable row
+    (tmp_path / "meas.csv").write_text("# a measurement journal\ntime_s,elongation_um,sigma_um,source,"
+                                       "sequence,outcome\n" + "\n".join(rows) + "\n")
+    r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--measurements",
+            tmp_path / "meas.csv", "--json")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["probes"] == k.size and rep["probes_rejected"] < k.size // 4
+    assert rep["rms_residual_um"] < 0.8 * rep["open_loop_rms_residual_um"]
+    bad = {"time_s,elongation_um\n1e9,3\n": "outside the log",
+           "time_s,elongation_um\n60,nan\n": "not a finite number",
+           "time_s,elongation_um,sigma_um\n60,1,0\n": "must be > 0",
+           "time_s,elongation_um\n120,1\n60,1\n": "does not increase",
+           "time,elongation_um\n60,1\n": "missing column"}
+    for text, why in bad.items():
+        (tmp_path / "bad.csv").write_text(text)
+        r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--measurements",
+                tmp_path / "bad.csv", "--json")
+        assert r.returncode != 0 and r.stderr.count("\n") == 1 and why in r.stderr, (text, r.stderr)
+    r = run("replay", tmp_path / "cal.csv", "--model", tmp_path / "m.json", "--measurements",
+            tmp_path / "meas.csv", "--probe-every", 900)
+    assert r.returncode == 2 and "exclude each other" in r.stderr

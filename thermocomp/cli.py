@@ -80,7 +80,12 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--probe-every", type=float, metavar="SECONDS",
                    help="simulate the closed loop: a tool-setter measurement every SECONDS, drawn "
                    "from the log's elongation_um plus noise, fused by the observer")
-    p.add_argument("--probe-noise-um", type=float, default=0.5, help="noise (sigma) of those measurements")
+    p.add_argument("--measurements", metavar="FILE",
+                   help="fuse real measurements instead: CSV time_s,elongation_um[,sigma_um] on the "
+                   "log's clock (the runtime's measurement journal is one)")
+    p.add_argument("--probe-noise-um", type=float, default=0.5,
+                   help="noise (sigma) of those measurements; with --measurements, the sigma of rows "
+                   "that state none")
     p.add_argument("--probe-seed", type=int, default=0, help="random seed of that noise")
     p.add_argument("--applied", action="store_true",
                    help="also pass the offset through the runtime's shaper (default shaping) and "
