@@ -568,14 +568,19 @@ class Adapter(Link):
     """Whether this backend can take tool-setter or probe measurements from the controller
     (:meth:`read_measurement`). An instance configured without a measurement source says False."""
 
+    measurement_scale: float | None = None
+    """Controller unit per um of a measurement when it is not the offset's (a probe cycle that
+    hands over um while the offset is in mm); None: the offset's ``offset_scale``."""
+
     def read_measurement(self) -> Measurement | None:
         """A new measurement of the elongation written by the controller's probe cycle, or None.
 
         The handshake: the cycle writes the value, then changes a sequence counter; a value is
         returned once, when the counter differs from the one seen before. The counter found at
-        the first read after (re)connecting is taken as seen: a value left from before is stale.
-        The value is in the controller's length unit (the offset's ``offset_scale``), positive
-        when the tool grew toward the workpiece. :class:`BadValueError` for a value that is not
+        the adapter's first read is taken as seen: a value left from before is stale; a counter
+        that changed while the link was down is new. The value is in the controller's length
+        unit (the offset's ``offset_scale``, or ``measurement_scale``), positive when the tool
+        grew toward the workpiece. :class:`BadValueError` for a value that is not
         a finite number (the counter is then taken as seen, so it is refused once)."""
         if not self.can_read_measurement:
             return None
@@ -592,13 +597,14 @@ class Adapter(Link):
                 or not math.isfinite(float(raw.value)):
             raise BadValueError(f"{self.name}: measurement {short(raw.value)} (sequence {seq}) is "
                                 "not a finite number")
+        scale = self.measurement_scale or self.units.scale
         sigma = None
         if raw.sigma is not None:
-            sigma = abs(float(raw.sigma)) / self.units.scale
+            sigma = abs(float(raw.sigma)) / scale
             if not (math.isfinite(sigma) and sigma > 0):
                 raise BadValueError(f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
                                     f"{seq}) is not a positive number")
-        return Measurement(float(raw.value) / self.units.scale, sigma, seq, self.name)
+        return Measurement(float(raw.value) / scale, sigma, seq, self.name)
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         """Backend hook: the controller's (sequence, value[, sigma]) as they stand now, in its
@@ -623,6 +629,29 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
+
+
+def whole_sequence(name: str, raw: Any) -> int:
+    """A measurement's sequence counter as an int (an analog output or a register may hold it as
+    a float); :class:`BadValueError` when it is not a whole number."""
+    if isinstance(raw, bool) or not isinstance(raw, numbers.Real) or not math.isfinite(float(raw)) \
+            or float(raw) != int(raw):
+        raise BadValueError(f"{name}: measurement sequence {short(raw)} is not a whole number")
+    return int(raw)
+
+
+def read_handshake(name: str, sequence: Callable[[], Any], value: Callable[[], Any],
+                   sigma: Callable[[], Any] | None = None) -> RawMeasurement | None:
+    """The counter, the value (and sigma), then the counter again, for controllers where each
+    is its own request. The cycle writes the value before it changes the counter, so the value
+    read is never older than the counter; None when the counter moved in between (the cycle
+    was writing: the next read takes that value with its own counter)."""
+    first = sequence()
+    got = value()
+    spread = sigma() if sigma is not None else None
+    if sequence() != first:
+        return None
+    return RawMeasurement(whole_sequence(name, first), got, spread)
 
 
 def query_params(url: str) -> dict[str, str]:
