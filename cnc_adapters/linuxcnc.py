@@ -11,19 +11,22 @@ Started the LinuxCNC way, from a HAL file::
 
 Pins of the component (``component``, default ``thermocomp``):
 
-=================== ====== === ===========================================================
-pin                 type   dir
-=================== ====== === ===========================================================
-speed-in            float  in  actual spindle speed (``speed_unit``: rps, as spindle.N.speed-in, or rpm)
-eoffset-counts      s32    out to axis.L.eoffset-counts
-eoffset-scale       float  out to axis.L.eoffset-scale (machine units per count)
-eoffset-enable      bit    out to axis.L.eoffset-enable
-eoffset-clear       bit    out to axis.L.eoffset-clear
-offset-um           float  out the offset requested now [um] (thermocomp's sign: A = -S)
-ready               bit    out machine on and homed: external offsets are honoured
-input.<name>        float  in  extra channels (``inputs = [...]``) for a model with inputs
-machine-on, homed   bit    in  only with ``machine_state = "pins"`` (else from linuxcnc.stat)
-=================== ====== === ===========================================================
+==================== ====== === ===========================================================
+pin                  type   dir
+==================== ====== === ===========================================================
+speed-in             float  in  actual spindle speed (``speed_unit``: rps, as spindle.N.speed-in, or rpm)
+eoffset-counts       s32    out to axis.L.eoffset-counts
+eoffset-scale        float  out to axis.L.eoffset-scale (machine units per count)
+eoffset-enable       bit    out to axis.L.eoffset-enable
+eoffset-clear        bit    out to axis.L.eoffset-clear
+offset-um            float  out the offset requested now [um] (thermocomp's sign: A = -S)
+ready                bit    out machine on and homed: external offsets are honoured
+input.<name>         float  in  extra channels (``inputs = [...]``) for a model with inputs
+machine-on, homed    bit    in  only with ``machine_state = "pins"`` (else from linuxcnc.stat)
+measurement.value    float  in  only with ``measurement = true``: the probe cycle's measurement
+measurement.sequence float  in  its counter (``measurement_sequence_type``: float, s32 or u32)
+measurement.sigma    float  in  only with ``measurement_sigma = true``: the measurement's sigma
+==================== ====== === ===========================================================
 
 External offsets are accumulated count deltas times the scale, zeroed at every machine-on and
 honoured only once all joints are homed (LinuxCNC's external-offsets chapter). So while the
@@ -39,6 +42,22 @@ check at all. What motion holds is LinuxCNC's ``axis.L.eoffset-request`` (the ac
 times the scale, in machine units), read by name (``held_pin``, default
 ``axis.z.eoffset-request``; name the axis the counts are netted to, or ``""`` for no read-back).
 While the machine is not ready it applies no external offset, so the read-back is 0 then.
+
+The closed loop (issue 17): with ``measurement = true`` a tool-setter or probe cycle hands its
+measurement over through ``measurement.value`` and ``measurement.sequence`` (the value first,
+then a changed counter; each value is used once, the counter found at the first read is stale).
+The value is in machine units like the offset (``measurement_scale = 1`` for a cycle that hands
+over um), positive when the tool grew toward the workpiece. From the G-code, through motion's
+analog outputs (``motion.analog-out-NN``, float; four unless ``num_aio`` says more)::
+
+    net tc-meas     motion.analog-out-00 => thermocomp.measurement.value
+    net tc-meas-seq motion.analog-out-01 => thermocomp.measurement.sequence
+
+    M68 E0 Q#<growth>               (the value first ...)
+    M68 E1 Q[#<count>]              (... then the new counter)
+
+M68 sets the output at once; M67 with the next move. A sequence pin of type s32 or u32
+(``measurement_sequence_type``) takes a counter from an integer source (a ladder, a comp).
 """
 
 from __future__ import annotations
@@ -48,7 +67,7 @@ import sys
 from typing import Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
-from pydantic import BeforeValidator, Field
+from pydantic import BeforeValidator, Field, model_validator
 
 from .base import (
     Adapter,
@@ -56,11 +75,14 @@ from .base import (
     AdapterSettings,
     Allowed,
     BadValueError,
+    NonZero,
     Positive,
+    RawMeasurement,
     Sign,
     UnreachableError,
     one_of,
     query_params,
+    read_handshake,
 )
 
 log = logging.getLogger("thermocomp.adapters.linuxcnc")
@@ -101,6 +123,7 @@ PinName = Annotated[str, Field(pattern=r"^$|" + HAL_NAME), Allowed("a HAL pin na
 SpeedUnit = one_of("rps", "rpm")
 AxisUnits = one_of("mm", "inch")
 MachineState = one_of("stat", "pins")
+SequenceType = one_of("float", "s32", "u32")
 
 
 class LinuxCncSettings(AdapterSettings):
@@ -117,16 +140,32 @@ class LinuxCncSettings(AdapterSettings):
     held_pin: PinName = Field("axis.z.eoffset-request", description="the pin holding the external "
                               "offset motion applies (machine units); '' for no read-back")
     offset_sign: Sign = Field(-1, description="-1 for a vertical Z spindle (the default)")
+    measurement: bool = Field(False, description="closed loop: IN pins measurement.value and "
+                              "measurement.sequence for a probe cycle's measurement")
+    measurement_sigma: bool = Field(False, description="an IN pin measurement.sigma too")
+    measurement_sequence_type: SequenceType = Field(
+        "float", description="of measurement.sequence: float (netted to motion.analog-out-NN), s32, u32")
+    measurement_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="machine units per um of the measurement; default the offset's")
+
+    @model_validator(mode="after")
+    def _measurement(self) -> LinuxCncSettings:
+        if self.measurement_sigma and not self.measurement:
+            raise ValueError("measurement_sigma needs measurement = true (the value and its counter)")
+        return self
 
 
 class LinuxCncAdapter(Adapter):
     name = "linuxcnc"
     Settings: ClassVar[type[AdapterSettings]] = LinuxCncSettings
     can_read_offset: ClassVar[bool] = True  # an instance with held_pin = "" cannot
+    can_read_measurement: ClassVar[bool] = True  # an instance without measurement = true cannot
 
     def __init__(self, *, component: str = "thermocomp", speed_unit: str = "rps",
                  axis_units: str = "mm", count_um: float = 0.01, machine_state: str = "stat",
                  inputs: list[str] | tuple[str, ...] = (), held_pin: str = "axis.z.eoffset-request",
+                 measurement: bool = False, measurement_sigma: bool = False,
+                 measurement_sequence_type: str = "float", measurement_scale: float | None = None,
                  **kw: Any):
         if speed_unit not in ("rps", "rpm"):
             raise AdapterError("linuxcnc: speed_unit is 'rps' (spindle.N.speed-in) or 'rpm'")
@@ -136,6 +175,10 @@ class LinuxCncAdapter(Adapter):
             raise AdapterError("linuxcnc: machine_state is 'stat' (linuxcnc.stat) or 'pins'")
         if not count_um > 0:
             raise AdapterError("linuxcnc: count_um must be > 0")
+        if measurement_sigma and not measurement:
+            raise AdapterError("linuxcnc: measurement_sigma needs measurement = true")
+        if measurement_sequence_type not in ("float", "s32", "u32"):
+            raise AdapterError("linuxcnc: measurement_sequence_type is 'float', 's32' or 'u32'")
         kw.setdefault("offset_sign", -1)
         kw.setdefault("speed_scale", 60.0 if speed_unit == "rps" else 1.0)
         kw.setdefault("offset_scale", 0.001 if axis_units == "mm" else 1 / 25400.0)
@@ -150,6 +193,10 @@ class LinuxCncAdapter(Adapter):
         self.held_pin = held_pin or None
         self.can_read_offset = self.held_pin is not None  # type: ignore[misc]
         self.count = count_um * self.offset_scale  # machine units per count
+        self.can_read_measurement = bool(measurement)  # type: ignore[misc]
+        self.measurement_sigma = bool(measurement and measurement_sigma)
+        self.measurement_sequence_type = measurement_sequence_type
+        self.measurement_scale = measurement_scale
         self._comp = None
         self._stat = None
         self._lcnc = None
@@ -180,6 +227,12 @@ class LinuxCncAdapter(Adapter):
             if self.machine_state == "pins":
                 c.newpin("machine-on", hal.HAL_BIT, hal.HAL_IN)
                 c.newpin("homed", hal.HAL_BIT, hal.HAL_IN)
+            if self.can_read_measurement:
+                seq_type = {"float": hal.HAL_FLOAT, "s32": hal.HAL_S32, "u32": hal.HAL_U32}
+                c.newpin("measurement.value", hal.HAL_FLOAT, hal.HAL_IN)
+                c.newpin("measurement.sequence", seq_type[self.measurement_sequence_type], hal.HAL_IN)
+                if self.measurement_sigma:
+                    c.newpin("measurement.sigma", hal.HAL_FLOAT, hal.HAL_IN)
             c["eoffset-scale"] = self.count
             c["eoffset-counts"] = 0
             c["eoffset-enable"] = True
@@ -248,6 +301,12 @@ class LinuxCncAdapter(Adapter):
 
     def _read_inputs_raw(self) -> dict[str, float]:
         return {name: self._comp[f"input.{name}"] for name in self.inputs}
+
+    def _read_measurement_raw(self) -> RawMeasurement | None:
+        c = self._comp
+        # two M68 land in different servo periods: the counter is read twice, around the value
+        return read_handshake(self.name, lambda: c["measurement.sequence"], lambda: c["measurement.value"],
+                              (lambda: c["measurement.sigma"]) if self.measurement_sigma else None)
 
     def not_ready_offset_um(self) -> float | None:
         """0 while the machine is off, in E-stop or not homed (the controller applies no

@@ -8,6 +8,8 @@ installed by scripts/system-deps.sh; rtapi refuses root, so as root LinuxCNC run
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import re
 import shutil
@@ -164,20 +166,44 @@ class LinuxCnc:
             self.proc.wait(10)
 
 
-@pytest.fixture
-def cnc():
+@contextlib.contextmanager
+def linuxcnc_rig(adapter_options: str, hal_lines: str = ""):
+    """The example configuration, ``adapter_options`` added to the adapter's table of
+    thermocomp.toml and ``hal_lines`` to thermocomp.hal, started as LinuxCNC starts it."""
     directory = Path(tempfile.mkdtemp(prefix="thermocomp-linuxcnc-", dir="/tmp"))
     shutil.copytree(EXAMPLE, directory, dirs_exist_ok=True)
+    toml = directory / "thermocomp.toml"
+    toml.write_text(toml.read_text().replace('axis_units = "mm"', 'axis_units = "mm"\n' + adapter_options))
+    with open(directory / "thermocomp.hal", "a") as f:
+        f.write(hal_lines)
     if os.geteuid() == 0:
         shutil.chown(directory, USER)
         for p in directory.rglob("*"):
             shutil.chown(p, USER)
-    toml = directory / "thermocomp.toml"  # an extra input pin, as a model with inputs would need
-    toml.write_text(toml.read_text().replace('axis_units = "mm"', 'axis_units = "mm"\ninputs = ["ambient_c"]'))
     rig = LinuxCnc(directory)
-    yield rig
-    rig.stop()
-    shutil.rmtree(directory, ignore_errors=True)
+    try:
+        yield rig
+    finally:
+        rig.stop()
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture
+def cnc():
+    with linuxcnc_rig('inputs = ["ambient_c"]') as rig:  # an extra input pin, as a model with inputs needs
+        yield rig
+
+
+def on_and_homed(cnc: LinuxCnc) -> None:
+    """Out of E-stop, machine on, every joint homed, in MDI mode."""
+    r = cnc.rsh
+    r.set("estop off")
+    r.set("machine on")
+    r.set("mode manual")
+    for joint in (0, 1, 2):
+        r.set(f"home {joint}")
+    assert cnc.wait(lambda: r.cmd("get joint_homed").startswith("JOINT_HOMED YES YES YES"))
+    r.set("mode mdi")
 
 
 def sample(cnc: LinuxCnc, seconds: float, pins: tuple[str, ...]) -> np.ndarray:
@@ -209,13 +235,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     assert cnc.getp("thermocomp.ready") is False  # in E-stop at start: nothing applied
     subprocess.run(as_user(["halcmd", "setp", "thermocomp.input.ambient_c", "21.5"]), check=True, timeout=20)
     assert cnc.getp("thermocomp.input.ambient_c") == 21.5
-    r.set("estop off")
-    r.set("machine on")
-    r.set("mode manual")
-    for joint in (0, 1, 2):
-        r.set(f"home {joint}")
-    assert cnc.wait(lambda: r.cmd("get joint_homed").startswith("JOINT_HOMED YES YES YES"))
-    r.set("mode mdi")
+    on_and_homed(cnc)
     r.set("mdi m3 s12000")
 
     # the component reads the actual spindle speed (spindle.0.speed-in, rps), not the command
@@ -305,3 +325,112 @@ def test_linuxcnc_interpreter_accepts_the_wizards_programs(tmp_path):
     bad.write_text("%\nG1 X10 F100 Q\nM2\n%\n")
     r = subprocess.run(["rs274", "-g", str(bad)], input="\n\n\n", capture_output=True, text=True, timeout=60)
     assert r.returncode != 0
+
+
+# -- the closed loop: a probe cycle's measurement on HAL pins ---------------------------------
+
+MEASURE_SCRIPT = """
+import json
+import hal
+from cnc_adapters.linuxcnc import LinuxCncAdapter
+
+
+def publish(comp, value, seq, sigma=None):
+    # as a probe cycle does it: the value (and sigma) first, then the counter
+    hal.set_p(comp + ".measurement.value", str(value))
+    if sigma is not None:
+        hal.set_p(comp + ".measurement.sigma", str(sigma))
+    hal.set_p(comp + ".measurement.sequence", str(seq))
+
+
+def read(a):
+    try:
+        m = a.read_measurement()
+    except Exception as err:
+        return type(err).__name__ + ": " + str(err)
+    return None if m is None else [m.elongation_um, m.sigma_um, m.sequence]
+
+
+out = {}
+a = LinuxCncAdapter(component="tc-meas", machine_state="pins", held_pin="", measurement=True,
+                    measurement_sigma=True)
+a.open()
+publish("tc-meas", 0.005, 7, 0.0005)  # a probe cycle ran before thermocomp started
+out["stale"] = [read(a), read(a)]
+publish("tc-meas", 0.0125, 8, 0.00075)
+out["new"] = [read(a), read(a)]
+publish("tc-meas", "nan", 9)
+out["nan"] = [read(a), read(a)]
+a._link_lost("linuxcnc: status poll failed (test)")  # what a failed linuxcnc.stat poll does
+publish("tc-meas", -0.002, 10, 0.0005)  # while the link was down
+out["after_reconnect"] = [read(a), read(a), a.reconnects]
+publish("tc-meas", 0.001, 10.5)
+out["fraction"] = read(a)
+
+b = LinuxCncAdapter(component="tc-meas-s32", machine_state="pins", held_pin="", measurement=True,
+                    measurement_sequence_type="s32", measurement_scale=1)  # a cycle that hands over um
+b.open()
+publish("tc-meas-s32", 4.0, -3)
+out["s32"] = [read(b), None]
+publish("tc-meas-s32", 6.5, -2)
+out["s32"][1] = read(b)
+out["s32_pins"] = {p["NAME"]: p["TYPE"] for p in hal.get_info_pins() if p["NAME"].startswith("tc-meas-s32.measurement")}
+
+c = LinuxCncAdapter(component="tc-meas-none", machine_state="pins", held_pin="")
+c.open()
+out["none"] = [c.can_read_measurement, read(c),
+               sorted(p["NAME"] for p in hal.get_info_pins() if p["NAME"].startswith("tc-meas-none.measurement"))]
+print("@@", json.dumps(out), flush=True)
+"""
+
+
+def run_in_hal(script: str) -> dict:
+    """``script`` as a HAL userspace component of a halrun session (no LinuxCNC): what it prints
+    after ``@@``, as JSON."""
+    directory = Path(tempfile.mkdtemp(prefix="thermocomp-hal-", dir="/tmp"))
+    try:
+        (directory / "run.py").write_text(script)
+        (directory / "run.hal").write_text(f"loadusr -w {linuxcnc_venv() / 'bin' / 'python'} {directory / 'run.py'}\n")
+        if os.geteuid() == 0:
+            shutil.chown(directory, USER)
+            for f in directory.iterdir():
+                shutil.chown(f, USER)
+        env = ["env", f"PYTHONPATH={ROOT}", f"HOME={directory}"]
+        r = subprocess.run(as_user([*env, "halrun", "-f", str(directory / "run.hal")]), check=False,
+                           capture_output=True, text=True, timeout=120, cwd=directory)
+        lines = [x for x in r.stdout.splitlines() if x.startswith("@@ ")]
+        assert lines, r.stdout[-2000:] + r.stderr[-2000:]
+        return json.loads(lines[-1][3:])
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def test_linuxcnc_measurement_pins_each_value_once_and_a_stale_one_ignored():
+    out = run_in_hal(MEASURE_SCRIPT)
+    assert out["stale"] == [None, None]
+    # mm, the offset's unit (offset_sign -1 does not touch it): + = the tool grew
+    (value, sigma, seq), again = out["new"]
+    assert (value, sigma, seq, again) == (pytest.approx(12.5), pytest.approx(0.75), 8, None)
+    assert re.match(r"BadValueError: linuxcnc: measurement nan \(sequence 9\)", out["nan"][0])
+    assert out["nan"][1] is None  # refused once
+    (value, sigma, seq), again, reconnects = out["after_reconnect"]
+    assert (value, sigma, seq, again, reconnects) == (pytest.approx(-2.0), pytest.approx(0.5), 10, None, 1)
+    assert re.match(r"BadValueError: linuxcnc: measurement sequence 10\.5 is not a whole number", out["fraction"])
+    assert out["s32"] == [None, [6.5, None, -2]]
+    assert out["s32_pins"] == {"tc-meas-s32.measurement.value": 2, "tc-meas-s32.measurement.sequence": 3}
+    assert out["none"] == [False, None, []]  # no measurement: no pins, nothing read
+
+
+def test_linuxcnc_a_probe_programs_m68_reaches_the_measurement_pins():
+    # the documented wiring: motion's analog outputs netted to the component's pins
+    nets = ("net tc-meas     motion.analog-out-00 => thermocomp.measurement.value\n"
+            "net tc-meas-seq motion.analog-out-01 => thermocomp.measurement.sequence\n")
+    with linuxcnc_rig("measurement = true", nets) as cnc:
+        pins = ("thermocomp.measurement.value", "thermocomp.measurement.sequence")
+        assert cnc.getps(pins) == [0.0, 0.0]
+        on_and_homed(cnc)
+        r = cnc.rsh
+        r.set("mdi m68 e0 q0.0125")  # the value first ...
+        r.set("mdi m68 e1 q1")  # ... then the counter
+        assert cnc.wait(lambda: cnc.getps(pins) == [0.0125, 1.0])
+        assert "Traceback" not in cnc.log()  # thermocomp run took measurement = true
