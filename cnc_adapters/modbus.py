@@ -10,6 +10,13 @@ A reply with a bad CRC is dropped by the framer, so it surfaces as a timeout; a 
 exception reply (illegal address, device failure) is an :class:`AdapterError`, or a
 :class:`WriteRejectedError` for a write. The offset is read back from the holding registers
 it is written to (an integer type holds it rounded to its unit).
+
+The closed loop (issue 17): a probe or tool-setter cycle leaves its measurement in
+``measurement_register`` and then changes a counter in ``measurement_sequence_register``
+(optional: a sigma in ``measurement_sigma_register``), all in one table
+(``measurement_table``). The value is encoded like the offset (``measurement_type``, the word
+and byte order; an integer type in units of ``measurement_scale``, by default
+``offset_scale``); each value is used once, and the counter found at the first read is stale.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ from __future__ import annotations
 import warnings
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
 from .base import (
     SETTINGS_CONFIG,
@@ -29,10 +36,13 @@ from .base import (
     BadValueError,
     Baud,
     Finite,
+    NonZero,
+    RawMeasurement,
     Seconds,
     UnreachableError,
     WriteRejectedError,
     one_of,
+    read_handshake,
     serial_options,
 )
 
@@ -87,6 +97,25 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
     offset_register: Register = Field(0, description="holding register(s) written and read back")
     offset_type: DataType = "float32"
     input_registers: dict[str, InputRegister] | None = None
+    # the closed loop; None: no measurement (the defaults are not validated)
+    measurement_register: Register = Field(  # type: ignore[assignment]
+        None, description="closed loop: the register(s) the probe cycle leaves its measurement in")
+    measurement_sequence_register: Register = Field(  # type: ignore[assignment]
+        None, description="the counter the probe cycle changes after writing the measurement")
+    measurement_sigma_register: Register = Field(  # type: ignore[assignment]
+        None, description="optional: the measurement's sigma, encoded as the measurement")
+    measurement_table: Table = "holding"
+    measurement_type: DataType = "float32"
+    measurement_sequence_type: DataType = "uint16"
+    measurement_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="register unit per um of the measurement; default offset_scale")
+
+    @model_validator(mode="after")
+    def _measurement(self) -> ModbusSettings:
+        check_measurement("", self.measurement_register, self.measurement_sequence_register,
+                          self.measurement_sigma_register, self.measurement_type,
+                          self.measurement_sequence_type, ValueError)
+        return self
 
 
 
@@ -169,6 +198,24 @@ class ModbusLink:
         return _swap(regs) if self.byte_order == "little" else regs
 
 
+def check_measurement(prefix: str, value: int | None, sequence: int | None, sigma: int | None,
+                      dtype: str, sequence_type: str, error: type[Exception] = AdapterError) -> None:
+    """The measurement's registers: the value and its counter together, the sigma only with
+    them, no two overlapping."""
+    if (value is None) != (sequence is None) or (sigma is not None and value is None):
+        raise error(f"{prefix}a measurement needs both measurement_register and measurement_sequence_register "
+                    "(the handshake), measurement_sigma_register only with them")
+    if value is None:
+        return
+    spans = [(value, dtype, "measurement_register"), (sequence, sequence_type, "measurement_sequence_register")]
+    if sigma is not None:
+        spans.append((sigma, dtype, "measurement_sigma_register"))
+    for i, (a, ta, na) in enumerate(spans):
+        for b, tb, nb in spans[i + 1:]:
+            if a < b + _WIDTH[tb] and b < a + _WIDTH[ta]:
+                raise error(f"{prefix}{na} {a} ({ta}) and {nb} {b} ({tb}) overlap")
+
+
 def check_types(name: str, *types: str) -> None:
     for t in types:
         if t not in _WIDTH:
@@ -179,6 +226,7 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
     name = "modbus"
     Settings: ClassVar[type[AdapterSettings]] = ModbusSettings
     can_read_offset: ClassVar[bool] = True
+    can_read_measurement: ClassVar[bool] = True  # an instance without measurement_register cannot
 
     def __init__(
         self,
@@ -196,10 +244,27 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         byte_order: Literal["big", "little"] = "big",
         timeout_s: float = 0.5,
         input_registers: dict[str, dict[str, Any]] | None = None,
+        measurement_register: int | None = None,
+        measurement_sequence_register: int | None = None,
+        measurement_sigma_register: int | None = None,
+        measurement_table: Literal["input", "holding"] = "holding",
+        measurement_type: str = "float32",
+        measurement_sequence_type: str = "uint16",
+        measurement_scale: float | None = None,
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        check_types("modbus", speed_type, offset_type)
+        check_types("modbus", speed_type, offset_type, measurement_type, measurement_sequence_type)
+        check_measurement("modbus: ", measurement_register, measurement_sequence_register,
+                          measurement_sigma_register, measurement_type, measurement_sequence_type)
+        if measurement_table not in ("input", "holding"):
+            raise AdapterError("modbus: measurement_table is 'input' or 'holding'")
+        # (table, type, sequence type, value, sequence[, sigma]) registers of the probe cycle
+        self.measurement = (measurement_table, measurement_type, measurement_sequence_type,
+                            measurement_register, measurement_sequence_register,
+                            measurement_sigma_register) if measurement_register is not None else None
+        self.can_read_measurement = self.measurement is not None  # type: ignore[misc]
+        self.measurement_scale = measurement_scale
         # extra channels: name -> {register, type (int16...), table (input/holding), scale}
         self.input_registers = {}
         for name, spec in (input_registers or {}).items():
@@ -237,6 +302,14 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
 
     def _read_offset_raw(self) -> float:
         return self._read_value("read offset", "holding", self.offset_register, self.offset_type)
+
+    def _read_measurement_raw(self) -> RawMeasurement | None:
+        table, dtype, seq_type, value, seq, sigma = self.measurement  # type: ignore[misc]
+        # one request each: the counter is read twice, around the value
+        return read_handshake(
+            self.name, lambda: self._read_value("read measurement sequence", table, seq, seq_type),
+            lambda: self._read_value("read measurement", table, value, dtype),
+            None if sigma is None else lambda: self._read_value("read measurement sigma", table, sigma, dtype))
 
     def _write_offset_raw(self, value: float) -> None:
         regs = self._encode(value, self.offset_type)

@@ -19,6 +19,12 @@ answered ``MACRO, <var>, <value>`` (a leading ``>`` is allowed); ``?E<var> <valu
 one, answered ``!``. The spindle speed is macro #3027 by default; the offset goes to a
 configurable macro variable, which the part program or a macro applies as a tool-length
 offset (for example ``#2000 + T`` wear, via ``G10``), and is read back with ``?Q600`` too.
+
+The closed loop (issue 17), Haas: a probe or tool-setter cycle leaves its measurement in macro
+``measurement_var`` and then changes a counter in ``measurement_sequence_var`` (optional: a
+sigma in ``measurement_sigma_var``), in the offset's unit (or ``measurement_scale``); all are
+read with ``?Q600``, the counter before and after the value. Each value is used once, and the
+counter found at the first read is stale.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, ClassVar
 
-from pydantic import AfterValidator, BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field, model_validator
 
 from .base import (
     SETTINGS_CONFIG,
@@ -38,12 +44,15 @@ from .base import (
     BadValueError,
     Baud,
     Count,
+    NonZero,
     Pattern,
+    RawMeasurement,
     Seconds,
     Text,
     UnreachableError,
     ValuePattern,
     WriteRejectedError,
+    read_handshake,
     serial_options,
 )
 
@@ -212,13 +221,18 @@ class LineAdapter(SerialLine, Adapter):
     def _read_offset_raw(self) -> float:
         if self.offset_query is None:  # read_offset_um checks can_read_offset first
             return super()._read_offset_raw()
-        reply = self.exchange(self.offset_query)
-        m = self.offset_query_reply.match(reply)
+        return self._query(self.offset_query, self.offset_query_reply)
+
+    def _query(self, request: str, reply_pattern: re.Pattern[str]) -> float:
+        """The number in the reply to ``request``: :class:`AdapterError` when the controller
+        refuses it, :class:`BadValueError` for a reply that does not match."""
+        reply = self.exchange(request)
+        m = reply_pattern.match(reply)
         if m is not None:
             return float(m.group("value"))
         if self.reject_reply.match(reply):
-            raise AdapterError(f"{self.name}: controller refused {self.offset_query!r}: {reply!r}")
-        raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {self.offset_query!r}")
+            raise AdapterError(f"{self.name}: controller refused {request!r}: {reply!r}")
+        raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {request!r}")
 
     def _write_offset_raw(self, value: float) -> None:
         request = self.offset_request.format(value=value)
@@ -244,6 +258,34 @@ class HaasSettings(LineSettings):
     offset_query: str | None = Field(None, description="default '?Q600 <offset_var>'; empty: "
                                      "no read-back")
     offset_query_reply: ValuePattern | None = None
+    # the closed loop; None: no measurement (the defaults are not validated)
+    measurement_var: Count = Field(  # type: ignore[assignment]
+        None, description="closed loop: the macro variable the probe cycle leaves its measurement in")
+    measurement_sequence_var: Count = Field(  # type: ignore[assignment]
+        None, description="the macro variable the probe cycle changes after writing the measurement")
+    measurement_sigma_var: Count = Field(  # type: ignore[assignment]
+        None, description="optional: the macro variable of the measurement's sigma")
+    measurement_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="macro unit per um of the measurement; default offset_scale")
+
+    @model_validator(mode="after")
+    def _measurement(self) -> HaasSettings:
+        check_macros("", self.offset_var, self.measurement_var, self.measurement_sequence_var,
+                     self.measurement_sigma_var, ValueError)
+        return self
+
+
+def check_macros(prefix: str, offset_var: int, value: int | None, sequence: int | None,
+                 sigma: int | None, error: type[Exception] = AdapterError) -> None:
+    """The measurement's macro variables: the value and its counter together, the sigma only
+    with them, all different and none the offset's."""
+    if (value is None) != (sequence is None) or (sigma is not None and value is None):
+        raise error(f"{prefix}a measurement needs both measurement_var and measurement_sequence_var "
+                    "(the handshake), measurement_sigma_var only with them")
+    given = [v for v in (offset_var, value, sequence, sigma) if v is not None]
+    if len(set(given)) < len(given):
+        raise error(f"{prefix}offset_var, measurement_var, measurement_sequence_var and "
+                    f"measurement_sigma_var must be different macro variables, not {given}")
 
 
 class HaasAdapter(LineAdapter):
@@ -253,12 +295,23 @@ class HaasAdapter(LineAdapter):
     name = "haas"
     Settings: ClassVar[type[AdapterSettings]] = HaasSettings
     can_read_offset: ClassVar[bool] = True
+    can_read_measurement: ClassVar[bool] = True  # an instance without measurement_var cannot
 
     def __init__(self, port: str, *, speed_var: int = 3027, offset_var: int = 10500,
-                 offset_decimals: int = 4, **kw: Any):
+                 offset_decimals: int = 4, measurement_var: int | None = None,
+                 measurement_sequence_var: int | None = None, measurement_sigma_var: int | None = None,
+                 measurement_scale: float | None = None, **kw: Any):
         self.speed_var = int(speed_var)
         self.offset_var = int(offset_var)
+        check_macros("haas: ", self.offset_var, measurement_var, measurement_sequence_var,
+                     measurement_sigma_var)
         macro = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER})$"
+        # (request, reply) per macro variable of the probe cycle: sequence, value[, sigma]; a
+        # NaN is taken as read, so that it is refused once, like any value that is no number
+        measured = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER}|(?i:[-+]?(?:nan|inf)))$"
+        self.measurement_queries = tuple(
+            (f"?Q600 {v}", re.compile(measured.format(v))) for v in
+            (measurement_sequence_var, measurement_var, measurement_sigma_var) if v is not None)
         defaults = {
             "speed_request": f"?Q600 {self.speed_var}",
             "speed_reply": macro.format(self.speed_var),
@@ -273,3 +326,10 @@ class HaasAdapter(LineAdapter):
             if kw.get(key) is None:
                 kw[key] = value
         super().__init__(port, **kw)
+        self.can_read_measurement = bool(self.measurement_queries)  # type: ignore[misc]
+        self.measurement_scale = measurement_scale
+
+    def _read_measurement_raw(self) -> RawMeasurement | None:
+        reads = [lambda q=q: self._query(*q) for q in self.measurement_queries]
+        # one request each: the counter is read twice, around the value
+        return read_handshake(self.name, reads[0], reads[1], reads[2] if len(reads) > 2 else None)

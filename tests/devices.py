@@ -121,11 +121,13 @@ class LineDevice(threading.Thread):
 
 
 class Registers:
-    """What a simulated controller holds: speed and the last accepted offset."""
+    """What a simulated controller holds: speed, the last accepted offset and other macro
+    variables (a probe cycle's measurement and counter)."""
 
     def __init__(self, speed_rpm: float = 0.0):
         self.speed_rpm = speed_rpm
         self.offset: float | None = None
+        self.macros: dict[int, float] = {}
 
 
 def haas_handler(regs: Registers, speed_var: int = 3027, offset_var: int = 10500):
@@ -133,7 +135,8 @@ def haas_handler(regs: Registers, speed_var: int = 3027, offset_var: int = 10500
         m = re.match(r"^\?Q600 (\d+)$", text)
         if m:
             var = int(m.group(1))
-            value = regs.speed_rpm if var == speed_var else (regs.offset or 0.0) if var == offset_var else 0.0
+            value = regs.speed_rpm if var == speed_var else (regs.offset or 0.0) if var == offset_var \
+                else regs.macros.get(var, 0.0)
             return f">MACRO, {var}, {value:.6f}"
         m = re.match(r"^\?E(\d+) (\S+)$", text)
         if m:
@@ -177,6 +180,7 @@ class ModbusDevice:
         self.context = ModbusServerContext(devices={1: ModbusDeviceContext(ir=self.ir, hr=self.hr)}, single=False)
         self.loop = asyncio.new_event_loop()
         self.server = None
+        self.retained: list[tuple[int, int, list[int]]] = []  # set_registers: (fc, address, regs)
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
         self.start()
@@ -186,6 +190,8 @@ class ModbusDevice:
 
         async def go():
             self.server = ModbusSerialServer(self.context, port=self.port, baudrate=115200)
+            for fc, address, regs in self.retained:
+                await self.server.context.async_setValues(1, fc, address, regs)
             asyncio.ensure_future(self.server.serve_forever())
             await asyncio.sleep(0.2)
 
@@ -207,6 +213,13 @@ class ModbusDevice:
 
     def set_input(self, address: int, regs: list[int]) -> None:
         self._run(self.server.context.async_setValues(1, 4, address, [r & 0xFFFF for r in regs]))
+
+    def set_registers(self, table: str, address: int, regs: list[int]) -> None:
+        """What the PLC's program writes, also while the server is down (the server keeps its
+        registers in a store of its own, made at each start: they are written again then)."""
+        self.retained.append((4 if table == "input" else 3, address, [r & 0xFFFF for r in regs]))
+        if self.server is not None:
+            self._run(self.server.context.async_setValues(1, *self.retained[-1]))
 
     def offset(self) -> float:
         from pymodbus.client import ModbusSerialClient as C

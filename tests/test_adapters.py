@@ -737,3 +737,162 @@ def test_linuxcnc_reads_back_what_motion_holds_not_what_it_wrote():
     assert out["held"] == pytest.approx(-12.0, abs=1e-6)
     assert out["held2"] == pytest.approx(3.5, abs=1e-6)
     assert re.match(r"AdapterError: linuxcnc: cannot read no\.such\.pin", out["missing_pin"])
+
+
+# -- the closed loop: a probe cycle's measurement, each value once ---------------------------
+
+MEASURING = ["haas", "modbus"]  # LinuxCNC's pins: tests/test_linuxcnc.py, in a real HAL
+
+
+@dataclass
+class ProbeRig:
+    make: Callable[..., Adapter]  # an unopened adapter with a measurement source; kwargs: scaling
+    publish: Callable[..., None]  # (value, sequence, sigma=None), the controller's unit: value first
+    unplug: Callable[[], None]  # the controller goes away ...
+    plug: Callable[[], None]  # ... and comes back
+
+
+@pytest.fixture(params=MEASURING)
+def probe_rig(request, tmp_path):
+    pty = PtyPair(tmp_path)
+    if request.param == "haas":
+        regs = Registers()
+        dev = LineDevice(pty.dev, haas_handler(regs))
+
+        def publish(value: float, seq: int, sigma: float | None = None) -> None:
+            regs.macros[10501] = value
+            if sigma is not None:
+                regs.macros[10503] = sigma
+            regs.macros[10502] = seq
+
+        try:
+            yield ProbeRig(lambda **kw: HaasAdapter(pty.ctl, timeout_s=0.3, measurement_var=10501,
+                                                    measurement_sequence_var=10502,
+                                                    measurement_sigma_var=10503, **kw),
+                           publish, pty.unplug, pty.plug)
+        finally:
+            dev.stop()
+            pty.close()
+    else:
+        from pymodbus.client import ModbusSerialClient as C
+
+        mdev = ModbusDevice(pty.dev)
+
+        def publish(value: float, seq: int, sigma: float | None = None) -> None:
+            mdev.set_registers("holding", 8, C.convert_to_registers(float(value), C.DATATYPE.FLOAT32))
+            if sigma is not None:
+                mdev.set_registers("holding", 12, C.convert_to_registers(float(sigma), C.DATATYPE.FLOAT32))
+            mdev.set_registers("holding", 10, [seq])
+
+        def unplug() -> None:
+            pty.unplug()
+            mdev.stop_server()
+
+        def plug() -> None:
+            pty.plug()
+            mdev.start()
+
+        try:
+            yield ProbeRig(lambda **kw: ModbusRtuAdapter(pty.ctl, baudrate=115200, timeout_s=0.3,
+                                                         measurement_register=8,
+                                                         measurement_sequence_register=10,
+                                                         measurement_sigma_register=12, **kw),
+                           publish, unplug, plug)
+        finally:
+            mdev.close()
+            pty.close()
+
+
+def test_each_measurement_is_used_once_and_one_left_from_before_is_stale(probe_rig):
+    from cnc_adapters.base import Measurement
+
+    probe_rig.publish(5.0, 7, 0.5)  # a probe cycle ran before thermocomp started
+    with probe_rig.make() as link:
+        assert link.can_read_measurement
+        assert link.read_measurement() is None  # stale: the counter found at the first read
+        assert link.read_measurement() is None
+        probe_rig.publish(12.5, 8, 0.75)
+        assert link.read_measurement() == Measurement(12.5, 0.75, 8, link.name)
+        assert link.read_measurement() is None  # once
+        # a value that is not a finite number: refused, once
+        probe_rig.publish(math.nan, 9)
+        with pytest.raises(BadValueError, match="sequence 9"):
+            link.read_measurement()
+        assert link.read_measurement() is None
+        probe_rig.publish(-3.25, 10)
+        assert link.read_measurement() == Measurement(-3.25, 0.75, 10, link.name)
+        # the controller goes away; a probe cycle runs meanwhile; it is taken after the reconnect
+        probe_rig.unplug()
+        with pytest.raises(UnreachableError):
+            link.read_measurement()
+        probe_rig.publish(2.0, 11, 0.25)
+        probe_rig.plug()
+        got: list = []
+        assert wait_for(lambda: got.append(link.read_measurement()) or got[-1] is not None)
+        assert got[-1] == Measurement(2.0, 0.25, 11, link.name) and link.reconnects == 1
+        assert link.read_measurement() is None
+
+
+def test_a_measurement_is_in_the_controllers_unit_whatever_the_offsets_sign(probe_rig):
+    # millimetres, the offset's sign flipped: a measurement keeps its own sign (+ = grown)
+    with probe_rig.make(offset_scale=0.001, offset_sign=-1) as link:
+        assert link.read_measurement() is None
+        probe_rig.publish(0.0125, 1, 0.0005)
+        m = link.read_measurement()
+        assert m.elongation_um == pytest.approx(12.5) and m.sigma_um == pytest.approx(0.5)
+    # a cycle that hands over um while the offset is in mm
+    with probe_rig.make(offset_scale=0.001, measurement_scale=1) as link:
+        assert link.read_measurement() is None
+        probe_rig.publish(12.5, 2, 0.5)
+        m = link.read_measurement()
+        assert m.elongation_um == pytest.approx(12.5) and m.sigma_um == pytest.approx(0.5)
+
+
+def test_a_link_without_a_measurement_source_says_so_and_reads_nothing(tmp_path):
+    port = str(tmp_path / "no-such-port")
+    for link in (HaasAdapter(port), ModbusRtuAdapter(port)):
+        assert type(link).can_read_measurement and not link.can_read_measurement
+        assert link.read_measurement() is None  # without even opening the port
+        assert not link._open
+        link.close()
+    assert not LineAdapter(port).can_read_measurement  # the generic protocol has no source
+    for bad, match in (({"measurement_var": 10501}, "needs both"),
+                       ({"measurement_var": 10500, "measurement_sequence_var": 10502}, "different")):
+        with pytest.raises(ConfigError, match=match):
+            open_adapter({"type": "haas", "port": port, **bad})
+    for bad, match in (({"measurement_sequence_register": 3}, "needs both"),
+                       ({"measurement_register": 2, "measurement_sequence_register": 3}, "overlap")):
+        with pytest.raises(ConfigError, match=match):
+            open_adapter({"type": "modbus", "port": port, **bad})
+
+
+def test_modbus_measurement_in_integer_registers_of_the_input_table(tmp_path):
+    from pymodbus.client import ModbusSerialClient as C
+
+    pty = PtyPair(tmp_path)
+    dev = ModbusDevice(pty.dev)
+    try:
+        # 0.1 um counts in an int32, low word first, in input registers; the counter a uint16
+        with ModbusRtuAdapter(pty.ctl, baudrate=115200, word_order="little", measurement_table="input",
+                              measurement_register=4, measurement_type="int32",
+                              measurement_sequence_register=6, measurement_scale=10) as link:
+            dev.set_registers("input", 6, [65535])
+            assert link.read_measurement() is None
+            dev.set_registers("input", 4, C.convert_to_registers(-125, C.DATATYPE.INT32, word_order="little"))
+            dev.set_registers("input", 6, [0])  # wrapped
+            m = link.read_measurement()
+            assert m.elongation_um == pytest.approx(-12.5) and m.sequence == 0 and m.sigma_um is None
+            assert link.read_measurement() is None
+    finally:
+        dev.close()
+        pty.close()
+
+
+def test_a_counter_that_moves_while_the_value_is_read_waits_for_the_next_read():
+    from cnc_adapters.base import RawMeasurement, read_handshake
+
+    counter = iter([4, 5, 5, 5])  # the cycle changed the counter between its two reads
+    assert read_handshake("x", lambda: next(counter), lambda: 1.5) is None
+    assert read_handshake("x", lambda: next(counter), lambda: 1.5, lambda: 0.5) == RawMeasurement(5, 1.5, 0.5)
+    with pytest.raises(BadValueError, match="whole number"):
+        read_handshake("x", lambda: 2.5, lambda: 1.5)
