@@ -12,6 +12,12 @@ its namespace. Presets:
 - ``generic``: give ``speed_node``/``speed_path`` and ``offset_node``/``offset_path``
   (a browse path is ``0:Objects/2:Machine/2:Speed``, with ``{ns}`` for ``namespace_uri``).
 
+The closed loop (issue 17): ``measurement_node`` and ``measurement_sequence_node`` (optional
+``measurement_sigma_node``) name the variables a probe or tool-setter cycle writes: the value
+first, then a changed counter. Each value is used once; the counter found at connect is stale
+(:meth:`~cnc_adapters.base.Adapter.read_measurement`). They are looked up at the first read,
+so a wrong node is a failed measurement, never a failed link.
+
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
 a server whose certificate is not in the trust list is refused. The user name and password
@@ -49,6 +55,7 @@ from .base import (
     BadValueError,
     Count,
     Positive,
+    RawMeasurement,
     Seconds,
     Text,
     UnreachableError,
@@ -56,6 +63,7 @@ from .base import (
     one_of,
     query_params,
     redact_url,
+    short,
 )
 
 log = logging.getLogger("thermocomp.adapters.opcua")
@@ -68,6 +76,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "input_nodes": {k: f"ns={{ns}};s=/CncInterface/CncSpindleList/Spindle1/Sensors/{v}" for k, v in (
             ("bearing_temp_c", "BearingTemp"), ("motor_temp_c", "MotorTemp"), ("coolant_temp_c", "CoolantTemp"),
             ("ambient_c", "AmbientTemp"), ("spindle_load_pct", "Load"))},
+        # its simulated tool setter
+        "measurement_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Measurement",
+        "measurement_sequence_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
+        "measurement_sigma_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sigma",
     },
     "sinumerik": {
         "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
@@ -201,6 +213,13 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
     publish_interval_ms: Positive = 50.0
     input_nodes: dict[str, str] | None = Field(None, description="extra channels: name = node "
                                                "id or browse path")
+    measurement_node: str | None = Field(
+        None, description="closed loop: the tool length the probe cycle measured (node id or browse "
+        "path), in the offset's unit, positive when the tool grew toward the workpiece")
+    measurement_sequence_node: str | None = Field(
+        None, description="the counter the probe cycle changes after writing measurement_node")
+    measurement_sigma_node: str | None = Field(
+        None, description="optional: the measurement's sigma, in the offset's unit")
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:
@@ -210,6 +229,10 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
         if not (speed and offset):
             raise ValueError(f"preset {self.preset!r} needs the speed and offset nodes: give "
                              "speed_node or speed_path and offset_node or offset_path")
+        if bool(self.measurement_node) != bool(self.measurement_sequence_node) or (
+                self.measurement_sigma_node and not self.measurement_node):
+            raise ValueError("a measurement needs both measurement_node and measurement_sequence_node "
+                             "(the handshake), measurement_sigma_node only with them")
         return self
 
 
@@ -454,6 +477,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         read_mode: str = "poll",
         publish_interval_ms: float = 50.0,
         input_nodes: dict[str, str] | None = None,
+        measurement_node: str | None = None,
+        measurement_sequence_node: str | None = None,
+        measurement_sigma_node: str | None = None,
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -496,6 +522,19 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._inputs: dict[str, Any] = {}
         self._speed = None
         self._offset = None
+        # the probe cycle's handshake: (sequence, value[, sigma]), node ids or browse paths
+        if measurement_node is None and measurement_sequence_node is None:
+            measurement_node = p.get("measurement_node")
+            measurement_sequence_node = p.get("measurement_sequence_node")
+            measurement_sigma_node = measurement_sigma_node or p.get("measurement_sigma_node")
+        if bool(measurement_node) != bool(measurement_sequence_node):
+            raise AdapterError("opcua: a measurement needs both measurement_node and "
+                               "measurement_sequence_node")
+        self.measurement_refs = tuple(r for r in (measurement_sequence_node, measurement_node,
+                                                  measurement_sigma_node) if r) if measurement_node else ()
+        self.can_read_measurement = bool(self.measurement_refs)
+        self._measurement: list[Any] | None = None  # resolved lazily: a bad node never stops the link
+        self._ns = ""
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -503,6 +542,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         return {"url": url.split("?", 1)[0], **query_params(url)}
 
     def _on_connected(self, client: Any, ns: str) -> None:
+        self._ns = ns
         self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
         self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
         self._call("read speed node", self._speed.read_value)
@@ -549,6 +589,24 @@ class OpcUaAdapter(OpcUaLink, Adapter):
     def _read_offset_raw(self) -> Any:
         return self._call("read offset", self._offset.read_value)
 
+    def _read_measurement_raw(self) -> RawMeasurement:
+        """The probe cycle's counter, value (and sigma), in one request, the counter first: the
+        cycle writes the value before it changes the counter, so a new counter never comes with
+        an old value."""
+        if self._measurement is None:
+            self._measurement = [self._resolve(self._client, ref, None, self._ns) if not ref.startswith("0:")
+                                 else self._resolve(self._client, None, ref, self._ns)
+                                 for ref in self.measurement_refs]
+        dvs = self._call("read measurement", self._client.read_attributes, self._measurement)
+        for ref, dv in zip(self.measurement_refs, dvs):
+            if not dv.StatusCode.is_good():
+                raise AdapterError(f"opcua: measurement node {ref}: {dv.StatusCode.name}")
+        seq, value, *sigma = (None if dv.Value is None else dv.Value.Value for dv in dvs)
+        if isinstance(seq, bool) or not isinstance(seq, (int, float)) or not math.isfinite(seq) \
+                or seq != int(seq):
+            raise BadValueError(f"opcua: measurement sequence node holds {short(seq)}, not a whole number")
+        return RawMeasurement(int(seq), value, sigma[0] if sigma else None)
+
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua
 
@@ -570,6 +628,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
     def _forget(self) -> None:
         self._latest = None
         self._unverified = None
+        self._measurement = None
 
 
 class _Latest:

@@ -3,7 +3,9 @@
 ``sim://motorized-27k?program=job-shop-day&seed=3&time_scale=60`` builds a plant, a speed
 program and a simulated clock. Reading the speed advances the plant to the clock; the
 written offset moves the virtual tool tip (``machine.history().tool_tip_error_um``) and is
-read back from the machine (:attr:`VirtualMachine.offset_um`).
+read back from the machine (:attr:`VirtualMachine.offset_um`). The machine's tool setter
+(:meth:`VirtualMachine.start_probe`) is read like a controller's probe variables, with the
+sequence-counter handshake.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from ..base import (
     AdapterSettings,
     Allowed,
     Positive,
+    RawMeasurement,
     WriteRejectedError,
     one_of,
 )
@@ -46,6 +49,7 @@ class SimAdapter(Adapter):
     name = "sim"
     Settings: ClassVar[type[AdapterSettings]] = SimSettings
     can_read_offset: ClassVar[bool] = True
+    can_read_measurement: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -94,6 +98,13 @@ class SimAdapter(Adapter):
     def _write_offset_raw(self, value: float) -> None:
         if not self.machine.apply_offset(value):
             raise WriteRejectedError(f"sim: offset {value!r} refused by the virtual CNC")
+
+    def _read_measurement_raw(self) -> RawMeasurement:
+        self.machine.advance()
+        m = self.machine
+        seq = m.probe_sequence  # the counter first: it changes after the value
+        # in the controller's unit, like the offset the machine holds
+        return RawMeasurement(seq, m.probe_value_um * self.units.scale, m.probe_sigma_um * self.units.scale)
 
     def input_channels(self) -> tuple[str, ...]:
         from .vcnc import SENSOR_KEYS

@@ -12,7 +12,7 @@ Heat input per node is a polynomial in n (krpm): motor hysteresis ~ n, eddy
 currents and windage ~ n**2, bearing friction ~ n**3 (paper 001, eq. 10).
 Convection from the rotating shaft and nose grows with speed as
 ``h0 + h1*n**0.8``. The ambient air drifts slowly (a daily sine plus a seeded
-random walk). Axial elongation is a weighted sum of node temperature rises
+random walk, and optionally a steady ramp, ``ambient_drift_k_per_h``). Axial elongation is a weighted sum of node temperature rises
 plus an instantaneous elastic term ``e1*n + e2*n**2`` (centrifugal and
 preload change), which is what makes the paper's 27 000 -> 12 000 rpm drop
 lose more than 10 um within a minute. The eddy-current reading adds Gaussian
@@ -68,6 +68,9 @@ class PlantParams:
     chiller_c: float = 24.0
     ambient_daily_amplitude_k: float = 0.5
     ambient_walk_k_per_sqrt_h: float = 0.05
+    ambient_drift_k_per_h: float = 0.0
+    """A steady ramp of the air [K/h] (a hall warming through the day): 0 in the presets; a
+    speed-only model cannot see it, so the closed-loop tests use it."""
     noise_um: float = 0.05
     quantum_um: float = 0.1
 
@@ -192,6 +195,7 @@ class SpindlePlant:
         return (
             p.ambient_c
             + p.ambient_daily_amplitude_k * math.sin(2 * math.pi * t_s / 86400.0 + self._phase)
+            + p.ambient_drift_k_per_h * t_s / 3600.0
             + self._walk_k
         )
 

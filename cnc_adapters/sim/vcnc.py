@@ -16,6 +16,11 @@ Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
           ToolTipError        Double  um    true growth + applied offset: what the part sees
           CycleStart          Boolean       write true to start the loaded program (writable)
 
+and the simulated tool setter, under ``Spindle1/ToolSetter/``: a method ``Probe()`` (returns the
+sequence number the measurement will carry, 0 while a probe cycle is running), and
+``Measurement`` (Double, um), ``Sigma`` (Double, um) and ``Sequence`` (UInt32), written as a
+probe cycle would: the value first, then the counter.
+
 Every node id is a string node id ``ns=<ns>;s=/<path>`` so that configurations can name
 them; ``NODE_PATHS`` lists them. Like a real CNC's variable, ``ThermalOffset`` takes a write from
 any client (an operator's or a fault test's, up to ``OFFSET_LIMIT_UM``) and starts at 0 when
@@ -62,6 +67,12 @@ NODE_PATHS = {
     "ambient_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/AmbientTemp",
     "spindle_load_pct": "/CncInterface/CncSpindleList/Spindle1/Sensors/Load",
 }
+TOOL_SETTER_PATHS = {
+    "probe_measurement": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Measurement",
+    "probe_sigma": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sigma",
+    "probe_sequence": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
+}
+PROBE_METHOD_PATH = "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Probe"
 SENSOR_KEYS = ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct")
 CYCLE_START_PATH = "/CncInterface/Simulation/CycleStart"
 OFFSET_LIMIT_UM = 1000.0
@@ -80,6 +91,24 @@ class SimClock(ScaledClock):
 
     def __init__(self, scale: float = 60.0, base: Callable[[], float] = time.monotonic):
         super().__init__(scale, base)
+
+
+@dataclass(frozen=True)
+class ToolSetter:
+    """A tool setter (laser or contact): a probe cycle stops the spindle for ``dwell_s``
+    (simulated), then measures the true tool-tip elongation with Gaussian noise of
+    ``noise_um`` (seeded), rounded to ``resolution_um``."""
+
+    dwell_s: float = 20.0
+    noise_um: float = 0.5
+    resolution_um: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("dwell_s", "noise_um", "resolution_um"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"tool setter {name} must be a finite number >= 0, got {v}")
 
 
 @dataclass
@@ -109,6 +138,7 @@ class VirtualMachine:
         *,
         clock: Callable[[], float] | None = None,
         plant_dt_s: float = 0.5,
+        tool_setter: ToolSetter | None = None,
     ):
         self.plant = plant
         self.program = program
@@ -127,6 +157,14 @@ class VirtualMachine:
         self._sensor_rng = np.random.default_rng(plant.seed + 104729)
         self.sensor_faults: dict[str, str] = {}  # name -> "nan" | "frozen"
         self._frozen: dict[str, float] = {}
+        self.tool_setter = tool_setter or ToolSetter()
+        self._probe_rng = np.random.default_rng(self.tool_setter.seed)
+        self._probe_until_s: float | None = None  # plant time the running probe cycle ends
+        # what the probe cycle left, as a controller's variables: value, then counter
+        self.probe_value_um = 0.0
+        self.probe_true_um = 0.0
+        self.probe_sigma_um = self.tool_setter.noise_um
+        self.probe_sequence = 0
 
     def load_program(self, program: Program | None) -> None:
         """Start ``program`` now (sim time); None idles the spindle."""
@@ -148,7 +186,37 @@ class VirtualMachine:
         """Force a speed regardless of the program (None: follow the program)."""
         self._override_rpm = rpm
 
+    def start_probe(self) -> int:
+        """Start a probe cycle now: the spindle stops for the tool setter's ``dwell_s``, then
+        the measurement is published (:attr:`probe_value_um`, then :attr:`probe_sequence`) and
+        the program resumes where it stopped. The sequence number the measurement will carry,
+        or 0 when a probe cycle is running already."""
+        self.advance()  # the cycle starts now, not at the last step
+        with self._lock:
+            if self._probe_until_s is not None:
+                return 0
+            self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
+            return self.probe_sequence + 1
+
+    @property
+    def probing(self) -> bool:
+        return self._probe_until_s is not None
+
+    def _finish_probe(self) -> None:
+        ts = self.tool_setter
+        value = self.plant.true_elongation_um() + ts.noise_um * float(self._probe_rng.standard_normal())
+        if ts.resolution_um > 0:
+            value = round(value / ts.resolution_um) * ts.resolution_um
+        self.probe_true_um = self.plant.true_elongation_um()  # for scoring
+        self.probe_value_um = float(value)
+        self.probe_sigma_um = ts.noise_um
+        self.probe_sequence += 1
+        self._program_start_s += ts.dwell_s  # the program waited for the probe cycle
+        self._probe_until_s = None
+
     def commanded_rpm(self, t_s: float) -> float:
+        if self._probe_until_s is not None:
+            return 0.0  # the tool setter needs the spindle at rest
         if self._override_rpm is not None:
             return self._override_rpm
         if self.program is None:
@@ -195,6 +263,8 @@ class VirtualMachine:
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
                 self._hist.append((self.plant.time_s, rpm, true, meas, self.offset_um))
+                if self._probe_until_s is not None and self.plant.time_s >= self._probe_until_s - 1e-9:
+                    self._finish_probe()
 
     def sensor_values(self) -> dict[str, float]:
         """What the machine's sensors read now (noise, resolution, injected faults)."""
@@ -256,7 +326,7 @@ class VirtualCNC:
     # -- server ----------------------------------------------------------------
 
     async def start(self) -> None:
-        from asyncua import Server, ua
+        from asyncua import Server, ua, uamethod
 
         user_manager = None
         if self.users is not None:
@@ -307,6 +377,20 @@ class VirtualCNC:
             if key == "thermal_offset":
                 await node.set_writable()  # for every client, like the CNC's own variable
             self._nodes[key] = node
+        for key, path in TOOL_SETTER_PATHS.items():
+            parent_path, _, name = path.rpartition("/")
+            initial = (ua.Variant(0, ua.VariantType.UInt32) if key == "probe_sequence"
+                       else ua.Variant(0.0, ua.VariantType.Double))
+            self._nodes[key] = await (await folder(parent_path)).add_variable(
+                f"ns={self.ns};s={path}", f"{self.ns}:{name}", initial)
+        machine = self.machine
+
+        @uamethod
+        def probe(_parent):
+            return ua.Variant(machine.start_probe(), ua.VariantType.UInt32)
+
+        await (await folder(PROBE_METHOD_PATH.rpartition("/")[0])).add_method(
+            f"ns={self.ns};s={PROBE_METHOD_PATH}", f"{self.ns}:Probe", probe, [], [ua.VariantType.UInt32])
         start = await (await folder("/CncInterface/Simulation")).add_variable(
             f"ns={self.ns};s={CYCLE_START_PATH}", f"{self.ns}:CycleStart",
             ua.Variant(False, ua.VariantType.Boolean))
@@ -363,6 +447,11 @@ class VirtualCNC:
         values.update(m.sensor_values())
         for key, v in values.items():
             await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
+        # as a probe cycle writes them: the value, then the counter
+        seq, value, sigma = m.probe_sequence, m.probe_value_um, m.probe_sigma_um
+        await self._nodes["probe_measurement"].write_value(ua.Variant(float(value), ua.VariantType.Double))
+        await self._nodes["probe_sigma"].write_value(ua.Variant(float(sigma), ua.VariantType.Double))
+        await self._nodes["probe_sequence"].write_value(ua.Variant(int(seq), ua.VariantType.UInt32))
 
 
 def call(vcnc: VirtualCNC, coro_fn) -> None:
