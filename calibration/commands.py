@@ -147,6 +147,8 @@ def fit(args: argparse.Namespace) -> int:
                                    "logs' own sample period")
     if not (math.isfinite(args.probe_target_um) and args.probe_target_um > 0):
         raise CalibrationError(f"--probe-target-um must be > 0, got {args.probe_target_um}")
+    if args.probe_every is not None and not (math.isfinite(args.probe_every) and args.probe_every > 0):
+        raise CalibrationError(f"--probe-every must be > 0 s, got {args.probe_every}")
     logs = [read_run_log(p) for p in args.runs]
     runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
     names = _input_names(args, logs)
@@ -161,7 +163,8 @@ def fit(args: argparse.Namespace) -> int:
     with progress(not args.json) as say:
         result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
                           nested=not args.no_nested, physical=not args.no_physical,
-                          probe_target_um=args.probe_target_um, **_meta(args, logs))
+                          probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
+                          **_meta(args, logs))
     result.warnings[:0] = gap_notes
     model = result.model
     # validated before it is written: the same checks a load makes

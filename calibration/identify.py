@@ -285,6 +285,7 @@ class Identification:
 def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
              units: Mapping[str, str] | None = None, physical: bool = True, nested: bool = True,
              probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
+             probe_every_s: float | None = None,
              progress: Callable[[str], None] | None = None, **meta: Any) -> Identification:
     """Fit every candidate, score it on the same folds in free run, choose, and build the model.
 
@@ -328,12 +329,37 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     say("scoring the paper's OLS")
     cands.append(_paper(j))
 
-    bar = cands[0].honest_rms_um
+    # with probes planned, a candidate is judged by its closed loop on held-out cycles
+    plans: dict[str, closedloop.Plan | None] = {}
+    intervals = tuple(sorted({*closedloop.INTERVALS_S, *([probe_every_s] if probe_every_s else [])}))
+    target = probe_target_um if probe_target_um is not None else closedloop.DEFAULT_TARGET_UM
+
+    def loop_of(c: Candidate) -> closedloop.Plan | None:
+        if c.name not in plans:
+            tau = c.slowest_tau_s or (max(c.model.time_constants_s(0.0)) if c.model is not None else 0.0)
+            ok = c.held_out_residual_um is not None and tau > 0 and len(j.folds) >= 2
+            plans[c.name] = closedloop.plan(j.time_s, c.held_out_residual_um, j.folds, tau, target,
+                                            intervals) if ok else None
+            if plans[c.name] is not None:
+                c.details["closed_loop_rms_um"] = {f"{r['interval_s']:.0f}": round(r["rms_um"], 4)
+                                                   for r in plans[c.name].table[1:]}
+        return plans[c.name]
+
+    def score(c: Candidate) -> float:
+        if probe_every_s is None:
+            return c.honest_rms_um
+        p = loop_of(c)
+        return math.inf if p is None else p.rms_at(probe_every_s)
+
+    what = "CV RMS" if probe_every_s is None else f"closed-loop RMS (a probe every {probe_every_s:g} s)"
+    if probe_every_s is not None:
+        say(f"scoring every candidate in closed loop, a probe every {probe_every_s:g} s")
+    bar = score(cands[0])
     for c in cands:
         if c.family == "reference":
             continue
-        if c is not cands[0] and c.honest_rms_um > bar:
-            c.refusals.append(f"CV RMS {c.honest_rms_um:.2f} um is worse than the exponential "
+        if c is not cands[0] and score(c) > bar:
+            c.refusals.append(f"{what} {score(c):.2f} um is worse than the exponential "
                               f"baseline's {bar:.2f} um")
         c.accepted = not c.refusals
 
@@ -349,20 +375,24 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
         raise CalibrationError("no speed-only candidate passed the checks: "
                                + "; ".join(f"{c.name}: {', '.join(c.refusals)}" for c in cands
                                            if c.family == "speed"))
-    best = min(speed, key=lambda c: c.honest_rms_um)
-    chosen = next(c for c in speed if c.honest_rms_um <= best.honest_rms_um * (1 + PARSIMONY))
+    best = min(speed, key=score)
+    chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
     basis = "nested " if chosen.nested_rms_um is not None else ""
-    reason = (f"{chosen.name} has the lowest {basis}{j.scheme} free-run RMS among the speed-only "
-              f"candidates, {chosen.honest_rms_um:.2f} um"
-              + (f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
+    if probe_every_s is None:
+        reason = f"{chosen.name} has the lowest {basis}{j.scheme} free-run RMS among the speed-only candidates, "
+    else:
+        reason = (f"{chosen.name} has the lowest {j.scheme} {what} among the speed-only candidates "
+                  f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS ")
+    reason += (f"{chosen.honest_rms_um:.2f} um"
+               + (f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
     model = _with_fit(chosen, j, reason)
     final = chosen
     if ridge_in is not None:
         c_in = next(c for c in cands if c.name == "ridge+inputs")
-        if c_in.accepted and c_in.honest_rms_um >= chosen.honest_rms_um:
+        if c_in.accepted and score(c_in) >= score(chosen):
             c_in.accepted = False
-            c_in.refusals.append(f"no better than speed only ({c_in.honest_rms_um:.2f} um against "
-                                 f"{chosen.honest_rms_um:.2f} um)")
+            c_in.refusals.append(f"no better than speed only ({what} {score(c_in):.2f} um against "
+                                 f"{score(chosen):.2f} um)")
         if c_in.accepted:
             try:
                 c_in.model = ridge_in.to_model("ridge+inputs", units=units, fallback=model, fit={}, **meta)
@@ -382,11 +412,16 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     derived = _derived(final, ridge_in if final.name == "ridge+inputs" else ridge if final.name == "ridge"
                        else None, j)
     loop = None
-    if probe_target_um is not None and final.held_out_residual_um is not None and len(j.folds) >= 2:
+    if probe_target_um is not None:
         say("planning the closed loop (probe intervals)")
-        loop = closedloop.plan(j.time_s, final.held_out_residual_um, j.folds,
-                               max(model.time_constants_s(0.0)), probe_target_um)
-        model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
+        loop = loop_of(final)
+    if loop is not None:
+        fb = model.fallback
+        fb_loop = loop_of(chosen) if fb is not None else None
+        update: dict[str, Any] = {"fit": {**model.fit, "observer": loop.observer.model_dump()}}
+        if fb is not None and fb_loop is not None:  # the fallback keeps the observer fitted to it
+            update["fallback"] = fb.model_copy(update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}})
+        model = model.model_copy(update=update)
     return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0, derived,
                           loop)
 

@@ -26,14 +26,19 @@ def _walk(seed: int, hours: float = 40.0, dt_s: float = 15.0, q_um2_per_h: float
 
 
 def test_the_variogram_fit_recovers_the_noise_it_was_made_of():
-    qs, sds = [], []
+    qs, sds, kept = [], [], []
     for seed in range(6):
         t, r, cycles = _walk(seed)
+        q, sd2 = cl._nnls_variogram(t, r, cycles, False)
+        qs.append(q * 3600.0)
+        sds.append(math.sqrt(sd2))
         cfg = cl.fit_noise(t, r, cycles)
-        qs.append(cfg.bias_q_um2_per_s * 3600.0)
-        sds.append(cfg.model_sd_um)
+        assert cfg.model_sd_um == pytest.approx(sds[-1])
+        kept.append(cfg.bias_q_um2_per_s * 3600.0 / qs[-1])
     assert np.median(qs) == pytest.approx(4.0, rel=0.35)
     assert np.median(sds) == pytest.approx(0.6, rel=0.35)
+    # the observer keeps the largest cycle's own walk: on the safe side, not wildly so
+    assert all(1.0 <= k < 4.0 for k in kept)
 
 
 def test_the_fitted_observer_beats_a_bias_reset_on_held_out_cycles():
@@ -83,3 +88,30 @@ def test_observer_settings_come_from_the_model_and_the_runtime_overrides_them():
     # a state saved without an observer (before the closed loop was enabled) still loads
     plain = f.state_from_dict(m.state_dict(s.model))
     assert plain.bias_um == 0.0 and plain.since_measurement_s is None
+
+
+def test_fit_for_a_closed_loop_chooses_by_the_closed_loop_on_held_out_cycles(tmp_path):
+    import json
+    import runpy
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from compensator.io import load_any_model
+
+    channels = runpy.run_path(str(Path(__file__).parent / "data" / "real-spindle" / "channels.py"))
+    log = channels["write_channels"](tmp_path, ("ch3",))["ch3"]
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", str(log), "--no-physical", "--no-nested",
+                        "--probe-every", "1800", "--output", str(tmp_path / "m.json"), "--json"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    speed = [c for c in rep["candidates"] if c["family"] == "speed" and c["accepted"]]
+    loop = {c["name"]: c["closed_loop_rms_um"]["1800"] for c in speed}
+    assert rep["chosen"] == min(loop, key=loop.get) and "closed-loop RMS" in rep["reason"]
+    assert rep["closed_loop"]["intervals"][2]["rms_um"] == pytest.approx(loop[rep["chosen"]], abs=1e-3)
+    assert load_any_model(tmp_path / "m.json").fit["observer"] == rep["closed_loop"]["observer"]
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", str(log), "--probe-every", "-5",
+                        "--output", str(tmp_path / "n.json")], capture_output=True, text=True)
+    assert r.returncode != 0 and r.stderr.count("\n") == 1 and "--probe-every must be > 0" in r.stderr
+    assert not (tmp_path / "n.json").exists()

@@ -112,6 +112,9 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                    help="skip the nested cross-validation (faster; the choice then uses plain CV)")
     p.add_argument("--no-physical", action="store_true",
                    help="leave the output-error physical form out of the candidates (faster)")
+    p.add_argument("--probe-every", type=float, metavar="SECONDS",
+                   help="the spindle will run in closed loop with a probe every SECONDS: choose "
+                   "the model by its closed-loop error on held-out cycles instead of its free run")
     p.add_argument("--probe-target-um", type=float, default=2.0,
                    help="closed loop: the RMS a recommended probe interval must meet in "
                    "cross-validation [um] (the fit report tabulates interval -> RMS and max)")
