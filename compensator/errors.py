@@ -134,3 +134,8 @@ class BadValueError(AdapterError, ValueError):
 
 class SensorOverRangeError(BadValueError):
     """The sensor reports its measuring range exceeded (the probe is saturated)."""
+
+
+class ControlError(ThermocompError, ConnectionError):
+    """The running service cannot be reached through its control channel (not running, another
+    user's), or it did not answer."""

@@ -172,6 +172,23 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="thermocomp.runtime.service:main")
 
 
+def _add_measure(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("measure", help="send a tool-setter or probe measurement to the running service",
+                       description="The service fuses it at the spindle's next cycle and answers: "
+                       "accepted (exit 0), rejected by the innovation gate (exit 1); an error exits 2.")
+    p.add_argument("--um", type=float, required=True,
+                   help="the measured elongation [um]: positive when the tool grew toward the workpiece")
+    p.add_argument("--sigma-um", type=float, help="its standard deviation [um] (default: the "
+                   "spindle's [spindle.observer] sigma_um)")
+    p.add_argument("--spindle", help="the spindle (default: the only one with an observer)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--state-dir", help="the service's state directory (default /var/lib/thermocomp)")
+    g.add_argument("--config", help="or the runtime configuration that names it")
+    p.add_argument("--timeout-s", type=float, help="wait this long for the answer (default 60)")
+    p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
+    p.set_defaults(handler="thermocomp.runtime.service:measure")
+
+
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
@@ -301,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_demo, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
-                _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_model):
+                _add_measure, _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
 

@@ -3,7 +3,7 @@
 - :mod:`.runlog`: run logs (calibration runs, replays, the simulator), DAQ CSV import;
 - :mod:`.modelfile`: model files with their checksum;
 - :mod:`.state`: the runtime's state file;
-- :mod:`.journal`: the runtime's daily journal;
+- :mod:`.journal`: the runtime's daily journal, and its measurements;
 - :mod:`.atomic`: atomic writes and plain text files;
 - :mod:`.checksum`: the canonical JSON and digest that model files and state carry.
 
@@ -12,7 +12,7 @@ application do not either.
 """
 
 from .atomic import atomic_write, read_text, versioned_path, write_text
-from .journal import Journal
+from .journal import Journal, MeasurementJournal
 from .modelfile import (
     MODEL_TYPES,
     load_any_model,
@@ -40,6 +40,7 @@ __all__ = [
     "STATE_FORMAT",
     "Gap",
     "Journal",
+    "MeasurementJournal",
     "RunLog",
     "RunLogAppender",
     "atomic_write",

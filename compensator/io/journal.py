@@ -75,11 +75,18 @@ class Journal:
 
         ``now_s`` (monotonic seconds, default ``time_s``) paces the retries and the fsync.
         """
-        t = max(time_s, self._last_t + 1e-3)  # the run-log format needs increasing time
-        self._last_t = t
+        t = self._next_time(time_s)
         wall = t if wall_s is None else wall_s
         row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
                f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f}\n")
+        return self._enqueue(t, row, now_s)
+
+    def _next_time(self, time_s: float) -> float:
+        t = max(time_s, self._last_t + 1e-3)  # the run-log format needs increasing time
+        self._last_t = t
+        return t
+
+    def _enqueue(self, t: float, row: str, now_s: float | None) -> bool:
         if len(self._pending) == self._pending.maxlen:
             self.dropped_rows += 1
         self._pending.append((t, row))
@@ -174,6 +181,42 @@ class Journal:
         if self._pending:
             self.flush(now_s if now_s is not None else self._last_t)
         self._close_fd()
+
+
+def _cell(value: float | None, fmt: str = ".9g") -> str:
+    return "" if value is None or not math.isfinite(value) else format(value, fmt)
+
+
+class MeasurementJournal(Journal):
+    """Every tool-setter or probe measurement the runtime was given, one row each: what it
+    measured, against what estimate, and what the observer made of it. One file per spindle
+    and UTC day, ``<spindle>.measurements-YYYY-MM-DD.csv`` beside the journal, on the journal's
+    time base (``time_s``); it never raises either. ``outcome``: ``accepted``, ``rejected``
+    (beyond the gate), ``restarted`` (the bias restarted from agreeing refusals) or ``refused``
+    (not a usable value: its cells are empty). Its ``time_s,elongation_um,sigma_um`` columns
+    are a measurements file as replay reads one."""
+
+    COLUMNS = ("time_s", "elongation_um", "sigma_um", "source", "sequence", "outcome",
+               "predicted_um", "innovation_um", "innovation_sd_um", "bias_um", "bias_sd_um", "wall_s")
+
+    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any],
+                 **kw: Any):
+        super().__init__(directory, f"{name}.measurements", metadata, **kw)
+
+    def record(self, time_s: float, *, elongation_um: float | None, sigma_um: float | None,
+               source: str, sequence: int | None, outcome: str, predicted_um: float | None = None,
+               innovation_um: float | None = None, innovation_sd_um: float | None = None,
+               bias_um: float | None = None, bias_sd_um: float | None = None,
+               wall_s: float | None = None, now_s: float | None = None) -> bool:
+        """Queue one measurement's row and write what the disk takes (never raises)."""
+        t = self._next_time(time_s)
+        src = "".join(c for c in source if c.isalnum() or c in "-_.:")[:40] or "unknown"
+        row = ",".join((f"{t:.3f}", _cell(elongation_um, ".12g"), _cell(sigma_um), src,
+                        "" if sequence is None else str(int(sequence)), outcome,
+                        _cell(predicted_um, ".12g"), _cell(innovation_um), _cell(innovation_sd_um),
+                        _cell(bias_um, ".12g"), _cell(bias_sd_um),
+                        f"{t if wall_s is None else wall_s:.3f}")) + "\n"
+        return self._enqueue(t, row, now_s)
 
 
 def _last_time(path: Path) -> float | None:

@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from cnc_adapters import check_adapter
 from cnc_adapters.base import short
 from compensator.errors import ConfigError, clip
+from compensator.observer import ObserverConfig
 from compensator.shaping import ShaperConfig
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -48,6 +49,37 @@ class FaultPolicy(BaseModel):
                                  "STATE_STALE alarm (a restart would then start further from the truth)")
 
 
+class ObserverSettings(BaseModel):
+    """The closed loop: tool-setter or probe measurements fused with the model (issue 17).
+
+    The keys from ``bias_q_um2_per_s`` on override the observer settings fitted with the model
+    (``fit.observer`` in the model file), key by key; unset, the fitted (or default) value holds.
+    """
+
+    model_config = _FROZEN
+
+    enabled: bool = Field(False, description="fuse measurements: from the controller (the adapter's "
+                          "measurement nodes or variables) and from `thermocomp measure`")
+    sigma_um: float = Field(0.5, gt=0, le=1000, description="sigma of a measurement that states none [um]")
+    stale_after_s: float = Field(3600.0, gt=0, le=365 * 86400, description="no accepted measurement "
+                                 "this long: OBSERVER_STALE (the estimate is open loop again)")
+    bias_q_um2_per_s: float | None = Field(None, ge=0, le=1e6)
+    drift_q_um2_per_s3: float | None = Field(None, ge=0, le=1e6)
+    model_sd_um: float | None = Field(None, ge=0, le=1000)
+    gate_sigma: float | None = Field(None, gt=0, le=1000)
+    initial_bias_sd_um: float | None = Field(None, gt=0, le=1e4)
+    reaccept_after: int | None = Field(None, ge=0, le=1000)
+
+    @model_validator(mode="after")
+    def _valid(self) -> ObserverSettings:
+        ObserverConfig(**self.overrides())  # the observer's own checks, at load time
+        return self
+
+    def overrides(self) -> dict[str, Any]:
+        """The observer settings given here (the rest come from the model file)."""
+        return {k: v for k in ObserverConfig.model_fields if (v := getattr(self, k, None)) is not None}
+
+
 class SpindleConfig(BaseModel):
     model_config = _FROZEN
 
@@ -63,6 +95,7 @@ class SpindleConfig(BaseModel):
     period_s: float = Field(1.0, ge=0.01, le=3600, description="cycle period")
     shaping: ShaperConfig = ShaperConfig()
     faults: FaultPolicy = FaultPolicy()
+    observer: ObserverSettings = ObserverSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
 

@@ -23,6 +23,8 @@ EVENTS = (
     "journal_failed", "journal_restored",
     "state_save_failed", "state_stale", "state_saved_again", "clock_step",
     "reload", "reload_refused", "lock_failed",
+    "probe_accepted", "probe_rejected", "probe_restart", "probe_failed", "observer_stale",
+    "observer_fresh", "control_failed",
 )
 """Every event name the runtime emits (documented in the README)."""
 

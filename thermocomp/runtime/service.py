@@ -8,10 +8,15 @@ validate (bad configuration, a model that cannot be loaded or is implausible) ke
 one and raises ``RELOAD_FAILED``. A full disk never stops it: ``SIGXFSZ`` is ignored so a file
 size limit is an error on the write, which the spindle turns into an alarm. Time is injected
 (``clock`` monotonic seconds, ``wall`` epoch seconds, ``sleep``) so tests run in simulated time.
+
+With a spindle's observer enabled the service listens on ``<state_dir>/control.sock``
+(:mod:`.control`): each tick it takes, without blocking, the measurements ``thermocomp measure``
+sends, hands each to its spindle, and answers once that spindle's next cycle has fused it.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -21,10 +26,11 @@ import time
 
 from cnc_adapters import open_adapter
 from compensator.clock import ScaledClock
-from compensator.errors import ConfigError, ThermocompError
+from compensator.errors import ConfigError, ControlError, ThermocompError
 from compensator.io import load_any_model
 
 from .config import RuntimeConfig, load_config
+from .control import ControlChannel, Pending, send_measurement
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
 from .spindle import Alarm, SpindleRuntime
@@ -103,8 +109,41 @@ class Service:
         self._last_beat = -math.inf
         self.reload_failed = False
         self._lock = StateDirLock(self.cfg.state_dir) if lock else None
+        self.control: ControlChannel | None = None
+        self._status = ""
         self._prepare_state_dir()
         self.spindles = self._build(self.cfg)
+        self._open_control()
+
+    def _open_control(self) -> None:
+        """The control socket, once a spindle fuses measurements; a socket that cannot be
+        opened is logged, and compensation goes on without it."""
+        if self.control is not None or not any(sc.observer.enabled for sc in self.cfg.spindle):
+            return
+        channel = ControlChannel(self.cfg.state_dir, self.clock)
+        try:
+            self.control = channel.open()
+        except OSError as err:
+            event("control_failed", None, "cannot listen on %s: %s; `thermocomp measure` will not "
+                  "reach this service", channel.path, err.strerror or err, level=logging.ERROR,
+                  path=str(channel.path), error=str(err)[:200])
+
+    def _dispatch(self, request: Pending) -> None:
+        """Hand a measurement to its spindle (named, or the only one with an observer)."""
+        req = request.request
+        assert req is not None
+        fused = [name for name, rt in self.spindles.items() if rt.fused is not None]
+        name = req.spindle
+        if name is None:
+            if len(fused) != 1:
+                request.fail(f"name the spindle (--spindle): observers on {', '.join(fused) or 'none'}")
+                return
+            name = fused[0]
+        rt = self.spindles.get(name)
+        if rt is None:
+            request.fail(f"no spindle {name!r}; spindles: {', '.join(self.spindles)}")
+            return
+        rt.submit(req.elongation_um, req.sigma_um, request.reply)
 
     def _prepare_state_dir(self) -> None:
         try:
@@ -169,6 +208,7 @@ class Service:
                 built[name].take_journal(rt)
             rt.close()
         self.cfg, self.spindles, self.reload_failed = new, built, False
+        self._open_control()
         event("reload", None, "configuration reloaded: %d spindle(s)", len(self.spindles),
               spindles=list(self.spindles))
 
@@ -179,6 +219,9 @@ class Service:
             self.reload()
             self._due = {}
         now = self.clock()
+        if self.control is not None:
+            for request in self.control.poll():
+                self._dispatch(request)
         for name, rt in self.spindles.items():
             due = self._due.setdefault(name, now)
             if now >= due:
@@ -193,7 +236,27 @@ class Service:
         if self.cfg.watchdog and beat - self._last_beat >= 1.0:
             self._last_beat = beat
             sd_notify("WATCHDOG=1")
+        status = self.status_text()
+        if status != self._status:  # `systemctl status` shows it
+            self._status = status
+            sd_notify(f"STATUS={status}")
         return max(0.0, min(self._due.values()) - self.clock())
+
+    def status_text(self) -> str:
+        """One line for `systemctl status`: what needs attention, if anything."""
+        notes = []
+        for name, rt in self.spindles.items():
+            obs = rt.observer_status()
+            if obs is None:
+                continue
+            if obs["stale"]:
+                notes.append(f"{name}: observer stale (no measurement for > "
+                             f"{rt.cfg.observer.stale_after_s:g} s)")
+            if obs["rejected"]:
+                notes.append(f"{name}: last measurement rejected")
+            if obs["failed_sources"]:
+                notes.append(f"{name}: measurement source failing")
+        return f"compensating {len(self.spindles)} spindle(s)" + ("; " + "; ".join(notes) if notes else "")
 
     def run(self) -> int:
         signal.signal(signal.SIGTERM, self.request_stop)
@@ -216,6 +279,9 @@ class Service:
         return 0
 
     def close(self) -> None:
+        if self.control is not None:
+            self.control.close()
+            self.control = None
         for rt in self.spindles.values():
             rt.close()
         if self._lock is not None:
@@ -246,6 +312,33 @@ def check(config_path: str) -> int:
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
+
+
+def measure(args) -> int:
+    """``thermocomp measure``: one measurement to the running service; exit 0 when it was
+    taken (accepted, or the bias restarted from it), 1 when the observer rejected it."""
+    um, sigma = args.um, args.sigma_um
+    if not math.isfinite(um) or abs(um) > 1e4:
+        raise ConfigError(f"--um must be a finite elongation in um (|um| <= 10000), not {um:g}")
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise ConfigError(f"--sigma-um must be a number > 0, not {sigma:g}")
+    if args.timeout_s is not None and not (math.isfinite(args.timeout_s) and args.timeout_s > 0):
+        raise ConfigError("--timeout-s must be a number > 0")
+    if args.state_dir and args.config:
+        raise ConfigError("give --state-dir or --config, not both")
+    state_dir = args.state_dir or (load_config(args.config).state_dir if args.config
+                                   else RuntimeConfig.model_fields["state_dir"].default)
+    answer = send_measurement(state_dir, um, sigma, args.spindle, args.timeout_s or 60.0)
+    if not answer.get("ok"):
+        raise ControlError(f"the service refused it: {answer.get('error', 'no reason given')}")
+    if args.json:
+        print(json.dumps(answer, allow_nan=False))
+    else:
+        print(f"{answer.get('spindle')}: {answer.get('outcome')}: measured {answer.get('measured_um', um):.3f} um, "
+              f"estimate {answer.get('estimate_um', math.nan):.3f} um, innovation "
+              f"{answer.get('innovation_um', math.nan):+.3f} um (sd {answer.get('innovation_sd_um', math.nan):.3f} "
+              f"um); bias now {answer.get('bias_um', math.nan):+.3f} um")
+    return 1 if answer.get("outcome") == "rejected" else 0
 
 
 def main(args) -> int:

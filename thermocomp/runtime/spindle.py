@@ -24,7 +24,16 @@ cycle and saves the state when due. The controller's offset is the truth:
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
   than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start, every
   model at its own equilibrium (the one with inputs at the first speed and inputs read);
-- a model file for another spindle than the configured ``spindle_id`` is refused.
+- a model file for another spindle than the configured ``spindle_id`` is refused;
+- the closed loop (``[spindle.observer] enabled``): the estimate is the model's plus the
+  observer's bias (:class:`~compensator.fusion.FusedPredictor`). Each cycle, after the step, the
+  controller's new measurement (``Adapter.read_measurement``) and those sent with
+  ``thermocomp measure`` are fused, each journaled (:class:`MeasurementJournal`); a measurement
+  beyond the gate raises ``PROBE_REJECTED`` and leaves the estimate alone, a source that fails
+  ``PROBE_FAILED``, none accepted for ``stale_after_s`` ``OBSERVER_STALE``. One observer state
+  serves the model in use: at a switch between the model with inputs and its fallback the bias
+  is rebased so that the estimate does not jump. A correction reaches the controller through the
+  shaper's slew limit like any change of the estimate.
 
 Every transition is a structured event (:mod:`.events`). Time is injected (``clock`` monotonic
 seconds, ``wall`` epoch seconds): tests run in simulated time without sleeping. The journal's
@@ -33,12 +42,14 @@ seconds, ``wall`` epoch seconds): tests run in simulated time without sleeping. 
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 import math
 import re
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -50,8 +61,18 @@ from compensator.errors import (
     ModelError,
     ModelFileError,
 )
-from compensator.io import Journal, load_any_model, load_state, model_digest, quarantine, save_state
+from compensator.fusion import FusedPredictor, FusedState, observer_config_of
+from compensator.io import (
+    Journal,
+    MeasurementJournal,
+    load_any_model,
+    load_state,
+    model_digest,
+    quarantine,
+    save_state,
+)
 from compensator.model import SAVED_LIMIT_UM, saved_numbers
+from compensator.observer import ObserverState
 from compensator.predictor import Predictor
 
 from .config import SpindleConfig
@@ -87,10 +108,16 @@ class Alarm(enum.IntFlag):
     CLOCK_STEP = 32768
     RELOAD_FAILED = 65536
     INPUTS_EXTRAPOLATED = 131072
+    PROBE_REJECTED = 262144
+    OBSERVER_STALE = 524288
+    PROBE_FAILED = 1048576
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
 """Failures that mean the controller cannot be reached: refused, lost, or not answering."""
+
+Reply = Callable[[dict[str, Any]], None]
+"""Where the outcome of a measurement sent by ``thermocomp measure`` goes."""
 
 
 def _references(state: Any) -> dict[str, float] | None:
@@ -125,7 +152,15 @@ class SpindleRuntime:
         self.digest = model_digest(loaded)
         # a model with inputs runs beside its speed-only fallback, which is always stepped
         self.with_inputs: Predictor | None = loaded if loaded.input_names else None
-        self.model: Predictor = loaded.fallback or loaded
+        speed_only: Predictor = loaded.fallback or loaded
+        self.fused: FusedPredictor | None = None
+        if cfg.observer.enabled:
+            try:
+                self.fused = FusedPredictor(speed_only, observer_config_of(loaded, cfg.observer.overrides()))
+            except ModelError as err:
+                raise ConfigError(f"spindle {cfg.name}: {err}") from err
+        # the fallback carries the observer state; its bias belongs to the estimate in use
+        self.model: Predictor = self.fused or speed_only
         self.input_state: Any = None
         self.refs: dict[str, float] | None = None
         self._input_cold = False  # no estimate of our own yet: the input model starts at equilibrium
@@ -144,9 +179,19 @@ class SpindleRuntime:
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
                                                        "source": "thermocomp run"},
                                fsync_every_s=journal_fsync_s)
+        self.measurements = MeasurementJournal(journal_dir, cfg.name, {
+            "spindle": cfg.name, "model": cfg.model, "source": "thermocomp run"},
+            fsync_every_s=journal_fsync_s)
         self.counters = {"cycles": 0, "writes": 0, "write_rejected": 0, "read_failed": 0,
                          "link_down_cycles": 0, "readbacks": 0, "mismatches": 0,
-                         "journal_failed": 0, "state_save_failed": 0}
+                         "journal_failed": 0, "state_save_failed": 0, "probes_accepted": 0,
+                         "probes_rejected": 0, "probes_restarted": 0, "probes_failed": 0}
+        # measurements from `thermocomp measure`: (um, sigma or None, reply), fused next cycle
+        self._queued: collections.deque[tuple[float, float | None, Reply | None]] = collections.deque()
+        self._probe_rejected = False  # the last measurement was beyond the gate
+        # source -> (why it failed, whether a value was refused: held until a usable one)
+        self._source_errors: dict[str, tuple[str, bool]] = {}
+        self._observer_stale = False
         self.alarms = Alarm.NONE
         self._startup_alarms = Alarm.NONE  # journaled with the first cycle
         self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
@@ -253,6 +298,13 @@ class SpindleRuntime:
         the controller holds, the timing of the last cycle and the state-save bookkeeping. The
         new link reads the offset back first."""
         self.state, self.input_state, self.refs = old.state, old.input_state, old.refs
+        if self.fused is not None and not isinstance(self.state, FusedState):
+            self.state = FusedState(self.state, ObserverState.prior(self.fused.config))  # observer turned on
+        elif self.fused is None and isinstance(self.state, FusedState):
+            self.state = self.state.model  # turned off: the model alone, through the slew limit
+        self._queued, old._queued = old._queued, collections.deque()
+        self._probe_rejected, self._source_errors = old._probe_rejected, dict(old._source_errors)
+        self._observer_stale = old._observer_stale
         self._input_cold, self._saved_input = old._input_cold, old._saved_input
         self._extrapolated = old._extrapolated
         self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
@@ -269,17 +321,20 @@ class SpindleRuntime:
         if old.journal.directory == self.journal.directory:
             self.journal.close()  # never opened: nothing written yet
             self.journal, old.journal = old.journal, self.journal
+            self.measurements.close()
+            self.measurements, old.measurements = old.measurements, self.measurements
 
     def save_state(self, now: float | None = None) -> bool:
         """Save the state; a failure is an alarm and a retry with back-off, never an exception."""
         now = self.clock() if now is None else now
+        saved = self._state_on_speed_only()
         try:
             save_state(self.state_path, {
                 "spindle": self.cfg.name,
                 "model_sha256": self.digest,
                 "saved_wall_s": self.wall(),
-                **self.model.state_dict(self.state),
-                "elongation_um": self.state.elongation_um,
+                **self.model.state_dict(saved),
+                "elongation_um": saved.elongation_um,
                 "offset_um": self.offset.held_um,
                 **({"input_references": self.refs} if self.refs else {}),
                 **self._input_state_dict(),
@@ -305,6 +360,168 @@ class SpindleRuntime:
         self._save_error, self._save_failures, self._stale = None, 0, False
         self._next_save_try = -math.inf
         return True
+
+    # -- the observer ----------------------------------------------------------------
+
+    @property
+    def speed_only_state(self) -> Any:
+        """The speed-only model's own state (without the observer)."""
+        return self.state.model if isinstance(self.state, FusedState) else self.state
+
+    def _in_use(self) -> Any:
+        """The state of the model whose estimate is in use."""
+        return self.input_state if self.input_state is not None else self.speed_only_state
+
+    def estimate_um(self) -> float:
+        """The estimate the offset follows: the model in use, plus the observer's bias."""
+        bias = self.state.bias_um if isinstance(self.state, FusedState) else 0.0
+        return float(self._in_use().elongation_um) + bias
+
+    def _rebased(self, from_state: Any, to_state: Any) -> FusedState:
+        """The observer with its bias moved from one model's estimate to the other's, so that the
+        fused estimate stays where it is (the speed-only model's state kept)."""
+        assert self.fused is not None
+        moved = self.fused.rebase(replace(self.state, model=from_state), to_state)
+        return replace(self.state, observer=moved.observer)
+
+    def _switch_estimate(self, from_state: Any, to_state: Any) -> None:
+        if self.fused is not None:
+            self.state = self._rebased(from_state, to_state)
+
+    def _state_on_speed_only(self) -> Any:
+        """The state to save: the bias on the speed-only model, which a restart starts with."""
+        if self.fused is None or self.input_state is None:
+            return self.state
+        return self._rebased(self.input_state, self.speed_only_state)
+
+    def submit(self, elongation_um: float, sigma_um: float | None, reply: Reply | None = None) -> None:
+        """A measurement from `thermocomp measure`, fused at the next cycle; ``reply`` gets the
+        outcome (or an error)."""
+        if self.fused is None:
+            if reply is not None:
+                reply({"ok": False, "error": f"spindle {self.cfg.name} has no observer "
+                       "([spindle.observer] enabled = true)"})
+            return
+        self._queued.append((elongation_um, sigma_um, reply))
+
+    def observer_status(self) -> dict[str, Any] | None:
+        """The observer's state for people and status lines; None without one."""
+        if not isinstance(self.state, FusedState):
+            return None
+        z = self.state.observer
+        age = self.state.since_measurement_s
+        return {"bias_um": z.bias_um, "bias_sd_um": z.bias_sd_um, "since_measurement_s": age,
+                "stale": self._observer_stale, "rejected": self._probe_rejected,
+                "failed_sources": {k: why for k, (why, _) in self._source_errors.items()}}
+
+    def _measurements(self, now: float, wall_now: float) -> Alarm:
+        """Fuse what came since the last cycle: the controller's new measurement, then those
+        sent with `thermocomp measure`. A source that fails is an alarm, never a stop."""
+        alarms = Alarm.NONE
+        source = str(getattr(self.adapter, "name", "adapter"))
+        if self.link.up and getattr(self.adapter, "can_read_measurement", False):
+            try:
+                m = self.adapter.read_measurement()
+            except AdapterError as err:
+                if isinstance(err, _LINK_ERRORS):
+                    alarms |= self._link_failed(now, err)
+                else:  # a value refused (the counter is taken as seen) or a failed read
+                    self._source_failed(now, wall_now, source, err, isinstance(err, BadValueError))
+            else:
+                failed = self._source_errors.get(source)
+                if failed is not None and not failed[1]:
+                    self._source_errors.pop(source)  # it reads again
+                if m is not None:
+                    self._fuse(now, wall_now, m.elongation_um, m.sigma_um, m.source, m.sequence)
+        while self._queued:
+            y, sigma, reply = self._queued.popleft()
+            answer = self._fuse(now, wall_now, y, sigma, "control", None)
+            if reply is not None:
+                reply(answer)
+        if self._probe_rejected:
+            alarms |= Alarm.PROBE_REJECTED
+        if self._source_errors:
+            alarms |= Alarm.PROBE_FAILED
+        return alarms | self._staleness(now)
+
+    def _source_failed(self, now: float, wall_now: float, source: str, err: Exception,
+                       refused: bool) -> None:
+        """PROBE_FAILED: until the source reads again, or, for a value refused, until it gives a
+        usable one. A refused value is journaled; a failing read once per new reason."""
+        self.counters["probes_failed"] += 1
+        why = str(err)[:200]
+        if self._source_errors.get(source, ("",))[0] != why:
+            event("probe_failed", self.cfg.name, "%s: PROBE_FAILED: %s; compensation goes on",
+                  self.cfg.name, why, level=logging.ERROR, source=source, error=why)
+        self._source_errors[source] = (why, refused)
+        if refused:
+            self.measurements.record(self.anchor_s + now, elongation_um=None, sigma_um=None,
+                                     source=source, sequence=None, outcome="refused", wall_s=wall_now,
+                                     now_s=now)
+
+    def _fuse(self, now: float, wall_now: float, y: float, sigma_um: float | None, source: str,
+              sequence: int | None) -> dict[str, Any]:
+        """Fuse one measurement taken now against the estimate in use; journal it."""
+        assert self.fused is not None and isinstance(self.state, FusedState)
+        sigma = self.cfg.observer.sigma_um if sigma_um is None else sigma_um
+        if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma) and sigma > 0):
+            err = BadValueError(f"{source}: measurement {y!r} um (sigma {sigma!r}) is not usable")
+            self._source_failed(now, wall_now, source, err, True)
+            return {"ok": False, "spindle": self.cfg.name, "error": str(err)}
+        self._source_errors.pop(source, None)  # it gave a usable value
+        before = self.estimate_um()
+        fused, up = self.fused.measure(replace(self.state, model=self._in_use()), y, sigma)
+        self.state = replace(fused, model=self.speed_only_state)
+        outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
+        self.counters[f"probes_{outcome}"] += 1
+        z = self.state.observer
+        self.measurements.record(
+            self.anchor_s + now, elongation_um=y, sigma_um=sigma, source=source, sequence=sequence,
+            outcome=outcome, predicted_um=before, innovation_um=up.innovation_um,
+            innovation_sd_um=up.innovation_sd_um, bias_um=z.bias_um, bias_sd_um=z.bias_sd_um,
+            wall_s=wall_now, now_s=now)
+        fields = {"source": source, "sequence": sequence, "measured_um": y, "sigma_um": sigma,
+                  "estimate_um": before, "innovation_um": up.innovation_um,
+                  "innovation_sd_um": up.innovation_sd_um, "bias_um": z.bias_um}
+        if outcome == "rejected":
+            event("probe_rejected", self.cfg.name, "%s: PROBE_REJECTED: measured %.3f um, estimate "
+                  "%.3f um: innovation %+.3f um is beyond %g sd (%.3f um); estimate unchanged",
+                  self.cfg.name, y, before, up.innovation_um, self.fused.config.gate_sigma,
+                  up.innovation_sd_um, level=logging.WARNING, **fields)
+        elif outcome == "restarted":
+            event("probe_restart", self.cfg.name, "%s: measurements agree on a change the model "
+                  "cannot know: bias restarted at %+.3f um (measured %.3f um, estimate was %.3f um)",
+                  self.cfg.name, z.bias_um, y, before, level=logging.WARNING, **fields)
+        else:
+            event("probe_accepted", self.cfg.name, "%s: measurement %.3f um accepted (estimate %.3f "
+                  "um, innovation %+.3f um); bias %+.3f um", self.cfg.name, y, before,
+                  up.innovation_um, z.bias_um, **fields)
+        # rejected: holds until a measurement is taken again (the estimate was not corrected)
+        self._probe_rejected = outcome == "rejected"
+        return {"ok": True, "spindle": self.cfg.name, "outcome": outcome, "accepted": up.accepted,
+                "restarted": up.restarted, "measured_um": y, "sigma_um": sigma, "estimate_um": before,
+                "innovation_um": up.innovation_um, "innovation_sd_um": up.innovation_sd_um,
+                "gate_sigma": self.fused.config.gate_sigma, "bias_um": z.bias_um,
+                "elongation_um": self.estimate_um(), "time_s": self.anchor_s + now}
+
+    def _staleness(self, now: float) -> Alarm:
+        """OBSERVER_STALE once no measurement has been taken for ``stale_after_s`` (counted from
+        this start when there has been none yet, so a new installation does not alarm at once)."""
+        assert isinstance(self.state, FusedState)
+        limit = self.cfg.observer.stale_after_s
+        age = self.state.since_measurement_s
+        if age is None:
+            age = now - (self._first_t if self._first_t is not None else now)
+        stale = age > limit
+        if stale and not self._observer_stale:
+            event("observer_stale", self.cfg.name, "%s: OBSERVER_STALE: no measurement taken for "
+                  "%.0f s (limit %.0f s); the estimate runs open loop", self.cfg.name, age, limit,
+                  level=logging.WARNING, since_measurement_s=round(age, 3), stale_after_s=limit)
+        elif not stale and self._observer_stale:
+            event("observer_fresh", self.cfg.name, "%s: observer fresh again: a measurement was "
+                  "taken", self.cfg.name, bias_um=self.state.bias_um)
+        self._observer_stale = stale
+        return Alarm.OBSERVER_STALE if stale else Alarm.NONE
 
     def _input_state_dict(self) -> dict[str, Any]:
         """The model with inputs' own state for the state file (its wall time: a state restored
@@ -509,14 +726,14 @@ class SpindleRuntime:
         if not_ready is None:  # a machine that is off applies its own value: nothing to compare
             alarms |= self._read_back(now)
         self.state = self.model.step(self.state, speed, dt)
-        s = self.state.elongation_um
         if self.with_inputs is not None:
             s_inputs, input_alarms = self._with_inputs(now, wall_now, speed, dt)
             alarms |= input_alarms
             if s_inputs is None:
                 alarms |= Alarm.INPUT_FALLBACK
-            else:
-                s = s_inputs
+        if self.fused is not None:
+            alarms |= self._measurements(now, wall_now)
+        s = self.estimate_um()
         shaped = self.offset.plan(s, speed, dt)
         wanted = self.offset.wants_write(shaped)
         wrote = False
@@ -546,7 +763,7 @@ class SpindleRuntime:
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
                 "offset_um": held, "written": wrote, "flags": shaped.flags, "alarms": alarms,
                 "read_to_write_ms": latency_ms, "offset_mode": self.offset.mode.value,
-                "link": self.link.state.value}
+                "link": self.link.state.value, "observer": self.observer_status()}
 
     def _journal(self, now: float, dt: float, wall_now: float, speed: float, s: float, held: float,
                  wrote: bool, flags: int, alarms: Alarm) -> Alarm:
@@ -596,6 +813,8 @@ class SpindleRuntime:
             if self.input_state is not None or self._inputs_good_since is not None:
                 event("input_fallback", self.cfg.name, "%s: %s; speed-only fallback", self.cfg.name,
                       why, level=logging.ERROR, reason=why)
+            if self.input_state is not None:
+                self._switch_estimate(self.input_state, self.speed_only_state)
             self.input_state = None
             self._inputs_good_since = None
             # from now on the fallback's elongation is the estimate to continue from
@@ -607,6 +826,7 @@ class SpindleRuntime:
             if now - self._inputs_good_since < faults.input_recover_s and self.counters["cycles"] > 0:
                 return None, Alarm.NONE
             self.input_state = self._start_inputs(wall_now, speed, values)
+            self._switch_estimate(self.speed_only_state, self.input_state)
             self.refs = _references(self.input_state)
             event("inputs_restored", self.cfg.name, "%s: inputs good: model with %s", self.cfg.name,
                   ", ".join(model.input_names), inputs=list(model.input_names))
@@ -626,7 +846,7 @@ class SpindleRuntime:
             state, since = saved
             return model.step(state, 0.0, max(0.0, wall_now - since), values)
         # a model with cold-start references takes these values as references (self.refs None)
-        return model.start(None if cold else self.state.elongation_um, speed, values, self.refs)
+        return model.start(None if cold else self.speed_only_state.elongation_um, speed, values, self.refs)
 
     def _extrapolation(self, values: dict[str, float]) -> Alarm:
         """INPUTS_EXTRAPOLATED while a valid input lies outside the range seen in calibration
@@ -647,10 +867,16 @@ class SpindleRuntime:
 
     def close(self) -> None:
         """Save the state and close; a failing disk or link never raises here."""
+        for _, _, reply in self._queued:
+            if reply is not None:
+                reply({"ok": False, "spindle": self.cfg.name,
+                       "error": "the spindle stopped before the measurement was fused"})
+        self._queued.clear()
         try:
             self.save_state()
         finally:
             try:
+                self.measurements.close(self.clock())
                 self.journal.close(self.clock())
                 if self.journal.pending_rows or self.journal.dropped_rows:
                     event("journal_failed", self.cfg.name, "%s: stopping with %d journal row(s) not "
