@@ -152,7 +152,7 @@ class Plan:
                 "variants": self.variants}
 
     def lines(self) -> list[str]:
-        out = [f"closed loop (probe sigma {PROBE_SIGMA_UM:g} um, leave-one-cycle-out): {self.reason}",
+        out = [f"closed loop (probe sigma {PROBE_SIGMA_UM:g} um): {self.reason}",
                "  probe every      RMS um   max um   rejected"]
         for row in self.table:
             name = "never" if row["interval_s"] is None else f"{row['interval_s']:.0f} s"
@@ -225,3 +225,23 @@ def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowe
               + "".join(f"; {o['variant']} {o['mean_rms_um']:.2f} um" for o in other)
               + f"; open loop {np.mean(never):.2f} um")
     return Plan(cfg, name, reason, table, rows, target_um, max(ok) if ok else None)
+
+
+def plan_on_run(fit_time_s: Any, fit_residual_um: Any, time_s: Any, residual_um: Any, slowest_tau_s: float,
+                target_um: float = DEFAULT_TARGET_UM, intervals_s: Sequence[float] = INTERVALS_S) -> Plan:
+    """The wizard's plan: the observer's noise from the calibration run's residual, the table on
+    a validation run the fit never saw (one held-out run; no variant choice)."""
+    tf, rf = np.asarray(fit_time_s, float), np.asarray(fit_residual_um, float)
+    t, r = np.asarray(time_s, float), np.asarray(residual_um, float)
+    cfg = fit_noise(tf, anchored(tf, rf, [(0, tf.size)], slowest_tau_s)[0], [(0, tf.size)])
+    (piece,) = anchored(t, r, [(0, t.size)], slowest_tau_s)
+    scores = [_scores([cfg], t, [piece], [0], every) for every in intervals_s]
+    table = [{"interval_s": None, "rms_um": float(np.sqrt(np.mean(piece**2))),
+              "max_abs_um": float(np.max(np.abs(piece))), "rejected": None}]
+    table += [{"interval_s": e, "rms_um": sc[0], "max_abs_um": sc[1], "rejected": sc[2]}
+              for e, sc in zip(intervals_s, scores)]
+    ok = [row["interval_s"] for row in table[1:] if row["rms_um"] <= target_um]
+    reason = (f"bias observer fitted on the calibration run (random walk "
+              f"{math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), model sd {cfg.model_sd_um:.2f} um), "
+              "scored on the validation run")
+    return Plan(cfg, "bias", reason, table, [], target_um, max(ok) if ok else None)

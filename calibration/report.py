@@ -54,9 +54,19 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: ThermalMo
         n = frac * session["max_rpm"]
         steady.append([f"{n:.0f}", _f(model.steady_state_um(n))])
     notes = list(summary.get("warnings", [])) + [f"advice: {a}" for a in summary.get("advice", [])]
+    loop: list[list[str]] = []
+    if summary.get("closed_loop"):
+        cl = summary["closed_loop"]
+        loop = [["probe every", "RMS [um]", "max [um]"]]
+        loop += [["never" if r["interval_s"] is None else f"{r['interval_s']:.0f} s", _f(r["rms_um"]),
+                  _f(r["max_abs_um"])] for r in cl["intervals"]]
+        rec = cl["recommended_interval_s"]
+        loop.append(["recommended", "-" if rec is None else f"{rec:.0f} s",
+                     f"target {cl['target_rms_um']:g} um RMS"])
     return [("Spindle", ident), ("Runs", runs), ("Candidate forms (free run)", cands),
             (f"Chosen: {rep['chosen']}", [rep["reason"]]), ("Coefficients (n in krpm)", coefs),
             ("Free-run residuals", res), ("Steady-state growth predicted", steady),
+            *([("Closed loop with a tool setter (validation run, probe sigma 0.5 um)", loop)] if loop else []),
             ("Warnings and advice", notes or ["none"])]
 
 

@@ -413,6 +413,16 @@ class Wizard:
             self.out.print(f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
                            f"max {v['max_abs_um']:.2f} um over {v['samples']} samples"
                            + (f" ({vdrop} flagged rows left out)" if vdrop else ""))
+            # how often a tool setter would have to measure, judged on the held-out run
+            from .closedloop import plan_on_run
+
+            loop = plan_on_run(run.time_s, run.elongation_um - cal.predictions["calibration"], rep.time_s, res,
+                               max(cal.model.time_constants_s(0.0)))
+            for line in loop.lines():
+                self.out.print(f"  {line}", markup=False, highlight=False)
+            summary["closed_loop"] = loop.report()
+            cal.model = cal.model.model_copy(update={"fit": {**cal.model.fit,
+                                                             "observer": loop.observer.model_dump()}})
         plot = self.dir / "fit.png"
         plot_panels(plot, panels, f"{s['machine_id']} / {s['spindle_id']}: {cal.model.form}",
                     max_rpm=s["max_rpm"])

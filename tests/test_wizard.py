@@ -234,7 +234,10 @@ def test_wizard_imports_daq_logs(tmp_path):
                        umask=0o022)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "imported" in r.stdout and "calibration: already recorded" in r.stdout
+    # the probe-interval table, judged on the validation run, and its observer kept in the model
+    assert "probe every" in r.stdout and ("recommended: a probe every" in r.stdout or "no interval" in r.stdout)
     saved = json.loads((sdir / "session.json").read_text())["saved"]
+    assert "bias_q_um2_per_s" in json.loads(Path(saved["model"]).read_text())["fit"]["observer"]
     # the model, its report and config are readable by all (no secret in them); the session,
     # which keeps the links as typed, by its owner only
     modes = {k: Path(saved[k]).stat().st_mode & 0o777 for k in ("model", "report", "config")}
@@ -242,6 +245,7 @@ def test_wizard_imports_daq_logs(tmp_path):
     assert (sdir / "session.json").stat().st_mode & 0o777 == 0o600
     md = Path(saved["report"]).read_text()
     assert saved["report"].endswith(".md") and "![fit](data:image/png;base64," in md
+    assert "## Closed loop with a tool setter" in md and "| 1800 s |" in md
     cal = read_run_log(sdir / "runs" / "calibration.csv")
     assert cal.elongation_um.max() > 20  # the gap probe's sign was turned into growth
     r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "validation.csv"), "--model", saved["model"],
