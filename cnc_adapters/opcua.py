@@ -54,6 +54,7 @@ from .base import (
     Allowed,
     BadValueError,
     Count,
+    NonZero,
     Positive,
     RawMeasurement,
     Seconds,
@@ -63,7 +64,7 @@ from .base import (
     one_of,
     query_params,
     redact_url,
-    short,
+    whole_sequence,
 )
 
 log = logging.getLogger("thermocomp.adapters.opcua")
@@ -219,7 +220,10 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
     measurement_sequence_node: str | None = Field(
         None, description="the counter the probe cycle changes after writing measurement_node")
     measurement_sigma_node: str | None = Field(
-        None, description="optional: the measurement's sigma, in the offset's unit")
+        None, description="optional: the measurement's sigma, in the measurement's unit")
+    measurement_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="controller unit per um of the measurement; default the offset's "
+        "(1 for a probe cycle that hands over um while the offset is in mm)")
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:
@@ -480,6 +484,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         measurement_node: str | None = None,
         measurement_sequence_node: str | None = None,
         measurement_sigma_node: str | None = None,
+        measurement_scale: float | None = None,
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -533,6 +538,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.measurement_refs = tuple(r for r in (measurement_sequence_node, measurement_node,
                                                   measurement_sigma_node) if r) if measurement_node else ()
         self.can_read_measurement = bool(self.measurement_refs)
+        self.measurement_scale = measurement_scale
         self._measurement: list[Any] | None = None  # resolved lazily: a bad node never stops the link
         self._ns = ""
 
@@ -602,10 +608,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             if not dv.StatusCode.is_good():
                 raise AdapterError(f"opcua: measurement node {ref}: {dv.StatusCode.name}")
         seq, value, *sigma = (None if dv.Value is None else dv.Value.Value for dv in dvs)
-        if isinstance(seq, bool) or not isinstance(seq, (int, float)) or not math.isfinite(seq) \
-                or seq != int(seq):
-            raise BadValueError(f"opcua: measurement sequence node holds {short(seq)}, not a whole number")
-        return RawMeasurement(int(seq), value, sigma[0] if sigma else None)
+        return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
 
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua

@@ -83,10 +83,18 @@ class Bench:
     def wall(self) -> float:
         return WALL0 + self.t
 
-    def start(self) -> SpindleRuntime:
+    def start(self, previous: SpindleRuntime | None = None) -> SpindleRuntime:
         sc = self.cfg.spindle[0]
         return SpindleRuntime(sc, self.cfg.state_dir, self.cfg.journal_path, clock=self.clock,
-                              wall=self.wall, adapter=self.adapter_cls(machine=self.vm))
+                              wall=self.wall, adapter=self.adapter_cls(machine=self.vm), previous=previous)
+
+    def reload(self, tmp_path: Path, model: Path, **kw) -> None:
+        """What SIGHUP does: a runtime from the new configuration goes on from the running one."""
+        self.cfg = load_config(config(tmp_path, model, **kw))
+        new = self.start(previous=self.rt)
+        new.take_journal(self.rt)
+        self.rt.close()
+        self.rt = new
 
     def run(self, cycles: int) -> list[dict]:
         out = []
@@ -348,6 +356,30 @@ def test_one_observer_serves_the_model_in_use_and_a_switch_does_not_jump(tmp_pat
     saved = load_state(tmp_path / "state" / "s1.state.json")
     assert saved["elongation_um"] == pytest.approx(b.rows[-1]["predicted_um"], abs=1e-9)
     b.rt.close()
+
+
+def test_a_reload_carries_the_observer_and_its_waiting_measurements_on(tmp_path, simple_model):
+    b = Bench(tmp_path, simple_model)
+    b.run(100)
+    b.rt.submit(b.rows[-1]["predicted_um"] + 2.0, 0.5)
+    b.run(2)
+    bias = b.rt.state.bias_um
+    box, reply = answer_box()
+    b.rt.submit(b.rows[-1]["predicted_um"] + 0.1, 0.5, reply)  # waits for the next cycle
+    b.reload(tmp_path, simple_model, observer="enabled = true\ngate_sigma = 4.0")
+    assert b.rt.state.bias_um == bias and b.rt.fused.config.gate_sigma == 4.0
+    b.run(1)
+    assert box[0]["outcome"] == "accepted"
+    b.reload(tmp_path, simple_model, observer="enabled = false")  # the model alone again
+    rows = b.run(5)
+    assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um) and rows[-1]["observer"] is None
+    off = np.array([r["offset_um"] for r in b.rows])
+    assert np.all(np.abs(np.diff(off)) <= RATE + 1e-9)  # the bias leaves through the slew limit
+    b.reload(tmp_path, simple_model)  # and on again: from the prior
+    assert b.rt.state.bias_um == 0.0 and b.rt.state.since_measurement_s is None
+    b.run(1)
+    b.rt.close()
+    assert [r["outcome"] for r in b.measurements()] == ["accepted", "accepted"]
 
 
 def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, simple_model):

@@ -116,12 +116,12 @@ NODES = {"measurement_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_measurement
          "measurement_sigma_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_sigma']}"}
 
 
-def generic(url: str, **nodes) -> OpcUaAdapter:
+def generic(url: str, **kw) -> OpcUaAdapter:
     """The virtual CNC as a generic OPC UA controller: every node id from configuration."""
     return OpcUaAdapter(url, namespace_uri=NAMESPACE_URI, timeout_s=5.0,
                         speed_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
                         offset_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
-                        **(nodes or NODES))
+                        **{**NODES, **kw})
 
 
 def call_probe(url: str) -> int:
@@ -162,18 +162,19 @@ def test_opcua_each_probe_value_is_used_once_and_a_stale_one_is_ignored():
 def test_opcua_a_non_finite_measurement_is_refused_once():
     clock = FakeClock()
     vm = machine(clock)
-    with running(VirtualCNC(vm)) as cnc, generic(cnc.url) as link:
+    # a controller whose offset is in mm, whose probe cycle hands over um
+    with running(VirtualCNC(vm)) as cnc, generic(cnc.url, offset_scale=0.001, measurement_scale=1.0) as link:
         call(cnc, cnc.tick)
         assert link.read_measurement() is None
         vm.probe_value_um, vm.probe_sequence = math.nan, vm.probe_sequence + 1
         call(cnc, cnc.tick)
-        with pytest.raises(BadValueError, match="not a finite number"):
+        with pytest.raises(BadValueError, match="not a finite number"):  # refused once
             link.read_measurement()
         assert link.read_measurement() is None  # its counter is taken as seen
         value = probe(vm, clock)
         call(cnc, cnc.tick)
         m = link.read_measurement()
-        assert m is not None and m.elongation_um == pytest.approx(value)
+        assert m is not None and m.elongation_um == pytest.approx(value) and m.sigma_um == pytest.approx(0.5)
 
 
 def test_opcua_a_wrong_measurement_node_fails_the_measurement_not_the_link():
@@ -197,7 +198,11 @@ def test_opcua_measurement_settings_need_the_handshake():
         open_adapter({**base, "measurement_node": "ns=2;s=M"})
     with pytest.raises(ConfigError, match="measurement_sigma_node only with"):
         open_adapter({**base, "measurement_sigma_node": "ns=2;s=E"})
-    link = open_adapter({**base, "measurement_node": "ns=2;s=M", "measurement_sequence_node": "ns=2;s=N"})
+    link = open_adapter({**base, "measurement_node": "ns=2;s=M", "measurement_sequence_node": "ns=2;s=N",
+                         "measurement_scale": 1})
     assert link.can_read_measurement and link.measurement_refs == ("ns=2;s=N", "ns=2;s=M")
+    assert link.measurement_scale == 1.0
+    with pytest.raises(ConfigError, match="measurement_scale"):
+        open_adapter({**base, "measurement_scale": 0})
     assert not open_adapter(base).can_read_measurement
     assert open_adapter({"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "preset": "virtual-cnc"}).can_read_measurement

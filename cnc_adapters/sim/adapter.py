@@ -103,8 +103,8 @@ class SimAdapter(Adapter):
         self.machine.advance()
         m = self.machine
         seq = m.probe_sequence  # the counter first: it changes after the value
-        # in the controller's unit, like the offset the machine holds
-        return RawMeasurement(seq, m.probe_value_um * self.units.scale, m.probe_sigma_um * self.units.scale)
+        scale = self.measurement_scale or self.units.scale  # the controller's unit
+        return RawMeasurement(seq, m.probe_value_um * scale, m.probe_sigma_um * scale)
 
     def input_channels(self) -> tuple[str, ...]:
         from .vcnc import SENSOR_KEYS
