@@ -130,10 +130,16 @@ class FusedPredictor:
         """Without measurements the fused model is the model."""
         return self.model.simulate_um(speed_rpm, time_s, inputs, initial_um)
 
-    def measure(self, state: FusedState, measured_um: float, sigma_um: float) -> tuple[FusedState, Update]:
-        """Fuse one measurement of the elongation [um] taken now, with its sigma [um]."""
-        up = measurement_update(self.config, state.observer, measured_um, float(state.model.elongation_um),
-                                sigma_um)
+    def measure(self, state: FusedState, measured_um: float, sigma_um: float,
+                model_at_probe_um: float | None = None) -> tuple[FusedState, Update]:
+        """Fuse one measurement of the elongation [um], with its sigma [um].
+
+        ``model_at_probe_um``: the model's own elongation at the instant the measurement was
+        taken, when that was not now (a tool setter measures with the spindle stopped, and the
+        value is read after it has started again: the model's fast part has moved since). The
+        bias is taken as unchanged over that short while. Default: the model's now."""
+        at = float(state.model.elongation_um) if model_at_probe_um is None else model_at_probe_um
+        up = measurement_update(self.config, state.observer, measured_um, at, sigma_um)
         age = 0.0 if up.accepted or up.restarted else state.since_measurement_s
         return FusedState(state.model, up.state, age), up
 
