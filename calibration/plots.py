@@ -59,8 +59,8 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
             ax_s.plot(t_h, p.measured_um, color="tab:blue", lw=1, label=p.measured_label)
         if p.predicted_um is not None:
             ax_s.plot(t_h, p.predicted_um, color="tab:red", lw=1.2, label=p.predicted_label)
-        for label, y in p.extra:
-            ax_s.plot(t_h, y, lw=1, label=label)
+        for (label, y), color in zip(p.extra, ("tab:green", "tab:orange", "tab:brown", "tab:pink")):
+            ax_s.plot(t_h, y, lw=1, color=color, label=label)  # never the measured line's blue
         ax_s.set_ylabel("elongation [um]")
         ax_s.legend(loc="best", fontsize=8)
         if p.measured_um is not None and p.predicted_um is not None:

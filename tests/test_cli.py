@@ -175,13 +175,20 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = tmp_path / "out"
     for name in ("calibration_run.csv", "validation_run.csv", "model.json", "machine.toml", "demo.png",
-                 "virtual_cnc_history.csv"):
+                 "virtual_cnc_history.csv", "machine-closed-loop.toml", "demo_closed_loop.png",
+                 "closed_loop_history.csv"):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "runtime" / "journal").glob("demo-*.csv"))
     assert "reduction" in r.stdout and "compensated" in r.stdout
     hist = read_run_log(out / "virtual_cnc_history.csv")
     err = hist.extras["tool_tip_error_um"]
     assert np.sqrt(np.mean(err**2)) < 0.5 * np.sqrt(np.mean(hist.elongation_um**2))
+    # the closed loop: the tool setter's values reached the service, journaled, and corrected it
+    assert "Closed loop" in r.stdout and "probe cycles" in r.stdout
+    meas = list((out / "runtime-closed-loop" / "journal").glob("demo.measurements-*.csv"))
+    assert meas and sum(line.count(",accepted,") for p in meas for line in p.read_text().splitlines()) >= 5
+    closed = read_run_log(out / "closed_loop_history.csv")
+    assert np.sqrt(np.mean(closed.extras["tool_tip_error_um"] ** 2)) < 0.5 * np.sqrt(np.mean(closed.elongation_um**2))
 
 
 def test_replay_applied_runs_the_runtime_shaper_over_the_log(fitted, logs, tmp_path):
