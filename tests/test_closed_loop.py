@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from test_runtime_statespace import InputSim, with_inputs
 
-from cnc_adapters import AdapterError
+from cnc_adapters import AdapterError, AdapterTimeoutError
 from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.adapter import SimAdapter
@@ -30,7 +30,7 @@ from cnc_adapters.sim.vcnc import (
 from compensator import ConfigError
 from compensator.io import load_state, read_run_log, save_model
 from compensator.model import ThermalModel
-from compensator.programs import job_shop_day
+from compensator.programs import Program, job_shop_day
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -198,6 +198,28 @@ def test_observer_on_the_virtual_plant_with_unmodelled_ambient_drift(tmp_path, f
                    for r in b.rows)
 
 
+def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, fitted_model):
+    """The tool setter measures at rest; the runtime may see the new counter only once the program
+    has restarted the spindle (here at 22 500 rpm, ~11 um of elastic growth the model knows)."""
+
+    def steady(clock) -> VirtualMachine:
+        return VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1),
+                              Program("steady", ((20000.0, 22500.0),)), clock=clock)
+
+    b = Bench(tmp_path, fitted_model, make_vm=steady, period_s=3.0)
+    b.run(600)
+    b.vm.start_probe()
+    rows = b.run(20)
+    seen = next(r for r in rows if r["observer"]["since_measurement_s"] == 0.0)
+    assert seen["speed_rpm"] == 22500.0  # read after the restart
+    (m,) = b.measurements()
+    assert abs(float(m["innovation_um"])) < 1.5  # met the estimate at rest, not the one at speed
+    assert abs(b.rt.state.bias_um) < 1.5
+    h = b.vm.history()
+    assert abs(np.interp(b.rows[-1]["time_s"], h.time_s, h.true_um) - b.rows[-1]["predicted_um"]) < 1.5
+    b.rt.close()
+
+
 # -- safety: slew limit, outliers, failing sources, staleness ------------------------------------
 
 def test_slew_limits_respected_after_a_large_correction(tmp_path, simple_model):
@@ -255,13 +277,13 @@ def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(tmp_
 
 
 class FlakySource(SimAdapter):
-    """The virtual machine with a measurement read that fails while ``broken``."""
+    """The virtual machine with a measurement read that fails while ``broken`` is an error."""
 
-    broken = False
+    broken: AdapterError | None = None
 
     def _read_measurement_raw(self):
-        if self.broken:
-            raise AdapterError("sim: measurement variable unreadable")
+        if self.broken is not None:
+            raise self.broken
         return super()._read_measurement_raw()
 
 
@@ -278,13 +300,16 @@ def test_a_failing_measurement_source_alarms_and_compensation_goes_on(tmp_path, 
     b.vm.start_probe()
     rows = b.run(25)
     assert not rows[-1]["alarms"] & Alarm.PROBE_FAILED and b.rt.counters["probes_accepted"] == 1
-    b.rt.adapter.broken = True
     b.vm.override_speed(12000.0)
-    rows = b.run(3)
-    assert all(r["alarms"] & Alarm.PROBE_FAILED and r["offset_mode"] != "holding" for r in rows)
-    assert b.vm.offset_um == rows[-1]["offset_um"] and not any(r["alarms"] & Alarm.LINK_DOWN for r in rows)
-    b.rt.adapter.broken = False
-    assert not b.run(1)[0]["alarms"] & Alarm.PROBE_FAILED  # it reads again
+    for error in (AdapterError("sim: measurement variable unreadable"),
+                  AdapterTimeoutError("sim: the probe's variables do not answer")):
+        b.rt.adapter.broken = error
+        rows = b.run(3)
+        assert all(r["alarms"] & Alarm.PROBE_FAILED and r["offset_mode"] != "holding" for r in rows)
+        assert b.vm.offset_um == rows[-1]["offset_um"]  # written on
+        assert not any(r["alarms"] & Alarm.LINK_DOWN for r in rows)  # the speed says the link is up
+        b.rt.adapter.broken = None
+        assert not b.run(1)[0]["alarms"] & Alarm.PROBE_FAILED  # it reads again
     b.rt.close()
 
 
@@ -405,8 +430,6 @@ def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, 
 # -- over OPC UA, the virtual CNC's tool setter ------------------------------------------------
 
 def test_the_runtime_takes_the_controllers_probe_once_over_opcua_and_refuses_a_nan(tmp_path, simple_model, caplog):
-    from asyncua.sync import Client
-
     t = [0.0]
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=lambda: t[0])
     vm.override_speed(SPEED)
@@ -415,31 +438,39 @@ def test_the_runtime_takes_the_controllers_probe_once_over_opcua_and_refuses_a_n
         link = OpcUaAdapter(cnc.url, preset="virtual-cnc", timeout_s=5.0)
         rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t[0],
                             wall=lambda: WALL0 + t[0], adapter=link)
+        try:
+            opcua_probe_cycles(cnc, vm, rt, t, caplog)
+        finally:
+            rt.close()  # and the link: its client thread would outlive the test
 
-        def cycles(n: int) -> list[dict]:
-            out = []
-            for _ in range(n):
-                t[0] += 1.0
-                call(cnc, cnc.tick)  # the virtual CNC publishes, then the runtime reads
-                out.append(rt.cycle())
-            return out
 
-        cycles(120)
-        with Client(cnc.url, timeout=10) as c:
-            ns = c.get_namespace_index(NAMESPACE_URI)
-            setter = c.get_node(f"ns={ns};s={PROBE_METHOD_PATH.rpartition('/')[0]}")
-            assert setter.call_method(f"{ns}:Probe") == 1
-        with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
-            rows = cycles(30)
-        (accepted,) = events(caplog, "probe_accepted")
-        assert accepted.fields["sequence"] == 1 and accepted.fields["source"] == "opcua"
-        assert accepted.fields["measured_um"] == vm.probe_value_um
-        assert rt.counters["probes_accepted"] == 1  # once, though read every cycle
-        assert all(r["written"] or r["offset_mode"] != "holding" for r in rows)
-        vm.probe_value_um, vm.probe_sequence = math.nan, vm.probe_sequence + 1
-        rows = cycles(3)
-        assert all(r["alarms"] & Alarm.PROBE_FAILED for r in rows)
-        assert not any(r["alarms"] & Alarm.LINK_DOWN for r in rows)
-        assert rt.counters["probes_failed"] == 1 and rt.counters["probes_accepted"] == 1
-        assert vm.offset_um == pytest.approx(rows[-1]["offset_um"])  # still compensating
-        rt.close()
+def opcua_probe_cycles(cnc: VirtualCNC, vm: VirtualMachine, rt: SpindleRuntime, t: list[float],
+                       caplog) -> None:
+    from asyncua.sync import Client
+
+    def cycles(n: int) -> list[dict]:
+        out = []
+        for _ in range(n):
+            t[0] += 1.0
+            call(cnc, cnc.tick)  # the virtual CNC publishes, then the runtime reads
+            out.append(rt.cycle())
+        return out
+
+    cycles(120)
+    with Client(cnc.url, timeout=10) as c:
+        ns = c.get_namespace_index(NAMESPACE_URI)
+        setter = c.get_node(f"ns={ns};s={PROBE_METHOD_PATH.rpartition('/')[0]}")
+        assert setter.call_method(f"{ns}:Probe") == 1
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        rows = cycles(30)
+    (accepted,) = events(caplog, "probe_accepted")
+    assert accepted.fields["sequence"] == 1 and accepted.fields["source"] == "opcua"
+    assert accepted.fields["measured_um"] == vm.probe_value_um
+    assert rt.counters["probes_accepted"] == 1  # once, though read every cycle
+    vm.probe_value_um, vm.probe_sequence = math.nan, vm.probe_sequence + 1
+    rows = cycles(3)
+    assert all(r["alarms"] & Alarm.PROBE_FAILED for r in rows)
+    assert not any(r["alarms"] & Alarm.LINK_DOWN for r in rows)
+    assert rt.counters["probes_failed"] == 1 and rt.counters["probes_accepted"] == 1
+    call(cnc, cnc.tick)  # the virtual CNC takes the last write
+    assert vm.offset_um == pytest.approx(rows[-1]["offset_um"])  # still compensating

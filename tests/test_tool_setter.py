@@ -180,15 +180,14 @@ def test_opcua_a_non_finite_measurement_is_refused_once():
 def test_opcua_a_wrong_measurement_node_fails_the_measurement_not_the_link():
     clock = FakeClock()
     vm = machine(clock)
-    with running(VirtualCNC(vm)) as cnc:
-        link = generic(cnc.url, measurement_node="ns={ns};s=/Nowhere", measurement_sequence_node="ns={ns};s=/Nor")
+    nowhere = {"measurement_node": "ns={ns};s=/Nowhere", "measurement_sequence_node": "ns={ns};s=/Nor"}
+    with running(VirtualCNC(vm)) as cnc, generic(cnc.url, **nowhere) as link:
         clock.t = 60.0
         call(cnc, cnc.tick)
         with pytest.raises(AdapterError, match="BadNodeIdUnknown") as exc:
             link.read_measurement()
         assert not isinstance(exc.value, (ConnectionError, TimeoutError))
         assert link.read_speed() == SPEED  # the link is up
-        link.close()
 
 
 def test_opcua_measurement_settings_need_the_handshake():

@@ -28,7 +28,8 @@ cycle and saves the state when due. The controller's offset is the truth:
 - the closed loop (``[spindle.observer] enabled``): the estimate is the model's plus the
   observer's bias (:class:`~compensator.fusion.FusedPredictor`). Each cycle, after the step, the
   controller's new measurement (``Adapter.read_measurement``) and those sent with
-  ``thermocomp measure`` are fused, each journaled (:class:`MeasurementJournal`); a measurement
+  ``thermocomp measure`` are fused against the estimate of this cycle or the last, whichever ran
+  slower (a setter measures at rest), each journaled (:class:`MeasurementJournal`); a measurement
   beyond the gate raises ``PROBE_REJECTED`` and leaves the estimate alone, a source that fails
   ``PROBE_FAILED``, none accepted for ``stale_after_s`` ``OBSERVER_STALE``. One observer state
   serves the model in use: at a switch between the model with inputs and its fallback the bias
@@ -192,6 +193,8 @@ class SpindleRuntime:
         # source -> (why it failed, whether a value was refused: held until a usable one)
         self._source_errors: dict[str, tuple[str, bool]] = {}
         self._observer_stale = False
+        # the last cycle's (speed, state of the model in use, whether it was the input model)
+        self._last_cycle: tuple[float, Any, bool] | None = None
         self.alarms = Alarm.NONE
         self._startup_alarms = Alarm.NONE  # journaled with the first cycle
         self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
@@ -304,7 +307,7 @@ class SpindleRuntime:
             self.state = self.state.model  # turned off: the model alone, through the slew limit
         self._queued, old._queued = old._queued, collections.deque()
         self._probe_rejected, self._source_errors = old._probe_rejected, dict(old._source_errors)
-        self._observer_stale = old._observer_stale
+        self._observer_stale, self._last_cycle = old._observer_stale, old._last_cycle
         self._input_cold, self._saved_input = old._input_cold, old._saved_input
         self._extrapolated = old._extrapolated
         self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
@@ -414,28 +417,29 @@ class SpindleRuntime:
                 "stale": self._observer_stale, "rejected": self._probe_rejected,
                 "failed_sources": {k: why for k, (why, _) in self._source_errors.items()}}
 
-    def _measurements(self, now: float, wall_now: float) -> Alarm:
+    def _measurements(self, now: float, wall_now: float, speed: float) -> Alarm:
         """Fuse what came since the last cycle: the controller's new measurement, then those
         sent with `thermocomp measure`. A source that fails is an alarm, never a stop."""
+        ref = self._reference(speed)
+        self._last_cycle = (speed, self._in_use(), self.input_state is not None)
         alarms = Alarm.NONE
         source = str(getattr(self.adapter, "name", "adapter"))
         if self.link.up and getattr(self.adapter, "can_read_measurement", False):
             try:
                 m = self.adapter.read_measurement()
             except AdapterError as err:
-                if isinstance(err, _LINK_ERRORS):
-                    alarms |= self._link_failed(now, err)
-                else:  # a value refused (the counter is taken as seen) or a failed read
-                    self._source_failed(now, wall_now, source, err, isinstance(err, BadValueError))
+                # a value refused (its counter taken as seen) or a failed read, even a timeout:
+                # the speed read and the write judge the link, so the probe never stops them
+                self._source_failed(now, wall_now, source, err, isinstance(err, BadValueError))
             else:
                 failed = self._source_errors.get(source)
                 if failed is not None and not failed[1]:
                     self._source_errors.pop(source)  # it reads again
                 if m is not None:
-                    self._fuse(now, wall_now, m.elongation_um, m.sigma_um, m.source, m.sequence)
+                    self._fuse(now, wall_now, ref, m.elongation_um, m.sigma_um, m.source, m.sequence)
         while self._queued:
             y, sigma, reply = self._queued.popleft()
-            answer = self._fuse(now, wall_now, y, sigma, "control", None)
+            answer = self._fuse(now, wall_now, ref, y, sigma, "control", None)
             if reply is not None:
                 reply(answer)
         if self._probe_rejected:
@@ -443,6 +447,17 @@ class SpindleRuntime:
         if self._source_errors:
             alarms |= Alarm.PROBE_FAILED
         return alarms | self._staleness(now)
+
+    def _reference(self, speed: float) -> Any:
+        """The model state a measurement seen now is compared with: this cycle's, or the last
+        one's when the spindle ran slower then. A tool setter measures with the spindle stopped
+        or slow, and the counter may be seen only once it runs again; the model's elastic part
+        follows the speed at once, so the estimate at speed would put the elastic growth into
+        the bias. (The bias moves slowly: a period's difference in time does not matter.)"""
+        last = self._last_cycle
+        if last is not None and last[0] < speed and last[2] == (self.input_state is not None):
+            return last[1]
+        return self._in_use()
 
     def _source_failed(self, now: float, wall_now: float, source: str, err: Exception,
                        refused: bool) -> None:
@@ -459,9 +474,10 @@ class SpindleRuntime:
                                      source=source, sequence=None, outcome="refused", wall_s=wall_now,
                                      now_s=now)
 
-    def _fuse(self, now: float, wall_now: float, y: float, sigma_um: float | None, source: str,
+    def _fuse(self, now: float, wall_now: float, ref: Any, y: float, sigma_um: float | None, source: str,
               sequence: int | None) -> dict[str, Any]:
-        """Fuse one measurement taken now against the estimate in use; journal it."""
+        """Fuse one measurement against ``ref``, the state of the model in use when it was
+        taken (:meth:`_reference`); journal it."""
         assert self.fused is not None and isinstance(self.state, FusedState)
         sigma = self.cfg.observer.sigma_um if sigma_um is None else sigma_um
         if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma) and sigma > 0):
@@ -469,8 +485,8 @@ class SpindleRuntime:
             self._source_failed(now, wall_now, source, err, True)
             return {"ok": False, "spindle": self.cfg.name, "error": str(err)}
         self._source_errors.pop(source, None)  # it gave a usable value
-        before = self.estimate_um()
-        fused, up = self.fused.measure(replace(self.state, model=self._in_use()), y, sigma)
+        before = float(ref.elongation_um) + self.state.bias_um  # what the measurement meets
+        fused, up = self.fused.measure(replace(self.state, model=ref), y, sigma)
         self.state = replace(fused, model=self.speed_only_state)
         outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
         self.counters[f"probes_{outcome}"] += 1
@@ -732,7 +748,7 @@ class SpindleRuntime:
             if s_inputs is None:
                 alarms |= Alarm.INPUT_FALLBACK
         if self.fused is not None:
-            alarms |= self._measurements(now, wall_now)
+            alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
         shaped = self.offset.plan(s, speed, dt)
         wanted = self.offset.wants_write(shaped)
