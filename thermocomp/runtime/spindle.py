@@ -486,7 +486,8 @@ class SpindleRuntime:
             return {"ok": False, "spindle": self.cfg.name, "error": str(err)}
         self._source_errors.pop(source, None)  # it gave a usable value
         before = float(ref.elongation_um) + self.state.bias_um  # what the measurement meets
-        fused, up = self.fused.measure(replace(self.state, model=ref), y, sigma)
+        fused, up = self.fused.measure(replace(self.state, model=self._in_use()), y, sigma,
+                                       model_at_probe_um=float(ref.elongation_um))
         self.state = replace(fused, model=self.speed_only_state)
         outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
         self.counters[f"probes_{outcome}"] += 1
