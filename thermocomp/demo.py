@@ -112,6 +112,23 @@ def record(url: str, machine: VirtualMachine, path: Path, say) -> None:
                    "machine_id": "virtual", "sensor": "eddy-current (simulated)"})
 
 
+def serve(config: Path, clock: SimClock, vm: VirtualMachine, prog, each_tick):
+    """Run the service on ``config`` until ``prog`` ends on the virtual machine; ``each_tick(rt)``
+    after every tick. The spindle's runtime, closed."""
+    w0 = time.time()
+    svc = Service(config, clock=clock, wall=lambda: w0 + clock())
+    rt = svc.spindles["demo"]
+    svc.tick()
+    vm.history(clear=True)
+    vm.load_program(prog)
+    while not vm.program_done:
+        wait = svc.tick()
+        each_tick(rt)
+        time.sleep(wait / clock.scale)
+    svc.close()
+    return rt
+
+
 def main(args: argparse.Namespace) -> int:
     out = Console(width=None if Console().is_terminal else 110)
     outdir = Path(args.output_dir).resolve()  # the runtime config it writes names absolute paths
@@ -159,21 +176,15 @@ def main(args: argparse.Namespace) -> int:
                                                 url=cnc.url))
         out.print(f"3/4 `thermocomp run` with {config}: compensating {prog.duration_s / 3600:.1f} h "
                   f"of a job-shop day over OPC UA ({cnc.url}, {RUN_SCALE:.0f}x real time, 1 s cycle) ...")
-        w0 = time.time()
-        svc = Service(config, clock=clock, wall=lambda: w0 + clock())
-        rt = svc.spindles["demo"]
-        svc.tick()
-        vm.history(clear=True)
-        vm.load_program(prog)
-        next_report = clock()
-        while not vm.program_done:
-            wait = svc.tick()
-            if clock() >= next_report:
+        next_report = [clock()]
+
+        def report(rt) -> None:
+            if clock() >= next_report[0]:
                 out.print(f"   {vm.plant.time_s / 3600:5.2f} h  {vm.speed_rpm:7.0f} rpm  "
                           f"S = {rt.state.elongation_um:6.2f} um  offset {vm.offset_um:7.2f} um")
-                next_report += 3600.0
-            time.sleep(wait / clock.scale)
-        svc.close()
+                next_report[0] += 3600.0
+
+        rt = serve(config, clock, vm, prog, report)
     hist = vm.history()
     times, speeds, true, offset = hist.time_s, hist.speed_rpm, hist.true_um, hist.offset_um
     compensated = hist.tool_tip_error_um
@@ -247,21 +258,14 @@ def closed_loop(out: Console, outdir: Path, params, model) -> dict[str, float]:
                   f"{AMBIENT_DRIFT_K_PER_H:g} K/h, which the model does not know; the virtual tool setter "
                   f"measures every {PROBE_EVERY_S / 60:.0f} min (spindle stopped "
                   f"{vm.tool_setter.dwell_s:.0f} s, sigma {vm.tool_setter.noise_um:g} um) ...")
-        w0 = time.time()
-        svc = Service(config, clock=clock, wall=lambda: w0 + clock())
-        rt = svc.spindles["demo"]
-        svc.tick()
-        vm.history(clear=True)
-        vm.load_program(prog)
-        t0 = vm.plant.time_s
-        next_probe = t0 + PROBE_EVERY_S
-        while not vm.program_done:
-            wait = svc.tick()
-            if vm.plant.time_s >= next_probe:
+        next_probe = [vm.plant.time_s + PROBE_EVERY_S]
+
+        def probe(_rt) -> None:
+            if vm.plant.time_s >= next_probe[0]:
                 vm.start_probe()
-                next_probe += PROBE_EVERY_S
-            time.sleep(wait / clock.scale)
-        svc.close()
+                next_probe[0] += PROBE_EVERY_S
+
+        rt = serve(config, clock, vm, prog, probe)
     hist = vm.history()
     times, speeds, true, offset = hist.time_s, hist.speed_rpm, hist.true_um, hist.offset_um
     fused_err = hist.tool_tip_error_um
