@@ -110,14 +110,21 @@ def fit_noise(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tupl
                           initial_bias_sd_um=min(prior, 1e3))
 
 
+def probe_rows(time_s: np.ndarray, every_s: float) -> np.ndarray:
+    """Rows of the first samples at or after ``t0 + k * every_s``, k = 1, 2, ... (the probe
+    instants of ``replay --probe-every`` and of the planning table)."""
+    t = np.asarray(time_s, float)
+    want = t[0] + every_s * np.arange(1, int((t[-1] - t[0]) // every_s) + 1)
+    idx = np.unique(np.searchsorted(t, want))
+    return idx[idx < t.size]
+
+
 def closed_loop_error(cfg: ObserverConfig, time_s: np.ndarray, residual_um: np.ndarray, every_s: float,
                       seed: int, sigma_um: float = PROBE_SIGMA_UM) -> tuple[np.ndarray, int]:
     """The fused estimate's error on one cycle with a probe every ``every_s`` from its start
     (as ``replay --probe-every``), and the number of probes rejected."""
     t = np.asarray(time_s, float)
-    want = t[0] + every_s * np.arange(1, int((t[-1] - t[0]) // every_s) + 1)
-    idx = np.unique(np.searchsorted(t, want))
-    idx = idx[idx < t.size]
+    idx = probe_rows(t, every_s)
     rng = np.random.default_rng(seed)
     # the model predicts y - r and a probe reads y + noise: the observer sees r + noise, and
     # the fused estimate's error is its bias minus r
@@ -183,6 +190,19 @@ def _scores(cfgs: Sequence[ObserverConfig], time_s: np.ndarray, pieces: Sequence
     return math.sqrt(sq / n), float(np.mean(mx)), rej / (len(pieces) * len(SEEDS))
 
 
+def _table(pieces: Sequence[np.ndarray], intervals_s: Sequence[float],
+           scores: Sequence[tuple[float, float, float]], target_um: float) -> tuple[list[dict[str, Any]], float | None]:
+    """The interval table (open loop first) and the longest interval meeting ``target_um``."""
+    joined = np.concatenate(pieces)
+    table: list[dict[str, Any]] = [{"interval_s": None, "rms_um": float(np.sqrt(np.mean(joined**2))),
+                                    "max_abs_um": float(np.mean([np.max(np.abs(p)) for p in pieces])),
+                                    "rejected": None}]
+    table += [{"interval_s": e, "rms_um": sc[0], "max_abs_um": sc[1], "rejected": sc[2]}
+              for e, sc in zip(intervals_s, scores)]
+    ok = [row["interval_s"] for row in table[1:] if row["rms_um"] <= target_um]
+    return table, (max(ok) if ok else None)
+
+
 def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowest_tau_s: float,
          target_um: float = DEFAULT_TARGET_UM, intervals_s: Sequence[float] = INTERVALS_S) -> Plan:
     """Fit the observer's noise, choose the variant by held-out cycles, and tabulate interval →
@@ -211,11 +231,7 @@ def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowe
     name, mean_rms, per, scores = best
     cfg = fit_noise(t, joined, cycles, variants[name])
     never = [float(np.sqrt(np.mean(p * p))) for p in pieces]
-    table = [{"interval_s": None, "rms_um": float(np.sqrt(np.mean(joined**2))),
-              "max_abs_um": float(np.mean([np.max(np.abs(p)) for p in pieces])), "rejected": None}]
-    table += [{"interval_s": e, "rms_um": s[0], "max_abs_um": s[1], "rejected": s[2]}
-              for e, s in zip(intervals_s, scores)]
-    ok = [row["interval_s"] for row in table[1:] if row["rms_um"] <= target_um]
+    table, recommended = _table(pieces, intervals_s, scores, target_um)
     other = [row for row in rows if row["variant"] != name]
     reason = (f"{name} observer (bias random walk {math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
               f"model sd {cfg.model_sd_um:.2f} um"
@@ -224,7 +240,7 @@ def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowe
               + f") has mean RMS {mean_rms:.2f} um over the intervals"
               + "".join(f"; {o['variant']} {o['mean_rms_um']:.2f} um" for o in other)
               + f"; open loop {np.mean(never):.2f} um")
-    return Plan(cfg, name, reason, table, rows, target_um, max(ok) if ok else None)
+    return Plan(cfg, name, reason, table, rows, target_um, recommended)
 
 
 def plan_on_run(fit_time_s: Any, fit_residual_um: Any, time_s: Any, residual_um: Any, slowest_tau_s: float,
@@ -236,12 +252,8 @@ def plan_on_run(fit_time_s: Any, fit_residual_um: Any, time_s: Any, residual_um:
     cfg = fit_noise(tf, anchored(tf, rf, [(0, tf.size)], slowest_tau_s)[0], [(0, tf.size)])
     (piece,) = anchored(t, r, [(0, t.size)], slowest_tau_s)
     scores = [_scores([cfg], t, [piece], [0], every) for every in intervals_s]
-    table = [{"interval_s": None, "rms_um": float(np.sqrt(np.mean(piece**2))),
-              "max_abs_um": float(np.max(np.abs(piece))), "rejected": None}]
-    table += [{"interval_s": e, "rms_um": sc[0], "max_abs_um": sc[1], "rejected": sc[2]}
-              for e, sc in zip(intervals_s, scores)]
-    ok = [row["interval_s"] for row in table[1:] if row["rms_um"] <= target_um]
+    table, recommended = _table([piece], intervals_s, scores, target_um)
     reason = (f"bias observer fitted on the calibration run (random walk "
               f"{math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), model sd {cfg.model_sd_um:.2f} um), "
               "scored on the validation run")
-    return Plan(cfg, "bias", reason, table, [], target_um, max(ok) if ok else None)
+    return Plan(cfg, "bias", reason, table, [], target_um, recommended)

@@ -16,14 +16,15 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from compensator.errors import NonFiniteInputError, RunLogError
+from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.io import RunLog
 from compensator.io.measurements import read_measurements
-from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
 
 from .calibrate import residual_stats
+from .closedloop import probe_rows
 from .data import bridge_gaps, gap_threshold_s
 
 STE_LIMIT_UM_PER_S = 0.5e-3
@@ -125,9 +126,7 @@ def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int =
     if not (math.isfinite(noise_um) and noise_um > 0):
         raise NonFiniteInputError(f"--probe-noise-um must be > 0, got {noise_um}")
     t = log.time_s
-    want = t[0] + every_s * np.arange(1, int((t[-1] - t[0]) // every_s) + 1)
-    idx = np.unique(np.searchsorted(t, want))
-    idx = idx[idx < t.size]
+    idx = probe_rows(t, every_s)
     rng = np.random.default_rng(seed)
     values = np.asarray(log.elongation_um, float)[idx] + rng.normal(0.0, noise_um, idx.size)
     return Probes(t[idx], values, np.full(idx.size, noise_um),
@@ -246,7 +245,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "format": "thermocomp.replay-report/1",
         "model_form": model.form,
         "spindle_id": model.spindle_id,
-        "samples": int(len(log)),
+        "samples": len(log),
         "duration_s": log.duration_s,
         "initial_um": initial_um,
         "max_predicted_um": float(np.max(pred)),
