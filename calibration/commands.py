@@ -343,9 +343,10 @@ def print_replay_report(rep: Replay, out: Console) -> None:
         ("std uncompensated [um]", r["std_uncompensated_um"]),
         ("std compensated [um]", r["std_compensated_um"]),
         ("std reduction [%]", r["std_reduction_pct"]),
-        *([("RMS error of the applied offset [um]", r["applied_rms_residual_um"]),
-           ("max |error| of the applied offset [um]", r["applied_max_abs_residual_um"])]
-          if "applied_rms_residual_um" in r else []),
+        ("RMS error of the applied offset [um]", r["applied_rms_residual_um"]),
+        ("max |error| of the applied offset [um]", r["applied_max_abs_residual_um"]),
+        ("  ... while cutting: RMS [um]", r["applied_cutting_rms_residual_um"]),
+        ("  ... while cutting: max |error| [um]", r["applied_cutting_max_abs_residual_um"]),
         (f"thermal equilibrium after [min] ({r['ste_source']})",
          None if r["equilibrium_time_s"] is None else r["equilibrium_time_s"] / 60),
         ("TEVR after equilibrium [um]", r["tevr_um"]),
@@ -353,11 +354,30 @@ def print_replay_report(rep: Replay, out: Console) -> None:
     for k, v in rows:
         t.add_row(k, _fmt(v) if not isinstance(v, str) else v)
     out.print(t)
+    sh = r["shaping"]
+    out.print(f"Shaping: {sh['policy']}, {sh['max_rate_um_per_s']:g} um/s while cutting"
+              + (f", {sh['not_cutting_rate_um_per_s']:g} um/s while not" if sh["policy"] == "dual-slew" else "")
+              + f"; cutting {100 * sh['cutting_fraction']:.0f} % of the samples, from {sh['cutting_source']}")
+    if r.get("policies"):
+        pt = Table(title="Transient policies on this log (error of the offset each would write)")
+        for col in ("policy", "RMS [um]", "max [um]", "cutting RMS", "cutting max", "max lag [um]",
+                    "max rate cutting [um/s]"):
+            pt.add_column(col, justify="left" if col == "policy" else "right")
+        names = {"slow-slew": "slow slew only", "dual-slew": "dual slew", "longer-cycle": "longer cycle",
+                 "hold": "hold", "none": "no shaping (model bound)"}
+        for row in r["policies"]:
+            name = names[row["policy"]] + (" <- configured" if row["configured"] else "")
+            pt.add_row(name, _fmt(row["rms_um"]), _fmt(row["max_abs_um"]), _fmt(row["cutting_rms_um"]),
+                       _fmt(row["cutting_max_abs_um"]), _fmt(row["max_lag_um"]),
+                       _fmt(row["max_cutting_rate_um_per_s"]))
+        out.print(pt)
     for w in r["warnings"]:
         out.print(f"[yellow]warning:[/yellow] {w}")
 
 
-def replay_cmd(args: argparse.Namespace) -> int:
+def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None) -> int:
+    """``thermocomp replay``; ``shaping`` from a runtime configuration (default: the runtime's
+    defaults)."""
     from compensator.errors import CalibrationError
 
     model = load_any_model(args.model)
@@ -375,14 +395,15 @@ def replay_cmd(args: argparse.Namespace) -> int:
             from .replay import probes_from_file
 
             probes = probes_from_file(log, args.measurements, args.probe_noise_um)
-        rep = replay(model, log, args.initial_um, ShaperConfig() if args.applied else None, probes)
+        rep = replay(model, log, args.initial_um, shaping or ShaperConfig(), probes)
         if args.output:
             say("writing predictions")
             write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})
         if args.plot:
             say("plotting")
             plot_panels(args.plot, [Panel(Path(args.log).name, rep.time_s, rep.speed_rpm,
-                                          rep.predicted_um, rep.measured_um)],
+                                          rep.predicted_um, rep.measured_um,
+                                          extra=(("applied (-offset written)", -rep.applied_offset_um),))],
                         f"replay: model {model.form} (spindle {model.spindle_id})",
                         max_rpm=model.speed_range_rpm[1])
     report = dict(rep.report)

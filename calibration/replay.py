@@ -20,7 +20,7 @@ from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.io import RunLog
 from compensator.io.measurements import read_measurements
 from compensator.predictor import Predictor
-from compensator.shaping import ShaperConfig, shape_series
+from compensator.shaping import POLICIES, ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
 
 from .calibrate import residual_stats
@@ -77,7 +77,9 @@ class Replay:
     initial_um: float
     report: dict[str, Any]
     applied_offset_um: np.ndarray | None = None
-    """The offset the runtime's shaper would have written (with ``shaping``), else None."""
+    """The offset the runtime's shaper would have written."""
+    cutting: np.ndarray | None = None
+    """bool: the samples the shaper took as cutting (the log's signal, or inferred)."""
 
     @property
     def offset_um(self) -> np.ndarray:
@@ -99,6 +101,8 @@ class Replay:
             cols["applied_offset_um"] = self.applied_offset_um
             if self.measured_um is not None:
                 cols["applied_residual_um"] = self.measured_um + self.applied_offset_um
+        if self.cutting is not None:
+            cols["cutting"] = self.cutting.astype(np.int64)
         return cols
 
 
@@ -148,18 +152,98 @@ def probes_from_file(log: RunLog, path: str, default_sigma_um: float = 0.5) -> P
     return Probes(m.time_s, m.elongation_um, m.sigma_um, f"{m.time_s.size} measurement(s) from {path}")
 
 
+CUTTING_COLUMN = "cutting"
+
+
+def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | None, str, str | None]:
+    """The controller's cutting signal from the log's ``cutting`` column (0/1, as the journal
+    and the simulator write it), its source, and a warning; None where the shaper is to infer
+    it from the speed (no column, or ``cutting.signal = "speed"``). A cell that is not 0 or 1 is
+    a one-line error naming the line."""
+    col = log.extras.get(CUTTING_COLUMN)
+    signal = shaping.cutting.signal
+    if col is None or signal == "speed":
+        warn = None if col is not None or signal != "controller" else (
+            "the configuration takes the cutting signal from the controller, but the log has no "
+            "cutting column: inferred from the speed")
+        return None, "inferred from the speed", warn
+    values = np.asarray(as_numbers(col), dtype=float)
+    bad = ~np.isin(values, (0.0, 1.0))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise RunLogError(f"column cutting: {col[row]!r} is not 0 or 1", log.source, log.line_of(row))
+    return values == 1.0, "the log's cutting column", None
+
+
+def as_numbers(col: np.ndarray) -> np.ndarray:
+    """A column as floats, NaN where a cell is not a number (text columns come as objects)."""
+    if col.dtype != object:
+        return np.asarray(col, dtype=float)
+    out = np.full(col.size, np.nan)
+    for k, v in enumerate(col):
+        try:
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            pass
+    return out
+
+
+def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float | None]:
+    if error is None:
+        return {"rms_um": None, "max_abs_um": None, "cutting_rms_um": None, "cutting_max_abs_um": None}
+    whole, cut = residual_stats(error), residual_stats(error[mask])
+    return {"rms_um": whole["rms_um"], "max_abs_um": whole["max_abs_um"],
+            "cutting_rms_um": cut["rms_um"], "cutting_max_abs_um": cut["max_abs_um"]}
+
+
+def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
+                     predicted_um: np.ndarray, measured_um: np.ndarray | None,
+                     cutting: np.ndarray | None) -> list[dict[str, Any]]:
+    """Every transient policy with the configuration's limits, side by side, on one log: the
+    error of the offset it would write (all samples, and the samples taken as cutting), how far
+    it lags the model, and the fastest it moves while cutting and overall. ``none`` is the model
+    bound: the offset ``-S`` unshaped. The configured policy is marked."""
+    rows = []
+    ideal = -predicted_um
+    for name in (*POLICIES, "none"):
+        if name == "hold" and shaping.policy != "hold":
+            continue  # a variant of the longer cycle: shown only where configured
+        if name == "none":
+            offset, cut = ideal, (cutting if cutting is not None else np.zeros(ideal.size, bool))
+        else:
+            series = shape_series(shaping.with_policy(name), time_s, speed_rpm, predicted_um,
+                                  cutting=cutting)
+            offset, cut = series.offset_um, series.cutting
+        dt = np.diff(time_s)
+        rate = np.abs(np.diff(offset)) / np.where(dt > 0, dt, np.inf)
+        both = cut[1:] & cut[:-1]  # a step between two cutting samples
+        rows.append({
+            "policy": name, "configured": name == shaping.policy,
+            **_error_stats(None if measured_um is None else measured_um + offset, cut),
+            "max_lag_um": float(np.max(np.abs(offset - ideal))),
+            "max_rate_um_per_s": float(rate.max()) if rate.size else 0.0,
+            "max_cutting_rate_um_per_s": float(rate[both].max()) if both.any() else 0.0,
+        })
+    return rows
+
+
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
-           shaping: ShaperConfig | None = None, probes: Probes | None = None) -> Replay:
+           shaping: ShaperConfig | None = None, probes: Probes | None = None,
+           compare: bool = True) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
     Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated at the last logged
     speed (a gap that begins at rest cools), with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
     number returned is finite, or a one-line error says where the model overflowed.
 
-    With ``shaping``, the offset is also passed through the runtime's own shaper
-    (:func:`compensator.shaping.shape_series`): the report then gives the error of the offset
-    the machine would have held (``applied_*``) beside the model's.
+    The offset is also passed through the runtime's own shaper
+    (:func:`compensator.shaping.shape_series`) with ``shaping`` (default: the runtime's
+    defaults), the cutting signal taken from the log's ``cutting`` column where it has one
+    (:func:`cutting_signal`), else inferred from the speed as the runtime does: the report then
+    gives the error of the offset the machine would have held (``applied_*``) beside the
+    model's, and with ``compare`` every transient policy side by side (``policies``).
     """
+    shaping = ShaperConfig() if shaping is None else shaping
     measured = log.elongation_um
     if initial_um is None and measured is not None:
         initial_um = float(measured[0])
@@ -187,9 +271,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         open_loop, fusion = fused.fuse_um(speed_sim, log.time_s, inputs, initial_um, probes.time_s,
                                           probes.elongation_um, probes.sigma_um)
         pred = fusion.fused_um
-    applied = None
-    if shaping is not None:
-        applied, _ = shape_series(shaping, log.time_s, speed_sim, pred)
+    cut_signal, cut_source, cut_warning = cutting_signal(log, shaping)
+    shaped = shape_series(shaping, log.time_s, speed_sim, pred, cutting=cut_signal)
+    applied = shaped.offset_um
     for name, values in (("predicted elongation", pred), ("applied offset", applied)):
         if values is not None and not np.isfinite(values).all():  # no NaN reaches a report
             row = int(np.flatnonzero(~np.isfinite(values))[0])
@@ -199,7 +283,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                 + (f" (line {line})" if line else "")
                 + ": the model overflows on the log's values or time steps")
 
-    warnings: list[str] = []
+    warnings: list[str] = [cut_warning] if cut_warning else []
     lo, hi = model.speed_range_rpm
     speed = np.abs(log.speed_rpm)
     over = speed > hi * (1 + RANGE_TOLERANCE)  # Predictor.above_range, vectorised
@@ -274,20 +358,32 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             ost = residual_stats(measured - open_loop)
             report.update(open_loop_rms_residual_um=ost["rms_um"],
                           open_loop_max_abs_residual_um=ost["max_abs_um"])
-        if applied is not None:
-            ast = residual_stats(measured + applied)
-            report.update(applied_rms_residual_um=ast["rms_um"],
-                          applied_max_abs_residual_um=ast["max_abs_um"])
+        ast = residual_stats(measured + applied)
+        cst = residual_stats((measured + applied)[shaped.cutting])
+        report.update(applied_rms_residual_um=ast["rms_um"],
+                      applied_max_abs_residual_um=ast["max_abs_um"],
+                      applied_cutting_rms_residual_um=cst["rms_um"],
+                      applied_cutting_max_abs_residual_um=cst["max_abs_um"])
         error = measured
     else:
         for key in ("max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
                     "std_uncompensated_um", "std_compensated_um", "std_reduction_pct",
-                    "max_abs_uncompensated_um"):
+                    "max_abs_uncompensated_um", "applied_rms_residual_um",
+                    "applied_max_abs_residual_um", "applied_cutting_rms_residual_um",
+                    "applied_cutting_max_abs_residual_um"):
             report[key] = None
         error = pred
     t_eq, tevr = equilibrium(log.time_s, error)
     report["equilibrium_time_s"] = t_eq
     report["tevr_um"] = tevr
     report["ste_source"] = "measured" if measured is not None else "predicted"
+    report["shaping"] = {
+        "policy": shaping.policy, "max_rate_um_per_s": shaping.max_rate_um_per_s,
+        "not_cutting_rate_um_per_s": shaping.fast_rate_um_per_s,
+        "max_offset_um": shaping.max_offset_um, "deadband_um": shaping.deadband_um,
+        "cutting_source": cut_source, "cutting_fraction": float(np.mean(shaped.cutting)),
+    }
+    if compare:
+        report["policies"] = compare_policies(shaping, log.time_s, speed_sim, pred, measured, cut_signal)
     report["warnings"] = warnings
-    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied)
+    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied, shaped.cutting)

@@ -611,6 +611,28 @@ class Adapter(Link):
         unit, or None when it holds none."""
         raise AdapterError(f"{self.name}: this adapter takes no measurements")
 
+    can_read_cutting: ClassVar[bool] = False
+    """Whether this link reads the controller's own cutting signal (:meth:`read_cutting`). An
+    instance configured without one says False: the runtime then infers it from the speed."""
+
+    cutting_values: tuple[Any, ...] = (True,)
+    """The raw values of the cutting signal that mean "cutting": ``True`` for a boolean (an
+    at-speed bit, a feed-active flag), ``(False,)`` for an inverted one (feed hold), the codes of
+    an enumeration (a program or motion state) otherwise."""
+
+    def read_cutting(self) -> bool | None:
+        """Whether the controller says the tool may be in the part now (the spindle at speed and
+        feeding), or None where this link has no such signal. :class:`BadValueError` for a value
+        that is neither a boolean nor a whole number."""
+        if not self.can_read_cutting:
+            return None
+        self.open()
+        return cutting_of(self.name, self._read_cutting_raw(), self.cutting_values)
+
+    def _read_cutting_raw(self) -> Any:
+        """Backend hook: the controller's cutting signal as it stands now (raw)."""
+        raise AdapterError(f"{self.name}: this adapter reads no cutting signal")
+
     def not_ready_offset_um(self) -> float | None:
         """For controllers whose offset depends on the machine state (LinuxCNC zeroes external
         offsets at machine-on and ignores them until homed): the offset [um] it applies while
@@ -629,6 +651,42 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
+
+
+def cutting_of(name: str, raw: Any, values: tuple[Any, ...]) -> bool:
+    """A raw cutting signal as a bool: True when it is one of ``values``. A boolean is compared
+    as a boolean and a number as a whole number, so ``1`` never passes for ``True``."""
+    if isinstance(raw, bool):
+        return any(isinstance(v, bool) and v == raw for v in values)
+    if isinstance(raw, numbers.Real) and math.isfinite(float(raw)) and float(raw) == int(raw):
+        return any(not isinstance(v, bool) and v == int(raw) for v in values)
+    raise BadValueError(f"{name}: cutting signal {short(raw)} is neither a boolean nor a whole number")
+
+
+def cutting_values_of(v: Any) -> tuple[Any, ...]:
+    """Configured cutting values: a list of booleans or whole numbers (``"2,3"`` in a URL,
+    ``"false"`` for an inverted bit)."""
+    items = v.split(",") if isinstance(v, str) else v if isinstance(v, (list, tuple)) else [v]
+    out: list[Any] = []
+    for item in items:
+        if isinstance(item, str):
+            word = item.strip().lower()
+            item = {"true": True, "false": False}.get(word, word)
+            if isinstance(item, str):
+                try:
+                    item = int(item)
+                except ValueError:
+                    raise ValueError("booleans or whole numbers ('true', 'false', '2,3')") from None
+        if not isinstance(item, (bool, int)):
+            raise ValueError("booleans or whole numbers ('true', 'false', '2,3')")
+        out.append(item)
+    if not out:
+        raise ValueError("at least one value")
+    return tuple(out)
+
+
+CuttingValues = Annotated[tuple[bool | int, ...], BeforeValidator(cutting_values_of),
+                          Allowed("booleans or whole numbers (true, false, [2, 3], '2,3' in a URL)")]
 
 
 def whole_sequence(name: str, raw: Any) -> int:

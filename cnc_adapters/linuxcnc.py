@@ -26,6 +26,9 @@ machine-on, homed    bit    in  only with ``machine_state = "pins"`` (else from 
 measurement.value    float  in  only with ``measurement = true``: the probe cycle's measurement
 measurement.sequence float  in  its counter (``measurement_sequence_type``: float, s32 or u32)
 measurement.sigma    float  in  only with ``measurement_sigma = true``: the measurement's sigma
+cutting              bit    in  only with ``cutting = "pin"``: the tool is in the part
+at-speed             bit    in  with ``cutting = "at-speed"`` or ``"feed"``: net to spindle.N.at-speed
+motion-type          s32    in  with ``cutting = "feed"``: net motion.motion-type
 ==================== ====== === ===========================================================
 
 External offsets are accumulated count deltas times the scale, zeroed at every machine-on and
@@ -58,6 +61,21 @@ analog outputs (``motion.analog-out-NN``, float; four unless ``num_aio`` says mo
 
 M68 sets the output at once; M67 with the next move. A sequence pin of type s32 or u32
 (``measurement_sequence_type``) takes a counter from an integer source (a ladder, a comp).
+
+The cutting signal (issue 18), so that the elastic step of a speed change is applied fast while
+the tool is clear of the part and slowly while it cuts (``cutting``):
+
+- ``"feed"``: the tool cuts while the spindle is at speed and motion makes a feed move:
+  ``at-speed`` and ``motion-type`` in ``cutting_values`` (default 2 and 3, linear and arc feed;
+  motion(9): 0 idle, 1 traverse, 2 linear feed, 3 arc feed, 4 tool change, 5 probing)::
+
+      net spindle-at-speed => spindle.0.at-speed thermocomp.at-speed
+      net motion-type motion.motion-type => thermocomp.motion-type
+
+- ``"at-speed"``: the tool is taken to cut whenever the spindle is at speed (motion waits for
+  ``spindle.N.at-speed`` before the first feed move after a speed change);
+- ``"pin"``: a ``cutting`` bit from the machine's own logic (a ladder, a comp);
+- ``"none"`` (default): no signal; the runtime infers it from the speed.
 """
 
 from __future__ import annotations
@@ -75,6 +93,7 @@ from .base import (
     AdapterSettings,
     Allowed,
     BadValueError,
+    CuttingValues,
     NonZero,
     Positive,
     RawMeasurement,
@@ -124,6 +143,9 @@ SpeedUnit = one_of("rps", "rpm")
 AxisUnits = one_of("mm", "inch")
 MachineState = one_of("stat", "pins")
 SequenceType = one_of("float", "s32", "u32")
+CuttingSource = one_of("none", "pin", "at-speed", "feed")
+FEED_MOTION_TYPES = (2, 3)
+"""motion.motion-type of a feed move: linear (G1) and arc (G2/G3) feed (motion(9))."""
 
 
 class LinuxCncSettings(AdapterSettings):
@@ -147,6 +169,10 @@ class LinuxCncSettings(AdapterSettings):
         "float", description="of measurement.sequence: float (netted to motion.analog-out-NN), s32, u32")
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="machine units per um of the measurement; default the offset's")
+    cutting: CuttingSource = Field("none", description="the cutting signal: pin (a bit), at-speed, "
+                                   "feed (at-speed and motion-type), or none (inferred from the speed)")
+    cutting_values: CuttingValues = Field(  # type: ignore[assignment]
+        FEED_MOTION_TYPES, description="feed: the motion types that count as cutting")
 
     @model_validator(mode="after")
     def _measurement(self) -> LinuxCncSettings:
@@ -166,6 +192,7 @@ class LinuxCncAdapter(Adapter):
                  inputs: list[str] | tuple[str, ...] = (), held_pin: str = "axis.z.eoffset-request",
                  measurement: bool = False, measurement_sigma: bool = False,
                  measurement_sequence_type: str = "float", measurement_scale: float | None = None,
+                 cutting: str = "none", cutting_values: tuple[Any, ...] = FEED_MOTION_TYPES,
                  **kw: Any):
         if speed_unit not in ("rps", "rpm"):
             raise AdapterError("linuxcnc: speed_unit is 'rps' (spindle.N.speed-in) or 'rpm'")
@@ -179,6 +206,8 @@ class LinuxCncAdapter(Adapter):
             raise AdapterError("linuxcnc: measurement_sigma needs measurement = true")
         if measurement_sequence_type not in ("float", "s32", "u32"):
             raise AdapterError("linuxcnc: measurement_sequence_type is 'float', 's32' or 'u32'")
+        if cutting not in ("none", "pin", "at-speed", "feed"):
+            raise AdapterError("linuxcnc: cutting is 'none', 'pin', 'at-speed' or 'feed'")
         kw.setdefault("offset_sign", -1)
         kw.setdefault("speed_scale", 60.0 if speed_unit == "rps" else 1.0)
         kw.setdefault("offset_scale", 0.001 if axis_units == "mm" else 1 / 25400.0)
@@ -197,6 +226,10 @@ class LinuxCncAdapter(Adapter):
         self.measurement_sigma = bool(measurement and measurement_sigma)
         self.measurement_sequence_type = measurement_sequence_type
         self.measurement_scale = measurement_scale
+        self.cutting = cutting
+        self.can_read_cutting = cutting != "none"  # type: ignore[misc]
+        # a bit is compared with True; the feed source hands over the motion type
+        self.cutting_values = tuple(cutting_values) if cutting == "feed" else (True,)
         self._comp = None
         self._stat = None
         self._lcnc = None
@@ -233,6 +266,12 @@ class LinuxCncAdapter(Adapter):
                 c.newpin("measurement.sequence", seq_type[self.measurement_sequence_type], hal.HAL_IN)
                 if self.measurement_sigma:
                     c.newpin("measurement.sigma", hal.HAL_FLOAT, hal.HAL_IN)
+            if self.cutting == "pin":
+                c.newpin("cutting", hal.HAL_BIT, hal.HAL_IN)
+            if self.cutting in ("at-speed", "feed"):
+                c.newpin("at-speed", hal.HAL_BIT, hal.HAL_IN)
+            if self.cutting == "feed":
+                c.newpin("motion-type", hal.HAL_S32, hal.HAL_IN)
             c["eoffset-scale"] = self.count
             c["eoffset-counts"] = 0
             c["eoffset-enable"] = True
@@ -307,6 +346,14 @@ class LinuxCncAdapter(Adapter):
         # two M68 land in different servo periods: the counter is read twice, around the value
         return read_handshake(self.name, lambda: c["measurement.sequence"], lambda: c["measurement.value"],
                               (lambda: c["measurement.sigma"]) if self.measurement_sigma else None)
+
+    def _read_cutting_raw(self) -> Any:
+        c = self._comp
+        if self.cutting == "pin":
+            return bool(c["cutting"])
+        if self.cutting == "at-speed":
+            return bool(c["at-speed"])
+        return int(c["motion-type"]) if c["at-speed"] else 0  # not at speed: idle, never a cut
 
     def not_ready_offset_um(self) -> float | None:
         """0 while the machine is off, in E-stop or not homed (the controller applies no

@@ -17,6 +17,10 @@ The closed loop (issue 17): a probe or tool-setter cycle leaves its measurement 
 (``measurement_table``). The value is encoded like the offset (``measurement_type``, the word
 and byte order; an integer type in units of ``measurement_scale``, by default
 ``offset_scale``); each value is used once, and the counter found at the first read is stale.
+
+The cutting signal (issue 18): ``cutting_register`` (in ``cutting_table``, an integer of
+``cutting_type``) holds a state the PLC sets; ``cutting_values`` are the values that mean
+"cutting" (default 1). Without one, the runtime infers it from the speed.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from .base import (
     Allowed,
     BadValueError,
     Baud,
+    CuttingValues,
     Finite,
     NonZero,
     RawMeasurement,
@@ -109,6 +114,11 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
     measurement_sequence_type: DataType = "uint16"
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="register unit per um of the measurement; default offset_scale")
+    cutting_register: Register = Field(  # type: ignore[assignment]
+        None, description="the register the PLC's cutting state is in; none: inferred from the speed")
+    cutting_table: Table = "holding"
+    cutting_type: DataType = "uint16"
+    cutting_values: CuttingValues = Field((1,), description="the values that mean cutting")  # type: ignore[assignment]
 
     @model_validator(mode="after")
     def _measurement(self) -> ModbusSettings:
@@ -251,10 +261,20 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         measurement_type: str = "float32",
         measurement_sequence_type: str = "uint16",
         measurement_scale: float | None = None,
+        cutting_register: int | None = None,
+        cutting_table: Literal["input", "holding"] = "holding",
+        cutting_type: str = "uint16",
+        cutting_values: tuple[Any, ...] = (1,),
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        check_types("modbus", speed_type, offset_type, measurement_type, measurement_sequence_type)
+        check_types("modbus", speed_type, offset_type, measurement_type, measurement_sequence_type,
+                    cutting_type)
+        if cutting_type == "float32":
+            raise AdapterError("modbus: cutting_type is an integer type (a state, not a measurement)")
+        self.cutting = None if cutting_register is None else (cutting_table, int(cutting_register), cutting_type)
+        self.can_read_cutting = self.cutting is not None  # type: ignore[misc]
+        self.cutting_values = tuple(cutting_values)
         check_measurement("modbus: ", measurement_register, measurement_sequence_register,
                           measurement_sigma_register, measurement_type, measurement_sequence_type)
         if measurement_table not in ("input", "holding"):
@@ -310,6 +330,10 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
             self.name, lambda: self._read_value("read measurement sequence", table, seq, seq_type),
             lambda: self._read_value("read measurement", table, value, dtype),
             None if sigma is None else lambda: self._read_value("read measurement sigma", table, sigma, dtype))
+
+    def _read_cutting_raw(self) -> int:
+        table, register, dtype = self.cutting  # type: ignore[misc]
+        return int(self._read_value("read cutting state", table, register, dtype))
 
     def _write_offset_raw(self, value: float) -> None:
         regs = self._encode(value, self.offset_type)

@@ -18,6 +18,13 @@ first, then a changed counter. Each value is used once; the counter found at con
 (:meth:`~cnc_adapters.base.Adapter.read_measurement`). They are looked up at the first read,
 so a wrong node is a failed measurement, never a failed link.
 
+The cutting signal (issue 18): ``cutting_node`` names a boolean (at speed and feeding, a cut in
+progress) or an enumeration (a program or motion state); ``cutting_values`` are the values
+that mean "cutting" (default ``[true]``; ``[false]`` for an inverted bit such as feed hold). It
+is read on its own at first, then in the same request as the speed, so both describe one
+instant. A wrong node is a failed cutting read (the runtime then infers it from the speed),
+never a failed link.
+
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
 a server whose certificate is not in the trust list is refused. The user name and password
@@ -54,6 +61,7 @@ from .base import (
     Allowed,
     BadValueError,
     Count,
+    CuttingValues,
     NonZero,
     Positive,
     RawMeasurement,
@@ -81,6 +89,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "measurement_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Measurement",
         "measurement_sequence_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
         "measurement_sigma_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sigma",
+        "cutting_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting",
     },
     "sinumerik": {
         "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
@@ -224,6 +233,11 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="controller unit per um of the measurement; default the offset's "
         "(1 for a probe cycle that hands over um while the offset is in mm)")
+    cutting_node: str | None = Field(
+        None, description="the controller's cutting signal (node id or browse path): a boolean or "
+        "an enumeration; '' for none, where a preset names one")
+    cutting_values: CuttingValues = Field(  # type: ignore[assignment]
+        (True,), description="the values of cutting_node that mean cutting")
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:
@@ -485,6 +499,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         measurement_sequence_node: str | None = None,
         measurement_sigma_node: str | None = None,
         measurement_scale: float | None = None,
+        cutting_node: str | None = None,
+        cutting_values: tuple[Any, ...] = (True,),
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -540,6 +556,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.can_read_measurement = bool(self.measurement_refs)
         self.measurement_scale = measurement_scale
         self._measurement: list[Any] | None = None  # resolved lazily: a bad node never stops the link
+        # the cutting signal; "" turns a preset's off
+        self.cutting_ref = p.get("cutting_node") if cutting_node is None else (cutting_node or None)
+        self.can_read_cutting = bool(self.cutting_ref)
+        self.cutting_values = tuple(cutting_values)
+        self._cutting = None  # its node, once read on its own: then read with the speed
+        self._cutting_raw: tuple[Any] | None = None  # read with this cycle's speed
         self._ns = ""
 
     @classmethod
@@ -572,17 +594,41 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 raise self._link_lost(f"opcua: no speed notification within {self.timeout_s:g} s",
                                       AdapterTimeoutError)
         elif self._unverified is not None:
-            value, held = self._call("read speed and offset", self._client.read_values,
-                                     [self._speed, self._offset])
+            value, held, *cut = self._call("read speed and offset", self._client.read_values,
+                                           [self._speed, self._offset, *self._with_speed()])
+            self._cutting_raw = (cut[0],) if cut else None
             wrote, self._unverified = self._unverified, None
             if not (isinstance(held, (int, float)) and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)):
                 self._mismatch = held
                 log.warning("opcua: wrote %r, controller holds %r", wrote, held)
+        elif self._cutting is not None:
+            value, cut = self._call("read speed", self._client.read_values, [self._speed, self._cutting])
+            self._cutting_raw = (cut,)
         else:
             value = self._call("read speed", self._speed.read_value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
         return value
+
+    def _with_speed(self) -> list[Any]:
+        return [] if self._cutting is None else [self._cutting]
+
+    def _read_cutting_raw(self) -> Any:
+        """The cutting signal read with this cycle's speed; else (the first time, and with a
+        subscription) on its own, its status checked."""
+        if self._cutting_raw is not None:
+            (raw,), self._cutting_raw = self._cutting_raw, None
+            return raw
+        ref = self.cutting_ref
+        assert ref is not None
+        node = self._resolve(self._client, ref, None, self._ns) if not ref.startswith("0:") \
+            else self._resolve(self._client, None, ref, self._ns)
+        (dv,) = self._call("read cutting signal", self._client.read_attributes, [node])
+        if not dv.StatusCode.is_good():
+            raise AdapterError(f"opcua: cutting node {ref}: {dv.StatusCode.name}")
+        if self._latest is None:
+            self._cutting = node  # good: read in the speed's request from now on
+        return None if dv.Value is None else dv.Value.Value
 
     def input_channels(self) -> tuple[str, ...]:
         return tuple(self.input_nodes)
@@ -632,6 +678,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._latest = None
         self._unverified = None
         self._measurement = None
+        self._cutting = None
+        self._cutting_raw = None
 
 
 class _Latest:

@@ -20,7 +20,15 @@ from .model import (
     ThermalStateCoefficients,
 )
 from .predictor import Predictor
-from .shaping import Flag, OffsetShaper, ShapedOffset, ShaperConfig, ShaperState, TransientPolicy
+from .shaping import (
+    CuttingSignal,
+    Flag,
+    OffsetShaper,
+    ShapedOffset,
+    ShaperConfig,
+    ShaperState,
+    TransientPolicy,
+)
 from .units import SPEED_SCALE_RPM, ControllerUnits
 
 __all__ = [
@@ -29,6 +37,7 @@ __all__ = [
     "CalibrationError",
     "ConfigError",
     "ControllerUnits",
+    "CuttingSignal",
     "DiscreteModel",
     "Flag",
     "ModelError",

@@ -9,19 +9,32 @@ that state and is the one shaping path of the runtime and of replay
 Order of operations each sample:
 
 1. ``desired = clamp(-S, +-max_offset_um)``;
-2. transient policy (paper 001's open idea): when |dn/dt| or a single speed
-   step crosses its threshold, a window opens for ``window_s``. In ``hold``
-   mode the target is frozen at the current output for the window; in
-   ``slow`` mode the target is refreshed only every ``slow_period_s`` (a
-   lengthened update cycle). While the window is open, and afterwards until
-   the output has caught up, the output moves at ``release_rate_um_per_s``;
-3. deadband: no change while |target - output| < ``deadband_um``;
-4. slew: |change| <= rate * dt.
+2. is the tool cutting? The controller's signal where the caller has one (``cutting``), else
+   inferred from the speed (:class:`CuttingSignal`): the tool is taken to be cutting once the
+   spindle turns and has held its speed, within a tolerance, for ``settle_s``; while the speed
+   changes, and at rest, it is not. Before the first sample the spindle counts as settled, so
+   a start with the spindle turning is taken as cutting;
+3. the transient policy (``transient.mode``):
 
-Invariants (checked by property tests): the output is finite, within the clamp,
-and never changes faster than ``max_rate_um_per_s``, whatever the input. A controller that
-holds a value beyond the clamp (an outside write, a lowered clamp) is led into it at the
-slew limit: every output is then closer to the clamp than the one before.
+   - ``dual-slew`` (the default): the output follows ``desired`` at ``max_rate_um_per_s``
+     while cutting and at ``not_cutting_rate_um_per_s`` while not, so the elastic step of a
+     speed change (centrifugal growth, preload) lands while the spindle accelerates, when the
+     tool is clear of the part, and the surface never sees a fast move;
+   - ``slow`` and ``hold`` (paper 001's open idea, "lengthen the update cycle"): when |dn/dt|
+     or a single speed step crosses its threshold, a window opens for ``window_s``. In
+     ``hold`` the target is frozen at the current output for the window; in ``slow`` it is
+     refreshed only every ``slow_period_s``. While the window is open, and afterwards until
+     the output has caught up, the output moves at ``release_rate_um_per_s``;
+   - ``enabled = false``: one slew limit, ``max_rate_um_per_s``, whatever the tool does;
+
+4. deadband: no change while |target - output| < ``deadband_um``;
+5. slew: |change| <= rate * dt, the rate of step 3.
+
+Invariants (checked by property tests): the output is finite, within the clamp, never
+changes faster than :attr:`ShaperConfig.rate_limit_um_per_s`, and never faster than
+``max_rate_um_per_s`` on a sample taken as cutting. A controller that holds a value beyond
+the clamp (an outside write, a lowered clamp) is led into it at the slew limit: every output
+is then closer to the clamp than the one before.
 """
 
 from __future__ import annotations
@@ -48,20 +61,49 @@ class Flag(enum.IntFlag):
     RELEASING = 16
 
 
+NOT_CUTTING_RATE_UM_PER_S = 50.0
+"""The default slew limit while the tool is not cutting: a 12 um elastic step within 0.3 s."""
+
+POLICIES = ("dual-slew", "longer-cycle", "hold", "slow-slew")
+"""The transient policies by name, as reports call them: ``transient.mode`` dual-slew, slow
+(the longer update cycle), hold, and ``transient.enabled = false`` (one slow slew limit)."""
+
+
 class TransientPolicy(BaseModel):
-    """Lengthen the update cycle while the spindle speed changes fast."""
+    """What the offset does at speed transients. ``mode``: ``dual-slew`` (fast while the tool
+    is not cutting, slow while it is), or paper 001's longer update cycle (``slow``, ``hold``),
+    whose window opens when the speed changes fast. ``enabled = false``: one slew limit."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     enabled: bool = True
-    speed_rate_rpm_per_s: float = Field(500.0, gt=0, description="|dn/dt| threshold")
-    speed_step_rpm: float = Field(3000.0, gt=0, description="|n_k - n_{k-1}| threshold")
-    mode: Literal["hold", "slow"] = "slow"
-    window_s: float = Field(60.0, ge=0, description="window length after the last trigger")
-    slow_period_s: float = Field(15.0, gt=0, description="target refresh period in 'slow'")
+    mode: Literal["dual-slew", "slow", "hold"] = "dual-slew"
+    speed_rate_rpm_per_s: float = Field(500.0, gt=0, description="slow/hold: |dn/dt| threshold")
+    speed_step_rpm: float = Field(3000.0, gt=0, description="slow/hold: |n_k - n_{k-1}| threshold")
+    window_s: float = Field(60.0, ge=0, description="slow/hold: window length after the last trigger")
+    slow_period_s: float = Field(15.0, gt=0, description="slow: target refresh period")
     release_rate_um_per_s: float | None = Field(
-        None, gt=0, description="rate inside and after a window; default max_rate/4"
+        None, gt=0, description="slow/hold: rate inside and after a window; default max_rate/4"
     )
+
+
+class CuttingSignal(BaseModel):
+    """Whether the tool is cutting: the controller's signal, or inferred from the speed.
+
+    ``signal``: ``auto`` takes the controller's signal where the adapter has one configured
+    (and a log's ``cutting`` column in replay), else infers it; ``controller`` requires one;
+    ``speed`` always infers. Inferred: the spindle turns (|n| above ``speed_tolerance_rpm``) and
+    has stayed within the tolerance (the larger of ``speed_tolerance_rpm`` and
+    ``speed_tolerance_pct`` of the speed) of one speed for ``settle_s``. That is safe only when
+    the machine approaches the part later than the first cycle that sees the new speed: keep
+    the cycle period well below the time from at-speed to the first cut."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    signal: Literal["auto", "controller", "speed"] = "auto"
+    settle_s: float = Field(2.0, ge=0, le=3600, description="speed held this long: cutting")
+    speed_tolerance_rpm: float = Field(30.0, gt=0, le=10000, description="speed band [rpm]")
+    speed_tolerance_pct: float = Field(1.0, ge=0, le=50, description="speed band [% of the speed]")
 
 
 class ShaperConfig(BaseModel):
@@ -70,9 +112,14 @@ class ShaperConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     max_offset_um: float = Field(100.0, gt=0, description="clamp: |A| <= max_offset_um")
-    max_rate_um_per_s: float = Field(1.0, gt=0, description="slew limit")
+    max_rate_um_per_s: float = Field(
+        1.0, gt=0, description="slew limit while cutting (and always, unless the policy is dual-slew)")
+    not_cutting_rate_um_per_s: float | None = Field(
+        None, gt=0, description="dual-slew: slew limit while the tool is not cutting; default "
+        f"{NOT_CUTTING_RATE_UM_PER_S:g} um/s, or max_rate_um_per_s if that is higher")
     deadband_um: float = Field(0.1, ge=0, description="no write for smaller changes")
     transient: TransientPolicy = TransientPolicy()
+    cutting: CuttingSignal = CuttingSignal()
 
     @model_validator(mode="after")
     def _consistent(self) -> ShaperConfig:
@@ -85,12 +132,44 @@ class ShaperConfig(BaseModel):
         rr = self.transient.release_rate_um_per_s
         if rr is not None and rr > self.max_rate_um_per_s:
             raise ValueError("transient.release_rate_um_per_s must not exceed max_rate_um_per_s")
+        nc = self.not_cutting_rate_um_per_s
+        if nc is not None and nc < self.max_rate_um_per_s:
+            raise ValueError("not_cutting_rate_um_per_s must not be below max_rate_um_per_s "
+                             "(the slew limit while cutting)")
         return self
+
+    @property
+    def fast_rate_um_per_s(self) -> float:
+        """The slew limit while the tool is not cutting (dual-slew)."""
+        nc = self.not_cutting_rate_um_per_s
+        return max(NOT_CUTTING_RATE_UM_PER_S, self.max_rate_um_per_s) if nc is None else nc
 
     @property
     def release_rate_um_per_s(self) -> float:
         rr = self.transient.release_rate_um_per_s
         return self.max_rate_um_per_s / 4 if rr is None else rr
+
+    @property
+    def policy(self) -> str:
+        """The transient policy by name (one of :data:`POLICIES`)."""
+        t = self.transient
+        if not t.enabled:
+            return "slow-slew"
+        return {"dual-slew": "dual-slew", "slow": "longer-cycle", "hold": "hold"}[t.mode]
+
+    @property
+    def rate_limit_um_per_s(self) -> float:
+        """The fastest the output ever moves."""
+        return self.fast_rate_um_per_s if self.policy == "dual-slew" else self.max_rate_um_per_s
+
+    def with_policy(self, policy: str) -> ShaperConfig:
+        """The same limits under another transient policy (:data:`POLICIES`), for comparisons."""
+        if policy not in POLICIES:
+            raise ValueError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
+        change = {"slow-slew": {"enabled": False}, "dual-slew": {"enabled": True, "mode": "dual-slew"},
+                  "longer-cycle": {"enabled": True, "mode": "slow"},
+                  "hold": {"enabled": True, "mode": "hold"}}[policy]
+        return self.model_copy(update={"transient": self.transient.model_copy(update=change)})
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,6 +184,10 @@ class ShaperState:
     window_left_s: float = 0.0
     latch_age_s: float = 0.0
     releasing: bool = False
+    settle_speed_rpm: float | None = None
+    """The speed the spindle is holding (cutting inference); None before the first sample."""
+    settled_s: float = 0.0
+    """How long it has held it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +196,13 @@ class ShapedOffset:
     write: bool
     flags: Flag
     desired_um: float
+    cutting: bool = False
+    """Whether the sample was taken as cutting (the controller's signal, or inferred)."""
+    rate_um_per_s: float = 0.0
+    """The slew limit in force for this sample."""
+    state: str = "tracking"
+    """The policy's state: dual-slew ``cutting`` or ``clear`` (not cutting: the fast limit);
+    slow/hold ``tracking``, ``window`` or ``releasing``; slow slew only ``tracking``."""
 
 
 def _clamp(config: ShaperConfig, offset_um: float) -> float:
@@ -128,9 +218,25 @@ def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
     return ShaperState(output_um=offset_um, target_um=_clamp(config, offset_um))
 
 
+def infer_cutting(signal: CuttingSignal, state: ShaperState, speed_rpm: float,
+                  dt_s: float) -> tuple[bool, float, float]:
+    """(cutting, the speed being held, for how long) after a sample at ``speed_rpm`` [rpm,
+    magnitude] ``dt_s`` after the last. Before any sample the spindle counts as settled."""
+    ref = state.settle_speed_rpm
+    tol = max(signal.speed_tolerance_rpm, signal.speed_tolerance_pct / 100.0 * speed_rpm)
+    if ref is None:
+        ref, held = speed_rpm, signal.settle_s
+    elif abs(speed_rpm - ref) > tol:
+        ref, held = speed_rpm, 0.0
+    else:
+        held = state.settled_s + dt_s
+    return speed_rpm > signal.speed_tolerance_rpm and held >= signal.settle_s, ref, held
+
+
 def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,
-          dt_s: float) -> tuple[ShaperState, ShapedOffset]:
-    """One sample, ``dt_s`` seconds after the previous one: the new state and what to write."""
+          dt_s: float, cutting: bool | None = None) -> tuple[ShaperState, ShapedOffset]:
+    """One sample, ``dt_s`` seconds after the previous one: the new state and what to write.
+    ``cutting``: the controller's signal, or None to infer it from the speed."""
     require_finite("elongation_um", elongation_um)
     n = speed_magnitude_rpm(speed_rpm)
     dt_s = require_dt(dt_s)
@@ -144,31 +250,41 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
         desired = math.copysign(m, desired)
         flags |= Flag.CLAMPED
 
-    triggered = False
-    if pol.enabled and state.speed_rpm is not None:
-        dn = abs(n - state.speed_rpm)
-        triggered = dn > pol.speed_step_rpm or (dt_s > 0 and dn / dt_s > pol.speed_rate_rpm_per_s)
-    was_open = state.window_left_s > 0
-    window = pol.window_s if triggered else max(state.window_left_s - dt_s, 0.0)
-    in_transient = triggered or window > 0
+    inferred, settle_ref, settled = infer_cutting(cfg.cutting, state, n, dt_s)
+    is_cutting = inferred if cutting is None else bool(cutting)
 
-    latch_age = state.latch_age_s + dt_s
-    if not in_transient:
-        target, latch_age = desired, 0.0
-    elif triggered and not was_open:
-        # entering a window: stop where we are (inside the clamp), whatever the mode
-        target, latch_age = _clamp(cfg, state.output_um), 0.0
-    elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
-        target, latch_age = desired, 0.0
+    window, latch_age, releasing = 0.0, 0.0, False
+    if pol.enabled and pol.mode == "dual-slew":
+        target = desired
+        rate = cfg.max_rate_um_per_s if is_cutting else cfg.fast_rate_um_per_s
+        word = "cutting" if is_cutting else "clear"
     else:
-        target = state.target_um
-    if in_transient:
-        flags |= Flag.TRANSIENT
+        triggered = False
+        if pol.enabled and state.speed_rpm is not None:
+            dn = abs(n - state.speed_rpm)
+            triggered = dn > pol.speed_step_rpm or (dt_s > 0 and dn / dt_s > pol.speed_rate_rpm_per_s)
+        was_open = state.window_left_s > 0
+        window = pol.window_s if triggered else max(state.window_left_s - dt_s, 0.0)
+        in_transient = triggered or window > 0
 
-    releasing = in_transient or state.releasing
-    rate = cfg.release_rate_um_per_s if releasing else cfg.max_rate_um_per_s
-    if releasing and not in_transient:
-        flags |= Flag.RELEASING
+        latch_age = state.latch_age_s + dt_s
+        if not in_transient:
+            target, latch_age = desired, 0.0
+        elif triggered and not was_open:
+            # entering a window: stop where we are (inside the clamp), whatever the mode
+            target, latch_age = _clamp(cfg, state.output_um), 0.0
+        elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
+            target, latch_age = desired, 0.0
+        else:
+            target = state.target_um
+        if in_transient:
+            flags |= Flag.TRANSIENT
+
+        releasing = in_transient or state.releasing
+        rate = cfg.release_rate_um_per_s if releasing else cfg.max_rate_um_per_s
+        if releasing and not in_transient:
+            flags |= Flag.RELEASING
+        word = "window" if in_transient else "releasing" if releasing else "tracking"
 
     y = state.output_um
     diff = target - y
@@ -183,7 +299,7 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
             flags |= Flag.SLEW_LIMITED
         # from beyond the clamp the step itself leads in (the target is inside): no jump
         new_y = min(max(y + step, -m), m) if abs(y) <= m else y + step
-    if releasing and not in_transient and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
+    if releasing and not (flags & Flag.TRANSIENT) and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
         releasing = False
 
     new_state = ShaperState(
@@ -193,8 +309,10 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
         window_left_s=window,
         latch_age_s=latch_age,
         releasing=releasing,
+        settle_speed_rpm=settle_ref,
+        settled_s=settled,
     )
-    return new_state, ShapedOffset(new_y, new_y != y, flags, desired)
+    return new_state, ShapedOffset(new_y, new_y != y, flags, desired, is_cutting, rate, word)
 
 
 class OffsetShaper:
@@ -213,39 +331,59 @@ class OffsetShaper:
         """The offset the controller holds now, as far as the shaper knows."""
         return self._state.output_um
 
-    def update(self, elongation_um: float, speed_rpm: float, dt_s: float) -> ShapedOffset:
-        """One sample: ``dt_s`` seconds after the previous call."""
-        self._state, shaped = shape(self.config, self._state, elongation_um, speed_rpm, dt_s)
+    def update(self, elongation_um: float, speed_rpm: float, dt_s: float,
+               cutting: bool | None = None) -> ShapedOffset:
+        """One sample: ``dt_s`` seconds after the previous call; ``cutting`` the controller's
+        signal, or None to infer it from the speed."""
+        self._state, shaped = shape(self.config, self._state, elongation_um, speed_rpm, dt_s, cutting)
         return shaped
 
     def hold(self, offset_um: float) -> None:
         """The controller holds ``offset_um``, not what the shaper last produced (a write failed
         or was refused, the machine applies its own value): move on from there, through the
-        slew limit. The transient window and latched target are kept."""
+        slew limit. The transient window, latched target and cutting inference are kept."""
         held = initial_state(self.config, offset_um).output_um
         if held != self._state.output_um:
             self._state = replace(self._state, output_um=held)
 
 
+@dataclass(frozen=True)
+class ShapedSeries:
+    """What the runtime's shaper does over a whole log, sample by sample."""
+
+    offset_um: np.ndarray
+    flags: np.ndarray
+    cutting: np.ndarray
+    """bool: taken as cutting (the log's signal, or inferred)."""
+    rate_um_per_s: np.ndarray
+    """The slew limit in force."""
+
+
 def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
-                 elongation_um: np.ndarray, initial_offset_um: float | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets a controller would hold over a whole log, and their flags.
+                 elongation_um: np.ndarray, initial_offset_um: float | None = None,
+                 cutting: np.ndarray | None = None) -> ShapedSeries:
+    """The offsets a controller would hold over a whole log, with their flags, cutting state
+    and slew limit.
 
     The runtime's own shaper run sample by sample on the log's time stamps (each sample a
     write that succeeds). ``initial_offset_um`` defaults to the first ideal offset ``-S[0]``,
-    a compensator already running when the log starts.
+    a compensator already running when the log starts. ``cutting`` (bool per sample) is the
+    controller's signal; None infers it from the speed, as the runtime does without one.
     """
     t = np.asarray(time_s, dtype=float)
     n = np.asarray(speed_rpm, dtype=float)
     s = np.asarray(elongation_um, dtype=float)
+    cut = None if cutting is None else np.asarray(cutting, dtype=bool)
     start = -float(s[0]) if initial_offset_um is None else initial_offset_um
     shaper = OffsetShaper(config, start)
     out = np.empty_like(s)
     flags = np.zeros(s.size, dtype=np.int64)
+    taken = np.zeros(s.size, dtype=bool)
+    rate = np.empty_like(s)
     prev = float(t[0])
     for k in range(s.size):
-        res = shaper.update(float(s[k]), float(n[k]), float(t[k]) - prev)
+        res = shaper.update(float(s[k]), float(n[k]), float(t[k]) - prev,
+                            None if cut is None else bool(cut[k]))
         prev = float(t[k])
-        out[k], flags[k] = res.offset_um, int(res.flags)
-    return out, flags
+        out[k], flags[k], taken[k], rate[k] = res.offset_um, int(res.flags), res.cutting, res.rate_um_per_s
+    return ShapedSeries(out, flags, taken, rate)

@@ -8,7 +8,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensator import Flag, NonFiniteInputError, OffsetShaper, ShaperConfig, TransientPolicy
+from compensator import (
+    CuttingSignal,
+    Flag,
+    NonFiniteInputError,
+    OffsetShaper,
+    ShaperConfig,
+    TransientPolicy,
+)
 
 NO_TRANSIENT = TransientPolicy(enabled=False)
 
@@ -136,23 +143,28 @@ samples = st.lists(
     samples=samples,
     clamp=st.floats(1, 200),
     rate=st.floats(0.01, 20),
+    fast=st.floats(1, 5),
     deadband=st.floats(0, 0.9),
-    mode=st.sampled_from(["hold", "slow"]),
+    mode=st.sampled_from(["dual-slew", "hold", "slow"]),
     enabled=st.booleans(),
     start=st.floats(-1000, 1000),
+    signals=st.lists(st.sampled_from([None, True, False]), min_size=80, max_size=80),
 )
-def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, deadband, mode, enabled, start):
+def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, fast, deadband, mode, enabled,
+                                               start, signals):
     cfg = ShaperConfig(
         max_offset_um=clamp,
         max_rate_um_per_s=rate,
+        not_cutting_rate_um_per_s=rate * fast,
         deadband_um=deadband,
         transient=TransientPolicy(enabled=enabled, mode=mode, window_s=20, slow_period_s=7),
+        cutting=CuttingSignal(settle_s=3.0),
     )
     sh = OffsetShaper(cfg, start)
     assert sh.output_um == start  # what the controller holds, even beyond the clamp
     prev = sh.output_um
-    for s, n, dt in samples:
-        res = sh.update(s, n, dt)
+    for (s, n, dt), signal in zip(samples, signals):
+        res = sh.update(s, n, dt, signal)
         state = sh.state
         y = res.offset_um
         assert math.isfinite(y)
@@ -160,7 +172,11 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, deadband, m
             assert abs(y) <= clamp
         else:  # led into the clamp: never further out, never a jump
             assert abs(y) <= abs(prev)
-        assert abs(y - prev) <= rate * dt * (1 + 1e-12) + 1e-12
+        assert abs(y - prev) <= cfg.rate_limit_um_per_s * dt * (1 + 1e-12) + 1e-12
+        if signal is not None:
+            assert res.cutting is signal  # the controller's word wins
+        if res.cutting or cfg.policy != "dual-slew":  # while cutting: never faster than the slow limit
+            assert abs(y - prev) <= rate * dt * (1 + 1e-12) + 1e-12
         assert res.write == (y != prev)
         if not res.write:
             assert y == prev
@@ -205,8 +221,86 @@ def test_shape_series_is_the_runtime_shaper_over_a_log():
     cfg = ShaperConfig(max_rate_um_per_s=0.5, deadband_um=0, transient=NO_TRANSIENT)
     t = np.arange(30.0)
     s = np.where(t < 10, 0.0, 5.0)
-    out, flags = shape_series(cfg, t, np.zeros_like(t), s)
+    series = shape_series(cfg, t, np.zeros_like(t), s)
+    out, flags = series.offset_um, series.flags
     expected, _, _ = run(OffsetShaper(cfg), [(float(v), 0, 1.0 if k else 0.0) for k, v in enumerate(s)])
     assert out.tolist() == pytest.approx(expected)
     assert out[-1] == pytest.approx(-5.0) and out[12] == pytest.approx(-1.5)
     assert int(flags[10]) & int(Flag.SLEW_LIMITED)
+    assert (series.rate_um_per_s == 0.5).all() and not series.cutting.any()  # at rest: not cutting
+
+
+# -- dual slew: fast while the tool is clear of the part, slow while it cuts (issue 18) -----------
+
+
+def dual(**kw) -> ShaperConfig:
+    kw.setdefault("cutting", CuttingSignal(settle_s=2.0))
+    return ShaperConfig(max_rate_um_per_s=1.0, not_cutting_rate_um_per_s=50.0, deadband_um=0.0, **kw)
+
+
+def test_dual_slew_lands_the_elastic_step_during_the_run_up_and_creeps_while_cutting():
+    sh = OffsetShaper(dual(), -20.0)
+    # the spindle has run at 22 500 rpm (settled, cutting) and the model says 20 um
+    outs, res, _ = run(sh, [(20.0, 22500, 1.0)] * 5)
+    assert all(r.cutting and r.state == "cutting" for r in res)
+    # a speed change to 12 000 rpm over 3 s: the elastic part drops by 12 um as it runs down
+    ramp = [(17.0, 19000, 1.0), (12.0, 15500, 1.0), (8.0, 12000, 1.0)]
+    outs, res, _ = run(sh, ramp)
+    assert outs == pytest.approx([-17.0, -12.0, -8.0])  # followed at once: not cutting
+    assert not any(r.cutting for r in res) and all(r.rate_um_per_s == 50.0 for r in res)
+    assert all(r.state == "clear" for r in res)
+    # held at 12 000: cutting again after settle_s; a further model change creeps at 1 um/s
+    outs, res, _ = run(sh, [(8.0, 12000, 1.0)] * 2 + [(11.0, 12000, 1.0)] * 4)
+    assert [r.cutting for r in res] == [False, True, True, True, True, True]
+    assert outs[2:] == pytest.approx([-9.0, -10.0, -11.0, -11.0])
+    assert all(Flag.SLEW_LIMITED in r.flags for r in res[2:4])
+
+
+def test_a_controller_signal_overrides_the_inference_both_ways():
+    sh = OffsetShaper(dual(), 0.0)
+    outs, res, _ = run(sh, [(0.0, 0, 1.0)])
+    # the controller says cutting while the speed jumps: slow, whatever the speed does
+    res = [sh.update(10.0, 20000, 1.0, True) for _ in range(3)]
+    assert [r.offset_um for r in res] == pytest.approx([-1.0, -2.0, -3.0])
+    assert all(r.cutting for r in res)
+    # ... and not cutting at a steady speed (a tool change at speed): fast
+    r = sh.update(10.0, 20000, 1.0, False)
+    assert r.offset_um == pytest.approx(-10.0) and not r.cutting and r.rate_um_per_s == 50.0
+
+
+def test_inference_at_rest_at_start_and_within_the_speed_band():
+    sig = CuttingSignal(settle_s=2.0, speed_tolerance_rpm=30.0, speed_tolerance_pct=1.0)
+    sh = OffsetShaper(dual(cutting=sig), 0.0)
+    # a start with the spindle turning: it may be cutting already, so slow
+    r = sh.update(5.0, 10000, 1.0)
+    assert r.cutting and r.offset_um == pytest.approx(-1.0)
+    # jitter within 1 % of the speed does not count as a change
+    res = [sh.update(5.0, n, 1.0) for n in (10050, 9950, 10080)]
+    assert all(r.cutting for r in res)
+    # beyond the band it does; at rest the tool never cuts
+    assert not sh.update(5.0, 10500, 1.0).cutting
+    res = [sh.update(5.0, 0, 1.0) for _ in range(10)]
+    assert not any(r.cutting for r in res)
+    assert not OffsetShaper(dual(cutting=sig)).update(1.0, 0.0, 1.0).cutting
+
+
+def test_the_longer_cycle_and_slow_slew_policies_stay_selectable():
+    base = dual()
+    assert base.policy == "dual-slew" and base.rate_limit_um_per_s == 50.0
+    slow = base.with_policy("slow-slew")
+    assert slow.policy == "slow-slew" and slow.rate_limit_um_per_s == 1.0
+    longer = base.with_policy("longer-cycle")
+    assert longer.transient.mode == "slow" and longer.policy == "longer-cycle"
+    r = OffsetShaper(slow, 0.0).update(10.0, 0.0, 1.0)  # at rest, not cutting: still slow
+    assert r.offset_um == pytest.approx(-1.0) and not r.cutting and r.state == "tracking"
+    with pytest.raises(ValueError):
+        base.with_policy("fast")
+
+
+def test_the_not_cutting_limit_defaults_to_50_and_never_below_the_cutting_one():
+    assert ShaperConfig().fast_rate_um_per_s == 50.0
+    assert ShaperConfig(max_rate_um_per_s=100.0).fast_rate_um_per_s == 100.0
+    with pytest.raises(ValueError, match="not_cutting_rate_um_per_s"):
+        ShaperConfig(max_rate_um_per_s=2.0, not_cutting_rate_um_per_s=1.0)
+    with pytest.raises(ValueError):
+        ShaperConfig(cutting=CuttingSignal(signal="sometimes"))  # type: ignore[arg-type]

@@ -70,9 +70,14 @@ class _OneLineFormatter(logging.Formatter):
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("replay", help="free-run a model over a logged speed profile")
-    p.add_argument("log", help="run log (CSV: time_s,speed_rpm[,elongation_um,...])")
-    p.add_argument("--model", required=True, help="model file (JSON)")
+    p = sub.add_parser("replay", help="free-run a model over a logged speed profile, and the offset "
+                       "the runtime's shaping would write")
+    p.add_argument("log", help="run log (CSV: time_s,speed_rpm[,elongation_um,cutting,...])")
+    p.add_argument("--model", help="model file (JSON); default: the spindle's in --config")
+    p.add_argument("--config", metavar="RUNTIME.toml",
+                   help="take the shaping (limits, transient policy, cutting signal) from this runtime "
+                   "configuration (default: the runtime's own defaults)")
+    p.add_argument("--spindle", help="with --config: the [[spindle]] by name (default: the only one)")
     p.add_argument("--output", help="write predicted elongation and offset per row (CSV)")
     p.add_argument("--plot", help="write a PNG plot")
     p.add_argument("--initial-um", type=float, help="initial elongation (default: first measured, else 0)")
@@ -88,9 +93,8 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
                    "that state none")
     p.add_argument("--probe-seed", type=int, default=0, help="random seed of that noise")
     p.add_argument("--applied", action="store_true",
-                   help="also pass the offset through the runtime's shaper (default shaping) and "
-                        "report the error of the offset the machine would hold")
-    p.set_defaults(handler="calibration.commands:replay_cmd")
+                   help="(always on now: the applied offset is in every report; kept for old scripts)")
+    p.set_defaults(handler="thermocomp.commands.replay:replay")
 
 
 def _add_fit(sub: argparse._SubParsersAction) -> None:
@@ -133,7 +137,9 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--program", default="paper-calibration", help="speed program")
     p.add_argument("--dt", type=float, default=60.0, help="sample period [s]")
     p.add_argument("--seed", type=int, default=0, help="random seed (noise, ambient, program)")
-    p.add_argument("--output", required=True, help="run log to write (CSV)")
+    p.add_argument("--accel-rpm-per-s", type=float, default=None,
+                   help="how fast the drive changes speed (default: the preset's, 5000 for motorized-27k)")
+    p.add_argument("--output", required=True, help="run log to write (CSV, with a 0/1 cutting column)")
     p.set_defaults(handler="thermocomp.commands.sim:simulate")
 
 
@@ -151,6 +157,10 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     p.add_argument("--port", type=int, default=4840, help="TCP port")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.add_argument("--accel-rpm-per-s", type=float, default=None,
+                   help="how fast the drive changes speed (default: the preset's, 5000 for motorized-27k)")
+    p.add_argument("--approach-s", type=float, default=None,
+                   help="seconds from at-speed to the first cut (default: the preset's, 3)")
     p.set_defaults(handler="thermocomp.commands.sim:virtual_cnc")
 
 

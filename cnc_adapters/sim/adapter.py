@@ -5,7 +5,8 @@ program and a simulated clock. Reading the speed advances the plant to the clock
 written offset moves the virtual tool tip (``machine.history().tool_tip_error_um``) and is
 read back from the machine (:attr:`VirtualMachine.offset_um`). The machine's tool setter
 (:meth:`VirtualMachine.start_probe`) is read like a controller's probe variables, with the
-sequence-counter handshake.
+sequence-counter handshake, and its cutting state (:attr:`VirtualMachine.cutting`: the tool in
+the part) like a controller's cutting signal.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ class SimAdapter(Adapter):
     Settings: ClassVar[type[AdapterSettings]] = SimSettings
     can_read_offset: ClassVar[bool] = True
     can_read_measurement: ClassVar[bool] = True
+    can_read_cutting: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -105,6 +107,10 @@ class SimAdapter(Adapter):
         seq = m.probe_sequence  # the counter first: it changes after the value
         scale = self.measurement_scale or self.units.scale  # the controller's unit
         return RawMeasurement(seq, m.probe_value_um * scale, m.probe_sigma_um * scale)
+
+    def _read_cutting_raw(self) -> bool:
+        self.machine.advance()
+        return self.machine.cutting
 
     def input_channels(self) -> tuple[str, ...]:
         from .vcnc import SENSOR_KEYS

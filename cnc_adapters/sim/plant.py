@@ -18,6 +18,12 @@ preload change), which is what makes the paper's 27 000 -> 12 000 rpm drop
 lose more than 10 um within a minute. The eddy-current reading adds Gaussian
 noise and quantisation.
 
+The drive (:meth:`SpindlePlant.drive`) follows a commanded speed at a finite acceleration
+(``accel_rpm_per_s``), so the elastic step of a speed change spreads over the spindle's run-up,
+as on a machine. The part is cut only at speed: the tool approaches the part ``approach_s``
+after the spindle reached its commanded speed, and leaves it before a new speed is commanded
+(:attr:`SpindlePlant.cutting`).
+
 The network is linear in temperature for a held speed, so each step is the
 exact zero-order-hold solution (a cached matrix exponential): any step size
 gives the same trajectory at the shared instants.
@@ -35,6 +41,8 @@ from compensator.inputs import first_order
 from compensator.units import speed_krpm
 
 N_NODES = 5
+RAMP_BAND_RPM = 500.0
+"""During a ramp the heat is that of the speed band (of this width) the spindle is in."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +81,10 @@ class PlantParams:
     speed-only model cannot see it, so the closed-loop tests use it."""
     noise_um: float = 0.05
     quantum_um: float = 0.1
+    accel_rpm_per_s: float = 5000.0
+    """How fast the drive changes speed [rpm/s] (10 000 rpm in 2 s); inf: at once."""
+    approach_s: float = 3.0
+    """From at-speed to the first cut [s]: the tool moves in after the spindle is at speed."""
 
 
 PRESETS: dict[str, PlantParams] = {
@@ -121,6 +133,7 @@ PRESETS: dict[str, PlantParams] = {
         heat_housing_w=(4.0, 1.2, 0.0),
         growth_um_per_k=(1.4, 0.7, 0.45, 0.0, 0.6),
         elastic_um=(0.0, 0.04),
+        accel_rpm_per_s=2000.0,
     ),
 }
 
@@ -173,6 +186,8 @@ class SpindlePlant:
     _rng: np.random.Generator = field(init=False)
     _walk_k: float = field(init=False, default=0.0)
     _speed_rpm: float = field(init=False, default=0.0)
+    _command_rpm: float = field(init=False, default=0.0)
+    _at_speed_s: float = field(init=False, default=math.inf)
     _cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = field(
         init=False, default_factory=dict
     )
@@ -231,6 +246,58 @@ class SpindlePlant:
         self.time_s += dt_s
         self._speed_rpm = speed_rpm
 
+    def drive(self, command_rpm: float, dt_s: float) -> None:
+        """Command ``command_rpm`` for ``dt_s`` seconds: the actual speed ramps toward it at
+        ``accel_rpm_per_s``, then holds it. The elastic growth follows the speed reached; the heat
+        of a ramp is taken in bands of :data:`RAMP_BAND_RPM` (each at its mid speed, bands fixed
+        in speed), so it is one function of time and any step size gives the same trajectory."""
+        if not (math.isfinite(command_rpm) and math.isfinite(dt_s)) or dt_s < 0:
+            raise ValueError(f"bad plant step: speed {command_rpm}, dt {dt_s}")
+        if command_rpm != self._command_rpm:
+            self._command_rpm = command_rpm
+            self._at_speed_s = -math.inf  # a new command: the tool has left the part
+        now = self._speed_rpm
+        gap = command_rpm - now
+        need_s = abs(gap) / self.params.accel_rpm_per_s if gap else 0.0
+        reached = need_s <= dt_s
+        ramp_s = need_s if reached else dt_s
+        if ramp_s > 0:
+            end = command_rpm if reached else now + math.copysign(self.params.accel_rpm_per_s * dt_s, gap)
+            self._ramp(now, end, ramp_s)
+        if reached:
+            self.advance(command_rpm, dt_s - ramp_s)
+            held_s = dt_s - ramp_s  # at the commanded speed within this step
+            self._at_speed_s = held_s if ramp_s > 0 or self._at_speed_s < 0 else self._at_speed_s + held_s
+
+    def _ramp(self, start_rpm: float, end_rpm: float, duration_s: float) -> None:
+        """The speed from ``start_rpm`` to ``end_rpm`` in a straight line over ``duration_s``."""
+        rate = (end_rpm - start_rpm) / duration_s
+        up = rate > 0
+        t = 0.0
+        while t < duration_s:
+            n = start_rpm + rate * t
+            band = math.floor(n / RAMP_BAND_RPM + (1e-9 if up else -1e-9))
+            edge = (band + 1 if up else band) * RAMP_BAND_RPM
+            piece = min((edge - n) / rate, duration_s - t)
+            self.advance((band + 0.5) * RAMP_BAND_RPM, piece)
+            t += piece
+        self._speed_rpm = end_rpm
+
+    @property
+    def command_rpm(self) -> float:
+        return self._command_rpm
+
+    @property
+    def at_speed(self) -> bool:
+        """The actual speed equals the commanded one."""
+        return self._speed_rpm == self._command_rpm
+
+    @property
+    def cutting(self) -> bool:
+        """The tool is in the part: the spindle turns at its commanded speed and has done so
+        for ``approach_s``."""
+        return self._command_rpm != 0 and self.at_speed and self._at_speed_s >= self.params.approach_s
+
     def elastic_um(self, speed_rpm: float | None = None) -> float:
         n = speed_krpm(self._speed_rpm if speed_rpm is None else speed_rpm)
         e1, e2 = self.params.elastic_um
@@ -248,22 +315,28 @@ class SpindlePlant:
         return np.round(noisy / p.quantum_um) * p.quantum_um if p.quantum_um > 0 else noisy
 
     def run(self, times_s: np.ndarray, speeds_rpm: np.ndarray) -> PlantRun:
-        """Drive the plant over a sampled program (speeds[k] held up to times[k])."""
+        """Drive the plant over a sampled program (speeds[k] commanded over (times[k-1],
+        times[k]]). The run's speed is the actual speed at each sample, as a drive reports it:
+        it ramps at ``accel_rpm_per_s``."""
         t = np.asarray(times_s, dtype=float)
         n = np.asarray(speeds_rpm, dtype=float)
         true = np.empty_like(t)
+        actual = np.empty_like(t)
+        cutting = np.zeros(t.size, dtype=bool)
         temps = np.empty((t.size, N_NODES))
         air = np.empty_like(t)
         prev = t[0]
         self.time_s = float(prev)
         for k in range(t.size):
-            self.advance(float(n[k]), float(t[k] - prev))
+            self.drive(float(n[k]), float(t[k] - prev))
             prev = t[k]
             true[k] = self.true_elongation_um()
+            actual[k] = self._speed_rpm
+            cutting[k] = self.cutting
             temps[k] = self.temps_c
             air[k] = self.air_c(self.time_s)
         measured = np.asarray(self.measure_um(true), dtype=float)
-        return PlantRun(t, n, true, measured, temps, air)
+        return PlantRun(t, actual, true, measured, temps, air, cutting)
 
     def heat_w(self, speed_rpm: float | np.ndarray) -> float | np.ndarray:
         """Total heat the spindle dissipates at a speed [W]: what the drive's load shows."""
@@ -310,13 +383,17 @@ class PlantRun:
     measured_um: np.ndarray
     temps_c: np.ndarray
     air_c: np.ndarray
+    cutting: np.ndarray | None = None
+    """bool per sample: the tool in the part (:attr:`SpindlePlant.cutting`)."""
 
     def columns(self, measured: bool = True) -> dict[str, np.ndarray]:
-        """Run-log columns in the common format."""
+        """Run-log columns in the common format (``cutting`` as 0/1)."""
         cols = {
             "time_s": self.time_s,
             "speed_rpm": self.speed_rpm,
             "elongation_um": self.measured_um if measured else self.true_um,
             "ambient_c": np.round(self.air_c, 3),
         }
+        if self.cutting is not None:
+            cols["cutting"] = self.cutting.astype(np.int64)
         return cols

@@ -8,6 +8,8 @@ Address space, modelled on OPC 40502 (OPC UA for CNC systems) where it can be::
           Spindle1/                       (CncSpindleType-like)
             ActSpeed          Double  rpm   the spindle's actual speed (read-only)
             CmdSpeed          Double  rpm   the programmed speed (read-only)
+            AtSpeed           Boolean       the actual speed equals the programmed one
+            Cutting           Boolean       the tool is in the part (feeding at speed)
             ThermalOffset     Double  um    thermal tool-length offset (writable by any client)
             Displacement      Double  um    eddy-current reading at the nose (read-only)
         Simulation/
@@ -67,6 +69,12 @@ NODE_PATHS = {
     "ambient_c": "/CncInterface/CncSpindleList/Spindle1/Sensors/AmbientTemp",
     "spindle_load_pct": "/CncInterface/CncSpindleList/Spindle1/Sensors/Load",
 }
+STATE_PATHS = {
+    "at_speed": "/CncInterface/CncSpindleList/Spindle1/AtSpeed",
+    "cutting": "/CncInterface/CncSpindleList/Spindle1/Cutting",
+}
+"""Boolean state of the machining, as a CNC's PLC publishes it: at speed, and cutting (the tool
+approaches the part ``approach_s`` after at-speed and leaves it before a speed change)."""
 TOOL_SETTER_PATHS = {
     "probe_measurement": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Measurement",
     "probe_sigma": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sigma",
@@ -118,6 +126,8 @@ class History:
     true_um: np.ndarray
     measured_um: np.ndarray
     offset_um: np.ndarray
+    cutting: np.ndarray
+    """bool: the tool was in the part at the end of the step."""
 
     @property
     def tool_tip_error_um(self) -> np.ndarray:
@@ -149,7 +159,7 @@ class VirtualMachine:
         self.pending: Program | None = None  # loaded, waiting for cycle start
         self.rejected_writes = 0
         self._override_rpm: float | None = None
-        self._hist: list[tuple[float, float, float, float, float]] = []
+        self._hist: list[tuple[float, float, float, float, float, bool]] = []
         self._lock = threading.Lock()
         # the machine's own sensors (temperatures, load), lagged like the real ones
         self._lagged = {name: float(plant.air_c(0) if node is None else plant.temps_c[node])
@@ -236,6 +246,15 @@ class VirtualMachine:
         return abs(self.plant._speed_rpm)
 
     @property
+    def at_speed(self) -> bool:
+        return self.plant.at_speed
+
+    @property
+    def cutting(self) -> bool:
+        """The tool is in the part now (never during a probe cycle: the spindle is stopped)."""
+        return self._probe_until_s is None and self.plant.cutting
+
+    @property
     def measured_um(self) -> float:
         return self._hist[-1][3] if self._hist else self.plant.true_elongation_um()
 
@@ -255,14 +274,15 @@ class VirtualMachine:
             h = self.plant_dt_s
             while self.plant.time_s + h <= target + 1e-9:
                 rpm = self.commanded_rpm(self.plant.time_s + h / 2)
-                self.plant.advance(rpm, h)
+                self.plant.drive(rpm, h)  # the drive ramps to it
                 for name, node, lag_s, *_ in SENSORS:
                     x = self.plant.air_c(self.plant.time_s) if node is None else self.plant.temps_c[node]
                     a = math.exp(-h / lag_s)
                     self._lagged[name] = a * self._lagged[name] + (1 - a) * float(x)
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
-                self._hist.append((self.plant.time_s, rpm, true, meas, self.offset_um))
+                self._hist.append((self.plant.time_s, abs(self.plant._speed_rpm), true, meas,
+                                   self.offset_um, self.plant.cutting))
                 if self._probe_until_s is not None and self.plant.time_s >= self._probe_until_s - 1e-9:
                     self._finish_probe()
 
@@ -286,10 +306,10 @@ class VirtualMachine:
 
     def history(self, clear: bool = False) -> History:
         with self._lock:
-            arr = np.array(self._hist, dtype=float).reshape(-1, 5)
+            arr = np.array(self._hist, dtype=float).reshape(-1, 6)
             if clear:
                 self._hist.clear()
-        return History(*(arr[:, i].copy() for i in range(5)))
+        return History(*(arr[:, i].copy() for i in range(5)), arr[:, 5] != 0)
 
 
 class VirtualCNC:
@@ -301,14 +321,16 @@ class VirtualCNC:
         *,
         host: str = "127.0.0.1",
         port: int | None = None,
-        tick_s: float = 0.005,
+        tick_s: float | None = 0.005,
         certificate: str | None = None,
         private_key: str | None = None,
         users: dict[str, str] | None = None,
     ):
         """With ``certificate`` and ``private_key`` the server accepts only
         Basic256Sha256 (Sign, SignAndEncrypt); with ``users`` only those user names and
-        passwords, never anonymous."""
+        passwords, never anonymous. ``tick_s``: how often (wall seconds) the server takes a
+        written offset, advances the plant and publishes; None: only when its owner calls
+        :func:`step` (lock-step with a :class:`~compensator.clock.SteppedClock`)."""
         self.machine = machine
         self.certificate = certificate
         self.private_key = private_key
@@ -377,6 +399,10 @@ class VirtualCNC:
             if key == "thermal_offset":
                 await node.set_writable()  # for every client, like the CNC's own variable
             self._nodes[key] = node
+        for key, path in STATE_PATHS.items():
+            parent_path, _, name = path.rpartition("/")
+            self._nodes[key] = await (await folder(parent_path)).add_variable(
+                f"ns={self.ns};s={path}", f"{self.ns}:{name}", ua.Variant(False, ua.VariantType.Boolean))
         for key, path in TOOL_SETTER_PATHS.items():
             parent_path, _, name = path.rpartition("/")
             initial = (ua.Variant(0, ua.VariantType.UInt32) if key == "probe_sequence"
@@ -401,7 +427,8 @@ class VirtualCNC:
         await server.start()
         self._server = server
         await self._publish()
-        self._task = asyncio.create_task(self._run())
+        if self.tick_s is not None:
+            self._task = asyncio.create_task(self._run())
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -447,11 +474,20 @@ class VirtualCNC:
         values.update(m.sensor_values())
         for key, v in values.items():
             await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
+        for key, flag in (("at_speed", m.at_speed), ("cutting", m.cutting)):
+            await self._nodes[key].write_value(ua.Variant(bool(flag), ua.VariantType.Boolean))
         # as a probe cycle writes them: the value, then the counter
         seq, value, sigma = m.probe_sequence, m.probe_value_um, m.probe_sigma_um
         await self._nodes["probe_measurement"].write_value(ua.Variant(float(value), ua.VariantType.Double))
         await self._nodes["probe_sigma"].write_value(ua.Variant(float(sigma), ua.VariantType.Double))
         await self._nodes["probe_sequence"].write_value(ua.Variant(int(seq), ua.VariantType.UInt32))
+
+
+def step(vcnc: VirtualCNC) -> None:
+    """One server tick now, from another thread (under :func:`running`): take the offset a client
+    wrote, advance the plant to the clock, publish."""
+    assert vcnc.loop is not None
+    asyncio.run_coroutine_threadsafe(vcnc.tick(), vcnc.loop).result(30)
 
 
 def call(vcnc: VirtualCNC, coro_fn) -> None:

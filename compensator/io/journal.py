@@ -9,7 +9,15 @@ partial row left by a failed write is cut off again, so the file stays a valid r
 always increases, and its differences are exactly the ``dt_s`` the model and the shaper used.
 ``wall_s`` is the wall clock as read, so a clock step shows and is flagged by the runtime,
 not fatal. A day file that already ends later than the first new row (the clock was set
-back between two runs) is continued in a new part, ``<name>-<day>.p2.csv``.
+back between two runs) is continued in a new part, ``<name>-<day>.p2.csv``; so is one written
+with other columns (an older version).
+
+Per cycle it also records how the offset was shaped (issue 18): ``cutting`` (1 when the tool
+was taken to be in the part), ``cutting_source`` (``controller``: the controller's signal;
+``speed``: inferred from the speed; ``speed-fallback``: inferred because the signal failed),
+``policy_state`` (dual-slew ``cutting`` or ``clear``; slow/hold ``tracking``, ``window`` or
+``releasing``) and ``slew_limit_um_per_s`` (the limit in force). Replay reads the ``cutting``
+column of a journal as the controller's signal.
 """
 
 from __future__ import annotations
@@ -33,7 +41,7 @@ class Journal:
     """The runtime's journal: the common run-log format, one file per UTC day."""
 
     COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms",
-               "dt_s", "wall_s")
+               "dt_s", "wall_s", "cutting", "cutting_source", "policy_state", "slew_limit_um_per_s")
 
     def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], *,
                  fsync_every_s: float = 10.0, retry_s: float = 1.0, max_retry_s: float = 60.0,
@@ -70,7 +78,9 @@ class Journal:
 
     def write(self, time_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
               written: bool, flags: int, alarms: int, *, dt_s: float = 0.0,
-              wall_s: float | None = None, now_s: float | None = None) -> bool:
+              wall_s: float | None = None, now_s: float | None = None, cutting: bool = False,
+              cutting_source: str = "speed", policy_state: str = "tracking",
+              slew_limit_um_per_s: float | None = None) -> bool:
         """Queue one row and write what the disk takes; True when nothing is left queued.
 
         ``now_s`` (monotonic seconds, default ``time_s``) paces the retries and the fsync.
@@ -78,7 +88,8 @@ class Journal:
         t = self._next_time(time_s)
         wall = t if wall_s is None else wall_s
         row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
-               f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f}\n")
+               f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f},{int(cutting)},{_word(cutting_source)},"
+               f"{_word(policy_state)},{_cell(slew_limit_um_per_s)}\n")
         return self._enqueue(t, row, now_s)
 
     def _next_time(self, time_s: float) -> float:
@@ -128,12 +139,15 @@ class Journal:
         self._close_fd()
         self.directory.mkdir(parents=True, exist_ok=True)
         part = 1
+        header = ",".join(self.COLUMNS)
         while True:
             path = self.path_for(day, part)
             last = _last_time(path)
-            if last is None or last < first_t:
+            # a new part: the clock was set back (every file keeps increasing time), or the file
+            # has other columns (written by another version)
+            if (last is None or last < first_t) and _header(path) in (None, header):
                 break
-            part += 1  # the clock was set back: a new part keeps every file increasing
+            part += 1
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
         try:
             if os.fstat(fd).st_size == 0:
@@ -181,6 +195,23 @@ class Journal:
         if self._pending:
             self.flush(now_s if now_s is not None else self._last_t)
         self._close_fd()
+
+
+def _word(text: str) -> str:
+    """A text cell: letters, digits, '-' and '_' only (no separator can slip in)."""
+    return "".join(c for c in text if c.isalnum() or c in "-_")[:40]
+
+
+def _header(path: Path) -> str | None:
+    """The column line of an existing run log, or None (missing or empty)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                if line.strip() and not line.startswith("#"):
+                    return line.strip()
+    except OSError:
+        return None
+    return None
 
 
 def _cell(value: float | None, fmt: str = ".9g") -> str:

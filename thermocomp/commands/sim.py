@@ -4,11 +4,13 @@ command line."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 import time
 from pathlib import Path
 
 from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
-from cnc_adapters.sim.plant import SpindlePlant, preset
+from cnc_adapters.sim.plant import PlantParams, SpindlePlant, preset
 from cnc_adapters.sim.vcnc import (
     CYCLE_START_PATH,
     NODE_PATHS,
@@ -22,9 +24,24 @@ from compensator.io import read_text, write_run_log
 from compensator.programs import program
 
 
+def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
+    """The preset with the drive options given on the command line."""
+    changes = {}
+    for key in ("accel_rpm_per_s", "approach_s"):
+        value = getattr(args, key, None)
+        if value is None:
+            continue
+        if not (math.isfinite(value) and (value > 0 if key == "accel_rpm_per_s" else value >= 0)):
+            flag = "--" + key.replace("_", "-")
+            raise ConfigError(f"{flag} must be a number {'> 0' if key == 'accel_rpm_per_s' else '>= 0'}, "
+                              f"got {value}")
+        changes[key] = value
+    return dataclasses.replace(params, **changes) if changes else params
+
+
 def simulate(args: argparse.Namespace) -> int:
     try:
-        params = preset(args.preset)
+        params = drive_params(preset(args.preset), args)
         prog = program(args.program, params.max_rpm, seed=args.seed)
     except KeyError as err:
         raise ConfigError(str(err.args[0])) from err
@@ -37,6 +54,7 @@ def simulate(args: argparse.Namespace) -> int:
         "preset": params.name,
         "program": prog.name,
         "seed": args.seed,
+        "accel_rpm_per_s": params.accel_rpm_per_s,
         "spindle_id": f"sim-{params.name}",
         "machine_id": "virtual",
     }
@@ -47,7 +65,7 @@ def simulate(args: argparse.Namespace) -> int:
 
 def virtual_cnc(args: argparse.Namespace) -> int:
     try:
-        params = preset(args.preset)
+        params = drive_params(preset(args.preset), args)
         if Path(args.program).is_file():
             prog = parse_nc(read_text(args.program), name=Path(args.program).name)
         else:

@@ -93,11 +93,25 @@ class SpindleConfig(BaseModel):
         "match the model's spindle id")
     adapter: dict[str, Any] = Field(description="adapter settings: a 'type' key and its options, or a 'url'")
     period_s: float = Field(1.0, ge=0.01, le=3600, description="cycle period")
+    run_up_period_s: float | None = Field(
+        None, ge=0.01, le=3600, description="while the spindle changes speed and the tool is not "
+        "cutting, cycle this often instead (the offset follows the elastic growth through the "
+        "run-up in finer steps); unset: period_s")
     shaping: ShaperConfig = ShaperConfig()
     faults: FaultPolicy = FaultPolicy()
     observer: ObserverSettings = ObserverSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
+
+    @model_validator(mode="after")
+    def _periods(self) -> SpindleConfig:
+        settle = self.shaping.cutting.settle_s
+        if self.shaping.policy == "dual-slew" and self.shaping.cutting.signal != "controller" \
+                and settle < self.period_s:
+            raise ValueError(f"shaping.cutting.settle_s ({settle:g} s) is shorter than period_s "
+                             f"({self.period_s:g} s): the speed could not be seen to settle before the "
+                             "tool is taken to cut; make it at least one period")
+        return self
 
     @field_validator("name")
     @classmethod

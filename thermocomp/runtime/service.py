@@ -230,8 +230,9 @@ class Service:
                     rt.cycle()
                 except ThermocompError as err:  # a bad value: skip the cycle, never write it
                     log.error("%s: cycle skipped: %s", name, err)
-                due += rt.cfg.period_s
-                self._due[name] = due if due > now else now + rt.cfg.period_s  # no catch-up burst
+                period = rt.next_period_s()
+                due += period
+                self._due[name] = due if due > now else now + period  # no catch-up burst
         beat = time.monotonic()  # real time: systemd's watchdog counts real seconds
         if self.cfg.watchdog and beat - self._last_beat >= 1.0:
             self._last_beat = beat

@@ -34,7 +34,15 @@ cycle and saves the state when due. The controller's offset is the truth:
   ``PROBE_FAILED``, none accepted for ``stale_after_s`` ``OBSERVER_STALE``. One observer state
   serves the model in use: at a switch between the model with inputs and its fallback the bias
   is rebased so that the estimate does not jump. A correction reaches the controller through the
-  shaper's slew limit like any change of the estimate.
+  shaper's slew limit like any change of the estimate;
+- speed transients (``[spindle.shaping]``, issue 18): each cycle the controller's cutting signal
+  is read where the adapter has one (``Adapter.read_cutting``) and handed to the shaper, which
+  otherwise infers it from the speed. With the default ``dual-slew`` policy the offset moves at
+  ``not_cutting_rate_um_per_s`` while the tool is clear of the part (the elastic step of a speed
+  change lands during the run-up) and at ``max_rate_um_per_s`` while it cuts. A signal that
+  cannot be read raises ``CUTTING_SIGNAL_FAILED`` and the cycle infers it from the speed. The
+  journal records, every cycle, whether the tool was taken to cut, from which source, the
+  policy's state and the slew limit in force.
 
 Every transition is a structured event (:mod:`.events`). Time is injected (``clock`` monotonic
 seconds, ``wall`` epoch seconds): tests run in simulated time without sleeping. The journal's
@@ -75,6 +83,7 @@ from compensator.io import (
 from compensator.model import SAVED_LIMIT_UM, saved_numbers
 from compensator.observer import ObserverState
 from compensator.predictor import Predictor
+from compensator.shaping import ShapedOffset
 
 from .config import SpindleConfig
 from .events import event
@@ -112,6 +121,7 @@ class Alarm(enum.IntFlag):
     PROBE_REJECTED = 262144
     OBSERVER_STALE = 524288
     PROBE_FAILED = 1048576
+    CUTTING_SIGNAL_FAILED = 2097152
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
@@ -177,6 +187,15 @@ class SpindleRuntime:
                 raise ConfigError(f"spindle {cfg.name}: the model needs input(s) {', '.join(missing)}; "
                                   "map them in the adapter (input_nodes for OPC UA, input_registers "
                                   "for Modbus)")
+        signal = cfg.shaping.cutting.signal
+        has_signal = bool(getattr(self.adapter, "can_read_cutting", False))
+        if signal == "controller" and not has_signal:
+            raise ConfigError(f"spindle {cfg.name}: shaping.cutting.signal = 'controller', but the "
+                              "adapter has no cutting signal configured (cutting_node for OPC UA, "
+                              "cutting for LinuxCNC, cutting_register for Modbus)")
+        self.cutting_from_controller = has_signal and signal != "speed"
+        self._cutting_error: str | None = None  # why the controller's signal failed
+        self._run_up_until = -math.inf  # the speed was seen changing, the tool not cutting
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
                                                        "source": "thermocomp run"},
                                fsync_every_s=journal_fsync_s)
@@ -739,6 +758,9 @@ class SpindleRuntime:
         self._startup_alarms = Alarm.NONE
         speed, read_alarms = self._read_speed(now)
         alarms |= read_alarms
+        cutting, cutting_source, cutting_alarms = self._read_cutting()
+        alarms |= cutting_alarms
+        last_speed = self.offset.shaper.state.speed_rpm
         not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
         if not_ready is None:  # a machine that is off applies its own value: nothing to compare
             alarms |= self._read_back(now)
@@ -751,7 +773,14 @@ class SpindleRuntime:
         if self.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
-        shaped = self.offset.plan(s, speed, dt)
+        shaped = self.offset.plan(s, speed, dt, cutting)
+        sig = self.cfg.shaping.cutting
+        if shaped.cutting:
+            self._run_up_until = -math.inf
+        elif last_speed is not None and abs(speed - last_speed) > max(
+                sig.speed_tolerance_rpm, sig.speed_tolerance_pct / 100 * speed):
+            # a controller may refresh its speed less often than we read: stay fast one period
+            self._run_up_until = now + self.cfg.period_s
         wanted = self.offset.wants_write(shaped)
         wrote = False
         if not_ready is not None:
@@ -774,22 +803,55 @@ class SpindleRuntime:
         self.counters["cycles"] += 1
         held = self.offset.held_um
         alarms |= self._state_alarms  # of the last save: a row is journaled before the save
-        alarms |= self._journal(now, dt, wall_now, speed, s, held, wrote, int(shaped.flags), alarms)
+        alarms |= self._journal(now, dt, wall_now, speed, s, held, wrote, shaped, cutting_source, alarms)
         self._state_alarms = self._save_if_due(now)
         self.alarms = alarms | self._state_alarms
         return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
                 "offset_um": held, "written": wrote, "flags": shaped.flags, "alarms": alarms,
                 "read_to_write_ms": latency_ms, "offset_mode": self.offset.mode.value,
-                "link": self.link.state.value, "observer": self.observer_status()}
+                "link": self.link.state.value, "observer": self.observer_status(),
+                "cutting": shaped.cutting, "cutting_source": cutting_source,
+                "policy_state": shaped.state, "slew_limit_um_per_s": shaped.rate_um_per_s}
+
+    def next_period_s(self) -> float:
+        """Seconds to the next cycle: ``run_up_period_s`` while the spindle changes speed with the
+        tool clear of the part (the last cycle saw the speed move), else ``period_s``."""
+        fast = self.cfg.run_up_period_s
+        if fast is not None and self.clock() < self._run_up_until:
+            return min(fast, self.cfg.period_s)
+        return self.cfg.period_s
+
+    def _read_cutting(self) -> tuple[bool | None, str, Alarm]:
+        """The controller's cutting signal and its source; None (the shaper infers it from the
+        speed) without one, with the link down, or when it fails (``CUTTING_SIGNAL_FAILED``, an
+        event when it begins and one when it ends)."""
+        if not (self.cutting_from_controller and self.link.up):
+            return None, "speed", Alarm.NONE
+        try:
+            cutting = self.adapter.read_cutting()
+        except AdapterError as err:
+            why = str(err)[:200]
+            if why != self._cutting_error:
+                event("cutting_signal_failed", self.cfg.name, "%s: CUTTING_SIGNAL_FAILED: %s; the "
+                      "cutting state is inferred from the speed", self.cfg.name, why,
+                      level=logging.WARNING, error=why)
+            self._cutting_error = why
+            return None, "speed-fallback", Alarm.CUTTING_SIGNAL_FAILED
+        if self._cutting_error is not None:
+            event("cutting_signal_restored", self.cfg.name, "%s: the controller's cutting signal "
+                  "reads again", self.cfg.name)
+            self._cutting_error = None
+        return cutting, "controller", Alarm.NONE
 
     def _journal(self, now: float, dt: float, wall_now: float, speed: float, s: float, held: float,
-                 wrote: bool, flags: int, alarms: Alarm) -> Alarm:
+                 wrote: bool, shaped: ShapedOffset, cutting_source: str, alarms: Alarm) -> Alarm:
         """One journal row; a disk that refuses it is an alarm, the row waits in memory."""
         j = self.journal
         if self._journal_error is not None:
             alarms |= Alarm.JOURNAL_FAILED  # the row says so itself once it lands
-        ok = j.write(self.anchor_s + now, speed, s, held, wrote, flags, int(alarms), dt_s=dt,
-                     wall_s=wall_now, now_s=now)
+        ok = j.write(self.anchor_s + now, speed, s, held, wrote, int(shaped.flags), int(alarms), dt_s=dt,
+                     wall_s=wall_now, now_s=now, cutting=shaped.cutting, cutting_source=cutting_source,
+                     policy_state=shaped.state, slew_limit_um_per_s=shaped.rate_um_per_s)
         if ok:
             if self._journal_error is not None:
                 event("journal_restored", self.cfg.name, "%s: journal writing again (%s)",
