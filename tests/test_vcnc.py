@@ -92,6 +92,8 @@ def test_independent_node_opcua_client_reads_and_writes():
         # both read in one request; the server may publish between the two nodes (one tick)
         assert out["tool_tip_error_um"] == pytest.approx(out["true_elongation_um"] - 4.5, abs=0.3)
         assert out["true_elongation_um"] > 1.0
+        # at 20 000 rpm for over 7 simulated seconds: at speed, the tool in the part (Boolean nodes)
+        assert (out["at_speed"], out["cutting"], out["cutting_type"]) == (True, True, "Boolean")
         assert wait_for(lambda: vm.offset_um == -4.5)
 
 

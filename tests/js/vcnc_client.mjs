@@ -1,6 +1,6 @@
 // An independent OPC UA client (node-opcua) for thermocomp's virtual CNC:
 // connect, find Spindle1 by browse path, read ActSpeed and SimTime, write ThermalOffset,
-// read it back. Prints one JSON line. Usage: node vcnc_client.mjs URL OFFSET_UM
+// read it back, read AtSpeed and Cutting. Prints one JSON line. Usage: node vcnc_client.mjs URL OFFSET_UM
 import { OPCUAClient, AttributeIds, DataType, makeBrowsePath, StatusCodes } from "node-opcua-client";
 
 const [url, offsetArg] = process.argv.slice(2);
@@ -34,6 +34,12 @@ try {
     { nodeId: `ns=${ns};s=/CncInterface/Simulation/TrueElongation`, attributeId: AttributeIds.Value }]);
   out.tool_tip_error_um = err.value.value;
   out.true_elongation_um = tru.value.value;
+  const [atSpeed, cutting] = await session.read([
+    { nodeId: `ns=${ns};s=/CncInterface/CncSpindleList/Spindle1/AtSpeed`, attributeId: AttributeIds.Value },
+    { nodeId: `ns=${ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting`, attributeId: AttributeIds.Value }]);
+  out.at_speed = atSpeed.value.value;
+  out.cutting = cutting.value.value;
+  out.cutting_type = DataType[cutting.value.dataType];
   await session.close();
   out.ok = out.write_status === StatusCodes.Good.name;
 } catch (e) {

@@ -24,7 +24,7 @@ EVENTS = (
     "state_save_failed", "state_stale", "state_saved_again", "clock_step",
     "reload", "reload_refused", "lock_failed",
     "probe_accepted", "probe_rejected", "probe_restart", "probe_failed", "observer_stale",
-    "observer_fresh", "control_failed",
+    "observer_fresh", "control_failed", "cutting_signal_failed", "cutting_signal_restored",
 )
 """Every event name the runtime emits (documented in the README)."""
 
