@@ -172,7 +172,7 @@ class LinuxCncSettings(AdapterSettings):
     cutting: CuttingSource = Field("none", description="the cutting signal: pin (a bit), at-speed, "
                                    "feed (at-speed and motion-type), or none (inferred from the speed)")
     cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        FEED_MOTION_TYPES, description="feed: the motion types that count as cutting")
+        list(FEED_MOTION_TYPES), description="feed: the motion types that count as cutting")
 
     @model_validator(mode="after")
     def _measurement(self) -> LinuxCncSettings:

@@ -118,7 +118,7 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
         None, description="the register the PLC's cutting state is in; none: inferred from the speed")
     cutting_table: Table = "holding"
     cutting_type: DataType = "uint16"
-    cutting_values: CuttingValues = Field((1,), description="the values that mean cutting")  # type: ignore[assignment]
+    cutting_values: CuttingValues = Field([1], description="the values that mean cutting")  # type: ignore[assignment]
 
     @model_validator(mode="after")
     def _measurement(self) -> ModbusSettings:

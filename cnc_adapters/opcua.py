@@ -237,7 +237,7 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
         None, description="the controller's cutting signal (node id or browse path): a boolean or "
         "an enumeration; '' for none, where a preset names one")
     cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        (True,), description="the values of cutting_node that mean cutting")
+        [True], description="the values of cutting_node that mean cutting")
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:

@@ -211,7 +211,7 @@ def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, 
     b.vm.start_probe()
     rows = b.run(20)
     seen = next(r for r in rows if r["observer"]["since_measurement_s"] == 0.0)
-    assert seen["speed_rpm"] == 22500.0  # read after the restart
+    assert seen["speed_rpm"] > 0.0  # read after the restart (the spindle running up again)
     (m,) = b.measurements()
     assert abs(float(m["innovation_um"])) < 1.5  # met the estimate at rest, not the one at speed
     assert abs(b.rt.state.bias_um) < 1.5

@@ -51,7 +51,7 @@ def write_config(tmp_path: Path, model: Path, adapter: str, **extra) -> Path:
 def test_example_configuration_is_valid():
     cfg = load_config(EXAMPLES / "machine.toml")
     assert cfg.spindle[0].adapter["preset"] == "sinumerik"
-    assert cfg.spindle[0].shaping.transient.mode == "slow"
+    assert cfg.spindle[0].shaping.transient.mode == "dual-slew"
 
 
 @pytest.mark.parametrize("text,match", [
@@ -112,9 +112,15 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     logs = [read_run_log(p) for p in journal]  # each file is a run log replay can read
     assert logs[0].time_s[-1] < 1700006400.0 <= logs[1].time_s[0]
     off = np.concatenate([lg.extras["offset_um"] for lg in logs])
-    dt = np.diff(np.concatenate([lg.time_s for lg in logs]))
+    dt = np.concatenate([lg.extras["dt_s"] for lg in logs])[1:]  # the runtime's own step
+    cut = np.concatenate([lg.extras["cutting"] for lg in logs]) == 1
+    limit = np.concatenate([lg.extras["slew_limit_um_per_s"] for lg in logs])[1:]
     assert np.isfinite(off).all() and np.abs(off).max() <= 40.0
-    assert (np.abs(np.diff(off)) <= 2.0 * dt + 1e-6).all()
+    assert (np.abs(np.diff(off)) <= limit * dt + 1e-6).all()
+    # 2 um/s while the CNC says the tool cuts (its Cutting node), faster only while it does not
+    both = cut[1:] & cut[:-1]
+    assert both.sum() > 100 and (np.abs(np.diff(off))[both] <= 2.0 * dt[both] + 1e-6).all()
+    assert (limit[cut[1:]] == 2.0).all() and (limit[~cut[1:]] > 2.0).all()
     assert np.abs(h.offset_um).max() <= 40.0
     state = load_state(tmp_path / "state" / "s1.state.json")
     assert state is not None and state["spindle"] == "s1"

@@ -73,11 +73,17 @@ def test_a_probe_cycle_stops_the_spindle_then_measures_the_true_elongation():
     assert vm.probe_value_um == pytest.approx(round(vm.probe_value_um / 0.1) * 0.1, abs=1e-9)  # resolution
     assert vm.probe_true_um > 5.0  # 30 min at 20 000 rpm: a warm spindle
     h = vm.history()
-    assert (h.speed_rpm[(h.time_s > 1800.0) & (h.time_s <= 1820.0)] == 0.0).all()
+    stopping = h.speed_rpm[(h.time_s > 1800.0) & (h.time_s <= 1820.0)]
+    assert (np.diff(stopping) <= 0).all() and stopping[0] < SPEED  # it runs down at once ...
+    assert (h.speed_rpm[(h.time_s >= 1804.0) & (h.time_s <= 1820.0)] == 0.0).all()  # ... in 4 s
+    assert not h.cutting[(h.time_s > 1800.0) & (h.time_s <= 1820.0)].any()
     clock.t += 1.0
     vm.advance()
-    assert vm.speed_rpm == SPEED  # the program goes on where it stopped
-    assert vm.program.duration_s - (vm.plant.time_s - vm._program_start_s) == pytest.approx(36000.0 - 1801.0)
+    assert 0.0 < vm.speed_rpm < SPEED  # the program goes on where it stopped: running up
+    clock.t += 4.0
+    vm.advance()
+    assert vm.speed_rpm == SPEED
+    assert vm.program.duration_s - (vm.plant.time_s - vm._program_start_s) == pytest.approx(36000.0 - 1805.0)
 
 
 def test_the_tool_setters_noise_and_resolution_are_as_configured_and_seeded():
@@ -152,7 +158,7 @@ def test_opcua_each_probe_value_is_used_once_and_a_stale_one_is_ignored():
         assert m is not None and (m.sequence, m.source) == (8, "opcua")
         assert m.elongation_um == pytest.approx(vm.probe_value_um) != 12.3
         assert abs(m.elongation_um - vm.probe_true_um) < 2.6 and m.sigma_um == pytest.approx(0.5)
-        for _ in range(3):
+        for _ in range(5):  # the spindle runs up again in 4 s (5000 rpm/s)
             clock.t += 1.0
             call(cnc, cnc.tick)
             assert link.read_measurement() is None  # each value once

@@ -263,11 +263,16 @@ def test_run_up_period_follows_the_run_up_in_finer_steps(tmp_path, model_file):
 
 def test_cutting_settings_are_checked_at_load(tmp_path, model_file):
     bad = config(tmp_path / "a", model_file, extra="")
-    bad.write_text(bad.read_text().replace("settle_s = 2.0", "settle_s = 0.5"))
-    with pytest.raises(ConfigError, match="settle_s"):
-        load_config(bad)
-    bad.write_text(bad.read_text().replace("settle_s = 0.5", 'settle_s = 2.0\nspeed_tolerance_pct = 90'))
-    with pytest.raises(ConfigError, match="speed_tolerance_pct"):
+    good = bad.read_text()
+    for old, wrong, key in (("settle_s = 2.0", "settle_s = -1.0", "settle_s"),
+                            ("settle_s = 2.0", "settle_s = 2.0\nspeed_tolerance_pct = 90", "speed_tolerance_pct"),
+                            ('signal = "auto"', 'signal = "sometimes"', "signal"),
+                            ("settle_s = 2.0", "settle_s = 2.0\nspeed_tolerance_rpm = nan", "speed_tolerance_rpm")):
+        bad.write_text(good.replace(old, wrong))
+        with pytest.raises(ConfigError, match=key):
+            load_config(bad)
+    bad.write_text(good.replace(f"not_cutting_rate_um_per_s = {FAST_RATE}", "not_cutting_rate_um_per_s = 0.5"))
+    with pytest.raises(ConfigError, match="not_cutting_rate_um_per_s must not be below"):
         load_config(bad)
     # the controller's signal required where the link has none: refused at start
     need = config(tmp_path / "b", model_file, signal="controller")

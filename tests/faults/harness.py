@@ -158,7 +158,9 @@ class Setup:
 
 
 class VirtualCncProcess:
-    """``thermocomp virtual-cnc`` on a free loopback port, at 1x, holding 20 000 rpm."""
+    """``thermocomp virtual-cnc`` on a free loopback port, at 1x, holding 20 000 rpm. Its drive
+    reaches a speed at once: a restarted controller finds the spindle turning, and these cases
+    are about the link, the disk and signals, not the run-up."""
 
     def __init__(self, workdir: Path, port: int | None = None):
         self.workdir = workdir
@@ -177,7 +179,7 @@ class VirtualCncProcess:
         with open(self.out, "w") as fh:
             self.proc = subprocess.Popen(
                 [PYTHON, "-m", "thermocomp", "virtual-cnc", "--port", str(self.port),
-                 "--time-scale", "1", "--program", str(self.program)],
+                 "--time-scale", "1", "--program", str(self.program), "--accel-rpm-per-s", "1e9"],
                 stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         self.stopped = False
@@ -381,7 +383,7 @@ def live_rows(journal_dir: Path, name: str = "s1") -> dict[str, np.ndarray]:
             continue
         for line in text.split("\n")[:-1]:  # the last piece has no newline yet
             if line and line[0].isdigit():
-                rows.append([float(x) for x in line.split(",")] + [k])
+                rows.append([float(x) for x in line.split(",")[:len(COLUMNS)]] + [k])
     if not rows:
         return _empty()
     a = np.array(rows, dtype=float)

@@ -103,16 +103,6 @@ class SpindleConfig(BaseModel):
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
 
-    @model_validator(mode="after")
-    def _periods(self) -> SpindleConfig:
-        settle = self.shaping.cutting.settle_s
-        if self.shaping.policy == "dual-slew" and self.shaping.cutting.signal != "controller" \
-                and settle < self.period_s:
-            raise ValueError(f"shaping.cutting.settle_s ({settle:g} s) is shorter than period_s "
-                             f"({self.period_s:g} s): the speed could not be seen to settle before the "
-                             "tool is taken to cut; make it at least one period")
-        return self
-
     @field_validator("name")
     @classmethod
     def _name(cls, v: str) -> str:
