@@ -395,7 +395,8 @@ def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None) ->
             from .replay import probes_from_file
 
             probes = probes_from_file(log, args.measurements, args.probe_noise_um)
-        rep = replay(model, log, args.initial_um, shaping or ShaperConfig(), probes)
+        rep = replay(model, log, args.initial_um, shaping or ShaperConfig(), probes,
+                     compare=not getattr(args, "no_compare", False))
         if args.output:
             say("writing predictions")
             write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})

@@ -20,7 +20,7 @@ from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.io import RunLog
 from compensator.io.measurements import read_measurements
 from compensator.predictor import Predictor
-from compensator.shaping import POLICIES, ShaperConfig, shape_series
+from compensator.shaping import POLICIES, ShapedSeries, ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
 
 from .calibrate import residual_stats
@@ -198,21 +198,25 @@ def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float 
 
 def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
                      predicted_um: np.ndarray, measured_um: np.ndarray | None,
-                     cutting: np.ndarray | None) -> list[dict[str, Any]]:
+                     cutting: np.ndarray | None, configured: ShapedSeries | None = None) -> list[dict[str, Any]]:
     """Every transient policy with the configuration's limits, side by side, on one log: the
     error of the offset it would write (all samples, and the samples taken as cutting), how far
     it lags the model, and the fastest it moves while cutting and overall. ``none`` is the model
-    bound: the offset ``-S`` unshaped. The configured policy is marked."""
+    bound: the offset ``-S`` unshaped. The configured policy is marked (``configured``: its
+    series, already shaped)."""
     rows = []
     ideal = -predicted_um
     for name in (*POLICIES, "none"):
         if name == "hold" and shaping.policy != "hold":
             continue  # a variant of the longer cycle: shown only where configured
         if name == "none":
-            offset, cut = ideal, (cutting if cutting is not None else np.zeros(ideal.size, bool))
+            # the samples the configured shaping took as cutting (the signal, or inferred)
+            cut = configured.cutting if configured is not None else (
+                cutting if cutting is not None else np.zeros(ideal.size, bool))
+            offset = ideal
         else:
-            series = shape_series(shaping.with_policy(name), time_s, speed_rpm, predicted_um,
-                                  cutting=cutting)
+            series = configured if configured is not None and name == shaping.policy else shape_series(
+                shaping.with_policy(name), time_s, speed_rpm, predicted_um, cutting=cutting)
             offset, cut = series.offset_um, series.cutting
         dt = np.diff(time_s)
         rate = np.abs(np.diff(offset)) / np.where(dt > 0, dt, np.inf)
@@ -384,6 +388,6 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "cutting_source": cut_source, "cutting_fraction": float(np.mean(shaped.cutting)),
     }
     if compare:
-        report["policies"] = compare_policies(shaping, log.time_s, speed_sim, pred, measured, cut_signal)
+        report["policies"] = compare_policies(shaping, log.time_s, speed_sim, pred, measured, cut_signal, shaped)
     report["warnings"] = warnings
     return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied, shaped.cutting)

@@ -47,6 +47,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from .errors import NonFiniteInputError
 from .units import require_dt, require_finite, speed_magnitude_rpm
 
 
@@ -218,101 +219,136 @@ def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
     return ShaperState(output_um=offset_um, target_um=_clamp(config, offset_um))
 
 
-def infer_cutting(signal: CuttingSignal, state: ShaperState, speed_rpm: float,
-                  dt_s: float) -> tuple[bool, float, float]:
-    """(cutting, the speed being held, for how long) after a sample at ``speed_rpm`` [rpm,
-    magnitude] ``dt_s`` after the last. Before any sample the spindle counts as settled."""
-    ref = state.settle_speed_rpm
-    tol = max(signal.speed_tolerance_rpm, signal.speed_tolerance_pct / 100.0 * speed_rpm)
+_DUAL, _WINDOWED, _ONE = 0, 1, 2  # how the policy moves the offset: by the cutting state,
+# in windows opened by speed changes (slow, hold), or at one rate
+_NO_FLAGS, _CLAMPED, _SLEWED, _DEADBAND = int(Flag.NONE), int(Flag.CLAMPED), int(Flag.SLEW_LIMITED), int(Flag.DEADBAND)
+_TRANSIENT, _RELEASING = int(Flag.TRANSIENT), int(Flag.RELEASING)
+
+
+@dataclass(frozen=True, slots=True)
+class _Limits:
+    """A :class:`ShaperConfig` as plain numbers, read once rather than at every sample."""
+
+    clamp: float
+    rate: float
+    fast_rate: float
+    release_rate: float
+    deadband: float
+    kind: int
+    hold: bool
+    speed_rate: float
+    speed_step: float
+    window_s: float
+    slow_period_s: float
+    settle_s: float
+    tolerance_rpm: float
+    tolerance_frac: float
+
+
+def _limits(config: ShaperConfig) -> _Limits:
+    t, c = config.transient, config.cutting
+    kind = _ONE if not t.enabled else _DUAL if t.mode == "dual-slew" else _WINDOWED
+    return _Limits(config.max_offset_um, config.max_rate_um_per_s, config.fast_rate_um_per_s,
+                   config.release_rate_um_per_s, config.deadband_um, kind, t.mode == "hold",
+                   t.speed_rate_rpm_per_s, t.speed_step_rpm, t.window_s, t.slow_period_s, c.settle_s,
+                   c.speed_tolerance_rpm, c.speed_tolerance_pct / 100.0)
+
+
+_WORDS = ("cutting", "clear", "window", "releasing", "tracking")
+
+_State = tuple  # ShaperState's fields, in order
+
+
+def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float,
+             cutting: bool | None) -> tuple[_State, int, bool, float, int]:
+    """One sample over checked numbers (``n`` the speed's magnitude): the new state and the
+    flags, the cutting state, the slew limit and the index of the policy's word. The one
+    transition of the shaper: :func:`shape` and :func:`shape_series` both run it."""
+    y, held_target, last_n, window_left, latch_age, releasing, ref, settled = st
+    m = lim.clamp
+    flags = _NO_FLAGS
+    desired = -elongation_um
+    if desired > m:
+        desired, flags = m, _CLAMPED
+    elif desired < -m:
+        desired, flags = -m, _CLAMPED
+
+    # the cutting state inferred from the speed: held within the band for settle_s, and turning
+    tol = lim.tolerance_rpm if lim.tolerance_rpm > lim.tolerance_frac * n else lim.tolerance_frac * n
     if ref is None:
-        ref, held = speed_rpm, signal.settle_s
-    elif abs(speed_rpm - ref) > tol:
-        ref, held = speed_rpm, 0.0
+        ref, settled = n, lim.settle_s  # before any sample: settled (it may be cutting)
+    elif abs(n - ref) > tol:
+        ref, settled = n, 0.0
     else:
-        held = state.settled_s + dt_s
-    return speed_rpm > signal.speed_tolerance_rpm and held >= signal.settle_s, ref, held
+        settled += dt
+    is_cutting = (n > lim.tolerance_rpm and settled >= lim.settle_s) if cutting is None else bool(cutting)
+
+    window = 0.0
+    in_transient = False
+    if lim.kind == _DUAL:
+        target, latch_age, releasing = desired, 0.0, False
+        rate, word = (lim.rate, 0) if is_cutting else (lim.fast_rate, 1)
+    else:
+        triggered = False
+        if lim.kind == _WINDOWED and last_n is not None:
+            dn = abs(n - last_n)
+            triggered = dn > lim.speed_step or (dt > 0 and dn / dt > lim.speed_rate)
+        was_open = window_left > 0
+        window = lim.window_s if triggered else max(window_left - dt, 0.0)
+        in_transient = triggered or window > 0
+        latch_age += dt
+        if not in_transient:
+            target, latch_age = desired, 0.0
+        elif triggered and not was_open:
+            # entering a window: stop where we are (inside the clamp), whatever the mode
+            target, latch_age = min(max(y, -m), m), 0.0
+        elif not lim.hold and latch_age >= lim.slow_period_s:
+            target, latch_age = desired, 0.0
+        else:
+            target = held_target
+        if in_transient:
+            flags |= _TRANSIENT
+        releasing = in_transient or releasing
+        rate = lim.release_rate if releasing else lim.rate
+        if releasing and not in_transient:
+            flags |= _RELEASING
+        word = 2 if in_transient else 3 if releasing else 4
+
+    diff = target - y
+    inside = -m <= y <= m
+    if diff == 0.0 or (abs(diff) < lim.deadband and inside):
+        new_y = y
+        if diff != 0.0:
+            flags |= _DEADBAND
+    else:
+        limit = rate * dt
+        step = diff if -limit <= diff <= limit else (limit if diff > 0 else -limit)
+        if step != diff:
+            flags |= _SLEWED
+        # from beyond the clamp the step itself leads in (the target is inside): no jump
+        new_y = min(max(y + step, -m), m) if inside else y + step
+    if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 1e-9):
+        releasing = False
+    return (new_y, target, n, window, latch_age, releasing, ref, settled), flags, is_cutting, rate, word
+
+
+def _as_tuple(state: ShaperState) -> _State:
+    return (state.output_um, state.target_um, state.speed_rpm, state.window_left_s, state.latch_age_s,
+            state.releasing, state.settle_speed_rpm, state.settled_s)
 
 
 def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,
           dt_s: float, cutting: bool | None = None) -> tuple[ShaperState, ShapedOffset]:
     """One sample, ``dt_s`` seconds after the previous one: the new state and what to write.
     ``cutting``: the controller's signal, or None to infer it from the speed."""
-    require_finite("elongation_um", elongation_um)
+    s = require_finite("elongation_um", elongation_um)
     n = speed_magnitude_rpm(speed_rpm)
     dt_s = require_dt(dt_s)
-    cfg = config
-    pol = cfg.transient
-    m = cfg.max_offset_um
-    flags = Flag.NONE
-
-    desired = -elongation_um
-    if abs(desired) > m:
-        desired = math.copysign(m, desired)
-        flags |= Flag.CLAMPED
-
-    inferred, settle_ref, settled = infer_cutting(cfg.cutting, state, n, dt_s)
-    is_cutting = inferred if cutting is None else bool(cutting)
-
-    window, latch_age, releasing = 0.0, 0.0, False
-    if pol.enabled and pol.mode == "dual-slew":
-        target = desired
-        rate = cfg.max_rate_um_per_s if is_cutting else cfg.fast_rate_um_per_s
-        word = "cutting" if is_cutting else "clear"
-    else:
-        triggered = False
-        if pol.enabled and state.speed_rpm is not None:
-            dn = abs(n - state.speed_rpm)
-            triggered = dn > pol.speed_step_rpm or (dt_s > 0 and dn / dt_s > pol.speed_rate_rpm_per_s)
-        was_open = state.window_left_s > 0
-        window = pol.window_s if triggered else max(state.window_left_s - dt_s, 0.0)
-        in_transient = triggered or window > 0
-
-        latch_age = state.latch_age_s + dt_s
-        if not in_transient:
-            target, latch_age = desired, 0.0
-        elif triggered and not was_open:
-            # entering a window: stop where we are (inside the clamp), whatever the mode
-            target, latch_age = _clamp(cfg, state.output_um), 0.0
-        elif pol.mode == "slow" and latch_age >= pol.slow_period_s:
-            target, latch_age = desired, 0.0
-        else:
-            target = state.target_um
-        if in_transient:
-            flags |= Flag.TRANSIENT
-
-        releasing = in_transient or state.releasing
-        rate = cfg.release_rate_um_per_s if releasing else cfg.max_rate_um_per_s
-        if releasing and not in_transient:
-            flags |= Flag.RELEASING
-        word = "window" if in_transient else "releasing" if releasing else "tracking"
-
+    new, flags, is_cutting, rate, word = _advance(_limits(config), _as_tuple(state), s, n, dt_s, cutting)
+    desired = min(max(-s, -config.max_offset_um), config.max_offset_um)
     y = state.output_um
-    diff = target - y
-    if diff == 0.0 or (abs(diff) < cfg.deadband_um and abs(y) <= m):
-        new_y = y
-        if diff != 0.0:
-            flags |= Flag.DEADBAND
-    else:
-        limit = rate * dt_s
-        step = min(max(diff, -limit), limit)
-        if step != diff:
-            flags |= Flag.SLEW_LIMITED
-        # from beyond the clamp the step itself leads in (the target is inside): no jump
-        new_y = min(max(y + step, -m), m) if abs(y) <= m else y + step
-    if releasing and not (flags & Flag.TRANSIENT) and abs(desired - new_y) <= max(cfg.deadband_um, 1e-9):
-        releasing = False
-
-    new_state = ShaperState(
-        output_um=new_y,
-        target_um=target,
-        speed_rpm=n,
-        window_left_s=window,
-        latch_age_s=latch_age,
-        releasing=releasing,
-        settle_speed_rpm=settle_ref,
-        settled_s=settled,
-    )
-    return new_state, ShapedOffset(new_y, new_y != y, flags, desired, is_cutting, rate, word)
+    return ShaperState(*new), ShapedOffset(new[0], new[0] != y, Flag(flags), desired, is_cutting, rate,
+                                           _WORDS[word])
 
 
 class OffsetShaper:
@@ -371,19 +407,23 @@ def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray
     controller's signal; None infers it from the speed, as the runtime does without one.
     """
     t = np.asarray(time_s, dtype=float)
-    n = np.asarray(speed_rpm, dtype=float)
+    n = np.abs(np.asarray(speed_rpm, dtype=float))
     s = np.asarray(elongation_um, dtype=float)
-    cut = None if cutting is None else np.asarray(cutting, dtype=bool)
+    dt = np.diff(t, prepend=t[0])
+    for name, values in (("time_s", t), ("speed_rpm", n), ("elongation_um", s)):
+        if not np.isfinite(values).all():
+            raise NonFiniteInputError(f"{name} is not finite at sample {int(np.argmin(np.isfinite(values)))}")
+    if (dt < 0).any():
+        raise NonFiniteInputError(f"time goes back at sample {int(np.argmax(dt < 0))}")
+    cut = [None] * s.size if cutting is None else np.asarray(cutting, dtype=bool).tolist()
     start = -float(s[0]) if initial_offset_um is None else initial_offset_um
-    shaper = OffsetShaper(config, start)
+    lim = _limits(config)
+    st = _as_tuple(initial_state(config, start))
     out = np.empty_like(s)
     flags = np.zeros(s.size, dtype=np.int64)
     taken = np.zeros(s.size, dtype=bool)
     rate = np.empty_like(s)
-    prev = float(t[0])
-    for k in range(s.size):
-        res = shaper.update(float(s[k]), float(n[k]), float(t[k]) - prev,
-                            None if cut is None else bool(cut[k]))
-        prev = float(t[k])
-        out[k], flags[k], taken[k], rate[k] = res.offset_um, int(res.flags), res.cutting, res.rate_um_per_s
+    for k, (sk, nk, dk, ck) in enumerate(zip(s.tolist(), n.tolist(), dt.tolist(), cut)):
+        st, flags[k], taken[k], rate[k], _ = _advance(lim, st, sk, nk, dk, ck)
+        out[k] = st[0]
     return ShapedSeries(out, flags, taken, rate)

@@ -13,14 +13,20 @@ import numpy as np
 import pytest
 from devices import ModbusDevice, PtyPair
 from test_linuxcnc import run_in_hal, why_not
-from test_transients import FAST_RATE, MAX_RATE, WALL0, assert_slow_while_cutting, lag_um
+from test_transients import (  # noqa: F401 - model_file is a fixture
+    FAST_RATE,
+    MAX_RATE,
+    WALL0,
+    assert_slow_while_cutting,
+    lag_um,
+    model_file,
+)
 
 from cnc_adapters import open_adapter
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
-from compensator.io import read_run_log, save_model
-from compensator.model import ThermalModel
+from compensator.io import read_run_log
 from compensator.programs import Program
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
@@ -28,15 +34,6 @@ from thermocomp.runtime.config import load_config
 PROGRAM = Program("two-ops", ((5.0, 0.0), (100.0, 22500.0), (15.0, 0.0), (100.0, 9000.0), (20.0, 0.0)))
 SHAPING = ["[spindle.shaping]", "max_offset_um = 60.0", f"max_rate_um_per_s = {MAX_RATE}",
            f"not_cutting_rate_um_per_s = {FAST_RATE}", "deadband_um = 0.1"]
-
-
-@pytest.fixture(scope="module")
-def model_file(tmp_path_factory) -> Path:
-    m = ThermalModel.from_discrete(0.99, (0.0, 0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 27000.0),
-                                   elastic_um=(0.05, 0.0205))
-    p = tmp_path_factory.mktemp("m") / "model.json"
-    save_model(p, m)
-    return p
 
 
 def runtime(tmp_path: Path, model: Path, adapter: str, clock, **kw) -> SpindleRuntime:
@@ -155,8 +152,7 @@ LINUXCNC_SCRIPT = """
 import json, pathlib, tempfile
 import hal
 from cnc_adapters.linuxcnc import LinuxCncAdapter
-from compensator.io import read_run_log, save_model
-from compensator.model import ThermalModel
+from compensator.io import read_run_log
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config
 
