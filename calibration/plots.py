@@ -26,6 +26,9 @@ class Panel:
     predicted_label: str = "model (free run)"
     residual_label: str = "measured - model"
     extra: tuple[tuple[str, np.ndarray], ...] = ()  # more elongation-axis lines
+    scored: np.ndarray | None = None
+    """bool: the samples the residual is judged on (the tool cutting); the rest drawn grey and
+    left out of the figures in the title. None: every sample."""
 
 
 def _shade(ax, t_min: np.ndarray, mask: np.ndarray) -> None:
@@ -65,10 +68,15 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
         ax_s.legend(loc="best", fontsize=8)
         if p.measured_um is not None and p.predicted_um is not None:
             res = p.measured_um - p.predicted_um
-            ax_r.plot(t_h, res, color="tab:purple", lw=1)
+            keep = np.ones(res.size, bool) if p.scored is None else np.asarray(p.scored, bool)
+            if not keep.all():
+                ax_r.plot(t_h, res, color="0.75", lw=0.8, label="not scored (tool clear of the part)")
+                ax_r.legend(loc="lower left", fontsize=7)
+            ax_r.plot(t_h, np.where(keep, res, np.nan), color="tab:purple", lw=1)
             ax_r.axhline(0, color="k", lw=0.5)
-            rms = float(np.sqrt(np.mean(res**2)))
-            ax_r.set_title(f"{p.residual_label}: RMS {rms:.2f} um, max {np.abs(res).max():.2f} um",
+            judged = res[keep]
+            rms = float(np.sqrt(np.mean(judged**2)))
+            ax_r.set_title(f"{p.residual_label}: RMS {rms:.2f} um, max {np.abs(judged).max():.2f} um",
                            fontsize=9)
         ax_r.set_ylabel("residual [um]")
         ax_r.set_xlabel("time [h]")
