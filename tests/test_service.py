@@ -307,7 +307,13 @@ def test_run_check_reads_one_speed_and_writes_nothing(tmp_path, model_file):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "link ok" in r.stdout and "nothing was written" in r.stdout
+    assert "shaping: dual slew" in r.stdout and "cutting signal from the controller" in r.stdout
     assert not (tmp_path / "state").exists()
+    # the speed decides where the configuration says so; a signal required but missing: refused
+    cfg.write_text(cfg.read_text() + '[spindle.shaping.cutting]\nsignal = "speed"\n')
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "cutting inferred from the speed" in r.stdout, r.stderr
 
 
 def test_run_check_unreachable_controller_is_one_line(tmp_path, model_file):

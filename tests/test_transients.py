@@ -282,3 +282,21 @@ def test_cutting_settings_are_checked_at_load(tmp_path, model_file):
     cfg = load_config(need)
     with pytest.raises(ConfigError, match="no cutting signal configured"):
         SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
+
+
+def test_a_day_file_with_the_older_columns_is_continued_in_a_new_part(tmp_path):
+    """An upgrade mid-day: the journal never appends the new columns under the old header."""
+    from compensator.io import Journal
+
+    old_header = "time_s,speed_rpm,predicted_um,offset_um,written,flags,alarms,dt_s,wall_s\n"
+    old = tmp_path / "s1-1970-01-12.csv"  # 1e6 s after the epoch
+    old.write_text(old_header + "5.000,0,0,0,0,0,0,0,5.000\n")
+    j = Journal(tmp_path, "s1", {"source": "test"})
+    assert j.write(WALL0, 9000.0, 3.5, -3.4, True, 2, 0, dt_s=1.0, cutting=True,
+                   cutting_source="controller", policy_state="cutting", slew_limit_um_per_s=1.0)
+    j.close()
+    assert old.read_text() == old_header + "5.000,0,0,0,0,0,0,0,5.000\n"
+    log = read_run_log(tmp_path / "s1-1970-01-12.p2.csv")
+    assert list(log.extras)[-4:] == ["cutting", "cutting_source", "policy_state", "slew_limit_um_per_s"]
+    assert (log.extras["cutting"][0], log.extras["cutting_source"][0], log.extras["policy_state"][0],
+            log.extras["slew_limit_um_per_s"][0]) == (1, "controller", "cutting", 1.0)

@@ -1,7 +1,7 @@
 """The ``sim`` backend: an in-process virtual machine, like python-can's ``virtual`` bus.
 
 ``sim://motorized-27k?program=job-shop-day&seed=3&time_scale=60`` builds a plant, a speed
-program and a simulated clock. Reading the speed advances the plant to the clock; the
+program and a simulated clock (``accel_rpm_per_s`` and ``approach_s`` change the preset's drive). Reading the speed advances the plant to the clock; the
 written offset moves the virtual tool tip (``machine.history().tool_tip_error_um``) and is
 read back from the machine (:attr:`VirtualMachine.offset_um`). The machine's tool setter
 (:meth:`VirtualMachine.start_probe`) is read like a controller's probe variables, with the
@@ -11,6 +11,7 @@ the part) like a controller's cutting signal.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
@@ -44,6 +45,10 @@ class SimSettings(AdapterSettings):
     program: ProgramName | None = Field("job-shop-day", description="speed program; none: idle")
     seed: Annotated[int, Field(ge=0), Allowed("a whole number >= 0")] = 0
     time_scale: Positive = Field(60.0, description="simulated seconds per second")
+    accel_rpm_per_s: Positive = Field(  # type: ignore[assignment]
+        None, description="how fast the drive changes speed; default the preset's")
+    approach_s: Annotated[float, Field(ge=0), Allowed("a number >= 0 (seconds)")] = Field(  # type: ignore[assignment]
+        None, description="from at-speed to the first cut; default the preset's")
 
 
 class SimAdapter(Adapter):
@@ -60,6 +65,8 @@ class SimAdapter(Adapter):
         program: str | None = "job-shop-day",
         seed: int = 0,
         time_scale: float = 60.0,
+        accel_rpm_per_s: float | None = None,
+        approach_s: float | None = None,
         machine: VirtualMachine | None = None,
         **scaling: Any,
     ):
@@ -67,7 +74,9 @@ class SimAdapter(Adapter):
         if machine is None:
             if preset not in PRESETS:
                 raise AdapterError(f"unknown sim preset {preset!r}; known: {', '.join(PRESETS)}")
-            params = PRESETS[preset]
+            drive = {k: v for k, v in (("accel_rpm_per_s", accel_rpm_per_s), ("approach_s", approach_s))
+                     if v is not None}
+            params = replace(PRESETS[preset], **drive)
             try:
                 prog = make_program(program, params.max_rpm, seed=seed) if program else None
             except KeyError as err:

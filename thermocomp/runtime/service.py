@@ -290,6 +290,27 @@ class Service:
         event("stopped", None, "stopped; state saved")
 
 
+def shaping_check(sc, link) -> str:
+    """What the shaping will do with this link: the policy, its limits, and where the cutting
+    state comes from (read once now); a ConfigError where the controller's signal is required
+    and the link has none."""
+    sh = sc.shaping
+    words = {"dual-slew": f"dual slew {sh.max_rate_um_per_s:g} um/s cutting, {sh.fast_rate_um_per_s:g} um/s not",
+             "longer-cycle": f"longer cycle in transients, {sh.max_rate_um_per_s:g} um/s",
+             "hold": f"hold in transients, {sh.max_rate_um_per_s:g} um/s",
+             "slow-slew": f"one slew limit, {sh.max_rate_um_per_s:g} um/s"}
+    has = bool(getattr(link, "can_read_cutting", False))
+    if sh.cutting.signal == "controller" and not has:
+        raise ConfigError(f"spindle {sc.name}: shaping.cutting.signal = 'controller', but the adapter "
+                          "has no cutting signal configured")
+    if has and sh.cutting.signal != "speed":
+        source = f"cutting signal from the controller, now {'cutting' if link.read_cutting() else 'not cutting'}"
+    else:
+        source = (f"cutting inferred from the speed (held {sh.cutting.settle_s:g} s within "
+                  f"{sh.cutting.speed_tolerance_rpm:g} rpm or {sh.cutting.speed_tolerance_pct:g} %)")
+    return f"shaping: {words[sh.policy]}; {source}"
+
+
 def check(config_path: str) -> int:
     """Validate the configuration, load the models, connect, read one speed; write nothing."""
     cfg = load_config(config_path)
@@ -310,6 +331,7 @@ def check(config_path: str) -> int:
                 extra = ", inputs " + ", ".join(f"{n} {values[n]:g}" for n in names)
             if getattr(link, "can_read_offset", False):
                 extra += f", holds offset {link.read_offset_um():.3f} um"
+            extra += "; " + shaping_check(sc, link)
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
