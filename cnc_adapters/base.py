@@ -616,9 +616,9 @@ class Adapter(Link):
     instance configured without one says False: the runtime then infers it from the speed."""
 
     cutting_values: tuple[Any, ...] = (True,)
-    """The raw values of the cutting signal that mean "cutting": ``True`` for a boolean (an
-    at-speed bit, a feed-active flag), ``(False,)`` for an inverted one (feed hold), the codes of
-    an enumeration (a program or motion state) otherwise."""
+    """The raw values of the cutting signal that mean "cutting": ``True`` for a bit (an at-speed
+    bit, a feed-active flag, or a 0/1 number), ``(False,)`` for an inverted one (feed hold), the
+    codes of an enumeration (a program or motion state) otherwise."""
 
     def read_cutting(self) -> bool | None:
         """Whether the controller says the tool may be in the part now (the spindle at speed and
@@ -654,12 +654,13 @@ class Adapter(Link):
 
 
 def cutting_of(name: str, raw: Any, values: tuple[Any, ...]) -> bool:
-    """A raw cutting signal as a bool: True when it is one of ``values``. A boolean is compared
-    as a boolean and a number as a whole number, so ``1`` never passes for ``True``."""
-    if isinstance(raw, bool):
-        return any(isinstance(v, bool) and v == raw for v in values)
-    if isinstance(raw, numbers.Real) and math.isfinite(float(raw)) and float(raw) == int(raw):
-        return any(not isinstance(v, bool) and v == int(raw) for v in values)
+    """A raw cutting signal as a bool: True when it is one of ``values``. A configured boolean
+    matches the signal's truth (a bit, or a 0/1 number), a configured number its whole value (a
+    state code; a boolean signal counts as 0 or 1)."""
+    if isinstance(raw, bool) or (isinstance(raw, numbers.Real) and math.isfinite(float(raw))
+                                 and float(raw) == int(raw)):
+        code = int(raw)
+        return any((v == (code != 0)) if isinstance(v, bool) else v == code for v in values)
     raise BadValueError(f"{name}: cutting signal {short(raw)} is neither a boolean nor a whole number")
 
 

@@ -300,3 +300,15 @@ def test_a_day_file_with_the_older_columns_is_continued_in_a_new_part(tmp_path):
     assert list(log.extras)[-4:] == ["cutting", "cutting_source", "policy_state", "slew_limit_um_per_s"]
     assert (log.extras["cutting"][0], log.extras["cutting_source"][0], log.extras["policy_state"][0],
             log.extras["slew_limit_um_per_s"][0]) == (1, "controller", "cutting", 1.0)
+
+
+def test_cutting_values_match_bits_numbers_and_state_codes():
+    from cnc_adapters.base import cutting_of
+    from compensator.errors import BadValueError
+
+    assert [cutting_of("x", r, (True,)) for r in (True, False, 1, 0, 1.0)] == [True, False, True, False, True]
+    assert [cutting_of("x", r, (False,)) for r in (True, False, 0)] == [False, True, True]  # feed hold
+    assert [cutting_of("x", r, (2, 3)) for r in (2, 3.0, 1, 5, True)] == [True, True, False, False, False]
+    for bad in (1.5, "yes", None, float("nan")):
+        with pytest.raises(BadValueError, match="cutting signal"):
+            cutting_of("x", bad, (True,))

@@ -760,7 +760,6 @@ class SpindleRuntime:
         alarms |= read_alarms
         cutting, cutting_source, cutting_alarms = self._read_cutting()
         alarms |= cutting_alarms
-        last_speed = self.offset.shaper.state.speed_rpm
         not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
         if not_ready is None:  # a machine that is off applies its own value: nothing to compare
             alarms |= self._read_back(now)
@@ -774,11 +773,9 @@ class SpindleRuntime:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
         shaped = self.offset.plan(s, speed, dt, cutting)
-        sig = self.cfg.shaping.cutting
         if shaped.cutting:
             self._run_up_until = -math.inf
-        elif last_speed is not None and abs(speed - last_speed) > max(
-                sig.speed_tolerance_rpm, sig.speed_tolerance_pct / 100 * speed):
+        elif self.offset.shaper.state.settled_s == 0.0:  # the speed left its band this cycle
             # a controller may refresh its speed less often than we read: stay fast one period
             self._run_up_until = now + self.cfg.period_s
         wanted = self.offset.wants_write(shaped)
