@@ -152,7 +152,8 @@ LINUXCNC_SCRIPT = """
 import json, pathlib, tempfile
 import hal
 from cnc_adapters.linuxcnc import LinuxCncAdapter
-from compensator.io import read_run_log
+from compensator.io import read_run_log, save_model
+from compensator.model import ThermalModel
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config
 
