@@ -199,7 +199,8 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
 
 def test_kill_9_while_writing_state(tmp_path, model_file):
     """100 hard kills at random moments: every restart finds a valid state file, and the
-    restored elongation is within 0.5 um of what the killed run last computed."""
+    restored elongation is within 0.5 um of what the killed run computed in its last or, killed
+    between a row and its save, its last but one cycle."""
     cfg = write_config(tmp_path, model_file,
                        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}',
                        save_every=0.5, top={"time_scale": 300.0})
@@ -229,8 +230,10 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
                          key=lambda p: p.stat().st_mtime_ns)
         if journal:
             lines = [ln for ln in journal[-1].read_text().splitlines() if ln and ln[0].isdigit()]
-            last_pred = float(lines[-1].split(",")[2])
-            assert abs(state["elongation_um"] - last_pred) <= 0.5
+            # a cycle journals its row, then saves: a kill in between leaves the state one row
+            # behind (in a run-up, one cycle apart is several um)
+            last_preds = [float(ln.split(",")[2]) for ln in lines[-2:]]
+            assert min(abs(state["elongation_um"] - p) for p in last_preds) <= 0.5, last_preds
             checked += 1
     assert checked >= 90
     assert progressed >= 80  # most kills landed while the service was cycling and saving
