@@ -2,7 +2,7 @@
 
 Targets (issue 3): OLS fit <= 2 s; replay <= 3 s, parsing included. Since issue 18 every replay
 also runs the runtime's shaper over the log, and by default compares the transient policies
-(three more shaped series): timed apart.
+(two more shaped series with a dual-slew configuration): timed apart.
 Run: .venv/bin/python bench/bench_fit_replay.py
 """
 

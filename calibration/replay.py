@@ -97,7 +97,7 @@ class Replay:
         cols["offset_um"] = self.offset_um
         if self.measured_um is not None:
             cols["residual_um"] = self.residual_um  # type: ignore[assignment]
-        if self.applied_offset_um is not None:
+        if self.applied_offset_um is not None:  # None only for a Replay built by hand
             cols["applied_offset_um"] = self.applied_offset_um
             if self.measured_um is not None:
                 cols["applied_residual_um"] = self.measured_um + self.applied_offset_um
@@ -158,8 +158,10 @@ CUTTING_COLUMN = "cutting"
 def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | None, str, str | None]:
     """The controller's cutting signal from the log's ``cutting`` column (0/1, as the journal
     and the simulator write it), its source, and a warning; None where the shaper is to infer
-    it from the speed (no column, or ``cutting.signal = "speed"``). A cell that is not 0 or 1 is
-    a one-line error naming the line."""
+    it from the speed (no column, or ``cutting.signal = "speed"``). A journal's rows whose
+    ``cutting_source`` says the runtime inferred it are NaN (inferred again, with this
+    configuration); rows where it could not read the speed (``unread``) count as cutting, as
+    they did. A cell that is not 0 or 1 is a one-line error naming the line."""
     col = log.extras.get(CUTTING_COLUMN)
     signal = shaping.cutting.signal
     if col is None or signal == "speed":
@@ -172,7 +174,15 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
         raise RunLogError(f"column cutting: {col[row]!r} is not 0 or 1", log.source, log.line_of(row))
-    return values == 1.0, "the log's cutting column", None
+    source = log.extras.get("cutting_source")
+    if source is None:
+        return values, "the log's cutting column", None
+    source = np.asarray(source, dtype=object)
+    values = np.where(source == "controller", values, np.nan)
+    values[source == "unread"] = 1.0
+    if np.isnan(values).all():
+        return None, "inferred from the speed (as the runtime did)", None
+    return values, "the journal's cutting column where the controller gave it", None
 
 
 def as_numbers(col: np.ndarray) -> np.ndarray:
@@ -212,7 +222,7 @@ def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.nd
         if name == "none":
             # the samples the configured shaping took as cutting (the signal, or inferred)
             cut = configured.cutting if configured is not None else (
-                cutting if cutting is not None else np.zeros(ideal.size, bool))
+                np.nan_to_num(cutting) == 1 if cutting is not None else np.zeros(ideal.size, bool))
             offset = ideal
         else:
             series = configured if configured is not None and name == shaping.policy else shape_series(
@@ -279,7 +289,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     shaped = shape_series(shaping, log.time_s, speed_sim, pred, cutting=cut_signal)
     applied = shaped.offset_um
     for name, values in (("predicted elongation", pred), ("applied offset", applied)):
-        if values is not None and not np.isfinite(values).all():  # no NaN reaches a report
+        if not np.isfinite(values).all():  # no NaN reaches a report
             row = int(np.flatnonzero(~np.isfinite(values))[0])
             line = log.line_of(row)
             raise NonFiniteInputError(

@@ -178,6 +178,9 @@ class LinuxCncSettings(AdapterSettings):
     def _measurement(self) -> LinuxCncSettings:
         if self.measurement_sigma and not self.measurement:
             raise ValueError("measurement_sigma needs measurement = true (the value and its counter)")
+        if "cutting_values" in self.model_fields_set and self.cutting != "feed":
+            raise ValueError("cutting_values goes with cutting = \"feed\" (the motion types that cut); "
+                             "a bit (pin, at-speed) is true while cutting")
         return self
 
 

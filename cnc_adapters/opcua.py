@@ -20,9 +20,9 @@ so a wrong node is a failed measurement, never a failed link.
 
 The cutting signal (issue 18): ``cutting_node`` names a boolean (at speed and feeding, a cut in
 progress) or an enumeration (a program or motion state); ``cutting_values`` are the values
-that mean "cutting" (default ``[true]``; ``[false]`` for an inverted bit such as feed hold). It
-is read on its own at first, then in the same request as the speed, so both describe one
-instant. A wrong node is a failed cutting read (the runtime then infers it from the speed),
+that mean "cutting" (default ``[true]``; ``[false]`` for an inverted bit such as feed hold).
+Polling, it is read on its own at first, then in the same request as the speed, so both
+describe one instant; with a subscription, on its own each cycle. A wrong node is a failed cutting read (the runtime then infers it from the speed),
 never a failed link.
 
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
@@ -463,6 +463,19 @@ class OpcUaLink:
         parts = path.replace("{ns}", ns).strip("/").split("/")  # type: ignore[union-attr]
         return self._call(f"browse {path}", client.nodes.root.get_child, parts)
 
+    def _resolve_ref(self, client, ref: str, ns: str, what: str):
+        """A configured reference, a node id or a browse path (``0:Objects/...``), as a node; a
+        reference that does not parse is an :class:`AdapterError` naming ``what``."""
+        try:
+            if ref.startswith("0:"):
+                return self._resolve(client, None, ref, ns)
+            return self._resolve(client, ref, None, ns)
+        except AdapterError:
+            raise
+        except Exception as err:  # noqa: BLE001 - asyncua's parse errors are RuntimeErrors
+            raise AdapterError(f"opcua: {what} {ref!r} is no node id or browse path: "
+                               f"{type(err).__name__}") from err
+
 
 class OpcUaAdapter(OpcUaLink, Adapter):
     name = "opcua"
@@ -560,6 +573,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.cutting_ref = p.get("cutting_node") if cutting_node is None else (cutting_node or None)
         self.can_read_cutting = bool(self.cutting_ref)
         self.cutting_values = tuple(cutting_values)
+        self._cutting_node = None  # resolved at its first read
         self._cutting = None  # its node, once read on its own: then read with the speed
         self._cutting_raw: tuple[Any] | None = None  # read with this cycle's speed
         self._ns = ""
@@ -574,8 +588,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
         self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
         self._call("read speed node", self._speed.read_value)
-        self._inputs = {name: (self._resolve(client, ref, None, ns) if not ref.startswith("0:")
-                               else self._resolve(client, None, ref, ns))
+        self._inputs = {name: self._resolve_ref(client, ref, ns, f"input {name}")
                         for name, ref in self.input_nodes.items()}
         if self._inputs:
             self._call("read input nodes", client.read_values, list(self._inputs.values()))
@@ -621,13 +634,13 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             return raw
         ref = self.cutting_ref
         assert ref is not None
-        node = self._resolve(self._client, ref, None, self._ns) if not ref.startswith("0:") \
-            else self._resolve(self._client, None, ref, self._ns)
-        (dv,) = self._call("read cutting signal", self._client.read_attributes, [node])
+        if self._cutting_node is None:
+            self._cutting_node = self._resolve_ref(self._client, ref, self._ns, "cutting node")
+        (dv,) = self._call("read cutting signal", self._client.read_attributes, [self._cutting_node])
         if not dv.StatusCode.is_good():
             raise AdapterError(f"opcua: cutting node {ref}: {dv.StatusCode.name}")
         if self._latest is None:
-            self._cutting = node  # good: read in the speed's request from now on
+            self._cutting = self._cutting_node  # good: read in the speed's request from now on
         return None if dv.Value is None else dv.Value.Value
 
     def input_channels(self) -> tuple[str, ...]:
@@ -646,8 +659,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         cycle writes the value before it changes the counter, so a new counter never comes with
         an old value."""
         if self._measurement is None:
-            self._measurement = [self._resolve(self._client, ref, None, self._ns) if not ref.startswith("0:")
-                                 else self._resolve(self._client, None, ref, self._ns)
+            self._measurement = [self._resolve_ref(self._client, ref, self._ns, "measurement node")
                                  for ref in self.measurement_refs]
         dvs = self._call("read measurement", self._client.read_attributes, self._measurement)
         for ref, dv in zip(self.measurement_refs, dvs):
@@ -678,6 +690,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._latest = None
         self._unverified = None
         self._measurement = None
+        self._cutting_node = None
         self._cutting = None
         self._cutting_raw = None
 

@@ -102,7 +102,7 @@ class CuttingSignal(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     signal: Literal["auto", "controller", "speed"] = "auto"
-    settle_s: float = Field(2.0, ge=0, le=3600, description="speed held this long: cutting")
+    settle_s: float = Field(2.0, gt=0, le=3600, description="speed held this long: cutting")
     speed_tolerance_rpm: float = Field(30.0, gt=0, le=10000, description="speed band [rpm]")
     speed_tolerance_pct: float = Field(1.0, ge=0, le=50, description="speed band [% of the speed]")
 
@@ -260,10 +260,11 @@ _State = tuple  # ShaperState's fields, in order
 
 
 def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float,
-             cutting: bool | None) -> tuple[_State, int, bool, float, int]:
+             cutting: bool | None) -> tuple[_State, int, bool, float, int, float]:
     """One sample over checked numbers (``n`` the speed's magnitude): the new state and the
-    flags, the cutting state, the slew limit and the index of the policy's word. The one
-    transition of the shaper: :func:`shape` and :func:`shape_series` both run it."""
+    flags, the cutting state, the slew limit, the index of the policy's word and the desired
+    (clamped) offset. The one transition of the shaper: :func:`shape` and :func:`shape_series`
+    both run it."""
     y, held_target, last_n, window_left, latch_age, releasing, ref, settled = st
     m = lim.clamp
     flags = _NO_FLAGS
@@ -329,7 +330,7 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
         new_y = min(max(y + step, -m), m) if inside else y + step
     if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 1e-9):
         releasing = False
-    return (new_y, target, n, window, latch_age, releasing, ref, settled), flags, is_cutting, rate, word
+    return (new_y, target, n, window, latch_age, releasing, ref, settled), flags, is_cutting, rate, word, desired
 
 
 def _as_tuple(state: ShaperState) -> _State:
@@ -344,8 +345,7 @@ def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_
     s = require_finite("elongation_um", elongation_um)
     n = speed_magnitude_rpm(speed_rpm)
     dt_s = require_dt(dt_s)
-    new, flags, is_cutting, rate, word = _advance(_limits(config), _as_tuple(state), s, n, dt_s, cutting)
-    desired = min(max(-s, -config.max_offset_um), config.max_offset_um)
+    new, flags, is_cutting, rate, word, desired = _advance(_limits(config), _as_tuple(state), s, n, dt_s, cutting)
     y = state.output_um
     return ShaperState(*new), ShapedOffset(new[0], new[0] != y, Flag(flags), desired, is_cutting, rate,
                                            _WORDS[word])
@@ -373,6 +373,13 @@ class OffsetShaper:
         signal, or None to infer it from the speed."""
         self._state, shaped = shape(self.config, self._state, elongation_um, speed_rpm, dt_s, cutting)
         return shaped
+
+    def follow(self, other: OffsetShaper) -> None:
+        """Go on with ``other``'s view of the speed (a reload): the speed it was settling at and
+        for how long, and the last speed, so that the cutting state does not restart."""
+        o = other.state
+        self._state = replace(self._state, speed_rpm=o.speed_rpm, settle_speed_rpm=o.settle_speed_rpm,
+                              settled_s=o.settled_s)
 
     def hold(self, offset_um: float) -> None:
         """The controller holds ``offset_um``, not what the shaper last produced (a write failed
@@ -403,19 +410,31 @@ def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray
 
     The runtime's own shaper run sample by sample on the log's time stamps (each sample a
     write that succeeds). ``initial_offset_um`` defaults to the first ideal offset ``-S[0]``,
-    a compensator already running when the log starts. ``cutting`` (bool per sample) is the
-    controller's signal; None infers it from the speed, as the runtime does without one.
+    a compensator already running when the log starts. ``cutting`` is the controller's signal
+    per sample (1 or 0; NaN: none at that sample, inferred from the speed); None infers it from
+    the speed throughout, as the runtime does without a signal.
     """
     t = np.asarray(time_s, dtype=float)
     n = np.abs(np.asarray(speed_rpm, dtype=float))
     s = np.asarray(elongation_um, dtype=float)
+    sizes = {t.size, n.size, s.size} | (set() if cutting is None else {np.size(cutting)})
+    if len(sizes) != 1:
+        raise NonFiniteInputError(f"shape_series: the series differ in length ({sorted(sizes)})")
     dt = np.diff(t, prepend=t[0])
     for name, values in (("time_s", t), ("speed_rpm", n), ("elongation_um", s)):
         if not np.isfinite(values).all():
             raise NonFiniteInputError(f"{name} is not finite at sample {int(np.argmin(np.isfinite(values)))}")
     if (dt < 0).any():
         raise NonFiniteInputError(f"time goes back at sample {int(np.argmax(dt < 0))}")
-    cut = [None] * s.size if cutting is None else np.asarray(cutting, dtype=bool).tolist()
+    if cutting is None:
+        cut: list[bool | None] = [None] * s.size
+    else:
+        raw = np.asarray(cutting, dtype=float)
+        bad = ~(np.isnan(raw) | (raw == 0) | (raw == 1))
+        if bad.any():
+            raise NonFiniteInputError(f"shape_series: cutting is {raw[bad][0]!r} at sample "
+                                f"{int(np.argmax(bad))}: 1, 0, or NaN (infer it from the speed)")
+        cut = [None if v != v else v == 1.0 for v in raw.tolist()]
     start = -float(s[0]) if initial_offset_um is None else initial_offset_um
     lim = _limits(config)
     st = _as_tuple(initial_state(config, start))
@@ -424,6 +443,6 @@ def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray
     taken = np.zeros(s.size, dtype=bool)
     rate = np.empty_like(s)
     for k, (sk, nk, dk, ck) in enumerate(zip(s.tolist(), n.tolist(), dt.tolist(), cut)):
-        st, flags[k], taken[k], rate[k], _ = _advance(lim, st, sk, nk, dk, ck)
+        st, flags[k], taken[k], rate[k], _, _ = _advance(lim, st, sk, nk, dk, ck)
         out[k] = st[0]
     return ShapedSeries(out, flags, taken, rate)

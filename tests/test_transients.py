@@ -185,7 +185,8 @@ def test_replay_writes_what_the_runtime_wrote_step_for_step(tmp_path, model_file
         assert np.abs(rep.predicted_um - np.asarray(log.extras["predicted_um"])).max() < 1e-6
         assert (rep.cutting == (np.asarray(log.extras["cutting"], float) == 1)).all()
         assert rep.report["shaping"]["cutting_source"] == (
-            "the log's cutting column" if signal == "auto" else "inferred from the speed")
+            "the journal's cutting column where the controller gave it" if signal == "auto"
+            else "inferred from the speed")
 
 
 def load_model_of(path: Path):
@@ -312,3 +313,36 @@ def test_cutting_values_match_bits_numbers_and_state_codes():
     for bad in (1.5, "yes", None, float("nan")):
         with pytest.raises(BadValueError, match="cutting signal"):
             cutting_of("x", bad, (True,))
+
+
+class FlakySpeed(SimAdapter):
+    """The sim adapter whose speed cannot be read while ``failing`` is set (a bad speed node)."""
+
+    failing = False
+
+    def _read_speed_raw(self) -> float:
+        if self.failing:
+            raise AdapterError("sim: speed unreadable (test)")
+        return super()._read_speed_raw()
+
+
+def test_a_speed_not_read_never_opens_the_fast_limit(tmp_path, model_file):
+    """Held, then assumed idle: the model cools as at rest, but nothing is known of the tool, so
+    the offset moves at the cutting limit; when reads come back at the same speed it goes on
+    slowly (the inference kept the last speed read, not the assumed 0)."""
+    path = config(tmp_path, model_file, signal="speed")
+    path.write_text(path.read_text() + "[spindle.faults]\nspeed_hold_s = 5.0\n")
+    b = Bench(path, program=Program("steady", ((3600.0, 22500.0),)), adapter_cls=FlakySpeed)
+    b.vm.load_program(b.program)
+    rows = []
+    for k in range(200):
+        b.rt.adapter.failing = 100 <= k < 140
+        b.t += 1.0
+        rows.append(b.rt.cycle())
+    unread = [r for r in rows[100:140]]
+    assert all(r["alarms"] & Alarm.SPEED_READ_FAILED for r in unread)
+    assert any(r["alarms"] & Alarm.IDLE_ASSUMED for r in unread)  # the model took it as at rest ...
+    assert all(r["cutting"] and r["cutting_source"] == "unread" for r in unread)
+    moved = [abs(b2["offset_um"] - a["offset_um"]) for a, b2 in zip(rows[99:], rows[100:])]
+    assert max(moved) <= MAX_RATE * 1.0 + 1e-9  # ... but the offset crept, through and after it
+    assert rows[140]["cutting"] and rows[140]["cutting_source"] == "speed"

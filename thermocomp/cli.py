@@ -79,8 +79,8 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
                    "configuration (default: the runtime's own defaults)")
     p.add_argument("--spindle", help="with --config: the [[spindle]] by name (default: the only one)")
     p.add_argument("--no-compare", action="store_true",
-                   help="skip the side-by-side of the transient policies (three more passes of "
-                   "the shaper: about 2 s per million rows)")
+                   help="skip the side-by-side of the transient policies (two more passes of "
+                   "the shaper with a dual-slew configuration: about 1.5 s per million rows)")
     p.add_argument("--output", help="write predicted elongation and offset per row (CSV)")
     p.add_argument("--plot", help="write a PNG plot")
     p.add_argument("--initial-um", type=float, help="initial elongation (default: first measured, else 0)")

@@ -32,7 +32,7 @@ from rich.console import Console
 from rich.table import Table
 
 from calibration.calibrate import calibrate
-from calibration.data import run_from_log, transient_mask
+from calibration.data import run_from_log
 from calibration.plots import Panel, plot_panels
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.vcnc import (

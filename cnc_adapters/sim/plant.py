@@ -272,6 +272,9 @@ class SpindlePlant:
     def _ramp(self, start_rpm: float, end_rpm: float, duration_s: float) -> None:
         """The speed from ``start_rpm`` to ``end_rpm`` in a straight line over ``duration_s``."""
         rate = (end_rpm - start_rpm) / duration_s
+        if rate == 0.0:  # a step too short to move the speed in floating point
+            self.advance(start_rpm, duration_s)
+            return
         up = rate > 0
         t = 0.0
         while t < duration_s:

@@ -33,7 +33,7 @@ from .config import RuntimeConfig, load_config
 from .control import ControlChannel, Pending, send_measurement
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
-from .spindle import Alarm, SpindleRuntime
+from .spindle import Alarm, SpindleRuntime, cutting_from_controller
 
 log = logging.getLogger("thermocomp.runtime")
 
@@ -299,11 +299,7 @@ def shaping_check(sc, link) -> str:
              "longer-cycle": f"longer cycle in transients, {sh.max_rate_um_per_s:g} um/s",
              "hold": f"hold in transients, {sh.max_rate_um_per_s:g} um/s",
              "slow-slew": f"one slew limit, {sh.max_rate_um_per_s:g} um/s"}
-    has = bool(getattr(link, "can_read_cutting", False))
-    if sh.cutting.signal == "controller" and not has:
-        raise ConfigError(f"spindle {sc.name}: shaping.cutting.signal = 'controller', but the adapter "
-                          "has no cutting signal configured")
-    if has and sh.cutting.signal != "speed":
+    if cutting_from_controller(sc, link):
         source = f"cutting signal from the controller, now {'cutting' if link.read_cutting() else 'not cutting'}"
     else:
         source = (f"cutting inferred from the speed (held {sh.cutting.settle_s:g} s within "

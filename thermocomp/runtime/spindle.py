@@ -138,6 +138,19 @@ def _references(state: Any) -> dict[str, float] | None:
     return dict(refs) if refs is not None else None
 
 
+def cutting_from_controller(cfg: SpindleConfig, adapter: Any) -> bool:
+    """Whether the spindle takes its cutting state from the controller: the link has a signal
+    and the configuration does not say ``speed``. ConfigError where the configuration requires
+    one (``controller``) and the link has none."""
+    signal = cfg.shaping.cutting.signal
+    has_signal = bool(getattr(adapter, "can_read_cutting", False))
+    if signal == "controller" and not has_signal:
+        raise ConfigError(f"spindle {cfg.name}: shaping.cutting.signal = 'controller', but the "
+                          "adapter has no cutting signal configured (cutting_node for OPC UA, "
+                          "cutting for LinuxCNC, cutting_register for Modbus)")
+    return has_signal and signal != "speed"
+
+
 def mismatch_cause(held_um: float, tolerance_um: float) -> str:
     """Who probably changed the controller's offset."""
     if abs(held_um) <= tolerance_um:
@@ -187,13 +200,7 @@ class SpindleRuntime:
                 raise ConfigError(f"spindle {cfg.name}: the model needs input(s) {', '.join(missing)}; "
                                   "map them in the adapter (input_nodes for OPC UA, input_registers "
                                   "for Modbus)")
-        signal = cfg.shaping.cutting.signal
-        has_signal = bool(getattr(self.adapter, "can_read_cutting", False))
-        if signal == "controller" and not has_signal:
-            raise ConfigError(f"spindle {cfg.name}: shaping.cutting.signal = 'controller', but the "
-                              "adapter has no cutting signal configured (cutting_node for OPC UA, "
-                              "cutting for LinuxCNC, cutting_register for Modbus)")
-        self.cutting_from_controller = has_signal and signal != "speed"
+        self.cutting_from_controller = cutting_from_controller(cfg, self.adapter)
         self._cutting_error: str | None = None  # why the controller's signal failed
         self._run_up_until = -math.inf  # the speed was seen changing, the tool not cutting
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
@@ -331,6 +338,8 @@ class SpindleRuntime:
         self._extrapolated = old._extrapolated
         self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
         self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
+        self.offset.shaper.follow(old.offset.shaper)  # the speed it was settling at, and since when
+        self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
         self._last_t, self._first_t = old._last_t, old._first_t
         self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
         self._skew_s = old._skew_s
@@ -760,6 +769,11 @@ class SpindleRuntime:
         alarms |= read_alarms
         cutting, cutting_source, cutting_alarms = self._read_cutting()
         alarms |= cutting_alarms
+        # a speed not read (held, or idle assumed) says nothing of the tool: it is taken to cut
+        # (slow), and the shaper's inference goes on from the last speed read
+        shaper_speed = speed
+        if read_alarms & (Alarm.SPEED_READ_FAILED | Alarm.IDLE_ASSUMED) and cutting is None:
+            cutting, cutting_source, shaper_speed = True, "unread", self._last_speed
         not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
         if not_ready is None:  # a machine that is off applies its own value: nothing to compare
             alarms |= self._read_back(now)
@@ -772,7 +786,7 @@ class SpindleRuntime:
         if self.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
-        shaped = self.offset.plan(s, speed, dt, cutting)
+        shaped = self.offset.plan(s, shaper_speed, dt, cutting)
         if shaped.cutting:
             self._run_up_until = -math.inf
         elif self.offset.shaper.state.settled_s == 0.0:  # the speed left its band this cycle
