@@ -83,7 +83,9 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
         for ax in (ax_n, ax_s, ax_r):
             _shade(ax, t_h, mask)
             ax.grid(alpha=0.3)
-    fig.suptitle(suptitle + "   (shaded: transient windows)", fontsize=11)
+    shaded = any(transient_mask(p.time_s, p.speed_rpm, max_rpm or float(np.abs(p.speed_rpm).max()) or 1.0).any()
+                 for p in panels)
+    fig.suptitle(suptitle + ("\n(shaded: transient windows)" if shaded else ""), fontsize=11)
     fig.tight_layout()
     with atomic_write(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=90)
