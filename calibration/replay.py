@@ -169,7 +169,9 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
             "the configuration takes the cutting signal from the controller, but the log has no "
             "cutting column: inferred from the speed")
         return None, "inferred from the speed", warn
-    values = np.asarray(as_numbers(col), dtype=float)
+    import pandas as pd  # as the run-log reader: text cells become NaN, refused below
+
+    values = pd.to_numeric(np.asarray(col), errors="coerce").astype(float)
     bad = ~np.isin(values, (0.0, 1.0))
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
@@ -185,19 +187,6 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
     return values, "the journal's cutting column where the controller gave it", None
 
 
-def as_numbers(col: np.ndarray) -> np.ndarray:
-    """A column as floats, NaN where a cell is not a number (text columns come as objects)."""
-    if col.dtype != object:
-        return np.asarray(col, dtype=float)
-    out = np.full(col.size, np.nan)
-    for k, v in enumerate(col):
-        try:
-            out[k] = float(v)
-        except (TypeError, ValueError):
-            pass
-    return out
-
-
 def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float | None]:
     if error is None:
         return {"rms_um": None, "max_abs_um": None, "cutting_rms_um": None, "cutting_max_abs_um": None}
@@ -208,7 +197,7 @@ def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float 
 
 def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
                      predicted_um: np.ndarray, measured_um: np.ndarray | None,
-                     cutting: np.ndarray | None, configured: ShapedSeries | None = None) -> list[dict[str, Any]]:
+                     cutting: np.ndarray | None, configured: ShapedSeries) -> list[dict[str, Any]]:
     """Every transient policy with the configuration's limits, side by side, on one log: the
     error of the offset it would write (all samples, and the samples taken as cutting), how far
     it lags the model, and the fastest it moves while cutting and overall. ``none`` is the model
@@ -216,19 +205,16 @@ def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.nd
     series, already shaped)."""
     rows = []
     ideal = -predicted_um
+    dt = np.diff(time_s)
     for name in (*POLICIES, "none"):
         if name == "hold" and shaping.policy != "hold":
             continue  # a variant of the longer cycle: shown only where configured
-        if name == "none":
-            # the samples the configured shaping took as cutting (the signal, or inferred)
-            cut = configured.cutting if configured is not None else (
-                np.nan_to_num(cutting) == 1 if cutting is not None else np.zeros(ideal.size, bool))
-            offset = ideal
+        if name == "none":  # judged on the samples the configured shaping took as cutting
+            offset, cut = ideal, configured.cutting
         else:
-            series = configured if configured is not None and name == shaping.policy else shape_series(
+            series = configured if name == shaping.policy else shape_series(
                 shaping.with_policy(name), time_s, speed_rpm, predicted_um, cutting=cutting)
             offset, cut = series.offset_um, series.cutting
-        dt = np.diff(time_s)
         rate = np.abs(np.diff(offset)) / np.where(dt > 0, dt, np.inf)
         both = cut[1:] & cut[:-1]  # a step between two cutting samples
         rows.append({

@@ -40,6 +40,7 @@ is then closer to the clamp than the one before.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -245,6 +246,7 @@ class _Limits:
     tolerance_frac: float
 
 
+@functools.lru_cache(maxsize=64)  # a frozen config: read once, not at every runtime cycle
 def _limits(config: ShaperConfig) -> _Limits:
     t, c = config.transient, config.cutting
     kind = _ONE if not t.enabled else _DUAL if t.mode == "dual-slew" else _WINDOWED

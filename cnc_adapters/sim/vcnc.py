@@ -483,17 +483,16 @@ class VirtualCNC:
         await self._nodes["probe_sequence"].write_value(ua.Variant(int(seq), ua.VariantType.UInt32))
 
 
-def step(vcnc: VirtualCNC) -> None:
-    """One server tick now, from another thread (under :func:`running`): take the offset a client
-    wrote, advance the plant to the clock, publish."""
-    assert vcnc.loop is not None
-    asyncio.run_coroutine_threadsafe(vcnc.tick(), vcnc.loop).result(30)
-
-
 def call(vcnc: VirtualCNC, coro_fn) -> None:
-    """Run ``vcnc.stop`` or ``vcnc.start`` on its own loop (under :func:`running`): an outage."""
+    """Run ``vcnc.stop``, ``vcnc.start`` or ``vcnc.tick`` on its own loop (under :func:`running`)."""
     assert vcnc.loop is not None
     asyncio.run_coroutine_threadsafe(coro_fn(), vcnc.loop).result(30)
+
+
+def step(vcnc: VirtualCNC) -> None:
+    """One server tick now, from another thread: take the offset a client wrote, advance the
+    plant to the clock, publish (lock-step with a :class:`~compensator.clock.SteppedClock`)."""
+    call(vcnc, vcnc.tick)
 
 
 @contextlib.contextmanager

@@ -197,9 +197,10 @@ class Journal:
         self._close_fd()
 
 
-def _word(text: str) -> str:
-    """A text cell: letters, digits, '-' and '_' only (no separator can slip in)."""
-    return "".join(c for c in text if c.isalnum() or c in "-_")[:40]
+def _word(text: str, also: str = "-_") -> str:
+    """A text cell: letters, digits and the characters in ``also`` only (no separator can slip
+    in), 40 at most."""
+    return "".join(c for c in text if c.isalnum() or c in also)[:40]
 
 
 def _header(path: Path) -> str | None:
@@ -241,7 +242,7 @@ class MeasurementJournal(Journal):
                wall_s: float | None = None, now_s: float | None = None) -> bool:
         """Queue one measurement's row and write what the disk takes (never raises)."""
         t = self._next_time(time_s)
-        src = "".join(c for c in source if c.isalnum() or c in "-_.:")[:40] or "unknown"
+        src = _word(source, "-_.:") or "unknown"
         row = ",".join((f"{t:.3f}", _cell(elongation_um, ".12g"), _cell(sigma_um), src,
                         "" if sequence is None else str(int(sequence)), outcome,
                         _cell(predicted_um, ".12g"), _cell(innovation_um), _cell(innovation_sd_um),
