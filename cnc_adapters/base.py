@@ -299,6 +299,9 @@ class AdapterSettings(LinkSettings):
         None, description="-1 for a controller whose offset points the other way; default +1")
     speed_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="rpm per controller speed unit; default 1")
+    offset_resolution: Annotated[float, Field(ge=0), Allowed("a number >= 0 (controller units)")] = Field(
+        None, description="one count of the controller's offset, in its unit; the written value "
+        "is rounded to it (a controller profile sets it); default 0: continuous")
 
 
 RUNTIME_ONLY = frozenset({"clock", "rng", "on_link_change", "machine"})
@@ -459,9 +462,10 @@ class Adapter(Link):
         offset_scale: float = 1.0,
         offset_sign: int = 1,
         speed_scale: float = 1.0,
+        offset_resolution: float = 0.0,
         **link: Any,
     ):
-        self.units = ControllerUnits(float(offset_scale), offset_sign)
+        self.units = ControllerUnits(float(offset_scale), offset_sign, float(offset_resolution))
         super().__init__(**link)
         self.speed_scale = speed_scale
         self.offset_um_requested: float | None = None

@@ -96,6 +96,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         "offset_node": "ns=2;s=/Channel/Parameter/R[u1,{r}]",
         "offset_scale": 0.001,  # R parameters hold mm
     },
+    # SINUMERIK with the offset in setting datum SD43900 (the sinumerik profile's OPC UA route):
+    # its node id is configured (offset_node), as the server names it under /Sinumerik/SEA
+    "sinumerik-sea": {
+        "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
+    },
     # OPC 40502 (OPC UA for CNC systems): the spindle found by browse path; the standard has
     # no thermal-offset variable, so offset_node or offset_path must name one
     "opc40502": {
@@ -672,7 +677,14 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         from asyncua import ua
 
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
-        self._call("write refused", self._offset.write_value, dv, refused=WriteRejectedError)
+        try:
+            self._call("write refused", self._offset.write_value, dv, refused=WriteRejectedError)
+        except WriteRejectedError as err:
+            if "AccessDenied" not in str(err):
+                raise
+            raise WriteRejectedError(
+                f"{err}: the server's user may not write {self.offset_node or self.offset_path}; on a SINUMERIK, setting "
+                "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)") from err
         if self.verify_writes == "deferred" and self._latest is None:
             self._unverified = value
         elif self.verify_writes:

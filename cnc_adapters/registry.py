@@ -30,6 +30,7 @@ from .base import (
     query_params,
     redact_url,
 )
+from .profiles import adapter_settings
 
 BACKENDS: dict[str, str] = {
     "sim": "cnc_adapters.sim.adapter:SimAdapter",
@@ -38,8 +39,12 @@ BACKENDS: dict[str, str] = {
     "haas": "cnc_adapters.serial_link:HaasAdapter",
     "modbus": "cnc_adapters.modbus:ModbusRtuAdapter",
     "linuxcnc": "cnc_adapters.linuxcnc:LinuxCncAdapter",
+    "plc": "cnc_adapters.plc:PlcAdapter",
+    "focas": "cnc_adapters.focas:FocasAdapter",
+    "haas-mdc": "cnc_adapters.haas_mdc:HaasMdcAdapter",
 }
-SCHEMES = {"opc.tcp": "opcua", "sim": "sim", "linuxcnc": "linuxcnc"}
+SCHEMES = {"opc.tcp": "opcua", "sim": "sim", "linuxcnc": "linuxcnc", "s7": "plc", "modbustcp": "plc",
+           "ads": "plc", "focas": "focas", "haas": "haas-mdc"}
 """URL scheme -> backend; ``serial://`` picks its backend by ``?protocol=``."""
 SERIAL_PROTOCOLS = {"line": "line", "haas": "haas", "modbus": "modbus"}
 ENTRY_POINT_GROUP = "thermocomp.adapters"
@@ -113,7 +118,7 @@ def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
         if getattr(cls, "Settings", None) is None:
             return kind, cls, None
         return kind, cls, {**cls.url_options(target), **overrides}
-    cfg = dict(target)
+    cfg = adapter_settings(target)  # a controller profile's route and units, under the user's keys
     kind = cfg.pop("type", None)
     if not kind and "url" in cfg:
         url = cfg.pop("url")

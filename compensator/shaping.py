@@ -120,6 +120,10 @@ class ShaperConfig(BaseModel):
         None, gt=0, description="dual-slew: slew limit while the tool is not cutting; default "
         f"{NOT_CUTTING_RATE_UM_PER_S:g} um/s, or max_rate_um_per_s if that is higher")
     deadband_um: float = Field(0.1, ge=0, description="no write for smaller changes")
+    resolution_um: float = Field(
+        0.0, ge=0, description="one count of the controller's value [um] (0: continuous): the "
+        "output moves in whole counts, a count only once the slew limit allows a whole one since "
+        "the last move (a controller profile sets it)")
     transient: TransientPolicy = TransientPolicy()
     cutting: CuttingSignal = CuttingSignal()
 
@@ -131,6 +135,8 @@ class ShaperConfig(BaseModel):
             raise ValueError("shaping limits must be finite")
         if self.deadband_um >= self.max_offset_um:
             raise ValueError("deadband_um must be smaller than max_offset_um")
+        if not math.isfinite(self.resolution_um) or self.resolution_um >= self.max_offset_um:
+            raise ValueError("resolution_um must be smaller than max_offset_um")
         rr = self.transient.release_rate_um_per_s
         if rr is not None and rr > self.max_rate_um_per_s:
             raise ValueError("transient.release_rate_um_per_s must not exceed max_rate_um_per_s")
@@ -190,6 +196,8 @@ class ShaperState:
     """The speed the spindle is holding (cutting inference); None before the first sample."""
     settled_s: float = 0.0
     """How long it has held it."""
+    slew_credit_um: float = 0.0
+    """With a resolution: the slew allowance gathered since the last move, up to one count."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -244,6 +252,7 @@ class _Limits:
     settle_s: float
     tolerance_rpm: float
     tolerance_frac: float
+    resolution: float
 
 
 @functools.lru_cache(maxsize=64)  # a frozen config: read once, not at every runtime cycle
@@ -253,7 +262,7 @@ def _limits(config: ShaperConfig) -> _Limits:
     return _Limits(config.max_offset_um, config.max_rate_um_per_s, config.fast_rate_um_per_s,
                    config.release_rate_um_per_s, config.deadband_um, kind, t.mode == "hold",
                    t.speed_rate_rpm_per_s, t.speed_step_rpm, t.window_s, t.slow_period_s, c.settle_s,
-                   c.speed_tolerance_rpm, c.speed_tolerance_pct / 100.0)
+                   c.speed_tolerance_rpm, c.speed_tolerance_pct / 100.0, config.resolution_um)
 
 
 _WORDS = ("cutting", "clear", "window", "releasing", "tracking")
@@ -267,7 +276,7 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
     flags, the cutting state, the slew limit, the index of the policy's word and the desired
     (clamped) offset. The one transition of the shaper: :func:`shape` and :func:`shape_series`
     both run it."""
-    y, held_target, last_n, window_left, latch_age, releasing, ref, settled = st
+    y, held_target, last_n, window_left, latch_age, releasing, ref, settled, credit = st
     m = lim.clamp
     flags = _NO_FLAGS
     desired = -elongation_um
@@ -319,25 +328,47 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
 
     diff = target - y
     inside = -m <= y <= m
-    if diff == 0.0 or (abs(diff) < lim.deadband and inside):
+    q = lim.resolution
+    if diff == 0.0 or (abs(diff) < lim.deadband and inside) or (q and abs(diff) < q * 0.5 and inside):
         new_y = y
+        credit = 0.0
         if diff != 0.0:
             flags |= _DEADBAND
     else:
-        limit = rate * dt
+        limit = rate * dt + credit
         step = diff if -limit <= diff <= limit else (limit if diff > 0 else -limit)
         if step != diff:
             flags |= _SLEWED
         # from beyond the clamp the step itself leads in (the target is inside): no jump
         new_y = min(max(y + step, -m), m) if inside else y + step
+        if q:
+            new_y, credit = _on_grid(y, new_y, q, limit)
     if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 1e-9):
         releasing = False
-    return (new_y, target, n, window, latch_age, releasing, ref, settled), flags, is_cutting, rate, word, desired
+    return ((new_y, target, n, window, latch_age, releasing, ref, settled, credit), flags, is_cutting,
+            rate, word, desired)
+
+
+def _on_grid(y: float, new_y: float, q: float, limit: float) -> tuple[float, float]:
+    """A move from ``y`` toward ``new_y`` in whole counts of ``q``: the count nearest ``new_y``
+    on ``y``'s side (never past it, so neither the clamp nor the slew limit is crossed), and the
+    slew credit left (the allowance gathered while no whole count fitted, up to one count; 0
+    after a move, so each move is within the rate times the time since the last one)."""
+    eps = 1e-9 * q
+    if new_y > y:
+        g = math.floor(new_y / q + 1e-9) * q
+        if g > y + eps:
+            return min(g, new_y), 0.0  # min: float noise never lands past the limit
+    elif new_y < y:
+        g = math.ceil(new_y / q - 1e-9) * q
+        if g < y - eps:
+            return max(g, new_y), 0.0
+    return y, min(limit, q)
 
 
 def _as_tuple(state: ShaperState) -> _State:
     return (state.output_um, state.target_um, state.speed_rpm, state.window_left_s, state.latch_age_s,
-            state.releasing, state.settle_speed_rpm, state.settled_s)
+            state.releasing, state.settle_speed_rpm, state.settled_s, state.slew_credit_um)
 
 
 def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,

@@ -51,11 +51,15 @@ class ControllerUnits:
     """The controller's offset unit and sign: ``raw = offset_um * scale * sign``.
 
     ``scale`` is the controller unit per um (0.001 for mm), ``sign`` -1 for a controller whose
-    thermal offset points the other way. The one place where um meet controller units.
+    thermal offset points the other way, ``resolution`` one count of the controller's value in
+    its unit (0: continuous); the raw value is rounded to it. The shaper already moves in whole
+    counts (``ShaperConfig.resolution_um``), so the rounding only removes float noise there.
+    The one place where um meet controller units.
     """
 
     scale: float = 1.0
     sign: int = 1
+    resolution: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.sign, bool) or self.sign not in (1, -1):
@@ -63,9 +67,19 @@ class ControllerUnits:
         object.__setattr__(self, "sign", int(self.sign))  # 1.0 -> 1
         if not (math.isfinite(self.scale) and self.scale != 0):
             raise ConfigError("offset_scale must be finite and non-zero")
+        if not (math.isfinite(self.resolution) and self.resolution >= 0):
+            raise ConfigError("offset_resolution must be a finite number >= 0")
+
+    @property
+    def resolution_um(self) -> float:
+        """One count as an offset [um] (0: continuous)."""
+        return self.resolution / abs(self.scale)
 
     def to_controller(self, offset_um: float) -> float:
-        return offset_um * self.scale * self.sign
+        raw = offset_um * self.scale * self.sign
+        if self.resolution:
+            raw = round(raw / self.resolution) * self.resolution
+        return raw
 
     def to_um(self, raw: float) -> float:
         return raw / (self.scale * self.sign)

@@ -85,6 +85,16 @@ SENSOR_KEYS = ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", 
 CYCLE_START_PATH = "/CncInterface/Simulation/CycleStart"
 OFFSET_LIMIT_UM = 1000.0
 """The virtual CNC, like a real one, ignores offsets beyond this (and non-finite ones)."""
+SINUMERIK_SPEED_NODE = "/Channel/Spindle/actSpeed[u1,1]"
+"""With a SINUMERIK profile: the spindle's actual speed, under the id SINUMERIK's server uses."""
+SINUMERIK_SD43900_NODE = "/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_ABS_VALUE[u3]"
+"""With a SINUMERIK profile: setting datum SD43900 of axis 3 (Z) [mm]. The id is this virtual
+CNC's; a real server's is browsed under /Sinumerik/SEA or read off its documentation, and
+configured (``offset_node``), never assumed."""
+SINUMERIK_GIVE_ACCESS = "/Methods/GiveUserAccess"
+"""``GiveUserAccess(user, right)``: grants ``right`` (``SeaWrite``: write setting data) to a
+user; only the administrators may call it."""
+SEA_WRITE = "SeaWrite"
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -325,12 +335,22 @@ class VirtualCNC:
         certificate: str | None = None,
         private_key: str | None = None,
         users: dict[str, str] | None = None,
+        control=None,
+        admins: frozenset[str] = frozenset(),
+        rights: dict[str, set[str]] | None = None,
     ):
         """With ``certificate`` and ``private_key`` the server accepts only
         Basic256Sha256 (Sign, SignAndEncrypt); with ``users`` only those user names and
         passwords, never anonymous. ``tick_s``: how often (wall seconds) the server takes a
         written offset, advances the plant and publishes; None: only when its owner calls
-        :func:`step` (lock-step with a :class:`~compensator.clock.SteppedClock`)."""
+        :func:`step` (lock-step with a :class:`~compensator.clock.SteppedClock`).
+
+        ``control``: an :class:`~cnc_adapters.sim.controls.EmulatedControl`; the offset node
+        then holds the value in that profile's unit, and the control takes it (or refuses it)
+        and applies it at its own rate. A SINUMERIK profile adds SINUMERIK's ids: the speed
+        ``/Channel/Spindle/actSpeed[u1,1]`` and setting datum SD43900 (the offset node), which
+        only users with the ``SeaWrite`` right may write (``rights``: user -> rights), granted by
+        ``GiveUserAccess`` called by one of ``admins``."""
         self.machine = machine
         self.certificate = certificate
         self.private_key = private_key
@@ -344,6 +364,13 @@ class VirtualCNC:
         self._task: asyncio.Task | None = None
         self.ns = 2
         self.loop: asyncio.AbstractEventLoop | None = None  # set by running()
+        self.control = control
+        self.sinumerik = control is not None and control.profile.name == "sinumerik"
+        self.admins = frozenset(admins)
+        self.rights: dict[str, set[str]] = {k: set(v) for k, v in (rights or {}).items()}
+        self.denied_writes = 0
+        self._offset_key = "sd43900" if self.sinumerik else "thermal_offset"
+        self._seen_raw = 0.0
 
     # -- server ----------------------------------------------------------------
 
@@ -417,6 +444,8 @@ class VirtualCNC:
 
         await (await folder(PROBE_METHOD_PATH.rpartition("/")[0])).add_method(
             f"ns={self.ns};s={PROBE_METHOD_PATH}", f"{self.ns}:Probe", probe, [], [ua.VariantType.UInt32])
+        if self.sinumerik:
+            await self._add_sinumerik(server, folder, ua, uamethod)
         start = await (await folder("/CncInterface/Simulation")).add_variable(
             f"ns={self.ns};s={CYCLE_START_PATH}", f"{self.ns}:CycleStart",
             ua.Variant(False, ua.VariantType.Boolean))
@@ -424,11 +453,77 @@ class VirtualCNC:
         self._nodes["cycle_start"] = start
         # a controller that restarts has lost the variable: 0, whatever the machine held before
         self.machine.apply_offset(0.0)
+        if self.control is not None:
+            self.control.write_raw(0.0)
+            self.control.applied_um = 0.0
+            self._seen_raw = 0.0
         await server.start()
         self._server = server
         await self._publish()
         if self.tick_s is not None:
             self._task = asyncio.create_task(self._run())
+
+    async def _add_sinumerik(self, server, folder, ua, uamethod) -> None:
+        """SINUMERIK's own ids (in this server's namespace, ns=2 as on a SINUMERIK), setting datum
+        SD43900 writable only with the SeaWrite right, and GiveUserAccess."""
+        from asyncua.crypto.permission_rules import UserRole
+
+        speed = await (await folder("/Channel/Spindle")).add_variable(
+            f"ns={self.ns};s={SINUMERIK_SPEED_NODE}", f"{self.ns}:actSpeed", ua.Variant(0.0, ua.VariantType.Double))
+        sd = await (await folder("/NC/_N_AX_SEA_ACX")).add_variable(
+            f"ns={self.ns};s={SINUMERIK_SD43900_NODE}", f"{self.ns}:$SA_TEMP_COMP_ABS_VALUE",
+            ua.Variant(0.0, ua.VariantType.Double))
+        await sd.set_writable()
+        self._nodes["sinumerik_speed"] = speed
+        self._nodes["sd43900"] = sd
+        sd_id = sd.nodeid
+        vcnc = self
+
+        @uamethod
+        def give_user_access(parent, user, right):
+            vcnc.rights.setdefault(str(user), set()).add(str(right))
+            return ua.Variant(True, ua.VariantType.Boolean)
+
+        method = await (await folder("/Methods")).add_method(
+            f"ns={self.ns};s={SINUMERIK_GIVE_ACCESS}", f"{self.ns}:GiveUserAccess", give_user_access,
+            [ua.VariantType.String, ua.VariantType.String], [ua.VariantType.Boolean])
+        method_id = method.nodeid
+        service = server.iserver.attribute_service
+        plain_write = service.write
+
+        async def write(params, user=None):
+            # setting data take a write only from a user with the SeaWrite right
+            name = getattr(user, "name", None)
+            allowed = user is not None and (getattr(user, "role", None) == UserRole.Admin and name is None
+                                            or SEA_WRITE in vcnc.rights.get(name or "", set()))
+            denied = [wv.NodeId == sd_id and not allowed for wv in params.NodesToWrite]
+            if not any(denied):
+                return await plain_write(params, user=user) if user is not None else await plain_write(params)
+            vcnc.denied_writes += sum(denied)
+            kept = [wv for wv, d in zip(params.NodesToWrite, denied) if not d]
+            done = iter(await plain_write(ua.WriteParameters(NodesToWrite=kept), user=user) if kept else [])
+            return [ua.StatusCode(ua.StatusCodes.BadUserAccessDenied) if d else next(done) for d in denied]
+
+        service.write = write
+        iserver = server.iserver
+        plain_session = iserver.create_session
+
+        def create_session(*args, **kw):
+            session = plain_session(*args, **kw)
+            plain_call = session.call
+
+            async def call(params):
+                # GiveUserAccess: the administrators only (the session's user, once activated)
+                if any(req.MethodId == method_id for req in params) and \
+                        getattr(session.user, "name", None) not in vcnc.admins:
+                    return [ua.CallMethodResult(StatusCode=ua.StatusCode(ua.StatusCodes.BadUserAccessDenied))
+                            for _ in params]
+                return await plain_call(params)
+
+            session.call = call
+            return session
+
+        iserver.create_session = create_session
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -448,14 +543,24 @@ class VirtualCNC:
     async def tick(self) -> None:
         """Take the offset a client wrote, advance the plant to the clock, publish."""
         m = self.machine
-        written = await self._nodes["thermal_offset"].read_value()
-        if written != m.offset_um and not m.apply_offset(written):
-            await self._nodes["thermal_offset"].write_value(m.offset_um)
+        if self.control is None:
+            written = await self._nodes["thermal_offset"].read_value()
+            if written != m.offset_um and not m.apply_offset(written):
+                await self._nodes["thermal_offset"].write_value(m.offset_um)
+        else:
+            node = self._nodes[self._offset_key]
+            written = await node.read_value()
+            if written != self._seen_raw:  # a client wrote: the control takes it, or refuses it
+                if not self.control.write_raw(written):
+                    await node.write_value(float(self.control.held_raw))
+                self._seen_raw = float(self.control.held_raw)
         if m.pending is not None and await self._nodes["cycle_start"].read_value():
             m.advance()  # the program starts now, not at the last tick
             m.cycle_start()
             await self._nodes["cycle_start"].write_value(False)
         m.advance()
+        if self.control is not None:
+            self.control.sync()  # the axis moves to the held value at the control's rate
         await self._publish()
 
     async def _publish(self) -> None:
@@ -472,6 +577,8 @@ class VirtualCNC:
             "tool_tip_error": true + m.offset_um,
         }
         values.update(m.sensor_values())
+        if self.sinumerik:
+            values["sinumerik_speed"] = m.speed_rpm
         for key, v in values.items():
             await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
         for key, flag in (("at_speed", m.at_speed), ("cutting", m.cutting)):

@@ -1,0 +1,317 @@
+"""Controller profiles: what each control family does with the offset thermocomp writes.
+
+A profile is a named preset of the adapter settings for one control family (``sinumerik``,
+``fanuc``, ``heidenhain``, ``haas``, ``linuxcnc``, ``beckhoff``, and ``virtual``, the virtual
+CNC's own). It fixes what the control side decides, so that an integrator does not have to:
+
+- the unit and resolution of the written value (mm, 0.1 um, detection units) and its sign;
+- the largest value and the largest single step the control takes;
+- whether the control itself rate-limits the value, and how fast;
+- how the value the control holds is read back;
+- the NC/PLC snippet that applies it (the whole recipe is in ``docs/controls/<family>.md``);
+- the routes from the PC to the control (OPC UA, S7, FOCAS, MDC, ADS, HAL), each an adapter
+  configuration with what is left for the user to give.
+
+An adapter configuration names one with ``profile`` (and ``route``, default the profile's
+first): ``{profile = "sinumerik", route = "s7", host = "10.0.0.5", ...}``. The registry merges
+the route's adapter settings and the profile's units under the user's own keys
+(:func:`adapter_settings`). Pure data: no I/O, no library import.
+
+Where a figure is the control's and public documentation does not fix it (a SINUMERIK's rate
+factor is machine data the builder sets), the profile carries a documented default that the
+emulated control uses and ``docs/controls/<family>.md`` says how to read the real one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from compensator.errors import ConfigError
+
+__all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "profile"]
+
+_FROZEN = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class Route(BaseModel):
+    """One way from the PC to a control: the adapter settings it presets, and what it takes."""
+
+    model_config = _FROZEN
+
+    adapter: dict[str, Any] = Field(description="adapter settings this route presets (a 'type')")
+    library: str = Field(description="the Python library that speaks the protocol")
+    tested: str = Field(description="how this route is tested here")
+    control_side: str = Field(description="what the integrator must do on the control")
+    requires: tuple[str, ...] = Field((), description="adapter options the user must give")
+
+
+class ControllerProfile(BaseModel):
+    """What a control family does with the written offset (see the module docstring).
+
+    ``raw = offset_um * scale * sign`` is the value in the control's unit, with thermocomp's
+    offset ``A = -S`` (positive S: the tool tip moved toward the workpiece)."""
+
+    model_config = _FROZEN
+
+    name: str
+    title: str
+    unit: str = Field(description="the written value's unit, in words")
+    scale: float = Field(gt=0, description="control units per um")
+    sign: int = Field(description="+1 or -1: the control's value is sign * A")
+    resolution: float = Field(ge=0, description="control units of one count; 0: continuous")
+    integer: bool = Field(False, description="the control takes whole counts only")
+    limit: float = Field(gt=0, description="largest |value| the control takes, in its units")
+    max_step: float | None = Field(None, gt=0, description="largest change per write the control "
+                                   "takes without an alarm, in its units; None: no such limit")
+    control_rate_um_per_s: float | None = Field(
+        None, gt=0, description="the control moves its applied value at most this fast; None: "
+        "it applies each value at once")
+    rate_source: str = Field("", description="where the control's rate limit comes from")
+    readback: str = Field(description="how the held value is read back")
+    snippet: str = Field(description="the NC/PLC code that applies the value (the short form)")
+    doc: str = Field(description="the full recipe, relative to the repository")
+    routes: dict[str, Route]
+
+    @field_validator("sign")
+    @classmethod
+    def _sign(cls, v: int) -> int:
+        if v not in (1, -1):
+            raise ValueError("+1 or -1")
+        return v
+
+    @property
+    def limit_um(self) -> float:
+        """The control's limit as an offset [um]."""
+        return self.limit / self.scale
+
+    @property
+    def resolution_um(self) -> float:
+        """One count as an offset [um] (0: continuous)."""
+        return self.resolution / self.scale
+
+    @property
+    def max_step_um(self) -> float | None:
+        return None if self.max_step is None else self.max_step / self.scale
+
+    def route(self, name: str | None = None) -> Route:
+        """The route ``name`` (None: the first, the family's usual one); ConfigError naming the
+        known ones otherwise."""
+        if not self.routes:
+            raise ConfigError(f"profile {self.name!r} has no route thermocomp can drive: "
+                              f"see {self.doc}")
+        key = name or next(iter(self.routes))
+        try:
+            return self.routes[key]
+        except KeyError:
+            raise ConfigError(f"profile {self.name!r} has no route {key!r}; known: "
+                              f"{', '.join(self.routes)}") from None
+
+    def describe(self, route: str | None = None) -> str:
+        """One paragraph: what the profile will do (``thermocomp run --check`` prints it)."""
+        r = self.route(route)
+        key = route or next(iter(self.routes))
+        res = (f"resolution {self.resolution:g} ({self.resolution_um:g} um)" if self.resolution
+               else "continuous")
+        rate = (f"the control itself moves it at most {self.control_rate_um_per_s:g} um/s "
+                f"({self.rate_source})" if self.control_rate_um_per_s else
+                "the control applies each value at once (the shaper's slew is the only rate limit)")
+        step = f", an alarm at a step of {self.max_step:g} or more" if self.max_step else ""
+        sign = "+S (the growth itself)" if self.sign == -1 else "-S (the offset A)"
+        return (f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
+                f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
+                f"{rate}; read-back: {self.readback}; on the control: {r.control_side}; "
+                f"recipe: {self.doc}")
+
+
+_SINUMERIK_SNIPPET = """\
+; MD32750 $MA_TEMP_COMP_TYPE[Z] = 1 (bit 0: position-independent), MD32760 limits the rate
+; S7 route: the PLC writes the growth [mm] as a REAL that the NC reads as $A_DBR[0]
+IDS=1 WHENEVER TRUE DO $$SA_TEMP_COMP_ABS_VALUE[Z]=$A_DBR[0]
+; OPC UA route: thermocomp writes SD43900 $SA_TEMP_COMP_ABS_VALUE[Z] itself (right SeaWrite)"""
+
+_FANUC_SNIPPET = """\
+(thermocomp writes the growth in detection units to common variable #500 over FOCAS)
+(the builder's ladder: on a change of #500 -> THD00-15, THSTB up; wait THREND; THSTB down)
+(macro alternative, executor: #1132 = #500 hands the value to the PMC's F056-F059)"""
+
+_HEIDENHAIN_SNIPPET = """\
+; TNC 426/430: PLC module 9231 takes the compensation in 0.1 um per axis
+; older controls: PLC words W576-W582, followed at 1 um/s
+; TNC 640 / TNC7: a TEMPCOMP formula in the kinematics that reads PLC data (the builder's)"""
+
+_HAAS_SNIPPET = """\
+(thermocomp writes the growth [mm] to macro #10500 over MDC: ?E10500 0.0123)
+(at safe points, e.g. after each tool change:)
+#[2200 + #3026] = #[10600 + #3026] + #10500  (length wear = the operator's base + the growth)
+G43 H#3026                                    (re-apply: the wear takes effect at G43)"""
+
+_BECKHOFF_SNIPPET = """\
+(* thermocomp writes the growth in 0.1 um to GVL_Thermo.nTempComp over ADS;
+   the PLC hands it to the axis's temp_comp (P-AXIS-00271) through the CNC's HLI *)"""
+
+_LINUXCNC_SNIPPET = """\
+net tc-counts thermocomp.eoffset-counts => axis.z.eoffset-counts
+net tc-scale  thermocomp.eoffset-scale  => axis.z.eoffset-scale
+net tc-enable thermocomp.eoffset-enable => axis.z.eoffset-enable
+# [AXIS_Z] OFFSET_AV_RATIO = 0.1 (the share of velocity and acceleration external offsets may use)"""
+
+PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
+    ControllerProfile(
+        name="sinumerik", title="Siemens SINUMERIK 840D sl / ONE", unit="mm (SD43900, a REAL)",
+        scale=0.001, sign=-1, resolution=0.0, limit=1.0,
+        control_rate_um_per_s=100.0,
+        rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO; 100 um/s is "
+                    "0.0001 x 60 m/min, read yours off the machine",
+        readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
+        snippet=_SINUMERIK_SNIPPET, doc="docs/controls/sinumerik.md",
+        routes={
+            "opcua": Route(
+                adapter={"type": "opcua", "preset": "sinumerik-sea"},
+                library="asyncua", tested="the virtual CNC's SINUMERIK-like address space (asyncua "
+                "server): SD43900 node, writes refused without the SeaWrite right",
+                control_side="MD32750 bit 0 on the axis; the OPC UA option; a user with the SeaWrite "
+                "right (GiveUserAccess)",
+                requires=("url", "offset_node")),
+            "s7": Route(
+                adapter={"type": "plc", "protocol": "s7"},
+                library="python-snap7", tested="python-snap7's own S7 server (snap7.server) on "
+                "loopback, the synchronized action emulated",
+                control_side="MD32750 bit 0; a DB with PUT/GET access; the synchronized action "
+                "IDS=1 WHENEVER TRUE DO $$SA_TEMP_COMP_ABS_VALUE[Z]=$A_DBR[0]",
+                requires=("host", "offset_address", "speed_address")),
+        }),
+    ControllerProfile(
+        name="fanuc", title="FANUC 0i-F / 30i-B", unit="detection units (1 um: IS-B, metric)",
+        scale=1.0, sign=-1, resolution=1.0, integer=True, limit=32767.0, max_step=9998.0,
+        readback="the macro variable read back over FOCAS",
+        snippet=_FANUC_SNIPPET, doc="docs/controls/fanuc.md",
+        routes={
+            "focas": Route(
+                adapter={"type": "focas"},
+                library="pyfocas / FOCAS over TCP", tested="a loopback FOCAS server built from the "
+                "documented packet format",
+                control_side="the option 'thermal growth compensation along tool vector'; the "
+                "builder's ladder (THD00-15, THSTB, THREND) or a macro copying the variable",
+                requires=("host",)),
+        }),
+    ControllerProfile(
+        name="heidenhain", title="HEIDENHAIN TNC", unit="0.1 um (PLC word)",
+        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=32767.0,
+        control_rate_um_per_s=1.0, rate_source="the TNC follows W576-W582 at 1 um/s",
+        readback="the PLC word read back (any PLC route)",
+        snippet=_HEIDENHAIN_SNIPPET, doc="docs/controls/heidenhain.md",
+        routes={
+            "plc": Route(
+                adapter={"type": "plc"},
+                library="python-snap7 / pymodbus / pyads (the builder's PLC gateway)",
+                tested="docs only: nothing here speaks to a TNC (pylsv2 reads PLC memory but "
+                "cannot write it); the PLC route's own code is tested against S7, Modbus and ADS",
+                control_side="the machine builder maps a PLC word from a gateway to W576-W582, "
+                "module 9231, or the TEMPCOMP formula's PLC data",
+                requires=("protocol", "host", "offset_address", "speed_address")),
+        }),
+    ControllerProfile(
+        name="haas", title="Haas NGC", unit="mm (a macro variable; tool-length wear)",
+        scale=0.001, sign=-1, resolution=0.0001, limit=0.5,
+        readback="the macro variable read back with ?Q600",
+        snippet=_HAAS_SNIPPET, doc="docs/controls/haas.md",
+        routes={
+            "mdc": Route(
+                adapter={"type": "haas-mdc"},
+                library="socket (MDC over TCP)", tested="a loopback MDC server built from the "
+                "documented ?Q600/?E commands",
+                control_side="Setting 143 (MDC port); a macro that re-applies the wear with G43 at "
+                "safe points",
+                requires=("host",)),
+            "serial": Route(
+                adapter={"type": "haas"},
+                library="pyserial", tested="pseudo-terminals: real serial links to an emulated Haas",
+                control_side="the RS-232 port; the same macro as the MDC route",
+                requires=("port",)),
+        }),
+    ControllerProfile(
+        name="linuxcnc", title="LinuxCNC 2.9", unit="mm (external-offset counts of 0.01 um)",
+        scale=0.001, sign=-1, resolution=0.00001, limit=1.0,
+        control_rate_um_per_s=None,
+        rate_source="",
+        readback="axis.z.eoffset-request (what motion applies)",
+        snippet=_LINUXCNC_SNIPPET, doc="docs/controls/linuxcnc.md",
+        routes={
+            "hal": Route(
+                adapter={"type": "linuxcnc"},
+                library="LinuxCNC's hal module", tested="a real LinuxCNC (halrun and a simulator "
+                "configuration)",
+                control_side="[AXIS_Z] OFFSET_AV_RATIO; net the eoffset pins",
+                requires=()),
+        }),
+    ControllerProfile(
+        name="beckhoff", title="Beckhoff TwinCAT CNC", unit="0.1 um (P-AXIS-00271 temp_comp)",
+        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=2147483647.0,
+        readback="the ADS variable read back",
+        snippet=_BECKHOFF_SNIPPET, doc="docs/controls/beckhoff.md",
+        routes={
+            "ads": Route(
+                adapter={"type": "plc", "protocol": "ads"},
+                library="pyads", tested="pyads's own ADS test server on loopback",
+                control_side="an ADS route to the PC; the PLC hands the variable to the axis's "
+                "temp_comp",
+                requires=("host", "ams_net_id", "offset_address", "speed_address")),
+        }),
+    ControllerProfile(
+        name="virtual", title="thermocomp virtual CNC", unit="um (ThermalOffset)",
+        scale=1.0, sign=1, resolution=0.0, limit=1000.0,
+        readback="ThermalOffset read back", snippet="(none: the virtual CNC applies ThermalOffset)",
+        doc="README.md#the-virtual-machine-tool",
+        routes={
+            "opcua": Route(
+                adapter={"type": "opcua", "preset": "virtual-cnc"},
+                library="asyncua", tested="the virtual CNC (asyncua server)",
+                control_side="nothing", requires=("url",)),
+        }),
+)}
+
+
+def profile(name: str) -> ControllerProfile:
+    """The profile ``name``; ConfigError naming the known ones otherwise."""
+    try:
+        return PROFILES[name]
+    except (KeyError, TypeError):
+        raise ConfigError(f"unknown controller profile {name!r}; known: {', '.join(PROFILES)}") from None
+
+
+def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """An adapter configuration with ``profile`` (and ``route``) resolved: the route's settings
+    and the profile's units (``offset_scale``, ``offset_sign``, ``offset_resolution``) under the
+    user's own keys; the profile's own keys taken out. A configuration without ``profile`` comes
+    back unchanged. ConfigError for a user key that would change the control's units (the
+    profile fixes them), and for a required option left out."""
+    if "profile" not in cfg:
+        if "route" in cfg:
+            raise ConfigError("adapter: 'route' goes with 'profile'")
+        return dict(cfg)
+    user = dict(cfg)
+    p = profile(user.pop("profile"))
+    route_name = user.pop("route", None)
+    r = p.route(route_name)
+    for key in ("offset_scale", "offset_sign", "offset_resolution"):
+        if key in user:
+            raise ConfigError(f"adapter: {key} is fixed by profile {p.name!r} ({p.unit}); "
+                              "leave it out, or drop the profile")
+    if "type" in user and user["type"] != r.adapter.get("type"):
+        raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
+                          f"uses type {r.adapter.get('type')!r}, not {user['type']!r}")
+    missing = [k for k in r.requires if k not in user]
+    if missing:
+        raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
+                          f"needs {', '.join(missing)} ({p.doc})")
+    units: dict[str, Any] = {"offset_scale": p.scale, "offset_sign": p.sign}
+    if p.resolution:
+        units["offset_resolution"] = p.resolution
+    merged = {**r.adapter, **units, **user}
+    if not math.isfinite(float(merged["offset_scale"])):
+        raise ConfigError("adapter: offset_scale must be finite")
+    return merged

@@ -1,0 +1,112 @@
+"""The control side of a controller profile, emulated on the virtual machine tool.
+
+A real control does not simply apply the number a PC writes: it takes it in its own unit and
+resolution, refuses what it will not take (a value past its limit, a step that would raise an
+alarm, a write without the access right), and may move the axis to it at a limited rate.
+:class:`EmulatedControl` does the same for any :class:`~cnc_adapters.profiles.ControllerProfile`
+in front of a :class:`~cnc_adapters.sim.vcnc.VirtualMachine`, so the virtual workpiece error
+shows the offset as the control applies it. Every emulated server (OPC UA, S7, Modbus TCP, ADS,
+FOCAS, Haas MDC) hands the written value to :meth:`EmulatedControl.write_raw` and serves the
+read-back from :attr:`EmulatedControl.held_raw`.
+
+Lock-step: after ``machine.advance()`` call :meth:`EmulatedControl.sync`; it moves the applied
+value toward the held one over the plant time elapsed, at the control's rate, and hands it to
+the machine.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+
+from ..profiles import ControllerProfile
+from .vcnc import VirtualMachine
+
+
+@dataclass(frozen=True)
+class Write:
+    """One write the control received: plant time, raw value, and whether it took it."""
+
+    time_s: float
+    raw: float
+    taken: bool
+    reason: str = ""
+
+
+@dataclass
+class EmulatedControl:
+    """A profile's control semantics on ``machine`` (see the module docstring).
+
+    ``rate_um_per_s`` overrides the profile's own control-side rate limit (None: the profile's;
+    ``math.inf``: none). ``writes`` records every write, taken or refused, in the control's
+    units: what a test checks the clamp and the slew limit against."""
+
+    machine: VirtualMachine
+    profile: ControllerProfile
+    rate_um_per_s: float | None = None
+    held_raw: float = 0.0
+    applied_um: float = 0.0
+    refused: int = 0
+    last_refusal: str = ""
+    writes: list[Write] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.rate_um_per_s is None:
+            self.rate_um_per_s = self.profile.control_rate_um_per_s or math.inf
+        self._lock = threading.Lock()
+        self._synced_s = self.machine.plant.time_s
+        self.machine.apply_offset(self.applied_um)
+
+    @property
+    def speed_rpm(self) -> float:
+        """The spindle's actual speed, as the control reports it."""
+        return self.machine.speed_rpm
+
+    @property
+    def held_um(self) -> float:
+        """The held value as thermocomp's offset A [um]."""
+        p = self.profile
+        return self.held_raw / (p.scale * p.sign)
+
+    def check(self, raw: object) -> str:
+        """Why the control would refuse ``raw`` ('' when it takes it)."""
+        p = self.profile
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw):
+            return f"not a finite number: {raw!r}"
+        if p.integer and float(raw) != round(float(raw)):
+            return f"not a whole count: {raw!r}"
+        if abs(raw) > p.limit:
+            return f"|{raw:g}| is past the control's limit {p.limit:g}"
+        if p.max_step is not None and abs(raw - self.held_raw) > p.max_step:
+            return f"a step of {abs(raw - self.held_raw):g} raises the control's alarm (> {p.max_step:g})"
+        return ""
+
+    def write_raw(self, raw: object) -> bool:
+        """The control receives ``raw`` in its unit: True when it takes it (it becomes the held
+        value), False when it refuses it (the held value stays; :attr:`last_refusal` says why)."""
+        with self._lock:
+            reason = self.check(raw)
+            t = self.machine.plant.time_s
+            if reason:
+                self.refused += 1
+                self.last_refusal = reason
+                value = float(raw) if isinstance(raw, (int, float)) and not isinstance(raw, bool) else math.nan
+                self.writes.append(Write(t, value, False, reason))
+                return False
+            self.held_raw = float(raw)
+            self.writes.append(Write(t, float(raw), True))
+            return True
+
+    def sync(self) -> None:
+        """Move the applied value toward the held one over the plant time since the last call, at
+        the control's rate, and hand it to the machine."""
+        with self._lock:
+            now = self.machine.plant.time_s
+            dt = max(0.0, now - self._synced_s)
+            self._synced_s = now
+            target = self.held_um
+            diff = target - self.applied_um
+            step = math.inf if self.rate_um_per_s == math.inf else self.rate_um_per_s * dt
+            self.applied_um = target if abs(diff) <= step else self.applied_um + math.copysign(step, diff)
+            self.machine.apply_offset(self.applied_um)
