@@ -27,8 +27,8 @@ import re
 import time
 import typing
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
@@ -62,6 +62,7 @@ __all__ = [
     "option_names",
     "query_params",
     "redact_url",
+    "host_options",
     "serial_options",
     "typed_params",
 ]
@@ -719,6 +720,22 @@ def read_handshake(name: str, sequence: Callable[[], Any], value: Callable[[], A
 
 def query_params(url: str) -> dict[str, str]:
     return dict(parse_qsl(urlsplit(url).query))
+
+
+def host_options(label: str, url: str) -> dict[str, Any]:
+    """``scheme://host:port?key=value``: the host, the port (when the URL names one) and the
+    query; ConfigError naming ``label`` for a port that is not a number 1..65535."""
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError as err:
+        raise ConfigError(f"{label}: the URL's port is no number 1..65535: {err}") from err
+    out: dict[str, Any] = dict(query_params(url))
+    if parts.hostname:
+        out["host"] = parts.hostname
+    if port is not None:
+        out["port"] = port
+    return out
 
 
 def serial_options(url: str) -> dict[str, Any]:

@@ -136,7 +136,8 @@ IDS=1 WHENEVER TRUE DO $$SA_TEMP_COMP_ABS_VALUE[Z]=$A_DBR[0]
 _FANUC_SNIPPET = """\
 (thermocomp writes the growth in detection units to common variable #500 over FOCAS)
 (the builder's ladder: on a change of #500 -> THD00-15, THSTB up; wait THREND; THSTB down)
-(macro alternative, executor: #1132 = #500 hands the value to the PMC's F056-F059)"""
+(macro alternative: #1133 = #500 + 32768 to the UO signals; the ladder subtracts 32768)
+(and does the THD handshake: check #1133 and its F addresses on your control)"""
 
 _HEIDENHAIN_SNIPPET = """\
 ; TNC 426/430: PLC module 9231 takes the compensation in 0.1 um per axis
@@ -145,13 +146,17 @@ _HEIDENHAIN_SNIPPET = """\
 
 _HAAS_SNIPPET = """\
 (thermocomp writes the growth [mm] to macro #10500 over MDC: ?E10500 0.0123)
-(at safe points, e.g. after each tool change:)
-#[2200 + #3026] = #[10600 + #3026] + #10500  (length wear = the operator's base + the growth)
-G43 H#3026                                    (re-apply: the wear takes effect at G43)"""
+(O08500 after each tool change and before each pass; #10600+T: growth already in T's wear)
+G103 P1
+#[2200 + #3026] = #[2200 + #3026] + #10500 - #[10600 + #3026]
+#[10600 + #3026] = #10500
+G43 H#3026 (re-apply: the wear takes effect at G43)
+G103 P0"""
 
 _BECKHOFF_SNIPPET = """\
-(* thermocomp writes the growth in 0.1 um to GVL_Thermo.nTempComp over ADS;
-   the PLC hands it to the axis's temp_comp (P-AXIS-00271) through the CNC's HLI *)"""
+(* thermocomp writes the growth in 0.1 um (DINT) to a PLC variable over ADS; the PLC checks
+   range and rate and writes TEMPC::offset_0 with ADSWRITE (GEO task, port 551), with
+   P-AXIS-00271 temp_comp = 1 and the slope P-AXIS-00274 = 0; TEMPC::actual_offset comes back *)"""
 
 _LINUXCNC_SNIPPET = """\
 net tc-counts thermocomp.eoffset-counts => axis.z.eoffset-counts
@@ -177,7 +182,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 "right (GiveUserAccess)",
                 requires=("url", "offset_node")),
             "s7": Route(
-                adapter={"type": "plc", "protocol": "s7"},
+                adapter={"type": "plc", "protocol": "s7", "rack": 0, "slot": 2},
                 library="python-snap7", tested="python-snap7's own S7 server (snap7.server) on "
                 "loopback, the synchronized action emulated",
                 control_side="MD32750 bit 0; a DB with PUT/GET access; the synchronized action "
@@ -187,13 +192,14 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
     ControllerProfile(
         name="fanuc", title="FANUC 0i-F / 30i-B", unit="detection units (1 um: IS-B, metric)",
         scale=1.0, sign=-1, resolution=1.0, integer=True, limit=32767.0, max_step=9998.0,
-        readback="the macro variable read back over FOCAS",
+        readback="#500 read back over FOCAS, or ack_macro: the value the ladder reports after THREND",
         snippet=_FANUC_SNIPPET, doc="docs/controls/fanuc.md",
         routes={
             "focas": Route(
                 adapter={"type": "focas"},
-                library="pyfocas / FOCAS over TCP", tested="a loopback FOCAS server built from the "
-                "documented packet format",
+                library="socket (own FOCAS client, pyfocas's documented packet format)",
+                tested="a loopback FOCAS server built from the documented packet format; pyfocas, "
+                "an independent client, talks to it",
                 control_side="the option 'thermal growth compensation along tool vector'; the "
                 "builder's ladder (THD00-15, THSTB, THREND) or a macro copying the variable",
                 requires=("host",)),
@@ -222,8 +228,9 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
         routes={
             "mdc": Route(
                 adapter={"type": "haas-mdc"},
-                library="socket (MDC over TCP)", tested="a loopback MDC server built from the "
-                "documented ?Q600/?E commands",
+                library="socket (MDC over TCP)", tested="a loopback MDC server (threaded TCP) "
+                "emulating the reply forms reported for NGC over TCP and RS-232, the two-connection "
+                "limit and the wear applied at G43 safe points",
                 control_side="Setting 143 (MDC port); a macro that re-applies the wear with G43 at "
                 "safe points",
                 requires=("host",)),
@@ -249,17 +256,18 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 requires=()),
         }),
     ControllerProfile(
-        name="beckhoff", title="Beckhoff TwinCAT CNC", unit="0.1 um (P-AXIS-00271 temp_comp)",
-        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=2147483647.0,
-        readback="the ADS variable read back",
+        name="beckhoff", title="Beckhoff TwinCAT CNC",
+        unit="0.1 um (P-AXIS-00273 temp_comp_offset_0, a DINT)",
+        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=10000.0,
+        readback="the PLC's copy of TEMPC::actual_offset (held_address), or the variable read back",
         snippet=_BECKHOFF_SNIPPET, doc="docs/controls/beckhoff.md",
         routes={
             "ads": Route(
-                adapter={"type": "plc", "protocol": "ads"},
+                adapter={"type": "plc", "protocol": "ads", "offset_type": "DINT"},
                 library="pyads", tested="pyads's own ADS test server on loopback",
-                control_side="an ADS route to the PC; the PLC hands the variable to the axis's "
-                "temp_comp",
-                requires=("host", "ams_net_id", "offset_address", "speed_address")),
+                control_side="an ADS route to the PC; temp_comp = 1, slope 0; the PLC checks "
+                "range and rate and writes TEMPC::offset_0",
+                requires=("host", "offset_address", "speed_address")),
         }),
     ControllerProfile(
         name="virtual", title="thermocomp virtual CNC", unit="um (ThermalOffset)",
@@ -304,7 +312,8 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if "type" in user and user["type"] != r.adapter.get("type"):
         raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
                           f"uses type {r.adapter.get('type')!r}, not {user['type']!r}")
-    missing = [k for k in r.requires if k not in user]
+    # a URL carries the host (and the port)
+    missing = [k for k in r.requires if k not in user and not (k == "host" and "url" in user)]
     if missing:
         raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
                           f"needs {', '.join(missing)} ({p.doc})")

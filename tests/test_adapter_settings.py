@@ -27,6 +27,9 @@ MINIMAL = {
     "haas": "serial:///dev/ttyX?protocol=haas",
     "modbus": "serial:///dev/ttyX?protocol=modbus",
     "linuxcnc": "linuxcnc://thermocomp",
+    "plc": "s7://127.0.0.1?offset_address=DB100.DBD0&speed_address=DB100.DBD4",
+    "focas": "focas://127.0.0.1:8193",
+    "haas-mdc": "haas://127.0.0.1:5051",
 }
 MINIMAL_SENSOR = {
     "ascii": "serial:///dev/ttyX",
@@ -131,7 +134,7 @@ def test_a_misspelt_key_is_one_line_that_names_it(target, expected):
     ({"type": "opcua", "url": "opc.tcp://h:1", "preset": "virtual-cnc", "timeout_s": math.inf},
      "opcua adapter: timeout_s must be a number > 0 (seconds), not inf"),
     ({"type": "opcua", "url": "opc.tcp://h:1", "preset": "nope"},
-     "opcua adapter: preset must be one of 'virtual-cnc', 'sinumerik', 'opc40502', 'generic', not 'nope'"),
+     "opcua adapter: preset must be one of 'virtual-cnc', 'sinumerik', 'sinumerik-sea', 'opc40502', 'generic', not 'nope'"),
     ({"type": "opcua", "url": "opc.tcp://h:1", "preset": "virtual-cnc", "verify_writes": "sometimes"},
      "opcua adapter: verify_writes must be true, false, 'immediate' or 'deferred', not 'sometimes'"),
     ({"type": "opcua", "url": "opc.tcp://h:1"},
@@ -175,7 +178,7 @@ def test_offset_sign_is_plus_or_minus_one_in_any_spelling():
             open_adapter({"type": "sim", "offset_sign": bad})
 
 
-@pytest.mark.parametrize("kind", ["opcua", "line", "haas", "modbus"])
+@pytest.mark.parametrize("kind", ["opcua", "line", "haas", "modbus", "plc", "focas", "haas-mdc"])
 @pytest.mark.parametrize("bad", ["abc", "0", "-1", "inf", "nan"])
 def test_timeout_s_is_a_finite_number_above_zero(kind, bad):
     sep = "&" if "?" in MINIMAL[kind] else "?"

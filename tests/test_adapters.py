@@ -72,7 +72,8 @@ class Rig:
     outside_write: Callable[[float], None]  # someone else sets the controller's offset (its unit)
 
 
-BACKENDS = ["sim", "opcua-asyncua", "opcua-node", "haas", "line", "modbus"]
+BACKENDS = ["sim", "opcua-asyncua", "opcua-node", "haas", "line", "modbus", "focas", "plc-s7",
+            "plc-modbus-tcp", "plc-ads"]
 
 
 def opcua_write(url: str, node_id: str, value: float) -> None:
@@ -138,6 +139,30 @@ def rig(request, tmp_path):
         finally:
             dev.stop()
             pty.close()
+    elif kind == "focas":
+        from cnc_adapters.focas import FocasAdapter
+        from cnc_adapters.sim.focas_server import FocasServer, PlainControl
+
+        control = PlainControl()
+        with FocasServer(control) as srv:
+            yield Rig(lambda **kw: FocasAdapter("127.0.0.1", port=srv.port, **kw),
+                      lambda v: setattr(control, "speed_rpm", v), lambda: control.held_raw,
+                      lambda v: setattr(control, "held_raw", v))
+    elif kind.startswith("plc-"):
+        from cnc_adapters.plc import PlcAdapter
+        from cnc_adapters.sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
+
+        cls, addresses = {
+            "plc-s7": (S7Plc, {"offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4"}),
+            "plc-modbus-tcp": (ModbusTcpPlc, {"offset_address": "hr:0", "speed_address": "hr:2"}),
+            "plc-ads": (AdsPlc, {"offset_address": "GVL.fOffset", "offset_type": "REAL",
+                                 "speed_address": "GVL.fSpeed"})}[kind]
+        plc = cls(None, held_address=None, cutting_address=None, **addresses).start()  # its memory is the controller
+        try:
+            yield Rig(lambda **kw: PlcAdapter(protocol=cls.protocol, host=plc.host, port=plc.port, **addresses, **kw),
+                      lambda v: plc.put("speed", v), lambda: plc.get("offset"), lambda v: plc.put("offset", v))
+        finally:
+            plc.close()
     else:
         from pymodbus.client import ModbusSerialClient as C
 

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cnc_adapters import check_adapter
 from cnc_adapters.base import short
+from cnc_adapters.profiles import ControllerProfile, profile
 from compensator.errors import ConfigError, clip
 from compensator.observer import ObserverConfig
 from compensator.shaping import ShaperConfig
@@ -110,6 +111,54 @@ class SpindleConfig(BaseModel):
             raise ValueError("a name may not contain '..'")
         return v
 
+    @model_validator(mode="before")
+    @classmethod
+    def _profile_resolution(cls, data: Any) -> Any:
+        """A controller profile's resolution becomes the shaper's, unless shaping names one: the
+        offset then moves in whole counts of the control's value."""
+        if not isinstance(data, dict) or not isinstance(data.get("adapter"), dict) \
+                or "profile" not in data["adapter"]:
+            return data
+        try:
+            p = profile(data["adapter"]["profile"])
+        except ConfigError as err:
+            raise ValueError(str(err)) from err
+        shaping = data.get("shaping")
+        if isinstance(shaping, ShaperConfig):
+            if "resolution_um" not in shaping.model_fields_set:
+                shaping = shaping.model_copy(update={"resolution_um": p.resolution_um})
+        else:
+            shaping = dict(shaping or {})
+            shaping.setdefault("resolution_um", p.resolution_um)
+        return {**data, "shaping": shaping}
+
+    @model_validator(mode="after")
+    def _within_profile(self) -> SpindleConfig:
+        """The clamp within what the control takes: its limit, and twice the clamp (the largest
+        move the shaper can make) below the step that raises its alarm."""
+        p = self.profile
+        if p is None:
+            return self
+        m = self.shaping.max_offset_um
+        if m > p.limit_um:
+            raise ValueError(f"shaping.max_offset_um {m:g} is past what profile {p.name!r} takes "
+                             f"({p.limit:g} {p.unit} = {p.limit_um:g} um)")
+        if p.max_step_um is not None and 2 * m > p.max_step_um:
+            raise ValueError(f"shaping.max_offset_um {m:g}: a move across the clamp ({2 * m:g} um) "
+                             f"would raise profile {p.name!r}'s step alarm ({p.max_step_um:g} um)")
+        return self
+
+    @property
+    def profile(self) -> ControllerProfile | None:
+        """The controller profile the adapter names, if any."""
+        name = self.adapter.get("profile")
+        return None if name is None else profile(name)
+
+    @property
+    def route(self) -> str | None:
+        p = self.profile
+        return None if p is None else self.adapter.get("route") or next(iter(p.routes))
+
     def refuse_other_spindle(self, model_spindle_id: str) -> None:
         """ConfigError when ``spindle_id`` is set and the model file is for another spindle."""
         if self.spindle_id is not None and model_spindle_id != self.spindle_id:
@@ -119,8 +168,8 @@ class SpindleConfig(BaseModel):
     @field_validator("adapter")
     @classmethod
     def _adapter(cls, v: dict[str, Any]) -> dict[str, Any]:
-        if "type" not in v and "url" not in v:
-            raise ValueError("adapter needs a 'type' or a 'url'")
+        if "type" not in v and "url" not in v and "profile" not in v:
+            raise ValueError("adapter needs a 'type', a 'url' or a 'profile'")
         for secret in ("password", "passwd", "secret"):
             if secret in v:
                 raise ValueError(f"adapter.{secret}: passwords never go in the configuration file; "

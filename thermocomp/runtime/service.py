@@ -329,6 +329,10 @@ def check(config_path: str) -> int:
                 extra += f", holds offset {link.read_offset_um():.3f} um"
             extra += "; " + shaping_check(sc, link)
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
+        if sc.profile is not None:
+            res = (f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"
+                   if sc.shaping.resolution_um else "")
+            print(f"{sc.name}: {sc.profile.describe(sc.route)}{res}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
 

@@ -1,0 +1,345 @@
+"""Haas NGC Machine Data Collection (MDC) over TCP: the Haas Q/E commands of
+:class:`~cnc_adapters.serial_link.HaasAdapter` on the control's MDC port instead of RS-232.
+
+Setting 143 enables MDC and is the TCP port (5051 in Haas's example). The requests and the reply
+parsing are :class:`~cnc_adapters.serial_link.HaasAdapter`'s own, composed here (an inner
+instance whose line exchange is this link's socket): ``?Q600 <var>`` reads a macro variable
+(speed #3027 by default, the offset's ``offset_var`` read back), ``?E<var> <value>`` writes one,
+answered ``!`` (taken) or ``?`` (refused: :class:`WriteRejectedError`), and the probe cycle's
+measurement handshake reads ``measurement_sequence_var``, ``measurement_var`` (and
+``measurement_sigma_var``) the same way.
+
+The transport, one request line and one reply line:
+
+- before each request the input left on the socket is dropped (a late reply, the ``>`` prompt,
+  output another MDC client asked for: the control sends every reply to all its connections);
+- a reply line ends at a line feed or at ETB (0x17); what is outside the STX (0x02) ... ETB
+  frame, the ``>`` prompts and an echo of the request are taken off; an empty line is skipped;
+- ``MACRO, <value>`` (the form reported from an NGC over TCP) is read as ``MACRO, <var>,
+  <value>`` (the form reported over RS-232) for the variable asked for;
+- output that cannot answer the request is skipped, not taken: every request's echo, a
+  ``MACRO`` reply naming another variable, anything but ``!`` or a refusal after a ``?E`` (the
+  control sends every reply to all its connections, so another MDC client's can arrive while
+  this one waits; a bare ``MACRO, <value>`` of another client's ``?Q600`` cannot be told apart:
+  ``docs/controls/haas.md``, pitfalls);
+- no reply within ``timeout_s``, or half a line: :class:`AdapterTimeoutError`, and the
+  connection is dropped (a peer that went silent is often a half-open connection; the next call
+  connects again); the first request on a new connection is sent once more when it draws no
+  reply (Haas: the first ``?Q100`` "may have to be entered twice");
+- a refused or lost connection, and the control's "too many connections" (MDC takes two):
+  :class:`UnreachableError`; the next call reconnects, with the back-off of
+  :class:`~cnc_adapters.base.Link`.
+
+URL form: ``haas://host:5051?offset_var=10500``.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import time
+from typing import Annotated, Any, ClassVar
+from urllib.parse import urlsplit
+
+from pydantic import Field, model_validator
+
+from .base import (
+    Adapter,
+    AdapterError,
+    AdapterSettings,
+    AdapterTimeoutError,
+    Allowed,
+    BadValueError,
+    Count,
+    NonZero,
+    RawMeasurement,
+    Seconds,
+    Text,
+    UnreachableError,
+    query_params,
+)
+from .serial_link import HaasAdapter, check_macros
+
+__all__ = ["HaasMdcAdapter", "HaasMdcSettings"]
+
+STX, ETB = "\x02", "\x17"
+REJECT_REPLY = r"^>?\s*(\?|INVALID|ERROR|NOT ALLOWED|UNKNOWN).*"
+"""The Haas refusals of :class:`HaasAdapter`, and ``UNKNOWN`` (reported for an unsupported
+command)."""
+
+_Q600 = re.compile(r"^\?Q600\s+(\d+)$")
+_BARE_MACRO = re.compile(r"^MACRO\s*,\s*([^,]*)$")
+_NAMED_MACRO = re.compile(r"^MACRO\s*,\s*(\d+)\s*,")
+_ECHO = re.compile(r"^\?[QE]\d")
+_TOO_MANY = re.compile(r"too many connections", re.IGNORECASE)
+
+
+class HaasMdcSettings(AdapterSettings):
+    """The options of :class:`HaasMdcAdapter`: the TCP endpoint, and the Haas options of
+    :class:`~cnc_adapters.serial_link.HaasSettings` (the same names, defaults and checks)."""
+
+    host: Annotated[str, Field(min_length=1), Allowed("a host name or IP address of the control")]
+    port: Annotated[int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535 (the control's "
+                                                        "Setting 143)")] = 5051
+    timeout_s: Seconds = Field(1.0, description="for one reply line")
+    connect_timeout_s: Seconds = Field(3.0, description="for the TCP connection")
+    eol: Text = Field("\r\n", description="end of line, sent and expected")
+    speed_var: Count = Field(3027, description="macro variable of the actual speed")
+    offset_var: Count = Field(10500, description="macro variable the offset goes to")
+    offset_decimals: Annotated[int, Field(ge=0, le=8), Allowed("a whole number 0..8")] = 4
+    # the closed loop; None: no measurement (the defaults are not validated)
+    measurement_var: Count = Field(  # type: ignore[assignment]
+        None, description="closed loop: the macro variable the probe cycle leaves its measurement in")
+    measurement_sequence_var: Count = Field(  # type: ignore[assignment]
+        None, description="the macro variable the probe cycle changes after writing the measurement")
+    measurement_sigma_var: Count = Field(  # type: ignore[assignment]
+        None, description="optional: the macro variable of the measurement's sigma")
+    measurement_scale: NonZero = Field(  # type: ignore[assignment]
+        None, description="macro unit per um of the measurement; default offset_scale")
+
+    @model_validator(mode="after")
+    def _measurement(self) -> HaasMdcSettings:
+        check_macros("", self.offset_var, self.measurement_var, self.measurement_sequence_var,
+                     self.measurement_sigma_var, ValueError)
+        return self
+
+
+class _MdcProtocol(HaasAdapter):
+    """:class:`HaasAdapter`'s requests and replies, each line exchanged by the MDC link."""
+
+    name = "haas-mdc"
+
+    def __init__(self, link: HaasMdcAdapter, **haas: Any):
+        super().__init__(link.address, eol=link.eol, timeout_s=link.timeout_s,
+                         reject_reply=REJECT_REPLY, **haas)
+        self._link = link
+
+    def exchange(self, request: str | None) -> str:
+        assert request is not None  # the Haas commands are all requests
+        return self._link.exchange(request)
+
+
+class HaasMdcAdapter(Adapter):
+    """Haas NGC MDC over TCP (see the module docstring): speed from macro #3027, the offset to
+    a macro variable ``offset_var``, read back with ``?Q600``; a macro on the control applies it
+    (``docs/controls/haas.md``)."""
+
+    name = "haas-mdc"
+    Settings: ClassVar[type[AdapterSettings]] = HaasMdcSettings
+    can_read_offset: ClassVar[bool] = True
+    can_read_measurement: ClassVar[bool] = True  # an instance without measurement_var cannot
+
+    def __init__(
+        self,
+        host: str,
+        port: int = 5051,
+        *,
+        timeout_s: float = 1.0,
+        connect_timeout_s: float = 3.0,
+        eol: str = "\r\n",
+        speed_var: int = 3027,
+        offset_var: int = 10500,
+        offset_decimals: int = 4,
+        measurement_var: int | None = None,
+        measurement_sequence_var: int | None = None,
+        measurement_sigma_var: int | None = None,
+        measurement_scale: float | None = None,
+        **scaling: Any,
+    ):
+        super().__init__(**scaling)
+        self.host = str(host)
+        self.port = int(port)
+        self.timeout_s = float(timeout_s)
+        self.connect_timeout_s = float(connect_timeout_s)
+        self.eol = eol
+        self._sock: socket.socket | None = None
+        self._buf = b""
+        self._fresh = False  # no request answered yet on this connection
+        self._proto = _MdcProtocol(
+            self, speed_var=speed_var, offset_var=offset_var, offset_decimals=offset_decimals,
+            measurement_var=measurement_var, measurement_sequence_var=measurement_sequence_var,
+            measurement_sigma_var=measurement_sigma_var, measurement_scale=measurement_scale)
+        self.speed_var = self._proto.speed_var
+        self.offset_var = self._proto.offset_var
+        self.can_read_measurement = self._proto.can_read_measurement  # type: ignore[misc]
+        self.measurement_scale = measurement_scale
+
+    @property
+    def address(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+    @classmethod
+    def url_options(cls, url: str) -> dict[str, Any]:
+        """``haas://host:5051?offset_var=10500`` (the port defaults to 5051)."""
+        parts = urlsplit(url)
+        out: dict[str, Any] = {"host": parts.hostname or ""}
+        try:
+            if parts.port is not None:
+                out["port"] = parts.port
+        except ValueError:  # not a port: the settings say what is allowed
+            out["port"] = parts.netloc.rpartition(":")[2]
+        return {**out, **query_params(url)}
+
+    # -- the link ----------------------------------------------------------------------
+
+    def _connect(self) -> None:
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
+        except OSError as err:
+            raise UnreachableError(f"{self.name}: cannot connect to {self.address}: {err}") from err
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)  # Haas: keep MDC open
+        except OSError:  # noqa: S110 - an option the platform lacks is no reason to fail
+            pass
+        self._sock, self._buf, self._fresh = sock, b"", True
+
+    def _disconnect(self) -> None:
+        sock, self._sock = self._sock, None
+        self._buf = b""
+        if sock is not None:
+            try:
+                sock.close()
+            except OSError:  # noqa: S110 - the peer may be gone already
+                pass
+
+    def _abort(self) -> None:
+        sock = self._sock
+        if sock is not None:
+            try:
+                sock.shutdown(socket.SHUT_RDWR)  # a hung peer: do not wait for it
+            except OSError:  # noqa: S110 - already down
+                pass
+        self._disconnect()
+
+    def exchange(self, request: str) -> str:
+        """Send one request line and return the reply line, cleaned (see the module docstring)."""
+        self.open()
+        try:
+            reply = self._round_trip(request)
+        except AdapterTimeoutError as err:
+            if not self._fresh:
+                raise self._link_lost(str(err), AdapterTimeoutError) from err
+            # the first request on a new connection may go unanswered: once more
+            self._fresh = False
+            try:
+                reply = self._round_trip(request)
+            except AdapterTimeoutError as again:
+                raise self._link_lost(str(again), AdapterTimeoutError) from again
+        self._fresh = False
+        return reply
+
+    def _round_trip(self, request: str) -> str:
+        sock = self._sock
+        assert sock is not None
+        try:
+            self._drain(sock)
+            sock.settimeout(self.timeout_s)
+            sock.sendall((request + self.eol).encode("ascii"))
+        except UnreachableError:
+            raise
+        except OSError as err:
+            raise self._link_lost(f"{self.name}: {self.address} lost: {err}") from err
+        deadline = time.monotonic() + self.timeout_s
+        end = self.eol[-1].encode("ascii")
+        while True:
+            line = self._take_line(end)
+            if line is not None:
+                reply = self._clean(line, request)
+                if reply:
+                    return reply
+                continue  # a prompt, an echo, an empty line
+            left = deadline - time.monotonic()
+            if left <= 0:
+                partial = self._clean(self._buf, request)
+                if partial:
+                    raise AdapterTimeoutError(f"{self.name}: partial reply {partial!r} to "
+                                              f"{request!r} from {self.address}")
+                raise AdapterTimeoutError(f"{self.name}: no reply to {request!r} from "
+                                          f"{self.address} within {self.timeout_s:g} s")
+            try:
+                sock.settimeout(left)
+                chunk = sock.recv(4096)
+            except TimeoutError:
+                continue  # the deadline decides
+            except OSError as err:
+                raise self._link_lost(f"{self.name}: {self.address} lost: {err}") from err
+            if not chunk:
+                raise self._peer_closed(self._buf)
+            self._buf += chunk
+
+    def _drain(self, sock: socket.socket) -> None:
+        """Drop what arrived unasked: a stale reply must never answer this request."""
+        self._buf = b""
+        sock.settimeout(0.0)
+        dropped = b""
+        while True:
+            try:
+                chunk = sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                return
+            if not chunk:
+                raise self._peer_closed(dropped)
+            dropped = (dropped + chunk)[-256:]
+
+    def _peer_closed(self, last: bytes) -> AdapterError:
+        """The control closed the connection; ``last``: what it sent before (its reason)."""
+        text = last.decode("ascii", "replace")
+        if _TOO_MANY.search(text):
+            return self._link_lost(f"{self.name}: {self.address} refused the connection: "
+                                   f"{text.strip(' >' + chr(13) + chr(10))!r} (MDC takes two connections)")
+        return self._link_lost(f"{self.name}: {self.address} closed the connection")
+
+    def _take_line(self, end: bytes) -> bytes | None:
+        """The first whole line in the buffer (ending at ``end`` or at ETB), or None."""
+        cuts = [i for i in (self._buf.find(end), self._buf.find(ETB.encode())) if i >= 0]
+        if not cuts:
+            return None
+        i = min(cuts)
+        line, self._buf = self._buf[:i + 1], self._buf[i + 1:]
+        return line
+
+    def _clean(self, raw: bytes, request: str) -> str:
+        """The reply text in ``raw`` ('' for none): the STX frame's content without prompts;
+        the bare ``MACRO, <value>`` named for the variable asked; '' for an echo and for output
+        that cannot answer ``request`` (another client's: the control sends to all)."""
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError as err:
+            raise BadValueError(f"{self.name}: garbage reply {raw!r} to {request!r}") from err
+        if STX in text:
+            text = text.rsplit(STX, 1)[1]  # an echo or a prompt may precede the frame
+        text = text.replace(ETB, "").strip().lstrip(">").strip()
+        if _TOO_MANY.search(text):
+            raise self._link_lost(f"{self.name}: {self.address} refused the connection: {text!r} "
+                                  "(MDC takes two connections)")
+        if not text or _ECHO.match(text):
+            return ""  # a prompt, or a request echoed (Setting 187), ours or another client's
+        refusal = self._proto.reject_reply.match(text) is not None
+        if request.startswith("?E"):
+            return text if refusal or text == "!" else ""
+        q = _Q600.match(request)
+        if q is None or refusal:
+            return text
+        bare = _BARE_MACRO.match(text)
+        if bare:
+            return f"MACRO, {q.group(1)}, {bare.group(1).strip()}"
+        named = _NAMED_MACRO.match(text)
+        if named and named.group(1) == q.group(1):
+            return text
+        return ""  # another variable, a write's '!', another query's reply
+
+    # -- the Haas requests (serial_link.HaasAdapter's) ------------------------------------
+
+    def _read_speed_raw(self) -> float:
+        return self._proto._read_speed_raw()
+
+    def _read_offset_raw(self) -> float:
+        return self._proto._read_offset_raw()
+
+    def _write_offset_raw(self, value: float) -> None:
+        self._proto._write_offset_raw(value)
+
+    def _read_measurement_raw(self) -> RawMeasurement | None:
+        return self._proto._read_measurement_raw()
