@@ -210,3 +210,30 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
     gaps = np.diff(np.concatenate([[t[0]], t[moved]]))
     steps = np.abs(np.diff(np.concatenate([[raw[0]], raw[moved]])))
     assert (steps <= 50.0e-3 * gaps + 1e-9).all()  # 50 um/s clear of the part, in mm
+
+
+def test_the_example_configuration_names_a_route_for_every_tested_family():
+    cfg = load_config(Path(__file__).resolve().parents[1] / "examples" / "controls.toml")
+    routes = {(s.profile.name, s.route) for s in cfg.spindle}
+    assert routes == {("sinumerik", "opcua"), ("sinumerik", "s7"), ("fanuc", "focas"), ("haas", "mdc"),
+                      ("beckhoff", "ads")}
+    fanuc = next(s for s in cfg.spindle if s.profile.name == "fanuc")
+    assert fanuc.shaping.resolution_um == 1.0  # whole detection units
+
+
+@pytest.mark.parametrize("name", ["virtual", *PROFILES])
+def test_the_demo_can_act_as_every_profile(tmp_path, name):
+    from thermocomp.demo import RUNTIME_CONFIG, demo_link
+
+    adapter, options = demo_link(name, "opc.tcp://127.0.0.1:4840/x/", tmp_path)
+    text = RUNTIME_CONFIG.format(state_dir=tmp_path, model=tmp_path / "m.json", adapter=adapter)
+    (tmp_path / "c.toml").write_text(text)
+    s = load_config(tmp_path / "c.toml").spindle[0]
+    link = check_adapter(s.adapter)
+    if name in ("virtual", "sinumerik"):
+        assert (s.profile.name if s.profile else "virtual") == name
+    else:  # the family's units on the virtual CNC's OPC UA node
+        p = profile(name)
+        assert (link.offset_scale, link.offset_sign) == (p.scale, p.sign)
+    if name == "sinumerik":
+        assert options["rights"]["thermocomp"] == {"SeaWrite"}

@@ -205,6 +205,10 @@ def _add_measure(sub: argparse._SubParsersAction) -> None:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
+    p.add_argument("--profile", default="virtual",
+                   choices=["virtual", "sinumerik", "fanuc", "heidenhain", "haas", "linuxcnc", "beckhoff"],
+                   help="the control the virtual CNC acts as: its unit, resolution, limits and own rate "
+                   "limit (sinumerik: SD43900 with the SeaWrite right); default its own um node")
     p.set_defaults(handler="thermocomp.demo:main")
 
 

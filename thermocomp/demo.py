@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import shutil
 import time
 from pathlib import Path
@@ -34,12 +35,17 @@ from rich.table import Table
 from calibration.calibrate import calibrate
 from calibration.data import run_from_log
 from calibration.plots import Panel, plot_panels
+from cnc_adapters.profiles import profile
 from cnc_adapters.sim import SpindlePlant, preset
+from cnc_adapters.sim.controls import EmulatedControl
 from cnc_adapters.sim.vcnc import (
     NAMESPACE_URI,
     NODE_PATHS,
+    SINUMERIK_SD43900_NODE,
+    STATE_PATHS,
     VirtualCNC,
     VirtualMachine,
+    free_port,
     running,
     step,
 )
@@ -68,7 +74,7 @@ name = "demo"
 model = "{model}"
 period_s = 1.0
 run_up_period_s = 0.25             # while the spindle changes speed, the tool clear of the part
-adapter = {{url = "{url}", preset = "virtual-cnc"}}
+adapter = {adapter}
 [spindle.shaping]
 max_offset_um = 80.0
 max_rate_um_per_s = 1.0            # while cutting: the surface shows no step
@@ -79,6 +85,30 @@ mode = "dual-slew"
 [spindle.shaping.cutting]
 signal = "auto"                    # the virtual CNC's Cutting node (preset virtual-cnc)
 """
+DEMO_USER = "thermocomp"  # the virtual SINUMERIK's user with the SeaWrite right (--profile sinumerik)
+
+
+def demo_link(profile_name: str, url: str, outdir: Path) -> tuple[str, dict]:
+    """The runtime's adapter (a TOML inline table) for ``profile_name`` on the virtual CNC at
+    ``url``, and the virtual CNC's own options for it. SINUMERIK: its route, SD43900 with the
+    SeaWrite right; another family: its units, resolution and limits on the OPC UA offset node
+    (its own route, FOCAS or MDC or a PLC, has its end-to-end test); virtual: um, as before."""
+    if profile_name == "virtual":
+        return f'{{url = "{url}", preset = "virtual-cnc"}}', {}
+    p = profile(profile_name)
+    if profile_name == "sinumerik":
+        secret = outdir / "opcua-password"
+        secret.write_text("demo-only\n")
+        secret.chmod(0o600)
+        os.environ.setdefault("THERMOCOMP_DEMO_USER", DEMO_USER)
+        return (f'{{profile = "sinumerik", route = "opcua", url = "{url}", '
+                f'offset_node = "ns=2;s={SINUMERIK_SD43900_NODE}", username_env = "THERMOCOMP_DEMO_USER", '
+                f'password_file = "{secret}", cutting_node = "ns=2;s={STATE_PATHS["cutting"]}"}}',
+                {"users": {DEMO_USER: "demo-only"}, "rights": {DEMO_USER: {"SeaWrite"}}})
+    units = f"offset_scale = {p.scale!r}, offset_sign = {p.sign}, offset_resolution = {p.resolution!r}"
+    return f'{{url = "{url}", preset = "virtual-cnc", {units}}}', {}
+
+
 PHASE_WINDOW_S = 300.0
 """A cut within this long after a speed change is in a transient phase."""
 
@@ -213,12 +243,21 @@ def main(args: argparse.Namespace) -> int:
     state_dir = outdir / "runtime"
     if state_dir.exists():
         shutil.rmtree(state_dir)  # a fresh run: no state or journal from an earlier demo
-    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
+    adapter, cnc_options = demo_link(args.profile, url, outdir)
+    control = None if args.profile == "virtual" else EmulatedControl(vm, profile(args.profile))
+    with running(VirtualCNC(vm, tick_s=None, port=port, control=control, **cnc_options)) as cnc:
         config = outdir / "machine.toml"
-        config.write_text(RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json",
-                                                url=cnc.url))
+        text = RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json", adapter=adapter)
+        if control is not None and control.profile.resolution:
+            text = text.replace("deadband_um = 0.1\n", "deadband_um = 0.1\nresolution_um = "
+                                f"{control.profile.resolution_um!r}   # one count of the control\n")
+        config.write_text(text)
         out.print(f"3/4 `thermocomp run` with {config}: compensating {prog.duration_s / 3600:.1f} h "
                   f"of a job-shop day over OPC UA ({cnc.url}, 1 s cycle, in lock-step with the virtual CNC) ...")
+        if control is not None:
+            out.print(f"    the virtual CNC acts as {control.profile.title}: {control.profile.describe()}")
         next_report = [clock()]
 
         def report(rt) -> None:
@@ -271,7 +310,8 @@ def main(args: argparse.Namespace) -> int:
                             measured_label="true elongation (uncompensated error)",
                             predicted_label="applied compensation (-offset)",
                             residual_label="compensated error while cutting", scored=cutting)],
-                f"thermocomp demo: {PRESET}, model {model.form}", max_rpm=params.max_rpm)
+                f"thermocomp demo: {PRESET}, model {model.form}"
+                + ("" if args.profile == "virtual" else f", profile {args.profile}"), max_rpm=params.max_rpm)
     out.print(f"plot: {png}   logs and model: {outdir}/   ({time.monotonic() - started:.0f} s)")
     if not np.sqrt(np.mean(compensated**2)) < np.sqrt(np.mean(true**2)):
         out.print("[red]compensation did not reduce the RMS error[/red]")
@@ -298,7 +338,8 @@ def closed_loop(out: Console, outdir: Path, params, model) -> dict[str, float]:
         shutil.rmtree(state_dir)
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
         config = outdir / "machine-closed-loop.toml"
-        config.write_text(RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json", url=cnc.url)
+        config.write_text(RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json",
+                                            adapter=f'{{url = "{cnc.url}", preset = "virtual-cnc"}}')
                           + CLOSED_LOOP_CONFIG.format(stale=2 * PROBE_EVERY_S))
         out.print(f"4/4 closed loop, `thermocomp run` with {config}: the shop warms by "
                   f"{AMBIENT_DRIFT_K_PER_H:g} K/h, which the model does not know; the virtual tool setter "

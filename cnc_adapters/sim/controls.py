@@ -9,9 +9,9 @@ shows the offset as the control applies it. Every emulated server (OPC UA, S7, M
 FOCAS, Haas MDC) hands the written value to :meth:`EmulatedControl.write_raw` and serves the
 read-back from :attr:`EmulatedControl.held_raw`.
 
-Lock-step: after ``machine.advance()`` call :meth:`EmulatedControl.sync`; it moves the applied
-value toward the held one over the plant time elapsed, at the control's rate, and hands it to
-the machine.
+Lock-step: call :meth:`EmulatedControl.sync` once the machine's clock has moved on (before or
+after ``machine.advance()``); it moves the applied value toward the held one over the clock
+time elapsed, at the control's rate, and hands it to the machine.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class EmulatedControl:
         if self.rate_um_per_s is None:
             self.rate_um_per_s = self.profile.control_rate_um_per_s or math.inf
         self._lock = threading.Lock()
-        self._synced_s = self.machine.plant.time_s
+        self._synced_s = self.machine.clock()
         self.machine.apply_offset(self.applied_um)
 
     @property
@@ -99,10 +99,10 @@ class EmulatedControl:
             return True
 
     def sync(self) -> None:
-        """Move the applied value toward the held one over the plant time since the last call, at
+        """Move the applied value toward the held one over the clock time since the last call, at
         the control's rate, and hand it to the machine."""
         with self._lock:
-            now = self.machine.plant.time_s
+            now = self.machine.clock()
             dt = max(0.0, now - self._synced_s)
             self._synced_s = now
             target = self.held_um

@@ -554,13 +554,12 @@ class VirtualCNC:
                 if not self.control.write_raw(written):
                     await node.write_value(float(self.control.held_raw))
                 self._seen_raw = float(self.control.held_raw)
+            self.control.sync()  # the axis moves to the held value at the control's rate
         if m.pending is not None and await self._nodes["cycle_start"].read_value():
             m.advance()  # the program starts now, not at the last tick
             m.cycle_start()
             await self._nodes["cycle_start"].write_value(False)
         m.advance()
-        if self.control is not None:
-            self.control.sync()  # the axis moves to the held value at the control's rate
         await self._publish()
 
     async def _publish(self) -> None:
