@@ -237,3 +237,19 @@ def test_the_demo_can_act_as_every_profile(tmp_path, name):
         assert (link.offset_scale, link.offset_sign) == (p.scale, p.sign)
     if name == "sinumerik":
         assert options["rights"]["thermocomp"] == {"SeaWrite"}
+
+
+def test_thermocomp_controls_lists_the_profiles_and_shows_one(capsys):
+    from thermocomp.cli import build_parser, main
+
+    assert main(["controls"]) == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in PROFILES)
+    assert main(["controls", "sinumerik"]) == 0
+    shown = capsys.readouterr().out
+    assert "route opcua" in shown and "route s7" in shown and "$$SA_TEMP_COMP_ABS_VALUE[Z]" in shown
+    assert main(["controls", "nope"]) != 0
+    assert "unknown controller profile 'nope'" in capsys.readouterr().err
+    demo = next(a for a in build_parser()._subparsers._group_actions[0].choices["demo"]._actions
+                if a.dest == "profile")
+    assert set(demo.choices) == set(PROFILES)  # the demo can act as every profile

@@ -212,6 +212,14 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="thermocomp.demo:main")
 
 
+def _add_controls(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("controls", help="controller profiles: what each control family does with the offset")
+    p.add_argument("name", nargs="?", help="a profile (sinumerik, fanuc, heidenhain, haas, linuxcnc, "
+                   "beckhoff, virtual): its routes, units, limits and the NC/PLC snippet")
+    p.add_argument("--json", action="store_true", help="print as JSON")
+    p.set_defaults(handler="thermocomp.commands.controls:main")
+
+
 def _add_profile(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("profile", help="write the NC program of the calibration (or validation) profile")
     p.add_argument("--max-rpm", type=float, required=True, help="the spindle's maximum speed [rpm]")
@@ -334,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
+    for add in (_add_demo, _add_controls, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
                 _add_measure, _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
