@@ -47,6 +47,8 @@ class Route(BaseModel):
     tested: str = Field(description="how this route is tested here")
     control_side: str = Field(description="what the integrator must do on the control")
     requires: tuple[str, ...] = Field((), description="adapter options the user must give")
+    fixed: dict[str, Any] = Field(default_factory=dict, description="options the profile's units "
+                                  "hold for: a user's other value is refused")
 
 
 class ControllerProfile(BaseModel):
@@ -168,9 +170,9 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
     ControllerProfile(
         name="sinumerik", title="Siemens SINUMERIK 840D sl / ONE", unit="mm (SD43900, a REAL)",
         scale=0.001, sign=-1, resolution=0.0, limit=1.0,
-        control_rate_um_per_s=100.0,
-        rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO; 100 um/s is "
-                    "0.0001 x 60 m/min, read yours off the machine",
+        control_rate_um_per_s=5000.0,
+        rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO: the default "
+                    "factor 0.01 of 30 m/min; read yours off the machine",
         readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
         snippet=_SINUMERIK_SNIPPET, doc="docs/controls/sinumerik.md",
         routes={
@@ -205,9 +207,11 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 requires=("host",)),
         }),
     ControllerProfile(
-        name="heidenhain", title="HEIDENHAIN TNC", unit="0.1 um (PLC word)",
-        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=32767.0,
-        control_rate_um_per_s=1.0, rate_source="the TNC follows W576-W582 at 1 um/s",
+        name="heidenhain", title="HEIDENHAIN TNC",
+        unit="0.1 um (module 9231, TNC 426/430; W576-W582 of older TNCs take 1 um: the PLC divides by 10)",
+        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=30000.0,
+        control_rate_um_per_s=1.0, rate_source="the TNC follows W576-W582 at 1 um/s; module "
+        "9231's rate is not documented publicly, taken the same",
         readback="the PLC word read back (any PLC route)",
         snippet=_HEIDENHAIN_SNIPPET, doc="docs/controls/heidenhain.md",
         routes={
@@ -245,7 +249,8 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
         scale=0.001, sign=-1, resolution=0.00001, limit=1.0,
         control_rate_um_per_s=None,
         rate_source="",
-        readback="axis.z.eoffset-request (what motion applies)",
+        readback="axis.z.eoffset-request (the external offset motion is asked to apply; "
+                 "axis.z.eoffset, what it has reached, lags and stops at a soft limit)",
         snippet=_LINUXCNC_SNIPPET, doc="docs/controls/linuxcnc.md",
         routes={
             "hal": Route(
@@ -253,7 +258,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 library="LinuxCNC's hal module", tested="a real LinuxCNC (halrun and a simulator "
                 "configuration)",
                 control_side="[AXIS_Z] OFFSET_AV_RATIO; net the eoffset pins",
-                requires=()),
+                fixed={"axis_units": "mm"}),
         }),
     ControllerProfile(
         name="beckhoff", title="Beckhoff TwinCAT CNC",
@@ -312,6 +317,10 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if "type" in user and user["type"] != r.adapter.get("type"):
         raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
                           f"uses type {r.adapter.get('type')!r}, not {user['type']!r}")
+    for key, value in r.fixed.items():
+        if key in user and user[key] != value:
+            raise ConfigError(f"adapter: profile {p.name!r} is for {key} = {value!r} ({p.unit}), not "
+                              f"{user[key]!r}: drop the profile and give the units yourself")
     # a URL carries the host (and the port)
     missing = [k for k in r.requires if k not in user and not (k == "host" and "url" in user)]
     if missing:

@@ -235,7 +235,8 @@ def test_a_value_outside_the_integer_type_is_refused_before_anything_is_sent(pro
             link.write_offset_um(-3276.7)
             assert plc.get("offset") == 32767
             plc.sync()
-            assert control.held_raw == 32767  # the HEIDENHAIN word's own limit
+            # the INT takes it, the control does not: module 9231 takes +-30000
+            assert control.held_raw == 0 and "past the control's limit 30000" in control.last_refusal
             before = plc.get("offset")
             with pytest.raises(BadValueError, match=r"outside INT \(-32768..32767\); nothing written"):
                 link.write_offset_um(-3276.8)

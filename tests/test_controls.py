@@ -66,6 +66,8 @@ def test_a_profile_presets_the_adapter_and_fixes_the_units():
         adapter_settings({"profile": "sinumerik", "route": "modbus"})
     with pytest.raises(ConfigError, match="unknown controller profile 'fanucc'; known: sinumerik"):
         adapter_settings({"profile": "fanucc"})
+    with pytest.raises(ConfigError, match="profile 'linuxcnc' is for axis_units = 'mm'"):
+        adapter_settings({"profile": "linuxcnc", "axis_units": "inch"})
     with pytest.raises(ConfigError, match="'route' goes with 'profile'"):
         adapter_settings({"type": "sim", "route": "s7"})
 
@@ -154,7 +156,7 @@ def _give_access(url: str, user: str, password: str, who: str) -> None:
     try:
         methods = client.get_node(f"ns=2;s={SINUMERIK_GIVE_ACCESS.rpartition('/')[0]}")
         methods.call_method(client.get_node(f"ns=2;s={SINUMERIK_GIVE_ACCESS}"), ua.Variant(who, ua.VariantType.String),
-                            ua.Variant("SeaWrite", ua.VariantType.String))
+                            ua.Variant("StateRead; SeaRead; SeaWrite", ua.VariantType.String))
     finally:
         client.disconnect()
 
@@ -183,9 +185,9 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
         assert rows[-1]["alarms"] & int(Alarm.WRITE_REJECTED)
         assert abs(vm.history().tool_tip_error_um[-1]) > 3.0  # the growth goes uncompensated
         # an operator cannot give the right; the administrator can
-        from asyncua.ua.uaerrors import BadUserAccessDenied
+        from asyncua.ua.uaerrors import BadInvalidArgument
 
-        with pytest.raises(BadUserAccessDenied):
+        with pytest.raises(BadInvalidArgument):
             _give_access(cnc.url, "thermocomp", "tc-pw", "thermocomp")
         _give_access(cnc.url, "auduser", "adm-pw", "thermocomp")
         while not vm.program_done:
@@ -253,3 +255,27 @@ def test_thermocomp_controls_lists_the_profiles_and_shows_one(capsys):
     demo = next(a for a in build_parser()._subparsers._group_actions[0].choices["demo"]._actions
                 if a.dest == "profile")
     assert set(demo.choices) == set(PROFILES)  # the demo can act as every profile
+
+
+def test_run_check_prints_what_the_profile_will_do_and_warns_of_a_slow_control(tmp_path, calibrated_model,
+                                                                              capsys):
+    from cnc_adapters.sim.plc_servers import S7Plc
+    from thermocomp.runtime.service import check
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=SteppedClock())
+    vm.override_speed(9000.0)
+    vm.clock.advance(5.0)
+    vm.advance()
+    with S7Plc(EmulatedControl(vm, profile("heidenhain")), offset_type="INT",
+               offset_address="DB100.DBW0", held_address=None) as plc:
+        plc.sync()
+        cfg = tmp_path / "m.toml"
+        cfg.write_text(f'state_dir = "{tmp_path}"\n[[spindle]]\nname = "tnc"\nmodel = "{calibrated_model}"\n'
+                       f'[spindle.adapter]\nprofile = "heidenhain"\nprotocol = "s7"\nhost = "127.0.0.1"\n'
+                       f'port = {plc.port}\noffset_address = "DB100.DBW0"\nspeed_address = "DB100.DBD4"\n')
+        assert check(str(cfg)) == 0
+    out = capsys.readouterr().out
+    assert "tnc: profile heidenhain (HEIDENHAIN TNC), route plc" in out
+    assert "in whole counts of 0.1 um" in out and "speed 9000 rpm" in out
+    assert "warning: the control moves the offset at most 1 um/s, slower than the shaping's 50 um/s" in out
+    assert plc.passed_on == 0  # --check writes nothing

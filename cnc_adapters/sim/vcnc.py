@@ -480,8 +480,10 @@ class VirtualCNC:
         vcnc = self
 
         @uamethod
-        def give_user_access(parent, user, right):
-            vcnc.rights.setdefault(str(user), set()).add(str(right))
+        def give_user_access(parent, user, realms):
+            # "StateRead; SeaRead; SeaWrite": one call may grant several
+            vcnc.rights.setdefault(str(user), set()).update(
+                r.strip() for r in str(realms).split(";") if r.strip())
             return ua.Variant(True, ua.VariantType.Boolean)
 
         method = await (await folder("/Methods")).add_method(
@@ -516,7 +518,8 @@ class VirtualCNC:
                 # GiveUserAccess: the administrators only (the session's user, once activated)
                 if any(req.MethodId == method_id for req in params) and \
                         getattr(session.user, "name", None) not in vcnc.admins:
-                    return [ua.CallMethodResult(StatusCode=ua.StatusCode(ua.StatusCodes.BadUserAccessDenied))
+                    # as SINUMERIK documents it: a caller who is no administrator
+                    return [ua.CallMethodResult(StatusCode=ua.StatusCode(ua.StatusCodes.BadInvalidArgument))
                             for _ in params]
                 return await plain_call(params)
 

@@ -333,6 +333,11 @@ def check(config_path: str) -> int:
             res = (f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"
                    if sc.shaping.resolution_um else "")
             print(f"{sc.name}: {sc.profile.describe(sc.route)}{res}")
+            ctl = sc.profile.control_rate_um_per_s
+            if ctl is not None and ctl < sc.shaping.rate_limit_um_per_s:
+                print(f"{sc.name}: warning: the control moves the offset at most {ctl:g} um/s, slower "
+                      f"than the shaping's {sc.shaping.rate_limit_um_per_s:g} um/s: the elastic step of a "
+                      "speed change lands late, in the first seconds of the next cut")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
 
