@@ -41,7 +41,7 @@ import time
 from typing import Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from .base import (
     Adapter,
@@ -50,15 +50,13 @@ from .base import (
     AdapterTimeoutError,
     Allowed,
     BadValueError,
-    Count,
-    NonZero,
     RawMeasurement,
     Seconds,
     Text,
     UnreachableError,
     query_params,
 )
-from .serial_link import HaasAdapter, check_macros
+from .serial_link import HaasAdapter, HaasMacros
 
 __all__ = ["HaasMdcAdapter", "HaasMdcSettings"]
 
@@ -74,9 +72,9 @@ _ECHO = re.compile(r"^\?[QE]\d")
 _TOO_MANY = re.compile(r"too many connections", re.IGNORECASE)
 
 
-class HaasMdcSettings(AdapterSettings):
+class HaasMdcSettings(HaasMacros, AdapterSettings):
     """The options of :class:`HaasMdcAdapter`: the TCP endpoint, and the Haas options of
-    :class:`~cnc_adapters.serial_link.HaasSettings` (the same names, defaults and checks)."""
+    :class:`~cnc_adapters.serial_link.HaasSettings` (:class:`~cnc_adapters.serial_link.HaasMacros`)."""
 
     host: Annotated[str, Field(min_length=1), Allowed("a host name or IP address of the control")]
     port: Annotated[int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535 (the control's "
@@ -84,24 +82,6 @@ class HaasMdcSettings(AdapterSettings):
     timeout_s: Seconds = Field(1.0, description="for one reply line")
     connect_timeout_s: Seconds = Field(3.0, description="for the TCP connection")
     eol: Text = Field("\r\n", description="end of line, sent and expected")
-    speed_var: Count = Field(3027, description="macro variable of the actual speed")
-    offset_var: Count = Field(10500, description="macro variable the offset goes to")
-    offset_decimals: Annotated[int, Field(ge=0, le=8), Allowed("a whole number 0..8")] = 4
-    # the closed loop; None: no measurement (the defaults are not validated)
-    measurement_var: Count = Field(  # type: ignore[assignment]
-        None, description="closed loop: the macro variable the probe cycle leaves its measurement in")
-    measurement_sequence_var: Count = Field(  # type: ignore[assignment]
-        None, description="the macro variable the probe cycle changes after writing the measurement")
-    measurement_sigma_var: Count = Field(  # type: ignore[assignment]
-        None, description="optional: the macro variable of the measurement's sigma")
-    measurement_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="macro unit per um of the measurement; default offset_scale")
-
-    @model_validator(mode="after")
-    def _measurement(self) -> HaasMdcSettings:
-        check_macros("", self.offset_var, self.measurement_var, self.measurement_sequence_var,
-                     self.measurement_sigma_var, ValueError)
-        return self
 
 
 class _MdcProtocol(HaasAdapter):

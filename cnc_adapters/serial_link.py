@@ -243,21 +243,14 @@ class LineAdapter(SerialLine, Adapter):
             raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {request!r}")
 
 
-class HaasSettings(LineSettings):
-    """The options of :class:`HaasAdapter`; the requests and replies (line options) default to
-    the Q/E commands for ``speed_var`` and ``offset_var``."""
+class HaasMacros(BaseModel):
+    """The Haas macro-variable options, shared by the serial and the MDC (TCP) link."""
+
+    model_config = SETTINGS_CONFIG
 
     speed_var: Count = Field(3027, description="macro variable of the actual speed")
     offset_var: Count = Field(10500, description="macro variable the offset goes to")
     offset_decimals: Annotated[int, Field(ge=0, le=8), Allowed("a whole number 0..8")] = 4
-    speed_request: Text | None = None
-    speed_reply: ValuePattern | None = None
-    offset_request: OffsetRequest | None = None
-    offset_reply: Pattern | None = None
-    reject_reply: Pattern | None = None
-    offset_query: str | None = Field(None, description="default '?Q600 <offset_var>'; empty: "
-                                     "no read-back")
-    offset_query_reply: ValuePattern | None = None
     # the closed loop; None: no measurement (the defaults are not validated)
     measurement_var: Count = Field(  # type: ignore[assignment]
         None, description="closed loop: the macro variable the probe cycle leaves its measurement in")
@@ -269,10 +262,24 @@ class HaasSettings(LineSettings):
         None, description="macro unit per um of the measurement; default offset_scale")
 
     @model_validator(mode="after")
-    def _measurement(self) -> HaasSettings:
+    def _measurement(self) -> HaasMacros:
         check_macros("", self.offset_var, self.measurement_var, self.measurement_sequence_var,
                      self.measurement_sigma_var, ValueError)
         return self
+
+
+class HaasSettings(HaasMacros, LineSettings):
+    """The options of :class:`HaasAdapter`; the requests and replies (line options) default to
+    the Q/E commands for ``speed_var`` and ``offset_var``."""
+
+    speed_request: Text | None = None
+    speed_reply: ValuePattern | None = None
+    offset_request: OffsetRequest | None = None
+    offset_reply: Pattern | None = None
+    reject_reply: Pattern | None = None
+    offset_query: str | None = Field(None, description="default '?Q600 <offset_var>'; empty: "
+                                     "no read-back")
+    offset_query_reply: ValuePattern | None = None
 
 
 def check_macros(prefix: str, offset_var: int, value: int | None, sequence: int | None,

@@ -342,23 +342,27 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
         # from beyond the clamp the step itself leads in (the target is inside): no jump
         new_y = min(max(y + step, -m), m) if inside else y + step
         if q:
-            new_y, credit = _on_grid(y, new_y, q, limit)
+            new_y, credit = _on_grid(y, new_y, q, limit, m)
     if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 1e-9):
         releasing = False
     return ((new_y, target, n, window, latch_age, releasing, ref, settled, credit), flags, is_cutting,
             rate, word, desired)
 
 
-def _on_grid(y: float, new_y: float, q: float, limit: float) -> tuple[float, float]:
+def _on_grid(y: float, new_y: float, q: float, limit: float, m: float) -> tuple[float, float]:
     """A move from ``y`` toward ``new_y`` in whole counts of ``q``: the count nearest ``new_y``
-    on ``y``'s side (never past it, so neither the clamp nor the slew limit is crossed), and the
-    slew credit left (the allowance gathered while no whole count fitted, up to one count; 0
-    after a move, so each move is within the rate times the time since the last one)."""
+    where the slew ``limit`` and the clamp ``m`` allow it, else the nearest on ``y``'s side (never
+    past ``new_y``); and the slew credit left (the allowance gathered while no whole count fitted,
+    up to one count; 0 after a move, so each move is within the rate times the time since the
+    last one)."""
     eps = 1e-9 * q
+    g = round(new_y / q) * q
+    if abs(g - y) > eps and abs(g - y) <= limit + eps and abs(g) <= m + eps:
+        return min(max(g, y - limit, -m), y + limit, m), 0.0  # float noise never lands past a limit
     if new_y > y:
         g = math.floor(new_y / q + 1e-9) * q
         if g > y + eps:
-            return min(g, new_y), 0.0  # min: float noise never lands past the limit
+            return min(g, new_y), 0.0
     elif new_y < y:
         g = math.ceil(new_y / q - 1e-9) * q
         if g < y - eps:
