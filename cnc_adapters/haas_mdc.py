@@ -52,8 +52,8 @@ from .base import (
     BadValueError,
     RawMeasurement,
     Seconds,
-    Text,
     UnreachableError,
+    WriteRejectedError,
     query_params,
 )
 from .serial_link import HaasAdapter, HaasMacros
@@ -81,7 +81,8 @@ class HaasMdcSettings(HaasMacros, AdapterSettings):
                                                         "Setting 143)")] = 5051
     timeout_s: Seconds = Field(1.0, description="for one reply line")
     connect_timeout_s: Seconds = Field(3.0, description="for the TCP connection")
-    eol: Text = Field("\r\n", description="end of line, sent and expected")
+    eol: Annotated[str, Field(min_length=1, pattern=r"^[\x00-\x7f]+$"),
+                   Allowed("a non-empty ASCII string")] = Field("\r\n", description="end of line, sent and expected")
 
 
 class _MdcProtocol(HaasAdapter):
@@ -140,6 +141,7 @@ class HaasMdcAdapter(Adapter):
             measurement_var=measurement_var, measurement_sequence_var=measurement_sequence_var,
             measurement_sigma_var=measurement_sigma_var, measurement_scale=measurement_scale)
         self.speed_var = self._proto.speed_var
+        self._proto_decimals = int(offset_decimals)
         self.offset_var = self._proto.offset_var
         self.can_read_measurement = self._proto.can_read_measurement  # type: ignore[misc]
         self.measurement_scale = measurement_scale
@@ -320,6 +322,13 @@ class HaasMdcAdapter(Adapter):
 
     def _write_offset_raw(self, value: float) -> None:
         self._proto._write_offset_raw(value)
+        # the control answers every client: another's '!' may have been taken for ours, so
+        # the value is read back before the write counts as taken
+        held = self._proto._read_offset_raw()
+        step = 10.0 ** -self._proto_decimals
+        if not (isinstance(held, (int, float)) and abs(held - value) <= step / 2 + 1e-12):
+            raise WriteRejectedError(f"{self.name}: wrote {value!r} to #{self._proto.offset_var}, the "
+                                     f"control holds {held!r} (another client's reply taken for ours?)")
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         return self._proto._read_measurement_raw()

@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from compensator.errors import ConfigError
 
-__all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "profile"]
+__all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "control_count_um", "profile"]
 
 _FROZEN = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -121,7 +121,7 @@ class ControllerProfile(BaseModel):
         rate = (f"the control itself moves it at most {self.control_rate_um_per_s:g} um/s "
                 f"({self.rate_source})" if self.control_rate_um_per_s else
                 "the control applies each value at once (the shaper's slew is the only rate limit)")
-        step = f", an alarm at a step of {self.max_step:g} or more" if self.max_step else ""
+        step = f", an alarm at a step of more than {self.max_step:g}" if self.max_step else ""
         sign = "+S (the growth itself)" if self.sign == -1 else "-S (the offset A)"
         return (f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
                 f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
@@ -172,7 +172,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
         scale=0.001, sign=-1, resolution=0.0, limit=1.0,
         control_rate_um_per_s=5000.0,
         rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO: the default "
-                    "factor 0.01 of 30 m/min; read yours off the machine",
+                    "factor 0.01 of an example 30 m/min; read yours off the machine",
         readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
         snippet=_SINUMERIK_SNIPPET, doc="docs/controls/sinumerik.md",
         routes={
@@ -182,7 +182,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 "server): SD43900 node, writes refused without the SeaWrite right",
                 control_side="MD32750 bit 0 on the axis; the OPC UA option; a user with the SeaWrite "
                 "right (GiveUserAccess)",
-                requires=("url", "offset_node")),
+                requires=("url", "offset_node|offset_path")),
             "s7": Route(
                 adapter={"type": "plc", "protocol": "s7", "rack": 0, "slot": 2},
                 library="python-snap7", tested="python-snap7's own S7 server (snap7.server) on "
@@ -237,12 +237,12 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 "limit and the wear applied at G43 safe points",
                 control_side="Setting 143 (MDC port); a macro that re-applies the wear with G43 at "
                 "safe points",
-                requires=("host",)),
+                requires=("host",), fixed={"offset_decimals": 4}),
             "serial": Route(
                 adapter={"type": "haas"},
                 library="pyserial", tested="pseudo-terminals: real serial links to an emulated Haas",
                 control_side="the RS-232 port; the same macro as the MDC route",
-                requires=("port",)),
+                requires=("port",), fixed={"offset_decimals": 4}),
         }),
     ControllerProfile(
         name="linuxcnc", title="LinuxCNC 2.9", unit="mm (external-offset counts of 0.01 um)",
@@ -258,7 +258,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 library="LinuxCNC's hal module", tested="a real LinuxCNC (halrun and a simulator "
                 "configuration)",
                 control_side="[AXIS_Z] OFFSET_AV_RATIO; net the eoffset pins",
-                fixed={"axis_units": "mm"}),
+                fixed={"axis_units": "mm", "count_um": 0.01}),
         }),
     ControllerProfile(
         name="beckhoff", title="Beckhoff TwinCAT CNC",
@@ -272,7 +272,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
                 library="pyads", tested="pyads's own ADS test server on loopback",
                 control_side="an ADS route to the PC; temp_comp = 1, slope 0; the PLC checks "
                 "range and rate and writes TEMPC::offset_0",
-                requires=("host", "offset_address", "speed_address")),
+                requires=("host", "offset_address", "speed_address"), fixed={"offset_type": "DINT"}),
         }),
     ControllerProfile(
         name="virtual", title="thermocomp virtual CNC", unit="um (ThermalOffset)",
@@ -321,8 +321,8 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
         if key in user and user[key] != value:
             raise ConfigError(f"adapter: profile {p.name!r} is for {key} = {value!r} ({p.unit}), not "
                               f"{user[key]!r}: drop the profile and give the units yourself")
-    # a URL carries the host (and the port)
-    missing = [k for k in r.requires if k not in user and not (k == "host" and "url" in user)]
+    # "a|b": either will do
+    missing = [k.replace("|", " or ") for k in r.requires if not any(a in user for a in k.split("|"))]
     if missing:
         raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
                           f"needs {', '.join(missing)} ({p.doc})")
@@ -333,3 +333,19 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if not math.isfinite(float(merged["offset_scale"])):
         raise ConfigError("adapter: offset_scale must be finite")
     return merged
+
+
+def control_count_um(settings: Any) -> float:
+    """One count of the controller's offset value [um], from an adapter's validated settings:
+    ``offset_resolution`` (a profile's, or the user's), a Haas link's ``offset_decimals``, a
+    LinuxCNC link's ``count_um``; 0 where the value is continuous. The shaper must move in whole
+    multiples of it, or the rounding at the controller could cross the clamp or the slew limit."""
+    scale = abs(getattr(settings, "offset_scale", None) or 1.0)
+    resolution = getattr(settings, "offset_resolution", None)
+    if resolution:
+        return float(resolution) / scale
+    decimals = getattr(settings, "offset_decimals", None)
+    if decimals is not None:
+        return 10.0 ** -int(decimals) / scale
+    count = getattr(settings, "count_um", None)
+    return float(count) if count else 0.0

@@ -343,7 +343,7 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
         new_y = min(max(y + step, -m), m) if inside else y + step
         if q:
             new_y, credit = _on_grid(y, new_y, q, limit, m)
-    if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 1e-9):
+    if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 0.5 * q, 1e-9):
         releasing = False
     return ((new_y, target, n, window, latch_age, releasing, ref, settled, credit), flags, is_cutting,
             rate, word, desired)

@@ -81,7 +81,7 @@ def bench(protocol: str, prof: ControllerProfile | None = None, **plc_kw):
     control = EmulatedControl(machine(), p)
     plc = cls(control, **{**addresses, **plc_kw})
     options = {"type": "plc", "protocol": protocol, "host": plc.host, "port": plc.port,
-               "timeout_s": 0.3, "offset_scale": p.scale, "offset_sign": p.sign,
+               "timeout_s": 2.0, "offset_scale": p.scale, "offset_sign": p.sign,
                "offset_resolution": p.resolution, **addresses, **plc_kw}
     return plc, control, options
 
@@ -436,7 +436,8 @@ def assert_compensated(f: dict) -> None:
 
 def test_sinumerik_s7_route_end_to_end(tmp_path, calibrated_model):
     """SINUMERIK 840D sl: the offset as a REAL in mm (+S) in a DB; the builder's synchronized
-    action copies it to SD43900 (emulated: the PLC's scan, the control's 100 um/s)."""
+    action copies it to SD43900 (emulated: the PLC's scan and the control; its own rate limit,
+    MD32760, is made to bind in tests/test_controls.py)."""
     prof = profile("sinumerik")
     adapter = ('{profile = "sinumerik", route = "s7", host = "127.0.0.1", port = {port}, rack = 0, slot = 2, '
                'offset_address = "DB100.DBD0", speed_address = "DB100.DBD4", held_address = "DB100.DBD8", '
@@ -444,11 +445,6 @@ def test_sinumerik_s7_route_end_to_end(tmp_path, calibrated_model):
     out = plc_day(tmp_path, calibrated_model, prof, S7Plc, adapter)
     figures = check_day(*out, prof, growth_sign=+1)
     assert_compensated(figures)
-    vm = out[1]
-    # the control's own rate: the axis trails the held value, never faster than 100 um/s
-    h = vm.history()
-    moved = np.abs(np.diff(h.offset_um)) / np.diff(h.time_s)
-    assert moved.max() <= prof.control_rate_um_per_s + 1e-6
     assert figures["largest_step_raw"] <= FAST_RATE * prof.scale  # 0.0047 mm: a run-up's step
 
 
@@ -464,7 +460,7 @@ def test_beckhoff_ads_route_end_to_end(tmp_path, calibrated_model):
     figures = check_day(*out, prof, growth_sign=+1)
     assert_compensated(figures)
     assert out[1].offset_um == pytest.approx(out[2].held_um)  # applied at once: no control rate
-    assert figures["largest_step_raw"] <= FAST_RATE * prof.scale  # 47 counts (4.7 um)
+    assert figures["largest_step_raw"] <= FAST_RATE * prof.scale  # 46 counts (4.7 um)
 
 
 def test_generic_modbus_tcp_plc_end_to_end_with_explicit_units(tmp_path, calibrated_model):

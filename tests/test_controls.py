@@ -13,6 +13,7 @@ import pytest
 from controlrig import control_runtime
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_transients import assert_slow_while_cutting
 
 from cnc_adapters import check_adapter
 from cnc_adapters.profiles import PROFILES, adapter_settings, profile
@@ -28,6 +29,7 @@ from cnc_adapters.sim.vcnc import (
 )
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError
+from compensator.io import read_run_log
 from compensator.programs import Program
 from compensator.shaping import OffsetShaper, ShaperConfig
 from thermocomp.runtime import Alarm
@@ -60,7 +62,7 @@ def test_a_profile_presets_the_adapter_and_fixes_the_units():
     with pytest.raises(ConfigError, match="offset_scale is fixed by profile 'sinumerik'"):
         adapter_settings({"profile": "sinumerik", "url": "opc.tcp://h:4840", "offset_node": "x",
                           "offset_scale": 1.0})
-    with pytest.raises(ConfigError, match="needs offset_node"):
+    with pytest.raises(ConfigError, match="needs offset_node or offset_path"):
         check_adapter({"profile": "sinumerik", "url": "opc.tcp://h:4840"})
     with pytest.raises(ConfigError, match="no route 'modbus'; known: opcua, s7"):
         adapter_settings({"profile": "sinumerik", "route": "modbus"})
@@ -84,7 +86,16 @@ def test_the_runtime_config_takes_the_profiles_resolution_and_refuses_a_clamp_pa
     cfg = load_config(_spindle_config(tmp_path, fanuc))
     assert cfg.spindle[0].shaping.resolution_um == 1.0 and cfg.spindle[0].route == "focas"
     cfg = load_config(_spindle_config(tmp_path, fanuc, "resolution_um = 2.0"))
-    assert cfg.spindle[0].shaping.resolution_um == 2.0  # the user's own wins
+    assert cfg.spindle[0].shaping.resolution_um == 2.0  # the user's own, a whole multiple
+    for bad in ("0.0", "0.5", "1.5"):
+        with pytest.raises(ConfigError, match="whole multiple of the controller's count, 1 um"):
+            load_config(_spindle_config(tmp_path, fanuc, f"resolution_um = {bad}"))
+    # no profile: the units given by hand set the count all the same
+    plain = '{url = "focas://127.0.0.1:8193", offset_sign = -1, offset_resolution = 1.0}'
+    assert load_config(_spindle_config(tmp_path, plain)).spindle[0].shaping.resolution_um == 1.0
+    haas = '{profile = "haas", host = "127.0.0.1", offset_decimals = 3}'
+    with pytest.raises(ConfigError, match="profile 'haas' is for offset_decimals = 4"):
+        load_config(_spindle_config(tmp_path, haas))
     with pytest.raises(ConfigError, match=r"max_offset_um 600 is past what profile 'haas' takes"):
         load_config(_spindle_config(tmp_path, '{profile = "haas", host = "127.0.0.1"}', "max_offset_um = 600.0"))
 
@@ -166,35 +177,38 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
     monkeypatch.setenv("THERMOCOMP_OPCUA_PASSWORD", "tc-pw")
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=clock)
-    control = EmulatedControl(vm, profile("sinumerik"))
+    # MD32760 x MD32000 made to bind: the axis follows SD43900 at 0.5 um/s at most
+    control = EmulatedControl(vm, profile("sinumerik"), rate_um_per_s=0.5)
     vcnc = VirtualCNC(vm, tick_s=None, users={"thermocomp": "tc-pw", "auduser": "adm-pw"},
                       control=control, admins=frozenset({"auduser"}))
     with running(vcnc) as cnc:
         adapter = (f'{{profile = "sinumerik", route = "opcua", url = "{cnc.url}", '
                    f'offset_node = "ns=2;s={SINUMERIK_SD43900_NODE}", verify_writes = true}}')
         rt = control_runtime(tmp_path, calibrated_model, adapter, clock, period_s=2.0)
-        step(cnc)
-        rt.cycle()
-        vm.load_program(HEAT)
-        rows = []
-        for _ in range(60):  # two minutes at speed without the right: every write refused
-            clock.advance(rt.next_period_s())
+        try:
             step(cnc)
-            rows.append(rt.cycle())
-        assert cnc.denied_writes > 0 and control.held_raw == 0.0 and control.writes[-1].raw == 0.0
-        assert rows[-1]["alarms"] & int(Alarm.WRITE_REJECTED)
-        assert abs(vm.history().tool_tip_error_um[-1]) > 3.0  # the growth goes uncompensated
-        # an operator cannot give the right; the administrator can
-        from asyncua.ua.uaerrors import BadInvalidArgument
+            rt.cycle()
+            vm.load_program(HEAT)
+            rows = []
+            for _ in range(60):  # two minutes at speed without the right: every write refused
+                clock.advance(rt.next_period_s())
+                step(cnc)
+                rows.append(rt.cycle())
+            assert cnc.denied_writes > 0 and control.held_raw == 0.0 and not control.writes  # none reached it
+            assert rows[-1]["alarms"] & int(Alarm.WRITE_REJECTED)
+            assert abs(vm.history().tool_tip_error_um[-1]) > 3.0  # the growth goes uncompensated
+            # an operator cannot give the right; the administrator can
+            from asyncua.ua.uaerrors import BadInvalidArgument
 
-        with pytest.raises(BadInvalidArgument):
-            _give_access(cnc.url, "thermocomp", "tc-pw", "thermocomp")
-        _give_access(cnc.url, "auduser", "adm-pw", "thermocomp")
-        while not vm.program_done:
-            clock.advance(rt.next_period_s())
-            step(cnc)
-            rows.append(rt.cycle())
-        rt.close()
+            with pytest.raises(BadInvalidArgument):
+                _give_access(cnc.url, "thermocomp", "tc-pw", "thermocomp")
+            _give_access(cnc.url, "auduser", "adm-pw", "thermocomp")
+            while not vm.program_done:
+                clock.advance(rt.next_period_s())
+                step(cnc)
+                rows.append(rt.cycle())
+        finally:
+            rt.close()
     assert not rows[-1]["alarms"] & int(Alarm.WRITE_REJECTED)
     h = vm.history()
     # after the catch-up at the slew limit, while the tool is in the part
@@ -212,6 +226,13 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
     gaps = np.diff(np.concatenate([[t[0]], t[moved]]))
     steps = np.abs(np.diff(np.concatenate([[raw[0]], raw[moved]])))
     assert (steps <= 50.0e-3 * gaps + 1e-9).all()  # 50 um/s clear of the part, in mm
+    # 1 um/s while the tool cuts (the journal's own clock), and the axis at the control's rate
+    (path,) = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))
+    log = read_run_log(path)
+    assert_slow_while_cutting(log, np.asarray(log.extras["cutting"], float) == 1)
+    moves = np.flatnonzero(np.diff(h.offset_um) != 0) + 1
+    axis = np.abs(np.diff(h.offset_um[moves])) / np.diff(h.time_s[moves])
+    assert axis.max() <= 0.5 + 1e-9 and axis.max() > 0.49  # it bound: slower than the shaper
 
 
 def test_the_example_configuration_names_a_route_for_every_tested_family():
@@ -237,6 +258,7 @@ def test_the_demo_can_act_as_every_profile(tmp_path, name):
     else:  # the family's units on the virtual CNC's OPC UA node
         p = profile(name)
         assert (link.offset_scale, link.offset_sign) == (p.scale, p.sign)
+        assert s.shaping.resolution_um == pytest.approx(p.resolution_um)  # whole counts of the control
     if name == "sinumerik":
         assert options["rights"]["thermocomp"] == {"SeaWrite"}
 

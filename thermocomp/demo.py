@@ -100,7 +100,6 @@ def demo_link(profile_name: str, url: str, outdir: Path) -> tuple[str, dict]:
         secret = outdir / "opcua-password"
         secret.write_text("demo-only\n")
         secret.chmod(0o600)
-        os.environ.setdefault("THERMOCOMP_DEMO_USER", DEMO_USER)
         return (f'{{profile = "sinumerik", route = "opcua", url = "{url}", '
                 f'offset_node = "ns=2;s={SINUMERIK_SD43900_NODE}", username_env = "THERMOCOMP_DEMO_USER", '
                 f'password_file = "{secret}", cutting_node = "ns=2;s={STATE_PATHS["cutting"]}"}}',
@@ -246,13 +245,12 @@ def main(args: argparse.Namespace) -> int:
     port = free_port()
     url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
     adapter, cnc_options = demo_link(args.profile, url, outdir)
+    os.environ["THERMOCOMP_DEMO_USER"] = DEMO_USER  # the user the sinumerik link logs in as
     control = None if args.profile == "virtual" else EmulatedControl(vm, profile(args.profile))
     with running(VirtualCNC(vm, tick_s=None, port=port, control=control, **cnc_options)) as cnc:
         config = outdir / "machine.toml"
         text = RUNTIME_CONFIG.format(state_dir=state_dir, model=outdir / "model.json", adapter=adapter)
-        if control is not None and control.profile.resolution:
-            text = text.replace("deadband_um = 0.1\n", "deadband_um = 0.1\nresolution_um = "
-                                f"{control.profile.resolution_um!r}   # one count of the control\n")
+        # (the runtime takes the shaper's whole counts from the link's offset_resolution itself)
         config.write_text(text)
         out.print(f"3/4 `thermocomp run` with {config}: compensating {prog.duration_s / 3600:.1f} h "
                   f"of a job-shop day over OPC UA ({cnc.url}, 1 s cycle, in lock-step with the virtual CNC) ...")

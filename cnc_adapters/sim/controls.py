@@ -21,7 +21,7 @@ import threading
 from dataclasses import dataclass, field
 
 from ..profiles import ControllerProfile
-from .vcnc import VirtualMachine
+from .vcnc import OFFSET_LIMIT_UM, VirtualMachine
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,17 @@ class EmulatedControl:
             return f"|{raw:g}| is past the control's limit {p.limit:g}"
         if p.max_step is not None and abs(raw - self.held_raw) > p.max_step:
             return f"a step of {abs(raw - self.held_raw):g} raises the control's alarm (> {p.max_step:g})"
+        if abs(raw) / p.scale > OFFSET_LIMIT_UM:
+            return f"|{raw:g}| is past the virtual machine's {OFFSET_LIMIT_UM:g} um"
         return ""
+
+    def reset(self) -> None:
+        """The control restarts: it holds and applies 0, whatever it held before."""
+        with self._lock:
+            self.held_raw = 0.0
+            self.applied_um = 0.0
+            self._synced_s = self.machine.clock()
+            self.machine.apply_offset(0.0)
 
     def write_raw(self, raw: object) -> bool:
         """The control receives ``raw`` in its unit: True when it takes it (it becomes the held
@@ -109,4 +119,5 @@ class EmulatedControl:
             diff = target - self.applied_um
             step = math.inf if self.rate_um_per_s == math.inf else self.rate_um_per_s * dt
             self.applied_um = target if abs(diff) <= step else self.applied_um + math.copysign(step, diff)
-            self.machine.apply_offset(self.applied_um)
+            if not self.machine.apply_offset(self.applied_um):  # never: check() keeps to its travel
+                raise RuntimeError(f"the virtual machine refused {self.applied_um} um")

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cnc_adapters import check_adapter
 from cnc_adapters.base import short
-from cnc_adapters.profiles import ControllerProfile, profile
+from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
 from compensator.errors import ConfigError, clip
 from compensator.observer import ObserverConfig
 from compensator.shaping import ShaperConfig
@@ -113,24 +113,31 @@ class SpindleConfig(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _profile_resolution(cls, data: Any) -> Any:
-        """A controller profile's resolution becomes the shaper's, unless shaping names one: the
-        offset then moves in whole counts of the control's value."""
-        if not isinstance(data, dict) or not isinstance(data.get("adapter"), dict) \
-                or "profile" not in data["adapter"]:
+    def _control_resolution(cls, data: Any) -> Any:
+        """The controller's count (a profile's resolution, a Haas link's decimals, LinuxCNC's
+        count) becomes the shaper's resolution, so that the offset moves in whole counts and the
+        controller's rounding crosses neither the clamp nor the slew limit; a resolution that
+        shaping names must be a whole multiple of it."""
+        if not isinstance(data, dict) or not isinstance(data.get("adapter"), dict):
             return data
         try:
-            p = profile(data["adapter"]["profile"])
-        except ConfigError as err:
-            raise ValueError(str(err)) from err
+            count = control_count_um(check_adapter(data["adapter"]))
+        except ConfigError:
+            return data  # the adapter's own validator reports it, in its order
+        if not count:
+            return data
         shaping = data.get("shaping")
-        if isinstance(shaping, ShaperConfig):
-            if "resolution_um" not in shaping.model_fields_set:
-                shaping = shaping.model_copy(update={"resolution_um": p.resolution_um})
-        else:
-            shaping = dict(shaping or {})
-            shaping.setdefault("resolution_um", p.resolution_um)
-        return {**data, "shaping": shaping}
+        given = (shaping.resolution_um if "resolution_um" in shaping.model_fields_set else None) \
+            if isinstance(shaping, ShaperConfig) else (shaping or {}).get("resolution_um")
+        if given is None:
+            shaping = (shaping.model_copy(update={"resolution_um": count}) if isinstance(shaping, ShaperConfig)
+                       else {**(shaping or {}), "resolution_um": count})
+            return {**data, "shaping": shaping}
+        k = float(given) / count if isinstance(given, (int, float)) else -1.0
+        if not (k >= 1 - 1e-9 and abs(k - round(k)) <= 1e-6):
+            raise ValueError(f"shaping.resolution_um {given!r} must be a whole multiple of the "
+                             f"controller's count, {count:g} um (or left out)")
+        return data
 
     @model_validator(mode="after")
     def _within_profile(self) -> SpindleConfig:
