@@ -31,6 +31,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from compensator.errors import ConfigError
+from compensator.units import ControllerUnits
 
 __all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "control_count_um", "profile"]
 
@@ -99,13 +100,22 @@ class ControllerProfile(BaseModel):
     def max_step_um(self) -> float | None:
         return None if self.max_step is None else self.max_step / self.scale
 
+    @property
+    def units(self) -> ControllerUnits:
+        """The control's unit and sign as the adapters convert them (raw = A * scale * sign)."""
+        return ControllerUnits(self.scale, self.sign, self.resolution)
+
+    def route_name(self, name: str | None = None) -> str:
+        """``name``, or the profile's first route (the family's usual one)."""
+        return name or next(iter(self.routes), "")
+
     def route(self, name: str | None = None) -> Route:
         """The route ``name`` (None: the first, the family's usual one); ConfigError naming the
         known ones otherwise."""
         if not self.routes:
             raise ConfigError(f"profile {self.name!r} has no route thermocomp can drive: "
                               f"see {self.doc}")
-        key = name or next(iter(self.routes))
+        key = self.route_name(name)
         try:
             return self.routes[key]
         except KeyError:
@@ -115,7 +125,7 @@ class ControllerProfile(BaseModel):
     def describe(self, route: str | None = None) -> str:
         """One paragraph: what the profile will do (``thermocomp run --check`` prints it)."""
         r = self.route(route)
-        key = route or next(iter(self.routes))
+        key = self.route_name(route)
         res = (f"resolution {self.resolution:g} ({self.resolution_um:g} um)" if self.resolution
                else "continuous")
         rate = (f"the control itself moves it at most {self.control_rate_um_per_s:g} um/s "
@@ -315,7 +325,7 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
             raise ConfigError(f"adapter: {key} is fixed by profile {p.name!r} ({p.unit}); "
                               "leave it out, or drop the profile")
     if "type" in user and user["type"] != r.adapter.get("type"):
-        raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
+        raise ConfigError(f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
                           f"uses type {r.adapter.get('type')!r}, not {user['type']!r}")
     for key, value in r.fixed.items():
         if key in user and user[key] != value:
@@ -324,7 +334,7 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     # "a|b": either will do
     missing = [k.replace("|", " or ") for k in r.requires if not any(a in user for a in k.split("|"))]
     if missing:
-        raise ConfigError(f"adapter: profile {p.name!r}, route {route_name or next(iter(p.routes))!r} "
+        raise ConfigError(f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
                           f"needs {', '.join(missing)} ({p.doc})")
     units: dict[str, Any] = {"offset_scale": p.scale, "offset_sign": p.sign}
     if p.resolution:

@@ -66,8 +66,7 @@ class EmulatedControl:
     @property
     def held_um(self) -> float:
         """The held value as thermocomp's offset A [um]."""
-        p = self.profile
-        return self.held_raw / (p.scale * p.sign)
+        return self.profile.units.to_um(self.held_raw)
 
     def check(self, raw: object) -> str:
         """Why the control would refuse ``raw`` ('' when it takes it)."""

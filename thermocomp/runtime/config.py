@@ -164,7 +164,7 @@ class SpindleConfig(BaseModel):
     @property
     def route(self) -> str | None:
         p = self.profile
-        return None if p is None else self.adapter.get("route") or next(iter(p.routes))
+        return None if p is None else p.route_name(self.adapter.get("route"))
 
     def refuse_other_spindle(self, model_spindle_id: str) -> None:
         """ConfigError when ``spindle_id`` is set and the model file is for another spindle."""
