@@ -80,3 +80,50 @@ def test_seeded_and_reproducible_with_noise_and_quantisation():
 def test_presets_are_documented():
     for p in PRESETS.values():
         assert p.description and p.max_rpm > 0
+
+
+def _chiller_run(dt_s):
+    """3000 rpm with the chiller set point stepped 16 -> 11 -> 19 degC."""
+    # still air: the ambient walk draws one number per step, which no step size can share
+    plant = SpindlePlant(preset("mechanical-cooled"), seed=3).with_params(
+        ambient_walk_k_per_sqrt_h=0.0, ambient_daily_amplitude_k=0.0)
+    t = np.arange(0.0, 4 * 3600 + dt_s / 2, dt_s)
+    sp = np.where(t <= 3600, 16.0, np.where(t <= 7200, 11.0, 19.0))
+    return t, plant.run(t, np.full(t.size, 3000.0), sp)
+
+
+def test_the_chiller_lags_ramps_and_the_step_is_exact_at_any_dt():
+    t1, fine = _chiller_run(1.0)
+    t60, coarse = _chiller_run(60.0)
+    at = lambda t, x, s: x[np.searchsorted(t, s)]  # noqa: E731
+    for s in (1800.0, 3660.0, 3600 + 300.0, 7200.0 + 600.0, 14400.0):
+        # same trajectory at the shared instants, however the set point ramp falls in a step
+        assert at(t1, fine.temps_c[:, 2], s) == pytest.approx(at(t60, coarse.temps_c[:, 2], s), abs=1e-6)
+        assert at(t1, fine.supply_c, s) == pytest.approx(at(t60, coarse.supply_c, s), abs=1e-6)
+    p = preset("mechanical-cooled")
+    rate = np.diff(fine.supply_c) / np.diff(t1)
+    # the outlet never moves faster than the set-point ramp (it lags behind it)
+    assert np.max(np.abs(rate)) <= p.chiller_rate_k_per_min / 60 + 1e-9
+    # one lag after the 5 K ramp has ended (5 min), the outlet is within 1/e of the rest
+    k = np.searchsorted(t1, 3600 + 300 + p.chiller_lag_s)
+    assert 11.0 < fine.supply_c[k] < 11.0 + 5.0 * (1 - np.exp(-300 / p.chiller_lag_s)) * np.exp(-1) + 0.5
+    # colder coolant shrinks the spindle; warmer grows it
+    assert at(t1, fine.true_um, 7200) < at(t1, fine.true_um, 3600) + 1.0
+    assert at(t1, fine.true_um, 14400) > at(t1, fine.true_um, 7200) + 3.0
+
+
+def test_the_chiller_clamps_to_its_range_and_refuses_nan():
+    plant = SpindlePlant(preset("mechanical-cooled"), seed=0)
+    assert plant.set_chiller_setpoint_c(-40.0) == plant.params.chiller_min_c
+    assert plant.set_chiller_setpoint_c(99.0) == plant.params.chiller_max_c
+    with pytest.raises(ValueError):
+        plant.set_chiller_setpoint_c(float("nan"))
+    assert plant.chiller_setpoint_c == plant.params.chiller_max_c
+
+
+def test_paper_000_preset_keeps_creeping_under_constant_cooling():
+    plant = SpindlePlant(preset("mechanical-cooled"), seed=0)
+    t = np.arange(0.0, 8 * 3600 + 1, 60.0)
+    e = plant.run(t, np.full(t.size, 3000.0)).true_um
+    assert 14.0 < e[90] < 18.0  # the paper's RITE (17 um) is reached after about 1.5 h
+    assert e[-1] > e[240] + 2.0  # and constant cooling is still creeping at 4 h

@@ -5,8 +5,15 @@ Nodes (temperatures in degC):
 1. shaft and rear bearings (rotor);
 2. spindle nose with the front bearings;
 3. housing and motor stator;
-4. coolant jacket (water), pulled toward the chiller set point;
+4. coolant jacket (water), pulled toward the chiller's outlet temperature;
 5. machine structure (head/column), slowly following the ambient air.
+
+The chiller (issue 20) is two more states: its internal set point, which moves toward the
+commanded one at ``chiller_rate_k_per_min`` at most (the controller's own set-point ramp), and
+its outlet temperature, a first-order lag of ``chiller_lag_s`` behind it. The jacket removes
+heat in proportion to (housing - coolant). :meth:`SpindlePlant.set_chiller_setpoint_c`
+commands it, within the device's range; a ramp is a constant-rate input, so the step stays
+exact.
 
 Heat input per node is a polynomial in n (krpm): motor hysteresis ~ n, eddy
 currents and windage ~ n**2, bearing friction ~ n**3 (paper 001, eq. 10).
@@ -79,12 +86,22 @@ class PlantParams:
     ambient_drift_k_per_h: float = 0.0
     """A steady ramp of the air [K/h] (a hall warming through the day): 0 in the presets; a
     speed-only model cannot see it, so the closed-loop tests use it."""
+    g_nose_structure: float = 0.0
+    """Conduction from the front bearing through the flange into the head [W/K]: heat that
+    bypasses a cooler on the housing (paper 000's external cooler)."""
     noise_um: float = 0.05
     quantum_um: float = 0.1
     accel_rpm_per_s: float = 5000.0
     """How fast the drive changes speed [rpm/s] (10 000 rpm in 2 s); inf: at once."""
     approach_s: float = 3.0
     """From at-speed to the first cut [s]: the tool moves in after the spindle is at speed."""
+    chiller_lag_s: float = 120.0
+    """The chiller's outlet follows its set point with this first-order lag [s] (60-300 s)."""
+    chiller_rate_k_per_min: float = 1.0
+    """The chiller's own set-point ramp [K/min]."""
+    chiller_min_c: float = 5.0
+    chiller_max_c: float = 35.0
+    """The range the chiller accepts; a command outside is clamped, as the device does."""
 
 
 PRESETS: dict[str, PlantParams] = {
@@ -135,6 +152,38 @@ PRESETS: dict[str, PlantParams] = {
         elastic_um=(0.0, 0.04),
         accel_rpm_per_s=2000.0,
     ),
+    # Paper 000's mechanical spindle with an external helical cooler (thermal grease to the
+    # housing; the front bearing also heats the head through its flange): at 3000 rpm with the
+    # coolant at 16 degC in an 18 degC shop the error passes 16 um at 1.5 h and creeps on for
+    # hours (27 um at 8 h); 2000 rpm reaches 13 um. 2 K colder coolant: -1 um in 30 min.
+    "mechanical-cooled": PlantParams(
+        name="mechanical-cooled",
+        description="mechanical spindle, 6 000 rpm, external helical cooler (paper 000)",
+        max_rpm=6000.0,
+        capacity_j_per_k=(30000.0, 25000.0, 200000.0, 20000.0, 690000.0),
+        g_shaft_nose=10.0,
+        g_shaft_housing=9.0,
+        g_nose_housing=12.0,
+        g_housing_coolant=100.0,
+        g_coolant_chiller=200.0,
+        g_housing_structure=20.0,
+        g_structure_air=27.0,
+        g_nose_structure=20.0,
+        h_shaft_air=(0.8, 0.4),
+        h_nose_air=(1.2, 0.5),
+        h_housing_air=6.0,
+        heat_shaft_w=(15.0, 5.6, 0.94),
+        heat_nose_w=(13.1, 4.9, 0.82),
+        heat_housing_w=(18.7, 9.4, 0.94),
+        growth_um_per_k=(0.8, 0.4, 1.2, 0.0, 4.5),
+        elastic_um=(0.0, 0.08),
+        ambient_c=18.0,
+        chiller_c=16.0,
+        ambient_daily_amplitude_k=0.3,
+        accel_rpm_per_s=2000.0,
+        chiller_lag_s=120.0,
+        chiller_rate_k_per_min=1.0,
+    ),
 }
 
 
@@ -160,6 +209,8 @@ def _system(p: PlantParams, n_krpm: float) -> tuple[np.ndarray, np.ndarray]:
     link(1, 2, p.g_nose_housing)
     link(2, 3, p.g_housing_coolant)
     link(2, 4, p.g_housing_structure)
+    if p.g_nose_structure:
+        link(1, 4, p.g_nose_structure)
     to_air = np.array([hs, hn, p.h_housing_air, 0.0, p.g_structure_air])
     to_chiller = np.array([0.0, 0.0, 0.0, p.g_coolant_chiller, 0.0])
     cond = g - np.diag(g.sum(axis=1) + to_air + to_chiller)
@@ -172,6 +223,21 @@ def _system(p: PlantParams, n_krpm: float) -> tuple[np.ndarray, np.ndarray]:
     a = cond / cap[:, None]
     b = np.column_stack([heat, to_air, to_chiller]) / cap[:, None]
     return a, b
+
+
+def _chilled_system(p: PlantParams, n_krpm: float) -> tuple[np.ndarray, np.ndarray]:
+    """dx/dt = A x + B u for x = (the nodes, chiller outlet, chiller internal set point) and
+    u = (1, T_air, set-point ramp rate [K/s]), for a held speed and ramp rate."""
+    a, b = _system(p, n_krpm)
+    big = np.zeros((N_NODES + 2, N_NODES + 2))
+    big[:N_NODES, :N_NODES] = a
+    big[:N_NODES, N_NODES] = b[:, 2]  # the jacket is pulled toward the outlet, not the set point
+    big[N_NODES, N_NODES] = -1.0 / p.chiller_lag_s
+    big[N_NODES, N_NODES + 1] = 1.0 / p.chiller_lag_s
+    u = np.zeros((N_NODES + 2, 3))
+    u[:N_NODES, :2] = b[:, :2]
+    u[N_NODES + 1, 2] = 1.0
+    return big, u
 
 
 @dataclass
@@ -188,7 +254,10 @@ class SpindlePlant:
     _speed_rpm: float = field(init=False, default=0.0)
     _command_rpm: float = field(init=False, default=0.0)
     _at_speed_s: float = field(init=False, default=math.inf)
-    _cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = field(
+    _setpoint_c: float = field(init=False, default=math.nan)
+    _chiller: np.ndarray = field(init=False)
+    """The chiller's outlet and internal set point [degC]."""
+    _cache: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray]] = field(
         init=False, default_factory=dict
     )
 
@@ -204,6 +273,32 @@ class SpindlePlant:
         a, b = _system(p, 0.0)
         self.temps_c = np.linalg.solve(a, -b @ np.array([1.0, air, p.chiller_c]))
         self._ref_c = self.temps_c.copy()
+        self._setpoint_c = float(p.chiller_c)
+        self._chiller = np.array([p.chiller_c, p.chiller_c], dtype=float)
+
+    def set_chiller_setpoint_c(self, value_c: float) -> float:
+        """Command the chiller's set point [degC]; the device clamps it to its range. Returns
+        the value it took."""
+        if not math.isfinite(value_c):
+            raise ValueError(f"bad chiller set point {value_c}")
+        p = self.params
+        self._setpoint_c = min(max(float(value_c), p.chiller_min_c), p.chiller_max_c)
+        return self._setpoint_c
+
+    @property
+    def chiller_setpoint_c(self) -> float:
+        """The commanded set point [degC]."""
+        return self._setpoint_c
+
+    @property
+    def supply_c(self) -> float:
+        """The chiller's outlet temperature [degC]."""
+        return float(self._chiller[0])
+
+    @property
+    def coolant_c(self) -> float:
+        """The coolant in the jacket [degC]."""
+        return float(self.temps_c[3])
 
     def air_c(self, t_s: float) -> float:
         p = self.params
@@ -214,16 +309,17 @@ class SpindlePlant:
             + self._walk_k
         )
 
-    def _transition(self, n_krpm: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        key = (round(n_krpm, 9), round(dt_s, 12))
+    def _transition(self, n_krpm: float, dt_s: float, rate_k_per_s: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (round(n_krpm, 9), round(dt_s, 12), rate_k_per_s)
         hit = self._cache.get(key)
         if hit is None:
-            a, b = _system(self.params, n_krpm)
-            m = np.zeros((N_NODES + 3, N_NODES + 3))
-            m[:N_NODES, :N_NODES] = a
-            m[:N_NODES, N_NODES:] = b
+            a, b = _chilled_system(self.params, n_krpm)
+            size = a.shape[0]
+            m = np.zeros((size + 3, size + 3))
+            m[:size, :size] = a
+            m[:size, size:] = b
             e = expm(m * dt_s)
-            hit = (e[:N_NODES, :N_NODES].copy(), e[:N_NODES, N_NODES:].copy())
+            hit = (e[:size, :size].copy(), e[:size, size:].copy())
             if len(self._cache) > 4096:
                 self._cache.clear()
             self._cache[key] = hit
@@ -241,8 +337,21 @@ class SpindlePlant:
             self._rng.standard_normal()
         )
         air = self.air_c(self.time_s + dt_s / 2)
-        phi, gam = self._transition(speed_krpm(speed_rpm), dt_s)
-        self.temps_c = phi @ self.temps_c + gam @ np.array([1.0, air, p.chiller_c])
+        n_krpm = speed_krpm(speed_rpm)
+        x = np.concatenate([self.temps_c, self._chiller])
+        left = dt_s
+        while left > 0:
+            # the chiller ramps its set point at a constant rate: one exact piece per ramp
+            gap = self._setpoint_c - x[-1]
+            rate = math.copysign(p.chiller_rate_k_per_min / 60.0, gap) if gap else 0.0
+            piece = min(left, abs(gap) / abs(rate)) if rate else left
+            phi, gam = self._transition(n_krpm, piece, rate)
+            x = phi @ x + gam @ np.array([1.0, air, rate])
+            if piece < left or (rate and abs(self._setpoint_c - x[-1]) < 1e-9):
+                x[-1] = self._setpoint_c  # the ramp ended inside this step
+            left -= piece
+        self.temps_c = x[:N_NODES]
+        self._chiller = x[N_NODES:]
         self.time_s += dt_s
         self._speed_rpm = speed_rpm
 
@@ -317,12 +426,17 @@ class SpindlePlant:
         noisy = true_um + p.noise_um * self._rng.standard_normal(np.shape(true_um))
         return np.round(noisy / p.quantum_um) * p.quantum_um if p.quantum_um > 0 else noisy
 
-    def run(self, times_s: np.ndarray, speeds_rpm: np.ndarray) -> PlantRun:
+    def run(self, times_s: np.ndarray, speeds_rpm: np.ndarray,
+            chiller_setpoint_c: np.ndarray | None = None) -> PlantRun:
         """Drive the plant over a sampled program (speeds[k] commanded over (times[k-1],
         times[k]]). The run's speed is the actual speed at each sample, as a drive reports it:
-        it ramps at ``accel_rpm_per_s``."""
+        it ramps at ``accel_rpm_per_s``. ``chiller_setpoint_c[k]``, if given, is commanded over
+        the same interval (a step run of the chiller)."""
         t = np.asarray(times_s, dtype=float)
         n = np.asarray(speeds_rpm, dtype=float)
+        sp = None if chiller_setpoint_c is None else np.asarray(chiller_setpoint_c, dtype=float)
+        supply = np.empty_like(t)
+        commanded = np.empty_like(t)
         true = np.empty_like(t)
         actual = np.empty_like(t)
         cutting = np.zeros(t.size, dtype=bool)
@@ -331,15 +445,20 @@ class SpindlePlant:
         prev = t[0]
         self.time_s = float(prev)
         for k in range(t.size):
+            if sp is not None:
+                self.set_chiller_setpoint_c(float(sp[k]))
             self.drive(float(n[k]), float(t[k] - prev))
             prev = t[k]
+            supply[k] = self.supply_c
+            commanded[k] = self._setpoint_c
             true[k] = self.true_elongation_um()
             actual[k] = self._speed_rpm
             cutting[k] = self.cutting
             temps[k] = self.temps_c
             air[k] = self.air_c(self.time_s)
         measured = np.asarray(self.measure_um(true), dtype=float)
-        return PlantRun(t, actual, true, measured, temps, air, cutting)
+        return PlantRun(t, actual, true, measured, temps, air, cutting, supply,
+                        commanded if sp is not None else None)
 
     def heat_w(self, speed_rpm: float | np.ndarray) -> float | np.ndarray:
         """Total heat the spindle dissipates at a speed [W]: what the drive's load shows."""
@@ -388,6 +507,10 @@ class PlantRun:
     air_c: np.ndarray
     cutting: np.ndarray | None = None
     """bool per sample: the tool in the part (:attr:`SpindlePlant.cutting`)."""
+    supply_c: np.ndarray | None = None
+    """The chiller's outlet [degC]."""
+    chiller_setpoint_c: np.ndarray | None = None
+    """The commanded chiller set point [degC], where the run commanded one."""
 
     def columns(self, measured: bool = True) -> dict[str, np.ndarray]:
         """Run-log columns in the common format (``cutting`` as 0/1)."""
@@ -399,4 +522,6 @@ class PlantRun:
         }
         if self.cutting is not None:
             cols["cutting"] = self.cutting.astype(np.int64)
+        if self.chiller_setpoint_c is not None:
+            cols["chiller_setpoint_c"] = self.chiller_setpoint_c
         return cols
