@@ -12,7 +12,7 @@ application do not either.
 """
 
 from .atomic import atomic_write, read_text, versioned_path, write_text
-from .journal import Journal, MeasurementJournal
+from .journal import CoolingJournal, Journal, MeasurementJournal
 from .modelfile import (
     MODEL_TYPES,
     load_any_model,
@@ -41,6 +41,7 @@ __all__ = [
     "Gap",
     "Journal",
     "MeasurementJournal",
+    "CoolingJournal",
     "RunLog",
     "RunLogAppender",
     "atomic_write",

@@ -251,6 +251,30 @@ class MeasurementJournal(Journal):
         return self._enqueue(t, row, now_s)
 
 
+class CoolingJournal(Journal):
+    """Every chiller command and what came of it, one row per cooling cycle: the estimate the
+    law saw, its phase, the set point commanded, whether it was sent, the chiller's supply
+    temperature and the alarm. ``<spindle>.cooling-YYYY-MM-DD.csv`` beside the journal, on its
+    time base; it never raises."""
+
+    COLUMNS = ("time_s", "estimate_um", "rite_um", "phase", "setpoint_c", "sent", "supply_c",
+               "alarm", "wall_s")
+
+    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any],
+                 **kw: Any):
+        super().__init__(directory, f"{name}.cooling", metadata, **kw)
+
+    def record(self, time_s: float, *, estimate_um: float | None, rite_um: float, phase: str,
+               setpoint_c: float, sent: bool, supply_c: float | None, alarm: str,
+               wall_s: float | None = None, now_s: float | None = None) -> bool:
+        """Queue one command's row and write what the disk takes (never raises)."""
+        t = self._next_time(time_s)
+        row = ",".join((f"{t:.3f}", _cell(estimate_um, ".6g"), _cell(rite_um, ".6g"), _word(phase, "-_") or "-",
+                        _cell(setpoint_c, ".6g"), "1" if sent else "0", _cell(supply_c, ".6g"),
+                        _word(alarm, "-_|") or "", f"{t if wall_s is None else wall_s:.3f}")) + "\n"
+        return self._enqueue(t, row, now_s)
+
+
 def _last_time(path: Path) -> float | None:
     """``time_s`` of the last row of an existing run log, or None (missing, empty, no rows)."""
     try:

@@ -15,7 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cnc_adapters import check_adapter
 from cnc_adapters.base import short
+from cnc_adapters.chiller import check_chiller
 from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
+from compensator.cooling import CoolingLaw, PidGains
 from compensator.errors import ConfigError, clip
 from compensator.observer import ObserverConfig
 from compensator.shaping import ShaperConfig
@@ -195,6 +197,62 @@ class SpindleConfig(BaseModel):
         return v
 
 
+class CoolingConfig(BaseModel):
+    """``[cooling]``: drive the chiller's set point to hold the thermal error at RITE (paper 000).
+
+    ``mode``: ``off``; ``cooling`` (the chiller only: no offset is written); ``both`` (the offset
+    cancels what the cooling leaves). The estimate is the spindle's own: its model, with its
+    inputs or fused with probes, whatever the spindle runs."""
+
+    model_config = _FROZEN
+    mode: Literal["off", "cooling", "both"] = "off"
+    spindle: str | None = Field(None, description="whose estimate drives the chiller; default the only spindle")
+    chiller: dict[str, Any] = Field(default_factory=dict, description="a 'type' key (modbus, opcua, "
+                                    "virtual) and its options")
+    rite_um: float | None = Field(None, description="the thermal error to hold [um]; "
+                                  "`thermocomp cooling rite` suggests one from a journal")
+    preheat_c: float = Field(description="constant set point in preheat and after a fault [degC]")
+    min_c: float = 10.0
+    max_c: float = 30.0
+    dew_point_c: float | None = Field(None, description="the shop's design dew point [degC]: the set point "
+                                      "stays dew_margin_k above it")
+    dew_margin_k: float = Field(2.0, ge=0, le=20)
+    rate_k_per_min: float = Field(1.0, gt=0, le=60)
+    resolution_c: float = Field(0.1, ge=0, le=5)
+    gains: PidGains = Field(default_factory=PidGains.paper)
+    derivative_filter_s: float = Field(10.0, ge=0, le=3600)
+    start: Literal["rite", "immediate"] = "rite"
+    idle_release_s: float = Field(1800.0, gt=0, le=7 * 86400)
+    hold_s: float = Field(300.0, ge=0, le=86400, description="chiller or estimate lost: hold the last "
+                          "set point this long, then go to preheat_c")
+    period_s: float = Field(1.0, ge=0.1, le=600)
+    refresh_s: float = Field(60.0, gt=0, le=3600, description="write the set point again this often "
+                             "even unchanged (a chiller that restarted forgets it)")
+
+    @model_validator(mode="after")
+    def _valid(self) -> CoolingConfig:
+        if self.mode == "off":
+            return self
+        if self.rite_um is None:
+            raise ValueError("cooling needs rite_um (thermocomp cooling rite suggests one)")
+        if not isinstance(self.chiller.get("type"), str):
+            raise ValueError("cooling.chiller needs a 'type' (modbus, opcua, virtual)")
+        opts = {k: v for k, v in self.chiller.items() if k != "type"}
+        check_chiller(self.chiller["type"], opts)
+        self.law()  # the limits agree
+        return self
+
+    def law(self) -> CoolingLaw:
+        try:
+            return CoolingLaw(rite_um=self.rite_um if self.rite_um is not None else 0.0, preheat_c=self.preheat_c,
+                              gains=self.gains, min_c=self.min_c, max_c=self.max_c, dew_point_c=self.dew_point_c,
+                              dew_margin_k=self.dew_margin_k, rate_k_per_min=self.rate_k_per_min,
+                              resolution_c=self.resolution_c, derivative_filter_s=self.derivative_filter_s,
+                              start=self.start, idle_release_s=self.idle_release_s, hold_s=self.hold_s)
+        except ValidationError as err:
+            raise ValueError(str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))) from err
+
+
 class RuntimeConfig(BaseModel):
     model_config = _FROZEN
 
@@ -208,6 +266,27 @@ class RuntimeConfig(BaseModel):
     time_scale: float = Field(1.0, gt=0, le=10000, description="simulated seconds per second: for the "
                               "virtual machine tool only; 1 on a real machine")
     spindle: list[SpindleConfig] = Field(min_length=1, max_length=64)
+    cooling: CoolingConfig | None = None
+
+    @model_validator(mode="after")
+    def _cooling_spindle(self) -> RuntimeConfig:
+        c = self.cooling
+        if c is None or c.mode == "off":
+            return self
+        names = [s.name for s in self.spindle]
+        if c.spindle is None and len(names) > 1:
+            raise ValueError(f"cooling.spindle: name the spindle whose estimate drives the chiller ({', '.join(names)})")
+        if c.spindle is not None and c.spindle not in names:
+            raise ValueError(f"cooling.spindle: no spindle named {c.spindle!r} ({', '.join(names)})")
+        return self
+
+    @property
+    def cooling_spindle(self) -> str | None:
+        """The spindle whose estimate drives the chiller, or None without active cooling."""
+        c = self.cooling
+        if c is None or c.mode == "off":
+            return None
+        return c.spindle or self.spindle[0].name
 
     @property
     def journal_path(self) -> Path:

@@ -25,6 +25,7 @@ EVENTS = (
     "reload", "reload_refused", "lock_failed",
     "probe_accepted", "probe_rejected", "probe_restart", "probe_failed", "observer_stale",
     "observer_fresh", "control_failed", "cutting_signal_failed", "cutting_signal_restored",
+    "chiller_failed", "chiller_restored",
 )
 """Every event name the runtime emits (documented in the README)."""
 

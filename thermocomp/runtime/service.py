@@ -31,6 +31,7 @@ from compensator.io import load_any_model
 
 from .config import RuntimeConfig, load_config
 from .control import ControlChannel, Pending, send_measurement
+from .cooling import CoolingRuntime
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
 from .spindle import Alarm, SpindleRuntime, cutting_from_controller
@@ -113,6 +114,9 @@ class Service:
         self._status = ""
         self._prepare_state_dir()
         self.spindles = self._build(self.cfg)
+        self.cooling: CoolingRuntime | None = None
+        self._cooling_due = -math.inf
+        self.cooling = self._build_cooling(self.cfg, self.spindles)
         self._open_control()
 
     def _open_control(self) -> None:
@@ -181,6 +185,17 @@ class Service:
             raise
         return out
 
+    def _build_cooling(self, cfg: RuntimeConfig, spindles: dict[str, SpindleRuntime]) -> CoolingRuntime | None:
+        """The chiller loop of ``[cooling]``, or None; in mode ``cooling`` its spindle writes no offset."""
+        name = cfg.cooling_spindle
+        for sname, rt in spindles.items():
+            rt.writes_offset = not (name == sname and cfg.cooling is not None and cfg.cooling.mode == "cooling")
+        if name is None or cfg.cooling is None:
+            return None
+        return CoolingRuntime(cfg.cooling, spindles[name], cfg.journal_path, clock=self.clock, wall=self.wall,
+                              anchor_s=self.anchor_s, journal_fsync_s=cfg.journal_fsync_s,
+                              previous=self.cooling)
+
     def request_stop(self, *_: object) -> None:
         self._stop = True
 
@@ -203,11 +218,24 @@ class Service:
             event("reload_refused", None, "reload refused, keeping the running configuration: %s",
                   err, level=logging.ERROR, error=str(err)[:300])
             return
+        try:
+            cooling = self._build_cooling(new, built)
+        except (ThermocompError, OSError) as err:
+            for rt in built.values():
+                rt.journal.close()
+                rt.adapter.close()
+            self.reload_failed = True
+            event("reload_refused", None, "reload refused, keeping the running configuration: %s",
+                  err, level=logging.ERROR, error=str(err)[:300])
+            return
         for name, rt in self.spindles.items():
             if name in built:
                 built[name].take_journal(rt)
             rt.close()
+        if self.cooling is not None:
+            self.cooling.close()
         self.cfg, self.spindles, self.reload_failed = new, built, False
+        self.cooling = cooling
         self._open_control()
         event("reload", None, "configuration reloaded: %d spindle(s)", len(self.spindles),
               spindles=list(self.spindles))
@@ -233,6 +261,13 @@ class Service:
                 period = rt.next_period_s()
                 due += period
                 self._due[name] = due if due > now else now + period  # no catch-up burst
+        if self.cooling is not None and now >= self._cooling_due:
+            period = self.cooling.cfg.period_s
+            self._cooling_due = max(self._cooling_due + period, now)
+            try:
+                self.cooling.cycle()
+            except Exception as err:  # noqa: BLE001 - the chiller loop never stops the offset
+                log.exception("cooling cycle skipped: %s", err)
         beat = time.monotonic()  # real time: systemd's watchdog counts real seconds
         if self.cfg.watchdog and beat - self._last_beat >= 1.0:
             self._last_beat = beat
@@ -241,7 +276,10 @@ class Service:
         if status != self._status:  # `systemctl status` shows it
             self._status = status
             sd_notify(f"STATUS={status}")
-        return max(0.0, min(self._due.values()) - self.clock())
+        due_next = min(self._due.values())
+        if self.cooling is not None:
+            due_next = min(due_next, self._cooling_due)
+        return max(0.0, due_next - self.clock())
 
     def status_text(self) -> str:
         """One line for `systemctl status`: what needs attention, if anything."""
@@ -257,6 +295,8 @@ class Service:
                 notes.append(f"{name}: last measurement rejected")
             if obs["failed_sources"]:
                 notes.append(f"{name}: measurement source failing")
+        if self.cooling is not None and self.cooling.alarm:
+            notes.append(f"cooling: {self.cooling.alarm} ({self.cooling.error})")
         return f"compensating {len(self.spindles)} spindle(s)" + ("; " + "; ".join(notes) if notes else "")
 
     def run(self) -> int:
@@ -285,6 +325,9 @@ class Service:
             self.control = None
         for rt in self.spindles.values():
             rt.close()
+        if self.cooling is not None:
+            self.cooling.close()
+            self.cooling = None
         if self._lock is not None:
             self._lock.release()
         event("stopped", None, "stopped; state saved")
@@ -338,6 +381,18 @@ def check(config_path: str) -> int:
                 print(f"{sc.name}: warning: the control moves the offset at most {ctl:g} um/s, slower "
                       f"than the shaping's {sc.shaping.rate_limit_um_per_s:g} um/s: the elastic step of a "
                       "speed change lands late, in the first seconds of the next cut")
+    c = cfg.cooling
+    if c is not None and c.mode != "off":
+        from cnc_adapters.chiller import open_chiller
+
+        opts = {k: v for k, v in c.chiller.items() if k != "type"}
+        with open_chiller(c.chiller["type"], opts) as chiller:
+            supply = chiller.read_supply_c()
+        mode = "the chiller only, no offset" if c.mode == "cooling" else "the chiller and the offset"
+        print(f"cooling ({mode}) on {cfg.cooling_spindle}'s estimate: chiller {c.chiller['type']} ok, "
+              f"supply {supply:.1f} degC")
+        for line in c.law().describe():
+            print(f"cooling: {line}")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
 

@@ -229,6 +229,7 @@ class SpindleRuntime:
         self._first_t: float | None = None
         self._last_good_read: float | None = None
         self._last_speed = 0.0
+        self.writes_offset = True  # False: `[cooling] mode = "cooling"`, the chiller only
         self._idle_assumed = False
         self._last_save = -math.inf
         self._last_good_save: float | None = None
@@ -402,6 +403,11 @@ class SpindleRuntime:
     def _in_use(self) -> Any:
         """The state of the model whose estimate is in use."""
         return self.input_state if self.input_state is not None else self.speed_only_state
+
+    @property
+    def last_speed_rpm(self) -> float:
+        """The last speed read [rpm]."""
+        return self._last_speed
 
     def estimate_um(self) -> float:
         """The estimate the offset follows: the model in use, plus the observer's bias."""
@@ -775,7 +781,7 @@ class SpindleRuntime:
         if read_alarms & (Alarm.SPEED_READ_FAILED | Alarm.IDLE_ASSUMED) and cutting is None:
             cutting, cutting_source, shaper_speed = True, "unread", self._last_speed
         not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
-        if not_ready is None:  # a machine that is off applies its own value: nothing to compare
+        if not_ready is None and self.writes_offset:  # a machine that is off applies its own value
             alarms |= self._read_back(now)
         self.state = self.model.step(self.state, speed, dt)
         if self.with_inputs is not None:
@@ -799,7 +805,7 @@ class SpindleRuntime:
             # is ready the offset is re-seeded from there through the slew limit
             alarms |= Alarm.NOT_READY
             self.offset.controller_holds(not_ready)
-        elif self.link.up and wanted:
+        elif self.link.up and wanted and self.writes_offset:
             wrote, write_alarms = self._write(now, shaped.offset_um)
             alarms |= write_alarms
         elif not self.link.up:
