@@ -234,10 +234,10 @@ def law_for(scenario: Scenario, gains: PidGains | None = None, **limits: Any) ->
 
 def run_scenario(params: PlantParams, scenario: Scenario, model: Any, mode: str, *,
                  gains: PidGains | None = None, dt_s: float = 1.0, seed: int = 0,
-                 shaper: ShaperConfig | None = None) -> CoolingRun:
+                 shaper: ShaperConfig | None = None, sample_s: float = 60.0) -> CoolingRun:
     """``mode``: ``constant``, ``pid``, ``pid+offset`` (``both``) or ``constant+offset``."""
     p = plant_for(params, scenario.air_c, scenario.preheat_c)
     law = law_for(scenario, gains) if mode.startswith("pid") else None
     run = simulate_cooling(p, scenario.program(), model, law, dt_s=dt_s, seed=seed,
-                           offset=mode.endswith("+offset"), shaper=shaper)
+                           offset=mode.endswith("+offset"), shaper=shaper, sample_s=max(sample_s, dt_s))
     return replace(run, meta={**run.meta, "scenario": scenario.name})

@@ -143,7 +143,42 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--accel-rpm-per-s", type=float, default=None,
                    help="how fast the drive changes speed (default: the preset's, 5000 for motorized-27k)")
     p.add_argument("--output", required=True, help="run log to write (CSV, with a 0/1 cutting column)")
+    p.add_argument("--cooling", choices=("constant", "pid"), default=None,
+                   help="active cooling (paper 000): run --program (wc1..wc4, default wc1) with the chiller "
+                   "constant or driven by the PID on a model's estimate; prints STE, equilibrium time, TEVR")
+    p.add_argument("--offset", action="store_true", help="with --cooling: write the offset too (mode both)")
+    p.add_argument("--rite", type=float, default=None, help="with --cooling pid: RITE [um] (default the scenario's)")
+    p.add_argument("--model", default=None, help="with --cooling: the model file (default: fit one on an "
+                   "excitation run of the preset)")
+    p.add_argument("--gains", default="paper", help="with --cooling pid: paper or simc")
     p.set_defaults(handler="thermocomp.commands.sim:simulate")
+
+
+def _add_cooling(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("cooling", help="active cooling: compare on the virtual plant, tune, suggest RITE")
+    cs = p.add_subparsers(dest="cooling_command", metavar="ACTION", required=True)
+    c = cs.add_parser("compare", help="paper 000's scenarios: constant cooling, PID, PID plus the offset")
+    c.add_argument("--preset", default="mechanical-cooled")
+    c.add_argument("--scenario", action="append", help="wc1..wc4 (repeat; default all)")
+    c.add_argument("--gains", action="append", choices=("paper", "simc"), help="gain sets (default both)")
+    c.add_argument("--dt", type=float, default=1.0, help="control period [s] (the paper: 1 s)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--plot", default=None, help="PNG to write")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(handler="calibration.coolcmd:compare")
+    t = cs.add_parser("tune", help="identify the chiller -> elongation step response and derive SIMC gains")
+    t.add_argument("--preset", default="mechanical-cooled")
+    t.add_argument("--log", default=None, help="a logged step run with chiller_setpoint_c and elongation_um "
+                   "(default: the plant's)")
+    t.add_argument("--write-step", default=None, help="write the plant's step run to this run log")
+    t.add_argument("--tau-c-s", type=float, default=None, help="SIMC closed-loop time constant [s]")
+    t.add_argument("--plot", default=None, help="PNG: the fit and the closed-loop step responses")
+    t.set_defaults(handler="calibration.coolcmd:tune")
+    r = cs.add_parser("rite", help="suggest RITE: the model's steady elongation at a journal's speed mix")
+    r.add_argument("--model", required=True)
+    r.add_argument("--input", action="append", help="NAME=VALUE for a model with inputs")
+    r.add_argument("journal", nargs="+", help="journal or run-log files (time_s, speed_rpm)")
+    r.set_defaults(handler="calibration.coolcmd:rite")
 
 
 def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
@@ -343,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_demo, _add_controls, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
-                _add_measure, _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_model):
+                _add_measure, _add_simulate, _add_cooling, _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
 

@@ -40,6 +40,14 @@ def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
 
 
 def simulate(args: argparse.Namespace) -> int:
+    if getattr(args, "cooling", None) is not None:
+        from calibration.coolcmd import simulate_cooling  # fits a model: only when asked
+
+        if args.program == "paper-calibration":
+            args.program = "wc1"
+        if args.preset == "motorized-27k":
+            args.preset = "mechanical-cooled"
+        return simulate_cooling(args)
     try:
         params = drive_params(preset(args.preset), args)
         prog = program(args.program, params.max_rpm, seed=args.seed)
