@@ -149,14 +149,19 @@ def step_run(params, *, speed_rpm: float | None = None, step_k: float = -3.0, se
     return {**run.columns(), "coolant_temp_c": sensors["coolant_temp_c"]}
 
 
-def identify_step(time_s: np.ndarray, setpoint_c: np.ndarray, elongation_um: np.ndarray, order: int = 2):
-    """The set point -> elongation transfer from the part of a log after its first set-point
-    change (from the last steady hour before it)."""
+def _step_window(time_s: np.ndarray, setpoint_c: np.ndarray) -> tuple[int, int]:
+    """(first row, the row of the first set-point change): the hour before the step on."""
     changes = np.flatnonzero(np.diff(setpoint_c) != 0)
     if changes.size == 0:
         raise CalibrationError("the log's chiller_setpoint_c never changes: nothing to identify")
     k0 = int(changes[0])
-    start = max(0, int(np.searchsorted(time_s, time_s[k0] - 3600.0)))
+    return max(0, int(np.searchsorted(time_s, time_s[k0] - 3600.0))), k0
+
+
+def identify_step(time_s: np.ndarray, setpoint_c: np.ndarray, elongation_um: np.ndarray, order: int = 2):
+    """The set point -> elongation transfer from the part of a log after its first set-point
+    change (from the last steady hour before it)."""
+    start, _ = _step_window(time_s, setpoint_c)
     t = time_s[start:] - time_s[start]
     return tuning.fit_step_model(t, setpoint_c[start:], elongation_um[start:], order=order)
 
@@ -215,8 +220,7 @@ def plot_step(path, log: dict[str, np.ndarray], model, gains: dict[str, PidGains
     t = np.asarray(log["time_s"])
     sp = np.asarray(log["chiller_setpoint_c"])
     y = np.asarray(log["elongation_um"])
-    k0 = int(np.flatnonzero(np.diff(sp) != 0)[0])
-    start = max(0, int(np.searchsorted(t, t[k0] - 3600.0)))
+    start, k0 = _step_window(t, sp)
     tt = t[start:] - t[start]
     fit = model.response(tt, sp[start:] - sp[start]) + float(np.mean(y[start:k0 + 1]))
     a.plot(tt / 60, y[start:], color="tab:grey", lw=1, label="measured")

@@ -237,18 +237,22 @@ class CoolingConfig(BaseModel):
             raise ValueError("cooling needs rite_um (thermocomp cooling rite suggests one)")
         if not isinstance(self.chiller.get("type"), str):
             raise ValueError("cooling.chiller needs a 'type' (modbus, opcua, virtual)")
-        opts = {k: v for k, v in self.chiller.items() if k != "type"}
-        check_chiller(self.chiller["type"], opts)
+        check_chiller(self.chiller["type"], self.chiller_options)
         self.law()  # the limits agree
         return self
 
+    @property
+    def chiller_options(self) -> dict[str, Any]:
+        """The chiller's options without its ``type``."""
+        return {k: v for k, v in self.chiller.items() if k != "type"}
+
     def law(self) -> CoolingLaw:
+        """The law these settings describe (the fields both share, by name)."""
+        shared = self.model_dump(include=set(CoolingLaw.model_fields))
+        if shared.get("rite_um") is None:
+            shared["rite_um"] = 0.0  # mode off: never stepped
         try:
-            return CoolingLaw(rite_um=self.rite_um if self.rite_um is not None else 0.0, preheat_c=self.preheat_c,
-                              gains=self.gains, min_c=self.min_c, max_c=self.max_c, dew_point_c=self.dew_point_c,
-                              dew_margin_k=self.dew_margin_k, rate_k_per_min=self.rate_k_per_min,
-                              resolution_c=self.resolution_c, derivative_filter_s=self.derivative_filter_s,
-                              start=self.start, idle_release_s=self.idle_release_s, hold_s=self.hold_s)
+            return CoolingLaw(**shared)
         except ValidationError as err:
             raise ValueError(str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))) from err
 

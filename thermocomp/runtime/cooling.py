@@ -44,8 +44,8 @@ class CoolingRuntime:
         self.law = cfg.law()
         self.spindle = spindle
         self.clock, self.wall, self.anchor_s = clock, wall, anchor_s
-        opts = {k: v for k, v in cfg.chiller.items() if k != "type"}
-        self.chiller = chiller if chiller is not None else open_chiller(cfg.chiller["type"], opts, clock=clock)
+        self.chiller = chiller if chiller is not None else open_chiller(cfg.chiller["type"], cfg.chiller_options,
+                                                                        clock=clock)
         # a reload keeps the loop where it was; the limits of the new law apply from the next step
         self.state: CoolingState = previous.state if previous is not None else self.law.initial()
         self.last_sent_c: float | None = previous.last_sent_c if previous is not None else None
@@ -89,7 +89,6 @@ class CoolingRuntime:
 
     def _send(self, now: float, value_c: float) -> bool:
         try:
-            self.chiller.open()
             self.chiller.write_setpoint_c(value_c)
         except (AdapterError, ThermocompError, OSError) as err:
             self.counters["write_failed"] += 1
@@ -118,7 +117,6 @@ class CoolingRuntime:
 
     def _read_supply(self, now: float) -> None:
         try:
-            self.chiller.open()
             self.supply_c = self.chiller.read_supply_c()
         except (UnreachableError, AdapterTimeoutError) as err:  # gone: as a failed write
             self.supply_c = None

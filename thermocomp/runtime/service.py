@@ -25,6 +25,7 @@ import socket
 import time
 
 from cnc_adapters import open_adapter
+from cnc_adapters.chiller import open_chiller
 from compensator.clock import ScaledClock
 from compensator.errors import ConfigError, ControlError, ThermocompError
 from compensator.io import load_any_model
@@ -383,10 +384,7 @@ def check(config_path: str) -> int:
                       "speed change lands late, in the first seconds of the next cut")
     c = cfg.cooling
     if c is not None and c.mode != "off":
-        from cnc_adapters.chiller import open_chiller
-
-        opts = {k: v for k, v in c.chiller.items() if k != "type"}
-        with open_chiller(c.chiller["type"], opts) as chiller:
+        with open_chiller(c.chiller["type"], c.chiller_options) as chiller:
             supply = chiller.read_supply_c()
         mode = "the chiller only, no offset" if c.mode == "cooling" else "the chiller and the offset"
         print(f"cooling ({mode}) on {cfg.cooling_spindle}'s estimate: chiller {c.chiller['type']} ok, "
