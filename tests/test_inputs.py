@@ -204,6 +204,38 @@ input_recover_s = 60.0
     assert np.sqrt(np.mean(err[1800:] ** 2)) < 0.35 * np.sqrt(np.mean(np.array([r[4] for r in rows])[1800:] ** 2))
     journal = read_run_log(sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))[0])
     assert (journal.extras["alarms"].astype(int) & 256).any()
+    # every input channel is journaled: the value read, a blank where the sensor gave NaN
+    bearing = journal.extras["bearing_temp_c"]
+    assert np.isnan(bearing[2400]) and np.isfinite(bearing[:2400]).all()
+    assert np.isfinite(journal.extras["spindle_load_pct"]).all()
+    assert 15.0 < np.nanmin(bearing) < np.nanmax(bearing) < 80.0  # it warmed up: real readings
+
+
+def test_a_speed_only_model_journals_the_links_inputs_too(trained, tmp_path):
+    """So a journal can be refitted with inputs later; a failing input read costs a blank."""
+    cal, _, _ = trained
+    mpath = tmp_path / "speed.json"
+    save_model(mpath, cal.model)
+    (tmp_path / "r.toml").write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
+                                     f'[[spindle]]\nname = "s1"\nmodel = "{mpath}"\nadapter = {{url = "sim://"}}\n')
+    cfg = load_config(tmp_path / "r.toml")
+    t = {"now": 0.0}
+    vm = VirtualMachine(SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=1), clock=lambda: t["now"])
+    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
+                        wall=lambda: 1699923600.0 + t["now"], adapter=SimAdapter(machine=vm))
+    assert rt.with_inputs is None
+    for k in range(600):
+        t["now"] += 1.0
+        vm.sensor_faults.clear()
+        if k == 300:
+            vm.sensor_faults["motor_temp_c"] = "nan"
+        rt.cycle()
+    rt.close()
+    journal = read_run_log(sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))[0])
+    for name in ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct"):
+        assert name in journal.extras
+    motor = journal.extras["motor_temp_c"]
+    assert np.isnan(motor[300]) and np.isfinite(np.delete(motor, 300)).all()
 
 
 def test_a_model_with_inputs_refuses_to_start_without_their_mapping(trained, tmp_path):

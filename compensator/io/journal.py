@@ -45,8 +45,14 @@ class Journal:
 
     def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], *,
                  fsync_every_s: float = 10.0, retry_s: float = 1.0, max_retry_s: float = 60.0,
-                 max_pending_rows: int = MAX_PENDING_ROWS):
+                 max_pending_rows: int = MAX_PENDING_ROWS, input_columns: tuple[str, ...] = ()):
         self.directory = Path(directory)
+        clash = sorted(set(input_columns) & set(type(self).COLUMNS))
+        if clash or len(set(input_columns)) != len(input_columns):
+            raise ValueError(f"input channel names must be unique and differ from the journal's own "
+                             f"columns: {', '.join(clash) or 'duplicates'}")
+        self.input_columns = tuple(_word(c) for c in input_columns)
+        self._inputs = tuple(input_columns)
         self.name = name
         self.metadata = dict(metadata)
         self.fsync_every_s = fsync_every_s
@@ -80,17 +86,28 @@ class Journal:
               written: bool, flags: int, alarms: int, *, dt_s: float = 0.0,
               wall_s: float | None = None, now_s: float | None = None, cutting: bool = False,
               cutting_source: str = "speed", policy_state: str = "tracking",
-              slew_limit_um_per_s: float | None = None) -> bool:
+              slew_limit_um_per_s: float | None = None,
+              inputs: Mapping[str, float] | None = None) -> bool:
         """Queue one row and write what the disk takes; True when nothing is left queued.
 
         ``now_s`` (monotonic seconds, default ``time_s``) paces the retries and the fsync.
+        ``inputs``: this cycle's values of the input channels (a missing or non-finite one is
+        a blank cell).
         """
         t = self._next_time(time_s)
         wall = t if wall_s is None else wall_s
         row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
                f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f},{int(cutting)},{_word(cutting_source)},"
-               f"{_word(policy_state)},{_cell(slew_limit_um_per_s)}\n")
-        return self._enqueue(t, row, now_s)
+               f"{_word(policy_state)},{_cell(slew_limit_um_per_s)}")
+        if self._inputs:
+            got = inputs or {}
+            row += "," + ",".join(_cell(got.get(name), ".9g") for name in self._inputs)
+        return self._enqueue(t, row + "\n", now_s)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The header of this journal's files: the fixed columns, then the input channels."""
+        return tuple(type(self).COLUMNS) + self.input_columns
 
     def _next_time(self, time_s: float) -> float:
         t = max(time_s, self._last_t + 1e-3)  # the run-log format needs increasing time
@@ -139,7 +156,7 @@ class Journal:
         self._close_fd()
         self.directory.mkdir(parents=True, exist_ok=True)
         part = 1
-        header = ",".join(self.COLUMNS)
+        header = ",".join(self.columns)
         while True:
             path = self.path_for(day, part)
             last = _last_time(path)
@@ -151,7 +168,7 @@ class Journal:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
         try:
             if os.fstat(fd).st_size == 0:
-                self._write_all(fd, header_text(self.COLUMNS, self.metadata))
+                self._write_all(fd, header_text(self.columns, self.metadata))
         except OSError:
             os.close(fd)
             raise

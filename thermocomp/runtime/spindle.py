@@ -203,9 +203,13 @@ class SpindleRuntime:
         self.cutting_from_controller = cutting_from_controller(cfg, self.adapter)
         self._cutting_error: str | None = None  # why the controller's signal failed
         self._run_up_until = -math.inf  # the speed was seen changing, the tool not cutting
+        # every input channel the link reads is journaled, used by the model or not: a journal
+        # can then be refitted with inputs
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
                                                        "source": "thermocomp run"},
-                               fsync_every_s=journal_fsync_s)
+                               fsync_every_s=journal_fsync_s,
+                               input_columns=tuple(self.adapter.input_channels()))
+        self._inputs_read: dict[str, float] = {}  # this cycle's input values, for the journal
         self.measurements = MeasurementJournal(journal_dir, cfg.name, {
             "spindle": cfg.name, "model": cfg.model, "source": "thermocomp run"},
             fsync_every_s=journal_fsync_s)
@@ -351,8 +355,9 @@ class SpindleRuntime:
     def take_journal(self, old: SpindleRuntime) -> None:
         """Write on through ``old``'s journal: the rows it still holds in memory are not lost."""
         if old.journal.directory == self.journal.directory:
-            self.journal.close()  # never opened: nothing written yet
-            self.journal, old.journal = old.journal, self.journal
+            if old.journal.input_columns == self.journal.input_columns:  # else a new part, new header
+                self.journal.close()  # never opened: nothing written yet
+                self.journal, old.journal = old.journal, self.journal
             self.measurements.close()
             self.measurements, old.measurements = old.measurements, self.measurements
 
@@ -784,11 +789,17 @@ class SpindleRuntime:
         if not_ready is None and self.writes_offset:  # a machine that is off applies its own value
             alarms |= self._read_back(now)
         self.state = self.model.step(self.state, speed, dt)
+        self._inputs_read = {}
         if self.with_inputs is not None:
             s_inputs, input_alarms = self._with_inputs(now, wall_now, speed, dt)
             alarms |= input_alarms
             if s_inputs is None:
                 alarms |= Alarm.INPUT_FALLBACK
+        elif self.journal.input_columns and self.link.up:
+            try:  # for the journal only: a failed read costs a blank cell, nothing else
+                self._inputs_read = self.adapter.read_inputs()
+            except AdapterError as err:
+                log.debug("%s: inputs not read for the journal: %s", self.cfg.name, err)
         if self.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
@@ -868,7 +879,8 @@ class SpindleRuntime:
             alarms |= Alarm.JOURNAL_FAILED  # the row says so itself once it lands
         ok = j.write(self.anchor_s + now, speed, s, held, wrote, int(shaped.flags), int(alarms), dt_s=dt,
                      wall_s=wall_now, now_s=now, cutting=shaped.cutting, cutting_source=cutting_source,
-                     policy_state=shaped.state, slew_limit_um_per_s=shaped.rate_um_per_s)
+                     policy_state=shaped.state, slew_limit_um_per_s=shaped.rate_um_per_s,
+                     inputs=self._inputs_read)
         if ok:
             if self._journal_error is not None:
                 event("journal_restored", self.cfg.name, "%s: journal writing again (%s)",
@@ -894,6 +906,7 @@ class SpindleRuntime:
         faults = self.cfg.faults
         try:
             values = self.adapter.read_inputs()
+            self._inputs_read = values
             why = model.check_inputs(values)
         except AdapterError as err:
             values, why = {}, f"inputs not read: {err}"
