@@ -370,6 +370,47 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="thermocomp.commands.model:model")
 
 
+def _add_status(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("status", help="what a running service is doing: its status endpoint as a table",
+                       description="Reads the service's /status (docs: the README's Live status). "
+                       "The token, where the service asks for one: THERMOCOMP_STATUS_TOKEN or --token-file.")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--url", help=f"the status endpoint (default {_DEFAULT_STATUS_URL})")
+    g.add_argument("--config", metavar="RUNTIME.toml", help="or the runtime configuration that names it")
+    p.add_argument("--token-file", help="a file holding the token")
+    p.add_argument("--json", action="store_true", help="print the endpoint's JSON as it came")
+    p.add_argument("--timeout-s", type=float, default=10.0, help="wait this long for the answer")
+    p.add_argument("--exit-code", action="store_true", help="exit 1 while any alarm is raised")
+    p.set_defaults(handler="thermocomp.commands.status:main")
+
+
+_DEFAULT_STATUS_URL = "http://127.0.0.1:9740/"
+
+
+def _add_journal(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("journal", help="the runtime's journal: export a time range as one run log")
+    js = p.add_subparsers(dest="journal_command", metavar="ACTION", required=True)
+    e = js.add_parser("export", help="one run log (cycles, inputs, probe measurements, chiller commands) "
+                      "that fit and replay read directly")
+    g = e.add_mutually_exclusive_group()
+    g.add_argument("--config", metavar="RUNTIME.toml", help="the runtime configuration (its journal_dir)")
+    g.add_argument("--journal-dir", help="or the journal directory itself")
+    e.add_argument("--spindle", help="the spindle (default: the only one journaled)")
+    e.add_argument("--from", dest="from_", metavar="WHEN", help="start, ISO date or date-time (UTC unless "
+                   "a zone is given), included")
+    e.add_argument("--to", metavar="WHEN", help="end, excluded")
+    e.add_argument("--output", required=True, help="run log to write (CSV)")
+    e.set_defaults(handler="thermocomp.commands.journal:export")
+
+
+def _add_init(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("init", help="write the example configurations (runtime, cooling, systemd unit) "
+                       "to a directory")
+    p.add_argument("directory", nargs="?", default=".", help="where (default: here)")
+    p.add_argument("--force", action="store_true", help="overwrite files that exist")
+    p.set_defaults(handler="thermocomp.commands.init:main")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="thermocomp",
@@ -378,7 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_demo, _add_controls, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
-                _add_measure, _add_simulate, _add_cooling, _add_virtual_cnc, _add_hal_plant, _add_model):
+                _add_measure, _add_status, _add_journal, _add_init, _add_simulate, _add_cooling,
+                _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser
 

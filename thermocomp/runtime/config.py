@@ -257,6 +257,93 @@ class CoolingConfig(BaseModel):
             raise ValueError(str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))) from err
 
 
+class StatusConfig(BaseModel):
+    """``[status]``: the read-only HTTP endpoint (``/``, ``/status``, ``/history``, ``/metrics``).
+
+    Bound to loopback by default. ``access = "token"`` asks every request for the token
+    (``Authorization: Bearer <token>`` or ``?token=``), read from ``token_file`` or the
+    environment variable ``THERMOCOMP_STATUS_TOKEN``; never from this file."""
+
+    model_config = _FROZEN
+
+    enabled: bool = True
+    bind: str = Field("127.0.0.1", min_length=1, max_length=255,
+                      description="address to listen on; 0.0.0.0 or :: for every interface")
+    port: int = Field(9740, ge=0, le=65535, description="TCP port; 0: any free one (the URL goes to "
+                      "<state_dir>/status.url)")
+    access: Literal["open", "token"] = "open"
+    token_file: Path | None = Field(None, description="with access = token: the file holding it")
+    history_h: float = Field(6.0, gt=0, le=168, description="hours of history the page can plot")
+    history_every_s: float = Field(10.0, gt=0, le=3600, description="one history point per this many "
+                                   "seconds per spindle (the last values; alarms of the whole interval)")
+
+    @model_validator(mode="after")
+    def _valid(self) -> StatusConfig:
+        if self.token_file is not None and self.access != "token":
+            raise ValueError("status.token_file is set but status.access is not \"token\"")
+        return self
+
+    def token(self) -> str | None:
+        """The token requests must carry, or None (open access); ConfigError if it is missing."""
+        if self.access == "open":
+            return None
+        if self.token_file is not None:
+            try:
+                tok = self.token_file.read_text(encoding="utf-8").strip()
+            except OSError as err:
+                raise ConfigError(f"status.token_file {self.token_file}: {err.strerror or err}") from err
+        else:
+            tok = os.environ.get("THERMOCOMP_STATUS_TOKEN", "").strip()
+        if len(tok) < 16:
+            raise ConfigError("status.access = \"token\": the token (token_file or "
+                              "THERMOCOMP_STATUS_TOKEN) must be at least 16 characters")
+        return tok
+
+
+class MqttConfig(BaseModel):
+    """``[mqtt]``: publish the status to a broker (paho-mqtt). JSON payloads, retained: the
+    service's on ``<topic>/status`` and each spindle's on ``<topic>/spindle/<name>``;
+    ``<topic>/availability`` is ``online`` while the service runs and ``offline`` once it stops
+    or is lost (the broker's last will). A broker that is down never stops compensation."""
+
+    model_config = _FROZEN
+
+    enabled: bool = True
+    host: str = Field(min_length=1, max_length=255)
+    port: int = Field(1883, ge=1, le=65535)
+    topic: str = Field("thermocomp", min_length=1, max_length=200, pattern=r"^[^#+\x00]+$",
+                       description="topic prefix (no wildcards)")
+    client_id: str | None = Field(None, max_length=200, description="default: thermocomp-<host name>")
+    publish_every_s: float = Field(10.0, gt=0, le=3600)
+    keepalive_s: int = Field(30, ge=5, le=3600, description="the broker declares the service lost "
+                             "(and publishes the last will) after 1.5 times this without a word")
+    qos: Literal[0, 1] = 1
+    username: str | None = Field(None, max_length=200)
+    password_file: Path | None = Field(None, description="or THERMOCOMP_MQTT_PASSWORD; never here")
+    tls: bool = False
+    ca_file: Path | None = Field(None, description="with tls: the broker's CA (default: the system's)")
+
+    def password(self) -> str | None:
+        if self.password_file is not None:
+            try:
+                return self.password_file.read_text(encoding="utf-8").strip()
+            except OSError as err:
+                raise ConfigError(f"mqtt.password_file {self.password_file}: {err.strerror or err}") from err
+        return os.environ.get("THERMOCOMP_MQTT_PASSWORD") or None
+
+
+class JournalRetention(BaseModel):
+    """``[journal]``: how long journal files are kept. The oldest days go first once they are
+    older than ``max_age_days`` or the journal directory's journal files exceed ``max_size_mb``;
+    the files being written are never removed."""
+
+    model_config = _FROZEN
+
+    max_age_days: float = Field(90.0, gt=0, le=36500)
+    max_size_mb: float = Field(1024.0, gt=0, le=1e7)
+    sweep_every_s: float = Field(3600.0, gt=0, le=86400, description="look this often (and at start)")
+
+
 class RuntimeConfig(BaseModel):
     model_config = _FROZEN
 
@@ -271,6 +358,9 @@ class RuntimeConfig(BaseModel):
                               "virtual machine tool only; 1 on a real machine")
     spindle: list[SpindleConfig] = Field(min_length=1, max_length=64)
     cooling: CoolingConfig | None = None
+    status: StatusConfig = StatusConfig()
+    mqtt: MqttConfig | None = None
+    journal: JournalRetention = JournalRetention()
 
     @model_validator(mode="after")
     def _cooling_spindle(self) -> RuntimeConfig:
@@ -313,6 +403,10 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     for key in ("state_dir", "journal_dir", "log_file"):
         if isinstance(data.get(key), str) and not os.path.isabs(data[key]):
             data[key] = str(base / data[key])
+    for table, key in (("status", "token_file"), ("mqtt", "password_file"), ("mqtt", "ca_file")):
+        t = data.get(table)
+        if isinstance(t, dict) and isinstance(t.get(key), str) and not os.path.isabs(t[key]):
+            t[key] = str(base / t[key])
     try:
         cfg = RuntimeConfig.model_validate(data)
     except ValidationError as err:

@@ -26,6 +26,7 @@ EVENTS = (
     "probe_accepted", "probe_rejected", "probe_restart", "probe_failed", "observer_stale",
     "observer_fresh", "control_failed", "cutting_signal_failed", "cutting_signal_restored",
     "chiller_failed", "chiller_restored",
+    "status_listening", "status_failed", "mqtt_connected", "mqtt_lost", "journal_swept",
 )
 """Every event name the runtime emits (documented in the README)."""
 

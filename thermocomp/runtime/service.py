@@ -36,6 +36,7 @@ from .cooling import CoolingRuntime
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
 from .spindle import Alarm, SpindleRuntime, cutting_from_controller
+from .status import History, StatusServer, snapshot, spindle_status, start_server
 
 log = logging.getLogger("thermocomp.runtime")
 
@@ -119,6 +120,45 @@ class Service:
         self._cooling_due = -math.inf
         self.cooling = self._build_cooling(self.cfg, self.spindles)
         self._open_control()
+        self._started_s = clock()
+        self.snapshot: dict | None = None
+        self.history: History | None = None
+        self.status_server: StatusServer | None = None
+        self.mqtt = None
+        self._sweep_due = -math.inf
+
+    def start_status(self) -> None:
+        """The status endpoint and the MQTT publisher of the configuration (``run`` starts them;
+        a test may call this). Neither is needed to compensate: one that cannot start is
+        logged and left out."""
+        st = self.cfg.status
+        self.history = History(st.history_h, st.history_every_s)
+        self.status_server = start_server(st, self.history, self.cfg.state_dir / "status.url")
+        if self.cfg.mqtt is not None and self.cfg.mqtt.enabled:
+            from .mqtt import MqttPublisher
+
+            self.mqtt = MqttPublisher(self.cfg.mqtt).start()
+        self._publish(self.clock())
+
+    def _publish(self, now: float) -> None:
+        """Build the snapshot and hand it to the endpoint, the history and the broker."""
+        if self.status_server is None and self.mqtt is None and self.history is None:
+            return
+        spindles = [spindle_status(rt, now) for rt in self.spindles.values()]
+        snap = snapshot(version=_version(), pid=os.getpid(), time_s=self.anchor_s + now,
+                               uptime_s=now - self._started_s, text=self.status_text(),
+                               reload_failed=self.reload_failed, spindles=spindles,
+                               cooling=None if self.cooling is None else self.cooling.status())
+        self.snapshot = snap
+        if self.history is not None:
+            for sp in spindles:
+                if sp["time_s"] is not None:
+                    self.history.add(sp["name"], sp["time_s"], sp["speed_rpm"], sp["elongation_um"],
+                                     sp["offset_held_um"], sp["alarm_bits"])
+        if self.status_server is not None:
+            self.status_server.publish(snap)
+        if self.mqtt is not None:
+            self.mqtt.publish(snap, now)
 
     def _open_control(self) -> None:
         """The control socket, once a spindle fuses measurements; a socket that cannot be
@@ -269,6 +309,10 @@ class Service:
                 self.cooling.cycle()
             except Exception as err:  # noqa: BLE001 - the chiller loop never stops the offset
                 log.exception("cooling cycle skipped: %s", err)
+        try:
+            self._publish(now)
+        except Exception as err:  # noqa: BLE001 - the status never stops the offset
+            log.exception("status not published: %s", err)
         beat = time.monotonic()  # real time: systemd's watchdog counts real seconds
         if self.cfg.watchdog and beat - self._last_beat >= 1.0:
             self._last_beat = beat
@@ -307,6 +351,7 @@ class Service:
             signal.signal(signal.SIGHUP, self.request_reload)
         if hasattr(signal, "SIGXFSZ"):
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a size limit: EFBIG, not death
+        self.start_status()
         sd_notify("READY=1")
         event("started", None, "running %d spindle(s), pid %d", len(self.spindles), os.getpid(),
               spindles=list(self.spindles), pid=os.getpid())
@@ -324,6 +369,12 @@ class Service:
         if self.control is not None:
             self.control.close()
             self.control = None
+        if self.status_server is not None:
+            self.status_server.close()
+            self.status_server = None
+        if self.mqtt is not None:
+            self.mqtt.close()
+            self.mqtt = None
         for rt in self.spindles.values():
             rt.close()
         if self.cooling is not None:
@@ -332,6 +383,12 @@ class Service:
         if self._lock is not None:
             self._lock.release()
         event("stopped", None, "stopped; state saved")
+
+
+def _version() -> str:
+    from thermocomp import __version__
+
+    return __version__
 
 
 def shaping_check(sc, link) -> str:

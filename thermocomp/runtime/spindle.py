@@ -210,6 +210,9 @@ class SpindleRuntime:
                                fsync_every_s=journal_fsync_s,
                                input_columns=tuple(self.adapter.input_channels()))
         self._inputs_read: dict[str, float] = {}  # this cycle's input values, for the journal
+        self.last: dict[str, Any] | None = None  # the last cycle's outcome, for the status
+        self.last_write_s: float | None = None  # clock time of the last offset written
+        self.last_readback_um: float | None = None  # what the controller held when last read back
         self.measurements = MeasurementJournal(journal_dir, cfg.name, {
             "spindle": cfg.name, "model": cfg.model, "source": "thermocomp run"},
             fsync_every_s=journal_fsync_s)
@@ -729,6 +732,7 @@ class SpindleRuntime:
             log.warning("%s: offset read-back failed: %s", self.cfg.name, err)
             return Alarm.NONE
         self.counters["readbacks"] += 1
+        self.last_readback_um = held
         self._need_readback = False
         self._since_readback = 0
         return self._mismatch(now, held, when)
@@ -753,6 +757,7 @@ class SpindleRuntime:
                 log.error("%s: write failed: %s", self.cfg.name, err)
             return False, alarms
         self.counters["writes"] += 1
+        self.last_write_s = now
         self._wrote_since_check = True
         return True, Alarm.NONE
 
@@ -834,12 +839,17 @@ class SpindleRuntime:
         alarms |= self._journal(now, dt, wall_now, speed, s, held, wrote, shaped, cutting_source, alarms)
         self._state_alarms = self._save_if_due(now)
         self.alarms = alarms | self._state_alarms
-        return {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
-                "offset_um": held, "written": wrote, "flags": shaped.flags, "alarms": alarms,
-                "read_to_write_ms": latency_ms, "offset_mode": self.offset.mode.value,
-                "link": self.link.state.value, "observer": self.observer_status(),
-                "cutting": shaped.cutting, "cutting_source": cutting_source,
-                "policy_state": shaped.state, "slew_limit_um_per_s": shaped.rate_um_per_s}
+        self.last = {"time_s": now, "dt_s": dt, "speed_rpm": speed, "predicted_um": s,
+                     "target_um": shaped.offset_um, "offset_um": held, "written": wrote,
+                     "flags": shaped.flags, "alarms": self.alarms, "read_to_write_ms": latency_ms,
+                     "offset_mode": self.offset.mode.value, "link": self.link.state.value,
+                     "observer": self.observer_status(), "cutting": shaped.cutting,
+                     "cutting_source": cutting_source, "policy_state": shaped.state,
+                     "slew_limit_um_per_s": shaped.rate_um_per_s,
+                     "estimate": ("fused" if self.fused is not None else "inputs"
+                                  if self.input_state is not None else "speed"),
+                     "inputs": dict(self._inputs_read)}
+        return {**self.last, "alarms": alarms}
 
     def next_period_s(self) -> float:
         """Seconds to the next cycle: ``run_up_period_s`` while the spindle changes speed with the

@@ -1,0 +1,125 @@
+"""``thermocomp status``: what a running service is doing, from its status endpoint, as a table.
+
+Plain text (the edge box's slim install has no ``rich``); ``--json`` prints the endpoint's
+answer as it came.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+from compensator.errors import ConfigError, ThermocompError
+
+DEFAULT_URL = "http://127.0.0.1:9740/"
+
+
+class StatusUnreachableError(ThermocompError, ConnectionError):
+    """The status endpoint did not answer."""
+
+
+def _url_of(args) -> str:
+    if args.url:
+        return args.url if args.url.endswith("/") else args.url + "/"
+    if args.config:
+        from thermocomp.runtime.config import load_config
+
+        cfg = load_config(args.config)
+        written = cfg.state_dir / "status.url"  # the service's own word, also for port 0
+        try:
+            return written.read_text(encoding="utf-8").strip()
+        except OSError:
+            st = cfg.status
+            host = "127.0.0.1" if st.bind in ("0.0.0.0", "::", "") else st.bind
+            return f"http://{host}:{st.port}/"
+    return DEFAULT_URL
+
+
+def _token(args) -> str | None:
+    if args.token_file:
+        try:
+            return Path(args.token_file).read_text(encoding="utf-8").strip() or None
+        except OSError as err:
+            raise ConfigError(f"--token-file {args.token_file}: {err.strerror or err}") from err
+    return os.environ.get("THERMOCOMP_STATUS_TOKEN", "").strip() or None
+
+
+def fetch(url: str, token: str | None, timeout_s: float = 10.0) -> dict[str, Any]:
+    req = urllib.request.Request(url + "status", headers={"Authorization": f"Bearer {token}"} if token else {})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout_s) as r:
+            return json.loads(r.read())
+    except urllib.error.HTTPError as err:
+        if err.code == 401:
+            raise ConfigError(f"{url}: the service asks for a token (THERMOCOMP_STATUS_TOKEN or "
+                              "--token-file)" + (": this one was refused" if token else "")) from err
+        if err.code == 503:
+            raise StatusUnreachableError(f"{url}: the service has not run a cycle yet") from err
+        raise StatusUnreachableError(f"{url}: HTTP {err.code}") from err
+    except (urllib.error.URLError, OSError) as err:
+        why = getattr(err, "reason", err)
+        raise StatusUnreachableError(f"could not reach the service at {url}: {why}") from err
+    except ValueError as err:
+        raise StatusUnreachableError(f"{url}: not a thermocomp status (not JSON)") from err
+
+
+def _num(v: Any, fmt: str = ".2f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def _age(s: float | None) -> str:
+    if s is None:
+        return "never"
+    s = int(s)
+    return f"{s}s" if s < 120 else f"{s // 60}m" if s < 7200 else f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+def table(st: dict[str, Any]) -> str:
+    """The status as lines of aligned text."""
+    head = (f"thermocomp {st.get('version')} · pid {st.get('pid')} · up {_age(st.get('uptime_s'))} · "
+            f"{st.get('status')}")
+    cols = ("spindle", "speed_rpm", "S_um", "target_um", "held_um", "read_back_um", "last_write",
+            "link", "estimate", "offset", "alarms")
+    rows = []
+    for s in st.get("spindles", []):
+        rows.append((s["name"], _num(s.get("speed_rpm"), ".0f"), _num(s.get("elongation_um")),
+                     _num(s.get("offset_target_um")), _num(s.get("offset_held_um")),
+                     _num(s.get("offset_read_back_um")), _age(s.get("last_write_age_s")),
+                     str(s.get("link")), str(s.get("estimate")), str(s.get("offset_mode")),
+                     ",".join(s.get("alarms") or []) or "-"))
+    widths = [max(len(c), *(len(r[i]) for r in rows)) if rows else len(c) for i, c in enumerate(cols)]
+    out = [head, "  ".join(c.ljust(w) for c, w in zip(cols, widths))]
+    out += ["  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in rows]
+    for s in st.get("spindles", []):
+        m = s.get("model") or {}
+        lo, hi = (m.get("speed_range_rpm") or [None, None])[:2]
+        line = f"{s['name']}: model {m.get('form')} ({Path(str(m.get('file'))).name}, {str(m.get('digest'))[:12]}), " \
+               f"{_num(lo, '.0f')}-{_num(hi, '.0f')} rpm"
+        if m.get("inputs"):
+            line += ", inputs " + ", ".join(m["inputs"])
+        obs = s.get("observer")
+        if obs:
+            line += (f"; observer bias {_num(obs.get('bias_um'))} um, last measurement "
+                     f"{_age(obs.get('since_measurement_s'))} ago" + (" (stale)" if obs.get("stale") else ""))
+        out.append(line)
+    c = st.get("cooling")
+    if c:
+        out.append(f"cooling: {c.get('mode')} {c.get('phase')}, set point {_num(c.get('setpoint_c'), '.1f')} °C, "
+                   f"supply {_num(c.get('supply_c'), '.1f')} °C, RITE {_num(c.get('rite_um'), '.1f')} um"
+                   + (f", {c.get('alarm')}" if c.get("alarm") else ""))
+    return "\n".join(out)
+
+
+def main(args) -> int:
+    url = _url_of(args)
+    st = fetch(url, _token(args), args.timeout_s)
+    if args.json:
+        print(json.dumps(st, allow_nan=False))
+    else:
+        print(table(st))
+    alarmed = any(s.get("alarms") for s in st.get("spindles", [])) or bool((st.get("cooling") or {}).get("alarm"))
+    return 1 if alarmed and args.exit_code else 0
