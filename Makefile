@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-deps lint-imports
+.PHONY: demo test bench venv clean system-deps lint-imports slim
 
 venv: $(STAMP)
 
@@ -25,11 +25,15 @@ system-deps:
 lint-imports: $(STAMP)
 	$(VENV)/bin/lint-imports
 
-test: $(STAMP) system-deps lint-imports
+# the edge box's install, without extras (tests/test_slim_install.py measures and runs it)
+slim:
+	bash scripts/slim-venv.sh
+
+test: $(STAMP) system-deps lint-imports slim
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info
+	rm -rf $(VENV) .venv-slim demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info

@@ -23,6 +23,11 @@ LOG_CHARS = 1000
 """A logged message is clipped to this many characters (warnings run longer than errors)."""
 
 
+EXTRA_OF = {"scipy": "calibration", "statsmodels": "calibration", "pandas": "calibration",
+            "matplotlib": "calibration", "rich": "calibration", "snap7": "plc", "pyads": "ads"}
+"""A library an optional extra brings -> that extra (pyproject.toml); the slim install has none."""
+
+
 def fail(message: str) -> None:
     """Print ``thermocomp: error: <message>`` on stderr, clipped to one line: an error may
     echo a bad value, and one was found 50 MB long."""
@@ -461,6 +466,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("thermocomp: interrupted", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as err:
+        extra = EXTRA_OF.get((err.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        fail(f"thermocomp {args.command} needs {err.name}, which comes with the '{extra}' extra: "
+             f"pip install 'thermocomp[{extra}]'")
+        return 2
     except Exception as err:
         if not getattr(args, "json", False):
             raise

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The edge box's install: `pip install thermocomp` with no extras, in .venv-slim (or $1).
+# The venv has no pip or setuptools of its own (25 MB that the service never uses): this
+# Python's pip installs into it (`pip --python`), as uv or a deployment image would.
+# The dependencies are installed once per change of pyproject.toml; this checkout's code every
+# time (not editable: what a user's pip would put there). Prints the venv's size.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+venv="${1:-.venv-slim}"
+python="${PYTHON:-python3}"
+rm -rf build ./*.egg-info  # setuptools would carry modules this checkout has since removed
+if [ ! -x "$venv/bin/python" ] || [ pyproject.toml -nt "$venv/.deps-stamp" ]; then
+  rm -rf "$venv"
+  "$python" -m venv --without-pip "$venv"
+  "$python" -m pip --python "$venv/bin/python" install --quiet --disable-pip-version-check --no-cache-dir . 2>&1 | grep -v "^WARNING: Location" || true
+  touch "$venv/.deps-stamp"
+fi
+"$python" -m pip --python "$venv/bin/python" install --quiet --disable-pip-version-check --no-cache-dir --no-deps --force-reinstall . \
+  2>&1 | grep -v "^WARNING: Location" || true
+rm -rf build ./*.egg-info
+"$venv/bin/thermocomp" --version >/dev/null
+echo "slim-venv: $venv $(du -sm "$venv" | cut -f1) MB"
