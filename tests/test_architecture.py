@@ -112,3 +112,18 @@ def test_import_contracts_hold_and_a_wrong_way_import_breaks_them(tmp_path):
                          env=env)
     assert bad.returncode != 0
     assert "compensator.units -> thermocomp.runtime" in bad.stdout
+
+
+def test_the_wheel_lists_every_package_and_ships_its_data():
+    """pyproject.toml names the packages one by one (the examples map in from ./examples), so a
+    new package must be added there: this finds one that is not."""
+    import tomllib
+
+    root = Path(__file__).parents[1]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(root).parts)
+             for top in ("thermocomp", "compensator", "cnc_adapters", "calibration")
+             for p in (root / top).rglob("__init__.py")}
+    assert found | {"thermocomp.examples"} == listed
+    for top in ("thermocomp", "compensator", "cnc_adapters", "calibration"):
+        assert (root / top / "py.typed").exists()
