@@ -12,6 +12,8 @@ from compensator.io.runlog import MAX_ABS_TIME_S, MAX_SPEED_RPM
 from compensator.units import SPEED_SCALE_RPM
 
 MIN_ROWS = 20
+MIN_MEASURED_ROWS = 10
+"""A sparse log (probe measurements only) needs at least this many measured rows."""
 MAX_PLAUSIBLE_UM = 5000.0  # 5 mm: no spindle grows that much
 IDLE_RPM = 1.0
 TRANSIENT_WINDOW_S = 300.0
@@ -29,7 +31,8 @@ sample a gap."""
 
 @dataclass(frozen=True)
 class Run:
-    """One calibration run: time, speed and measured elongation, all finite."""
+    """One calibration run: time, speed and measured elongation, all finite (from
+    ``run_from_log(..., sparse=True)``: the elongation NaN on the rows not measured)."""
 
     name: str
     time_s: np.ndarray
@@ -112,14 +115,26 @@ def _check_values(log: RunLog, src: str, elongation_um: np.ndarray) -> None:
                                f"({log.time_s[row]:g} s after {log.time_s[row - 1]:g} s)")
 
 
-def run_from_log(log: RunLog, name: str | None = None) -> Run:
-    """Check that a log can calibrate: elongation present, enough rows, plausible units."""
+def run_from_log(log: RunLog, name: str | None = None, *, sparse: bool = False) -> Run:
+    """Check that a log can calibrate: elongation present, enough rows, plausible units.
+
+    With ``sparse`` the elongation may be NaN on the rows that were not measured (a journal
+    export: probe measurements only; the cycles method fits on the measured rows); at least
+    :data:`MIN_MEASURED_ROWS` must be. Without, every row needs a finite one."""
     src = log.source or name or "run"
     if log.elongation_um is None:
         raise CalibrationError(f"{src}: no elongation_um column: a calibration run needs the measured growth")
     if len(log) < MIN_ROWS:
         raise CalibrationError(f"{src}: {len(log)} rows; a calibration run needs at least {MIN_ROWS}")
-    _check_values(log, src, log.elongation_um)
+    elong = np.asarray(log.elongation_um, dtype=float)
+    measured = np.isfinite(elong)
+    if sparse and not measured.all():
+        if measured.sum() < MIN_MEASURED_ROWS:
+            raise CalibrationError(f"{src}: the elongation is measured on {int(measured.sum())} rows; a "
+                                   f"calibration needs at least {MIN_MEASURED_ROWS}")
+        _check_values(log, src, np.where(np.isnan(elong), 0.0, elong))  # NaN: not measured
+    else:
+        _check_values(log, src, elong)
     speed = np.abs(log.speed_rpm)
     top = float(speed.max())
     if top <= 0:
@@ -132,9 +147,9 @@ def run_from_log(log: RunLog, name: str | None = None) -> Run:
         raise CalibrationError(
             f"{src}: constant speed only ({top:g} rpm): speed must vary to identify the model"
         )
-    peak = float(np.abs(log.elongation_um).max())
+    peak = float(np.nanmax(np.abs(elong)))
     if peak > MAX_PLAUSIBLE_UM:
-        row = int(np.argmax(np.abs(log.elongation_um)))
+        row = int(np.nanargmax(np.abs(elong)))
         raise CalibrationError(
             f"{_at(log, src, row)}: elongation {log.elongation_um[row]:g} um is over 5 mm; "
             "is elongation_um in nm, or the sensor off range?"

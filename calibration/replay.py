@@ -125,6 +125,9 @@ def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int =
     seconds (at the first sample at or after each instant) plus Gaussian noise of ``noise_um``."""
     if log.elongation_um is None:
         raise RunLogError("--probe-every needs a measured elongation_um column", log.source)
+    if not np.isfinite(np.asarray(log.elongation_um, float)).all():
+        raise RunLogError("--probe-every draws its probes from an elongation measured on every row; "
+                          "this log's is sparse (its measurements are probes already)", log.source)
     if not (math.isfinite(every_s) and every_s > 0):
         raise NonFiniteInputError(f"--probe-every must be > 0 s, got {every_s}")
     if not (math.isfinite(noise_um) and noise_um > 0):
@@ -188,9 +191,11 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
 
 
 def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float | None]:
+    """The error's figures on the rows where it is known (a sparse log: the measured rows)."""
     if error is None:
         return {"rms_um": None, "max_abs_um": None, "cutting_rms_um": None, "cutting_max_abs_um": None}
-    whole, cut = residual_stats(error), residual_stats(error[mask])
+    known = np.isfinite(error)
+    whole, cut = residual_stats(error[known]), residual_stats(error[mask & known])
     return {"rms_um": whole["rms_um"], "max_abs_um": whole["max_abs_um"],
             "cutting_rms_um": cut["rms_um"], "cutting_max_abs_um": cut["max_abs_um"]}
 
@@ -232,6 +237,10 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
            compare: bool = True) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
+    A sparse log (a journal export: the elongation measured at the probe instants only, NaN on
+    the other rows) is replayed over every row; its error figures are those of the measured rows
+    (``measured_samples``), and the equilibrium figures come from the prediction.
+
     Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated at the last logged
     speed (a gap that begins at rest cools), with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
     number returned is finite, or a one-line error says where the model overflowed.
@@ -244,21 +253,31 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     model's, and with ``compare`` every transient policy side by side (``policies``).
     """
     shaping = ShaperConfig() if shaping is None else shaping
-    measured = log.elongation_um
+    warnings: list[str] = []
+    measured = None if log.elongation_um is None else np.asarray(log.elongation_um, dtype=float)
+    rows = np.isfinite(measured) if measured is not None else np.zeros(len(log), dtype=bool)
+    if measured is not None and np.isinf(measured).any():  # NaN: not measured; inf: garbage
+        row = int(np.flatnonzero(np.isinf(measured))[0])
+        raise RunLogError("column elongation_um: not a finite number", log.source, log.line_of(row))
+    if measured is not None and not rows.any():
+        warnings.append("the elongation_um column has no value: replayed without a measurement")
+        measured = None
+    sparse = measured is not None and not bool(rows.all())
     if initial_um is None and measured is not None:
-        initial_um = float(measured[0])
+        if rows[0]:
+            initial_um = float(measured[0])
+        else:
+            warnings.append("the first row has no measured elongation: the model starts from its own "
+                            "initial state (give --initial-um to start elsewhere)")
     if initial_um is not None and not math.isfinite(initial_um):
         raise NonFiniteInputError(f"initial elongation is {initial_um}")
     missing = [n for n in model.input_names if n not in log.extras]
     if missing:
         raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
     inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
-    checked = dict(inputs)
-    if measured is not None:  # the reader checks it; a RunLog built in memory may not be
-        checked["elongation_um"] = np.asarray(measured, dtype=float)
-    bad = [n for n, v in checked.items() if not np.isfinite(v).all()]
+    bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
     if bad:
-        row = int(np.flatnonzero(~np.isfinite(checked[bad[0]]))[0])
+        row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
         raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
     # a gap of missing rows is the spindle at rest: hours of held speed would be invented heat
     speed_sim, gaps = bridge_gaps(log.time_s, log.speed_rpm)
@@ -283,7 +302,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                 + (f" (line {line})" if line else "")
                 + ": the model overflows on the log's values or time steps")
 
-    warnings: list[str] = [cut_warning] if cut_warning else []
+    if cut_warning:
+        warnings.insert(0, cut_warning)
     lo, hi = model.speed_range_rpm
     speed = np.abs(log.speed_rpm)
     over = speed > hi * (1 + RANGE_TOLERANCE)  # Predictor.above_range, vectorised
@@ -340,10 +360,12 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         report.update(probes=int(probes.time_s.size), probes_rejected=fusion.rejected,
                       probe_restarts=fusion.restarts,
                       probe_source=probes.source)
+    report["measured_samples"] = int(rows.sum()) if measured is not None else 0
     if measured is not None:
-        res = measured - pred
+        y = measured[rows]  # a sparse log: its measured rows only
+        res = y - pred[rows]
         st = residual_stats(res)
-        std_u = float(np.std(measured))
+        std_u = float(np.std(y))
         std_c = float(np.std(res))
         report.update(
             max_abs_residual_um=st["max_abs_um"],
@@ -352,19 +374,23 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             std_uncompensated_um=std_u,
             std_compensated_um=std_c,
             std_reduction_pct=100.0 * (1 - std_c / std_u) if std_u > 0 else None,
-            max_abs_uncompensated_um=float(np.max(np.abs(measured))),
+            max_abs_uncompensated_um=float(np.max(np.abs(y))),
         )
         if fusion is not None:
-            ost = residual_stats(measured - open_loop)
+            ost = residual_stats(y - open_loop[rows])
             report.update(open_loop_rms_residual_um=ost["rms_um"],
                           open_loop_max_abs_residual_um=ost["max_abs_um"])
-        ast = residual_stats(measured + applied)
-        cst = residual_stats((measured + applied)[shaped.cutting])
+        ast = residual_stats(y + applied[rows])
+        cst = residual_stats((measured + applied)[rows & shaped.cutting])
         report.update(applied_rms_residual_um=ast["rms_um"],
                       applied_max_abs_residual_um=ast["max_abs_um"],
                       applied_cutting_rms_residual_um=cst["rms_um"],
                       applied_cutting_max_abs_residual_um=cst["max_abs_um"])
-        error = measured
+        error = pred if sparse else measured
+        if sparse:
+            warnings.append(f"the elongation is measured on {int(rows.sum())} of {rows.size} rows (sparse): "
+                            "the error figures are on those rows; equilibrium time and TEVR from the "
+                            "prediction")
     else:
         for key in ("max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
                     "std_uncompensated_um", "std_compensated_um", "std_reduction_pct",
@@ -376,7 +402,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     t_eq, tevr = equilibrium(log.time_s, error)
     report["equilibrium_time_s"] = t_eq
     report["tevr_um"] = tevr
-    report["ste_source"] = "measured" if measured is not None else "predicted"
+    report["ste_source"] = "measured" if measured is not None and not sparse else "predicted"
     report["shaping"] = {
         "policy": shaping.policy, "max_rate_um_per_s": shaping.max_rate_um_per_s,
         "not_cutting_rate_um_per_s": shaping.fast_rate_um_per_s,

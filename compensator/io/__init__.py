@@ -4,6 +4,8 @@
 - :mod:`.modelfile`: model files with their checksum;
 - :mod:`.state`: the runtime's state file;
 - :mod:`.journal`: the runtime's daily journal, and its measurements;
+- :mod:`.retention`: removing old journal files (age, total size);
+- :mod:`.journal_export`: one run log from a spindle's journal (``thermocomp journal export``);
 - :mod:`.atomic`: atomic writes and plain text files;
 - :mod:`.checksum`: the canonical JSON and digest that model files and state carry.
 
@@ -13,6 +15,7 @@ application do not either.
 
 from .atomic import atomic_write, read_text, versioned_path, write_text
 from .journal import CoolingJournal, Journal, MeasurementJournal
+from .journal_export import Exported, export_journal
 from .modelfile import (
     MODEL_TYPES,
     load_any_model,
@@ -21,6 +24,7 @@ from .modelfile import (
     model_to_json,
     save_model,
 )
+from .retention import SweepResult, sweep
 from .runlog import (
     ELONGATION_COLUMN,
     REQUIRED_COLUMNS,
@@ -42,9 +46,12 @@ __all__ = [
     "Journal",
     "MeasurementJournal",
     "CoolingJournal",
+    "Exported",
     "RunLog",
     "RunLogAppender",
+    "SweepResult",
     "atomic_write",
+    "export_journal",
     "load_any_model",
     "load_model",
     "load_state",
@@ -56,6 +63,7 @@ __all__ = [
     "save_model",
     "quarantine",
     "save_state",
+    "sweep",
     "versioned_path",
     "write_run_log",
     "write_text",

@@ -14,6 +14,11 @@ other column is kept. Time must strictly increase and be in seconds (see
 (:data:`MAX_SPEED_RPM`, :data:`MAX_ABS_ELONGATION_UM`). Gaps are allowed and
 reported. Every error is one line naming the file and line.
 
+Sparse measurements: a log whose metadata says ``# elongation_um: sparse`` (a journal export,
+``thermocomp journal export``: probe measurements only) may leave ``elongation_um`` empty on the
+rows that were not measured; they read as NaN (:attr:`RunLog.measured` is False there). Without
+that line every row needs a number.
+
 Whole files are written atomically (:mod:`compensator.io.atomic`); a recording appends a
 row at a time (:class:`RunLogAppender`).
 """
@@ -36,6 +41,8 @@ from .atomic import atomic_write
 
 REQUIRED_COLUMNS = ("time_s", "speed_rpm")
 ELONGATION_COLUMN = "elongation_um"
+SPARSE = "sparse"
+"""The value of the metadata key ``elongation_um`` that lets elongation cells be empty."""
 GAP_FACTOR = 5.0
 """A step longer than this many median steps is reported as a gap."""
 
@@ -89,6 +96,20 @@ class RunLog:
     @property
     def duration_s(self) -> float:
         return float(self.time_s[-1] - self.time_s[0]) if len(self) else 0.0
+
+    @property
+    def measured(self) -> np.ndarray:
+        """bool per row: the row has a measured elongation (all False without the column; False
+        on the empty cells of a sparse log)."""
+        if self.elongation_um is None:
+            return np.zeros(len(self), dtype=bool)
+        return np.isfinite(np.asarray(self.elongation_um, dtype=float))
+
+    @property
+    def sparse(self) -> bool:
+        """The elongation is measured on some rows but not all (see the module's docstring)."""
+        m = self.measured
+        return self.elongation_um is not None and not bool(m.all())
 
     @property
     def median_dt_s(self) -> float:
@@ -289,8 +310,9 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
     def numeric(col: str, allow_nan: bool = False) -> np.ndarray:
         raw = df[col]
         values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(values)
-        if bad.any() and not allow_nan:
+        # allowed: cells empty (or nan, NA...): no value; text that is not a number never is
+        bad = np.isinf(values) | (np.isnan(values) & raw.notna().to_numpy()) if allow_nan else ~np.isfinite(values)
+        if bad.any():
             row = int(np.flatnonzero(bad)[0])
             line = _line_of_row(src, row)
             cell = raw.iloc[row]
@@ -305,7 +327,8 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
 
     time_s = numeric("time_s")
     speed = numeric("speed_rpm")
-    elong = numeric(ELONGATION_COLUMN) if ELONGATION_COLUMN in df.columns else None
+    sparse = meta.get(ELONGATION_COLUMN, "").strip().lower() == SPARSE
+    elong = numeric(ELONGATION_COLUMN, sparse) if ELONGATION_COLUMN in df.columns else None
     _check_time_unit(time_s, src)
     dt = np.diff(time_s)
     back = np.flatnonzero(dt <= 0)

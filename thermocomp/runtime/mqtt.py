@@ -119,8 +119,9 @@ class MqttPublisher:
         if self._closing:
             return
         if self._outage is None:
-            event("mqtt_lost", None, "mqtt: %s:%d %s; retrying, compensation goes on", self.cfg.host,
-                  self.cfg.port, why, level=logging.WARNING, host=self.cfg.host, port=self.cfg.port,
+            cfg = self.cfg
+            event("mqtt_lost", None, "mqtt: %s:%d %s; retrying, compensation goes on", cfg.host,
+                  cfg.port, why, level=logging.WARNING, host=cfg.host, port=cfg.port,
                   reason=why[:200])
         elif why != self._outage:
             log.debug("mqtt: %s", why)

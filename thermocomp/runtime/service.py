@@ -275,6 +275,8 @@ class Service:
             rt.close()
         if self.cooling is not None:
             self.cooling.close()
+        if new.status != self.cfg.status or new.mqtt != self.cfg.mqtt:
+            log.warning("[status] and [mqtt] changes take effect at the next restart")
         self.cfg, self.spindles, self.reload_failed = new, built, False
         self.cooling = cooling
         self._open_control()
