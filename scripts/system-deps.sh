@@ -3,6 +3,8 @@
 # - Node.js and npm (the independent OPC UA implementation, node-opcua), and the npm packages
 #   pinned in tests/js;
 # - socat (pseudo-terminal pairs for the serial links);
+# - mosquitto (the MQTT broker tests/test_mqtt.py starts on a free loopback port; the package's
+#   own service, if systemd starts it, is not used);
 # - LinuxCNC (Debian's linuxcnc-uspace) for the LinuxCNC integration tests, and a virtual
 #   environment on Debian's own python3 that sees LinuxCNC's `hal` and `linuxcnc` modules
 #   (--system-site-packages), from which LinuxCNC starts `thermocomp` as a HAL component.
@@ -17,6 +19,7 @@ need=()
 command -v node >/dev/null 2>&1 || need+=(nodejs)
 command -v npm >/dev/null 2>&1 || need+=(npm)
 command -v socat >/dev/null 2>&1 || need+=(socat)
+[ -x /usr/sbin/mosquitto ] || need+=(mosquitto)  # /usr/sbin: not on a user's PATH
 optional=()
 command -v linuxcnc >/dev/null 2>&1 || optional+=(linuxcnc-uspace)
 /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || optional+=(python3-venv)

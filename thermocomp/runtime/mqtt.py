@@ -33,6 +33,9 @@ from .config import MqttConfig
 from .events import event
 
 log = logging.getLogger("thermocomp.runtime")
+paho_log = logging.getLogger("thermocomp.runtime.paho")  # paho's own lines, in our log
+# ...but not the error paho logs on each reconnection attempt: an outage is one event here
+paho_log.addFilter(lambda r: not str(r.msg).startswith("Client is not connected"))
 
 RECONNECT_MAX_S = 30
 """Longest wait between two connection attempts [s]: a broker back up is found within this."""
@@ -74,7 +77,7 @@ class MqttPublisher:
         client_id = cfg.client_id or f"thermocomp-{socket.gethostname()}"
         c = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=client_id,
                         protocol=paho.MQTTv311)
-        c.enable_logger(logging.getLogger("thermocomp.runtime.paho"))  # its errors, in our log
+        c.enable_logger(paho_log)
         c.will_set(self.availability, "offline", qos=cfg.qos, retain=True)
         if cfg.username is not None:
             c.username_pw_set(cfg.username, cfg.password())
@@ -88,9 +91,9 @@ class MqttPublisher:
         c.on_connect, c.on_disconnect = self._on_connect, self._on_disconnect
         c.on_connect_fail = self._on_fail
         c.connect_async(cfg.host, cfg.port, keepalive=cfg.keepalive_s)  # no I/O here
-        c.loop_start()
-        self.client = c
         log.info("mqtt: connecting to %s:%d as %s", cfg.host, cfg.port, client_id)
+        self.client = c
+        c.loop_start()
         return self
 
     # -- paho's thread ------------------------------------------------------------------------
@@ -157,7 +160,8 @@ class MqttPublisher:
         assert self.client is not None
         body = json.dumps(payload, allow_nan=False, separators=(",", ":"))
         info = self.client.publish(f"{self.cfg.topic}/{sub}", body, qos=self.cfg.qos, retain=True)
-        if info.rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_NO_CONN):  # NO_CONN: a race, resent
+        # NO_CONN: the connection dropped just now; at qos 1 paho sends it again on reconnect
+        if info.rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_NO_CONN):
             self.dropped += 1
             self._warn(now_s, "mqtt: %s not queued: %s (%d dropped so far)", sub,
                        paho.error_string(info.rc), self.dropped)
