@@ -17,6 +17,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from compensator.io import load_any_model, read_run_log, save_model, write_run_log
+from compensator.io.journal_export import NOT_INPUTS
+from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
 from compensator.shaping import ShaperConfig
 
 from .calibrate import Calibration, calibrate
@@ -110,13 +112,21 @@ def _meta(args: argparse.Namespace, logs) -> dict[str, Any]:
 
 
 def _input_names(args: argparse.Namespace, logs) -> list[str]:
+    """The input columns named by ``--inputs``. ``all``: those the first log's metadata lists
+    (``# inputs:``, as a journal export writes), else its numeric extra columns but the
+    journal's and the export's own (:data:`compensator.io.journal_export.NOT_INPUTS`: the
+    runtime's prediction, offsets, flags, the chiller's commands...)."""
     from compensator.errors import CalibrationError
 
     spec = (args.inputs or "").strip()
     if spec == "all":
-        names = [k for k, v in logs[0].extras.items() if v.dtype != object]
+        listed = logs[0].metadata.get("inputs")
+        if listed is not None:
+            names = [n.strip() for n in listed.split(",") if n.strip()]
+        else:
+            names = [k for k, v in logs[0].extras.items() if v.dtype != object and k not in NOT_INPUTS]
         if not names:
-            raise CalibrationError(f"{logs[0].source}: --inputs all, but the log has no numeric extra column")
+            raise CalibrationError(f"{logs[0].source}: --inputs all, but the log has no input column")
     else:
         names = [n.strip() for n in spec.split(",") if n.strip()]
     for log in logs:
@@ -150,7 +160,12 @@ def fit(args: argparse.Namespace) -> int:
     if args.probe_every is not None and not (math.isfinite(args.probe_every) and args.probe_every > 0):
         raise CalibrationError(f"--probe-every must be > 0 s, got {args.probe_every}")
     logs = [read_run_log(p) for p in args.runs]
-    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
+    runs = [run_from_log(log, name=p, sparse=True) for log, p in zip(logs, args.runs)]
+    sparse = any(lg.sparse for lg in logs)
+    if sparse and args.probe_every is not None:
+        raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
+                               f"row; {next(p for p, lg in zip(args.runs, logs) if lg.sparse)} has it on "
+                               "some rows only (sparse)")
     names = _input_names(args, logs)
     data, gap_notes = [], []
     for p, r, lg in zip(args.runs, runs, logs):
@@ -161,10 +176,16 @@ def fit(args: argparse.Namespace) -> int:
         data.append(LogData(Path(p).name, r.time_s, speed, r.elongation_um,
                             {n: np.asarray(lg.extras[n], dtype=float) for n in names}))
     with progress(not args.json) as say:
-        result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
-                          nested=not args.no_nested, physical=not args.no_physical,
-                          probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
-                          **_meta(args, logs))
+        if sparse:  # fitted and scored on the measured rows: calibration.sparse
+            from .sparse import identify_sparse
+
+            result = identify_sparse(data, names, units={n: unit_of(n) for n in names}, progress=say,
+                                     nested=not args.no_nested, **_meta(args, logs))
+        else:
+            result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
+                              nested=not args.no_nested, physical=not args.no_physical,
+                              probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
+                              **_meta(args, logs))
     result.warnings[:0] = gap_notes
     model = result.model
     # validated before it is written: the same checks a load makes
@@ -239,7 +260,14 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
 
 def fit_forms(args: argparse.Namespace) -> int:
     """The earlier method: every output-error form on whole runs, inputs by forward selection."""
+    from compensator.errors import CalibrationError
+
     logs = [read_run_log(p) for p in args.runs]
+    for p, lg in zip(args.runs, logs):
+        if lg.sparse:
+            raise CalibrationError(f"{p}: the elongation is measured on {int(lg.measured.sum())} of {len(lg)} "
+                                   "rows (sparse); --method forms needs it on every row: the default "
+                                   "method (cycles) fits on the measured rows")
     runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
     meta = _meta(args, logs)
     names = _input_names(args, logs) if args.inputs else []
@@ -399,7 +427,10 @@ def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None) ->
                      compare=not getattr(args, "no_compare", False))
         if args.output:
             say("writing predictions")
-            write_run_log(args.output, rep.columns(), {"model": args.model, "source": args.log})
+            meta = {"model": args.model, "source": args.log}
+            if log.sparse:  # its NaN cells are rows not measured, not faults
+                meta[ELONGATION_COLUMN] = SPARSE
+            write_run_log(args.output, rep.columns(), meta)
         if args.plot:
             say("plotting")
             plot_panels(args.plot, [Panel(Path(args.log).name, rep.time_s, rep.speed_rpm,

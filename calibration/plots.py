@@ -58,8 +58,10 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
         ax_n.step(t_h, p.speed_rpm, where="pre", color="tab:gray", lw=1)
         ax_n.set_ylabel("speed [rpm]")
         ax_n.set_title(p.title)
+        # a journal's probe measurements are isolated points: a line would not show them
+        dots = {} if p.measured_um is None or np.isfinite(p.measured_um).all() else {"marker": ".", "ls": "none"}
         if p.measured_um is not None:
-            ax_s.plot(t_h, p.measured_um, color="tab:blue", lw=1, label=p.measured_label)
+            ax_s.plot(t_h, p.measured_um, color="tab:blue", lw=1, label=p.measured_label, **dots)
         if p.predicted_um is not None:
             ax_s.plot(t_h, p.predicted_um, color="tab:red", lw=1.2, label=p.predicted_label)
         for (label, y), color in zip(p.extra, ("tab:green", "tab:orange", "tab:brown", "tab:pink")):
@@ -72,7 +74,7 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
             if not keep.all():
                 ax_r.plot(t_h, res, color="0.75", lw=0.8, label="not scored (tool clear of the part)")
                 ax_r.legend(loc="lower left", fontsize=7)
-            ax_r.plot(t_h, np.where(keep, res, np.nan), color="tab:purple", lw=1)
+            ax_r.plot(t_h, np.where(keep, res, np.nan), color="tab:purple", lw=1, **dots)
             ax_r.axhline(0, color="k", lw=0.5)
             judged = res[keep]
             rms = float(np.sqrt(np.mean(judged**2)))

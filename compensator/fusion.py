@@ -19,9 +19,18 @@ from typing import Any
 import numpy as np
 
 from .errors import ModelError
-from .observer import COV_LIMIT, Fusion, ObserverConfig, ObserverState, Update, fuse_series, measurement_update, time_update
-from .predictor import Predictor
 from .model import saved_numbers
+from .observer import (
+    COV_LIMIT,
+    Fusion,
+    ObserverConfig,
+    ObserverState,
+    Update,
+    fuse_series,
+    measurement_update,
+    time_update,
+)
+from .predictor import Predictor
 
 OBSERVER_KEY = "observer"
 """Where a model's fit keeps the observer settings fitted at calibration."""

@@ -11,7 +11,7 @@ or scipy.
 from __future__ import annotations
 
 import argparse
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from compensator.errors import ConfigError
@@ -30,7 +30,7 @@ def parse_when(text: str | None, flag: str) -> float | None:
     except ValueError as err:
         raise ConfigError(f"{flag} {text[:60]!r}: not an ISO date or date-time ({WHEN_FORMS})") from err
     if when.tzinfo is None:
-        when = when.replace(tzinfo=timezone.utc)
+        when = when.replace(tzinfo=UTC)
     return when.timestamp()
 
 

@@ -237,6 +237,28 @@ class Service:
                               anchor_s=self.anchor_s, journal_fsync_s=cfg.journal_fsync_s,
                               previous=self.cooling)
 
+    def sweep_journal(self, now: float) -> None:
+        """Retention: remove the oldest journal days past ``[journal]``'s age or size, never a
+        file being written. A failure is logged; nothing here stops compensation."""
+        from compensator.io.retention import sweep
+
+        ret = self.cfg.journal
+        journals = [j for rt in self.spindles.values() for j in (rt.journal, rt.measurements)]
+        if self.cooling is not None:
+            journals.append(self.cooling.journal)
+        try:
+            res = sweep(self.cfg.journal_path, now_wall_s=self.anchor_s + now, max_age_days=ret.max_age_days,
+                        max_bytes=int(ret.max_size_mb * 2**20), keep=[j.path for j in journals if j.path])
+        except Exception as err:  # noqa: BLE001 - retention is housekeeping
+            log.error("journal retention failed: %s", err)
+            return
+        if res.removed:
+            event("journal_swept", None, "journal: removed %d old file(s), %.1f MB freed; %.1f MB kept",
+                  len(res.removed), res.freed_bytes / 2**20, res.total_bytes / 2**20,
+                  removed=[p.name for p in res.removed][:50], freed_bytes=res.freed_bytes)
+        for err in res.errors[:3]:
+            log.warning("journal retention: %s", err)
+
     def request_stop(self, *_: object) -> None:
         self._stop = True
 
@@ -315,6 +337,9 @@ class Service:
             self._publish(now)
         except Exception as err:  # noqa: BLE001 - the status never stops the offset
             log.exception("status not published: %s", err)
+        if now >= self._sweep_due:
+            self._sweep_due = now + self.cfg.journal.sweep_every_s
+            self.sweep_journal(now)
         beat = time.monotonic()  # real time: systemd's watchdog counts real seconds
         if self.cfg.watchdog and beat - self._last_beat >= 1.0:
             self._last_beat = beat
