@@ -172,3 +172,47 @@ def test_after_a_sweep_the_journal_fits_unless_only_protected_files_remain(files
         assert res.total_bytes <= max_bytes or all(protected(p) for p in left)
         # nothing unprotected older than the age is left
         assert all(protected(p) or parse_name(p.name).day_end_s >= now - max_age * DAY_S for p in left)
+
+
+def test_the_service_sweeps_its_journal_at_start_and_hourly(tmp_path, calibrated_model, caplog):
+    """The running service applies [journal]: days past the age go at the first tick, then the
+    oldest past the size an hour later; its own files and other files stay."""
+    import logging
+    import time as _time
+
+    from thermocomp.runtime import Service
+
+    wall0 = 1_700_000_000.0  # 2023-11-14 22:13 UTC
+    jdir = tmp_path / "state" / "journal"
+    jdir.mkdir(parents=True)
+    old = [jdir / f"s1-{_time.strftime('%Y-%m-%d', _time.gmtime(wall0 - d * DAY_S))}.csv" for d in (120, 100)]
+    recent = [jdir / f"s1.measurements-{_time.strftime('%Y-%m-%d', _time.gmtime(wall0 - d * DAY_S))}.csv"
+              for d in (30, 20)]
+    for p in old + recent:
+        p.write_bytes(b"x" * 400_000)
+    other = jdir / "notes.txt"
+    other.write_text("keep me")
+    cfg = tmp_path / "m.toml"
+    cfg.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
+                   '[status]\nenabled = false\n[journal]\nmax_age_days = 90\nmax_size_mb = 0.5\n'
+                   f'[[spindle]]\nname = "s1"\nmodel = "{calibrated_model}"\nadapter = {{url = "sim://"}}\n')
+    t = [0.0]
+    svc = Service(cfg, clock=lambda: t[0], wall=lambda: wall0 + t[0], lock=False)
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        svc.tick()
+        assert not any(p.exists() for p in old)  # past 90 days
+        assert not recent[0].exists() and recent[1].exists()  # the oldest, to get under 0.5 MB
+        late = jdir / f"s1.cooling-{_time.strftime('%Y-%m-%d', _time.gmtime(wall0 - 95 * DAY_S))}.csv"
+        late.write_text("x")
+        while t[0] < 3590.0:
+            t[0] += 1.0
+            svc.tick()
+        assert late.exists()  # not before the next sweep, an hour on
+        while t[0] < 3610.0:
+            t[0] += 1.0
+            svc.tick()
+        assert not late.exists()
+    svc.close()
+    assert other.read_text() == "keep me"  # not a journal file
+    assert svc.spindles["s1"].journal.path.exists()  # its own file, of today
+    assert sum(getattr(r, "event", None) == "journal_swept" for r in caplog.records) == 2
