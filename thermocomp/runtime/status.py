@@ -27,6 +27,7 @@ import http.server
 import json
 import logging
 import math
+import socket
 import threading
 from collections.abc import Iterable, Mapping
 from importlib import resources
@@ -308,9 +309,7 @@ class StatusServer:
 
 
 class _V6Server(http.server.ThreadingHTTPServer):
-    import socket as _socket
-
-    address_family = _socket.AF_INET6
+    address_family = socket.AF_INET6
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
