@@ -3,6 +3,8 @@
 # - Node.js and npm (the independent OPC UA implementation, node-opcua), and the npm packages
 #   pinned in tests/js;
 # - socat (pseudo-terminal pairs for the serial links);
+# - Chromium (Debian's `chromium`, /usr/bin/chromium) for the status page's browser test, driven by
+#   playwright-core from tests/js (Playwright's own browsers are never downloaded);
 # - mosquitto (the MQTT broker tests/test_mqtt.py starts on a free loopback port; the package's
 #   own service, if systemd starts it, is not used);
 # - LinuxCNC (Debian's linuxcnc-uspace) for the LinuxCNC integration tests, and a virtual
@@ -22,6 +24,7 @@ command -v socat >/dev/null 2>&1 || need+=(socat)
 [ -x /usr/sbin/mosquitto ] || need+=(mosquitto)  # /usr/sbin: not on a user's PATH
 optional=()
 command -v linuxcnc >/dev/null 2>&1 || optional+=(linuxcnc-uspace)
+[ -x /usr/bin/chromium ] || optional+=(chromium)
 /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || optional+=(python3-venv)
 if [ $root -eq 1 ]; then
   need+=("${optional[@]}")
@@ -37,7 +40,7 @@ if [ ${#need[@]} -gt 0 ]; then
   fi
 fi
 if [ ${#optional[@]} -gt 0 ]; then
-  echo "system-deps: ${optional[*]} missing: the LinuxCNC tests will be skipped" \
+  echo "system-deps: ${optional[*]} missing: the LinuxCNC or status page tests will be skipped" \
        "(sudo apt-get install --no-install-recommends ${optional[*]})" >&2
 fi
 

@@ -355,7 +355,7 @@ class Service:
 
     def status_text(self) -> str:
         """One line for `systemctl status`: what needs attention, if anything."""
-        notes = []
+        notes = ["reload refused, running the previous configuration"] if self.reload_failed else []
         for name, rt in self.spindles.items():
             obs = rt.observer_status()
             if obs is None:

@@ -319,7 +319,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     timeout = 10.0  # a client that stalls holds one thread of the server, never the service
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the stdlib's name
-        log.debug("status: %s: " + format, self.address_string(), *args)
+        # the request line may carry ?token=: never log a query
+        log.debug("status: %s: %s %s", self.address_string(), self.command, urlsplit(self.path).path[:100])
 
     def _allowed(self, query: dict[str, list[str]]) -> bool:
         token = self.owner.token
@@ -351,10 +352,15 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             url = urlsplit(self.path)
             query = parse_qs(url.query)
             if not self._allowed(query):
+                # a body, so that a browser shows what to do rather than an empty error page
+                body = b"thermocomp status: a token is needed (Authorization: Bearer, or ?token= for the page)\n"
                 self.send_response(401)
                 self.send_header("WWW-Authenticate", 'Bearer realm="thermocomp"')
-                self.send_header("Content-Length", "0")
+                self.send_header("Content-Type", "text/plain; charset=utf-8")
+                self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
+                if self.command != "HEAD":
+                    self.wfile.write(body)
                 return
             snap = self.owner._snapshot
             if url.path in ("/", "/index.html"):
@@ -393,8 +399,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if series is None:
             self._json(404, {"error": f"no spindle {name[:50]!r}; spindles: {', '.join(names)}"})
             return
+        # the snapshot's time as latest_s: the series' own time_s column follows
         self._json(200, {"spindle": name, "every_s": hist.every_s,
-                         "time_s": None if snap is None else snap.get("time_s"),
+                         "latest_s": None if snap is None else snap.get("time_s"),
                          "alarm_names": ALARM_NAMES, **series})
 
 
