@@ -127,3 +127,40 @@ def test_the_wheel_lists_every_package_and_ships_its_data():
     assert found | {"thermocomp.examples"} == listed
     for top in ("thermocomp", "compensator", "cnc_adapters", "calibration"):
         assert (root / top / "py.typed").exists()
+
+
+def test_every_import_is_declared_and_the_runtime_needs_no_extra():
+    """Every third-party module the packages import comes from a distribution pyproject.toml
+    declares; the ones the slim install lacks only from an extra. (The ast of each module, its
+    imports at any depth; importlib's map of modules to distributions.)"""
+    import ast
+    import importlib.metadata as md
+    import re
+    import tomllib
+
+    root = Path(__file__).parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    norm = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
+    req = lambda spec: norm(re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0])  # noqa: E731
+    base = {req(d) for d in project["dependencies"]}
+    extras = {req(d) for k, v in project["optional-dependencies"].items() if k != "test" for d in v
+              if not d.startswith("thermocomp")}
+    dists = {mod: {norm(d) for d in ds} for mod, ds in md.packages_distributions().items()}
+    first_party = {"thermocomp", "compensator", "cnc_adapters", "calibration"}
+    # LinuxCNC's own modules come with LinuxCNC (Debian), not from PyPI
+    system = {"hal", "linuxcnc"}
+    undeclared = {}
+    for top in first_party:
+        for path in (root / top).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                         else [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module
+                         else [])
+                for name in names:
+                    mod = name.split(".")[0]
+                    if mod in first_party or mod in system or mod in sys.stdlib_module_names:
+                        continue
+                    owners = dists.get(mod, {norm(mod)})
+                    if not owners & (base | extras):
+                        undeclared.setdefault(mod, set()).add(str(path.relative_to(root)))
+    assert not undeclared, undeclared
