@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-deps lint-imports slim
+.PHONY: demo test bench venv clean system-deps lint-imports slim test-lowest
 
 venv: $(STAMP)
 
@@ -32,8 +32,30 @@ slim:
 test: $(STAMP) system-deps lint-imports slim
 	$(PY) -m pytest -q
 
+# The oldest versions pyproject.toml allows (uv's lowest-direct resolution: every direct
+# dependency at its lower bound), and the tests that exercise them: each library's own API
+# (numpy, pydantic, asyncua, pymodbus, pyserial, prometheus_client, paho-mqtt, scipy,
+# statsmodels, pandas, matplotlib, rich, python-snap7, pyads).
+LOWEST := .venv-lowest
+LOWEST_TESTS ?= tests/test_io.py tests/test_model.py tests/test_shaping.py tests/test_adapter_settings.py \
+	tests/test_chiller.py tests/test_control_plc.py tests/test_inputs.py tests/test_cooling_law.py \
+	tests/test_cli.py tests/test_bounds.py tests/test_status.py tests/test_mqtt.py \
+	tests/test_journal_export.py tests/test_retention.py tests/test_architecture.py
+
+$(LOWEST)/.stamp: pyproject.toml $(STAMP)
+	$(PY) -m pip install --quiet --disable-pip-version-check 'uv>=0.5'
+	rm -rf $(LOWEST)
+	$(VENV)/bin/uv venv --quiet --python $(PYTHON) $(LOWEST)
+	$(VENV)/bin/uv pip install --quiet --python $(LOWEST)/bin/python --resolution lowest-direct \
+		-e '.[calibration,plc,ads,test]'
+	touch $@
+
+test-lowest: $(LOWEST)/.stamp system-deps
+	$(LOWEST)/bin/python scripts/check-lowest.py
+	$(LOWEST)/bin/python -m pytest -q -p no:cacheprovider $(LOWEST_TESTS)
+
 bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) .venv-slim demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info
+	rm -rf $(VENV) .venv-slim $(LOWEST) demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info
