@@ -389,23 +389,9 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     final = chosen
     if ridge_in is not None:
         c_in = next(c for c in cands if c.name == "ridge+inputs")
-        if c_in.accepted and score(c_in) >= score(chosen):
-            c_in.accepted = False
-            c_in.refusals.append(f"no better than speed only ({what} {score(c_in):.2f} um against "
-                                 f"{score(chosen):.2f} um)")
-        if c_in.accepted:
-            try:
-                c_in.model = ridge_in.to_model("ridge+inputs", units=units, fallback=model, fit={}, **meta)
-            except ModelError as err:
-                c_in.accepted, c_in.refusals = False, [*c_in.refusals, f"model refused: {err}"]
-        if c_in.accepted:
-            reason += (f"; with inputs {c_in.honest_rms_um:.2f} um: the model uses "
-                       f"{len(names)} input(s), {chosen.name} stands in when one fails")
-            model = _with_fit(c_in, j, reason)
-            final = c_in
-        else:
-            reason += f"; inputs refused: {'; '.join(c_in.refusals)}"
-            warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
+        model, final, reason = with_inputs_or_not(c_in, chosen, ridge_in, model, j, reason, warnings,
+                                                  score=score, what=what, n_inputs=len(names),
+                                                  units=units, meta=meta)
     paper = cands[-1]
     if math.isfinite(paper.cv_rms_um):
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
@@ -424,6 +410,29 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
         model = model.model_copy(update=update)
     return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0, derived,
                           loop)
+
+
+def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model: Any, j: Joined,
+                       reason: str, warnings: list[str], *, score: Callable[[Candidate], float], what: str,
+                       n_inputs: int, units: Any, meta: Mapping[str, Any]) -> tuple[Any, Candidate, str]:
+    """The model with inputs when it beats the chosen speed-only one by ``score`` (``what`` names
+    the figure), with that one as its fallback; else the speed-only one, and why. Returns
+    (model, the candidate chosen, the reason); refusals go to ``c_in`` and ``warnings``."""
+    if c_in.accepted and score(c_in) >= score(chosen):
+        c_in.accepted = False
+        c_in.refusals.append(f"no better than speed only ({what} {score(c_in):.2f} um against "
+                             f"{score(chosen):.2f} um)")
+    if c_in.accepted:
+        try:
+            c_in.model = ridge_in.to_model("ridge+inputs", units=units, fallback=model, fit={}, **meta)
+        except ModelError as err:
+            c_in.accepted, c_in.refusals = False, [*c_in.refusals, f"model refused: {err}"]
+    if not c_in.accepted:
+        warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
+        return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
+    reason += (f"; with inputs {c_in.honest_rms_um:.2f} um: the model uses {n_inputs} input(s), "
+               f"{chosen.name} stands in when one fails")
+    return _with_fit(c_in, j, reason), c_in, reason
 
 
 def _with_fit(c: Candidate, j: Joined, reason: str) -> Any:

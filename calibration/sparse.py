@@ -31,7 +31,15 @@ from compensator.statespace import GAIN_BOUND
 from . import ident
 from .data import MIN_MEASURED_ROWS
 from .identify import PARSIMONY as CHOICE_PARSIMONY
-from .identify import Candidate, Identification, Joined, LogData, _with_fit, join
+from .identify import (
+    Candidate,
+    Identification,
+    Joined,
+    LogData,
+    _with_fit,
+    join,
+    with_inputs_or_not,
+)
 
 Folds = Sequence[tuple[int, int]]
 
@@ -266,22 +274,7 @@ def identify_sparse(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     model = _with_fit(chosen, j, reason)
     final = chosen
     if ridge_in is not None:
-        c_in = cands[2]
-        if c_in.accepted and c_in.honest_rms_um >= chosen.honest_rms_um:
-            c_in.accepted = False
-            c_in.refusals.append(f"no better than speed only (CV RMS {c_in.honest_rms_um:.2f} um against "
-                                 f"{chosen.honest_rms_um:.2f} um)")
-        if c_in.accepted:
-            try:
-                c_in.model = ridge_in.to_model("ridge+inputs", units=units, fallback=model, fit={}, **meta)
-            except ModelError as err:
-                c_in.accepted, c_in.refusals = False, [*c_in.refusals, f"model refused: {err}"]
-        if c_in.accepted:
-            reason += (f"; with inputs {c_in.honest_rms_um:.2f} um: the model uses {len(names)} input(s), "
-                       f"{chosen.name} stands in when one fails")
-            model = _with_fit(c_in, j, reason)
-            final = c_in
-        else:
-            reason += f"; inputs refused: {'; '.join(c_in.refusals)}"
-            warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
+        model, final, reason = with_inputs_or_not(cands[2], chosen, ridge_in, model, j, reason, warnings,
+                                                  score=lambda c: c.honest_rms_um, what="CV RMS",
+                                                  n_inputs=len(names), units=units, meta=meta)
     return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0)
