@@ -410,3 +410,31 @@ def test_the_sparse_fit_gives_the_dense_figures_on_a_dense_log(real):
         assert c.details["alpha"] == d.details["alpha"] and c.details["grid"] == d.details["grid"]
     assert sparse.chosen.name == dense.chosen.name
     np.testing.assert_allclose(sparse.model.drive_um, dense.model.drive_um, rtol=1e-9)
+
+
+def test_blank_input_cells_hold_the_last_value_so_the_export_fits(tmp_path):
+    """A cycle whose inputs were not read (link down, a failed read, a NaN) journals blanks; the
+    export holds the last value read (the first one, before any), counts them, and reads back
+    with every input finite."""
+    from compensator.io import Journal, export_journal
+
+    j = Journal(tmp_path / "j", "s1", {"spindle": "s1"}, input_columns=("temp_c", "load_pct"))
+    t0 = 1_700_000_000.0
+    temps = [None, 20.0, 20.5, None, None, 21.5, 22.0]
+    for k, temp in enumerate(temps):
+        j.write(t0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0,
+                inputs={"temp_c": float("nan") if k == 4 else temp, "load_pct": 10.0 + k})
+    j.close()
+    done = export_journal(tmp_path / "j", tmp_path / "out.csv")
+    assert done.filled_cells == 3
+    log = read_run_log(tmp_path / "out.csv")
+    assert list(log.extras["temp_c"]) == [20.0, 20.0, 20.5, 20.5, 20.5, 21.5, 22.0]
+    assert list(log.extras["load_pct"]) == [10.0 + k for k in range(7)]
+
+
+@pytest.mark.parametrize("names", [("cutting",), ("t.1",), ("a", "a"), ("",)])
+def test_an_input_channel_name_the_journal_cannot_carry_is_a_config_error(tmp_path, names):
+    from compensator.io import Journal
+
+    with pytest.raises(ConfigError, match="input channel names"):
+        Journal(tmp_path, "s1", {}, input_columns=names)

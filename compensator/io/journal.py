@@ -31,6 +31,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..errors import ConfigError
 from .runlog import header_text
 
 MAX_PENDING_ROWS = 250_000
@@ -47,11 +48,12 @@ class Journal:
                  fsync_every_s: float = 10.0, retry_s: float = 1.0, max_retry_s: float = 60.0,
                  max_pending_rows: int = MAX_PENDING_ROWS, input_columns: tuple[str, ...] = ()):
         self.directory = Path(directory)
-        clash = sorted(set(input_columns) & set(type(self).COLUMNS))
-        if clash or len(set(input_columns)) != len(input_columns):
-            raise ValueError(f"input channel names must be unique and differ from the journal's own "
-                             f"columns: {', '.join(clash) or 'duplicates'}")
-        self.input_columns = tuple(_word(c) for c in input_columns)
+        bad = sorted({c for c in input_columns if _word(c) != c or not c}
+                     | (set(input_columns) & set(type(self).COLUMNS)))
+        if bad or len(set(input_columns)) != len(input_columns):
+            raise ConfigError(f"{name}: input channel names must be letters, digits, - and _ (40 at "
+                              f"most), unique, and not a journal column: {', '.join(bad) or 'duplicates'}")
+        self.input_columns = tuple(input_columns)
         self._inputs = tuple(input_columns)
         self.name = name
         self.metadata = dict(metadata)

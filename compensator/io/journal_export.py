@@ -120,6 +120,9 @@ class Exported:
     files: tuple[str, ...]
     input_columns: tuple[str, ...]
     skipped_rows: int
+    filled_cells: int = 0
+    """Blank input cells (not read: link down, a failed read, a NaN) given the last value read
+    before them, or the first one after at the start: fit and replay need every row."""
 
 
 def _spindle_of(files: dict[JournalFile, int], spindle: str | None, directory: Path) -> str:
@@ -196,6 +199,23 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
         prev = t
     unplaced = sum(1 for k, p in enumerate(probe_t) if lo <= p < hi and k not in taken)
 
+    # an input not read on a cycle holds its last value (the first one read, before any):
+    # what a model stepping through that cycle would have been given
+    inputs = tuple(c for c in cyc.columns if c not in NOT_INPUTS)
+    filled = 0
+    for c in inputs:
+        have = [cells.get(c, "") for _, cells, _ in rows]
+        good = [v for v in have if _finite(v)]
+        if not good or len(good) == len(have):
+            continue
+        last = good[0]
+        for i, v in enumerate(have):
+            if _finite(v):
+                last = v
+            else:
+                rows[i] = (rows[i][0], {**rows[i][1], c: last}, rows[i][2])
+                filled += 1
+
     columns = list(cyc.columns)
     if placed:
         columns += [ELONGATION_COLUMN, SIGMA_COLUMN]
@@ -220,7 +240,6 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
                 line += ["", ""]
         out.writerow(line)
 
-    inputs = tuple(c for c in cyc.columns if c not in NOT_INPUTS)
     files = tuple(sorted(used, key=lambda fn: next(f for f in mine if f.name == fn)))
     meta = {"spindle": name, "source": SOURCE,
             "from": iso(start_s) if start_s is not None else "-",
@@ -229,12 +248,14 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
             "measurements": str(len(placed))}
     if placed and len(placed) < len(rows):
         meta[ELONGATION_COLUMN] = SPARSE
+    if filled:
+        meta["inputs_held"] = f"{filled} blank input cell(s) hold the last value read"
     with atomic_write(output) as fh:
         fh.write(header_text(columns, meta))
         fh.write(buf.getvalue())
     skipped = sum(t.skipped for t in tables.values())
     return Exported(Path(output), name, len(rows), rows[0][0], rows[-1][0], len(placed),
-                    unplaced, files, inputs, skipped)
+                    unplaced, files, inputs, skipped, filled)
 
 
 def _float(text: str | None) -> float:

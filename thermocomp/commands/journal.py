@@ -60,6 +60,8 @@ def export(args: argparse.Namespace) -> int:
     if done.measurements_unplaced:
         notes.append(f"{done.measurements_unplaced} measurement(s) in range on no row of their own "
                      "(several in one cycle: the last kept)")
+    if done.filled_cells:
+        notes.append(f"{done.filled_cells} blank input cell(s) (not read) hold the last value read")
     if done.skipped_rows:
         notes.append(f"{done.skipped_rows} unreadable journal row(s) skipped")
     print(f"{done.path}: {done.rows} rows of spindle {done.spindle}, {iso(done.first_s)} .. "

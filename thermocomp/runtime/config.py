@@ -257,6 +257,10 @@ class CoolingConfig(BaseModel):
             raise ValueError(str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))) from err
 
 
+MAX_HISTORY_POINTS = 20_000
+"""Points of history per spindle at most (a week at 30 s): memory and /history stay small."""
+
+
 class StatusConfig(BaseModel):
     """``[status]``: the read-only HTTP endpoint (``/``, ``/status``, ``/history``, ``/metrics``).
 
@@ -273,12 +277,16 @@ class StatusConfig(BaseModel):
                       "<state_dir>/status.url)")
     access: Literal["open", "token"] = "open"
     token_file: Path | None = Field(None, description="with access = token: the file holding it")
-    history_h: float = Field(6.0, gt=0, le=168, description="hours of history the page can plot")
-    history_every_s: float = Field(10.0, gt=0, le=3600, description="one history point per this many "
+    history_h: float = Field(6.0, gt=0, le=168, description="hours of history kept for /history (the "
+                             "page plots up to 6 h of it)")
+    history_every_s: float = Field(10.0, ge=1, le=3600, description="one history point per this many "
                                    "seconds per spindle (the last values; alarms of the whole interval)")
 
     @model_validator(mode="after")
     def _valid(self) -> StatusConfig:
+        if self.history_h * 3600.0 / self.history_every_s > MAX_HISTORY_POINTS:
+            raise ValueError(f"status: history_h / history_every_s keeps more than {MAX_HISTORY_POINTS} "
+                             "points per spindle; raise history_every_s")
         if self.token_file is not None and self.access != "token":
             raise ValueError("status.token_file is set but status.access is not \"token\"")
         return self

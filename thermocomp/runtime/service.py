@@ -126,6 +126,7 @@ class Service:
         self.status_server: StatusServer | None = None
         self.mqtt = None
         self._sweep_due = -math.inf
+        self._publish_warned = -math.inf
 
     def start_status(self) -> None:
         """The status endpoint and the MQTT publisher of the configuration (``run`` starts them;
@@ -133,12 +134,23 @@ class Service:
         logged and left out."""
         st = self.cfg.status
         self.history = History(st.history_h, st.history_every_s)
-        self.status_server = start_server(st, self.history, self.cfg.state_dir / "status.url")
+        try:
+            self.status_server = start_server(st, self.history, self.cfg.state_dir / "status.url")
+        except ConfigError as err:  # a token missing: no endpoint (never an open one instead)
+            event("status_failed", None, "status endpoint not started: %s; compensation goes on", err,
+                  level=logging.ERROR, error=str(err)[:200])
         if self.cfg.mqtt is not None and self.cfg.mqtt.enabled:
             from .mqtt import MqttPublisher
 
-            self.mqtt = MqttPublisher(self.cfg.mqtt).start()
-        self._publish(self.clock())
+            try:
+                self.mqtt = MqttPublisher(self.cfg.mqtt).start()
+            except ConfigError as err:
+                event("mqtt_lost", None, "mqtt not started: %s; compensation goes on", err,
+                      level=logging.ERROR, reason=str(err)[:200])
+        try:
+            self._publish(self.clock())
+        except Exception as err:  # noqa: BLE001 - the status never stops the offset
+            log.error("status not published: %s", err)
 
     def _publish(self, now: float) -> None:
         """Build the snapshot and hand it to the endpoint, the history and the broker."""
@@ -336,7 +348,9 @@ class Service:
         try:
             self._publish(now)
         except Exception as err:  # noqa: BLE001 - the status never stops the offset
-            log.exception("status not published: %s", err)
+            if now - self._publish_warned >= 600.0:  # one traceback per 10 min, not per tick
+                self._publish_warned = now
+                log.exception("status not published: %s", err)
         if now >= self._sweep_due:
             self._sweep_due = now + self.cfg.journal.sweep_every_s
             self.sweep_journal(now)
@@ -378,7 +392,10 @@ class Service:
             signal.signal(signal.SIGHUP, self.request_reload)
         if hasattr(signal, "SIGXFSZ"):
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a size limit: EFBIG, not death
-        self.start_status()
+        try:
+            self.start_status()
+        except Exception as err:  # noqa: BLE001 - nothing optional keeps the offset from starting
+            log.error("status and mqtt not started: %s", err)
         sd_notify("READY=1")
         event("started", None, "running %d spindle(s), pid %d", len(self.spindles), os.getpid(),
               spindles=list(self.spindles), pid=os.getpid())
@@ -399,6 +416,10 @@ class Service:
         if self.status_server is not None:
             self.status_server.close()
             self.status_server = None
+            try:  # the port is free now: `status --config` must not find it
+                (self.cfg.state_dir / "status.url").unlink(missing_ok=True)
+            except OSError:
+                pass
         if self.mqtt is not None:
             self.mqtt.close()
             self.mqtt = None
@@ -475,6 +496,16 @@ def check(config_path: str) -> int:
               f"supply {supply:.1f} degC")
         for line in c.law().describe():
             print(f"cooling: {line}")
+    st = cfg.status
+    if st.enabled:
+        st.token()  # a missing or short token: a one-line ConfigError now, not at the service's start
+        print(f"status: http://{st.bind}:{st.port}/ ({'token' if st.access == 'token' else 'open'} access)")
+    if cfg.mqtt is not None and cfg.mqtt.enabled:
+        m = cfg.mqtt
+        m.password()
+        if m.tls and m.ca_file is not None and not m.ca_file.is_file():
+            raise ConfigError(f"mqtt.ca_file {m.ca_file}: not a file")
+        print(f"mqtt: {m.host}:{m.port}, topic {m.topic} (not connected by --check)")
     print(f"configuration {config_path}: ok ({len(cfg.spindle)} spindle(s)); nothing was written")
     return 0
 

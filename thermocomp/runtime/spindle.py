@@ -94,6 +94,9 @@ log = logging.getLogger("thermocomp.runtime")
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
+JOURNAL_INPUTS_RETRY_S = 60.0
+"""After a failed read of the input channels for the journal alone, wait this long [s]."""
+
 CLOCK_STEP_S = 2.0
 """A jump of the wall clock against the monotonic clock larger than this is a clock step."""
 
@@ -210,6 +213,7 @@ class SpindleRuntime:
                                fsync_every_s=journal_fsync_s,
                                input_columns=tuple(self.adapter.input_channels()))
         self._inputs_read: dict[str, float] = {}  # this cycle's input values, for the journal
+        self._journal_inputs_after = -math.inf  # a failed journal-only read waits till then
         self.last: dict[str, Any] | None = None  # the last cycle's outcome, for the status
         self.last_write_s: float | None = None  # clock time of the last offset written
         self.last_readback_um: float | None = None  # what the controller held when last read back
@@ -800,11 +804,6 @@ class SpindleRuntime:
             alarms |= input_alarms
             if s_inputs is None:
                 alarms |= Alarm.INPUT_FALLBACK
-        elif self.journal.input_columns and self.link.up:
-            try:  # for the journal only: a failed read costs a blank cell, nothing else
-                self._inputs_read = self.adapter.read_inputs()
-            except AdapterError as err:
-                log.debug("%s: inputs not read for the journal: %s", self.cfg.name, err)
         if self.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
@@ -835,6 +834,7 @@ class SpindleRuntime:
             alarms |= Alarm.WRITE_BACKOFF
         self.counters["cycles"] += 1
         held = self.offset.held_um
+        self._journal_inputs(now)
         alarms |= self._state_alarms  # of the last save: a row is journaled before the save
         alarms |= self._journal(now, dt, wall_now, speed, s, held, wrote, shaped, cutting_source, alarms)
         self._state_alarms = self._save_if_due(now)
@@ -850,6 +850,20 @@ class SpindleRuntime:
                                   if self.input_state is not None else "speed"),
                      "inputs": dict(self._inputs_read)}
         return {**self.last, "alarms": alarms}
+
+    def _journal_inputs(self, now: float) -> None:
+        """A speed-only model's link still reads its input channels, for the journal only: after
+        the write, so it never delays the offset; a failure costs blank cells, and the next try
+        waits ``JOURNAL_INPUTS_RETRY_S`` (a channel that times out must not slow every cycle)."""
+        if (self.with_inputs is not None or not self.journal.input_columns or not self.link.up
+                or now < self._journal_inputs_after):
+            return
+        try:
+            self._inputs_read = self.adapter.read_inputs()
+        except AdapterError as err:
+            self._journal_inputs_after = now + JOURNAL_INPUTS_RETRY_S
+            log.info("%s: input channels not read for the journal (next try in %g s): %s",
+                     self.cfg.name, JOURNAL_INPUTS_RETRY_S, err)
 
     def next_period_s(self) -> float:
         """Seconds to the next cycle: ``run_up_period_s`` while the spindle changes speed with the

@@ -291,7 +291,7 @@ class StatusServer:
         class Handler(_Handler):
             owner = server
 
-        cls = _V6Server if ":" in self.bind else http.server.ThreadingHTTPServer
+        cls = _V6Server if ":" in self.bind else _Server
         self._httpd = cls((self.bind, self.port), Handler)
         self.port = self._httpd.server_address[1]
         self._thread = threading.Thread(target=self._httpd.serve_forever, name="thermocomp-status",
@@ -308,7 +308,22 @@ class StatusServer:
             self._thread.join(5.0)
 
 
-class _V6Server(http.server.ThreadingHTTPServer):
+class _Server(http.server.ThreadingHTTPServer):
+    daemon_threads = True
+
+    def server_bind(self) -> None:
+        # HTTPServer's own looks the host name up (getfqdn): a bind to a LAN address with no
+        # DNS would hold the service's start
+        socketserver_bind = http.server.socketserver.TCPServer.server_bind
+        socketserver_bind(self)
+        self.server_name, self.server_port = str(self.server_address[0]), int(self.server_address[1])
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        # a broken client is one debug line, never a traceback on stderr
+        log.debug("status: request from %s failed", client_address, exc_info=True)
+
+
+class _V6Server(_Server):
     address_family = socket.AF_INET6
 
 
@@ -320,7 +335,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the stdlib's name
         # the request line may carry ?token=: never log a query
-        log.debug("status: %s: %s %s", self.address_string(), self.command, urlsplit(self.path).path[:100])
+        path = urlsplit(getattr(self, "path", "") or "").path[:100]  # unset on a malformed request
+        log.debug("status: %s: %s %s", self.address_string(), getattr(self, "command", None), path)
 
     def _allowed(self, query: dict[str, list[str]]) -> bool:
         token = self.owner.token
@@ -379,7 +395,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client went away
         except Exception as err:  # noqa: BLE001 - a status page never takes anything down
-            log.warning("status: %s failed: %s", self.path[:100], err)
+            log.warning("status: %s failed: %s", urlsplit(self.path).path[:100], err)
             try:
                 self._json(500, {"error": type(err).__name__})
             except OSError:
