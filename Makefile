@@ -37,10 +37,15 @@ test: $(STAMP) system-deps lint-imports slim
 # (numpy, pydantic, asyncua, pymodbus, pyserial, prometheus_client, paho-mqtt, scipy,
 # statsmodels, pandas, matplotlib, rich, python-snap7, pyads).
 LOWEST := .venv-lowest
-LOWEST_TESTS ?= tests/test_io.py tests/test_model.py tests/test_shaping.py tests/test_adapter_settings.py \
-	tests/test_chiller.py tests/test_control_plc.py tests/test_inputs.py tests/test_cooling_law.py \
-	tests/test_cli.py tests/test_bounds.py tests/test_status.py tests/test_mqtt.py \
-	tests/test_journal_export.py tests/test_retention.py tests/test_architecture.py
+LOWEST_TESTS ?= tests/test_io.py tests/test_model.py tests/test_shaping.py tests/test_adapters.py \
+	tests/test_adapter_settings.py tests/test_chiller.py tests/test_control_plc.py tests/test_inputs.py \
+	tests/test_cooling_law.py tests/test_cli.py tests/test_calibration.py tests/test_bounds.py \
+	tests/test_stability.py tests/test_ident.py tests/test_tuning.py tests/test_opcua_security.py \
+	tests/test_controls.py tests/test_control_fanuc.py tests/test_architecture.py \
+	tests/test_wizard.py::test_wizard_imports_daq_logs tests/test_runtime_trust.py tests/test_profile.py \
+	tests/test_status.py tests/test_mqtt.py tests/test_journal_export.py tests/test_retention.py \
+	tests/faults/test_faults.py::test_09_hung_controller_sigstop \
+	--deselect tests/test_cli.py::test_demo_end_to_end_with_a_relative_output_dir
 
 $(LOWEST)/.stamp: pyproject.toml $(STAMP)
 	$(PY) -m pip install --quiet --disable-pip-version-check 'uv>=0.5'
