@@ -17,6 +17,10 @@ cd "$(dirname "$0")/.."
 
 root=0
 [ "$(id -u)" -eq 0 ] && root=1
+
+# pip's output less the notes this machine's pip configuration adds; pip's own exit status
+# stays the pipeline's (pipefail), so a failed install fails the script
+quiet_pip() { grep -v "^WARNING: Location" || true; }
 need=()
 command -v node >/dev/null 2>&1 || need+=(nodejs)
 command -v npm >/dev/null 2>&1 || need+=(npm)
@@ -55,17 +59,34 @@ if command -v linuxcnc >/dev/null 2>&1 && /usr/bin/python3 -c 'import ensurepip,
   else
     lvenv="$PWD/.venv-linuxcnc"
   fi
+  # What the LinuxCNC tests import there: the runtime (the HAL component) and the calibration
+  # extra (`thermocomp hal-plant`, run logs). A test environment, not the edge box's slim install.
+  extras=calibration
+  # The install this needs, as content: Debian's Python, the extras and pyproject's dependency
+  # lists. Any change rebuilds the environment, whatever the files' dates say.
+  want="$(/usr/bin/python3 -c '
+import json, sys, tomllib
+p = tomllib.load(open("pyproject.toml", "rb"))["project"]
+print(sys.version.split()[0], sys.argv[1], json.dumps([p["dependencies"], p["optional-dependencies"]], sort_keys=True))
+' "$extras" | sha256sum | cut -c1-32)"
+  imports="import hal, linuxcnc, compensator, calibration, scipy, pandas"
   # setuptools builds in ./build and would carry modules this checkout has since removed
   rm -rf build ./*.egg-info
-  if [ ! -x "$lvenv/bin/python" ] || [ pyproject.toml -nt "$lvenv/.deps-stamp" ]; then
+  if [ "$(cat "$lvenv/.deps-stamp" 2>/dev/null)" != "$want" ] \
+      || ! "$lvenv/bin/python" -c "$imports" >/dev/null 2>&1; then
+    echo "system-deps: building the LinuxCNC environment in $lvenv ($extras)" >&2
+    rm -rf "$lvenv"
     /usr/bin/python3 -m venv --system-site-packages "$lvenv"
-    "$lvenv/bin/pip" install --quiet --disable-pip-version-check . 2>&1 | grep -v "^WARNING: Location" || true
-    touch "$lvenv/.deps-stamp"
+    "$lvenv/bin/pip" install --quiet --disable-pip-version-check ".[$extras]" 2>&1 | quiet_pip
+    echo "$want" > "$lvenv/.deps-stamp"
   fi
   # this checkout's code, every time (dependencies as above)
-  "$lvenv/bin/pip" install --quiet --disable-pip-version-check --no-deps --force-reinstall . \
-    2>&1 | grep -v "^WARNING: Location" || true
-  "$lvenv/bin/python" -c 'import hal, linuxcnc, compensator' >/dev/null
+  "$lvenv/bin/pip" install --quiet --disable-pip-version-check --no-deps --force-reinstall . 2>&1 | quiet_pip
+  rm -rf build ./*.egg-info
+  if ! "$lvenv/bin/python" -c "$imports"; then
+    echo "system-deps: the LinuxCNC environment $lvenv cannot import what the tests need" >&2
+    exit 1
+  fi
   [ $root -eq 1 ] && chmod -R a+rX /opt/thermocomp
 fi
 exit 0
