@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-deps lint-imports slim test-lowest
+.PHONY: demo test bench venv clean system-deps lint-imports slim test-lowest fresh-check
 
 venv: $(STAMP)
 
@@ -29,8 +29,14 @@ lint-imports: $(STAMP)
 slim:
 	bash scripts/slim-venv.sh
 
+# two workers (pytest-xdist; the tests are independent: free loopback ports, their own temporary
+# directories, one HAL at a time by a lock); a worker that is free takes tests from a busy one.
+# PYTEST_WORKERS=0 runs them in this process.
+PYTEST_WORKERS ?= 2
+XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist worksteal)
+
 test: $(STAMP) system-deps lint-imports slim
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(XDIST)
 
 # The oldest versions pyproject.toml allows (uv's lowest-direct resolution: every direct
 # dependency at its lower bound), and the tests that exercise them: each library's own API
@@ -57,7 +63,13 @@ $(LOWEST)/.stamp: pyproject.toml $(STAMP)
 
 test-lowest: $(LOWEST)/.stamp system-deps
 	$(LOWEST)/bin/python scripts/check-lowest.py
-	$(LOWEST)/bin/python -m pytest -q -p no:cacheprovider $(LOWEST_TESTS)
+	$(LOWEST)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) $(LOWEST_TESTS)
+
+# CI as a new machine runs it, RUNS times in a row (root: it removes what the project created
+# outside the clone first; scripts/fresh-check.sh says what)
+RUNS ?= 1
+fresh-check:
+	bash scripts/fresh-check.sh $(RUNS)
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py

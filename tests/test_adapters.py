@@ -12,11 +12,9 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -508,16 +506,24 @@ def test_opc40502_preset_finds_the_spindle_by_browse_path():
 
 
 def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take():
-    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    from cnc_adapters.sim.vcnc import step
+    from compensator.clock import SteppedClock
+
+    # lock-step: each server tick (take the write or refuse and revert it) is done when step returns
+    clock = SteppedClock()
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
     vm.override_speed(9000.0)
-    with running(VirtualCNC(vm)) as cnc:
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        clock.advance(60.0)  # up to speed
+        step(cnc)
         with OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes="deferred") as link:
             link.write_offset_um(-3.0)  # taken
-            assert wait_for(lambda: vm.offset_um == -3.0)
+            step(cnc)
+            assert vm.offset_um == -3.0
             assert link.read_speed() == 9000.0 and link.take_write_mismatch() is None
             link.write_offset_um(-5000.0)  # beyond what this CNC accepts: it reverts the variable
-            assert wait_for(lambda: vm.rejected_writes >= 1)
-            time.sleep(0.1)
+            step(cnc)
+            assert vm.rejected_writes == 1
             assert link.read_speed() == 9000.0
             assert link.take_write_mismatch() == -3.0  # what it holds, reported once
             assert link.take_write_mismatch() is None
@@ -652,30 +658,8 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
 
 # -- LinuxCNC: the offset motion holds, read from a real HAL ---------------------------------
 
-HAL_USER = "thermocomp-ci"
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _linuxcnc_python() -> Path:
-    env = os.environ.get("THERMOCOMP_LINUXCNC_VENV")
-    venv = Path(env) if env else (Path("/opt/thermocomp/linuxcnc-venv") if os.geteuid() == 0
-                                  else ROOT / ".venv-linuxcnc")
-    return venv / "bin" / "python"
-
-
-def _no_hal() -> str | None:
-    if shutil.which("halrun") is None:
-        return "LinuxCNC is not installed (scripts/system-deps.sh installs linuxcnc-uspace as root)"
-    if not _linuxcnc_python().exists():
-        return f"no LinuxCNC virtual environment at {_linuxcnc_python().parents[1]}"
-    if os.geteuid() == 0:
-        import pwd
-
-        try:
-            pwd.getpwnam(HAL_USER)
-        except KeyError:
-            return f"running as root and no user {HAL_USER} to run HAL (scripts/system-deps.sh creates it)"
-    return None
+from test_linuxcnc import run_in_hal  # noqa: E402 - one HAL at a time, as LinuxCNC starts it
+from test_linuxcnc import why_not as _no_hal  # noqa: E402
 
 
 # the adapter in a HAL of its own (halrun), as LinuxCNC starts it; motion's
@@ -739,23 +723,7 @@ loadusr -w {python} {script}
 
 @pytest.mark.skipif(_no_hal() is not None, reason=_no_hal() or "")
 def test_linuxcnc_reads_back_what_motion_holds_not_what_it_wrote():
-    directory = Path(tempfile.mkdtemp(prefix="thermocomp-hal-", dir="/tmp"))
-    try:
-        (directory / "readback.py").write_text(HAL_SCRIPT)
-        (directory / "readback.hal").write_text(HAL_FILE.format(python=_linuxcnc_python(),
-                                                                script=directory / "readback.py"))
-        cmd = ["env", f"PYTHONPATH={ROOT}", f"HOME={directory}", "halrun", "-f", str(directory / "readback.hal")]
-        if os.geteuid() == 0:  # rtapi refuses root
-            shutil.chown(directory, HAL_USER)
-            for f in directory.iterdir():
-                shutil.chown(f, HAL_USER)
-            cmd = ["runuser", "-u", HAL_USER, "--", *cmd]
-        r = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120, cwd=directory)
-        lines = [x for x in r.stdout.splitlines() if x.startswith("@@ ")]
-        assert lines, r.stdout[-2000:] + r.stderr[-2000:]
-        out = json.loads(lines[-1][3:])
-    finally:
-        shutil.rmtree(directory, ignore_errors=True)
+    out = run_in_hal(HAL_SCRIPT, HAL_FILE)
     assert out["not_ready"] == 0.0
     # -12 um: +0.012 mm on Z (offset_sign -1), 1200 counts of 0.01 um; read back through HAL
     assert out["counts"] == 1200
