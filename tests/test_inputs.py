@@ -8,7 +8,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -260,10 +259,16 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
 
     from cnc_adapters import open_adapter
     from cnc_adapters.modbus import ModbusRtuAdapter
-    from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, running
+    from cnc_adapters.sim.vcnc import VirtualCNC, running, step
+    from compensator.clock import SteppedClock
 
-    vm = VirtualMachine(SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=SimClock(600.0))
-    with running(VirtualCNC(vm)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+    # lock-step: the machine stands still between two reads, so the reading and the truth are of
+    # one instant
+    clock = SteppedClock()
+    vm = VirtualMachine(SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=clock)
+    with running(VirtualCNC(vm, tick_s=None)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+        clock.advance(1800.0)
+        step(cnc)
         assert set(link.input_channels()) == set(SENSORS)
         values = link.read_inputs()
         truth = vm.sensor_values()
@@ -271,7 +276,7 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
         assert abs(values["bearing_temp_c"] - truth["bearing_temp_c"]) < 0.5
         assert values["spindle_load_pct"] > 10
         vm.sensor_faults["motor_temp_c"] = "nan"
-        time.sleep(0.1)
+        step(cnc)
         assert math.isnan(link.read_inputs()["motor_temp_c"])  # a NaN reaches the runtime as NaN
     pty = PtyPair(tmp_path)
     dev = ModbusDevice(pty.dev)

@@ -9,6 +9,7 @@ installed by scripts/system-deps.sh; rtapi refuses root, so as root LinuxCNC run
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import re
@@ -54,6 +55,18 @@ def why_not() -> str | None:
 
 
 pytestmark = pytest.mark.skipif(why_not() is not None, reason=why_not() or "")
+
+
+@contextlib.contextmanager
+def hal_lock():
+    """One HAL on this machine at a time: LinuxCNC and halrun share rtapi's shared memory, and the
+    test workers (pytest-xdist) run in parallel."""
+    with open(Path(tempfile.gettempdir()) / "thermocomp-tests-hal.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def as_user(cmd: list[str]) -> list[str]:
@@ -180,12 +193,13 @@ def linuxcnc_rig(adapter_options: str, hal_lines: str = ""):
         shutil.chown(directory, USER)
         for p in directory.rglob("*"):
             shutil.chown(p, USER)
-    rig = LinuxCnc(directory)
-    try:
-        yield rig
-    finally:
-        rig.stop()
-        shutil.rmtree(directory, ignore_errors=True)
+    with hal_lock():
+        rig = LinuxCnc(directory)
+        try:
+            yield rig
+        finally:
+            rig.stop()
+            shutil.rmtree(directory, ignore_errors=True)
 
 
 @pytest.fixture
@@ -246,8 +260,9 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     assert np.mean(miss < 0.011) > 0.9 and miss.max() <= MAX_RATE + 0.011, miss
     assert np.all(np.abs(eoffset * 1000 + offset) < 0.6)
     # (its slew limit is checked on the journal below: the runtime's own clock, not this one)
-    # and it cancels the growth: what the part sees is a fraction of it
-    assert growth[-1] > 3.0 and abs(tip[-1]) < 0.2 * growth[-1], (growth[-1], tip[-1])
+    # and it cancels the growth: what the part sees is a fraction of it (medians over the sample:
+    # the plant runs on its own scaled clock, so one late read is no verdict)
+    assert np.median(growth) > 3.0 and abs(np.median(tip)) < 0.2 * np.median(growth), (growth, tip)
 
     # machine off: counts to zero, the runtime told that the controller applies nothing
     r.set("machine off")
@@ -257,10 +272,12 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     # machine on again: LinuxCNC zeroes the offset; thermocomp re-seeds it from zero (through
     # its slew limit: checked on the journal below)
     r.set("machine on")
-    data = sample(cnc, 3.0, ("axis.z.eoffset", "thermocomp.ready", "thermocomp.offset-um"))
-    t2, eo2, ready2, off2 = data.T
-    assert eo2[-1] > 0.0005 and abs(eo2[-1] * 1000 + off2[-1]) < 0.6  # it comes back to the model
-    assert ready2[-1] == 1.0
+
+    def back_on_the_model() -> bool:
+        eo, ready, off = cnc.getps(("axis.z.eoffset", "thermocomp.ready", "thermocomp.offset-um"))
+        return ready is True and eo > 0.0005 and abs(eo * 1000 + off) < 0.6
+
+    assert cnc.wait(back_on_the_model)  # it comes back to the model
     # the spindle stopped with the machine: start it again, and let it settle
     r.set("mode mdi")
     r.set("mdi m3 s15000")
@@ -279,8 +296,16 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     assert cnc.wait(lambda: cnc.getp("thermocomp.ready"))
 
     # the runtime's journal: speed read, alarms, and every written offset within clamp and slew
-    time.sleep(1.0)
-    j = journal(cnc)
+
+    def three_reseeds():
+        try:
+            j = journal(cnc)
+        except Exception:  # noqa: BLE001 - a row being written: read again
+            return None
+        not_ready = (j["alarms"].astype(int) & 128) != 0
+        return j if (not_ready[:-1] & ~not_ready[1:]).sum() >= 3 else None
+
+    j = cnc.wait(three_reseeds)
     assert np.max(j["speed_rpm"]) == pytest.approx(15000, rel=0.02)
     not_ready = (j["alarms"].astype(int) & 128) != 0
     assert not_ready[0] and not_ready.sum() > 3 and (~not_ready).sum() > 100
@@ -385,20 +410,23 @@ print("@@", json.dumps(out), flush=True)
 """
 
 
-def run_in_hal(script: str) -> dict:
-    """``script`` as a HAL userspace component of a halrun session (no LinuxCNC): what it prints
-    after ``@@``, as JSON."""
+def run_in_hal(script: str, hal: str = "loadusr -w {python} {script}\n") -> dict:
+    """``script`` as a HAL userspace component of a halrun session (no LinuxCNC), started by the
+    HAL file ``hal`` ({python}: the LinuxCNC environment's, {script}: the script's path): what it
+    prints after ``@@``, as JSON."""
     directory = Path(tempfile.mkdtemp(prefix="thermocomp-hal-", dir="/tmp"))
     try:
         (directory / "run.py").write_text(script)
-        (directory / "run.hal").write_text(f"loadusr -w {linuxcnc_venv() / 'bin' / 'python'} {directory / 'run.py'}\n")
+        (directory / "run.hal").write_text(hal.format(python=linuxcnc_venv() / "bin" / "python",
+                                                      script=directory / "run.py"))
         if os.geteuid() == 0:
             shutil.chown(directory, USER)
             for f in directory.iterdir():
                 shutil.chown(f, USER)
         env = ["env", f"PYTHONPATH={ROOT}", f"HOME={directory}"]
-        r = subprocess.run(as_user([*env, "halrun", "-f", str(directory / "run.hal")]), check=False,
-                           capture_output=True, text=True, timeout=120, cwd=directory)
+        with hal_lock():
+            r = subprocess.run(as_user([*env, "halrun", "-f", str(directory / "run.hal")]), check=False,
+                               capture_output=True, text=True, timeout=120, cwd=directory)
         lines = [x for x in r.stdout.splitlines() if x.startswith("@@ ")]
         assert lines, r.stdout[-2000:] + r.stderr[-2000:]
         return json.loads(lines[-1][3:])

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
+from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
+from compensator.clock import SteppedClock
 from compensator.io import load_state, read_run_log, save_model
 from compensator.programs import job_shop_day
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
@@ -68,21 +69,26 @@ def test_bad_configuration_is_one_line(tmp_path, text, match):
     assert "\n" not in str(exc.value)
 
 
-def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outage=None, wall0=1699923600.0):
-    """The service against the OPC UA virtual CNC in accelerated time. ``outage`` =
-    (start, length) in simulated seconds: the server goes away and comes back."""
-    from cnc_adapters.sim.vcnc import call
+WALL0 = 1699923600.0  # 01:00 UTC
 
-    clock = SimClock(scale)
+
+def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0=WALL0):
+    """The service against the OPC UA virtual CNC, in lock-step: the simulated time moves on by
+    the service's own wait once it has written, so no stall of the computer changes the run.
+    ``outage`` = (start, length) in simulated seconds: the server goes away and comes back."""
+    from cnc_adapters.sim.vcnc import call, step
+
+    clock = SteppedClock()
     p = preset("motorized-27k")
     vm = VirtualMachine(SpindlePlant(p, seed=31), None, clock=clock)
     port = free_port()
     cfg = write_config(tmp_path, model_file,
                        f'adapter = {{url = "opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", '
                        'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}')
-    cnc = VirtualCNC(vm, port=port)
+    cnc = VirtualCNC(vm, port=port, tick_s=None)
     with running(cnc):
-        # default 01:00 UTC: a run never crosses midnight into a second journal file, even slow
+        step(cnc)
+        # default 01:00 UTC: a run never crosses midnight into a second journal file
         svc = Service(cfg, clock=clock, wall=lambda: wall0 + clock())
         vm.history(clear=True)
         vm.load_program(job_shop_day(p.max_rpm, seed=31, hours=hours))
@@ -96,18 +102,22 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, scale=600.0, outag
                 call(cnc, cnc.start)
                 phase = "after"
             wait = svc.tick()
-            time.sleep(min(wait, 1.0) / scale)
+            clock.advance(wait)
+            if phase == "down":
+                vm.advance()  # the machine goes on; its server is gone
+            else:
+                step(cnc)
         svc.close()
     journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))
     return vm, svc, journal
 
 
 def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5, wall0=1.7e9)
+    # from 23:00 UTC: the journal rotates at midnight, an hour in
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5, wall0=1700006400.0 - 3600)
     h = vm.history()
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
-    # the run starts at 22:13 UTC, so the journal rotates at midnight
     assert [p.name for p in journal] == ["s1-2023-11-14.csv", "s1-2023-11-15.csv"]
     logs = [read_run_log(p) for p in journal]  # each file is a run log replay can read
     assert logs[0].time_s[-1] < 1700006400.0 <= logs[1].time_s[0]
@@ -131,7 +141,7 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     assert json.loads(r.stdout)["samples"] == len(logs[1])
 
 
-@pytest.mark.parametrize("outage_s", [30.0, 600.0])
+@pytest.mark.parametrize("outage_s", [20.0, 600.0])
 def test_outage_of_the_controller(tmp_path, model_file, outage_s):
     vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=0.5, outage=(600, outage_s))
     assert len(journal) == 1
@@ -141,23 +151,30 @@ def test_outage_of_the_controller(tmp_path, model_file, outage_s):
     down = (alarms & int(Alarm.LINK_DOWN)) != 0
     assert down.any(), "the outage was not noticed"
     assert not written[down].any(), "a write was attempted while the link was down"
-    # the last speed is held for speed_hold_s (30 s), then the spindle is taken as idle. (At
-    # 600x a 1-s network timeout is 10 simulated minutes, so even the short outage can last
-    # longer than the hold in simulated time: only the long one is asserted.)
-    if outage_s > 60:
-        assert ((alarms & int(Alarm.IDLE_ASSUMED)) != 0).any()
+    # the last speed is held for speed_hold_s (30 s), then the spindle is taken as idle
+    idle = (alarms & int(Alarm.IDLE_ASSUMED)) != 0
+    assert idle.any() == (outage_s > 60)
     after = np.flatnonzero(down)[-1] + 1
     assert written[after:].any(), "writing did not resume after the outage"
     off = log.extras["offset_um"]
     assert np.isfinite(off).all()
-    assert (np.abs(np.diff(off)) <= 2.0 * np.diff(log.time_s) + 1e-6).all()
+    # each step within the limit in force, over the runtime's own step (dt_s); the restarted
+    # controller holds 0, so the ramp on reconnect starts from 0 (OFFSET_MISMATCH), not from
+    # the last value written before the outage
+    dt, limit = log.extras["dt_s"][1:], log.extras["slew_limit_um_per_s"][1:]
+    reset = ((alarms & int(Alarm.OFFSET_MISMATCH)) != 0)[1:]
+    assert reset.sum() == 1
+    assert (np.abs(np.diff(off))[~reset] <= limit[~reset] * dt[~reset] + 1e-6).all()
+    assert (np.abs(off[1:][reset]) <= limit[reset] * dt[reset] + 1e-6).all()
     # what the CNC actually held never jumped either, outage included: after the link came
-    # back the offset ramped from the held value (tolerance: the CNC applies writes on its
-    # 5-ms tick, 3 simulated seconds at 600x)
+    # back the offset ramped from the held value (lock-step: the machine takes a write at its
+    # next 0.5-s plant step; each step is held to the limit of the row that wrote it)
     h = vm.history()
     idx = np.concatenate([[0], np.flatnonzero(np.diff(h.offset_um) != 0) + 1])
     steps = np.abs(np.diff(h.offset_um[idx]))
-    assert (steps <= 2.0 * (np.diff(h.time_s[idx]) + 6.0)).all(), steps.max()
+    row = np.searchsorted(log.time_s - WALL0, h.time_s[idx][1:] - vm.plant_dt_s, side="right") - 1
+    lim = log.extras["slew_limit_um_per_s"][np.clip(row, 0, None)]
+    assert (steps <= lim * (np.diff(h.time_s[idx]) + vm.plant_dt_s) + 1e-6).all(), steps.max()
 
 
 def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
@@ -287,7 +304,10 @@ adapter = {{url = "sim://mechanical-8k?program=job-shop-day&seed=2"}}
         # SIGHUP: reload a changed configuration (spindle b removed) without stopping
         cfg.write_text(body.split('[[spindle]]\nname = "b"')[0])
         proc.send_signal(signal.SIGHUP)
-        time.sleep(2.0)
+        log = tmp_path / "log.jsonl"
+        end = time.monotonic() + 30
+        while time.monotonic() < end and "reloaded: 1 spindle" not in log.read_text():
+            time.sleep(0.05)
         assert proc.poll() is None
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
@@ -351,10 +371,13 @@ def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
 
 
 def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file):
-    clock = SimClock(60.0)
+    from cnc_adapters.sim.vcnc import step
+
+    clock = SteppedClock()  # lock-step: the CNC takes (or refuses) each write before the next cycle
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
     vm.override_speed(20000.0)
-    with running(VirtualCNC(vm)) as cnc:
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
         cfg = load_config(write_config(
             tmp_path, model_file,
             f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc", verify_writes = "deferred"}}'))
@@ -364,13 +387,17 @@ def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file
         vm.apply_offset = lambda v: False  # this CNC now refuses every offset (and reverts it)
         alarms = Alarm.NONE
         for _ in range(40):
-            time.sleep(0.02)
+            clock.advance(1.2)
+            step(cnc)
             alarms |= rt.cycle()["alarms"]
+        step(cnc)
         assert alarms & Alarm.WRITE_REJECTED and rt.counters["write_rejected"] > 0
         assert vm.offset_um == 0.0
         vm.apply_offset = real
         for _ in range(40):
-            time.sleep(0.02)
+            clock.advance(1.2)
+            step(cnc)
             rt.cycle()
-        assert vm.offset_um != 0.0 and abs(vm.offset_um - rt.offset.shaper.output_um) < 0.5
+        step(cnc)
+        assert vm.offset_um != 0.0 and vm.offset_um == pytest.approx(rt.offset.shaper.output_um, abs=0.01)
         rt.close()

@@ -5,6 +5,7 @@ and from imported DAQ logs. The model it saves then works in ``thermocomp replay
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -26,11 +27,13 @@ from cnc_adapters.sim.vcnc import (
     VirtualCNC,
     VirtualMachine,
     running,
+    step,
 )
+from compensator.clock import SteppedClock
 from compensator.io import read_run_log, write_run_log
 
-# simulated seconds per wall second: a sample (three OPC UA reads, a flushed row) must fit in
-# rate_s / SCALE of wall time, 33 ms here, with room for a slow or loaded machine
+# simulated seconds per wall second, where the wizard runs as its own process against a free-running
+# virtual CNC (the bad-input test; nothing there depends on how far the simulated time got)
 SCALE = 600.0
 RATE_S = 20
 THERMOCOMP = [sys.executable, "-m", "thermocomp"]
@@ -53,75 +56,128 @@ def press_cycle_start(url: str) -> None:
         c.get_node(f"ns={ns};s={CYCLE_START_PATH}").write_value(ua.DataValue(ua.Variant(True, ua.VariantType.Boolean)))
 
 
-def operator(vm, cnc, session_dir: Path):
-    """On the wizard's 'waiting for the spindle', load the next NC program it wrote and start it."""
-    def on_line(line: str) -> None:
-        if "waiting for the spindle" not in line:
-            return
-        session = json.loads((session_dir / "session.json").read_text())
-        name = "validation" if session["runs"].get("calibration", {}).get("complete") else "calibration"
-        if name == "calibration" and vm.program is not None and not vm.program_done:
-            return  # resumed mid-program: the spindle is already running it
-        end = time.monotonic() + 30
-        while vm.program is not None and not vm.program_done and time.monotonic() < end:
-            time.sleep(0.01)  # the last seconds of the previous program's cool-down
-        vm.load_pending(parse_nc(Path(session["programs"][name]).read_text()))
-        press_cycle_start(cnc.url)
-    return on_line
+class Killed(BaseException):
+    """The wizard's process gone at once (as by SIGKILL): no handler of the wizard's catches it."""
 
 
-def wizard_cmd(work: Path, cnc, *extra: str) -> list[str]:
-    return [*THERMOCOMP, "wizard", "--yes", "--workdir", str(work), "--machine-id", "vmc-7",
+class LockStep:
+    """The wizard in this process, in lock-step with the virtual CNC, as ``make demo`` runs its
+    recorder: the wizard's sleep moves the simulated clock on and steps the machine, so no stall
+    of the computer changes what is recorded. Plays the operator too: on the wizard's 'waiting for
+    the spindle' it loads the next NC program the wizard wrote and presses Cycle Start."""
+
+    def __init__(self, seed: int = 21):
+        self.clock = SteppedClock()
+        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=seed), None, clock=self.clock)
+        self.cnc: VirtualCNC | None = None
+        self.session_dir: Path | None = None
+        self.pending = False  # the wizard waits for the spindle: load the next program
+        self.kill_when = None  # (t_s, speed_rpm) of the last logged row -> True: kill now
+        self.lines: list[str] = []
+
+    def on_line(self, line: str) -> None:
+        self.lines.append(line)
+        if "waiting for the spindle" in line:
+            self.pending = True
+
+    def sleep(self, seconds: float) -> None:
+        self.idle(seconds)
+        if self.pending and (self.vm.program is None or self.vm.program_done):
+            self.pending = False
+            session = json.loads((self.session_dir / "session.json").read_text())
+            runs = session["runs"]
+            name = "validation" if runs.get("calibration", {}).get("complete") else "calibration"
+            if self.vm.program is None or name == "validation":  # (resumed mid-program: it runs on)
+                self.vm.load_pending(parse_nc(Path(session["programs"][name]).read_text()))
+                press_cycle_start(self.cnc.url)
+        if self.kill_when is not None:
+            log = self.session_dir / "runs" / "calibration.csv"
+            last = log.read_text().splitlines()[-1].split(",") if log.exists() else []
+            if last and last[0] != "time_s" and self.kill_when(float(last[0]), float(last[1])):
+                self.kill_when = None
+                raise Killed
+
+    def idle(self, seconds: float) -> None:
+        """The machine goes on for ``seconds`` (the wizard asleep, or not running at all)."""
+        self.clock.advance(seconds)
+        step(self.cnc)
+
+    def wizard(self, argv: list[str], *, stdin_tty: bool = False, out=None) -> int:
+        """``thermocomp wizard ARGV`` in this process, on the lock-step clock; its exit code."""
+        from rich.console import Console
+
+        from calibration.wizard import Wizard
+        from thermocomp.cli import build_parser
+
+        args = build_parser().parse_args(["wizard", *argv])
+        console = Console(file=LineTee(self.on_line, out), width=130, highlight=False,
+                          force_terminal=stdin_tty, color_system=None)
+        wiz = Wizard(args, console=console, clock=self.clock, sleep=self.sleep)
+        return wiz.run()
+
+
+class LineTee(io.TextIOBase):
+    """A text stream that hands each complete line to ``on_line`` (and writes through to ``out``)."""
+
+    def __init__(self, on_line, out=None):
+        self.on_line, self.out, self.buf = on_line, out, ""
+
+    def write(self, text: str) -> int:
+        if self.out is not None:
+            self.out.write(text)
+            self.out.flush()
+        self.buf += text
+        *lines, self.buf = self.buf.split("\n")
+        for line in lines:
+            self.on_line(line + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        if self.out is not None:
+            self.out.flush()
+
+
+@pytest.fixture
+def lockstep():
+    ls = LockStep()
+    with running(VirtualCNC(ls.vm, tick_s=None)) as cnc:
+        ls.cnc = cnc
+        step(cnc)
+        yield ls
+
+
+def unattended_args(work: Path, cnc, *extra: str) -> list[str]:
+    return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7",
             "--spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
             "--controller", cnc.url + "?preset=virtual-cnc",
             "--sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250",
-            "--rate-s", str(RATE_S), "--dialect", "linuxcnc", "--step-min", "10", "--time-scale", str(SCALE), *extra]
+            "--rate-s", str(RATE_S), "--dialect", "linuxcnc", "--step-min", "10", *extra]
 
 
-def start(cmd: list[str], on_line, cwd: Path) -> tuple[subprocess.Popen, list[str], threading.Thread]:
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=cwd)
-    lines: list[str] = []
-
-    def pump() -> None:
-        for line in proc.stdout:  # type: ignore[union-attr]
-            lines.append(line)
-            on_line(line)
-
-    th = threading.Thread(target=pump, daemon=True)
-    th.start()
-    return proc, lines, th
-
-
-def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(vcnc, tmp_path):
-    vm, cnc = vcnc
+def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(lockstep, tmp_path):
+    ls = lockstep
     work = tmp_path / "cal"
-    sdir = work / "vmc-7" / "main"
-    cmd = wizard_cmd(work, cnc, "--validation", "--cooldown-min", "120")
-    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
+    ls.session_dir = sdir = work / "vmc-7" / "main"
+    argv = unattended_args(work, ls.cnc, "--validation", "--cooldown-min", "120")
     log = sdir / "runs" / "calibration.csv"
-    end = time.monotonic() + 120
-    # killed in the cool-down: a restart costs seconds of wall time, hours of simulated time
-    # at this time scale, and the model would miss whatever phase the gap covers
-    while time.monotonic() < end and proc.poll() is None:
-        rows = log.read_text().splitlines()[-1].split(",") if log.exists() else []
-        if rows and rows[0] != "time_s" and float(rows[0]) > 145 * 60 + 600 and float(rows[1]) == 0:
-            break
-        time.sleep(0.02)
-    assert proc.poll() is None, "".join(lines)
-    proc.send_signal(signal.SIGKILL)  # the worst case: no clean-up at all
-    proc.wait(10)
-    th.join(10)
+    # killed 10 min into the cool-down, and away for 15 min while the machine cools on: the
+    # recording must show the gap and carry on into the same log
+    ls.kill_when = lambda t_s, speed_rpm: t_s > 145 * 60 + 600 and speed_rpm == 0
+    with pytest.raises(Killed):
+        ls.wizard(argv)
     kept = read_run_log(log)  # readable, and nothing recorded is lost
-    assert len(kept) >= 300 and kept.speed_rpm.max() == 27000
+    # lock-step: one row per 20 s sample, none lost to a slow computer
+    assert np.allclose(np.diff(kept.time_s), RATE_S) and kept.speed_rpm.max() == 27000
+    assert kept.time_s[-1] > 145 * 60 + 600
+    ls.idle(15 * 60)
 
-    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
-    assert proc.wait(240) == 0, "".join(lines)
-    th.join(10)
-    out = "".join(lines)
+    assert ls.wizard(argv) == 0
+    out = "".join(ls.lines)
     assert "resuming the session" in out and "resuming into" in out
     full = read_run_log(log)
     assert len(full) > len(kept) and np.array_equal(full.time_s[: len(kept)], kept.time_s)
-    assert any(g.duration_s > 60 for g in full.gaps)  # the interruption is visible, not papered over
+    # the interruption is visible, not papered over: 15 min and one sample period
+    assert [round(g.duration_s) for g in full.gaps if g.duration_s > 60] == [15 * 60 + RATE_S]
     # the controller's own sensor channels are logged beside, ready for `fit --inputs`
     assert np.isfinite(full.extras["bearing_temp_c"]).all() and np.ptp(full.extras["bearing_temp_c"]) > 3
     assert "validation run, free run on data the fit never saw" in out
@@ -145,51 +201,114 @@ def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(vcnc, tmp
 
     # a second save never overwrites the first model
     first = model.read_bytes()
-    proc, lines, th = start(cmd, operator(vm, cnc, sdir), tmp_path)
-    assert proc.wait(120) == 0, "".join(lines)
+    ls.lines.clear()
+    assert ls.wizard(argv) == 0
     second = Path(json.loads((sdir / "session.json").read_text())["saved"]["model"])
     assert second != model and second.name.endswith(".v2.json") and model.read_bytes() == first
-    assert "earlier models kept" in "".join(lines)
+    assert "earlier models kept" in "".join(ls.lines)
 
 
-def test_interactive_wizard_under_a_real_terminal(vcnc, tmp_path):
-    pexpect = pytest.importorskip("pexpect")
+def test_the_wizard_killed_by_sigkill_mid_recording_keeps_every_row_and_resumes(vcnc, tmp_path):
+    """The real signal, on the wizard's own process: what it had recorded is on disk and readable,
+    and a second process resumes into the same log. (How far the free-running machine got in the
+    meantime does not matter here: the lock-step test above checks the recording itself.)"""
     vm, cnc = vcnc
     work = tmp_path / "cal"
-    env = {**os.environ, "TERM": "xterm", "COLUMNS": "160", "LINES": "50"}
-    child = pexpect.spawn(THERMOCOMP[0], [*THERMOCOMP[1:], "wizard", "--workdir", str(work), "--step-min", "10",
-                                          "--time-scale", str(SCALE)],
-                          cwd=str(tmp_path), env=env, encoding="utf-8", timeout=60, dimensions=(50, 160))
-    answers = [
-        ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
-        ("Displacement from", "sensor"), ("Controller link", cnc.url + "?preset=virtual-cnc"),
-        ("Sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", str(RATE_S)),
-        ("Test the connections now", "y"),
-    ]
-    for prompt, answer in answers:
-        child.expect(prompt)
-        child.sendline(answer)
-    child.expect("controller: .*ok")
-    child.expect("sensor: .*ok")
-    child.expect("NC dialect")
-    child.sendline("sinumerik")
-    child.expect("validation profile")
-    child.sendline("n")
-    child.expect("start recording")
-    child.sendline("y")
-    child.expect("waiting for the spindle")
-    sdir = work / "vmc-9" / "sp1"
+    sdir = work / "vmc-7" / "main"
+    cmd = [*THERMOCOMP, "wizard", *unattended_args(work, cnc, "--no-validation", "--programs-only"),
+           "--time-scale", str(SCALE)]
+    assert subprocess.run(cmd, capture_output=True, text=True, timeout=120).returncode == 0
+    vm.load_pending(parse_nc(Path(json.loads((sdir / "session.json").read_text())["programs"]["calibration"])
+                             .read_text()))
+    press_cycle_start(cnc.url)
+    cmd.remove("--programs-only")
+    log = sdir / "runs" / "calibration.csv"
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        end = time.monotonic() + 120
+        while time.monotonic() < end and proc.poll() is None and not (log.exists() and _rows_in(log) >= 20):
+            time.sleep(0.05)
+        assert proc.poll() is None, "the wizard ended before it was killed"
+        proc.send_signal(signal.SIGKILL)  # the worst case: no clean-up at all
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    lines = log.read_text().splitlines()
+    kept = read_run_log(log)
+    assert len(kept) >= 20 and len(kept) == len([x for x in lines if x and x[0].isdigit()])
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        end = time.monotonic() + 120
+        while time.monotonic() < end and proc.poll() is None and _rows_in(log) <= len(kept):
+            time.sleep(0.05)
+    finally:
+        proc.kill()
+        out = proc.communicate(timeout=10)[0]
+    assert "resuming into" in out, out
+    full = read_run_log(log)
+    assert len(full) > len(kept) and np.array_equal(full.time_s[: len(kept)], kept.time_s)
+
+
+def _rows_in(path: Path) -> int:
+    return sum(1 for x in path.read_text().splitlines() if x and x[0].isdigit())
+
+
+def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatch):
+    """Every question asked at a real terminal (a pseudo-terminal, read and answered as a person
+    would), the recording in lock-step with the virtual CNC."""
+    pexpect = pytest.importorskip("pexpect")
+    from pexpect import fdpexpect
+
+    ls = lockstep
+    work = tmp_path / "cal"
+    ls.session_dir = sdir = work / "vmc-9" / "sp1"
+    master, slave = os.openpty()
+    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
+    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
+    monkeypatch.setattr(sys, "stdin", tty_in)
+    result: list[object] = []
+
+    def run() -> None:
+        try:
+            result.append(ls.wizard(["--workdir", str(work), "--step-min", "10"], stdin_tty=True, out=tty_out))
+        except BaseException as err:  # noqa: BLE001 - handed to the test
+            result.append(err)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    child = fdpexpect.fdspawn(master, encoding="utf-8", timeout=60)
+    try:
+        answers = [
+            ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
+            ("Displacement from", "sensor"), ("Controller link", ls.cnc.url + "?preset=virtual-cnc"),
+            ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", str(RATE_S)),
+            ("Test the connections now", "y"),
+        ]
+        for prompt, answer in answers:
+            child.expect(prompt)
+            child.sendline(answer)
+        child.expect("controller: .*ok")
+        child.expect("sensor: .*ok")
+        child.expect("NC dialect")
+        child.sendline("sinumerik")
+        child.expect("validation profile")
+        child.sendline("n")
+        child.expect("start recording")
+        child.sendline("y")
+        child.expect("waiting for the spindle")
+        child.expect("Chosen", timeout=240)
+        child.expect("Written", timeout=120)
+        th.join(120)
+    finally:
+        os.close(master)
+        tty_in.close()
+        tty_out.close()
+        os.close(slave)
+    assert result == [0], result
     session = json.loads((sdir / "session.json").read_text())
     assert session["programs"]["calibration"].endswith(".mpf")
-    vm.load_pending(parse_nc(Path(session["programs"]["calibration"]).read_text()))
-    press_cycle_start(cnc.url)
-    child.expect("recorded", timeout=120)
-    child.expect("Chosen", timeout=120)
-    child.expect("Written", timeout=120)
-    child.expect(pexpect.EOF, timeout=60)
-    child.close()
-    assert child.exitstatus == 0, child.before
-    saved = json.loads((sdir / "session.json").read_text())["saved"]
+    saved = session["saved"]
     assert Path(saved["model"]).exists() and Path(saved["config"]).exists()
     r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "calibration.csv"), "--model", saved["model"],
                         "--json"], capture_output=True, text=True)

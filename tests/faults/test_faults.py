@@ -362,13 +362,17 @@ def test_01_controller_restart_resets_the_offset(case):
         assert named(after, "outage") and has(j["alarms"], Alarm.OUTAGE).any()
     (r,) = np.flatnonzero(has(j["alarms"], Alarm.OFFSET_MISMATCH))  # the reconnect's row
     assert down[r - 1] and not down[r]
-    assert down[:r].sum() >= 3  # it kept cycling while the controller was gone
+    # it kept cycling while the controller was gone: a row every period of the journal's time
+    gone = np.flatnonzero(down[:r])
+    assert gone.size >= 1 and gone.size >= 0.5 * (j["time_s"][r] - j["time_s"][gone[0]]) / s.period_s
     assert j["written"][r] or j["written"][r + 1], "writing did not resume within one cycle"
     # a ramp from 0 at the slew limit, not a jump: several slew-limited rows from 0
     assert abs(j["offset_um"][r]) <= s.rate * j["dt_s"][r] + slew_tol(s.rate, 30.0)
     k = recovered_at(j, j["wall_s"][r], s.clamp, s.deadband)
     ramp = j["offset_um"][r:k + 1]
-    assert k - r >= 2 and (np.diff(ramp) <= 1e-9).all(), ramp  # monotonic from 0 to -30
+    assert (np.diff(ramp) <= 1e-9).all(), ramp  # monotonic from 0 to -30 ...
+    # ... and no faster than the slew limit over the runtime's own steps
+    assert s.rate * j["dt_s"][r:k + 1].sum() >= abs(ramp[-1]) - slew_tol(s.rate, 30.0), ramp
     t_rec = j["wall_s"][k] - t_up
     summarize("1", "controller restart (offset reset to 0)",
               "no write while down; on reconnect reads back 0, ramps from 0 to the model at the slew limit",
@@ -443,7 +447,9 @@ def test_03_sighup_lowering_the_clamp_ramps_into_it(case):
     assert abs(j["offset_um"][r] - j["offset_um"][r - 1]) <= s.rate * j["dt_s"][r] + 1e-6
     k = int(np.argmax(new & (np.abs(j["offset_um"] + 10.0) <= 1e-9)))
     ramp = j["offset_um"][r:k + 1]
-    assert k - r >= 3 and (np.diff(ramp) > 0).all(), ramp  # from -30 up to -10, step by step
+    assert k > r and (np.diff(ramp) > 0).all(), ramp  # from -30 up to -10, step by step ...
+    # ... never faster than the slew limit, over the runtime's own steps
+    assert s.rate * j["dt_s"][r:k + 1].sum() >= ramp[-1] - j["offset_um"][r - 1] - slew_tol(s.rate, 30.0, 30.0)
     full = np.abs(np.diff(ramp) - s.rate * j["dt_s"][r + 1:k + 1]) <= slew_tol(s.rate, 30.0, 30.0)
     assert full[:-1].all(), ramp  # at the slew limit (the last step may be shorter)
     assert (j["offset_um"][k:] == -10.0).all()
@@ -540,10 +546,12 @@ def test_05_journal_write_failure_keeps_rows_in_memory(case, how):
     # compensation goes on: the controller's offset keeps following the (still heating) model
     polls = []
     end = time.monotonic() + 30
-    while len({v for _, v in polls}) < 3 and time.monotonic() < end:
-        polls.append((time.time(), case.vcnc.read_offset()))
+    while len({v for *_, v in polls}) < 3 and time.monotonic() < end:
+        t0 = time.time()
+        v = case.vcnc.read_offset()
+        polls.append((t0, time.time(), v))
         time.sleep(0.3)  # pacing the polls, not an assertion
-    assert len({v for _, v in polls}) >= 3, polls
+    assert len({v for *_, v in polls}) >= 3, polls
     if limit is not None:
         assert size() <= limit
     t_lift = time.time()
@@ -560,12 +568,15 @@ def test_05_journal_write_failure_keeps_rows_in_memory(case, how):
     assert back["dropped_rows"] == 0
     jf = has(j["alarms"], Alarm.JOURNAL_FAILED)
     late = np.flatnonzero(jf)
-    assert late.size >= 4 and (np.diff(late) == 1).all()  # one stretch, every row of it kept
+    assert late.size >= 3 and (np.diff(late) == 1).all()  # one stretch, every row of it kept
     assert j["wall_s"][late[-1]] <= back["ts"] + 1e-3 and j["wall_s"][late[0]] >= fail["ts"] - 2 * s.period_s
-    # rows written while the journal failed: the controller had each polled value
-    for tp, v in polls:
-        k = int(np.searchsorted(j["wall_s"], tp)) - 1
-        assert any(same_value(v, x) for x in j["offset_um"][max(0, k - 1):k + 2]), (tp, v)
+    # rows written while the journal failed: the controller had each polled value, written by a
+    # cycle between the one before the read began (its write may have been under way) and the
+    # last one that began before the read ended, however slow the read
+    for t0, t1, v in polls:
+        k0 = max(0, int(np.searchsorted(j["wall_s"], t0)) - 2)
+        k1 = int(np.searchsorted(j["wall_s"], t1, side="right"))
+        assert any(same_value(v, x) for x in j["offset_um"][k0:k1]), (t0, t1, v)
     assert j["written"][late].sum() >= 3 and tracking(j, s.clamp, s.deadband).all()
     summarize("5" if how == "rlimit" else "5b",
               "full disk: RLIMIT_FSIZE just above the journal's size" if how == "rlimit"
@@ -750,16 +761,20 @@ def test_11_reload_while_the_journal_fails_loses_no_rows(case):
     j = read_journal(s.journal_dir)
     ev = read_events(s.log_file)
     # every cycle between the failure and the reload: a row (at the period, no hole)
-    before = (j["wall_s"] > fail["ts"] - 2 * s.period_s) & ~after_event(j, rel)
-    expected = (rel["ts"] - fail["ts"]) / s.period_s
-    kept = int(before.sum())
+    # (on the journal's own time: each row's time_s is the last one's plus its dt_s, so a hole
+    # is a lost row whatever the computer's load did to the period)
+    before = np.flatnonzero((j["wall_s"] > fail["ts"] - 2 * s.period_s) & ~after_event(j, rel))
+    kept = int(before.size)
+    holes = int((np.abs(np.diff(j["time_s"][before]) - j["dt_s"][before][1:]) > 2e-3).sum())
+    # the reload came 8 periods or more after the failure: the rows held in memory reach well past it
+    reached = kept > 0 and j["wall_s"][before[-1]] >= fail["ts"] + 4 * s.period_s
     summarize("11", "SIGHUP reload while journal rows wait in memory (RLIMIT_FSIZE)",
               "reloads; the rows waiting in memory must survive the reload",
               "JOURNAL_FAILED", f"{fmt_s(back['ts'] - t_lift)} after the limit is lifted",
-              f"{max(0, round(expected) - kept)} of ~{round(expected)} rows from before the reload missing")
-    assert kept >= expected - 2, (f"{kept} rows of the ~{expected:.0f} cycles between the journal "
-                                  "failure and the reload reached the journal: the reload dropped "
-                                  "the rows kept in memory")
+              f"{kept} rows between the failure and the reload, {holes} holes")
+    assert reached and holes == 0, (f"{kept} rows between the journal failure and the reload reached "
+                                    f"the journal, with {holes} holes: the reload dropped the rows "
+                                    "kept in memory")
     check_invariants(j, rate=s.rate, clamp=s.clamp, events=ev, period_s=s.period_s)
 
 
@@ -792,8 +807,10 @@ def test_12_reload_while_the_state_cannot_be_saved_keeps_the_model_state(case):
     broken = (j["wall_s"] > t_break + 2 * s.period_s) & (j["wall_s"] < rel["ts"] + 8 * s.period_s) \
         & ~after_event(j, named(ev, "state_saved_again")[-1])
     problems = []
-    usual = np.abs(np.diff(j["predicted_um"][r - 10:r])).max()  # the model's own steps just before
-    if abs(jump) > 1.5 * usual + 0.05:
+    # the model's own rate just before, per second of the runtime's step: the reload's row may
+    # have a longer step (the reload itself takes time), never a faster rate
+    usual = (np.abs(np.diff(j["predicted_um"][r - 10:r])) / j["dt_s"][r - 9:r]).max()
+    if abs(jump) > 1.5 * usual * j["dt_s"][r] + 0.05:
         problems.append(f"the model's elongation jumped {jump:+.2f} um at the reload "
                         f"({j['predicted_um'][r - 1]:.2f} -> {j['predicted_um'][r]:.2f}): the reload "
                         "restored the last good save instead of the running state")
