@@ -170,7 +170,8 @@ def test_examples_schema_file_is_current():
 def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     """What `make demo` runs: record over OPC UA, fit, run the service, score; exit 0 only if
     compensation reduced the RMS error."""
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out"],
+    # a 3-hour day (the default is 5): both halves of a shift, lunch between, six probe cycles
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "3"],
                        capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = tmp_path / "out"
@@ -255,3 +256,10 @@ def test_shaping_adds_at_most_1_um_on_any_1s_job_shop_log(fitted, tmp_path, seed
             rep = json.loads(tc("replay", f, "--model", path, "--json").stdout)
             assert rep["applied_max_abs_residual_um"] <= rep["max_abs_residual_um"] + 1.0, (accel, f.name)
             assert (f == plain) == (rep["shaping"]["cutting_source"] == "inferred from the speed")
+
+
+def test_demo_hours_out_of_range_is_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "0.5"],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and "--hours 0.5: from 1 to 24" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "out").exists()

@@ -245,6 +245,9 @@ def _add_measure(sub: argparse._SubParsersAction) -> None:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole product on the embedded virtual machine tool")
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
+    p.add_argument("--hours", type=float, default=5.0,
+                   help="length of the job-shop days the service compensates, open and closed loop "
+                   "(1 to 24, default 5); the figures in the README are for 5")
     p.add_argument("--profile", default="virtual",
                    choices=["virtual", "sinumerik", "fanuc", "heidenhain", "haas", "linuxcnc", "beckhoff"],
                    help="the control the virtual CNC acts as: its unit, resolution, limits and own rate "

@@ -58,7 +58,7 @@ from .runtime.service import Service
 PRESET = "motorized-27k"
 RECORD_DT_S = 10.0
 PROBE_EVERY_S = 1800.0  # the closed loop: a tool-setter cycle every 30 min
-CLOSED_LOOP_HOURS = 5.0
+DAY_HOURS = 5.0  # the job-shop days of steps 3 and 4 (--hours)
 AMBIENT_DRIFT_K_PER_H = 2.0  # the shop warms up in the morning: nothing the model knows about
 CLOSED_LOOP_CONFIG = """
 [spindle.observer]
@@ -201,6 +201,10 @@ def serve(config: Path, clock: SteppedClock, cnc: VirtualCNC, prog, each_tick):
 
 
 def main(args: argparse.Namespace) -> int:
+    from compensator.errors import ConfigError
+
+    if not 1.0 <= args.hours <= 24.0:  # the closed loop needs probe cycles (every 30 min) to show
+        raise ConfigError(f"--hours {args.hours:g}: from 1 to 24")
     out = Console(width=None if Console().is_terminal else 110)
     outdir = Path(args.output_dir).resolve()  # the runtime config it writes names absolute paths
     outdir.mkdir(parents=True, exist_ok=True)
@@ -236,7 +240,7 @@ def main(args: argparse.Namespace) -> int:
     out.print(f"chosen: {fit.reason}")
 
     model = fit.model
-    prog = job_shop_day(params.max_rpm, seed=13, hours=5)
+    prog = job_shop_day(params.max_rpm, seed=13, hours=args.hours)
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(params, seed=13), None, clock=clock)  # at rest until linked
     state_dir = outdir / "runtime"
@@ -302,7 +306,7 @@ def main(args: argparse.Namespace) -> int:
               f"on {int(np.count_nonzero(j_limit > limit))}; max offset rate while cutting "
               f"{rates[both].max() if both.any() else 0.0:.2f} um/s (limit {limit:g}), overall "
               f"{rates.max():.2f} um/s; journal in {state_dir / 'journal'}")
-    closed = closed_loop(out, outdir, params, model)
+    closed = closed_loop(out, outdir, params, model, args.hours)
     png = outdir / "demo.png"
     plot_panels(png, [Panel(prog.name, times, speeds, predicted_um=-offset, measured_um=true,
                             measured_label="true elongation (uncompensated error)",
@@ -320,7 +324,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def closed_loop(out: Console, outdir: Path, params, model) -> dict[str, float]:
+def closed_loop(out: Console, outdir: Path, params, model, hours: float = DAY_HOURS) -> dict[str, float]:
     """Step 4: the same service with the tool setter in the loop, on a day whose shop warms up
     (an ambient ramp the model does not know): open loop against fused, in one plot."""
     import dataclasses
@@ -328,7 +332,7 @@ def closed_loop(out: Console, outdir: Path, params, model) -> dict[str, float]:
     from cnc_adapters.sim.vcnc import ToolSetter
 
     warm = dataclasses.replace(params, ambient_drift_k_per_h=AMBIENT_DRIFT_K_PER_H)
-    prog = job_shop_day(params.max_rpm, seed=17, hours=CLOSED_LOOP_HOURS)
+    prog = job_shop_day(params.max_rpm, seed=17, hours=hours)
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(warm, seed=17), None, clock=clock, tool_setter=ToolSetter(seed=17))
     state_dir = outdir / "runtime-closed-loop"
