@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-deps lint-imports slim test-lowest fresh-check
+.PHONY: demo test bench venv clean system-packages system-deps lint-imports slim test-lowest fresh-check
 
 venv: $(STAMP)
 
@@ -19,8 +19,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/thermocomp demo --output-dir demo-output
 
-system-deps:
-	bash scripts/system-deps.sh
+system-packages:
+	bash scripts/system-deps.sh packages
+
+system-deps: system-packages
+	bash scripts/system-deps.sh linuxcnc
 
 lint-imports: $(STAMP)
 	$(VENV)/bin/lint-imports
@@ -35,7 +38,11 @@ slim:
 PYTEST_WORKERS ?= 2
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist worksteal)
 
-test: $(STAMP) system-deps lint-imports slim
+# .venv (pip) and the Debian packages (apt) install at the same time; the environments that
+# build this checkout (slim, LinuxCNC) one after the other, as they share ./build
+test:
+	$(MAKE) --no-print-directory -j2 $(STAMP) system-packages
+	$(MAKE) --no-print-directory system-deps lint-imports slim
 	$(PY) -m pytest -q $(XDIST)
 
 # The oldest versions pyproject.toml allows (uv's lowest-direct resolution: every direct

@@ -12,8 +12,13 @@
 #   (--system-site-packages), from which LinuxCNC starts `thermocomp` as a HAL component.
 #   rtapi refuses to run as root, so as root a system user `thermocomp-ci` is created to run it
 #   and the environment goes to /opt/thermocomp/linuxcnc-venv (readable by that user).
+#
+#   scripts/system-deps.sh [packages|linuxcnc]   (default: both, in that order)
+# `packages`: the Debian and npm packages; `linuxcnc`: the LinuxCNC environment (needs the first).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+phase="${1:-all}"
+case "$phase" in all|packages|linuxcnc) ;; *) echo "system-deps: usage: $0 [packages|linuxcnc]" >&2; exit 2 ;; esac
 
 root=0
 [ "$(id -u)" -eq 0 ] && root=1
@@ -21,36 +26,39 @@ root=0
 # pip's output less the notes this machine's pip configuration adds; pip's own exit status
 # stays the pipeline's (pipefail), so a failed install fails the script
 quiet_pip() { grep -v "^WARNING: Location" || true; }
-need=()
-command -v node >/dev/null 2>&1 || need+=(nodejs)
-command -v npm >/dev/null 2>&1 || need+=(npm)
-command -v socat >/dev/null 2>&1 || need+=(socat)
-[ -x /usr/sbin/mosquitto ] || need+=(mosquitto)  # /usr/sbin: not on a user's PATH
-optional=()
-command -v linuxcnc >/dev/null 2>&1 || optional+=(linuxcnc-uspace)
-[ -x /usr/bin/chromium ] || optional+=(chromium)
-/usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || optional+=(python3-venv)
-if [ $root -eq 1 ]; then
-  need+=("${optional[@]}")
+if [ "$phase" != linuxcnc ]; then
+  need=()
+  command -v node >/dev/null 2>&1 || need+=(nodejs)
+  command -v npm >/dev/null 2>&1 || need+=(npm)
+  command -v socat >/dev/null 2>&1 || need+=(socat)
+  [ -x /usr/sbin/mosquitto ] || need+=(mosquitto)  # /usr/sbin: not on a user's PATH
   optional=()
-fi
-if [ ${#need[@]} -gt 0 ]; then
+  command -v linuxcnc >/dev/null 2>&1 || optional+=(linuxcnc-uspace)
+  [ -x /usr/bin/chromium ] || optional+=(chromium)
+  /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || optional+=(python3-venv)
   if [ $root -eq 1 ]; then
-    apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
-  else
-    echo "system-deps: missing ${need[*]}; run as root or: sudo apt-get install ${need[*]}" >&2
-    exit 1
+    need+=("${optional[@]}")
+    optional=()
+  fi
+  if [ ${#need[@]} -gt 0 ]; then
+    if [ $root -eq 1 ]; then
+      apt-get update -qq
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+    else
+      echo "system-deps: missing ${need[*]}; run as root or: sudo apt-get install ${need[*]}" >&2
+      exit 1
+    fi
+  fi
+  if [ ${#optional[@]} -gt 0 ]; then
+    echo "system-deps: ${optional[*]} missing: the LinuxCNC or status page tests will be skipped" \
+         "(sudo apt-get install --no-install-recommends ${optional[*]})" >&2
+  fi
+
+  if [ ! -f tests/js/node_modules/.package-lock.json ] || [ tests/js/package-lock.json -nt tests/js/node_modules/.package-lock.json ]; then
+    npm ci --prefix tests/js --no-audit --no-fund --loglevel=error
   fi
 fi
-if [ ${#optional[@]} -gt 0 ]; then
-  echo "system-deps: ${optional[*]} missing: the LinuxCNC or status page tests will be skipped" \
-       "(sudo apt-get install --no-install-recommends ${optional[*]})" >&2
-fi
-
-if [ ! -f tests/js/node_modules/.package-lock.json ] || [ tests/js/package-lock.json -nt tests/js/node_modules/.package-lock.json ]; then
-  npm ci --prefix tests/js --no-audit --no-fund --loglevel=error
-fi
+[ "$phase" = packages ] && exit 0
 
 if command -v linuxcnc >/dev/null 2>&1 && /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1; then
   if [ $root -eq 1 ]; then
