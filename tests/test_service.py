@@ -113,8 +113,8 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
 
 
 def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
-    # from 23:00 UTC: the journal rotates at midnight, an hour in
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.5, wall0=1700006400.0 - 3600)
+    # from 23:30 UTC: the journal rotates at midnight, half an hour in
+    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.0, wall0=1700006400.0 - 1800)
     h = vm.history()
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
