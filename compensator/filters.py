@@ -1,4 +1,5 @@
-"""Exact first-order filters over logged series, at any sample period. Pure: numpy only.
+"""Exact first-order filters over logged series, at any sample period. Pure: numpy (and scipy
+for batch work over whole logs).
 
 A logged value ``u[k]`` is held over ``(t[k-1], t[k]]`` (the run-log convention), so a first-order
 lag ``dy/dt = (u - y)/tau`` has the exact zero-order-hold solution::
@@ -25,6 +26,7 @@ SPAN = 50.0
 """Largest exponent inside one closed-form block: exp(50) ~ 5e21, far from overflow."""
 _BLOCK = 8192  # samples per closed-form block: keeps the cumulative sums precise
 _LD_MAX = 1e4  # dt/tau beyond this is a full reset (exp(-1e4) == 0); keeps sums finite
+_MIN_RUN = 64  # equal steps per run, on average, for the recursive pass to pay
 
 
 def series(name: str, values: Any, size: int | None = None) -> np.ndarray:
@@ -55,10 +57,21 @@ def times(time_s: Any) -> np.ndarray:
     return t
 
 
+def _runs(dt_s: np.ndarray) -> np.ndarray | None:
+    """Where the step changes: the starts of the runs of equal steps (indices into ``dt_s``), when
+    there are few enough for one recursive filter pass each; None otherwise (a jittery clock)."""
+    change = np.flatnonzero(dt_s[1:] != dt_s[:-1]) + 1
+    if change.size > dt_s.size // _MIN_RUN:
+        return None
+    return np.concatenate([[0], change])
+
+
 def lowpass(dt_s: np.ndarray, w: np.ndarray, tau_s: float, y0: float | None = None) -> np.ndarray:
     """y_k = a_k*y_{k-1} + (1 - a_k)*w_k, a_k = exp(-dt_k/tau), y_0 = ``y0`` (default w_0).
 
-    ``dt_s[k-1]`` is the step ending at sample k. Closed form per block,
+    ``dt_s[k-1]`` is the step ending at sample k. Where the steps are equal over long runs (a
+    logger's clock, gaps apart) each run is one recursive pass (``scipy.signal.lfilter``: the
+    same recursion, with its constant coefficient). Otherwise closed form per block,
     ``y_k = exp(-R_k) * (y_s + sum_j b_j*w_j*exp(R_j))`` with R the cumulative dt/tau since the
     block's first sample s, itself reached by one direct step: one step as long as a gap of hours
     is exact, and no exponent exceeds :data:`SPAN`. Callers keep ``|w|`` of order one.
@@ -69,6 +82,17 @@ def lowpass(dt_s: np.ndarray, w: np.ndarray, tau_s: float, y0: float | None = No
         return y
     y[0] = w[0] if y0 is None else y0
     if n == 1:
+        return y
+    runs = _runs(dt_s)
+    if runs is not None:
+        from scipy.signal import lfilter  # batch work only: the runtime's install has no scipy
+
+        ends = np.concatenate([runs[1:], [dt_s.size]])
+        for s, e in zip(runs.tolist(), ends.tolist()):  # steps s..e-1 end at samples s+1..e
+            with np.errstate(over="ignore"):
+                ld = min(float(dt_s[s]) / tau_s, _LD_MAX)
+            a, b = math.exp(-ld), -math.expm1(-ld)
+            y[s + 1:e + 1] = lfilter([b], [1.0, -a], w[s + 1:e + 1], zi=[a * y[s]])[0]
         return y
     with np.errstate(over="ignore"):  # a tiny tau: dt/tau is inf, capped like any full reset
         ld = np.minimum(dt_s / tau_s, _LD_MAX)

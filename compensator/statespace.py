@@ -286,16 +286,18 @@ class StateSpaceModel(BaseModel):
             raise ModelError("cannot simulate an empty log")
         sp = np.abs(series("speed_rpm", speed_rpm, t.size))
         n = np.minimum(sp, SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
-        cols = [n, n * n]
-        for c in self.inputs:
+        # the signals as rows [n, n^2, inputs...]: one matrix product drives every state
+        v = np.empty((2 + len(self.inputs), t.size))
+        v[0] = n
+        np.multiply(n, n, out=v[1])
+        for i, c in enumerate(self.inputs, start=2):
             if inputs is None or c.name not in inputs:
                 raise ModelError(f"the model needs input {c.name!r}, which the log lacks")
-            u = series(c.name, inputs[c.name], t.size)
-            cols.append(np.clip(u, *c.valid_range) - c.reference)
-        v = np.column_stack(cols)
-        out = self.offset_um + v @ self._d
-        for tau, b in zip(self.taus_s, self._b):
-            out += filter_bank(t, v @ b, (tau,))[:, 0]
+            np.clip(series(c.name, inputs[c.name], t.size), *c.valid_range, out=v[i])
+            v[i] -= c.reference
+        out = self.offset_um + self._d @ v
+        for tau, drive in zip(self.taus_s, self._b @ v):
+            out += filter_bank(t, drive, (tau,))[:, 0]
         if initial_um is not None:
             out += (require_finite("initial_um", initial_um) - out[0]) * decay(t, self._slowest_s)
         return out
