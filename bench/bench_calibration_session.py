@@ -3,9 +3,9 @@
 1. Recorder sample cost: one sample = speed over OPC UA (virtual CNC, loopback) + displacement
    from an ASCII amplifier on a socat pseudo-terminal + the checks + one flushed log row.
    It bounds the fastest sample period a recording can keep.
-2. Input selection: `fit_with_inputs` on two 6-h runs at 20 s with the 5 sensor channels of the
-   virtual plant, and on four runs at 30 s with 16 channels; the speed-only calibration it
-   builds on is timed apart.
+2. The identification with inputs (`calibration.fit.fit_data`, what `thermocomp fit --inputs`
+   runs) on two 6-h runs at 20 s with the 5 sensor channels of the virtual plant, and on four
+   runs at 30 s with 16 channels; the same without inputs is timed apart.
 Run: .venv/bin/python bench/bench_calibration_session.py
 """
 
@@ -24,9 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from devices import LineDevice, PtyPair  # noqa: E402
 
 from calibration.acquire import AcquireConfig, Recorder  # noqa: E402
-from calibration.calibrate import calibrate  # noqa: E402
-from calibration.data import Run  # noqa: E402
-from calibration.inputs import InputRun, fit_with_inputs  # noqa: E402
+from calibration.fit import fit_data  # noqa: E402
+from calibration.identify import LogData  # noqa: E402
 from calibration.profile import calibration_profile  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.sensors import AsciiSensor  # noqa: E402
@@ -73,11 +72,11 @@ def recorder_cost(n: int = 1000) -> np.ndarray:
     return np.diff(times) * 1e3
 
 
-def plant_input_run(prog, seed: int, dt_s: float) -> InputRun:
+def plant_input_run(prog, seed: int, dt_s: float) -> LogData:
     t, n = prog.sample(dt_s)
     plant = SpindlePlant(P, seed=seed)
     r = plant.run(t, n)
-    return InputRun(Run(f"{prog.name}-{seed}", t, n, r.measured_um), plant.sensor_channels(r))
+    return LogData(f"{prog.name}-{seed}", t, n, r.measured_um, plant.sensor_channels(r))
 
 
 def main() -> None:
@@ -88,25 +87,23 @@ def main() -> None:
     runs = [plant_input_run(paper_calibration(P.max_rpm), 1, 20.0),
             plant_input_run(random_validation(P.max_rpm, seed=2, hold_min=(10, 30)), 2, 20.0)]
     t0 = time.perf_counter()
-    cal = calibrate([r.run for r in runs])
+    fit_data(runs)
     t1 = time.perf_counter()
-    fit = fit_with_inputs(cal, runs, list(runs[0].inputs))
+    fit = fit_data(runs, list(runs[0].inputs))
     t2 = time.perf_counter()
-    rows = sum(len(r.run) for r in runs)
-    print(f"2 runs x {rows // 2} rows: speed-only calibration {t1 - t0:.1f} s; input selection over 5 channels "
-          f"{t2 - t1:.2f} s (kept {', '.join(fit.model.input_names)})")
+    rows = sum(r.time_s.size for r in runs)
+    print(f"2 runs x {rows // 2} rows: speed only {t1 - t0:.1f} s; with 5 channels {t2 - t1:.1f} s "
+          f"(chosen {fit.chosen.name}, {len(fit.model.input_names)} inputs)")
     rng = np.random.default_rng(0)
     runs4 = [plant_input_run(paper_calibration(P.max_rpm), 1, 30.0)] + [
         plant_input_run(random_validation(P.max_rpm, seed=s, hold_min=(10, 30)), s, 30.0) for s in (2, 3, 4)]
     for r in runs4:
         for k in range(11):
-            r.inputs[f"extra{k:02d}_c"] = 21 + np.cumsum(rng.normal(0, 0.02, len(r.run)))
-    cal4 = calibrate([r.run for r in runs4])
+            r.inputs[f"extra{k:02d}_c"] = 21 + np.cumsum(rng.normal(0, 0.02, r.time_s.size))
     t3 = time.perf_counter()
-    fit4 = fit_with_inputs(cal4, runs4, list(runs4[0].inputs))
+    fit4 = fit_data(runs4, list(runs4[0].inputs))
     t4 = time.perf_counter()
-    print(f"4 runs, 16 channels: input selection {t4 - t3:.2f} s, {len(fit4.steps)} steps, "
-          f"kept {', '.join(fit4.model.input_names)}")
+    print(f"4 runs, 16 channels: {t4 - t3:.1f} s (chosen {fit4.chosen.name}, {len(fit4.model.input_names)} inputs)")
 
 
 if __name__ == "__main__":

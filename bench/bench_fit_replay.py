@@ -1,6 +1,6 @@
 """Fitting 600 000 rows, and replaying a 30-day 1 Hz log (2.6 M rows) end to end.
 
-Targets (issue 3): OLS fit <= 2 s; replay <= 3 s, parsing included. Since issue 18 every replay
+Targets: OLS fit <= 2 s; replay <= 3 s, parsing included. Every replay
 also runs the runtime's shaper over the log, and by default compares the transient policies
 (two more shaped series with a dual-slew configuration): timed apart.
 Run: .venv/bin/python bench/bench_fit_replay.py
@@ -23,9 +23,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import rich_form  # noqa: E402
 
-from calibration.calibrate import calibrate  # noqa: E402
-from calibration.data import Run  # noqa: E402
-from calibration.fitting import fit_paper_ols  # noqa: E402
+from calibration import ident  # noqa: E402
+from calibration.fit import fit_data  # noqa: E402
+from calibration.identify import LogData  # noqa: E402
 from calibration.replay import replay  # noqa: E402
 from compensator.io import read_run_log, save_model, write_run_log  # noqa: E402
 from compensator.programs import job_shop_day  # noqa: E402
@@ -55,12 +55,12 @@ def main() -> dict:
     t, n = month_of_speeds(7)
     t, n = t[:600_000], n[:600_000]
     s = model.simulate(n, t).elongation_um + rng.normal(0, 0.05, t.size)
-    runs = [Run(f"r{i}", np.arange(200_000, dtype=float), n[i * 200_000:(i + 1) * 200_000],
-                s[i * 200_000:(i + 1) * 200_000]) for i in range(3)]
-    res["fit_rows"] = sum(len(r) for r in runs)
-    res["ols_fit_s"], _ = timed(lambda: fit_paper_ols(runs, 1.0))
-    res["full_calibration_s"], cal = timed(lambda: calibrate(runs))
-    res["full_calibration_chosen"] = cal.model.form
+    runs = [LogData(f"r{i}", np.arange(200_000, dtype=float), n[i * 200_000:(i + 1) * 200_000],
+                    s[i * 200_000:(i + 1) * 200_000]) for i in range(3)]
+    res["fit_rows"] = sum(r.time_s.size for r in runs)
+    res["ols_fit_s"], _ = timed(lambda: ident.fit_paper_ols(t, n, s))
+    res["full_calibration_s"], cal = timed(lambda: fit_data(runs))
+    res["full_calibration_chosen"] = cal.chosen.name
 
     t, n = month_of_speeds(30)
     meas = model.simulate(n, t).elongation_um + rng.normal(0, 0.05, t.size)

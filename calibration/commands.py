@@ -21,8 +21,6 @@ from compensator.io.journal_export import NOT_INPUTS
 from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
 from compensator.shaping import ShaperConfig
 
-from .calibrate import Calibration, calibrate
-from .data import bridge_gaps, run_from_log
 from .plots import Panel, plot_panels
 from .replay import Replay, replay
 
@@ -60,41 +58,6 @@ def progress(enabled: bool, total: int | None = None) -> Iterator[Callable[[str]
             bar.update(task, description=msg, advance=1)
 
         yield say
-
-
-def print_fit_report(cal: Calibration, report: dict[str, Any], out: Console) -> None:
-    m = cal.model
-    out.print(f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  "
-              f"{len(cal.runs)} run(s), fitted at {cal.fit_dt_s:g} s, scored by {report['scored_by']}")
-    t = Table(title="Candidates (free run: the model feeds on its own output)")
-    for col in ("form", "1-step R²", "free-run RMS", "free-run max", "held-out RMS", "held-out max", "note"):
-        t.add_column(col, justify="left" if col in ("form", "note") else "right")
-    for c in report["candidates"]:
-        fr, cv = c["free_run"] or {}, c["cross_validation"] or {}
-        name = c["form"] + (" [bold green]<- chosen[/]" if c["form"] == report["chosen"] else "")
-        t.add_row(name, _fmt(c["one_step_r2"], 4), _fmt(fr.get("rms_um")), _fmt(fr.get("max_abs_um")),
-                  _fmt(cv.get("rms_um")), _fmt(cv.get("max_abs_um")), c["note"])
-    out.print(t)
-    out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {report['reason']}")
-    ct = Table(title=f"Coefficients of {report['chosen']} (n in krpm)")
-    for col in ("name", "value", "std. error", "unit"):
-        ct.add_column(col)
-    for c in report["coefficients"]:
-        ct.add_row(c["name"], f"{c['value']:.6g}", _fmt(c["stderr"], 3), c["unit"])
-    out.print(ct)
-    if report["reference_one_step_r2"] is not None:
-        out.print(f"Paper's OLS reference, one step ahead: R² = {report['reference_one_step_r2']:.5f} "
-                  "(a one-step R² says little about free run)")
-    rt = Table(title="Free-run residuals of the chosen model (um)")
-    for col in ("run", "RMS", "max |r|", "mean |r|", "steady RMS", "steady max", "transient RMS", "transient max"):
-        rt.add_column(col, justify="right" if col != "run" else "left")
-    for r in report["residuals"]:
-        st, tr = r["phases"]["steady"], r["phases"]["transient"]
-        rt.add_row(Path(r["run"]).name, _fmt(r["rms_um"]), _fmt(r["max_abs_um"]), _fmt(r["mean_abs_um"]),
-                   _fmt(st["rms_um"]), _fmt(st["max_abs_um"]), _fmt(tr["rms_um"]), _fmt(tr["max_abs_um"]))
-    out.print(rt)
-    for w in report["warnings"]:
-        out.print(f"[yellow]warning:[/yellow] {w}")
 
 
 def _meta(args: argparse.Namespace, logs) -> dict[str, Any]:
@@ -144,49 +107,21 @@ def _input_names(args: argparse.Namespace, logs) -> list[str]:
 
 
 def fit(args: argparse.Namespace) -> int:
-    if args.method == "forms":
-        return fit_forms(args)
     from compensator.errors import CalibrationError
 
-    from .identify import LogData, identify
-    from .inputs import unit_of
+    from .fit import fit_logs
 
-    for flag, value in (("--dt", args.dt), ("--form", None if args.form == "auto" else args.form)):
-        if value is not None:
-            raise CalibrationError(f"{flag} applies to --method forms; the cycles method fits at the "
-                                   "logs' own sample period")
     if not (math.isfinite(args.probe_target_um) and args.probe_target_um > 0):
         raise CalibrationError(f"--probe-target-um must be > 0, got {args.probe_target_um}")
     if args.probe_every is not None and not (math.isfinite(args.probe_every) and args.probe_every > 0):
         raise CalibrationError(f"--probe-every must be > 0 s, got {args.probe_every}")
     logs = [read_run_log(p) for p in args.runs]
-    runs = [run_from_log(log, name=p, sparse=True) for log, p in zip(logs, args.runs)]
-    sparse = any(lg.sparse for lg in logs)
-    if sparse and args.probe_every is not None:
-        raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
-                               f"row; {next(p for p, lg in zip(args.runs, logs) if lg.sparse)} has it on "
-                               "some rows only (sparse)")
     names = _input_names(args, logs)
-    data, gap_notes = [], []
-    for p, r, lg in zip(args.runs, runs, logs):
-        speed, gaps = bridge_gaps(r.time_s, r.speed_rpm)  # missing rows: the last logged speed
-        if gaps:
-            gap_notes.append(f"{Path(p).name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
-                             "integrated at the last logged speed (a gap that begins at rest cools)")
-        data.append(LogData(Path(p).name, r.time_s, speed, r.elongation_um,
-                            {n: np.asarray(lg.extras[n], dtype=float) for n in names}))
     with progress(not args.json) as say:
-        if sparse:  # fitted and scored on the measured rows: calibration.sparse
-            from .sparse import identify_sparse
-
-            result = identify_sparse(data, names, units={n: unit_of(n) for n in names}, progress=say,
-                                     nested=not args.no_nested, **_meta(args, logs))
-        else:
-            result = identify(data, names, units={n: unit_of(n) for n in names}, progress=say,
-                              nested=not args.no_nested, physical=not args.no_physical,
-                              probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
-                              **_meta(args, logs))
-    result.warnings[:0] = gap_notes
+        result = fit_logs(logs, names, labels=[str(p) for p in args.runs], progress=say,
+                          nested=not args.no_nested, physical=not args.no_physical,
+                          probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
+                          **_meta(args, logs))
     model = result.model
     # validated before it is written: the same checks a load makes
     type(model).model_validate(model.model_dump(mode="json"))
@@ -195,11 +130,8 @@ def fit(args: argparse.Namespace) -> int:
     report["model_file"] = str(args.output)
     if args.plot:
         j = result.joined
-        pred = np.empty_like(j.time_s)
-        for a, b in j.segments:
-            inputs = {n: v[a:b] for n, v in j.inputs.items()} if model.input_names else None
-            pred[a:b] = model.simulate_um(j.speed_rpm[a:b], j.time_s[a:b], inputs, None)
-        panels = [Panel(Path(nm).name, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[a:b],
+        pred = result.free_run_um()
+        panels = [Panel(nm, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[nm],
                         j.elongation_um[a:b]) for nm, (a, b) in zip(j.names, j.segments)]
         plot_panels(args.plot, panels, f"fit: {result.chosen.name} (spindle {model.spindle_id}), "
                     "in-sample free run", max_rpm=model.speed_range_rpm[1])
@@ -258,99 +190,6 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
         out.print(f"[yellow]warning:[/yellow] {w}")
 
 
-def fit_forms(args: argparse.Namespace) -> int:
-    """The earlier method: every output-error form on whole runs, inputs by forward selection."""
-    from compensator.errors import CalibrationError
-
-    logs = [read_run_log(p) for p in args.runs]
-    for p, lg in zip(args.runs, logs):
-        if lg.sparse:
-            raise CalibrationError(f"{p}: the elongation is measured on {int(lg.measured.sum())} of {len(lg)} "
-                                   "rows (sparse); --method forms needs it on every row: the default "
-                                   "method (cycles) fits on the measured rows")
-    runs = [run_from_log(log, name=p) for log, p in zip(logs, args.runs)]
-    meta = _meta(args, logs)
-    names = _input_names(args, logs) if args.inputs else []
-    with progress(not args.json) as say:
-        cal = calibrate(runs, dt_s=args.dt, form=args.form, progress=say, **meta)
-        fitted = None
-        if names:
-            fitted = _fit_inputs(cal, logs, runs, names, args, say)
-    report = cal.report()
-    save_model(args.output, fitted.model if fitted else cal.model)
-    report["model_file"] = str(args.output)
-    if fitted:
-        report["inputs"] = fitted.report()
-    if args.plot:
-        panels = [Panel(Path(r.name).name, r.time_s, r.speed_rpm, cal.predictions[r.name], r.elongation_um)
-                  for r in cal.runs]
-        plot_panels(args.plot, panels, f"fit: {cal.model.form} (spindle {cal.model.spindle_id})",
-                    max_rpm=cal.model.speed_range_rpm[1])
-        report["plot"] = str(args.plot)
-    def show(out: Console) -> None:
-        print_fit_report(cal, report, out)
-        if fitted:
-            print_input_report(fitted, out)
-
-    return _emit(args, report, show)
-
-
-def _fit_inputs(cal: Calibration, logs, runs, names: list[str], args: argparse.Namespace, say):
-    from compensator.errors import CalibrationError
-
-    from .inputs import InputRun, fit_with_inputs
-
-    input_runs = []
-    for log, run in zip(logs, runs):
-        chans = {}
-        for n in names:
-            col = log.extras.get(n)
-            if col is None:
-                raise CalibrationError(f"{log.source}: no column {n!r} for --inputs "
-                                       f"(columns: {', '.join(log.extras) or 'none'})")
-            if col.dtype == object:
-                raise CalibrationError(f"{log.source}: column {n} is not numeric")
-            chans[n] = np.asarray(col, dtype=float)
-        input_runs.append(InputRun(run, chans))
-    fixed = {}
-    for item in (args.input_reference_values or "").split(","):
-        if item.strip():
-            k, _, v = item.partition("=")
-            try:
-                fixed[k.strip()] = float(v)
-            except ValueError as err:
-                raise CalibrationError(f"--reference-values: {item!r} is not name=number") from err
-    return fit_with_inputs(cal, input_runs, names, reference=args.input_reference, fixed=fixed,
-                           max_inputs=args.max_inputs, progress=say)
-
-
-def print_input_report(fitted, out: Console) -> None:
-    t = Table(title="Inputs: forward selection judged on held-out runs (leave-one-run-out free run)")
-    for col in ("step", "input", "dynamics", "held-out RMS [um]", "why"):
-        t.add_column(col, justify="right" if "RMS" in col or col == "step" else "left")
-    for s in fitted.steps:
-        name = s.get("added") or (f"({s['best_next']})" if s.get("stopped") else
-                                  "refined" if s.get("refined") else "speed only")
-        tau = s.get("tau_s")
-        dyn = "-" if tau is None else "static" if tau == 0 else f"lag {tau:g} s"
-        t.add_row(str(s["step"]), name, dyn, _fmt(s["held_out_rms_um"]), s["note"])
-    out.print(t)
-    m = fitted.model
-    kt = Table(title=f"Model with inputs (fallback: {m.fallback.form}, speed only)")
-    for col in ("input", "unit", "reference", "gain", "tau [s]", "valid range"):
-        kt.add_column(col)
-    for term in m.inputs:
-        ref = f"{term.reference:.3f}" + (" (run start)" if term.reference_mode == "start" else "")
-        kt.add_row(term.name, term.unit, ref, f"{term.gain_um_per_unit:.4g} um/{term.unit}",
-                   f"{term.tau_s:g}", f"{term.valid_range[0]:.3g}..{term.valid_range[1]:.3g}")
-    out.print(kt)
-    so, au = fitted.speed_only_cv["rms_um"], fitted.augmented_cv["rms_um"]
-    out.print(f"Held-out free-run RMS: speed only {so:.3f} um, with inputs {au:.3f} um "
-              f"({100 * (1 - au / so):.0f} % less)")
-    for w in fitted.warnings:
-        out.print(f"[yellow]warning:[/yellow] {w}")
-
-
 def _json_default(o: Any) -> Any:
     if hasattr(o, "item"):
         return o.item()
@@ -403,12 +242,14 @@ def print_replay_report(rep: Replay, out: Console) -> None:
         out.print(f"[yellow]warning:[/yellow] {w}")
 
 
-def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None) -> int:
-    """``thermocomp replay``; ``shaping`` from a runtime configuration (default: the runtime's
-    defaults)."""
+def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None,
+               estimate_of: Callable[[Any], Any] | None = None) -> int:
+    """``thermocomp replay``; ``shaping`` and ``estimate_of`` (the estimate a model runs with)
+    from a runtime configuration (default: the runtime's defaults)."""
     from compensator.errors import CalibrationError
 
     model = load_any_model(args.model)
+    estimate = None if estimate_of is None else estimate_of(model)
     log = read_run_log(args.log)
     with progress(not args.json) as say:
         say("replaying")
@@ -424,7 +265,7 @@ def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None) ->
 
             probes = probes_from_file(log, args.measurements, args.probe_noise_um)
         rep = replay(model, log, args.initial_um, shaping or ShaperConfig(), probes,
-                     compare=not getattr(args, "no_compare", False))
+                     compare=not getattr(args, "no_compare", False), estimate=estimate)
         if args.output:
             say("writing predictions")
             meta = {"model": args.model, "source": args.log}

@@ -1,14 +1,12 @@
-"""Model fitting: the paper's OLS reference, output-error forms, and the exponential baseline.
+"""The physical candidate: output-error forms of the thermal model (paper 001's state with
+speed-dependent dissipation, an elastic term, one or two states), fitted in free run.
 
-Every candidate is turned into a :class:`~compensator.model.ThermalModel` and
-judged in **free run** (the model feeds on its own output), with
-leave-one-run-out cross-validation when there are two or more runs
-(a one-step fit can score R² = 0.9999 and still drift in free run).
-
-Output-error fitting uses variable projection: for fixed time constants the
-free-run output is linear in every gain, so each evaluation filters the speed
-powers through each state (one pass each) and solves one least-squares
-problem; an outer search covers the one or two nonlinear parameters.
+Output-error fitting uses variable projection: for fixed time constants the free-run output is
+linear in every gain, so each evaluation filters the speed powers through each state (one pass
+each) and solves one least-squares problem; an outer search covers the one or two nonlinear
+parameters. Long logs are searched on a coarser grid, then the gains solved on the full one
+(:func:`fit_physical`). :mod:`calibration.identify` scores it on the same folds as every other
+candidate.
 """
 
 from __future__ import annotations
@@ -23,14 +21,8 @@ from scipy.optimize import minimize
 
 from compensator.errors import CalibrationError, ModelError
 from compensator.model import ThermalModel, ThermalStateCoefficients, filter_state
-from compensator.units import SPEED_SCALE_RPM
 
-from .data import Run
-
-_UNIT = (
-    ThermalStateCoefficients(dissipation_per_s=(1.0, 0.0), generation_um_per_s=(1, 0, 0, 0)),
-)
-
+from .data import Run, resample
 
 @dataclass(frozen=True)
 class FormSpec:
@@ -38,15 +30,13 @@ class FormSpec:
 
     name: str
     description: str
-    method: str  # "ols" | "oe" | "baseline"
+    method: str  # "oe": output error
     n_states: int = 1
     speed_state: bool = False
     elastic: bool = False
 
 
 FORMS: tuple[FormSpec, ...] = (
-    FormSpec("paper-ols", "paper 001 eqs. 11-12, OLS one step ahead on measured S[k-1]", "ols"),
-    FormSpec("exp-baseline", "paper 001 eqs. 1-3: exponential per constant-speed segment", "baseline"),
     FormSpec("paper-oe", "paper's form, refined on free-run (output) error", "oe"),
     FormSpec("speed-state", "paper's form + speed x state dissipation (b5*n*S)", "oe", speed_state=True),
     FormSpec("elastic", "paper's form + instantaneous elastic e1*n + e2*n^2", "oe", elastic=True),
@@ -107,40 +97,6 @@ def _response(d0: float, d1: float, power: int, run: Run) -> np.ndarray:
 def _decay(d0: float, d1: float, run: Run) -> np.ndarray:
     st = ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=(0, 0, 0, 0))
     return filter_state(st, run.n_krpm, run.dt_s, 1.0)
-
-
-# -- the paper's OLS reference ----------------------------------------------------
-
-
-def fit_paper_ols(runs: Sequence[Run], dt_s: float, **meta) -> FitResult:
-    """``S_k = a*S_{k-1} + b0 + b1*n + b2*n^2 + b3*n^3`` by OLS (statsmodels).
-
-    Rows never cross from one run to the next. The runs must be on the
-    uniform grid ``dt_s``.
-    """
-    form = FORM_BY_NAME["paper-ols"]
-    xs, ys = [], []
-    for r in runs:
-        n = r.n_krpm[1:]
-        xs.append(np.column_stack([np.ones_like(n), r.elongation_um[:-1], n, n**2, n**3]))
-        ys.append(r.elongation_um[1:])
-    x, y = np.vstack(xs), np.concatenate(ys)
-    res = _ols(x, y)
-    b0, a, b1, b2, b3 = (float(v) for v in res.params)
-    se = [float(v) for v in res.bse]
-    names = [("b0", "um"), ("a", "-"), ("b1", "um/krpm"), ("b2", "um/krpm^2"), ("b3", "um/krpm^3")]
-    coefs = [
-        {"name": nm, "value": float(v), "stderr": s, "unit": u}
-        for (nm, u), v, s in zip(names, res.params, se)
-    ]
-    try:
-        model = ThermalModel.from_discrete(
-            a, (b0, b1, b2, b3), dt_s, speed_range_rpm=_speed_range(runs), form=form.name, **meta
-        )
-        note = f"a = {a:.6f} at dt = {dt_s:g} s (tau = {-dt_s / math.log(a) / 60:.1f} min)"
-    except ModelError as err:
-        model, note = None, f"not usable: {err}"
-    return FitResult(form, model, coefs, float(res.rsquared), note)
 
 
 # -- output-error forms -------------------------------------------------------------
@@ -246,28 +202,6 @@ def fit_output_error(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
     return solve_output_error(form, best, runs, **meta)
 
 
-def speed_design(form: FormSpec, theta: np.ndarray, runs: Sequence[Run]) -> tuple[np.ndarray, np.ndarray]:
-    """Free-run columns of the speed part for fixed nonlinear parameters, and the target
-    (measured elongation less the fixed initial decay), rows of all runs stacked."""
-    x, _, states = _design(form, theta, runs, _n_max_krpm(runs))
-    y = np.concatenate([r.elongation_um for r in runs]) - _initial_response(states, runs)
-    return x, y
-
-
-def refine_theta(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], extra: np.ndarray) -> np.ndarray:
-    """The speed part's nonlinear parameters re-optimised with extra (input) columns present."""
-    n_max = _n_max_krpm(runs)
-    y = np.concatenate([r.elongation_um for r in runs])
-
-    def obj(th: np.ndarray) -> float:
-        return _rss(form, np.asarray(th, dtype=float), runs, y, n_max, extra)
-
-    start = obj(theta)
-    res = minimize(obj, theta, method="Nelder-Mead",
-                   options={"xatol": 1e-4, "fatol": 1e-10 * max(start, 1e-12), "maxiter": 300})
-    return np.asarray(res.x) if res.fun < start else np.asarray(theta)
-
-
 def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
                        extra: np.ndarray | None = None, **meta) -> FitResult:
     """Gains by OLS (statsmodels, with standard errors) for fixed nonlinear parameters;
@@ -313,67 +247,33 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
                      extra_gains=extra_gains, extra_stderr=extra_se)
 
 
-# -- the exponential baseline (paper 001 eqs. 1-3) ----------------------------------
+# -- the estimator ------------------------------------------------------------------
 
 
-def _segments(run: Run, min_len: int = 5) -> list[tuple[int, int]]:
-    n = np.round(np.abs(run.speed_rpm), 0)
-    cut = np.flatnonzero(np.diff(n) != 0) + 1
-    edges = np.concatenate([[0], cut, [n.size]])
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b - a >= min_len]
+SEARCH_ROWS = 20000
+"""The time constants are searched on at most this many rows (a coarser grid)."""
 
 
-def fit_exponential_baseline(runs: Sequence[Run], **meta) -> FitResult:
-    """S(t) = S0 + (Sinf - S0)(1 - exp(-t/tau)) per constant-speed segment,
-    Sinf(n) = c1*n^2 + c2*n + c3, tau the median over segments."""
-    form = FORM_BY_NAME["exp-baseline"]
-    points, taus = [], []
-    for r in runs:
-        for a, b in _segments(r):
-            t = r.time_s[a - 1 : b] - r.time_s[a - 1] if a > 0 else r.time_s[a:b] - r.time_s[a]
-            s = r.elongation_um[a - 1 : b] if a > 0 else r.elongation_um[a:b]
-            best = None
-            for tau in np.geomspace(max(r.median_dt_s, 1.0), 20 * max(t[-1], 1.0), 60):
-                e = np.exp(-t / tau)
-                x = np.column_stack([np.ones_like(t), e])
-                c, *_ = np.linalg.lstsq(x, s, rcond=None)
-                rss = float(np.sum((s - x @ c) ** 2))
-                if best is None or rss < best[0]:
-                    best = (rss, tau, float(c[0]))
-            assert best is not None
-            points.append((float(np.abs(r.speed_rpm[b - 1]) / SPEED_SCALE_RPM), best[2]))
-            if t[-1] > 2 * best[1]:  # only segments long enough to see tau
-                taus.append(best[1])
-    speeds = np.array([p[0] for p in points])
-    if len(points) < 3 or np.unique(np.round(speeds, 3)).size < 3:
-        return FitResult(form, None, note="needs three or more constant-speed segments")
-    c1, c2, c3 = np.polyfit(speeds, [p[1] for p in points], 2)
-    tau = float(np.median(taus)) if taus else float(max(r.duration_s for r in runs) / 3)
-    lam = 1.0 / tau
-    coefs = [
-        {"name": "c1", "value": float(c1), "stderr": None, "unit": "um/krpm^2"},
-        {"name": "c2", "value": float(c2), "stderr": None, "unit": "um/krpm"},
-        {"name": "c3", "value": float(c3), "stderr": None, "unit": "um"},
-        {"name": "tau", "value": tau, "stderr": None, "unit": "s"},
-    ]
-    st = ThermalStateCoefficients(
-        dissipation_per_s=(lam, 0.0), generation_um_per_s=(c3 * lam, c2 * lam, c1 * lam, 0.0)
-    )
-    model = ThermalModel(form=form.name, fitted_dt_s=_fit_dt(runs),
-                         speed_range_rpm=_speed_range(runs), states=(st,), **meta)
-    return FitResult(form, model, coefs, note=f"{len(points)} segments, tau = {tau / 60:.1f} min")
+def _coarse(runs: Sequence[Run]) -> list[Run]:
+    rows = sum(len(r) for r in runs)
+    if rows <= SEARCH_ROWS:
+        return list(runs)
+    k = math.ceil(rows / SEARCH_ROWS)
+    return [resample(r, runs[0].median_dt_s * k) for r in runs]
 
 
-def fit_form(form: FormSpec, fit_runs: Sequence[Run], **meta) -> FitResult:
-    """Fit one form on runs that share the uniform grid period."""
+def fit_physical(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
+    """Fit one output-error form on runs that share a uniform grid period: the time constants
+    searched on at most :data:`SEARCH_ROWS` rows, the gains solved on all of them. A fit that
+    fails numerically is a result without a model, and says why."""
     try:
-        if form.method == "ols":
-            return fit_paper_ols(fit_runs, _fit_dt(fit_runs), **meta)
-        if form.method == "baseline":
-            return fit_exponential_baseline(fit_runs, **meta)
-        return fit_output_error(form, fit_runs, **meta)
+        if sum(len(r) for r in runs) <= SEARCH_ROWS:
+            return fit_output_error(form, runs, **meta)
+        coarse = fit_output_error(form, _coarse(runs), **meta)
+        if coarse.model is None or coarse.theta is None:
+            return coarse
+        return solve_output_error(form, coarse.theta, runs, **meta)
     except (np.linalg.LinAlgError, ValueError) as err:
         if isinstance(err, CalibrationError):
             raise
         return FitResult(form, None, note=f"fit failed: {err}")
-

@@ -81,7 +81,8 @@ CYCLE_RULE = (
 )
 
 PARSIMONY = 0.02
-"""A simpler grid (or a larger α) wins when its CV RMS is within 2 % of the best."""
+"""A simpler grid (or a larger α), or a simpler candidate, wins when its CV RMS is within 2 % of
+the best."""
 
 
 H = 3600.0
@@ -319,6 +320,18 @@ def _finite(residual: np.ndarray) -> np.ndarray:
 def fold_scores(residual: np.ndarray, cycles: Sequence[tuple[int, int]]) -> tuple[FoldScore, ...]:
     """RMS and max |residual| on each fold; a non-finite residual counts as 1e9 um."""
     return tuple(FoldScore(i, a, b, *pooled_stats(residual[a:b])) for i, (a, b) in enumerate(cycles, start=1))
+
+
+def residual_stats(residual: np.ndarray) -> dict[str, float | int | None]:
+    """Samples, RMS, max |r|, mean |r|, mean and standard deviation of a residual [um]; None
+    for each figure of an empty one."""
+    r = np.asarray(residual, dtype=float)
+    if r.size == 0:
+        return {"samples": 0, "rms_um": None, "max_abs_um": None, "mean_abs_um": None,
+                "mean_um": None, "std_um": None}
+    return {"samples": int(r.size), "rms_um": float(np.sqrt(np.mean(r**2))),
+            "max_abs_um": float(np.max(np.abs(r))), "mean_abs_um": float(np.mean(np.abs(r))),
+            "mean_um": float(np.mean(r)), "std_um": float(np.std(r))}
 
 
 def pooled_stats(residual: np.ndarray) -> tuple[float, float]:

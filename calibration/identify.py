@@ -35,12 +35,10 @@ from compensator.errors import CalibrationError, ModelError
 from compensator.model import ThermalModel
 
 from . import closedloop, ident
-from .calibrate import _fit as fit_classic_form
+from .ident import PARSIMONY  # a simpler candidate wins within it, as a larger alpha does
 from .data import Run, resample
-from .fitting import FORM_BY_NAME
+from .fitting import FORM_BY_NAME, fit_physical
 
-PARSIMONY = 0.02
-"""A simpler candidate wins when its honest CV RMS is within 2 % of the best."""
 BLOCKS = 4
 """Folds of a log that holds one cycle only: this many contiguous blocks of equal duration."""
 PHYSICAL_FORM = "speed-state+elastic"
@@ -201,7 +199,7 @@ def _physical(j: Joined, dt_s: float, meta: Mapping[str, Any]) -> Candidate:
         rows = np.ones(j.time_s.size, bool)
         rows[a:b] = False
         runs = _runs_of(j, rows, dt_s)
-        fit = fit_classic_form(spec, runs, **meta) if runs else None
+        fit = fit_physical(spec, runs, **meta) if runs else None
         if fit is None or fit.model is None:
             c.refusals.append(f"no stable fit without fold rows {a}..{b - 1}"
                               + (f" ({fit.note})" if fit is not None and fit.note else ""))
@@ -211,7 +209,7 @@ def _physical(j: Joined, dt_s: float, meta: Mapping[str, Any]) -> Candidate:
     c.cv_rms_um, c.cv_max_abs_um = ident.pooled_stats(res)
     c.folds_rms_um = [f.rms_um for f in ident.fold_scores(res, j.folds)]
     c.held_out_residual_um = res
-    full = fit_classic_form(spec, _runs_of(j, np.ones(j.time_s.size, bool), dt_s), **meta)
+    full = fit_physical(spec, _runs_of(j, np.ones(j.time_s.size, bool), dt_s), **meta)
     if full.model is None:
         c.refusals.append(f"no stable fit on all rows ({full.note})")
     else:
@@ -233,7 +231,9 @@ def _paper(j: Joined) -> Candidate:
                   "measured S[k-1], scored in free run (for comparison; never chosen)")
     try:
         cv = ident.paper_ols_cv(j.time_s, j.speed_rpm, j.elongation_um, j.folds)
-        fit = ident.fit_paper_ols(j.time_s, j.speed_rpm, j.elongation_um)
+        within = np.ones(j.time_s.size, bool)  # no regression row pairs the end of one log with the next
+        within[[a for a, _ in j.segments[1:]]] = False
+        fit = ident.fit_paper_ols(j.time_s, j.speed_rpm, j.elongation_um, within)
     except CalibrationError as err:
         c.refusals.append(str(err))
         return c
@@ -260,6 +260,19 @@ class Identification:
     fit_cpu_s: float
     derived: list[dict[str, Any]] = field(default_factory=list)
     closed_loop: closedloop.Plan | None = None
+
+    def free_run_um(self) -> dict[str, np.ndarray]:
+        """The model's in-sample free run over each log (by name), from its first measured
+        elongation (at rest when the first row is not measured)."""
+        j, m = self.joined, self.model
+        out = {}
+        with np.errstate(all="ignore"):
+            for name, (a, b) in zip(j.names, j.segments):
+                inputs = {n: v[a:b] for n, v in j.inputs.items()} if m.input_names else None
+                y0 = float(j.elongation_um[a])
+                out[name] = m.simulate_um(j.speed_rpm[a:b], j.time_s[a:b], inputs,
+                                          y0 if math.isfinite(y0) else None)
+        return out
 
     def report(self) -> dict[str, Any]:
         j = self.joined

@@ -9,63 +9,29 @@ after that.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from compensator.errors import NonFiniteInputError, RunLogError
-from compensator.fusion import FusedPredictor, observer_config_of
+from compensator.estimate import Estimate, EstimateState
+from compensator.fusion import observer_config_of
 from compensator.io import RunLog
+from compensator.io.journal import ALARM_COLD_START
 from compensator.io.measurements import read_measurements
 from compensator.predictor import Predictor
 from compensator.shaping import POLICIES, ShapedSeries, ShaperConfig, shape_series
 from compensator.units import RANGE_TOLERANCE
 
-from .calibrate import residual_stats
 from .closedloop import probe_rows
 from .data import bridge_gaps, gap_threshold_s
+from .ident import residual_stats
+from .stability import equilibrium_and_tevr
 
-STE_LIMIT_UM_PER_S = 0.5e-3
-BIN_S = 60.0
-"""The error is averaged over 1-min bins before smoothing."""
-SMOOTH_WINDOW_BINS = 31
-"""Savitzky-Golay window: a least-squares quadratic over 31 min."""
-MAX_BINS = 1_000_000
-"""Equilibrium figures only for logs spanning up to this many bins (~1.9 years): the bins
-cover the whole span, gaps included, and a log spanning a century would need gigabytes."""
-
-
-def equilibrium(time_s: np.ndarray, error_um: np.ndarray) -> tuple[float | None, float | None]:
-    """(equilibrium time [s from start], TEVR [um]) per paper 000, or None where undefined.
-
-    STE is the slope of a least-squares smooth fit (Savitzky-Golay, quadratic
-    over 31 min of 1-min means). Equilibrium starts where |STE| falls below
-    0.5e-3 um/s for good; TEVR is max - min of the error from there on. None also for a
-    log spanning more than :data:`MAX_BINS` minutes.
-    """
-    if time_s.size < 8:
-        return None, None
-    if not 2 * SMOOTH_WINDOW_BINS * BIN_S <= time_s[-1] - time_s[0] <= MAX_BINS * BIN_S:
-        return None, None
-    idx = np.floor((time_s - time_s[0]) / BIN_S).astype(np.int64)
-    counts = np.bincount(idx)
-    sums = np.bincount(idx, weights=error_um)
-    centres = time_s[0] + (np.arange(counts.size) + 0.5) * BIN_S
-    have = counts > 0
-    means = np.interp(centres, centres[have], sums[have] / counts[have])  # bridge gaps
-    slope = savgol_filter(means, SMOOTH_WINDOW_BINS, 2, deriv=1, delta=BIN_S, mode="interp")
-    unstable = np.flatnonzero(np.abs(slope) >= STE_LIMIT_UM_PER_S)
-    if unstable.size == 0:
-        start = 0
-    elif unstable[-1] == slope.size - 1:
-        return None, None  # still drifting at the end of the log
-    else:
-        start = int(unstable[-1]) + 1
-    t_start = time_s[0] + start * BIN_S
-    stable = error_um[time_s >= t_start]
-    return float(t_start - time_s[0]), float(np.ptp(stable)) if stable.size else None
+MAX_SPAN_S = 2 * 365.25 * 86400.0
+"""No equilibrium figures for a log spanning longer than this: across a gap of years they mean
+nothing."""
 
 
 @dataclass
@@ -232,9 +198,42 @@ def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.nd
     return rows
 
 
+def _steps(log: RunLog) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The time the model steps on, each step [s] and the wall clock: a journal's own ``dt_s``
+    (what the service stepped by; its ``time_s`` is rounded to the millisecond) and ``wall_s``,
+    else the log's time stamps."""
+    t = np.asarray(log.time_s, dtype=float)
+    col = log.extras.get("dt_s")
+    dt = None if col is None or col.dtype == object else np.asarray(col, dtype=float)
+    if dt is None or not (np.isfinite(dt).all() and (dt >= 0).all()):
+        return t, np.diff(t, prepend=t[:1]), None
+    dt = dt.copy()
+    dt[0] = 0.0  # the first row starts the replay
+    wall = log.extras.get("wall_s")
+    wall = None if wall is None or wall.dtype == object else np.asarray(wall, dtype=float)
+    return t[0] + np.cumsum(dt), dt, wall if wall is not None and np.isfinite(wall).all() else None
+
+
+def _cold_start(log: RunLog) -> bool:
+    """A service journal that begins with a cold start: the service's estimate began at the
+    model's equilibrium at rest, and its offset at zero."""
+    alarms = log.extras.get("alarms")
+    return alarms is not None and alarms.dtype != object and len(alarms) > 0 \
+        and bool(int(alarms[0]) & ALARM_COLD_START)
+
+
+def _start(estimate: Estimate, log: RunLog, initial_um: float | None, speed_rpm: float) -> EstimateState:
+    """Where the estimate starts: where the service began for a journal that begins with a cold
+    start (unless ``initial_um`` is given); else at ``initial_um`` (None: the model's
+    equilibrium with the first speed)."""
+    if initial_um is None and _cold_start(log):
+        return estimate.cold()
+    return estimate.begin(initial_um, speed_rpm)
+
+
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
            shaping: ShaperConfig | None = None, probes: Probes | None = None,
-           compare: bool = True) -> Replay:
+           compare: bool = True, estimate: Estimate | None = None) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
     A sparse log (a journal export: the elongation measured at the probe instants only, NaN on
@@ -251,8 +250,18 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     (:func:`cutting_signal`), else inferred from the speed as the runtime does: the report then
     gives the error of the offset the machine would have held (``applied_*``) beside the
     model's, and with ``compare`` every transient policy side by side (``policies``).
+
+    The estimate is the service's own (:class:`compensator.estimate.Estimate`; ``estimate``,
+    default the runtime's defaults for ``model``): a speed above the calibrated range is clamped
+    to its top, a blank input cell makes the speed-only fallback stand in until the inputs have
+    recovered, and probes are fused against the model in use. A journal's own ``dt_s`` and
+    ``wall_s`` columns are the steps the service took, so a journal replays step for step.
     """
     shaping = ShaperConfig() if shaping is None else shaping
+    if estimate is None:
+        estimate = Estimate(model, observer_config_of(model) if probes is not None else None)
+    elif probes is not None and estimate.fused is None:  # probes given: fuse them, as the model says
+        estimate = replace(estimate, observer=observer_config_of(model))
     warnings: list[str] = []
     measured = None if log.elongation_um is None else np.asarray(log.elongation_um, dtype=float)
     rows = np.isfinite(measured) if measured is not None else np.zeros(len(log), dtype=bool)
@@ -275,23 +284,33 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     if missing:
         raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
     inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
-    bad = [n for n, v in inputs.items() if not np.isfinite(v).all()]
-    if bad:
-        row = int(np.flatnonzero(~np.isfinite(inputs[bad[0]]))[0])
-        raise RunLogError(f"column {bad[0]}: not a finite number", log.source, log.line_of(row))
+    for name, col in inputs.items():
+        if np.isinf(col).any():  # a blank cell is an input the service could not use; inf is garbage
+            row = int(np.flatnonzero(np.isinf(col))[0])
+            raise RunLogError(f"column {name}: not a finite number", log.source, log.line_of(row))
+    blank = np.zeros(len(log), bool)
+    for col in inputs.values():
+        blank |= np.isnan(col)
     # a gap of missing rows is the spindle at rest: hours of held speed would be invented heat
     speed_sim, gaps = bridge_gaps(log.time_s, log.speed_rpm)
-    fusion = None
-    if probes is None:
-        pred = model.simulate_um(speed_sim, log.time_s, inputs, initial_um)
-        open_loop = pred
-    else:  # the closed loop: the fused estimate replaces the model's
-        fused = model if isinstance(model, FusedPredictor) else FusedPredictor(model, observer_config_of(model))
-        open_loop, fusion = fused.fuse_um(speed_sim, log.time_s, inputs, initial_um, probes.time_s,
-                                          probes.elongation_um, probes.sigma_um)
-        pred = fusion.fused_um
+    step_time, dt, wall = _steps(log)
+    series = None
+    if probes is None and estimate.with_inputs is None:
+        pred = open_loop = estimate.simulate_um(speed_sim, step_time, initial_um)
+    else:  # the service's estimate, cycle by cycle: inputs that fail, probes fused
+        at = np.searchsorted(log.time_s, np.asarray([] if probes is None else probes.time_s) - 1e-3)
+        fused = [] if probes is None else list(zip(at.tolist(), probes.elongation_um.tolist(),
+                                                   probes.sigma_um.tolist()))
+        series = estimate.run(_start(estimate, log, initial_um, float(speed_sim[0])), step_time, speed_sim,
+                              dt_s=dt, wall_s=wall, inputs=inputs, probes=fused)
+        pred, open_loop = series.estimate_um, series.model_um
+        if series.fallback.any():
+            warnings.append(f"the speed-only fallback stands in on {int(series.fallback.sum())} rows "
+                            f"({int(blank.sum())} with a blank input cell), as in the service")
     cut_signal, cut_source, cut_warning = cutting_signal(log, shaping)
-    shaped = shape_series(shaping, log.time_s, speed_sim, pred, cutting=cut_signal)
+    shaped = shape_series(shaping, step_time, estimate.clamp_series(speed_sim)[0], pred,
+                          initial_offset_um=0.0 if initial_um is None and _cold_start(log) else None,
+                          cutting=cut_signal)
     applied = shaped.offset_um
     for name, values in (("predicted elongation", pred), ("applied offset", applied)):
         if not np.isfinite(values).all():  # no NaN reaches a report
@@ -314,7 +333,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             f"{over.sum()} samples ({100 * over.mean():.1f} %) above the calibrated range "
             f"(max {hi:.0f} rpm; {speed.max():.0f} rpm"
             + (f", first at line {line})" if line else ")")
-            + ": predictions there are extrapolated"
+            + (": clamped to the top of the range, as the service does" if estimate.over_range == "clamp"
+               else ": predictions there are extrapolated (over_range = extrapolate)")
         )
     outside = getattr(model, "outside_trained", None)  # models that record trained input ranges
     for name in model.input_names if outside is not None else ():
@@ -326,9 +346,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                 warnings.append(f"{why}" + (f" (line {line})" if line else "")
                                 + ": predictions there are extrapolated")
                 break
-    if log.duration_s > MAX_BINS * BIN_S:
+    if log.duration_s > MAX_SPAN_S:
         warnings.append(f"the log spans {log.duration_s / 86400:.0f} days: no equilibrium time or "
-                        f"TEVR beyond {MAX_BINS * BIN_S / 86400:.0f} days")
+                        f"TEVR beyond {MAX_SPAN_S / 86400:.0f} days")
     if gaps:
         line = log.line_of(gaps[0][0])
         warnings.append(
@@ -356,9 +376,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "min_predicted_um": float(np.min(pred)),
         "gaps": len(gaps),
     }
-    if probes is not None and fusion is not None:
-        report.update(probes=int(probes.time_s.size), probes_rejected=fusion.rejected,
-                      probe_restarts=fusion.restarts,
+    if probes is not None and series is not None:
+        report.update(probes=int(probes.time_s.size), probes_rejected=series.outcomes.count("rejected"),
+                      probe_restarts=series.outcomes.count("restarted"),
                       probe_source=probes.source)
     report["measured_samples"] = int(rows.sum()) if measured is not None else 0
     if measured is not None:
@@ -376,7 +396,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             std_reduction_pct=100.0 * (1 - std_c / std_u) if std_u > 0 else None,
             max_abs_uncompensated_um=float(np.max(np.abs(y))),
         )
-        if fusion is not None:
+        if probes is not None:
             ost = residual_stats(y - open_loop[rows])
             report.update(open_loop_rms_residual_um=ost["rms_um"],
                           open_loop_max_abs_residual_um=ost["max_abs_um"])
@@ -399,7 +419,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                     "applied_cutting_max_abs_residual_um"):
             report[key] = None
         error = pred
-    t_eq, tevr = equilibrium(log.time_s, error)
+    # paper 000's figures, as the cooling commands compute them (calibration.stability)
+    t_eq, tevr = (None, None) if log.duration_s > MAX_SPAN_S else equilibrium_and_tevr(log.time_s, error)
     report["equilibrium_time_s"] = t_eq
     report["tevr_um"] = tevr
     report["ste_source"] = "measured" if measured is not None and not sparse else "predicted"
@@ -410,6 +431,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "cutting_source": cut_source, "cutting_fraction": float(np.mean(shaped.cutting)),
     }
     if compare:
-        report["policies"] = compare_policies(shaping, log.time_s, speed_sim, pred, measured, cut_signal, shaped)
+        report["policies"] = compare_policies(shaping, step_time, estimate.clamp_series(speed_sim)[0], pred,
+                                              measured, cut_signal, shaped)
     report["warnings"] = warnings
     return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied, shaped.cutting)

@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from compensator.model import ThermalModel
+from compensator.predictor import Predictor
 
 
 def _b64(path: str | Path) -> str:
@@ -22,7 +22,7 @@ def _f(v: Any, digits: int = 2) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
-def _sections(session: dict[str, Any], summary: dict[str, Any], model: ThermalModel,
+def _sections(session: dict[str, Any], summary: dict[str, Any], model: Predictor,
               model_path: Path, version: str) -> list[tuple[str, list[list[str]] | list[str]]]:
     rep = summary["report"]
     ident = [["machine", session["machine_id"]], ["spindle", session["spindle_id"]],
@@ -35,14 +35,13 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: ThermalMo
         runs.append([name, Path(info["log"]).name, str(info.get("rows", "-")),
                      ", ".join(f"{k} {v}" for k, v in (info.get("flagged") or {}).items()) or "none",
                      Path(session.get("programs", {}).get(name, "-")).name])
-    cands = [["form", "free-run RMS [um]", "free-run max [um]", "note"]]
+    cands = [["candidate", "held-out RMS [um]", "held-out max [um]", "in-sample RMS [um]", "verdict"]]
     for c in rep["candidates"]:
-        fr = c["free_run"] or {}
-        mark = " (chosen)" if c["form"] == rep["chosen"] else ""
-        cands.append([c["form"] + mark, _f(fr.get("rms_um")), _f(fr.get("max_abs_um")), c["note"] or ""])
-    coefs = [["name", "value", "std. error", "unit"]]
-    for c in rep["coefficients"]:
-        coefs.append([c["name"], f"{c['value']:.6g}", _f(c["stderr"], 4), c["unit"]])
+        mark = " (chosen)" if c["name"] == rep["chosen"] else ""
+        verdict = ("reference only" if c["family"] == "reference" else "accepted" if c["accepted"]
+                   else "refused: " + "; ".join(c["refusals"]))
+        cands.append([c["name"] + mark, _f(c["honest_rms_um"]), _f(c["cv_max_abs_um"]),
+                      _f(c["in_sample_rms_um"]), verdict])
     res = [["run", "RMS [um]", "max [um]", "samples"]]
     cal = summary["calibration"]
     res.append(["calibration (in sample)", _f(cal["rms_um"]), _f(cal["max_abs_um"]), str(cal["samples"])])
@@ -63,14 +62,14 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: ThermalMo
         rec = cl["recommended_interval_s"]
         loop.append(["recommended", "-" if rec is None else f"{rec:.0f} s",
                      f"target {cl['target_rms_um']:g} um RMS"])
-    return [("Spindle", ident), ("Runs", runs), ("Candidate forms (free run)", cands),
-            (f"Chosen: {rep['chosen']}", [rep["reason"]]), ("Coefficients (n in krpm)", coefs),
+    return [("Spindle", ident), ("Runs", runs), (f"Candidates (free run, {rep['scored_by']})", cands),
+            (f"Chosen: {rep['chosen']}", [rep["reason"]]), ("The model", model.describe()),
             ("Free-run residuals", res), ("Steady-state growth predicted", steady),
             *([("Closed loop with a tool setter (validation run, probe sigma 0.5 um)", loop)] if loop else []),
             ("Warnings and advice", notes or ["none"])]
 
 
-def calibration_report(session: dict[str, Any], summary: dict[str, Any], model: ThermalModel,
+def calibration_report(session: dict[str, Any], summary: dict[str, Any], model: Predictor,
                        model_path: Path, fmt: str, version: str) -> str:
     """The report as HTML (one self-contained file) or Markdown; the plot embedded as data URI."""
     title = f"Thermal calibration: {session['machine_id']} / {session['spindle_id']}"
@@ -119,9 +118,9 @@ def _toml_value(v: Any) -> str:
     return f'"{s}"'
 
 
-def runtime_config(session: dict[str, Any], model: ThermalModel, model_path: Path) -> str:
+def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path) -> str:
     """A complete ``thermocomp run`` configuration for this spindle."""
-    top = model.steady_state_um(session["max_rpm"]) + abs(model.elastic(session["max_rpm"]))
+    top = abs(model.steady_state_um(session["max_rpm"]))
     clamp = max(20.0, math.ceil(1.5 * top / 5.0) * 5.0)
     controller = session.get("controller") or "opc.tcp://CHANGE-ME:4840"
     return f"""# thermocomp runtime configuration for {session['machine_id']} / {session['spindle_id']}

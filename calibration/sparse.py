@@ -30,7 +30,6 @@ from compensator.statespace import GAIN_BOUND
 
 from . import ident
 from .data import MIN_MEASURED_ROWS
-from .identify import PARSIMONY as CHOICE_PARSIMONY
 from .identify import (
     Candidate,
     Identification,
@@ -266,11 +265,11 @@ def identify_sparse(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
                                + "; ".join(f"{c.name}: {', '.join(c.refusals)}" for c in cands
                                            if c.family == "speed"))
     best = min(speed, key=lambda c: c.honest_rms_um)
-    chosen = next(c for c in speed if c.honest_rms_um <= best.honest_rms_um * (1 + CHOICE_PARSIMONY))
+    chosen = next(c for c in speed if c.honest_rms_um <= best.honest_rms_um * (1 + ident.PARSIMONY))
     basis = "nested " if chosen.nested_rms_um is not None else ""
     reason = (f"{chosen.name} has the lowest {basis}{j.scheme} free-run RMS among the speed-only "
               f"candidates, {chosen.honest_rms_um:.2f} um"
-              + (f" (within {CHOICE_PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
+              + (f" (within {ident.PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
     model = _with_fit(chosen, j, reason)
     final = chosen
     if ridge_in is not None:

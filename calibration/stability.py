@@ -330,3 +330,17 @@ def stability(time_s: Any, error_um: Any, *, threshold_um_per_s: float = STE_LIM
         threshold_um_per_s=threshold,
         method=method,
     )
+
+
+def equilibrium_and_tevr(time_s: Any, error_um: Any, *,
+                         threshold_um_per_s: float = STE_LIMIT_UM_PER_S) -> tuple[float | None, float | None]:
+    """(equilibrium time [s from the record's first sample], TEVR [um]) by :func:`stability`,
+    or (None, None) where they are undefined: never in equilibrium, or a record too short or
+    not finite to judge. What replay reports for a log."""
+    try:
+        f = stability(time_s, error_um, threshold_um_per_s=threshold_um_per_s)
+    except CalibrationError:
+        return None, None
+    if f.equilibrium_s is None:
+        return None, None
+    return f.equilibrium_s - float(np.asarray(time_s, dtype=float)[0]), f.tevr_um

@@ -56,6 +56,7 @@ from .acquire import (
     progress_fraction,
     sparkline,
 )
+from .fit import FEW_LEVELS, NO_COOLDOWN
 from .profile import (
     DIALECTS,
     EXTENSIONS,
@@ -370,9 +371,9 @@ class Wizard:
     # -- step 4 ------------------------------------------------------------------
 
     def step_fit(self) -> dict[str, Any]:
-        from .calibrate import calibrate, residual_stats
-        from .commands import print_fit_report
-        from .data import run_from_log
+        from .commands import print_identification
+        from .fit import fit_logs
+        from .ident import residual_stats
         from .plots import Panel, plot_panels
         from .replay import replay
 
@@ -390,20 +391,24 @@ class Wizard:
             if long:
                 self.out.print(f"  [yellow]warning:[/] {name} run has {len(long)} gap(s) (interruptions), "
                                f"{sum(g.duration_s for g in long):.0f} s in all: the speed over a gap is "
-                               "taken from the sample after it")
-        run = run_from_log(cal_log, name="calibration")
-        cal = calibrate([run], spindle_id=s["spindle_id"], machine_id=s["machine_id"], created_utc=_now())
-        report = cal.report()
-        print_fit_report(cal, report, self.out)
-        summary: dict[str, Any] = {"form": cal.model.form, "reason": cal.reason,
-                                   "calibration": residual_stats(run.elongation_um - cal.predictions["calibration"]),
-                                   "warnings": list(cal.warnings), "report": report}
-        panels = [Panel("calibration run", run.time_s, run.speed_rpm, cal.predictions["calibration"],
-                        run.elongation_um)]
-        peak = float(np.max(np.abs(run.elongation_um)))
+                               "the last one logged before it")
+        # the one identification `thermocomp fit` runs: the same log gives the same model
+        result = fit_logs([cal_log], labels=["calibration"], spindle_id=s["spindle_id"],
+                          machine_id=s["machine_id"], created_utc=_now())
+        report = result.report()
+        print_identification(result, report, self.out)
+        model = result.model
+        j = result.joined
+        fitted = result.free_run_um()["calibration"]
+        cal_res = j.elongation_um - fitted
+        summary: dict[str, Any] = {"form": model.form, "reason": result.reason,
+                                   "calibration": residual_stats(cal_res),
+                                   "warnings": list(result.warnings), "report": report}
+        panels = [Panel("calibration run", j.time_s, j.speed_rpm, fitted, j.elongation_um)]
+        peak = float(np.max(np.abs(j.elongation_um)))
         if "validation" in logs:
             vlog, vdrop = logs["validation"]
-            rep = replay(cal.model, vlog)
+            rep = replay(model, vlog)
             res = rep.residual_um
             summary["validation"] = residual_stats(res)
             summary["validation_report"] = rep.report
@@ -416,15 +421,13 @@ class Wizard:
             # how often a tool setter would have to measure, judged on the held-out run
             from .closedloop import plan_on_run
 
-            loop = plan_on_run(run.time_s, run.elongation_um - cal.predictions["calibration"], rep.time_s, res,
-                               max(cal.model.time_constants_s(0.0)))
+            loop = plan_on_run(j.time_s, cal_res, rep.time_s, res, max(model.time_constants_s(0.0)))
             for line in loop.lines():
                 self.out.print(f"  {line}", markup=False, highlight=False)
             summary["closed_loop"] = loop.report()
-            cal.model = cal.model.model_copy(update={"fit": {**cal.model.fit,
-                                                             "observer": loop.observer.model_dump()}})
+            model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
         plot = self.dir / "fit.png"
-        plot_panels(plot, panels, f"{s['machine_id']} / {s['spindle_id']}: {cal.model.form}",
+        plot_panels(plot, panels, f"{s['machine_id']} / {s['spindle_id']}: {model.form}",
                     max_rpm=s["max_rpm"])
         summary["plot"] = str(plot)
         summary["peak_um"] = peak
@@ -440,7 +443,7 @@ class Wizard:
             self.out.print(f"  [yellow]advice:[/] {line}")
         if not summary["advice"]:
             self.out.print("  [green]the model is good[/]: no re-run needed")
-        self._cal = cal
+        self._model = model
         return summary
 
     # -- step 5 ------------------------------------------------------------------
@@ -454,13 +457,13 @@ class Wizard:
         base = f"{s['machine_id']}_{s['spindle_id']}_{stamp}"
         model_path = versioned_path(self.dir / "models" / f"{base}.json")
         model_path.parent.mkdir(parents=True, exist_ok=True)
-        save_model(model_path, self._cal.model)
+        save_model(model_path, self._model)
         version = model_path.stem[len(base):].lstrip(".") or "v1"
         fmt = self.args.report_format
         report_path = versioned_path(self.dir / "reports" / f"{base}.{fmt}")
-        write_text(report_path, calibration_report(s, summary, self._cal.model, model_path, fmt, version))
+        write_text(report_path, calibration_report(s, summary, self._model, model_path, fmt, version))
         config_path = versioned_path(self.dir / "config" / f"{base}.toml")
-        write_text(config_path, runtime_config(s, self._cal.model, model_path))
+        write_text(config_path, runtime_config(s, self._model, model_path))
         older = sorted(p.name for p in (self.dir / "models").glob("*.json") if p != model_path)
         s["saved"] = {"model": str(model_path), "report": str(report_path), "config": str(config_path),
                       "version": version, "at_utc": _now()}
@@ -501,9 +504,9 @@ def advise(summary: dict[str, Any], session: dict[str, Any]) -> list[str]:
     val = summary.get("validation")
     limit = max(1.0, 0.1 * peak)
     warnings = " ".join(summary.get("warnings", []))
-    if "cool-down" in warnings:
+    if NO_COOLDOWN in warnings:
         out.append("record the calibration run again with its cool-down (>= 60 min at 0 rpm at the end)")
-    if "speed levels" in warnings:
+    if FEW_LEVELS in warnings:
         out.append("the run has too few speed levels: run the full staircase")
     if cal["rms_um"] is not None and cal["rms_um"] > limit:
         out.append(f"the model misses the calibration run itself (RMS {cal['rms_um']:.2f} um > {limit:.2f} um): "

@@ -6,7 +6,8 @@ inputs) and a :class:`~compensator.observer.ObserverConfig`. Its state carries t
 state and the observer's; its elongation is the model's plus the estimated bias. Between
 measurements it steps like the model (the observer's time update runs with it, exact at the
 real Δt); :meth:`FusedPredictor.measure` fuses one measurement. The runtime and replay use it
-like any model, so a closed loop needs no special case.
+like any model (through :class:`compensator.estimate.Estimate`), so a closed loop needs no
+special case.
 """
 
 from __future__ import annotations
@@ -22,11 +23,9 @@ from .errors import ModelError
 from .model import saved_numbers
 from .observer import (
     COV_LIMIT,
-    Fusion,
     ObserverConfig,
     ObserverState,
     Update,
-    fuse_series,
     measurement_update,
     time_update,
 )
@@ -158,13 +157,6 @@ class FusedPredictor:
         shift = float(state.model.elongation_um) - float(model_state.elongation_um)
         return replace(state, model=model_state,
                        observer=replace(state.observer, bias_um=state.observer.bias_um + shift))
-
-    def fuse_um(self, speed_rpm: np.ndarray, time_s: np.ndarray, inputs: Mapping[str, np.ndarray] | None,
-                initial_um: float | None, probe_time_s: np.ndarray, probe_um: np.ndarray,
-                probe_sigma_um: np.ndarray) -> tuple[np.ndarray, Fusion]:
-        """Replay: the model's free run and the causal fused estimate over a whole log."""
-        open_loop = self.model.simulate_um(speed_rpm, time_s, inputs, initial_um)
-        return open_loop, fuse_series(self.config, time_s, open_loop, probe_time_s, probe_um, probe_sigma_um)
 
     def is_stale(self, state: FusedState, max_age_s: float) -> bool:
         """No accepted measurement for longer than ``max_age_s`` (or none yet)."""

@@ -57,12 +57,11 @@ def model_rich() -> ThermalModel:
 def calibrated_model(tmp_path_factory) -> Path:
     """A model calibrated on the virtual plant's own data (as tests/test_service.py does): the
     workpiece error of an end-to-end test then shows the route, not a model that does not fit."""
-    from plantdata import plant_run
+    from plantdata import identify_runs, plant_run
 
-    from calibration.calibrate import calibrate
     from compensator.io import save_model
 
-    model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
+    model = identify_runs([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
     path = tmp_path_factory.mktemp("calibrated-model") / "model.json"
     save_model(path, model)
     return path

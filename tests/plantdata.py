@@ -22,3 +22,28 @@ def plant_run(program: str, dt_s: float, seed: int, preset_name: str = "motorize
     t, n = prog.sample(dt_s)
     r = SpindlePlant(p, seed=seed).run(t, n)
     return Run(f"{program}-{dt_s:g}s-{seed}", t, n, r.measured_um)
+
+
+def identify_runs(runs, **kw):
+    """The product's one identification (``calibration.fit.fit_data``) on plant runs held in memory."""
+    from calibration.fit import fit_data
+    from calibration.identify import LogData
+
+    return fit_data([LogData(r.name, r.time_s, r.speed_rpm, r.elongation_um) for r in runs], **kw)
+
+
+def inputs_model(fit, spindle_id: str = "sim"):
+    """The ridge model with the inputs of ``fit`` (an identification with inputs), with the
+    speed-only model ``fit`` chose as its fallback, whether or not the inputs won the choice:
+    for tests of what a model with inputs does in the runtime and replay."""
+    from calibration import ident
+    from calibration.fit import unit_of
+
+    if fit.model.input_names:
+        return fit.model
+    j = fit.joined
+    res = ident.fit_ridge_cv(j.time_s, j.speed_rpm, j.elongation_um, j.inputs, cycles=j.folds,
+                             segments=j.segments,
+                             grids=[ident.auto_grid(j.time_s, j.speed_rpm, j.cycles, True)])
+    return res.to_model("ridge+inputs", units={n: unit_of(n) for n in j.inputs}, fallback=fit.model,
+                        fit={}, spindle_id=spindle_id)

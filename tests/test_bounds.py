@@ -146,10 +146,10 @@ def test_replay_with_a_terminal_escape_in_a_cell(tmp_path):
 
 
 def test_a_huge_bad_argument_is_clipped_too(tmp_path):
-    r = tc("fit", "run.csv", "--output", tmp_path / "m.json", "--dt", "Y" * 100_000)
+    r = tc("fit", "run.csv", "--output", tmp_path / "m.json", "--probe-every", "Y" * 100_000)
     assert r.returncode == 2
     last = r.stderr.splitlines()[-1]
-    assert last.startswith("thermocomp fit: error: argument --dt") and "characters cut" in last
+    assert last.startswith("thermocomp fit: error: argument --probe-every") and "characters cut" in last
     assert len(r.stderr) < 2000  # the usage, then one clipped line
 
 

@@ -204,6 +204,16 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
         both = jcut[1:] & jcut[:-1]
         assert (np.abs(np.diff(j["offset_um"]))[both] <= 1.0 * j["dt_s"][1:][both] + 1e-9).all()
     assert "while cutting" in r.stdout and "transient phases" in r.stdout
+    # the demo fits as `thermocomp fit` does: the same logs give the same model
+    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", "out/calibration_run.csv",
+                        "out/validation_run.csv", "--spindle-id", "demo-spindle", "--machine-id", "virtual",
+                        "--output", "fit.json", "--json"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    demo_model, fit_model = (json.loads(p.read_text()) for p in (out / "model.json", tmp_path / "fit.json"))
+    for m in (demo_model, fit_model):
+        m.pop("created_utc", None)
+        m.pop("sha256", None)  # of the file's contents, created_utc included
+    assert demo_model == fit_model
 
 
 def test_replay_applies_the_runtimes_shaping_and_compares_the_policies(fitted, logs, tmp_path):

@@ -386,8 +386,7 @@ def test_a_sparsely_measured_export_fits_on_its_measured_rows(real, tmp_path, ca
         errs[name] = float(np.sqrt(np.mean((log.elongation_um - pred) ** 2)))
     assert errs["s"] < 1.25 * errs["d"], (errs, dense["chosen"])
     # what needs every row says so in one line
-    for extra, match in ((["--method", "forms"], "--method forms needs it on every row"),
-                         (["--probe-every", "1800"], "--probe-every plans the closed loop")):
+    for extra, match in ((["--probe-every", "1800"], "--probe-every plans the closed loop"),):
         capsys.readouterr()
         assert main(["fit", str(out), *extra, "--output", str(tmp_path / "x.json")]) == 2
         err = capsys.readouterr().err

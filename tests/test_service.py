@@ -18,7 +18,7 @@ from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
 from compensator.clock import SteppedClock
-from compensator.io import load_state, read_run_log, save_model
+from compensator.io import load_state, read_run_log
 from compensator.programs import job_shop_day
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
@@ -26,16 +26,9 @@ from thermocomp.runtime.config import load_config
 EXAMPLES = Path(__file__).parents[1] / "examples"
 
 
-@pytest.fixture(scope="module")
-def model_file(tmp_path_factory):
-    from plantdata import plant_run
-
-    from calibration.calibrate import calibrate
-
-    model = calibrate([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
-    p = tmp_path_factory.mktemp("m") / "model.json"
-    save_model(p, model)
-    return p
+@pytest.fixture
+def model_file(calibrated_model):
+    return calibrated_model
 
 
 def write_config(tmp_path: Path, model: Path, adapter: str, **extra) -> Path:

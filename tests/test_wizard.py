@@ -370,6 +370,17 @@ def test_wizard_imports_daq_logs(tmp_path):
                         "--json"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["rms_residual_um"] < 2.0
+    # the wizard fits as `thermocomp fit` does: the same log gives the same model (the wizard
+    # then plans its observer on the validation run, which `fit` has not seen)
+    r = subprocess.run([*THERMOCOMP, "fit", str(sdir / "runs" / "calibration.csv"), "--output",
+                        str(tmp_path / "fit.json"), "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    wiz, fit = (json.loads(Path(p).read_text()) for p in (saved["model"], tmp_path / "fit.json"))
+    for m in (wiz, fit):
+        for key in ("created_utc", "sha256"):
+            m.pop(key, None)
+        m["fit"].pop("observer")
+    assert wiz == fit
 
 
 def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):

@@ -112,10 +112,9 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--spindle-id", default=None, help="spindle id stored in the model")
     p.add_argument("--machine-id", default=None, help="machine id stored in the model")
-    p.add_argument("--method", choices=["cycles", "forms"], default="cycles",
-                   help="cycles (default): baseline, physical form and ridge filter banks scored by "
-                   "leave-one-cycle-out free run; forms: the earlier per-run output-error forms "
-                   "with greedy input selection")
+    p.add_argument("--method", choices=["cycles"], default="cycles",
+                   help="cycles (the only method): baseline, physical form and ridge filter banks "
+                   "scored by leave-one-cycle-out free run")
     p.add_argument("--plot", help="write a PNG plot of the fit")
     p.add_argument("--inputs", help="extra run-log columns to use as inputs, comma separated, or "
                    "'all' (temperatures, spindle load, ambient); kept only if they help in "
@@ -130,12 +129,6 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--probe-target-um", type=float, default=2.0,
                    help="closed loop: the RMS a recommended probe interval must meet in "
                    "cross-validation [um] (the fit report tabulates interval -> RMS and max)")
-    p.add_argument("--dt", type=float, default=None, help="forms method: resample runs to this period [s]")
-    p.add_argument("--form", default="auto", help="forms method: force a model form")
-    p.add_argument("--input-reference", choices=["start", "fixed"], default="start",
-                   help="forms method: inputs relative to each run's start or to stated values")
-    p.add_argument("--input-reference-values", help="forms method, --input-reference fixed: name=value,...")
-    p.add_argument("--max-inputs", type=int, default=6, help="forms method: keep at most this many inputs")
     p.set_defaults(handler="calibration.commands:fit")
 
 

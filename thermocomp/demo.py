@@ -32,8 +32,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from calibration.calibrate import calibrate
-from calibration.data import run_from_log
+from calibration.fit import fit_logs
 from calibration.plots import Panel, plot_panels
 from cnc_adapters.profiles import profile
 from cnc_adapters.sim import SpindlePlant, preset
@@ -222,22 +221,23 @@ def main(args: argparse.Namespace) -> int:
         out.print("    ... and a random validation profile")
         vm.load_program(random_validation(params.max_rpm, seed=12))
         record(cnc, clock, outdir / "validation_run.csv", out.print)
-    runs = [run_from_log(read_run_log(outdir / f), name=str(outdir / f))
-            for f in ("calibration_run.csv", "validation_run.csv")]
+    logs = [read_run_log(outdir / f) for f in ("calibration_run.csv", "validation_run.csv")]
 
-    out.print("2/4 fitting candidate models, judged in free run with leave-one-run-out ...")
-    fit = calibrate(runs, spindle_id="demo-spindle", machine_id="virtual")
+    out.print("2/4 fitting candidate models (`thermocomp fit`'s identification), judged in free run "
+              "on whole held-out cycles ...")
+    fit = fit_logs(logs, labels=["calibration_run.csv", "validation_run.csv"], spindle_id="demo-spindle",
+                   machine_id="virtual")
     save_model(outdir / "model.json", fit.model)
-    t = Table(title="Candidate forms (held-out free-run error)")
-    for col in ("form", "held-out RMS [um]", "held-out max [um]"):
+    t = Table(title=f"Candidates (free run, {fit.joined.scheme}: error on the held-out cycles)")
+    for col in ("candidate", "held-out RMS [um]", "held-out max [um]", "verdict"):
         t.add_column(col, justify="right" if "um" in col else "left")
     for c in fit.candidates:
-        cv = c.cv or {}
         mark = " <- chosen" if c is fit.chosen else ""
-        t.add_row(c.result.form.name + mark, f"{cv.get('rms_um', float('nan')):.2f}",
-                  f"{cv.get('max_abs_um', float('nan')):.2f}")
+        verdict = ("reference only" if c.family == "reference" else "accepted" if c.accepted
+                   else "refused: " + "; ".join(c.refusals))
+        t.add_row(c.name + mark, f"{c.honest_rms_um:.2f}", f"{c.cv_max_abs_um:.2f}", verdict)
     out.print(t)
-    out.print(f"chosen: {fit.reason}")
+    out.print(f"chosen: {fit.reason}", markup=False)
 
     model = fit.model
     prog = job_shop_day(params.max_rpm, seed=13, hours=args.hours)

@@ -34,6 +34,9 @@ from typing import Any
 from ..errors import ConfigError
 from .runlog import header_text
 
+ALARM_COLD_START = 32
+"""The bit of the ``alarms`` column that marks a cold start (no saved state): the estimate began
+at the model's own equilibrium at rest."""
 MAX_PENDING_ROWS = 250_000
 """Rows kept in memory while the disk refuses them (about 3 days at one cycle a second)."""
 

@@ -1,5 +1,6 @@
-"""``thermocomp replay`` with a runtime configuration: the shaping (and the model) of one of its
-spindles, so that replay writes what that spindle's runtime would write."""
+"""``thermocomp replay`` with a runtime configuration: the shaping, the estimate (observer, speed
+policy, input-fault timing) and the model of one of its spindles, so that replay writes what that
+spindle's runtime would write."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from ..runtime.config import load_config
 
 def replay(args: argparse.Namespace) -> int:
     shaping: ShaperConfig | None = None
+    spindle = None
     if args.config is not None:
         cfg = load_config(args.config)
         names = [s.name for s in cfg.spindle]
@@ -31,4 +33,5 @@ def replay(args: argparse.Namespace) -> int:
     if args.model is None:
         raise ConfigError("give the model file (--model), or a runtime configuration (--config) "
                           "whose spindle names one")
-    return replay_cmd(args, shaping)
+    # the spindle's own estimate: its observer, its speed policy and its input-fault timing
+    return replay_cmd(args, shaping, None if spindle is None else spindle.estimate)

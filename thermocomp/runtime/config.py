@@ -18,8 +18,11 @@ from cnc_adapters.base import short
 from cnc_adapters.chiller import check_chiller
 from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
 from compensator.cooling import CoolingLaw, PidGains
-from compensator.errors import ConfigError, clip
+from compensator.errors import ConfigError, ModelError, clip
+from compensator.estimate import Estimate
+from compensator.fusion import observer_config_of
 from compensator.observer import ObserverConfig
+from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -173,6 +176,20 @@ class SpindleConfig(BaseModel):
         if self.spindle_id is not None and model_spindle_id != self.spindle_id:
             raise ConfigError(clip(f"spindle {self.name}: model file {self.model} is for spindle "
                                    f"{model_spindle_id!r}, not {self.spindle_id!r}", 500))
+
+    def estimate(self, model: Predictor) -> Estimate:
+        """The estimate this spindle runs ``model`` with: the observer when enabled (its settings
+        fitted with the model, overridden key by key here), the speed policy above the calibrated
+        range and the input-fault timing. The runtime and ``thermocomp replay --config`` both
+        build it here. ConfigError for observer settings that do not fit."""
+        observer = None
+        if self.observer.enabled:
+            try:
+                observer = observer_config_of(model, self.observer.overrides())
+            except ModelError as err:
+                raise ConfigError(f"spindle {self.name}: {err}") from err
+        return Estimate(model, observer, self.faults.over_range, self.faults.input_stale_s,
+                        self.faults.input_recover_s)
 
     @field_validator("adapter")
     @classmethod

@@ -58,7 +58,6 @@ import math
 import re
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +69,9 @@ from compensator.errors import (
     ModelError,
     ModelFileError,
 )
-from compensator.fusion import FusedPredictor, FusedState, observer_config_of
+from compensator.estimate import Estimate, EstimateState, Step
+from compensator.fusion import FusedPredictor, FusedState
+from compensator.io.journal import ALARM_COLD_START
 from compensator.io import (
     Journal,
     MeasurementJournal,
@@ -81,7 +82,6 @@ from compensator.io import (
     save_state,
 )
 from compensator.model import SAVED_LIMIT_UM, saved_numbers
-from compensator.observer import ObserverState
 from compensator.predictor import Predictor
 from compensator.shaping import ShapedOffset
 
@@ -108,7 +108,7 @@ class Alarm(enum.IntFlag):
     OVER_RANGE = 4
     LINK_DOWN = 8
     WRITE_REJECTED = 16
-    COLD_START = 32
+    COLD_START = ALARM_COLD_START
     OUTAGE = 64
     NOT_READY = 128
     INPUT_FALLBACK = 256
@@ -132,13 +132,6 @@ _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
 
 Reply = Callable[[dict[str, Any]], None]
 """Where the outcome of a measurement sent by ``thermocomp measure`` goes."""
-
-
-def _references(state: Any) -> dict[str, float] | None:
-    """The input references a state carries, for a model whose inputs count from a cold start's
-    values (kept across restarts); None for a model that stores absolute references itself."""
-    refs = getattr(state, "references", None)
-    return dict(refs) if refs is not None else None
 
 
 def cutting_from_controller(cfg: SpindleConfig, adapter: Any) -> bool:
@@ -177,24 +170,9 @@ class SpindleRuntime:
         loaded: Predictor = load_any_model(cfg.model)
         cfg.refuse_other_spindle(loaded.spindle_id)
         self.digest = model_digest(loaded)
-        # a model with inputs runs beside its speed-only fallback, which is always stepped
-        self.with_inputs: Predictor | None = loaded if loaded.input_names else None
-        speed_only: Predictor = loaded.fallback or loaded
-        self.fused: FusedPredictor | None = None
-        if cfg.observer.enabled:
-            try:
-                self.fused = FusedPredictor(speed_only, observer_config_of(loaded, cfg.observer.overrides()))
-            except ModelError as err:
-                raise ConfigError(f"spindle {cfg.name}: {err}") from err
-        # the fallback carries the observer state; its bias belongs to the estimate in use
-        self.model: Predictor = self.fused or speed_only
-        self.input_state: Any = None
-        self.refs: dict[str, float] | None = None
-        self._input_cold = False  # no estimate of our own yet: the input model starts at equilibrium
-        self._saved_input: tuple[Any, float] | None = None  # (input state, its wall time) from the file
-        self._extrapolated: str | None = None  # why the inputs lie outside the trained range
-        self._inputs_good_since: float | None = None
-        self._last_inputs: dict[str, tuple[float, float]] = {}  # name -> (value, unchanged since)
+        # the model, its fallback, the observer and the speed clamp: one object, as replay runs it
+        self.estimate: Estimate = cfg.estimate(loaded)
+        self.est: EstimateState = self.estimate.cold()
         self.state_path = Path(state_dir) / f"{cfg.name}.state.json"
         self.adapter = adapter if adapter is not None else open_adapter(cfg.adapter, clock=clock)
         if self.with_inputs is not None:
@@ -230,8 +208,6 @@ class SpindleRuntime:
         # source -> (why it failed, whether a value was refused: held until a usable one)
         self._source_errors: dict[str, tuple[str, bool]] = {}
         self._observer_stale = False
-        # the last cycle's (speed, state of the model in use, whether it was the input model)
-        self._last_cycle: tuple[float, Any, bool] | None = None
         self.alarms = Alarm.NONE
         self._startup_alarms = Alarm.NONE  # journaled with the first cycle
         self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
@@ -270,8 +246,7 @@ class SpindleRuntime:
 
     def _cold(self, reason: str) -> None:
         # nothing known: the model's own equilibrium at rest (0 um for a speed-only ThermalModel)
-        self.state = self.model.start(None, 0.0)
-        self._input_cold = True
+        self.est = self.estimate.cold()
         self.offset = OffsetTracker(self.cfg.shaping, 0.0)
         self._startup_alarms |= Alarm.COLD_START
         event("cold_start", self.cfg.name, "%s: cold start (%s)", self.cfg.name, reason,
@@ -294,19 +269,7 @@ class SpindleRuntime:
             held = saved_numbers("offset_um", [saved.get("offset_um", 0.0)])[0]
             if saved_wall <= 0:
                 raise ModelFileError(f"saved_wall_s {saved_wall:g} is not a time")
-            state = self.model.state_from_dict(saved)
-            if not abs(state.elongation_um) <= SAVED_LIMIT_UM:
-                raise ModelFileError(f"elongation {state.elongation_um:g} um is not a spindle's")
-            refs = saved.get("input_references")
-            refs = ({str(k): saved_numbers("input_references", [v], 1e9)[0] for k, v in refs.items()}
-                    if isinstance(refs, dict) else None)
-            input_state, input_wall = None, saved_wall
-            if self.with_inputs is not None and saved.get("input_state") is not None:
-                input_state = self.with_inputs.state_from_dict(saved["input_state"])
-                if not abs(input_state.elongation_um) <= SAVED_LIMIT_UM:
-                    raise ModelFileError(f"input model's elongation {input_state.elongation_um:g} um "
-                                         "is not a spindle's")
-                input_wall = saved_numbers("input_wall_s", [saved.get("input_wall_s", saved_wall)], 1e11)[0]
+            parsed = self.estimate.parse_saved(saved)
         except (ModelError, ValueError, TypeError, KeyError, AttributeError, RecursionError,
                 OverflowError) as err:
             stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
@@ -320,14 +283,9 @@ class SpindleRuntime:
         if age > self.cfg.max_state_age_s:
             return self._cold(f"saved state is {age / 3600:.1f} h old")
         downtime = max(0.0, age)
-        # the spindle stood still while we were down: the model's own cooling
-        self.state = self.model.step(state, 0.0, downtime)
-        if self.with_inputs is not None and refs is not None \
-                and set(refs) >= set(self.with_inputs.input_names) \
-                and all(math.isfinite(v) for v in refs.values()):
-            self.refs = refs  # the cold start's, kept across restarts
-        if input_state is not None and now - input_wall <= self.cfg.max_state_age_s:
-            self._saved_input = (input_state, input_wall)  # advanced once the inputs are read
+        # the spindle stood still while we were down: the model's own cooling; the input
+        # model's state is advanced once the inputs are read
+        self.est = self.estimate.resume(parsed, downtime, now, self.cfg.max_state_age_s)
         # what we last wrote; the first cycle reads back what the controller really holds
         self.offset = OffsetTracker(self.cfg.shaping, held)
         event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
@@ -338,17 +296,10 @@ class SpindleRuntime:
         """Continue ``old`` (same model) after a reload: its thermal and input state, the offset
         the controller holds, the timing of the last cycle and the state-save bookkeeping. The
         new link reads the offset back first."""
-        self.state, self.input_state, self.refs = old.state, old.input_state, old.refs
-        if self.fused is not None and not isinstance(self.state, FusedState):
-            self.state = FusedState(self.state, ObserverState.prior(self.fused.config))  # observer turned on
-        elif self.fused is None and isinstance(self.state, FusedState):
-            self.state = self.state.model  # turned off: the model alone, through the slew limit
+        self.est = self.estimate.adopt(old.est)  # the whole estimate, the observer as configured now
         self._queued, old._queued = old._queued, collections.deque()
         self._probe_rejected, self._source_errors = old._probe_rejected, dict(old._source_errors)
-        self._observer_stale, self._last_cycle = old._observer_stale, old._last_cycle
-        self._input_cold, self._saved_input = old._input_cold, old._saved_input
-        self._extrapolated = old._extrapolated
-        self._inputs_good_since, self._last_inputs = old._inputs_good_since, dict(old._last_inputs)
+        self._observer_stale = old._observer_stale
         self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
         self.offset.shaper.follow(old.offset.shaper)  # the speed it was settling at, and since when
         self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
@@ -371,17 +322,14 @@ class SpindleRuntime:
     def save_state(self, now: float | None = None) -> bool:
         """Save the state; a failure is an alarm and a retry with back-off, never an exception."""
         now = self.clock() if now is None else now
-        saved = self._state_on_speed_only()
+        wall_now = self.wall()
         try:
             save_state(self.state_path, {
                 "spindle": self.cfg.name,
                 "model_sha256": self.digest,
-                "saved_wall_s": self.wall(),
-                **self.model.state_dict(saved),
-                "elongation_um": saved.elongation_um,
+                "saved_wall_s": wall_now,
+                **self.estimate.state_dict(self.est, wall_now),
                 "offset_um": self.offset.held_um,
-                **({"input_references": self.refs} if self.refs else {}),
-                **self._input_state_dict(),
             })
         except (OSError, ValueError) as err:
             self.counters["state_save_failed"] += 1
@@ -407,14 +355,37 @@ class SpindleRuntime:
 
     # -- the observer ----------------------------------------------------------------
 
+    # what the estimate is made of and where it stands (read-only views of ``self.est``)
+    @property
+    def model(self) -> Predictor:
+        """The speed-only model, fused with the observer when there is one."""
+        return self.estimate.core
+
+    @property
+    def fused(self) -> FusedPredictor | None:
+        return self.estimate.fused
+
+    @property
+    def with_inputs(self) -> Predictor | None:
+        return self.estimate.with_inputs
+
+    @property
+    def state(self) -> Any:
+        """The speed-only model's state, with the observer's when fused."""
+        return self.est.core
+
+    @property
+    def input_state(self) -> Any:
+        return self.est.inputs
+
+    @property
+    def refs(self) -> dict[str, float] | None:
+        return None if self.est.references is None else dict(self.est.references)
+
     @property
     def speed_only_state(self) -> Any:
         """The speed-only model's own state (without the observer)."""
-        return self.state.model if isinstance(self.state, FusedState) else self.state
-
-    def _in_use(self) -> Any:
-        """The state of the model whose estimate is in use."""
-        return self.input_state if self.input_state is not None else self.speed_only_state
+        return self.est.speed_only
 
     @property
     def last_speed_rpm(self) -> float:
@@ -423,25 +394,7 @@ class SpindleRuntime:
 
     def estimate_um(self) -> float:
         """The estimate the offset follows: the model in use, plus the observer's bias."""
-        bias = self.state.bias_um if isinstance(self.state, FusedState) else 0.0
-        return float(self._in_use().elongation_um) + bias
-
-    def _rebased(self, from_state: Any, to_state: Any) -> FusedState:
-        """The observer with its bias moved from one model's estimate to the other's, so that the
-        fused estimate stays where it is (the speed-only model's state kept)."""
-        assert self.fused is not None
-        moved = self.fused.rebase(replace(self.state, model=from_state), to_state)
-        return replace(self.state, observer=moved.observer)
-
-    def _switch_estimate(self, from_state: Any, to_state: Any) -> None:
-        if self.fused is not None:
-            self.state = self._rebased(from_state, to_state)
-
-    def _state_on_speed_only(self) -> Any:
-        """The state to save: the bias on the speed-only model, which a restart starts with."""
-        if self.fused is None or self.input_state is None:
-            return self.state
-        return self._rebased(self.input_state, self.speed_only_state)
+        return self.est.estimate_um
 
     def submit(self, elongation_um: float, sigma_um: float | None, reply: Reply | None = None) -> None:
         """A measurement from `thermocomp measure`, fused at the next cycle; ``reply`` gets the
@@ -466,8 +419,6 @@ class SpindleRuntime:
     def _measurements(self, now: float, wall_now: float, speed: float) -> Alarm:
         """Fuse what came since the last cycle: the controller's new measurement, then those
         sent with `thermocomp measure`. A source that fails is an alarm, never a stop."""
-        ref = self._reference(speed)
-        self._last_cycle = (speed, self._in_use(), self.input_state is not None)
         alarms = Alarm.NONE
         source = str(getattr(self.adapter, "name", "adapter"))
         if self.link.up and getattr(self.adapter, "can_read_measurement", False):
@@ -482,10 +433,10 @@ class SpindleRuntime:
                 if failed is not None and not failed[1]:
                     self._source_errors.pop(source)  # it reads again
                 if m is not None:
-                    self._fuse(now, wall_now, ref, m.elongation_um, m.sigma_um, m.source, m.sequence)
+                    self._fuse(now, wall_now, m.elongation_um, m.sigma_um, m.source, m.sequence)
         while self._queued:
             y, sigma, reply = self._queued.popleft()
-            answer = self._fuse(now, wall_now, ref, y, sigma, "control", None)
+            answer = self._fuse(now, wall_now, y, sigma, "control", None)
             if reply is not None:
                 reply(answer)
         if self._probe_rejected:
@@ -493,17 +444,6 @@ class SpindleRuntime:
         if self._source_errors:
             alarms |= Alarm.PROBE_FAILED
         return alarms | self._staleness(now)
-
-    def _reference(self, speed: float) -> Any:
-        """The model state a measurement seen now is compared with: this cycle's, or the last
-        one's when the spindle ran slower then. A tool setter measures with the spindle stopped
-        or slow, and the counter may be seen only once it runs again; the model's elastic part
-        follows the speed at once, so the estimate at speed would put the elastic growth into
-        the bias. (The bias moves slowly: a period's difference in time does not matter.)"""
-        last = self._last_cycle
-        if last is not None and last[0] < speed and last[2] == (self.input_state is not None):
-            return last[1]
-        return self._in_use()
 
     def _source_failed(self, now: float, wall_now: float, source: str, err: Exception,
                        refused: bool) -> None:
@@ -520,21 +460,18 @@ class SpindleRuntime:
                                      source=source, sequence=None, outcome="refused", wall_s=wall_now,
                                      now_s=now)
 
-    def _fuse(self, now: float, wall_now: float, ref: Any, y: float, sigma_um: float | None, source: str,
+    def _fuse(self, now: float, wall_now: float, y: float, sigma_um: float | None, source: str,
               sequence: int | None) -> dict[str, Any]:
-        """Fuse one measurement against ``ref``, the state of the model in use when it was
-        taken (:meth:`_reference`); journal it."""
-        assert self.fused is not None and isinstance(self.state, FusedState)
+        """Fuse one measurement against the estimate of the cycle it was taken in (this one, or
+        the last when that ran slower: :meth:`compensator.estimate.Estimate.measure`); journal it."""
+        assert self.fused is not None
         sigma = self.cfg.observer.sigma_um if sigma_um is None else sigma_um
         if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma) and sigma > 0):
             err = BadValueError(f"{source}: measurement {y!r} um (sigma {sigma!r}) is not usable")
             self._source_failed(now, wall_now, source, err, True)
             return {"ok": False, "spindle": self.cfg.name, "error": str(err)}
         self._source_errors.pop(source, None)  # it gave a usable value
-        before = float(ref.elongation_um) + self.state.bias_um  # what the measurement meets
-        fused, up = self.fused.measure(replace(self.state, model=self._in_use()), y, sigma,
-                                       model_at_probe_um=float(ref.elongation_um))
-        self.state = replace(fused, model=self.speed_only_state)
+        self.est, up, before = self.estimate.measure(self.est, y, sigma)
         outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
         self.counters[f"probes_{outcome}"] += 1
         z = self.state.observer
@@ -585,19 +522,6 @@ class SpindleRuntime:
                   "taken", self.cfg.name, bias_um=self.state.bias_um)
         self._observer_stale = stale
         return Alarm.OBSERVER_STALE if stale else Alarm.NONE
-
-    def _input_state_dict(self) -> dict[str, Any]:
-        """The model with inputs' own state for the state file (its wall time: a state restored
-        but not yet resumed keeps its own)."""
-        if self.with_inputs is None:
-            return {}
-        if self.input_state is not None:
-            state, wall_s = self.input_state, self.wall()
-        elif self._saved_input is not None:
-            state, wall_s = self._saved_input
-        else:
-            return {}
-        return {"input_state": self.with_inputs.state_dict(state), "input_wall_s": wall_s}
 
     def _save_if_due(self, now: float) -> Alarm:
         due = now - self._last_save >= self.cfg.state_save_every_s
@@ -654,10 +578,6 @@ class SpindleRuntime:
                     self._idle_assumed = True
                     event("idle_assumed", self.cfg.name, "%s: no speed for %.0f s: assuming idle",
                           self.cfg.name, since, level=logging.WARNING, since_s=round(since, 3))
-        if self.model.above_range(speed):
-            alarms |= Alarm.OVER_RANGE
-            if self.cfg.faults.over_range == "clamp":
-                speed = math.copysign(self.model.speed_range_rpm[1], speed)
         return speed, alarms
 
     def _reconnected(self) -> None:
@@ -785,8 +705,11 @@ class SpindleRuntime:
         self._last_t = now
         alarms = self._startup_alarms | self.sticky_alarms | self._clock_step(now, wall_now)
         self._startup_alarms = Alarm.NONE
-        speed, read_alarms = self._read_speed(now)
+        read_rpm, read_alarms = self._read_speed(now)
         alarms |= read_alarms
+        speed, over = self.estimate.clamp(read_rpm)  # the speed every part of the cycle uses
+        if over:
+            alarms |= Alarm.OVER_RANGE
         cutting, cutting_source, cutting_alarms = self._read_cutting()
         alarms |= cutting_alarms
         # a speed not read (held, or idle assumed) says nothing of the tool: it is taken to cut
@@ -797,13 +720,18 @@ class SpindleRuntime:
         not_ready = self.adapter.not_ready_offset_um() if self.link.up else None
         if not_ready is None and self.writes_offset:  # a machine that is off applies its own value
             alarms |= self._read_back(now)
-        self.state = self.model.step(self.state, speed, dt)
         self._inputs_read = {}
+        inputs, input_error = None, None
         if self.with_inputs is not None:
-            s_inputs, input_alarms = self._with_inputs(now, wall_now, speed, dt)
-            alarms |= input_alarms
-            if s_inputs is None:
-                alarms |= Alarm.INPUT_FALLBACK
+            try:
+                inputs = self._inputs_read = self.adapter.read_inputs()
+            except AdapterError as err:
+                input_error = f"inputs not read: {err}"
+        extrapolated = self.est.extrapolated
+        self.est, step = self.estimate.step(self.est, read_rpm, dt, now_s=now, wall_s=wall_now, inputs=inputs,
+                                            input_error=input_error)
+        if self.with_inputs is not None:
+            alarms |= self._input_events(step, extrapolated)
         if self.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
@@ -919,83 +847,29 @@ class SpindleRuntime:
             self._journal_error = j.error
         return Alarm.JOURNAL_FAILED if self._journal_error is not None else Alarm.NONE
 
-    def _with_inputs(self, now: float, wall_now: float, speed: float,
-                     dt: float) -> tuple[float | None, Alarm]:
-        """The elongation from the model with inputs, or None when an input is faulty: the
-        speed-only fallback then stands. After a fault the inputs must be good for
-        ``input_recover_s`` again; the model with inputs then restarts from the fallback's
-        elongation, so the switch does not jump."""
+    def _input_events(self, step: Step, extrapolated_before: str | None) -> Alarm:
+        """The events and alarms of the estimate's input decisions this cycle: the fallback
+        standing in (``INPUT_FALLBACK``), the model with inputs back, and valid inputs outside the
+        range seen in calibration (``INPUTS_EXTRAPOLATED``, one event on entry, one on leaving)."""
         model = self.with_inputs
         assert model is not None
-        faults = self.cfg.faults
-        try:
-            values = self.adapter.read_inputs()
-            self._inputs_read = values
-            why = model.check_inputs(values)
-        except AdapterError as err:
-            values, why = {}, f"inputs not read: {err}"
-        if why is None:
-            for name in model.input_names:
-                v = values[name]
-                prev = self._last_inputs.get(name)
-                since = prev[1] if prev is not None and prev[0] == v else now
-                self._last_inputs[name] = (v, since)
-                if now - since >= faults.input_stale_s:
-                    why = f"{name}: stale, {v:g} for {now - since:.0f} s"
-        if why is not None:
-            if self.input_state is not None or self._inputs_good_since is not None:
-                event("input_fallback", self.cfg.name, "%s: %s; speed-only fallback", self.cfg.name,
-                      why, level=logging.ERROR, reason=why)
-            if self.input_state is not None:
-                self._switch_estimate(self.input_state, self.speed_only_state)
-            self.input_state = None
-            self._inputs_good_since = None
-            # from now on the fallback's elongation is the estimate to continue from
-            self._input_cold, self._saved_input, self._extrapolated = False, None, None
-            return None, Alarm.NONE
-        if self.input_state is None:
-            if self._inputs_good_since is None:
-                self._inputs_good_since = now
-            if now - self._inputs_good_since < faults.input_recover_s and self.counters["cycles"] > 0:
-                return None, Alarm.NONE
-            self.input_state = self._start_inputs(wall_now, speed, values)
-            self._switch_estimate(self.speed_only_state, self.input_state)
-            self.refs = _references(self.input_state)
+        if step.fell_back is not None:
+            event("input_fallback", self.cfg.name, "%s: %s; speed-only fallback", self.cfg.name,
+                  step.fell_back, level=logging.ERROR, reason=step.fell_back)
+        if step.input_fallback:
+            return Alarm.INPUT_FALLBACK
+        if step.restored:
             event("inputs_restored", self.cfg.name, "%s: inputs good: model with %s", self.cfg.name,
                   ", ".join(model.input_names), inputs=list(model.input_names))
-        else:
-            self.input_state = model.step(self.input_state, speed, dt, values)
-        return self.input_state.elongation_um, self._extrapolation(values)
-
-    def _start_inputs(self, wall_now: float, speed: float, values: dict[str, float]) -> Any:
-        """The input model's state when it takes over: the saved one advanced idle through the
-        downtime (inputs held at today's); at a cold start its equilibrium with this speed and
-        these inputs; else the fallback's elongation (no jump at the switch)."""
-        model = self.with_inputs
-        assert model is not None
-        saved, cold = self._saved_input, self._input_cold
-        self._saved_input, self._input_cold = None, False
-        if saved is not None:
-            state, since = saved
-            return model.step(state, 0.0, max(0.0, wall_now - since), values)
-        # a model with cold-start references takes these values as references (self.refs None)
-        return model.start(None if cold else self.speed_only_state.elongation_um, speed, values, self.refs)
-
-    def _extrapolation(self, values: dict[str, float]) -> Alarm:
-        """INPUTS_EXTRAPOLATED while a valid input lies outside the range seen in calibration
-        (for models that know it); one event per entry, one when back inside."""
-        outside = getattr(self.with_inputs, "outside_trained", None)
-        why = outside(values) if outside is not None else None
+        why = self.est.extrapolated
         if why is None:
-            if self._extrapolated is not None:
+            if extrapolated_before is not None:
                 event("inputs_within_training", self.cfg.name, "%s: inputs back inside the trained "
                       "range", self.cfg.name)
-            self._extrapolated = None
             return Alarm.NONE
-        if self._extrapolated is None:
+        if extrapolated_before is None:
             event("inputs_extrapolated", self.cfg.name, "%s: INPUTS_EXTRAPOLATED: %s; the model "
                   "with inputs extrapolates", self.cfg.name, why, level=logging.WARNING, reason=why)
-        self._extrapolated = why
         return Alarm.INPUTS_EXTRAPOLATED
 
     def close(self) -> None:
