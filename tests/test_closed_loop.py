@@ -388,7 +388,7 @@ def test_a_reload_carries_the_observer_and_its_waiting_measurements_on(tmp_path,
     box, reply = answer_box()
     b.rt.submit(b.rows[-1]["predicted_um"] + 0.1, 0.5, reply)  # waits for the next cycle
     b.reload(tmp_path, simple_model, observer="enabled = true\ngate_sigma = 4.0")
-    assert b.rt.state.bias_um == bias and b.rt.fused.config.gate_sigma == 4.0
+    assert b.rt.state.bias_um == bias and b.rt.estimate.fused.config.gate_sigma == 4.0
     b.run(1)
     assert box[0]["outcome"] == "accepted"
     b.reload(tmp_path, simple_model, observer="enabled = false")  # the model alone again
@@ -408,7 +408,7 @@ def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, 
     obs = cfg.spindle[0].observer
     assert obs.enabled and obs.sigma_um == 0.5 and obs.overrides() == {"gate_sigma": 5.0}
     b = Bench(tmp_path, simple_model, observer="enabled = true\ngate_sigma = 3.0\nreaccept_after = 0")
-    assert b.rt.fused.config.gate_sigma == 3.0 and b.rt.fused.config.reaccept_after == 0
+    assert b.rt.estimate.fused.config.gate_sigma == 3.0 and b.rt.estimate.fused.config.reaccept_after == 0
     b.rt.close()
     for bad, match in (("gate_sigma = 0.0", "gate_sigma"), ("bogus = 1", "bogus"),
                        ("sigma_um = -1", "sigma_um"), ("stale_after_s = nan", "stale_after_s")):
@@ -416,7 +416,7 @@ def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, 
             load_config(config(tmp_path, simple_model, f"enabled = true\n{bad}"))
         assert "\n" not in str(exc.value)
     off = Bench(tmp_path / "off", simple_model, observer="enabled = false")
-    assert off.rt.fused is None
+    assert off.rt.estimate.fused is None
     box, reply = answer_box()
     off.rt.submit(1.0, 0.5, reply)
     assert box[0]["ok"] is False and "observer" in box[0]["error"]

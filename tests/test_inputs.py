@@ -237,7 +237,7 @@ def test_a_speed_only_model_journals_the_links_inputs_too(trained, tmp_path):
     vm = VirtualMachine(SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=1), clock=lambda: t["now"])
     rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
                         wall=lambda: 1699923600.0 + t["now"], adapter=SimAdapter(machine=vm))
-    assert rt.with_inputs is None
+    assert rt.estimate.with_inputs is None
     for k in range(600):
         t["now"] += 1.0
         vm.sensor_faults.clear()

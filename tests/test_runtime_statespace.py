@@ -100,7 +100,7 @@ def events(caplog, name: str) -> list[logging.LogRecord]:
 
 def test_a_cold_start_puts_the_model_with_inputs_at_its_equilibrium(tmp_path):
     b = Bench(tmp_path, with_inputs())
-    model = b.rt.with_inputs
+    model = b.rt.estimate.with_inputs
     assert b.rt.alarms & Alarm.COLD_START
     first = b.run(1)[0]
     expected = model.steady_state_um(SPEED, {"temp1_c": 27.0})
@@ -118,13 +118,13 @@ def test_a_cold_start_puts_the_model_with_inputs_at_its_equilibrium(tmp_path):
 def test_a_speed_only_state_space_model_cold_starts_at_its_rest_equilibrium(tmp_path):
     model = speed_only(spindle_id="sp-A").model_copy(update={"offset_um": 1.5})
     b = Bench(tmp_path, model)
-    assert b.rt.with_inputs is None and b.rt.state.elongation_um == pytest.approx(1.5)
+    assert b.rt.estimate.with_inputs is None and b.rt.state.elongation_um == pytest.approx(1.5)
     b.rt.close()
 
 
 def test_the_input_models_state_is_saved_and_restored_through_the_downtime(tmp_path):
     b = Bench(tmp_path, with_inputs())
-    model = b.rt.with_inputs
+    model = b.rt.estimate.with_inputs
     for temp in (22.0, 24.0, 28.0):  # move it off equilibrium
         b.inputs["temp1_c"] = temp
         b.run(600)
@@ -215,7 +215,7 @@ def test_after_an_input_fault_the_model_with_inputs_continues_from_the_fallback(
     assert rows[3]["alarms"] & Alarm.INPUT_FALLBACK and not rows[-1]["alarms"] & Alarm.INPUT_FALLBACK
     # the fallback's elongation at the switch, not the input model's equilibrium
     assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um, abs=1e-9)
-    assert abs(rows[-1]["predicted_um"] - b.rt.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
+    assert abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
     b.rt.close()
 
 
@@ -228,7 +228,7 @@ def test_inputs_faulty_at_a_cold_start_then_good_continue_from_the_fallback(tmp_
     assert not rows[-1]["alarms"] & Alarm.INPUT_FALLBACK
     # the fallback has been running: its estimate is the runtime's own now, not nothing
     assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um, abs=1e-9)
-    assert abs(rows[-1]["predicted_um"] - b.rt.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
+    assert abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
     b.rt.close()
 
 

@@ -191,7 +191,7 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
     # two hours of downtime; the reference keeps running at 0 rpm in 1-s cycles
     ref = saved
     for _ in range(7200):
-        ref = a.model.step(ref, 0.0, 1.0)
+        ref = a.estimate.core.step(ref, 0.0, 1.0)
     t["now"] += 7200.0
     b = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
                        adapter=SimAdapter(machine=vm))
@@ -203,7 +203,7 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
     t["now"] += 3 * 86400.0
     c = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
                        adapter=SimAdapter(machine=vm))
-    assert c.alarms & Alarm.COLD_START and c.state == c.model.cold_state()
+    assert c.alarms & Alarm.COLD_START and c.est == c.estimate.cold()
     c.close()
 
 

@@ -189,7 +189,7 @@ class Service:
         """Hand a measurement to its spindle (named, or the only one with an observer)."""
         req = request.request
         assert req is not None
-        fused = [name for name, rt in self.spindles.items() if rt.fused is not None]
+        fused = [name for name, rt in self.spindles.items() if rt.estimate.fused is not None]
         name = req.spindle
         if name is None:
             if len(fused) != 1:

@@ -70,7 +70,7 @@ from compensator.errors import (
     ModelFileError,
 )
 from compensator.estimate import Estimate, EstimateState, Step
-from compensator.fusion import FusedPredictor, FusedState
+from compensator.fusion import FusedState
 from compensator.io.journal import ALARM_COLD_START
 from compensator.io import (
     Journal,
@@ -175,8 +175,8 @@ class SpindleRuntime:
         self.est: EstimateState = self.estimate.cold()
         self.state_path = Path(state_dir) / f"{cfg.name}.state.json"
         self.adapter = adapter if adapter is not None else open_adapter(cfg.adapter, clock=clock)
-        if self.with_inputs is not None:
-            missing = sorted(set(self.with_inputs.input_names) - set(self.adapter.input_channels()))
+        if self.estimate.with_inputs is not None:
+            missing = sorted(set(self.estimate.with_inputs.input_names) - set(self.adapter.input_channels()))
             if missing:
                 raise ConfigError(f"spindle {cfg.name}: the model needs input(s) {', '.join(missing)}; "
                                   "map them in the adapter (input_nodes for OPC UA, input_registers "
@@ -355,20 +355,7 @@ class SpindleRuntime:
 
     # -- the observer ----------------------------------------------------------------
 
-    # what the estimate is made of and where it stands (read-only views of ``self.est``)
-    @property
-    def model(self) -> Predictor:
-        """The speed-only model, fused with the observer when there is one."""
-        return self.estimate.core
-
-    @property
-    def fused(self) -> FusedPredictor | None:
-        return self.estimate.fused
-
-    @property
-    def with_inputs(self) -> Predictor | None:
-        return self.estimate.with_inputs
-
+    # where the estimate stands (read-only views of ``self.est``)
     @property
     def state(self) -> Any:
         """The speed-only model's state, with the observer's when fused."""
@@ -399,7 +386,7 @@ class SpindleRuntime:
     def submit(self, elongation_um: float, sigma_um: float | None, reply: Reply | None = None) -> None:
         """A measurement from `thermocomp measure`, fused at the next cycle; ``reply`` gets the
         outcome (or an error)."""
-        if self.fused is None:
+        if self.estimate.fused is None:
             if reply is not None:
                 reply({"ok": False, "error": f"spindle {self.cfg.name} has no observer "
                        "([spindle.observer] enabled = true)"})
@@ -464,7 +451,7 @@ class SpindleRuntime:
               sequence: int | None) -> dict[str, Any]:
         """Fuse one measurement against the estimate of the cycle it was taken in (this one, or
         the last when that ran slower: :meth:`compensator.estimate.Estimate.measure`); journal it."""
-        assert self.fused is not None
+        assert self.estimate.fused is not None
         sigma = self.cfg.observer.sigma_um if sigma_um is None else sigma_um
         if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma) and sigma > 0):
             err = BadValueError(f"{source}: measurement {y!r} um (sigma {sigma!r}) is not usable")
@@ -486,7 +473,7 @@ class SpindleRuntime:
         if outcome == "rejected":
             event("probe_rejected", self.cfg.name, "%s: PROBE_REJECTED: measured %.3f um, estimate "
                   "%.3f um: innovation %+.3f um is beyond %g sd (%.3f um); estimate unchanged",
-                  self.cfg.name, y, before, up.innovation_um, self.fused.config.gate_sigma,
+                  self.cfg.name, y, before, up.innovation_um, self.estimate.fused.config.gate_sigma,
                   up.innovation_sd_um, level=logging.WARNING, **fields)
         elif outcome == "restarted":
             event("probe_restart", self.cfg.name, "%s: measurements agree on a change the model "
@@ -501,7 +488,7 @@ class SpindleRuntime:
         return {"ok": True, "spindle": self.cfg.name, "outcome": outcome, "accepted": up.accepted,
                 "restarted": up.restarted, "measured_um": y, "sigma_um": sigma, "estimate_um": before,
                 "innovation_um": up.innovation_um, "innovation_sd_um": up.innovation_sd_um,
-                "gate_sigma": self.fused.config.gate_sigma, "bias_um": z.bias_um,
+                "gate_sigma": self.estimate.fused.config.gate_sigma, "bias_um": z.bias_um,
                 "elongation_um": self.estimate_um(), "time_s": self.anchor_s + now}
 
     def _staleness(self, now: float) -> Alarm:
@@ -722,7 +709,7 @@ class SpindleRuntime:
             alarms |= self._read_back(now)
         self._inputs_read = {}
         inputs, input_error = None, None
-        if self.with_inputs is not None:
+        if self.estimate.with_inputs is not None:
             try:
                 inputs = self._inputs_read = self.adapter.read_inputs()
             except AdapterError as err:
@@ -730,9 +717,9 @@ class SpindleRuntime:
         extrapolated = self.est.extrapolated
         self.est, step = self.estimate.step(self.est, read_rpm, dt, now_s=now, wall_s=wall_now, inputs=inputs,
                                             input_error=input_error)
-        if self.with_inputs is not None:
+        if self.estimate.with_inputs is not None:
             alarms |= self._input_events(step, extrapolated)
-        if self.fused is not None:
+        if self.estimate.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
         shaped = self.offset.plan(s, shaper_speed, dt, cutting)
@@ -774,7 +761,7 @@ class SpindleRuntime:
                      "observer": self.observer_status(), "cutting": shaped.cutting,
                      "cutting_source": cutting_source, "policy_state": shaped.state,
                      "slew_limit_um_per_s": shaped.rate_um_per_s,
-                     "estimate": ("fused" if self.fused is not None else "inputs"
+                     "estimate": ("fused" if self.estimate.fused is not None else "inputs"
                                   if self.input_state is not None else "speed"),
                      "inputs": dict(self._inputs_read)}
         return {**self.last, "alarms": alarms}
@@ -783,7 +770,7 @@ class SpindleRuntime:
         """A speed-only model's link still reads its input channels, for the journal only: after
         the write, so it never delays the offset; a failure costs blank cells, and the next try
         waits ``JOURNAL_INPUTS_RETRY_S`` (a channel that times out must not slow every cycle)."""
-        if (self.with_inputs is not None or not self.journal.input_columns or not self.link.up
+        if (self.estimate.with_inputs is not None or not self.journal.input_columns or not self.link.up
                 or now < self._journal_inputs_after):
             return
         try:
@@ -851,7 +838,7 @@ class SpindleRuntime:
         """The events and alarms of the estimate's input decisions this cycle: the fallback
         standing in (``INPUT_FALLBACK``), the model with inputs back, and valid inputs outside the
         range seen in calibration (``INPUTS_EXTRAPOLATED``, one event on entry, one on leaving)."""
-        model = self.with_inputs
+        model = self.estimate.with_inputs
         assert model is not None
         if step.fell_back is not None:
             event("input_fallback", self.cfg.name, "%s: %s; speed-only fallback", self.cfg.name,

@@ -71,8 +71,8 @@ def _clean(value: Any) -> Any:
 
 def model_status(rt: Any) -> dict[str, Any]:
     """The model a spindle runs: file, digest, form, ids, speed range and input ranges."""
-    model = rt.with_inputs or rt.model
-    lo, hi = rt.model.speed_range_rpm
+    model = rt.estimate.with_inputs or rt.estimate.core
+    lo, hi = rt.estimate.speed_range_rpm
     ranges = {}
     for c in getattr(getattr(model, "model", model), "inputs", None) or ():
         rng = getattr(c, "trained_range", None)
