@@ -204,6 +204,9 @@ def test_retained_status_and_availability(tmp_path, calibrated_model, brokers, s
         at = tick_until_published(svc, clock)
         live.wait("status", status_at(at))  # the broker has it
         snap = svc.snapshot
+        # and the spindle's message of the same publish: it follows the status, and a subscriber
+        # that connects between the two would get the previous one as the retained message
+        live.wait("spindle/s1", lambda p, r: json.loads(p)["time_s"] == snap["spindles"][0]["time_s"])
         late = Subscriber(port)  # connects after the publish: retained messages only
         st = json.loads(late.wait("status", status_at(at, retained=True)))
         assert st == snap and st["spindles"][0]["name"] == "s1"
