@@ -179,7 +179,8 @@ class CoolingLaw(BaseModel):
         if g.ki_per_s > 0:
             # back-calculation: what the limits took off is fed back into the integral
             tt = self.tracking_s or (g.kp / g.ki_per_s if g.kp > 0 else 60.0)
-            bias += (ramp - want) * min(1.0, dt_s / tt)
+            # a tracking time at or below one step (kp/ki can underflow to 0) takes it all back
+            bias += (ramp - want) * (1.0 if tt <= dt_s else dt_s / tt)
         return replace(state, phase="closed", setpoint_c=out, ramp_c=ramp, bias_c=bias,
                        derivative_um_per_s=d, estimate_um=estimate_um, idle_s=idle_s, held_s=0.0,
                        was_closed=True)
