@@ -263,6 +263,19 @@ class NodeOpcuaServer:
         self.proc.stdin.write(f"speed {rpm}\n")  # type: ignore[union-attr]
         self.proc.stdin.flush()  # type: ignore[union-attr]
 
+    def reset(self) -> None:
+        """Speed and offset back to 0 and no write reported yet (a server shared by tests)."""
+        self._resets = getattr(self, "_resets", 0) + 1
+        token = f"reset {self._resets}"
+        self.proc.stdin.write(f"{token}\n")  # type: ignore[union-attr]
+        self.proc.stdin.flush()  # type: ignore[union-attr]
+        end = time.monotonic() + 30
+        while token not in self.lines:  # the server's lines arrive in order: all before it are in
+            if time.monotonic() > end or self.proc.poll() is not None:
+                raise RuntimeError("node-opcua server did not answer a reset")
+            time.sleep(0.01)
+        self.lines.clear()
+
     def offset(self) -> float | None:
         vals = [float(x.split()[1]) for x in self.lines if x.startswith("offset ")]
         return vals[-1] if vals else None

@@ -99,6 +99,40 @@ def line_handler_with_query(regs: Registers):
 VCNC_OFFSET = "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset"
 
 
+# One OPC UA server of each kind per module (starting one takes seconds); each test starts from
+# a reset one: no speed forced, offset 0, and (node-opcua) no write reported yet.
+@pytest.fixture(scope="module")
+def _vcnc_server():
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    with running(VirtualCNC(vm)) as cnc:
+        yield vm, cnc
+
+
+@pytest.fixture
+def vcnc(_vcnc_server):
+    vm, cnc = _vcnc_server
+    vm.override_speed(None)
+    if vm.offset_um != 0.0:  # through its node: the server takes what its node holds each tick
+        opcua_write(cnc.url, VCNC_OFFSET, 0.0)
+        assert wait_for(lambda: vm.offset_um == 0.0)
+    return vm, cnc
+
+
+@pytest.fixture(scope="module")
+def _node_opcua_server():
+    srv = NodeOpcuaServer(free_port())
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+@pytest.fixture
+def node_opcua(_node_opcua_server):
+    _node_opcua_server.reset()
+    return _node_opcua_server
+
+
 @pytest.fixture(params=BACKENDS)
 def rig(request, tmp_path):
     kind = request.param
@@ -107,20 +141,16 @@ def rig(request, tmp_path):
         yield Rig(lambda **kw: SimAdapter(machine=vm, **kw), vm.override_speed, lambda: vm.offset_um,
                   vm.apply_offset)
     elif kind == "opcua-asyncua":
-        vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
-        with running(VirtualCNC(vm)) as cnc:
-            yield Rig(lambda **kw: OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw),
-                      vm.override_speed, lambda: vm.offset_um,
-                      lambda v: opcua_write(cnc.url, VCNC_OFFSET, v))
+        vm, cnc = request.getfixturevalue("vcnc")
+        yield Rig(lambda **kw: OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw),
+                  vm.override_speed, lambda: vm.offset_um,
+                  lambda v: opcua_write(cnc.url, VCNC_OFFSET, v))
     elif kind == "opcua-node":
-        srv = NodeOpcuaServer(free_port())
-        try:
-            yield Rig(lambda **kw: OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                                                offset_node="ns=1;s=Spindle1.ThermalOffset", **kw),
-                      srv.set_speed, srv.offset,
-                      lambda v: opcua_write(srv.url, "ns=1;s=Spindle1.ThermalOffset", v))
-        finally:
-            srv.close()
+        srv = request.getfixturevalue("node_opcua")
+        yield Rig(lambda **kw: OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
+                                            offset_node="ns=1;s=Spindle1.ThermalOffset", **kw),
+                  srv.set_speed, srv.offset,
+                  lambda v: opcua_write(srv.url, "ns=1;s=Spindle1.ThermalOffset", v))
     elif kind in ("haas", "line"):
         pty = PtyPair(tmp_path)
         regs = Registers()
@@ -313,30 +343,27 @@ def test_opcua_server_killed_mid_session_and_restarted():
     link.close()
 
 
-def test_opcua_wrong_node_id():
-    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
-    with running(VirtualCNC(vm)) as cnc:
-        link = OpcUaAdapter(cnc.url, speed_node="ns=2;s=/No/Such/Node", offset_node="ns=2;s=/Nope")
-        with pytest.raises(AdapterError, match="BadNodeIdUnknown"):
-            link.read_speed()
-        link.close()
+def test_opcua_wrong_node_id(vcnc):
+    _vm, cnc = vcnc
+    link = OpcUaAdapter(cnc.url, speed_node="ns=2;s=/No/Such/Node", offset_node="ns=2;s=/Nope")
+    with pytest.raises(AdapterError, match="BadNodeIdUnknown"):
+        link.read_speed()
+    link.close()
 
 
-def test_opcua_write_refused_by_node_opcua():
-    srv = NodeOpcuaServer(free_port())
-    try:
-        locked = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                              offset_node="ns=1;s=Spindle1.LockedOffset")
-        with pytest.raises(WriteRejectedError, match="BadNotWritable"):
-            locked.write_offset_um(1.0)
-        locked.close()
-        link = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                            offset_node="ns=1;s=Spindle1.ThermalOffset")
-        with pytest.raises(WriteRejectedError, match="BadOutOfRange"):
-            link.write_offset_um(5000.0)  # beyond what this controller accepts
-        link.close()
-    finally:
-        srv.close()
+def test_opcua_write_refused_by_node_opcua(node_opcua):
+    srv = node_opcua
+    locked = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
+                          offset_node="ns=1;s=Spindle1.LockedOffset")
+    with pytest.raises(WriteRejectedError, match="BadNotWritable"):
+        locked.write_offset_um(1.0)
+    locked.close()
+    link = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
+                        offset_node="ns=1;s=Spindle1.ThermalOffset")
+    with pytest.raises(WriteRejectedError, match="BadOutOfRange"):
+        link.write_offset_um(5000.0)  # beyond what this controller accepts
+    link.close()
+    assert srv.offset() is None  # neither write was taken
 
 
 # -- faults: serial ---------------------------------------------------------------------
@@ -434,16 +461,15 @@ def test_modbus_exception_reply_on_a_bad_address(tmp_path):
 # -- reading by subscription; reconnect back-off ------------------------------------------
 
 
-def test_opcua_subscription_follows_the_speed():
-    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+def test_opcua_subscription_follows_the_speed(vcnc):
+    vm, cnc = vcnc
     vm.override_speed(3000.0)
-    with running(VirtualCNC(vm)) as cnc:
-        with OpcUaAdapter(cnc.url, preset="virtual-cnc", read_mode="subscribe") as link:
-            assert wait_for(lambda: link.read_speed() == 3000.0)
-            vm.override_speed(21000.0)
-            assert wait_for(lambda: link.read_speed() == 21000.0)
-            link.write_offset_um(-1.25)
-            assert wait_for(lambda: vm.offset_um == -1.25)
+    with OpcUaAdapter(cnc.url, preset="virtual-cnc", read_mode="subscribe") as link:
+        assert wait_for(lambda: link.read_speed() == 3000.0)
+        vm.override_speed(21000.0)
+        assert wait_for(lambda: link.read_speed() == 21000.0)
+        link.write_offset_um(-1.25)
+        assert wait_for(lambda: vm.offset_um == -1.25)
 
 
 class FakeClock:
@@ -487,22 +513,21 @@ def test_reconnect_backs_off_exponentially_with_jitter_and_tells_the_runtime():
     link.close()
 
 
-def test_opc40502_preset_finds_the_spindle_by_browse_path():
-    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+def test_opc40502_preset_finds_the_spindle_by_browse_path(vcnc):
+    vm, cnc = vcnc
     vm.override_speed(17000.0)
-    with running(VirtualCNC(vm)) as cnc:
-        path = "0:Objects/{ns}:CncInterface/{ns}:CncSpindleList/{ns}:Spindle1/{ns}:ThermalOffset"
-        # the virtual CNC keeps the 40502 browse names in its own namespace
-        with OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
-                          offset_path=path) as link:
-            assert wait_for(lambda: link.read_speed() == 17000.0)
-            link.write_offset_um(-2.5)
-            assert wait_for(lambda: vm.offset_um == -2.5)
-        bad = OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
-                           spindle="Spindle9", offset_path=path)
-        with pytest.raises(AdapterError, match="BadNoMatch|browse"):
-            bad.read_speed()
-        bad.close()
+    path = "0:Objects/{ns}:CncInterface/{ns}:CncSpindleList/{ns}:Spindle1/{ns}:ThermalOffset"
+    # the virtual CNC keeps the 40502 browse names in its own namespace
+    with OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
+                      offset_path=path) as link:
+        assert wait_for(lambda: link.read_speed() == 17000.0)
+        link.write_offset_um(-2.5)
+        assert wait_for(lambda: vm.offset_um == -2.5)
+    bad = OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
+                       spindle="Spindle9", offset_path=path)
+    with pytest.raises(AdapterError, match="BadNoMatch|browse"):
+        bad.read_speed()
+    bad.close()
 
 
 def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take():

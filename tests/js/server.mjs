@@ -1,7 +1,8 @@
 // An independent OPC UA server (node-opcua) for thermocomp's adapter tests.
 // Exposes ns=1;s=Spindle1.ActSpeed (Double, rpm) and ns=1;s=Spindle1.ThermalOffset (Double,
 // writable) plus ns=1;s=Spindle1.LockedOffset (read-only: writes are refused).
-// Stdin lines "speed <rpm>" set the speed; it prints "offset <value>" on every accepted write
+// Stdin lines "speed <rpm>" set the speed, "reset <token>" sets speed and offset to 0 and
+// prints "reset <token>"; it prints "offset <value>" on every accepted write
 // and "ready <port>" once listening (protocol lines start with "@@ "). Usage: node server.mjs PORT
 import { OPCUAServer } from "node-opcua-server";
 import { Variant, DataType } from "node-opcua-variant";
@@ -42,6 +43,11 @@ console.log(`@@ ready ${port}`);
 readline.createInterface({ input: process.stdin }).on("line", (line) => {
   const [cmd, arg] = line.trim().split(/\s+/);
   if (cmd === "speed") speed = Number(arg);
+  if (cmd === "reset") {  // a server shared by tests: back to the start, then say so
+    speed = 0.0;
+    offset = 0.0;
+    console.log(`@@ reset ${arg}`);
+  }
   if (cmd === "quit") server.shutdown(100).then(() => process.exit(0));
 });
 process.stdin.on("end", () => server.shutdown(100).then(() => process.exit(0)));
