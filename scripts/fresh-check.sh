@@ -7,6 +7,7 @@
 #   scripts/fresh-check.sh [RUNS] [--keep-packages] [--keep-caches]   (`make fresh-check`)
 #
 # Removed before each run:
+# - processes left by an interrupted earlier check (whose working directory is a fresh clone);
 # - /opt/thermocomp (the LinuxCNC environment) and the thermocomp-ci user with its home;
 # - in this checkout: .venv*, tests/js/node_modules, build/, *.egg-info, demo-output;
 # - the Debian packages scripts/system-deps.sh installs (linuxcnc-uspace, chromium, mosquitto,
@@ -36,7 +37,18 @@ if [ -n "$(git status --porcelain --untracked-files=no)" ]; then
   echo "fresh-check: note: uncommitted changes are not checked, only HEAD $(git rev-parse --short HEAD)" >&2
 fi
 
+# what an interrupted earlier run left behind: its pytest workers' command lines do not name the
+# clone, their working directory does
+kill_leftovers() {
+  local pid cwd
+  for pid in $(ls /proc | grep -E '^[0-9]+$'); do
+    cwd=$(readlink "/proc/$pid/cwd" 2>/dev/null) || continue
+    case "$cwd" in /tmp/thermocomp-fresh.*) kill -9 "$pid" 2>/dev/null || true ;; esac
+  done
+}
+
 remove_state() {
+  kill_leftovers
   pkill -u thermocomp-ci >/dev/null 2>&1 || true  # a LinuxCNC left running by an interrupted test
   sleep 0.5
   rm -rf /opt/thermocomp
@@ -71,8 +83,13 @@ for i in $(seq 1 "$runs"); do
   echo "fresh-check: run $i of $runs: $(git -C "$clone" rev-parse --short HEAD) in $clone (log: $log)"
   start=$(date +%s)
   set +e
-  (cd "$clone" && CI=true bash .ci/run </dev/null) >"$log" 2>&1
+  # its own session, so that an interrupted check takes the whole run down with it
+  setsid bash -c 'cd "$1" && CI=true exec bash .ci/run </dev/null' _ "$clone" >"$log" 2>&1 &
+  run_pid=$!
+  trap 'kill -- -"$run_pid" 2>/dev/null; kill_leftovers; exit 130' INT TERM
+  wait "$run_pid"
   rc=$?
+  trap - INT TERM
   set -e
   wall=$(( $(date +%s) - start ))
   counts=$(grep -E "^(=+ )?[0-9]+ (passed|failed)|^[0-9]+ (passed|failed|error)" "$log" | sed 's/=//g; s/^ *//; s/ *$//' | paste -sd ';' -)
