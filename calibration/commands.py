@@ -41,12 +41,33 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+QUIET_S = 10.0
+"""Without a terminal, progress lines start after this long, at most one per this long [s]."""
+
+
 @contextmanager
 def progress(enabled: bool, total: int | None = None) -> Iterator[Callable[[str], None]]:
-    """A rich spinner on stderr; silent when not a terminal or in --json mode."""
+    """A rich spinner on stderr; without a terminal, a plain line now and then once the work
+    takes a while; silent in --json mode."""
     err = Console(stderr=True)
-    if not enabled or not err.is_terminal:
+    if not enabled:
         yield lambda _msg: None
+        return
+    if not err.is_terminal:
+        # a log file or a pipe: a plain line per stage, once the work has taken a while (a
+        # quick run, or one refused at once, says nothing but its result)
+        import time
+
+        start = time.monotonic()
+        last = [start]
+
+        def line(msg: str) -> None:
+            now = time.monotonic()
+            if now - start >= QUIET_S and now - last[0] >= QUIET_S:
+                last[0] = now
+                print(f"thermocomp: {msg} ({now - start:.0f} s)", file=sys.stderr, flush=True)
+
+        yield line
         return
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
@@ -115,9 +136,12 @@ def fit(args: argparse.Namespace) -> int:
         raise CalibrationError(f"--probe-target-um must be > 0, got {args.probe_target_um}")
     if args.probe_every is not None and not (math.isfinite(args.probe_every) and args.probe_every > 0):
         raise CalibrationError(f"--probe-every must be > 0 s, got {args.probe_every}")
-    logs = [read_run_log(p) for p in args.runs]
-    names = _input_names(args, logs)
     with progress(not args.json) as say:
+        logs = []
+        for p in args.runs:
+            say(f"reading {p}")
+            logs.append(read_run_log(p))
+        names = _input_names(args, logs)
         result = fit_logs(logs, names, labels=[str(p) for p in args.runs], progress=say,
                           nested=not args.no_nested, physical=not args.no_physical,
                           probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,

@@ -130,7 +130,8 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
     it from the speed (no column, or ``cutting.signal = "speed"``). A journal's rows whose
     ``cutting_source`` says the runtime inferred it are NaN (inferred again, with this
     configuration); rows where it could not read the speed (``unread``) count as cutting, as
-    they did. A cell that is not 0 or 1 is a one-line error naming the line."""
+    they did; blank cells (an older journal's rows) are inferred. Any other cell that is not 0
+    or 1 is a one-line error naming the line."""
     col = log.extras.get(CUTTING_COLUMN)
     signal = shaping.cutting.signal
     if col is None or signal == "speed":
@@ -140,11 +141,17 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
         return None, "inferred from the speed", warn
     import pandas as pd  # as the run-log reader: text cells become NaN, refused below
 
-    values = pd.to_numeric(np.asarray(col), errors="coerce").astype(float)
-    bad = ~np.isin(values, (0.0, 1.0))
+    cells = np.asarray(col)
+    values = pd.to_numeric(cells, errors="coerce").astype(float)
+    # a blank cell (a row from an older journal without the column) is inferred from the speed
+    blank = pd.isna(cells) | (pd.Series(cells).astype(str).str.strip() == "").to_numpy()
+    bad = ~np.isin(values, (0.0, 1.0)) & ~blank
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
         raise RunLogError(f"column cutting: {col[row]!r} is not 0 or 1", log.source, log.line_of(row))
+    values[blank] = np.nan
+    if blank.all():
+        return None, "inferred from the speed (the cutting column is blank)", None
     source = log.extras.get("cutting_source")
     if source is None:
         return values, "the log's cutting column", None

@@ -606,27 +606,40 @@ class OpcUaAdapter(OpcUaLink, Adapter):
     def _read_speed_raw(self) -> Any:
         if self._latest is not None:
             value = self._latest.get(self.timeout_s)
+            if isinstance(value, BadValueError):
+                raise value
             if isinstance(value, BaseException):
                 raise self._link_lost(f"opcua subscription: {self.shown_url}: {value}")
             if value is None:
                 raise self._link_lost(f"opcua: no speed notification within {self.timeout_s:g} s",
                                       AdapterTimeoutError)
         elif self._unverified is not None:
-            value, held, *cut = self._call("read speed and offset", self._client.read_values,
-                                           [self._speed, self._offset, *self._with_speed()])
+            value, held, *cut = self._read_checked("read speed and offset",
+                                                   [self._speed, self._offset, *self._with_speed()])
             self._cutting_raw = (cut[0],) if cut else None
             wrote, self._unverified = self._unverified, None
-            if not (isinstance(held, (int, float)) and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)):
+            if isinstance(held, BadValueError):  # not known: checked again by the next read-back
+                log.warning("opcua: deferred write check: %s", held)
+            elif not (isinstance(held, (int, float)) and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)):
                 self._mismatch = held
                 log.warning("opcua: wrote %r, controller holds %r", wrote, held)
         elif self._cutting is not None:
-            value, cut = self._call("read speed", self._client.read_values, [self._speed, self._cutting])
+            value, cut = self._read_checked("read speed", [self._speed, self._cutting])
             self._cutting_raw = (cut,)
         else:
             value = self._call("read speed", self._speed.read_value)
+        if isinstance(value, BadValueError):
+            raise value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
         return value
+
+    def _read_checked(self, what: str, nodes: list[Any]) -> list[Any]:
+        """The values of ``nodes`` in one request, each one's status checked: a node whose
+        status is not Good gives a :class:`BadValueError` in its place, never its value (a
+        BadSensorFailure may carry a number)."""
+        dvs = self._call(what, self._client.read_attributes, nodes)
+        return [_good_value(node, dv) for node, dv in zip(nodes, dvs)]
 
     def _with_speed(self) -> list[Any]:
         return [] if self._cutting is None else [self._cutting]
@@ -636,6 +649,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         subscription) on its own, its status checked."""
         if self._cutting_raw is not None:
             (raw,), self._cutting_raw = self._cutting_raw, None
+            if isinstance(raw, BadValueError):
+                raise raw
             return raw
         ref = self.cutting_ref
         assert ref is not None
@@ -652,12 +667,16 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         return tuple(self.input_nodes)
 
     def _read_inputs_raw(self) -> dict[str, Any]:
-        values = self._call("read inputs", self._client.read_values, list(self._inputs.values()))
+        # an input whose status is not Good is missing, as one that holds no number
+        values = self._read_checked("read inputs", list(self._inputs.values()))
         return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
                 for name, v in zip(self._inputs, values)}
 
     def _read_offset_raw(self) -> Any:
-        return self._call("read offset", self._offset.read_value)
+        (held,) = self._read_checked("read offset", [self._offset])
+        if isinstance(held, BadValueError):
+            raise held
+        return held
 
     def _read_measurement_raw(self) -> RawMeasurement:
         """The probe cycle's counter, value (and sigma), in one request, the counter first: the
@@ -707,8 +726,17 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._cutting_raw = None
 
 
+def _good_value(node: Any, dv: Any) -> Any:
+    """A DataValue's value if its status is Good, else a :class:`BadValueError` naming it."""
+    status = getattr(dv, "StatusCode", None)
+    if status is not None and not status.is_good():
+        return BadValueError(f"opcua: node {getattr(node, 'nodeid', node)}: status {status.name}")
+    return None if dv.Value is None else dv.Value.Value
+
+
 class _Latest:
-    """Subscription handler: keeps the last speed notification (or the link's failure)."""
+    """Subscription handler: keeps the last speed notification (or the link's failure); a
+    notification whose status is not Good is kept as a :class:`BadValueError`."""
 
     def __init__(self) -> None:
         import threading
@@ -716,8 +744,9 @@ class _Latest:
         self._value: Any = None
         self._event = threading.Event()
 
-    def datachange_notification(self, node, val, data) -> None:  # noqa: ARG002 - asyncua's API
-        self._value = val
+    def datachange_notification(self, node, val, data) -> None:
+        dv = getattr(getattr(data, "monitored_item", None), "Value", None)
+        self._value = _good_value(node, dv) if dv is not None else val
         self._event.set()
 
     def status_change_notification(self, status) -> None:

@@ -45,6 +45,12 @@ from .units import RANGE_TOLERANCE
 
 OverRange = Literal["clamp", "extrapolate"]
 
+MAX_SPEED_MARGIN = 0.1
+"""A speed more than this share above the spindle's stated maximum is no reading of it."""
+
+UNSTATED_MAX_FACTOR = 2.0
+"""Without a stated maximum: a speed above this many times the calibrated top is no reading."""
+
 
 @dataclass(frozen=True)
 class EstimateState:
@@ -136,6 +142,15 @@ class Saved:
     input_wall_s: float
 
 
+def _check(state: EstimateState, what: str) -> None:
+    """ModelError (the caller keeps the state it had) where ``what`` would leave an estimate no
+    spindle can have: not finite, or beyond :data:`~compensator.model.SAVED_LIMIT_UM`."""
+    for name, value in (("estimate", state.estimate_um), ("speed-only model", state.speed_only.elongation_um)):
+        if not abs(float(value)) <= SAVED_LIMIT_UM:
+            raise ModelError(f"{what} would set the {name} to {float(value):g} um, which no spindle "
+                             "reaches: refused, the estimate kept")
+
+
 @dataclass(frozen=True)
 class Estimate:
     """The model, its fallback, the observer and the speed clamp (see the module)."""
@@ -145,6 +160,8 @@ class Estimate:
     over_range: OverRange = "clamp"
     input_stale_s: float = 300.0
     input_recover_s: float = 60.0
+    max_speed_rpm: float | None = None
+    """The spindle's rated maximum speed; None: not stated (see :attr:`speed_limit_rpm`)."""
 
     def __post_init__(self) -> None:
         speed_only = self.model.fallback or self.model
@@ -168,6 +185,19 @@ class Estimate:
     @property
     def speed_range_rpm(self) -> tuple[float, float]:
         return self.core.speed_range_rpm
+
+    @property
+    def speed_limit_rpm(self) -> float:
+        """Above this no spindle turns: the stated maximum plus a margin, else a multiple of the
+        calibrated top. A speed beyond it is a failed read (a register read as 0xFFFFFFFF), in
+        either ``over_range`` policy."""
+        if self.max_speed_rpm is not None:
+            return self.max_speed_rpm * (1.0 + MAX_SPEED_MARGIN)
+        return UNSTATED_MAX_FACTOR * max(self.core.speed_range_rpm[1], 1.0)
+
+    def plausible(self, speed_rpm: float) -> bool:
+        """A speed a spindle can turn at: finite and within :attr:`speed_limit_rpm`."""
+        return math.isfinite(speed_rpm) and abs(speed_rpm) <= self.speed_limit_rpm
 
     # -- start -----------------------------------------------------------------------------
     def cold(self) -> EstimateState:
@@ -239,6 +269,9 @@ class Estimate:
         or ``input_error`` when they could not be; ``now_s`` a monotonic time, ``wall_s`` the
         wall clock (a saved input state is advanced to it). On the first cycle after a start the
         model with inputs takes over at once; after a fault, once the inputs have recovered."""
+        if not self.plausible(speed_rpm):
+            raise ModelError(f"speed {speed_rpm:g} rpm is no spindle's (above "
+                             f"{self.speed_limit_rpm:g} rpm): not stepped with")
         speed, over = self.clamp(speed_rpm)
         first = not state.started
         st = replace(state, core=self.core.step(state.core, speed, dt_s), started=True)
@@ -252,6 +285,7 @@ class Estimate:
                    else float(st.in_use.elongation_um))
             st = replace(st, probe_reference_um=ref,
                          last_cycle=(speed, float(st.in_use.elongation_um), on_inputs))
+        _check(st, "the step")
         return st, info
 
     def _inputs(self, st: EstimateState, info: Step, speed: float, dt_s: float, now_s: float, wall_s: float,
@@ -324,7 +358,9 @@ class Estimate:
         before = ref + state.bias_um
         out, up = fused.measure(replace(state.core, model=state.in_use), measured_um, sigma_um,
                                 model_at_probe_um=ref)
-        return replace(state, core=replace(out, model=state.speed_only)), up, before
+        new = replace(state, core=replace(out, model=state.speed_only))
+        _check(new, f"the measurement {measured_um:g} um")
+        return new, up, before
 
     # -- over a whole log ----------------------------------------------------------------------
     def clamp_series(self, speed_rpm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -342,7 +378,12 @@ class Estimate:
         :meth:`run` gives from :meth:`begin` when there are no inputs and no probes (tested)."""
         if self.with_inputs is not None:
             raise ModelError("a model with inputs runs through Estimate.run (its fallback may stand in)")
-        return self.core.simulate_um(self.clamp_series(speed_rpm)[0], time_s, None, initial_um)
+        speed = np.asarray(speed_rpm, dtype=float)
+        bad = np.flatnonzero(~(np.abs(speed) <= self.speed_limit_rpm))
+        if bad.size:
+            raise ModelError(f"row {int(bad[0])}: speed {speed[bad[0]]:g} rpm is no spindle's (above "
+                             f"{self.speed_limit_rpm:g} rpm)")
+        return self.core.simulate_um(self.clamp_series(speed)[0], time_s, None, initial_um)
 
     def run(self, state: EstimateState, time_s: np.ndarray, speed_rpm: np.ndarray, *,
             dt_s: np.ndarray | None = None, wall_s: np.ndarray | None = None,

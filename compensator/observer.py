@@ -37,6 +37,11 @@ from .units import require_dt, require_finite
 COV_LIMIT = 1e12  # um^2: a gap of years forgets the prior; the numbers stay finite
 
 
+SIGMA_LIMIT_UM = 1000.0
+"""The largest sigma a measurement may state [um]. One less sure than a millimetre says nothing
+about a growth of microns, and its square must stay far from overflowing the filter."""
+
+
 class ObserverConfig(BaseModel):
     """Noise levels of the disturbance model and the outlier gate (immutable)."""
 
@@ -115,8 +120,8 @@ def measurement_update(cfg: ObserverConfig, z: ObserverState, measured_um: float
     y = require_finite("measured_um", measured_um)
     s_model = require_finite("predicted_um", predicted_um)
     sigma = require_finite("sigma_um", sigma_um)
-    if sigma <= 0:
-        raise ModelError(f"a measurement's sigma must be > 0, got {sigma}")
+    if not 0 < sigma <= SIGMA_LIMIT_UM:
+        raise ModelError(f"a measurement's sigma must be > 0 and at most {SIGMA_LIMIT_UM:g} um, got {sigma:g}")
     r = cfg.noise_var_um2(sigma)
     p = np.array(z.cov)
     nu = y - (s_model + z.bias_um)
@@ -136,6 +141,9 @@ def measurement_update(cfg: ObserverConfig, z: ObserverState, measured_um: float
     x = np.array([z.bias_um, z.drift_um_per_s]) + k * nu
     i_kh = np.eye(2) - np.outer(k, [1.0, 0.0])  # Joseph form: stays symmetric and positive
     p = i_kh @ p @ i_kh.T + np.outer(k, k) * r
+    if not (np.isfinite(x).all() and np.isfinite(p).all()):
+        # never a state no spindle can have: the measurement is refused, the state kept
+        raise ModelError(f"the measurement {y:g} um (sigma {sigma:g} um) gives no finite estimate")
     return Update(ObserverState(float(x[0]), float(x[1]), _cov(p)), True, nu, sd)
 
 

@@ -32,9 +32,10 @@ Order of operations each sample:
 
 Invariants (checked by property tests): the output is finite, within the clamp, never
 changes faster than :attr:`ShaperConfig.rate_limit_um_per_s`, and never faster than
-``max_rate_um_per_s`` on a sample taken as cutting. A controller that holds a value beyond
-the clamp (an outside write, a lowered clamp) is led into it at the slew limit: every output
-is then closer to the clamp than the one before.
+``max_rate_um_per_s`` on a sample taken as cutting. The one exception is a controller that
+holds a value beyond the clamp (an outside write, a clamp lowered by a reload): no offset
+beyond the clamp is ever written, so the first output steps straight to the clamp (flag
+``CLAMPED``) and the slew limit applies from there.
 """
 
 from __future__ import annotations
@@ -222,8 +223,8 @@ def _clamp(config: ShaperConfig, offset_um: float) -> float:
 
 def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
     """State for a controller that currently holds ``offset_um``. A value beyond the clamp (an
-    outside write, a clamp lowered by a reload) is kept: the output enters the clamp through
-    the slew limit, it never jumps."""
+    outside write, a clamp lowered by a reload) is kept as what it holds; the next output is
+    within the clamp (see the module's invariants)."""
     require_finite("initial offset", offset_um)
     return ShaperState(output_um=offset_um, target_um=_clamp(config, offset_um))
 
@@ -339,9 +340,14 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
         step = diff if -limit <= diff <= limit else (limit if diff > 0 else -limit)
         if step != diff:
             flags |= _SLEWED
-        # from beyond the clamp the step itself leads in (the target is inside): no jump
-        new_y = min(max(y + step, -m), m) if inside else y + step
-        if q:
+        new_y = min(max(y + step, -m), m)
+        if not inside:
+            # a value beyond the clamp is none we wrote (an outside write, a lowered clamp): the
+            # write goes straight to the clamp, on the grid toward zero, and on at the slew limit
+            flags |= _CLAMPED
+            if q:
+                new_y, credit = math.trunc(new_y / q) * q, 0.0
+        elif q:
             new_y, credit = _on_grid(y, new_y, q, limit, m)
     if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 0.5 * q, 1e-9):
         releasing = False

@@ -197,7 +197,8 @@ def test_the_service_sweeps_its_journal_at_start_and_hourly(tmp_path, calibrated
                    '[status]\nenabled = false\n[journal]\nmax_age_days = 90\nmax_size_mb = 0.5\n'
                    f'[[spindle]]\nname = "s1"\nmodel = "{calibrated_model}"\nadapter = {{url = "sim://"}}\n')
     t = [0.0]
-    svc = Service(cfg, clock=lambda: t[0], wall=lambda: wall0 + t[0], lock=False)
+    svc = Service(cfg, clock=lambda: t[0], wall=lambda: wall0 + t[0], lock=False,
+                  clock_synchronized=lambda: True)
     with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
         svc.tick()
         assert not any(p.exists() for p in old)  # past 90 days

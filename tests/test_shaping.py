@@ -168,10 +168,13 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, fast, deadb
         state = sh.state
         y = res.offset_um
         assert math.isfinite(y)
-        if abs(prev) <= clamp:
-            assert abs(y) <= clamp
-        else:  # led into the clamp: never further out, never a jump
-            assert abs(y) <= abs(prev)
+        assert abs(y) <= clamp  # never a value beyond the clamp, even from one held beyond it
+        if abs(prev) > clamp:  # straight to the clamp, on the controller's side, then slewed
+            lim = cfg.rate_limit_um_per_s * dt * (1 + 1e-12) + 1e-12
+            assert Flag.CLAMPED in res.flags
+            assert y == math.copysign(clamp, prev) or abs(y - prev) <= lim
+            prev = y
+            continue
         assert abs(y - prev) <= cfg.rate_limit_um_per_s * dt * (1 + 1e-12) + 1e-12
         if signal is not None:
             assert res.cutting is signal  # the controller's word wins
@@ -203,14 +206,17 @@ def test_hold_moves_on_from_what_the_controller_holds_through_the_slew_limit():
     assert sh.output_um == 0.0
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 3)
     assert outs == pytest.approx([-1.0, -2.0, -3.0])
-    sh.hold(80.0)  # an outside write beyond the clamp: entered by a ramp, never a jump
+    sh.hold(80.0)  # an outside write beyond the clamp: never written back, straight to the clamp
     assert sh.output_um == 80.0
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 40)
-    assert outs[:3] == pytest.approx([79.0, 78.0, 77.0])
+    assert outs[:3] == pytest.approx([50.0, 49.0, 48.0])  # the clamp, and the slew limit from there
     assert all(b < a for a, b in zip(outs, outs[1:]))
-    assert outs[-1] == pytest.approx(40.0)
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 60)
     assert outs[-1] == pytest.approx(-10.0)  # and on to the model's value
+    for absurd in (1e6, 1e308, -1e308):  # far beyond: one step to the clamp, whatever the float
+        sh.hold(absurd)
+        outs, _, _ = run(sh, [(10.0, 0, 1.0)])
+        assert abs(outs[0]) <= 50.0 and outs[0] * absurd > 0
 
 
 def test_shape_series_is_the_runtime_shaper_over_a_log():

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import NoReturn
@@ -431,9 +432,30 @@ def resolve(spec: str) -> Handler:
     return getattr(importlib.import_module(module), func)
 
 
+class _EarlySignals:
+    """`run`: SIGHUP, SIGTERM and SIGINT recorded from the moment the command line is read, so
+    that one arriving while the service starts neither kills it without a word (SIGHUP's default
+    action) nor is lost; the service acts on them once it runs."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self.reload = False
+        for sig in ("SIGHUP", "SIGTERM", "SIGINT"):
+            if hasattr(signal, sig):
+                signal.signal(getattr(signal, sig), self)
+
+    def __call__(self, signum: int, _frame: object) -> None:
+        if signum == getattr(signal, "SIGHUP", None):
+            self.reload = True
+        else:
+            self.stop = True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "command", None) == "run" and not getattr(args, "check", False):
+        args.early_signals = _EarlySignals()
     if args.version:
         from . import __version__
 

@@ -45,6 +45,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -352,6 +353,10 @@ class VirtualCNC:
         only users with the ``SeaWrite`` right may write (``rights``: user -> rights), granted by
         ``GiveUserAccess`` called by one of ``admins``."""
         self.machine = machine
+        self.failed: dict[str, str] = {}
+        """Published nodes (keys of the node tables) that carry a status other than Good, by
+        status name (``BadSensorFailure``): a failed sensor, with its last value kept, as a
+        controller may publish it. Set by a test; taken at the next publish."""
         self.certificate = certificate
         self.private_key = private_key
         self.users = users
@@ -579,10 +584,14 @@ class VirtualCNC:
         values.update(m.sensor_values())
         if self.sinumerik:
             values["sinumerik_speed"] = m.speed_rpm
+        def with_status(key: str, variant: Any) -> Any:
+            bad = self.failed.get(key)
+            return variant if bad is None else ua.DataValue(variant, ua.StatusCode(getattr(ua.StatusCodes, bad)))
+
         for key, v in values.items():
-            await self._nodes[key].write_value(ua.Variant(float(v), ua.VariantType.Double))
+            await self._nodes[key].write_value(with_status(key, ua.Variant(float(v), ua.VariantType.Double)))
         for key, flag in (("at_speed", m.at_speed), ("cutting", m.cutting)):
-            await self._nodes[key].write_value(ua.Variant(bool(flag), ua.VariantType.Boolean))
+            await self._nodes[key].write_value(with_status(key, ua.Variant(bool(flag), ua.VariantType.Boolean)))
         # as a probe cycle writes them: the value, then the counter
         seq, value, sigma = m.probe_sequence, m.probe_value_um, m.probe_sigma_um
         await self._nodes["probe_measurement"].write_value(ua.Variant(float(value), ua.VariantType.Double))

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import secrets
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -86,9 +88,26 @@ def write_text(path: str | os.PathLike[str], text: str, *, overwrite: bool = Tru
     return target
 
 
+def read_regular(path: str | os.PathLike[str], limit: int | None = None) -> bytes:
+    """The bytes of a regular file (at most ``limit + 1`` of them, so that a caller can tell a
+    file over its limit). Anything else (a FIFO, a device, a directory) is an ``OSError`` at
+    once: the file is opened without blocking, so a FIFO that no one writes cannot hang a start."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file", os.fspath(path))
+        os.set_blocking(fd, True)
+        with os.fdopen(fd, "rb") as fh:
+            fd = -1  # the file object closes it
+            return fh.read(-1 if limit is None else limit + 1)
+    finally:
+        if fd >= 0:
+            os.close(fd)
+
+
 def read_text(path: str | os.PathLike[str]) -> str:
     try:
-        return Path(path).read_text(encoding="utf-8")
+        return read_regular(path).decode("utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from err
     except UnicodeError as err:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import logging
 import math
 import os
 import time
@@ -33,6 +34,8 @@ from typing import Any
 
 from ..errors import ConfigError
 from .runlog import header_text
+
+log = logging.getLogger("thermocomp.journal")
 
 ALARM_COLD_START = 32
 """The bit of the ``alarms`` column that marks a cold start (no saved state): the estimate began
@@ -164,6 +167,7 @@ class Journal:
         header = ",".join(self.columns)
         while True:
             path = self.path_for(day, part)
+            cut_torn_tail(path)  # a power loss's partial row is never glued to a new one
             last = _last_time(path)
             # a new part: the clock was set back (every file keeps increasing time), or the file
             # has other columns (written by another version)
@@ -295,6 +299,61 @@ class CoolingJournal(Journal):
                         _cell(setpoint_c, ".6g"), "1" if sent else "0", _cell(supply_c, ".6g"),
                         _word(alarm, "-_|") or "", f"{t if wall_s is None else wall_s:.3f}")) + "\n"
         return self._enqueue(t, row, now_s)
+
+
+TAIL_BYTES = 1 << 16
+"""How far back from its end a file is checked for a torn tail (a row is far shorter)."""
+
+
+def cut_torn_tail(path: Path) -> Path | None:
+    """Cut a run log back to its last complete row: a power loss can leave a partial last line,
+    or a tail of NUL bytes (the size written, the data not). What is cut is kept beside it as
+    ``<path>.torn-<offset>``; that path, or None when the file was whole (or missing)."""
+    header = _header(path)
+    if header is None:
+        return None
+    cells = header.count(",") + 1
+    try:
+        with open(path, "r+b") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            start = max(0, size - TAIL_BYTES)
+            fh.seek(start)
+            tail = fh.read()
+            end = len(tail)
+            while end > 0:
+                if tail[end - 1] != 0x0A:  # no newline: a line cut short
+                    end = tail.rfind(b"\n", 0, end) + 1
+                    continue
+                nl = tail.rfind(b"\n", 0, end - 1)
+                if nl < 0 and start > 0:
+                    break  # the line began before the window: it ended whole
+                line = tail[nl + 1:end - 1]
+                if b"\x00" in line or (line.strip() and not line.startswith(b"#")
+                                       and line.strip() != header.encode() and not _row(line, cells)):
+                    end = nl + 1
+                    continue
+                break
+            if end == len(tail) or (start == 0 and header.encode() + b"\n" not in tail[:end]):
+                return None  # whole; or the column line itself is torn: a new part follows
+            aside = path.with_name(f"{path.name}.torn-{start + end}")
+            with contextlib.suppress(OSError):
+                aside.write_bytes(tail[end:])
+            fh.truncate(start + end)
+    except OSError:
+        return None  # not readable or not writable: the append fails and says so
+    log.warning("%s: cut back to its last complete row; the torn tail (%d bytes) is in %s",
+                path, len(tail) - end, aside.name)
+    return aside
+
+
+def _row(line: bytes, cells: int) -> bool:
+    """A complete journal row: the column count, and a time in its first cell."""
+    if line.count(b",") + 1 != cells:
+        return False
+    try:
+        return math.isfinite(float(line.split(b",", 1)[0]))
+    except ValueError:
+        return False
 
 
 def _last_time(path: Path) -> float | None:

@@ -39,6 +39,8 @@ from .retention import DAY_S, JournalFile, journal_files, utc_day
 from .runlog import ELONGATION_COLUMN, REQUIRED_COLUMNS, SPARSE, header_text
 
 SOURCE = "thermocomp journal export"
+MAX_LINE_CHARS = 64 * 1024
+"""A journal line longer than this is damaged: skipped and counted, like a torn row."""
 PROBE_OUTCOMES = ("accepted", "restarted")
 """Measurements the export takes as the measured elongation (not ``rejected``, ``refused``)."""
 SIGMA_COLUMN = "measurement_sigma_um"
@@ -74,8 +76,12 @@ class _Table:
         lines = text.splitlines(keepends=True)
         if lines and not lines[-1].endswith("\n"):
             lines.pop()  # a row being written right now
-        body = (ln for ln in lines if ln.strip() and not ln.startswith("#"))
-        reader = csv.reader(body)
+        body = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+        long = [len(ln) > MAX_LINE_CHARS for ln in body]
+        self.skipped += sum(long[1:])  # no row of a journal is this long: a damaged line
+        # the journal never quotes (its cells are numbers and words): a stray '"' is a damaged
+        # cell of its own row, never the start of a field that swallows the rows after it
+        reader = csv.reader((ln for ln, too in zip(body, long) if not too), quoting=csv.QUOTE_NONE)
         header = [c.strip() for c in next(reader, [])]
         if not header or header[0] != "time_s":
             if header:  # not a journal this module can read: say so rather than guess
@@ -89,8 +95,8 @@ class _Table:
                 t = float(cells[0])
             except (ValueError, IndexError):
                 t = math.nan
-            if len(cells) != len(header) or not math.isfinite(t):
-                self.skipped += 1  # a torn or foreign row: the rest of the day is still good
+            if len(cells) != len(header) or not math.isfinite(t) or not _numbers(header, cells):
+                self.skipped += 1  # a torn or damaged row: the rest of the day is still good
                 continue
             self.rows.append((t, dict(zip(header, cells)), path.name))
 
@@ -102,6 +108,20 @@ class _Table:
             if not out or r[0] > out[-1][0]:
                 out.append(r)
         self.rows = out
+
+
+NUMERIC_COLUMNS = frozenset(("speed_rpm", "predicted_um", "offset_um", "dt_s", "wall_s"))
+"""The journal's columns that always hold a number (a row where one does not is damaged)."""
+
+
+def _numbers(header: list[str], cells: list[str]) -> bool:
+    for name, cell in zip(header, cells):
+        if name in NUMERIC_COLUMNS and cell.strip():  # blank: not recorded (a refused probe)
+            try:
+                float(cell)
+            except ValueError:
+                return False
+    return True
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from ..inputs import AUGMENTED_FORMAT, AugmentedModel
 from ..model import MODEL_FORMAT, ThermalModel
 from ..predictor import Predictor
 from ..statespace import STATE_SPACE_FORMAT, StateSpaceModel
-from .atomic import atomic_write
+from .atomic import atomic_write, read_regular
 from .checksum import digest
 
 MODEL_TYPES: dict[str, Any] = {MODEL_FORMAT: ThermalModel, AUGMENTED_FORMAT: AugmentedModel,
@@ -132,8 +132,7 @@ def load_any_model(path: str | os.PathLike[str]) -> Predictor:
     """
     src = os.fspath(path)
     try:
-        with open(src, "rb") as fh:
-            raw = fh.read(MAX_MODEL_BYTES + 1)
+        raw = read_regular(src, MAX_MODEL_BYTES)
     except OSError as err:
         raise ModelFileError(f"{src}: cannot read: {err.strerror or err}") from err
     if len(raw) > MAX_MODEL_BYTES:

@@ -108,7 +108,7 @@ class SweepResult:
 
 
 def plan(files: Mapping[JournalFile, int], *, now_wall_s: float, max_age_days: float,
-         max_bytes: int, protected: Collection[str] = ()) -> list[JournalFile]:
+         max_bytes: int, protected: Collection[str] = (), by_age: bool = True) -> list[JournalFile]:
     """The files to remove, in order; pure.
 
     ``files`` maps each journal file to its size [bytes]; ``now_wall_s`` is the wall clock
@@ -116,12 +116,15 @@ def plan(files: Mapping[JournalFile, int], *, now_wall_s: float, max_age_days: f
     more than ``max_age_days`` [days] before ``now_wall_s``, oldest first; then, while the files
     left exceed ``max_bytes`` [bytes] in all, the oldest left (by day, then part). The current
     UTC day's files (and any later day's) and the protected ones are never chosen, so the total
-    may stay above ``max_bytes`` when only those are left.
+    may stay above ``max_bytes`` when only those are left. ``by_age`` False: no file is removed
+    for its age (the wall clock is not known to be right), only for the size.
     """
     today = utc_day(now_wall_s)
     removable = sorted(f for f in files if f.day < today and f.name not in protected)
     cutoff_s = now_wall_s - max_age_days * DAY_S
-    chosen = [f for f in removable if f.day_end_s < cutoff_s]
+    # by_age False: a wall clock that cannot be trusted (one set 91 days ahead would age away
+    # the whole history); the size rule needs no clock
+    chosen = [f for f in removable if f.day_end_s < cutoff_s] if by_age else []
     total = sum(files.values()) - sum(files[f] for f in chosen)
     gone = set(chosen)
     for f in removable:
@@ -174,16 +177,18 @@ def _names_in(directory: Path, keep: Iterable[str | os.PathLike[str]]) -> set[st
 
 
 def sweep(directory: str | os.PathLike[str], *, now_wall_s: float, max_age_days: float = 90,
-          max_bytes: int = 1 << 30, keep: Collection[str | os.PathLike[str]] = ()) -> SweepResult:
+          max_bytes: int = 1 << 30, keep: Collection[str | os.PathLike[str]] = (),
+          by_age: bool = True) -> SweepResult:
     """Remove old journal files from ``directory`` (:func:`plan`): those whose UTC day ended more
     than ``max_age_days`` [days] before ``now_wall_s`` [epoch s], then the oldest while the
     journal files exceed ``max_bytes`` [bytes]. Never a file of today (UTC), one in ``keep`` (the
     files being written) or a file that is not a journal file. Never raises on an ``OSError``:
-    each is a line in :attr:`SweepResult.errors`, and the sweep goes on."""
+    each is a line in :attr:`SweepResult.errors`, and the sweep goes on. ``by_age`` False: the
+    size rule only (see :func:`plan`)."""
     d = Path(directory)
     sizes, errors = journal_files(d)
     chosen = plan(sizes, now_wall_s=now_wall_s, max_age_days=max_age_days, max_bytes=max_bytes,
-                  protected=_names_in(d, keep))
+                  protected=_names_in(d, keep), by_age=by_age)
     removed: list[Path] = []
     freed = 0
     for f in chosen:

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..errors import ModelFileError
-from .atomic import atomic_write
+from .atomic import atomic_write, read_regular
 from .checksum import digest
 
 STATE_FORMAT = "thermocomp.state/1"
@@ -36,8 +36,7 @@ def load_state(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     JSON, not finite (``NaN``), absurdly nested or large, or its checksum does not match."""
     src = os.fspath(path)
     try:
-        with open(src, "rb") as fh:
-            raw = fh.read(MAX_STATE_BYTES + 1)
+        raw = read_regular(src, MAX_STATE_BYTES)  # a FIFO or a device is refused, never waited on
     except FileNotFoundError:
         return None
     except OSError as err:

@@ -445,9 +445,9 @@ def check_invariants(j: dict[str, np.ndarray], *, rate: float, clamp: float | np
     """What must hold on every journal, whatever the fault:
 
     - every offset is finite;
-    - within the clamp; where the fault moved the controller beyond it, every row is closer
-      to the clamp than the one before (monotonically approaching);
-    - |offset_k - ref| <= max_rate * dt_s_k + 1e-6, ref the previous row's offset, or, on a row
+    - within the clamp on every row written; a value beyond it is only one the controller
+      holds (an outside write) until the next write, which steps straight to the clamp;
+    - |offset_k - ref| <= max_rate * dt_s_k + 1e-6, ref the previous row's offset (clamped), or, on a row
       that found the controller holding something else (OFFSET_MISMATCH), the value it held
       (the k-th such row goes with the k-th ``offset_mismatch`` event);
     - time_s strictly increasing; no row lost: within one runtime the step between two rows is
@@ -470,15 +470,16 @@ def check_invariants(j: dict[str, np.ndarray], *, rate: float, clamp: float | np
     new_proc = np.r_[True, np.diff(j["part"]) != 0] if not one_process else np.r_[True, np.zeros(n - 1, bool)]
     back = np.flatnonzero((np.diff(t) <= 0) & ~new_proc[1:]) + 1
     assert back.size == 0, f"time_s not increasing at rows {back}"
-    step = np.abs(off - ref)
+    # from a value held beyond the clamp (none of ours) the write steps to the clamp at once
+    step = np.abs(off - np.clip(ref, -clamp_a, clamp_a))
     bad = np.flatnonzero(~new_proc & (step > rate * dt + slew_tol(rate, off, ref)))
     assert bad.size == 0, ("slew limit broken: " + "; ".join(
         f"row {k}: {ref[k]:.6g} -> {off[k]:.6g} in {dt[k]:.4f} s" for k in bad[:5]))
+    written = j["written"] == 1
     beyond = np.abs(off) > clamp_a + 1e-9
-    for k in np.flatnonzero(beyond):
-        closer = np.abs(off[k]) < np.abs(ref[k]) or (dt[k] == 0 and off[k] == ref[k])
-        assert not new_proc[k] and closer and math.copysign(1, off[k]) == math.copysign(1, ref[k]), \
-            f"row {k}: offset {off[k]:.6g} beyond the clamp {clamp_a[k]:g} and not approaching it (from {ref[k]:.6g})"
+    for k in np.flatnonzero(beyond):  # only the controller's own value, never one written
+        assert not written[k] and (new_proc[k] or off[k] == ref[k]), \
+            f"row {k}: offset {off[k]:.6g} beyond the clamp {clamp_a[k]:g} (from {ref[k]:.6g})"
     # rows lost: a runtime's consecutive rows are dt_s apart (3 decimals in time_s)
     within = ~new_proc & (dt > 0)
     lost = int(np.count_nonzero(within & (np.abs(np.r_[0.0, np.diff(t)] - dt) > 1.5e-3)))

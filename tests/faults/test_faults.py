@@ -403,15 +403,12 @@ def test_02_outside_write_is_found_and_ramped_back(case):
     assert same_value(mm["expected_um"], float(before["offset_um"][-1]))
     assert mm["when"] in ("periodic check", "after a reconnect")
     (r,) = np.flatnonzero(has(j["alarms"], Alarm.OFFSET_MISMATCH))
-    beyond = np.flatnonzero(np.abs(j["offset_um"]) > s.clamp)
-    assert beyond.size >= 5 and beyond[0] == r and (np.diff(beyond) == 1).all()
-    # back into the clamp at full slew, every step written
-    steps = -np.diff(np.r_[999.0, j["offset_um"][beyond]])
-    assert (np.abs(steps - s.rate * j["dt_s"][beyond]) <= slew_tol(s.rate, 1000.0, 1000.0)).all(), steps
-    assert j["written"][beyond].all()
+    # 999 um is none we wrote: the same cycle writes the clamp, never the value back
+    assert not (np.abs(j["offset_um"]) > s.clamp).any()
+    assert j["written"][r] and j["offset_um"][r] == s.clamp
     k = recovered_at(j, j["wall_s"][r], s.clamp, s.deadband)
     summarize("2", "outside write of 999 um to the offset node",
-              "periodic read-back finds it, ramps back into the clamp at the slew limit, then to the model",
+              "periodic read-back finds it, writes the clamp in the same cycle, then ramps to the model",
               "OFFSET_MISMATCH (\"outside write\")",
               f"{fmt_s(j['wall_s'][k] - t_write)} (found after {fmt_s(mm['ts'] - t_write)})",
               f"none ({chk.lost} rows lost)")
@@ -444,18 +441,12 @@ def test_03_sighup_lowering_the_clamp_ramps_into_it(case):
     r = int(np.argmax(new))
     # the new runtime carries the running one on: its first step is the time since the last row
     assert j["dt_s"][r] == pytest.approx(j["time_s"][r] - j["time_s"][r - 1], abs=2e-3)
-    assert abs(j["offset_um"][r] - j["offset_um"][r - 1]) <= s.rate * j["dt_s"][r] + 1e-6
-    k = int(np.argmax(new & (np.abs(j["offset_um"] + 10.0) <= 1e-9)))
-    ramp = j["offset_um"][r:k + 1]
-    assert k > r and (np.diff(ramp) > 0).all(), ramp  # from -30 up to -10, step by step ...
-    # ... never faster than the slew limit, over the runtime's own steps
-    assert s.rate * j["dt_s"][r:k + 1].sum() >= ramp[-1] - j["offset_um"][r - 1] - slew_tol(s.rate, 30.0, 30.0)
-    full = np.abs(np.diff(ramp) - s.rate * j["dt_s"][r + 1:k + 1]) <= slew_tol(s.rate, 30.0, 30.0)
-    assert full[:-1].all(), ramp  # at the slew limit (the last step may be shorter)
-    assert (j["offset_um"][k:] == -10.0).all()
+    # no offset beyond the clamp is ever written: the first cycle under the new clamp writes it
+    assert j["offset_um"][r - 1] == pytest.approx(-30.0, abs=0.2)
+    assert j["written"][r] and (j["offset_um"][r:] == -10.0).all()
     summarize("3", "SIGHUP lowering max_offset_um below the offset",
-              "reloads; the new clamp is entered by a ramp at the slew limit, never a jump",
-              "none (event reload)", f"{fmt_s(j['wall_s'][k] - t_hup)}", f"none ({chk.lost} rows lost)")
+              "reloads; the first cycle under the new clamp writes the clamp (no value beyond it is written)",
+              "none (event reload)", f"{fmt_s(j['wall_s'][r] - t_hup)}", f"none ({chk.lost} rows lost)")
 
 
 # -- 4. SIGHUP with a broken model ------------------------------------------------------------------------------

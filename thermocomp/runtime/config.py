@@ -20,8 +20,9 @@ from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
 from compensator.cooling import CoolingLaw, PidGains
 from compensator.errors import ConfigError, ModelError, clip
 from compensator.estimate import Estimate
+from compensator.io.atomic import read_regular
 from compensator.fusion import observer_config_of
-from compensator.observer import ObserverConfig
+from compensator.observer import SIGMA_LIMIT_UM, ObserverConfig
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
@@ -36,6 +37,9 @@ class FaultPolicy(BaseModel):
     speed_hold_s: float = Field(30.0, ge=0, le=86400, description="hold the last speed this long after a failed read, then assume idle")
     over_range: Literal["clamp", "extrapolate"] = Field(
         "clamp", description="speed above the calibrated range: clamp to its top, or trust the model beyond it")
+    max_speed_rpm: float | None = Field(
+        None, gt=0, le=1e6, description="the spindle's rated maximum speed [rpm]: a speed read more than "
+        "10 % above it is a failed read, in either over_range policy (default: twice the calibrated top)")
     max_outage_s: float = Field(600.0, gt=0, le=86400, description="a link outage (refused, lost or timing out) "
                                 "longer than this raises the OUTAGE alarm")
     input_stale_s: float = Field(300.0, gt=0, le=86400, description="an input (temperature, load) unchanged this long "
@@ -66,7 +70,7 @@ class ObserverSettings(BaseModel):
 
     enabled: bool = Field(False, description="fuse measurements: from the controller (the adapter's "
                           "measurement nodes or variables) and from `thermocomp measure`")
-    sigma_um: float = Field(0.5, gt=0, le=1000, description="sigma of a measurement that states none [um]")
+    sigma_um: float = Field(0.5, gt=0, le=SIGMA_LIMIT_UM, description="sigma of a measurement that states none [um]")
     stale_after_s: float = Field(3600.0, gt=0, le=365 * 86400, description="no accepted measurement "
                                  "this long: OBSERVER_STALE (the estimate is open loop again)")
     bias_q_um2_per_s: float | None = Field(None, ge=0, le=1e6)
@@ -189,7 +193,7 @@ class SpindleConfig(BaseModel):
             except ModelError as err:
                 raise ConfigError(f"spindle {self.name}: {err}") from err
         return Estimate(model, observer, self.faults.over_range, self.faults.input_stale_s,
-                        self.faults.input_recover_s)
+                        self.faults.input_recover_s, self.faults.max_speed_rpm)
 
     @field_validator("adapter")
     @classmethod
@@ -313,16 +317,28 @@ class StatusConfig(BaseModel):
         if self.access == "open":
             return None
         if self.token_file is not None:
-            try:
-                tok = self.token_file.read_text(encoding="utf-8").strip()
-            except OSError as err:
-                raise ConfigError(f"status.token_file {self.token_file}: {err.strerror or err}") from err
+            tok = read_secret_file(self.token_file, "status.token_file")
         else:
             tok = os.environ.get("THERMOCOMP_STATUS_TOKEN", "").strip()
         if len(tok) < 16:
             raise ConfigError("status.access = \"token\": the token (token_file or "
                               "THERMOCOMP_STATUS_TOKEN) must be at least 16 characters")
         return tok
+
+
+MAX_CONFIG_BYTES = 1 << 20
+"""A configuration, token or password file larger than this is not one."""
+
+
+def read_secret_file(path: Path, key: str) -> str:
+    """A token or password kept in a file, stripped; ConfigError (naming the file, never its
+    content) when it cannot be read, is not a regular file, or is not UTF-8 text."""
+    try:
+        return read_regular(path, MAX_CONFIG_BYTES)[:MAX_CONFIG_BYTES].decode("utf-8").strip()
+    except OSError as err:
+        raise ConfigError(f"{key} {path}: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{key} {path}: not UTF-8 text (byte {err.start})") from None
 
 
 class MqttConfig(BaseModel):
@@ -348,12 +364,19 @@ class MqttConfig(BaseModel):
     tls: bool = False
     ca_file: Path | None = Field(None, description="with tls: the broker's CA (default: the system's)")
 
+    @field_validator("host")
+    @classmethod
+    def _plain_host(cls, v: str) -> str:
+        # "user:pw@host" or "mqtt://…" would put a password in every log line that names the broker
+        if "@" in v or "/" in v or any(c.isspace() for c in v):
+            raise ValueError("mqtt.host takes a host name or address only (no scheme, user or "
+                             "password): the user goes in username, the password in password_file "
+                             "or THERMOCOMP_MQTT_PASSWORD")
+        return v
+
     def password(self) -> str | None:
         if self.password_file is not None:
-            try:
-                return self.password_file.read_text(encoding="utf-8").strip()
-            except OSError as err:
-                raise ConfigError(f"mqtt.password_file {self.password_file}: {err.strerror or err}") from err
+            return read_secret_file(self.password_file, "mqtt.password_file")
         return os.environ.get("THERMOCOMP_MQTT_PASSWORD") or None
 
 
@@ -412,13 +435,28 @@ class RuntimeConfig(BaseModel):
         return self.journal_dir or self.state_dir / "journal"
 
 
+_SECRET_WORDS = ("password", "passwd", "secret", "token", "credential", "private")
+
+
+def _names_a_secret(loc: tuple[Any, ...]) -> bool:
+    """The key's name (or its table's) says that its value is secret: never echoed."""
+    return any(w in str(part).lower() for part in loc for w in _SECRET_WORDS)
+
+
 def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     """Read and validate; one-line :class:`ConfigError` on any problem."""
     p = Path(path)
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
+        raw = read_regular(p, MAX_CONFIG_BYTES)  # a FIFO is refused, never waited on
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{p}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a configuration")
+        data = tomllib.loads(raw.decode("utf-8"))
     except OSError as err:
-        raise ConfigError(f"{p}: cannot read: {err.strerror}") from err
+        raise ConfigError(f"{p}: cannot read: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        line = raw[:err.start].count(b"\n") + 1
+        raise ConfigError(f"{p}: line {line}: not UTF-8 text (byte 0x{raw[err.start]:02x}); "
+                          "save the file as UTF-8") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from err
     base = p.parent
@@ -442,7 +480,8 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
             msg, given = str(e.get("ctx", {}).get("error", e["msg"])), ""
         else:
             msg = e["msg"]
-            given = "" if e["type"] == "missing" else f" (given {short(e.get('input'))})"
+            given = "" if e["type"] == "missing" or _names_a_secret(e["loc"]) \
+                else f" (given {short(e.get('input'))})"
         raise ConfigError(clip(f"{p}: {where}: {msg}{given}{more}", 400)) from err
     names = [s.name for s in cfg.spindle]
     if len(set(names)) != len(names):

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from compensator.errors import ConfigError, ControlError, clip
+from compensator.observer import SIGMA_LIMIT_UM
 
 SOCKET_NAME = "control.sock"
 MAX_LINE_BYTES = 4096
@@ -80,8 +81,9 @@ def parse_request(line: bytes) -> MeasureRequest:
         raise ConfigError(f"elongation_um must be a finite number, not {clip(repr(value), 60)}")
     sigma = data.get("sigma_um")
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
-                              or not math.isfinite(sigma) or sigma <= 0):
-        raise ConfigError(f"sigma_um must be a number > 0, not {clip(repr(sigma), 60)}")
+                              or not math.isfinite(sigma) or not 0 < sigma <= SIGMA_LIMIT_UM):
+        raise ConfigError(f"sigma_um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, "
+                          f"not {clip(repr(sigma), 60)}")
     spindle = data.get("spindle")
     if spindle is not None and not isinstance(spindle, str):
         raise ConfigError("spindle must be a name")
@@ -151,7 +153,7 @@ class ControlChannel:
         if self._sock is None:
             return []
         now = self.clock()
-        while len(self._reading) < MAX_CLIENTS:
+        for _ in range(4 * MAX_CLIENTS):  # bounded: a flood cannot hold the cycle here
             try:
                 conn, _ = self._sock.accept()
             except (BlockingIOError, InterruptedError):
@@ -159,6 +161,16 @@ class ControlChannel:
             except OSError:
                 break
             conn.setblocking(False)
+            if len(self._reading) >= MAX_CLIENTS:
+                # full: the connection that has sent nothing for longest makes room, so that idle
+                # clients cannot keep a measurement waiting for the request timeout
+                idle = [p for p in self._reading if not p.buffer]
+                if not idle:
+                    Pending(conn, now).fail("too many requests at once; try again")
+                    continue
+                oldest = min(idle, key=lambda p: p.accepted_s)
+                self._reading.remove(oldest)
+                oldest.fail("closed to make room: no request was sent")
             self._reading.append(Pending(conn, now))
         done: list[Pending] = []
         for p in list(self._reading):

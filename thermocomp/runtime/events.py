@@ -27,6 +27,7 @@ EVENTS = (
     "observer_fresh", "control_failed", "cutting_signal_failed", "cutting_signal_restored",
     "chiller_failed", "chiller_restored",
     "status_listening", "status_failed", "mqtt_connected", "mqtt_lost", "journal_swept",
+    "estimate_refused", "cycle_failed", "downtime_corrected",
 )
 """Every event name the runtime emits (documented in the README)."""
 

@@ -1,9 +1,11 @@
-"""One instance per state directory: an exclusive ``flock`` on ``<state_dir>/thermocomp.lock``.
+"""One instance per state directory: an exclusive ``flock`` on the state directory itself.
 
 Two services on one spindle would fight over the offset (twice the slew rate) and interleave
 their journals. The lock is the kernel's: it goes with the process, however it dies, so a
-crashed instance never blocks the next start. The holder's pid is written into the file for
-the message a second instance prints.
+crashed instance never blocks the next start. It is held on the directory, not on a file in
+it, so that no stray ``rm`` can break it (a removed lock file would let a second instance
+lock a new one). The holder's pid is written into ``<state_dir>/thermocomp.lock`` for the
+message a second instance prints; that file is information only.
 """
 
 from __future__ import annotations
@@ -32,26 +34,20 @@ class StateDirLock:
         self.read_only = False
 
     def acquire(self) -> StateDirLock:
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as err:
-            if err.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
-                raise
-            # a read-only state directory: lock the file that is there (flock needs no write)
-            fd = os.open(self.path, os.O_RDONLY)
-            self.read_only = True
+        fd = os.open(self.path.parent, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_CLOEXEC", 0))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError as err:
-            holder = _read_pid(fd)
             os.close(fd)
+            holder = _read_pid(self.path)
             who = f"pid {holder}" if holder else "another process"
-            raise AlreadyRunningError(f"state directory {self.path.parent} is in use by {who} "
-                                      f"(lock {self.path}); one instance per state directory") from err
-        if not self.read_only:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            raise AlreadyRunningError(f"state directory {self.path.parent} is in use by {who}; "
+                                      "one instance per state directory") from err
+        try:
+            with open(self.path, "w", encoding="ascii") as fh:
+                fh.write(f"{os.getpid()}\n")
+        except OSError as err:  # a read-only state directory: the lock holds all the same
+            self.read_only = err.errno in (errno.EROFS, errno.EACCES, errno.EPERM)
         self._fd = fd
         return self
 
@@ -67,9 +63,9 @@ class StateDirLock:
         self.release()
 
 
-def _read_pid(fd: int) -> int | None:
+def _read_pid(path: Path) -> int | None:
     try:
-        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        text = path.read_bytes()[:32].decode("ascii", "replace").strip()
         return int(text) if text.isdigit() else None
     except OSError:
         return None

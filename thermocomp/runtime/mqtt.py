@@ -60,6 +60,9 @@ class MqttPublisher:
         self._outage: str | None = None  # why we are not connected, once logged
         self._connects = 0  # connections made (paho's thread): each wants a publish at once
         self._due_conn = -1  # the connection count at the last publish (or skip)
+        self._down_since: float | None = None  # service clock of the first publish not connected
+        self.silent_after_s = 1.5 * cfg.keepalive_s
+        """Not connected this long without a word from paho: an outage all the same."""
         self._next_s = 0.0  # the service clock's time of the next periodic publish [s]
         self._alarms: Any = None  # the alarms last published
         self._warn_s: float | None = None
@@ -148,7 +151,13 @@ class MqttPublisher:
             self._next_s = now_s + self.cfg.publish_every_s
             if not self.connected:  # paho would queue it for later, when it is stale
                 self.skipped += 1
+                if self._down_since is None:
+                    self._down_since = now_s
+                elif self._outage is None and now_s - self._down_since > self.silent_after_s:
+                    # a broker that took the TCP connection and never answers calls no callback
+                    self._lost(f"no answer within {now_s - self._down_since:.0f} s")
                 return
+            self._down_since = None
             self._send("status", snapshot, now_s)
             for sp in snapshot.get("spindles") or ():
                 self._send(f"spindle/{sp['name']}", sp, now_s)

@@ -23,12 +23,15 @@ import os
 import signal
 import socket
 import time
+from collections.abc import Callable
+from typing import Any
 
 from cnc_adapters import open_adapter
 from cnc_adapters.chiller import open_chiller
 from compensator.clock import ScaledClock
 from compensator.errors import ConfigError, ControlError, ThermocompError
 from compensator.io import load_any_model
+from compensator.observer import SIGMA_LIMIT_UM
 
 from .config import RuntimeConfig, load_config
 from .control import ControlChannel, Pending, send_measurement
@@ -40,9 +43,28 @@ from .status import History, StatusServer, snapshot, spindle_status, start_serve
 
 log = logging.getLogger("thermocomp.runtime")
 
+FAILING_EXIT_S = 60.0
+"""A spindle whose every cycle has failed this long [s] stops the service (non-zero status)."""
+
 PLAUSIBLE_ELONGATION_UM = 5000.0
 """A model whose steady elongation anywhere in its speed range exceeds this (5 mm) is not a
 spindle's: a reload refuses it."""
+
+
+TIME_ERROR = 5
+"""adjtimex's answer for a clock that is not synchronised."""
+
+
+def kernel_clock_synchronized() -> bool | None:
+    """Whether the kernel holds the wall clock synchronised (NTP, chrony or timesyncd keep it
+    so: ``adjtimex`` answers other than ``TIME_ERROR``); None where it cannot be asked."""
+    try:
+        import ctypes
+
+        buf = ctypes.create_string_buffer(512)  # a struct timex with modes 0: read only
+        return int(ctypes.CDLL(None, use_errno=True).adjtimex(buf)) != TIME_ERROR
+    except (OSError, AttributeError):
+        return None
 
 
 def setup_logging(cfg: RuntimeConfig) -> None:
@@ -95,7 +117,8 @@ class Service:
     """All spindles of one configuration, in one process."""
 
     def __init__(self, config_path: str | os.PathLike[str], *, clock=time.monotonic, wall=time.time,
-                 sleep=time.sleep, cfg: RuntimeConfig | None = None, lock: bool = True):
+                 sleep=time.sleep, cfg: RuntimeConfig | None = None, lock: bool = True,
+                 clock_synchronized: Callable[[], bool | None] | None = None):
         self.config_path = config_path
         self.cfg = cfg if cfg is not None else load_config(config_path)
         if self.cfg.time_scale != 1.0 and clock is time.monotonic:
@@ -104,6 +127,8 @@ class Service:
             clock, wall = sim, (lambda: w0 + sim())
             sleep = (lambda s, _k=self.cfg.time_scale: time.sleep(s / _k))
         self.clock, self.wall, self.sleep = clock, wall, sleep
+        self.clock_synchronized = clock_synchronized or kernel_clock_synchronized
+        self._age_paused_said = False
         self.anchor_s = wall() - clock()  # one journal time base for every spindle and reload
         self.spindles: dict[str, SpindleRuntime] = {}
         self._stop = False
@@ -127,6 +152,9 @@ class Service:
         self.mqtt = None
         self._sweep_due = -math.inf
         self._publish_warned = -math.inf
+        self._failing: dict[str, float] = {}  # spindle -> since when every cycle has failed
+        self.not_started: list[str] = []  # optional parts that could not start (status, mqtt)
+        self.exit_code = 0
 
     def start_status(self) -> None:
         """The status endpoint and the MQTT publisher of the configuration (``run`` starts them;
@@ -137,6 +165,7 @@ class Service:
         try:
             self.status_server = start_server(st, self.history, self.cfg.state_dir / "status.url")
         except ConfigError as err:  # a token missing: no endpoint (never an open one instead)
+            self.not_started.append("status endpoint")
             event("status_failed", None, "status endpoint not started: %s; compensation goes on", err,
                   level=logging.ERROR, error=str(err)[:200])
         if self.cfg.mqtt is not None and self.cfg.mqtt.enabled:
@@ -145,6 +174,7 @@ class Service:
             try:
                 self.mqtt = MqttPublisher(self.cfg.mqtt).start()
             except ConfigError as err:
+                self.not_started.append("mqtt")
                 event("mqtt_lost", None, "mqtt not started: %s; compensation goes on", err,
                       level=logging.ERROR, reason=str(err)[:200])
         try:
@@ -258,9 +288,17 @@ class Service:
         journals = [j for rt in self.spindles.values() for j in (rt.journal, rt.measurements)]
         if self.cooling is not None:
             journals.append(self.cooling.journal)
+        # by age only on a clock the kernel says is synchronised: a box that booted with its
+        # clock months ahead must not age away the history (the size rule needs no clock)
+        by_age = self.clock_synchronized() is not False
+        if not by_age and not self._age_paused_said:
+            self._age_paused_said = True
+            log.warning("journal retention: the wall clock is not synchronised: files are removed "
+                        "for the size limit only, not for their age, until it is")
         try:
             res = sweep(self.cfg.journal_path, now_wall_s=self.anchor_s + now, max_age_days=ret.max_age_days,
-                        max_bytes=int(ret.max_size_mb * 2**20), keep=[j.path for j in journals if j.path])
+                        max_bytes=int(ret.max_size_mb * 2**20), keep=[j.path for j in journals if j.path],
+                        by_age=by_age)
         except Exception as err:  # noqa: BLE001 - retention is housekeeping
             log.error("journal retention failed: %s", err)
             return
@@ -334,7 +372,9 @@ class Service:
                 try:
                     rt.cycle()
                 except ThermocompError as err:  # a bad value: skip the cycle, never write it
-                    log.error("%s: cycle skipped: %s", name, err)
+                    self._cycle_failed(name, now, err)
+                else:
+                    self._failing.pop(name, None)
                 period = rt.next_period_s()
                 due += period
                 self._due[name] = due if due > now else now + period  # no catch-up burst
@@ -355,7 +395,7 @@ class Service:
             self._sweep_due = now + self.cfg.journal.sweep_every_s
             self.sweep_journal(now)
         beat = time.monotonic()  # real time: systemd's watchdog counts real seconds
-        if self.cfg.watchdog and beat - self._last_beat >= 1.0:
+        if self.cfg.watchdog and beat - self._last_beat >= 1.0 and not self._stop:
             self._last_beat = beat
             sd_notify("WATCHDOG=1")
         status = self.status_text()
@@ -367,9 +407,26 @@ class Service:
             due_next = min(due_next, self._cooling_due)
         return max(0.0, due_next - self.clock())
 
+    def _cycle_failed(self, name: str, now: float, err: ThermocompError) -> None:
+        """A cycle that could not run is never silent: an event when the failures begin, and once
+        every cycle has failed for ``FAILING_EXIT_S`` the service stops with one line and a
+        non-zero status (it stops feeding the watchdog too), so that its supervisor restarts it
+        from the last good state rather than leaving the controller's offset frozen."""
+        since = self._failing.setdefault(name, now)
+        if since == now:
+            event("cycle_failed", name, "%s: CYCLE_FAILED: %s; the offset is not written until a "
+                  "cycle runs again", name, err, level=logging.ERROR, error=str(err)[:200])
+        if now - since >= FAILING_EXIT_S and not self._stop:
+            log.error("%s: every cycle has failed for %.0f s (%s): stopping so that the service is "
+                      "restarted", name, now - since, str(err)[:200])
+            self.exit_code = 1
+            self._stop = True
+
     def status_text(self) -> str:
         """One line for `systemctl status`: what needs attention, if anything."""
         notes = ["reload refused, running the previous configuration"] if self.reload_failed else []
+        notes += [f"{name}: cycles failing" for name in self._failing]
+        notes += [f"{what} not started (see the log)" for what in self.not_started]
         for name, rt in self.spindles.items():
             obs = rt.observer_status()
             if obs is None:
@@ -385,11 +442,16 @@ class Service:
             notes.append(f"cooling: {self.cooling.alarm} ({self.cooling.error})")
         return f"compensating {len(self.spindles)} spindle(s)" + ("; " + "; ".join(notes) if notes else "")
 
-    def run(self) -> int:
+    def run(self, early: Any = None) -> int:
+        """Compensate until SIGTERM or SIGINT; SIGHUP reloads. ``early``: the signals recorded
+        while the service started (``stop``, ``reload``), acted on now."""
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
         if hasattr(signal, "SIGHUP"):
             signal.signal(signal.SIGHUP, self.request_reload)
+        if early is not None:
+            self._stop = self._stop or early.stop
+            self._reload = self._reload or early.reload
         if hasattr(signal, "SIGXFSZ"):
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a size limit: EFBIG, not death
         try:
@@ -407,7 +469,7 @@ class Service:
         finally:
             sd_notify("STOPPING=1")
             self.close()
-        return 0
+        return self.exit_code
 
     def close(self) -> None:
         if self.control is not None:
@@ -516,8 +578,8 @@ def measure(args) -> int:
     um, sigma = args.um, args.sigma_um
     if not math.isfinite(um) or abs(um) > 1e4:
         raise ConfigError(f"--um must be a finite elongation in um (|um| <= 10000), not {um:g}")
-    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
-        raise ConfigError(f"--sigma-um must be a number > 0, not {sigma:g}")
+    if sigma is not None and not (math.isfinite(sigma) and 0 < sigma <= SIGMA_LIMIT_UM):
+        raise ConfigError(f"--sigma-um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, not {sigma:g}")
     if args.timeout_s is not None and not (math.isfinite(args.timeout_s) and args.timeout_s > 0):
         raise ConfigError("--timeout-s must be a number > 0")
     if args.state_dir and args.config:
@@ -543,4 +605,4 @@ def main(args) -> int:
     cfg = load_config(args.config)
     setup_logging(cfg)  # before anything else is said
     service = Service(args.config, cfg=cfg)
-    return service.run()
+    return service.run(getattr(args, "early_signals", None))

@@ -82,6 +82,7 @@ from compensator.io import (
     save_state,
 )
 from compensator.model import SAVED_LIMIT_UM, saved_numbers
+from compensator.observer import SIGMA_LIMIT_UM
 from compensator.predictor import Predictor
 from compensator.shaping import ShapedOffset
 
@@ -99,6 +100,10 @@ JOURNAL_INPUTS_RETRY_S = 60.0
 
 CLOCK_STEP_S = 2.0
 """A jump of the wall clock against the monotonic clock larger than this is a clock step."""
+
+DOWNTIME_RECHECK_S = 3600.0
+"""For this long after a restore [s], the first forward clock step measures the downtime again
+(a box that booted with its clock behind, until time synchronisation steps it)."""
 
 
 class Alarm(enum.IntFlag):
@@ -125,6 +130,7 @@ class Alarm(enum.IntFlag):
     OBSERVER_STALE = 524288
     PROBE_FAILED = 1048576
     CUTTING_SIGNAL_FAILED = 2097152
+    ESTIMATE_REFUSED = 4194304
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
@@ -167,6 +173,10 @@ class SpindleRuntime:
         # journal time = monotonic + anchor: increasing, and its steps are the model's dt
         self.anchor_s = wall() - clock() if anchor_s is None else anchor_s
         self._skew_s: float | None = None
+        # after a restore: the saved state, the downtime applied and the cycles since (speed, dt,
+        # times, inputs), so that a clock that was wrong at the start can be corrected
+        self._restored: tuple[Any, float, float, float, float] | None = None
+        self._since_start: list[tuple[Any, ...]] | None = None
         loaded: Predictor = load_any_model(cfg.model)
         cfg.refuse_other_spindle(loaded.spindle_id)
         self.digest = model_digest(loaded)
@@ -194,6 +204,7 @@ class SpindleRuntime:
         self._journal_inputs_after = -math.inf  # a failed journal-only read waits till then
         self.last: dict[str, Any] | None = None  # the last cycle's outcome, for the status
         self.last_write_s: float | None = None  # clock time of the last offset written
+        self._write_done_s: float | None = None  # clock time the last write returned
         self.last_readback_um: float | None = None  # what the controller held when last read back
         self.measurements = MeasurementJournal(journal_dir, cfg.name, {
             "spindle": cfg.name, "model": cfg.model, "source": "thermocomp run"},
@@ -201,7 +212,9 @@ class SpindleRuntime:
         self.counters = {"cycles": 0, "writes": 0, "write_rejected": 0, "read_failed": 0,
                          "link_down_cycles": 0, "readbacks": 0, "mismatches": 0,
                          "journal_failed": 0, "state_save_failed": 0, "probes_accepted": 0,
-                         "probes_rejected": 0, "probes_restarted": 0, "probes_failed": 0}
+                         "probes_rejected": 0, "probes_restarted": 0, "probes_failed": 0,
+                         "steps_refused": 0}
+        self._refused: str | None = None  # why the estimate's last step was refused, while it is
         # measurements from `thermocomp measure`: (um, sigma or None, reply), fused next cycle
         self._queued: collections.deque[tuple[float, float | None, Reply | None]] = collections.deque()
         self._probe_rejected = False  # the last measurement was beyond the gate
@@ -286,6 +299,7 @@ class SpindleRuntime:
         # the spindle stood still while we were down: the model's own cooling; the input
         # model's state is advanced once the inputs are read
         self.est = self.estimate.resume(parsed, downtime, now, self.cfg.max_state_age_s)
+        self._restored, self._since_start = (parsed, saved_wall, downtime, self.clock(), now), []
         # what we last wrote; the first cycle reads back what the controller really holds
         self.offset = OffsetTracker(self.cfg.shaping, held)
         event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
@@ -305,9 +319,9 @@ class SpindleRuntime:
         self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
         self._last_t, self._first_t = old._last_t, old._first_t
         self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
-        self._skew_s = old._skew_s
+        self._skew_s, self._write_done_s = old._skew_s, old._write_done_s
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
-                     "_save_error", "_stale", "_state_alarms", "_journal_error"):
+                     "_save_error", "_stale", "_state_alarms", "_journal_error", "_restored", "_since_start"):
             setattr(self, name, getattr(old, name))
 
     def take_journal(self, old: SpindleRuntime) -> None:
@@ -453,12 +467,21 @@ class SpindleRuntime:
         the last when that ran slower: :meth:`compensator.estimate.Estimate.measure`); journal it."""
         assert self.estimate.fused is not None
         sigma = self.cfg.observer.sigma_um if sigma_um is None else sigma_um
-        if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma) and sigma > 0):
-            err = BadValueError(f"{source}: measurement {y!r} um (sigma {sigma!r}) is not usable")
+        err: Exception | None = None
+        if not (math.isfinite(y) and abs(y) <= SAVED_LIMIT_UM and math.isfinite(sigma)
+                and 0 < sigma <= SIGMA_LIMIT_UM):
+            err = BadValueError(f"{source}: measurement {y!r} um (sigma {sigma!r} um) is not usable: "
+                                f"|value| <= {SAVED_LIMIT_UM:g} um and 0 < sigma <= {SIGMA_LIMIT_UM:g} um")
+        else:
+            try:
+                self.est, up, before = self.estimate.measure(self.est, y, sigma)
+            except ModelError as refused:  # the estimate it would give is none a spindle has
+                err = BadValueError(f"{source}: {refused}")
+        if err is not None:
             self._source_failed(now, wall_now, source, err, True)
             return {"ok": False, "spindle": self.cfg.name, "error": str(err)}
         self._source_errors.pop(source, None)  # it gave a usable value
-        self.est, up, before = self.estimate.measure(self.est, y, sigma)
+        self._since_start = None  # the estimate has been measured: it is not re-run from the start
         outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
         self.counters[f"probes_{outcome}"] += 1
         z = self.state.observer
@@ -534,6 +557,9 @@ class SpindleRuntime:
         alarms = Alarm.NONE
         try:
             speed = self.adapter.read_speed()
+            if not self.estimate.plausible(speed):  # a register read as 0xFFFFFFFF, a unit slip
+                raise BadValueError(f"speed {speed:g} rpm is no spindle's (above "
+                                    f"{self.estimate.speed_limit_rpm:g} rpm): taken as a failed read")
             self._last_good_read = now
             self._last_speed = speed
             if self._idle_assumed:
@@ -610,7 +636,7 @@ class SpindleRuntime:
             pause = min(faults.max_write_backoff_s, self.cfg.period_s * 2 ** (k + 1))
             self._writes_paused_until = now + pause
             event("write_backoff", self.cfg.name, "%s: the controller keeps refusing the offset "
-                  "(%d mismatches in a row): no write for %.0f s", self.cfg.name,
+                  "(%d mismatches in a row): no write for %.3g s", self.cfg.name,
                   self._mismatch_streak, pause, level=logging.ERROR, pause_s=pause,
                   streak=self._mismatch_streak)
         return Alarm.OFFSET_MISMATCH
@@ -669,6 +695,7 @@ class SpindleRuntime:
             return False, alarms
         self.counters["writes"] += 1
         self.last_write_s = now
+        self._write_done_s = self.clock()  # a write a hung controller held took effect only now
         self._wrote_since_check = True
         return True, Alarm.NONE
 
@@ -680,7 +707,37 @@ class SpindleRuntime:
         event("clock_step", self.cfg.name, "%s: the wall clock stepped by %+.1f s; the journal "
               "keeps its monotonic time", self.cfg.name, skew - prev, level=logging.WARNING,
               step_s=round(skew - prev, 3))
+        if skew > prev and self._since_start is not None:
+            self._downtime_again(now, wall_now)
         return Alarm.CLOCK_STEP
+
+    def _downtime_again(self, now: float, wall_now: float) -> None:
+        """The first forward clock step soon after a restore (a box without a real-time clock
+        boots with its clock behind; time synchronisation then steps it): the downtime is
+        measured again on the corrected clock, and where it was longer the estimate restarts
+        from the saved state advanced through it, then is stepped again through every cycle
+        since the start."""
+        assert self._restored is not None and self._since_start is not None
+        parsed, saved_wall, applied, started, restore_wall = self._restored
+        since, self._since_start = self._since_start, None  # once
+        start_wall = wall_now - (now - started)
+        downtime = start_wall - saved_wall
+        if downtime <= applied + CLOCK_STEP_S:
+            return
+        before = self.est.estimate_um
+        try:
+            est = self.estimate.resume(parsed, downtime, start_wall, self.cfg.max_state_age_s)
+            for speed, dt, t, wall, inputs, error in since:
+                est, _ = self.estimate.step(est, speed, dt, now_s=t, wall_s=wall + (start_wall - restore_wall),
+                                            inputs=inputs, input_error=error)
+        except ModelError as err:
+            log.warning("%s: the downtime could not be applied again: %s", self.cfg.name, err)
+            return
+        self.est = est
+        event("downtime_corrected", self.cfg.name, "%s: the clock was wrong at the start: the downtime "
+              "was %.0f s, not %.0f s; the saved state advanced through it again: S %.2f -> %.2f um",
+              self.cfg.name, downtime, applied, before, self.est.estimate_um, level=logging.WARNING,
+              downtime_s=round(downtime, 3), applied_s=round(applied, 3), elongation_um=self.est.estimate_um)
 
     def cycle(self) -> dict[str, Any]:
         t_read = time.perf_counter()  # a measurement only: the read->write latency
@@ -715,14 +772,24 @@ class SpindleRuntime:
             except AdapterError as err:
                 input_error = f"inputs not read: {err}"
         extrapolated = self.est.extrapolated
-        self.est, step = self.estimate.step(self.est, read_rpm, dt, now_s=now, wall_s=wall_now, inputs=inputs,
-                                            input_error=input_error)
-        if self.estimate.with_inputs is not None:
-            alarms |= self._input_events(step, extrapolated)
+        try:
+            self.est, step = self.estimate.step(self.est, read_rpm, dt, now_s=now, wall_s=wall_now,
+                                                inputs=inputs, input_error=input_error)
+        except ModelError as err:  # the estimate stays where it was; the offset holds it
+            alarms |= self._estimate_refused(err)
+        else:
+            self._refused = None
+            if self.estimate.with_inputs is not None:
+                alarms |= self._input_events(step, extrapolated)
+            if self._since_start is not None:  # for a clock found wrong at the start
+                assert self._restored is not None
+                self._since_start.append((read_rpm, dt, now, wall_now, inputs, input_error))
+                if now - self._restored[3] > DOWNTIME_RECHECK_S:
+                    self._since_start = None
         if self.estimate.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
         s = self.estimate_um()
-        shaped = self.offset.plan(s, shaper_speed, dt, cutting)
+        shaped = self.offset.plan(s, shaper_speed, self._shaper_dt(dt), cutting)
         if shaped.cutting:
             self._run_up_until = -math.inf
         elif self.offset.shaper.state.settled_s == 0.0:  # the speed left its band this cycle
@@ -765,6 +832,26 @@ class SpindleRuntime:
                                   if self.input_state is not None else "speed"),
                      "inputs": dict(self._inputs_read)}
         return {**self.last, "alarms": alarms}
+
+    def _shaper_dt(self, dt: float) -> float:
+        """The time the offset may move over this cycle: the slew limit holds in wall time at
+        the controller, from the last write that took effect. A controller that hung inside a
+        write took it late; the next cycle, almost at once, may move the offset only by the
+        limit times the time since then, not times the cycle's own dt."""
+        if self._write_done_s is not None:
+            dt = min(dt, max(0.0, self.clock() - self._write_done_s))
+        return dt
+
+    def _estimate_refused(self, err: ModelError) -> Alarm:
+        """ESTIMATE_REFUSED: a step that would leave an estimate no spindle can have was not
+        taken; an event when it begins and when its reason changes."""
+        self.counters["steps_refused"] += 1
+        why = str(err)[:200]
+        if self._refused != why:
+            self._refused = why
+            event("estimate_refused", self.cfg.name, "%s: ESTIMATE_REFUSED: %s", self.cfg.name, why,
+                  level=logging.ERROR, error=why)
+        return Alarm.ESTIMATE_REFUSED
 
     def _journal_inputs(self, now: float) -> None:
         """A speed-only model's link still reads its input channels, for the journal only: after
