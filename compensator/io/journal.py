@@ -328,8 +328,7 @@ def cut_torn_tail(path: Path) -> Path | None:
                 if nl < 0 and start > 0:
                     break  # the line began before the window: it ended whole
                 line = tail[nl + 1:end - 1]
-                if b"\x00" in line or (line.strip() and not line.startswith(b"#")
-                                       and line.strip() != header.encode() and not _row(line, cells)):
+                if not _whole_line(line, header, cells):
                     end = nl + 1
                     continue
                 break
@@ -346,9 +345,26 @@ def cut_torn_tail(path: Path) -> Path | None:
     return aside
 
 
+def _whole_line(line: bytes, header: str, cells: int) -> bool:
+    """A line a run log may end with: a comment in UTF-8, the column line, or a row (the journal
+    writes no blank lines: one at the end is part of a torn tail)."""
+    if b"\x00" in line or not line.strip():
+        return False
+    if line.strip() == header.encode():
+        return True
+    if line.startswith(b"#"):
+        try:
+            line.decode("utf-8")
+        except UnicodeDecodeError:
+            return False
+        return True
+    return _row(line, cells)
+
+
 def _row(line: bytes, cells: int) -> bool:
-    """A complete journal row: the column count, and a time in its first cell."""
-    if line.count(b",") + 1 != cells:
+    """A complete journal row: printable ASCII (numbers and words), the column count, and a time
+    in its first cell."""
+    if line.count(b",") + 1 != cells or not all(32 <= c < 127 for c in line):
         return False
     try:
         return math.isfinite(float(line.split(b",", 1)[0]))
