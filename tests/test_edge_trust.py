@@ -21,7 +21,7 @@ from cnc_adapters import AdapterError, BadValueError
 from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.sim import SpindlePlant, preset
 from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running, step
+from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError, ModelError, NonFiniteInputError
 from compensator.estimate import Estimate

@@ -10,7 +10,6 @@ message a second instance prints; that file is information only.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import fcntl
 import os
