@@ -105,10 +105,13 @@ def read_regular(path: str | os.PathLike[str], limit: int | None = None) -> byte
             os.close(fd)
 
 
-def read_text(path: str | os.PathLike[str]) -> str:
+def read_text(path: str | os.PathLike[str], limit: int | None = None) -> str:
+    """A regular file's UTF-8 text (its first ``limit`` bytes); one-line ConfigError otherwise,
+    naming the file, never its content."""
     try:
-        return read_regular(path).decode("utf-8")
+        raw = read_regular(path, limit)
+        return (raw if limit is None else raw[:limit]).decode("utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from err
-    except UnicodeError as err:
-        raise ConfigError(f"{path}: not a text file") from err
+    except UnicodeError:
+        raise ConfigError(f"{path}: not UTF-8 text") from None

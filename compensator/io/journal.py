@@ -312,7 +312,6 @@ def cut_torn_tail(path: Path) -> Path | None:
     header = _header(path)
     if header is None:
         return None
-    cells = header.count(",") + 1
     try:
         with open(path, "r+b") as fh:
             size = fh.seek(0, os.SEEK_END)
@@ -328,7 +327,7 @@ def cut_torn_tail(path: Path) -> Path | None:
                 if nl < 0 and start > 0:
                     break  # the line began before the window: it ended whole
                 line = tail[nl + 1:end - 1]
-                if not _whole_line(line, header, cells):
+                if not _whole_line(line, header):
                     end = nl + 1
                     continue
                 break
@@ -345,7 +344,7 @@ def cut_torn_tail(path: Path) -> Path | None:
     return aside
 
 
-def _whole_line(line: bytes, header: str, cells: int) -> bool:
+def _whole_line(line: bytes, header: str) -> bool:
     """A line a run log may end with: a comment in UTF-8, the column line, or a row (the journal
     writes no blank lines: one at the end is part of a torn tail)."""
     if b"\x00" in line or not line.strip():
@@ -358,18 +357,36 @@ def _whole_line(line: bytes, header: str, cells: int) -> bool:
         except UnicodeDecodeError:
             return False
         return True
-    return _row(line, cells)
+    return _row(line, header)
 
 
-def _row(line: bytes, cells: int) -> bool:
-    """A complete journal row: printable ASCII (numbers and words), the column count, and a time
-    in its first cell."""
-    if line.count(b",") + 1 != cells or not all(32 <= c < 127 for c in line):
+NUMBER_COLUMNS = frozenset(("time_s", "speed_rpm", "predicted_um", "offset_um", "dt_s", "wall_s"))
+"""The journals' columns that hold a number whenever they hold anything."""
+
+
+def is_row(header: list[str], cells: list[str]) -> bool:
+    """A whole row of a journal with the columns ``header``: as many cells, printable ASCII only
+    (the journal writes numbers and words), a finite time first, and a number (or nothing) in
+    every column of :data:`NUMBER_COLUMNS`. The tail repair and the export both judge by it."""
+    if len(cells) != len(header) or not all(c.isascii() and c.isprintable() for c in cells):
         return False
     try:
-        return math.isfinite(float(line.split(b",", 1)[0]))
+        if not math.isfinite(float(cells[0])):
+            return False
+        for name, cell in zip(header, cells):
+            if name in NUMBER_COLUMNS and cell.strip():
+                float(cell)
     except ValueError:
         return False
+    return True
+
+
+def _row(line: bytes, header: str) -> bool:
+    try:
+        text = line.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    return is_row(header.split(","), text.split(","))
 
 
 def _last_time(path: Path) -> float | None:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 from ..errors import ConfigError, RunLogError
 from .atomic import atomic_write
-from .journal import Journal
+from .journal import Journal, is_row
 from .retention import DAY_S, JournalFile, journal_files, utc_day
 from .runlog import ELONGATION_COLUMN, REQUIRED_COLUMNS, SPARSE, header_text
 
@@ -91,14 +91,10 @@ class _Table:
             if c not in self.columns:
                 self.columns.append(c)
         for cells in reader:
-            try:
-                t = float(cells[0])
-            except (ValueError, IndexError):
-                t = math.nan
-            if len(cells) != len(header) or not math.isfinite(t) or not _numbers(header, cells):
+            if not is_row(header, cells):
                 self.skipped += 1  # a torn or damaged row: the rest of the day is still good
                 continue
-            self.rows.append((t, dict(zip(header, cells)), path.name))
+            self.rows.append((float(cells[0]), dict(zip(header, cells)), path.name))
 
     def sort(self) -> None:
         """By time; a repeated instant keeps its first row (the earlier part's)."""
@@ -108,20 +104,6 @@ class _Table:
             if not out or r[0] > out[-1][0]:
                 out.append(r)
         self.rows = out
-
-
-NUMERIC_COLUMNS = frozenset(("speed_rpm", "predicted_um", "offset_um", "dt_s", "wall_s"))
-"""The journal's columns that always hold a number (a row where one does not is damaged)."""
-
-
-def _numbers(header: list[str], cells: list[str]) -> bool:
-    for name, cell in zip(header, cells):
-        if name in NUMERIC_COLUMNS and cell.strip():  # blank: not recorded (a refused probe)
-            try:
-                float(cell)
-            except ValueError:
-                return False
-    return True
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
 from compensator.cooling import CoolingLaw, PidGains
 from compensator.errors import ConfigError, ModelError, clip
 from compensator.estimate import Estimate
-from compensator.io.atomic import read_regular
+from compensator.io.atomic import read_regular, read_text
 from compensator.fusion import observer_config_of
 from compensator.observer import SIGMA_LIMIT_UM, ObserverConfig
 from compensator.predictor import Predictor
@@ -334,11 +334,9 @@ def read_secret_file(path: Path, key: str) -> str:
     """A token or password kept in a file, stripped; ConfigError (naming the file, never its
     content) when it cannot be read, is not a regular file, or is not UTF-8 text."""
     try:
-        return read_regular(path, MAX_CONFIG_BYTES)[:MAX_CONFIG_BYTES].decode("utf-8").strip()
-    except OSError as err:
-        raise ConfigError(f"{key} {path}: {err.strerror or err}") from err
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"{key} {path}: not UTF-8 text (byte {err.start})") from None
+        return read_text(path, MAX_CONFIG_BYTES).strip()
+    except ConfigError as err:
+        raise ConfigError(f"{key} {err}") from None
 
 
 class MqttConfig(BaseModel):
