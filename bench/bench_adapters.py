@@ -22,8 +22,8 @@ from devices import LineDevice, ModbusDevice, PtyPair, Registers, haas_handler  
 from cnc_adapters.modbus import ModbusRtuAdapter  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.serial_link import HaasAdapter  # noqa: E402
-from cnc_adapters.sim import SpindlePlant, preset  # noqa: E402
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
+from machine_sim import SpindlePlant, preset  # noqa: E402
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
 
 N = 1000
 

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from cnc_adapters.sim import SpindlePlant, preset
+from machine_sim import SpindlePlant, preset
 from compensator.programs import job_shop_day
 
 

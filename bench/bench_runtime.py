@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from conftest import rich_form  # noqa: E402
 
 from cnc_adapters import Adapter  # noqa: E402
-from cnc_adapters.sim.vcnc import free_port  # noqa: E402
+from machine_sim.vcnc import free_port  # noqa: E402
 from compensator.io import save_model  # noqa: E402
 from thermocomp.runtime import SpindleRuntime  # noqa: E402
 from thermocomp.runtime.config import load_config  # noqa: E402

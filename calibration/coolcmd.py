@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from cnc_adapters.sim.plant import SpindlePlant, preset
+from machine_sim.plant import SpindlePlant, preset
 from compensator.cooling import PidGains
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import atomic_write, load_any_model, read_run_log, write_run_log

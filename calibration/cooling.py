@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from cnc_adapters.sim.plant import PlantParams, SpindlePlant
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim.plant import PlantParams, SpindlePlant
+from machine_sim.vcnc import VirtualMachine
 from compensator.cooling import CoolingLaw, CoolingState, PidGains
 from compensator.errors import CalibrationError
 from compensator.programs import Program

@@ -21,7 +21,7 @@ connected; options checked first, one :class:`ConfigError` line for a bad one):
   the CNC's or PLC's server); the session, security and credentials are the OPC UA adapter's
   (never a password in the configuration); an integer node is written in whole counts;
 - ``virtual``: the chiller of a simulated plant (``plant=``, a
-  :class:`~cnc_adapters.sim.plant.SpindlePlant`), in process; ``reachable = False`` makes it
+  :class:`~machine_sim.plant.SpindlePlant`), in process; ``reachable = False`` makes it
   unreachable, for tests.
 
 Objects of the running program (``plant``, ``lock``, ``clock``, ``on_link_change``) are passed

@@ -4,7 +4,7 @@ Node ids come from configuration. ``{ns}`` in a node id is replaced by the index
 ``namespace_uri`` on the server, so one configuration works whatever index the server gives
 its namespace. Presets:
 
-- ``virtual-cnc``: thermocomp's own virtual CNC (``cnc_adapters.sim.vcnc``);
+- ``virtual-cnc``: thermocomp's own virtual CNC (``machine_sim.vcnc``);
 - ``sinumerik``: SINUMERIK Operate, speed ``/Channel/Spindle/actSpeed[u1,1]`` and the offset in
   an R parameter (``r_parameter`` selects which);
 - ``opc40502``: OPC UA for CNC systems; ``ActSpeed`` of the ``CncSpindleType`` object named

@@ -33,7 +33,7 @@ from .base import (
 from .profiles import adapter_settings
 
 BACKENDS: dict[str, str] = {
-    "sim": "cnc_adapters.sim.adapter:SimAdapter",
+    "sim": "machine_sim.adapter:SimAdapter",
     "opcua": "cnc_adapters.opcua:OpcUaAdapter",
     "line": "cnc_adapters.serial_link:LineAdapter",
     "haas": "cnc_adapters.serial_link:HaasAdapter",

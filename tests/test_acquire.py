@@ -11,9 +11,9 @@ from calibration.acquire import COLUMNS, AcquireConfig, Problem, Recorder
 from calibration.profile import calibration_profile
 from cnc_adapters.base import AdapterTimeoutError, UnreachableError
 from cnc_adapters.sensors import AsciiSensor, ModbusSensor, SensorOverRangeError, open_sensor
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from compensator.errors import AcquisitionError
 from compensator.io import RunLogAppender, read_run_log
 

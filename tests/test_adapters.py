@@ -45,9 +45,9 @@ from cnc_adapters import (
 from cnc_adapters.modbus import ModbusRtuAdapter
 from cnc_adapters.opcua import OpcUaAdapter
 from cnc_adapters.serial_link import HaasAdapter, LineAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, free_port, running
 
 
 def wait_for(pred: Callable[[], bool], timeout: float = 15.0) -> bool:
@@ -169,7 +169,7 @@ def rig(request, tmp_path):
             pty.close()
     elif kind == "focas":
         from cnc_adapters.focas import FocasAdapter
-        from cnc_adapters.sim.focas_server import FocasServer, PlainControl
+        from machine_sim.focas_server import FocasServer, PlainControl
 
         control = PlainControl()
         with FocasServer(control) as srv:
@@ -178,7 +178,7 @@ def rig(request, tmp_path):
                       lambda v: setattr(control, "held_raw", v))
     elif kind.startswith("plc-"):
         from cnc_adapters.plc import PlcAdapter
-        from cnc_adapters.sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
+        from machine_sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
 
         cls, addresses = {
             "plc-s7": (S7Plc, {"offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4"}),
@@ -531,7 +531,7 @@ def test_opc40502_preset_finds_the_spindle_by_browse_path(vcnc):
 
 
 def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take():
-    from cnc_adapters.sim.vcnc import step
+    from machine_sim.vcnc import step
     from compensator.clock import SteppedClock
 
     # lock-step: each server tick (take the write or refuse and revert it) is done when step returns
@@ -611,8 +611,8 @@ def test_modbus_reads_back_an_integer_register_in_its_unit(tmp_path):
 
 SERVE_VCNC = """
 import sys
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
 vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
 vm.override_speed(float(sys.argv[2]))
 with running(VirtualCNC(vm, port=int(sys.argv[1]))):

@@ -14,7 +14,7 @@ from thermocomp.runtime.link import LinkHealth, LinkState
 from thermocomp.runtime.offset import OffsetMode, OffsetTracker
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("thermocomp", "calibration", "cnc_adapters", "compensator")
+PACKAGES = ("thermocomp", "calibration", "machine_sim", "cnc_adapters", "compensator")
 
 
 def test_link_health_connected_retrying_outage_and_back():
@@ -122,10 +122,10 @@ def test_the_wheel_lists_every_package_and_ships_its_data():
     root = Path(__file__).parents[1]
     listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {".".join(p.parent.relative_to(root).parts)
-             for top in ("thermocomp", "compensator", "cnc_adapters", "calibration")
+             for top in PACKAGES
              for p in (root / top).rglob("__init__.py")}
     assert found | {"thermocomp.examples"} == listed
-    for top in ("thermocomp", "compensator", "cnc_adapters", "calibration"):
+    for top in PACKAGES:
         assert (root / top / "py.typed").exists()
 
 
@@ -146,7 +146,7 @@ def test_every_third_party_import_is_declared():
     extras = {req(d) for k, v in project["optional-dependencies"].items() if k != "test" for d in v
               if not d.startswith("thermocomp")}
     dists = {mod: {norm(d) for d in ds} for mod, ds in md.packages_distributions().items()}
-    first_party = {"thermocomp", "compensator", "cnc_adapters", "calibration"}
+    first_party = set(PACKAGES)
     # LinuxCNC's own modules come with LinuxCNC (Debian), not from PyPI
     system = {"hal", "linuxcnc"}
     undeclared = {}

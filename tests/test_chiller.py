@@ -1,5 +1,5 @@
 """The chiller links (issue 20) against real peers: the ``modbus`` backend against pymodbus's own
-server (:class:`~cnc_adapters.sim.chiller_server.ChillerServer`) over loopback TCP and over RTU
+server (:class:`~machine_sim.chiller_server.ChillerServer`) over loopback TCP and over RTU
 on a pseudo-terminal pair, the ``opcua`` backend against asyncua's server, and the ``virtual``
 backend in process; each backed by the plant's chiller. One contract for every backend, then
 each backend's own faults, the server's register map and the settings.
@@ -25,9 +25,9 @@ from cnc_adapters.chiller import (
     check_chiller,
     open_chiller,
 )
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.chiller_server import HOLDING, INPUT, ChillerServer
-from cnc_adapters.sim.vcnc import free_port
+from machine_sim import SpindlePlant, preset
+from machine_sim.chiller_server import HOLDING, INPUT, ChillerServer
+from machine_sim.vcnc import free_port
 from compensator.errors import (
     AdapterError,
     AdapterTimeoutError,

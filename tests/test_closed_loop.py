@@ -17,9 +17,9 @@ from test_runtime_statespace import InputSim, with_inputs
 
 from cnc_adapters import AdapterError, AdapterTimeoutError
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import (
     NAMESPACE_URI,
     PROBE_METHOD_PATH,
     VirtualCNC,

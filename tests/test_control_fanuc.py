@@ -1,5 +1,5 @@
 """FANUC, route FOCAS (issue 19): thermocomp's pure-socket FOCAS client against a loopback FOCAS
-server built from the documented packet format (``cnc_adapters.sim.focas_server``), and the
+server built from the documented packet format (``machine_sim.focas_server``), and the
 runtime with ``profile = "fanuc"`` in lock-step with the virtual machine behind the emulated
 FANUC control (detection units, whole counts, the 9999-unit step alarm).
 
@@ -28,10 +28,10 @@ from cnc_adapters import (
 )
 from cnc_adapters.focas import FocasAdapter, command, decode_scaled, request_packet
 from cnc_adapters.profiles import profile
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.controls import EmulatedControl
-from cnc_adapters.sim.focas_server import FocasServer, PlainControl, encode_scaled
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.focas_server import FocasServer, PlainControl, encode_scaled
+from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
 from compensator.programs import Program

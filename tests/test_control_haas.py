@@ -1,7 +1,7 @@
 """Haas NGC, the MDC route (issue 19): thermocomp writes the growth to a macro variable with
 ``?E`` over TCP; a macro on the control re-applies it as the tool-length wear at safe points.
 
-Everything runs against the loopback MDC server (``cnc_adapters.sim.haas_server``) in front of
+Everything runs against the loopback MDC server (``machine_sim.haas_server``) in front of
 the Haas profile's emulated control: round trips in both reply forms reported for real
 controls, refusals, faults of the link (silence, half a line, garbage, stale output, a lost
 server, a third connection), and the runtime in lock-step with the virtual machine through the
@@ -32,10 +32,10 @@ from cnc_adapters import (
 from cnc_adapters.haas_mdc import HaasMdcAdapter, HaasMdcSettings
 from cnc_adapters.profiles import profile
 from cnc_adapters.serial_link import HaasSettings
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.controls import EmulatedControl
-from cnc_adapters.sim.haas_server import HaasMdcServer
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.haas_server import HaasMdcServer
+from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError
 from compensator.io import read_run_log

@@ -1,6 +1,6 @@
 """The generic PLC-register route (issue 19): the ``plc`` backend over S7 (python-snap7), Modbus
 TCP (pymodbus) and ADS (pyads) against each protocol's own server library on loopback
-(``cnc_adapters.sim.plc_servers``), the emulated PLC playing the builder's program in front of
+(``machine_sim.plc_servers``), the emulated PLC playing the builder's program in front of
 the emulated control; then the runtime end to end, in lock-step with the virtual machine:
 SINUMERIK over S7, Beckhoff over ADS, and a generic Modbus TCP PLC with explicit units.
 
@@ -31,10 +31,10 @@ from cnc_adapters import (
 )
 from cnc_adapters.plc import PlcAdapter, encode_number, parse_address
 from cnc_adapters.profiles import ControllerProfile, profile
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.controls import EmulatedControl
-from cnc_adapters.sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
+from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
 from compensator.programs import Program

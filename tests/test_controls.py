@@ -17,9 +17,9 @@ from test_transients import assert_slow_while_cutting
 
 from cnc_adapters import check_adapter
 from cnc_adapters.profiles import PROFILES, adapter_settings, profile
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.controls import EmulatedControl
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.vcnc import (
     SINUMERIK_GIVE_ACCESS,
     SINUMERIK_SD43900_NODE,
     VirtualCNC,
@@ -281,7 +281,7 @@ def test_thermocomp_controls_lists_the_profiles_and_shows_one(capsys):
 
 def test_run_check_prints_what_the_profile_will_do_and_warns_of_a_slow_control(tmp_path, calibrated_model,
                                                                               capsys):
-    from cnc_adapters.sim.plc_servers import S7Plc
+    from machine_sim.plc_servers import S7Plc
     from thermocomp.runtime.service import check
 
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=SteppedClock())

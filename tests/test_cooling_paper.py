@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calibration import coolcmd, cooling
-from cnc_adapters.sim.plant import preset
+from machine_sim.plant import preset
 from compensator.io import read_run_log, save_model, write_run_log
 from thermocomp.cli import main
 

@@ -12,10 +12,10 @@ import pytest
 
 from calibration.cooling import fit_cooling_model
 from cnc_adapters.chiller import open_chiller
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.chiller_server import ChillerServer
-from cnc_adapters.sim.plant import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim.adapter import SimAdapter
+from machine_sim.chiller_server import ChillerServer
+from machine_sim.plant import SpindlePlant, preset
+from machine_sim.vcnc import VirtualMachine
 from compensator.errors import ConfigError
 from compensator.io import save_model
 from compensator.programs import Program

@@ -19,9 +19,9 @@ from test_closed_loop import simple_model  # noqa: F401 - the model file fixture
 
 from cnc_adapters import AdapterError, BadValueError
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, running, step
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError, ModelError, NonFiniteInputError
 from compensator.estimate import Estimate

@@ -15,9 +15,9 @@ from plantdata import inputs_model
 
 from calibration.fit import fit_data
 from calibration.identify import LogData
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import load_any_model, load_model, read_run_log, save_model, write_run_log
 from compensator.programs import Program, job_shop_day, paper_calibration, random_validation
@@ -274,7 +274,7 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
 
     from cnc_adapters import open_adapter
     from cnc_adapters.modbus import ModbusRtuAdapter
-    from cnc_adapters.sim.vcnc import VirtualCNC, running, step
+    from machine_sim.vcnc import VirtualCNC, running, step
     from compensator.clock import SteppedClock
 
     # lock-step: the machine stands still between two reads, so the reading and the truth are of

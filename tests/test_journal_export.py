@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from calibration.replay import replay
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import SENSOR_KEYS, VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import SENSOR_KEYS, VirtualMachine
 from compensator.errors import ConfigError, RunLogError, ThermocompError
 from compensator.io import (
     CoolingJournal,

@@ -14,8 +14,8 @@ import pytest
 
 from cnc_adapters.base import AdapterError, ConfigError, UnreachableError
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
 
 
 def make_cert(directory: Path, name: str, uri: str, server: bool) -> tuple[str, str]:
@@ -194,7 +194,7 @@ def test_a_url_with_a_password_is_refused_and_the_password_never_repeated(env, c
 
 def test_user_information_in_a_url_is_redacted_from_messages():
     from cnc_adapters import open_adapter
-    from cnc_adapters.sim.vcnc import free_port
+    from machine_sim.vcnc import free_port
 
     secret = f"pw-{uuid.uuid4().hex}"  # built here: no source line of a traceback holds it
     for target in (f"ftp://someone:{secret}@host/x", f"sim://someone:{secret}@motorized-27k"):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cnc_adapters.sim import PRESETS, SpindlePlant, preset
-from cnc_adapters.sim.plant import _system
+from machine_sim import PRESETS, SpindlePlant, preset
+from machine_sim.plant import _system
 from compensator.programs import paper_calibration
 
 

@@ -17,7 +17,7 @@ from calibration.profile import (
     to_nc,
     validation_profile,
 )
-from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
+from machine_sim.nc import NcSyntaxError, parse_nc
 
 # What each control's manual allows for the blocks we write (no axis words anywhere).
 SYNTAX = {

@@ -19,9 +19,9 @@ from plantdata import inputs_model
 from calibration.fit import fit_data
 from calibration.identify import LogData
 from calibration.replay import probes_from_file, replay
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import ToolSetter, VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import ToolSetter, VirtualMachine
 from compensator.io import load_any_model, read_run_log, save_model
 from compensator.programs import Program, job_shop_day, paper_calibration, random_validation
 from compensator.units import RANGE_TOLERANCE

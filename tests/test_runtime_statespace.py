@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from compensator import ConfigError
 from compensator.io import load_state, read_run_log, save_model
 from compensator.statespace import InputChannel, StateSpaceModel

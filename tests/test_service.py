@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
 from compensator.clock import SteppedClock
 from compensator.io import load_state, read_run_log
@@ -69,7 +69,7 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
     """The service against the OPC UA virtual CNC, in lock-step: the simulated time moves on by
     the service's own wait once it has written, so no stall of the computer changes the run.
     ``outage`` = (start, length) in simulated seconds: the server goes away and comes back."""
-    from cnc_adapters.sim.vcnc import call, step
+    from machine_sim.vcnc import call, step
 
     clock = SteppedClock()
     p = preset("motorized-27k")
@@ -176,7 +176,7 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
     clock = lambda: t["now"]  # noqa: E731
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
     vm.override_speed(20000.0)
-    from cnc_adapters.sim.adapter import SimAdapter
+    from machine_sim.adapter import SimAdapter
 
     cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
     sc = cfg.spindle[0]
@@ -342,7 +342,7 @@ def test_run_check_unreachable_controller_is_one_line(tmp_path, model_file):
 
 
 def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
-    from cnc_adapters.sim.adapter import SimAdapter
+    from machine_sim.adapter import SimAdapter
 
     t = {"now": 0.0}
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: t["now"])
@@ -364,7 +364,7 @@ def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
 
 
 def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file):
-    from cnc_adapters.sim.vcnc import step
+    from machine_sim.vcnc import step
 
     clock = SteppedClock()  # lock-step: the CNC takes (or refuses) each write before the next cycle
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from cnc_adapters.sim.vcnc import free_port
+from machine_sim.vcnc import free_port
 
 ROOT = Path(__file__).parents[1]
 SLIM = ROOT / ".venv-slim"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from cnc_adapters.sim.vcnc import free_port
+from machine_sim.vcnc import free_port
 
 CHROMIUM = Path("/usr/bin/chromium")
 JS = Path(__file__).parent / "js"

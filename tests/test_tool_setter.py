@@ -13,9 +13,9 @@ import pytest
 
 from cnc_adapters import AdapterError, BadValueError, ConfigError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import (
     NAMESPACE_URI,
     PROBE_METHOD_PATH,
     TOOL_SETTER_PATHS,

@@ -23,8 +23,8 @@ from test_transients import (  # noqa: F401 - model_file is a fixture
 )
 
 from cnc_adapters import open_adapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import VirtualCNC, VirtualMachine, running, step
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
 from compensator.programs import Program

@@ -13,8 +13,8 @@ import pytest
 
 from cnc_adapters import BadValueError, UnreachableError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import (
     NAMESPACE_URI,
     NODE_PATHS,
     SimClock,

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.nc import parse_nc
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.nc import parse_nc
+from machine_sim.vcnc import (
     CYCLE_START_PATH,
     NAMESPACE_URI,
     SimClock,

@@ -35,9 +35,9 @@ from rich.table import Table
 from calibration.fit import fit_logs
 from calibration.plots import Panel, plot_panels
 from cnc_adapters.profiles import profile
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.controls import EmulatedControl
-from cnc_adapters.sim.vcnc import (
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.vcnc import (
     NAMESPACE_URI,
     NODE_PATHS,
     SINUMERIK_SD43900_NODE,
@@ -332,7 +332,7 @@ def closed_loop(out: Console, outdir: Path, params, model, hours: float = DAY_HO
     (an ambient ramp the model does not know): open loop against fused, in one plot."""
     import dataclasses
 
-    from cnc_adapters.sim.vcnc import ToolSetter
+    from machine_sim.vcnc import ToolSetter
 
     warm = dataclasses.replace(params, ambient_drift_k_per_h=AMBIENT_DRIFT_K_PER_H)
     prog = job_shop_day(params.max_rpm, seed=17, hours=hours)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from cnc_adapters.sim.vcnc import NAMESPACE_URI, NODE_PATHS, free_port
+from machine_sim.vcnc import NAMESPACE_URI, NODE_PATHS, free_port
 from compensator import ThermalModel, ThermalStateCoefficients
 from compensator.io import read_run_log
 from thermocomp.runtime import Alarm

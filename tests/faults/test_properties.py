@@ -29,9 +29,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cnc_adapters import AdapterError, AdapterTimeoutError
-from cnc_adapters.sim import SpindlePlant, preset
-from cnc_adapters.sim.adapter import SimAdapter
-from cnc_adapters.sim.vcnc import VirtualMachine
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from compensator.errors import ConfigError
 from compensator.io import Journal, load_state, read_run_log, save_model
 from compensator.model import ThermalModel
@@ -242,7 +242,7 @@ NODES = ("act_speed", "cutting", "bearing_temp_c", "motor_temp_c")
 @pytest.fixture(scope="module")
 def lockstep_cnc():
     from cnc_adapters.opcua import OpcUaAdapter
-    from cnc_adapters.sim.vcnc import VirtualCNC, running, step
+    from machine_sim.vcnc import VirtualCNC, running, step
     from compensator.clock import SteppedClock
 
     clock = SteppedClock()

@@ -19,8 +19,8 @@ import signal
 import time
 
 from cnc_adapters.linuxcnc import import_linuxcnc
-from cnc_adapters.sim.plant import SpindlePlant, preset
-from cnc_adapters.sim.vcnc import SimClock
+from machine_sim.plant import SpindlePlant, preset
+from machine_sim.vcnc import SimClock
 from compensator.errors import ConfigError
 
 

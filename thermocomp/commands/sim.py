@@ -9,9 +9,9 @@ import math
 import time
 from pathlib import Path
 
-from cnc_adapters.sim.nc import NcSyntaxError, parse_nc
-from cnc_adapters.sim.plant import PlantParams, SpindlePlant, preset
-from cnc_adapters.sim.vcnc import (
+from machine_sim.nc import NcSyntaxError, parse_nc
+from machine_sim.plant import PlantParams, SpindlePlant, preset
+from machine_sim.vcnc import (
     CYCLE_START_PATH,
     NODE_PATHS,
     SimClock,

@@ -1,5 +1,5 @@
 """Emulated PLCs on loopback for the ``plc`` backend, bridged to an
-:class:`~cnc_adapters.sim.controls.EmulatedControl`: each is the protocol's own server library,
+:class:`~machine_sim.controls.EmulatedControl`: each is the protocol's own server library,
 not a fake of the wire format.
 
 - :class:`S7Plc`: python-snap7's ``snap7.server.Server`` with the DBs the addresses name;

@@ -346,7 +346,7 @@ class VirtualCNC:
         written offset, advances the plant and publishes; None: only when its owner calls
         :func:`step` (lock-step with a :class:`~compensator.clock.SteppedClock`).
 
-        ``control``: an :class:`~cnc_adapters.sim.controls.EmulatedControl`; the offset node
+        ``control``: an :class:`~machine_sim.controls.EmulatedControl`; the offset node
         then holds the value in that profile's unit, and the control takes it (or refuses it)
         and applies it at its own rate. A SINUMERIK profile adds SINUMERIK's ids: the speed
         ``/Channel/Spindle/actSpeed[u1,1]`` and setting datum SD43900 (the offset node), which

@@ -20,7 +20,7 @@ from pydantic import Field
 from compensator.programs import PROGRAMS
 from compensator.programs import program as make_program
 
-from ..base import (
+from cnc_adapters.base import (
     Adapter,
     AdapterError,
     AdapterSettings,

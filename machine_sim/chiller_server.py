@@ -1,7 +1,7 @@
 """A Modbus chiller controller on loopback, for the ``modbus`` chiller backend: pymodbus's own
 server (Modbus TCP on 127.0.0.1 and a free port, or RTU on a serial device such as one end of
 a pseudo-terminal pair), backed by a plant's chiller
-(:class:`~cnc_adapters.sim.plant.SpindlePlant`: ``set_chiller_setpoint_c``,
+(:class:`~machine_sim.plant.SpindlePlant`: ``set_chiller_setpoint_c``,
 ``chiller_setpoint_c``, ``supply_c``, ``coolant_c``).
 
 Register map (wire addresses from 0, device ``device_id``; int16 is signed, in 0.1 degC;

@@ -12,7 +12,7 @@ itself can talk to it). It answers what thermocomp's FOCAS link uses:
   ``cnc_acts`` (0x25: the actual spindle speed); any other function answers return code 1
   (EW_FUNC), as a control does for a function it lacks.
 
-Behind it stands a control (:class:`~cnc_adapters.sim.controls.EmulatedControl`, or anything
+Behind it stands a control (:class:`~machine_sim.controls.EmulatedControl`, or anything
 with ``write_raw``, ``held_raw`` and ``speed_rpm``). A write to ``offset_macro`` goes to
 ``control.write_raw``. Where the control refuses it, ``refuse_in`` decides what the PC sees:
 
