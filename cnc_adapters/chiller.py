@@ -42,7 +42,6 @@ from pydantic import BaseModel, Field, model_validator
 
 from .base import (
     AdapterError,
-    AdapterTimeoutError,
     Allowed,
     BadValueError,
     Baud,
@@ -62,6 +61,7 @@ from .base import (
 )
 from .modbus import Order, Parity, Register, Table
 from .opcua import OpcUaLink, OpcUaLinkSettings
+from .transport.modbus import WIDTH, ModbusTransport, RegisterCodec
 
 __all__ = [
     "CHILLERS",
@@ -223,8 +223,7 @@ class Chiller(Link):
 
 # -- modbus -------------------------------------------------------------------------------
 
-_WIDTH = {"int16": 1, "float32": 2}
-ChillerDataType = one_of(*_WIDTH)
+ChillerDataType = one_of("int16", "float32")
 Transport = one_of("tcp", "rtu")
 DEFAULT_TCP_PORT = 502
 
@@ -261,7 +260,7 @@ class ModbusChillerSettings(ChillerSettings):
                 raise ValueError("transport rtu needs port, a serial device such as /dev/ttyUSB0")
             if self.host is not None:
                 raise ValueError("transport rtu takes no host (port is the serial device)")
-        width = _WIDTH[self.data_type]
+        width = WIDTH[self.data_type]
         if self.supply_table == "holding" and \
                 abs(self.setpoint_register - self.supply_register) < width:
             raise ValueError(f"setpoint_register {self.setpoint_register} and supply_register "
@@ -270,12 +269,12 @@ class ModbusChillerSettings(ChillerSettings):
 
 
 class ModbusChiller(Chiller):
-    """A chiller controller over Modbus TCP or RTU (pymodbus's synchronous clients).
-
-    A refused or lost connection is :class:`UnreachableError`; no valid reply within
-    ``timeout_s`` is :class:`AdapterTimeoutError` (TCP: the connection is dropped, the next
-    call reconnects; RTU: a bad CRC is dropped by the framer and surfaces so too); an
-    exception reply to a write is :class:`WriteRejectedError`, to a read :class:`AdapterError`.
+    """A chiller controller over Modbus TCP or RTU, through the Modbus transport
+    (:mod:`cnc_adapters.transport.modbus`), whose error policy it has: a refused or lost
+    connection is :class:`UnreachableError`; no valid reply within ``timeout_s`` is
+    :class:`AdapterTimeoutError` (TCP: the connection is dropped, the next call reconnects;
+    RTU: a bad CRC is dropped by the framer and surfaces so too); an exception reply to a write
+    is :class:`WriteRejectedError`, to a read :class:`AdapterError`.
     """
 
     name = "modbus"
@@ -289,7 +288,7 @@ class ModbusChiller(Chiller):
                  scale_c: float | None = None, word_order: str = "big", timeout_s: float = 0.5,
                  **base: Any):
         super().__init__(**base)
-        if transport not in ("tcp", "rtu") or data_type not in _WIDTH:
+        if transport not in ("tcp", "rtu") or data_type not in ("int16", "float32"):
             raise AdapterError(f"modbus chiller: transport is tcp or rtu, data_type int16 or "
                                f"float32, not {transport!r}, {data_type!r}")
         self.transport = transport
@@ -308,66 +307,23 @@ class ModbusChiller(Chiller):
         self.raw_range = INT16 if data_type == "int16" else None
         self.word_order = word_order
         self.timeout_s = float(timeout_s)
-        self._client: Any = None
+        self._modbus = ModbusTransport(
+            "modbus chiller", lost=self._link_lost, host=host if transport == "tcp" else None,
+            port=self.port, device_id=self.device_id, timeout_s=self.timeout_s,
+            codec=RegisterCodec(word_order), baudrate=self.baudrate, parity=parity,
+            stopbits=self.stopbits)
 
     def _connect(self) -> None:
-        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-
-        if self.transport == "tcp":
-            client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
-        else:
-            client = ModbusSerialClient(self.port, baudrate=self.baudrate, parity=self.parity,
-                                        stopbits=self.stopbits, timeout=self.timeout_s, retries=0)
-        try:
-            up = client.connect()
-        except OSError as err:  # pyserial's own errors are OSErrors too
-            client.close()
-            raise UnreachableError(f"modbus chiller: cannot reach {self.where}: {err}") from err
-        if not up:
-            client.close()
-            raise UnreachableError(f"modbus chiller: cannot reach {self.where}")
-        self._client = client
+        self._modbus.connect()
 
     def _disconnect(self) -> None:
-        client, self._client = self._client, None
-        if client is not None:
-            with contextlib.suppress(Exception):  # the device may already be gone
-                client.close()
-
-    def _request(self, what: str, fn: Any, *args: Any, refused: type[AdapterError] = AdapterError,
-                 **kw: Any) -> Any:
-        from pymodbus.exceptions import ConnectionException, ModbusIOException
-
-        try:
-            rr = fn(*args, device_id=self.device_id, **kw)
-        except ModbusIOException as err:
-            msg = f"modbus chiller {what}: no valid reply from {self.where} within {self.timeout_s:g} s"
-            if self.transport == "tcp":
-                # a TCP peer that stopped answering is not trusted again on the same socket
-                raise self._link_lost(msg, AdapterTimeoutError) from err
-            raise AdapterTimeoutError(msg) from err
-        except (ConnectionException, OSError) as err:
-            raise self._link_lost(f"modbus chiller {what}: {self.where} lost: {err}") from err
-        if rr.isError():
-            raise refused(f"modbus chiller {what}: exception reply from {self.where}: {rr}")
-        return rr
+        self._modbus.close()
 
     def _read(self, what: str, table: str, register: int) -> float:
-        from pymodbus.client import ModbusTcpClient as C
-
-        c = self._client
-        fn = c.read_input_registers if table == "input" else c.read_holding_registers
-        rr = self._request(what, fn, register, count=_WIDTH[self.data_type])
-        return float(C.convert_from_registers(list(rr.registers), getattr(C.DATATYPE, self.data_type.upper()),
-                                              word_order=self.word_order))
+        return float(self._modbus.read_value(what, table, register, self.data_type))
 
     def _write_setpoint_raw(self, raw: float) -> None:
-        from pymodbus.client import ModbusTcpClient as C
-
-        regs = C.convert_to_registers(raw, getattr(C.DATATYPE, self.data_type.upper()),
-                                      word_order=self.word_order)
-        self._request("write set point", self._client.write_registers, self.setpoint_register, regs,
-                      refused=WriteRejectedError)
+        self._modbus.write_value("write set point", self.setpoint_register, raw, self.data_type)
 
     def _read_setpoint_raw(self) -> float:
         return self._read("read set point", "holding", self.setpoint_register)

@@ -35,28 +35,20 @@ from .base import (
     Adapter,
     AdapterError,
     AdapterSettings,
-    AdapterTimeoutError,
     Allowed,
-    BadValueError,
     Baud,
     CuttingValues,
     Finite,
     NonZero,
     RawMeasurement,
     Seconds,
-    UnreachableError,
-    WriteRejectedError,
     one_of,
     read_handshake,
     serial_options,
 )
+from .transport.modbus import WIDTH, ModbusTransport, RegisterCodec
 
-_WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
-_RANGE = {"int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
-          "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
-
-
-DataType = one_of(*_WIDTH)
+DataType = one_of(*WIDTH)
 Table = one_of("input", "holding")
 Order = one_of("big", "little")
 Parity = one_of("N", "E", "O")
@@ -128,14 +120,10 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
         return self
 
 
-
-def _swap(regs: list[int]) -> list[int]:
-    return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
-
-
 class ModbusLink:
     """Mixin for :class:`~cnc_adapters.base.Link` subclasses: a Modbus RTU client on a serial
-    port. Call :meth:`_init_modbus` from ``__init__``."""
+    port (:class:`~cnc_adapters.transport.ModbusTransport`). Call :meth:`_init_modbus` from
+    ``__init__``."""
 
     name: str
 
@@ -148,64 +136,19 @@ class ModbusLink:
         self.word_order = word_order
         self.byte_order = byte_order
         self.timeout_s = float(timeout_s)
-        self._client = None
+        self._modbus = ModbusTransport(
+            self.name, lost=self._link_lost, port=port, device_id=device_id,  # type: ignore[attr-defined]
+            timeout_s=timeout_s, codec=RegisterCodec(word_order, byte_order), baudrate=baudrate,
+            parity=parity)
 
     def _connect(self) -> None:
-        from pymodbus.client import ModbusSerialClient
-
-        client = ModbusSerialClient(port=self.port, baudrate=self.baudrate, parity=self.parity,
-                                    timeout=self.timeout_s, retries=0)
-        if not client.connect():
-            client.close()
-            raise UnreachableError(f"{self.name}: cannot open {self.port}")
-        self._client = client
+        self._modbus.connect()
 
     def _disconnect(self) -> None:
-        client, self._client = self._client, None
-        if client is not None:
-            try:
-                client.close()
-            except Exception:  # noqa: BLE001 - the device may already be gone
-                pass
-
-    def _request(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError, **kw):
-        from pymodbus.exceptions import ConnectionException, ModbusIOException
-        from serial import SerialException
-
-        try:
-            rr = fn(*args, device_id=self.device_id, **kw)
-        except (SerialException, ConnectionException, OSError) as err:
-            raise self._link_lost(f"{self.name} {what}: {self.port} vanished: {err}") from err  # type: ignore[attr-defined]
-        except ModbusIOException as err:
-            raise AdapterTimeoutError(f"{self.name} {what}: no valid reply (timeout or CRC error): {err}") from err
-        if rr.isError():
-            raise refused(f"{self.name} {what}: exception reply {rr}")
-        return rr
+        self._modbus.close()
 
     def _read_value(self, what: str, table: str, register: int, dtype: str) -> float:
-        c = self._client
-        fn = c.read_input_registers if table == "input" else c.read_holding_registers
-        rr = self._request(what, fn, register, count=_WIDTH[dtype])
-        return self._decode(rr.registers, dtype)
-
-    def _decode(self, regs: list[int], dtype: str) -> float:
-        from pymodbus.client import ModbusSerialClient as C
-
-        regs = _swap(list(regs)) if self.byte_order == "little" else list(regs)
-        return float(C.convert_from_registers(regs, getattr(C.DATATYPE, dtype.upper()),
-                                              word_order=self.word_order))
-
-    def _encode(self, value: float, dtype: str) -> list[int]:
-        from pymodbus.client import ModbusSerialClient as C
-
-        if dtype != "float32":
-            lo, hi = _RANGE[dtype]
-            value = round(value)
-            if not lo <= value <= hi:
-                raise BadValueError(f"{self.name}: {value} does not fit {dtype}")
-            value = int(value)
-        regs = C.convert_to_registers(value, getattr(C.DATATYPE, dtype.upper()), word_order=self.word_order)
-        return _swap(regs) if self.byte_order == "little" else regs
+        return float(self._modbus.read_value(what, table, register, dtype))
 
 
 def check_measurement(prefix: str, value: int | None, sequence: int | None, sigma: int | None,
@@ -222,14 +165,14 @@ def check_measurement(prefix: str, value: int | None, sequence: int | None, sigm
         spans.append((sigma, dtype, "measurement_sigma_register"))
     for i, (a, ta, na) in enumerate(spans):
         for b, tb, nb in spans[i + 1:]:
-            if a < b + _WIDTH[tb] and b < a + _WIDTH[ta]:
+            if a < b + WIDTH[tb] and b < a + WIDTH[ta]:
                 raise error(f"{prefix}{na} {a} ({ta}) and {nb} {b} ({tb}) overlap")
 
 
 def check_types(name: str, *types: str) -> None:
     for t in types:
-        if t not in _WIDTH:
-            raise AdapterError(f"{name}: unknown data type {t!r}; known: {', '.join(_WIDTH)}")
+        if t not in WIDTH:
+            raise AdapterError(f"{name}: unknown data type {t!r}; known: {', '.join(WIDTH)}")
 
 
 class ModbusRtuAdapter(ModbusLink, Adapter):
@@ -336,6 +279,4 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         return int(self._read_value("read cutting state", table, register, dtype))
 
     def _write_offset_raw(self, value: float) -> None:
-        regs = self._encode(value, self.offset_type)
-        self._request("write offset", self._client.write_registers, self.offset_register, regs,
-                      refused=WriteRejectedError)
+        self._modbus.write_value("write offset", self.offset_register, value, self.offset_type)

@@ -46,7 +46,6 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
-import struct
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 from urllib.parse import urlsplit
@@ -70,6 +69,7 @@ from .base import (
     one_of,
     short,
 )
+from .transport.modbus import ModbusTransport, RegisterCodec
 
 __all__ = ["PlcAdapter", "PlcSettings", "parse_address", "plc_type"]
 
@@ -407,81 +407,33 @@ class _S7(_Driver):
 
 
 class _ModbusTcp(_Driver):
-    def connect(self) -> None:
-        from pymodbus.client import ModbusTcpClient
+    """Through the Modbus transport: its codec, and its error policy."""
 
+    def connect(self) -> None:
         o = self.owner
-        client = ModbusTcpClient(o.host, port=o.port, timeout=o.timeout_s, retries=0)
-        try:
-            up = client.connect()
-        except OSError as err:
-            up = False
-            cause: Exception | None = err
-        else:
-            cause = None
-        if not up:
-            _quietly(client.close)
-            raise UnreachableError(f"{self.name}: no Modbus TCP server at {o.host}:{o.port}"
-                                   + (f": {cause}" if cause else "")) from cause
-        self.client = client
+        modbus = ModbusTransport(self.name, lost=o._link_lost, host=o.host, port=o.port,
+                                 device_id=o.device_id, timeout_s=o.timeout_s,
+                                 codec=RegisterCodec(o.word_order, o.byte_order))
+        modbus.connect()
+        self.modbus = modbus
 
     def close(self) -> None:
-        client, self.client = getattr(self, "client", None), None
-        if client is not None:
-            _quietly(client.close)
-
-    def _call(self, what: str, fn: Any, *args: Any, refused: type[AdapterError], **kw: Any) -> Any:
-        from pymodbus.exceptions import ConnectionException, ModbusIOException
-
-        try:
-            rr = fn(*args, device_id=self.owner.device_id, **kw)
-        except ConnectionException as err:
-            raise self.lost(f"{what}: link lost: {err}") from err
-        except ModbusIOException as err:
-            # a TCP peer that stops answering mid-stream is not trusted again on the same socket
-            raise self.lost(f"{what}: no answer within {self.owner.timeout_s:g} s: {err}",
-                            AdapterTimeoutError) from err
-        except OSError as err:
-            raise self.lost(f"{what}: link lost: {err}") from err
-        if rr.isError():
-            raise refused(f"{self.name} {what}: exception reply {rr}")
-        return rr
-
-    def _pack(self, value: float, dtype: str) -> list[int]:
-        o = self.owner
-        raw = struct.pack({"REAL": ">f", "DINT": ">i", "INT": ">h"}[dtype], value)
-        regs = [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
-        if o.word_order == "little":
-            regs.reverse()
-        if o.byte_order == "little":
-            regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
-        return regs
-
-    def _unpack(self, regs: list[int], dtype: str) -> float | int:
-        o = self.owner
-        regs = list(regs)
-        if o.byte_order == "little":
-            regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
-        if o.word_order == "little":
-            regs.reverse()
-        raw = b"".join(int(r & 0xFFFF).to_bytes(2, "big") for r in regs)
-        return struct.unpack({"REAL": ">f", "DINT": ">i", "INT": ">h"}[dtype], raw)[0]
+        modbus, self.modbus = getattr(self, "modbus", None), None
+        if modbus is not None:
+            modbus.close()
 
     def read(self, what: str, a: Address) -> Any:
-        c = self.client
         if a.area in ("coil", "di"):
-            fn = c.read_coils if a.area == "coil" else c.read_discrete_inputs
-            rr = self._call(what, fn, a.start, count=1, refused=AdapterError)
-            return bool(rr.bits[0])
-        fn = c.read_holding_registers if a.area == "hr" else c.read_input_registers
-        rr = self._call(what, fn, a.start, count=a.registers, refused=AdapterError)
-        if len(rr.registers) < a.registers:
-            raise BadValueError(f"{self.name} {what}: {len(rr.registers)} registers from {a.text}")
-        return self._unpack(rr.registers[: a.registers], a.dtype)
+            return self.modbus.read_bit(what, a.area, a.start)
+        table = "holding" if a.area == "hr" else "input"
+        regs = self.modbus.read_registers(what, table, a.start, a.registers)
+        return self.modbus.codec.decode(regs, _REGISTER_TYPE[a.dtype])
 
     def write(self, what: str, a: Address, value: float) -> None:
-        self._call(what, self.client.write_registers, a.start, self._pack(value, a.dtype),
-                   refused=WriteRejectedError)
+        self.modbus.write_value(what, a.start, value, _REGISTER_TYPE[a.dtype])
+
+
+_REGISTER_TYPE = {"REAL": "float32", "DINT": "int32", "INT": "int16"}
 
 
 # ADS return codes: 0x700-0x73F the target answered (device errors), 0x745 a request's timeout
