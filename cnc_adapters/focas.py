@@ -25,17 +25,17 @@ raises a decoding error, a refused read loses its return code, and it has no ``c
 This client sends the same bytes (the tests compare them), frames replies by their length
 field and checks every return code.
 
-Errors: a refused connection or a dropped session is :class:`UnreachableError`, no reply
-within ``timeout_s`` :class:`AdapterTimeoutError` (the session is dropped: a late reply must
-not be taken for the next request's), a reply that breaks the format :class:`AdapterError`
-(dropped too); a FOCAS return code other than 0 is :class:`WriteRejectedError` for a write and
-:class:`BadValueError` for a read. Nothing here was run against a real FANUC control.
+Errors, the socket's mapped by the TCP transport (:mod:`cnc_adapters.transport.tcp`): a
+refused or unanswered connect, a closed or dropped session is :class:`UnreachableError`, no
+reply within ``timeout_s`` (the open request's too) :class:`AdapterTimeoutError` (the session
+is dropped: a late reply must not be taken for the next request's), a reply that breaks the
+format :class:`AdapterError` (dropped too); a FOCAS return code other than 0 is
+:class:`WriteRejectedError` for a write and :class:`BadValueError` for a read. Nothing here was run against a real FANUC control.
 """
 
 from __future__ import annotations
 
 import math
-import socket
 import struct
 from typing import Annotated, Any, ClassVar
 
@@ -45,7 +45,6 @@ from .base import (
     Adapter,
     AdapterError,
     AdapterSettings,
-    AdapterTimeoutError,
     Allowed,
     BadValueError,
     ConfigError,
@@ -55,6 +54,7 @@ from .base import (
     host_options,
     one_of,
 )
+from .transport.tcp import TcpTransport
 
 __all__ = ["FocasAdapter", "FocasSettings", "decode_scaled", "focas_error", "request_packet"]
 
@@ -229,7 +229,8 @@ class FocasAdapter(Adapter):
         self.ack_macro = None if ack_macro is None else int(ack_macro)
         self.speed_source = speed_source
         self.speed_macro = None if speed_macro is None else int(speed_macro)
-        self._sock: socket.socket | None = None
+        self._tcp = TcpTransport(self.name, self.host, self.port, timeout_s=self.timeout_s,
+                                 lost=self._link_lost)
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -240,69 +241,52 @@ class FocasAdapter(Adapter):
     # -- the session -------------------------------------------------------------------
 
     def _connect(self) -> None:
-        where = f"{self.host}:{self.port}"
+        self._tcp.connect(handshake=self._open_session)
+
+    def _open_session(self) -> None:
+        where = self._tcp.address
+        deadline = self._tcp.deadline()
+        self._tcp.send("open request", packet(OPEN_REQUEST, struct.pack(">H", 2)))
         try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
-        except TimeoutError as err:
-            raise AdapterTimeoutError(f"{self.name}: no answer from {where} within "
-                                      f"{self.timeout_s:g} s") from err
-        except OSError as err:
-            raise UnreachableError(f"{self.name}: cannot connect to {where}: {err}") from err
-        try:
-            sock.settimeout(self.timeout_s)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.sendall(packet(OPEN_REQUEST, struct.pack(">H", 2)))
-            ptype, _ = _read_packet(sock)
-        except TimeoutError as err:
-            sock.close()
-            raise AdapterTimeoutError(f"{self.name}: {where} did not answer the open request "
-                                      f"within {self.timeout_s:g} s") from err
-        except (OSError, _Malformed) as err:
-            sock.close()
-            raise UnreachableError(f"{self.name}: {where} refused the FOCAS session: "
-                                   f"{err}") from err
+            ptype, _ = self._read_packet("open request", deadline)
+        except _Malformed as err:
+            raise UnreachableError(f"{self.name}: {where} refused the FOCAS session: {err}") from err
         if ptype != OPEN_RESPONSE:
-            sock.close()
             raise UnreachableError(f"{self.name}: {where} answered the open request with packet "
                                    f"type {ptype:#06x}, not {OPEN_RESPONSE:#06x}")
-        self._sock = sock
 
     def _disconnect(self) -> None:
-        sock, self._sock = self._sock, None
-        if sock is None:
-            return
-        try:  # free the control's FOCAS session; it may be gone already
-            sock.settimeout(min(self.timeout_s, 1.0))
-            sock.sendall(packet(CLOSE_REQUEST, b""))
-            _read_packet(sock)
-        except (OSError, _Malformed):
-            pass
-        finally:
-            sock.close()
+        self._tcp.close(goodbye=self._close_session)
+
+    def _close_session(self) -> None:
+        """Free the control's FOCAS session (it may be gone already: faults are ignored)."""
+        deadline = self._tcp.deadline(min(self.timeout_s, 1.0))
+        self._tcp.send("close request", packet(CLOSE_REQUEST, b""))
+        self._read_packet("close request", deadline)
 
     def _abort(self) -> None:
-        sock, self._sock = self._sock, None
-        if sock is not None:
-            sock.close()
+        self._tcp.abort()
+
+    def _read_packet(self, what: str, deadline: float) -> tuple[int, bytes]:
+        """One packet off the stream, framed by its length field: its type and body."""
+        head = self._tcp.recv_exact(what, 10, deadline)
+        if head[:4] != SYNC:
+            raise _Malformed(f"no sync bytes: {head[:4].hex(' ')}")
+        origin, ptype, length = struct.unpack(">HHH", head[4:])
+        if origin == CLIENT:
+            raise _Malformed("a request where a reply was due")
+        return ptype, self._tcp.recv_exact(what, length, deadline)
 
     def _exchange(self, what: str, cmd: bytes, refused: type[AdapterError]) -> bytes:
         """Send one command, return the payload of its reply; a FOCAS return code other than 0
-        raises ``refused``."""
-        sock = self._sock
-        if sock is None:
-            raise UnreachableError(f"{self.name} {what}: not connected")
+        raises ``refused``. The socket's faults are the TCP transport's."""
+        deadline = self._tcp.deadline()
+        self._tcp.send(what, request_packet(cmd))
         try:
-            sock.sendall(request_packet(cmd))
-            ptype, body = _read_packet(sock)
+            ptype, body = self._read_packet(what, deadline)
             if ptype != RESPONSE:
                 raise _Malformed(f"packet type {ptype:#06x}, not {RESPONSE:#06x}")
             code, payload = _reply(body, cmd[:6])
-        except TimeoutError as err:
-            raise self._link_lost(f"{self.name} {what}: no reply from {self.host}:{self.port} "
-                                  f"within {self.timeout_s:g} s", AdapterTimeoutError) from err
-        except OSError as err:
-            raise self._link_lost(f"{self.name} {what}: {self.host}:{self.port} dropped the "
-                                  f"session: {err}") from err
         except _Malformed as err:
             raise self._link_lost(f"{self.name} {what}: malformed reply ({err}); session dropped",
                                   AdapterError) from err
@@ -371,27 +355,6 @@ class FocasAdapter(Adapter):
 
     def _write_offset_raw(self, value: float) -> None:
         self._write_macro(self.offset_macro, float(value))
-
-
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionResetError("the CNC closed the connection")
-        buf += chunk
-    return bytes(buf)
-
-
-def _read_packet(sock: socket.socket) -> tuple[int, bytes]:
-    """One packet off the stream, framed by its length field: its type and body."""
-    head = _recv_exact(sock, 10)
-    if head[:4] != SYNC:
-        raise _Malformed(f"no sync bytes: {head[:4].hex(' ')}")
-    origin, ptype, length = struct.unpack(">HHH", head[4:])
-    if origin == CLIENT:
-        raise _Malformed("a request where a reply was due")
-    return ptype, _recv_exact(sock, length)
 
 
 def _reply(body: bytes, echo: bytes) -> tuple[int, bytes]:
