@@ -9,7 +9,8 @@ answered ``!`` (taken) or ``?`` (refused: :class:`WriteRejectedError`), and the 
 measurement handshake reads ``measurement_sequence_var``, ``measurement_var`` (and
 ``measurement_sigma_var``) the same way.
 
-The transport, one request line and one reply line:
+One request line and one reply line, over the TCP transport (:mod:`cnc_adapters.transport.tcp`,
+which maps the socket's faults):
 
 - before each request the input left on the socket is dropped (a late reply, the ``>`` prompt,
   output another MDC client asked for: the control sends every reply to all its connections);
@@ -36,8 +37,6 @@ URL form: ``haas://host:5051?offset_var=10500``.
 from __future__ import annotations
 
 import re
-import socket
-import time
 from typing import Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
@@ -45,17 +44,16 @@ from pydantic import Field
 
 from .base import (
     Adapter,
-    AdapterError,
     AdapterSettings,
     AdapterTimeoutError,
     Allowed,
     BadValueError,
     RawMeasurement,
     Seconds,
-    UnreachableError,
     WriteRejectedError,
     query_params,
 )
+from .transport.tcp import TcpTransport
 from .serial_link import HaasAdapter, HaasMacros
 
 __all__ = ["HaasMdcAdapter", "HaasMdcSettings"]
@@ -133,8 +131,10 @@ class HaasMdcAdapter(Adapter):
         self.timeout_s = float(timeout_s)
         self.connect_timeout_s = float(connect_timeout_s)
         self.eol = eol
-        self._sock: socket.socket | None = None
-        self._buf = b""
+        self._tcp = TcpTransport(self.name, self.host, self.port, timeout_s=self.timeout_s,
+                                 connect_timeout_s=self.connect_timeout_s,
+                                 keepalive=True,  # Haas: keep MDC open
+                                 lost=self._link_lost, closed_reason=self._closed_reason)
         self._fresh = False  # no request answered yet on this connection
         self._proto = _MdcProtocol(
             self, speed_var=speed_var, offset_var=offset_var, offset_decimals=offset_decimals,
@@ -148,8 +148,7 @@ class HaasMdcAdapter(Adapter):
 
     @property
     def address(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"{host}:{self.port}"
+        return self._tcp.address
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -166,121 +165,48 @@ class HaasMdcAdapter(Adapter):
     # -- the link ----------------------------------------------------------------------
 
     def _connect(self) -> None:
-        try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
-        except OSError as err:
-            raise UnreachableError(f"{self.name}: cannot connect to {self.address}: {err}") from err
-        try:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)  # Haas: keep MDC open
-        except OSError:  # noqa: S110 - an option the platform lacks is no reason to fail
-            pass
-        self._sock, self._buf, self._fresh = sock, b"", True
+        self._tcp.connect()
+        self._fresh = True
 
     def _disconnect(self) -> None:
-        sock, self._sock = self._sock, None
-        self._buf = b""
-        if sock is not None:
-            try:
-                sock.close()
-            except OSError:  # noqa: S110 - the peer may be gone already
-                pass
+        self._tcp.close()
 
     def _abort(self) -> None:
-        sock = self._sock
-        if sock is not None:
-            try:
-                sock.shutdown(socket.SHUT_RDWR)  # a hung peer: do not wait for it
-            except OSError:  # noqa: S110 - already down
-                pass
-        self._disconnect()
+        self._tcp.abort()  # a hung peer: do not wait for it
 
     def exchange(self, request: str) -> str:
         """Send one request line and return the reply line, cleaned (see the module docstring)."""
         self.open()
+        fresh, self._fresh = self._fresh, False
         try:
-            reply = self._round_trip(request)
-        except AdapterTimeoutError as err:
-            if not self._fresh:
-                raise self._link_lost(str(err), AdapterTimeoutError) from err
-            # the first request on a new connection may go unanswered: once more
-            self._fresh = False
-            try:
-                reply = self._round_trip(request)
-            except AdapterTimeoutError as again:
-                raise self._link_lost(str(again), AdapterTimeoutError) from again
-        self._fresh = False
-        return reply
+            return self._round_trip(request, drop_on_timeout=not fresh)
+        except AdapterTimeoutError:
+            if not fresh:
+                raise
+        # the first request on a new connection may go unanswered: once more, on it
+        return self._round_trip(request)
 
-    def _round_trip(self, request: str) -> str:
-        sock = self._sock
-        assert sock is not None
-        try:
-            self._drain(sock)
-            sock.settimeout(self.timeout_s)
-            sock.sendall((request + self.eol).encode("ascii"))
-        except UnreachableError:
-            raise
-        except OSError as err:
-            raise self._link_lost(f"{self.name}: {self.address} lost: {err}") from err
-        deadline = time.monotonic() + self.timeout_s
-        end = self.eol[-1].encode("ascii")
+    def _round_trip(self, request: str, *, drop_on_timeout: bool = True) -> str:
+        what = repr(request)
+        self._tcp.drain(what)  # a stale reply must never answer this request
+        self._tcp.send(what, (request + self.eol).encode("ascii"))
+        deadline = self._tcp.deadline()
+        ends = (self.eol[-1].encode("ascii"), ETB.encode())
         while True:
-            line = self._take_line(end)
-            if line is not None:
-                reply = self._clean(line, request)
-                if reply:
-                    return reply
-                continue  # a prompt, an echo, an empty line
-            left = deadline - time.monotonic()
-            if left <= 0:
-                partial = self._clean(self._buf, request)
-                if partial:
-                    raise AdapterTimeoutError(f"{self.name}: partial reply {partial!r} to "
-                                              f"{request!r} from {self.address}")
-                raise AdapterTimeoutError(f"{self.name}: no reply to {request!r} from "
-                                          f"{self.address} within {self.timeout_s:g} s")
-            try:
-                sock.settimeout(left)
-                chunk = sock.recv(4096)
-            except TimeoutError:
-                continue  # the deadline decides
-            except OSError as err:
-                raise self._link_lost(f"{self.name}: {self.address} lost: {err}") from err
-            if not chunk:
-                raise self._peer_closed(self._buf)
-            self._buf += chunk
+            line = self._tcp.recv_until(what, ends, deadline, drop_on_timeout=drop_on_timeout)
+            reply = self._clean(line, request)
+            if reply:
+                return reply
+            # else a prompt, an echo, an empty line: read on
 
-    def _drain(self, sock: socket.socket) -> None:
-        """Drop what arrived unasked: a stale reply must never answer this request."""
-        self._buf = b""
-        sock.settimeout(0.0)
-        dropped = b""
-        while True:
-            try:
-                chunk = sock.recv(4096)
-            except (BlockingIOError, InterruptedError):
-                return
-            if not chunk:
-                raise self._peer_closed(dropped)
-            dropped = (dropped + chunk)[-256:]
-
-    def _peer_closed(self, last: bytes) -> AdapterError:
-        """The control closed the connection; ``last``: what it sent before (its reason)."""
-        text = last.decode("ascii", "replace")
-        if _TOO_MANY.search(text):
-            return self._link_lost(f"{self.name}: {self.address} refused the connection: "
-                                   f"{text.strip(' >' + chr(13) + chr(10))!r} (MDC takes two connections)")
-        return self._link_lost(f"{self.name}: {self.address} closed the connection")
-
-    def _take_line(self, end: bytes) -> bytes | None:
-        """The first whole line in the buffer (ending at ``end`` or at ETB), or None."""
-        cuts = [i for i in (self._buf.find(end), self._buf.find(ETB.encode())) if i >= 0]
-        if not cuts:
+    def _closed_reason(self, last: bytes) -> str | None:
+        """Why the control closed the connection, from what it sent last: MDC's refusal of a
+        third connection."""
+        said = [line for line in last.decode("ascii", "replace").splitlines() if _TOO_MANY.search(line)]
+        if not said:
             return None
-        i = min(cuts)
-        line, self._buf = self._buf[:i + 1], self._buf[i + 1:]
-        return line
+        return (f"{self.name}: {self.address} refused the connection: "
+                f"{said[-1].strip(' >' + chr(13) + chr(10))!r} (MDC takes two connections)")
 
     def _clean(self, raw: bytes, request: str) -> str:
         """The reply text in ``raw`` ('' for none): the STX frame's content without prompts;

@@ -252,7 +252,7 @@ def test_output_another_client_asked_for_earlier_is_dropped(rig):
         while b"MACRO" not in got:
             got += other.recv(4096)
         # and it reached our connection too (the control sends to both, in no set order)
-        assert select.select([link._sock], [], [], 2.0)[0]
+        assert select.select([link._tcp.sock], [], [], 2.0)[0]
         assert link.read_offset_um() == pytest.approx(-7.0)  # not the speed
         link.write_offset_um(-8.0)
         assert link.read_offset_um() == pytest.approx(-8.0)
