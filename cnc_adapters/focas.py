@@ -30,7 +30,8 @@ refused or unanswered connect, a closed or dropped session is :class:`Unreachabl
 reply within ``timeout_s`` (the open request's too) :class:`AdapterTimeoutError` (the session
 is dropped: a late reply must not be taken for the next request's), a reply that breaks the
 format :class:`AdapterError` (dropped too); a FOCAS return code other than 0 is
-:class:`WriteRejectedError` for a write and :class:`BadValueError` for a read. Nothing here was run against a real FANUC control.
+:class:`WriteRejectedError` for a write and :class:`BadValueError` for a read. Nothing here
+was run against a real FANUC control.
 """
 
 from __future__ import annotations
@@ -250,7 +251,8 @@ class FocasAdapter(Adapter):
         try:
             ptype, _ = self._read_packet("open request", deadline)
         except _Malformed as err:
-            raise UnreachableError(f"{self.name}: {where} refused the FOCAS session: {err}") from err
+            raise UnreachableError(f"{self.name}: {where} refused the FOCAS session: "
+                                   f"{err}") from err
         if ptype != OPEN_RESPONSE:
             raise UnreachableError(f"{self.name}: {where} answered the open request with packet "
                                    f"type {ptype:#06x}, not {OPEN_RESPONSE:#06x}")

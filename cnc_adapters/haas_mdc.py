@@ -202,7 +202,8 @@ class HaasMdcAdapter(Adapter):
     def _closed_reason(self, last: bytes) -> str | None:
         """Why the control closed the connection, from what it sent last: MDC's refusal of a
         third connection."""
-        said = [line for line in last.decode("ascii", "replace").splitlines() if _TOO_MANY.search(line)]
+        lines = last.decode("ascii", "replace").splitlines()
+        said = [line for line in lines if _TOO_MANY.search(line)]
         if not said:
             return None
         return (f"{self.name}: {self.address} refused the connection: "

@@ -136,9 +136,9 @@ class ModbusLink:
         self.word_order = word_order
         self.byte_order = byte_order
         self.timeout_s = float(timeout_s)
+        lost = self._link_lost  # type: ignore[attr-defined]
         self._modbus = ModbusTransport(
-            self.name, lost=self._link_lost, port=port, device_id=device_id,  # type: ignore[attr-defined]
-            timeout_s=timeout_s, codec=RegisterCodec(word_order, byte_order), baudrate=baudrate,
+            self.name, lost=lost, port=port, device_id=device_id, timeout_s=timeout_s, codec=RegisterCodec(word_order, byte_order), baudrate=baudrate,
             parity=parity)
 
     def _connect(self) -> None:

@@ -23,7 +23,12 @@ from typing import Any
 import pytest
 from devices import PtyPair
 
-from cnc_adapters.base import AdapterError, AdapterTimeoutError, UnreachableError, WriteRejectedError
+from cnc_adapters.base import (
+    AdapterError,
+    AdapterTimeoutError,
+    UnreachableError,
+    WriteRejectedError,
+)
 from cnc_adapters.chiller import ModbusChiller
 from cnc_adapters.focas import OPEN_RESPONSE, SYNC, FocasAdapter, packet
 from cnc_adapters.haas_mdc import HaasMdcAdapter

@@ -22,7 +22,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ..base import AdapterError, AdapterTimeoutError, BadValueError, UnreachableError, WriteRejectedError
+from ..base import (
+    AdapterError,
+    AdapterTimeoutError,
+    BadValueError,
+    UnreachableError,
+    WriteRejectedError,
+)
 
 __all__ = ["RANGE", "WIDTH", "ModbusTransport", "RegisterCodec"]
 
@@ -109,7 +115,8 @@ class ModbusTransport:
 
         # retries=0: a retry would answer a late reply with the next request's
         if self.tcp:
-            client = ModbusTcpClient(self.host, port=int(self.port), timeout=self.timeout_s, retries=0)
+            client = ModbusTcpClient(self.host, port=int(self.port), timeout=self.timeout_s,
+                                     retries=0)
         else:
             client = ModbusSerialClient(str(self.port), baudrate=self.baudrate, parity=self.parity,
                                         stopbits=self.stopbits, timeout=self.timeout_s, retries=0)
@@ -132,8 +139,8 @@ class ModbusTransport:
 
     # -- requests -----------------------------------------------------------------------
 
-    def request(self, what: str, method: str, *args: Any, refused: type[AdapterError] = AdapterError,
-                **kw: Any) -> Any:
+    def request(self, what: str, method: str, *args: Any,
+                refused: type[AdapterError] = AdapterError, **kw: Any) -> Any:
         """The reply of the client's ``method`` (``read_holding_registers``, ...) to this
         device, its faults mapped as the module docstring says; an exception reply raises
         ``refused``."""
@@ -147,7 +154,8 @@ class ModbusTransport:
             raise self._fault(f"{self.label} {what}: no valid reply from {self.where} within "
                               f"{self.timeout_s:g} s", AdapterTimeoutError) from err
         except (ConnectionException, OSError) as err:
-            raise self._lost(f"{self.label} {what}: {self.where} lost: {err}", UnreachableError) from err
+            raise self._lost(f"{self.label} {what}: {self.where} lost: {err}",
+                             UnreachableError) from err
         except ModbusException as err:
             raise self._fault(f"{self.label} {what}: bad reply from {self.where}: {err}",
                               AdapterError) from err

@@ -45,7 +45,7 @@ class TcpTransport:
         self.host = host
         self.port = int(port)
         self.timeout_s = float(timeout_s)
-        self.connect_timeout_s = float(connect_timeout_s if connect_timeout_s is not None else timeout_s)
+        self.connect_timeout_s = float(timeout_s if connect_timeout_s is None else connect_timeout_s)
         self.keepalive = keepalive
         self._lost = lost
         self._closed_reason = closed_reason
@@ -70,7 +70,8 @@ class TcpTransport:
             raise UnreachableError(f"{self.label}: cannot connect to {self.address}: no answer "
                                    f"within {self.connect_timeout_s:g} s") from err
         except OSError as err:
-            raise UnreachableError(f"{self.label}: cannot connect to {self.address}: {err}") from err
+            raise UnreachableError(f"{self.label}: cannot connect to {self.address}: "
+                                   f"{err}") from err
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self.keepalive:
@@ -136,7 +137,8 @@ class TcpTransport:
             raise self._fail(f"{self.label} {what}: {self.address} took no data within "
                              f"{self.timeout_s:g} s", AdapterTimeoutError) from err
         except OSError as err:
-            raise self._fail(f"{self.label} {what}: {self.address} lost: {err}", UnreachableError) from err
+            raise self._fail(f"{self.label} {what}: {self.address} lost: {err}",
+                             UnreachableError) from err
 
     def drain(self, what: str) -> None:
         """Drop what arrived unasked (a late reply, a prompt, another client's output): a stale
