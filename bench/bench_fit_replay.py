@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import rich_form  # noqa: E402
 
-from calibration import ident  # noqa: E402
+from calibration.estimators import paper_ols  # noqa: E402
 from calibration.fit import fit_data  # noqa: E402
 from calibration.identify import LogData  # noqa: E402
 from calibration.replay import replay  # noqa: E402
@@ -58,7 +58,7 @@ def main() -> dict:
     runs = [LogData(f"r{i}", np.arange(200_000, dtype=float), n[i * 200_000:(i + 1) * 200_000],
                     s[i * 200_000:(i + 1) * 200_000]) for i in range(3)]
     res["fit_rows"] = sum(r.time_s.size for r in runs)
-    res["ols_fit_s"], _ = timed(lambda: ident.fit_paper_ols(t, n, s))
+    res["ols_fit_s"], _ = timed(lambda: paper_ols.fit_paper_ols(t, n, s))
     res["full_calibration_s"], cal = timed(lambda: fit_data(runs))
     res["full_calibration_chosen"] = cal.chosen.name
 

@@ -2,7 +2,7 @@
 probe interval judged by cross-validation on cycles.
 
 The input is the chosen model's held-out free-run residual r = y - S on every cycle (each cycle
-predicted by a model fitted without it; :mod:`calibration.ident`). Fusing probes with a model
+predicted by a model fitted without it; :mod:`calibration.identify`). Fusing probes with a model
 only moves the estimate by the bias the observer infers from ``r`` at the probe instants, so the
 closed loop on a cycle can be simulated from ``r`` alone.
 

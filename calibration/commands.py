@@ -153,7 +153,7 @@ def fit(args: argparse.Namespace) -> int:
     save_model(args.output, model)
     report["model_file"] = str(args.output)
     if args.plot:
-        j = result.joined
+        j = result.dataset
         pred = result.free_run_um()
         panels = [Panel(nm, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[nm],
                         j.elongation_um[a:b]) for nm, (a, b) in zip(j.names, j.segments)]
@@ -176,7 +176,7 @@ def _emit(args: argparse.Namespace, report: dict[str, Any], show: Callable[[Cons
 
 def print_identification(result, report: dict[str, Any], out: Console) -> None:
     m = result.model
-    j = result.joined
+    j = result.dataset
     out.print(f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  {len(j.names)} log(s), "
               f"{j.time_s.size} rows, scored by {report['scored_by']}")
     out.print(f"Cycle rule: {report['cycle_rule']}")

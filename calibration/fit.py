@@ -8,9 +8,9 @@ What it does once, for all of them:
 - bridges each gap in a log by one rule, the last logged speed held across it
   (:func:`calibration.data.bridge_gaps`): a gap that begins at rest cools, one that begins at
   speed heats;
-- fits on the measured rows: a log measured on every row goes to
-  :func:`calibration.identify.identify`, one measured on some rows only (a journal export) to
-  :func:`calibration.sparse.identify_sparse`; both choose by the same rules.
+- joins them into one :class:`calibration.dataset.Dataset`, whose measured rows are a mask (all
+  true for a log measured on every row, some for a journal export), and fits it with
+  :func:`calibration.identify.identify`, the one choice among the registered candidates.
 
 Pure computation on logs already read: no file I/O.
 """
@@ -18,18 +18,16 @@ Pure computation on logs already read: no file I/O.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from compensator.errors import CalibrationError
 from compensator.io.runlog import RunLog
 
 from . import closedloop
-from .data import Run, bridge_gaps, has_cooldown, run_from_log
-from .identify import Identification, LogData, identify
-from .sparse import identify_sparse
+from .data import Run, has_cooldown
+from .dataset import LogData, log_data
+from .identify import Identification, identify
 
 NO_COOLDOWN = "no log has a cool-down (10 min or more at rest after running)"
 FEW_LEVELS = "distinct speed levels"
@@ -44,31 +42,6 @@ def unit_of(name: str) -> str:
         if name.endswith(suffix):
             return unit
     return "1"
-
-
-def log_data(logs: Sequence[RunLog], input_names: Sequence[str] = (),
-             labels: Sequence[str] | None = None) -> tuple[list[LogData], list[str]]:
-    """The logs checked, gaps bridged, the named inputs taken: what the identification fits.
-    Returns the data and one line per log that had gaps."""
-    labels = list(labels) if labels is not None else [lg.source or f"log{i + 1}" for i, lg in enumerate(logs)]
-    if len(labels) != len(logs):
-        raise CalibrationError(f"{len(labels)} labels for {len(logs)} logs")
-    data, notes = [], []
-    for label, lg in zip(labels, logs):
-        run = run_from_log(lg, name=label, sparse=True)
-        speed, gaps = bridge_gaps(run.time_s, run.speed_rpm)
-        name = Path(label).name
-        if gaps:
-            notes.append(f"{name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
-                         "integrated at the last logged speed (a gap that begins at rest cools)")
-        inputs = {}
-        for n in input_names:
-            if n not in lg.extras:
-                raise CalibrationError(f"{lg.source or name}: no column {n!r} for --inputs "
-                                       f"(columns: {', '.join(lg.extras) or 'none'})")
-            inputs[n] = np.asarray(lg.extras[n], dtype=float)
-        data.append(LogData(name, run.time_s, speed, run.elongation_um, inputs))
-    return data, notes
 
 
 def fit_logs(logs: Sequence[RunLog], input_names: Sequence[str] = (), *,
@@ -97,16 +70,8 @@ def fit_data(data: Sequence[LogData], input_names: Sequence[str] = (), *, nested
     """:func:`fit_logs` on logs already checked and bridged (:func:`log_data`), or on series held
     in memory (the virtual plant's): dense or sparse by the elongation's NaN cells."""
     units = dict(units) if units is not None else {n: unit_of(n) for n in input_names}
-    sparse = next((d.name for d in data if not np.isfinite(d.elongation_um).all()), None)
-    if sparse is not None:
-        if probe_every_s is not None:
-            raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
-                                   f"row; {sparse} has it on some rows only (sparse)")
-        result = identify_sparse(data, input_names, units=units, progress=progress, nested=nested, **meta)
-    else:
-        result = identify(data, input_names, units=units, progress=progress, nested=nested,
-                          physical=physical, probe_target_um=probe_target_um,
-                          probe_every_s=probe_every_s, **meta)
+    result = identify(data, input_names, units=units, progress=progress, nested=nested, physical=physical,
+                      probe_target_um=probe_target_um, probe_every_s=probe_every_s, **meta)
     result.warnings[:0] = coverage_warnings(data)
     return result
 

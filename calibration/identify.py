@@ -1,24 +1,29 @@
-"""``thermocomp fit``'s default method: every candidate judged by the same cycle folds, in free
-run, and the best honest one chosen. Pure computation on in-memory logs: no file I/O.
+"""The one identification: every candidate judged by the same folds, in free run, and the best
+honest one chosen. ``thermocomp fit``, the wizard, ``make demo`` and the cooling studies all
+come here through :func:`calibration.fit.fit_logs`. Pure computation on a
+:class:`~calibration.dataset.Dataset`: no file I/O.
 
-Candidates (``docs/IDENTIFICATION.md`` says why):
+The candidates are the entries of :data:`REGISTRY`, one per model structure
+(:mod:`calibration.estimators`). Adding a form is one estimator module and one line there:
 
-- ``exp-baseline``: paper 001 eqs. 1-3 in dynamic form, one time constant chosen by CV, S∞
-  quadratic in n. The bar every other candidate must clear.
-- ``physical``: the output-error form ``speed-state+elastic`` of :mod:`calibration.fitting` (one
-  thermal state whose dissipation depends on speed, plus an elastic term), refitted per fold.
-- ``ridge``: :func:`calibration.ident.fit_ridge_cv` on speed alone (n, n² through a bank of
-  first-order filters).
+- ``exp-baseline``: one time constant chosen by CV, S∞ quadratic in n. The bar every other
+  candidate must clear.
+- ``physical``: the output-error form ``speed-state+elastic`` (a thermal state whose dissipation
+  depends on speed, plus an elastic term), refitted per fold.
+- ``ridge``: ridge over n, n² through a bank of first-order filters, α by CV.
 - ``ridge+inputs``: the same with the named inputs (temperatures...) through their own banks.
 - ``paper-ols``: the paper's one-step OLS, scored in free run for the comparison; never chosen.
 
-Folds: leave-one-cycle-out when the logs hold two cycles or more (:func:`ident.split_cycles`,
-per file); otherwise :data:`BLOCKS` contiguous blocks of equal duration ("blocked"). Every
-candidate free-runs each whole file from its start and is scored on the rows of the held-out
-fold. A candidate is refused when its honest CV RMS (nested where its hyperparameters were
-chosen by CV, else plain) is worse than the baseline's, or when its gains fail the sanity
-bound. Among the speed-only candidates left, the lowest honest CV RMS wins, a simpler one when
-within :data:`PARSIMONY`; the inputs are kept only when they beat that.
+Folds: leave-one-cycle-out when the logs hold two cycles or more, otherwise contiguous blocks
+(:func:`calibration.dataset.join`). Every candidate free-runs each whole log from its start and
+is scored on the measured rows of the held-out fold. With sparse targets (a journal export) the
+candidates that need the elongation on every row are left out, and the report says so.
+
+The choice: a candidate is refused when its honest CV RMS (nested where its hyperparameters were
+chosen by CV, else plain) is worse than the baseline's, or when its gains fail the sanity bound.
+Among the speed-only candidates left, the lowest honest CV RMS wins, a simpler one (earlier in
+the registry) when within :data:`~calibration.metrics.PARSIMONY`; the inputs are kept only when
+they beat that, with the speed-only model as their fallback.
 """
 
 from __future__ import annotations
@@ -31,227 +36,97 @@ from typing import Any
 
 import numpy as np
 
-from compensator.errors import CalibrationError, ModelError
-from compensator.model import ThermalModel
+from compensator.errors import CalibrationError
 
-from . import closedloop, ident
-from .ident import PARSIMONY  # a simpler candidate wins within it, as a larger alpha does
-from .data import Run, resample
-from .fitting import FORM_BY_NAME, fit_physical
+from . import closedloop
+from .candidate import Candidate
+from .dataset import Dataset, LogData, join
+from .estimators import baseline, output_error, paper_ols
+from .estimators import ridge_bank as rb
+from .folds import CYCLE_RULE
+from .metrics import PARSIMONY, measured_stats
 
-BLOCKS = 4
-"""Folds of a log that holds one cycle only: this many contiguous blocks of equal duration."""
-PHYSICAL_FORM = "speed-state+elastic"
-"""The output-error form entered as the physical candidate."""
-MIN_FOLD_ROWS = 20
+__all__ = ["REGISTRY", "Candidate", "Entry", "Identification", "LogData", "identify"]
 
 
-@dataclass(frozen=True)
-class LogData:
-    """One checked log: time [s], speed [rpm], measured elongation [um], input columns."""
+# -- the registry -------------------------------------------------------------------------------
 
-    name: str
-    time_s: np.ndarray
-    speed_rpm: np.ndarray
-    elongation_um: np.ndarray
-    inputs: Mapping[str, np.ndarray] = field(default_factory=dict)
+Context = Mapping[str, Any]
+"""What every entry may read: ``names`` (the inputs), ``nested``, ``meta`` (model fields)."""
 
 
-@dataclass(frozen=True)
-class Joined:
-    """The logs end to end (time shifted so it keeps increasing), with file segments and folds."""
-
-    time_s: np.ndarray
-    speed_rpm: np.ndarray
-    elongation_um: np.ndarray
-    inputs: Mapping[str, np.ndarray]
-    segments: tuple[tuple[int, int], ...]
-    names: tuple[str, ...]
-    cycles: tuple[tuple[int, int], ...]
-    folds: tuple[tuple[int, int], ...]
-    scheme: str
-    cycle_lines: tuple[str, ...]
-
-
-def join(logs: Sequence[LogData], input_names: Sequence[str] = ()) -> Joined:
-    """Join the logs and find the folds: cycles per file, or blocks when there is one cycle."""
-    if not logs:
-        raise CalibrationError("no calibration logs")
-    t_parts, s_parts, y_parts, segs, cycles, lines = [], [], [], [], [], []
-    ins: dict[str, list[np.ndarray]] = {k: [] for k in input_names}
-    offset, start = 0.0, 0
-    for log in logs:
-        t = np.asarray(log.time_s, float)
-        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-        shift = offset - t[0]
-        t_parts.append(t + shift)
-        s_parts.append(np.asarray(log.speed_rpm, float))
-        y_parts.append(np.asarray(log.elongation_um, float))
-        for k in input_names:
-            if k not in log.inputs:
-                raise CalibrationError(f"{log.name}: no column {k!r} for --inputs")
-            ins[k].append(np.asarray(log.inputs[k], float))
-        cyc = ident.split_cycles(t, log.speed_rpm)
-        for line in ident.describe_cycles(t, log.speed_rpm, cyc):
-            lines.append(f"{log.name}: {line}")
-        cycles += [(a + start, b + start) for a, b in cyc]
-        segs.append((start, start + t.size))
-        start += t.size
-        offset = float(t[-1] + shift + dt)
-    tj = np.concatenate(t_parts)
-    if len(cycles) >= 2:
-        folds, scheme = tuple(cycles), "leave-one-cycle-out"
-    else:
-        edges = np.searchsorted(tj, np.linspace(tj[0], tj[-1], BLOCKS + 1)[1:-1])
-        bounds = [0, *sorted(set(int(e) for e in edges)), tj.size]
-        folds = tuple((a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
-        scheme = f"blocked ({len(folds)} contiguous blocks of one cycle)"
-        if len(folds) < 2 or min(b - a for a, b in folds) < MIN_FOLD_ROWS:
-            raise CalibrationError(f"too few rows ({tj.size}) to validate: record a heat-up and a "
-                                   "cool-down, at least a few hundred samples")
-    return Joined(tj, np.concatenate(s_parts), np.concatenate(y_parts),
-                  {k: np.concatenate(v) for k, v in ins.items()}, tuple(segs),
-                  tuple(lg.name for lg in logs), tuple(cycles), folds, scheme, tuple(lines))
-
-
-@dataclass
-class Candidate:
-    """One candidate and how it scored. ``honest_rms_um`` decides (nested when available)."""
-
-    name: str
-    family: str  # "speed", "inputs" or "reference"
-    description: str
-    cv_rms_um: float = math.inf
-    cv_max_abs_um: float = math.inf
-    nested_rms_um: float | None = None
-    nested_max_abs_um: float | None = None
-    folds_rms_um: list[float] = field(default_factory=list)
-    in_sample_rms_um: float | None = None
-    in_sample_max_abs_um: float | None = None
-    accepted: bool = False
-    refusals: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    model: Any = None
-    details: dict[str, Any] = field(default_factory=dict)
-    fit_cpu_s: float = 0.0
-    held_out_residual_um: np.ndarray | None = None
-    slowest_tau_s: float = 0.0
-
-    @property
-    def honest_rms_um(self) -> float:
-        return self.nested_rms_um if self.nested_rms_um is not None else self.cv_rms_um
-
-    def row(self) -> dict[str, Any]:
-        def num(v: float | None) -> float | None:
-            return None if v is None or not math.isfinite(v) else float(v)
-        return {"name": self.name, "family": self.family, "description": self.description,
-                "cv_rms_um": num(self.cv_rms_um), "cv_max_abs_um": num(self.cv_max_abs_um),
-                "nested_rms_um": num(self.nested_rms_um), "nested_max_abs_um": num(self.nested_max_abs_um),
-                "honest_rms_um": num(self.honest_rms_um), "folds_rms_um": [num(v) for v in self.folds_rms_um],
-                "in_sample_rms_um": num(self.in_sample_rms_um),
-                "in_sample_max_abs_um": num(self.in_sample_max_abs_um), "accepted": self.accepted,
-                "refusals": list(self.refusals), "notes": list(self.notes), **self.details,
-                "fit_cpu_s": round(self.fit_cpu_s, 3)}
-
-
-def _from_ident(name: str, family: str, description: str, res: ident.IdentResult, j: Joined) -> Candidate:
+def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: Dataset) -> Candidate:
     c = Candidate(name, family, description, res.cv_rms_um, res.cv_max_abs_um, res.nested_rms_um,
                   res.nested_max_abs_um, [f.rms_um for f in res.folds], fit_cpu_s=res.fit_cpu_s)
-    pred = res.predict(j.time_s, j.speed_rpm, j.inputs if res.input_names else None, j.segments)
-    c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - pred)
+    pred = res.predict_dataset(ds)
+    c.in_sample_rms_um, c.in_sample_max_abs_um = measured_stats(
+        np.where(ds.measured, ds.elongation_um - pred, np.nan))
     c.details = {"grid": res.grid.label, "alpha": res.alpha,
                  "states": len({t for t in (*res.grid.speed_taus_s, *res.grid.input_taus_s) if t > 0}),
                  "steady_range_um": res.steady_range_um()}
     c.notes += list(res.notes)
-    c.refusals += [r for r in res.refusals if "baseline" not in r]  # judged below, one way for all
+    c.refusals += list(res.refusals)
     c.held_out_residual_um = res.held_out_residual_um
-    c.slowest_tau_s = max((*res.grid.speed_taus_s, *res.grid.input_taus_s))
+    c.slowest_tau_s = res.slowest_tau_s
     return c
 
 
-def _runs_of(j: Joined, rows: np.ndarray, dt_s: float) -> list[Run]:
-    """Contiguous stretches of ``rows`` within each file, as runs on a uniform grid."""
-    runs = []
-    for a, b in j.segments:
-        for s, e in ident._stretches(rows[a:b]):
-            if e - s >= MIN_FOLD_ROWS:
-                lo, hi = a + s, a + e
-                r = Run(f"{len(runs)}", j.time_s[lo:hi], j.speed_rpm[lo:hi], j.elongation_um[lo:hi])
-                runs.append(resample(r, dt_s))
-    return runs
+def _baseline(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
+    res = baseline.fit(ds, nested=ctx["nested"])
+    c = _from_ridge(baseline.NAME, "speed", baseline.DESCRIPTION, res, ds)
+    c.details["tau_s"] = res.grid.speed_taus_s[0]
+    return c, res
 
 
-def _free_run(model: ThermalModel, j: Joined) -> np.ndarray:
-    """Each file from its first measured elongation, never re-anchored."""
-    out = np.empty(j.time_s.size)
-    with np.errstate(all="ignore"):
-        for a, b in j.segments:
-            out[a:b] = model.simulate_um(j.speed_rpm[a:b], j.time_s[a:b], None, float(j.elongation_um[a]))
-    return out
+def _ridge(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
+    res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, False)], nested=ctx["nested"])
+    return _from_ridge("ridge", "speed", "ridge over n, n² through first-order filter banks; alpha by CV",
+                       res, ds), res
 
 
-def _physical(j: Joined, dt_s: float, meta: Mapping[str, Any]) -> Candidate:
-    cpu0 = time.process_time()
-    spec = FORM_BY_NAME[PHYSICAL_FORM]
-    c = Candidate("physical", "speed", f"{PHYSICAL_FORM}: {spec.description} (output error)")
-    res = np.full(j.time_s.size, np.nan)
-    for a, b in j.folds:
-        rows = np.ones(j.time_s.size, bool)
-        rows[a:b] = False
-        runs = _runs_of(j, rows, dt_s)
-        fit = fit_physical(spec, runs, **meta) if runs else None
-        if fit is None or fit.model is None:
-            c.refusals.append(f"no stable fit without fold rows {a}..{b - 1}"
-                              + (f" ({fit.note})" if fit is not None and fit.note else ""))
-            c.fit_cpu_s = time.process_time() - cpu0
-            return c
-        res[a:b] = (j.elongation_um - _free_run(fit.model, j))[a:b]
-    c.cv_rms_um, c.cv_max_abs_um = ident.pooled_stats(res)
-    c.folds_rms_um = [f.rms_um for f in ident.fold_scores(res, j.folds)]
-    c.held_out_residual_um = res
-    full = fit_physical(spec, _runs_of(j, np.ones(j.time_s.size, bool), dt_s), **meta)
-    if full.model is None:
-        c.refusals.append(f"no stable fit on all rows ({full.note})")
-    else:
-        c.model = full.model
-        c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - _free_run(full.model, j))
-        c.details = {"coefficients": full.coefficients}
-        top = abs(full.model.steady_state_um(full.model.speed_range_rpm[1]))
-        bound = ident.GAIN_BOUND * float(np.max(np.abs(j.elongation_um)))
-        if not math.isfinite(top) or top > bound:
-            c.refusals.append(f"steady elongation {top:.4g} um at the top speed is over "
-                              f"{ident.GAIN_BOUND:g} x the largest measured")
-    c.fit_cpu_s = time.process_time() - cpu0
-    return c
+def _ridge_inputs(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
+    names = ctx["names"]
+    res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)], input_names=names,
+                 nested=ctx["nested"])
+    return _from_ridge("ridge+inputs", "inputs", f"ridge over n, n² and {len(names)} input(s) through "
+                       "filter banks; alpha by CV", res, ds), res
 
 
-def _paper(j: Joined) -> Candidate:
-    cpu0 = time.process_time()
-    c = Candidate("paper-ols", "reference", "paper 001 eqs. 11-12: OLS one step ahead on the "
-                  "measured S[k-1], scored in free run (for comparison; never chosen)")
-    try:
-        cv = ident.paper_ols_cv(j.time_s, j.speed_rpm, j.elongation_um, j.folds)
-        within = np.ones(j.time_s.size, bool)  # no regression row pairs the end of one log with the next
-        within[[a for a, _ in j.segments[1:]]] = False
-        fit = ident.fit_paper_ols(j.time_s, j.speed_rpm, j.elongation_um, within)
-    except CalibrationError as err:
-        c.refusals.append(str(err))
-        return c
-    c.cv_rms_um, c.cv_max_abs_um = cv["cv_rms_um"], cv["cv_max_abs_um"]
-    c.folds_rms_um = [f.rms_um for f in cv["folds"]]
-    with np.errstate(all="ignore"):
-        pred = fit.predict(j.time_s, j.speed_rpm, float(j.elongation_um[0]))
-    c.in_sample_rms_um, c.in_sample_max_abs_um = ident.pooled_stats(j.elongation_um - pred)
-    c.details = {"a": fit.a, "one_step_r2": fit.one_step_r2, "a_per_fold": cv["a"]}
-    if fit.a >= 1:
-        c.notes.append(f"pole a = {fit.a:.6f} >= 1: its free run diverges")
-    c.fit_cpu_s = time.process_time() - cpu0
-    return c
+@dataclass(frozen=True)
+class Entry:
+    """One candidate structure: how to fit and score it on a dataset (``evaluate`` returns the
+    scored :class:`Candidate` and the fitted object, which has ``to_model`` unless the candidate
+    carries its model already), and when it applies."""
+
+    name: str
+    family: str
+    evaluate: Callable[[Dataset, Context], tuple[Candidate, Any]]
+    progress: str
+    every_row: bool = False
+    """It needs the elongation on every row: left out for sparse targets."""
+    needs_inputs: bool = False
+    option: str | None = None
+    """The keyword of :func:`identify` that can leave it out."""
+
+
+REGISTRY: tuple[Entry, ...] = (
+    Entry(baseline.NAME, "speed", _baseline, "fitting the exponential baseline"),
+    Entry(output_error.NAME, "speed", output_error.candidate,
+          f"fitting {output_error.PHYSICAL_FORM} per fold", every_row=True, option="physical"),
+    Entry("ridge", "speed", _ridge, "fitting ridge (speed)"),
+    Entry("ridge+inputs", "inputs", _ridge_inputs, "fitting ridge with the inputs", needs_inputs=True),
+    Entry(paper_ols.NAME, "reference", paper_ols.candidate, "scoring the paper's OLS", every_row=True),
+)
+"""The candidates, simple to rich within a family (a simpler one wins within PARSIMONY). The
+first is the bar every other must clear."""
+
+
+# -- the result ---------------------------------------------------------------------------------
 
 
 @dataclass
 class Identification:
-    joined: Joined
+    dataset: Dataset
     candidates: list[Candidate]
     chosen: Candidate
     model: Any
@@ -264,26 +139,26 @@ class Identification:
     def free_run_um(self) -> dict[str, np.ndarray]:
         """The model's in-sample free run over each log (by name), from its first measured
         elongation (at rest when the first row is not measured)."""
-        j, m = self.joined, self.model
+        ds, m = self.dataset, self.model
         out = {}
         with np.errstate(all="ignore"):
-            for name, (a, b) in zip(j.names, j.segments):
-                inputs = {n: v[a:b] for n, v in j.inputs.items()} if m.input_names else None
-                y0 = float(j.elongation_um[a])
-                out[name] = m.simulate_um(j.speed_rpm[a:b], j.time_s[a:b], inputs,
+            for name, (a, b) in zip(ds.names, ds.segments):
+                inputs = {n: v[a:b] for n, v in ds.inputs.items()} if m.input_names else None
+                y0 = float(ds.elongation_um[a])
+                out[name] = m.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], inputs,
                                           y0 if math.isfinite(y0) else None)
         return out
 
     def report(self) -> dict[str, Any]:
-        j = self.joined
+        ds = self.dataset
         return {
             "format": "thermocomp.fit-report/2",
             "method": "cycles",
-            "cycle_rule": ident.CYCLE_RULE,
-            "cycles": list(j.cycle_lines),
-            "scored_by": f"{j.scheme} free run",
-            "folds": [[int(a), int(b)] for a, b in j.folds],
-            "logs": list(j.names),
+            "cycle_rule": CYCLE_RULE,
+            "cycles": list(ds.cycle_lines),
+            "scored_by": f"{ds.scheme} free run",
+            "folds": [[int(a), int(b)] for a, b in ds.folds],
+            "logs": list(ds.names),
             "candidates": [c.row() for c in self.candidates],
             "chosen": self.chosen.name,
             "model_form": self.model.form,
@@ -295,54 +170,61 @@ class Identification:
         }
 
 
-def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
+# -- the choice ---------------------------------------------------------------------------------
+
+
+def _coverage(ds: Dataset) -> list[str]:
+    out = []
+    if not ds.dense:
+        m = int(ds.measured.sum())
+        out.append(f"sparse targets: fitted and scored on the {m} measured rows of {ds.measured.size} (the "
+                   "cycles and the free run on every row); the physical form, the paper's OLS, the "
+                   "closed-loop plan and the HAC standard errors need the elongation on every row and "
+                   "are left out")
+        if ds.dropped_folds:
+            out.append(f"{ds.dropped_folds} {ds.unit}(s) without a measurement: run through, not fitted or scored")
+    if ds.unit == "block":
+        out.append("the logs hold one heat-up/cool-down cycle: scored on contiguous blocks of it; "
+                   "record another cycle for a leave-one-cycle-out score")
+    return out
+
+
+def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (), *,
              units: Mapping[str, str] | None = None, physical: bool = True, nested: bool = True,
              probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
              probe_every_s: float | None = None,
              progress: Callable[[str], None] | None = None, **meta: Any) -> Identification:
-    """Fit every candidate, score it on the same folds in free run, choose, and build the model.
+    """Fit every candidate of :data:`REGISTRY` that applies, score it on the same folds in free
+    run, choose, and build the model.
 
-    ``meta`` (spindle_id, machine_id, created_utc) goes into the model. Raises
-    :class:`CalibrationError` when nothing can be validated.
+    ``meta`` (spindle_id, machine_id, created_utc) goes into the model. With probes planned
+    (``probe_every_s``) a candidate is judged by its closed loop on held-out folds instead; that
+    and the closed-loop plan need the elongation on every row. Raises :class:`CalibrationError`
+    when nothing can be validated.
     """
     cpu0 = time.process_time()
     say = progress or (lambda _m: None)
     names = tuple(sorted(set(input_names)))
-    j = join(logs, names)
-    dt_s = float(np.median(np.diff(j.time_s)))
-    warnings: list[str] = []
-    if j.scheme.startswith("blocked"):
-        warnings.append("the logs hold one heat-up/cool-down cycle: scored on contiguous blocks of it; "
-                        "record another cycle for a leave-one-cycle-out score")
-    grid_speed = ident.auto_grid(j.time_s, j.speed_rpm, j.cycles, False)
-    grid_inputs = ident.auto_grid(j.time_s, j.speed_rpm, j.cycles, True)
-    common = dict(cycles=j.folds, segments=j.segments, nested=nested and len(j.folds) >= 3)
+    ds = logs if isinstance(logs, Dataset) else join(logs, names)
+    if not ds.dense and probe_every_s is not None:
+        raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
+                               "row; the logs have it on some rows only (sparse)")
+    warnings = _coverage(ds)
+    ctx = {"names": names, "nested": nested and len(ds.folds) >= 3, "meta": meta}
+    options = {"physical": physical}
+    suffix = "" if ds.dense else " (measured rows)"
+    cands: list[Candidate] = []
+    fitted: dict[str, Any] = {}
+    for entry in REGISTRY:
+        if ((entry.every_row and not ds.dense) or (entry.needs_inputs and not names)
+                or (entry.option is not None and not options[entry.option])):
+            continue
+        say(entry.progress + suffix)
+        c, f = entry.evaluate(ds, ctx)
+        cands.append(c)
+        fitted[c.name] = f
 
-    say("fitting the exponential baseline")
-    base = ident.fit_ridge_cv(j.time_s, j.speed_rpm, j.elongation_um,
-                              grids=[ident.TauGrid((tau,)) for tau in ident.BASELINE_TAUS_S
-                                     if tau >= dt_s], alphas=(0.0,), rule="min", **common)
-    cands = [_from_ident("exp-baseline", "speed", "paper 001 eqs. 1-3, dynamic: one time constant "
-                         "chosen by CV, S∞ quadratic in n", base, j)]
-    cands[0].details["tau_s"] = base.grid.speed_taus_s[0]
-    if physical:
-        say(f"fitting {PHYSICAL_FORM} per fold")
-        cands.append(_physical(j, dt_s, meta))
-    say("fitting ridge (speed)")
-    ridge = ident.fit_ridge_cv(j.time_s, j.speed_rpm, j.elongation_um, grids=[grid_speed], **common)
-    cands.append(_from_ident("ridge", "speed", "ridge over n, n² through first-order filter banks; "
-                             "alpha by CV", ridge, j))
-    ridge_in = None
-    if names:
-        say(f"fitting ridge with {len(names)} input(s)")
-        ridge_in = ident.fit_ridge_cv(j.time_s, j.speed_rpm, j.elongation_um, j.inputs,
-                                      grids=[grid_inputs], **common)
-        cands.append(_from_ident("ridge+inputs", "inputs", f"ridge over n, n² and {len(names)} "
-                                 "input(s) through filter banks; alpha by CV", ridge_in, j))
-    say("scoring the paper's OLS")
-    cands.append(_paper(j))
-
-    # with probes planned, a candidate is judged by its closed loop on held-out cycles
+    # with probes planned, a candidate is judged by its closed loop on held-out folds
     plans: dict[str, closedloop.Plan | None] = {}
     intervals = tuple(sorted({*closedloop.INTERVALS_S, *([probe_every_s] if probe_every_s else [])}))
     target = probe_target_um if probe_target_um is not None else closedloop.DEFAULT_TARGET_UM
@@ -350,8 +232,8 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     def loop_of(c: Candidate) -> closedloop.Plan | None:
         if c.name not in plans:
             tau = c.slowest_tau_s or (max(c.model.time_constants_s(0.0)) if c.model is not None else 0.0)
-            ok = c.held_out_residual_um is not None and tau > 0 and len(j.folds) >= 2
-            plans[c.name] = closedloop.plan(j.time_s, c.held_out_residual_um, j.folds, tau, target,
+            ok = c.held_out_residual_um is not None and tau > 0 and len(ds.folds) >= 2 and ds.dense
+            plans[c.name] = closedloop.plan(ds.time_s, c.held_out_residual_um, ds.folds, tau, target,
                                             intervals) if ok else None
             if plans[c.name] is not None:
                 c.details["closed_loop_rms_um"] = {f"{r['interval_s']:.0f}": round(r["rms_um"], 4)
@@ -376,13 +258,12 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
                               f"baseline's {bar:.2f} um")
         c.accepted = not c.refusals
 
-    # build the models of the candidates the choice may need
-    for c, res in ((cands[0], base), (next(c for c in cands if c.name == "ridge"), ridge)):
-        if c.accepted:
-            try:
-                c.model = res.to_model(c.name, fit={}, **meta)
-            except ModelError as err:
-                c.accepted, c.refusals = False, [*c.refusals, f"model refused: {err}"]
+    # build the speed-only models the choice may need
+    for c in cands:
+        if c.family == "speed" and c.accepted and c.model is None:
+            c.model, refusal = rb.to_model_or_refuse(fitted[c.name], c.name, fit={}, **meta)
+            if refusal:
+                c.accepted, c.refusals = False, [*c.refusals, refusal]
     speed = [c for c in cands if c.family == "speed" and c.accepted and c.model is not None]
     if not speed:
         raise CalibrationError("no speed-only candidate passed the checks: "
@@ -392,26 +273,26 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
     chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
     basis = "nested " if chosen.nested_rms_um is not None else ""
     if probe_every_s is None:
-        reason = f"{chosen.name} has the lowest {basis}{j.scheme} free-run RMS among the speed-only candidates, "
+        reason = f"{chosen.name} has the lowest {basis}{ds.scheme} free-run RMS among the speed-only candidates, "
     else:
-        reason = (f"{chosen.name} has the lowest {j.scheme} {what} among the speed-only candidates "
+        reason = (f"{chosen.name} has the lowest {ds.scheme} {what} among the speed-only candidates "
                   f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS ")
     reason += (f"{chosen.honest_rms_um:.2f} um"
                + (f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
-    model = _with_fit(chosen, j, reason)
+    model = _with_fit(chosen, ds, reason)
     final = chosen
-    if ridge_in is not None:
-        c_in = next(c for c in cands if c.name == "ridge+inputs")
-        model, final, reason = with_inputs_or_not(c_in, chosen, ridge_in, model, j, reason, warnings,
-                                                  score=score, what=what, n_inputs=len(names),
-                                                  units=units, meta=meta)
-    paper = cands[-1]
-    if math.isfinite(paper.cv_rms_um):
+    with_inputs = next((c for c in cands if c.family == "inputs"), None)
+    if with_inputs is not None:
+        model, final, reason = with_inputs_or_not(with_inputs, chosen, fitted[with_inputs.name], model, ds,
+                                                  reason, warnings, score=score, what=what,
+                                                  n_inputs=len(names), units=units, meta=meta)
+    paper = next((c for c in cands if c.family == "reference"), None)
+    if paper is not None and math.isfinite(paper.cv_rms_um):
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
-    derived = _derived(final, ridge_in if final.name == "ridge+inputs" else ridge if final.name == "ridge"
-                       else None, j)
+    derived = rb.derived(fitted[final.name], ds) if isinstance(fitted.get(final.name), rb.RidgeFit) \
+        and final.name != baseline.NAME else []
     loop = None
-    if probe_target_um is not None:
+    if probe_target_um is not None and ds.dense:
         say("planning the closed loop (probe intervals)")
         loop = loop_of(final)
     if loop is not None:
@@ -421,11 +302,10 @@ def identify(logs: Sequence[LogData], input_names: Sequence[str] = (), *,
         if fb is not None and fb_loop is not None:  # the fallback keeps the observer fitted to it
             update["fallback"] = fb.model_copy(update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}})
         model = model.model_copy(update=update)
-    return Identification(j, cands, final, model, reason, warnings, time.process_time() - cpu0, derived,
-                          loop)
+    return Identification(ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop)
 
 
-def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model: Any, j: Joined,
+def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model: Any, ds: Dataset,
                        reason: str, warnings: list[str], *, score: Callable[[Candidate], float], what: str,
                        n_inputs: int, units: Any, meta: Mapping[str, Any]) -> tuple[Any, Candidate, str]:
     """The model with inputs when it beats the chosen speed-only one by ``score`` (``what`` names
@@ -436,20 +316,20 @@ def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model:
         c_in.refusals.append(f"no better than speed only ({what} {score(c_in):.2f} um against "
                              f"{score(chosen):.2f} um)")
     if c_in.accepted:
-        try:
-            c_in.model = ridge_in.to_model("ridge+inputs", units=units, fallback=model, fit={}, **meta)
-        except ModelError as err:
-            c_in.accepted, c_in.refusals = False, [*c_in.refusals, f"model refused: {err}"]
+        c_in.model, refusal = rb.to_model_or_refuse(ridge_in, c_in.name, units=units, fallback=model,
+                                                    fit={}, **meta)
+        if refusal:
+            c_in.accepted, c_in.refusals = False, [*c_in.refusals, refusal]
     if not c_in.accepted:
         warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
         return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
     reason += (f"; with inputs {c_in.honest_rms_um:.2f} um: the model uses {n_inputs} input(s), "
                f"{chosen.name} stands in when one fails")
-    return _with_fit(c_in, j, reason), c_in, reason
+    return _with_fit(c_in, ds, reason), c_in, reason
 
 
-def _with_fit(c: Candidate, j: Joined, reason: str) -> Any:
-    fit = {"method": c.name, "scored_by": f"{j.scheme} free run", "folds": len(j.folds),
+def _with_fit(c: Candidate, ds: Dataset, reason: str) -> Any:
+    fit = {"method": c.name, "scored_by": f"{ds.scheme} free run", "folds": len(ds.folds),
            "cv_rms_um": round(c.cv_rms_um, 4), "cv_max_abs_um": round(c.cv_max_abs_um, 4),
            "folds_rms_um": [round(v, 4) for v in c.folds_rms_um], "reason": reason}
     if c.nested_rms_um is not None:
@@ -458,34 +338,3 @@ def _with_fit(c: Candidate, j: Joined, reason: str) -> Any:
         fit["alpha"] = c.details["alpha"]
         fit["grid"] = c.details["grid"]
     return c.model.model_copy(update={"fit": fit})
-
-
-def _derived(c: Candidate, res: ident.IdentResult | None, j: Joined) -> list[dict[str, Any]]:
-    """HAC (Newey-West) standard errors of derived quantities of a ridge fit: the steady rise at
-    a few speeds and each input's total steady sensitivity. Single bank gains trade off against
-    each other, so they are not reported."""
-    if res is None:
-        return []
-    try:
-        cov = ident.hac_covariance(res, j.time_s, j.speed_rpm, j.elongation_um,
-                                   j.inputs if res.input_names else None)
-    except (np.linalg.LinAlgError, ValueError):
-        return []
-    cov = np.nan_to_num(cov)
-    ns = len(res.grid.speed_taus_s)
-    out = []
-    for frac in (0.5, 1.0):
-        rpm = res.speed_max_rpm * frac
-        n = rpm / 1000.0
-        w = np.zeros(res.gains.size)
-        w[:ns] = n
-        w[ns:2 * ns] = n * n
-        out.append({"quantity": f"steady rise at {rpm:.0f} rpm", "unit": "um",
-                    "value": float(w @ res.gains), "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0)))})
-    ni = len(res.grid.input_taus_s)
-    for i, nm in enumerate(res.input_names):
-        w = np.zeros(res.gains.size)
-        w[2 * ns + i * ni: 2 * ns + (i + 1) * ni] = 1.0
-        out.append({"quantity": f"steady sensitivity to {nm}", "unit": "um per unit",
-                    "value": float(w @ res.gains), "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0)))})
-    return out

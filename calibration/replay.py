@@ -26,7 +26,7 @@ from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
 from .data import bridge_gaps, gap_threshold_s
-from .ident import residual_stats
+from .metrics import residual_stats
 from .stability import equilibrium_and_tevr
 
 MAX_SPAN_S = 2 * 365.25 * 86400.0

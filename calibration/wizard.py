@@ -373,7 +373,7 @@ class Wizard:
     def step_fit(self) -> dict[str, Any]:
         from .commands import print_identification
         from .fit import fit_logs
-        from .ident import residual_stats
+        from .metrics import residual_stats
         from .plots import Panel, plot_panels
         from .replay import replay
 
@@ -398,7 +398,7 @@ class Wizard:
         report = result.report()
         print_identification(result, report, self.out)
         model = result.model
-        j = result.joined
+        j = result.dataset
         fitted = result.free_run_um()["calibration"]
         cal_res = j.elongation_um - fitted
         summary: dict[str, Any] = {"form": model.form, "reason": result.reason,

@@ -12,7 +12,7 @@ walk plus, optionally, a drift rate r (an integrated random walk)::
 ``e`` is the part of the model's residual that changes faster than probes come (coolant
 cycling, a few minutes long on the real record): no disturbance state can follow it, so it
 counts as measurement noise. ``q_b`` and ``model_sd`` are fitted from the calibration residuals
-(:func:`calibration.ident`'s variogram, ``docs/PROBING.md``); the defaults are the order of the
+(:mod:`calibration.closedloop`'s variogram, ``docs/PROBING.md``); the defaults are the order of the
 real record's speed-only residuals.
 
 The time update is the exact discretisation over the real Δt (F = [[1, Δt], [0, 1]], Q from the

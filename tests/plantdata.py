@@ -36,14 +36,13 @@ def inputs_model(fit, spindle_id: str = "sim"):
     """The ridge model with the inputs of ``fit`` (an identification with inputs), with the
     speed-only model ``fit`` chose as its fallback, whether or not the inputs won the choice:
     for tests of what a model with inputs does in the runtime and replay."""
-    from calibration import ident
+    from calibration.estimators import ridge_bank
     from calibration.fit import unit_of
 
     if fit.model.input_names:
         return fit.model
-    j = fit.joined
-    res = ident.fit_ridge_cv(j.time_s, j.speed_rpm, j.elongation_um, j.inputs, cycles=j.folds,
-                             segments=j.segments,
-                             grids=[ident.auto_grid(j.time_s, j.speed_rpm, j.cycles, True)])
-    return res.to_model("ridge+inputs", units={n: unit_of(n) for n in j.inputs}, fallback=fit.model,
+    ds = fit.dataset
+    res = ridge_bank.fit(ds, grids=[ridge_bank.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)],
+                         input_names=tuple(ds.inputs))
+    return res.to_model("ridge+inputs", units={n: unit_of(n) for n in ds.inputs}, fallback=fit.model,
                         fit={}, spindle_id=spindle_id)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from plantdata import identify_runs, plant_run
 
-from calibration import ident
+from calibration.estimators import paper_ols
 from calibration.data import Run, has_cooldown, resample
 from calibration.fit import NO_COOLDOWN
 from calibration.stability import equilibrium_and_tevr as equilibrium
@@ -27,7 +27,7 @@ def cal60():
 
 
 def test_chosen_model_fitted_at_60s_holds_on_held_out_runs_at_1s_and_beats_the_paper(cal60):
-    paper = ident.fit_paper_ols(cal60.joined.time_s, cal60.joined.speed_rpm, cal60.joined.elongation_um)
+    paper = paper_ols.fit_paper_ols(cal60.dataset.time_s, cal60.dataset.speed_rpm, cal60.dataset.elongation_um)
     for run in (plant_run("validation", 1.0, 5), plant_run("jobshop", 1.0, 6)):
         chosen_rms = held_out_rms(cal60.model, run)
         with np.errstate(all="ignore"):
@@ -58,8 +58,8 @@ def test_report_scores_every_candidate_on_the_same_cycle_folds_and_says_why(cal6
 def test_paper_ols_pairs_no_row_of_one_log_with_the_next():
     a, b = plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)
     result = identify_runs([a, b], physical=False, nested=False, probe_target_um=None)
-    j = result.joined
-    joined = ident.fit_paper_ols(j.time_s, j.speed_rpm, j.elongation_um)
+    j = result.dataset
+    joined = paper_ols.fit_paper_ols(j.time_s, j.speed_rpm, j.elongation_um)
     paper = next(c for c in result.candidates if c.name == "paper-ols")
     # the joined series has one bogus pair (last of a -> first of b): leaving it out changes the fit
     assert paper.details["a"] != pytest.approx(joined.a, rel=1e-9)

@@ -1,4 +1,4 @@
-"""The identification prototype (calibration.ident, issue 16): cycles, the exact filter bank,
+"""The ridge filter banks and their folds: cycles, the exact filter bank,
 free-run prediction that does not depend on where a log starts, the state-space forms, the
 paper's OLS for the comparison, and finite output for any finite input."""
 
@@ -13,19 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibration.ident import (
-    BASELINE_TAUS_S,
-    CYCLE_RULE,
-    TauGrid,
-    auto_grid,
-    describe_cycles,
-    filter_bank,
-    fit_paper_ols,
-    fit_ridge_cv,
-    hac_stderr,
-    paper_ols_cv,
-    split_cycles,
-)
+from calibration.estimators.baseline import BASELINE_TAUS_S
+from calibration.estimators.paper_ols import fit_paper_ols, paper_ols_cv
+from calibration.estimators.ridge_bank import TauGrid, auto_grid, fit_ridge_cv, hac_stderr
+from calibration.folds import CYCLE_RULE, describe_cycles, split_cycles
+from compensator.filters import filter_bank
 from compensator.errors import CalibrationError, NonFiniteInputError
 
 H = 3600.0
@@ -211,21 +203,23 @@ def test_hac_stderr_is_statsmodels_newey_west_at_alpha_zero():
     np.testing.assert_allclose(hac_stderr(res, t, n, y, inputs, maxlags=30), ols.bse[1:], rtol=1e-6)
 
 
-def test_predict_is_a_free_run_of_the_state_space(fitted):
-    res, (t, n, inputs, _) = fitted
+def test_predict_is_a_free_run_of_the_runtime_model(fitted):
+    """The fit's prediction and the runtime's state-space model stepped cycle by cycle (the
+    core's exact first-order step) agree at irregular steps."""
+    res, (t, n, inputs, y) = fitted
     ss = res.state_space()
     assert ss.taus_s == (600.0, 1800.0)  # one state per distinct time constant
+    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model("ridge", spindle_id="t")
+    model = res.to_model("ridge+inputs", fallback=speed_only, spindle_id="t")
     tt, nn = t[::7], n[::7]  # irregular steps
     tt = tt + np.linspace(0, 50, tt.size)
     uu = {k: v[::7] for k, v in inputs.items()}
     pred = res.predict(tt, nn, uu)
-    first = {k: float(v[0]) for k, v in uu.items()}
-    x = ss.equilibrium(nn[0], first)
-    out = [ss.output_um(x, nn[0], first)]
+    state = model.start(None, nn[0], {k: float(v[0]) for k, v in uu.items()})
+    out = [state.elongation_um]
     for k in range(1, tt.size):
-        now = {key: float(v[k]) for key, v in uu.items()}
-        x = ss.step(x, nn[k], tt[k] - tt[k - 1], now)
-        out.append(ss.output_um(x, nn[k], now))
+        state = model.step(state, nn[k], tt[k] - tt[k - 1], {key: float(v[k]) for key, v in uu.items()})
+        out.append(state.elongation_um)
     np.testing.assert_allclose(pred, out, rtol=0, atol=1e-9)
 
 

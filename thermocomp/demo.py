@@ -231,7 +231,7 @@ def main(args: argparse.Namespace) -> int:
     fit = fit_logs(logs, labels=["calibration_run.csv", "validation_run.csv"], spindle_id="demo-spindle",
                    machine_id="virtual")
     save_model(outdir / "model.json", fit.model)
-    t = Table(title=f"Candidates (free run, {fit.joined.scheme}: error on the held-out cycles)")
+    t = Table(title=f"Candidates (free run, {fit.dataset.scheme}: error on the held-out cycles)")
     for col in ("candidate", "held-out RMS [um]", "held-out max [um]", "verdict"):
         t.add_column(col, justify="right" if "um" in col else "left")
     for c in fit.candidates:

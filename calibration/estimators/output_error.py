@@ -1,28 +1,36 @@
 """The physical candidate: output-error forms of the thermal model (paper 001's state with
-speed-dependent dissipation, an elastic term, one or two states), fitted in free run.
+speed-dependent dissipation, an elastic term, one or two states), fitted in free run. The
+identification enters :data:`PHYSICAL_FORM`, refitted per fold (:func:`candidate`).
 
 Output-error fitting uses variable projection: for fixed time constants the free-run output is
 linear in every gain, so each evaluation filters the speed powers through each state (one pass
 each) and solves one least-squares problem; an outer search covers the one or two nonlinear
 parameters. Long logs are searched on a coarser grid, then the gains solved on the full one
-(:func:`fit_physical`). :mod:`calibration.identify` scores it on the same folds as every other
-candidate.
+(:func:`fit_physical`). It fits on a uniform grid, so it needs the elongation on every row: it
+is left out for sparse targets.
 """
 
 from __future__ import annotations
 
 import math
+import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
 
 from compensator.errors import CalibrationError, ModelError
 from compensator.model import ThermalModel, ThermalStateCoefficients, filter_state
+from compensator.statespace import GAIN_BOUND
 
-from .data import Run, resample
+from .. import folds as fl
+from ..data import Run, resample
+from ..candidate import Candidate
+from ..dataset import Dataset
+from ..metrics import fold_scores, pooled_stats
 
 @dataclass(frozen=True)
 class FormSpec:
@@ -277,3 +285,75 @@ def fit_physical(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
         if isinstance(err, CalibrationError):
             raise
         return FitResult(form, None, note=f"fit failed: {err}")
+
+
+# -- the candidate ------------------------------------------------------------------
+
+
+PHYSICAL_FORM = "speed-state+elastic"
+"""The output-error form entered as the physical candidate."""
+NAME = "physical"
+
+
+def runs_of(ds: Dataset, rows: np.ndarray) -> list[Run]:
+    """Contiguous stretches of ``rows`` within each segment, as runs on a uniform grid."""
+    runs = []
+    for a, b in ds.segments:
+        for s, e in fl.stretches(rows[a:b]):
+            if e - s >= fl.MIN_FOLD_ROWS:
+                lo, hi = a + s, a + e
+                r = Run(f"{len(runs)}", ds.time_s[lo:hi], ds.speed_rpm[lo:hi], ds.elongation_um[lo:hi])
+                runs.append(resample(r, ds.dt_s))
+    return runs
+
+
+def fit(ds: Dataset, rows: np.ndarray | None = None, form: str = PHYSICAL_FORM, **meta: Any) -> FitResult:
+    """:data:`PHYSICAL_FORM` fitted on the stretches of ``rows`` (default: all), resampled to the
+    dataset's period. A fit without a usable stretch is a result without a model."""
+    runs = runs_of(ds, np.ones(ds.time_s.size, bool) if rows is None else rows)
+    spec = FORM_BY_NAME[form]
+    if not runs:
+        return FitResult(spec, None, note=f"no stretch of {fl.MIN_FOLD_ROWS} rows or more")
+    return fit_physical(spec, runs, **meta)
+
+
+def free_run(model: ThermalModel, ds: Dataset) -> np.ndarray:
+    """Each segment from its first measured elongation, never re-anchored."""
+    out = np.empty(ds.time_s.size)
+    with np.errstate(all="ignore"):
+        for a, b in ds.segments:
+            out[a:b] = model.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], None, float(ds.elongation_um[a]))
+    return out
+
+
+def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
+    """The physical candidate: refitted without each fold, scored on it in free run."""
+    cpu0 = time.process_time()
+    spec = FORM_BY_NAME[PHYSICAL_FORM]
+    c = Candidate(NAME, "speed", f"{PHYSICAL_FORM}: {spec.description} (output error)")
+    meta = ctx.get("meta", {})
+    res = np.full(ds.time_s.size, np.nan)
+    for a, b in ds.folds:
+        f = fit(ds, fl.without(ds.time_s.size, (a, b)), **meta)
+        if f.model is None:
+            c.refusals.append(f"no stable fit without fold rows {a}..{b - 1}" + (f" ({f.note})" if f.note else ""))
+            c.fit_cpu_s = time.process_time() - cpu0
+            return c, None
+        res[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
+    c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res)
+    c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
+    c.held_out_residual_um = res
+    full = fit(ds, **meta)
+    if full.model is None:
+        c.refusals.append(f"no stable fit on all rows ({full.note})")
+    else:
+        c.model = full.model
+        c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full.model, ds))
+        c.details = {"coefficients": full.coefficients}
+        top = abs(full.model.steady_state_um(full.model.speed_range_rpm[1]))
+        bound = GAIN_BOUND * float(np.max(np.abs(ds.elongation_um)))
+        if not math.isfinite(top) or top > bound:
+            c.refusals.append(f"steady elongation {top:.4g} um at the top speed is over "
+                              f"{GAIN_BOUND:g} x the largest measured")
+    c.fit_cpu_s = time.process_time() - cpu0
+    return c, full

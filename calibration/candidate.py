@@ -1,0 +1,50 @@
+"""One candidate of the identification and how it scored: the type every estimator's
+``candidate`` returns and the choice (:mod:`calibration.identify`) reads. Pure."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Candidate:
+    """One candidate and how it scored. ``honest_rms_um`` decides (nested when available)."""
+
+    name: str
+    family: str  # "speed", "inputs" or "reference"
+    description: str
+    cv_rms_um: float = math.inf
+    cv_max_abs_um: float = math.inf
+    nested_rms_um: float | None = None
+    nested_max_abs_um: float | None = None
+    folds_rms_um: list[float] = field(default_factory=list)
+    in_sample_rms_um: float | None = None
+    in_sample_max_abs_um: float | None = None
+    accepted: bool = False
+    refusals: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    model: Any = None
+    details: dict[str, Any] = field(default_factory=dict)
+    fit_cpu_s: float = 0.0
+    held_out_residual_um: np.ndarray | None = None
+    slowest_tau_s: float = 0.0
+
+    @property
+    def honest_rms_um(self) -> float:
+        return self.nested_rms_um if self.nested_rms_um is not None else self.cv_rms_um
+
+    def row(self) -> dict[str, Any]:
+        def num(v: float | None) -> float | None:
+            return None if v is None or not math.isfinite(v) else float(v)
+        return {"name": self.name, "family": self.family, "description": self.description,
+                "cv_rms_um": num(self.cv_rms_um), "cv_max_abs_um": num(self.cv_max_abs_um),
+                "nested_rms_um": num(self.nested_rms_um), "nested_max_abs_um": num(self.nested_max_abs_um),
+                "honest_rms_um": num(self.honest_rms_um), "folds_rms_um": [num(v) for v in self.folds_rms_um],
+                "in_sample_rms_um": num(self.in_sample_rms_um),
+                "in_sample_max_abs_um": num(self.in_sample_max_abs_um), "accepted": self.accepted,
+                "refusals": list(self.refusals), "notes": list(self.notes), **self.details,
+                "fit_cpu_s": round(self.fit_cpu_s, 3)}

@@ -1,0 +1,132 @@
+"""How a log is cut for validation: whole heat-up/cool-down cycles (:func:`split_cycles`, rule in
+:data:`CYCLE_RULE`), contiguous blocks of a log that holds one cycle only (:func:`blocks`), and
+the training rows of a fold held out (:func:`without`). Every score in the identification is a
+free run scored on a held-out fold; one-step error is never used to choose anything. Pure.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from .checks import as_series, as_times
+
+Fold = tuple[int, int]
+"""Half-open row range ``(start, stop)``."""
+
+H = 3600.0
+IDLE_RPM = 1.0
+"""At or below this |speed| the spindle is at rest."""
+MIN_REST_S = 1800.0
+"""A rest shorter than this (a tool change, a pause) does not end a heat-up."""
+MIN_RUN_S = 600.0
+"""A run shorter than this (a blip during a cool-down) does not start a heat-up."""
+BLOCKS = 4
+"""Folds of a log that holds one cycle only: this many contiguous blocks of equal duration."""
+MIN_FOLD_ROWS = 20
+"""A block (or a stretch refitted by the output-error form) needs at least this many rows."""
+
+CYCLE_RULE = (
+    "a cycle is a heat-up and the cool-down that follows: the spindle runs when |speed| > "
+    f"{IDLE_RPM:g} rpm; rests shorter than {MIN_REST_S / 60:g} min are bridged (they belong to the "
+    f"run), then runs shorter than {MIN_RUN_S / 60:g} min are ignored (they belong to the rest); "
+    "each remaining run starts a cycle, which ends where the next one starts; samples before the "
+    "first run join the first cycle, and the last cycle ends with the log (it may have no "
+    "cool-down). Durations are measured on the time stamps, a logged value held over the interval "
+    "that ends at its sample."
+)
+
+
+def stretches(mask: np.ndarray) -> list[Fold]:
+    """The runs of True in ``mask``, as half-open ranges."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def duration_s(t: np.ndarray, a: int, b: int) -> float:
+    """Time covered by samples a..b-1, each held over the interval ending at it."""
+    return float(t[b - 1] - t[max(a - 1, 0)])
+
+
+def split_cycles(time_s: Any, speed_rpm: Any, *, idle_rpm: float = IDLE_RPM,
+                 min_rest_s: float = MIN_REST_S, min_run_s: float = MIN_RUN_S) -> list[Fold]:
+    """Cut a log into cycles: half-open index ranges ``(start, stop)`` that cover it in order.
+
+    The rule (:data:`CYCLE_RULE`): the spindle runs when |speed| > ``idle_rpm``; rests shorter
+    than ``min_rest_s`` are bridged, then runs shorter than ``min_run_s`` are ignored; each run
+    left starts a cycle that ends where the next starts. Samples before the first run join the
+    first cycle; the last cycle ends with the log. A log with no run is one cycle.
+    """
+    t = as_times(time_s)
+    n = np.abs(as_series("speed_rpm", speed_rpm, t.size))
+    if t.size == 0:
+        return []
+    running = n > idle_rpm
+    for a, b in stretches(~running):
+        if a > 0 and b < t.size and duration_s(t, a, b) < min_rest_s:
+            running[a:b] = True  # a pause between two runs
+    for a, b in stretches(running):
+        if duration_s(t, a, b) < min_run_s:
+            running[a:b] = False
+    starts = [a for a, _ in stretches(running)]
+    if not starts:
+        return [(0, int(t.size))]
+    bounds = [0, *starts[1:], int(t.size)]
+    return [(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
+
+
+def describe_cycles(time_s: Any, speed_rpm: Any, cycles: Sequence[Fold],
+                    idle_rpm: float = IDLE_RPM) -> list[str]:
+    """One line per cycle: when, how long it ran and at what speed, how long it rested."""
+    t = np.asarray(time_s, float)
+    n = np.abs(np.asarray(speed_rpm, float))
+    held = np.diff(t, prepend=t[:1])  # the interval each sample is held over
+    lines = []
+    for i, (a, b) in enumerate(cycles, start=1):
+        run = n[a:b] > idle_rpm
+        run_s = float(np.sum(held[a:b][run]))
+        top = float(n[a:b].max()) if b > a else 0.0
+        lines.append(f"cycle {i}: samples {a}..{b - 1}, {t[a] / H:.2f}-{t[b - 1] / H:.2f} h, "
+                     f"running {run_s / H:.2f} h up to {top:.0f} rpm, "
+                     f"at rest {(duration_s(t, a, b) - run_s) / H:.2f} h")
+    return lines
+
+
+def longest_stretch_s(time_s: Any, speed_rpm: Any, cycles: Sequence[Fold],
+                      idle_rpm: float = IDLE_RPM) -> float:
+    """The median over cycles of the longer of its run and its rest [s]: the longest time
+    constant the log can pin down (a slow heat-up looks like a long time constant otherwise)."""
+    t = np.asarray(time_s, float)
+    n = np.abs(np.asarray(speed_rpm, float))
+    held = np.diff(t, prepend=t[:1])
+    out = []
+    for a, b in cycles:
+        run = float(np.sum(held[a:b][n[a:b] > idle_rpm]))
+        out.append(max(run, duration_s(t, a, b) - run))
+    return float(np.median(out)) if out else 0.0
+
+
+def blocks(time_s: np.ndarray, count: int = BLOCKS) -> tuple[Fold, ...]:
+    """``count`` contiguous blocks of equal duration (the folds of a one-cycle log)."""
+    edges = np.searchsorted(time_s, np.linspace(time_s[0], time_s[-1], count + 1)[1:-1])
+    bounds = [0, *sorted(set(int(e) for e in edges)), int(time_s.size)]
+    return tuple((a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
+
+
+def without(size: int, fold: Fold, rows: np.ndarray | None = None) -> np.ndarray:
+    """The training rows when ``fold`` is held out: ``rows`` (default every row) less the fold."""
+    out = np.ones(size, bool) if rows is None else np.array(rows, dtype=bool)
+    out[fold[0]:fold[1]] = False
+    return out
+
+
+def check_cover(folds: Sequence[Fold], size: int) -> None:
+    """Folds must be non-empty and cover the rows in order."""
+    from compensator.errors import CalibrationError
+
+    if (not folds or folds[0][0] != 0 or folds[-1][1] != size or any(b <= a for a, b in folds)
+            or any(x[1] != y[0] for x, y in itertools.pairwise(folds))):
+        raise CalibrationError("cycles must be non-empty and cover the log in order")
