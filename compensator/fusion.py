@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ModelError
-from .model import saved_numbers
+from .modelbase import saved_numbers
 from .observer import (
     COV_LIMIT,
     ObserverConfig,

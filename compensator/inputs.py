@@ -24,29 +24,26 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 
 from .errors import ModelError, NonFiniteInputError
-from .model import ModelState, ThermalModel, saved_numbers
+from .filters import first_order, lag_step
+from .model import ModelState, ThermalModel
+from .modelbase import Channel, ModelBase, saved_numbers
 from .units import require_dt
 
 AUGMENTED_FORMAT = "thermocomp.augmented-model/1"
 
 
-class InputTerm(BaseModel):
+class InputTerm(Channel):
     """One extra input and how it enters the elongation."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="run-log column / runtime channel")
-    unit: str = Field(description="unit of the input: degC, %, ...")
     reference_mode: Literal["start", "fixed"] = Field(
         "start", description="start: relative to the value at a cold start (each calibration run's "
         "first sample; the runtime's first reading after a cold start); fixed: to `reference`")
     reference: float = Field(description="the fixed reference; in start mode the calibration runs' mean start")
     gain_um_per_unit: float
     tau_s: float = Field(ge=0, description="first-order time constant; 0 = static term")
-    valid_range: tuple[float, float] = Field(description="plausible values; outside: sensor fault")
 
     @field_validator("reference", "gain_um_per_unit", "tau_s")
     @classmethod
@@ -56,62 +53,26 @@ class InputTerm(BaseModel):
         return v
 
 
-class AugmentedModel(BaseModel):
+class AugmentedModel(ModelBase):
     """A speed model plus input terms, and the speed-only model to fall back on."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
     format: Literal["thermocomp.augmented-model/1"] = AUGMENTED_FORMAT
-    spindle_id: str = "unknown"
-    machine_id: str = ""
     speed_model: ThermalModel
     inputs: tuple[InputTerm, ...] = Field(min_length=1)
     fallback: ThermalModel
     selection: list[dict[str, Any]] = Field(default_factory=list, description="how the inputs were chosen")
-    fit: dict[str, Any] = Field(default_factory=dict)
-    created_utc: str | None = None
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as err:
-            e = err.errors()[0]
-            raise ModelError(f"augmented model: {'.'.join(str(x) for x in e['loc'])}: {e['msg']}") from err
-        names = [t.name for t in self.inputs]
-        if len(set(names)) != len(names):
-            raise ModelError("augmented model: an input appears twice")
 
     @property
     def form(self) -> str:
         return f"{self.speed_model.form}+" + "+".join(t.name for t in self.inputs)
 
     @property
-    def input_names(self) -> tuple[str, ...]:
-        return tuple(t.name for t in self.inputs)
+    def channels(self) -> tuple[InputTerm, ...]:
+        return self.inputs
 
     @property
     def speed_range_rpm(self) -> tuple[float, float]:
         return self.speed_model.speed_range_rpm
-
-    @classmethod
-    def model_validate(cls, obj: Any, **kwargs: Any) -> AugmentedModel:  # type: ignore[override]
-        return cls(**obj) if isinstance(obj, Mapping) else super().model_validate(obj, **kwargs)
-
-    def above_range(self, speed_rpm: float) -> bool:
-        return self.speed_model.above_range(speed_rpm)
-
-    def check_inputs(self, values: Mapping[str, float]) -> str | None:
-        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
-        for t in self.inputs:
-            v = values.get(t.name)
-            if v is None:
-                return f"{t.name}: no value"
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                return f"{t.name}: {v!r} is not a finite number"
-            lo, hi = t.valid_range
-            if not lo <= v <= hi:
-                return f"{t.name}: {v:g} {t.unit} is outside {lo:g}..{hi:g}"
-        return None
 
     # -- free run over a log ------------------------------------------------------
 
@@ -173,11 +134,7 @@ class AugmentedModel(BaseModel):
         x = []
         for term, xj in zip(self.inputs, state.inputs):
             drive = term.gain_um_per_unit * (float(inputs[term.name]) - refs[term.name])
-            if term.tau_s == 0:
-                x.append(drive)
-            else:
-                a = math.exp(-dt_s / term.tau_s)
-                x.append(a * xj + (1 - a) * drive)
+            x.append(lag_step(xj, drive, dt_s, term.tau_s))
         return AugmentedState(speed_state, tuple(x), refs)
 
     def state_dict(self, state: AugmentedState) -> dict[str, Any]:
@@ -221,19 +178,4 @@ class AugmentedState:
         return self.speed.elongation_um + float(sum(self.inputs))
 
 
-def first_order(drive: np.ndarray, dt_s: np.ndarray, tau_s: float, x0: float) -> np.ndarray:
-    """``x' = (drive - x)/tau``, exact for a drive held over each interval; tau 0: x = drive."""
-    if tau_s == 0:
-        return np.asarray(drive, dtype=float).copy()
-    from scipy.signal import lfilter
-
-    a = np.exp(-np.asarray(dt_s, dtype=float) / tau_s)
-    if a.size > 1 and np.allclose(a[1:], a[-1]):  # uniform steps: one linear filter
-        k = float(a[-1])
-        y, _ = lfilter([1 - k], [1, -k], drive[1:], zi=[k * x0])
-        return np.concatenate([[x0], y])
-    x = np.empty_like(drive, dtype=float)
-    x[0] = x0
-    for i in range(1, drive.size):
-        x[i] = a[i] * x[i - 1] + (1 - a[i]) * drive[i]
-    return x
+__all__ = ["AUGMENTED_FORMAT", "AugmentedModel", "AugmentedState", "InputTerm", "first_order"]

@@ -43,46 +43,12 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    ValidationError,
-    field_validator,
-    model_validator,
-)
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .errors import ModelError, NonFiniteInputError, UnstableModelError
-from .units import (
-    RANGE_TOLERANCE,
-    SPEED_SCALE_RPM,
-    require_dt,
-    require_finite,
-    speed_krpm,
-    speed_magnitude_rpm,
-)
-
-SAVED_LIMIT_UM = 1e4
-"""No thermal state of a spindle is 10 mm: a saved value beyond this is a corrupt file."""
-
-
-def saved_numbers(name: str, values: Any, limit: float = SAVED_LIMIT_UM) -> tuple[float, ...]:
-    """Numbers read back from a saved state: a list of real numbers (not bools, not strings),
-    finite and within ``limit``; :class:`ModelError` naming ``name`` otherwise."""
-    if not isinstance(values, (list, tuple)):
-        raise ModelError(f"saved {name} is a {type(values).__name__}, not a list of numbers")
-    out = []
-    for v in values:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ModelError(f"saved {name} holds a {type(v).__name__}, not a number")
-        try:
-            f = float(v)
-        except OverflowError as err:
-            raise ModelError(f"saved {name} holds a number too large") from err
-        if not (math.isfinite(f) and abs(f) <= limit):
-            raise ModelError(f"saved {name} holds {f:g}, beyond {limit:g}")
-        out.append(f)
-    return tuple(out)
+from .filters import constant_decay, decaying_sum, one_minus_exp, rate_gains, rate_step
+from .modelbase import SAVED_LIMIT_UM, ModelBase, saved_numbers, speed_range  # noqa: F401 (their old home)
+from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_krpm
 
 MODEL_FORMAT = "thermocomp.model/1"
 
@@ -118,7 +84,7 @@ class ThermalStateCoefficients(BaseModel):
         return ((g3 * n_krpm + g2) * n_krpm + g1) * n_krpm + g0
 
 
-class ThermalModel(BaseModel):
+class ThermalModel(ModelBase):
     """Immutable model value; see the module docstring for the equations.
 
     Construction validates stability over ``speed_range_rpm``: a state with
@@ -127,11 +93,7 @@ class ThermalModel(BaseModel):
     field raises :class:`~compensator.errors.ModelError`.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
     format: Literal["thermocomp.model/1"] = MODEL_FORMAT
-    spindle_id: str = "unknown"
-    machine_id: str = ""
     form: str = Field("paper", description="name of the model form chosen by calibration")
     fitted_dt_s: float = Field(gt=0, description="sample period of the calibration data [s]")
     speed_range_rpm: tuple[float, float] = Field(
@@ -141,29 +103,11 @@ class ThermalModel(BaseModel):
     elastic_um: tuple[float, float] = Field(
         (0.0, 0.0), description="(e1 [um/krpm], e2 [um/krpm**2]): instantaneous e(n)"
     )
-    fit: dict[str, Any] = Field(default_factory=dict, description="fit statistics")
-    created_utc: str | None = None
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as err:
-            raise _model_error(err) from err
-
-    @classmethod
-    def model_validate(cls, obj: Any, **kwargs: Any) -> ThermalModel:  # type: ignore[override]
-        try:
-            return super().model_validate(obj, **kwargs)
-        except ValidationError as err:
-            raise _model_error(err) from err
 
     @field_validator("speed_range_rpm")
     @classmethod
     def _range(cls, value: tuple[float, float]) -> tuple[float, float]:
-        lo, hi = value
-        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo:
-            raise ValueError(f"speed_range_rpm must satisfy 0 <= min <= max, got {value}")
-        return value
+        return speed_range(value)
 
     @field_validator("elastic_um")
     @classmethod
@@ -226,10 +170,6 @@ class ThermalModel(BaseModel):
             **fields,
         )
 
-    def replace(self, **changes: Any) -> ThermalModel:
-        """A new, re-validated model with some fields changed."""
-        return type(self).model_validate({**self.model_dump(), **changes})
-
     # -- derived quantities -----------------------------------------------
 
     @property
@@ -256,10 +196,6 @@ class ThermalModel(BaseModel):
             speed_rpm
         )
 
-    def above_range(self, speed_rpm: float) -> bool:
-        """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation."""
-        return speed_magnitude_rpm(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
-
     def discretize(self, dt_s: float) -> DiscreteModel:
         """The exact zero-order-hold model at a fixed period: a new value."""
         if not (math.isfinite(dt_s) and dt_s > 0):
@@ -269,14 +205,7 @@ class ThermalModel(BaseModel):
     # -- the Predictor interface (speed only: no inputs, no fallback) -----------
 
     @property
-    def input_names(self) -> tuple[str, ...]:
-        return ()
-
-    @property
     def fallback(self) -> None:
-        return None
-
-    def check_inputs(self, values: Mapping[str, float]) -> str | None:
         return None
 
     def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
@@ -355,13 +284,9 @@ class ThermalModel(BaseModel):
             raise ModelError(
                 f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
             )
-        new = []
-        for x, st in zip(state.thermal_um, self.states):
-            lam = st.rate_per_s(n)
-            ld = lam * dt_s
-            gain = -math.expm1(-ld) / lam if lam != 0.0 else dt_s
-            new.append(math.exp(-ld) * x + gain * st.generation(n))
-        return ModelState(tuple(new), self.elastic(speed_rpm))
+        new = tuple(rate_step(x, st.rate_per_s(n), st.generation(n), dt_s)
+                    for x, st in zip(state.thermal_um, self.states))
+        return ModelState(new, self.elastic(speed_rpm))
 
     def simulate(
         self,
@@ -437,18 +362,6 @@ class ThermalModel(BaseModel):
         return Simulation(out, final)
 
 
-def _model_error(err: ValidationError) -> ModelError:
-    """Our own error from pydantic's: the original if we raised one, else one line."""
-    for item in err.errors():
-        original = (item.get("ctx") or {}).get("error")
-        if isinstance(original, ModelError):
-            return original
-    item = err.errors()[0]
-    where = ".".join(str(p) for p in item["loc"]) or "model"
-    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
-    return ModelError(f"{where}: {item['msg']}{more}")
-
-
 def _generation(
     st: ThermalStateCoefficients, n: np.ndarray, out: np.ndarray, scale: float = 1.0
 ) -> np.ndarray:
@@ -489,17 +402,6 @@ def _filter(st: ThermalStateCoefficients, n: np.ndarray, dt: np.ndarray, x0: flo
     return x
 
 
-def _one_minus_exp(ld: np.ndarray) -> np.ndarray:
-    """1 - exp(-ld), accurate for tiny ld; much faster than np.expm1."""
-    out = np.exp(-ld)
-    np.subtract(1.0, out, out=out)
-    small = ld < 1e-4
-    if small.any():
-        x = ld[small]
-        out[small] = x * (1.0 - x * (0.5 - x * (1.0 / 6.0)))
-    return out
-
-
 def _advance_block(
     st: ThermalStateCoefficients,
     n: np.ndarray,
@@ -517,14 +419,8 @@ def _advance_block(
     d0, d1 = st.dissipation_per_s
     if d1 == 0.0 and uniform:
         # constant pole: one lfilter pass
-        h = float(dt[0])
-        a = math.exp(-d0 * h)
-        gain = -math.expm1(-d0 * h) / d0
-        from scipy.signal import lfilter  # only batch work needs scipy: the runtime stays small
-
-        u = _generation(st, n, np.empty_like(n), scale)
-        y, _ = lfilter([gain], [1.0, -a], u, zi=[a * x0])
-        return y
+        a, gain = rate_gains(d0, float(dt[0]))
+        return constant_decay(a, _generation(st, n, np.empty_like(n), scale), x0, gain)
     return _advance_general(st, n, dt, x0, elapsed, scale)
 
 
@@ -536,58 +432,31 @@ def _advance_general(
     elapsed: np.ndarray,
     scale: float,
 ) -> np.ndarray:
-    """Time-varying pole a_k = exp(-lambda(n_k)*dt_k), solved in closed form.
-
-    x_k = exp(-L_k) * (x0 + sum_{j<=k} b_j * exp(L_j)) with L_k = cumsum(lambda*dt)
-    (= d0 * elapsed when lambda does not depend on speed). The block is cut
-    where L spans ``_MAX_LOG_SPAN``, which keeps every exponential finite.
-    """
+    """Time-varying pole a_k = exp(-lambda(n_k)*dt_k), in closed form
+    (:func:`compensator.filters.decaying_sum`); the cumulative decay is ``d0 * elapsed`` where
+    lambda does not depend on speed. Blocks span at most ``_MAX_LOG_SPAN``."""
     d0, d1 = st.dissipation_per_s
-    out = np.empty_like(n)
-    s, total = 0, n.size
-    xs = x0
-    while s < total:
-        blk_n, blk_dt = n[s:], dt[s:]
-        if d1 == 0.0:
-            lam = None
-            ld = blk_dt * d0
-            L = elapsed[s:] - (elapsed[s - 1] if s else 0.0)
-            L *= d0
-        else:
-            lam = blk_n * (d1 * scale)
-            lam += d0
-            ld = lam * blk_dt
-            L = np.cumsum(ld)
-        if float(ld.max()) > _MAX_LOG_SPAN:
-            # one step longer than the span (a gap of months): exp(-span) is already 0 in floats
-            ld = np.minimum(ld, _MAX_LOG_SPAN)
-            L = np.cumsum(ld)
-        e = total
-        if L[-1] > _MAX_LOG_SPAN:
-            e = s + max(1, int(np.searchsorted(L, _MAX_LOG_SPAN)))
-            m = e - s
-            blk_n, blk_dt, ld, L = blk_n[:m], blk_dt[:m], ld[:m], L[:m]
-            lam = None if lam is None else lam[:m]
-        g = _generation(st, blk_n, np.empty_like(blk_n), scale)
-        gain = _one_minus_exp(ld)
-        if lam is None:
-            gain *= 1.0 / d0
-        else:
-            zero = lam == 0.0
-            with np.errstate(divide="ignore", invalid="ignore"):
-                gain /= lam
-            if zero.any():
-                gain[zero] = blk_dt[zero]
-        g *= gain
-        w = np.exp(L)
-        g *= w
-        c = np.cumsum(g)
-        c += xs
-        c /= w
-        out[s:e] = c
-        xs = float(c[-1])
-        s = e
-    return out
+    if d1 == 0.0:
+        lam = None
+        ld = dt * d0
+    else:
+        lam = n * (d1 * scale)
+        lam += d0
+        ld = lam * dt
+    gain = one_minus_exp(ld)
+    if lam is None:
+        gain *= 1.0 / d0
+    else:
+        zero = lam == 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain /= lam
+        if zero.any():
+            gain[zero] = dt[zero]
+    inc = _generation(st, n, np.empty_like(n), scale)
+    inc *= gain
+    if lam is None:
+        return decaying_sum(inc, x0, cum=elapsed * d0, span=_MAX_LOG_SPAN)
+    return decaying_sum(inc, x0, ld=ld, span=_MAX_LOG_SPAN)
 
 
 @dataclass(frozen=True, slots=True)
@@ -630,9 +499,7 @@ class DiscreteModel:
         if m.order != 1 or m.states[0].dissipation_per_s[1] != 0.0:
             raise ModelError("paper coefficients exist only for one state without n*S term")
         st = m.states[0]
-        lam = st.dissipation_per_s[0]
-        a = math.exp(-lam * self.dt_s)
-        gain = -math.expm1(-lam * self.dt_s) / lam
+        a, gain = rate_gains(st.dissipation_per_s[0], self.dt_s)
         g0, g1, g2, g3 = st.generation_um_per_s
         return {"a": a, "b0": gain * g0, "b1": gain * g1, "b2": gain * g2, "b3": gain * g3}
 

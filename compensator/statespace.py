@@ -34,12 +34,13 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from .errors import ModelError
-from .filters import decay, filter_bank, series, times
-from .model import MODEL_FORMAT, ThermalModel, _model_error, saved_numbers
-from .units import RANGE_TOLERANCE, SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
+from .filters import Steps, all_finite, decay, lag, lag_step, series
+from .model import MODEL_FORMAT, ThermalModel
+from .modelbase import Channel, ModelBase, saved_numbers, speed_range
+from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
 
 STATE_SPACE_FORMAT = "thermocomp.state-space-model/1"
 
@@ -51,6 +52,8 @@ largest elongation measured in calibration."""
 SPEED_CLIP = 2.0
 """|speed| is clipped to this many times the calibrated maximum inside the model, so any finite
 input gives a finite output (above the range the runtime raises an extrapolation alarm anyway)."""
+_CHUNK = 4096  # samples per block of the signals: they stay in cache, and the product is one
+# thread (a larger one is split over threads, which costs more than it saves on a shared machine)
 
 
 def _finite(values: Any) -> bool:
@@ -70,16 +73,11 @@ def steady_range_um(gains: Any, speed_max_rpm: float,
     return total
 
 
-class InputChannel(BaseModel):
+class InputChannel(Channel):
     """A measured input (a temperature...) as the model uses it."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="run-log column / runtime channel")
-    unit: str = Field(description="unit of the input: degC, %, ...")
     reference: float = Field(description="absolute reference, fixed at the fit: the training mean")
     trained_range: tuple[float, float] = Field(description="(min, max) seen in calibration")
-    valid_range: tuple[float, float] = Field(description="plausible values; outside: sensor fault")
 
     @model_validator(mode="after")
     def _ranges(self) -> InputChannel:
@@ -95,15 +93,11 @@ class InputChannel(BaseModel):
 Fallback = Annotated[Union["StateSpaceModel", ThermalModel], Field(discriminator="format")]
 
 
-class StateSpaceModel(BaseModel):
+class StateSpaceModel(ModelBase):
     """Immutable coefficients; the module docstring gives the equations. Gains per krpm (n),
     per krpm² (n²) and per input unit."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
     format: Literal["thermocomp.state-space-model/1"] = STATE_SPACE_FORMAT
-    spindle_id: str = "unknown"
-    machine_id: str = ""
     form: str = Field("ridge", description="how it was fitted: ridge, exp-baseline, ...")
     fitted_dt_s: float = Field(gt=0, description="median sample period of the calibration data [s]")
     speed_range_rpm: tuple[float, float] = Field(description="(min, max) |speed| seen in calibration [rpm]")
@@ -115,36 +109,15 @@ class StateSpaceModel(BaseModel):
     inputs: tuple[InputChannel, ...] = ()
     max_measured_um: float = Field(gt=0, description="largest |elongation| measured in calibration [um]")
     fallback: Fallback | None = Field(None, description="speed-only model used when an input fails")
-    fit: dict[str, Any] = Field(default_factory=dict, description="how it was fitted and judged")
-    created_utc: str | None = None
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as err:
-            raise _model_error(err) from err
-
-    @classmethod
-    def model_validate(cls, obj: Any, **kwargs: Any) -> StateSpaceModel:  # type: ignore[override]
-        try:
-            return super().model_validate(obj, **kwargs)
-        except ValidationError as err:
-            raise _model_error(err) from err
 
     @field_validator("speed_range_rpm")
     @classmethod
     def _range(cls, value: tuple[float, float]) -> tuple[float, float]:
-        lo, hi = value
-        if not _finite(value) or lo < 0 or hi < lo or hi <= 0:
-            raise ValueError(f"speed_range_rpm must satisfy 0 <= min <= max, max > 0, got {value}")
-        return value
+        return speed_range(value, positive_max=True)
 
     @model_validator(mode="after")
     def _sane(self) -> StateSpaceModel:
         width = 2 + len(self.inputs)
-        names = [c.name for c in self.inputs]
-        if len(set(names)) != len(names):
-            raise ModelError("an input appears twice")
         if len(self.drive_um) != len(self.taus_s):
             raise ModelError(f"{len(self.drive_um)} drive rows for {len(self.taus_s)} time constants")
         for row in (*self.drive_um, self.feedthrough_um):
@@ -177,8 +150,8 @@ class StateSpaceModel(BaseModel):
         return len(self.taus_s)
 
     @property
-    def input_names(self) -> tuple[str, ...]:
-        return tuple(c.name for c in self.inputs)
+    def channels(self) -> tuple[InputChannel, ...]:
+        return self.inputs
 
     @property
     def _b(self) -> np.ndarray:
@@ -210,10 +183,6 @@ class StateSpaceModel(BaseModel):
     def time_constants_s(self, speed_rpm: float = 0.0) -> tuple[float, ...]:
         return tuple(self.taus_s)
 
-    def above_range(self, speed_rpm: float) -> bool:
-        """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation."""
-        return speed_magnitude_rpm(speed_rpm) > self.speed_range_rpm[1] * (1 + RANGE_TOLERANCE)
-
     def outside_trained(self, values: Mapping[str, float]) -> str | None:
         """Which input lies outside the range seen in calibration (valid, but extrapolated)."""
         for c in self.inputs:
@@ -221,19 +190,6 @@ class StateSpaceModel(BaseModel):
             lo, hi = c.trained_range
             if v is not None and math.isfinite(v) and not lo <= v <= hi:
                 return f"{c.name}: {v:g} {c.unit} is outside the trained {lo:g}..{hi:g}"
-        return None
-
-    def check_inputs(self, values: Mapping[str, float]) -> str | None:
-        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
-        for c in self.inputs:
-            v = values.get(c.name)
-            if v is None:
-                return f"{c.name}: no value"
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                return f"{c.name}: {v!r} is not a finite number"
-            lo, hi = c.valid_range
-            if not lo <= v <= hi:
-                return f"{c.name}: {v:g} {c.unit} is outside {lo:g}..{hi:g}"
         return None
 
     def _signals(self, speed_rpm: float, inputs: Mapping[str, float] | None) -> np.ndarray:
@@ -270,37 +226,66 @@ class StateSpaceModel(BaseModel):
         if len(state.states_um) != self.order:
             raise ModelError(f"state has {len(state.states_um)} states, the model {self.order}")
         v = self._signals(speed_rpm, inputs)
-        a = np.exp(-dt_s / np.asarray(self.taus_s))
-        x = a * np.asarray(state.states_um) + (1.0 - a) * (self._b @ v)
-        r = state.residual_um * math.exp(-dt_s / self._slowest_s)
-        return StateSpaceState(tuple(float(e) for e in x), r, float(self.offset_um + self._d @ v))
+        x = tuple(lag_step(x, float(u), dt_s, tau)
+                  for x, u, tau in zip(state.states_um, self._b @ v, self.taus_s))
+        r = lag_step(state.residual_um, 0.0, dt_s, self._slowest_s)
+        return StateSpaceState(x, r, float(self.offset_um + self._d @ v))
 
     def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
                     inputs: Mapping[str, np.ndarray] | None = None,
                     initial_um: float | None = None) -> np.ndarray:
         """Free run over a whole log, ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
         states at equilibrium with the first sample, ``initial_um`` as in :meth:`start`.
-        Vectorised: one closed-form filter per state (:func:`compensator.filters.filter_bank`)."""
-        t = times(time_s)
-        if t.size == 0:
+        Vectorised: one matrix product gives the static part and every state's drive, then one
+        exact first-order filter per state (:func:`compensator.filters.lag`)."""
+        steps = Steps.of(time_s)
+        size = steps.size
+        if size == 0:
             raise ModelError("cannot simulate an empty log")
-        sp = np.abs(series("speed_rpm", speed_rpm, t.size))
-        n = np.minimum(sp, SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
-        # the signals as rows [n, n^2, inputs...]: one matrix product drives every state
-        v = np.empty((2 + len(self.inputs), t.size))
-        v[0] = n
-        np.multiply(n, n, out=v[1])
-        for i, c in enumerate(self.inputs, start=2):
+        sp = series("speed_rpm", speed_rpm, size)
+        logged = []
+        for c in self.inputs:
             if inputs is None or c.name not in inputs:
                 raise ModelError(f"the model needs input {c.name!r}, which the log lacks")
-            np.clip(series(c.name, inputs[c.name], t.size), *c.valid_range, out=v[i])
-            v[i] -= c.reference
-        out = self.offset_um + self._d @ v
-        for tau, drive in zip(self.taus_s, self._b @ v):
-            out += filter_bank(t, drive, (tau,))[:, 0]
+            u = np.asarray(inputs[c.name], dtype=float)
+            if u.shape != (size,):
+                series(c.name, u, size)  # says what is wrong with it
+            logged.append(u)
+        # rows: the static part, then each state's drive; the references, constant, go into
+        # the constant (a filter passes a constant unchanged)
+        gains = np.vstack([self._d, self._b])
+        refs = np.array([c.reference for c in self.inputs])
+        constant = self.offset_um - float((gains[:, 2:] @ refs).sum())
+        valid = np.array([c.valid_range for c in self.inputs]).reshape(-1, 2)
+        lo, hi = valid[:, :1], valid[:, 1:]
+        cap = SPEED_CLIP * self.speed_range_rpm[1]
+        y = np.empty((gains.shape[0], size))
+        v = np.empty((gains.shape[1], min(_CHUNK, size)))
+        for s in range(0, size, _CHUNK):  # the signals [n, n^2, inputs...] a block at a time
+            e = min(s + _CHUNK, size)
+            vb = v[:, : e - s]
+            np.abs(sp[s:e], out=vb[0])
+            np.minimum(vb[0], cap, out=vb[0])
+            vb[0] /= SPEED_SCALE_RPM
+            np.multiply(vb[0], vb[0], out=vb[1])
+            if logged:
+                for row, u in zip(vb[2:], logged):
+                    row[:] = u[s:e]
+                if not all_finite(vb[2:]):  # before the clip, which would hide an inf
+                    self._refuse_non_finite(logged)
+                np.clip(vb[2:], lo, hi, out=vb[2:])
+            np.matmul(gains, vb, out=y[:, s:e])
+        out = y[0]
+        out += constant
+        for tau, drive in zip(self.taus_s, y[1:]):
+            out += lag(steps, drive, tau)
         if initial_um is not None:
-            out += (require_finite("initial_um", initial_um) - out[0]) * decay(t, self._slowest_s)
+            out += (require_finite("initial_um", initial_um) - out[0]) * decay(steps.time_s, self._slowest_s)
         return out
+
+    def _refuse_non_finite(self, logged: list[np.ndarray]) -> None:
+        for c, u in zip(self.inputs, logged):
+            series(c.name, u, u.size)  # raises, naming the sample
 
     def state_dict(self, state: StateSpaceState) -> dict[str, Any]:
         return {"states_um": list(state.states_um), "residual_um": state.residual_um,

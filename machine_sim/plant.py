@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.linalg import expm
 
-from compensator.inputs import first_order
+from compensator.filters import first_order
 from compensator.units import speed_krpm
 
 N_NODES = 5

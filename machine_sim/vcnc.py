@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from compensator.clock import ScaledClock
+from compensator.filters import lag_step
 from compensator.programs import Program
 
 from .plant import SENSORS, SpindlePlant
@@ -288,8 +289,7 @@ class VirtualMachine:
                 self.plant.drive(rpm, h)  # the drive ramps to it
                 for name, node, lag_s, *_ in SENSORS:
                     x = self.plant.air_c(self.plant.time_s) if node is None else self.plant.temps_c[node]
-                    a = math.exp(-h / lag_s)
-                    self._lagged[name] = a * self._lagged[name] + (1 - a) * float(x)
+                    self._lagged[name] = lag_step(self._lagged[name], float(x), h, lag_s)
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
                 self._hist.append((self.plant.time_s, abs(self.plant._speed_rpm), true, meas,

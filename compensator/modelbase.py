@@ -1,0 +1,163 @@
+"""What every thermal model value shares. Pure: no I/O.
+
+- :class:`ModelBase`: the identity and fit metadata every model file carries (format, spindle,
+  machine, fit statistics, creation time), immutability, and one way to fail: any invalid
+  field is a one-line :class:`~compensator.errors.ModelError` (:func:`model_error`).
+- :class:`Channel`: a measured input (name, unit, plausible range), and :func:`check_inputs`,
+  the one judge of the values a model is about to use: a bool is not a number.
+- :func:`saved_numbers`: numbers read back from a saved runtime state.
+
+:mod:`compensator.model` (speed only), :mod:`compensator.statespace` and
+:mod:`compensator.inputs` build on it; their file formats are unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import ModelError
+from .units import RANGE_TOLERANCE, speed_magnitude_rpm
+
+SAVED_LIMIT_UM = 1e4
+"""No thermal state of a spindle is 10 mm: a saved value beyond this is a corrupt file."""
+
+CHANNEL_NAME = r"^[A-Za-z0-9_.-]+$"
+"""An input's name: a run-log column and a runtime channel."""
+
+
+def saved_numbers(name: str, values: Any, limit: float = SAVED_LIMIT_UM) -> tuple[float, ...]:
+    """Numbers read back from a saved state: a list of real numbers (not bools, not strings),
+    finite and within ``limit``; :class:`ModelError` naming ``name`` otherwise."""
+    if not isinstance(values, (list, tuple)):
+        raise ModelError(f"saved {name} is a {type(values).__name__}, not a list of numbers")
+    out = []
+    for v in values:
+        if not is_number(v):
+            raise ModelError(f"saved {name} holds a {type(v).__name__}, not a number")
+        try:
+            f = float(v)
+        except OverflowError as err:
+            raise ModelError(f"saved {name} holds a number too large") from err
+        if not (math.isfinite(f) and abs(f) <= limit):
+            raise ModelError(f"saved {name} holds {f:g}, beyond {limit:g}")
+        out.append(f)
+    return tuple(out)
+
+
+def is_number(value: Any) -> bool:
+    """A real number: int or float, not a bool (``True`` is an int in Python, not a reading)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def model_error(err: ValidationError) -> ModelError:
+    """Our own error from pydantic's: the original if we raised one, else one line."""
+    for item in err.errors():
+        original = (item.get("ctx") or {}).get("error")
+        if isinstance(original, ModelError):
+            return original
+    item = err.errors()[0]
+    where = ".".join(str(p) for p in item["loc"]) or "model"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return ModelError(f"{where}: {item['msg']}{more}")
+
+
+def speed_range(value: tuple[float, float], *, positive_max: bool = False) -> tuple[float, float]:
+    """A calibrated |speed| range: finite, 0 <= min <= max (and max > 0 if ``positive_max``)."""
+    lo, hi = value
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo or (positive_max and hi <= 0):
+        need = "0 <= min <= max, max > 0" if positive_max else "0 <= min <= max"
+        raise ValueError(f"speed_range_rpm must satisfy {need}, got {value}")
+    return value
+
+
+class Channel(BaseModel):
+    """A measured input (a temperature, the spindle load...) a model reads besides speed."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(pattern=CHANNEL_NAME, description="run-log column / runtime channel")
+    unit: str = Field(description="unit of the input: degC, %, ...")
+    valid_range: tuple[float, float] = Field(description="plausible values; outside: sensor fault")
+
+    @model_validator(mode="after")
+    def _valid_range(self) -> Channel:
+        lo, hi = self.valid_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise ValueError(f"input {self.name}: valid_range must be finite with min <= max")
+        return self
+
+
+def check_inputs(channels: Sequence[Channel], values: Mapping[str, Any]) -> str | None:
+    """Why ``values`` cannot be used for ``channels`` (missing, not a finite number, outside
+    the valid range), or None. A bool is not a number."""
+    for c in channels:
+        v = values.get(c.name)
+        if v is None:
+            return f"{c.name}: no value"
+        if not is_number(v) or not math.isfinite(v):
+            return f"{c.name}: {v!r} is not a finite number"
+        lo, hi = c.valid_range
+        if not lo <= v <= hi:
+            return f"{c.name}: {v:g} {c.unit} is outside {lo:g}..{hi:g}"
+    return None
+
+
+class ModelBase(BaseModel):
+    """Fields, checks and errors every model value shares; subclasses fix ``format`` to their
+    own literal (the key :data:`compensator.io.modelfile.MODEL_TYPES` dispatches on) and keep
+    their own coefficients. Invalid data raises :class:`ModelError`, never pydantic's error."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: str
+    spindle_id: str = "unknown"
+    machine_id: str = ""
+    fit: dict[str, Any] = Field(default_factory=dict, description="fit statistics")
+    created_utc: str | None = None
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as err:
+            raise model_error(err) from err
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as err:
+            raise model_error(err) from err
+
+    @model_validator(mode="after")
+    def _distinct_inputs(self) -> ModelBase:
+        names = self.input_names
+        if len(set(names)) != len(names):
+            raise ModelError("an input appears twice")
+        return self
+
+    def replace(self, **changes: Any) -> Any:
+        """A new, re-validated model with some fields changed."""
+        return type(self).model_validate({**self.model_dump(), **changes})
+
+    @property
+    def channels(self) -> tuple[Channel, ...]:
+        """The measured inputs the model reads besides speed; none for a speed-only model."""
+        return ()
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.channels)
+
+    def check_inputs(self, values: Mapping[str, Any]) -> str | None:
+        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
+        return check_inputs(self.channels, values)
+
+    def above_range(self, speed_rpm: float) -> bool:
+        """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation. Every
+        model has a ``speed_range_rpm``, a field or its speed part's."""
+        top = self.speed_range_rpm[1]  # type: ignore[attr-defined]
+        return speed_magnitude_rpm(speed_rpm) > top * (1 + RANGE_TOLERANCE)
