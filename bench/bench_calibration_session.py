@@ -26,7 +26,7 @@ from devices import LineDevice, PtyPair  # noqa: E402
 from calibration.acquire import AcquireConfig, Recorder  # noqa: E402
 from calibration.fit import fit_data  # noqa: E402
 from calibration.identify import LogData  # noqa: E402
-from calibration.profile import calibration_profile  # noqa: E402
+from calibration.nc_programs import calibration_profile  # noqa: E402
 from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.sensors import AsciiSensor  # noqa: E402
 from machine_sim import SpindlePlant, preset  # noqa: E402

@@ -1,7 +1,7 @@
 """The one dataset every estimator fits: the logs end to end, with the measured rows as a mask.
 
 - :func:`log_data` checks each run log and bridges its gaps by one rule, the last logged speed
-  held across a gap (:func:`calibration.data.bridge_gaps`): a gap that begins at rest cools, one
+  held across a gap (:func:`calibration.runs.bridge_gaps`): a gap that begins at rest cools, one
   that begins at speed heats.
 - :func:`join` puts the logs end to end (time shifted so it keeps increasing; each log is a
   segment, where every filter restarts at equilibrium) and cuts the folds: leave-one-cycle-out
@@ -29,7 +29,7 @@ from compensator.errors import CalibrationError
 from compensator.io.runlog import RunLog
 
 from . import folds as fl
-from .data import MIN_MEASURED_ROWS, bridge_gaps, run_from_log
+from .runs import MIN_MEASURED_ROWS, bridge_gaps, run_from_log
 
 
 @dataclass(frozen=True)

@@ -4,9 +4,9 @@ whoever fits them.
 
 What it does once, for all of them:
 
-- checks each log (:func:`calibration.data.run_from_log`);
+- checks each log (:func:`calibration.runs.run_from_log`);
 - bridges each gap in a log by one rule, the last logged speed held across it
-  (:func:`calibration.data.bridge_gaps`): a gap that begins at rest cools, one that begins at
+  (:func:`calibration.runs.bridge_gaps`): a gap that begins at rest cools, one that begins at
   speed heats;
 - joins them into one :class:`calibration.dataset.Dataset`, whose measured rows are a mask (all
   true for a log measured on every row, some for a journal export), and fits it with
@@ -25,7 +25,7 @@ import numpy as np
 from compensator.io.runlog import RunLog
 
 from . import closedloop
-from .data import Run, has_cooldown
+from .runs import Run, has_cooldown
 from .dataset import LogData, log_data
 from .identify import Identification, identify
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from compensator.io import atomic_write
 
-from .data import transient_mask
+from .runs import transient_mask
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 from compensator.errors import ConfigError
 
-from .profile import DIALECTS, EXTENSIONS
+from .nc_programs import DIALECTS, EXTENSIONS
 
 COUNTER_WRAP = 9999
 """The counter runs 1..9999, then 1 again: it fits any register, and only a change counts."""

@@ -25,7 +25,7 @@ from compensator.shaping import POLICIES, ShapedSeries, ShaperConfig, shape_seri
 from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
-from .data import bridge_gaps, gap_threshold_s
+from .runs import bridge_gaps, gap_threshold_s
 from .metrics import residual_stats
 from .stability import equilibrium_and_tevr
 
@@ -247,7 +247,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     the other rows) is replayed over every row; its error figures are those of the measured rows
     (``measured_samples``), and the equilibrium figures come from the prediction.
 
-    Gaps in the log (:func:`calibration.data.bridge_gaps`) are integrated at the last logged
+    Gaps in the log (:func:`calibration.runs.bridge_gaps`) are integrated at the last logged
     speed (a gap that begins at rest cools), with a warning; :attr:`Replay.speed_rpm` keeps the logged speed. Every
     number returned is finite, or a one-line error says where the model overflowed.
 

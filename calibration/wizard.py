@@ -57,7 +57,7 @@ from .acquire import (
     sparkline,
 )
 from .fit import FEW_LEVELS, NO_COOLDOWN
-from .profile import (
+from .nc_programs import (
     DIALECTS,
     EXTENSIONS,
     calibration_profile,

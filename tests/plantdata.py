@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from calibration.data import Run
+from calibration.runs import Run
 from machine_sim import SpindlePlant, preset
 from compensator.programs import job_shop_day, paper_calibration, random_validation
 

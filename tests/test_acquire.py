@@ -8,7 +8,7 @@ import pytest
 from devices import LineDevice, ModbusDevice, PtyPair
 
 from calibration.acquire import COLUMNS, AcquireConfig, Problem, Recorder
-from calibration.profile import calibration_profile
+from calibration.nc_programs import calibration_profile
 from cnc_adapters.base import AdapterTimeoutError, UnreachableError
 from cnc_adapters.sensors import AsciiSensor, ModbusSensor, SensorOverRangeError, open_sensor
 from machine_sim import SpindlePlant, preset

@@ -7,7 +7,7 @@ import pytest
 from plantdata import identify_runs, plant_run
 
 from calibration.estimators import paper_ols
-from calibration.data import Run, has_cooldown, resample
+from calibration.runs import Run, has_cooldown, resample
 from calibration.fit import NO_COOLDOWN
 from calibration.stability import equilibrium_and_tevr as equilibrium
 from compensator import CalibrationError
@@ -85,7 +85,7 @@ def test_resampling_1s_to_60s_matches_a_60s_log_of_the_same_program():
 
 def test_constant_speed_runs_are_refused():
     t = np.arange(100) * 60.0
-    from calibration.data import run_from_log
+    from calibration.runs import run_from_log
     from compensator.io import RunLog
 
     log = RunLog(t, np.full(100, 6000.0), np.linspace(0, 10, 100))

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from calibration import coolcmd, cooling
+from calibration import cooling_commands, cooling_studies
 from machine_sim.plant import preset
 from compensator.io import read_run_log, save_model, write_run_log
 from thermocomp.cli import main
@@ -25,7 +25,7 @@ def test_pid_reaches_equilibrium_40_percent_sooner_with_half_the_tevr(scenario, 
     assert pid["equilibrium_min"] <= 0.6 * const["equilibrium_min"]
     assert pid["tevr_um"] <= 0.5 * const["tevr_um"]
     assert pid["switch_min"] is not None  # the start rule fired: Ê reached RITE
-    sc = cooling.SCENARIOS[scenario]
+    sc = cooling_studies.SCENARIOS[scenario]
     assert abs(pid["mean_after_um"] - sc.rite_um) < 2.5  # held near RITE
     # both: the offset cancels what the cooling leaves
     assert both["max_abs_um"] < 0.25 * pid["max_abs_um"]
@@ -42,14 +42,14 @@ def test_tune_identifies_the_step_and_derives_simc_gains(tmp_path, capsys):
     again = capsys.readouterr().out
     line = lambda text: next(x for x in text.splitlines() if x.startswith("step model"))  # noqa: E731
     assert line(out) == line(again)
-    t = coolcmd.tune_plant(preset("mechanical-cooled"))
+    t = cooling_commands.tune_plant(preset("mechanical-cooled"))
     # colder coolant, smaller growth: a positive gain of the order the plant shows (~1 um/K)
     assert 0.3 < t["model"].gain < 3.0
     assert t["gains"].kp > 0 and t["gains"].ki_per_s > 0
 
 
 def test_rite_is_the_steady_growth_at_the_journals_speed_mix(tmp_path, capsys):
-    ident = cooling.fit_cooling_model(preset("mechanical-cooled"))
+    ident = cooling_studies.fit_cooling_model(preset("mechanical-cooled"))
     model = tmp_path / "model.json"
     save_model(model, ident.model)
     t = np.arange(0.0, 4 * 3600.0, 10.0)

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from calibration.cooling import fit_cooling_model
+from calibration.cooling_studies import fit_cooling_model
 from cnc_adapters.chiller import open_chiller
 from machine_sim.adapter import SimAdapter
 from machine_sim.chiller_server import ChillerServer

@@ -332,7 +332,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
 
 
 def test_linuxcnc_interpreter_accepts_the_wizards_programs(tmp_path):
-    from calibration.profile import calibration_profile, to_nc, validation_profile
+    from calibration.nc_programs import calibration_profile, to_nc, validation_profile
 
     for prog in (calibration_profile(18000), validation_profile(18000, seed=4)):
         path = tmp_path / f"{prog.name}.ngc"

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.data import MIN_GAP_S, bridge_gaps, gap_threshold_s, run_from_log
+from calibration.runs import MIN_GAP_S, bridge_gaps, gap_threshold_s, run_from_log
 from calibration.replay import replay
 from compensator.errors import CalibrationError, RunLogError, ThermocompError
 from compensator.io import RunLog, read_run_log, save_model, write_run_log

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from calibration.profile import (
+from calibration.nc_programs import (
     DIALECTS,
     MAX_DWELL_S,
     calibration_profile,

@@ -164,7 +164,7 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--plot", default=None, help="PNG to write")
     c.add_argument("--json", action="store_true")
-    c.set_defaults(handler="calibration.coolcmd:compare")
+    c.set_defaults(handler="calibration.cooling_commands:compare")
     t = cs.add_parser("tune", help="identify the chiller -> elongation step response and derive SIMC gains")
     t.add_argument("--preset", default="mechanical-cooled")
     t.add_argument("--log", default=None, help="a logged step run with chiller_setpoint_c and elongation_um "
@@ -172,12 +172,12 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--write-step", default=None, help="write the plant's step run to this run log")
     t.add_argument("--tau-c-s", type=float, default=None, help="SIMC closed-loop time constant [s]")
     t.add_argument("--plot", default=None, help="PNG: the fit and the closed-loop step responses")
-    t.set_defaults(handler="calibration.coolcmd:tune")
+    t.set_defaults(handler="calibration.cooling_commands:tune")
     r = cs.add_parser("rite", help="suggest RITE: the model's steady elongation at a journal's speed mix")
     r.add_argument("--model", required=True)
     r.add_argument("--input", action="append", help="NAME=VALUE for a model with inputs")
     r.add_argument("journal", nargs="+", help="journal or run-log files (time_s, speed_rpm)")
-    r.set_defaults(handler="calibration.coolcmd:rite")
+    r.set_defaults(handler="calibration.cooling_commands:rite")
 
 
 def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:

@@ -27,7 +27,7 @@ from compensator.model import ThermalModel, ThermalStateCoefficients, filter_sta
 from compensator.statespace import GAIN_BOUND
 
 from .. import folds as fl
-from ..data import Run, resample
+from ..runs import Run, resample
 from ..candidate import Candidate
 from ..dataset import Dataset
 from ..metrics import fold_scores, pooled_stats

@@ -66,7 +66,7 @@ column mix-up (or a garbage reading), and would overflow the model's arithmetic.
 
 MAX_ABS_ELONGATION_UM = 1e6
 """Largest |elongation_um| the reader accepts (1 m): beyond, no sensor reads micrometres.
-Calibration holds runs to a much tighter bound (``calibration.data.MAX_PLAUSIBLE_UM``)."""
+Calibration holds runs to a much tighter bound (``calibration.runs.MAX_PLAUSIBLE_UM``)."""
 
 _YEAR_S = 365.2425 * 86400.0
 

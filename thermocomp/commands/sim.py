@@ -41,7 +41,7 @@ def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
 
 def simulate(args: argparse.Namespace) -> int:
     if getattr(args, "cooling", None) is not None:
-        from calibration.coolcmd import simulate_cooling  # fits a model: only when asked
+        from calibration.cooling_commands import simulate_cooling  # fits a model: only when asked
 
         if args.program == "paper-calibration":
             args.program = "wc1"

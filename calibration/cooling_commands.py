@@ -17,7 +17,8 @@ from compensator.cooling import PidGains
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import atomic_write, load_any_model, read_run_log, write_run_log
 
-from . import cooling, stability, tuning
+from . import cooling_studies as cooling
+from . import stability, tuning
 
 MODES = ("constant", "pid", "pid+offset")
 
