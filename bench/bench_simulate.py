@@ -9,6 +9,7 @@ recursion. Run: .venv/bin/python bench/bench_simulate.py
 from __future__ import annotations
 
 import json
+import os
 import platform
 import sys
 import time
@@ -79,7 +80,9 @@ def state_space_case(rng: np.random.Generator) -> dict:
 
 if __name__ == "__main__":
     res = main()
-    print(f"# {platform.processor() or platform.machine()}, Python {platform.python_version()}, numpy {np.__version__}")
+    load = ", load %.1f" % os.getloadavg()[0] if hasattr(os, "getloadavg") else ""
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores{load}, "
+          f"Python {platform.python_version()}, numpy {np.__version__}")
     print(f"plain lfilter: {res['lfilter_s']:.3f} s = {res['lfilter_msps']:.1f} M samples/s")
     for c in res["cases"]:
         print(f"{c['case']:40s} {c['seconds']:.3f} s = {c['msps']:5.1f} M samples/s  ({c['vs_lfilter']:.2f}x lfilter)")

@@ -37,7 +37,7 @@ from .errors import ModelError, NonFiniteInputError
 
 SPAN = 50.0
 """Largest exponent inside one closed-form block: exp(50) ~ 5e21, far from overflow."""
-_BLOCK = 8192  # samples per closed-form block: keeps the cumulative sums precise and in cache
+_BLOCK = 16384  # samples per closed-form block: keeps the cumulative sums precise and in cache
 _LD_MAX = 1e4  # dt/tau beyond this is a full reset (exp(-1e4) == 0); keeps sums finite
 _MIN_RUN = 64  # equal steps per run, on average, for the recursive pass to pay
 
@@ -231,6 +231,16 @@ def lag(steps: Steps, u: np.ndarray, tau_s: float, y0: float | None = None) -> n
     if n == 1:
         return y
     dt, runs = steps.dt_s, steps.runs
+    if runs is not None and runs.size == 1:  # one run of equal steps: one pass, no copy
+        from scipy.signal import lfilter
+
+        ld = min(float(dt[0]) / tau_s, _LD_MAX)
+        b = -math.expm1(-ld)
+        start = y[0]
+        # lfilter's first output is b*u_0 + zi: the state that makes it y_0
+        y = lfilter([b], [1.0, -math.exp(-ld)], u, zi=[start - b * float(u[0])])[0]
+        y[0] = start
+        return y
     if runs is not None:
         ends = np.concatenate([runs[1:], [dt.size]])
         for s, e in zip(runs.tolist(), ends.tolist()):  # steps s..e-1 end at samples s+1..e
@@ -243,17 +253,26 @@ def lag(steps: Steps, u: np.ndarray, tau_s: float, y0: float | None = None) -> n
         while s < n - 1:  # steps s..e-1, ending at samples s+1..e, spanning at most SPAN*tau
             reach = int(np.searchsorted(t, t[s] + SPAN * tau_s, side="right")) - 1
             e = max(min(s + _BLOCK, n - 1, reach), s + 1)
-            ld = np.divide(dt[s:e], -tau_s)
-            inc = np.expm1(ld, out=ld)
-            inc *= u[s + 1:e + 1]
-            np.negative(inc, out=inc)
-            # the time since the block's start is exact where a running sum of steps is not
-            cum = t[s + 1:e + 1] - t[s]
-            cum /= tau_s
-            if math.isfinite(float(cum[-1])):
-                y[s + 1:e + 1] = decaying_sum(inc, float(y[s]), cum=cum)
-            else:
-                y[s + 1:e + 1] = decaying_sum(inc, float(y[s]), ld=np.minimum(dt[s:e] / tau_s, _LD_MAX))
+            ys = float(y[s])
+            # -(1 - a_k)*u_k, and the time since the block's start over tau (exact, where a
+            # running sum of steps is not)
+            c = np.divide(dt[s:e], -tau_s)
+            np.expm1(c, out=c)
+            c *= u[s + 1:e + 1]
+            g = t[s + 1:e + 1] - t[s]
+            g /= tau_s
+            if e - s == 1 or not g[-1] <= SPAN * 1.01:  # one long step, or a subnormal tau
+                y[s + 1:e + 1] = decaying_sum(np.negative(c), ys, ld=np.minimum(dt[s:e] / tau_s, _LD_MAX))
+                s = e
+                continue
+            np.exp(g, out=g)
+            c *= g  # the closed form of decaying_sum, fused: this is the hot loop of a free run
+            np.cumsum(c, out=c)
+            np.subtract(ys, c, out=c)
+            np.divide(c, g, out=y[s + 1:e + 1])
+            if not math.isfinite(float(y[e])):  # an input near the float range: rescaled there
+                c = np.expm1(np.divide(dt[s:e], -tau_s)) * u[s + 1:e + 1]
+                y[s + 1:e + 1] = decaying_sum(np.negative(c), ys, cum=np.log(g))
             s = e
     return y
 

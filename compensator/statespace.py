@@ -37,7 +37,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .errors import ModelError
-from .filters import Steps, all_finite, decay, lag, lag_step, series
+from .filters import Steps, decay, lag, lag_step, series
 from .model import MODEL_FORMAT, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers, speed_range
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
@@ -52,8 +52,10 @@ largest elongation measured in calibration."""
 SPEED_CLIP = 2.0
 """|speed| is clipped to this many times the calibrated maximum inside the model, so any finite
 input gives a finite output (above the range the runtime raises an extrapolation alarm anyway)."""
-_CHUNK = 4096  # samples per block of the signals: they stay in cache, and the product is one
-# thread (a larger one is split over threads, which costs more than it saves on a shared machine)
+_PRODUCT_SIZE = 400_000
+"""Multiply-adds per block of the signals' product: it stays in cache, and OpenBLAS keeps a
+product this small on one thread (a larger one is split over threads, which on a busy machine
+costs more than it saves)."""
 
 
 def _finite(values: Any) -> bool:
@@ -260,20 +262,25 @@ class StateSpaceModel(ModelBase):
         lo, hi = valid[:, :1], valid[:, 1:]
         cap = SPEED_CLIP * self.speed_range_rpm[1]
         y = np.empty((gains.shape[0], size))
-        v = np.empty((gains.shape[1], min(_CHUNK, size)))
-        for s in range(0, size, _CHUNK):  # the signals [n, n^2, inputs...] a block at a time
-            e = min(s + _CHUNK, size)
+        chunk = max(1024, _PRODUCT_SIZE // gains.size)
+        v = np.empty((gains.shape[1], min(chunk, size)))
+        for s in range(0, size, chunk):  # the signals [n, n^2, inputs...] a block at a time
+            e = min(s + chunk, size)
             vb = v[:, : e - s]
             np.abs(sp[s:e], out=vb[0])
             np.minimum(vb[0], cap, out=vb[0])
             vb[0] /= SPEED_SCALE_RPM
             np.multiply(vb[0], vb[0], out=vb[1])
             if logged:
-                for row, u in zip(vb[2:], logged):
-                    row[:] = u[s:e]
-                if not all_finite(vb[2:]):  # before the clip, which would hide an inf
-                    self._refuse_non_finite(logged)
-                np.clip(vb[2:], lo, hi, out=vb[2:])
+                w = vb[2:]
+                np.stack([u[s:e] for u in logged], out=w)
+                # the extremes say both whether to clip (rarely: a sensor fault) and whether a
+                # value is not finite (NaN fails every comparison; the clip would hide an inf)
+                low, high = np.minimum.reduce(w, axis=1), np.maximum.reduce(w, axis=1)
+                if not ((low >= lo[:, 0]).all() and (high <= hi[:, 0]).all()):
+                    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+                        self._refuse_non_finite(logged)
+                    np.clip(w, lo, hi, out=w)
             np.matmul(gains, vb, out=y[:, s:e])
         out = y[0]
         out += constant
