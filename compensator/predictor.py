@@ -51,7 +51,9 @@ class Predictor(Protocol):
         ...
 
     def check_inputs(self, values: Mapping[str, float]) -> str | None:
-        """Why these input values cannot be used (missing, non-finite, out of range), or None."""
+        """Why these input values cannot be used (missing, not a finite number, out of range),
+        or None. Every model judges alike (:func:`compensator.modelbase.check_inputs`): a bool
+        is not a number."""
         ...
 
     def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,

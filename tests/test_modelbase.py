@@ -119,3 +119,12 @@ def test_speed_only_model_still_accepts_a_zero_top_speed_and_the_state_space_doe
     ThermalModel(**{**first_order().model_dump(), "speed_range_rpm": (0.0, 0.0)})
     with pytest.raises(ModelError, match="max > 0"):
         StateSpaceModel(**{**speed_only().model_dump(), "speed_range_rpm": (0.0, 0.0)})
+
+
+def test_the_old_homes_of_moved_names_still_serve_them():
+    from compensator import filters, inputs, model, modelbase
+
+    assert model.saved_numbers is modelbase.saved_numbers and model.SAVED_LIMIT_UM == modelbase.SAVED_LIMIT_UM
+    assert inputs.first_order is filters.first_order
+    with pytest.raises(ModelError, match="bool, not a number"):
+        model.saved_numbers("x", [True])
