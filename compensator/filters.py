@@ -12,7 +12,7 @@ zero-order-hold solution::
 - a logged series: a logged value ``u[k]`` is held over ``(t[k-1], t[k]]`` (the run-log
   convention). :class:`Steps` checks the time stamps once; :func:`lag` filters a series over
   them; :func:`filter_bank` is the checked, bounded form the identification builds its
-  regressors with (``calibration.ident``); :func:`first_order` takes the steps themselves;
+  regressors with (``calibration``); :func:`first_order` takes the steps themselves;
 - the recursion underneath, ``x_k = exp(-ld_k)*x_{k-1} + inc_k`` with any per-step decay ``ld``
   (a rate that varies with speed): :func:`decaying_sum`, and :func:`constant_decay` when it is
   constant (one ``scipy.signal.lfilter`` pass).
@@ -92,8 +92,8 @@ def decaying_sum(inc: np.ndarray, x0: float, *, ld: np.ndarray | None = None,
     since the block's start ``s``; a block ends before L passes ``span``, so every exponential
     is finite. Give the decay of each step, ``ld`` (>= 0), or its cumulative sum from the start,
     ``cum`` (finite), when the caller has it more exactly than a running sum (elapsed time
-    over tau). A block whose sums overflow (an input
-    near the float range) is redone scaled by a power of two, which is exact.
+    over tau). A block whose sums overflow (an input near the float range) is redone scaled by
+    a power of two, which is exact.
     """
     m = inc.size
     out = np.empty(m)
