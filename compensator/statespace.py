@@ -1,6 +1,6 @@
 """A linear state-space model of the elongation, driven by speed and measured inputs. Pure: no I/O.
 
-The form the identification (``calibration.ident``, ``docs/IDENTIFICATION.md``) fits::
+The form the identification (``calibration.estimators.ridge_bank``, ``docs/IDENTIFICATION.md``) fits::
 
     S      = c + D.v + sum_j x_j + r                      [um]
     dx_j/dt = (B_j.v - x_j) / tau_j                        one first-order state per time constant

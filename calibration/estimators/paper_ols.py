@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError
+from compensator.filters import constant_decay, decaying_sum
 from compensator.units import SPEED_SCALE_RPM
 
 from .. import folds as fl
@@ -38,8 +39,6 @@ class PaperFit:
     def predict(self, time_s: Any, speed_rpm: Any, initial_um: float) -> np.ndarray:
         """Free run from ``initial_um`` (its own output fed back). At the fitted period the
         recursion itself; at another Δt its exact zero-order-hold equivalent (0 < a < 1 only)."""
-        from scipy.signal import lfilter
-
         t = as_times(time_s)
         n = np.abs(as_series("speed_rpm", speed_rpm, t.size)) / SPEED_SCALE_RPM
         b0, b1, b2, b3 = self.b_um
@@ -51,16 +50,13 @@ class PaperFit:
         dt = np.diff(t)
         with np.errstate(over="ignore", invalid="ignore"):
             if np.allclose(dt, self.dt_s, rtol=1e-9, atol=0):
-                y, _ = lfilter([1.0], [1.0, -self.a], f[1:], zi=[self.a * initial_um])
-                out[1:] = y
+                out[1:] = constant_decay(self.a, f[1:], initial_um)
                 return out
             if not 0 < self.a < 1:
                 raise CalibrationError(f"a = {self.a:.6g}: no continuous form to step at another dt")
             lam = -math.log(self.a) / self.dt_s
-            ak = np.exp(-lam * dt)
             gk = -np.expm1(-lam * dt) / (1 - self.a)
-            for k in range(1, t.size):
-                out[k] = ak[k - 1] * out[k - 1] + gk[k - 1] * f[k]
+            out[1:] = decaying_sum(gk * f[1:], initial_um, ld=lam * dt)
         return out
 
 
