@@ -31,7 +31,7 @@ from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
 from cnc_adapters.sensors import AsciiSensor  # noqa: E402
 from machine_sim import SpindlePlant, preset  # noqa: E402
 from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
-from compensator.programs import paper_calibration, random_validation  # noqa: E402
+from compensator.speed_programs import paper_calibration, random_validation  # noqa: E402
 
 P = preset("motorized-27k")
 

@@ -28,7 +28,7 @@ from calibration.fit import fit_data  # noqa: E402
 from calibration.identify import LogData  # noqa: E402
 from calibration.replay import replay  # noqa: E402
 from compensator.io import read_run_log, save_model, write_run_log  # noqa: E402
-from compensator.programs import job_shop_day  # noqa: E402
+from compensator.speed_programs import job_shop_day  # noqa: E402
 
 
 def month_of_speeds(days: int = 30) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from machine_sim import SpindlePlant, preset
-from compensator.programs import job_shop_day
+from compensator.speed_programs import job_shop_day
 
 
 def main() -> dict:

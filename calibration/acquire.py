@@ -41,7 +41,7 @@ from cnc_adapters.base import Adapter, AdapterError
 from cnc_adapters.sensors import Sensor, SensorOverRangeError
 from compensator.errors import AcquisitionError
 from compensator.io import RunLogAppender
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 COLUMNS = ("time_s", "speed_rpm", "elongation_um", "sensor_um", "commanded_rpm", "flags")
 IDLE_RPM = 1.0

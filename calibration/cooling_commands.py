@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from machine_sim.plant import SpindlePlant, preset
-from compensator.cooling import PidGains
+from compensator.cooling_law import PidGains
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import atomic_write, load_any_model, read_run_log, write_run_log
 

@@ -9,7 +9,7 @@
   inputs, as paper 000 estimates Ê from temperatures.
 - :func:`simulate_cooling` closes the loop on the plant, the way the runtime does: the virtual
   machine's lagged, noisy sensors, the model stepped every ``dt_s``, the pure
-  :class:`compensator.cooling.CoolingLaw`, the chiller's own ramp and lag; ``offset=True`` also
+  :class:`compensator.cooling_law.CoolingLaw`, the chiller's own ramp and lag; ``offset=True`` also
   writes A = −Ê through the one shaper (``mode = "both"``).
 - :data:`SCENARIOS` are the paper's four work conditions.
 """
@@ -25,9 +25,9 @@ import numpy as np
 
 from machine_sim.plant import PlantParams, SpindlePlant
 from machine_sim.vcnc import VirtualMachine
-from compensator.cooling import CoolingLaw, CoolingState, PidGains
+from compensator.cooling_law import CoolingLaw, CoolingState, PidGains
 from compensator.errors import CalibrationError
-from compensator.programs import Program
+from compensator.speed_programs import Program
 from compensator.shaping import ShaperConfig, shape_series
 
 from . import stability

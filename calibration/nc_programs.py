@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
-from compensator.programs import Program, paper_calibration, random_validation
+from compensator.speed_programs import Program, paper_calibration, random_validation
 
 DIALECTS = ("fanuc", "sinumerik", "heidenhain", "linuxcnc")
 EXTENSIONS = {"fanuc": ".nc", "sinumerik": ".mpf", "heidenhain": ".h", "linuxcnc": ".ngc"}

@@ -8,7 +8,7 @@ module gives the alternative a step test affords: fit a first- or second-order-p
 model to an input/output record (:func:`fit_step_model`), tune by Skogestad's SIMC rules
 (:func:`simc`) and compare candidates in closed loop (:func:`closed_loop_step`,
 :func:`step_metrics`). Gains come out as the cooling law's own
-:class:`compensator.cooling.PidGains`, ready for :class:`compensator.cooling.CoolingLaw`; the
+:class:`compensator.cooling_law.PidGains`, ready for :class:`compensator.cooling_law.CoolingLaw`; the
 closed loop here is the paper's plain PID, without the law's filtered derivative on the
 estimate, rate limit and back-calculation, so it compares tunings rather than predicting the
 law's exact response.
@@ -34,7 +34,7 @@ from pydantic import ValidationError
 from scipy.linalg import expm
 from scipy.optimize import least_squares
 
-from compensator.cooling import PidGains
+from compensator.cooling_law import PidGains
 from compensator.errors import CalibrationError, ModelError
 
 TAU_C_FLOOR_FRACTION = 0.1
@@ -293,7 +293,7 @@ def fit_step_model(time_s: Any, u: Any, y: Any, *, order: int = 2) -> Fopdt | So
 
 
 def pid_gains(kp: float, ki_per_s: float, kd_s: float, source: str = "") -> PidGains:
-    """:class:`compensator.cooling.PidGains` (the cooling law's gains), or a one-line
+    """:class:`compensator.cooling_law.PidGains` (the cooling law's gains), or a one-line
     CalibrationError: the cooling loop takes non-negative gains only (a warmer coolant lets the
     spindle grow), so a negative one means a sign mixed up in the record or the model."""
     try:
@@ -371,7 +371,7 @@ class PidTuning:
         """The ideal parallel form. Expanding the series form gives ``kc' = kc*(1 + td/ti)``,
         ``ti' = ti + td``, ``td' = ti*td/(ti + td)`` in the ideal form, so ``kp = kc'``,
         ``ki = kc'/ti' = kc/ti``, ``kd = kc'*td' = kc*td`` (Skogestad 2003). The gains are the
-        cooling law's :class:`compensator.cooling.PidGains`: non-negative, or a CalibrationError
+        cooling law's :class:`compensator.cooling_law.PidGains`: non-negative, or a CalibrationError
         (see :func:`pid_gains`)."""
         ratio = 0.0 if math.isinf(self.ti_s) else self.td_s / self.ti_s
         ki = 0.0 if math.isinf(self.ti_s) else self.kc / self.ti_s
@@ -388,7 +388,7 @@ class PidTuning:
 
 def paper_tuning() -> PidGains:
     """Paper 000's empirical gains, kp = 2, ki = 0, kd = 50 per sample at 1 s, as parallel gains
-    (kd_s = 50 s): :meth:`compensator.cooling.PidGains.paper`. Units of the paper's loop:
+    (kd_s = 50 s): :meth:`compensator.cooling_law.PidGains.paper`. Units of the paper's loop:
     coolant temperature [K] per um of thermal error."""
     return PidGains.paper()
 

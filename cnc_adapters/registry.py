@@ -30,7 +30,7 @@ from .base import (
     query_params,
     redact_url,
 )
-from .profiles import adapter_settings
+from .control_profiles import adapter_settings
 
 BACKENDS: dict[str, str] = {
     "sim": "machine_sim.adapter:SimAdapter",

@@ -3,7 +3,7 @@ emulated controls with their servers (PLCs, FOCAS, Haas MDC, a Modbus chiller) a
 ``sim`` link, which the link registry names like any other backend (python-can's ``virtual``
 bus). It sits above the controller links (it serves and uses their protocols) and below
 calibration (the cooling studies run on it); the edge box never imports it. Speed programs live
-in :mod:`compensator.programs`, below every layer that uses them."""
+in :mod:`compensator.speed_programs`, below every layer that uses them."""
 
 from .plant import PRESETS, PlantParams, PlantRun, SpindlePlant, preset
 

@@ -17,8 +17,8 @@ from urllib.parse import parse_qsl, urlsplit
 
 from pydantic import Field
 
-from compensator.programs import PROGRAMS
-from compensator.programs import program as make_program
+from compensator.speed_programs import PROGRAMS
+from compensator.speed_programs import program as make_program
 
 from cnc_adapters.base import (
     Adapter,

@@ -3,7 +3,7 @@
 A real control does not simply apply the number a PC writes: it takes it in its own unit and
 resolution, refuses what it will not take (a value past its limit, a step that would raise an
 alarm, a write without the access right), and may move the axis to it at a limited rate.
-:class:`EmulatedControl` does the same for any :class:`~cnc_adapters.profiles.ControllerProfile`
+:class:`EmulatedControl` does the same for any :class:`~cnc_adapters.control_profiles.ControllerProfile`
 in front of a :class:`~machine_sim.vcnc.VirtualMachine`, so the virtual workpiece error
 shows the offset as the control applies it. Every emulated server (OPC UA, S7, Modbus TCP, ADS,
 FOCAS, Haas MDC) hands the written value to :meth:`EmulatedControl.write_raw` and serves the
@@ -20,7 +20,7 @@ import math
 import threading
 from dataclasses import dataclass, field
 
-from cnc_adapters.profiles import ControllerProfile
+from cnc_adapters.control_profiles import ControllerProfile
 from .vcnc import OFFSET_LIMIT_UM, VirtualMachine
 
 

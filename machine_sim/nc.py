@@ -3,7 +3,7 @@
 It reads what an operator would load for a warm-up or calibration run: spindle on/off,
 speed and dwell, with comments; anything else (an axis move, an unknown word) is refused
 with the line number, like a control's syntax check. The result is a
-:class:`~compensator.programs.Program` the virtual machine runs.
+:class:`~compensator.speed_programs.Program` the virtual machine runs.
 
 Syntax accepted, per dialect:
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 

@@ -31,7 +31,7 @@ an offset written here moves it back by the same amount, so a perfect compensato
 ``-elongation`` and ``ToolTipError`` reads 0.
 
 Time runs accelerated (``time_scale`` x wall time) on an injected clock, and a
-:class:`~compensator.programs.Program` drives the speed. The plant is stepped on a fixed
+:class:`~compensator.speed_programs.Program` drives the speed. The plant is stepped on a fixed
 sim-time grid (``plant_dt_s``), which keeps its matrix exponentials cached.
 """
 
@@ -51,7 +51,7 @@ import numpy as np
 
 from compensator.clock import ScaledClock
 from compensator.filters import lag_step
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 from .plant import SENSORS, SpindlePlant
 

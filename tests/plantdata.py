@@ -8,7 +8,7 @@ from functools import lru_cache
 
 from calibration.runs import Run
 from machine_sim import SpindlePlant, preset
-from compensator.programs import job_shop_day, paper_calibration, random_validation
+from compensator.speed_programs import job_shop_day, paper_calibration, random_validation
 
 
 @lru_cache(maxsize=None)

@@ -30,7 +30,7 @@ from machine_sim.vcnc import (
 from compensator import ConfigError
 from compensator.io import load_state, read_run_log, save_model
 from compensator.model import ThermalModel
-from compensator.programs import Program, job_shop_day
+from compensator.speed_programs import Program, job_shop_day
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

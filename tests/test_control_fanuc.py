@@ -27,14 +27,14 @@ from cnc_adapters import (
     open_adapter,
 )
 from cnc_adapters.focas import FocasAdapter, command, decode_scaled, request_packet
-from cnc_adapters.profiles import profile
+from cnc_adapters.control_profiles import profile
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.focas_server import FocasServer, PlainControl, encode_scaled
 from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 FANUC = profile("fanuc")
 # a warm-up, two operations with a tool change, a run-down: half an hour of the thermal transient

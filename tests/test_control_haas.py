@@ -30,7 +30,7 @@ from cnc_adapters import (
     open_adapter,
 )
 from cnc_adapters.haas_mdc import HaasMdcAdapter, HaasMdcSettings
-from cnc_adapters.profiles import profile
+from cnc_adapters.control_profiles import profile
 from cnc_adapters.serial_link import HaasSettings
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
@@ -39,7 +39,7 @@ from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError
 from compensator.io import read_run_log
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 HAAS = profile("haas")
 PROGRAM = Program("three-ops", ((5.0, 0.0), (400.0, 22500.0), (15.0, 0.0), (300.0, 9000.0),

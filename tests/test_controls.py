@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from test_transients import assert_slow_while_cutting
 
 from cnc_adapters import check_adapter
-from cnc_adapters.profiles import PROFILES, adapter_settings, profile
+from cnc_adapters.control_profiles import PROFILES, adapter_settings, profile
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.vcnc import (
@@ -30,7 +30,7 @@ from machine_sim.vcnc import (
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError
 from compensator.io import read_run_log
-from compensator.programs import Program
+from compensator.speed_programs import Program
 from compensator.shaping import OffsetShaper, ShaperConfig
 from thermocomp.runtime import Alarm
 from thermocomp.runtime.config import load_config

@@ -9,7 +9,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from compensator.cooling import CoolingLaw, CoolingState, PidGains, dew_point_c
+from compensator.cooling_law import CoolingLaw, CoolingState, PidGains, dew_point_c
 from compensator.errors import ConfigError, NonFiniteInputError
 
 

@@ -18,7 +18,7 @@ from machine_sim.plant import SpindlePlant, preset
 from machine_sim.vcnc import VirtualMachine
 from compensator.errors import ConfigError
 from compensator.io import save_model
-from compensator.programs import Program
+from compensator.speed_programs import Program
 from thermocomp.runtime.config import load_config
 from thermocomp.runtime.cooling import CHILLER_FAILED, CoolingRuntime
 from thermocomp.runtime.spindle import SpindleRuntime

@@ -20,7 +20,7 @@ from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import VirtualMachine
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import load_any_model, load_model, read_run_log, save_model, write_run_log
-from compensator.programs import Program, job_shop_day, paper_calibration, random_validation
+from compensator.speed_programs import Program, job_shop_day, paper_calibration, random_validation
 from compensator.statespace import StateSpaceModel
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config

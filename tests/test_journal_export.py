@@ -31,7 +31,7 @@ from compensator.io import (
     write_run_log,
 )
 from compensator.io.retention import day_start_s
-from compensator.programs import job_shop_day
+from compensator.speed_programs import job_shop_day
 from thermocomp.commands.journal import export
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config

@@ -7,7 +7,7 @@ import pytest
 
 from machine_sim import PRESETS, SpindlePlant, preset
 from machine_sim.plant import _system
-from compensator.programs import paper_calibration
+from compensator.speed_programs import paper_calibration
 
 
 def run(name, dt, seed=0, **changes):

@@ -23,7 +23,7 @@ from machine_sim import SpindlePlant, preset
 from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import ToolSetter, VirtualMachine
 from compensator.io import load_any_model, read_run_log, save_model
-from compensator.programs import Program, job_shop_day, paper_calibration, random_validation
+from compensator.speed_programs import Program, job_shop_day, paper_calibration, random_validation
 from compensator.units import RANGE_TOLERANCE
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config

@@ -19,7 +19,7 @@ from machine_sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
 from compensator.clock import SteppedClock
 from compensator.io import load_state, read_run_log
-from compensator.programs import job_shop_day
+from compensator.speed_programs import job_shop_day
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

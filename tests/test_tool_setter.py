@@ -25,7 +25,7 @@ from machine_sim.vcnc import (
     call,
     running,
 )
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 SPEED = 20000.0
 

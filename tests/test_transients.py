@@ -25,7 +25,7 @@ from machine_sim.vcnc import VirtualMachine
 from compensator import ConfigError
 from compensator.io import read_run_log, save_model
 from compensator.model import ThermalModel
-from compensator.programs import Program
+from compensator.speed_programs import Program
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

@@ -27,7 +27,7 @@ from machine_sim import SpindlePlant, preset
 from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
-from compensator.programs import Program
+from compensator.speed_programs import Program
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

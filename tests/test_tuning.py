@@ -10,7 +10,7 @@ import pytest
 from scipy import signal
 
 from calibration import tuning as tu
-from compensator.cooling import PidGains
+from compensator.cooling_law import PidGains
 from compensator.errors import CalibrationError, ModelError
 
 

@@ -23,7 +23,7 @@ from machine_sim.vcnc import (
     free_port,
     running,
 )
-from compensator.programs import Program
+from compensator.speed_programs import Program
 
 JS = Path(__file__).parent / "js"
 

@@ -315,7 +315,7 @@ def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatc
 
 
 def test_wizard_imports_daq_logs(tmp_path):
-    from compensator.programs import paper_calibration, random_validation
+    from compensator.speed_programs import paper_calibration, random_validation
 
     params = preset("motorized-27k")
     epoch = 1.78e9

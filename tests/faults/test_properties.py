@@ -35,7 +35,7 @@ from machine_sim.vcnc import VirtualMachine
 from compensator.errors import ConfigError
 from compensator.io import Journal, load_state, read_run_log, save_model
 from compensator.model import ThermalModel
-from compensator.programs import job_shop_day
+from compensator.speed_programs import job_shop_day
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from cnc_adapters.profiles import PROFILES, profile
+from cnc_adapters.control_profiles import PROFILES, profile
 
 
 def main(args: argparse.Namespace) -> int:

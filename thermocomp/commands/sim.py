@@ -21,7 +21,7 @@ from machine_sim.vcnc import (
 )
 from compensator.errors import ConfigError
 from compensator.io import read_text, write_run_log
-from compensator.programs import program
+from compensator.speed_programs import program
 
 
 def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:

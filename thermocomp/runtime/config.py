@@ -16,8 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from cnc_adapters import check_adapter
 from cnc_adapters.base import short
 from cnc_adapters.chiller import check_chiller
-from cnc_adapters.profiles import ControllerProfile, control_count_um, profile
-from compensator.cooling import CoolingLaw, PidGains
+from cnc_adapters.control_profiles import ControllerProfile, control_count_um, profile
+from compensator.cooling_law import CoolingLaw, PidGains
 from compensator.errors import ConfigError, ModelError, clip
 from compensator.estimate import Estimate
 from compensator.io.atomic import read_regular, read_text

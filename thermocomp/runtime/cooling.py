@@ -1,6 +1,6 @@
 """The chiller loop of ``[cooling]``: the spindle's estimate in, a coolant set point out.
 
-Every ``period_s`` :meth:`CoolingRuntime.cycle` steps the pure :class:`~compensator.cooling.CoolingLaw`
+Every ``period_s`` :meth:`CoolingRuntime.cycle` steps the pure :class:`~compensator.cooling_law.CoolingLaw`
 on the estimate the spindle's runtime uses (its model with inputs, its fallback, or fused with
 probes) and writes the set point to the chiller when it changed, or every ``refresh_s`` (a
 chiller that restarted forgets it). Each command is journaled (``<spindle>.cooling-*.csv``).
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from cnc_adapters.chiller import Chiller, open_chiller
-from compensator.cooling import CoolingState
+from compensator.cooling_law import CoolingState
 from compensator.errors import AdapterError, AdapterTimeoutError, ThermocompError, UnreachableError
 from compensator.io import CoolingJournal
 
