@@ -183,7 +183,8 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
     for line in report["cycles"]:
         out.print(f"  {line}")
     t = Table(title="Candidates, free run (the model feeds on its own output; no measured elongation)")
-    for col in ("candidate", "CV RMS", "CV max", "nested RMS", "in-sample RMS", "per fold RMS", "verdict"):
+    for col in ("candidate", "CV RMS", "CV max", "nested RMS", "forward RMS", "in-sample RMS", "per fold RMS",
+                "verdict"):
         t.add_column(col, justify="left" if col in ("candidate", "verdict", "per fold RMS") else "right")
     for c in report["candidates"]:
         name = c["name"] + (" [bold green]<- chosen[/]" if c["name"] == report["chosen"] else "")
@@ -191,10 +192,12 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
                          "accepted" if c["accepted"] else "refused: " + "; ".join(c["refusals"]))
         folds = " ".join(_fmt(v, 2) for v in c["folds_rms_um"])
         t.add_row(name, _fmt(c["cv_rms_um"]), _fmt(c["cv_max_abs_um"]), _fmt(c["nested_rms_um"]),
-                  _fmt(c["in_sample_rms_um"]), folds, verdict)
+                  _fmt(c.get("forward_rms_um")), _fmt(c["in_sample_rms_um"]), folds, verdict)
     out.print(t)
     out.print("CV: gains fitted without the held-out fold; nested: the fold also took no part in "
-              "choosing alpha (the honest figure). One-step R² is not used.")
+              "choosing alpha (the honest figure); forward: each fold from the third predicted by a model "
+              "chosen and fitted on the folds before it only. The choice reads the worse of nested and "
+              "forward. One-step R² is not used.")
     out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {escape(report['reason'])}")
     for c in report["candidates"]:
         if c["name"] == report["chosen"] and "alpha" in c:

@@ -116,6 +116,21 @@ def blocks(time_s: np.ndarray, count: int = BLOCKS) -> tuple[Fold, ...]:
     return tuple((a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
 
 
+def forward_splits(folds: Sequence[Fold], first: int = 1) -> list[tuple[tuple[Fold, ...], Fold]]:
+    """Rolling origin: (the folds before, the next fold) for every fold from index ``first``. A
+    model fitted on the past predicts the future, which leave-one-out (where later folds inform
+    an earlier one) does not test."""
+    return [(tuple(folds[:k]), folds[k]) for k in range(max(first, 1), len(folds))]
+
+
+def rows_of(size: int, folds: Sequence[Fold], rows: np.ndarray | None = None) -> np.ndarray:
+    """The rows of ``folds`` (within ``rows`` when given)."""
+    out = np.zeros(size, bool)
+    for a, b in folds:
+        out[a:b] = True
+    return out if rows is None else out & rows
+
+
 def without(size: int, fold: Fold, rows: np.ndarray | None = None) -> np.ndarray:
     """The training rows when ``fold`` is held out: ``rows`` (default every row) less the fold."""
     out = np.ones(size, bool) if rows is None else np.array(rows, dtype=bool)

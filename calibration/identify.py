@@ -19,11 +19,14 @@ Folds: leave-one-cycle-out when the logs hold two cycles or more, otherwise cont
 is scored on the measured rows of the held-out fold. With sparse targets (a journal export) the
 candidates that need the elongation on every row are left out, and the report says so.
 
-The choice: a candidate is refused when its honest CV RMS (nested where its hyperparameters were
-chosen by CV, else plain) is worse than the baseline's, or when its gains fail the sanity bound.
-Among the speed-only candidates left, the lowest honest CV RMS wins, a simpler one (earlier in
-the registry) when within :data:`~calibration.metrics.PARSIMONY`; the inputs are kept only when
-they beat that, with the speed-only model as their fallback.
+Two held-out figures per candidate: leave-one-fold-out (nested where its hyperparameters were
+chosen by CV) and forward (rolling origin: each fold from the third predicted by a model chosen
+and fitted on the folds before it only). The choice reads the worse of the two, so a candidate
+that does well backwards but badly forwards is not chosen. A candidate is refused when that
+figure is worse than the baseline's, or when its gains fail the sanity bound. Among the
+speed-only candidates left, the lowest wins, a simpler one (earlier in the registry) when within
+:data:`~calibration.metrics.PARSIMONY`; the inputs are kept only when they beat that, with the
+speed-only model as their fallback.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ import numpy as np
 from compensator.errors import CalibrationError
 
 from . import closedloop
-from .candidate import Candidate
+from .candidate import MIN_FORWARD_FOLDS, Candidate
 from .dataset import Dataset, LogData, join
 from .estimators import baseline, output_error, paper_ols
 from .estimators import ridge_bank as rb
@@ -68,6 +71,8 @@ def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: 
     c.refusals += list(res.refusals)
     c.held_out_residual_um = res.held_out_residual_um
     c.slowest_tau_s = res.slowest_tau_s
+    c.forward_rms_um, c.forward_max_abs_um = res.forward_rms_um, res.forward_max_abs_um
+    c.forward_folds_rms_um = [f.rms_um for f in res.forward_folds or ()]
     return c
 
 
@@ -242,11 +247,12 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
 
     def score(c: Candidate) -> float:
         if probe_every_s is None:
-            return c.honest_rms_um
+            return c.decisive_rms_um
         p = loop_of(c)
         return math.inf if p is None else p.rms_at(probe_every_s)
 
-    what = "CV RMS" if probe_every_s is None else f"closed-loop RMS (a probe every {probe_every_s:g} s)"
+    what = ("held-out RMS (the worse of nested and forward)" if probe_every_s is None
+            else f"closed-loop RMS (a probe every {probe_every_s:g} s)")
     if probe_every_s is not None:
         say(f"scoring every candidate in closed loop, a probe every {probe_every_s:g} s")
     bar = score(cands[0])
@@ -272,13 +278,18 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
     best = min(speed, key=score)
     chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
     basis = "nested " if chosen.nested_rms_um is not None else ""
+    ahead = (f", forward {chosen.forward_rms_um:.2f} um" if chosen.forward_rms_um is not None else "")
     if probe_every_s is None:
-        reason = f"{chosen.name} has the lowest {basis}{ds.scheme} free-run RMS among the speed-only candidates, "
+        figure = ("held-out free-run RMS (the worse of nested and forward)"
+                  if chosen.decisive_rms_um != chosen.honest_rms_um or len(chosen.forward_folds_rms_um) >= MIN_FORWARD_FOLDS
+                  else f"{basis}{ds.scheme} free-run RMS")
+        reason = (f"{chosen.name} has the lowest {figure} among the speed-only candidates, "
+                  f"{chosen.decisive_rms_um:.2f} um ({basis}{ds.scheme} {chosen.honest_rms_um:.2f} um{ahead})")
     else:
         reason = (f"{chosen.name} has the lowest {ds.scheme} {what} among the speed-only candidates "
-                  f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS ")
-    reason += (f"{chosen.honest_rms_um:.2f} um"
-               + (f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""))
+                  f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS "
+                  f"{chosen.honest_rms_um:.2f} um{ahead}")
+    reason += f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""
     model = _with_fit(chosen, ds, reason)
     final = chosen
     with_inputs = next((c for c in cands if c.family == "inputs"), None)
@@ -286,6 +297,9 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         model, final, reason = with_inputs_or_not(with_inputs, chosen, fitted[with_inputs.name], model, ds,
                                                   reason, warnings, score=score, what=what,
                                                   n_inputs=len(names), units=units, meta=meta)
+    statement = _speed_alone(ds, chosen, final, fitted.get("ridge"), loop_of if ds.dense else None)
+    if statement:
+        warnings.append(statement)
     paper = next((c for c in cands if c.family == "reference"), None)
     if paper is not None and math.isfinite(paper.cv_rms_um):
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
@@ -303,6 +317,42 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
             update["fallback"] = fb.model_copy(update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}})
         model = model.model_copy(update=update)
     return Identification(ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop)
+
+
+SPEED_ALONE_SHARE = 0.5
+"""Speed alone cannot carry a log when its best held-out error is this share of the
+uncompensated error or more."""
+
+
+def _speed_alone(ds: Dataset, chosen: Candidate, final: Candidate, ridge: Any,
+                 loop_of: Callable[[Candidate], closedloop.Plan | None] | None) -> str | None:
+    """One line when speed alone cannot carry the log: the speed-only model's held-out error
+    against the uncompensated one, how much alpha alone moves its forward error, and the
+    cheapest remedy with its figure (the logged temperatures, a probe interval, a longer
+    record)."""
+    rows = ds.measured & np.isfinite(ds.elongation_um)
+    if not rows.any():
+        return None
+    raw = float(np.sqrt(np.mean(ds.elongation_um[rows] ** 2)))
+    if chosen.decisive_rms_um < SPEED_ALONE_SHARE * raw:
+        return None
+    line = (f"speed alone cannot carry this log: the best speed-only model ({chosen.name}) errs "
+            f"{chosen.decisive_rms_um:.1f} um held out, against {raw:.1f} um uncompensated")
+    spread = [v for v in ridge.forward_rms_by_alpha_um if math.isfinite(v)] if isinstance(ridge, rb.RidgeFit) else []
+    if spread:
+        line += (f"; alpha alone moves the speed-only ridge's forward error from {min(spread):.1f} to "
+                 f"{max(spread):.1f} um")
+    if final is not chosen:
+        return line + (f". The logged inputs carry it ({final.decisive_rms_um:.2f} um held out): keep "
+                       "them connected, and probe when one fails")
+    plan = loop_of(chosen) if loop_of is not None else None
+    if plan is not None and plan.recommended_s is not None:
+        return line + (f". Cheapest remedy: probe every {plan.recommended_s / 60:.0f} min "
+                       f"({plan.rms_at(plan.recommended_s):.2f} um RMS held out); or log temperatures")
+    tau_h = chosen.slowest_tau_s / 3600 if chosen.slowest_tau_s else 0.0
+    return line + (". Remedies: log temperatures (--inputs), probe often (fit --probe-every), or record "
+                   + (f"more cycles than the slowest time constant ({tau_h:.0f} h) spans" if tau_h
+                      else "more cycles"))
 
 
 def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model: Any, ds: Dataset,
@@ -323,7 +373,7 @@ def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model:
     if not c_in.accepted:
         warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
         return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
-    reason += (f"; with inputs {c_in.honest_rms_um:.2f} um: the model uses {n_inputs} input(s), "
+    reason += (f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
                f"{chosen.name} stands in when one fails")
     return _with_fit(c_in, ds, reason), c_in, reason
 
@@ -334,6 +384,8 @@ def _with_fit(c: Candidate, ds: Dataset, reason: str) -> Any:
            "folds_rms_um": [round(v, 4) for v in c.folds_rms_um], "reason": reason}
     if c.nested_rms_um is not None:
         fit["nested_rms_um"] = round(c.nested_rms_um, 4)
+    if c.forward_rms_um is not None:
+        fit["forward_rms_um"] = round(c.forward_rms_um, 4)
     if "alpha" in c.details:
         fit["alpha"] = c.details["alpha"]
         fit["grid"] = c.details["grid"]

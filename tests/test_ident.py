@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from calibration.estimators.baseline import BASELINE_TAUS_S
 from calibration.estimators.paper_ols import fit_paper_ols, paper_ols_cv
-from calibration.estimators.ridge_bank import TauGrid, auto_grid, fit_ridge_cv, hac_stderr
+from calibration.estimators.ridge_bank import DEFAULT_ALPHAS, TauGrid, auto_grid, fit_ridge_cv, hac_stderr
 from calibration.folds import CYCLE_RULE, describe_cycles, split_cycles
 from compensator.filters import filter_bank
 from compensator.errors import CalibrationError, NonFiniteInputError
@@ -310,3 +310,19 @@ def test_paper_ols_recovers_its_own_form_and_runs_free():
     assert np.max(np.abs(fit.predict(tt, n, 0.0) - s)) < 1e-3
     cv = paper_ols_cv(t, n, s, split_cycles(t, n))
     assert cv["cv_rms_um"] < 1e-5 and len(cv["folds"]) == 2
+
+
+def test_the_forward_figure_uses_only_the_past(fitted):
+    """Rolling origin: the third cycle is predicted from the first two only, so corrupting the
+    last cycle leaves its score alone and ruins the last one's."""
+    res, (t, n, inputs, y) = fitted
+    assert len(res.forward_folds) == len(res.cycles) - 2 == 2
+    corrupt = y.copy()
+    a, b = res.cycles[-1]
+    corrupt[a:b] += 50.0
+    again = fit_ridge_cv(t, n, corrupt, inputs, grids=[GRID], nested=True)
+    assert again.forward_folds[0].rms_um == pytest.approx(res.forward_folds[0].rms_um, rel=1e-9)
+    assert again.forward_folds[-1].rms_um > res.forward_folds[-1].rms_um + 10.0
+    # the spread over the penalty alone, one figure per alpha tried
+    assert len(res.forward_rms_by_alpha_um) == len(DEFAULT_ALPHAS)
+    assert all(math.isfinite(v) and v > 0 for v in res.forward_rms_by_alpha_um)

@@ -343,6 +343,19 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res)
     c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
     c.held_out_residual_um = res
+    splits = fl.forward_splits(ds.folds, first=2)
+    if splits:  # rolling origin: fitted on the folds before, scored on the next
+        ahead = np.full(ds.time_s.size, np.nan)
+        for past, (a, b) in splits:
+            f = fit(ds, fl.rows_of(ds.time_s.size, past), **meta)
+            if f.model is None:
+                c.refusals.append(f"no stable fit on the folds before rows {a}..{b - 1}"
+                                  + (f" ({f.note})" if f.note else ""))
+                c.fit_cpu_s = time.process_time() - cpu0
+                return c, None
+            ahead[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
+        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
+        c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
     full = fit(ds, **meta)
     if full.model is None:
         c.refusals.append(f"no stable fit on all rows ({full.note})")

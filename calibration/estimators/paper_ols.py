@@ -135,12 +135,19 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
             f = fit(ds, fl.without(ds.time_s.size, (a, b)))
             per_fold.append(f.a)
             res[a:b] = (ds.elongation_um - free_run(f, ds))[a:b]
+        splits = fl.forward_splits(ds.folds, first=2)
+        ahead = np.full(ds.time_s.size, np.nan)
+        for past, (a, b) in splits:
+            ahead[a:b] = (ds.elongation_um - free_run(fit(ds, fl.rows_of(ds.time_s.size, past)), ds))[a:b]
         full = fit(ds)
     except CalibrationError as err:
         c.refusals.append(str(err))
         return c, None
     c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res)
     c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
+    if splits:
+        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
+        c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
     c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full, ds))
     c.details = {"a": full.a, "one_step_r2": full.one_step_r2, "a_per_fold": per_fold}
     if full.a >= 1:

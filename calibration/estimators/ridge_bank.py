@@ -173,6 +173,38 @@ def cv_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds: Fold
     return res
 
 
+FORWARD_FIRST = 2
+"""Rolling origin starts predicting with this many folds of past: one fold alone (a single
+heat-up) says too little about the next to judge a penalty by."""
+
+
+def forward_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds: Folds,
+                      alphas: Sequence[float], train: np.ndarray | None = None,
+                      first: int = FORWARD_FIRST) -> np.ndarray:
+    """Held-out residuals [um] (rows, alphas) of rolling-origin ridge: each fold from index
+    ``first`` predicted by gains fitted on the measured rows of the folds before it (within
+    ``train``); NaN on the earlier folds and on every row not measured."""
+    base = measured if train is None else measured & train
+    res = np.full((y.size, len(alphas)), np.nan)
+    for past, (a, b) in fl.forward_splits(folds, first):
+        tr = fl.rows_of(y.size, past, base)
+        if tr.sum() < 2:
+            continue
+        g, c = ridge_path(x[tr], y[tr], alphas)
+        rows = a + np.flatnonzero(measured[a:b])
+        res[rows] = y[rows, None] - (x[rows] @ g + c)
+    return res
+
+
+def _pooled_mse(res: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Mean square per alpha over ``rows`` (inf where it is not finite or there are none)."""
+    if rows.size == 0:
+        return np.zeros(res.shape[1])
+    with np.errstate(over="ignore", invalid="ignore"):
+        p = np.mean(res[rows] ** 2, axis=0)
+    return np.where(np.isfinite(p), p, np.inf)
+
+
 @dataclass(frozen=True)
 class Config:
     """One configuration tried: a grid, the α values and the inputs."""
@@ -183,24 +215,35 @@ class Config:
 
 
 def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Sequence[Config],
-           folds: Folds, train: np.ndarray | None = None,
-           rule: str = "parsimony") -> tuple[int, float, list[dict[str, Any]]]:
-    """(config index, alpha, table) chosen by leave-one-fold-out free-run error on the measured
-    rows.
+           folds: Folds, train: np.ndarray | None = None, rule: str = "parsimony",
+           forward: bool = True) -> tuple[int, float, list[dict[str, Any]]]:
+    """(config index, alpha, table) chosen by free-run error on the measured rows of held-out
+    folds: leave-one-fold-out and, with ``forward``, rolling origin (each fold predicted from
+    the folds before it). A config is judged by the worse of the two mean squares, so one that
+    does well backwards but badly forwards is not chosen.
 
     ``rule="parsimony"`` (the default): the simplest config (configs run from simple to rich),
-    then its largest alpha, whose pooled CV RMS is within :data:`~calibration.metrics.PARSIMONY`
-    of the best; ``rule="1se"``: whose mean square is within one standard error (over folds) of
-    the best's; ``rule="min"``: the best itself."""
+    then its largest alpha, whose figure is within :data:`~calibration.metrics.PARSIMONY` of the
+    best; ``rule="1se"``: whose mean square is within one standard error (over folds) of the
+    best's; ``rule="min"``: the best itself."""
     scored = [a + np.flatnonzero(measured[a:b]) for a, b in folds]
     rows = np.concatenate(scored)
-    pooled, per_fold = [], []
+    later = np.concatenate(scored[FORWARD_FIRST:]) if len(scored) > FORWARD_FIRST else rows[:0]
+    pooled, per_fold, loco, ahead = [], [], [], []
     for cfg in configs:
-        res = cv_residuals(bank.design(cfg.grid, cfg.names), y, measured, folds, cfg.alphas, train)
+        x = bank.design(cfg.grid, cfg.names)
+        res = cv_residuals(x, y, measured, folds, cfg.alphas, train)
+        p = _pooled_mse(res, rows)
         with np.errstate(over="ignore", invalid="ignore"):
-            p = np.mean(res[rows] ** 2, axis=0)
             f = np.array([np.mean(res[r] ** 2, axis=0) for r in scored])  # (folds, alphas)
-        pooled.append(np.where(np.isfinite(p), p, np.inf))
+        if forward and later.size:
+            fres = forward_residuals(x, y, measured, folds, cfg.alphas, train)
+            q = _pooled_mse(fres, later[~np.isnan(fres[later, 0])])  # a fold with no past to fit on: not scored
+        else:
+            q = np.zeros_like(p)
+        loco.append(p)
+        ahead.append(q)
+        pooled.append(np.maximum(p, q))
         per_fold.append(np.where(np.isfinite(f), f, np.inf))
     k_best = int(np.argmin([p.min() for p in pooled]))
     i_best = int(np.argmin(pooled[k_best]))
@@ -218,8 +261,11 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
         j = int(ok[np.argmax(np.asarray(cfg.alphas)[ok])]) if ok.size else int(np.argmin(p))
         if choice is None and ok.size:
             choice = (k, j)
-        table.append({"grid": cfg.grid.label, "alpha": cfg.alphas[j], "cv_rms_um": math.sqrt(p[j]),
-                      "best_alpha": cfg.alphas[int(np.argmin(p))], "best_cv_rms_um": math.sqrt(p.min())})
+        spread = [math.sqrt(v) for v in ahead[k] if math.isfinite(v)] if forward else []
+        table.append({"grid": cfg.grid.label, "alpha": cfg.alphas[j], "score_rms_um": math.sqrt(p[j]),
+                      "forward_rms_spread_um": (min(spread), max(spread)) if spread else None,
+                      "cv_rms_um": math.sqrt(loco[k][j]), "forward_rms_um": math.sqrt(ahead[k][j]) if forward else None,
+                      "best_alpha": cfg.alphas[int(np.argmin(p))], "best_score_rms_um": math.sqrt(p.min())})
     if choice is None:
         raise CalibrationError("no configuration could be scored")  # unreachable: best is one of them
     k, j = choice
@@ -275,6 +321,14 @@ class RidgeFit:
     held_out_residual_um: np.ndarray | None = None
     """Each fold's free-run residual from a model fitted without it (nested when done); NaN on
     the rows not scored."""
+    forward_folds: tuple[FoldScore, ...] | None = None
+    forward_rms_um: float | None = None
+    forward_max_abs_um: float | None = None
+    """Rolling origin, honest: each fold from the third predicted by a model whose gains, alpha
+    and grid were chosen on the folds before it only (None with fewer than three folds)."""
+    forward_rms_by_alpha_um: tuple[float, ...] = ()
+    """The same rolling origin with the chosen grid at each alpha tried, held fixed: how much
+    the penalty alone moves the forward error."""
 
     # -- prediction ---------------------------------------------------------------------
 
@@ -417,15 +471,21 @@ def _validate_grid(grid: TauGrid, dt_s: float, names: Sequence[str]) -> None:
 
 def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid] | None = None,
         input_names: Sequence[str] = (), alphas: Sequence[float] = DEFAULT_ALPHAS,
-        nested: bool = False, rule: str = "parsimony") -> RidgeFit:
+        nested: bool = False, rule: str = "parsimony", forward: bool = True,
+        penalty_forward: bool = False) -> RidgeFit:
     """Ridge banks fitted on the measured rows of ``rows`` (default: all), α and grid chosen by
     leave-one-fold-out free-run error on the measured rows of ``ds.folds``.
 
     ``grids`` are candidates ordered from simple to rich (default: :func:`auto_grid`). Inputs
     (``input_names``, columns of ``ds``) enter as deviations from their training mean. With
     ``nested`` every fold is also predicted by a model whose α and grid were chosen without it
-    (the honest figure; three folds or more). Refusals: the gain bound only (the exponential
-    baseline is judged by the caller, :func:`fit_ridge_cv` or the identification)."""
+    (the honest figure; three folds or more). With ``forward`` every fold from the third is also
+    predicted by a model chosen and fitted on the folds before it only (the honest forward
+    figure, which the identification's choice reads). ``penalty_forward`` also judges α and the
+    grid by the worse of leave-one-fold-out and rolling-origin error (:func:`select`); it is off
+    by default because on the real record it made the forward error worse (a larger α, more
+    bias: docs/IDENTIFICATION.md). Refusals: the gain bound only (the exponential baseline is judged by
+    the caller, :func:`fit_ridge_cv` or the identification)."""
     cpu0 = time.process_time()
     t = as_times(ds.time_s)
     sp = as_series("speed_rpm", ds.speed_rpm, t.size)
@@ -457,7 +517,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     bank = FilterBank(t, drives, ds.segments)
     y0 = np.where(measured, y, 0.0)  # never read off the measured rows; keeps the arithmetic finite
     configs = [Config(g, tuple(alphas), names) for g in cand]
-    k, alpha, table = select(bank, y0, measured, configs, folds, rule=rule)
+    k, alpha, table = select(bank, y0, measured, configs, folds, rule=rule, forward=penalty_forward)
     cfg = configs[k]
     x = bank.design(cfg.grid, names)
     res = cv_residuals(x, y0, measured, folds, (alpha,))[:, 0]
@@ -468,13 +528,30 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         for i, fold in enumerate(folds):
             inner = [f for j, f in enumerate(folds) if j != i]
             train = fl.without(t.size, fold)
-            ki, al, _ = select(bank, y0, measured, configs, inner, train, rule=rule)
+            ki, al, _ = select(bank, y0, measured, configs, inner, train, rule=rule, forward=penalty_forward)
             xi = bank.design(configs[ki].grid, names)
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
             scored = fold[0] + np.flatnonzero(measured[fold[0]:fold[1]])
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
         nested_folds = fold_scores(outer, folds)
         nested_rms, nested_max = measured_stats(outer)
+    fwd_folds = fwd_rms = fwd_max = None
+    fwd_spread: tuple[float, ...] = ()
+    splits = fl.forward_splits(folds, first=FORWARD_FIRST)
+    if forward and splits:
+        ahead = np.full(t.size, np.nan)
+        for past, (a, b) in splits:
+            train = fl.rows_of(t.size, past)
+            ki, al, _ = select(bank, y0, measured, configs, past, train, rule=rule, forward=penalty_forward)
+            xi = bank.design(configs[ki].grid, names)
+            g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
+            scored = a + np.flatnonzero(measured[a:b])
+            ahead[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
+        fwd_folds = fold_scores(ahead, [f for _, f in splits])
+        fwd_rms, fwd_max = measured_stats(ahead)
+        later = fl.rows_of(t.size, [f for _, f in splits], measured)
+        by_alpha = _pooled_mse(forward_residuals(x, y0, measured, folds, alphas), np.flatnonzero(later))
+        fwd_spread = tuple(math.sqrt(v) if math.isfinite(v) else math.inf for v in by_alpha)
     g, c = ridge_path(x[measured], y0[measured], (alpha,))
     gains, intercept = g[:, 0], float(c[0])
     ns = len(cfg.grid.speed_taus_s)
@@ -487,7 +564,8 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         max_measured_um=float(np.abs(y[measured]).max()), nested_folds=nested_folds,
         nested_rms_um=nested_rms, nested_max_abs_um=nested_max, selection=tuple(table),
         fitted_dt_s=dt_s, segments=tuple(ds.segments), trained_ranges=trained,
-        held_out_residual_um=outer if outer is not None else res)
+        held_out_residual_um=outer if outer is not None else res, forward_folds=fwd_folds,
+        forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread)
     refusals, notes = [], []
     steady = result.steady_range_um()
     if steady > GAIN_BOUND * result.max_measured_um:
@@ -503,11 +581,12 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
                    fit_cpu_s=time.process_time() - cpu0)
 
 
-def fit_baseline(ds: Dataset, rows: np.ndarray | None = None, *, nested: bool = False) -> RidgeFit:
+def fit_baseline(ds: Dataset, rows: np.ndarray | None = None, *, nested: bool = False,
+                 forward: bool = True) -> RidgeFit:
     """The exponential baseline: one rung, no static term, no penalty; the time constant (at or
-    above the sample period) with the lowest leave-one-fold-out free-run RMS."""
+    above the sample period) with the lowest held-out free-run error (:func:`select`)."""
     grids = [TauGrid((tau,)) for tau in BASELINE_TAUS_S if tau >= ds.dt_s]
-    return fit(ds, rows, grids=grids, alphas=(0.0,), rule="min", nested=nested)
+    return fit(ds, rows, grids=grids, alphas=(0.0,), rule="min", nested=nested, forward=forward)
 
 
 def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
