@@ -326,3 +326,59 @@ def test_the_forward_figure_uses_only_the_past(fitted):
     # the spread over the penalty alone, one figure per alpha tried
     assert len(res.forward_rms_by_alpha_um) == len(DEFAULT_ALPHAS)
     assert all(math.isfinite(v) and v > 0 for v in res.forward_rms_by_alpha_um)
+
+
+def _collinear(seed: int = 4):
+    """The synthetic plant read by seven sensors: the ambient that drives it, five copies of it
+    with their own noise and offsets (nearly collinear, as sensors on one casting are), and one
+    that carries nothing."""
+    t, n, inputs, y = synthetic()
+    rng = np.random.default_rng(seed)
+    amb = inputs["amb_c"]
+    sensors = {"amb_c": amb, "decoy_c": 22 + 0.3 * np.sin(2 * np.pi * t / (5 * H)) + 0.05 * rng.normal(size=t.size)}
+    for k, (gain, offset) in enumerate(((1.0, 0.5), (0.8, 1.0), (1.1, -0.7), (0.9, 0.2), (1.05, 0.1))):
+        sensors[f"copy{k}_c"] = offset + gain * amb + 0.05 * rng.normal(size=t.size)
+    return t, n, sensors, y
+
+
+@pytest.mark.parametrize("structure", ["pca", "few"])
+def test_structures_that_share_strength_map_onto_the_runtime_model(structure):
+    """Principal components and a forward selection of inputs fit in their own space, and the
+    gains map back exactly: the runtime model free-runs the log to the fit's own prediction. The
+    components' model reads every sensor; the selection's only those it kept."""
+    from calibration.dataset import from_arrays
+    from calibration.estimators import ridge_bank as rb
+
+    t, n, sensors, y = _collinear()
+    ds = from_arrays(t, n, y, sensors)
+    res = rb.fit(ds, grids=[GRID], input_names=tuple(sensors), structure=structure, nested=True)
+    if structure == "pca":
+        assert set(res.input_names) == set(sensors) and "principal component" in res.structure_detail
+    else:
+        assert 1 <= len(res.input_names) <= rb.MAX_FEW and "decoy_c" not in res.input_names
+        assert res.structure_detail.startswith("kept ")
+    assert res.nested_rms_um < 0.2 and res.forward_rms_um < 0.2  # the plant is still represented
+    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model("ridge", spindle_id="t")
+    model = res.to_model(f"ridge+{structure}", fallback=speed_only, spindle_id="t")
+    used = {k: v for k, v in sensors.items() if k in model.input_names}
+    np.testing.assert_allclose(model.simulate_um(n, t, used, None), res.predict(t, n, used), rtol=0, atol=1e-9)
+
+
+def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
+    """On two folds the choice among input structures is noise (it picked the wrong one on the
+    real record), and a few sensors keep a bank each: only the plain bank is tried there."""
+    from calibration.identify import LogData, identify
+
+    t, n, sensors, y = _collinear()
+    a, b = split_cycles(t, n)[2]
+    two = identify([LogData("two", t[:a], n[:a], y[:a], {k: v[:a] for k, v in sensors.items()})],
+                   tuple(sensors), physical=False, probe_target_um=None)
+    four = identify([LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None)
+    names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]  # noqa: E731
+    assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs"]
+    assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca"]
+    few = identify([LogData("few", t, n, y, {k: sensors[k] for k in list(sensors)[:3]})], tuple(sensors)[:3],
+                   physical=False, probe_target_um=None)
+    assert names(few) == ["ridge+inputs"]
+    assert sum(c.accepted for c in four.candidates if c.family == "inputs") == 1
+    assert any(r.startswith("ridge+") for c in four.candidates if c.family == "inputs" for r in c.refusals)

@@ -59,9 +59,10 @@ def test_one_long_file_is_cut_into_cycles_and_scored_by_them(ch3_fit):
 def test_temperatures_win_on_ch3_and_fit_says_speed_alone_cannot(ch3_fit):
     path, rep = ch3_fit
     model = load_any_model(path)
-    assert rep["chosen"] == "ridge+inputs" and model.form == "ridge+inputs"
-    assert len(model.input_names) == 16 and model.spindle_id == "real-1"
-    base, ridge, with_t, paper = (_cand(rep, n) for n in ("exp-baseline", "ridge", "ridge+inputs", "paper-ols"))
+    # the temperatures win; which structure shares their strength is the data's choice
+    assert rep["chosen"] in ("ridge+few", "ridge+pca", "ridge+inputs") and model.form == rep["chosen"]
+    assert model.input_names and model.spindle_id == "real-1"
+    base, ridge, with_t, paper = (_cand(rep, n) for n in ("exp-baseline", "ridge", rep["chosen"], "paper-ols"))
     # every candidate carries both held-out figures, and the choice reads the worse of them
     for c in (base, ridge, with_t):
         assert len(c["forward_folds_rms_um"]) == 3  # cycles 3, 4 and 5, each from the cycles before

@@ -356,7 +356,7 @@ def test_a_densely_measured_export_fits_like_the_run_log(real, tmp_path, capsys)
     common = ("--inputs", "all", "--no-physical", "--no-nested")
     a = fit_json(capsys, out, *common, "--output", tmp_path / "a.json")
     b = fit_json(capsys, same, *common, "--output", tmp_path / "b.json")
-    assert a["chosen"] == b["chosen"] == "ridge+inputs" and a["scored_by"] == b["scored_by"]
+    assert a["chosen"] == b["chosen"] and a["chosen"].startswith("ridge+") and a["scored_by"] == b["scored_by"]
     for ca, cb in zip(a["candidates"], b["candidates"]):
         assert ca["name"] == cb["name"] and ca["cv_rms_um"] == pytest.approx(cb["cv_rms_um"], rel=1e-9)
     ma, mb = load_any_model(tmp_path / "a.json"), load_any_model(tmp_path / "b.json")

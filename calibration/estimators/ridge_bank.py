@@ -326,6 +326,8 @@ class RidgeFit:
     forward_max_abs_um: float | None = None
     """Rolling origin, honest: each fold from the third predicted by a model whose gains, alpha
     and grid were chosen on the folds before it only (None with fewer than three folds)."""
+    structure_detail: str = ""
+    """How the inputs shared strength (:data:`STRUCTURES`), in words."""
     forward_rms_by_alpha_um: tuple[float, ...] = ()
     """The same rolling origin with the chosen grid at each alpha tried, held fixed: how much
     the penalty alone moves the forward error."""
@@ -469,10 +471,57 @@ def _validate_grid(grid: TauGrid, dt_s: float, names: Sequence[str]) -> None:
         raise CalibrationError(f"grid {grid.label} has no input bank")
 
 
+STRUCTURES = ("all", "pca", "few")
+"""How the inputs enter a ridge bank (:func:`fit`)."""
+MAX_COMPONENTS = 4
+"""Principal components tried, one to this many."""
+MAX_FEW = 4
+"""Inputs a greedy forward selection keeps at most."""
+
+
+def _components(drives: Mapping[str, np.ndarray], names: Sequence[str],
+                rows: np.ndarray) -> dict[str, tuple[np.ndarray, float]]:
+    """The principal components of the inputs standardised on ``rows``: name -> (the weight of
+    each input's deviation, in 1/unit, and the share of variance). Temperatures on one casting
+    move together; a few components carry what 16 nearly collinear gains would trade off."""
+    u = np.column_stack([drives[f"in:{nm}"][rows] for nm in names])
+    sd = u.std(axis=0)
+    sd = np.where(sd > 1e-12, sd, 1.0)
+    _, sv, vt = np.linalg.svd((u - u.mean(axis=0)) / sd, full_matrices=False)
+    share = sv**2 / max(float(np.sum(sv**2)), 1e-300)
+    count = min(MAX_COMPONENTS, len(names))
+    return {f"pc{j + 1}": (vt[j] / sd, float(share[j])) for j in range(count)}
+
+
+def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequence[TauGrid],
+            alphas: tuple[float, ...], names: Sequence[str], folds: Folds, train: np.ndarray | None,
+            rule: str, penalty_forward: bool) -> tuple[Config, float, list[dict[str, Any]]]:
+    """Forward selection of inputs: add the one that lowers the held-out error most, while it
+    lowers it by more than PARSIMONY, up to :data:`MAX_FEW`; then α and grid as :func:`select`."""
+    kept: tuple[str, ...] = ()
+    best = math.inf
+    while len(kept) < MAX_FEW:
+        trials = [tuple(sorted((*kept, nm))) for nm in names if nm not in kept]
+        if not trials:
+            break
+        scores = []
+        for trial in trials:
+            configs = [Config(g, alphas, trial) for g in grids]
+            _, _, tab = select(bank, y, measured, configs, folds, train, rule="min", forward=penalty_forward)
+            scores.append(min(r["best_score_rms_um"] for r in tab))
+        j = int(np.argmin(scores))
+        if not scores[j] < best * (1 - PARSIMONY):
+            break
+        kept, best = trials[j], scores[j]
+    configs = [Config(g, alphas, kept) for g in grids]
+    k, al, tab = select(bank, y, measured, configs, folds, train, rule=rule, forward=penalty_forward)
+    return configs[k], al, tab
+
+
 def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid] | None = None,
         input_names: Sequence[str] = (), alphas: Sequence[float] = DEFAULT_ALPHAS,
         nested: bool = False, rule: str = "parsimony", forward: bool = True,
-        penalty_forward: bool = False) -> RidgeFit:
+        penalty_forward: bool = False, structure: str = "all") -> RidgeFit:
     """Ridge banks fitted on the measured rows of ``rows`` (default: all), α and grid chosen by
     leave-one-fold-out free-run error on the measured rows of ``ds.folds``.
 
@@ -485,7 +534,14 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     grid by the worse of leave-one-fold-out and rolling-origin error (:func:`select`); it is off
     by default because on the real record it made the forward error worse (a larger α, more
     bias: docs/IDENTIFICATION.md). Refusals: the gain bound only (the exponential baseline is judged by
-    the caller, :func:`fit_ridge_cv` or the identification)."""
+    the caller, :func:`fit_ridge_cv` or the identification).
+
+    ``structure`` says how the inputs share strength (:data:`STRUCTURES`): ``all``, a bank per
+    input; ``pca``, a bank per principal component of the standardised inputs, their number
+    chosen by cross-validation (the model still reads every input: the gains map back exactly);
+    ``few``, a bank per input for the few inputs a greedy forward selection keeps (up to
+    :data:`MAX_FEW`, each kept only when it lowers the held-out error by more than PARSIMONY);
+    the model then reads those inputs only."""
     cpu0 = time.process_time()
     t = as_times(ds.time_s)
     sp = as_series("speed_rpm", ds.speed_rpm, t.size)
@@ -514,12 +570,27 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         lo, hi = float(u.min()), float(u.max())
         ranges[nm], trained[nm] = (lo - (hi - lo), hi + (hi - lo)), (lo, hi)
         drives[f"in:{nm}"] = u - refs[nm]
+    if structure not in STRUCTURES:
+        raise CalibrationError(f"unknown input structure {structure!r}; known: {', '.join(STRUCTURES)}")
+    mixes = _components(drives, names, measured) if structure == "pca" and names else {}
+    for pc, (w, _) in mixes.items():
+        drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, names))
     bank = FilterBank(t, drives, ds.segments)
     y0 = np.where(measured, y, 0.0)  # never read off the measured rows; keeps the arithmetic finite
-    configs = [Config(g, tuple(alphas), names) for g in cand]
-    k, alpha, table = select(bank, y0, measured, configs, folds, rule=rule, forward=penalty_forward)
-    cfg = configs[k]
-    x = bank.design(cfg.grid, names)
+
+    def choose(over: Folds, train: np.ndarray | None = None) -> tuple[Config, float, list[dict[str, Any]]]:
+        if structure == "few" and names:
+            return _greedy(bank, y0, measured, cand, tuple(alphas), names, over, train, rule, penalty_forward)
+        if structure == "pca" and names:
+            configs = [Config(g, tuple(alphas), tuple(list(mixes)[:m])) for m in range(1, len(mixes) + 1)
+                       for g in cand]
+        else:
+            configs = [Config(g, tuple(alphas), names) for g in cand]
+        ki, al, tab = select(bank, y0, measured, configs, over, train, rule=rule, forward=penalty_forward)
+        return configs[ki], al, tab
+
+    cfg, alpha, table = choose(folds)
+    x = bank.design(cfg.grid, cfg.names)
     res = cv_residuals(x, y0, measured, folds, (alpha,))[:, 0]
     cv_rms, cv_max = measured_stats(res)
     nested_folds = nested_rms = nested_max = outer = None
@@ -528,8 +599,8 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         for i, fold in enumerate(folds):
             inner = [f for j, f in enumerate(folds) if j != i]
             train = fl.without(t.size, fold)
-            ki, al, _ = select(bank, y0, measured, configs, inner, train, rule=rule, forward=penalty_forward)
-            xi = bank.design(configs[ki].grid, names)
+            ci, al, _ = choose(inner, train)
+            xi = bank.design(ci.grid, ci.names)
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
             scored = fold[0] + np.flatnonzero(measured[fold[0]:fold[1]])
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
@@ -542,8 +613,8 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         ahead = np.full(t.size, np.nan)
         for past, (a, b) in splits:
             train = fl.rows_of(t.size, past)
-            ki, al, _ = select(bank, y0, measured, configs, past, train, rule=rule, forward=penalty_forward)
-            xi = bank.design(configs[ki].grid, names)
+            ci, al, _ = choose(past, train)
+            xi = bank.design(ci.grid, ci.names)
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
             scored = a + np.flatnonzero(measured[a:b])
             ahead[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
@@ -555,17 +626,33 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     g, c = ridge_path(x[measured], y0[measured], (alpha,))
     gains, intercept = g[:, 0], float(c[0])
     ns = len(cfg.grid.speed_taus_s)
+    per_column = gains[2 * ns:].reshape(len(cfg.names), len(cfg.grid.input_taus_s))
+    detail = ""
+    if structure == "pca" and names:  # a component's gain, spread back over the inputs it mixes
+        kept = names
+        share = sum(mixes[pc][1] for pc in cfg.names)
+        detail = f"{len(cfg.names)} principal component(s) ({share:.0%} of the variance)"
+        input_gains = sum((np.outer(mixes[pc][0], row) for pc, row in zip(cfg.names, per_column)),
+                          np.zeros((len(names), len(cfg.grid.input_taus_s))))
+    else:
+        kept = cfg.names
+        input_gains = per_column
+        detail = f"kept {', '.join(kept)}" if structure == "few" and names else ""
+    refs = {nm: refs[nm] for nm in kept}
+    ranges = {nm: ranges[nm] for nm in kept}
+    trained = {nm: trained[nm] for nm in kept}
     result = RidgeFit(
-        grid=cfg.grid, input_names=names, references=refs, intercept_um=intercept,
+        grid=cfg.grid, input_names=kept, references=refs, intercept_um=intercept,
         speed_gains_um=gains[: 2 * ns].reshape(2, ns),
-        input_gains_um=gains[2 * ns:].reshape(len(names), len(cfg.grid.input_taus_s)),
+        input_gains_um=np.asarray(input_gains, float).reshape(len(kept), len(cfg.grid.input_taus_s)),
         alpha=alpha, cycles=folds, folds=fold_scores(res, folds), cv_rms_um=cv_rms, cv_max_abs_um=cv_max,
         speed_max_rpm=float(np.abs(sp).max()), valid_ranges=ranges,
         max_measured_um=float(np.abs(y[measured]).max()), nested_folds=nested_folds,
         nested_rms_um=nested_rms, nested_max_abs_um=nested_max, selection=tuple(table),
         fitted_dt_s=dt_s, segments=tuple(ds.segments), trained_ranges=trained,
         held_out_residual_um=outer if outer is not None else res, forward_folds=fwd_folds,
-        forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread)
+        forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread,
+        structure_detail=detail)
     refusals, notes = [], []
     steady = result.steady_range_um()
     if steady > GAIN_BOUND * result.max_measured_um:
