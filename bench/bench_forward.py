@@ -45,7 +45,7 @@ from calibration.dataset import LogData, log_data  # noqa: E402
 from calibration.estimators.paper_ols import fit_paper_ols  # noqa: E402
 from calibration.fit import fit_data  # noqa: E402
 from calibration.folds import split_cycles  # noqa: E402
-from calibration.metrics import residual_stats  # noqa: E402
+from calibration.metrics import band_of, residual_stats  # noqa: E402
 from compensator.io import read_run_log  # noqa: E402
 from compensator.units import SPEED_SCALE_RPM  # noqa: E402
 
@@ -85,10 +85,22 @@ def thermocomp(d: LogData, cycles: list, k: int, names: tuple[str, ...]) -> dict
     pred = free_run_um(ident.model, d, b)
     c = ident.chosen
     with_inputs = next((x for x in ident.candidates if x.family == "inputs"), None)
-    return {**scores(d.elongation_um[a:b], pred[a:b]), "chosen": c.name,
+    return {**scores(d.elongation_um[a:b], pred[a:b]), **coverage(ident.model, d, pred, a, b), "chosen": c.name,
             "inputs_kept": bool(ident.model.input_names), "train_honest_rms_um": c.honest_rms_um,
             "train_nested": c.nested_rms_um is not None, "fit_cpu_s": cpu,
             "inputs_refused": list(with_inputs.refusals) if with_inputs is not None else None}
+
+
+def coverage(model, d: LogData, pred: np.ndarray, a: int, b: int) -> dict:
+    """How many of the predicted cycle's errors lie within the 95 % band the fit stated for
+    their speed (the model's ``fit["expected_error"]``): about 95 % if the statement is honest."""
+    expected = model.fit.get("expected_error")
+    if not expected:
+        return {"within_p95": None}
+    err = np.abs(d.elongation_um[a:b] - pred[a:b])
+    bound = np.array([(band_of(expected, v) or {}).get("p95_abs_um", np.nan) for v in d.speed_rpm[a:b]])
+    ok = np.isfinite(bound)
+    return {"within_p95": float(np.mean(err[ok] <= bound[ok])) if ok.any() else None, "covered_rows": int(ok.sum())}
 
 
 # -- the plain static ridge: the comparison, not product code ----------------------------------
@@ -228,6 +240,19 @@ def print_tables(out: dict) -> None:
     print("|---|" + "---|" * len(METHODS))
     for ch, res in chans.items():
         print(f"| {ch} | " + " | ".join(fmt(res["median_rms_um"][m]) for m, _ in METHODS) + " |")
+    print("\n## The stated 95 % band on the predicted cycle (thermocomp, 16 temperatures offered)\n")
+    print("Share of the predicted cycle's errors within the 95th percentile the fit stated for their "
+          "speed band (fit[\"expected_error\"]).\n")
+    print("| channel | " + " | ".join(f"1–{s['k']} → {s['k'] + 1}" for s in next(iter(chans.values()))["splits"])
+          + " | pooled |")
+    print("|---|" + "---|" * (len(next(iter(chans.values()))["splits"]) + 1))
+    for ch, res in chans.items():
+        shares = [s["thermocomp_inputs"].get("within_p95") for s in res["splits"]]
+        rows = [s["thermocomp_inputs"].get("covered_rows", 0) for s in res["splits"]]
+        pooled = (sum(v * n for v, n in zip(shares, rows) if v is not None) / max(sum(
+            n for v, n in zip(shares, rows) if v is not None), 1)) if any(v is not None for v in shares) else None
+        print(f"| {ch} | " + " | ".join(fmt(v, ".0%") if v is not None else "-" for v in shares)
+              + f" | {fmt(pooled, '.0%') if pooled is not None else '-'} |")
     print("\n## thermocomp with 16 temperatures on the whole 40 h\n")
     print("| channel | chosen | in-sample free-run RMS um | LOCO RMS um | nested RMS um | nested / in-sample "
           "| forward RMS um (report) | fit CPU s |")

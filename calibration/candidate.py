@@ -38,6 +38,7 @@ class Candidate:
     forward_rms_um: float | None = None
     forward_max_abs_um: float | None = None
     forward_folds_rms_um: list[float] = field(default_factory=list)
+    forward_residual_um: np.ndarray | None = None
 
     @property
     def honest_rms_um(self) -> float:

@@ -209,6 +209,14 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
         for d in report["derived"]:
             dt.add_row(d["quantity"], f"{d['value']:.3g}", f"{d['hac_stderr']:.2g}", d["unit"])
         out.print(dt)
+    expected = (m.fit or {}).get("expected_error")
+    if expected:
+        out.print("Error to expect (free run, held out), by speed band:", markup=False)
+        for b in expected["bands"]:
+            lo, hi = b["speed_rpm"]
+            where = "at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm"
+            out.print(f"  {where:>16}: RMS {b['rms_um']:.2f} um, 95 % within {b['p95_abs_um']:.2f} um "
+                      f"({b['source']}, {b['samples']} samples)", markup=False, highlight=False)
     for line in m.describe():
         out.print(line, markup=False, highlight=False)
     for line in result.closed_loop.lines() if result.closed_loop is not None else ():

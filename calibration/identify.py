@@ -47,7 +47,7 @@ from .dataset import Dataset, LogData, join
 from .estimators import baseline, output_error, paper_ols
 from .estimators import ridge_bank as rb
 from .folds import CYCLE_RULE
-from .metrics import PARSIMONY, measured_stats
+from .metrics import PARSIMONY, expected_error, measured_stats
 
 __all__ = ["REGISTRY", "Candidate", "Entry", "Identification", "LogData", "identify"]
 
@@ -73,6 +73,7 @@ def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: 
     c.slowest_tau_s = res.slowest_tau_s
     c.forward_rms_um, c.forward_max_abs_um = res.forward_rms_um, res.forward_max_abs_um
     c.forward_folds_rms_um = [f.rms_um for f in res.forward_folds or ()]
+    c.forward_residual_um = res.forward_residual_um
     return c
 
 
@@ -422,10 +423,22 @@ def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model:
     return _with_fit(c_in, ds, reason), c_in, reason
 
 
+def _expected(c: Candidate, ds: Dataset) -> dict[str, Any] | None:
+    """The error to expect by speed band: from the forward residual when there is one (the
+    future is what the model will meet), else the held-out one."""
+    top = float(np.max(np.abs(ds.speed_rpm)))
+    out = expected_error((("forward", c.forward_residual_um), ("held out", c.held_out_residual_um)),
+                         ds.speed_rpm, top)
+    return out if out["bands"] else None
+
+
 def _with_fit(c: Candidate, ds: Dataset, reason: str) -> Any:
     fit = {"method": c.name, "scored_by": f"{ds.scheme} free run", "folds": len(ds.folds),
            "cv_rms_um": round(c.cv_rms_um, 4), "cv_max_abs_um": round(c.cv_max_abs_um, 4),
            "folds_rms_um": [round(v, 4) for v in c.folds_rms_um], "reason": reason}
+    expected = _expected(c, ds)
+    if expected is not None:
+        fit["expected_error"] = expected
     if c.nested_rms_um is not None:
         fit["nested_rms_um"] = round(c.nested_rms_um, 4)
     if c.forward_rms_um is not None:

@@ -67,3 +67,50 @@ def residual_stats(residual: np.ndarray) -> dict[str, float | int | None]:
     return {"samples": int(r.size), "rms_um": float(np.sqrt(np.mean(r**2))),
             "max_abs_um": float(np.max(np.abs(r))), "mean_abs_um": float(np.mean(np.abs(r))),
             "mean_um": float(np.mean(r)), "std_um": float(np.std(r))}
+
+
+SPEED_BANDS = 3
+"""The running speeds are cut into this many equal bands of the calibrated range (rest apart)."""
+
+
+MIN_BAND_ROWS = 10
+
+
+def expected_error(residuals: Sequence[tuple[str, np.ndarray | None]], speed_rpm: np.ndarray, top_rpm: float,
+                   *, idle_rpm: float = 1.0) -> dict[str, object]:
+    """The error a model can be expected to make, by operating region: RMS and the 95th
+    percentile of |residual| [um] at rest and in :data:`SPEED_BANDS` bands of the calibrated
+    speed range. ``residuals`` are held-out residuals by preference, (source, residual) with NaN
+    on the rows not predicted: each band takes the first with enough rows there (the forward one
+    first: the future is what the model will meet) and names it. A band no residual covers is
+    left out. What the fit stores beside the model."""
+    n = np.abs(np.asarray(speed_rpm, float))
+    edges = np.linspace(0.0, max(top_rpm, idle_rpm), SPEED_BANDS + 1)
+    bands = [(0.0, idle_rpm, n <= idle_rpm)]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        bands.append((max(lo, idle_rpm), float(hi), (n > max(lo, idle_rpm)) & (n <= hi)))
+    out = []
+    for lo, hi, inside in bands:
+        for source, residual in residuals:
+            if residual is None:
+                continue
+            r = np.asarray(residual, float)
+            sel = r[np.isfinite(r) & inside]
+            if sel.size >= MIN_BAND_ROWS:
+                out.append({"speed_rpm": [round(float(lo), 1), round(float(hi), 1)], "source": source,
+                            "samples": int(sel.size), "rms_um": round(float(np.sqrt(np.mean(sel * sel))), 4),
+                            "p95_abs_um": round(float(np.quantile(np.abs(sel), 0.95)), 4)})
+                break
+    return {"bands": out}
+
+
+def band_of(expected: dict[str, object], speed_rpm: float) -> dict[str, object] | None:
+    """The band of ``expected`` (:func:`expected_error`) that ``speed_rpm`` falls in; the top one
+    above the calibrated range; None without bands."""
+    bands = list(expected.get("bands", ()))  # type: ignore[call-overload]
+    n = abs(float(speed_rpm))
+    for b in bands:
+        lo, hi = b["speed_rpm"]
+        if (n <= hi and n > lo) or (lo == 0.0 and n <= hi):
+            return b
+    return bands[-1] if bands else None

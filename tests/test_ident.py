@@ -382,3 +382,26 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
     assert names(few) == ["ridge+inputs"]
     assert sum(c.accepted for c in four.candidates if c.family == "inputs") == 1
     assert any(r.startswith("ridge+") for c in four.candidates if c.family == "inputs" for r in c.refusals)
+
+
+def test_the_fit_states_the_error_to_expect_by_speed_band():
+    """The model's fit record carries the error to expect at rest and in three bands of the
+    calibrated speeds, from the forward residual where it covers a band (the future is what the
+    model meets), else from the held-out one; each band's 95th percentile bounds 95 % of it."""
+    from calibration.identify import LogData, identify
+    from calibration.metrics import band_of, expected_error
+
+    t, n, inputs, y = synthetic()
+    fit = identify([LogData("s", t, n, y)], physical=False, probe_target_um=None)
+    bands = fit.model.fit["expected_error"]["bands"]
+    assert bands[0]["speed_rpm"] == [0.0, 1.0] and len(bands) == 4
+    assert {b["source"] for b in bands} <= {"forward", "held out"} and "forward" in {b["source"] for b in bands}
+    assert all(0 < b["rms_um"] <= b["p95_abs_um"] * 2 and b["samples"] >= 10 for b in bands)
+    # the percentile is the residual's own: 95 % of a band's rows lie within it
+    rng = np.random.default_rng(1)
+    r = rng.normal(0, 2.0, t.size)
+    stated = expected_error((("forward", r),), n, float(n.max()))
+    for b in stated["bands"]:
+        inside = np.array([band_of(stated, v) is b for v in n])
+        assert np.mean(np.abs(r[inside]) <= b["p95_abs_um"]) == pytest.approx(0.95, abs=0.01)
+    assert band_of(stated, 1e6) is stated["bands"][-1]  # above the calibrated range: the top band

@@ -326,6 +326,8 @@ class RidgeFit:
     forward_max_abs_um: float | None = None
     """Rolling origin, honest: each fold from the third predicted by a model whose gains, alpha
     and grid were chosen on the folds before it only (None with fewer than three folds)."""
+    forward_residual_um: np.ndarray | None = None
+    """The rolling-origin residual behind ``forward_rms_um``; NaN on the rows not predicted."""
     structure_detail: str = ""
     """How the inputs shared strength (:data:`STRUCTURES`), in words."""
     forward_rms_by_alpha_um: tuple[float, ...] = ()
@@ -606,7 +608,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
         nested_folds = fold_scores(outer, folds)
         nested_rms, nested_max = measured_stats(outer)
-    fwd_folds = fwd_rms = fwd_max = None
+    fwd_folds = fwd_rms = fwd_max = ahead = None
     fwd_spread: tuple[float, ...] = ()
     splits = fl.forward_splits(folds, first=FORWARD_FIRST)
     if forward and splits:
@@ -652,7 +654,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         fitted_dt_s=dt_s, segments=tuple(ds.segments), trained_ranges=trained,
         held_out_residual_um=outer if outer is not None else res, forward_folds=fwd_folds,
         forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread,
-        structure_detail=detail)
+        forward_residual_um=ahead, structure_detail=detail)
     refusals, notes = [], []
     steady = result.steady_range_um()
     if steady > GAIN_BOUND * result.max_measured_um:
