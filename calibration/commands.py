@@ -273,6 +273,17 @@ def print_replay_report(rep: Replay, out: Console) -> None:
                        _fmt(row["cutting_max_abs_um"]), _fmt(row["max_lag_um"]),
                        _fmt(row["max_cutting_rate_um_per_s"]))
         out.print(pt)
+    if r.get("expected_error"):
+        et = Table(title="Error by speed band: what the fit expected, what this log shows")
+        for col in ("speed band", "expected RMS [um]", "stated 95 % [um]", "RMS here [um]", "within 95 %",
+                    "samples"):
+            et.add_column(col, justify="left" if col == "speed band" else "right")
+        for b in r["expected_error"]:
+            lo, hi = b["speed_rpm"]
+            et.add_row("at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm", _fmt(b["expected_rms_um"]),
+                       _fmt(b["expected_p95_abs_um"]), _fmt(b["rms_um"]), f"{100 * b['within_p95']:.0f} %",
+                       str(b["samples"]))
+        out.print(et)
     for w in r["warnings"]:
         out.print(f"[yellow]warning:[/yellow] {w}")
 

@@ -114,3 +114,23 @@ def band_of(expected: dict[str, object], speed_rpm: float) -> dict[str, object] 
         if (n <= hi and n > lo) or (lo == 0.0 and n <= hi):
             return b
     return bands[-1] if bands else None
+
+
+def against_expected(expected: dict[str, object], residual: np.ndarray, speed_rpm: np.ndarray,
+                     min_rows: int = MIN_BAND_ROWS) -> list[dict[str, object]]:
+    """A residual [um] measured after the fit, band by band against what the fit stated
+    (:func:`expected_error`): the stated RMS and 95th percentile beside the measured RMS and the
+    share of errors within the stated percentile (about 95 % when the statement holds)."""
+    r = np.asarray(residual, float)
+    n = np.asarray(speed_rpm, float)
+    which = np.array([id(band_of(expected, v)) for v in n])
+    out = []
+    for b in expected.get("bands", ()):  # type: ignore[attr-defined]
+        sel = r[(which == id(b)) & np.isfinite(r)]
+        if sel.size < min_rows:
+            continue
+        out.append({"speed_rpm": b["speed_rpm"], "source": b["source"], "expected_rms_um": b["rms_um"],
+                    "expected_p95_abs_um": b["p95_abs_um"], "samples": int(sel.size),
+                    "rms_um": float(np.sqrt(np.mean(sel * sel))),
+                    "within_p95": float(np.mean(np.abs(sel) <= b["p95_abs_um"]))})
+    return out

@@ -26,7 +26,7 @@ from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
 from .runs import bridge_gaps, gap_threshold_s
-from .metrics import residual_stats
+from .metrics import against_expected, residual_stats
 from .stability import equilibrium_and_tevr
 
 MAX_SPAN_S = 2 * 365.25 * 86400.0
@@ -238,6 +238,10 @@ def _start(estimate: Estimate, log: RunLog, initial_um: float | None, speed_rpm:
     return estimate.begin(initial_um, speed_rpm)
 
 
+EXPECTED_SHARE = 0.8
+"""Fewer of a band's errors than this within the fit's stated 95 % band: replay says so."""
+
+
 def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
            shaping: ShaperConfig | None = None, probes: Probes | None = None,
            compare: bool = True, estimate: Estimate | None = None) -> Replay:
@@ -413,6 +417,16 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                       applied_max_abs_residual_um=ast["max_abs_um"],
                       applied_cutting_rms_residual_um=cst["rms_um"],
                       applied_cutting_max_abs_residual_um=cst["max_abs_um"])
+        expected = (getattr(model, "fit", None) or {}).get("expected_error")
+        if expected:
+            report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows])
+            for b in report["expected_error"]:
+                if b["within_p95"] < EXPECTED_SHARE:
+                    lo, hi = b["speed_rpm"]
+                    where = "at rest" if hi <= 1.0 else f"at {lo:.0f}-{hi:.0f} rpm"
+                    warnings.append(f"the error is larger than the fit expected {where}: "
+                                    f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
+                                    f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate")
         error = pred if sparse else measured
         if sparse:
             warnings.append(f"the elongation is measured on {int(rows.sum())} of {rows.size} rows (sparse): "

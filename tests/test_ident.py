@@ -405,3 +405,26 @@ def test_the_fit_states_the_error_to_expect_by_speed_band():
         inside = np.array([band_of(stated, v) is b for v in n])
         assert np.mean(np.abs(r[inside]) <= b["p95_abs_um"]) == pytest.approx(0.95, abs=0.01)
     assert band_of(stated, 1e6) is stated["bands"][-1]  # above the calibrated range: the top band
+
+
+def test_replay_sets_the_error_beside_what_the_fit_expected(tmp_path):
+    """Replay of a log holds its error, band by band, against the error the fit stated: a log
+    like the calibration stays within the stated 95 % band; one whose spindle grew 3 um more
+    than the model knows does not, and replay says to probe or recalibrate."""
+    from calibration.identify import LogData, identify
+    from calibration.replay import replay
+    from compensator.io import read_run_log, write_run_log
+
+    t, n, inputs, y = synthetic()
+    model = identify([LogData("s", t, n, y, inputs)], ("amb_c",), physical=False, probe_target_um=None).model
+    assert model.input_names == ("amb_c",)
+    for name, shift in (("same", 0.0), ("grown", 3.0)):
+        write_run_log(tmp_path / f"{name}.csv", {"time_s": t, "speed_rpm": n, "elongation_um": y + shift, **inputs})
+        rep = replay(model, read_run_log(tmp_path / f"{name}.csv"), compare=False).report
+        bands = rep["expected_error"]
+        assert bands and all(b["samples"] >= 10 for b in bands)
+        said = [w for w in rep["warnings"] if w.startswith("the error is larger than the fit expected")]
+        if shift == 0.0:
+            assert min(b["within_p95"] for b in bands) >= 0.8 and not said
+        else:
+            assert max(b["within_p95"] for b in bands) < 0.5 and said and "probe or recalibrate" in said[0]
