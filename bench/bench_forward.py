@@ -45,7 +45,7 @@ from calibration.dataset import LogData, log_data  # noqa: E402
 from calibration.estimators.paper_ols import fit_paper_ols  # noqa: E402
 from calibration.fit import fit_data  # noqa: E402
 from calibration.folds import split_cycles  # noqa: E402
-from calibration.metrics import band_of, residual_stats  # noqa: E402
+from calibration.metrics import band_index, residual_stats  # noqa: E402
 from compensator.io import read_run_log  # noqa: E402
 from compensator.units import SPEED_SCALE_RPM  # noqa: E402
 
@@ -98,7 +98,8 @@ def coverage(model, d: LogData, pred: np.ndarray, a: int, b: int) -> dict:
     if not expected:
         return {"within_p95": None}
     err = np.abs(d.elongation_um[a:b] - pred[a:b])
-    bound = np.array([(band_of(expected, v) or {}).get("p95_abs_um", np.nan) for v in d.speed_rpm[a:b]])
+    stated = np.array([band["p95_abs_um"] for band in expected["bands"]] + [np.nan])
+    bound = stated[band_index(expected, d.speed_rpm[a:b])]  # -1 (no band): NaN
     ok = np.isfinite(bound)
     return {"within_p95": float(np.mean(err[ok] <= bound[ok])) if ok.any() else None, "covered_rows": int(ok.sum())}
 

@@ -21,6 +21,7 @@ from compensator.io.journal_export import NOT_INPUTS
 from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
 from compensator.shaping import ShaperConfig
 
+from .metrics import band_label
 from .plots import Panel, plot_panels
 from .replay import Replay, replay
 
@@ -213,9 +214,7 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
     if expected:
         out.print("Error to expect (free run, held out), by speed band:", markup=False)
         for b in expected["bands"]:
-            lo, hi = b["speed_rpm"]
-            where = "at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm"
-            out.print(f"  {where:>16}: RMS {b['rms_um']:.2f} um, 95 % within {b['p95_abs_um']:.2f} um "
+            out.print(f"  {band_label(b):>16}: RMS {b['rms_um']:.2f} um, 95 % within {b['p95_abs_um']:.2f} um "
                       f"({b['source']}, {b['samples']} samples)", markup=False, highlight=False)
     for line in m.describe():
         out.print(line, markup=False, highlight=False)
@@ -279,8 +278,7 @@ def print_replay_report(rep: Replay, out: Console) -> None:
                     "samples"):
             et.add_column(col, justify="left" if col == "speed band" else "right")
         for b in r["expected_error"]:
-            lo, hi = b["speed_rpm"]
-            et.add_row("at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm", _fmt(b["expected_rms_um"]),
+            et.add_row(band_label(b), _fmt(b["expected_rms_um"]),
                        _fmt(b["expected_p95_abs_um"]), _fmt(b["rms_um"]), f"{100 * b['within_p95']:.0f} %",
                        str(b["samples"]))
         out.print(et)

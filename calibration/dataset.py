@@ -77,10 +77,14 @@ class Dataset:
     @property
     def unit(self) -> str:
         """What a fold is: a cycle or a block."""
-        return "block" if self.scheme.startswith("blocked") else "cycle"
+        return _unit(self.scheme)
 
     def input_columns(self, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         return {n: self.inputs[n] for n in (self.inputs if names is None else names)}
+
+
+def _unit(scheme: str) -> str:
+    return "block" if scheme.startswith("blocked") else "cycle"
 
 
 def log_data(logs: Sequence[RunLog], input_names: Sequence[str] = (),
@@ -151,7 +155,7 @@ def join(logs: Sequence[LogData], input_names: Sequence[str] = ()) -> Dataset:
             raise CalibrationError(f"the elongation is measured on {int(measured.sum())} rows; a "
                                    f"calibration needs at least {MIN_MEASURED_ROWS}")
         kept = tuple((a, b) for a, b in folds if measured[a:b].any())
-        unit = "block" if scheme.startswith("blocked") else "cycle"
+        unit = _unit(scheme)
         if len(kept) < 2:
             raise CalibrationError(f"the {int(measured.sum())} measurements fall in one {unit} of "
                                    f"{len(folds)}: nothing to validate on; measure in another {unit} too")

@@ -104,16 +104,25 @@ def expected_error(residuals: Sequence[tuple[str, np.ndarray | None]], speed_rpm
     return {"bands": out}
 
 
-def band_of(expected: dict[str, object], speed_rpm: float) -> dict[str, object] | None:
-    """The band of ``expected`` (:func:`expected_error`) that ``speed_rpm`` falls in; the top one
-    above the calibrated range; None without bands."""
+def band_index(expected: dict[str, object], speed_rpm: np.ndarray) -> np.ndarray:
+    """For each speed, the index of the band of ``expected`` (:func:`expected_error`) it falls
+    in; the top band above the calibrated range or in a band left out; -1 without bands."""
     bands = list(expected.get("bands", ()))  # type: ignore[call-overload]
-    n = abs(float(speed_rpm))
-    for b in bands:
-        lo, hi = b["speed_rpm"]
-        if (n <= hi and n > lo) or (lo == 0.0 and n <= hi):
-            return b
-    return bands[-1] if bands else None
+    n = np.abs(np.asarray(speed_rpm, float))
+    if not bands:
+        return np.full(n.shape, -1)
+    lo = np.array([b["speed_rpm"][0] for b in bands], float)
+    hi = np.array([b["speed_rpm"][1] for b in bands], float)
+    i = np.minimum(np.searchsorted(hi, n, side="left"), len(bands) - 1)  # the first band reaching n
+    inside = (n <= hi[i]) & ((n > lo[i]) | (lo[i] == 0.0))
+    return np.where(inside, i, len(bands) - 1)
+
+
+def band_of(expected: dict[str, object], speed_rpm: float) -> dict[str, object] | None:
+    """The band of ``expected`` that ``speed_rpm`` falls in (:func:`band_index`); None without
+    bands."""
+    i = int(band_index(expected, np.array([speed_rpm]))[0])
+    return list(expected["bands"])[i] if i >= 0 else None  # type: ignore[call-overload]
 
 
 def against_expected(expected: dict[str, object], residual: np.ndarray, speed_rpm: np.ndarray,
@@ -123,10 +132,10 @@ def against_expected(expected: dict[str, object], residual: np.ndarray, speed_rp
     share of errors within the stated percentile (about 95 % when the statement holds)."""
     r = np.asarray(residual, float)
     n = np.asarray(speed_rpm, float)
-    which = np.array([id(band_of(expected, v)) for v in n])
+    which = band_index(expected, n)
     out = []
-    for b in expected.get("bands", ()):  # type: ignore[attr-defined]
-        sel = r[(which == id(b)) & np.isfinite(r)]
+    for k, b in enumerate(expected.get("bands", ())):  # type: ignore[attr-defined]
+        sel = r[(which == k) & np.isfinite(r)]
         if sel.size < min_rows:
             continue
         out.append({"speed_rpm": b["speed_rpm"], "source": b["source"], "expected_rms_um": b["rms_um"],
@@ -134,3 +143,9 @@ def against_expected(expected: dict[str, object], residual: np.ndarray, speed_rp
                     "rms_um": float(np.sqrt(np.mean(sel * sel))),
                     "within_p95": float(np.mean(np.abs(sel) <= b["p95_abs_um"]))})
     return out
+
+
+def band_label(band: dict[str, object]) -> str:
+    """``at rest`` or ``lo-hi rpm``, for a band of :func:`expected_error`."""
+    lo, hi = band["speed_rpm"]  # type: ignore[misc]
+    return "at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm"

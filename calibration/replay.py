@@ -26,7 +26,7 @@ from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
 from .runs import bridge_gaps, gap_threshold_s
-from .metrics import against_expected, residual_stats
+from .metrics import against_expected, band_label, residual_stats
 from .stability import equilibrium_and_tevr
 
 MAX_SPAN_S = 2 * 365.25 * 86400.0
@@ -422,9 +422,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows])
             for b in report["expected_error"]:
                 if b["within_p95"] < EXPECTED_SHARE:
-                    lo, hi = b["speed_rpm"]
-                    where = "at rest" if hi <= 1.0 else f"at {lo:.0f}-{hi:.0f} rpm"
-                    warnings.append(f"the error is larger than the fit expected {where}: "
+                    where = band_label(b)
+                    warnings.append(f"the error is larger than the fit expected {'' if where == 'at rest' else 'at '}{where}: "
                                     f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
                                     f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate")
         error = pred if sparse else measured

@@ -11,6 +11,8 @@ from compensator.io import RunLog
 from compensator.io.runlog import MAX_ABS_TIME_S, MAX_SPEED_RPM
 from compensator.units import SPEED_SCALE_RPM
 
+from .folds import stretches
+
 MIN_ROWS = 20
 MIN_MEASURED_ROWS = 10
 """A sparse log (probe measurements only) needs at least this many measured rows."""
@@ -209,9 +211,8 @@ def has_cooldown(run: Run, min_s: float = 600.0) -> bool:
     seg = idle & ran
     if not seg.any():
         return False
-    edges = np.diff(np.concatenate([[0], seg.astype(np.int8), [0]]))
-    starts = np.flatnonzero(edges == 1)
-    ends = np.flatnonzero(edges == -1) - 1
+    spans = np.array(stretches(seg))
+    starts, ends = spans[:, 0], spans[:, 1] - 1
     t = run.time_s
     # a stretch at rest begins when the previous sample ended the last step at speed
     begin = t[np.maximum(starts - 1, 0)]

@@ -38,7 +38,7 @@ import numpy as np
 
 from .errors import ModelError
 from .fusion import FusedPredictor, FusedState
-from .model import SAVED_LIMIT_UM, saved_numbers
+from .modelbase import SAVED_LIMIT_UM, saved_numbers
 from .observer import ObserverConfig, ObserverState, Update
 from .predictor import Predictor
 from .units import RANGE_TOLERANCE

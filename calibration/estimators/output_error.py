@@ -356,6 +356,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
             ahead[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
         c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
         c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
+        c.forward_residual_um = ahead
     full = fit(ds, **meta)
     if full.model is None:
         c.refusals.append(f"no stable fit on all rows ({full.note})")

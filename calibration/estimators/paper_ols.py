@@ -148,6 +148,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     if splits:
         c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
         c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
+        c.forward_residual_um = ahead
     c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full, ds))
     c.details = {"a": full.a, "one_step_r2": full.one_step_r2, "a_per_fold": per_fold}
     if full.a >= 1:

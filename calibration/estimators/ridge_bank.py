@@ -197,7 +197,8 @@ def forward_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds:
 
 
 def _pooled_mse(res: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Mean square per alpha over ``rows`` (inf where it is not finite or there are none)."""
+    """Mean square per alpha over ``rows`` (inf where it is not finite); zero over no rows, so
+    that it never outweighs another figure in a maximum."""
     if rows.size == 0:
         return np.zeros(res.shape[1])
     with np.errstate(over="ignore", invalid="ignore"):
@@ -234,8 +235,10 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
         x = bank.design(cfg.grid, cfg.names)
         res = cv_residuals(x, y, measured, folds, cfg.alphas, train)
         p = _pooled_mse(res, rows)
-        with np.errstate(over="ignore", invalid="ignore"):
-            f = np.array([np.mean(res[r] ** 2, axis=0) for r in scored])  # (folds, alphas)
+        if rule == "1se":  # the only rule that reads the figure per fold
+            with np.errstate(over="ignore", invalid="ignore"):
+                f = np.array([np.mean(res[r] ** 2, axis=0) for r in scored])  # (folds, alphas)
+            per_fold.append(np.where(np.isfinite(f), f, np.inf))
         if forward and later.size:
             fres = forward_residuals(x, y, measured, folds, cfg.alphas, train)
             q = _pooled_mse(fres, later[~np.isnan(fres[later, 0])])  # a fold with no past to fit on: not scored
@@ -244,7 +247,6 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
         loco.append(p)
         ahead.append(q)
         pooled.append(np.maximum(p, q))
-        per_fold.append(np.where(np.isfinite(f), f, np.inf))
     k_best = int(np.argmin([p.min() for p in pooled]))
     i_best = int(np.argmin(pooled[k_best]))
     best = float(pooled[k_best][i_best])
@@ -261,10 +263,9 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
         j = int(ok[np.argmax(np.asarray(cfg.alphas)[ok])]) if ok.size else int(np.argmin(p))
         if choice is None and ok.size:
             choice = (k, j)
-        spread = [math.sqrt(v) for v in ahead[k] if math.isfinite(v)] if forward else []
         table.append({"grid": cfg.grid.label, "alpha": cfg.alphas[j], "score_rms_um": math.sqrt(p[j]),
-                      "forward_rms_spread_um": (min(spread), max(spread)) if spread else None,
-                      "cv_rms_um": math.sqrt(loco[k][j]), "forward_rms_um": math.sqrt(ahead[k][j]) if forward else None,
+                      "cv_rms_um": math.sqrt(loco[k][j]),
+                      "forward_rms_um": math.sqrt(ahead[k][j]) if forward and later.size else None,
                       "best_alpha": cfg.alphas[int(np.argmin(p))], "best_score_rms_um": math.sqrt(p.min())})
     if choice is None:
         raise CalibrationError("no configuration could be scored")  # unreachable: best is one of them
@@ -550,7 +551,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     y = np.asarray(ds.elongation_um, dtype=float)
     if y.shape != t.shape or np.isinf(y).any():
         raise CalibrationError("elongation_um: one value per row, a number or NaN (not measured)")
-    measured = np.isfinite(y) if rows is None else np.isfinite(y) & rows
+    measured = ds.measured if rows is None else ds.measured & rows
     folds = tuple(ds.folds)
     if len(folds) < 2:
         raise CalibrationError("one cycle only: nothing to validate on; record a heat-up and a "
@@ -558,7 +559,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     if any(not measured[a:b].any() for a, b in folds):
         raise CalibrationError("two folds or more, each with a measured row, are needed to validate")
     names = tuple(sorted(input_names))
-    dt_s = float(np.median(np.diff(t)))
+    dt_s = ds.dt_s
     cand = list(grids) if grids is not None else [auto_grid(t, sp, ds.cycles, bool(names))]
     for g in cand:
         _validate_grid(g, dt_s, names)

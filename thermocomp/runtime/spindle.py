@@ -81,7 +81,7 @@ from compensator.io import (
     quarantine,
     save_state,
 )
-from compensator.model import SAVED_LIMIT_UM, saved_numbers
+from compensator.modelbase import SAVED_LIMIT_UM, saved_numbers
 from compensator.observer import SIGMA_LIMIT_UM
 from compensator.predictor import Predictor
 from compensator.shaping import ShapedOffset
