@@ -45,7 +45,8 @@ from calibration.dataset import LogData, log_data  # noqa: E402
 from calibration.estimators.paper_ols import fit_paper_ols  # noqa: E402
 from calibration.fit import fit_data  # noqa: E402
 from calibration.folds import split_cycles  # noqa: E402
-from calibration.metrics import band_index, residual_stats  # noqa: E402
+from calibration.metrics import residual_stats  # noqa: E402
+from compensator.expected import distance_outside, parse_expected  # noqa: E402
 from compensator.io import read_run_log  # noqa: E402
 from compensator.units import SPEED_SCALE_RPM  # noqa: E402
 
@@ -94,14 +95,23 @@ def thermocomp(d: LogData, cycles: list, k: int, names: tuple[str, ...]) -> dict
 def coverage(model, d: LogData, pred: np.ndarray, a: int, b: int) -> dict:
     """How many of the predicted cycle's errors lie within the 95 % band the fit stated for
     their speed (the model's ``fit["expected_error"]``): about 95 % if the statement is honest."""
-    expected = model.fit.get("expected_error")
-    if not expected:
+    expected = parse_expected(model.fit)
+    if expected is None:
         return {"within_p95": None}
     err = np.abs(d.elongation_um[a:b] - pred[a:b])
-    stated = np.array([band["p95_abs_um"] for band in expected["bands"]] + [np.nan])
-    bound = stated[band_index(expected, d.speed_rpm[a:b])]  # -1 (no band): NaN
-    ok = np.isfinite(bound)
-    return {"within_p95": float(np.mean(err[ok] <= bound[ok])) if ok.any() else None, "covered_rows": int(ok.sum())}
+    dist = None
+    if model.input_names:
+        ch = model.inputs
+        dist = distance_outside(np.column_stack([d.inputs[c.name][a:b] for c in ch]),
+                                np.array([c.trained_range[0] for c in ch]), np.array([c.trained_range[1] for c in ch]))
+    bound = expected.p95_at(d.speed_rpm[a:b], dist)
+    out = {"within_p95": float(np.mean(err <= bound)), "covered_rows": int(err.size)}
+    if dist is not None:
+        o = dist > 0
+        out["outside_rows"] = int(o.sum())
+        out["within_p95_outside"] = float(np.mean(err[o] <= bound[o])) if o.any() else None
+        out["within_p95_inside"] = float(np.mean(err[~o] <= bound[~o])) if (~o).any() else None
+    return out
 
 
 # -- the plain static ridge: the comparison, not product code ----------------------------------

@@ -39,6 +39,10 @@ class Candidate:
     forward_max_abs_um: float | None = None
     forward_folds_rms_um: list[float] = field(default_factory=list)
     forward_residual_um: np.ndarray | None = None
+    forward_clipped_residual_um: np.ndarray | None = None
+    """The forward residual with the inputs held to the range their past saw."""
+    forward_distance: np.ndarray | None = None
+    """How far the inputs of each row predicted forward lay outside the range their past saw."""
 
     @property
     def honest_rms_um(self) -> float:

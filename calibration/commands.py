@@ -19,9 +19,9 @@ from rich.table import Table
 from compensator.io import load_any_model, read_run_log, save_model, write_run_log
 from compensator.io.journal_export import NOT_INPUTS
 from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
+from compensator.expected import parse_expected
 from compensator.shaping import ShaperConfig
 
-from .metrics import band_label
 from .plots import Panel, plot_panels
 from .replay import Replay, replay
 
@@ -210,12 +210,14 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
         for d in report["derived"]:
             dt.add_row(d["quantity"], f"{d['value']:.3g}", f"{d['hac_stderr']:.2g}", d["unit"])
         out.print(dt)
-    expected = (m.fit or {}).get("expected_error")
-    if expected:
+    expected = parse_expected(m.fit)
+    if expected is not None:
         out.print("Error to expect (free run, held out), by speed band:", markup=False)
-        for b in expected["bands"]:
-            out.print(f"  {band_label(b):>16}: RMS {b['rms_um']:.2f} um, 95 % within {b['p95_abs_um']:.2f} um "
-                      f"({b['source']}, {b['samples']} samples)", markup=False, highlight=False)
+        for b in expected.bands:
+            far = (f"; inputs outside the trained range: RMS {b.outside.rms_um:.2f} um, 95 % within "
+                   f"{b.outside.p95_abs_um:.2f} um ({b.outside.source})" if b.outside is not None else "")
+            out.print(f"  {b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
+                      f"({b.source}, {b.samples} samples){far}", markup=False, highlight=False)
     for line in m.describe():
         out.print(line, markup=False, highlight=False)
     for line in result.closed_loop.lines() if result.closed_loop is not None else ():
@@ -278,7 +280,7 @@ def print_replay_report(rep: Replay, out: Console) -> None:
                     "samples"):
             et.add_column(col, justify="left" if col == "speed band" else "right")
         for b in r["expected_error"]:
-            et.add_row(band_label(b), _fmt(b["expected_rms_um"]),
+            et.add_row(str(b["label"]), _fmt(b["expected_rms_um"]),
                        _fmt(b["expected_p95_abs_um"]), _fmt(b["rms_um"]), f"{100 * b['within_p95']:.0f} %",
                        str(b["samples"]))
         out.print(et)

@@ -47,7 +47,7 @@ from .dataset import Dataset, LogData, join
 from .estimators import baseline, output_error, paper_ols
 from .estimators import ridge_bank as rb
 from .folds import CYCLE_RULE
-from .metrics import PARSIMONY, expected_error, measured_stats
+from .metrics import MIN_BAND_ROWS, PARSIMONY, expected_error, measured_stats
 
 __all__ = ["REGISTRY", "Candidate", "Entry", "Identification", "LogData", "identify"]
 
@@ -74,6 +74,7 @@ def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: 
     c.forward_rms_um, c.forward_max_abs_um = res.forward_rms_um, res.forward_max_abs_um
     c.forward_folds_rms_um = [f.rms_um for f in res.forward_folds or ()]
     c.forward_residual_um = res.forward_residual_um
+    c.forward_clipped_residual_um, c.forward_distance = res.forward_clipped_residual_um, res.forward_distance
     return c
 
 
@@ -92,12 +93,21 @@ def _ridge(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
 
 def _ridge_inputs(ds: Dataset, ctx: Context, structure: str = "all") -> tuple[Candidate, rb.RidgeFit]:
     names = ctx["names"]
-    res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)], input_names=names,
-                 nested=ctx["nested"], structure=structure)
+    try:
+        # the selection inside every fold costs most: its forward figure is the honest one
+        res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)], input_names=names,
+                     nested=ctx["nested"] and structure != "few", structure=structure, units=ctx.get("units"))
+    except CalibrationError as err:
+        if structure == "all":
+            raise
+        return Candidate(f"ridge+{structure}", "inputs", f"ridge with {structure} inputs", refusals=[str(err)]), None
     if structure == "few":
         name, what = "ridge+few", f"ridge over n, n² and the inputs a forward selection kept ({', '.join(res.input_names)})"
     elif structure == "pca":
         name, what = "ridge+pca", f"ridge over n, n² and {res.structure_detail} of {len(names)} input(s)"
+    elif structure == "bounded":
+        name, what = "ridge+bounded", (f"ridge over n, n² and {len(names)} input(s), each temperature's steady "
+                                       f"sensitivity within {rb.BOUND_UM_PER_K:.1f} um/K")
     else:
         name, what = "ridge+inputs", f"ridge over n, n² and {len(names)} input(s)"
     c = _from_ridge(name, "inputs", what + " through filter banks; alpha by CV", res, ds)
@@ -142,6 +152,9 @@ REGISTRY: tuple[Entry, ...] = (
           min_inputs=MIN_SHARED_INPUTS),
     Entry("ridge+pca", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "pca"),
           "fitting ridge with principal components of the inputs", needs_inputs=True, min_folds=3,
+          min_inputs=MIN_SHARED_INPUTS),
+    Entry("ridge+bounded", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "bounded"),
+          "fitting ridge with physically bounded sensitivities", needs_inputs=True, min_folds=3,
           min_inputs=MIN_SHARED_INPUTS),
     Entry(paper_ols.NAME, "reference", paper_ols.candidate, "scoring the paper's OLS", every_row=True),
 )
@@ -238,7 +251,7 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
                                "row; the logs have it on some rows only (sparse)")
     warnings = _coverage(ds)
-    ctx = {"names": names, "nested": nested and len(ds.folds) >= 3, "meta": meta}
+    ctx = {"names": names, "nested": nested and len(ds.folds) >= 3, "meta": meta, "units": units}
     options = {"physical": physical}
     suffix = "" if ds.dense else " (measured rows)"
     cands: list[Candidate] = []
@@ -420,23 +433,62 @@ def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model:
         return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
     reason += (f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
                f"{chosen.name} stands in when one fails")
-    return _with_fit(c_in, ds, reason), c_in, reason
+    policy, span, residual, why = extrapolation(c_in, chosen)
+    c_in.details["extrapolation"] = why
+    c_in.model = c_in.model.model_copy(update={"extrapolation": policy, "blend_span": span})
+    return _with_fit(c_in, ds, f"{reason}; {why}", forward=residual), c_in, reason
 
 
-def _expected(c: Candidate, ds: Dataset) -> dict[str, Any] | None:
-    """The error to expect by speed band: from the forward residual when there is one (the
-    future is what the model will meet), else the held-out one."""
+BLEND_SPANS = (0.25, 1.0)
+"""A blend hands over to the fallback completely at this many spans outside the trained range."""
+
+
+def extrapolation(c_in: Candidate, fallback: Candidate) -> tuple[str, float, np.ndarray | None, str]:
+    """What the model does when its inputs leave the trained range, chosen by data: on the rows
+    of the forward splits whose inputs left the range the past saw, the RMS of the prediction
+    with the gains carried on (``linear``), with the inputs held at the range's ends (``clip``)
+    and blended toward the speed-only fallback (``blend``, at each of :data:`BLEND_SPANS`).
+    ``linear`` stands unless another is lower by more than PARSIMONY. Returns (policy, blend
+    span, the forward residual under it, why in one line)."""
+    r_lin, r_clip, dist = c_in.forward_residual_um, c_in.forward_clipped_residual_um, c_in.forward_distance
+    if r_lin is None or r_clip is None or dist is None:
+        return "linear", 1.0, r_lin, "outside the trained range: linear (no forward split to choose by)"
+    d = np.nan_to_num(dist, nan=0.0)
+    out = np.isfinite(r_lin) & (d > 0)
+    if out.sum() < MIN_BAND_ROWS:
+        return "linear", 1.0, r_lin, (f"outside the trained range: linear ({int(out.sum())} forward row(s) left "
+                                      "the range: too few to choose by)")
+    options: list[tuple[str, float, np.ndarray]] = [("linear", 1.0, r_lin), ("clip", 1.0, r_clip)]
+    r_fb = fallback.forward_residual_um
+    if r_fb is not None:
+        for span in BLEND_SPANS:
+            w = np.minimum(d / span, 1.0)
+            options.append(("blend", span, np.where(np.isfinite(r_fb), (1 - w) * r_lin + w * r_fb, r_lin)))
+    rms = [float(np.sqrt(np.mean(r[out] ** 2))) for _, _, r in options]
+    best = int(np.argmin(rms))
+    pick = best if rms[best] < rms[0] * (1 - PARSIMONY) else 0
+    name = lambda k: options[k][0] + (f" {options[k][1]:g} span" if options[k][0] == "blend" else "")  # noqa: E731
+    figures = ", ".join(f"{name(k)} {v:.2f} um" for k, v in enumerate(rms))
+    return options[pick][0], options[pick][1], options[pick][2], (
+        f"outside the trained range: {name(pick)}, by forward RMS over the {int(out.sum())} row(s) "
+        f"that left it ({figures})")
+
+
+def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> dict[str, Any] | None:
+    """The error to expect by speed band, inside and outside the trained input range
+    (:func:`~calibration.metrics.expected_error`); ``forward`` is the forward residual under the
+    extrapolation chosen (default: the candidate's own)."""
     top = float(np.max(np.abs(ds.speed_rpm)))
-    out = expected_error((("forward", c.forward_residual_um), ("held out", c.held_out_residual_um)),
-                         ds.speed_rpm, top)
-    return out if out["bands"] else None
+    out = expected_error(c.forward_residual_um if forward is None else forward, c.held_out_residual_um,
+                         ds.speed_rpm, top, c.forward_distance)
+    return out.model_dump(mode="json") if out is not None else None
 
 
-def _with_fit(c: Candidate, ds: Dataset, reason: str) -> Any:
+def _with_fit(c: Candidate, ds: Dataset, reason: str, forward: np.ndarray | None = None) -> Any:
     fit = {"method": c.name, "scored_by": f"{ds.scheme} free run", "folds": len(ds.folds),
            "cv_rms_um": round(c.cv_rms_um, 4), "cv_max_abs_um": round(c.cv_max_abs_um, 4),
            "folds_rms_um": [round(v, 4) for v in c.folds_rms_um], "reason": reason}
-    expected = _expected(c, ds)
+    expected = _expected(c, ds, forward)
     if expected is not None:
         fit["expected_error"] = expected
     if c.nested_rms_um is not None:

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from compensator.expected import Band, ExpectedError, Figure
+
 PARSIMONY = 0.02
 """A simpler grid (or a larger α), or a simpler candidate, wins when its CV RMS is within 2 % of
 the best."""
@@ -76,76 +78,75 @@ SPEED_BANDS = 3
 MIN_BAND_ROWS = 10
 
 
-def expected_error(residuals: Sequence[tuple[str, np.ndarray | None]], speed_rpm: np.ndarray, top_rpm: float,
-                   *, idle_rpm: float = 1.0) -> dict[str, object]:
-    """The error a model can be expected to make, by operating region: RMS and the 95th
-    percentile of |residual| [um] at rest and in :data:`SPEED_BANDS` bands of the calibrated
-    speed range. ``residuals`` are held-out residuals by preference, (source, residual) with NaN
-    on the rows not predicted: each band takes the first with enough rows there (the forward one
-    first: the future is what the model will meet) and names it. A band no residual covers is
-    left out. What the fit stores beside the model."""
+def _figure(source: str, r: np.ndarray) -> Figure | None:
+    r = r[np.isfinite(r)]
+    if r.size < MIN_BAND_ROWS:
+        return None
+    return Figure(source=source, samples=int(r.size), rms_um=round(float(np.sqrt(np.mean(r * r))), 4),
+                  p95_abs_um=round(float(np.quantile(np.abs(r), 0.95)), 4))
+
+
+def expected_error(forward: np.ndarray | None, held_out: np.ndarray | None, speed_rpm: np.ndarray,
+                   top_rpm: float, distance: np.ndarray | None = None, *,
+                   idle_rpm: float = 1.0) -> ExpectedError | None:
+    """The error a model can be expected to make, by operating region
+    (:class:`compensator.expected.ExpectedError`): RMS and the 95th percentile of |residual|
+    [um] at rest and in :data:`SPEED_BANDS` bands of the calibrated speed range, inside the
+    trained input range and outside it. ``forward`` (rolling origin) and ``held_out`` residuals
+    took no part in the fit that made them (NaN on the rows not predicted); ``distance`` is how
+    far the inputs of each forward row lay outside the range its past saw.
+
+    Inside, a band states the larger of the two figures that have :data:`MIN_BAND_ROWS` there:
+    the forward one holds what the future brings, the held-out one covers the bands the
+    forward splits never reached. Outside, the forward rows that left their range state it,
+    the band's own where it has enough, else all speeds pooled. None when no band is covered."""
     n = np.abs(np.asarray(speed_rpm, float))
+    nan = np.full(n.shape, np.nan)
+    fwd = nan if forward is None else np.asarray(forward, float)
+    held = nan if held_out is None else np.asarray(held_out, float)
+    dist = np.zeros(n.shape) if distance is None else np.nan_to_num(np.asarray(distance, float), nan=0.0)
+    out_rows = dist > 0
+    pooled = _figure("forward, outside, all speeds", np.where(out_rows, fwd, np.nan))
     edges = np.linspace(0.0, max(top_rpm, idle_rpm), SPEED_BANDS + 1)
-    bands = [(0.0, idle_rpm, n <= idle_rpm)]
+    regions = [(0.0, idle_rpm, n <= idle_rpm)]
     for lo, hi in zip(edges[:-1], edges[1:]):
-        bands.append((max(lo, idle_rpm), float(hi), (n > max(lo, idle_rpm)) & (n <= hi)))
-    out = []
-    for lo, hi, inside in bands:
-        for source, residual in residuals:
-            if residual is None:
-                continue
-            r = np.asarray(residual, float)
-            sel = r[np.isfinite(r) & inside]
-            if sel.size >= MIN_BAND_ROWS:
-                out.append({"speed_rpm": [round(float(lo), 1), round(float(hi), 1)], "source": source,
-                            "samples": int(sel.size), "rms_um": round(float(np.sqrt(np.mean(sel * sel))), 4),
-                            "p95_abs_um": round(float(np.quantile(np.abs(sel), 0.95)), 4)})
-                break
-    return {"bands": out}
-
-
-def band_index(expected: dict[str, object], speed_rpm: np.ndarray) -> np.ndarray:
-    """For each speed, the index of the band of ``expected`` (:func:`expected_error`) it falls
-    in; the top band above the calibrated range or in a band left out; -1 without bands."""
-    bands = list(expected.get("bands", ()))  # type: ignore[call-overload]
-    n = np.abs(np.asarray(speed_rpm, float))
+        regions.append((max(lo, idle_rpm), float(hi), (n > max(lo, idle_rpm)) & (n <= hi)))
+    bands = []
+    for lo, hi, inside in regions:
+        figs = [f for f in (_figure("forward", np.where(inside & ~out_rows, fwd, np.nan)),
+                            _figure("held out", np.where(inside, held, np.nan))) if f is not None]
+        if not figs:
+            continue
+        worst = max(figs, key=lambda f: f.p95_abs_um)
+        outside = _figure("forward, outside", np.where(inside & out_rows, fwd, np.nan)) or pooled
+        bands.append(Band(speed_rpm=(round(float(lo), 1), round(float(hi), 1)), source=worst.source,
+                          samples=worst.samples, rms_um=worst.rms_um, p95_abs_um=worst.p95_abs_um,
+                          outside=outside))
     if not bands:
-        return np.full(n.shape, -1)
-    lo = np.array([b["speed_rpm"][0] for b in bands], float)
-    hi = np.array([b["speed_rpm"][1] for b in bands], float)
-    i = np.minimum(np.searchsorted(hi, n, side="left"), len(bands) - 1)  # the first band reaching n
-    inside = (n <= hi[i]) & ((n > lo[i]) | (lo[i] == 0.0))
-    return np.where(inside, i, len(bands) - 1)
+        return None
+    seen = dist[np.isfinite(fwd)]
+    return ExpectedError(bands=tuple(bands), outside_validated=round(float(seen.max()), 4) if seen.size else 0.0)
 
 
-def band_of(expected: dict[str, object], speed_rpm: float) -> dict[str, object] | None:
-    """The band of ``expected`` that ``speed_rpm`` falls in (:func:`band_index`); None without
-    bands."""
-    i = int(band_index(expected, np.array([speed_rpm]))[0])
-    return list(expected["bands"])[i] if i >= 0 else None  # type: ignore[call-overload]
-
-
-def against_expected(expected: dict[str, object], residual: np.ndarray, speed_rpm: np.ndarray,
-                     min_rows: int = MIN_BAND_ROWS) -> list[dict[str, object]]:
-    """A residual [um] measured after the fit, band by band against what the fit stated
-    (:func:`expected_error`): the stated RMS and 95th percentile beside the measured RMS and the
-    share of errors within the stated percentile (about 95 % when the statement holds)."""
+def against_expected(expected: ExpectedError, residual: np.ndarray, speed_rpm: np.ndarray,
+                     distance: np.ndarray | None = None, min_rows: int = MIN_BAND_ROWS) -> list[dict[str, object]]:
+    """A residual [um] measured after the fit, band by band against what the fit stated: the
+    stated RMS and 95th percentile beside the measured RMS and the share of errors within the
+    stated bound (about 95 % when the statement holds; outside the trained range the bound is
+    the outside one, :meth:`ExpectedError.p95_at`)."""
     r = np.asarray(residual, float)
     n = np.asarray(speed_rpm, float)
-    which = band_index(expected, n)
+    which = expected.band_index(n)
+    bound = expected.p95_at(n, distance)
+    out_rows = np.zeros(n.shape, bool) if distance is None else np.nan_to_num(np.asarray(distance, float)) > 0
     out = []
-    for k, b in enumerate(expected.get("bands", ())):  # type: ignore[attr-defined]
-        sel = r[(which == k) & np.isfinite(r)]
-        if sel.size < min_rows:
+    for k, b in enumerate(expected.bands):
+        sel = (which == k) & np.isfinite(r)
+        if sel.sum() < min_rows:
             continue
-        out.append({"speed_rpm": b["speed_rpm"], "source": b["source"], "expected_rms_um": b["rms_um"],
-                    "expected_p95_abs_um": b["p95_abs_um"], "samples": int(sel.size),
-                    "rms_um": float(np.sqrt(np.mean(sel * sel))),
-                    "within_p95": float(np.mean(np.abs(sel) <= b["p95_abs_um"]))})
+        out.append({"speed_rpm": list(b.speed_rpm), "label": b.label, "source": b.source,
+                    "expected_rms_um": b.rms_um, "expected_p95_abs_um": b.p95_abs_um,
+                    "samples": int(sel.sum()), "outside_samples": int((sel & out_rows).sum()),
+                    "rms_um": float(np.sqrt(np.mean(r[sel] ** 2))),
+                    "within_p95": float(np.mean(np.abs(r[sel]) <= bound[sel]))})
     return out
-
-
-def band_label(band: dict[str, object]) -> str:
-    """``at rest`` or ``lo-hi rpm``, for a band of :func:`expected_error`."""
-    lo, hi = band["speed_rpm"]  # type: ignore[misc]
-    return "at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm"

@@ -16,6 +16,7 @@ import numpy as np
 
 from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.estimate import Estimate, EstimateState
+from compensator.expected import parse_expected
 from compensator.fusion import observer_config_of
 from compensator.io import RunLog
 from compensator.io.journal import ALARM_COLD_START
@@ -26,7 +27,8 @@ from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
 from .runs import bridge_gaps, gap_threshold_s
-from .metrics import against_expected, band_label, residual_stats
+
+from .metrics import against_expected, residual_stats
 from .stability import equilibrium_and_tevr
 
 MAX_SPAN_S = 2 * 365.25 * 86400.0
@@ -417,12 +419,15 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
                       applied_max_abs_residual_um=ast["max_abs_um"],
                       applied_cutting_rms_residual_um=cst["rms_um"],
                       applied_cutting_max_abs_residual_um=cst["max_abs_um"])
-        expected = (getattr(model, "fit", None) or {}).get("expected_error")
-        if expected:
-            report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows])
+        expected = parse_expected(getattr(model, "fit", None))
+        if expected is not None:
+            spans = None
+            if model.input_names and hasattr(model, "distance_outside"):
+                spans = model.distance_outside({k: inputs[k][rows] for k in model.input_names})
+            report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows], spans)
             for b in report["expected_error"]:
                 if b["within_p95"] < EXPECTED_SHARE:
-                    where = band_label(b)
+                    where = str(b["label"])
                     warnings.append(f"the error is larger than the fit expected {'' if where == 'at rest' else 'at '}{where}: "
                                     f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
                                     f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate")

@@ -71,6 +71,9 @@ class EstimateState:
     """(name, value, unchanged since [s]) of each input: staleness."""
     extrapolated: str | None = None
     """Why the inputs lie outside the trained range, while they do."""
+    outside_spans: float = 0.0
+    """How far outside the trained range the inputs lie, in spans of it (0 inside or on the
+    fallback): :func:`compensator.expected.distance_outside`."""
     last_cycle: tuple[float, float, bool] | None = None
     """(speed [rpm], elongation of the model in use [um], on inputs) of the last cycle."""
     probe_reference_um: float | None = None
@@ -310,7 +313,7 @@ class Estimate:
                 st = self._rebase(st, st.inputs, st.speed_only)
             # from now on the fallback's elongation is the estimate to continue from
             st = replace(st, inputs=None, inputs_good_since_s=None, input_cold=False, saved_input=None,
-                         extrapolated=None)
+                         extrapolated=None, outside_spans=0.0)
             return st, replace(info, input_fallback=True, fell_back=fell)
         if st.inputs is None:
             good_since = st.inputs_good_since_s if st.inputs_good_since_s is not None else now_s
@@ -325,7 +328,11 @@ class Estimate:
         else:
             st = replace(st, inputs=model.step(st.inputs, speed, dt_s, values))
         outside = getattr(model, "outside_trained", None)
-        return replace(st, extrapolated=outside(values) if outside is not None else None), info
+        why_out = outside(values) if outside is not None else None
+        spans = float(model.distance_outside(values)) if why_out and hasattr(model, "distance_outside") else 0.0
+        if why_out and spans > 0:
+            why_out += f" ({spans:.2f} span(s) out)"
+        return replace(st, extrapolated=why_out, outside_spans=spans), info
 
     def _start_inputs(self, st: EstimateState, speed: float, wall_s: float, values: Mapping[str, float]) -> Any:
         """The input model's state when it takes over: the saved one advanced idle through the

@@ -22,6 +22,13 @@ constant between the sample period of the fit and :data:`MAX_TAU_S`; the steady 
 gains imply over the trained speed and input ranges at most :data:`GAIN_BOUND` times the largest
 measured. A model that fails is a one-line :class:`~compensator.errors.ModelError`.
 
+Outside the range an input had in calibration the model does what the fit chose by data on
+forward splits (``extrapolation``): ``linear``, the gains carried on up to the valid range;
+``clip``, each input held at the end of its trained range; ``blend``, the prediction moved
+toward the speed-only fallback's as the inputs leave the range, all of it at ``blend_span``
+spans out (:func:`compensator.expected.distance_outside`). Past the valid range every policy
+holds the input at that range's end (a sensor fault, which the runtime catches first).
+
 It implements :class:`~compensator.predictor.Predictor`; ``fallback`` is the speed-only model the
 runtime uses when an input fails.
 """
@@ -37,6 +44,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .errors import ModelError
+from .expected import distance_outside
 from .filters import Steps, decay, lag, lag_step, series
 from .model import MODEL_FORMAT, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers, speed_range
@@ -92,6 +100,9 @@ class InputChannel(Channel):
         return self
 
 
+Extrapolation = Literal["linear", "clip", "blend"]
+EXTRAPOLATIONS: tuple[Extrapolation, ...] = ("linear", "clip", "blend")
+
 Fallback = Annotated[Union["StateSpaceModel", ThermalModel], Field(discriminator="format")]
 
 
@@ -111,6 +122,10 @@ class StateSpaceModel(ModelBase):
     inputs: tuple[InputChannel, ...] = ()
     max_measured_um: float = Field(gt=0, description="largest |elongation| measured in calibration [um]")
     fallback: Fallback | None = Field(None, description="speed-only model used when an input fails")
+    extrapolation: Extrapolation = Field("linear", description="outside the trained input range: "
+                                         "linear, clip (hold at the trained end) or blend (toward the fallback)")
+    blend_span: float = Field(1.0, gt=0, le=1, description="blend: spans outside the trained range "
+                              "at which the fallback alone is used")
 
     @field_validator("speed_range_rpm")
     @classmethod
@@ -143,6 +158,8 @@ class StateSpaceModel(ModelBase):
             raise ModelError("a speed-only model has no fallback")
         if self.inputs and self.fallback is None:
             raise ModelError("a model with inputs needs a speed-only fallback")
+        if self.extrapolation != "linear" and not self.inputs:
+            raise ModelError(f"extrapolation {self.extrapolation!r} is for a model with inputs")
         return self
 
     # -- derived quantities -----------------------------------------------------------
@@ -194,6 +211,27 @@ class StateSpaceModel(ModelBase):
                 return f"{c.name}: {v:g} {c.unit} is outside the trained {lo:g}..{hi:g}"
         return None
 
+    def _limits(self) -> np.ndarray:
+        """(inputs, 2): where each input is held, by the extrapolation policy."""
+        ranges = [c.trained_range if self.extrapolation == "clip" else c.valid_range for c in self.inputs]
+        return np.array(ranges, dtype=float).reshape(-1, 2)
+
+    def distance_outside(self, values: Mapping[str, Any]) -> np.ndarray | float:
+        """How far ``values`` (one value or one series per input) lie outside the trained range,
+        in spans (:func:`compensator.expected.distance_outside`); 0 for a speed-only model."""
+        if not self.inputs:
+            return 0.0
+        u = np.column_stack([np.atleast_1d(np.asarray(values[c.name], float)) for c in self.inputs])
+        d = distance_outside(u, np.array([c.trained_range[0] for c in self.inputs]),
+                             np.array([c.trained_range[1] for c in self.inputs]))
+        return float(d[0]) if np.ndim(values[self.inputs[0].name]) == 0 else d
+
+    def _weight(self, inputs: Mapping[str, float] | None) -> float:
+        """The fallback's share of a blended prediction."""
+        if self.extrapolation != "blend" or inputs is None:
+            return 0.0
+        return min(1.0, float(self.distance_outside(inputs)) / self.blend_span)
+
     def _signals(self, speed_rpm: float, inputs: Mapping[str, float] | None) -> np.ndarray:
         n = min(speed_magnitude_rpm(speed_rpm), SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
         v = [n, n * n]
@@ -201,7 +239,7 @@ class StateSpaceModel(ModelBase):
             if inputs is None or c.name not in inputs:
                 raise ModelError(f"the model needs input {c.name!r}")
             u = require_finite(c.name, float(inputs[c.name]))
-            lo, hi = c.valid_range
+            lo, hi = c.trained_range if self.extrapolation == "clip" else c.valid_range
             v.append(min(max(u, lo), hi) - c.reference)
         return np.array(v)
 
@@ -219,7 +257,11 @@ class StateSpaceModel(ModelBase):
         residual = 0.0
         if elongation_um is not None:
             residual = require_finite("elongation_um", elongation_um) - (math.fsum(x) + static)
-        return StateSpaceState(tuple(float(e) for e in x), residual, static)
+        if self.extrapolation != "blend" or self.fallback is None:
+            return StateSpaceState(tuple(float(e) for e in x), residual, static)
+        # both start at a measured elongation, so the blend starts there too
+        return StateSpaceState(tuple(float(e) for e in x), residual, static,
+                               self.fallback.start(elongation_um, speed_rpm), self._weight(inputs))
 
     def step(self, state: StateSpaceState, speed_rpm: float, dt_s: float,
              inputs: Mapping[str, float] | None = None) -> StateSpaceState:
@@ -231,7 +273,11 @@ class StateSpaceModel(ModelBase):
         x = tuple(lag_step(x, float(u), dt_s, tau)
                   for x, u, tau in zip(state.states_um, self._b @ v, self.taus_s))
         r = lag_step(state.residual_um, 0.0, dt_s, self._slowest_s)
-        return StateSpaceState(x, r, float(self.offset_um + self._d @ v))
+        if self.extrapolation != "blend" or self.fallback is None:
+            return StateSpaceState(x, r, float(self.offset_um + self._d @ v))
+        fb = state.fallback if state.fallback is not None else self.fallback.start(state.own_um, 0.0)
+        return StateSpaceState(x, r, float(self.offset_um + self._d @ v),
+                               self.fallback.step(fb, speed_rpm, dt_s), self._weight(inputs))
 
     def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
                     inputs: Mapping[str, np.ndarray] | None = None,
@@ -258,7 +304,7 @@ class StateSpaceModel(ModelBase):
         gains = np.vstack([self._d, self._b])
         refs = np.array([c.reference for c in self.inputs])
         constant = self.offset_um - float((gains[:, 2:] @ refs).sum())
-        valid = np.array([c.valid_range for c in self.inputs]).reshape(-1, 2)
+        valid = self._limits()
         lo, hi = valid[:, :1], valid[:, 1:]
         cap = SPEED_CLIP * self.speed_range_rpm[1]
         y = np.empty((gains.shape[0], size))
@@ -288,6 +334,9 @@ class StateSpaceModel(ModelBase):
             out += lag(steps, drive, tau)
         if initial_um is not None:
             out += (require_finite("initial_um", initial_um) - out[0]) * decay(steps.time_s, self._slowest_s)
+        if self.extrapolation == "blend" and self.fallback is not None:
+            w = np.minimum(self.distance_outside(dict(zip(self.input_names, logged))) / self.blend_span, 1.0)
+            out += w * (self.fallback.simulate_um(sp, steps.time_s, None, initial_um) - out)
         return out
 
     def _refuse_non_finite(self, logged: list[np.ndarray]) -> None:
@@ -295,8 +344,11 @@ class StateSpaceModel(ModelBase):
             series(c.name, u, u.size)  # raises, naming the sample
 
     def state_dict(self, state: StateSpaceState) -> dict[str, Any]:
-        return {"states_um": list(state.states_um), "residual_um": state.residual_um,
-                "static_um": state.static_um}
+        out = {"states_um": list(state.states_um), "residual_um": state.residual_um,
+               "static_um": state.static_um}
+        if state.fallback is not None and self.fallback is not None:
+            out.update(fallback_state=self.fallback.state_dict(state.fallback), blend_weight=state.weight)
+        return out
 
     def state_from_dict(self, data: Mapping[str, Any]) -> StateSpaceState:
         """A state saved by :meth:`state_dict`; :class:`ModelError` if it does not fit this model."""
@@ -307,7 +359,11 @@ class StateSpaceModel(ModelBase):
             raise ModelError(f"saved state is not a state of this model ({err})") from err
         if len(x) != self.order:
             raise ModelError(f"saved state has {len(x)} states, the model {self.order}")
-        return StateSpaceState(x, r, s)
+        if self.extrapolation != "blend" or self.fallback is None or "fallback_state" not in data:
+            return StateSpaceState(x, r, s)  # a blend's fallback restarts at this state's estimate
+        fb = self.fallback.state_from_dict(data["fallback_state"])
+        (w,) = saved_numbers("blend_weight", [data.get("blend_weight", 0.0)], 1.0)
+        return StateSpaceState(x, r, s, fb, min(max(w, 0.0), 1.0))
 
     def describe(self) -> list[str]:
         lo, hi = self.speed_range_rpm
@@ -330,6 +386,10 @@ class StateSpaceModel(ModelBase):
                 lines.append(f"  fit {key}: {self.fit[key]}")
         if self.fallback is not None:
             lines.append(f"  fallback when an input fails: {self.fallback.form} (speed only)")
+        if self.inputs:
+            how = {"linear": "the gains carried on to the valid range", "clip": "each input held at its trained end",
+                   "blend": f"moved toward the fallback, all of it {self.blend_span:g} span(s) out"}
+            lines.append(f"  outside the trained range: {self.extrapolation} ({how[self.extrapolation]})")
         return lines
 
 
@@ -344,10 +404,21 @@ class StateSpaceState:
     states_um: tuple[float, ...]
     residual_um: float
     static_um: float
+    fallback: Any = None
+    """A blend's fallback state (``extrapolation = "blend"``); None otherwise."""
+    weight: float = 0.0
+    """The fallback's share of the elongation at the last step."""
+
+    @property
+    def own_um(self) -> float:
+        """The model's own elongation, before any blend."""
+        return math.fsum(self.states_um) + self.residual_um + self.static_um
 
     @property
     def elongation_um(self) -> float:
-        return math.fsum(self.states_um) + self.residual_um + self.static_um
+        if self.fallback is None or self.weight == 0.0:
+            return self.own_um
+        return (1.0 - self.weight) * self.own_um + self.weight * float(self.fallback.elongation_um)
 
 
 __all__ = ["GAIN_BOUND", "MAX_TAU_S", "MODEL_FORMAT", "STATE_SPACE_FORMAT", "InputChannel",

@@ -376,7 +376,7 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
     four = identify([LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None)
     names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]  # noqa: E731
     assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs"]
-    assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca"]
+    assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca", "ridge+bounded"]
     few = identify([LogData("few", t, n, y, {k: sensors[k] for k in list(sensors)[:3]})], tuple(sensors)[:3],
                    physical=False, probe_target_um=None)
     assert names(few) == ["ridge+inputs"]
@@ -389,22 +389,80 @@ def test_the_fit_states_the_error_to_expect_by_speed_band():
     calibrated speeds, from the forward residual where it covers a band (the future is what the
     model meets), else from the held-out one; each band's 95th percentile bounds 95 % of it."""
     from calibration.identify import LogData, identify
-    from calibration.metrics import band_of, expected_error
+    from calibration.metrics import expected_error
 
     t, n, inputs, y = synthetic()
     fit = identify([LogData("s", t, n, y)], physical=False, probe_target_um=None)
     bands = fit.model.fit["expected_error"]["bands"]
     assert bands[0]["speed_rpm"] == [0.0, 1.0] and len(bands) == 4
-    assert {b["source"] for b in bands} <= {"forward", "held out"} and "forward" in {b["source"] for b in bands}
+    assert {b["source"] for b in bands} <= {"forward", "held out"}
     assert all(0 < b["rms_um"] <= b["p95_abs_um"] * 2 and b["samples"] >= 10 for b in bands)
     # the percentile is the residual's own: 95 % of a band's rows lie within it
     rng = np.random.default_rng(1)
     r = rng.normal(0, 2.0, t.size)
-    stated = expected_error((("forward", r),), n, float(n.max()))
-    for b in stated["bands"]:
-        inside = np.array([band_of(stated, v) is b for v in n])
-        assert np.mean(np.abs(r[inside]) <= b["p95_abs_um"]) == pytest.approx(0.95, abs=0.01)
-    assert band_of(stated, 1e6) is stated["bands"][-1]  # above the calibrated range: the top band
+    stated = expected_error(r, None, n, float(n.max()))
+    which = stated.band_index(n)
+    for k, b in enumerate(stated.bands):
+        assert np.mean(np.abs(r[which == k]) <= b.p95_abs_um) == pytest.approx(0.95, abs=0.01)
+    assert stated.band_of(1e6) is stated.bands[-1]  # above the calibrated range: the top band
+    # a band states the larger of the forward and the held-out figure
+    both = expected_error(r, 3 * r, n, float(n.max()))
+    assert all(b.source == "held out" and b.p95_abs_um > 5.0 for b in both.bands)
+
+
+def test_the_error_to_expect_grows_where_the_inputs_left_the_trained_range():
+    """Rows predicted forward whose inputs lay outside the range their past saw state the
+    outside figure; the service reads it when the inputs are out, the inside one when in; beyond
+    the farthest distance validation scored the figure is marked as not validated."""
+    from calibration.metrics import against_expected, expected_error
+
+    rng = np.random.default_rng(2)
+    t, n, inputs, y = synthetic()
+    dist = np.where(np.arange(t.size) % 3 == 0, 0.4, 0.0)
+    r = rng.normal(0, 1.0, t.size) * np.where(dist > 0, 4.0, 1.0)
+    stated = expected_error(r, None, n, float(n.max()), dist)
+    assert stated.outside_validated == pytest.approx(0.4)
+    for b in stated.bands:
+        assert b.outside is not None and b.outside.p95_abs_um > 2.5 * b.p95_abs_um
+    top = float(n.max())
+    inside, out, far = stated.at(top, 0.0), stated.at(top, 0.2), stated.at(top, 0.9)
+    assert inside.p95_abs_um < out.p95_abs_um and out.outside and out.validated
+    assert far.p95_abs_um == out.p95_abs_um and not far.validated
+    # judged against the bound for where each row was, the statement holds about 95 %
+    rows = against_expected(stated, r, n, dist)
+    assert all(row["within_p95"] == pytest.approx(0.95, abs=0.03) for row in rows)
+    # against the inside bounds alone the outside rows break it
+    assert min(row["within_p95"] for row in against_expected(stated, r, n)) < 0.9
+
+
+def test_extrapolation_is_chosen_by_data_on_the_rows_that_left_the_range():
+    """Clip wins where holding the inputs did better on the forward rows outside the range;
+    linear stands when the others are no better by more than the parsimony margin, and when
+    too few rows left the range to choose by."""
+    from calibration.candidate import Candidate
+    from calibration.identify import extrapolation
+
+    rng = np.random.default_rng(3)
+    size = 400
+    d = np.where(np.arange(size) >= 200, 0.3, 0.0)
+    base = rng.normal(0, 1.0, size)
+    fb = Candidate("ridge", "speed", "", forward_residual_um=base * 6)
+    clip_better = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 3, 1),
+                            forward_clipped_residual_um=base, forward_distance=d)
+    policy, _, residual, why = extrapolation(clip_better, fb)
+    assert policy == "clip" and np.array_equal(residual, base) and "clip" in why
+    same = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base, forward_clipped_residual_um=base * 1.01,
+                     forward_distance=d)
+    assert extrapolation(same, fb)[0] == "linear"
+    few = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * 3, forward_clipped_residual_um=base,
+                    forward_distance=np.where(np.arange(size) < 5, 0.3, 0.0))
+    policy, _, _, why = extrapolation(few, fb)
+    assert policy == "linear" and "too few" in why
+    # a blend toward a fallback that did better out there
+    blend = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 5, 1),
+                      forward_clipped_residual_um=base * np.where(d > 0, 5, 1), forward_distance=d)
+    good_fb = Candidate("ridge", "speed", "", forward_residual_um=base * 0.5)
+    assert extrapolation(blend, good_fb)[:2] == ("blend", 0.25)
 
 
 def test_replay_sets_the_error_beside_what_the_fit_expected(tmp_path):

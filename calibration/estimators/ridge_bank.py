@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError, ModelError
+from compensator.expected import distance_outside
 from compensator.filters import filter_bank
 from compensator.model import ModelState, ThermalModel, ThermalStateCoefficients
 from compensator.statespace import (
@@ -331,6 +332,12 @@ class RidgeFit:
     """The rolling-origin residual behind ``forward_rms_um``; NaN on the rows not predicted."""
     structure_detail: str = ""
     """How the inputs shared strength (:data:`STRUCTURES`), in words."""
+    forward_clipped_residual_um: np.ndarray | None = None
+    """The rolling-origin residual with each input held to the range its past saw (the
+    ``clip`` extrapolation); None without inputs."""
+    forward_distance: np.ndarray | None = None
+    """On each row predicted forward, how far the inputs lay outside the range their past saw
+    (:func:`compensator.expected.distance_outside`); None without inputs."""
     forward_rms_by_alpha_um: tuple[float, ...] = ()
     """The same rolling origin with the chosen grid at each alpha tried, held fixed: how much
     the penalty alone moves the forward error."""
@@ -474,12 +481,25 @@ def _validate_grid(grid: TauGrid, dt_s: float, names: Sequence[str]) -> None:
         raise CalibrationError(f"grid {grid.label} has no input bank")
 
 
-STRUCTURES = ("all", "pca", "few")
+STRUCTURES = ("all", "pca", "few", "bounded")
 """How the inputs enter a ridge bank (:func:`fit`)."""
 MAX_COMPONENTS = 4
 """Principal components tried, one to this many."""
 MAX_FEW = 4
 """Inputs a greedy forward selection keeps at most."""
+FEW_POOL = 6
+"""After the first round the selection tries only this many inputs, the best alone."""
+STEEL_EXPANSION_PER_K = 11.5e-6
+"""Linear expansion of steel and cast iron, 10-13e-6 per K (ISO 1 and the thermal error
+literature, docs/REFERENCES.md): the middle of that range."""
+THERMAL_LOOP_MM = 1000.0
+"""The longest structural path a spindle sensor can stand for: a metre of machine between the
+tool and the table, more than a spindle housing and column of a machining centre."""
+BOUND_UM_PER_K = STEEL_EXPANSION_PER_K * THERMAL_LOOP_MM * 1000.0
+"""The largest steady sensitivity to one temperature that physics allows: a whole thermal loop
+of steel warming with that sensor, 11.5 um/K. Two neighbouring sensors at +16 and -11 um/K are
+gains trading off against each other, not expansion."""
+TEMPERATURE_UNITS = ("degC", "K")
 
 
 def _components(drives: Mapping[str, np.ndarray], names: Sequence[str],
@@ -496,6 +516,48 @@ def _components(drives: Mapping[str, np.ndarray], names: Sequence[str],
     return {f"pc{j + 1}": (vt[j] / sd, float(share[j])) for j in range(count)}
 
 
+def _bounded(bank: FilterBank, y: np.ndarray, rows: np.ndarray, configs: Sequence[Config],
+             limits: np.ndarray) -> list[Config]:
+    """``configs`` with only the α whose steady sensitivities (the sum of an input's gains over
+    its filters, each of unit steady gain) lie within ``limits``, fitted on ``rows``; a config
+    with none left is dropped. :class:`CalibrationError` when none is left at all."""
+    out = []
+    for cfg in configs:
+        x = bank.design(cfg.grid, cfg.names)
+        g, _ = ridge_path(x[rows], y[rows], cfg.alphas)
+        ns = 2 * len(cfg.grid.speed_taus_s)
+        sens = g[ns:].reshape(len(cfg.names), len(cfg.grid.input_taus_s), len(cfg.alphas)).sum(axis=1)
+        ok = np.all(np.abs(sens) <= limits[:, None], axis=0)
+        if ok.any():
+            out.append(replace(cfg, alphas=tuple(a for a, k in zip(cfg.alphas, ok) if k)))
+    if not out:
+        raise CalibrationError(f"no penalty brings every steady sensitivity within {BOUND_UM_PER_K:.1f} um/K")
+    return out
+
+
+def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Sequence[str],
+                   mixes: Mapping[str, tuple[np.ndarray, float]], cfg: Config,
+                   end: int) -> tuple[np.ndarray, np.ndarray]:
+    """The design of ``cfg`` over rows ``..end`` with every input of ``used`` held to the range
+    it had on ``train`` (clipped), and each row's distance outside that range."""
+    lo = np.array([float(np.min(ds.inputs[nm][train])) for nm in used])
+    hi = np.array([float(np.max(ds.inputs[nm][train])) for nm in used])
+    u = np.column_stack([np.asarray(ds.inputs[nm], float) for nm in used])
+    d = distance_outside(u, lo, hi)
+    drives = dict(bank.drives)
+    for j, nm in enumerate(used):  # a clip shifts the deviation by the same amount
+        drives[f"in:{nm}"] = bank.drives[f"in:{nm}"] + (np.clip(u[:, j], lo[j], hi[j]) - u[:, j])
+    for pc, (w, _) in mixes.items():
+        drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, used))
+    held = FilterBank(bank.time_s[:end], {k: v[:end] for k, v in drives.items()},
+                      [(a, min(b, end)) for a, b in bank.segments if a < end])
+    held.cache.update({k: v[:end] for k, v in bank.cache.items() if k[0] in ("n", "n2")})
+    xe = held.design(cfg.grid, cfg.names)
+    x = np.zeros((bank.time_s.size, xe.shape[1]))
+    x[:end] = xe
+    return x, d
+
+
 def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequence[TauGrid],
             alphas: tuple[float, ...], names: Sequence[str], folds: Folds, train: np.ndarray | None,
             rule: str, penalty_forward: bool) -> tuple[Config, float, list[dict[str, Any]]]:
@@ -503,8 +565,9 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
     lowers it by more than PARSIMONY, up to :data:`MAX_FEW`; then α and grid as :func:`select`."""
     kept: tuple[str, ...] = ()
     best = math.inf
+    pool = list(names)
     while len(kept) < MAX_FEW:
-        trials = [tuple(sorted((*kept, nm))) for nm in names if nm not in kept]
+        trials = [tuple(sorted((*kept, nm))) for nm in pool if nm not in kept]
         if not trials:
             break
         scores = []
@@ -512,6 +575,8 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
             configs = [Config(g, alphas, trial) for g in grids]
             _, _, tab = select(bank, y, measured, configs, folds, train, rule="min", forward=penalty_forward)
             scores.append(min(r["best_score_rms_um"] for r in tab))
+        if not kept:  # later rounds try only the inputs that did best alone: a third of the time
+            pool = [nm for _, nm in sorted(zip(scores, [t[0] for t in trials]))[:FEW_POOL]]
         j = int(np.argmin(scores))
         if not scores[j] < best * (1 - PARSIMONY):
             break
@@ -524,7 +589,8 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
 def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid] | None = None,
         input_names: Sequence[str] = (), alphas: Sequence[float] = DEFAULT_ALPHAS,
         nested: bool = False, rule: str = "parsimony", forward: bool = True,
-        penalty_forward: bool = False, structure: str = "all") -> RidgeFit:
+        penalty_forward: bool = False, structure: str = "all",
+        units: Mapping[str, str] | None = None) -> RidgeFit:
     """Ridge banks fitted on the measured rows of ``rows`` (default: all), α and grid chosen by
     leave-one-fold-out free-run error on the measured rows of ``ds.folds``.
 
@@ -544,7 +610,9 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     chosen by cross-validation (the model still reads every input: the gains map back exactly);
     ``few``, a bank per input for the few inputs a greedy forward selection keeps (up to
     :data:`MAX_FEW`, each kept only when it lowers the held-out error by more than PARSIMONY);
-    the model then reads those inputs only."""
+    the model then reads those inputs only; ``bounded``, a bank per input with α kept to those
+    whose steady sensitivity to every temperature (``units`` says which inputs are, in degC or K)
+    stays within :data:`BOUND_UM_PER_K`: shrunk until physically plausible."""
     cpu0 = time.process_time()
     t = as_times(ds.time_s)
     sp = as_series("speed_rpm", ds.speed_rpm, t.size)
@@ -576,6 +644,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     if structure not in STRUCTURES:
         raise CalibrationError(f"unknown input structure {structure!r}; known: {', '.join(STRUCTURES)}")
     mixes = _components(drives, names, measured) if structure == "pca" and names else {}
+    limits = np.array([BOUND_UM_PER_K if (units or {}).get(nm) in TEMPERATURE_UNITS else math.inf for nm in names])
     for pc, (w, _) in mixes.items():
         drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, names))
     bank = FilterBank(t, drives, ds.segments)
@@ -589,6 +658,8 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
                        for g in cand]
         else:
             configs = [Config(g, tuple(alphas), names) for g in cand]
+        if structure == "bounded" and names:
+            configs = _bounded(bank, y0, measured if train is None else measured & train, configs, limits)
         ki, al, tab = select(bank, y0, measured, configs, over, train, rule=rule, forward=penalty_forward)
         return configs[ki], al, tab
 
@@ -609,11 +680,13 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
         nested_folds = fold_scores(outer, folds)
         nested_rms, nested_max = measured_stats(outer)
-    fwd_folds = fwd_rms = fwd_max = ahead = None
+    fwd_folds = fwd_rms = fwd_max = ahead = clipped = distance = None
     fwd_spread: tuple[float, ...] = ()
     splits = fl.forward_splits(folds, first=FORWARD_FIRST)
     if forward and splits:
         ahead = np.full(t.size, np.nan)
+        if names:
+            clipped, distance = np.full(t.size, np.nan), np.full(t.size, np.nan)
         for past, (a, b) in splits:
             train = fl.rows_of(t.size, past)
             ci, al, _ = choose(past, train)
@@ -621,6 +694,11 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
             scored = a + np.flatnonzero(measured[a:b])
             ahead[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
+            if names:  # the same gains with the inputs held to the past's range, and how far out
+                used = names if structure == "pca" else ci.names
+                xc, d = _held_to_range(bank, ds, train, used, mixes, ci, b)
+                clipped[scored] = y0[scored] - (xc[scored] @ g[:, 0] + c[0])
+                distance[scored] = d[scored]
         fwd_folds = fold_scores(ahead, [f for _, f in splits])
         fwd_rms, fwd_max = measured_stats(ahead)
         later = fl.rows_of(t.size, [f for _, f in splits], measured)
@@ -655,7 +733,8 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         fitted_dt_s=dt_s, segments=tuple(ds.segments), trained_ranges=trained,
         held_out_residual_um=outer if outer is not None else res, forward_folds=fwd_folds,
         forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread,
-        forward_residual_um=ahead, structure_detail=detail)
+        forward_residual_um=ahead, structure_detail=detail, forward_clipped_residual_um=clipped,
+        forward_distance=distance)
     refusals, notes = [], []
     steady = result.steady_range_um()
     if steady > GAIN_BOUND * result.max_measured_um:

@@ -1,0 +1,136 @@
+"""The error a model can be expected to make where it runs now. Pure: no I/O.
+
+The fit states it (``calibration.metrics.expected_error``) from residuals that took no part in
+the fit, by operating region: the speed band and whether the inputs lie inside the range the
+calibration saw. The service reads it every cycle (:meth:`ExpectedError.at`), publishes it and
+raises an alarm when it exceeds a configured bound; replay sets a log's errors beside it.
+
+The distance outside the trained range (:func:`distance_outside`) is measured in spans of that
+range, the largest over the inputs: 0 inside, 1 one whole span beyond an end (where the model's
+valid range ends and a value is taken for a sensor fault).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+EXPECTED_FORMAT = "thermocomp.expected-error/1"
+
+_MIN_SPAN = 1e-9
+"""A span below this (an input that never moved in calibration) counts as this much."""
+
+
+def distance_outside(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per row of ``values`` (rows, inputs), how far outside [``lo``, ``hi``] the inputs lie,
+    in spans ``hi - lo`` of each input: the largest over the inputs, 0 inside. NaN stays NaN."""
+    u = np.atleast_2d(np.asarray(values, float))
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = np.maximum(hi - lo, _MIN_SPAN * np.maximum(np.maximum(np.abs(lo), np.abs(hi)), 1.0))
+    out = np.maximum(np.maximum(lo - u, u - hi), 0.0) / span
+    return np.max(out, axis=1) if out.shape[1] else np.zeros(out.shape[0])
+
+
+class Figure(BaseModel):
+    """RMS and 95th percentile of |error| [um] over ``samples`` residuals of ``source``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    source: str = Field(description="which residuals: forward (rolling origin) or held out")
+    samples: int = Field(ge=1)
+    rms_um: float = Field(ge=0)
+    p95_abs_um: float = Field(ge=0)
+
+
+class Band(BaseModel):
+    """One speed band: the error inside the trained input range and, where validation saw it,
+    outside."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    speed_rpm: tuple[float, float] = Field(description="(low, high] |speed| [rpm]; rest is (0, idle]")
+    source: str
+    samples: int = Field(ge=1)
+    rms_um: float = Field(ge=0)
+    p95_abs_um: float = Field(ge=0)
+    outside: Figure | None = Field(None, description="with the inputs outside the trained range")
+
+    @property
+    def label(self) -> str:
+        lo, hi = self.speed_rpm
+        return "at rest" if hi <= 1.0 else f"{lo:.0f}-{hi:.0f} rpm"
+
+
+@dataclass(frozen=True)
+class Expectation:
+    """The error to expect this cycle."""
+
+    band: str
+    rms_um: float
+    p95_abs_um: float
+    source: str
+    outside: bool
+    """The inputs lie outside the trained range."""
+    validated: bool
+    """Validation scored predictions this far out (False: the figure is a floor, not a measure)."""
+
+
+class ExpectedError(BaseModel):
+    """What the fit states, stored in the model's fit record under ``expected_error``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["thermocomp.expected-error/1"] = EXPECTED_FORMAT
+    bands: tuple[Band, ...] = Field(min_length=1)
+    outside_validated: float = Field(0.0, ge=0, description="largest distance outside the trained "
+                                     "range that validation scored, in spans")
+
+    def band_index(self, speed_rpm: np.ndarray) -> np.ndarray:
+        """For each speed, the index of its band; the top band above the calibrated range or in
+        a band left out (no residual covered it)."""
+        n = np.abs(np.asarray(speed_rpm, float))
+        lo = np.array([b.speed_rpm[0] for b in self.bands], float)
+        hi = np.array([b.speed_rpm[1] for b in self.bands], float)
+        i = np.minimum(np.searchsorted(hi, n, side="left"), len(self.bands) - 1)  # first band reaching n
+        inside = (n <= hi[i]) & ((n > lo[i]) | (lo[i] == 0.0))
+        return np.where(inside, i, len(self.bands) - 1)
+
+    def band_of(self, speed_rpm: float) -> Band:
+        return self.bands[int(self.band_index(np.array([speed_rpm]))[0])]
+
+    def p95_at(self, speed_rpm: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
+        """The stated 95 % bound [um] per row: the band's, its outside figure where the inputs
+        lie outside (never below the inside one)."""
+        which = self.band_index(speed_rpm)
+        inside = np.array([b.p95_abs_um for b in self.bands])[which]
+        if distance is None:
+            return inside
+        out = np.array([max(b.p95_abs_um, b.outside.p95_abs_um) if b.outside else b.p95_abs_um
+                        for b in self.bands])[which]
+        return np.where(np.asarray(distance, float) > 0, out, inside)
+
+    def at(self, speed_rpm: float, distance: float = 0.0) -> Expectation:
+        """The error to expect at ``speed_rpm`` with the inputs ``distance`` spans outside the
+        trained range (:func:`distance_outside`)."""
+        b = self.band_of(speed_rpm)
+        if distance > 0 and b.outside is not None and b.outside.p95_abs_um > b.p95_abs_um:
+            fig = b.outside
+            return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True,
+                               distance <= self.outside_validated)
+        return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0,
+                           distance <= self.outside_validated)
+
+
+def parse_expected(fit: object) -> ExpectedError | None:
+    """The statement in a model's fit record (None when it has none). An unreadable one is None
+    too: it is advice, and the model runs without it."""
+    raw = fit.get("expected_error") if isinstance(fit, dict) else None
+    if not isinstance(raw, dict):
+        return None
+    try:
+        return ExpectedError.model_validate(raw)
+    except ValueError:
+        return None
