@@ -94,9 +94,8 @@ def _ridge(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
 def _ridge_inputs(ds: Dataset, ctx: Context, structure: str = "all") -> tuple[Candidate, rb.RidgeFit]:
     names = ctx["names"]
     try:
-        # the selection inside every fold costs most: its forward figure is the honest one
         res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)], input_names=names,
-                     nested=ctx["nested"] and structure != "few", structure=structure, units=ctx.get("units"))
+                     nested=ctx["nested"], structure=structure, units=ctx.get("units"))
     except CalibrationError as err:
         if structure == "all":
             raise
@@ -448,13 +447,18 @@ def extrapolation(c_in: Candidate, fallback: Candidate) -> tuple[str, float, np.
     of the forward splits whose inputs left the range the past saw, the RMS of the prediction
     with the gains carried on (``linear``), with the inputs held at the range's ends (``clip``)
     and blended toward the speed-only fallback (``blend``, at each of :data:`BLEND_SPANS`).
-    ``linear`` stands unless another is lower by more than PARSIMONY. Returns (policy, blend
+    ``linear`` stands unless another is lower by more than PARSIMONY, and is kept without a
+    choice below :data:`MIN_FORWARD_FOLDS` folds predicted forward or :data:`MIN_BAND_ROWS`
+    rows outside. Returns (policy, blend
     span, the forward residual under it, why in one line)."""
     r_lin, r_clip, dist = c_in.forward_residual_um, c_in.forward_clipped_residual_um, c_in.forward_distance
     if r_lin is None or r_clip is None or dist is None:
         return "linear", 1.0, r_lin, "outside the trained range: linear (no forward split to choose by)"
     d = np.nan_to_num(dist, nan=0.0)
     out = np.isfinite(r_lin) & (d > 0)
+    if len(c_in.forward_folds_rms_um) < MIN_FORWARD_FOLDS:
+        return "linear", 1.0, r_lin, (f"outside the trained range: linear ({len(c_in.forward_folds_rms_um)} "
+                                      "fold(s) predicted forward: too few to choose by)")
     if out.sum() < MIN_BAND_ROWS:
         return "linear", 1.0, r_lin, (f"outside the trained range: linear ({int(out.sum())} forward row(s) left "
                                       "the range: too few to choose by)")
@@ -480,7 +484,7 @@ def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> d
     extrapolation chosen (default: the candidate's own)."""
     top = float(np.max(np.abs(ds.speed_rpm)))
     out = expected_error(c.forward_residual_um if forward is None else forward, c.held_out_residual_um,
-                         ds.speed_rpm, top, c.forward_distance)
+                         ds.speed_rpm, top, c.forward_distance, forward_folds=len(c.forward_folds_rms_um))
     return out.model_dump(mode="json") if out is not None else None
 
 

@@ -87,7 +87,7 @@ def _figure(source: str, r: np.ndarray) -> Figure | None:
 
 
 def expected_error(forward: np.ndarray | None, held_out: np.ndarray | None, speed_rpm: np.ndarray,
-                   top_rpm: float, distance: np.ndarray | None = None, *,
+                   top_rpm: float, distance: np.ndarray | None = None, *, forward_folds: int = 0,
                    idle_rpm: float = 1.0) -> ExpectedError | None:
     """The error a model can be expected to make, by operating region
     (:class:`compensator.expected.ExpectedError`): RMS and the 95th percentile of |residual|
@@ -125,7 +125,8 @@ def expected_error(forward: np.ndarray | None, held_out: np.ndarray | None, spee
     if not bands:
         return None
     seen = dist[np.isfinite(fwd)]
-    return ExpectedError(bands=tuple(bands), outside_validated=round(float(seen.max()), 4) if seen.size else 0.0)
+    return ExpectedError(bands=tuple(bands), outside_validated=round(float(seen.max()), 4) if seen.size else 0.0,
+                         forward_folds=forward_folds)
 
 
 def against_expected(expected: ExpectedError, residual: np.ndarray, speed_rpm: np.ndarray,
@@ -139,6 +140,7 @@ def against_expected(expected: ExpectedError, residual: np.ndarray, speed_rpm: n
     which = expected.band_index(n)
     bound = expected.p95_at(n, distance)
     out_rows = np.zeros(n.shape, bool) if distance is None else np.nan_to_num(np.asarray(distance, float)) > 0
+    valid = expected.validated(n, distance)
     out = []
     for k, b in enumerate(expected.bands):
         sel = (which == k) & np.isfinite(r)
@@ -147,6 +149,7 @@ def against_expected(expected: ExpectedError, residual: np.ndarray, speed_rpm: n
         out.append({"speed_rpm": list(b.speed_rpm), "label": b.label, "source": b.source,
                     "expected_rms_um": b.rms_um, "expected_p95_abs_um": b.p95_abs_um,
                     "samples": int(sel.sum()), "outside_samples": int((sel & out_rows).sum()),
+                    "validated_samples": int((sel & valid).sum()),
                     "rms_um": float(np.sqrt(np.mean(r[sel] ** 2))),
                     "within_p95": float(np.mean(np.abs(r[sel]) <= bound[sel]))})
     return out

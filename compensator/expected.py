@@ -20,6 +20,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 EXPECTED_FORMAT = "thermocomp.expected-error/1"
 
+MIN_FORWARD_FOLDS = 2
+"""A statement from fewer folds predicted forward is not validated: held-out past cycles alone
+understated the next cycle's error up to 50-fold on the real record."""
+SPEED_TOLERANCE = 0.02
+"""A speed this share above the calibrated top still counts as within it."""
+
 _MIN_SPAN = 1e-9
 """A span below this (an input that never moved in calibration) counts as this much."""
 
@@ -75,7 +81,8 @@ class Expectation:
     outside: bool
     """The inputs lie outside the trained range."""
     validated: bool
-    """Validation scored predictions this far out (False: the figure is a floor, not a measure)."""
+    """Validation scored predictions like this one (:meth:`ExpectedError.validated`; False: the
+    figure is a floor, not a measure)."""
 
 
 class ExpectedError(BaseModel):
@@ -87,6 +94,17 @@ class ExpectedError(BaseModel):
     bands: tuple[Band, ...] = Field(min_length=1)
     outside_validated: float = Field(0.0, ge=0, description="largest distance outside the trained "
                                      "range that validation scored, in spans")
+    forward_folds: int = Field(0, ge=0, description="folds predicted forward behind the statement")
+
+    def validated(self, speed_rpm: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
+        """Per row, whether validation scored predictions like it: enough folds predicted
+        forward (:data:`MIN_FORWARD_FOLDS`), a speed within the calibrated range and inputs no
+        farther out than validation reached. Elsewhere the stated figure is a floor."""
+        n = np.abs(np.asarray(speed_rpm, float))
+        ok = n <= self.bands[-1].speed_rpm[1] * (1 + SPEED_TOLERANCE)
+        if distance is not None:
+            ok &= np.nan_to_num(np.asarray(distance, float)) <= self.outside_validated
+        return ok & (self.forward_folds >= MIN_FORWARD_FOLDS)
 
     def band_index(self, speed_rpm: np.ndarray) -> np.ndarray:
         """For each speed, the index of its band; the top band above the calibrated range or in
@@ -116,12 +134,11 @@ class ExpectedError(BaseModel):
         """The error to expect at ``speed_rpm`` with the inputs ``distance`` spans outside the
         trained range (:func:`distance_outside`)."""
         b = self.band_of(speed_rpm)
+        ok = bool(self.validated(np.array([speed_rpm]), np.array([distance]))[0])
         if distance > 0 and b.outside is not None and b.outside.p95_abs_um > b.p95_abs_um:
             fig = b.outside
-            return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True,
-                               distance <= self.outside_validated)
-        return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0,
-                           distance <= self.outside_validated)
+            return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True, ok)
+        return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0, ok)
 
 
 def parse_expected(fit: object) -> ExpectedError | None:

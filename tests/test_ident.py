@@ -420,7 +420,7 @@ def test_the_error_to_expect_grows_where_the_inputs_left_the_trained_range():
     t, n, inputs, y = synthetic()
     dist = np.where(np.arange(t.size) % 3 == 0, 0.4, 0.0)
     r = rng.normal(0, 1.0, t.size) * np.where(dist > 0, 4.0, 1.0)
-    stated = expected_error(r, None, n, float(n.max()), dist)
+    stated = expected_error(r, None, n, float(n.max()), dist, forward_folds=3)
     assert stated.outside_validated == pytest.approx(0.4)
     for b in stated.bands:
         assert b.outside is not None and b.outside.p95_abs_um > 2.5 * b.p95_abs_um
@@ -428,6 +428,9 @@ def test_the_error_to_expect_grows_where_the_inputs_left_the_trained_range():
     inside, out, far = stated.at(top, 0.0), stated.at(top, 0.2), stated.at(top, 0.9)
     assert inside.p95_abs_um < out.p95_abs_um and out.outside and out.validated
     assert far.p95_abs_um == out.p95_abs_um and not far.validated
+    # above the calibrated speeds, or from one fold predicted forward, nothing is validated
+    assert not stated.at(1.5 * top, 0.0).validated and stated.at(top, 0.0).validated
+    assert not expected_error(r, None, n, top, dist, forward_folds=1).at(top, 0.0).validated
     # judged against the bound for where each row was, the statement holds about 95 %
     rows = against_expected(stated, r, n, dist)
     assert all(row["within_p95"] == pytest.approx(0.95, abs=0.03) for row in rows)
@@ -447,22 +450,27 @@ def test_extrapolation_is_chosen_by_data_on_the_rows_that_left_the_range():
     d = np.where(np.arange(size) >= 200, 0.3, 0.0)
     base = rng.normal(0, 1.0, size)
     fb = Candidate("ridge", "speed", "", forward_residual_um=base * 6)
+    two = {"forward_folds_rms_um": [1.0, 1.0]}
     clip_better = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 3, 1),
-                            forward_clipped_residual_um=base, forward_distance=d)
+                            forward_clipped_residual_um=base, forward_distance=d, **two)
     policy, _, residual, why = extrapolation(clip_better, fb)
     assert policy == "clip" and np.array_equal(residual, base) and "clip" in why
     same = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base, forward_clipped_residual_um=base * 1.01,
-                     forward_distance=d)
+                     forward_distance=d, **two)
     assert extrapolation(same, fb)[0] == "linear"
     few = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * 3, forward_clipped_residual_um=base,
-                    forward_distance=np.where(np.arange(size) < 5, 0.3, 0.0))
+                    forward_distance=np.where(np.arange(size) < 5, 0.3, 0.0), **two)
     policy, _, _, why = extrapolation(few, fb)
     assert policy == "linear" and "too few" in why
     # a blend toward a fallback that did better out there
     blend = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 5, 1),
-                      forward_clipped_residual_um=base * np.where(d > 0, 5, 1), forward_distance=d)
+                      forward_clipped_residual_um=base * np.where(d > 0, 5, 1), forward_distance=d, **two)
     good_fb = Candidate("ridge", "speed", "", forward_residual_um=base * 0.5)
     assert extrapolation(blend, good_fb)[:2] == ("blend", 0.25)
+    # one fold predicted forward is too noisy to choose by
+    one = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * 3, forward_clipped_residual_um=base,
+                    forward_distance=d, forward_folds_rms_um=[1.0])
+    assert extrapolation(one, fb)[0] == "linear"
 
 
 def test_replay_sets_the_error_beside_what_the_fit_expected(tmp_path):

@@ -487,8 +487,6 @@ MAX_COMPONENTS = 4
 """Principal components tried, one to this many."""
 MAX_FEW = 4
 """Inputs a greedy forward selection keeps at most."""
-FEW_POOL = 6
-"""After the first round the selection tries only this many inputs, the best alone."""
 STEEL_EXPANSION_PER_K = 11.5e-6
 """Linear expansion of steel and cast iron, 10-13e-6 per K (ISO 1 and the thermal error
 literature, docs/REFERENCES.md): the middle of that range."""
@@ -565,9 +563,8 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
     lowers it by more than PARSIMONY, up to :data:`MAX_FEW`; then α and grid as :func:`select`."""
     kept: tuple[str, ...] = ()
     best = math.inf
-    pool = list(names)
     while len(kept) < MAX_FEW:
-        trials = [tuple(sorted((*kept, nm))) for nm in pool if nm not in kept]
+        trials = [tuple(sorted((*kept, nm))) for nm in names if nm not in kept]
         if not trials:
             break
         scores = []
@@ -575,8 +572,6 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
             configs = [Config(g, alphas, trial) for g in grids]
             _, _, tab = select(bank, y, measured, configs, folds, train, rule="min", forward=penalty_forward)
             scores.append(min(r["best_score_rms_um"] for r in tab))
-        if not kept:  # later rounds try only the inputs that did best alone: a third of the time
-            pool = [nm for _, nm in sorted(zip(scores, [t[0] for t in trials]))[:FEW_POOL]]
         j = int(np.argmin(scores))
         if not scores[j] < best * (1 - PARSIMONY):
             break
