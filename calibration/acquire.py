@@ -72,12 +72,15 @@ class AcquireConfig(BaseModel):
     abort_frozen_s: float = Field(300.0, ge=0, description="frozen this long: the recording stops")
     saturation_margin: float = Field(0.002, ge=0, lt=0.5, description="fraction of the range counted as its end")
     abort_saturated_s: float = Field(30.0, ge=0)
-    sensor_grace_s: float = Field(30.0, ge=0, description="a silent sensor this long stops the recording")
-    speed_grace_s: float = Field(30.0, ge=0, description="a silent controller this long stops the recording")
+    sensor_grace_s: float = Field(30.0, ge=0, description="a silent sensor this long (wall seconds) "
+                                  "stops the recording")
+    speed_grace_s: float = Field(30.0, ge=0, description="a silent controller this long (wall seconds) "
+                                 "stops the recording")
     follow_tolerance_rpm: float | None = Field(None, gt=0, description="default: 3 % of max speed, >= 50 rpm")
     follow_window_s: float = Field(30.0, ge=0, description="lag allowed around a programmed speed change")
     follow_alarm_s: float = Field(60.0, gt=0)
-    start_timeout_s: float = Field(3600.0, gt=0, description="stop if the spindle has not started by then")
+    start_timeout_s: float = Field(3600.0, gt=0, description="stop if the spindle has not started this "
+                                   "many wall seconds after the recording began (or resumed)")
 
 
 @dataclass
@@ -119,7 +122,9 @@ class Recorder:
                  clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
                  on_sample: Callable[[Sample, Recorder], None] | None = None,
                  on_event: Callable[[Event], None] | None = None,
-                 should_stop: Callable[[], bool] | None = None):
+                 should_stop: Callable[[], bool] | None = None,
+                 wall: Callable[[], float] = time.monotonic,
+                 start_now: Callable[[], bool] | None = None):
         self.controller, self.sensor = controller, sensor
         self.path = Path(path)
         self.program = program
@@ -129,6 +134,9 @@ class Recorder:
         self.clock, self.sleep = clock, sleep
         self.on_sample, self.on_event = on_sample, on_event
         self.should_stop = should_stop or (lambda: False)
+        # time-outs count wall seconds: a faster simulated clock must not shorten them
+        self.wall = wall
+        self.start_now = start_now or (lambda: False)
         self.tol_rpm = config.follow_tolerance_rpm or max(0.03 * self.max_rpm, 50.0)
         self._edges = np.cumsum([d for d, _ in program.segments])
         self._speeds = np.array([s for _, s in program.segments], dtype=float)
@@ -190,7 +198,7 @@ class Recorder:
         prev_speed: float | None = None
         same_since: float | None = None
         same_speed: float | None = None
-        last_sensor_ok = last_speed_ok = self.clock() - start
+        wall0 = last_sensor_ok = last_speed_ok = self.wall()
         if appender.first_row is not None:
             reference = appender.first_row[3]
             prev_value = appender.last_row[3] if appender.last_row else None
@@ -207,17 +215,17 @@ class Recorder:
                 value: float | None = None
                 try:
                     speed = abs(self.controller.read_speed())
-                    last_speed_ok = t
+                    last_speed_ok = self.wall()
                     self._clear(t, Problem.SPEED_FAULT, "controller answers again")
                 except AdapterError as err:
                     flags |= Problem.SPEED_FAULT
                     self._raise(t, Problem.SPEED_FAULT, f"controller: {err}")
-                    if t - last_speed_ok > cfg.speed_grace_s:
+                    if self.wall() - last_speed_ok > cfg.speed_grace_s:
                         raise AcquisitionError(f"no spindle speed from the controller for "
-                                               f"{t - last_speed_ok:.0f} s ({err})") from err
+                                               f"{self.wall() - last_speed_ok:.0f} s ({err})") from err
                 try:
                     value = self.sensor.read_um()
-                    last_sensor_ok = t
+                    last_sensor_ok = self.wall()
                     self._clear(t, Problem.SENSOR_FAULT, "sensor answers again")
                     lo_hi = self.sensor.range_um
                     if lo_hi is not None:
@@ -236,8 +244,8 @@ class Recorder:
                     value = None
                     flags |= Problem.SENSOR_FAULT
                     self._raise(t, Problem.SENSOR_FAULT, f"sensor: {err}")
-                    if t - last_sensor_ok > cfg.sensor_grace_s:
-                        raise AcquisitionError(f"no reading from the sensor for {t - last_sensor_ok:.0f} s "
+                    if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
+                        raise AcquisitionError(f"no reading from the sensor for {self.wall() - last_sensor_ok:.0f} s "
                                                f"({err}): is it unplugged?") from err
 
                 # the program starts when the spindle first turns
@@ -248,7 +256,10 @@ class Recorder:
                                     "started: the cold start and the program's first seconds are missed")
                     else:
                         self._event(t, Problem(0), "spindle started: program clock running")
-                if program_start is None and t > cfg.start_timeout_s:
+                if program_start is None and self.start_now():
+                    program_start = t
+                    self._event(t, Problem(0), "program started by hand: program clock running")
+                if program_start is None and self.wall() - wall0 > cfg.start_timeout_s:
                     raise AcquisitionError(f"the spindle did not start within {cfg.start_timeout_s:.0f} s: "
                                            "is the program loaded and cycle start pressed?")
                 ptime = None if program_start is None else t - program_start

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.prompt import Confirm, FloatPrompt, Prompt
 from rich.table import Table
 
@@ -116,6 +117,9 @@ class Wizard:
             else:
                 answer = Prompt.ask(f"  {question}", console=self.out, default=default, choices=choices)
             if answer not in (None, ""):
+                self.session[key] = answer
+                if (self.dir / "session.json").parent.is_dir() and self.dir != self.workdir:
+                    self.save_session()  # kept at once: an interruption loses no answer
                 return answer
 
     def confirm(self, question: str, *, default: bool = True) -> bool:
@@ -146,15 +150,13 @@ class Wizard:
                 raise ConfigError(f"{path}: not a wizard session: {err}") from err
             if self.session.get("format") != SESSION_FORMAT:
                 raise ConfigError(f"{path}: not a wizard session ({self.session.get('format')!r})")
-            done = [r for r in RUNS if self.session.get("runs", {}).get(r, {}).get("complete")]
             self.out.print(f"  resuming the session of {self.session.get('updated_utc', '?')} in {self.dir} "
-                           f"(recorded: {', '.join(done) or 'nothing yet'})")
+                           f"(recorded: {self._recorded()})")
             if self.interactive and not a.resume and not self.confirm("Resume this session?"):
                 self.session = {}
+                self._set_aside()
         elif path.exists() and a.new:
-            old = versioned_path(self.dir / "session-old.json")
-            path.rename(old)
-            self.out.print(f"  the earlier session was kept as {old.name}")
+            self._set_aside()
         self.dir.mkdir(parents=True, exist_ok=True)
         self.session.update(machine_id=machine, spindle_id=spindle)
         # a faster clock (virtual machine tool) must read the same in a resumed process
@@ -171,20 +173,65 @@ class Wizard:
             raise ConfigError(f"--source {source!r}: sensor or import")
         self.session["source"] = source
         if source == "sensor":
-            self.session["controller"] = self.ask(
-                "controller", "Controller link (URL, as in the runtime configuration)", flag="--controller")
-            self.session["sensor"] = self.ask(
-                "sensor", "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
-                "opc.tcp://...)", flag="--sensor")
-            self.session["rate_s"] = float(self.ask("rate_s", "Sample period [s]", flag="--rate-s",
-                                                    default=1.0, kind=float))
-            if not self.session["rate_s"] > 0:
-                raise ConfigError("--rate-s must be > 0")
-            if not a.no_connection_test and (self.interactive is False or self.confirm("Test the connections now?")):
-                self.test_connections()
+            while True:
+                self.session["controller"] = self.ask(
+                    "controller", "Controller link (URL, as in the runtime configuration)", flag="--controller")
+                self.session["sensor"] = self.ask(
+                    "sensor", "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
+                    "opc.tcp://...)", flag="--sensor")
+                self.session["rate_s"] = float(self.ask("rate_s", "Sample period [s]", flag="--rate-s",
+                                                        default=1.0, kind=float))
+                if not self.session["rate_s"] > 0:
+                    raise ConfigError("--rate-s must be > 0")
+                self.save_session()
+                if a.no_connection_test or not (self.interactive is False or self.confirm("Test the connections now?")):
+                    break
+                try:
+                    self.test_connections()
+                    break
+                except ConfigError as err:
+                    if not self.interactive:
+                        raise
+                    # back to the question that failed; every other answer is kept
+                    which = getattr(err, "link", None) or "controller"
+                    self.session.pop(which, None)
+                    setattr(a, which, None)
+                    self.save_session()
+                    self.out.print(f"  [red]connection test failed:[/] {escape(str(err))}; answer again")
         else:
             self.session["controller"] = a.controller or self.session.get("controller")
         self.save_session()
+
+    def _recorded(self) -> str:
+        """What the session holds: complete runs, and the rows of one cut short."""
+        parts = []
+        for name, info in self.session.get("runs", {}).items():
+            log = Path(str(info.get("log", "")))
+            if info.get("complete"):
+                parts.append(f"{name} complete")
+            elif log.is_file() and _rows(log):
+                parts.append(f"{name} {_rows(log)} rows, not complete")
+        return ", ".join(parts) or "nothing yet"
+
+    def _set_aside(self) -> None:
+        """A new session: the earlier one's answers, run logs, programs and plot move to
+        ``earlier/<when it was last updated>/``; models, reports and configurations stay."""
+        import shutil
+
+        stamp = re.sub(r"[^0-9A-Za-z]", "", str(self.session.get("updated_utc") or _now()))[:15] or "session"
+        aside = self.dir / "earlier" / stamp
+        k = 2
+        while aside.exists():
+            aside, k = self.dir / "earlier" / f"{stamp}-{k}", k + 1
+        moved = [p for p in (self.dir / "session.json", self.dir / "runs", self.dir / "fit.png",
+                             *(self.dir / f"{r}{ext}" for r in RUNS for ext in set(EXTENSIONS.values())))
+                 if p.exists()]
+        aside.mkdir(parents=True)
+        for p in moved:
+            shutil.move(str(p), str(aside / p.name))
+        self.session = {}
+        self.out.print(f"  a new session: the earlier one (answers, run logs, programs) was kept in "
+                       f"{aside.relative_to(self.workdir)}")
 
     def _links(self):
         from cnc_adapters import open_adapter
@@ -193,18 +240,30 @@ class Wizard:
         return open_adapter(self.session["controller"]), open_sensor(self.session["sensor"])
 
     def test_connections(self) -> None:
-        from cnc_adapters.base import AdapterError
+        from cnc_adapters.base import AdapterError, redact_url
+
+        def failed(link: str, message: str) -> ConfigError:
+            err = ConfigError(message)
+            err.link = link  # type: ignore[attr-defined]
+            return err
+
+        from cnc_adapters import open_adapter
+        from cnc_adapters.sensors import open_sensor
 
         try:
-            ctl, sensor = self._links()
-        except AdapterError as err:
-            raise ConfigError(f"connection settings: {err}") from err
+            ctl = open_adapter(self.session["controller"])
+        except (AdapterError, ConfigError) as err:
+            raise failed("controller", f"controller link: {err}") from err
+        try:
+            sensor = open_sensor(self.session["sensor"])
+        except (AdapterError, ConfigError) as err:
+            raise failed("sensor", f"sensor link: {err}") from err
         try:
             with ctl:
                 rpm = ctl.read_speed()
             self.out.print(f"  controller: [green]ok[/], spindle at {rpm:.0f} rpm")
         except AdapterError as err:
-            raise ConfigError(f"controller {self.session['controller']}: {err}") from err
+            raise failed("controller", f"controller {redact_url(self.session['controller'])}: {err}") from err
         try:
             with sensor:
                 um = sensor.read_um()
@@ -218,7 +277,18 @@ class Wizard:
                                    "near mid-range so the growth cannot saturate it")
             self.out.print(f"  sensor: [green]ok[/], {um:.2f} um{where}")
         except AdapterError as err:
-            raise ConfigError(f"sensor {self.session['sensor']}: {err}") from err
+            raise failed("sensor", f"sensor {redact_url(self.session['sensor'])}: {err}") from err
+
+    def both(self, seconds: float) -> str:
+        """A duration of the machine's (simulated) time, with the wall time it takes when the
+        virtual machine tool runs faster than the wall."""
+        scale = float(self.args.time_scale)
+        own = f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+        if scale == 1.0:
+            return own
+        wall = seconds / scale
+        shown = f"{wall / 3600:.2f} h" if wall >= 3600 else f"{wall / 60:.1f} min" if wall >= 60 else f"{wall:.0f} s"
+        return f"{own} ({shown} wall at {scale:g}x)"
 
     # -- step 2 ------------------------------------------------------------------
 
@@ -257,7 +327,7 @@ class Wizard:
             path = self.dir / f"{name}{ext}"
             write_text(path, text)
             files[name] = str(path)
-            t.add_row(name, str(path), f"{prog.duration_s / 3600:.2f} h",
+            t.add_row(name, str(path), self.both(prog.duration_s),
                       f"{max(sp for _, sp in prog.segments):.0f} rpm")
         s["programs"] = files
         self.out.print(t)
@@ -297,7 +367,8 @@ class Wizard:
         log = Path(info["log"])
         resuming = log.exists() and log.stat().st_size > 0
         self.out.print(f"  [bold]{name}[/]: load [cyan]{s['programs'][name]}[/] on the controller "
-                       f"({prog.duration_s / 3600:.2f} h); the spindle must be cold (rested {s['rest_h']:g} h).")
+                       f"({self.both(prog.duration_s)}); the spindle must be cold (rested "
+                       f"{self.both(s['rest_h'] * 3600)}).")
         if resuming:
             self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
         elif self.interactive and not self.confirm("Spindle cold, probe set, program loaded: start recording?"):
@@ -307,10 +378,14 @@ class Wizard:
         meta = {"source": "thermocomp wizard", "machine_id": s["machine_id"], "spindle_id": s["spindle_id"],
                 "run": name, "program": s["programs"][name], "controller": s["controller"],
                 "sensor": s["sensor"], "max_rpm": s["max_rpm"]}
-        live = _LiveView(self.out, prog, name)
+        live = _LiveView(self.out, prog, name, self.args.time_scale)
+        pressed = _StartKey(self.interactive, bool(getattr(self.args, "start_now", False)))
         rec = Recorder(ctl, sensor, log, prog, max_rpm=s["max_rpm"], config=cfg, metadata=meta,
-                       clock=self.clock, sleep=self.sleep, on_sample=live.sample, on_event=live.event)
-        self.out.print("  recording: waiting for the spindle to start (press Cycle Start)", highlight=False)
+                       clock=self.clock, sleep=self.sleep, on_sample=live.sample, on_event=live.event,
+                       start_now=pressed)
+        self.out.print("  recording: waiting for the spindle to start (press Cycle Start"
+                       + ("; press Enter here to start the program clock now, for a program that opens at rest)"
+                          if self.interactive else ")"), highlight=False)
         try:
             with live:
                 result = rec.run()
@@ -594,12 +669,35 @@ def _acquire_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+class _StartKey:
+    """"Start now": ``--start-now``, or Enter on the terminal while the recording waits for the
+    spindle. Polled without blocking, and only while the recording waits, so no later answer is
+    taken for it."""
+
+    def __init__(self, interactive: bool, at_once: bool):
+        self.interactive, self.pressed = interactive, at_once
+
+    def __call__(self) -> bool:
+        if self.pressed or not self.interactive:
+            return self.pressed
+        import select
+
+        try:
+            ready, _, _ = select.select([sys.stdin], [], [], 0)
+            if ready and sys.stdin.readline():
+                self.pressed = True
+        except (OSError, ValueError):
+            self.interactive = False  # no terminal to read after all
+        return self.pressed
+
+
 class _LiveView:
     """Progress, the latest reading and a sparkline: a rich live panel on a terminal, a plain
-    line every 5 % otherwise."""
+    line every 5 % otherwise. Times in the machine's hours, and wall minutes when it runs faster."""
 
-    def __init__(self, console: Console, program, name: str):
+    def __init__(self, console: Console, program, name: str, time_scale: float = 1.0):
         self.out, self.program, self.name = console, program, name
+        self.scale = float(time_scale)
         self.live = None
         self.next_mark = 0.0
         self.lines: list[str] = []
@@ -616,9 +714,13 @@ class _LiveView:
         if self.live is not None:
             self.live.__exit__(*exc)
 
+    def when(self, t_s: float) -> str:
+        own = f"{t_s / 3600:5.2f} h"
+        return own if self.scale == 1.0 else f"{own} ({t_s / self.scale / 60:.1f} min wall)"
+
     def event(self, ev: Event) -> None:
         tag = "[red]problem[/]" if ev.problem and ev.begins else "[green]ok[/]" if ev.problem else "[cyan]info[/]"
-        msg = f"  {tag} t={ev.time_s:.0f} s: {ev.message}"
+        msg = f"  {tag} t {self.when(ev.time_s).strip()}: {ev.message}"
         if self.live is not None:
             self.live.console.print(msg)
         else:
@@ -636,14 +738,14 @@ class _LiveView:
 
             g = T.grid(padding=(0, 1))
             g.add_row(f"[bold]{self.name}[/]", ProgressBar(total=1.0, completed=frac, width=40),
-                      f"{frac:.0%}", f"t {s.time_s / 3600:.2f} h")
+                      f"{frac:.0%}", f"t {self.when(s.time_s)}")
             g.add_row("speed", f"{speed} rpm (programmed {cmd})", "", "")
             g.add_row("growth", f"{el} um{flags}", "", "")
             g.add_row("", sparkline(rec.recent, 60), "", "")
             self.live.update(g)
         elif frac >= self.next_mark:
             self.next_mark = math.floor(frac * 20 + 1) / 20
-            self.out.print(f"  {self.name} {frac:4.0%}  t {s.time_s / 3600:5.2f} h  {speed:>6} rpm "
+            self.out.print(f"  {self.name} {frac:4.0%}  t {self.when(s.time_s)}  {speed:>6} rpm "
                            f"(programmed {cmd})  growth {el} um  {sparkline(rec.recent, 30)}")
 
 

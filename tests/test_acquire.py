@@ -71,14 +71,15 @@ def rig(tmp_path):
     pty.close()
 
 
-def recorder(rig, *, on_sample=None, **cfg):
+def recorder(rig, *, on_sample=None, start_now=None, **cfg):
     clock, vm, pty, amp, prog, tmp = rig
     ctl = SimAdapter(machine=vm)
     sensor = AsciiSensor(pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock,
                          backoff_s=0.0)
     conf = AcquireConfig(rate_s=10.0, **cfg)
     return Recorder(ctl, sensor, tmp / "run.csv", prog, max_rpm=MAX_RPM, config=conf, clock=clock,
-                    sleep=clock.sleep, on_sample=on_sample, metadata={"spindle_id": "t"})
+                    sleep=clock.sleep, on_sample=on_sample, metadata={"spindle_id": "t"}, wall=clock,
+                    start_now=start_now)
 
 
 def at(seconds: float, action):
@@ -284,3 +285,41 @@ def test_modbus_sensor_reads_an_input_register_and_its_overrange_code(tmp_path):
     finally:
         dev.close()
         pty.close()
+
+
+def test_the_start_timeout_counts_wall_seconds_from_this_recording(rig):
+    """A resumed recording waits its full time-out again (it used to count from the log's
+    start and give up at once), and a simulated clock 100x faster than the wall does not
+    shorten it."""
+    clock, vm, pty, amp, prog, tmp = rig
+    vm.load_program(None)
+    wall = lambda: (clock.t - clock.t0) / 100  # noqa: E731
+    rows = []
+    for _ in range(2):
+        ctl = SimAdapter(machine=vm)
+        sensor = AsciiSensor(pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0)
+        rec = Recorder(ctl, sensor, tmp / "run.csv", prog, max_rpm=MAX_RPM, clock=clock, sleep=clock.sleep,
+                       config=AcquireConfig(rate_s=10.0, start_timeout_s=20), wall=wall,
+                       on_sample=lambda s, r: rows.append(s.time_s))
+        t0 = clock.t
+        with pytest.raises(AcquisitionError, match="did not start within 20 s"):
+            rec.run()
+        assert clock.t - t0 == pytest.approx(2000, abs=20)  # 20 wall s = 2000 simulated s
+    assert len(rows) >= 2 * 195
+
+
+def test_a_start_by_hand_begins_the_program_clock(rig):
+    """The operator's "start now" begins the program though the spindle has not turned yet
+    (a program that opens with a rest); the event says so."""
+    clock, vm, pty, amp, prog, tmp = rig
+    vm.load_program(None)  # the spindle stays at rest: only the hand starts the clock
+    t0 = clock.t
+    pressed = lambda: clock.t - t0 >= 100  # noqa: E731
+    rec = recorder(rig, start_now=pressed, start_timeout_s=1e6)
+    events = []
+    rec.on_event = events.append
+    rec.should_stop = lambda: clock.t - t0 > 400
+    with pytest.raises(KeyboardInterrupt):
+        rec.run()
+    started = [e for e in events if "started by hand" in e.message]
+    assert len(started) == 1 and started[0].time_s == pytest.approx(100, abs=10)

@@ -339,8 +339,13 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
                    help="same reading this long across a speed step: frozen (default 120)")
     g.add_argument("--abort-frozen-s", type=float, help="stop after frozen this long (default 300)")
     g.add_argument("--abort-saturated-s", type=float, help="stop after saturated this long (default 30)")
-    g.add_argument("--sensor-grace-s", type=float, help="stop after the sensor is silent this long (default 30)")
-    g.add_argument("--start-timeout-s", type=float, help="stop if the spindle has not started (default 3600)")
+    g.add_argument("--sensor-grace-s", type=float,
+                   help="stop after the sensor is silent this many wall seconds (default 30)")
+    g.add_argument("--start-timeout-s", type=float,
+                   help="stop if the spindle has not started within this many wall seconds (default 3600)")
+    g.add_argument("--start-now", action="store_true",
+                   help="start the program clock when the recording starts, not when the spindle first "
+                   "turns (a program that opens at rest); interactively: press Enter")
     g.add_argument("--import-calibration", help="DAQ CSV of the calibration run (--source import)")
     g.add_argument("--import-validation", help="DAQ CSV of the validation run (--source import)")
     g.add_argument("--import-time-column", default="time_s", help="seconds or ISO date-times")
@@ -351,7 +356,9 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--import-offset-um", type=float, default=0.0)
     g = p.add_argument_group("5 save")
     g.add_argument("--report-format", choices=["html", "md"], default="html")
-    p.add_argument("--time-scale", type=float, default=1.0, help=argparse.SUPPRESS)  # virtual machine tool only
+    p.add_argument("--time-scale", type=float, default=1.0,
+                   help="the virtual machine tool only: its simulated seconds per wall second, as given to "
+                   "`thermocomp virtual-cnc` (durations are then shown in both)")
     p.set_defaults(handler="calibration.wizard:main")
 
 

@@ -1,0 +1,116 @@
+"""Wizard sessions that behave: ``--new`` keeps the earlier session aside (its run log is not
+resumed into), answers are kept as soon as they are given, a failed connection test asks again,
+a resumed session says what it holds, and durations show in wall time too when the virtual
+machine tool runs faster."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import threading
+
+import numpy as np
+import pytest
+from test_wizard import RATE_S, LockStep, lockstep, unattended_args  # noqa: F401 - the fixture
+
+from compensator.io import write_run_log
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def fake_partial_log(sdir, rows: int = 25) -> None:
+    """What an interrupted recording leaves: a run log cut short, the session pointing at it."""
+    log = sdir / "runs" / "calibration.csv"
+    t = np.arange(rows) * float(RATE_S)
+    write_run_log(log, {"time_s": t, "speed_rpm": np.full(rows, 3000.0), "elongation_um": 0.01 * t})
+    session = json.loads((sdir / "session.json").read_text())
+    session["runs"] = {"calibration": {"log": str(log), "complete": False}}
+    (sdir / "session.json").write_text(json.dumps(session))
+
+
+def test_new_keeps_the_earlier_session_aside_and_starts_a_fresh_log(lockstep, tmp_path):
+    ls = lockstep
+    work = tmp_path / "cal"
+    ls.session_dir = sdir = work / "vmc-7" / "main"
+    assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation")) == 0
+    fake_partial_log(sdir)
+    # resuming says what the session holds, rows of an unfinished run included
+    assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation")) == 0
+    assert "calibration 25 rows, not complete" in "".join(ls.lines)
+    ls.lines.clear()
+    assert ls.wizard(unattended_args(work, ls.cnc, "--new", "--programs-only", "--no-validation")) == 0
+    out = "".join(ls.lines)
+    assert "a new session" in out and "resuming" not in out
+    aside = [p for p in (sdir / "earlier").iterdir()]
+    assert len(aside) == 1 and (aside[0] / "runs" / "calibration.csv").is_file()
+    assert (aside[0] / "session.json").is_file() and (aside[0] / "calibration.ngc").is_file()
+    assert not (sdir / "runs" / "calibration.csv").exists()  # nothing left to append to
+    assert "runs" not in json.loads((sdir / "session.json").read_text())
+
+
+def test_durations_show_wall_time_when_the_machine_runs_faster(lockstep, tmp_path):
+    ls = lockstep
+    work = tmp_path / "cal"
+    ls.session_dir = work / "vmc-7" / "main"
+    assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation", "--time-scale", "600")) == 0
+    out = "".join(ls.lines)
+    assert "wall at 600x" in out
+
+
+def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tmp_path, monkeypatch):
+    """At a real terminal: a controller link that does not answer returns to its question; the
+    answers given before it are already in the session file; the right link then passes."""
+    pexpect = pytest.importorskip("pexpect")
+    from pexpect import fdpexpect
+
+    ls = lockstep
+    work = tmp_path / "cal"
+    ls.session_dir = sdir = work / "vmc-9" / "sp1"
+    master, slave = os.openpty()
+    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
+    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
+    monkeypatch.setattr(sys, "stdin", tty_in)
+    result: list[object] = []
+    dead = f"opc.tcp://127.0.0.1:{free_port()}?preset=virtual-cnc"
+
+    def run() -> None:
+        try:
+            result.append(ls.wizard(["--workdir", str(work), "--programs-only", "--no-validation"],
+                                    stdin_tty=True, out=tty_out))
+        except BaseException as err:  # noqa: BLE001 - handed to the test
+            result.append(err)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    child = fdpexpect.fdspawn(master, encoding="utf-8", timeout=60)
+    try:
+        for prompt, answer in [("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
+                               ("Displacement from", "sensor"), ("Controller link", dead),
+                               ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"),
+                               ("Sample period", str(RATE_S)), ("Test the connections now", "y")]:
+            child.expect(prompt)
+            child.sendline(answer)
+        child.expect("connection test failed")
+        child.expect("Controller link")
+        kept = json.loads((sdir / "session.json").read_text())
+        assert kept["max_rpm"] == 27000 and kept["source"] == "sensor" and "controller" not in kept
+        child.sendline(ls.cnc.url + "?preset=virtual-cnc")
+        child.expect("Test the connections now")
+        child.sendline("y")
+        child.expect("controller: .*ok")
+        child.expect("NC dialect")
+        child.sendline("fanuc")
+        th.join(60)
+    finally:
+        os.close(master)
+        tty_in.close()
+        tty_out.close()
+        os.close(slave)
+    assert result == [0], result
+    assert json.loads((sdir / "session.json").read_text())["controller"].startswith(ls.cnc.url)
