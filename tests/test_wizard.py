@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +138,40 @@ class LineTee(io.TextIOBase):
             self.out.flush()
 
 
+@contextmanager
+def at_a_terminal(monkeypatch):
+    """A pseudo-terminal as the wizard's stdin and console: yields (the person's side, read and
+    answered with pexpect; the stream the wizard's console writes to)."""
+    from pexpect import fdpexpect
+
+    master, slave = os.openpty()
+    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
+    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
+    monkeypatch.setattr(sys, "stdin", tty_in)
+    try:
+        yield fdpexpect.fdspawn(master, encoding="utf-8", timeout=60), tty_out
+    finally:
+        os.close(master)
+        tty_in.close()
+        tty_out.close()
+        os.close(slave)
+
+
+def in_thread(fn) -> tuple[threading.Thread, list[object]]:
+    """``fn()`` on a thread; its result (or what it raised) lands in the list."""
+    result: list[object] = []
+
+    def run() -> None:
+        try:
+            result.append(fn())
+        except BaseException as err:  # noqa: BLE001 - handed to the test
+            result.append(err)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th, result
+
+
 @pytest.fixture
 def lockstep():
     ls = LockStep()
@@ -256,28 +291,13 @@ def _rows_in(path: Path) -> int:
 def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatch):
     """Every question asked at a real terminal (a pseudo-terminal, read and answered as a person
     would), the recording in lock-step with the virtual CNC."""
-    pexpect = pytest.importorskip("pexpect")
-    from pexpect import fdpexpect
-
+    pytest.importorskip("pexpect")
     ls = lockstep
     work = tmp_path / "cal"
     ls.session_dir = sdir = work / "vmc-9" / "sp1"
-    master, slave = os.openpty()
-    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
-    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
-    monkeypatch.setattr(sys, "stdin", tty_in)
-    result: list[object] = []
-
-    def run() -> None:
-        try:
-            result.append(ls.wizard(["--workdir", str(work), "--step-min", "10"], stdin_tty=True, out=tty_out))
-        except BaseException as err:  # noqa: BLE001 - handed to the test
-            result.append(err)
-
-    th = threading.Thread(target=run, daemon=True)
-    th.start()
-    child = fdpexpect.fdspawn(master, encoding="utf-8", timeout=60)
-    try:
+    with at_a_terminal(monkeypatch) as (child, tty_out):
+        th, result = in_thread(lambda: ls.wizard(["--workdir", str(work), "--step-min", "10"], stdin_tty=True,
+                                                 out=tty_out))
         answers = [
             ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
             ("Displacement from", "sensor"), ("Controller link", ls.cnc.url + "?preset=virtual-cnc"),
@@ -299,11 +319,6 @@ def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatc
         child.expect("Chosen", timeout=240)
         child.expect("Written", timeout=120)
         th.join(120)
-    finally:
-        os.close(master)
-        tty_in.close()
-        tty_out.close()
-        os.close(slave)
     assert result == [0], result
     session = json.loads((sdir / "session.json").read_text())
     assert session["programs"]["calibration"].endswith(".mpf")

@@ -6,14 +6,11 @@ machine tool runs faster."""
 from __future__ import annotations
 
 import json
-import os
 import socket
-import sys
-import threading
 
 import numpy as np
 import pytest
-from test_wizard import RATE_S, LockStep, lockstep, unattended_args  # noqa: F401 - the fixture
+from test_wizard import RATE_S, at_a_terminal, in_thread, lockstep, unattended_args  # noqa: F401 - the fixture
 
 from compensator.io import write_run_log
 
@@ -66,30 +63,14 @@ def test_durations_show_wall_time_when_the_machine_runs_faster(lockstep, tmp_pat
 def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tmp_path, monkeypatch):
     """At a real terminal: a controller link that does not answer returns to its question; the
     answers given before it are already in the session file; the right link then passes."""
-    pexpect = pytest.importorskip("pexpect")
-    from pexpect import fdpexpect
-
+    pytest.importorskip("pexpect")
     ls = lockstep
     work = tmp_path / "cal"
     ls.session_dir = sdir = work / "vmc-9" / "sp1"
-    master, slave = os.openpty()
-    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
-    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
-    monkeypatch.setattr(sys, "stdin", tty_in)
-    result: list[object] = []
     dead = f"opc.tcp://127.0.0.1:{free_port()}?preset=virtual-cnc"
-
-    def run() -> None:
-        try:
-            result.append(ls.wizard(["--workdir", str(work), "--programs-only", "--no-validation"],
-                                    stdin_tty=True, out=tty_out))
-        except BaseException as err:  # noqa: BLE001 - handed to the test
-            result.append(err)
-
-    th = threading.Thread(target=run, daemon=True)
-    th.start()
-    child = fdpexpect.fdspawn(master, encoding="utf-8", timeout=60)
-    try:
+    with at_a_terminal(monkeypatch) as (child, tty_out):
+        th, result = in_thread(lambda: ls.wizard(["--workdir", str(work), "--programs-only", "--no-validation"],
+                                                 stdin_tty=True, out=tty_out))
         for prompt, answer in [("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
                                ("Displacement from", "sensor"), ("Controller link", dead),
                                ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"),
@@ -107,10 +88,5 @@ def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tm
         child.expect("NC dialect")
         child.sendline("fanuc")
         th.join(60)
-    finally:
-        os.close(master)
-        tty_in.close()
-        tty_out.close()
-        os.close(slave)
     assert result == [0], result
     assert json.loads((sdir / "session.json").read_text())["controller"].startswith(ls.cnc.url)
