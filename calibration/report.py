@@ -6,10 +6,20 @@ from __future__ import annotations
 import base64
 import html
 import math
+import os
+import re
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit, urlunsplit
 
+from cnc_adapters.base import redact_url
 from compensator.predictor import Predictor
+from compensator.shaping import ShaperConfig
+
+from .candidate import MIN_FORWARD_FOLDS
+
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+"""A runtime spindle name (``SpindleConfig.name``)."""
 
 
 def _b64(path: str | Path) -> str:
@@ -22,50 +32,115 @@ def _f(v: Any, digits: int = 2) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
+def _held_out_max(c: dict[str, Any]) -> float | None:
+    """The max that goes with ``honest_rms_um``: nested where the candidate was nested."""
+    return c["nested_max_abs_um"] if c.get("nested_rms_um") is not None else c["cv_max_abs_um"]
+
+
+def _error_table(summary: dict[str, Any]) -> list[list[str]]:
+    """Every free-run figure the report states, each named by what it was scored on."""
+    rep = summary["report"]
+    chosen = next(c for c in rep["candidates"] if c["name"] == rep["chosen"])
+    basis = "nested " if chosen.get("nested_rms_um") is not None else ""
+    rows = [["figure", "RMS [um]", "max [um]", "samples"],
+            [f"identification (held out): {chosen['name']}, {basis}{rep['scored_by']}",
+             _f(chosen["honest_rms_um"]), _f(_held_out_max(chosen)), "-"]]
+    folds = len(chosen.get("forward_folds_rms_um") or [])
+    if chosen.get("forward_rms_um") is not None:
+        note = "" if folds >= MIN_FORWARD_FOLDS else " (too few to decide by)"
+        rows.append([f"identification (held out): {chosen['name']}, predicted forward, {folds} fold"
+                     f"{'' if folds == 1 else 's'} each from the ones before it{note}",
+                     _f(chosen["forward_rms_um"]), _f(chosen["forward_max_abs_um"]), "-"])
+    v = summary.get("validation")
+    if v:
+        rows.append(["validation (held out): a run the fit never saw, free run", _f(v["rms_um"]),
+                     _f(v["max_abs_um"]), str(v["samples"])])
+        vr = summary.get("validation_report") or {}
+        sh = vr.get("shaping") or {}
+        if vr.get("applied_cutting_max_abs_residual_um") is not None and sh.get("policy"):
+            rows.append([f"validation (held out): the offset as shaped ({sh['policy']}, "
+                         f"{sh['max_rate_um_per_s']:g} um/s while cutting), while the tool cuts",
+                         _f(vr.get("applied_cutting_rms_residual_um")),
+                         _f(vr["applied_cutting_max_abs_residual_um"]), "-"])
+    cal = summary["calibration"]
+    rows.append(["calibration (in sample): the data the model was fitted on, free run", _f(cal["rms_um"]),
+                 _f(cal["max_abs_um"]), str(cal["samples"])])
+    return rows
+
+
+def _run_use(name: str, info: dict[str, Any], summary: dict[str, Any]) -> str:
+    if not info.get("complete"):
+        return "incomplete: not used"
+    if name == "calibration":
+        return "fitted (in sample)"
+    if name == "validation" and summary.get("validation"):
+        return "held out: free run only"
+    return "not used"
+
+
 def _sections(session: dict[str, Any], summary: dict[str, Any], model: Predictor,
               model_path: Path, version: str) -> list[tuple[str, list[list[str]] | list[str]]]:
     rep = summary["report"]
+    runs_info = session.get("runs", {})
+    if session.get("sensor"):
+        displacement = redact_url(str(session["sensor"]))
+    elif session.get("source") == "import":
+        files = [Path(i["imported_from"]).name for i in runs_info.values() if i.get("imported_from")]
+        displacement = "imported" + (f" from {', '.join(files)}" if files else "")
+    else:
+        displacement = str(session.get("source") or "-")
+    controller = session.get("controller")
     ident = [["machine", session["machine_id"]], ["spindle", session["spindle_id"]],
-             ["maximum speed", f"{session['max_rpm']:.0f} rpm"], ["controller", str(session.get("controller"))],
-             ["displacement", str(session.get("sensor") or session.get("source"))],
+             ["maximum speed", f"{session['max_rpm']:.0f} rpm"],
+             ["controller", "-" if not controller else redact_url(str(controller))],
+             ["displacement", displacement],
              ["model file", f"{model_path.name} ({version})"], ["model form", model.form],
              ["created (UTC)", str(model.created_utc or "")]]
-    runs = [["run", "log", "rows", "flagged", "program"]]
-    for name, info in session.get("runs", {}).items():
+    runs = [["run", "log", "rows", "flagged", "program", "in this report"]]
+    for name, info in runs_info.items():
         runs.append([name, Path(info["log"]).name, str(info.get("rows", "-")),
                      ", ".join(f"{k} {v}" for k, v in (info.get("flagged") or {}).items()) or "none",
-                     Path(session.get("programs", {}).get(name, "-")).name])
-    cands = [["candidate", "held-out RMS [um]", "held-out max [um]", "in-sample RMS [um]", "verdict"]]
+                     Path(session.get("programs", {}).get(name, "-")).name, _run_use(name, info, summary)])
+    cands = [["candidate", "held-out RMS [um]", "held-out max [um]", "forward RMS [um]", "forward max [um]",
+              "decisive RMS [um]", "in-sample RMS [um]", "verdict"]]
     for c in rep["candidates"]:
         mark = " (chosen)" if c["name"] == rep["chosen"] else ""
         verdict = ("reference only" if c["family"] == "reference" else "accepted" if c["accepted"]
                    else "refused: " + "; ".join(c["refusals"]))
-        cands.append([c["name"] + mark, _f(c["honest_rms_um"]), _f(c["cv_max_abs_um"]),
+        cands.append([c["name"] + mark, _f(c["honest_rms_um"]), _f(_held_out_max(c)), _f(c.get("forward_rms_um")),
+                      _f(c.get("forward_max_abs_um")), _f(c.get("decisive_rms_um", c["honest_rms_um"])),
                       _f(c["in_sample_rms_um"]), verdict])
-    res = [["run", "RMS [um]", "max [um]", "samples"]]
-    cal = summary["calibration"]
-    res.append(["calibration (in sample)", _f(cal["rms_um"]), _f(cal["max_abs_um"]), str(cal["samples"])])
-    if summary.get("validation"):
-        v = summary["validation"]
-        res.append(["validation (held out)", _f(v["rms_um"]), _f(v["max_abs_um"]), str(v["samples"])])
     steady = [["speed [rpm]", "steady growth [um]"]]
     for frac in (0.25, 0.5, 0.75, 1.0):
         n = frac * session["max_rpm"]
         steady.append([f"{n:.0f}", _f(model.steady_state_um(n))])
-    notes = list(summary.get("warnings", [])) + [f"advice: {a}" for a in summary.get("advice", [])]
+    notes = list(summary.get("warnings", []))
+    v = summary.get("validation")
+    if v and str(rep.get("scored_by", "")).startswith("blocked"):
+        # the fit saw one cycle; the validation run is the check on another, kept out of the fit
+        notes.append(f"the validation run is a second cycle, which the fit never saw: free-run RMS "
+                     f"{_f(v['rms_um'])} um, max {_f(v['max_abs_um'])} um (held out)")
+    elif not v and session.get("validation") and not runs_info.get("validation", {}).get("complete"):
+        notes.append("the validation run is incomplete: no run held out of the fit was scored")
+    notes += [f"advice: {a}" for a in summary.get("advice", [])]
     loop: list[list[str]] = []
-    if summary.get("closed_loop"):
-        cl = summary["closed_loop"]
+    cl = summary.get("closed_loop")
+    if cl:
         loop = [["probe every", "RMS [um]", "max [um]"]]
         loop += [["never" if r["interval_s"] is None else f"{r['interval_s']:.0f} s", _f(r["rms_um"]),
                   _f(r["max_abs_um"])] for r in cl["intervals"]]
         rec = cl["recommended_interval_s"]
-        loop.append(["recommended", "-" if rec is None else f"{rec:.0f} s",
-                     f"target {cl['target_rms_um']:g} um RMS"])
-    return [("Spindle", ident), ("Runs", runs), (f"Candidates (free run, {rep['scored_by']})", cands),
+        target = f"{cl['target_rms_um']:g} um RMS"
+        loop.append(["recommended", f"none meets {target}" if rec is None else f"{rec:.0f} s", f"target {target}"])
+    sigma = f", probe sigma {cl['probe_sigma_um']:g} um" if cl and cl.get("probe_sigma_um") is not None else ""
+    return [("Spindle", ident), ("Runs", runs),
+            ("Free-run error: held out (data the fit did not see) and in sample", _error_table(summary)),
+            (f"Candidates (held out: {rep['scored_by']}; forward: each fold from the ones before it; "
+             "the choice reads the decisive RMS)", cands),
             (f"Chosen: {rep['chosen']}", [rep["reason"]]), ("The model", model.describe()),
-            ("Free-run residuals", res), ("Steady-state growth predicted", steady),
-            *([("Closed loop with a tool setter (validation run, probe sigma 0.5 um)", loop)] if loop else []),
+            ("Steady-state growth predicted", steady),
+            *([(f"Closed loop with a tool setter (scored on the validation run, held out{sigma})", loop)]
+              if loop else []),
             ("Warnings and advice", notes or ["none"])]
 
 
@@ -114,35 +189,86 @@ def _toml_value(v: Any) -> str:
         return "true" if v else "false"
     if isinstance(v, (int, float)):
         return repr(v)
-    s = str(v).replace("\\", "\\\\").replace('"', '\\"')
-    return f'"{s}"'
+    out = []
+    for ch in str(v):
+        if ch in "\\\"":
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:  # TOML takes no raw control character
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
 
 
-def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path) -> str:
-    """A complete ``thermocomp run`` configuration for this spindle."""
+def _without_password(url: str) -> tuple[str, bool]:
+    """``url`` without the password in its user information (the runtime refuses a URL that
+    carries one: it would end up in logs), and whether there was one."""
+    try:
+        parts = urlsplit(url)
+        userinfo, at, host = parts.netloc.rpartition("@")
+    except ValueError:
+        return redact_url(url), "@" in url
+    if not (at and ":" in userinfo):
+        return url, False
+    user = userinfo.partition(":")[0]
+    return urlunsplit(parts._replace(netloc=f"{user}@{host}" if user else host)), True
+
+
+def _relative(path: Path, start: Path) -> str:
+    """``path`` relative to ``start`` (what the runtime resolves it against), else absolute."""
+    try:
+        return os.path.relpath(Path(path).absolute(), Path(start).absolute())
+    except ValueError:  # another drive
+        return str(Path(path).absolute())
+
+
+def _line(key: str, value: Any, why: str = "") -> str:
+    text = f"{key} = {_toml_value(value)}"
+    return f"{text:<38} # {why}" if why else text
+
+
+def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path,
+                   config_dir: Path | None = None) -> str:
+    """A ``thermocomp run`` configuration for this spindle, to be written into ``config_dir``
+    (default ``<session>/config``, beside the wizard's ``<session>/models``): the product's
+    defaults but for what this spindle needs; paths relative to the file (the runtime resolves
+    them so); the spindle id the model file must carry; the controller link without a password."""
+    model_path = Path(model_path)
+    config_dir = model_path.parent.parent / "config" if config_dir is None else Path(config_dir)
+    machine, spindle = session["machine_id"], session["spindle_id"]
+    name = f"{machine}-{spindle}"
+    if not _NAME.fullmatch(name) or ".." in name:
+        name = spindle  # both ids are too long for a spindle name: the spindle's alone
+    lines = [f"# thermocomp runtime configuration for {machine} / {spindle}",
+             "# written by `thermocomp wizard`; check it with `thermocomp run --config THIS --check`",
+             "# What is left out is the product's default (examples/machine.toml shows every option).",
+             "# Paths are relative to this file, so the session directory can move as a whole.",
+             _line("state_dir", _relative(config_dir.parent / "state", config_dir),
+                   "this session's; a system service keeps /var/lib/thermocomp"),
+             "",
+             "[[spindle]]",
+             _line("name", name),
+             _line("spindle_id", spindle, "a model file fitted on another spindle is refused"),
+             _line("model", _relative(model_path, config_dir)),
+             "",
+             "[spindle.adapter]"]
+    controller = session.get("controller")
+    if controller:
+        url, had_password = _without_password(str(controller))
+        if had_password:
+            lines += ["# the wizard's link carried a password, left out here (a URL with one is refused):",
+                      "# give it in password_file, a systemd credential or the environment"]
+        lines.append(_line("url", url))
+    else:
+        lines.append(_line("url", "opc.tcp://CHANGE-ME:4840", "the wizard was given no controller link"))
     top = abs(model.steady_state_um(session["max_rpm"]))
-    clamp = max(20.0, math.ceil(1.5 * top / 5.0) * 5.0)
-    controller = session.get("controller") or "opc.tcp://CHANGE-ME:4840"
-    return f"""# thermocomp runtime configuration for {session['machine_id']} / {session['spindle_id']}
-# written by `thermocomp wizard`; check it with `thermocomp run --config THIS --check`
-# See examples/machine.toml for every option.
-state_dir = "/var/lib/thermocomp"
-log_level = "info"
-
-[[spindle]]
-name = {_toml_value(f"{session['machine_id']}-{session['spindle_id']}")}
-model = {_toml_value(str(model_path))}
-period_s = 1.0
-
-[spindle.adapter]
-url = {_toml_value(controller)}
-
-[spindle.shaping]
-max_offset_um = {clamp:g}                 # 1.5 x the predicted growth at {session['max_rpm']:.0f} rpm
-max_rate_um_per_s = 1.0
-deadband_um = 0.2
-
-[spindle.shaping.transient]
-enabled = true
-mode = "slow"
-"""
+    default = ShaperConfig().max_offset_um
+    at = f"{top:.0f} um predicted at {session['max_rpm']:.0f} rpm"
+    if math.isfinite(top):
+        clamp = math.ceil(1.5 * top / 5.0) * 5.0
+        if clamp > default:
+            lines += ["", "[spindle.shaping]",
+                      _line("max_offset_um", clamp, f"1.5 x the {at}; the default {default:g} um would cut it")]
+        else:
+            lines += ["", f"# shaping: the defaults (dual slew; the clamp, {default:g} um, is over 1.5 x the {at})"]
+    return "\n".join(lines) + "\n"
