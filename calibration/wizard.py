@@ -538,7 +538,7 @@ class Wizard:
         report_path = versioned_path(self.dir / "reports" / f"{base}.{fmt}")
         write_text(report_path, calibration_report(s, summary, self._model, model_path, fmt, version))
         config_path = versioned_path(self.dir / "config" / f"{base}.toml")
-        write_text(config_path, runtime_config(s, self._model, model_path))
+        write_text(config_path, runtime_config(s, self._model, model_path, config_dir=config_path.parent))
         older = sorted(p.name for p in (self.dir / "models").glob("*.json") if p != model_path)
         s["saved"] = {"model": str(model_path), "report": str(report_path), "config": str(config_path),
                       "version": version, "at_utc": _now()}
@@ -553,7 +553,8 @@ class Wizard:
         if older:
             self.out.print(f"  earlier models kept: {', '.join(older)}")
         self.out.print(f"  next: check it with [bold]thermocomp run --config {config_path} --check[/], "
-                       f"or replay a logged day with [bold]thermocomp replay LOG --model {model_path}[/]")
+                       f"or replay a logged day as the service would run it with "
+                       f"[bold]thermocomp replay LOG --config {config_path}[/]")
         return s["saved"]
 
     def run(self) -> int:
