@@ -139,6 +139,9 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: Predictor
              "the choice reads the decisive RMS)", cands),
             (f"Chosen: {rep['chosen']}", [rep["reason"]]), ("The model", model.describe()),
             ("Steady-state growth predicted", steady),
+            *([("Spindle thermal test in the terms of ISO 230-3 (thermal distortion caused by a rotating "
+                "spindle; drift from the start of the run; calibration in sample, validation held out)",
+                summary["iso230_3"])] if summary.get("iso230_3") else []),
             *([(f"Closed loop with a tool setter (scored on the validation run, held out{sigma})", loop)]
               if loop else []),
             ("Warnings and advice", notes or ["none"])]

@@ -501,6 +501,13 @@ class Wizard:
                 self.out.print(f"  {line}", markup=False, highlight=False)
             summary["closed_loop"] = loop.report()
             model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
+        # the standard's drift test, from the same runs: what a shop hands its customer
+        from .iso230_3 import report_rows, spindle_thermal_test
+
+        tests = {"calibration": spindle_thermal_test(j.time_s, j.speed_rpm, j.elongation_um, fitted)}
+        if "validation" in summary:
+            tests["validation"] = spindle_thermal_test(rep.time_s, rep.speed_rpm, rep.measured_um, rep.predicted_um)
+        summary["iso230_3"] = report_rows(tests)
         plot = self.dir / "fit.png"
         plot_panels(plot, panels, f"{s['machine_id']} / {s['spindle_id']}: {model.form}",
                     max_rpm=s["max_rpm"])
