@@ -112,6 +112,13 @@ class SpindleConfig(BaseModel):
     observer: ObserverSettings = ObserverSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
+    max_expected_error_um: float | None = Field(
+        None, gt=0, le=10000, description="the error the work tolerates [um]: when the error the "
+        "model's fit states for the current speed and inputs (95 % of |error|) is larger, or is "
+        "only a floor there (validation scored nothing like it: too few folds predicted forward, "
+        "a speed above the calibrated range, inputs further out than it reached), "
+        "EXPECTED_ERROR_HIGH is raised (advice: the offset is unchanged). Unset: no alarm; a "
+        "model that states no expected error is never checked")
 
     @field_validator("name")
     @classmethod

@@ -28,6 +28,7 @@ EVENTS = (
     "chiller_failed", "chiller_restored",
     "status_listening", "status_failed", "mqtt_connected", "mqtt_lost", "journal_swept",
     "estimate_refused", "cycle_failed", "downtime_corrected",
+    "expected_error_high", "expected_error_within_bound",
 )
 """Every event name the runtime emits (documented in the README)."""
 

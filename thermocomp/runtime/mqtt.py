@@ -4,7 +4,8 @@ Topics under the configured prefix, JSON payloads, all retained so a dashboard t
 later sees the latest at once:
 
 - ``<topic>/status``: the whole snapshot (:func:`.status.snapshot`);
-- ``<topic>/spindle/<name>``: each spindle's part of it;
+- ``<topic>/spindle/<name>``: each spindle's part of it (S, the offsets, the alarms, the error
+  to expect, ...);
 - ``<topic>/availability``: ``online`` once connected, ``offline`` at a clean stop, and
   ``offline`` from the broker itself (the last will) when the service dies or goes silent for
   1.5 ``keepalive_s``.

@@ -19,6 +19,11 @@ cycle and saves the state when due. The controller's offset is the truth:
 - a model with inputs: its speed-only fallback is always stepped and stands in, with an alarm,
   while an input is missing, out of range or stale; an input outside the range seen in
   calibration (but valid) raises ``INPUTS_EXTRAPOLATED``;
+- the error to expect: where the fit stated one (``fit.expected_error``), each cycle takes the
+  figure of the model in use for the speed and how far the inputs lie outside the trained range
+  (:meth:`_expected_error`); above ``max_expected_error_um``, or where validation scored nothing
+  like it (the figure a floor) while a bound is set, ``EXPECTED_ERROR_HIGH``. Advice: the offset
+  is the same;
 - the disk fails: a journal row or a state save that cannot be written raises an alarm naming
   the file and the OS error and is retried with back-off; compensation goes on;
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
@@ -70,6 +75,7 @@ from compensator.errors import (
     ModelFileError,
 )
 from compensator.estimate import Estimate, EstimateState, Step
+from compensator.expected import MIN_FORWARD_FOLDS, SPEED_TOLERANCE, ExpectedError, parse_expected
 from compensator.fusion import FusedState
 from compensator.io.journal import ALARM_COLD_START
 from compensator.io import (
@@ -131,6 +137,7 @@ class Alarm(enum.IntFlag):
     PROBE_FAILED = 1048576
     CUTTING_SIGNAL_FAILED = 2097152
     ESTIMATE_REFUSED = 4194304
+    EXPECTED_ERROR_HIGH = 8388608
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
@@ -151,6 +158,25 @@ def cutting_from_controller(cfg: SpindleConfig, adapter: Any) -> bool:
                           "adapter has no cutting signal configured (cutting_node for OPC UA, "
                           "cutting for LinuxCNC, cutting_register for Modbus)")
     return has_signal and signal != "speed"
+
+
+def _where(band: str) -> str:
+    """A speed band's label as a place in a sentence: ``at rest``, ``at 0-3333 rpm``."""
+    return band if band == "at rest" else f"at {band}"
+
+
+def _unvalidated(stated: ExpectedError, speed_rpm: float, spans: float) -> list[str]:
+    """Why validation scored no prediction like this one (:meth:`ExpectedError.validated`)."""
+    why = []
+    if stated.forward_folds < MIN_FORWARD_FOLDS:
+        why.append(f"the fit predicted {stated.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}")
+    top = stated.bands[-1].speed_rpm[1]
+    if abs(speed_rpm) > top * (1 + SPEED_TOLERANCE):
+        why.append(f"{abs(speed_rpm):.0f} rpm is above the calibrated {top:.0f} rpm")
+    if spans > stated.outside_validated:
+        why.append(f"inputs {spans:.2f} spans outside the trained range, further than validation "
+                   f"scored ({stated.outside_validated:.2f})")
+    return why or ["validation scored no prediction like this one"]
 
 
 def mismatch_cause(held_um: float, tolerance_um: float) -> str:
@@ -183,6 +209,25 @@ class SpindleRuntime:
         # the model, its fallback, the observer and the speed clamp: one object, as replay runs it
         self.estimate: Estimate = cfg.estimate(loaded)
         self.est: EstimateState = self.estimate.cold()
+        # the error each model's fit stated, read once per load: the model with inputs carries
+        # its own, its speed-only fallback (which stands in when an input fails) another
+        fallback = getattr(loaded, "fallback", None)
+        self.expected: ExpectedError | None = parse_expected(getattr(loaded, "fit", None))
+        self.expected_fallback: ExpectedError | None = (
+            None if fallback is None else parse_expected(getattr(fallback, "fit", None)))
+        self._expected_high: str | None = None  # why EXPECTED_ERROR_HIGH is raised, while it is
+        if cfg.max_expected_error_um is not None:
+            if self.expected is None and self.expected_fallback is None:
+                log.warning("%s: max_expected_error_um = %g, but model %s states no expected error "
+                            "(fit it again to have one): the bound is not checked", cfg.name,
+                            cfg.max_expected_error_um, cfg.model)
+            folds = min((e.forward_folds for e in (self.expected, self.expected_fallback) if e is not None),
+                        default=MIN_FORWARD_FOLDS)
+            if folds < MIN_FORWARD_FOLDS:
+                log.warning("%s: the expected error of model %s rests on %d fold(s) predicted forward "
+                            "(fewer than %d): it is only a floor, so EXPECTED_ERROR_HIGH stands while "
+                            "max_expected_error_um is set; fit on more cycles", cfg.name, cfg.model,
+                            folds, MIN_FORWARD_FOLDS)
         self.state_path = Path(state_dir) / f"{cfg.name}.state.json"
         self.adapter = adapter if adapter is not None else open_adapter(cfg.adapter, clock=clock)
         if self.estimate.with_inputs is not None:
@@ -317,6 +362,7 @@ class SpindleRuntime:
         self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
         self.offset.shaper.follow(old.offset.shaper)  # the speed it was settling at, and since when
         self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
+        self._expected_high = old._expected_high  # raised still: no second entry event
         self._last_t, self._first_t = old._last_t, old._first_t
         self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
         self._skew_s, self._write_done_s = old._skew_s, old._write_done_s
@@ -788,6 +834,8 @@ class SpindleRuntime:
                     self._since_start = None
         if self.estimate.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
+        expected, expected_alarm = self._expected_error(read_rpm)  # the real speed, not the clamped one
+        alarms |= expected_alarm
         s = self.estimate_um()
         shaped = self.offset.plan(s, shaper_speed, self._shaper_dt(dt), cutting)
         if shaped.cutting:
@@ -830,7 +878,7 @@ class SpindleRuntime:
                      "slew_limit_um_per_s": shaped.rate_um_per_s,
                      "estimate": ("fused" if self.estimate.fused is not None else "inputs"
                                   if self.input_state is not None else "speed"),
-                     "inputs": dict(self._inputs_read)}
+                     "inputs": dict(self._inputs_read), "expected_error": expected}
         return {**self.last, "alarms": alarms}
 
     def _shaper_dt(self, dt: float) -> float:
@@ -945,6 +993,48 @@ class SpindleRuntime:
             event("inputs_extrapolated", self.cfg.name, "%s: INPUTS_EXTRAPOLATED: %s; the model "
                   "with inputs extrapolates", self.cfg.name, why, level=logging.WARNING, reason=why)
         return Alarm.INPUTS_EXTRAPOLATED
+
+    def _expected_error(self, speed: float) -> tuple[dict[str, Any] | None, Alarm]:
+        """The error to expect this cycle (None where the model in use states none): the
+        figure its fit stated for ``speed`` and for how far the inputs lie outside the trained
+        range, with the configured bound. ``EXPECTED_ERROR_HIGH`` while a bound is set and the
+        figure (95 % of |error|) exceeds it, or validation scored no prediction like this one (too
+        few folds predicted forward, a speed above the calibrated range, inputs further out than
+        it reached: the figure is then a floor); one event on entry, one on leaving. Advice only:
+        the offset is never changed for it."""
+        on_inputs = self.estimate.with_inputs is not None and self.est.inputs is not None
+        stated = self.expected if on_inputs or self.estimate.with_inputs is None else self.expected_fallback
+        bound = self.cfg.max_expected_error_um
+        out: dict[str, Any] | None = None
+        why: str | None = None
+        if stated is not None:
+            spans = float(self.est.outside_spans) if on_inputs else 0.0
+            e = stated.at(speed, spans)
+            out = {"band": e.band, "rms_um": e.rms_um, "p95_abs_um": e.p95_abs_um, "source": e.source,
+                   "outside": e.outside, "outside_spans": spans, "validated": e.validated,
+                   "bound_um": bound}
+            if bound is not None and (e.p95_abs_um > bound or not e.validated):
+                where = _where(e.band)
+                over = e.p95_abs_um > bound
+                why = (f"expected error {'' if e.validated else 'at least '}{e.p95_abs_um:.1f} um (95 %)"
+                       + (f" over the bound {bound:g} um {where}" if over else f" {where} (bound {bound:g} um)"))
+                if not e.validated:  # the figure is a floor: the bound cannot be vouched for
+                    why += ", not validated here: " + "; ".join(_unvalidated(stated, speed, spans))
+                elif e.outside:
+                    why += ", inputs outside the trained range"
+                why += ": probe or recalibrate"
+        if why is not None and self._expected_high is None:
+            event("expected_error_high", self.cfg.name, "%s: EXPECTED_ERROR_HIGH: %s", self.cfg.name,
+                  why, level=logging.WARNING, reason=why, **(out or {}))
+        elif why is None and self._expected_high is not None:
+            now_is = ("the model in use states no expected error" if out is None
+                      else "no bound is set" if bound is None
+                      else f"expected error {out['p95_abs_um']:.1f} um (95 %) {_where(out['band'])}, within "
+                      f"the bound {bound:g} um")
+            event("expected_error_within_bound", self.cfg.name, "%s: EXPECTED_ERROR_HIGH cleared: %s",
+                  self.cfg.name, now_is, reason=now_is, **(out or {}))
+        self._expected_high = why
+        return out, Alarm.EXPECTED_ERROR_HIGH if why is not None else Alarm.NONE
 
     def close(self) -> None:
         """Save the state and close; a failing disk or link never raises here."""

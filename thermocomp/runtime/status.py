@@ -2,9 +2,10 @@
 
 Each tick the service builds one immutable **snapshot** (:func:`snapshot`): per spindle the
 elongation S, the offset aimed at, the one the controller holds and the one last read back, the
-alarms by name, the age of the last write, the link and observer state and the model with its
-ranges; plus the chiller loop. A :class:`History` keeps one point per ``history_every_s`` for the
-page's plot (the last values, the alarms of the whole interval).
+alarms by name, the age of the last write, the link and observer state, the model with its
+ranges and the error to expect where the model states one; plus the chiller loop. A
+:class:`History` keeps one point per ``history_every_s`` for the page's plot (the last values,
+the alarms of the whole interval).
 
 :class:`StatusServer` serves them read-only over HTTP from a thread of its own (stdlib
 ``http.server``): it only ever reads the latest snapshot and a copy of the history, so a slow
@@ -109,6 +110,7 @@ def spindle_status(rt: Any, now_s: float) -> dict[str, Any]:
         "alarms": alarm_names(alarms),
         "alarm_bits": alarms,
         "observer": rt.observer_status(),
+        "expected_error": last.get("expected_error"),
         "inputs": last.get("inputs", {}),
         "model": model_status(rt),
         "counters": dict(rt.counters),
@@ -220,6 +222,15 @@ def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
             yield alarm
             yield _gauge("thermocomp_observer_bias_micrometres", "the probe observer's bias [um]", ["spindle"],
                          [([s["name"]], (s.get("observer") or {}).get("bias_um")) for s in sp if s.get("observer")])
+            # absent for a spindle whose model states no expected error
+            stated = [(s["name"], s["expected_error"]) for s in sp if s.get("expected_error")]
+            yield _gauge("thermocomp_expected_error_p95_micrometres", "the error to expect now, as the "
+                         "fit stated it: 95th percentile of |error| [um]", ["spindle"],
+                         [([name], e.get("p95_abs_um")) for name, e in stated])
+            yield _gauge("thermocomp_expected_error_rms_micrometres", "the error to expect now, as the "
+                         "fit stated it: RMS [um]", ["spindle"], [([name], e.get("rms_um")) for name, e in stated])
+            yield _gauge("thermocomp_expected_error_bound_micrometres", "max_expected_error_um: above it "
+                         "EXPECTED_ERROR_HIGH [um]", ["spindle"], [([name], e.get("bound_um")) for name, e in stated])
             yield _gauge("thermocomp_input_value", "the link's extra inputs (temperatures, load)",
                          ["spindle", "input"],
                          [([s["name"], k], v) for s in sp for k, v in (s.get("inputs") or {}).items()])
