@@ -1,4 +1,5 @@
-"""Recording a calibration run: speed from the controller, displacement from the sensor.
+"""Recording a calibration run: speed from the controller, displacement from the sensor, or the
+machine's tool setter alone.
 
 Each sample the recorder reads both, checks the reading, and appends one row to the run
 log (flushed per row, fsynced every few seconds), so an interruption loses at most the row
@@ -22,6 +23,20 @@ Rows carry these as a ``flags`` column (:class:`Problem`); the fit leaves out ro
 saturated, frozen or jump. Time is ``clock()`` minus the recording's start, so a resumed
 recording shows the interruption as a gap. Injected ``clock`` and ``sleep`` let tests run
 without waiting.
+
+**The tool setter alone** (``sensor=None``): the program carries probe stops
+(``Program.probe_at_s``, :func:`calibration.nc_programs.with_probe_stops`) and the controller's
+link reads the probe cycle's measurement (``controller.read_measurement()``, the counter
+handshake). Every sample is logged as above; the elongation is empty (NaN, the log marked
+``elongation_um: sparse``) except on the row of a new measurement, which carries its value (the
+cycle measures the growth from the cold reference). The cycle measures at rest: when the spindle
+already turns again at the sample that sees the value, the value goes on a row of its own at rest,
+half-way since the previous sample, so that no speed's elastic growth is put on it. At a stop
+the recorder's program clock waits for the measurement (the machine's program waits for its
+cycle), so the commanded speed is 0 there and the spindle at rest is no "not following"; no
+measurement within ``probe_timeout_s`` wall seconds stops the recording. The frozen, jump and
+saturation checks are the eddy-current sensor's; a failed read of the measurement counts as a
+sensor fault.
 """
 
 from __future__ import annotations
@@ -39,8 +54,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from cnc_adapters.base import Adapter, AdapterError
 from cnc_adapters.sensors import Sensor, SensorOverRangeError
-from compensator.errors import AcquisitionError
+from compensator.errors import AcquisitionError, ConfigError
 from compensator.io import RunLogAppender
+from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
 from compensator.speed_programs import Program
 
 COLUMNS = ("time_s", "speed_rpm", "elongation_um", "sensor_um", "commanded_rpm", "flags")
@@ -81,6 +97,8 @@ class AcquireConfig(BaseModel):
     follow_alarm_s: float = Field(60.0, gt=0)
     start_timeout_s: float = Field(3600.0, gt=0, description="stop if the spindle has not started this "
                                    "many wall seconds after the recording began (or resumed)")
+    probe_timeout_s: float = Field(900.0, gt=0, description="a probe stop without a new tool-setter "
+                                   "measurement this long (wall seconds) stops the recording")
 
 
 @dataclass
@@ -111,12 +129,15 @@ class Recording:
     flagged: dict[str, int] = field(default_factory=dict)
     program_start_s: float | None = None
     complete: bool = False
+    measurements: int = 0
+    """Tool-setter measurements logged by this recording."""
 
 
 class Recorder:
-    """Record ``program`` on ``controller`` and ``sensor`` into ``path`` (resumes if it exists)."""
+    """Record ``program`` on ``controller`` and ``sensor`` into ``path`` (resumes if it exists);
+    ``sensor=None``: the controller's tool setter at the program's probe stops (a sparse log)."""
 
-    def __init__(self, controller: Adapter, sensor: Sensor, path: str | Path, program: Program,
+    def __init__(self, controller: Adapter, sensor: Sensor | None, path: str | Path, program: Program,
                  *, max_rpm: float, config: AcquireConfig = AcquireConfig(),
                  metadata: dict[str, Any] | None = None,
                  clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
@@ -131,6 +152,20 @@ class Recorder:
         self.max_rpm = float(max_rpm)
         self.cfg = config
         self.metadata = dict(metadata or {})
+        self.stops = tuple(float(p) for p in program.probe_at_s)
+        if sensor is None and not self.stops:
+            raise ConfigError("a recording with the tool setter alone needs a program with probe stops")
+        if sensor is not None and self.stops:
+            raise ConfigError("probe stops are for a recording with the tool setter alone (no sensor)")
+        if self.stops and not controller.can_read_measurement:
+            raise ConfigError(f"the program stops for the tool setter, but the {controller.name} link reads "
+                              "no measurement: configure the controller's measurement variables")
+        if sensor is None:
+            self.metadata[ELONGATION_COLUMN] = SPARSE  # empty on the rows without a measurement
+        self.stops_done = 0
+        """Probe stops whose measurement has come in."""
+        self.holding = False
+        """The program clock waits at a probe stop for the tool setter."""
         self.clock, self.sleep = clock, sleep
         self.on_sample, self.on_event = on_sample, on_event
         self.should_stop = should_stop or (lambda: False)
@@ -175,12 +210,13 @@ class Recorder:
         return t - self._active[problem] if problem in self._active else 0.0
 
     def commanded_between(self, t0: float, t1: float) -> np.ndarray:
-        """Programmed speeds over program time [t0, t1] (0 after the end)."""
+        """Programmed speeds over program time [t0, t1] (0 after the end, and 0 last when a probe
+        stop lies within: the cycle stops the spindle)."""
         d = self.program.duration_s
         i0 = int(np.searchsorted(self._edges, max(t0, 0.0), side="right"))
         i1 = int(np.searchsorted(self._edges, max(t1, 0.0), side="right"))
         speeds = list(self._speeds[min(i0, len(self._speeds) - 1): min(i1, len(self._speeds) - 1) + 1])
-        if t1 >= d:
+        if t1 >= d or any(t0 <= p <= t1 for p in self.stops):
             speeds.append(0.0)
         return np.array(speeds)
 
@@ -199,10 +235,15 @@ class Recorder:
         same_since: float | None = None
         same_speed: float | None = None
         wall0 = last_sensor_ok = last_speed_ok = self.wall()
+        paused_s = 0.0  # program time the machine spent in probe cycles: its program waited
+        hold_wall: float | None = None  # wall time the program clock began to wait at a stop
         if appender.first_row is not None:
-            reference = appender.first_row[3]
-            prev_value = appender.last_row[3] if appender.last_row else None
+            if self.sensor is not None:
+                reference = appender.first_row[3]
+                prev_value = appender.last_row[3] if appender.last_row else None
             program_start = self._program_start_from(appender)
+            if self.sensor is None and program_start is not None:
+                paused_s = self._stops_from_log(program_start)
         rec = Recording(self.path, 0, appender.rows_before)
         next_t = self.clock()
         try:
@@ -223,30 +264,44 @@ class Recorder:
                     if self.wall() - last_speed_ok > cfg.speed_grace_s:
                         raise AcquisitionError(f"no spindle speed from the controller for "
                                                f"{self.wall() - last_speed_ok:.0f} s ({err})") from err
-                try:
-                    value = self.sensor.read_um()
-                    last_sensor_ok = self.wall()
-                    self._clear(t, Problem.SENSOR_FAULT, "sensor answers again")
-                    lo_hi = self.sensor.range_um
-                    if lo_hi is not None:
-                        margin = cfg.saturation_margin * (lo_hi[1] - lo_hi[0])
-                        if value <= lo_hi[0] + margin or value >= lo_hi[1] - margin:
-                            raise SensorOverRangeError(f"reading {value:.2f} um at the end of the "
-                                                       f"range {lo_hi[0]:g}..{lo_hi[1]:g} um")
-                    self._clear(t, Problem.SATURATED, "sensor back in range")
-                except SensorOverRangeError as err:
-                    flags |= Problem.SATURATED
-                    self._raise(t, Problem.SATURATED, f"sensor saturated: {err}")
-                    if self._lasted(Problem.SATURATED, t) >= cfg.abort_saturated_s:
-                        raise AcquisitionError(f"sensor saturated for {self._lasted(Problem.SATURATED, t):.0f} s "
-                                               f"({err}): re-set the probe gap to mid-range") from err
-                except AdapterError as err:
-                    value = None
-                    flags |= Problem.SENSOR_FAULT
-                    self._raise(t, Problem.SENSOR_FAULT, f"sensor: {err}")
-                    if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
-                        raise AcquisitionError(f"no reading from the sensor for {self.wall() - last_sensor_ok:.0f} s "
-                                               f"({err}): is it unplugged?") from err
+                meas: float | None = None  # a new tool-setter measurement [um]
+                if self.sensor is None:
+                    try:
+                        got = self.controller.read_measurement()
+                        last_sensor_ok = self.wall()
+                        self._clear(t, Problem.SENSOR_FAULT, "tool setter's variables answer again")
+                        meas = None if got is None else float(got.elongation_um)
+                    except AdapterError as err:
+                        flags |= Problem.SENSOR_FAULT
+                        self._raise(t, Problem.SENSOR_FAULT, f"tool setter: {err}")
+                        if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
+                            raise AcquisitionError(f"no tool-setter measurement read from the controller for "
+                                                   f"{self.wall() - last_sensor_ok:.0f} s ({err})") from err
+                else:
+                    try:
+                        value = self.sensor.read_um()
+                        last_sensor_ok = self.wall()
+                        self._clear(t, Problem.SENSOR_FAULT, "sensor answers again")
+                        lo_hi = self.sensor.range_um
+                        if lo_hi is not None:
+                            margin = cfg.saturation_margin * (lo_hi[1] - lo_hi[0])
+                            if value <= lo_hi[0] + margin or value >= lo_hi[1] - margin:
+                                raise SensorOverRangeError(f"reading {value:.2f} um at the end of the "
+                                                           f"range {lo_hi[0]:g}..{lo_hi[1]:g} um")
+                        self._clear(t, Problem.SATURATED, "sensor back in range")
+                    except SensorOverRangeError as err:
+                        flags |= Problem.SATURATED
+                        self._raise(t, Problem.SATURATED, f"sensor saturated: {err}")
+                        if self._lasted(Problem.SATURATED, t) >= cfg.abort_saturated_s:
+                            raise AcquisitionError(f"sensor saturated for {self._lasted(Problem.SATURATED, t):.0f} s "
+                                                   f"({err}): re-set the probe gap to mid-range") from err
+                    except AdapterError as err:
+                        value = None
+                        flags |= Problem.SENSOR_FAULT
+                        self._raise(t, Problem.SENSOR_FAULT, f"sensor: {err}")
+                        if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
+                            raise AcquisitionError(f"no reading from the sensor for {self.wall() - last_sensor_ok:.0f} s "
+                                                   f"({err}): is it unplugged?") from err
 
                 # the program starts when the spindle first turns
                 if program_start is None and speed is not None and speed > IDLE_RPM:
@@ -262,7 +317,33 @@ class Recorder:
                 if program_start is None and self.wall() - wall0 > cfg.start_timeout_s:
                     raise AcquisitionError(f"the spindle did not start within {cfg.start_timeout_s:.0f} s: "
                                            "is the program loaded and cycle start pressed?")
-                ptime = None if program_start is None else t - program_start
+                ptime = None if program_start is None else t - program_start - paused_s
+                t_meas = t  # the row a measurement goes on: at rest (the cycle measures at rest)
+                if meas is not None and not (speed is not None and speed <= IDLE_RPM):
+                    last_t = appender.last_row[0] if appender.last_row is not None else t - cfg.rate_s
+                    t_meas = (last_t + t) / 2  # the spindle turns again: between the two samples
+                if self.stops and ptime is not None and program_start is not None:
+                    k = self.stops_done
+                    if meas is not None and k < len(self.stops) and \
+                            ptime >= self.stops[k] - cfg.follow_window_s - cfg.rate_s:
+                        # the machine's program resumes at the stop once the value is in
+                        paused_s = t_meas - program_start - self.stops[k]
+                        ptime = t - program_start - paused_s
+                        self.stops_done += 1
+                        hold_wall = None
+                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (stop {k + 1}/{len(self.stops)})")
+                    elif meas is not None:
+                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (not at a programmed stop)")
+                    if self.stops_done < len(self.stops) and ptime >= self.stops[self.stops_done]:
+                        ptime = self.stops[self.stops_done]  # the program waits for the cycle
+                        if hold_wall is None:
+                            hold_wall = self.wall()
+                        elif self.wall() - hold_wall > cfg.probe_timeout_s:
+                            raise AcquisitionError(
+                                f"no tool-setter measurement {self.wall() - hold_wall:.0f} s after probe stop "
+                                f"{self.stops_done + 1}/{len(self.stops)}: did the cycle alarm (setter not "
+                                "tripped, no cold reference, growth out of range)?")
+                self.holding = hold_wall is not None
                 commanded = None
                 if ptime is not None:
                     commanded = float(self.commanded_between(ptime, ptime)[-1])
@@ -323,9 +404,20 @@ class Recorder:
                 if speed is not None:
                     prev_speed = speed
                 elong = None if value is None or reference is None else value - reference
+                if self.sensor is None:
+                    value = elong = meas  # the cycle's value is the growth from the cold reference
                 sample = Sample(t, speed, value, elong, commanded, flags, ptime)
                 self.last = sample
-                if speed is not None and value is not None:
+                rows: list[tuple[float, float, float | None, float | None, float]] = []
+                if self.sensor is None:
+                    if meas is not None and t_meas < t:
+                        rows.append((t_meas, 0.0, meas, meas, 0.0))
+                    if speed is not None:
+                        on_row = meas if t_meas == t else None
+                        rows.append((t, speed, on_row, on_row, commanded if commanded is not None else 0.0))
+                elif speed is not None and value is not None:
+                    rows.append((t, speed, elong, value, commanded if commanded is not None else 0.0))
+                if rows:
                     extra: tuple[float, ...] = ()
                     if len(self.columns) > len(COLUMNS):
                         try:
@@ -333,17 +425,21 @@ class Recorder:
                         except AdapterError:
                             got = {}
                         extra = tuple(float(got.get(c, math.nan)) for c in self.columns[len(COLUMNS):])
-                    appender.append((t, speed, elong, value, commanded if commanded is not None else 0.0,
-                                     int(flags), *extra))
-                    rec.rows += 1
-                    for p in Problem:
-                        if flags & p:
-                            rec.flagged[p.name] = rec.flagged.get(p.name, 0) + 1
-                    self.recent.append(float(elong))
-                    del self.recent[:-120]
+                    for row_t, row_speed, row_elong, row_value, row_cmd in rows:
+                        appender.append((row_t, row_speed, math.nan if row_elong is None else row_elong,
+                                         math.nan if row_value is None else row_value, row_cmd, int(flags), *extra))
+                        rec.rows += 1
+                        for p in Problem:
+                            if flags & p:
+                                rec.flagged[p.name] = rec.flagged.get(p.name, 0) + 1
+                    if elong is not None:
+                        self.recent.append(float(elong))
+                        del self.recent[:-120]
+                    if meas is not None:
+                        rec.measurements += 1
                 if self.on_sample is not None:
                     self.on_sample(sample, self)
-                if ptime is not None and ptime >= self.program.duration_s:
+                if ptime is not None and ptime >= self.program.duration_s and self.stops_done >= len(self.stops):
                     rec.complete = True
                     break
                 next_t += cfg.rate_s
@@ -357,6 +453,21 @@ class Recorder:
             rec.events = self.events
             rec.program_start_s = program_start
         return rec
+
+    def _stops_from_log(self, program_start: float) -> float:
+        """On resume: the stops whose measurement is logged, by the rule the recording follows
+        (the program resumes at the stop on the measured row); the program time spent in cycles."""
+        from compensator.io import read_run_log
+
+        log = read_run_log(self.path)
+        paused = 0.0
+        tol = self.cfg.follow_window_s + self.cfg.rate_s
+        for tm in log.time_s[log.measured]:
+            k = self.stops_done
+            if k < len(self.stops) and tm - program_start - paused >= self.stops[k] - tol:
+                paused = float(tm) - program_start - self.stops[k]
+                self.stops_done += 1
+        return paused
 
     def _program_start_from(self, appender: RunLogAppender) -> float | None:
         """On resume: the instant of the first logged row at speed."""

@@ -2,7 +2,10 @@
 
 A :class:`Program` is a list of (duration_s, speed_rpm) segments. Sampling it
 at ``dt_s`` gives ``speeds[k]``, the speed held over ``(t[k-1], t[k]]``, the
-convention of :meth:`compensator.model.ThermalModel.simulate`.
+convention of :meth:`compensator.model.ThermalModel.simulate`. ``probe_at_s``, when given,
+are the program times at which a tool-setter cycle runs: the machine stops the spindle for the
+cycle's own duration and then resumes the program where it stopped, so the segments never
+count that time.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import numpy as np
 class Program:
     name: str
     segments: tuple[tuple[float, float], ...]  # (duration_s, speed_rpm)
+    probe_at_s: tuple[float, ...] = ()  # program times of the tool-setter stops, ascending
 
     @property
     def duration_s(self) -> float:

@@ -16,6 +16,12 @@ Syntax accepted, per dialect:
   ``CYCL DEF 9.1 DWELL <s>``, ``END PGM <name> MM``;
 - ``linuxcnc`` (RS274/NGC): ``%`` lines, ``( ... )`` and ``;`` comments, ``S<n>``, ``M3``/``M4``/
   ``M5``, ``G4 P<s>``, ``M2``/``M30``.
+
+A subprogram call, alone in its block, runs the machine's tool-setter cycle, the only
+subprogram the virtual machine has: ``M98 P<n>`` (fanuc), ``CALL "<name>"`` (sinumerik),
+``CALL PGM <name>`` (heidenhain), ``o<name> call`` (linuxcnc). It is kept as a probe stop at the
+program time reached (:attr:`~compensator.speed_programs.Program.probe_at_s`); the cycle leaves
+the spindle stopped, so the program must start it again.
 """
 
 from __future__ import annotations
@@ -25,6 +31,13 @@ import re
 from compensator.speed_programs import Program
 
 NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
+CALLS = {
+    "fanuc": r"M98\s*P\d{1,5}",
+    "sinumerik": r'CALL\s*"[A-Z_][A-Z0-9_]*"',
+    "heidenhain": r"CALL PGM [A-Z_][A-Z0-9_]*(?:\.H)?",
+    "linuxcnc": r"O<[A-Z0-9_-]+>\s*CALL",
+}
+"""A call of the tool-setter cycle, per dialect (matched on the upper-cased block)."""
 
 
 class NcSyntaxError(ValueError):
@@ -53,7 +66,13 @@ class _Machine:
         self.on = False
         self.speed = 0.0
         self.segments: list[tuple[float, float]] = []
+        self.probes: list[float] = []
         self.ended = False
+
+    def probe(self) -> None:
+        """The tool-setter cycle runs here; it leaves the spindle stopped."""
+        self.probes.append(float(sum(d for d, _ in self.segments)))
+        self.on = False
 
     def dwell(self, seconds: float, line: int) -> None:
         if not seconds >= 0:
@@ -142,6 +161,9 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
                 m.dwell(float(dm.group(1)), lineno)
                 pending_dwell = None
                 continue
+            if re.fullmatch(CALLS[dialect], body):
+                m.probe()
+                continue
             if re.match(r"^BEGIN PGM \w+ (MM|INCH)$", body):
                 continue
             if re.match(r"^END PGM \w+ (MM|INCH)$", body):
@@ -174,7 +196,9 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
         if dialect in ("sinumerik", "linuxcnc"):
             body = body.split(";", 1)[0]
         body = body.strip()
-        if body:
+        if re.fullmatch(CALLS[dialect], body):
+            m.probe()
+        elif body:
             _iso_block(m, body, lineno, dialect)
     if pending_dwell is not None:
         raise NcSyntaxError("CYCL DEF 9.0 without 9.1", pending_dwell)
@@ -183,4 +207,4 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
                             len(text.splitlines()))
     if not m.segments:
         raise NcSyntaxError("the program has no dwell: it would take no time", 1)
-    return Program(name, tuple(m.segments))
+    return Program(name, tuple(m.segments), tuple(m.probes))

@@ -182,6 +182,8 @@ class VirtualMachine:
         self.tool_setter = tool_setter or ToolSetter()
         self._probe_rng = np.random.default_rng(self.tool_setter.seed)
         self._probe_until_s: float | None = None  # plant time the running probe cycle ends
+        self._stops_done = 0  # the program's probe stops (Program.probe_at_s) reached so far
+        self._stop_running = False  # the running probe cycle is one of the program's
         # what the probe cycle left, as a controller's variables: value, then counter
         self.probe_value_um = 0.0
         self.probe_true_um = 0.0
@@ -189,9 +191,11 @@ class VirtualMachine:
         self.probe_sequence = 0
 
     def load_program(self, program: Program | None) -> None:
-        """Start ``program`` now (sim time); None idles the spindle."""
+        """Start ``program`` now (sim time); None idles the spindle. The program's probe stops
+        (``probe_at_s``) each run a probe cycle when the program reaches them."""
         self.program = program
         self._program_start_s = self.plant.time_s
+        self._stops_done = 0
 
     def load_pending(self, program: Program) -> None:
         """Load ``program`` to start on :meth:`cycle_start` (the operator's button)."""
@@ -224,6 +228,16 @@ class VirtualMachine:
     def probing(self) -> bool:
         return self._probe_until_s is not None
 
+    def _stop_if_due(self) -> None:
+        """The program reached its next probe stop: the cycle starts now (the lock is held)."""
+        p = self.program
+        if p is None or self._probe_until_s is not None or self._stops_done >= len(p.probe_at_s):
+            return
+        if self.plant.time_s - self._program_start_s >= p.probe_at_s[self._stops_done] - 1e-9:
+            self._stops_done += 1
+            self._stop_running = True
+            self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
+
     def _finish_probe(self) -> None:
         ts = self.tool_setter
         value = self.plant.true_elongation_um() + ts.noise_um * float(self._probe_rng.standard_normal())
@@ -235,6 +249,7 @@ class VirtualMachine:
         self.probe_sequence += 1
         self._program_start_s += ts.dwell_s  # the program waited for the probe cycle
         self._probe_until_s = None
+        self._stop_running = False
 
     def commanded_rpm(self, t_s: float) -> float:
         if self._probe_until_s is not None:
@@ -250,8 +265,11 @@ class VirtualMachine:
 
     @property
     def program_done(self) -> bool:
-        return (self.program is None
-                or self.plant.time_s - self._program_start_s >= self.program.duration_s)
+        if self.program is None:
+            return True
+        # a probe stop at the program's end belongs to the program
+        return (not self._stop_running and self._stops_done >= len(self.program.probe_at_s)
+                and self.plant.time_s - self._program_start_s >= self.program.duration_s)
 
     @property
     def speed_rpm(self) -> float:
@@ -285,6 +303,7 @@ class VirtualMachine:
             target = self.clock()
             h = self.plant_dt_s
             while self.plant.time_s + h <= target + 1e-9:
+                self._stop_if_due()
                 rpm = self.commanded_rpm(self.plant.time_s + h / 2)
                 self.plant.drive(rpm, h)  # the drive ramps to it
                 for name, node, lag_s, *_ in SENSORS:

@@ -1,0 +1,103 @@
+"""How often to stop for the tool setter when it is the only measurement of a calibration run.
+
+Pure: numbers in, a :class:`ProbePlan` out; the wizard prints :meth:`ProbePlan.lines`.
+
+The rule, in this order:
+
+1. **at least 3 measurements per staircase step**: a step's heat-up is a curve, and three points
+   are the fewest that show its bend (interval <= step / 3);
+2. **no longer than half the fastest thermal time constant**: the fastest state must be seen
+   while it moves, not only settled (interval <= tau_fastest / 2). The time constant comes from a
+   former model of the spindle when there is one; without one it is assumed, ``ASSUMED_TAU_S``
+   (10 min: motorized spindles' fastest states are minutes), and the plan says so;
+3. rounded **down** to whole minutes (so both bounds hold), at least one minute.
+
+Each stop costs the cycle's time (``dwell_s``: the spindle at rest, the program waiting) and the
+growth that decays meanwhile: the fastest state loses 1 - exp(-dwell / tau) of itself per stop,
+a bias of the measurement toward cooler that the model sees too, since the log shows the spindle
+at rest. Over the run the stops keep the spindle at rest for stops x dwell, the share of the run
+reported as ``stopped_share``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from compensator.speed_programs import paper_calibration
+
+from .nc_programs import probe_stops
+
+ASSUMED_TAU_S = 600.0
+"""The fastest thermal time constant assumed without a former model [s]."""
+PER_STEP = 3
+"""Measurements per staircase step, at least."""
+
+
+@dataclass(frozen=True)
+class ProbePlan:
+    """A probe interval and what it costs."""
+
+    interval_s: float
+    stops: int
+    """Stops in the program, the one at its end included."""
+    added_s: float
+    """Time the stops add to the program: stops x dwell."""
+    loss_per_stop: float
+    """Share of the fastest state's growth that decays during one stop: 1 - exp(-dwell / tau)."""
+    stopped_share: float
+    """Share of the whole run (program plus stops) spent at rest in the cycles."""
+    fastest_tau_s: float
+    tau_assumed: bool
+    step_s: float
+    dwell_s: float
+    program_s: float
+    bound: str
+    """Which bound set the interval: "step", "tau" or "minimum"."""
+
+    def lines(self) -> list[str]:
+        """What the wizard prints, one line each."""
+        tau = (f"{self.fastest_tau_s / 60:.1f} min, assumed (no former model)" if self.tau_assumed
+               else f"{self.fastest_tau_s / 60:.1f} min, from the former model")
+        why = {"step": f"at least {PER_STEP} measurements per {self.step_s / 60:g}-min step",
+               "tau": "half the fastest time constant",
+               "minimum": "one minute, the shortest interval planned"}[self.bound]
+        return [
+            f"tool-setter stop every {self.interval_s / 60:.0f} min ({why}; fastest time constant {tau})",
+            f"{self.stops} stops of about {self.dwell_s:.0f} s: the program takes {self.added_s / 60:.1f} min "
+            f"longer ({(self.program_s + self.added_s) / 3600:.2f} h in all)",
+            f"each stop lets {100 * self.loss_per_stop:.1f} % of the fastest growth decay; "
+            f"{100 * self.stopped_share:.1f} % of the run is spent at rest measuring",
+        ]
+
+
+def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
+                        fastest_tau_s: float | None = None, *,
+                        program_s: float | None = None) -> ProbePlan:
+    """The probe interval for a calibration run with the tool setter alone (the rule is the
+    module's): ``step_s``, the staircase step; ``cooldown_s``, the cool-down at rest;
+    ``dwell_s``, one probe cycle's time (spindle stopped to program resumed); ``fastest_tau_s``,
+    the fastest thermal time constant of a former model (None: assumed, ``ASSUMED_TAU_S``).
+    ``program_s``: the program's duration without its stops (default: the calibration profile's
+    at this step and cool-down)."""
+    for name, v in (("step_s", step_s), ("cooldown_s", cooldown_s), ("dwell_s", dwell_s)):
+        if not (math.isfinite(v) and v >= 0) or (name == "step_s" and v <= 0):
+            least = "> 0" if name == "step_s" else ">= 0"
+            raise ValueError(f"{name} {v!r}: give a finite number of seconds {least}")
+    assumed = fastest_tau_s is None
+    tau = ASSUMED_TAU_S if fastest_tau_s is None else float(fastest_tau_s)
+    if not (math.isfinite(tau) and tau > 0):
+        raise ValueError(f"fastest_tau_s {fastest_tau_s!r}: give a time constant > 0 s")
+    by_step, by_tau = step_s / PER_STEP, tau / 2
+    minutes = math.floor(min(by_step, by_tau) / 60.0)
+    bound = "minimum" if minutes < 1 else ("step" if by_step <= by_tau else "tau")
+    interval = 60.0 * max(minutes, 1)
+    if program_s is None:
+        program_s = paper_calibration(27000.0, cooldown_min=cooldown_s / 60.0, step_min=step_s / 60.0).duration_s
+    n = len(probe_stops(program_s, interval))
+    added = n * dwell_s
+    return ProbePlan(interval_s=interval, stops=n, added_s=added,
+                     loss_per_stop=1.0 - math.exp(-dwell_s / tau),
+                     stopped_share=added / (program_s + added) if program_s + added > 0 else 0.0,
+                     fastest_tau_s=tau, tau_assumed=assumed, step_s=float(step_s), dwell_s=float(dwell_s),
+                     program_s=float(program_s), bound=bound)
