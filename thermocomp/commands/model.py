@@ -9,6 +9,7 @@ from typing import Any
 from compensator.errors import ConfigError, ThermocompError, clip
 from compensator.io import MODEL_TYPES, load_any_model, model_digest
 from compensator.model import MODEL_FORMAT
+from compensator.plausibility import direction_of, not_following_refusal, steady_growth_refusal
 
 REASON_CHARS = 500
 
@@ -63,13 +64,20 @@ def summary(m: Any) -> dict[str, Any]:
 
 
 def check(path: str, as_json: bool = False) -> int:
-    """Would the runtime take this file: verified and sane (:func:`load_any_model`) and
-    plausible (the runtime's own check). Exit 0, or 2 with a one-line reason, as any refusal."""
+    """Would the runtime take this file: verified and sane (:func:`load_any_model`), plausible
+    (the runtime's own check), and one physics allows (:mod:`compensator.plausibility`: a
+    calibration that followed its program, a steady growth that rises with speed in the growth
+    direction its fit record states, else its own). Exit 0, or 2 with a one-line reason, as any
+    refusal."""
     from thermocomp.runtime.service import implausible  # the runtime's own rule, loaded only here
 
     try:
         m = load_any_model(path)
         why = implausible(m.fallback or m)
+        if why is None:
+            why = not_following_refusal(m.fit.get("not_following_share"))
+        if why is None:
+            why = steady_growth_refusal(m, direction_of(m.fit.get("growth_direction")))
         if why is not None:
             raise ConfigError(f"{path}: {why}")
     except ThermocompError as err:
