@@ -233,6 +233,15 @@ class Wizard:
         self.out.print(f"  a new session: the earlier one (answers, run logs, programs) was kept in "
                        f"{aside.relative_to(self.workdir)}")
 
+    def _set_run_aside(self, name: str) -> None:
+        """A run to record again: its log kept beside as ``<name>.refused-N.csv``."""
+        info = self.session["runs"][name]
+        log = Path(info["log"])
+        if log.exists():
+            log.rename(versioned_path(log.with_name(f"{log.stem}.refused.csv")))
+        info.update(complete=False, rows=0)
+        self.save_session()
+
     def _links(self):
         from cnc_adapters import open_adapter
         from cnc_adapters.sensors import open_sensor
@@ -468,8 +477,23 @@ class Wizard:
                                f"{sum(g.duration_s for g in long):.0f} s in all: the speed over a gap is "
                                "the last one logged before it")
         # the one identification `thermocomp fit` runs: the same log gives the same model
-        result = fit_logs([cal_log], labels=["calibration"], spindle_id=s["spindle_id"],
-                          machine_id=s["machine_id"], created_utc=_now())
+        # a live recording measures growth toward the part as positive; an imported DAQ file's
+        # sign is the device's, so the data says it
+        direction = 1 if s.get("source") == "sensor" else None
+        try:
+            result = fit_logs([cal_log], labels=["calibration"], spindle_id=s["spindle_id"],
+                              machine_id=s["machine_id"], created_utc=_now(), growth_direction=direction)
+        except CalibrationError as err:
+            # nothing is saved: a model physics forbids, or a run that did not follow its program
+            self.out.print(f"  [red]refused:[/] {escape(str(err))}")
+            if (self.interactive and s.get("source") == "sensor" and "did not follow" in str(err)
+                    and self.confirm("Record the calibration run again (the machine must run the "
+                                     "calibration program)?", default=False)):
+                self._set_run_aside("calibration")
+                self.step_acquire()
+                return self.step_fit()
+            raise
+
         report = result.report()
         print_identification(result, report, self.out)
         model = result.model

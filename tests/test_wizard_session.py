@@ -90,3 +90,22 @@ def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tm
         th.join(60)
     assert result == [0], result
     assert json.loads((sdir / "session.json").read_text())["controller"].startswith(ls.cnc.url)
+
+
+def test_unattended_wizard_on_a_machine_not_running_the_program_saves_nothing(lockstep, tmp_path):
+    """Pointed at a machine working a job-shop day instead of the calibration program, the
+    unattended wizard stops with the reason and a non-zero exit, and writes no model and no
+    runtime configuration."""
+    from compensator.errors import CalibrationError
+    from compensator.speed_programs import job_shop_day
+
+    ls = lockstep
+    work = tmp_path / "cal"
+    ls.session_dir = sdir = work / "vmc-7" / "main"
+    ls.vm.load_program(job_shop_day(27000.0, seed=3))  # already at work: nothing to load
+    ls.pending = False
+    ls.on_line = lambda line: ls.lines.append(line)  # the operator does not load the program
+    with pytest.raises(CalibrationError, match="did not follow the program"):
+        ls.wizard(unattended_args(work, ls.cnc, "--no-validation"))
+    assert not (sdir / "models").exists() and not (sdir / "config").exists()
+    assert "refused" in "".join(ls.lines)
