@@ -21,6 +21,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def said(ls) -> str:
+    """What the wizard printed, as one line: the console wraps long paths where it likes."""
+    return " ".join("".join(ls.lines).split())
+
+
 def fake_partial_log(sdir, rows: int = 25) -> None:
     """What an interrupted recording leaves: a run log cut short, the session pointing at it."""
     log = sdir / "runs" / "calibration.csv"
@@ -39,10 +44,10 @@ def test_new_keeps_the_earlier_session_aside_and_starts_a_fresh_log(lockstep, tm
     fake_partial_log(sdir)
     # resuming says what the session holds, rows of an unfinished run included
     assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation")) == 0
-    assert "calibration 25 rows, not complete" in "".join(ls.lines)
+    assert "calibration 25 rows, not complete" in said(ls)
     ls.lines.clear()
     assert ls.wizard(unattended_args(work, ls.cnc, "--new", "--programs-only", "--no-validation")) == 0
-    out = "".join(ls.lines)
+    out = said(ls)
     assert "a new session" in out and "resuming" not in out
     aside = [p for p in (sdir / "earlier").iterdir()]
     assert len(aside) == 1 and (aside[0] / "runs" / "calibration.csv").is_file()
@@ -56,8 +61,7 @@ def test_durations_show_wall_time_when_the_machine_runs_faster(lockstep, tmp_pat
     work = tmp_path / "cal"
     ls.session_dir = work / "vmc-7" / "main"
     assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation", "--time-scale", "600")) == 0
-    out = "".join(ls.lines)
-    assert "wall at 600x" in out
+    assert "wall at 600x" in said(ls)
 
 
 def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tmp_path, monkeypatch):
@@ -108,4 +112,4 @@ def test_unattended_wizard_on_a_machine_not_running_the_program_saves_nothing(lo
     with pytest.raises(CalibrationError, match="did not follow the program"):
         ls.wizard(unattended_args(work, ls.cnc, "--no-validation"))
     assert not (sdir / "models").exists() and not (sdir / "config").exists()
-    assert "refused" in "".join(ls.lines)
+    assert "refused" in said(ls)
