@@ -160,8 +160,7 @@ class AugmentedModel(ModelBase):
             ref = "its value at a cold start" if t.reference_mode == "start" else f"{t.reference:g} {t.unit}"
             lines.append(f"  {t.name}: {t.gain_um_per_unit:.4g} um/{t.unit}, {dyn}, relative to {ref}, "
                          f"valid {t.valid_range[0]:.3g}..{t.valid_range[1]:.3g} {t.unit}")
-        if self.fit:
-            lines.append("  fit: " + ", ".join(f"{k}={v}" for k, v in self.fit.items()))
+        lines += self.fit_lines()
         lines.append("  speed part (fitted with the inputs):")
         lines.append(f"  fallback when a sensor fails: {self.fallback.form} (speed only)")
         return lines + self.speed_model.describe()

@@ -238,8 +238,7 @@ class ThermalModel(ModelBase):
         for n in (0.0, hi / 2, hi):
             taus = ", ".join(f"{t / 60:.1f}" for t in self.time_constants_s(n))
             lines.append(f"  at {n:7.0f} rpm: tau = {taus} min, equilibrium {self.steady_state_um(n):7.2f} um")
-        if self.fit:
-            lines.append("  fit: " + ", ".join(f"{k}={v}" for k, v in self.fit.items()))
+        lines += self.fit_lines()
         return lines
 
     # -- state --------------------------------------------------------------

@@ -106,6 +106,10 @@ def check_inputs(channels: Sequence[Channel], values: Mapping[str, Any]) -> str 
     return None
 
 
+FIT_SUMMARY = ("method", "folds", "alpha", "cv_rms_um", "cv_max_abs_um", "nested_rms_um", "forward_rms_um")
+"""The fit record's entries a model's description shows."""
+
+
 class ModelBase(BaseModel):
     """Fields, checks and errors every model value shares; subclasses fix ``format`` to their
     own literal (the key :data:`compensator.io.modelfile.MODEL_TYPES` dispatches on) and keep
@@ -151,6 +155,12 @@ class ModelBase(BaseModel):
     @property
     def input_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.channels)
+
+    def fit_lines(self) -> list[str]:
+        """The fit record's headline figures for a description, one line; its nested records
+        (the error to expect, the observer) have their own printouts."""
+        shown = [f"{k}={v}" for k, v in self.fit.items() if k in FIT_SUMMARY]
+        return ["  fit: " + ", ".join(shown)] if shown else []
 
     def check_inputs(self, values: Mapping[str, Any]) -> str | None:
         """Why these input values cannot be used (missing, non-finite, out of range), or None."""

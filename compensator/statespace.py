@@ -381,9 +381,7 @@ class StateSpaceModel(ModelBase):
             lines.append(f"  {c.name}: {gi:+.3g} um/{c.unit} in steady state, reference {c.reference:.3f} "
                          f"{c.unit}, trained {c.trained_range[0]:.3g}..{c.trained_range[1]:.3g}, "
                          f"valid {c.valid_range[0]:.3g}..{c.valid_range[1]:.3g}")
-        for key in ("method", "folds", "alpha", "cv_rms_um", "cv_max_abs_um", "nested_rms_um"):
-            if key in self.fit:
-                lines.append(f"  fit {key}: {self.fit[key]}")
+        lines += self.fit_lines()
         if self.fallback is not None:
             lines.append(f"  fallback when an input fails: {self.fallback.form} (speed only)")
         if self.inputs:
