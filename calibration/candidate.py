@@ -9,9 +9,10 @@ from typing import Any
 
 import numpy as np
 
-MIN_FORWARD_FOLDS = 2
-"""A forward figure from one predicted fold is too noisy to decide by (on the real record it
-swapped a better speed-only candidate for a worse one)."""
+# a forward figure from one predicted fold is too noisy to decide by (on the real record it
+# swapped a better speed-only candidate for a worse one); the error statement uses the same
+from compensator.expected import MIN_FORWARD_FOLDS
+
 
 @dataclass
 class Candidate:

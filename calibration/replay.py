@@ -16,7 +16,7 @@ import numpy as np
 
 from compensator.errors import NonFiniteInputError, RunLogError
 from compensator.estimate import Estimate, EstimateState
-from compensator.expected import parse_expected
+from compensator.expected import parse_expected, place
 from compensator.fusion import observer_config_of
 from compensator.io import RunLog
 from compensator.io.journal import ALARM_COLD_START
@@ -427,8 +427,7 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows], spans)
             for b in report["expected_error"]:
                 if b["within_p95"] < EXPECTED_SHARE:
-                    where = str(b["label"])
-                    warnings.append(f"the error is larger than the fit expected {'' if where == 'at rest' else 'at '}{where}: "
+                    warnings.append(f"the error is larger than the fit expected {place(str(b['label']))}: "
                                     f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
                                     f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate")
         error = pred if sparse else measured

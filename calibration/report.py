@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
-from cnc_adapters.base import redact_url
+from cnc_adapters.base import redact_url, url_has_password
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
@@ -211,7 +211,7 @@ def _without_password(url: str) -> tuple[str, bool]:
         userinfo, at, host = parts.netloc.rpartition("@")
     except ValueError:
         return redact_url(url), "@" in url
-    if not (at and ":" in userinfo):
+    if not url_has_password(url):
         return url, False
     user = userinfo.partition(":")[0]
     return urlunsplit(parts._replace(netloc=f"{user}@{host}" if user else host)), True

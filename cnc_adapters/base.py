@@ -77,6 +77,13 @@ def redact_url(text: str) -> str:
     return re.sub(r"(?s)://.*@", "://***@", text)
 
 
+def url_has_password(url: str) -> bool:
+    """Whether ``url`` carries a password (``opc.tcp://user:secret@host``), as asyncua would
+    read it."""
+    userinfo, at, _ = urlsplit(url).netloc.rpartition("@")
+    return bool(at) and ":" in userinfo
+
+
 def short(value: Any, limit: int = 60) -> str:
     """``repr(value)``, cut to ``limit`` characters, any URL user information hidden."""
     text = redact_url(repr(value))

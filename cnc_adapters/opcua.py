@@ -68,6 +68,7 @@ from .base import (
     Seconds,
     Text,
     UnreachableError,
+    url_has_password,
     WriteRejectedError,
     one_of,
     query_params,
@@ -113,13 +114,6 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 CREDENTIALS_ENV = "CREDENTIALS_DIRECTORY"
 """Where systemd puts a unit's ``LoadCredential=`` secrets, one file per credential name."""
-
-
-def url_has_password(url: str) -> bool:
-    """Whether ``url`` carries a password (``opc.tcp://user:secret@host``), as asyncua would
-    read it."""
-    userinfo, at, _ = urlsplit(url).netloc.rpartition("@")
-    return bool(at) and ":" in userinfo
 
 
 def url_password_refusal(password_env: str = "THERMOCOMP_OPCUA_PASSWORD") -> str:

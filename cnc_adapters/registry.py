@@ -29,6 +29,7 @@ from .base import (
     construct,
     query_params,
     redact_url,
+    url_has_password,
 )
 from .control_profiles import adapter_settings
 
@@ -95,8 +96,7 @@ def _url_kind(url: str) -> str:
 
 def _refuse_password(kind: str, url: str, options: Mapping[str, Any]) -> None:
     """A password in a URL ends up in logs and process lists: refused, and never repeated."""
-    userinfo, at, _ = urlsplit(url).netloc.rpartition("@")
-    if not (at and ":" in userinfo):
+    if not url_has_password(url):
         return
     if kind == "opcua":
         from .opcua import url_password_refusal  # only where OPC UA is configured

@@ -13,18 +13,19 @@ valid range ends and a value is taken for a sensor fault).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+
+from .units import RANGE_TOLERANCE
 
 EXPECTED_FORMAT = "thermocomp.expected-error/1"
 
 MIN_FORWARD_FOLDS = 2
 """A statement from fewer folds predicted forward is not validated: held-out past cycles alone
 understated the next cycle's error up to 50-fold on the real record."""
-SPEED_TOLERANCE = 0.02
-"""A speed this share above the calibrated top still counts as within it."""
 
 _MIN_SPAN = 1e-9
 """A span below this (an input that never moved in calibration) counts as this much."""
@@ -101,17 +102,35 @@ class ExpectedError(BaseModel):
         forward (:data:`MIN_FORWARD_FOLDS`), a speed within the calibrated range and inputs no
         farther out than validation reached. Elsewhere the stated figure is a floor."""
         n = np.abs(np.asarray(speed_rpm, float))
-        ok = n <= self.bands[-1].speed_rpm[1] * (1 + SPEED_TOLERANCE)
+        ok = n <= self.bands[-1].speed_rpm[1] * (1 + RANGE_TOLERANCE)
         if distance is not None:
             ok &= np.nan_to_num(np.asarray(distance, float)) <= self.outside_validated
         return ok & (self.forward_folds >= MIN_FORWARD_FOLDS)
+
+    def why_unvalidated(self, speed_rpm: float, spans: float) -> list[str]:
+        """Why validation scored no prediction like this one (:meth:`validated`), in words."""
+        why = []
+        if self.forward_folds < MIN_FORWARD_FOLDS:
+            why.append(f"the fit predicted {self.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}")
+        top = self.bands[-1].speed_rpm[1]
+        if abs(speed_rpm) > top * (1 + RANGE_TOLERANCE):
+            why.append(f"{abs(speed_rpm):.0f} rpm is above the calibrated {top:.0f} rpm")
+        if spans > self.outside_validated:
+            why.append(f"inputs {spans:.2f} spans outside the trained range, further than validation "
+                       f"scored ({self.outside_validated:.2f})")
+        return why or ["validation scored no prediction like this one"]
+
+    @cached_property
+    def _edges(self) -> tuple[np.ndarray, np.ndarray]:
+        # the statement is frozen and parsed once per model load; the service reads it every cycle
+        return (np.array([b.speed_rpm[0] for b in self.bands], float),
+                np.array([b.speed_rpm[1] for b in self.bands], float))
 
     def band_index(self, speed_rpm: np.ndarray) -> np.ndarray:
         """For each speed, the index of its band; the top band above the calibrated range or in
         a band left out (no residual covered it)."""
         n = np.abs(np.asarray(speed_rpm, float))
-        lo = np.array([b.speed_rpm[0] for b in self.bands], float)
-        hi = np.array([b.speed_rpm[1] for b in self.bands], float)
+        lo, hi = self._edges
         i = np.minimum(np.searchsorted(hi, n, side="left"), len(self.bands) - 1)  # first band reaching n
         inside = (n <= hi[i]) & ((n > lo[i]) | (lo[i] == 0.0))
         return np.where(inside, i, len(self.bands) - 1)
@@ -139,6 +158,11 @@ class ExpectedError(BaseModel):
             fig = b.outside
             return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True, ok)
         return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0, ok)
+
+
+def place(label: str) -> str:
+    """A band's label as a place in a sentence: ``at rest``, ``at 0-3333 rpm``."""
+    return label if label == "at rest" else f"at {label}"
 
 
 def parse_expected(fit: object) -> ExpectedError | None:

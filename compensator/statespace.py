@@ -211,9 +211,13 @@ class StateSpaceModel(ModelBase):
                 return f"{c.name}: {v:g} {c.unit} is outside the trained {lo:g}..{hi:g}"
         return None
 
+    def _held_range(self, c: InputChannel) -> tuple[float, float]:
+        """Where an input is held: its trained range under ``clip``, else its valid range."""
+        return c.trained_range if self.extrapolation == "clip" else c.valid_range
+
     def _limits(self) -> np.ndarray:
         """(inputs, 2): where each input is held, by the extrapolation policy."""
-        ranges = [c.trained_range if self.extrapolation == "clip" else c.valid_range for c in self.inputs]
+        ranges = [self._held_range(c) for c in self.inputs]
         return np.array(ranges, dtype=float).reshape(-1, 2)
 
     def distance_outside(self, values: Mapping[str, Any]) -> np.ndarray | float:
@@ -239,7 +243,7 @@ class StateSpaceModel(ModelBase):
             if inputs is None or c.name not in inputs:
                 raise ModelError(f"the model needs input {c.name!r}")
             u = require_finite(c.name, float(inputs[c.name]))
-            lo, hi = c.trained_range if self.extrapolation == "clip" else c.valid_range
+            lo, hi = self._held_range(c)
             v.append(min(max(u, lo), hi) - c.reference)
         return np.array(v)
 

@@ -533,6 +533,13 @@ def _bounded(bank: FilterBank, y: np.ndarray, rows: np.ndarray, configs: Sequenc
     return out
 
 
+def _mix(drives: dict[str, np.ndarray], mixes: Mapping[str, tuple[np.ndarray, float]],
+         names: Sequence[str]) -> None:
+    """Each principal component's drive, from the input drives of ``names``."""
+    for pc, (w, _) in mixes.items():
+        drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, names))
+
+
 def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Sequence[str],
                    mixes: Mapping[str, tuple[np.ndarray, float]], cfg: Config,
                    end: int) -> tuple[np.ndarray, np.ndarray]:
@@ -545,8 +552,7 @@ def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Seque
     drives = dict(bank.drives)
     for j, nm in enumerate(used):  # a clip shifts the deviation by the same amount
         drives[f"in:{nm}"] = bank.drives[f"in:{nm}"] + (np.clip(u[:, j], lo[j], hi[j]) - u[:, j])
-    for pc, (w, _) in mixes.items():
-        drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, used))
+    _mix(drives, mixes, used)
     held = FilterBank(bank.time_s[:end], {k: v[:end] for k, v in drives.items()},
                       [(a, min(b, end)) for a, b in bank.segments if a < end])
     held.cache.update({k: v[:end] for k, v in bank.cache.items() if k[0] in ("n", "n2")})
@@ -640,8 +646,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         raise CalibrationError(f"unknown input structure {structure!r}; known: {', '.join(STRUCTURES)}")
     mixes = _components(drives, names, measured) if structure == "pca" and names else {}
     limits = np.array([BOUND_UM_PER_K if (units or {}).get(nm) in TEMPERATURE_UNITS else math.inf for nm in names])
-    for pc, (w, _) in mixes.items():
-        drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, names))
+    _mix(drives, mixes, names)
     bank = FilterBank(t, drives, ds.segments)
     y0 = np.where(measured, y, 0.0)  # never read off the measured rows; keeps the arithmetic finite
 

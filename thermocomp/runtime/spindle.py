@@ -75,7 +75,7 @@ from compensator.errors import (
     ModelFileError,
 )
 from compensator.estimate import Estimate, EstimateState, Step
-from compensator.expected import MIN_FORWARD_FOLDS, SPEED_TOLERANCE, ExpectedError, parse_expected
+from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
 from compensator.fusion import FusedState
 from compensator.io.journal import ALARM_COLD_START
 from compensator.io import (
@@ -158,25 +158,6 @@ def cutting_from_controller(cfg: SpindleConfig, adapter: Any) -> bool:
                           "adapter has no cutting signal configured (cutting_node for OPC UA, "
                           "cutting for LinuxCNC, cutting_register for Modbus)")
     return has_signal and signal != "speed"
-
-
-def _where(band: str) -> str:
-    """A speed band's label as a place in a sentence: ``at rest``, ``at 0-3333 rpm``."""
-    return band if band == "at rest" else f"at {band}"
-
-
-def _unvalidated(stated: ExpectedError, speed_rpm: float, spans: float) -> list[str]:
-    """Why validation scored no prediction like this one (:meth:`ExpectedError.validated`)."""
-    why = []
-    if stated.forward_folds < MIN_FORWARD_FOLDS:
-        why.append(f"the fit predicted {stated.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}")
-    top = stated.bands[-1].speed_rpm[1]
-    if abs(speed_rpm) > top * (1 + SPEED_TOLERANCE):
-        why.append(f"{abs(speed_rpm):.0f} rpm is above the calibrated {top:.0f} rpm")
-    if spans > stated.outside_validated:
-        why.append(f"inputs {spans:.2f} spans outside the trained range, further than validation "
-                   f"scored ({stated.outside_validated:.2f})")
-    return why or ["validation scored no prediction like this one"]
 
 
 def mismatch_cause(held_um: float, tolerance_um: float) -> str:
@@ -1014,12 +995,12 @@ class SpindleRuntime:
                    "outside": e.outside, "outside_spans": spans, "validated": e.validated,
                    "bound_um": bound}
             if bound is not None and (e.p95_abs_um > bound or not e.validated):
-                where = _where(e.band)
+                where = place(e.band)
                 over = e.p95_abs_um > bound
                 why = (f"expected error {'' if e.validated else 'at least '}{e.p95_abs_um:.1f} um (95 %)"
                        + (f" over the bound {bound:g} um {where}" if over else f" {where} (bound {bound:g} um)"))
                 if not e.validated:  # the figure is a floor: the bound cannot be vouched for
-                    why += ", not validated here: " + "; ".join(_unvalidated(stated, speed, spans))
+                    why += ", not validated here: " + "; ".join(stated.why_unvalidated(speed, spans))
                 elif e.outside:
                     why += ", inputs outside the trained range"
                 why += ": probe or recalibrate"
@@ -1029,7 +1010,7 @@ class SpindleRuntime:
         elif why is None and self._expected_high is not None:
             now_is = ("the model in use states no expected error" if out is None
                       else "no bound is set" if bound is None
-                      else f"expected error {out['p95_abs_um']:.1f} um (95 %) {_where(out['band'])}, within "
+                      else f"expected error {out['p95_abs_um']:.1f} um (95 %) {place(out['band'])}, within "
                       f"the bound {bound:g} um")
             event("expected_error_within_bound", self.cfg.name, "%s: EXPECTED_ERROR_HIGH cleared: %s",
                   self.cfg.name, now_is, reason=now_is, **(out or {}))
