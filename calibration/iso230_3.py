@@ -52,7 +52,9 @@ class SpindleThermalTest:
 
 
 def _drift(time_s: np.ndarray, z_um: np.ndarray, running: np.ndarray, rest_from: int | None) -> Drift:
-    z = z_um - z_um[0]
+    # a tool-setter log has no value on its first row: its measurements are from the cold
+    # reference the cycle took before the start, so the start is zero
+    z = z_um - (z_um[0] if np.isfinite(z_um[0]) else 0.0)
     ok = np.isfinite(z)
     run = running & ok
     k = int(np.argmax(np.where(run, np.abs(z), -1.0))) if run.any() else 0
@@ -76,16 +78,21 @@ def spindle_thermal_test(time_s: np.ndarray, speed_rpm: np.ndarray, z_um: np.nda
     running = n > IDLE_RPM
     turned = np.flatnonzero(running)
     rest_from = int(turned[-1]) + 1 if turned.size and turned[-1] + 1 < t.size else None
+    # measured only at stops (the tool setter): the running part of the test is from the first
+    # start to the last stop of the spindle, the probe stops inside it included
+    part = running.copy()
+    if turned.size and not np.isfinite(z).all():
+        part[turned[0]:turned[-1] + 1] = True
     dt = np.diff(t, prepend=t[0])
     levels = np.unique(np.round(n[running], -2)) if running.any() else np.zeros(0)
     # a level held for less than a minute is a ramp passing through, not a level of the test
     held = tuple(float(v) for v in levels if dt[running & (np.round(n, -2) == v)].sum() >= 60.0)
     comp = None
     if predicted_um is not None:
-        comp = _drift(t, z - np.asarray(predicted_um, float), running, rest_from)
+        comp = _drift(t, z - np.asarray(predicted_um, float), part, rest_from)
     return SpindleThermalTest("constant speed" if len(held) == 1 else "speed spectrum", held,
                               float(dt[running].sum()), float(dt[~running][1:].sum()) if (~running).any() else 0.0,
-                              _drift(t, z, running, rest_from), comp)
+                              _drift(t, z, part, rest_from), comp)
 
 
 def report_rows(runs: dict[str, SpindleThermalTest]) -> list[list[str]]:

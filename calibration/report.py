@@ -87,6 +87,11 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: Predictor
     elif session.get("source") == "import":
         files = [Path(i["imported_from"]).name for i in runs_info.values() if i.get("imported_from")]
         displacement = "imported" + (f" from {', '.join(files)}" if files else "")
+    elif session.get("source") == "tool-setter":
+        plan = session.get("probe_plan") or {}
+        displacement = ("the machine's tool setter, read by the controller link"
+                        + (f", every {plan['interval_s'] / 60:.0f} min ({plan['dwell_s']:.0f} s a stop)"
+                           if plan else ""))
     else:
         displacement = str(session.get("source") or "-")
     controller = session.get("controller")
@@ -264,6 +269,10 @@ def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path,
         lines.append(_line("url", url))
     else:
         lines.append(_line("url", "opc.tcp://CHANGE-ME:4840", "the wizard was given no controller link"))
+    if session.get("source") == "tool-setter":
+        # the link read the tool setter at calibration: the service fuses its measurements too
+        lines += ["", "[spindle.observer]",
+                  _line("enabled", True, "fuse the tool setter's measurements with the model (the closed loop)")]
     top = abs(model.steady_state_um(session["max_rpm"]))
     default = ShaperConfig().max_offset_um
     at = f"{top:.0f} um predicted at {session['max_rpm']:.0f} rpm"

@@ -62,13 +62,24 @@ from .nc_programs import (
     DIALECTS,
     EXTENSIONS,
     calibration_profile,
+    probe_call,
     rest_hours,
     to_nc,
     validation_profile,
+    with_probe_stops,
 )
 
 SESSION_FORMAT = "thermocomp.wizard/1"
 RUNS = ("calibration", "validation")
+SOURCES = ("sensor", "tool-setter", "import")
+"""Where the displacement comes from: an eddy-current sensor read live, the machine's tool setter
+(the program stops for it every few minutes; the controller link reads its measurement), or a
+DAQ file recorded beside the controller."""
+LIVE = ("sensor", "tool-setter")
+"""The sources the wizard records itself."""
+PROBE_MOVES_S = 10.0
+"""The rapid moves to the tool setter and back, on top of the cycle's measuring time [s]: the
+default of ``--probe-dwell-s`` with the cycle's measuring time."""
 
 ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 """A machine or spindle id (and no ``..`` in it): it names a directory and files, so nothing
@@ -166,19 +177,21 @@ class Wizard:
         if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):
             raise ConfigError(f"--max-rpm {max_rpm:g}: not a plausible spindle speed (100 to 200000)")
         self.session["max_rpm"] = max_rpm
-        source = self.ask("source", "Displacement from (sensor: live eddy-current reading; import: "
-                          "a CSV a DAQ recorded)", flag="--source", default="sensor",
-                          choices=["sensor", "import"])
-        if source not in ("sensor", "import"):
-            raise ConfigError(f"--source {source!r}: sensor or import")
+        source = self.ask("source", "Displacement from (sensor: live eddy-current reading; tool-setter: "
+                          "the machine's tool setter, the program stopping for it every few minutes; "
+                          "import: a CSV a DAQ recorded)", flag="--source", default="sensor",
+                          choices=list(SOURCES))
+        if source not in SOURCES:
+            raise ConfigError(f"--source {source!r}: choose from {', '.join(SOURCES)}")
         self.session["source"] = source
-        if source == "sensor":
+        if source in LIVE:
             while True:
                 self.session["controller"] = self.ask(
                     "controller", "Controller link (URL, as in the runtime configuration)", flag="--controller")
-                self.session["sensor"] = self.ask(
-                    "sensor", "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
-                    "opc.tcp://...)", flag="--sensor")
+                if source == "sensor":
+                    self.session["sensor"] = self.ask(
+                        "sensor", "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
+                        "opc.tcp://...)", flag="--sensor")
                 self.session["rate_s"] = float(self.ask("rate_s", "Sample period [s]", flag="--rate-s",
                                                         default=1.0, kind=float))
                 if not self.session["rate_s"] > 0:
@@ -243,10 +256,15 @@ class Wizard:
         self.save_session()
 
     def _links(self):
+        """The controller link, and the displacement sensor's (None on the tool-setter route: the
+        controller reads the tool setter's measurements)."""
         from cnc_adapters import open_adapter
         from cnc_adapters.sensors import open_sensor
 
-        return open_adapter(self.session["controller"]), open_sensor(self.session["sensor"])
+        ctl = open_adapter(self.session["controller"])
+        if self.session["source"] == "tool-setter":
+            return ctl, None
+        return ctl, open_sensor(self.session["sensor"])
 
     def test_connections(self) -> None:
         from cnc_adapters.base import AdapterError, redact_url
@@ -263,16 +281,27 @@ class Wizard:
             ctl = open_adapter(self.session["controller"])
         except (AdapterError, ConfigError) as err:
             raise failed("controller", f"controller link: {err}") from err
+        setter = self.session["source"] == "tool-setter"
+        if setter and not ctl.can_read_measurement:
+            ctl.close()
+            raise failed("controller", f"controller {redact_url(self.session['controller'])}: the link reads "
+                         "no tool-setter measurement: give it the probe cycle's value and counter variables "
+                         "(measurement_node and measurement_sequence_node, or the control's own keys)")
         try:
-            sensor = open_sensor(self.session["sensor"])
+            sensor = None if setter else open_sensor(self.session["sensor"])
         except (AdapterError, ConfigError) as err:
             raise failed("sensor", f"sensor link: {err}") from err
         try:
             with ctl:
                 rpm = ctl.read_speed()
-            self.out.print(f"  controller: [green]ok[/], spindle at {rpm:.0f} rpm")
+                if setter:
+                    ctl.read_measurement()  # the variables exist and read; a value there is stale
+            self.out.print(f"  controller: [green]ok[/], spindle at {rpm:.0f} rpm"
+                           + (", the tool setter's variables read" if setter else ""))
         except AdapterError as err:
             raise failed("controller", f"controller {redact_url(self.session['controller'])}: {err}") from err
+        if sensor is None:
+            return
         try:
             with sensor:
                 um = sensor.read_um()
@@ -303,11 +332,51 @@ class Wizard:
 
     def programs(self) -> dict[str, Any]:
         s = self.session
-        cal = calibration_profile(s["max_rpm"], step_min=s["step_min"], cooldown_min=s["cooldown_min"])
+        every = s.get("probe_every_s") if s.get("source") == "tool-setter" else None
+        cal = calibration_profile(s["max_rpm"], step_min=s["step_min"], cooldown_min=s["cooldown_min"],
+                                  probe_every_s=every)
         progs = {"calibration": cal}
         if s["validation"]:
-            progs["validation"] = validation_profile(s["max_rpm"], seed=s["validation_seed"])
+            val = validation_profile(s["max_rpm"], seed=s["validation_seed"])
+            # with the tool setter alone, the validation run is measured by the same stops
+            progs["validation"] = val if every is None else with_probe_stops(val, every)
         return progs
+
+    def plan_probes(self) -> None:
+        """The tool-setter route: how often the program stops for a measurement, and what the
+        stops cost (``calibration.toolsetter_plan``)."""
+        from .probeprog import measuring_time_s, probe_cycle
+        from .toolsetter_plan import plan_probe_interval
+
+        a, s = self.args, self.session
+        if a.probe_dwell_s is not None:
+            s["probe_dwell_s"] = float(a.probe_dwell_s)
+        if "probe_dwell_s" not in s:
+            # the cycle's own measuring time with its default feeds, and the moves to and from the setter
+            cycle = probe_cycle(s["dialect"], approach_z_mm=-5.0 if s["dialect"] == "heidenhain" else None)
+            s["probe_dwell_s"] = round(measuring_time_s(cycle) + PROBE_MOVES_S)
+        dwell = s["probe_dwell_s"]
+        if not (math.isfinite(dwell) and 0 <= dwell <= 3600):
+            raise ConfigError(f"--probe-dwell-s {dwell:g}: one tool-setter cycle's seconds, 0 to 3600")
+        taus = self._former_time_constants()
+        plan = plan_probe_interval(60 * s["step_min"], 60 * s["cooldown_min"], dwell, min(taus) if taus else None)
+        every_min = a.probe_every_min if a.probe_every_min is not None else s.get("probe_every_min")
+        if every_min is not None:
+            every_min = float(every_min)
+            if not (math.isfinite(every_min) and 1 <= every_min <= 240):
+                raise ConfigError(f"--probe-every-min {every_min:g}: 1 to 240 minutes")
+            s["probe_every_min"] = every_min
+            if 60 * every_min > plan.interval_s:
+                self.out.print(f"  [yellow]warning:[/] a stop every {every_min:g} min is sparser than the plan's "
+                               f"{plan.interval_s / 60:.0f} min: the fastest growth may be missed")
+        s["probe_every_s"] = 60 * every_min if every_min is not None else plan.interval_s
+        for line in plan.lines():
+            self.out.print(f"  {escape(line)}", highlight=False)
+        if every_min is not None:
+            self.out.print(f"  the program stops every {every_min:g} min, as given (--probe-every-min)")
+        s["probe_plan"] = {"interval_s": s["probe_every_s"], "planned_interval_s": plan.interval_s,
+                           "dwell_s": dwell, "bound": plan.bound, "fastest_tau_s": plan.fastest_tau_s,
+                           "tau_assumed": plan.tau_assumed}
 
     def step_programs(self) -> None:
         a = self.args
@@ -322,6 +391,8 @@ class Wizard:
             s["validation"] = bool(a.validation) if a.validation is not None else (
                 self.confirm("Also record a different validation profile (recommended)?"))
         s["validation_seed"] = int(s.get("validation_seed", a.validation_seed))
+        if s["source"] == "tool-setter":
+            self.plan_probes()
         rest = rest_hours(self._former_time_constants())
         s["rest_h"] = rest
         ext = EXTENSIONS[s["dialect"]]
@@ -343,6 +414,15 @@ class Wizard:
         self.out.print(f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
                        f"{rest:g} h (five of its slowest time constants, or a night when no model exists "
                        "yet). A warm spindle biases the model.")
+        if s["source"] == "tool-setter":
+            d = s["dialect"]
+            self.out.print(
+                f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
+                f"cold-reference program, for this machine's tool and setter:\n"
+                f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
+                f"    thermocomp probe-program --dialect {d} --output tcprobe{ext}\n"
+                "  then run the reference program once on the cold spindle, before each run's first start.",
+                highlight=False)
         self.save_session()
 
     def _former_time_constants(self) -> tuple[float, ...] | None:
@@ -380,13 +460,15 @@ class Wizard:
                        f"{self.both(s['rest_h'] * 3600)}).")
         if resuming:
             self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
-        elif self.interactive and not self.confirm("Spindle cold, probe set, program loaded: start recording?"):
+        elif self.interactive and not self.confirm(
+                "Spindle cold, " + ("cold reference taken" if s["source"] == "tool-setter" else "probe set")
+                + ", program loaded: start recording?"):
             raise AcquisitionError(f"{name}: recording not started")
         ctl, sensor = self._links()
         cfg = AcquireConfig(rate_s=s["rate_s"], **_acquire_overrides(self.args))
         meta = {"source": "thermocomp wizard", "machine_id": s["machine_id"], "spindle_id": s["spindle_id"],
                 "run": name, "program": s["programs"][name], "controller": s["controller"],
-                "sensor": s["sensor"], "max_rpm": s["max_rpm"]}
+                "sensor": s.get("sensor") or "the controller's tool setter", "max_rpm": s["max_rpm"]}
         live = _LiveView(self.out, prog, name, self.args.time_scale)
         pressed = _StartKey(self.interactive, bool(getattr(self.args, "start_now", False)))
         rec = Recorder(ctl, sensor, log, prog, max_rpm=s["max_rpm"], config=cfg, metadata=meta,
@@ -407,13 +489,17 @@ class Wizard:
             raise
         finally:
             ctl.close()
-            sensor.close()
+            if sensor is not None:
+                sensor.close()
         info.update(complete=result.complete, rows=_rows(log), flagged=result.flagged,
                     events=[f"{e.time_s:.0f} s: {e.message}" for e in result.events if e.problem][:50])
         self.save_session()
         if rec.channels:
             info["inputs"] = list(rec.channels)
+        if sensor is None:
+            info["measurements"] = int(read_run_log(log).measured.sum())
         self.out.print(f"  {name}: [green]recorded[/] {info['rows']} rows to {log}"
+                       + (f", {info['measurements']} tool-setter measurements" if sensor is None else "")
                        + (f"; flagged: {result.flagged}" if result.flagged else ""))
 
     def import_run(self, name: str, info: dict[str, Any]) -> None:
@@ -479,14 +565,14 @@ class Wizard:
         # the one identification `thermocomp fit` runs: the same log gives the same model
         # a live recording measures growth toward the part as positive; an imported DAQ file's
         # sign is the device's, so the data says it
-        direction = 1 if s.get("source") == "sensor" else None
+        direction = 1 if s.get("source") in LIVE else None
         try:
             result = fit_logs([cal_log], labels=["calibration"], spindle_id=s["spindle_id"],
                               machine_id=s["machine_id"], created_utc=_now(), growth_direction=direction)
         except CalibrationError as err:
             # nothing is saved: a model physics forbids, or a run that did not follow its program
             self.out.print(f"  [red]refused:[/] {escape(str(err))}")
-            if (self.interactive and s.get("source") == "sensor" and "did not follow" in str(err)
+            if (self.interactive and s.get("source") in LIVE and "did not follow" in str(err)
                     and self.confirm("Record the calibration run again (the machine must run the "
                                      "calibration program)?", default=False)):
                 self._set_run_aside("calibration")
@@ -499,32 +585,40 @@ class Wizard:
         model = result.model
         j = result.dataset
         fitted = result.free_run_um()["calibration"]
-        cal_res = j.elongation_um - fitted
+        cal_res = j.elongation_um - fitted  # NaN where not measured (the tool-setter route)
         summary: dict[str, Any] = {"form": model.form, "reason": result.reason,
-                                   "calibration": residual_stats(cal_res),
+                                   "calibration": residual_stats(cal_res[j.measured]),
                                    "warnings": list(result.warnings), "report": report}
         panels = [Panel("calibration run", j.time_s, j.speed_rpm, fitted, j.elongation_um)]
-        peak = float(np.max(np.abs(j.elongation_um)))
+        peak = float(np.max(np.abs(j.elongation_um[j.measured])))
         if "validation" in logs:
             vlog, vdrop = logs["validation"]
             rep = replay(model, vlog)
             res = rep.residual_um
-            summary["validation"] = residual_stats(res)
+            summary["validation"] = residual_stats(res[np.isfinite(res)])
             summary["validation_report"] = rep.report
             panels.append(Panel("validation run (held out)", rep.time_s, rep.speed_rpm, rep.predicted_um,
                                 rep.measured_um))
             v = summary["validation"]
+            what = "tool-setter measurements" if s.get("source") == "tool-setter" else "samples"
             self.out.print(f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
-                           f"max {v['max_abs_um']:.2f} um over {v['samples']} samples"
+                           f"max {v['max_abs_um']:.2f} um over {v['samples']} {what}"
                            + (f" ({vdrop} flagged rows left out)" if vdrop else ""))
-            # how often a tool setter would have to measure, judged on the held-out run
-            from .closedloop import plan_on_run
+            if j.dense and bool(np.isfinite(res).all()):
+                # how often a tool setter would have to measure, judged on the held-out run
+                from .closedloop import plan_on_run
 
-            loop = plan_on_run(j.time_s, cal_res, rep.time_s, res, max(model.time_constants_s(0.0)))
-            for line in loop.lines():
-                self.out.print(f"  {line}", markup=False, highlight=False)
-            summary["closed_loop"] = loop.report()
-            model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
+                loop = plan_on_run(j.time_s, cal_res, rep.time_s, res, max(model.time_constants_s(0.0)))
+                for line in loop.lines():
+                    self.out.print(f"  {line}", markup=False, highlight=False)
+                summary["closed_loop"] = loop.report()
+                model = model.model_copy(update={"fit": {**model.fit, "observer": loop.observer.model_dump()}})
+            else:
+                # the observer's noise is fitted from a residual on every row; measurements minutes
+                # apart cannot give it, so the service starts from the product's observer defaults
+                self.out.print("  closed loop: the service fuses the tool setter's measurements with the "
+                               "model (the observer's default noise; a dense run is needed to fit it)",
+                               highlight=False)
         # the standard's drift test, from the same runs: what a shop hands its customer
         from .iso230_3 import report_rows, spindle_thermal_test
 

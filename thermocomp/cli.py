@@ -318,7 +318,9 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--machine-id")
     g.add_argument("--spindle-id")
     g.add_argument("--max-rpm", type=float)
-    g.add_argument("--source", choices=["sensor", "import"], help="live sensor, or import DAQ CSV logs")
+    g.add_argument("--source", choices=["sensor", "tool-setter", "import"],
+                   help="live eddy-current sensor; the machine's tool setter alone (the program stops for it "
+                   "every few minutes, the controller link reads it); or import DAQ CSV logs")
     g.add_argument("--controller", help="controller link URL (as in the runtime configuration)")
     g.add_argument("--sensor", help="displacement sensor URL: serial:///dev/ttyUSB1?scale=-1&range_um=-500,500, "
                    "serial:///dev/ttyUSB1?protocol=modbus&register=0&scale=0.1, opc.tcp://host:port/?node=...")
@@ -332,6 +334,12 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
                    help="also record a different validation profile")
     g.add_argument("--no-validation", dest="validation", action="store_false")
     g.add_argument("--validation-seed", type=int, default=1)
+    g.add_argument("--probe-every-min", type=float,
+                   help="--source tool-setter: minutes between tool-setter stops (default: planned from the "
+                   "step and the fastest time constant)")
+    g.add_argument("--probe-dwell-s", type=float,
+                   help="--source tool-setter: seconds one tool-setter cycle keeps the spindle stopped, moves "
+                   "included (default: the cycle's measuring time + 10 s)")
     g.add_argument("--programs-only", action="store_true", help="stop after writing the NC programs")
     g = p.add_argument_group("3 record")
     g.add_argument("--frozen-s", type=float, help="same reading this long: frozen (default 900)")
