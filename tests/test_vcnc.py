@@ -152,3 +152,47 @@ def _read_back(link):
         return link.read_offset_um()
     except UnreachableError:
         return None
+
+
+def test_virtual_cnc_writes_the_machines_record_on_sigterm(tmp_path):
+    """`thermocomp virtual-cnc --history`: stopped by SIGTERM (as systemd or a shell stops it), it
+    writes the machine's record with the tool tip's error and says it in one line; with no
+    service writing an offset, the error is the growth itself."""
+    import signal
+    import socket
+    import sys
+
+    from asyncua.sync import Client
+
+    from compensator.io import read_run_log
+    from machine_sim.vcnc import NAMESPACE_URI, NODE_PATHS
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "machine.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "virtual-cnc", "--program", "job-shop-day",
+                             "--time-scale", "3000", "--port", str(port), "--history", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        head = []
+        for line in proc.stdout:  # the server is up once it prints its nodes
+            head.append(line)
+            if line.startswith("nodes:"):
+                break
+        with Client(f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", timeout=10) as c:
+            node = c.get_node(f"ns={c.get_namespace_index(NAMESPACE_URI)};s={NODE_PATHS['sim_time']}")
+            for _ in range(600):  # until the machine has a record of a few simulated minutes
+                if node.read_value() > 300.0:
+                    break
+                time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        rest = proc.communicate(timeout=60)[0]
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, "".join(head) + rest
+    assert "tool-tip error over" in rest and f"to {out}" in rest
+    log = read_run_log(out)
+    assert log.time_s[-1] > 300.0
+    assert np.allclose(log.extras["error_um"], log.elongation_um + log.extras["offset_um"])
+    assert np.allclose(log.extras["offset_um"], 0.0)  # nothing wrote an offset

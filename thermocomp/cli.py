@@ -194,6 +194,9 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     p.add_argument("--port", type=int, default=4840, help="TCP port")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.add_argument("--history", metavar="CSV",
+                   help="on stop, write the machine's record (true growth, the offset held, the tool tip's "
+                   "error) as a run log and print the error while cutting, with and without the offset")
     p.add_argument("--accel-rpm-per-s", type=float, default=None,
                    help="how fast the drive changes speed (default: the preset's, 5000 for motorized-27k)")
     p.add_argument("--approach-s", type=float, default=None,

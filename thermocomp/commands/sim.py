@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import signal
 import time
 from pathlib import Path
 
@@ -86,6 +87,9 @@ def virtual_cnc(args: argparse.Namespace) -> int:
                         clock=SimClock(args.time_scale))
     if args.wait_start:
         vm.load_pending(prog)
+    history = getattr(args, "history", None)
+    # SIGTERM (systemd, kill, a test) ends the loop like Ctrl-C, so the history is still written
+    signal.signal(signal.SIGTERM, _interrupt)
     with running(VirtualCNC(vm, host=args.host, port=args.port)) as cnc:
         print(f"virtual CNC ({params.name}, {prog.name}, {args.time_scale:g}x) at {cnc.url}", flush=True)
         if args.wait_start:
@@ -95,13 +99,58 @@ def virtual_cnc(args: argparse.Namespace) -> int:
             print(f"... or it starts by itself in {args.start_delay:g} s", flush=True)
         t0 = time.monotonic()
         end = None if args.duration is None else t0 + args.duration
-        while end is None or time.monotonic() < end:
-            time.sleep(0.2)
-            if vm.pending is not None and args.start_delay is not None and time.monotonic() - t0 >= args.start_delay:
-                vm.advance()
-                vm.cycle_start()
-                print("cycle start", flush=True)
-            if vm.program is not None and vm.pending is None and vm.program_done:
-                print("program finished; the spindle idles", flush=True)
-                vm.load_program(None)
+        try:
+            while end is None or time.monotonic() < end:
+                time.sleep(0.2)
+                if (vm.pending is not None and args.start_delay is not None
+                        and time.monotonic() - t0 >= args.start_delay):
+                    vm.advance()
+                    vm.cycle_start()
+                    print("cycle start", flush=True)
+                if vm.program is not None and vm.pending is None and vm.program_done:
+                    print("program finished; the spindle idles", flush=True)
+                    if history:
+                        print(error_line(vm), flush=True)
+                    vm.load_program(None)
+        except KeyboardInterrupt:
+            print("stopped", flush=True)
+    if history:
+        write_history(history, vm, params.name, prog.name)
     return 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def tool_tip_error(vm: VirtualMachine):
+    """The machine's record: time, speed, the true growth, the offset the controller held, the
+    tool tip's error (growth plus offset, A = -S) and whether the tool cut."""
+    h = vm.history()
+    return h, h.true_um + h.offset_um
+
+
+def error_line(vm: VirtualMachine) -> str:
+    """One line: the tool tip's error over the record and while cutting, without and with the
+    offset the controller held."""
+    h, err = tool_tip_error(vm)
+    if h.time_s.size == 0:
+        return "tool-tip error: no record yet"
+
+    def figs(e) -> str:
+        return f"RMS {math.sqrt(float((e ** 2).mean())):.2f} um, max {float(abs(e).max()):.2f} um" if e.size else "-"
+
+    cut = h.cutting
+    return (f"tool-tip error over {h.time_s[-1] - h.time_s[0]:.0f} s: uncompensated {figs(h.true_um)}; "
+            f"with the offset {figs(err)}; while cutting ({int(cut.sum())} rows): uncompensated "
+            f"{figs(h.true_um[cut])}, with the offset {figs(err[cut])}")
+
+
+def write_history(path: str, vm: VirtualMachine, preset_name: str, program_name: str) -> None:
+    h, err = tool_tip_error(vm)
+    write_run_log(path, {"time_s": h.time_s, "speed_rpm": h.speed_rpm, "elongation_um": h.true_um,
+                         "offset_um": h.offset_um, "error_um": err, "cutting": h.cutting.astype(int)},
+                  {"source": "thermocomp virtual-cnc", "preset": preset_name, "program": program_name,
+                   "elongation_um": "the plant's true growth; error_um = growth + offset"})
+    print(error_line(vm), flush=True)
+    print(f"wrote the machine's record, {h.time_s.size} rows, to {path}", flush=True)
