@@ -172,6 +172,7 @@ class Wizard:
         self.session.update(machine_id=machine, spindle_id=spindle)
         # a faster clock (virtual machine tool) must read the same in a resumed process
         anchor = self.session.setdefault("time_anchor_s", time.time())
+        self.session["time_scale"] = float(a.time_scale)  # the service must run at the same
         self.clock = self._clock or _clock(a.time_scale, anchor)
         max_rpm = float(self.ask("max_rpm", "Maximum spindle speed [rpm]", flag="--max-rpm", kind=float))
         if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):

@@ -102,6 +102,18 @@ def test_the_written_configuration_passes_run_check_as_written_from_anywhere(ses
     assert cfg.state_dir == config.parent / ".." / "state" and cfg.spindle[0].adapter == {"url": CONTROLLER}
 
 
+def test_a_session_on_a_faster_virtual_machine_writes_its_time_scale(session, tmp_path):
+    """The service must run at the clock the calibration ran at: a wizard run with --time-scale
+    against the virtual machine tool writes it; a real machine's session writes none."""
+    assert "time_scale" not in tomllib.loads(session["config"].read_text())
+    path = tmp_path / "config" / "fast.toml"
+    path.parent.mkdir()
+    path.write_text(runtime_config({**session["session"], "time_scale": 600.0}, session["model"],
+                                   session["model_path"], config_dir=path.parent))
+    assert tomllib.loads(path.read_text())["time_scale"] == 600.0
+    assert load_config(path).time_scale == 600.0
+
+
 def test_the_configuration_keeps_the_products_shaping(session):
     text = session["config"].read_text()
     assert 'mode = "slow"' not in text and "transient" not in text and "deadband" not in text
