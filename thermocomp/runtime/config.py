@@ -59,6 +59,18 @@ class FaultPolicy(BaseModel):
                                  "STATE_STALE alarm (a restart would then start further from the truth)")
 
 
+class DriftSettings(BaseModel):
+    """The drift detector on the model's misses at each measurement (``compensator.drift``): a
+    two-sided CUSUM in units of the error the fit stated, raising MODEL_DRIFT."""
+
+    model_config = _FROZEN
+
+    k: float = Field(0.5, ge=0, le=10, description="reference value [sd]: half the shift to find quickly")
+    h: float = Field(5.0, gt=0, le=100, description="decision interval [sd]: larger, fewer false alarms "
+                     "and later detection")
+    grace: int = Field(2, ge=0, le=1000, description="measurements left out after a start or a new model")
+
+
 class ObserverSettings(BaseModel):
     """The closed loop: tool-setter or probe measurements fused with the model (issue 17).
 
@@ -110,6 +122,7 @@ class SpindleConfig(BaseModel):
     shaping: ShaperConfig = ShaperConfig()
     faults: FaultPolicy = FaultPolicy()
     observer: ObserverSettings = ObserverSettings()
+    drift: DriftSettings = DriftSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
     max_expected_error_um: float | None = Field(

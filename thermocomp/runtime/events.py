@@ -29,6 +29,7 @@ EVENTS = (
     "status_listening", "status_failed", "mqtt_connected", "mqtt_lost", "journal_swept",
     "estimate_refused", "cycle_failed", "downtime_corrected",
     "expected_error_high", "expected_error_within_bound",
+    "model_drift", "model_drift_cleared", "model_switched", "history_failed",
 )
 """Every event name the runtime emits (documented in the README)."""
 

@@ -74,6 +74,8 @@ from compensator.errors import (
     ModelError,
     ModelFileError,
 )
+from compensator.drift import DriftConfig, DriftState, miss_sd_um
+from compensator.drift import update as drift_update
 from compensator.estimate import Estimate, EstimateState, Step
 from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
 from compensator.fusion import FusedState
@@ -138,6 +140,7 @@ class Alarm(enum.IntFlag):
     CUTTING_SIGNAL_FAILED = 2097152
     ESTIMATE_REFUSED = 4194304
     EXPECTED_ERROR_HIGH = 8388608
+    MODEL_DRIFT = 16777216
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
@@ -247,6 +250,10 @@ class SpindleRuntime:
         # source -> (why it failed, whether a value was refused: held until a usable one)
         self._source_errors: dict[str, tuple[str, bool]] = {}
         self._observer_stale = False
+        # has the spindle changed since the model was fitted: a CUSUM on the model's misses at
+        # each measurement; a new runtime (start, reload) starts it afresh, a known event
+        self.drift = DriftState()
+        self._drift_config = DriftConfig(k=cfg.drift.k, h=cfg.drift.h, grace=cfg.drift.grace)
         self.alarms = Alarm.NONE
         self._startup_alarms = Alarm.NONE  # journaled with the first cycle
         self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
@@ -273,6 +280,9 @@ class SpindleRuntime:
         self._writes_paused_until = -math.inf
         if previous is not None and previous.digest == self.digest:
             self._carry_over(previous)  # a reload: the state in memory, not the one on disk
+            self.drift = previous.drift  # the same model: the evidence holds
+        elif previous is not None:
+            self._switch_model(previous)  # a promotion or a rollback: from where the old one was
         else:
             self.restore()
         self.alarms = self._startup_alarms
@@ -350,6 +360,29 @@ class SpindleRuntime:
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
                      "_save_error", "_stale", "_state_alarms", "_journal_error", "_restored", "_since_start"):
             setattr(self, name, getattr(old, name))
+
+    def _switch_model(self, old: SpindleRuntime) -> None:
+        """Continue ``old`` with another model (a promotion, a rollback, an edited file): the new
+        model starts at the old estimate, at the speed last read (its states at equilibrium there,
+        the difference decaying with its slowest time constant), so the estimate does not jump;
+        the offset the controller holds, the shaper and the timing carry over like a reload's, and
+        the offset moves from there at the slew limit as ever."""
+        self.est = self.estimate.begin(old.estimate_um(), old._last_speed)
+        self._queued, old._queued = old._queued, collections.deque()
+        self.offset = OffsetTracker(self.cfg.shaping, old.offset.held_um)
+        self.offset.shaper.follow(old.offset.shaper)
+        self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
+        self._last_t, self._first_t = old._last_t, old._first_t
+        self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
+        self._skew_s, self._write_done_s = old._skew_s, old._write_done_s
+        for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
+                     "_save_error", "_stale", "_state_alarms", "_journal_error"):
+            setattr(self, name, getattr(old, name))
+        self._last_save = -math.inf  # the new model's state is saved at once
+        event("model_switched", self.cfg.name, "%s: model %s in use (was %s), starting at the old "
+              "estimate %.2f um", self.cfg.name, self.digest[:16], old.digest[:16], old.estimate_um(),
+              level=logging.WARNING, digest=self.digest, previous=old.digest,
+              elongation_um=old.estimate_um())
 
     def take_journal(self, old: SpindleRuntime) -> None:
         """Write on through ``old``'s journal: the rows it still holds in memory are not lost."""
@@ -469,6 +502,8 @@ class SpindleRuntime:
                 reply(answer)
         if self._probe_rejected:
             alarms |= Alarm.PROBE_REJECTED
+        if self.drift.detected:
+            alarms |= Alarm.MODEL_DRIFT
         if self._source_errors:
             alarms |= Alarm.PROBE_FAILED
         return alarms | self._staleness(now)
@@ -501,6 +536,7 @@ class SpindleRuntime:
                                 f"|value| <= {SAVED_LIMIT_UM:g} um and 0 < sigma <= {SIGMA_LIMIT_UM:g} um")
         else:
             try:
+                bias_before = self.state.observer.bias_um
                 self.est, up, before = self.estimate.measure(self.est, y, sigma)
             except ModelError as refused:  # the estimate it would give is none a spindle has
                 err = BadValueError(f"{source}: {refused}")
@@ -510,6 +546,8 @@ class SpindleRuntime:
         self._source_errors.pop(source, None)  # it gave a usable value
         self._since_start = None  # the estimate has been measured: it is not re-run from the start
         outcome = "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
+        # the model's own miss (without the bias, which absorbs a drift); a rejected one counts too
+        self._drift_step(now, y - (before - bias_before), sigma)
         self.counters[f"probes_{outcome}"] += 1
         z = self.state.observer
         self.measurements.record(
@@ -540,6 +578,35 @@ class SpindleRuntime:
                 "innovation_um": up.innovation_um, "innovation_sd_um": up.innovation_sd_um,
                 "gate_sigma": self.estimate.fused.config.gate_sigma, "bias_um": z.bias_um,
                 "elongation_um": self.estimate_um(), "time_s": self.anchor_s + now}
+
+    def _drift_step(self, now: float, miss_um: float, sigma_um: float) -> None:
+        """One measurement into the drift detector; MODEL_DRIFT with one event on entry (the
+        size and start of the change, what to do) and one on leaving."""
+        on_inputs = self.estimate.with_inputs is not None and self.est.inputs is not None
+        stated = self.expected if on_inputs or self.estimate.with_inputs is None else self.expected_fallback
+        rms = None if stated is None else stated.at(self._last_speed).rms_um
+        was = self.drift.detected
+        self.drift = drift_update(self.drift, miss_um, miss_sd_um(rms, sigma_um), now, self._drift_config)
+        change = self.drift.change()
+        if change is not None and not was:
+            size, since, n = change
+            event("model_drift", self.cfg.name, "%s: MODEL_DRIFT: the spindle grows %+.2f um %s the model "
+                  "says, over the last %d measurements (since %s); refit from production (thermocomp "
+                  "refit) or recalibrate", self.cfg.name, size, "beyond what" if size > 0 else "against what",
+                  n, _iso(self.anchor_s + since), level=logging.WARNING, size_um=round(size, 3),
+                  since_s=self.anchor_s + since, measurements=n, statistic=round(self.drift.statistic, 3))
+        elif was and not self.drift.detected:
+            event("model_drift_cleared", self.cfg.name, "%s: MODEL_DRIFT cleared: the model's misses are "
+                  "back within what its fit stated", self.cfg.name, statistic=round(self.drift.statistic, 3))
+
+    def drift_status(self) -> dict[str, Any]:
+        """The drift detector for status lines: its statistic, and the change while one is declared."""
+        change = self.drift.change()
+        out: dict[str, Any] = {"statistic": round(self.drift.statistic, 3), "threshold": self._drift_config.h,
+                               "measurements": self.drift.seen, "detected": self.drift.detected}
+        if change is not None:
+            out.update(size_um=round(change[0], 3), since_s=self.anchor_s + change[1], since=_iso(self.anchor_s + change[1]))
+        return out
 
     def _staleness(self, now: float) -> Alarm:
         """OBSERVER_STALE once no measurement has been taken for ``stale_after_s`` (counted from
@@ -859,7 +926,8 @@ class SpindleRuntime:
                      "slew_limit_um_per_s": shaped.rate_um_per_s,
                      "estimate": ("fused" if self.estimate.fused is not None else "inputs"
                                   if self.input_state is not None else "speed"),
-                     "inputs": dict(self._inputs_read), "expected_error": expected}
+                     "inputs": dict(self._inputs_read), "expected_error": expected,
+                     "drift": self.drift_status() if self.estimate.fused is not None else None}
         return {**self.last, "alarms": alarms}
 
     def _shaper_dt(self, dt: float) -> float:
@@ -1041,3 +1109,7 @@ class SpindleRuntime:
                     self.adapter.close()
                 except AdapterError as err:
                     log.warning("%s: closing the link: %s", self.cfg.name, err)
+
+
+def _iso(epoch_s: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(epoch_s))
