@@ -374,11 +374,16 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("model", help="show or check a model file",
-                       usage="%(prog)s [-h] [--json] FILE | check FILE | --schema [--format FORMAT]",
+    p = sub.add_parser("model", help="show or check a model file; a spindle's model history and rollback",
+                       usage="%(prog)s [-h] [--json] FILE | check FILE | --schema [--format FORMAT] | "
+                       "history --config RUNTIME.toml [--spindle NAME] | rollback [DIGEST] --config RUNTIME.toml "
+                       "[--spindle NAME] [--reason TEXT]",
                        description="FILE: describe the model. check FILE: verify it as the runtime "
                        "would load it (checksum, sanity, plausibility); exit 0 if it is ok, else 2 "
-                       "with a one-line reason.")
+                       "with a one-line reason. history: every model the service ran, every refit "
+                       "candidate and why it was promoted or rejected. rollback: put a kept model back "
+                       "(default: the one in use before the live one); the service reloads it, its state "
+                       "carried over.")
     p.__class__ = _IntermixedParser  # add_parser makes every subparser of one class
     p.add_argument("model", nargs="?", metavar="FILE", help="model file (JSON), or 'check'")
     p.add_argument("file", nargs="?", metavar="FILE", help=argparse.SUPPRESS)  # after 'check'
@@ -387,7 +392,28 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
                    "or 'all' for every format keyed by name")
     p.add_argument("--json", action="store_true",
                    help="print as JSON (check: {file, ok, reason, format, form, ...})")
+    p.add_argument("--config", metavar="RUNTIME.toml", help="history, rollback: the runtime configuration")
+    p.add_argument("--spindle", metavar="NAME", help="history, rollback: the spindle (needed with several)")
+    p.add_argument("--reason", help="rollback: why, for the history")
     p.set_defaults(handler="thermocomp.commands.model:model")
+
+
+def _add_refit(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("refit", help="refit a spindle's model from its own tool-setter measurements; "
+                       "promote the candidate only if it beats the live model on the newest ones",
+                       description="Exports the journal since the live model went into use, fits a "
+                       "candidate on all but the newest measurements and judges both models on those "
+                       "(open loop and with the observer). A candidate the rule ([spindle.learning]) "
+                       "accepts replaces the configured model file and the service reloads it; every "
+                       "candidate is kept in the model history with its figures and the reason.")
+    p.add_argument("--config", required=True, metavar="RUNTIME.toml", help="the runtime configuration")
+    p.add_argument("--spindle", metavar="NAME", help="the spindle (needed with several)")
+    p.add_argument("--from", dest="from_", metavar="WHEN",
+                   help="refit on the journal from this ISO date or date-time (UTC unless it names a zone; "
+                   "default: since the live model went into use)")
+    p.add_argument("--dry-run", action="store_true", help="judge, keep the candidate in the history, change nothing")
+    p.add_argument("--json", action="store_true", help="print the decision and figures as JSON")
+    p.set_defaults(handler="thermocomp.commands.learning:refit_cmd")
 
 
 def _add_status(sub: argparse._SubParsersAction) -> None:
@@ -439,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_demo, _add_controls, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
-                _add_measure, _add_status, _add_journal, _add_init, _add_simulate, _add_cooling,
+                _add_measure, _add_status, _add_journal, _add_refit, _add_init, _add_simulate, _add_cooling,
                 _add_virtual_cnc, _add_hal_plant, _add_model):
         add(sub)
     return parser

@@ -40,6 +40,12 @@ log = logging.getLogger("thermocomp.journal")
 ALARM_COLD_START = 32
 """The bit of the ``alarms`` column that marks a cold start (no saved state): the estimate began
 at the model's own equilibrium at rest."""
+FAULT_ALARM_BITS = {"SPEED_READ_FAILED": 1, "IDLE_ASSUMED": 2, "LINK_DOWN": 8, "OUTAGE": 64,
+                    "NOT_READY": 128, "INPUT_FALLBACK": 256, "CLOCK_STEP": 32768,
+                    "ESTIMATE_REFUSED": 4194304}
+"""The bits of the ``alarms`` column that mark a cycle whose speed, inputs or time cannot be
+trusted: a measurement taken then judges no model (``calibration.learning``)."""
+FAULT_ALARMS = sum(FAULT_ALARM_BITS.values())
 MAX_PENDING_ROWS = 250_000
 """Rows kept in memory while the disk refuses them (about 3 days at one cycle a second)."""
 

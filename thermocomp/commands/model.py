@@ -19,6 +19,20 @@ def model(args: argparse.Namespace) -> int:
         return _schema(args.format)
     if args.format is not None:
         raise ConfigError("--format goes with --schema")
+    if args.model in ("history", "rollback"):
+        from .learning import history_cmd, rollback_cmd
+
+        if not args.config:
+            raise ConfigError(f"thermocomp model {args.model} needs the runtime configuration: --config RUNTIME.toml")
+        if args.model == "history":
+            if args.file is not None:
+                raise ConfigError(f"thermocomp model history takes no file ({args.file!r})")
+            return history_cmd(args)
+        args.digest = args.file
+        return rollback_cmd(args)
+    for flag in ("config", "spindle", "reason"):
+        if getattr(args, flag, None) is not None:
+            raise ConfigError(f"--{flag} goes with thermocomp model history or rollback")
     if args.model == "check":
         if not args.file:
             raise ConfigError("give the model file to check: thermocomp model check FILE "

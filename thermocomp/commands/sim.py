@@ -124,10 +124,10 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 def tool_tip_error(vm: VirtualMachine):
-    """The machine's record: time, speed, the true growth, the offset the controller held, the
-    tool tip's error (growth plus offset, A = -S) and whether the tool cut."""
+    """The machine's record (time, speed, the true growth, the offset the controller held,
+    whether the tool cut) and the tool tip's error (growth plus offset, A = -S)."""
     h = vm.history()
-    return h, h.true_um + h.offset_um
+    return h, h.tool_tip_error_um
 
 
 def error_line(vm: VirtualMachine) -> str:

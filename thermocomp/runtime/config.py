@@ -71,6 +71,22 @@ class DriftSettings(BaseModel):
     grace: int = Field(2, ge=0, le=1000, description="measurements left out after a start or a new model")
 
 
+class LearningSettings(BaseModel):
+    """Refits from production (``thermocomp refit``) and the model history
+    (``<state_dir>/history/<spindle>/``): when a candidate may replace the live model."""
+
+    model_config = _FROZEN
+
+    min_train: int = Field(24, ge=4, le=100_000, description="measurements a candidate must be fitted on, at least")
+    min_holdout: int = Field(8, ge=3, le=100_000, description="newest measurements it must be judged on, at least")
+    holdout_share: float = Field(0.25, gt=0, lt=1, description="the newest share of the measurements held out to judge")
+    margin: float = Field(0.10, ge=0, lt=1, description="open loop, the candidate must miss less than the live "
+                          "model by this share on the held-out measurements")
+    observer_tolerance: float = Field(0.05, ge=0, le=1, description="with the observer, it may miss more than "
+                                      "the live model by this share at most")
+    keep_models: int = Field(20, ge=2, le=1000, description="model copies kept in the history (the live one always)")
+
+
 class ObserverSettings(BaseModel):
     """The closed loop: tool-setter or probe measurements fused with the model (issue 17).
 
@@ -123,6 +139,7 @@ class SpindleConfig(BaseModel):
     faults: FaultPolicy = FaultPolicy()
     observer: ObserverSettings = ObserverSettings()
     drift: DriftSettings = DriftSettings()
+    learning: LearningSettings = LearningSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
     max_expected_error_um: float | None = Field(

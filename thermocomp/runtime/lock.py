@@ -62,6 +62,25 @@ class StateDirLock:
         self.release()
 
 
+def holder(state_dir: str | os.PathLike[str]) -> tuple[bool, int | None]:
+    """Whether a service holds ``state_dir``, and its pid when the lock file names it. The lock
+    is tried and given back at once, so no service is missed or blocked for long."""
+    directory = Path(state_dir)
+    try:
+        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return False, None  # no state directory: no service has run there
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True, _read_pid(directory / LOCK_NAME)
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False, None
+    finally:
+        os.close(fd)
+
+
 def _read_pid(path: Path) -> int | None:
     try:
         text = path.read_bytes()[:32].decode("ascii", "replace").strip()

@@ -79,6 +79,7 @@ from compensator.drift import update as drift_update
 from compensator.estimate import Estimate, EstimateState, Step
 from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
 from compensator.fusion import FusedState
+from compensator.io.history import ModelHistory, fit_summary
 from compensator.io.journal import ALARM_COLD_START
 from compensator.io import (
     Journal,
@@ -278,6 +279,9 @@ class SpindleRuntime:
         self._mismatch_streak = 0
         self._wrote_since_check = False
         self._writes_paused_until = -math.inf
+        self.history = ModelHistory.of(state_dir, cfg.name, cfg.learning.keep_models)
+        self._record_in_use(loaded, "the service started with it" if previous is None
+                            else "a reload found it in the configuration")
         if previous is not None and previous.digest == self.digest:
             self._carry_over(previous)  # a reload: the state in memory, not the one on disk
             self.drift = previous.drift  # the same model: the evidence holds
@@ -360,6 +364,20 @@ class SpindleRuntime:
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
                      "_save_error", "_stale", "_state_alarms", "_journal_error", "_restored", "_since_start"):
             setattr(self, name, getattr(old, name))
+
+    def _record_in_use(self, model: Predictor, reason: str) -> None:
+        """Keep the model in the history when it is not the one recorded in use (a promotion or
+        a rollback recorded it already). The history is a record: failing to write it never
+        stops compensation."""
+        try:
+            live = self.history.live()
+            if live is None or live.digest != self.digest:
+                self.history.add("in_use", self.cfg.model, reason=reason, at_wall_s=self.wall(),
+                                 fit=fit_summary(model))
+        except (OSError, ConfigError) as err:
+            event("history_failed", self.cfg.name, "%s: the model history %s could not be written: %s; "
+                  "compensation goes on", self.cfg.name, self.history.directory,
+                  getattr(err, "strerror", None) or err, level=logging.WARNING, path=str(self.history.directory))
 
     def _switch_model(self, old: SpindleRuntime) -> None:
         """Continue ``old`` with another model (a promotion, a rollback, an edited file): the new

@@ -1,0 +1,238 @@
+"""A spindle that keeps learning: a candidate model refitted from production, judged against the
+live model on measurements it never saw, and the rule that decides whether it replaces it.
+
+The input is a journal export (:func:`compensator.io.journal_export.export_journal`): every cycle
+of the service, with the tool-setter measurements it accepted on their rows. Then:
+
+1. **Faults out.** A measurement taken in a cycle that journaled a fault (the speed not read or
+   assumed, the link down, an outage, the machine not ready, an input failing, a clock step, the
+   estimate refused: ``FAULT_ALARMS``) is left out, and counted. Measurements the service rejected
+   beyond its gate are never in the export.
+2. **Forward split.** The newest measurements are held out: ``holdout_share`` of them, at least
+   ``min_holdout``. The candidate is fitted on the log before the first of them, by the one
+   identification (:func:`calibration.fit.fit_logs`), with the live model's inputs.
+3. **Judged on the same rows.** Both models run over the whole export through the service's own
+   estimate (:func:`calibration.replay.replay`): open loop, and with the observer fusing every
+   measurement as the service does (each held-out one scored on the estimate just before it was
+   fused). The scores are the RMS of the misses at the held-out measurements.
+4. **The rule** (:func:`decide`). Promote only when there are at least ``min_train`` measurements
+   to fit and ``min_holdout`` to judge, the candidate's open-loop RMS is below the live model's by
+   ``margin`` or more (``(1 - margin) x live``), and with the observer it is no worse than the
+   live model's by more than ``observer_tolerance``. Otherwise it is rejected, with the reason.
+
+The command (``thermocomp refit``) adds what a reload checks (the model loads, names the spindle,
+is plausible) and writes the history.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from compensator.errors import CalibrationError
+from compensator.estimate import Estimate
+from compensator.io import RunLog
+from compensator.io.journal import FAULT_ALARMS
+from compensator.plausibility import direction_of
+from compensator.predictor import Predictor
+
+from .replay import Probes, replay
+
+
+@dataclass(frozen=True)
+class Rule:
+    """When a candidate may replace the live model."""
+
+    min_train: int = 24
+    """Measurements the candidate must be fitted on, at least."""
+    min_holdout: int = 8
+    """Measurements it must be judged on, at least."""
+    holdout_share: float = 0.25
+    """The newest share of the measurements held out to judge."""
+    margin: float = 0.10
+    """Open loop, the candidate must miss less than the live model by this share."""
+    observer_tolerance: float = 0.05
+    """With the observer, it may miss more than the live model by this share at most."""
+
+    def holdout(self, n: int) -> int:
+        return max(self.min_holdout, math.ceil(self.holdout_share * n))
+
+
+@dataclass(frozen=True)
+class Score:
+    """One model's misses at the held-out measurements [um]."""
+
+    open_loop_rms_um: float
+    observer_rms_um: float | None
+    open_loop_max_um: float
+
+
+@dataclass(frozen=True)
+class Decision:
+    promote: bool
+    reason: str
+    held_back: bool = False
+    """Too few measurements: nothing was fitted."""
+
+
+@dataclass
+class Refit:
+    """What a refit made of an export."""
+
+    decision: Decision
+    candidate: Predictor | None = None
+    live: Score | None = None
+    scored: Score | None = None
+    measurements: int = 0
+    """Usable measurements in the export (faults left out)."""
+    train: int = 0
+    holdout: int = 0
+    cut_s: float | None = None
+    """Time of the first held-out measurement [s, the export's clock]."""
+    notes: list[str] = field(default_factory=list)
+    identification: Any = None
+
+    def figures(self) -> dict[str, Any]:
+        """For the history record and --json."""
+        out: dict[str, Any] = {"measurements": self.measurements, "train": self.train, "holdout": self.holdout}
+        for name, s in (("live", self.live), ("candidate", self.scored)):
+            if s is not None:
+                out[name] = {"open_loop_rms_um": round(s.open_loop_rms_um, 4), "open_loop_max_um": round(s.open_loop_max_um, 4),
+                             "observer_rms_um": None if s.observer_rms_um is None else round(s.observer_rms_um, 4)}
+        return out
+
+
+def usable_measurements(log: RunLog) -> tuple[np.ndarray, int]:
+    """The rows whose measurement can judge a model: measured, in a cycle that journaled no
+    fault; and how many measured rows were left out for a fault."""
+    measured = log.measured
+    alarms = log.extras.get("alarms")
+    if alarms is None:
+        return measured, 0
+    bits = np.nan_to_num(np.asarray(alarms, dtype=float), nan=0.0).astype(np.int64)
+    faulted = (bits & FAULT_ALARMS) != 0
+    return measured & ~faulted, int((measured & faulted).sum())
+
+
+def at_the_reference_row(log: RunLog, rows: np.ndarray) -> tuple[RunLog, np.ndarray]:
+    """Each measurement moved to the row of the estimate the service compared it with. A journal
+    export puts it on the cycle that read it; a tool setter measures at rest, and when the spindle
+    had started again by then, the service took the cycle before, which ran slower
+    (:meth:`compensator.estimate.Estimate.step`). A fit that kept it on the later row would learn
+    a growth at speed that was measured at rest."""
+    y = np.asarray(log.elongation_um, dtype=float).copy()
+    sigma = log.extras.get("measurement_sigma_um")
+    sigma = None if sigma is None else np.asarray(sigma, dtype=float).copy()
+    speed = np.abs(np.asarray(log.speed_rpm, dtype=float))
+    rows = rows.copy()
+    for k in np.flatnonzero(rows):
+        if k > 0 and speed[k - 1] < speed[k] and not np.isfinite(y[k - 1]):
+            y[k - 1], y[k] = y[k], np.nan
+            rows[k - 1], rows[k] = True, False
+            if sigma is not None:
+                sigma[k - 1], sigma[k] = sigma[k], np.nan
+    extras = dict(log.extras)
+    if sigma is not None:
+        extras["measurement_sigma_um"] = sigma
+    return replace(log, elongation_um=y, extras=extras), rows
+
+
+def score(estimate: Estimate, log: RunLog, rows: np.ndarray, probe_rows: np.ndarray,
+          sigma_um: np.ndarray, observer: bool) -> Score:
+    """``estimate``'s misses at ``rows`` over ``log``: open loop, and (``observer``) with the
+    measurements of ``probe_rows`` fused, each scored before it was fused."""
+    y = np.asarray(log.elongation_um, dtype=float)
+    k = np.flatnonzero(rows)
+    open_loop = replay(estimate.model, log, compare=False, estimate=replace(estimate, observer=None)).predicted_um
+    miss = y[k] - open_loop[k]
+    fused_rms = None
+    if observer and estimate.fused is not None:
+        p = np.flatnonzero(probe_rows)
+        probes = Probes(log.time_s[p], y[p], sigma_um[p], "journal")
+        fused = replay(estimate.model, log, probes=probes, compare=False, estimate=estimate).predicted_um
+        # the estimate before the measurement was fused: the row's own is after it (at or before)
+        before = fused[np.maximum(k - 1, 0)] + (open_loop[k] - open_loop[np.maximum(k - 1, 0)])
+        fused_rms = float(np.sqrt(np.mean((y[k] - before) ** 2)))
+    return Score(float(np.sqrt(np.mean(miss ** 2))), fused_rms, float(np.max(np.abs(miss))))
+
+
+def decide(rule: Rule, live: Score, cand: Score) -> Decision:
+    """The promotion rule (see the module): better by the margin open loop, no worse with the
+    observer."""
+    bar = (1.0 - rule.margin) * live.open_loop_rms_um
+    if not cand.open_loop_rms_um <= bar:
+        return Decision(False, f"open loop it misses {cand.open_loop_rms_um:.2f} um RMS on the held-out "
+                        f"measurements against the live model's {live.open_loop_rms_um:.2f} um: not "
+                        f"{100 * rule.margin:.0f} % better")
+    if cand.observer_rms_um is not None and live.observer_rms_um is not None:
+        worst = (1.0 + rule.observer_tolerance) * live.observer_rms_um
+        if cand.observer_rms_um > worst:
+            return Decision(False, f"with the observer it misses {cand.observer_rms_um:.2f} um RMS against "
+                            f"the live model's {live.observer_rms_um:.2f} um")
+    return Decision(True, f"open loop {cand.open_loop_rms_um:.2f} um RMS on the held-out measurements "
+                    f"against the live model's {live.open_loop_rms_um:.2f} um"
+                    + ("" if cand.observer_rms_um is None or live.observer_rms_um is None else
+                       f"; with the observer {cand.observer_rms_um:.2f} against {live.observer_rms_um:.2f} um"))
+
+
+def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), spindle_id: str | None = None,
+          default_sigma_um: float = 0.5, **meta: Any) -> Refit:
+    """Fit a candidate on ``log`` (a journal export) before its newest measurements and judge it
+    against ``live`` (the live model's estimate as the service runs it) on them.
+    ``make_estimate(model)`` builds the candidate's estimate as the service would."""
+    from .fit import fit_logs
+
+    rows, faulted = usable_measurements(log)
+    log, rows = at_the_reference_row(log, rows)
+    out = Refit(Decision(False, ""), measurements=int(rows.sum()))
+    if faulted:
+        out.notes.append(f"{faulted} measurement(s) taken while the journal showed a fault (link, speed, "
+                         "inputs, clock) left out")
+    n = out.measurements
+    h = rule.holdout(n)
+    if n - h < rule.min_train:
+        out.decision = Decision(False, f"{n} usable measurement(s): the rule needs {rule.min_train} to fit and "
+                                f"{max(rule.min_holdout, h)} to judge; nothing fitted", held_back=True)
+        return out
+    k = np.flatnonzero(rows)
+    first_held = int(k[n - h])
+    out.train, out.holdout, out.cut_s = n - h, h, float(log.time_s[first_held])
+    y = np.asarray(log.elongation_um, dtype=float)
+    y_usable = np.where(rows, y, np.nan)
+    clean = replace(log, elongation_um=y_usable)
+    train = _rows(clean, slice(0, first_held))
+    names = tuple(getattr(live.model, "input_names", ()) or ())
+    # the growth points the way the live model's calibration measured it: a stretch of production
+    # (a chip on the setter, a cool week) must not turn it round
+    direction = direction_of((getattr(live.model, "fit", None) or {}).get("growth_direction"))
+    if direction is None:
+        top = live.model.speed_range_rpm[1]
+        g = live.model.steady_state_um(top) - live.model.steady_state_um(0.0)
+        direction = 1 if g >= 0 else -1
+    try:
+        ident = fit_logs([train], names, labels=["production"], spindle_id=spindle_id, growth_direction=direction,
+                         **meta)
+    except CalibrationError as err:
+        out.decision = Decision(False, f"the fit refused: {err}")
+        return out
+    out.identification, out.candidate = ident, ident.model
+    held = rows.copy()
+    held[:first_held] = False
+    sigma = np.asarray(log.extras.get("measurement_sigma_um", np.full(len(log), default_sigma_um)), dtype=float)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default_sigma_um)
+    observer = live.fused is not None
+    out.live = score(live, clean, held, rows, sigma, observer)
+    out.scored = score(make_estimate(ident.model), clean, held, rows, sigma, observer)
+    out.decision = decide(rule, out.live, out.scored)
+    return out
+
+
+def _rows(log: RunLog, rows: slice) -> RunLog:
+    """The rows ``rows`` of a log, every column with them."""
+    extras = {k: np.asarray(v)[rows] for k, v in log.extras.items()}
+    return replace(log, time_s=log.time_s[rows], speed_rpm=log.speed_rpm[rows],
+                   elongation_um=None if log.elongation_um is None else log.elongation_um[rows],
+                   extras=extras, gaps=tuple(g for g in log.gaps if g.start_s + g.duration_s <= log.time_s[rows][-1]))

@@ -1,0 +1,221 @@
+"""``thermocomp refit``, ``thermocomp model history`` and ``thermocomp model rollback``: a spindle
+that keeps learning from its own tool-setter measurements, with every model kept and a way back.
+
+- ``refit --config RUNTIME.toml [--spindle NAME] [--from WHEN] [--dry-run] [--json]`` exports the
+  journal since the live model went into use, fits a candidate and judges it against the live model
+  on the newest measurements (:mod:`calibration.learning`). A candidate the rule accepts goes through
+  the checks a reload makes (it loads, names this spindle, is plausible), replaces the configured
+  model file and the service is told to reload (SIGHUP), which carries its state over. Every
+  candidate, promoted or not, is kept in the history with its figures and the reason.
+- ``model history`` lists the history; ``model rollback [DIGEST]`` puts a kept model back (default:
+  the one in use before the live one) the same way.
+
+Run it by hand, or weekly from the systemd timer in ``examples/`` (the fit runs in its own process,
+never on the compensation thread). It needs the calibration extra; the service does not.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from compensator.errors import ConfigError, ThermocompError
+from compensator.io import load_any_model, model_digest, read_run_log, save_model
+from compensator.io.history import HistoryRecord, ModelHistory, fit_summary
+from compensator.io.journal_export import export_journal, iso
+
+from ..runtime.config import RuntimeConfig, SpindleConfig, load_config
+from ..runtime.lock import holder
+from ..runtime.service import plausible
+from .journal import parse_when
+
+
+def _spindle(cfg: RuntimeConfig, name: str | None) -> SpindleConfig:
+    names = [s.name for s in cfg.spindle]
+    if name is None:
+        if len(names) > 1:
+            raise ConfigError(f"the configuration has {len(names)} spindles ({', '.join(names)}): give --spindle")
+        return cfg.spindle[0]
+    for sc in cfg.spindle:
+        if sc.name == name:
+            return sc
+    raise ConfigError(f"--spindle {name!r}: the configuration names {', '.join(names)}")
+
+
+def _history(cfg: RuntimeConfig, sc: SpindleConfig) -> ModelHistory:
+    return ModelHistory.of(cfg.state_dir, sc.name, sc.learning.keep_models)
+
+
+def _live(history: ModelHistory, sc: SpindleConfig, now: float) -> HistoryRecord:
+    """The live model's record; the configured file recorded in use first when the history does
+    not know it (a service that has not run since the history began, or a file edited by hand)."""
+    live = history.live()
+    model = load_any_model(sc.model)
+    if live is None or live.digest != model_digest(model):
+        live = history.add("in_use", sc.model, reason="found in the configuration by refit", at_wall_s=now,
+                           fit=fit_summary(model))
+    return live
+
+
+def _checked(sc: SpindleConfig, path: Path) -> Any:
+    """What a reload checks: the file loads and verifies, names this spindle, is plausible."""
+    model = load_any_model(path)
+    sc.refuse_other_spindle(model.spindle_id)
+    plausible(model.fallback or model, sc.name)
+    return model
+
+
+def _put_in_use(cfg: RuntimeConfig, sc: SpindleConfig, model: Any) -> str:
+    """Write ``model`` over the configured model file (atomically) and have the service reload;
+    what happened, in words."""
+    save_model(sc.model, model)
+    held, pid = holder(cfg.state_dir)
+    if not held:
+        return f"written to {sc.model}; no service runs on {cfg.state_dir}: its next start uses it"
+    if pid is None:
+        return (f"written to {sc.model}; the service on {cfg.state_dir} names no pid: reload it "
+                "(systemctl reload thermocomp) to use it")
+    try:
+        os.kill(pid, signal.SIGHUP)
+    except OSError as err:
+        return f"written to {sc.model}; the service (pid {pid}) could not be told ({err.strerror}): reload it"
+    return f"written to {sc.model}; the service (pid {pid}) reloads it, carrying its state over"
+
+
+def _opened(args: argparse.Namespace) -> tuple[RuntimeConfig, SpindleConfig, ModelHistory, float, HistoryRecord]:
+    """The configuration, the spindle, its history, now, and the live model's record."""
+    cfg = load_config(args.config)
+    sc = _spindle(cfg, args.spindle)
+    history = _history(cfg, sc)
+    now = time.time()
+    return cfg, sc, history, now, _live(history, sc, now)
+
+
+def refit_cmd(args: argparse.Namespace) -> int:
+    from calibration.learning import Rule, refit
+
+    cfg, sc, history, now, live_rec = _opened(args)
+    live_model = _checked(sc, Path(sc.model))
+    start = parse_when(args.from_, "--from") if args.from_ else live_rec.at_wall_s
+    rule = Rule(min_train=sc.learning.min_train, min_holdout=sc.learning.min_holdout,
+                holdout_share=sc.learning.holdout_share, margin=sc.learning.margin,
+                observer_tolerance=sc.learning.observer_tolerance)
+    out: dict[str, Any] = {"spindle": sc.name, "live": live_rec.short, "from": iso(start)}
+    with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
+        export = Path(tmp) / "production.csv"
+        try:
+            done = export_journal(cfg.journal_path, export, spindle=sc.name, start_s=start)
+        except ThermocompError as err:
+            raise ConfigError(f"refit {sc.name}: nothing to refit on since {iso(start)}: {err}") from err
+        log = read_run_log(export)
+        result = refit(log, sc.estimate(live_model), sc.estimate, rule=rule,
+                       spindle_id=sc.spindle_id or live_model.spindle_id,
+                       machine_id=getattr(live_model, "machine_id", None),
+                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+                       default_sigma_um=sc.observer.sigma_um)
+        data = {"from": iso(done.first_s), "to": iso(done.last_s), "rows": done.rows,
+                "journal_files": list(done.files)[:20]}
+        out.update(data=data, notes=result.notes, **result.figures())
+        say = [f"refit {sc.name}: the journal from {iso(done.first_s)} to {iso(done.last_s)}, {done.rows} rows, "
+               f"{result.measurements} usable measurement(s)"]
+        say += [f"  {n}" for n in result.notes]
+        decision = result.decision
+        if result.candidate is not None:
+            # the journal's time is the wall clock's (anchored once): an instant as it is
+            say.append(f"  fitted on {result.train} measurement(s) before {iso(result.cut_s)}, judged on "
+                       f"the {result.holdout} from there")
+            say.append(f"  candidate {result.candidate.form}: " + _figs(result.scored)
+                       + f"; live model {live_rec.short}: " + _figs(result.live))
+            cand_path = Path(tmp) / "candidate.json"
+            save_model(cand_path, result.candidate)
+            if decision.promote:
+                try:
+                    _checked(sc, cand_path)
+                except ThermocompError as err:
+                    decision = type(decision)(False, f"the checks of a reload refused it: {err}")
+            judged = {**result.figures(), "rule": vars(rule), "reason": decision.reason}
+            event = "promoted" if decision.promote and not args.dry_run else "candidate" if decision.promote else "rejected"
+            rec = history.add(event, cand_path, source=f"refit of {data['from']} .. {data['to']}",
+                              reason=decision.reason, at_wall_s=time.time(), fit=fit_summary(result.candidate),
+                              data=data, judged=judged)
+            out["candidate"] = {**out.get("candidate", {}), "digest": rec.short, "form": result.candidate.form}
+            if decision.promote and not args.dry_run:
+                said = _put_in_use(cfg, sc, result.candidate)
+                say.append(f"promoted {rec.short}: {decision.reason}; {said}")
+                out.update(outcome="promoted", reason=decision.reason, written=said)
+            elif decision.promote:
+                say.append(f"would promote {rec.short} (--dry-run: kept as a candidate): {decision.reason}")
+                out.update(outcome="candidate", reason=decision.reason)
+            else:
+                say.append(f"rejected {rec.short}, kept in the history: {decision.reason}")
+                out.update(outcome="rejected", reason=decision.reason)
+        else:
+            say.append(f"held back: {decision.reason}" if decision.held_back else f"no candidate: {decision.reason}")
+            out.update(outcome="held back" if decision.held_back else "rejected", reason=decision.reason)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print("\n".join(say))
+    return 0
+
+
+def _figs(s: Any) -> str:
+    if s is None:
+        return "-"
+    text = f"open loop {s.open_loop_rms_um:.2f} um RMS (max {s.open_loop_max_um:.2f})"
+    return text + (f", with the observer {s.observer_rms_um:.2f} um" if s.observer_rms_um is not None else "")
+
+
+def history_cmd(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    sc = _spindle(cfg, args.spindle)
+    history = _history(cfg, sc)
+    records = history.records()
+    live = history.live()
+    if args.json:
+        print(json.dumps([{**r.model_dump(mode="json"), "live": live is not None and r is live,
+                           "copy_kept": history.copy_path(r).is_file()} for r in records], indent=2))
+        return 0
+    if not records:
+        print(f"{sc.name}: no model history yet in {history.directory} (the service records the model it "
+              "starts with)")
+        return 0
+    print(f"{sc.name}: {len(records)} record(s) in {history.directory}; * the model in use")
+    for r in records:
+        when = datetime.fromtimestamp(r.at_wall_s, UTC).strftime("%Y-%m-%d %H:%M")
+        mark = "*" if live is not None and r is live else " "
+        kept = "" if history.copy_path(r).is_file() else " (copy pruned)"
+        figs = r.judged.get("candidate", {}) if r.judged else {}
+        fig = f" open loop {figs['open_loop_rms_um']:.2f} um" if figs.get("open_loop_rms_um") is not None else ""
+        print(f"{mark} {when}  {r.event:<9} {r.short}  {r.fit.get('form') or '-':<14}{fig}  {r.reason}{kept}")
+    return 0
+
+
+def rollback_cmd(args: argparse.Namespace) -> int:
+    cfg, sc, history, now, live = _opened(args)
+    if args.digest:
+        target = history.find(args.digest)
+    else:
+        earlier = [r for r in history.records() if r.event in ("in_use", "promoted", "rollback")
+                   and r.digest != live.digest and history.copy_path(r).is_file()]
+        if not earlier:
+            raise ConfigError(f"{sc.name}: no earlier model in the history to roll back to")
+        target = earlier[-1]
+    if target.digest == live.digest:
+        print(f"{sc.name}: {target.short} is the model in use already")
+        return 0
+    model = _checked(sc, history.copy_path(target))
+    reason = args.reason or f"rolled back by hand from {live.short}"
+    history.add("rollback", history.copy_path(target), source=target.source, reason=reason, at_wall_s=now,
+                fit=fit_summary(model), data=target.data, judged=target.judged)
+    said = _put_in_use(cfg, sc, model)
+    print(f"{sc.name}: rolled back to {target.short} ({target.event} {iso(target.at_wall_s)}, "
+          f"{target.fit.get('form') or '-'}); {said}")
+    return 0
