@@ -35,7 +35,7 @@ import numpy as np
 from compensator.errors import CalibrationError
 from compensator.estimate import Estimate
 from compensator.io import RunLog
-from compensator.io.journal import FAULT_ALARMS
+from compensator.io.journal import FAULT_ALARMS, SHADOW_COLUMN
 from compensator.plausibility import direction_of
 from compensator.predictor import Predictor
 
@@ -224,8 +224,16 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
     sigma = np.asarray(log.extras.get("measurement_sigma_um", np.full(len(log), default_sigma_um)), dtype=float)
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default_sigma_um)
     observer = live.fused is not None
+    candidate = ident.model
+    live_observer = (getattr(live.model, "fit", None) or {}).get("observer")
+    if live_observer is not None and "observer" not in (candidate.fit or {}):
+        # the observer's noise was fitted on the calibration's dense residuals, which measurements
+        # minutes apart cannot give: the candidate keeps the live model's, so both are judged, and
+        # the promoted one runs, with the observer the service has
+        candidate = candidate.model_copy(update={"fit": {**candidate.fit, "observer": live_observer}})
+        out.candidate = candidate
     out.live = score(live, clean, held, rows, sigma, observer)
-    out.scored = score(make_estimate(ident.model), clean, held, rows, sigma, observer)
+    out.scored = score(make_estimate(candidate), clean, held, rows, sigma, observer)
     out.decision = decide(rule, out.live, out.scored)
     return out
 
@@ -236,3 +244,47 @@ def _rows(log: RunLog, rows: slice) -> RunLog:
     return replace(log, time_s=log.time_s[rows], speed_rpm=log.speed_rpm[rows],
                    elongation_um=None if log.elongation_um is None else log.elongation_um[rows],
                    extras=extras, gaps=tuple(g for g in log.gaps if g.start_s + g.duration_s <= log.time_s[rows][-1]))
+
+
+@dataclass
+class ShadowJudgement:
+    decision: Decision
+    live: Score | None = None
+    shadow: Score | None = None
+    measurements: int = 0
+
+    def figures(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"measurements": self.measurements}
+        for name, sc in (("live", self.live), ("candidate", self.shadow)):
+            if sc is not None:
+                out[name] = {"open_loop_rms_um": round(sc.open_loop_rms_um, 4), "open_loop_max_um": round(sc.open_loop_max_um, 4),
+                             "observer_rms_um": None}
+        return out
+
+
+def judge_shadow(log: RunLog, live: Estimate, rule: Rule = Rule()) -> ShadowJudgement:
+    """A candidate that ran in shadow, judged on its own journaled estimate (``shadow_um``)
+    against the live model's open loop over the same stretch, at the measurements taken while it
+    ran: better by the margin on ``min_holdout`` measurements or more, or it is rejected."""
+    rows, _ = usable_measurements(log)
+    log, rows = at_the_reference_row(log, rows)
+    shadow = np.asarray(log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)
+    have = rows & np.isfinite(shadow)
+    n = int(have.sum())
+    out = ShadowJudgement(Decision(False, ""), measurements=n)
+    if n < rule.min_holdout:
+        out.decision = Decision(False, f"{n} measurement(s) while it ran in shadow: the rule needs "
+                                f"{rule.min_holdout}", held_back=True)
+        return out
+    first = int(np.flatnonzero(np.isfinite(shadow))[0])
+    # the live model from where the shadow started (both began at the live estimate there)
+    live_open = replay(live.model, _rows(log, slice(first, len(log))), initial_um=float(shadow[first]),
+                       compare=False, estimate=replace(live, observer=None)).predicted_um
+    y = np.asarray(log.elongation_um, dtype=float)
+    k = np.flatnonzero(have)
+    miss_live, miss_shadow = y[k] - live_open[k - first], y[k] - shadow[k]
+    out.live = Score(float(np.sqrt(np.mean(miss_live ** 2))), None, float(np.max(np.abs(miss_live))))
+    out.shadow = Score(float(np.sqrt(np.mean(miss_shadow ** 2))), None, float(np.max(np.abs(miss_shadow))))
+    d = decide(rule, out.live, out.shadow)
+    out.decision = Decision(d.promote, "in shadow: " + d.reason)
+    return out

@@ -17,7 +17,7 @@ from plantdata import identify_runs, plant_run
 from test_closed_loop import Bench, simple_model  # noqa: F401 - the model file fixture
 
 from calibration.learning import Rule, Score, decide
-from compensator.io import load_any_model, model_digest, save_model
+from compensator.io import load_any_model, model_digest, read_run_log, save_model
 from compensator.io.history import ModelHistory
 from compensator.speed_programs import job_shop_day
 from calibration.nc_programs import with_probe_stops
@@ -30,9 +30,11 @@ P = preset("motorized-27k")
 PERIOD_S = 10.0
 PROBE_EVERY_S = 1800.0
 OBSERVER = "enabled = true\ngate_sigma = 1000.0"  # every measurement fused: the refit judges them
+KW = {"period_s": PERIOD_S, "observer": OBSERVER,
+      "shaping": "max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0"}
 
 
-def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bias_um=None) -> Bench:
+def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bias_um=None, extra: str = "") -> Bench:
     """``hours`` of a job shop on the plant, the service compensating and journaling; the tool
     setter measures every 30 min (``setter_bias_um(t_s)`` added to what it reads: a faulty one)."""
     prog = with_probe_stops(job_shop_day(P.max_rpm, seed=seed, hours=hours), PROBE_EVERY_S)
@@ -49,8 +51,7 @@ def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bia
             vm._finish_probe = biased
         return vm
 
-    b = Bench(tmp_path, model, make_vm=make_vm, period_s=PERIOD_S, observer=OBSERVER,
-              shaping="max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0")
+    b = Bench(tmp_path, model, make_vm=make_vm, **KW, extra=extra)
     while not b.vm.program_done:
         b.run(360)
     b.rt.journal.flush(b.t)
@@ -117,8 +118,7 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert "no service runs" in out["written"]  # this rig holds no lock: the next start takes it
     # the service takes it (what SIGHUP does), from the old estimate
     before = b.rt.estimate_um()
-    b.reload(tmp_path, model, period_s=PERIOD_S, observer=OBSERVER,
-             shaping="max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0")
+    b.reload(tmp_path, model, **KW)
     assert b.rt.digest == model_digest(new) and abs(b.rt.estimate_um() - before) < 1e-9
     # rollback during the run, while the spindle turns
     b.vm.override_speed(15000.0)
@@ -130,8 +130,7 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert model_digest(load_any_model(model)) == old_digest
     held_before = b.rt.offset.held_um
     est_before = b.rt.estimate_um()
-    b.reload(tmp_path, model, period_s=PERIOD_S, observer=OBSERVER,
-             shaping="max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0")
+    b.reload(tmp_path, model, **KW)
     assert abs(b.rt.estimate_um() - est_before) < 1e-9  # the state carried over
     rows = b.run(120)
     held = np.array([held_before] + [r["offset_um"] for r in rows])
@@ -159,6 +158,48 @@ def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouch
     records = ModelHistory.of(b.cfg.state_dir, "s1").records()
     assert [r.event for r in records] == ["in_use", "rejected"]
     assert records[-1].reason and ModelHistory.of(b.cfg.state_dir, "s1").live().digest == records[0].digest
+
+
+def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model, capsys):  # noqa: F811
+    """With ``shadow_h``, a candidate the rule accepts first runs beside the live model: stepped
+    every cycle and journaled, never written to the controller. The next refit holds it while it
+    has run too short, then promotes it on its own misses at the measurements taken meanwhile."""
+    model = own_copy(simple_model, tmp_path)
+    first = model.read_bytes()
+    learning = "[spindle.learning]\nshadow_h = 6.0"
+    b = shop(tmp_path, model, hours=20, extra=learning)
+    b.cfg_path = tmp_path / "machine.toml"
+    out = refit(b, capsys)
+    assert out["outcome"] == "shadow", out
+    assert model.read_bytes() == first  # the live model is untouched
+    history = ModelHistory.of(b.cfg.state_dir, "s1")
+    assert history.shadow_path.is_file() and history.shadow() is not None
+    # the service takes it in shadow (what SIGHUP does)
+    b.reload(tmp_path, model, **KW, extra=learning)
+    assert b.rt.shadow is not None and b.rt.digest == model_digest(load_any_model(model))
+    b.vm.load_program(with_probe_stops(job_shop_day(P.max_rpm, seed=4, hours=3), PROBE_EVERY_S))
+    rows = b.run(3 * 360)
+    # never written: the offset follows the live estimate, the shadow's is journaled beside it
+    b.rt.journal.flush(b.t)
+    b.rt.measurements.flush(b.t)
+    part = read_run_log(b.rt.journal.path)
+    shadow = part.extras["shadow_um"]
+    live, held = part.extras["predicted_um"], part.extras["offset_um"]
+    assert np.isfinite(shadow).all() and np.sqrt(np.mean((shadow - live) ** 2)) > 1.0  # two models
+    assert np.median(np.abs(held + live)) < 0.5 < np.median(np.abs(held + shadow))
+    assert rows[-1]["shadow"]["digest"] == history.shadow().digest
+    held = refit(b, capsys)
+    assert held["outcome"] == "held back" and "of 6 h" in held["reason"], held
+    b.vm.load_program(with_probe_stops(job_shop_day(P.max_rpm, seed=5, hours=8), PROBE_EVERY_S))
+    while not b.vm.program_done:
+        b.run(360)
+    b.rt.journal.flush(b.t)
+    b.rt.measurements.flush(b.t)
+    done = refit(b, capsys)
+    assert done["outcome"] == "promoted" and done["reason"].startswith("in shadow:"), done
+    assert done["candidate"]["open_loop_rms_um"] < 0.9 * done["live"]["open_loop_rms_um"]
+    assert not history.shadow_path.exists() and model.read_bytes() != first
+    assert [r.event for r in history.records()] == ["in_use", "shadow", "promoted"]
 
 
 def test_too_few_measurements_hold_the_refit_back(tmp_path, simple_model, capsys):  # noqa: F811

@@ -32,6 +32,7 @@ MAX_RECORDS = 1000
 KEEP_MODELS = 20
 """Model copies kept by default."""
 DIGEST_CHARS = 16
+SHADOW_FILE = "shadow.json"
 
 Event = Literal["in_use", "candidate", "promoted", "rejected", "rollback", "shadow"]
 LIVE_EVENTS = ("in_use", "promoted", "rollback")
@@ -96,6 +97,17 @@ class ModelHistory:
     def live(self) -> HistoryRecord | None:
         """The record of the model the service runs now (the last that put one in use)."""
         return next((r for r in reversed(self.records()) if r.event in LIVE_EVENTS), None)
+
+    @property
+    def shadow_path(self) -> Path:
+        """The candidate the service runs in shadow, while there is one."""
+        return self.directory / SHADOW_FILE
+
+    def shadow(self) -> HistoryRecord | None:
+        """The record of the candidate in shadow, while its file is there."""
+        if not self.shadow_path.is_file():
+            return None
+        return next((r for r in reversed(self.records()) if r.event == "shadow"), None)
 
     def copy_path(self, record: HistoryRecord) -> Path:
         return self.directory / record.copy_name

@@ -46,6 +46,9 @@ FAULT_ALARM_BITS = {"SPEED_READ_FAILED": 1, "IDLE_ASSUMED": 2, "LINK_DOWN": 8, "
 """The bits of the ``alarms`` column that mark a cycle whose speed, inputs or time cannot be
 trusted: a measurement taken then judges no model (``calibration.learning``)."""
 FAULT_ALARMS = sum(FAULT_ALARM_BITS.values())
+SHADOW_COLUMN = "shadow_um"
+"""The column a shadow candidate's estimate is journaled in, after the input channels: run
+beside the live model, never written to the controller."""
 MAX_PENDING_ROWS = 250_000
 """Rows kept in memory while the disk refuses them (about 3 days at one cycle a second)."""
 

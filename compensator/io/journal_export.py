@@ -34,7 +34,7 @@ from pathlib import Path
 
 from ..errors import ConfigError, RunLogError
 from .atomic import atomic_write
-from .journal import Journal, is_row
+from .journal import SHADOW_COLUMN, Journal, is_row
 from .retention import DAY_S, JournalFile, journal_files, utc_day
 from .runlog import ELONGATION_COLUMN, REQUIRED_COLUMNS, SPARSE, header_text
 
@@ -48,7 +48,7 @@ SETPOINT_COLUMN = "chiller_setpoint_c"
 SUPPLY_COLUMN = "supply_c"
 ADDED_COLUMNS = (ELONGATION_COLUMN, SIGMA_COLUMN, SETPOINT_COLUMN, SUPPLY_COLUMN)
 """The columns an export adds after the cycle journal's."""
-NOT_INPUTS = frozenset(Journal.COLUMNS) | frozenset(ADDED_COLUMNS)
+NOT_INPUTS = frozenset(Journal.COLUMNS) | frozenset(ADDED_COLUMNS) | {SHADOW_COLUMN}
 """The columns of an export that are no input channel (the journal's own, the export's)."""
 
 

@@ -26,6 +26,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from compensator.errors import ConfigError, ThermocompError
 from compensator.io import load_any_model, model_digest, read_run_log, save_model
 from compensator.io.history import HistoryRecord, ModelHistory, fit_summary
@@ -72,21 +74,81 @@ def _checked(sc: SpindleConfig, path: Path) -> Any:
     return model
 
 
-def _put_in_use(cfg: RuntimeConfig, sc: SpindleConfig, model: Any) -> str:
-    """Write ``model`` over the configured model file (atomically) and have the service reload;
-    what happened, in words."""
-    save_model(sc.model, model)
+def _tell_service(cfg: RuntimeConfig) -> str:
+    """Have the service on ``cfg.state_dir`` reload (SIGHUP); what happened, in words."""
     held, pid = holder(cfg.state_dir)
     if not held:
-        return f"written to {sc.model}; no service runs on {cfg.state_dir}: its next start uses it"
+        return f"no service runs on {cfg.state_dir}: its next start uses it"
     if pid is None:
-        return (f"written to {sc.model}; the service on {cfg.state_dir} names no pid: reload it "
-                "(systemctl reload thermocomp) to use it")
+        return f"the service on {cfg.state_dir} names no pid: reload it (systemctl reload thermocomp)"
     try:
         os.kill(pid, signal.SIGHUP)
     except OSError as err:
-        return f"written to {sc.model}; the service (pid {pid}) could not be told ({err.strerror}): reload it"
-    return f"written to {sc.model}; the service (pid {pid}) reloads it, carrying its state over"
+        return f"the service (pid {pid}) could not be told ({err.strerror}): reload it"
+    return f"the service (pid {pid}) reloads, carrying its state over"
+
+
+def _put_in_use(cfg: RuntimeConfig, sc: SpindleConfig, model: Any) -> str:
+    """Write ``model`` over the configured model file (atomically) and have the service reload."""
+    save_model(sc.model, model)
+    return f"written to {sc.model}; " + _tell_service(cfg)
+
+
+def _judge_shadow(args: argparse.Namespace, cfg: RuntimeConfig, sc: SpindleConfig, history: ModelHistory,
+                  shadow: HistoryRecord, live_model: Any, rule: Any) -> int:
+    """The candidate in shadow: held while it has run less than ``shadow_h``; then promoted or
+    rejected on its own misses, and taken out of shadow either way."""
+    from calibration.learning import judge_shadow
+
+    from compensator.io.journal import SHADOW_COLUMN
+
+    out: dict[str, Any] = {"spindle": sc.name, "shadow": shadow.short}
+    with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
+        export = Path(tmp) / "shadow.csv"
+        try:
+            export_journal(cfg.journal_path, export, spindle=sc.name, start_s=shadow.at_wall_s)
+            log = read_run_log(export)
+        except ThermocompError:
+            log = None
+    # how long it ran, by the journal's own clock: the rows that carry its estimate
+    ran = None if log is None else np.flatnonzero(np.isfinite(np.asarray(
+        log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)))
+    ran_h = 0.0 if ran is None or not ran.size else float(log.time_s[ran[-1]] - log.time_s[ran[0]]) / 3600.0
+    out["ran_h"] = round(ran_h, 3)
+    if ran_h < sc.learning.shadow_h:
+        why = ("the service has not run it yet (reload it)" if ran is None or not ran.size
+               else f"it has run {ran_h:.1f} h of {sc.learning.shadow_h:g} h")
+        out.update(outcome="held back", reason=f"candidate {shadow.short} in shadow: {why}")
+    else:
+        judged = judge_shadow(log, sc.estimate(live_model), rule)
+        end_s = float(log.time_s[-1])
+        out.update(judged.figures())
+        decision = judged.decision
+        if judged.decision.held_back:
+            out.update(outcome="held back", reason=decision.reason)
+        else:
+            path = history.shadow_path
+            if decision.promote:
+                try:
+                    model = _checked(sc, path)
+                except ThermocompError as err:
+                    decision = type(decision)(False, f"the checks of a reload refused it: {err}")
+            event = "promoted" if decision.promote and not args.dry_run else "candidate" if decision.promote else "rejected"
+            if not args.dry_run or not decision.promote:
+                history.add(event, path, source=shadow.source, reason=decision.reason, at_wall_s=end_s,
+                            fit=shadow.fit, data=shadow.data, judged={**judged.figures(), "reason": decision.reason})
+            if args.dry_run:
+                out.update(outcome="candidate" if decision.promote else "rejected", reason=decision.reason)
+            else:
+                path.unlink()  # out of shadow either way
+                said = _put_in_use(cfg, sc, model) if decision.promote else _tell_service(cfg)
+                out.update(outcome="promoted" if decision.promote else "rejected", reason=decision.reason, written=said)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"refit {sc.name}: {out['outcome']} the candidate {shadow.short} in shadow: {out['reason']}"
+              + (f"; {out['written']}" if "written" in out else ""))
+    return 0
 
 
 def _opened(args: argparse.Namespace) -> tuple[RuntimeConfig, SpindleConfig, ModelHistory, float, HistoryRecord]:
@@ -107,6 +169,9 @@ def refit_cmd(args: argparse.Namespace) -> int:
     rule = Rule(min_train=sc.learning.min_train, min_holdout=sc.learning.min_holdout,
                 holdout_share=sc.learning.holdout_share, margin=sc.learning.margin,
                 observer_tolerance=sc.learning.observer_tolerance)
+    shadow = history.shadow()
+    if shadow is not None:
+        return _judge_shadow(args, cfg, sc, history, shadow, live_model, rule)
     out: dict[str, Any] = {"spindle": sc.name, "live": live_rec.short, "from": iso(start)}
     with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
         export = Path(tmp) / "production.csv"
@@ -141,12 +206,21 @@ def refit_cmd(args: argparse.Namespace) -> int:
                 except ThermocompError as err:
                     decision = type(decision)(False, f"the checks of a reload refused it: {err}")
             judged = {**result.figures(), "rule": vars(rule), "reason": decision.reason}
-            event = "promoted" if decision.promote and not args.dry_run else "candidate" if decision.promote else "rejected"
+            to_shadow = decision.promote and not args.dry_run and sc.learning.shadow_h > 0
+            event = ("shadow" if to_shadow else "promoted" if decision.promote and not args.dry_run
+                     else "candidate" if decision.promote else "rejected")
+            # dated at the end of the data it was judged on: the journal's clock, which the next
+            # refit's export starts from
             rec = history.add(event, cand_path, source=f"refit of {data['from']} .. {data['to']}",
-                              reason=decision.reason, at_wall_s=time.time(), fit=fit_summary(result.candidate),
+                              reason=decision.reason, at_wall_s=done.last_s, fit=fit_summary(result.candidate),
                               data=data, judged=judged)
             out["candidate"] = {**out.get("candidate", {}), "digest": rec.short, "form": result.candidate.form}
-            if decision.promote and not args.dry_run:
+            if to_shadow:
+                save_model(history.shadow_path, result.candidate)
+                said = _tell_service(cfg)
+                say.append(f"into shadow for {sc.learning.shadow_h:g} h: {rec.short} ({decision.reason}); {said}")
+                out.update(outcome="shadow", reason=decision.reason, written=said)
+            elif decision.promote and not args.dry_run:
                 said = _put_in_use(cfg, sc, result.candidate)
                 say.append(f"promoted {rec.short}: {decision.reason}; {said}")
                 out.update(outcome="promoted", reason=decision.reason, written=said)

@@ -85,6 +85,10 @@ class LearningSettings(BaseModel):
     observer_tolerance: float = Field(0.05, ge=0, le=1, description="with the observer, it may miss more than "
                                       "the live model by this share at most")
     keep_models: int = Field(20, ge=2, le=1000, description="model copies kept in the history (the live one always)")
+    shadow_h: float = Field(0.0, ge=0, le=24 * 365, description="a candidate the rule accepts first runs in "
+                            "shadow this long (hours): stepped beside the live model and journaled, never written; "
+                            "the next refit promotes it only if its own misses there beat the live model's by the "
+                            "margin. 0: promote at once")
 
 
 class ObserverSettings(BaseModel):

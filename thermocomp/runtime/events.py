@@ -30,6 +30,7 @@ EVENTS = (
     "estimate_refused", "cycle_failed", "downtime_corrected",
     "expected_error_high", "expected_error_within_bound",
     "model_drift", "model_drift_cleared", "model_switched", "history_failed",
+    "shadow_started", "shadow_failed",
 )
 """Every event name the runtime emits (documented in the README)."""
 

@@ -63,6 +63,7 @@ import math
 import re
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +81,7 @@ from compensator.estimate import Estimate, EstimateState, Step
 from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
 from compensator.fusion import FusedState
 from compensator.io.history import ModelHistory, fit_summary
-from compensator.io.journal import ALARM_COLD_START
+from compensator.io.journal import ALARM_COLD_START, SHADOW_COLUMN
 from compensator.io import (
     Journal,
     MeasurementJournal,
@@ -221,6 +222,12 @@ class SpindleRuntime:
                 raise ConfigError(f"spindle {cfg.name}: the model needs input(s) {', '.join(missing)}; "
                                   "map them in the adapter (input_nodes for OPC UA, input_registers "
                                   "for Modbus)")
+        # a candidate in shadow (thermocomp refit): stepped beside the live model each cycle and
+        # journaled, never written to the controller
+        self.shadow: Estimate | None = None
+        self.shadow_digest: str | None = None
+        self.shadow_est: EstimateState | None = None
+        self._load_shadow(ModelHistory.of(state_dir, cfg.name).shadow_path)
         self.cutting_from_controller = cutting_from_controller(cfg, self.adapter)
         self._cutting_error: str | None = None  # why the controller's signal failed
         self._run_up_until = -math.inf  # the speed was seen changing, the tool not cutting
@@ -229,7 +236,8 @@ class SpindleRuntime:
         self.journal = Journal(journal_dir, cfg.name, {"spindle": cfg.name, "model": cfg.model,
                                                        "source": "thermocomp run"},
                                fsync_every_s=journal_fsync_s,
-                               input_columns=tuple(self.adapter.input_channels()))
+                               input_columns=tuple(self.adapter.input_channels())
+                               + ((SHADOW_COLUMN,) if self.shadow is not None else ()))
         self._inputs_read: dict[str, float] = {}  # this cycle's input values, for the journal
         self._journal_inputs_after = -math.inf  # a failed journal-only read waits till then
         self.last: dict[str, Any] | None = None  # the last cycle's outcome, for the status
@@ -289,6 +297,14 @@ class SpindleRuntime:
             self._switch_model(previous)  # a promotion or a rollback: from where the old one was
         else:
             self.restore()
+        if self.shadow is not None:
+            if previous is not None and previous.shadow_digest == self.shadow_digest and previous.shadow_est is not None:
+                self.shadow_est = previous.shadow_est
+            else:  # from the live model's own estimate (the bias is the live model's)
+                self.shadow_est = self.shadow.begin(self.est.estimate_um - self.est.bias_um, self._last_speed)
+                event("shadow_started", cfg.name, "%s: candidate %s runs in shadow from %.2f um (journaled as %s, "
+                      "never written)", cfg.name, self.shadow_digest[:16], self.est.estimate_um - self.est.bias_um,
+                      SHADOW_COLUMN, digest=self.shadow_digest)
         self.alarms = self._startup_alarms
 
     @property
@@ -364,6 +380,34 @@ class SpindleRuntime:
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
                      "_save_error", "_stale", "_state_alarms", "_journal_error", "_restored", "_since_start"):
             setattr(self, name, getattr(old, name))
+
+    def _load_shadow(self, path: Path) -> None:
+        """The candidate in shadow, when ``path`` holds one for this spindle; a file that does not
+        load or belongs to another spindle is said once and left alone: the live model runs on."""
+        if not path.is_file():
+            return
+        try:
+            model = load_any_model(path)
+            self.cfg.refuse_other_spindle(model.spindle_id)
+            if model.input_names and not set(model.input_names) <= set(self.adapter.input_channels()):
+                raise ConfigError(f"it needs input(s) {', '.join(model.input_names)} the link does not read")
+            self.shadow = replace(self.cfg.estimate(model), observer=None)  # open loop: its own misses
+            self.shadow_digest = model_digest(model)
+        except (ModelError, ConfigError, OSError) as err:
+            event("shadow_failed", self.cfg.name, "%s: the shadow candidate %s is not run: %s", self.cfg.name,
+                  path, str(err)[:200], level=logging.WARNING, path=str(path))
+
+    def _step_shadow(self, speed: float, dt: float, now: float, wall_now: float, inputs: Any,
+                     input_error: str | None) -> None:
+        """One cycle of the shadow candidate; whatever it does, the live model is not touched."""
+        assert self.shadow is not None and self.shadow_est is not None
+        try:
+            self.shadow_est, _ = self.shadow.step(self.shadow_est, speed, dt, now_s=now, wall_s=wall_now,
+                                                  inputs=inputs, input_error=input_error)
+        except ModelError as err:
+            event("shadow_failed", self.cfg.name, "%s: the shadow candidate %s stopped: %s", self.cfg.name,
+                  (self.shadow_digest or "")[:16], str(err)[:200], level=logging.WARNING)
+            self.shadow = self.shadow_est = None
 
     def _record_in_use(self, model: Predictor, reason: str) -> None:
         """Keep the model in the history when it is not the one recorded in use (a promotion or
@@ -893,6 +937,8 @@ class SpindleRuntime:
             self._refused = None
             if self.estimate.with_inputs is not None:
                 alarms |= self._input_events(step, extrapolated)
+            if self.shadow is not None:
+                self._step_shadow(read_rpm, dt, now, wall_now, inputs, input_error)
             if self._since_start is not None:  # for a clock found wrong at the start
                 assert self._restored is not None
                 self._since_start.append((read_rpm, dt, now, wall_now, inputs, input_error))
@@ -945,7 +991,9 @@ class SpindleRuntime:
                      "estimate": ("fused" if self.estimate.fused is not None else "inputs"
                                   if self.input_state is not None else "speed"),
                      "inputs": dict(self._inputs_read), "expected_error": expected,
-                     "drift": self.drift_status() if self.estimate.fused is not None else None}
+                     "drift": self.drift_status() if self.estimate.fused is not None else None,
+                     "shadow": None if self.shadow_est is None else {
+                         "digest": self.shadow_digest, "estimate_um": self.shadow_est.estimate_um}}
         return {**self.last, "alarms": alarms}
 
     def _shaper_dt(self, dt: float) -> float:
@@ -1021,7 +1069,8 @@ class SpindleRuntime:
         ok = j.write(self.anchor_s + now, speed, s, held, wrote, int(shaped.flags), int(alarms), dt_s=dt,
                      wall_s=wall_now, now_s=now, cutting=shaped.cutting, cutting_source=cutting_source,
                      policy_state=shaped.state, slew_limit_um_per_s=shaped.rate_um_per_s,
-                     inputs=self._inputs_read)
+                     inputs=self._inputs_read if self.shadow_est is None
+                     else {**self._inputs_read, SHADOW_COLUMN: self.shadow_est.estimate_um})
         if ok:
             if self._journal_error is not None:
                 event("journal_restored", self.cfg.name, "%s: journal writing again (%s)",
