@@ -145,8 +145,11 @@ class Recorder:
                  on_event: Callable[[Event], None] | None = None,
                  should_stop: Callable[[], bool] | None = None,
                  wall: Callable[[], float] = time.monotonic,
-                 start_now: Callable[[], bool] | None = None):
+                 start_now: Callable[[], bool] | None = None, at_speed: bool = False):
         self.controller, self.sensor = controller, sensor
+        self.at_speed = bool(at_speed)
+        """The tool setter measures the turning tool (a laser at the program's speed): the
+        spindle keeps its speed through a stop, and a measurement goes on the row it came in."""
         self.path = Path(path)
         self.program = program
         self.max_rpm = float(max_rpm)
@@ -162,6 +165,7 @@ class Recorder:
                               "no measurement: configure the controller's measurement variables")
         if sensor is None:
             self.metadata[ELONGATION_COLUMN] = SPARSE  # empty on the rows without a measurement
+            self.metadata["tool_setter"] = "at speed" if self.at_speed else "at rest"
         self.stops_done = 0
         """Probe stops whose measurement has come in."""
         self.holding = False
@@ -216,7 +220,7 @@ class Recorder:
         i0 = int(np.searchsorted(self._edges, max(t0, 0.0), side="right"))
         i1 = int(np.searchsorted(self._edges, max(t1, 0.0), side="right"))
         speeds = list(self._speeds[min(i0, len(self._speeds) - 1): min(i1, len(self._speeds) - 1) + 1])
-        if t1 >= d or any(t0 <= p <= t1 for p in self.stops):
+        if t1 >= d or (not self.at_speed and any(t0 <= p <= t1 for p in self.stops)):
             speeds.append(0.0)
         return np.array(speeds)
 
@@ -319,7 +323,7 @@ class Recorder:
                                            "is the program loaded and cycle start pressed?")
                 ptime = None if program_start is None else t - program_start - paused_s
                 t_meas = t  # the row a measurement goes on: at rest (the cycle measures at rest)
-                if meas is not None and not (speed is not None and speed <= IDLE_RPM):
+                if meas is not None and not self.at_speed and not (speed is not None and speed <= IDLE_RPM):
                     last_t = appender.last_row[0] if appender.last_row is not None else t - cfg.rate_s
                     t_meas = (last_t + t) / 2  # the spindle turns again: between the two samples
                 if self.stops and ptime is not None and program_start is not None:

@@ -104,10 +104,14 @@ def fit_data(data: Sequence[LogData], input_names: Sequence[str] = (), *, nested
         if why is not None:
             raise CalibrationError(f"calibration refused: {why} ({not_following[0]} of {not_following[1]} rows)")
     units = dict(units) if units is not None else {n: unit_of(n) for n in input_names}
-    result = identify(data, input_names, units=units, progress=progress, nested=nested, physical=physical,
-                      probe_target_um=probe_target_um, probe_every_s=probe_every_s, **meta)
-    result.warnings[:0] = coverage_warnings(data)
     direction = growth_direction if growth_direction is not None else growth_direction_of(data)
+    measured = np.concatenate([np.asarray(d.elongation_um, float) for d in data])
+    measured = measured[np.isfinite(measured)]
+    span_um = float(np.ptp(measured)) if measured.size else None  # the growth, wherever zero was
+    result = identify(data, input_names, units=units, progress=progress, nested=nested, physical=physical,
+                      probe_target_um=probe_target_um, probe_every_s=probe_every_s,
+                      growth_direction=direction, measured_span_um=span_um, **meta)
+    result.warnings[:0] = coverage_warnings(data)
     record: dict[str, Any] = {}
     if share is not None:
         record["not_following_share"] = round(share, 4)
@@ -116,9 +120,6 @@ def fit_data(data: Sequence[LogData], input_names: Sequence[str] = (), *, nested
     model = result.model
     if record:
         model = result.model = model.model_copy(update={"fit": {**model.fit, **record}})
-    measured = np.concatenate([np.asarray(d.elongation_um, float) for d in data])
-    measured = measured[np.isfinite(measured)]
-    span_um = float(np.ptp(measured)) if measured.size else None  # the growth, wherever zero was
     why = steady_growth_refusal(model, direction, measured_um=span_um)
     if why is not None:
         raise CalibrationError(f"calibration refused: {model.form}: {why}")

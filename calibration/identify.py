@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError
+from compensator.plausibility import steady_growth_refusal
 
 from . import closedloop
 from .candidate import MIN_FORWARD_FOLDS, Candidate
@@ -233,14 +234,17 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
              units: Mapping[str, str] | None = None, physical: bool = True, nested: bool = True,
              probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
              probe_every_s: float | None = None,
-             progress: Callable[[str], None] | None = None, **meta: Any) -> Identification:
+             progress: Callable[[str], None] | None = None, growth_direction: int | None = None,
+             measured_span_um: float | None = None, **meta: Any) -> Identification:
     """Fit every candidate of :data:`REGISTRY` that applies, score it on the same folds in free
     run, choose, and build the model.
 
     ``meta`` (spindle_id, machine_id, created_utc) goes into the model. With probes planned
     (``probe_every_s``) a candidate is judged by its closed loop on held-out folds instead; that
-    and the closed-loop plan need the elongation on every row. Raises :class:`CalibrationError`
-    when nothing can be validated.
+    and the closed-loop plan need the elongation on every row. A speed-only candidate whose
+    steady growth physics forbids (:func:`compensator.plausibility.steady_growth_refusal`, in
+    ``growth_direction``, against the ``measured_span_um``) is refused, so the choice falls to the
+    next. Raises :class:`CalibrationError` when nothing can be validated.
     """
     cpu0 = time.process_time()
     say = progress or (lambda _m: None)
@@ -306,6 +310,11 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
             c.model, refusal = rb.to_model_or_refuse(fitted[c.name], c.name, fit={}, **meta)
             if refusal:
                 c.accepted, c.refusals = False, [*c.refusals, refusal]
+    for c in cands:
+        if c.family == "speed" and c.accepted and c.model is not None:
+            why = steady_growth_refusal(c.model, growth_direction, measured_um=measured_span_um)
+            if why is not None:
+                c.accepted, c.refusals = False, [*c.refusals, f"physics: {why}"]
     speed = [c for c in cands if c.family == "speed" and c.accepted and c.model is not None]
     if not speed:
         raise CalibrationError("no speed-only candidate passed the checks: "

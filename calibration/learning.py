@@ -39,6 +39,7 @@ from compensator.io.journal import FAULT_ALARMS, SHADOW_COLUMN
 from compensator.plausibility import direction_of
 from compensator.predictor import Predictor
 
+from .folds import IDLE_RPM
 from .replay import Probes, replay
 
 
@@ -159,6 +160,39 @@ def score(estimate: Estimate, log: RunLog, rows: np.ndarray, probe_rows: np.ndar
     return Score(float(np.sqrt(np.mean(miss ** 2))), fused_rms, float(np.max(np.abs(miss))))
 
 
+AT_SPEED_CHECK_S = 60.0
+"""The growth this long after a start from rest is what a refit on measurements taken at rest
+must leave as it was (the elastic and the fastest thermal part, which no such measurement sees)."""
+AT_SPEED_TOLERANCE_UM = 1.0
+
+
+def unseen_at_speed(live: Predictor, candidate: Predictor, margin: float) -> str | None:
+    """Why ``candidate`` may not replace ``live`` when every measurement it was judged on was
+    taken at rest, or None. At rest, neither the fit nor the judgement sees the growth that
+    exists only while the spindle turns; a candidate that changes it (a fit from measurements at
+    rest leaves it out) would be judged better and cut worse. The rule: 60 s after a start from
+    rest to each quarter of the calibrated range, the candidate's growth stays within ``margin``
+    of the live model's (at least 1 um)."""
+    top = float(live.speed_range_rpm[1])
+    t = np.arange(0.0, AT_SPEED_CHECK_S + 1.0, 1.0)
+    worst = None
+    for frac in (0.25, 0.5, 0.75, 1.0):
+        n = np.full(t.size, frac * top)
+        n[0] = 0.0
+        a = float(live.simulate_um(n, t)[-1] - live.simulate_um(n, t)[0])
+        b = float(candidate.simulate_um(n, t)[-1] - candidate.simulate_um(n, t)[0])
+        allowed = max(AT_SPEED_TOLERANCE_UM, margin * abs(a))
+        if abs(b - a) > allowed and (worst is None or abs(b - a) > abs(worst[2] - worst[1])):
+            worst = (frac * top, a, b, allowed)
+    if worst is None:
+        return None
+    n, a, b, allowed = worst
+    return (f"every measurement was taken at rest, so nothing vouches for the growth while the spindle "
+            f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {n:.0f} rpm it "
+            f"predicts {b:+.2f} um where the live model predicts {a:+.2f} um (more than {allowed:.2f} um apart); "
+            "measure at speed (a laser setter, --spindle keep) to refit that part")
+
+
 def decide(rule: Rule, live: Score, cand: Score) -> Decision:
     """The promotion rule (see the module): better by the margin open loop, no worse with the
     observer."""
@@ -235,6 +269,12 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
     out.live = score(live, clean, held, rows, sigma, observer)
     out.scored = score(make_estimate(candidate), clean, held, rows, sigma, observer)
     out.decision = decide(rule, out.live, out.scored)
+    at_rest = not bool((np.abs(np.asarray(log.speed_rpm, dtype=float))[rows] > IDLE_RPM).any())
+    if at_rest:
+        out.notes.append("every measurement was taken at rest")
+        why = unseen_at_speed(live.model, candidate, rule.margin) if out.decision.promote else None
+        if why is not None:
+            out.decision = Decision(False, why)
     return out
 
 

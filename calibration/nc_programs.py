@@ -165,7 +165,7 @@ def to_nc(program: Program, dialect: str, *, name: str = "THERMOCOMP", notes: tu
     head = [f"THERMOCOMP {program.name.upper()} PROFILE",
             f"DURATION {program.duration_s / 3600:.2f} H, MAX {max(s for _, s in program.segments):.0f} RPM"]
     if stops:
-        head += [f"{len(stops)} TOOL-SETTER STOPS: {call.upper().replace(chr(34), '')}, SPINDLE STOPPED FOR EACH",
+        head += [f"{len(stops)} TOOL-SETTER STOPS: {call.upper().replace(chr(34), '')}, THE CYCLE SETS THE SPINDLE",
                  "NO AXIS MOVES BUT THE CYCLES. SPINDLE CLEAR OF THE WORK, GAUGE TOOL OF THE CYCLE IN THE SPINDLE",
                  "PROGRAM TIMES BELOW DO NOT COUNT THE CYCLES"]
     else:

@@ -42,7 +42,10 @@ from .nc_programs import DIALECTS, EXTENSIONS
 COUNTER_WRAP = 9999
 """The counter runs 1..9999, then 1 again: it fits any register, and only a change counts."""
 
-SPINDLE_MODES = ("stop", "low")
+SPINDLE_MODES = ("stop", "low", "keep")
+"""The spindle through the cycle: stopped (a contact setter), at a low measuring speed (a laser),
+or kept at the speed the program runs (a laser measuring the turning tool: the measurement then
+includes the growth that exists only while the spindle turns)."""
 HEIDENHAIN_TT_S = 15.0
 """Nominal length of TCH PROBE 481 (its feeds are machine parameters): for the time estimate."""
 
@@ -170,7 +173,10 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
         if given.get(key) is not None:
             raise ConfigError(f"{_option(key)} is not for {dialect}: {why}")
     if spindle not in SPINDLE_MODES:
-        raise ConfigError(f"--spindle {spindle!r}: choose stop or low")
+        raise ConfigError(f"--spindle {spindle!r}: choose stop, low or keep")
+    if spindle == "keep" and dialect == "heidenhain":
+        raise ConfigError("--spindle keep is not for heidenhain: TCH PROBE 481 turns the spindle itself; "
+                          "use --spindle stop")
     if spindle == "low":
         if dialect == "heidenhain":
             raise ConfigError("--spindle low is not for heidenhain: TCH PROBE 481 turns the spindle itself "
@@ -242,7 +248,9 @@ def _feed(x: float) -> str:
 
 def _header(c: ProbeCycle, reference: bool) -> list[str]:
     ref, val, cnt = c.reference_var, c.value_var, c.counter_var
-    spindle = "SPINDLE STOPPED" if c.spindle == "stop" else f"SPINDLE AT {c.low_rpm:g} RPM [LASER SETTER]"
+    spindle = ("SPINDLE STOPPED" if c.spindle == "stop"
+               else "SPINDLE KEEPS THE PROGRAM SPEED [LASER SETTER, GAUGE TOOL IN THE SPINDLE]" if c.spindle == "keep"
+               else f"SPINDLE AT {c.low_rpm:g} RPM [LASER SETTER]")
     if reference:
         lines = [f"THERMOCOMP TOOL-SETTER COLD REFERENCE, T{c.tool}",
                  "RUN IT COLD: AFTER THE REST, BEFORE THE FIRST SPINDLE START",
@@ -269,7 +277,10 @@ def _to_setter(c: ProbeCycle) -> list[str]:
     """Tool change, spindle stopped (contact setter) or slow (laser), up to the approach height
     and across to the setter in machine coordinates, then the settling dwell."""
     w = _WORDS[c.dialect]
-    out = [w["tool"].format(c.tool), w["stop"] if c.low_rpm is None else w["run"].format(c.low_rpm)]
+    # keep: no tool change (it stops the spindle) and no speed word: the gauge tool in the
+    # spindle is measured turning at the program's speed
+    out = [] if c.spindle == "keep" else \
+        [w["tool"].format(c.tool), w["stop"] if c.low_rpm is None else w["run"].format(c.low_rpm)]
     if c.approach_z_mm is not None:
         out.append(f"{w['machine']} Z{_mm(c.approach_z_mm)}")
     if c.setter_xy_mm:

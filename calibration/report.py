@@ -274,7 +274,9 @@ def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path,
         lines.append(_line("url", "opc.tcp://CHANGE-ME:4840", "the wizard was given no controller link"))
     if session.get("source") == "tool-setter":
         # the link read the tool setter at calibration: the service fuses its measurements too
-        lines += ["", "[spindle.observer]",
+        lines += ["", "# call the tool-setter cycle from the production programs too (every 30 to 60 min):",
+                  "# without measurements the observer goes stale (OBSERVER_STALE) and the model runs open loop",
+                  "[spindle.observer]",
                   _line("enabled", True, "fuse the tool setter's measurements with the model (the closed loop)")]
     top = abs(model.steady_state_um(session["max_rpm"]))
     default = ShaperConfig().max_offset_um

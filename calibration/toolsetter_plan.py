@@ -66,14 +66,15 @@ class ProbePlan:
             f"tool-setter stop every {self.interval_s / 60:.0f} min ({why}; fastest time constant {tau})",
             f"{self.stops} stops of about {self.dwell_s:.0f} s: the program takes {self.added_s / 60:.1f} min "
             f"longer ({(self.program_s + self.added_s) / 3600:.2f} h in all)",
-            f"each stop lets {100 * self.loss_per_stop:.1f} % of the fastest growth decay; "
-            f"{100 * self.stopped_share:.1f} % of the run is spent at rest measuring",
+            (f"each stop lets {100 * self.loss_per_stop:.1f} % of the fastest growth decay; "
+             f"{100 * self.stopped_share:.1f} % of the run is spent at rest measuring") if self.stopped_share > 0
+            else "the spindle keeps turning through each cycle: no growth decays while it measures",
         ]
 
 
 def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
                         fastest_tau_s: float | None = None, *,
-                        program_s: float | None = None) -> ProbePlan:
+                        program_s: float | None = None, at_speed: bool = False) -> ProbePlan:
     """The probe interval for a calibration run with the tool setter alone (the rule is the
     module's): ``step_s``, the staircase step; ``cooldown_s``, the cool-down at rest;
     ``dwell_s``, one probe cycle's time (spindle stopped to program resumed); ``fastest_tau_s``,
@@ -96,8 +97,9 @@ def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
         program_s = paper_calibration(27000.0, cooldown_min=cooldown_s / 60.0, step_min=step_s / 60.0).duration_s
     n = len(probe_stops(program_s, interval))
     added = n * dwell_s
+    # a laser at speed keeps the spindle turning through the cycle: no growth decays, none at rest
     return ProbePlan(interval_s=interval, stops=n, added_s=added,
-                     loss_per_stop=1.0 - math.exp(-dwell_s / tau),
-                     stopped_share=added / (program_s + added) if program_s + added > 0 else 0.0,
+                     loss_per_stop=0.0 if at_speed else 1.0 - math.exp(-dwell_s / tau),
+                     stopped_share=0.0 if at_speed else added / (program_s + added) if program_s + added > 0 else 0.0,
                      fastest_tau_s=tau, tau_assumed=assumed, step_s=float(step_s), dwell_s=float(dwell_s),
                      program_s=float(program_s), bound=bound)

@@ -350,17 +350,20 @@ class Wizard:
         from .toolsetter_plan import plan_probe_interval
 
         a, s = self.args, self.session
+        s["probe_spindle"] = a.probe_spindle or s.get("probe_spindle") or "stop"
         if a.probe_dwell_s is not None:
             s["probe_dwell_s"] = float(a.probe_dwell_s)
         if "probe_dwell_s" not in s:
             # the cycle's own measuring time with its default feeds, and the moves to and from the setter
-            cycle = probe_cycle(s["dialect"], approach_z_mm=-5.0 if s["dialect"] == "heidenhain" else None)
+            cycle = probe_cycle(s["dialect"], spindle=s["probe_spindle"],
+                                approach_z_mm=-5.0 if s["dialect"] == "heidenhain" else None)
             s["probe_dwell_s"] = round(measuring_time_s(cycle) + PROBE_MOVES_S)
         dwell = s["probe_dwell_s"]
         if not (math.isfinite(dwell) and 0 <= dwell <= 3600):
             raise ConfigError(f"--probe-dwell-s {dwell:g}: one tool-setter cycle's seconds, 0 to 3600")
         taus = self._former_time_constants()
-        plan = plan_probe_interval(60 * s["step_min"], 60 * s["cooldown_min"], dwell, min(taus) if taus else None)
+        plan = plan_probe_interval(60 * s["step_min"], 60 * s["cooldown_min"], dwell, min(taus) if taus else None,
+                                   at_speed=s["probe_spindle"] == "keep")
         every_min = a.probe_every_min if a.probe_every_min is not None else s.get("probe_every_min")
         if every_min is not None:
             every_min = float(every_min)
@@ -408,7 +411,9 @@ class Wizard:
             path = self.dir / f"{name}{ext}"
             write_text(path, text)
             files[name] = str(path)
-            t.add_row(name, str(path), self.both(prog.duration_s),
+            # with the tool setter, the program waits at each stop for the cycle
+            cycles_s = len(prog.probe_at_s) * float(s.get("probe_dwell_s") or 0.0)
+            t.add_row(name, str(path), self.both(prog.duration_s + cycles_s),
                       f"{max(sp for _, sp in prog.segments):.0f} rpm")
         s["programs"] = files
         self.out.print(t)
@@ -421,7 +426,7 @@ class Wizard:
                 f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
                 f"cold-reference program, for this machine's tool and setter:\n"
                 f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
-                f"    thermocomp probe-program --dialect {d} --output tcprobe{ext}\n"
+                f"    thermocomp probe-program --dialect {d} --spindle {s['probe_spindle']} --output tcprobe{ext}\n"
                 "  then run the reference program once on the cold spindle, before each run's first start.",
                 highlight=False)
         self.save_session()
@@ -456,8 +461,9 @@ class Wizard:
         s = self.session
         log = Path(info["log"])
         resuming = log.exists() and log.stat().st_size > 0
+        cycles_s = len(prog.probe_at_s) * float(s.get("probe_dwell_s") or 0.0)
         self.out.print(f"  [bold]{name}[/]: load [cyan]{s['programs'][name]}[/] on the controller "
-                       f"({self.both(prog.duration_s)}); the spindle must be cold (rested "
+                       f"({self.both(prog.duration_s + cycles_s)}); the spindle must be cold (rested "
                        f"{self.both(s['rest_h'] * 3600)}).")
         if resuming:
             self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
@@ -474,7 +480,7 @@ class Wizard:
         pressed = _StartKey(self.interactive, bool(getattr(self.args, "start_now", False)))
         rec = Recorder(ctl, sensor, log, prog, max_rpm=s["max_rpm"], config=cfg, metadata=meta,
                        clock=self.clock, sleep=self.sleep, on_sample=live.sample, on_event=live.event,
-                       start_now=pressed)
+                       start_now=pressed, at_speed=s.get("probe_spindle") == "keep")
         self.out.print("  recording: waiting for the spindle to start (press Cycle Start"
                        + ("; press Enter here to start the program clock now, for a program that opens at rest)"
                           if self.interactive else ")"), highlight=False)
@@ -722,6 +728,12 @@ def advise(summary: dict[str, Any], session: dict[str, Any]) -> list[str]:
         out.append(f"the model does not carry over to the validation run (RMS {val['rms_um']:.2f} um > "
                    f"{limit:.2f} um): record a second calibration run and fit both with "
                    "`thermocomp fit cal1.csv cal2.csv`, or check that ambient and coolant were steady")
+    if session.get("source") == "tool-setter" and session.get("probe_spindle", "stop") != "keep":
+        out.append("the tool setter measured at rest: the growth that exists only while the spindle turns "
+                   "(centrifugal, bearing preload; 10 um and more on a fast spindle) is not in the model, so "
+                   "it is good at rest and misses that part while cutting; calibrate with a laser setter at "
+                   "speed (--probe-spindle keep) or an eddy-current sensor, or keep probing in production so "
+                   "the observer carries it")
     for name, info in session.get("runs", {}).items():
         bad = sum(v for k, v in (info.get("flagged") or {}).items() if Problem[k] & EXCLUDED)
         if bad > 0.05 * max(info.get("rows", 1), 1):
@@ -789,7 +801,8 @@ def _clock(scale: float, anchor_s: float) -> Callable[[], float]:
 
 def _acquire_overrides(args: argparse.Namespace) -> dict[str, Any]:
     out = {}
-    for key in ("frozen_s", "frozen_after_step_s", "abort_frozen_s", "abort_saturated_s", "sensor_grace_s", "start_timeout_s"):
+    for key in ("frozen_s", "frozen_after_step_s", "abort_frozen_s", "abort_saturated_s", "sensor_grace_s",
+                "start_timeout_s", "probe_timeout_s"):
         v = getattr(args, key, None)
         if v is not None:
             out[key] = v

@@ -123,6 +123,9 @@ class ToolSetter:
     noise_um: float = 0.5
     resolution_um: float = 0.1
     seed: int = 0
+    at_speed: bool = False
+    """A laser setter measuring the turning tool: the spindle keeps its speed through the cycle,
+    and the measurement includes the growth that exists only while it turns."""
 
     def __post_init__(self) -> None:
         for name in ("dwell_s", "noise_um", "resolution_um"):
@@ -182,6 +185,7 @@ class VirtualMachine:
         self.tool_setter = tool_setter or ToolSetter()
         self._probe_rng = np.random.default_rng(self.tool_setter.seed)
         self._probe_until_s: float | None = None  # plant time the running probe cycle ends
+        self._probe_rpm = 0.0  # the speed a laser setter at speed holds through its cycle
         self._stops_done = 0  # the program's probe stops (Program.probe_at_s) reached so far
         self._stop_running = False  # the running probe cycle is one of the program's
         # what the probe cycle left, as a controller's variables: value, then counter
@@ -221,6 +225,7 @@ class VirtualMachine:
         with self._lock:
             if self._probe_until_s is not None:
                 return 0
+            self._probe_rpm = abs(self.plant._speed_rpm)
             self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
             return self.probe_sequence + 1
 
@@ -236,6 +241,7 @@ class VirtualMachine:
         if self.plant.time_s - self._program_start_s >= p.probe_at_s[self._stops_done] - 1e-9:
             self._stops_done += 1
             self._stop_running = True
+            self._probe_rpm = abs(self.plant._speed_rpm)
             self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
 
     def _finish_probe(self) -> None:
@@ -253,7 +259,9 @@ class VirtualMachine:
 
     def commanded_rpm(self, t_s: float) -> float:
         if self._probe_until_s is not None:
-            return 0.0  # the tool setter needs the spindle at rest
+            # a contact setter needs the spindle at rest; a laser at speed holds the speed the
+            # program ran when the cycle began (the program waits for it)
+            return self._probe_rpm if self.tool_setter.at_speed else 0.0
         if self._override_rpm is not None:
             return self._override_rpm
         if self.program is None:

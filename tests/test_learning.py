@@ -34,14 +34,16 @@ KW = {"period_s": PERIOD_S, "observer": OBSERVER,
       "shaping": "max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0"}
 
 
-def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bias_um=None, extra: str = "") -> Bench:
+def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bias_um=None, extra: str = "",
+         at_speed: bool = True) -> Bench:
     """``hours`` of a job shop on the plant, the service compensating and journaling; the tool
-    setter measures every 30 min (``setter_bias_um(t_s)`` added to what it reads: a faulty one)."""
+    setter (a laser at the program's speed, or ``at_speed=False`` a contact one at rest) measures
+    every 30 min (``setter_bias_um(t_s)`` added to what it reads: a faulty one)."""
     prog = with_probe_stops(job_shop_day(P.max_rpm, seed=seed, hours=hours), PROBE_EVERY_S)
 
     def make_vm(clock):
         vm = VirtualMachine(SpindlePlant(P, seed=seed), prog, clock=clock, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=20.0, noise_um=0.3, seed=seed))
+                            tool_setter=ToolSetter(dwell_s=20.0, noise_um=0.3, seed=seed, at_speed=at_speed))
         if setter_bias_um is not None:
             finish = vm._finish_probe
 
@@ -200,6 +202,20 @@ def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model
     assert done["candidate"]["open_loop_rms_um"] < 0.9 * done["live"]["open_loop_rms_um"]
     assert not history.shadow_path.exists() and model.read_bytes() != first
     assert [r.event for r in history.records()] == ["in_use", "shadow", "promoted"]
+
+
+def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, simple_model, capsys):  # noqa: F811
+    """A contact setter measures at rest: a candidate fitted on that misses less at rest than the
+    poor live model, but nothing there vouches for the growth while the spindle turns, and the
+    candidate changes it: it is rejected for that, and the live model stays."""
+    model = own_copy(simple_model, tmp_path)
+    first = model.read_bytes()
+    b = shop(tmp_path, model, hours=20, at_speed=False)
+    b.cfg_path = tmp_path / "machine.toml"
+    out = refit(b, capsys)
+    assert out["outcome"] == "rejected" and "taken at rest" in out["reason"], out
+    assert out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]  # better at rest
+    assert model.read_bytes() == first
 
 
 def test_too_few_measurements_hold_the_refit_back(tmp_path, simple_model, capsys):  # noqa: F811

@@ -152,7 +152,9 @@ def test_fit_refuses_a_direction_the_model_runs_against_and_takes_the_datas_own(
     with pytest.raises(CalibrationError) as err:
         identify_runs([plant_cal], growth_direction=-1, **FIT)
     msg = str(err.value)
-    assert msg.startswith("calibration refused: ") and "runs against the measured growth direction -1" in msg
+    # every speed-only candidate is refused for it, so none is left to choose
+    assert msg.startswith("no speed-only candidate passed the checks: ")
+    assert "exp-baseline: physics: " in msg and "runs against the measured growth direction -1" in msg
     assert "\n" not in msg
     # the same run measured the other way (a sensor facing the spindle): fits, direction -1
     flipped = Run("flipped", plant_cal.time_s, plant_cal.speed_rpm, -plant_cal.elongation_um)

@@ -202,7 +202,8 @@ def test_measuring_time_and_spindle_words():
 
 @pytest.mark.parametrize("dialect,options,match", [
     ("mazak", {}, "choose from"),
-    ("fanuc", {"spindle": "fast"}, "stop or low"),
+    ("fanuc", {"spindle": "fast"}, "stop, low or keep"),
+    ("heidenhain", {"spindle": "keep", "approach_z_mm": -5}, "keep is not for heidenhain"),
     ("fanuc", {"spindle": "low"}, "needs --low-rpm"),
     ("fanuc", {"low_rpm": 500}, "goes with --spindle low"),
     ("fanuc", {"spindle": "low", "low_rpm": 0}, "--low-rpm"),

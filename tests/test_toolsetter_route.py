@@ -139,15 +139,16 @@ def test_a_parsed_program_with_probe_calls_measures_at_its_program_times_over_op
 # -- the recorder takes the tool setter -----------------------------------------------------------
 
 
-def setter_recording(tmp_path, prog: Program, *, rate_s: float = 10.0, should_stop=None, vm=None, clock=None):
+def setter_recording(tmp_path, prog: Program, *, rate_s: float = 10.0, should_stop=None, vm=None, clock=None,
+                     at_speed: bool = False, name: str = "setter.csv"):
     clock = clock or FakeClock()
     if vm is None:
         vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=SEED), None, clock=clock.sim, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED))
+                            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED, at_speed=at_speed))
         vm.load_program(prog)
-    rec = Recorder(SimAdapter(machine=vm), None, tmp_path / "setter.csv", prog, max_rpm=MAX_RPM,
+    rec = Recorder(SimAdapter(machine=vm), None, tmp_path / name, prog, max_rpm=MAX_RPM,
                    config=AcquireConfig(rate_s=rate_s), clock=clock, sleep=clock.sleep, wall=clock,
-                   should_stop=should_stop, metadata={"spindle_id": "t"})
+                   should_stop=should_stop, metadata={"spindle_id": "t"}, at_speed=at_speed)
     return rec, vm, clock
 
 
@@ -266,6 +267,11 @@ def routes(tmp_path_factory):
     rec, _vm, _clock = setter_recording(tmp, nc, rate_s=RATE_S)
     setter = rec.run()
     setter_fit = fit_logs([read_run_log(setter.path)])
+    # (c) a laser setter measuring the turning gauge tool at the program's speed, same interval
+    laser_rec, _vm, _clock = setter_recording(tmp, nc, rate_s=RATE_S, at_speed=True, name="laser.csv")
+    laser = laser_rec.run()
+    laser_log = read_run_log(laser.path)
+    laser_fit = fit_logs([laser_log])
     # held out: the validation profile, free run, against the plant's true elongation
     t, cmd = validation_profile(MAX_RPM, seed=1).sample(RATE_S)
     plant = SpindlePlant(params, seed=SEED)
@@ -277,6 +283,7 @@ def routes(tmp_path_factory):
 
     pe = eddy_fit.model.simulate_um(truth.speed_rpm, t)
     ps = setter_fit.model.simulate_um(truth.speed_rpm, t)
+    pl = laser_fit.model.simulate_um(truth.speed_rpm, t)
     rest = truth.speed_rpm < 1.0
     fig = {"eddy_rms_um": rms(pe - truth.true_um), "setter_rms_um": rms(ps - truth.true_um),
            "eddy_rest_rms_um": rms((pe - truth.true_um)[rest]), "setter_rest_rms_um": rms((ps - truth.true_um)[rest]),
@@ -285,6 +292,11 @@ def routes(tmp_path_factory):
            "eddy_model": eddy_fit.chosen.name, "setter_model": setter_fit.chosen.name,
            "setter_rows": setter.rows, "eddy_rows": eddy.rows, "plan": plan.lines()}
     fig["ratio"] = fig["setter_rms_um"] / fig["eddy_rms_um"]
+    fig["laser_rms_um"] = rms(pl - truth.true_um)
+    fig["laser_ratio"] = fig["laser_rms_um"] / fig["eddy_rms_um"]
+    fig["laser_model"] = laser_fit.chosen.name
+    fig["laser_at_speed"] = int((laser_log.speed_rpm[laser_log.measured] > 1.0).sum())
+    fig["laser_stops"] = laser.measurements
     fig["thermal_ratio"] = fig["setter_plus_elastic_rms_um"] / fig["eddy_rms_um"]
     assert eddy.complete and setter.complete and not eddy.flagged and not setter.flagged
     assert setter.measurements == plan.stops
@@ -308,6 +320,16 @@ def test_the_tool_setter_route_identifies_the_thermal_growth_as_well_as_the_eddy
     assert f["thermal_ratio"] <= 1.5, figures(f)
     assert f["setter_rest_rms_um"] < 1.0, figures(f)
     assert f["stops"] >= 3 * 9, figures(f)  # at least 3 per staircase step
+
+
+def test_a_laser_setter_at_speed_calibrates_within_1_5x_of_the_eddy_sensor(routes):
+    """Measured turning at the program's speed, the tool setter sees the growth that exists only
+    while the spindle turns: its model's full held-out error is within 1.5x of the eddy-current
+    model's, with the same stops and no eddy-current sensor."""
+    f = routes
+    print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
+    assert f["laser_stops"] == f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
+    assert f["laser_ratio"] <= 1.5, (f["laser_rms_um"], f["eddy_rms_um"])
 
 
 @pytest.mark.xfail(strict=True, reason="a tool setter measures at rest and never sees the elastic "

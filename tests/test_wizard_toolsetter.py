@@ -30,22 +30,32 @@ def said(ls) -> str:
     return " ".join("".join(ls.lines).split())
 
 
-@pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
+def session_of(tmp_path_factory, *extra: str, at_speed: bool = False) -> dict:
     """One tool-setter session, calibration and validation run, fitted and saved."""
     from test_wizard import LockStep
 
-    from machine_sim.vcnc import VirtualCNC, running, step
+    from machine_sim.vcnc import ToolSetter, VirtualCNC, running, step
 
     ls = LockStep(seed=21)
+    ls.vm.tool_setter = ToolSetter(at_speed=at_speed)
     work = tmp_path_factory.mktemp("setter") / "cal"
     ls.session_dir = sdir = work / "vmc-7" / "main"
     with running(VirtualCNC(ls.vm, tick_s=None)) as cnc:
         ls.cnc = cnc
         step(cnc)
-        code = ls.wizard(setter_args(work, cnc, "--validation"))
+        code = ls.wizard(setter_args(work, cnc, "--validation", *extra))
     session = json.loads((sdir / "session.json").read_text())
     return {"code": code, "out": said(ls), "dir": sdir, "session": session, "vm": ls.vm}
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    return session_of(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def laser(tmp_path_factory):
+    return session_of(tmp_path_factory, "--probe-spindle", "keep", at_speed=True)
 
 
 def test_the_tool_setter_route_records_sparse_runs_measured_at_rest(calibrated):
@@ -101,3 +111,27 @@ def test_the_configuration_fuses_the_tool_setter_and_passes_run_check(calibrated
     r = subprocess.run([*THERMOCOMP, "model", "check", c["session"]["saved"]["model"]],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_the_route_at_rest_says_what_it_cannot_see(calibrated):
+    out = calibrated["out"]
+    assert "the tool setter measured at rest" in out and "--probe-spindle keep" in out
+    assert "the model is good" not in out
+
+
+def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_growth(laser, calibrated):
+    """--probe-spindle keep: the cycles keep the spindle turning, the measurements land on rows at
+    the program's speed, and the model's steady growth at top speed takes in the growth that
+    exists only while it turns (the at-rest model's misses it)."""
+    c = laser
+    assert c["code"] == 0, c["out"][-2000:]
+    s = c["session"]
+    assert s["probe_spindle"] == "keep" and "no growth decays while it measures" in c["out"]
+    assert "--spindle keep" in c["out"] and "the tool setter measured at rest" not in c["out"]
+    log = read_run_log(s["runs"]["calibration"]["log"])
+    turning = log.speed_rpm[log.measured] > 1.0
+    assert turning.mean() > 0.6  # the staircase turns at most stops; the cool-down ones are at rest
+    top = load_model(s["saved"]["model"]).steady_state_um(27000.0)
+    rest_only = load_model(calibrated["session"]["saved"]["model"]).steady_state_um(27000.0)
+    elastic = c["vm"].plant.elastic_um(27000.0)
+    assert top - rest_only > 0.5 * elastic, (top, rest_only, elastic)

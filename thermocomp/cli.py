@@ -289,8 +289,10 @@ def _add_probe_program(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--counter-var", metavar="VAR", help="the counter (default #522, R22, QR22, #3022)")
     p.add_argument("--reference-var", metavar="VAR",
                    help="the cold reference [mm], kept through power cycles (default #520, R20, QR20, #3020)")
-    p.add_argument("--spindle", default="stop", metavar="{stop,low}",
-                   help="stop: contact setter (default); low: laser setter, at --low-rpm")
+    p.add_argument("--spindle", default="stop", metavar="{stop,low,keep}",
+                   help="stop: contact setter (default); low: laser setter, at --low-rpm; keep: laser setter "
+                   "measuring the gauge tool in the spindle at the program's speed (sees the growth that "
+                   "exists only while it turns)")
     p.add_argument("--low-rpm", metavar="RPM", help="spindle speed with --spindle low")
     p.add_argument("--settle-s", default="2", metavar="S", help="dwell before probing (spindle run-down) [s]")
     p.add_argument("--setter-x-mm", metavar="MM", help="setter centre, machine X (default: probe in place)")
@@ -340,6 +342,13 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--probe-every-min", type=float,
                    help="--source tool-setter: minutes between tool-setter stops (default: planned from the "
                    "step and the fastest time constant)")
+    g.add_argument("--probe-spindle", choices=["stop", "keep"],
+                   help="--source tool-setter: stop, the cycle measures at rest (a contact setter, default); "
+                   "keep, a laser setter measures the turning gauge tool at the program's speed, which also "
+                   "sees the growth that exists only while the spindle turns")
+    g.add_argument("--probe-timeout-s", type=float,
+                   help="--source tool-setter: stop the recording when a stop's measurement has not come in "
+                   "this many wall seconds (default 900)")
     g.add_argument("--probe-dwell-s", type=float,
                    help="--source tool-setter: seconds one tool-setter cycle keeps the spindle stopped, moves "
                    "included (default: the cycle's measuring time + 10 s)")
