@@ -7,7 +7,9 @@ seasonal swing (``--season-k`` kelvin, a quarter of a sine over the month). Day 
 calibrated as the wizard does (the paper's calibration profile and a random validation run, the
 eddy-current sensor, ``fit_logs``). Then every day: a shift of job-shop work (16 h) with a
 tool-setter cycle every 30 min, and a night at rest. The service (``SpindleRuntime``, the observer
-fusing every measurement) runs in lock-step on the machine's clock, at a 30 s cycle.
+fusing every measurement) runs in lock-step on the machine's clock, at a 30 s cycle. The tool
+setter in production is a laser measuring the turning tool (``--setter speed``), or a contact
+setter at rest (``--setter rest``: what a refit cannot see at speed, it must leave alone).
 
 - ``fixed``: the day-0 model all month;
 - ``learning``: ``thermocomp refit`` every 7 days on the service's own journal (the same command
@@ -143,7 +145,8 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
     wall = lambda: WALL0 + t[0]  # noqa: E731
     plant = aging(params, args.seed, args.heat_rise, args.days, args.season_k)
     vm = VirtualMachine(plant, None, clock=clock, plant_dt_s=PLANT_DT_S,
-                        tool_setter=ToolSetter(dwell_s=DWELL_S, noise_um=0.3, seed=args.seed))
+                        tool_setter=ToolSetter(dwell_s=DWELL_S, noise_um=0.3, seed=args.seed,
+                                               at_speed=args.setter == "speed"))
 
     def start(previous=None):
         cfg = load_config(config)
@@ -218,6 +221,9 @@ def main() -> int:
     ap.add_argument("--heat-rise", type=float, default=0.2)
     ap.add_argument("--season-k", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--setter", choices=["speed", "rest"], default="speed",
+                    help="the production tool setter: a laser measuring the turning tool (default), or a "
+                    "contact setter at rest")
     ap.add_argument("--plot", help="PNG of the error while cutting over the month")
     ap.add_argument("--json", help="write every figure here")
     args = ap.parse_args()
@@ -225,7 +231,7 @@ def main() -> int:
     started = time.monotonic()
     print(f"bench_learning: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}; {args.days:g} days, heat +{100 * args.heat_rise:.0f} %, "
-          f"season {args.season_k:g} K")
+          f"season {args.season_k:g} K, tool setter at {args.setter}")
     with tempfile.TemporaryDirectory(prefix="bench-learning-") as tmp:
         work = Path(tmp)
         model0 = calibrate(params, args.seed, work)

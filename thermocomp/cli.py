@@ -194,6 +194,9 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     p.add_argument("--port", type=int, default=4840, help="TCP port")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.add_argument("--tool-setter", choices=["rest", "speed"], default="rest",
+                   help="the machine's tool setter: a contact one, the spindle stopped for each cycle (default), "
+                   "or a laser measuring the turning tool at the program's speed")
     p.add_argument("--history", metavar="CSV",
                    help="on stop, write the machine's record (true growth, the offset held, the tool tip's "
                    "error) as a run log and print the error while cutting, with and without the offset")

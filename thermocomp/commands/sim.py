@@ -16,6 +16,7 @@ from machine_sim.vcnc import (
     CYCLE_START_PATH,
     NODE_PATHS,
     SimClock,
+    ToolSetter,
     VirtualCNC,
     VirtualMachine,
     running,
@@ -84,7 +85,8 @@ def virtual_cnc(args: argparse.Namespace) -> int:
     except NcSyntaxError as err:
         raise ConfigError(f"{args.program}: {err}") from err
     vm = VirtualMachine(SpindlePlant(params, seed=args.seed), None if args.wait_start else prog,
-                        clock=SimClock(args.time_scale))
+                        clock=SimClock(args.time_scale),
+                        tool_setter=ToolSetter(at_speed=getattr(args, "tool_setter", "rest") == "speed"))
     if args.wait_start:
         vm.load_pending(prog)
     history = getattr(args, "history", None)
