@@ -310,8 +310,9 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
             c.model, refusal = rb.to_model_or_refuse(fitted[c.name], c.name, fit={}, **meta)
             if refusal:
                 c.accepted, c.refusals = False, [*c.refusals, refusal]
+    judged = growth_direction is not None or measured_span_um is not None  # fit_data's callers
     for c in cands:
-        if c.family == "speed" and c.accepted and c.model is not None:
+        if judged and c.family == "speed" and c.accepted and c.model is not None:
             why = steady_growth_refusal(c.model, growth_direction, measured_um=measured_span_um)
             if why is not None:
                 c.accepted, c.refusals = False, [*c.refusals, f"physics: {why}"]
