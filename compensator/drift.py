@@ -16,8 +16,9 @@ of one ``sd`` is found after about 10 measurements (ARL1 ~ 10.4) while an unchan
 false alarm about once in 465 measurements (ARL0, independent normal misses; the misses of a
 model are autocorrelated, so the real false-alarm rate is higher: the alarm is advice, never a
 change of the offset). The change is dated at the first measurement after the sum last stood at
-zero, and its size is the mean miss since then. Each sum is held at ``2h`` at most, so the alarm
-clears within about ``h / k`` measurements once the misses are back to normal.
+zero, and its size is the mean miss since then. The alarm clears when the sum falls below
+``h/2`` (so a change near the threshold does not raise it again and again); each sum is held at
+``2h`` at most, so that takes about ``1.5 h / k`` measurements once the misses are back to normal.
 
 The detector restarts at known events, which must not count as a change: a new model (reload,
 promotion, rollback) and a cold start or a restart after a long idle; the first ``grace``
@@ -119,9 +120,11 @@ def update(state: DriftState, miss_um: float, sd_um: float, time_s: float,
             else (time_s, miss_um, 1)
     else:
         l_from, l_sum, l_n = None, 0.0, 0
+    # raised above h, cleared below h/2: a change near the threshold does not flap the alarm
+    stat = max(high, low)
+    detected = stat > config.h or (state.detected and stat > 0.5 * config.h)
     return DriftState(high=high, low=low, seen=state.seen + 1, high_from=h_from, low_from=l_from,
-                      high_sum_um=h_sum, low_sum_um=l_sum, high_n=h_n, low_n=l_n,
-                      detected=max(high, low) > config.h)
+                      high_sum_um=h_sum, low_sum_um=l_sum, high_n=h_n, low_n=l_n, detected=detected)
 
 
 def miss_sd_um(fit_rms_um: float | None, sigma_um: float, floor_um: float = 0.1) -> float:
