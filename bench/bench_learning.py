@@ -205,14 +205,13 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
         weeks.append({"week": w + 1, "cutting_rms_um": rms(e), "cutting_max_um": float(np.max(np.abs(e))) if e.size else None,
                       "steady_rms_um": rms(es), "steady_max_um": float(np.max(np.abs(es))) if es.size else None,
                       "uncompensated_rms_um": rms(h.true_um[span & h.cutting])})
-    # the error while cutting, hourly RMS, for the plot
-    hours = np.floor(h.time_s / 3600.0)
-    hourly = {}
-    for hr in np.unique(hours[h.cutting]):
-        e = err[(hours == hr) & h.cutting]
-        hourly[float(hr)] = float(np.sqrt(np.mean(e ** 2)))
+    # the error while cutting in steady phases, daily RMS, for the plot
+    days = np.floor(h.time_s / DAY_S)
+    daily = {}
+    for d in np.unique(days[steady]):
+        daily[float(d)] = rms(err[(days == d) & steady])
     return {"mode": mode, "weeks": weeks, "refits": refits,
-            "drifts": [{"day": (s - WALL0) / DAY_S, **f} for s, f in drifts.seen], "hourly": hourly}
+            "drifts": [{"day": (s - WALL0) / DAY_S, **f} for s, f in drifts.seen], "daily": daily}
 
 
 def main() -> int:
@@ -263,18 +262,25 @@ def main() -> int:
 
         fig, ax = plt.subplots(figsize=(10, 4))
         for mode, color in (("fixed", "tab:red"), ("learning", "tab:blue")):
-            hr = results[mode]["hourly"]
-            x = np.array(sorted(hr)) / 24.0
-            ax.plot(x, [hr[k] for k in sorted(hr)], ".", ms=2, color=color, label=f"{mode} model")
+            dd = results[mode]["daily"]
+            x = np.array(sorted(dd))
+            ax.plot(x + 0.5, [dd[k] for k in sorted(dd)], "o-", ms=3, color=color,
+                    label="day-0 model kept" if mode == "fixed" else "weekly refit")
         for r in results["learning"]["refits"]:
-            ax.axvline(r["day"], color="0.5" if r["outcome"] != "promoted" else "tab:green", lw=1, ls="--")
-        for dft in results["fixed"]["drifts"]:
-            ax.axvline(dft["day"], color="tab:orange", lw=0.8, ls=":")
+            promoted = r["outcome"] == "promoted"
+            ax.axvline(r["day"], color="tab:green" if promoted else "0.6", lw=1, ls="--")
+            ax.text(r["day"], ax.get_ylim()[1] * 0.97, " promoted" if promoted else " rejected", fontsize=8,
+                    va="top", color="tab:green" if promoted else "0.4")
+        for mode, marker in (("fixed", "v"), ("learning", "^")):
+            ds = [d["day"] for d in results[mode]["drifts"]]
+            ax.plot(ds, [0.02] * len(ds), marker, color="tab:orange", ms=6, ls="none",
+                    label="MODEL_DRIFT (" + ("day-0 model" if mode == "fixed" else "refit") + ")")
         ax.set_xlabel("day")
-        ax.set_ylabel("tool-tip error while cutting, hourly RMS [um]")
-        ax.set_title(f"A spindle whose heat rises {100 * args.heat_rise:.0f} % over {args.days:g} days "
-                     f"(refits: green promoted, grey rejected; orange: MODEL_DRIFT, fixed model)")
-        ax.legend()
+        ax.set_ylabel("tool-tip error while cutting,\nsteady phases, daily RMS [um]")
+        ax.set_title(f"Spindle heat +{100 * args.heat_rise:.0f} % over {args.days:g} days, air +/-{args.season_k:g} K; "
+                     f"tool setter at {args.setter}, every 30 min", fontsize=10)
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=8, loc="upper left")
         fig.tight_layout()
         fig.savefig(args.plot, dpi=110)
         print(f"plot: {args.plot}")
