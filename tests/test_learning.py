@@ -27,9 +27,10 @@ from thermocomp.cli import main as cli
 from thermocomp.runtime.lock import holder
 
 P = preset("motorized-27k")
-PERIOD_S = 10.0
+PERIOD_S = 30.0
 PROBE_EVERY_S = 1800.0
 OBSERVER = "enabled = true\ngate_sigma = 1000.0"  # every measurement fused: the refit judges them
+RULE = "[spindle.learning]\nmin_train = 16\nmin_holdout = 6"  # 12 h of shop: 24 measurements
 KW = {"period_s": PERIOD_S, "observer": OBSERVER,
       "shaping": "max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0"}
 
@@ -43,7 +44,7 @@ def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bia
 
     def make_vm(clock):
         vm = VirtualMachine(SpindlePlant(P, seed=seed), prog, clock=clock, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=20.0, noise_um=0.3, seed=seed, at_speed=at_speed))
+                            tool_setter=ToolSetter(dwell_s=60.0, noise_um=0.3, seed=seed, at_speed=at_speed))
         if setter_bias_um is not None:
             finish = vm._finish_probe
 
@@ -53,9 +54,9 @@ def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bia
             vm._finish_probe = biased
         return vm
 
-    b = Bench(tmp_path, model, make_vm=make_vm, **KW, extra=extra)
+    b = Bench(tmp_path, model, make_vm=make_vm, **KW, extra=RULE + "\n" + extra)
     while not b.vm.program_done:
-        b.run(360)
+        b.run(int(3600 / PERIOD_S))
     b.rt.journal.flush(b.t)
     b.rt.measurements.flush(b.t)
     return b
@@ -103,13 +104,13 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     loop and with the observer; it is promoted. Rolled back during the run, the offset walks back
     at the slew limit and the estimate does not jump."""
     model = own_copy(simple_model, tmp_path)
-    b = shop(tmp_path, model, hours=20)
+    b = shop(tmp_path, model, hours=12)
     b.cfg_path = tmp_path / "machine.toml"
     old = load_any_model(model)
     old_digest = model_digest(old)
     out = refit(b, capsys)
     assert out["outcome"] == "promoted", out
-    assert out["measurements"] >= 32 and out["holdout"] >= 8
+    assert out["measurements"] >= 22 and out["holdout"] >= 6
     assert out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]
     new = load_any_model(model)
     assert model_digest(new) != old_digest and new.spindle_id == old.spindle_id  # the same spindle's
@@ -120,7 +121,7 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert "no service runs" in out["written"]  # this rig holds no lock: the next start takes it
     # the service takes it (what SIGHUP does), from the old estimate
     before = b.rt.estimate_um()
-    b.reload(tmp_path, model, **KW)
+    b.reload(tmp_path, model, **KW, extra=RULE)
     assert b.rt.digest == model_digest(new) and abs(b.rt.estimate_um() - before) < 1e-9
     # rollback during the run, while the spindle turns
     b.vm.override_speed(15000.0)
@@ -132,7 +133,7 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert model_digest(load_any_model(model)) == old_digest
     held_before = b.rt.offset.held_um
     est_before = b.rt.estimate_um()
-    b.reload(tmp_path, model, **KW)
+    b.reload(tmp_path, model, **KW, extra=RULE)
     assert abs(b.rt.estimate_um() - est_before) < 1e-9  # the state carried over
     rows = b.run(120)
     held = np.array([held_before] + [r["offset_um"] for r in rows])
@@ -146,12 +147,12 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
 
 
 def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouched(tmp_path, good_model, capsys):
-    """A chip on the tool setter for the first 14 h reads 4 um too much; it is cleaned for the
+    """A chip on the tool setter for the first 8 h reads 4 um too much; it is cleaned for the
     last hours, whose measurements judge. The candidate learned the chip: it misses more than the
     live model there, and is rejected; the model file is the same to the byte."""
     model = own_copy(good_model, tmp_path)
     first = model.read_bytes()
-    b = shop(tmp_path, model, hours=20, setter_bias_um=lambda t: 4.0 if t < 14 * 3600 else 0.0)
+    b = shop(tmp_path, model, hours=12, setter_bias_um=lambda t: 4.0 if t < 8 * 3600 else 0.0)
     b.cfg_path = tmp_path / "machine.toml"
     out = refit(b, capsys)
     assert out["outcome"] == "rejected", out
@@ -168,8 +169,8 @@ def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model
     has run too short, then promotes it on its own misses at the measurements taken meanwhile."""
     model = own_copy(simple_model, tmp_path)
     first = model.read_bytes()
-    learning = "[spindle.learning]\nshadow_h = 6.0"
-    b = shop(tmp_path, model, hours=20, extra=learning)
+    learning = "shadow_h = 6.0"
+    b = shop(tmp_path, model, hours=12, extra=learning)
     b.cfg_path = tmp_path / "machine.toml"
     out = refit(b, capsys)
     assert out["outcome"] == "shadow", out
@@ -177,10 +178,10 @@ def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model
     history = ModelHistory.of(b.cfg.state_dir, "s1")
     assert history.shadow_path.is_file() and history.shadow() is not None
     # the service takes it in shadow (what SIGHUP does)
-    b.reload(tmp_path, model, **KW, extra=learning)
+    b.reload(tmp_path, model, **KW, extra=RULE + "\n" + learning)
     assert b.rt.shadow is not None and b.rt.digest == model_digest(load_any_model(model))
     b.vm.load_program(with_probe_stops(job_shop_day(P.max_rpm, seed=4, hours=3), PROBE_EVERY_S))
-    rows = b.run(3 * 360)
+    rows = b.run(int(3 * 3600 / PERIOD_S))
     # never written: the offset follows the live estimate, the shadow's is journaled beside it
     b.rt.journal.flush(b.t)
     b.rt.measurements.flush(b.t)
@@ -194,7 +195,7 @@ def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model
     assert held["outcome"] == "held back" and "of 6 h" in held["reason"], held
     b.vm.load_program(with_probe_stops(job_shop_day(P.max_rpm, seed=5, hours=8), PROBE_EVERY_S))
     while not b.vm.program_done:
-        b.run(360)
+        b.run(int(3600 / PERIOD_S))
     b.rt.journal.flush(b.t)
     b.rt.measurements.flush(b.t)
     done = refit(b, capsys)
@@ -210,7 +211,7 @@ def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, sim
     candidate changes it: it is rejected for that, and the live model stays."""
     model = own_copy(simple_model, tmp_path)
     first = model.read_bytes()
-    b = shop(tmp_path, model, hours=20, at_speed=False)
+    b = shop(tmp_path, model, hours=12, at_speed=False)
     b.cfg_path = tmp_path / "machine.toml"
     out = refit(b, capsys)
     assert out["outcome"] == "rejected" and "taken at rest" in out["reason"], out
@@ -220,7 +221,7 @@ def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, sim
 
 def test_too_few_measurements_hold_the_refit_back(tmp_path, simple_model, capsys):  # noqa: F811
     model = own_copy(simple_model, tmp_path)
-    b = shop(tmp_path, model, hours=6)  # 12 measurements: fewer than 24 + 8
+    b = shop(tmp_path, model, hours=6)  # 12 measurements: fewer than 16 + 6
     b.cfg_path = tmp_path / "machine.toml"
     first = model.read_bytes()
     out = refit(b, capsys)
