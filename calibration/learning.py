@@ -179,8 +179,8 @@ def unseen_at_speed(live: Predictor, candidate: Predictor, margin: float) -> str
     for frac in (0.25, 0.5, 0.75, 1.0):
         n = np.full(t.size, frac * top)
         n[0] = 0.0
-        a = float(live.simulate_um(n, t)[-1] - live.simulate_um(n, t)[0])
-        b = float(candidate.simulate_um(n, t)[-1] - candidate.simulate_um(n, t)[0])
+        run_live, run_cand = live.simulate_um(n, t), candidate.simulate_um(n, t)
+        a, b = float(run_live[-1] - run_live[0]), float(run_cand[-1] - run_cand[0])
         allowed = max(AT_SPEED_TOLERANCE_UM, margin * abs(a))
         if abs(b - a) > allowed and (worst is None or abs(b - a) > abs(worst[2] - worst[1])):
             worst = (frac * top, a, b, allowed)

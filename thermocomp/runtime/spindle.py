@@ -82,6 +82,7 @@ from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expecte
 from compensator.fusion import FusedState
 from compensator.io.history import ModelHistory, fit_summary
 from compensator.io.journal import ALARM_COLD_START, SHADOW_COLUMN
+from compensator.io.journal_export import iso
 from compensator.io import (
     Journal,
     MeasurementJournal,
@@ -644,8 +645,7 @@ class SpindleRuntime:
     def _drift_step(self, now: float, miss_um: float, sigma_um: float) -> None:
         """One measurement into the drift detector; MODEL_DRIFT with one event on entry (the
         size and start of the change, what to do) and one on leaving."""
-        on_inputs = self.estimate.with_inputs is not None and self.est.inputs is not None
-        stated = self.expected if on_inputs or self.estimate.with_inputs is None else self.expected_fallback
+        stated = self._stated()[0]
         rms = None if stated is None else stated.at(self._last_speed).rms_um
         was = self.drift.detected
         self.drift = drift_update(self.drift, miss_um, miss_sd_um(rms, sigma_um), now, self._drift_config)
@@ -655,7 +655,7 @@ class SpindleRuntime:
             event("model_drift", self.cfg.name, "%s: MODEL_DRIFT: the spindle grows %+.2f um %s the model "
                   "says, over the last %d measurements (since %s); refit from production (thermocomp "
                   "refit) or recalibrate", self.cfg.name, size, "beyond what" if size > 0 else "against what",
-                  n, _iso(self.anchor_s + since), level=logging.WARNING, size_um=round(size, 3),
+                  n, iso(self.anchor_s + since), level=logging.WARNING, size_um=round(size, 3),
                   since_s=self.anchor_s + since, measurements=n, statistic=round(self.drift.statistic, 3))
         elif was and not self.drift.detected:
             event("model_drift_cleared", self.cfg.name, "%s: MODEL_DRIFT cleared: the model's misses are "
@@ -667,7 +667,7 @@ class SpindleRuntime:
         out: dict[str, Any] = {"statistic": round(self.drift.statistic, 3), "threshold": self._drift_config.h,
                                "measurements": self.drift.seen, "detected": self.drift.detected}
         if change is not None:
-            out.update(size_um=round(change[0], 3), since_s=self.anchor_s + change[1], since=_iso(self.anchor_s + change[1]))
+            out.update(size_um=round(change[0], 3), since_s=self.anchor_s + change[1], since=iso(self.anchor_s + change[1]))
         return out
 
     def _staleness(self, now: float) -> Alarm:
@@ -1110,6 +1110,13 @@ class SpindleRuntime:
                   "with inputs extrapolates", self.cfg.name, why, level=logging.WARNING, reason=why)
         return Alarm.INPUTS_EXTRAPOLATED
 
+    def _stated(self) -> tuple[ExpectedError | None, bool]:
+        """The error statement of the model in use (the fallback's while it stands in), and
+        whether the model with inputs is in use."""
+        on_inputs = self.estimate.with_inputs is not None and self.est.inputs is not None
+        return (self.expected if on_inputs or self.estimate.with_inputs is None else self.expected_fallback,
+                on_inputs)
+
     def _expected_error(self, speed: float) -> tuple[dict[str, Any] | None, Alarm]:
         """The error to expect this cycle (None where the model in use states none): the
         figure its fit stated for ``speed`` and for how far the inputs lie outside the trained
@@ -1118,8 +1125,7 @@ class SpindleRuntime:
         few folds predicted forward, a speed above the calibrated range, inputs further out than
         it reached: the figure is then a floor); one event on entry, one on leaving. Advice only:
         the offset is never changed for it."""
-        on_inputs = self.estimate.with_inputs is not None and self.est.inputs is not None
-        stated = self.expected if on_inputs or self.estimate.with_inputs is None else self.expected_fallback
+        stated, on_inputs = self._stated()
         bound = self.cfg.max_expected_error_um
         out: dict[str, Any] | None = None
         why: str | None = None
@@ -1177,6 +1183,3 @@ class SpindleRuntime:
                 except AdapterError as err:
                     log.warning("%s: closing the link: %s", self.cfg.name, err)
 
-
-def _iso(epoch_s: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(epoch_s))
