@@ -204,7 +204,9 @@ def test_thermocomp_status_prints_a_table_and_json(service):
     lines = r.stdout.splitlines()
     row = next(x for x in lines if x.split()[:1] == ["s1"])
     assert f"{s1['elongation_um']:.2f}" in row.split() or f"{s1['elongation_um']:.2f}" in row
-    assert lines[1].split()[:3] == ["spindle", "speed_rpm", "S_um"]  # the header, then the row
+    assert lines[1].split()[:4] == ["spindle", "state", "speed_rpm", "S_um"]  # the header, then the row
+    assert row.split()[1] == "compensating" and "s1: compensating" in lines
+    assert lines[0].endswith("compensating 1 spindle(s)")
     r = subprocess.run([sys.executable, "-m", "thermocomp", "status", "--config",
                         str(svc.config_path), "--json"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr

@@ -1,7 +1,10 @@
 """``thermocomp status``: what a running service is doing, from its status endpoint, as a table.
 
 Plain text (the edge box's slim install has no ``rich``); ``--json`` prints the endpoint's
-answer as it came.
+answer as it came. Each spindle's state (compensating, holding, not writing) and its reason are
+the service's own (:func:`thermocomp.runtime.status.spindle_state`): this only prints them.
+
+With ``--exit-code`` the exit status says how things stand (:data:`EXIT_CODES`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,18 @@ from typing import Any
 from compensator.errors import ConfigError, ThermocompError
 
 DEFAULT_URL = "http://127.0.0.1:9740/"
+
+EXIT_OK, EXIT_ATTENTION, EXIT_UNREACHABLE, EXIT_NOT_WRITING = 0, 1, 2, 3
+EXIT_CODES = {
+    EXIT_OK: "every spindle compensating, no alarm",
+    EXIT_ATTENTION: "an alarm is raised (the chiller loop's too), or a spindle is holding",
+    EXIT_UNREACHABLE: "the status could not be read (service not running, token refused, bad arguments)",
+    EXIT_NOT_WRITING: "a spindle is not writing: its link is down, or no offset has gone through for "
+                      "faults.not_writing_cycles cycles",
+}
+"""``thermocomp status --exit-code``: the exit status, the worst that applies (3 over 1)."""
+
+EXIT_CODES_HELP = "exit status: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
 
 class StatusUnreachableError(ThermocompError, ConnectionError):
@@ -82,11 +97,11 @@ def table(st: dict[str, Any]) -> str:
     """The status as lines of aligned text."""
     head = (f"thermocomp {st.get('version')} · pid {st.get('pid')} · up {_age(st.get('uptime_s'))} · "
             f"{st.get('status')}")
-    cols = ("spindle", "speed_rpm", "S_um", "target_um", "held_um", "read_back_um", "last_write",
+    cols = ("spindle", "state", "speed_rpm", "S_um", "target_um", "held_um", "read_back_um", "last_write",
             "link", "estimate", "offset", "alarms")
     rows = []
     for s in st.get("spindles", []):
-        rows.append((s["name"], _num(s.get("speed_rpm"), ".0f"), _num(s.get("elongation_um")),
+        rows.append((s["name"], str(s.get("state", "?")), _num(s.get("speed_rpm"), ".0f"), _num(s.get("elongation_um")),
                      _num(s.get("offset_target_um")), _num(s.get("offset_held_um")),
                      _num(s.get("offset_read_back_um")), _age(s.get("last_write_age_s")),
                      str(s.get("link")), str(s.get("estimate")), str(s.get("offset_mode")),
@@ -94,6 +109,9 @@ def table(st: dict[str, Any]) -> str:
     widths = [max(len(c), *(len(r[i]) for r in rows)) if rows else len(c) for i, c in enumerate(cols)]
     out = [head, "  ".join(c.ljust(w) for c, w in zip(cols, widths))]
     out += ["  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in rows]
+    for s in st.get("spindles", []):  # one state word and one reason per spindle, as the service says
+        reason = s.get("state_reason")
+        out.append(f"{s['name']}: {s.get('state', 'state unknown (an older service)')}" + (f": {reason}" if reason else ""))
     for s in st.get("spindles", []):
         m = s.get("model") or {}
         lo, hi = (m.get("speed_range_rpm") or [None, None])[:2]
@@ -121,5 +139,15 @@ def main(args) -> int:
         print(json.dumps(st, allow_nan=False))
     else:
         print(table(st))
-    alarmed = any(s.get("alarms") for s in st.get("spindles", [])) or bool((st.get("cooling") or {}).get("alarm"))
-    return 1 if alarmed and args.exit_code else 0
+    return exit_status(st) if args.exit_code else EXIT_OK
+
+
+def exit_status(st: dict[str, Any]) -> int:
+    """The exit status ``--exit-code`` gives for status ``st`` (:data:`EXIT_CODES`)."""
+    spindles = st.get("spindles", [])
+    if any(s.get("state") == "not writing" for s in spindles):
+        return EXIT_NOT_WRITING
+    alarmed = any(s.get("alarms") for s in spindles) or bool((st.get("cooling") or {}).get("alarm"))
+    # a service too old to say a state: not taken as compensating
+    not_compensating = any(s.get("state") != "compensating" for s in spindles)
+    return EXIT_ATTENTION if alarmed or not_compensating else EXIT_OK

@@ -54,6 +54,10 @@ class FaultPolicy(BaseModel):
     max_mismatches: int = Field(3, ge=1, le=1000, description="this many mismatches in a row: the controller keeps "
                                 "refusing; writes back off (doubling, up to max_write_backoff_s)")
     max_write_backoff_s: float = Field(300.0, gt=0, le=86400)
+    not_writing_cycles: int = Field(3, ge=1, le=1_000_000, description="a spindle whose controller has not "
+                                    "held the offset aimed at (no write went through, and one was due) for more "
+                                    "than this many cycles (period_s each) is shown as 'not writing' in the "
+                                    "status, the page, /metrics and MQTT, like one whose link is down")
     state_retry_s: float = Field(5.0, gt=0, le=3600, description="first retry after a failed state save (doubling)")
     state_stale_s: float = Field(600.0, gt=0, le=7 * 86400, description="no state saved this long: the "
                                  "STATE_STALE alarm (a restart would then start further from the truth)")
@@ -146,6 +150,10 @@ class SpindleConfig(BaseModel):
     learning: LearningSettings = LearningSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
     max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
+    cold_start_settle_taus: float = Field(
+        3.0, gt=0, le=100, description="after a cold start with the spindle turning, COLD_START_TURNING stands "
+        "for this many of the model's slowest time constants (the error of the cold start then decays to "
+        "exp(-k) of itself: 5 % at 3), or until a measurement is accepted by the observer")
     max_expected_error_um: float | None = Field(
         None, gt=0, le=10000, description="the error the work tolerates [um]: when the error the "
         "model's fit states for the current speed and inputs (95 % of |error|) is larger, or is "

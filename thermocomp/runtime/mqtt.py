@@ -138,12 +138,14 @@ class MqttPublisher:
 
     def publish(self, snapshot: dict[str, Any], now_s: float) -> None:
         """Hand ``snapshot`` to paho if it is due: the first call, every ``publish_every_s`` of
-        the service clock ``now_s`` [s], just after a (re)connection, or when the alarms change.
+        the service clock ``now_s`` [s], just after a (re)connection, or when the alarms or a
+        spindle's state change.
         Never blocks, never raises."""
         if self.client is None:
             return
         try:
-            alarms = ([(s.get("name"), s.get("alarms")) for s in snapshot.get("spindles") or ()],
+            # a new alarm or a new state (compensating, holding, not writing) goes out at once
+            alarms = ([(s.get("name"), s.get("alarms"), s.get("state")) for s in snapshot.get("spindles") or ()],
                       (snapshot.get("cooling") or {}).get("alarm"))
             conn = self._connects
             if conn == self._due_conn and now_s < self._next_s and alarms == self._alarms:

@@ -39,7 +39,7 @@ from .cooling import CoolingRuntime
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
 from .spindle import Alarm, SpindleRuntime, cutting_from_controller
-from .status import History, StatusServer, snapshot, spindle_status, start_server
+from .status import History, SpindleState, StatusServer, snapshot, spindle_status, start_server, state_of
 
 log = logging.getLogger("thermocomp.runtime")
 
@@ -155,6 +155,7 @@ class Service:
         self._failing: dict[str, float] = {}  # spindle -> since when every cycle has failed
         self.not_started: list[str] = []  # optional parts that could not start (status, mqtt)
         self.exit_code = 0
+        self.states: dict[str, SpindleState] = {}  # each spindle's state, derived once per tick
 
     def start_status(self) -> None:
         """The status endpoint and the MQTT publisher of the configuration (``run`` starts them;
@@ -182,11 +183,25 @@ class Service:
         except Exception as err:  # noqa: BLE001 - the status never stops the offset
             log.error("status not published: %s", err)
 
+    def _derive_states(self, now: float) -> dict[str, SpindleState]:
+        """Each spindle's state at ``now`` (:func:`.status.spindle_state`, the one derivation);
+        a change is one ``spindle_state`` event."""
+        states = {name: state_of(rt, now) for name, rt in self.spindles.items()}
+        for name, st in states.items():
+            before = self.states.get(name)
+            if before is None or before.state != st.state:
+                event("spindle_state", name, "%s: %s", name, st.line,
+                      level=logging.INFO if st.compensating or before is None else logging.WARNING,
+                      state=st.state, reason=st.reason, was=None if before is None else before.state)
+        self.states = states
+        return states
+
     def _publish(self, now: float) -> None:
         """Build the snapshot and hand it to the endpoint, the history and the broker."""
+        states = self._derive_states(now)
         if self.status_server is None and self.mqtt is None and self.history is None:
             return
-        spindles = [spindle_status(rt, now) for rt in self.spindles.values()]
+        spindles = [spindle_status(rt, now, states[name]) for name, rt in self.spindles.items()]
         snap = snapshot(version=_version(), pid=os.getpid(), time_s=self.anchor_s + now,
                                uptime_s=now - self._started_s, text=self.status_text(),
                                reload_failed=self.reload_failed, spindles=spindles,
@@ -423,8 +438,19 @@ class Service:
             self._stop = True
 
     def status_text(self) -> str:
-        """One line for `systemctl status`: what needs attention, if anything."""
-        notes = ["reload refused, running the previous configuration"] if self.reload_failed else []
+        """One line for `systemctl status`, the page's header and `thermocomp status`: how many
+        spindles compensate (by the states derived this tick, never by counting the configured
+        ones), then each one that does not, with why, and what else needs attention."""
+        states = self.states or self._derive_states(self.clock())
+        good = [n for n, st in states.items() if st.compensating]
+        if len(good) == len(states):
+            head = f"compensating {len(states)} spindle(s)"
+        elif not good:
+            head = f"NOT compensating (0 of {len(states)} spindle(s))"
+        else:
+            head = f"compensating {len(good)} of {len(states)} spindle(s)"
+        notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating]
+        notes += ["reload refused, running the previous configuration"] if self.reload_failed else []
         notes += [f"{name}: cycles failing" for name in self._failing]
         notes += [f"{what} not started (see the log)" for what in self.not_started]
         for name, rt in self.spindles.items():
@@ -440,7 +466,7 @@ class Service:
                 notes.append(f"{name}: measurement source failing")
         if self.cooling is not None and self.cooling.alarm:
             notes.append(f"cooling: {self.cooling.alarm} ({self.cooling.error})")
-        return f"compensating {len(self.spindles)} spindle(s)" + ("; " + "; ".join(notes) if notes else "")
+        return head + ("; " + "; ".join(notes) if notes else "")
 
     def run(self, early: Any = None) -> int:
         """Compensate until SIGTERM or SIGINT; SIGHUP reloads. ``early``: the signals recorded

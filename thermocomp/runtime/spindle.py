@@ -144,6 +144,31 @@ class Alarm(enum.IntFlag):
     ESTIMATE_REFUSED = 4194304
     EXPECTED_ERROR_HIGH = 8388608
     MODEL_DRIFT = 16777216
+    COLD_START_TURNING = 33554432
+
+
+TURNING_MIN_RPM = 10.0
+"""Below this |speed| [rpm] (or 1 % of the calibrated top, whichever is larger) a spindle is not
+taken as turning at a cold start: a reading's noise, not a machine at work."""
+
+
+def slowest_tau_s(model: Any) -> float | None:
+    """The slowest time constant [s] of ``model`` anywhere in its speed range, its input lags
+    and its fallback included; None where the model states none. A wrong initial state decays
+    with the model's own dynamics, so after k of these it has fallen to exp(-k) of itself."""
+    parts = [model, getattr(model, "model", None)]  # a fused model wraps its own
+    parts += [getattr(m, k, None) for m in list(parts) if m is not None for k in ("speed_model", "fallback")]
+    taus: list[float] = []
+    for m in parts:
+        if m is None:
+            continue
+        lo, hi = getattr(m, "speed_range_rpm", (0.0, 0.0))
+        if callable(getattr(m, "time_constants_s", None)):
+            for n in (0.0, lo, (lo + hi) / 2, hi):
+                taus += [float(t) for t in m.time_constants_s(n)]
+        taus += [float(t.tau_s) for t in getattr(m, "inputs", None) or () if hasattr(t, "tau_s")]
+    taus = [t for t in taus if math.isfinite(t) and t > 0]
+    return max(taus) if taus else None
 
 
 _LINK_ERRORS = (UnreachableError, AdapterTimeoutError)
@@ -254,6 +279,15 @@ class SpindleRuntime:
                          "probes_rejected": 0, "probes_restarted": 0, "probes_failed": 0,
                          "steps_refused": 0}
         self._refused: str | None = None  # why the estimate's last step was refused, while it is
+        # COLD_START_TURNING: the clock time the estimate counts as settled while raised (inf: only
+        # a measurement settles it); _cold_unjudged from a cold start until a speed is read
+        self.cold_settle_s: float | None = None
+        self._cold_unjudged = False
+        self.link_error: str | None = None  # why the link went down, while it is
+        # the last cycle the controller held the offset the shaper aimed at (a write went
+        # through, or none was due): the spindle's state counts cycles from here
+        self.last_in_step_s: float | None = None
+        self.created_s = clock()
         # measurements from `thermocomp measure`: (um, sigma or None, reply), fused next cycle
         self._queued: collections.deque[tuple[float, float | None, Reply | None]] = collections.deque()
         self._probe_rejected = False  # the last measurement was beyond the gate
@@ -319,6 +353,7 @@ class SpindleRuntime:
         self.est = self.estimate.cold()
         self.offset = OffsetTracker(self.cfg.shaping, 0.0)
         self._startup_alarms |= Alarm.COLD_START
+        self._cold_unjudged = True  # turning or not: judged at the first speed read
         event("cold_start", self.cfg.name, "%s: cold start (%s)", self.cfg.name, reason,
               level=logging.WARNING, reason=reason)
 
@@ -359,6 +394,14 @@ class SpindleRuntime:
         self._restored, self._since_start = (parsed, saved_wall, downtime, self.clock(), now), []
         # what we last wrote; the first cycle reads back what the controller really holds
         self.offset = OffsetTracker(self.cfg.shaping, held)
+        unsettled = saved.get("cold_start_unsettled_until_wall_s")
+        if isinstance(unsettled, (int, float)) and not isinstance(unsettled, bool) and unsettled > now:
+            # a restart does not settle an estimate: the rest of the wait carries over
+            self.cold_settle_s = self.clock() + min(float(unsettled) - now, 1e9)
+            event("cold_start_turning", self.cfg.name, "%s: COLD_START_TURNING carried over a restart: the "
+                  "estimate of the last cold start settles at %s, or at a measurement accepted",
+                  self.cfg.name, iso(float(unsettled)), level=logging.WARNING, settles_wall_s=float(unsettled),
+                  carried=True)
         event("state_restored", self.cfg.name, "%s: restored state, advanced %.0f s idle: S = %.2f um",
               self.cfg.name, downtime, self.state.elongation_um, downtime_s=round(downtime, 3),
               elongation_um=self.state.elongation_um, offset_um=held)
@@ -375,12 +418,20 @@ class SpindleRuntime:
         self.offset.shaper.follow(old.offset.shaper)  # the speed it was settling at, and since when
         self._run_up_until, self._cutting_error = old._run_up_until, old._cutting_error
         self._expected_high = old._expected_high  # raised still: no second entry event
+        self._carry_status(old)
         self._last_t, self._first_t = old._last_t, old._first_t
         self._last_good_read, self._last_speed = old._last_good_read, old._last_speed
         self._skew_s, self._write_done_s = old._skew_s, old._write_done_s
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
                      "_save_error", "_stale", "_state_alarms", "_journal_error", "_restored", "_since_start"):
             setattr(self, name, getattr(old, name))
+
+    def _carry_status(self, old: SpindleRuntime) -> None:
+        """What the spindle's state is judged on goes on through a reload: the last writes, and an
+        unsettled cold start (a new configuration does not settle an estimate)."""
+        self.cold_settle_s, self._cold_unjudged = old.cold_settle_s, old._cold_unjudged
+        self.last_write_s, self.last_in_step_s = old.last_write_s, old.last_in_step_s
+        self.created_s = old.created_s
 
     def _load_shadow(self, path: Path) -> None:
         """The candidate in shadow, when ``path`` holds one for this spindle; a file that does not
@@ -441,6 +492,7 @@ class SpindleRuntime:
         for name in ("_last_save", "_last_good_save", "_save_failures", "_next_save_try",
                      "_save_error", "_stale", "_state_alarms", "_journal_error"):
             setattr(self, name, getattr(old, name))
+        self._carry_status(old)  # the new model starts at the old estimate, unsettled as it was
         self._last_save = -math.inf  # the new model's state is saved at once
         event("model_switched", self.cfg.name, "%s: model %s in use (was %s), starting at the old "
               "estimate %.2f um", self.cfg.name, self.digest[:16], old.digest[:16], old.estimate_um(),
@@ -467,6 +519,8 @@ class SpindleRuntime:
                 "saved_wall_s": wall_now,
                 **self.estimate.state_dict(self.est, wall_now),
                 "offset_um": self.offset.held_um,
+                **({} if self.cold_settle_s is None else {
+                    "cold_start_unsettled_until_wall_s": wall_now + min(self.cold_settle_s - now, 1e9)}),
             })
         except (OSError, ValueError) as err:
             self.counters["state_save_failed"] += 1
@@ -636,6 +690,11 @@ class SpindleRuntime:
                   up.innovation_um, z.bias_um, **fields)
         # rejected: holds until a measurement is taken again (the estimate was not corrected)
         self._probe_rejected = outcome == "rejected"
+        if outcome != "rejected" and self.cold_settle_s is not None:
+            self.cold_settle_s = None  # measured: the estimate no longer rests on the cold start's guess
+            event("cold_start_settled", self.cfg.name, "%s: COLD_START_TURNING cleared: measurement %.3f um "
+                  "%s by the observer", self.cfg.name, y, outcome, reason="measurement", outcome=outcome,
+                  measured_um=y)
         return {"ok": True, "spindle": self.cfg.name, "outcome": outcome, "accepted": up.accepted,
                 "restarted": up.restarted, "measured_um": y, "sigma_um": sigma, "estimate_um": before,
                 "innovation_um": up.innovation_um, "innovation_sd_um": up.innovation_sd_um,
@@ -726,6 +785,7 @@ class SpindleRuntime:
                 self.counters["write_rejected"] += 1
                 alarms |= Alarm.WRITE_REJECTED | self._mismatch(now, held, "deferred write check")
             down_s = self.link.succeeded(now)
+            self.link_error = None
             if down_s is not None:
                 event("link_restored", self.cfg.name, "%s: link restored after %.1f s",
                       self.cfg.name, down_s, down_s=round(down_s, 3))
@@ -759,6 +819,8 @@ class SpindleRuntime:
     def _link_failed(self, now: float, err: Exception) -> Alarm:
         before = self.link.state
         state = self.link.failed(now)
+        if before is LinkState.CONNECTED:  # the cause; later attempts only say they failed again
+            self.link_error = str(err)[:200]
         if before is LinkState.CONNECTED:
             name = "timeout" if isinstance(err, AdapterTimeoutError) else "link_down"
             event(name, self.cfg.name, "%s: link down: %s", self.cfg.name, err, level=logging.ERROR,
@@ -907,6 +969,8 @@ class SpindleRuntime:
         self._startup_alarms = Alarm.NONE
         read_rpm, read_alarms = self._read_speed(now)
         alarms |= read_alarms
+        if self._cold_unjudged and not read_alarms & (Alarm.SPEED_READ_FAILED | Alarm.IDLE_ASSUMED):
+            self._judge_cold_start(now, read_rpm)
         speed, over = self.estimate.clamp(read_rpm)  # the speed every part of the cycle uses
         if over:
             alarms |= Alarm.OVER_RANGE
@@ -946,6 +1010,7 @@ class SpindleRuntime:
                     self._since_start = None
         if self.estimate.fused is not None:
             alarms |= self._measurements(now, wall_now, speed)
+        alarms |= self._cold_start_alarm(now)
         expected, expected_alarm = self._expected_error(read_rpm)  # the real speed, not the clamped one
         alarms |= expected_alarm
         s = self.estimate_um()
@@ -968,6 +1033,8 @@ class SpindleRuntime:
         elif not self.link.up:
             self.counters["link_down_cycles"] += 1
         latency_ms = (time.perf_counter() - t_read) * 1e3
+        if wrote or (not wanted and self.link.up and not_ready is None and self.writes_offset):
+            self.last_in_step_s = now  # the controller holds what the shaper aims at
         if wrote:
             self.offset.written(shaped)
         elif not_ready is None:
@@ -995,6 +1062,40 @@ class SpindleRuntime:
                      "shadow": None if self.shadow_est is None else {
                          "digest": self.shadow_digest, "estimate_um": self.shadow_est.estimate_um}}
         return {**self.last, "alarms": alarms}
+
+    def _judge_cold_start(self, now: float, speed_rpm: float) -> None:
+        """The first speed read after a cold start: turning, the machine is probably warm while
+        the estimate starts from rest, so COLD_START_TURNING is raised until the estimate has
+        settled (see :meth:`_cold_start_alarm`)."""
+        self._cold_unjudged = False
+        turning = max(TURNING_MIN_RPM, 0.01 * self.estimate.core.speed_range_rpm[1])
+        if abs(speed_rpm) < turning:
+            return
+        tau = slowest_tau_s(self.estimate.model)
+        k = self.cfg.cold_start_settle_taus
+        self.cold_settle_s = now + k * tau if tau is not None else math.inf
+        until = (f"until {iso(self.anchor_s + self.cold_settle_s)} ({k:g} x the model's slowest time constant, "
+                 f"{tau / 60:.0f} min)" if tau is not None else "(the model states no time constant)")
+        event("cold_start_turning", self.cfg.name, "%s: COLD_START_TURNING: cold start with the spindle at "
+              "%.0f rpm: the machine is probably warm while the estimate starts from rest; expect a large "
+              "error %s or until a measurement is accepted", self.cfg.name, speed_rpm, until,
+              level=logging.WARNING, speed_rpm=speed_rpm, tau_s=tau, settle_taus=k,
+              settles_s=None if tau is None else self.anchor_s + self.cold_settle_s)
+
+    def _cold_start_alarm(self, now: float) -> Alarm:
+        """COLD_START_TURNING while raised: it clears once ``cold_start_settle_taus`` of the
+        model's slowest time constant have passed since it was raised (the cold start's error
+        has decayed to exp(-k) of itself, running or not), or at a measurement the observer
+        accepts (:meth:`_fuse`)."""
+        if self.cold_settle_s is None:
+            return Alarm.NONE
+        if now < self.cold_settle_s:
+            return Alarm.COLD_START_TURNING
+        self.cold_settle_s = None
+        event("cold_start_settled", self.cfg.name, "%s: COLD_START_TURNING cleared: the estimate has "
+              "settled (%g x the model's slowest time constant since the cold start)", self.cfg.name,
+              self.cfg.cold_start_settle_taus, reason="settled")
+        return Alarm.NONE
 
     def _shaper_dt(self, dt: float) -> float:
         """The time the offset may move over this cycle: the slew limit holds in wall time at
