@@ -190,7 +190,7 @@ def unseen_at_speed(live: Predictor, candidate: Predictor, margin: float) -> str
     return (f"every measurement was taken at rest, so nothing vouches for the growth while the spindle "
             f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {n:.0f} rpm it "
             f"predicts {b:+.2f} um where the live model predicts {a:+.2f} um (more than {allowed:.2f} um apart); "
-            "measure at speed (a laser setter, --spindle keep) to refit that part")
+            "measure at speed (a laser setter, --probe-spindle keep) to refit that part")
 
 
 def decide(rule: Rule, live: Score, cand: Score) -> Decision:

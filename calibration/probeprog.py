@@ -173,19 +173,19 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
         if given.get(key) is not None:
             raise ConfigError(f"{_option(key)} is not for {dialect}: {why}")
     if spindle not in SPINDLE_MODES:
-        raise ConfigError(f"--spindle {spindle!r}: choose stop, low or keep")
+        raise ConfigError(f"--probe-spindle {spindle!r}: choose stop, low or keep")
     if spindle == "keep" and dialect == "heidenhain":
-        raise ConfigError("--spindle keep is not for heidenhain: TCH PROBE 481 turns the spindle itself; "
-                          "use --spindle stop")
+        raise ConfigError("--probe-spindle keep is not for heidenhain: TCH PROBE 481 turns the spindle itself; "
+                          "use --probe-spindle stop")
     if spindle == "low":
         if dialect == "heidenhain":
-            raise ConfigError("--spindle low is not for heidenhain: TCH PROBE 481 turns the spindle itself "
-                              "(tool table R-OFFS); use --spindle stop")
+            raise ConfigError("--probe-spindle low is not for heidenhain: TCH PROBE 481 turns the spindle itself "
+                              "(tool table R-OFFS); use --probe-spindle stop")
         if low_rpm is None:
-            raise ConfigError("--spindle low needs --low-rpm (the laser setter's measuring speed)")
+            raise ConfigError("--probe-spindle low needs --low-rpm (the laser setter's measuring speed)")
         rpm: float | None = _number("low_rpm", low_rpm, 1, 5000)
     elif low_rpm is not None:
-        raise ConfigError("--low-rpm goes with --spindle low")
+        raise ConfigError("--low-rpm goes with --probe-spindle low")
     else:
         rpm = None
     defaults = DEFAULT_VARIABLES[dialect]

@@ -151,7 +151,7 @@ class Wizard:
         a = self.args
         self.out.rule("[bold]1/5 Identify the spindle")
         machine = _ident(self.ask("machine_id", "Machine id", flag="--machine-id"), "--machine-id")
-        spindle = _ident(self.ask("spindle_id", "Spindle id", flag="--spindle-id"), "--spindle-id")
+        spindle = _ident(self.ask("spindle_id", "Spindle id", flag="--model-spindle-id"), "--model-spindle-id")
         self.dir = _inside(self.workdir, self.workdir / machine / spindle, "the session directory")
         path = self.dir / "session.json"
         if path.exists() and not a.new:
@@ -426,7 +426,7 @@ class Wizard:
                 f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
                 f"cold-reference program, for this machine's tool and setter:\n"
                 f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
-                f"    thermocomp probe-program --dialect {d} --spindle {s['probe_spindle']} --output tcprobe{ext}\n"
+                f"    thermocomp probe-program --dialect {d} --probe-spindle {s['probe_spindle']} --output tcprobe{ext}\n"
                 "  then run the reference program once on the cold spindle, before each run's first start.",
                 highlight=False)
         self.save_session()

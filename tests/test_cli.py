@@ -152,11 +152,11 @@ def test_unstable_model_file_is_refused(tmp_path, logs):
 
 def test_model_command_shows_schema_and_a_model(fitted):
     path, _ = fitted
-    r = tc("model", "--schema")
+    r = tc("model", "schema")
     assert r.returncode == 0
     schema = json.loads(r.stdout)
     assert "states" in schema["properties"]
-    r = tc("model", path, "--json")
+    r = tc("model", "show", path, "--json")
     assert r.returncode == 0 and json.loads(r.stdout)["form"]
 
 
@@ -206,7 +206,7 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     assert "while cutting" in r.stdout and "transient phases" in r.stdout
     # the demo fits as `thermocomp fit` does: the same logs give the same model
     r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", "out/calibration_run.csv",
-                        "out/validation_run.csv", "--spindle-id", "demo-spindle", "--machine-id", "virtual",
+                        "out/validation_run.csv", "--model-spindle-id", "demo-spindle", "--machine-id", "virtual",
                         "--output", "fit.json", "--json"], capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     demo_model, fit_model = (json.loads(p.read_text()) for p in (out / "model.json", tmp_path / "fit.json"))
@@ -222,7 +222,7 @@ def test_replay_applies_the_runtimes_shaping_and_compares_the_policies(fitted, l
     error on a 1 s job-shop log (issue 18), and the report sets the policies side by side."""
     path, _ = fitted
     out = tmp_path / "pred.csv"
-    r = tc("replay", logs / "day.csv", "--model", path, "--json", "--applied", "--output", out)
+    r = tc("replay", logs / "day.csv", "--model", path, "--json", "--output", out)
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     assert rep["applied_max_abs_residual_um"] <= rep["max_abs_residual_um"] + 1.0

@@ -37,7 +37,7 @@ def real(tmp_path_factory):
 @pytest.fixture(scope="module")
 def ch3_fit(real, tmp_path_factory):
     out = tmp_path_factory.mktemp("fit") / "ch3.json"
-    r = tc("fit", real["ch3"], "--inputs", "all", "--no-physical", "--spindle-id", "real-1",
+    r = tc("fit", real["ch3"], "--inputs", "all", "--no-physical", "--model-spindle-id", "real-1",
            "--output", out, "--json")
     assert r.returncode == 0, r.stderr
     return out, json.loads(r.stdout)

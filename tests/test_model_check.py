@@ -1,4 +1,4 @@
-"""``thermocomp model check FILE``: would the runtime take this model file? And ``--schema``
+"""``thermocomp model check FILE``: would the runtime take this model file? And ``model schema``
 of every registered format. In process through the CLI's ``main``."""
 
 from __future__ import annotations
@@ -96,8 +96,9 @@ def test_a_model_the_runtime_finds_implausible_is_refused(capsys, tmp_path):
 def test_a_missing_file_and_no_file(capsys, tmp_path):
     code, _, err = run(capsys, "model", "check", tmp_path / "none.json")
     assert code == 2 and "cannot read" in err and err.count("\n") == 1
-    code, _, err = run(capsys, "model", "check")
-    assert code == 2 and "give the model file to check" in err
+    with pytest.raises(SystemExit) as stop:  # argparse's own refusal
+        main(["model", "check"])
+    assert stop.value.code == 2 and "the following arguments are required: FILE" in capsys.readouterr().err
 
 
 def test_json_ok_and_refused(capsys, good, tmp_path):
@@ -119,25 +120,28 @@ def test_json_ok_and_refused(capsys, good, tmp_path):
     assert out.count("\n") == 1
 
 
-def test_describe_is_unchanged(capsys, good):
-    code, out, _ = run(capsys, "model", good)
+def test_show_describes_a_model(capsys, good):
+    code, out, _ = run(capsys, "model", "show", good)
     assert code == 0 and out.startswith(f"{good}: {STATE_SPACE_FORMAT}, form ridge, spindle 'sp-A'")
-    code, out, _ = run(capsys, "model", good, "--json")
+    code, out, _ = run(capsys, "model", "show", good, "--json")
     assert code == 0 and json.loads(out)["taus_s"] == [600.0, 5400.0]
-    code, _, err = run(capsys, "model", good, "other.json")
-    assert code == 2 and "one model file at a time" in err
+    with pytest.raises(SystemExit) as stop:
+        main(["model", "show", str(good), "other.json"])
+    assert stop.value.code == 2 and "unrecognized arguments: other.json" in capsys.readouterr().err
 
 
 def test_schema_of_each_registered_format(capsys):
-    code, out, _ = run(capsys, "model", "--schema")  # as before: the speed-only model's
+    code, out, _ = run(capsys, "model", "schema")  # the speed-only model's
     assert code == 0 and json.loads(out) == ThermalModel.model_json_schema()
-    code, out, _ = run(capsys, "model", "--schema", "--format", STATE_SPACE_FORMAT)
+    code, out, _ = run(capsys, "model", "schema", "--format", STATE_SPACE_FORMAT)
     schema = json.loads(out)  # a recursive model (its fallback) is a $ref into $defs
     top = schema["$defs"][schema["$ref"].rsplit("/", 1)[1]] if "$ref" in schema else schema
     assert code == 0 and {"taus_s", "drive_um", "inputs"} <= set(top["properties"])
-    code, out, _ = run(capsys, "model", "--schema", "--format", "all")
+    code, out, _ = run(capsys, "model", "schema", "--format", "all")
     schemas = json.loads(out)
     assert code == 0 and set(schemas) == set(MODEL_TYPES)
     assert all(s == MODEL_TYPES[name].model_json_schema() for name, s in schemas.items())
-    code, _, err = run(capsys, "model", "--schema", "--format", "nope/1")
-    assert code == 2 and "not a model format" in err and STATE_SPACE_FORMAT in err
+    with pytest.raises(SystemExit) as stop:
+        main(["model", "schema", "--format", "nope/1"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "invalid choice: 'nope/1'" in err and STATE_SPACE_FORMAT in err

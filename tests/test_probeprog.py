@@ -205,7 +205,7 @@ def test_measuring_time_and_spindle_words():
     ("fanuc", {"spindle": "fast"}, "stop, low or keep"),
     ("heidenhain", {"spindle": "keep", "approach_z_mm": -5}, "keep is not for heidenhain"),
     ("fanuc", {"spindle": "low"}, "needs --low-rpm"),
-    ("fanuc", {"low_rpm": 500}, "goes with --spindle low"),
+    ("fanuc", {"low_rpm": 500}, "goes with --probe-spindle low"),
     ("fanuc", {"spindle": "low", "low_rpm": 0}, "--low-rpm"),
     ("fanuc", {"settle_s": "abc"}, "not a number"),
     ("fanuc", {"settle_s": float("nan")}, "--settle-s"),
@@ -252,7 +252,7 @@ def thermocomp(*args: str) -> subprocess.CompletedProcess:
 def test_probe_program_command(tmp_path):
     out = tmp_path / "probe.nc"
     r = thermocomp("--dialect", "fanuc", "--tool", "3", "--value-var", "#531", "--counter-var", "#532",
-                   "--reference-var", "#530", "--spindle", "low", "--low-rpm", "400", "--settle-s", "1.5",
+                   "--reference-var", "#530", "--probe-spindle", "low", "--low-rpm", "400", "--settle-s", "1.5",
                    "--output", str(out))
     assert r.returncode == 0, r.stderr
     assert "#531" in r.stdout and "about" in r.stdout
@@ -268,9 +268,8 @@ def test_probe_program_command(tmp_path):
 
 
 @pytest.mark.parametrize("args,match", [
-    (["--dialect", "mazak"], "mazak"),
     (["--dialect", "fanuc", "--settle-s", "soon"], "--settle-s"),
-    (["--dialect", "fanuc", "--spindle", "low"], "--low-rpm"),
+    (["--dialect", "fanuc", "--probe-spindle", "low"], "--low-rpm"),
     (["--dialect", "sinumerik", "--value-var", "#100"], "--value-var"),
     (["--dialect", "heidenhain", "--approach-z-mm", "50", "--value-aout", "3"], "heidenhain"),
 ])

@@ -183,7 +183,7 @@ def lockstep():
 
 def unattended_args(work: Path, cnc, *extra: str) -> list[str]:
     return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7",
-            "--spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
+            "--model-spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
             "--controller", cnc.url + "?preset=virtual-cnc",
             "--sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250",
             "--rate-s", str(RATE_S), "--dialect", "linuxcnc", "--step-min", "10", *extra]
@@ -355,7 +355,7 @@ def test_wizard_imports_daq_logs(tmp_path):
     write_run_log(tmp_path / "speed.csv", {"time_s": np.concatenate(speed_t), "speed_rpm": np.concatenate(speed_n)})
     sdir = tmp_path / "w" / "m1" / "s1"
     base = [*THERMOCOMP, "wizard", "--yes", "--workdir", str(tmp_path / "w"), "--machine-id", "m1",
-            "--spindle-id", "s1", "--max-rpm", "27000", "--source", "import", "--dialect", "fanuc",
+            "--model-spindle-id", "s1", "--max-rpm", "27000", "--source", "import", "--dialect", "fanuc",
             "--import-time-column", "timestamp", "--import-displacement-column", "gap_mm",
             "--import-scale", "-1000", "--validation", "--import-speed-log", str(tmp_path / "speed.csv"),
             "--report-format", "md", "--import-calibration", str(tmp_path / "cal-daq.csv")]
@@ -401,16 +401,16 @@ def test_wizard_imports_daq_logs(tmp_path):
 def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
     vm, cnc = vcnc
     cases = [
-        (["--workdir", str(tmp_path), "--spindle-id", "s"], "--machine-id is needed"),
-        (["--workdir", str(tmp_path), "--machine-id", "m/x", "--spindle-id", "s"], "--machine-id 'm/x'"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", ".."], "--spindle-id '..'"),
-        (["--workdir", str(tmp_path), "--machine-id", "../../up", "--spindle-id", "s"], "--machine-id '../../up'"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "5",
+        (["--workdir", str(tmp_path), "--model-spindle-id", "s"], "--machine-id is needed"),
+        (["--workdir", str(tmp_path), "--machine-id", "m/x", "--model-spindle-id", "s"], "--machine-id 'm/x'"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", ".."], "--model-spindle-id '..'"),
+        (["--workdir", str(tmp_path), "--machine-id", "../../up", "--model-spindle-id", "s"], "--machine-id '../../up'"),
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "5",
           "--source", "sensor"], "not a plausible spindle speed"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "9000",
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "9000",
           "--source", "sensor", "--controller", "opc.tcp://127.0.0.1:1/x?preset=virtual-cnc",
           "--sensor", cnc.url + "?preset=virtual-cnc"], "controller opc.tcp://127.0.0.1:1"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--spindle-id", "s", "--max-rpm", "9000",
+        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "9000",
           "--source", "sensor", "--controller", cnc.url + "?preset=virtual-cnc",
           "--sensor", "serial:///dev/nonexistent-probe"], "sensor serial:///dev/nonexistent-probe"),
     ]
@@ -444,12 +444,12 @@ BAD_IDS = ["..", ".", "../x", "x/..", "a/b", "/etc", "a\\b", "a\x00b", "a b", " 
 
 
 @pytest.mark.parametrize("bad", BAD_IDS, ids=[repr(b[:8]) for b in BAD_IDS])
-@pytest.mark.parametrize("flag", ["--machine-id", "--spindle-id"])
+@pytest.mark.parametrize("flag", ["--machine-id", "--model-spindle-id"])
 def test_an_unsafe_id_is_refused_in_one_line_and_nothing_is_written(tmp_path, flag, bad):
     from compensator.errors import ConfigError
 
     work = tmp_path / "w" / "calibrations"
-    ids = {"--machine-id": "m1", "--spindle-id": "s1", flag: bad}
+    ids = {"--machine-id": "m1", "--model-spindle-id": "s1", flag: bad}
     wiz = quiet_wizard(wizard_args(work, *(f"{k}={v}" for k, v in ids.items()), "--max-rpm", "9000"))
     with pytest.raises(ConfigError) as info:
         wiz.step_identify()
@@ -462,7 +462,7 @@ def test_an_unsafe_id_is_refused_in_one_line_and_nothing_is_written(tmp_path, fl
 @pytest.mark.parametrize("good", ["vmc-7", "A.b_c-9", "0", "x" * 64, "  padded  "])
 def test_a_safe_id_names_the_session_directory(tmp_path, good):
     work = tmp_path / "w"
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", good, "--spindle-id", "s1", "--max-rpm", "9000",
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", good, "--model-spindle-id", "s1", "--max-rpm", "9000",
                                    "--source", "import"))
     wiz.step_identify()
     assert wiz.dir == work.resolve() / good.strip() / "s1"
@@ -476,7 +476,7 @@ def test_a_symlink_out_of_the_work_directory_is_refused(tmp_path):
     work.mkdir()
     outside.mkdir()
     (work / "m1").symlink_to(outside)
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--spindle-id", "s1", "--max-rpm", "9000"))
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--model-spindle-id", "s1", "--max-rpm", "9000"))
     with pytest.raises(ConfigError, match="the session directory .* is outside the work directory"):
         wiz.step_identify()
     assert list(outside.iterdir()) == []
@@ -493,7 +493,7 @@ def test_an_edited_session_cannot_send_a_run_log_outside(tmp_path):
         "format": SESSION_FORMAT, "runs": {"calibration": {"log": str(sdir / ".." / ".." / ".." / "outside.csv"),
                                                            "complete": False}}}))
     (tmp_path / "daq.csv").write_text("time_s,displacement_um,speed_rpm\n0,0,0\n1,0,0\n")
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--spindle-id", "s1", "--max-rpm", "9000",
+    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--model-spindle-id", "s1", "--max-rpm", "9000",
                                    "--source", "import", "--dialect", "fanuc", "--no-validation",
                                    "--import-calibration", str(tmp_path / "daq.csv"),
                                    "--import-speed-column", "speed_rpm"))

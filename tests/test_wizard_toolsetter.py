@@ -20,7 +20,7 @@ from machine_sim.nc import parse_nc
 
 
 def setter_args(work: Path, cnc, *extra: str) -> list[str]:
-    return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7", "--spindle-id", "main",
+    return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7", "--model-spindle-id", "main",
             "--max-rpm", "27000", "--source", "tool-setter", "--controller", cnc.url + "?preset=virtual-cnc",
             "--rate-s", str(RATE_S), "--dialect", "sinumerik", "--step-min", "10", "--cooldown-min", "60",
             "--report-format", "md", *extra]
@@ -127,7 +127,7 @@ def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_
     assert c["code"] == 0, c["out"][-2000:]
     s = c["session"]
     assert s["probe_spindle"] == "keep" and "no growth decays while it measures" in c["out"]
-    assert "--spindle keep" in c["out"] and "the tool setter measured at rest" not in c["out"]
+    assert "--probe-spindle keep" in c["out"] and "the tool setter measured at rest" not in c["out"]
     log = read_run_log(s["runs"]["calibration"]["log"])
     turning = log.speed_rpm[log.measured] > 1.0
     assert turning.mean() > 0.6  # the staircase turns at most stops; the cool-down ones are at rest

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -64,6 +65,122 @@ class _IntermixedParser(_Parser):
             self._inside = False
 
 
+class _ModelParser(_Parser):
+    """``model`` also takes its earlier forms, for one release: ``model FILE`` (now ``model show
+    FILE``), ``model --schema`` (now ``model schema``), and options before the action
+    (``model --json check FILE``), which argparse gives no subcommand."""
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        return super().parse_known_args(self._current_form(list(args or ())), namespace)
+
+    def _current_form(self, words: list[str]) -> list[str]:
+        actions = next(a for a in self._actions if isinstance(a, argparse._SubParsersAction))
+        valued = {o for sub in actions.choices.values() for a in sub._actions if a.nargs != 0
+                  for o in a.option_strings}
+        if "--schema" in words:
+            deprecated("thermocomp model --schema", use="thermocomp model schema")
+            return ["schema", *(w for w in words if w != "--schema")]
+        i = 0
+        while i < len(words) and words[i].startswith("-"):
+            i += 2 if words[i] in valued else 1
+        if i >= len(words) or i == 0 and words[0] in actions.choices:
+            return words
+        if words[i] in actions.choices:
+            return [words[i], *words[:i], *words[i + 1:]]
+        deprecated("thermocomp model FILE", use="thermocomp model show FILE")
+        return ["show", *words]
+
+
+def deprecated(old: str, *, use: str | None = None, note: str | None = None) -> None:
+    """The one line on stderr an old spelling prints; it still works until the next release."""
+    instead = f", use '{use}'" if use else f" and {note}" if note else ""
+    print(f"thermocomp: '{old}' is deprecated{instead}; it will be removed in the next release",
+          file=sys.stderr)
+
+
+class _OldSpelling(argparse.Action):
+    """An option's former spelling (``_old``): hidden from the help, it prints the deprecation
+    line and then does what the current spelling does."""
+
+    def __init__(self, option_strings: list[str], dest: str, current: argparse.Action, **_: object) -> None:
+        super().__init__(option_strings, current.dest, nargs=current.nargs, const=current.const,
+                         default=argparse.SUPPRESS, type=current.type, choices=current.choices,
+                         metavar=current.metavar, help=argparse.SUPPRESS)
+        self.current = current
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
+        now = self.current.option_strings[-1]
+        deprecated(str(option_string), use=now)
+        self.current(parser, namespace, values, now)
+
+
+class _NoLongerNeeded(argparse.Action):
+    """A former option that does nothing now: hidden, accepted with the deprecation line and
+    why, so that old scripts keep running for one release."""
+
+    def __init__(self, option_strings: list[str], dest: str, why: str, **_: object) -> None:
+        super().__init__(option_strings, argparse.SUPPRESS, nargs=0, default=argparse.SUPPRESS,
+                         help=argparse.SUPPRESS)
+        self.why = why
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
+        deprecated(str(option_string), note=f"does nothing ({self.why})")
+
+
+def _old(p: argparse.ArgumentParser | argparse._ArgumentGroup, old: str, current: argparse.Action) -> None:
+    """Keep ``old``, the former spelling of ``current``, working for one release."""
+    p.add_argument(old, action=_OldSpelling, current=current)
+
+
+class _Choices(Sequence[str]):
+    """A fixed set of values, taken from the code that defines it ("module:NAME", a tuple or
+    the keys of a dict) when first needed: building the parser imports none of them, so
+    ``thermocomp --help`` stays fast. An argument using one names its ``metavar`` (argparse
+    would otherwise list the values while building the parser)."""
+
+    def __init__(self, *specs: str, extra: tuple[str, ...] = ()) -> None:
+        self._specs, self._extra = specs, extra
+        self._values: tuple[str, ...] | None = None
+
+    def _all(self) -> tuple[str, ...]:
+        if self._values is None:
+            found: list[str] = []
+            for spec in self._specs:
+                module, _, name = spec.partition(":")
+                found += [v for v in getattr(importlib.import_module(module), name) if v not in found]
+            self._values = (*found, *self._extra)
+        return self._values
+
+    def __getitem__(self, i):  # type: ignore[override]
+        return self._all()[i]
+
+    def __len__(self) -> int:
+        return len(self._all())
+
+    def __contains__(self, value: object) -> bool:
+        return value in self._all()
+
+
+DIALECTS = _Choices("calibration.nc_programs:DIALECTS")
+"""The NC dialects the program writers support (profile, probe-program, wizard)."""
+PRESETS = _Choices("machine_sim.plant:PRESETS")
+PROFILES = _Choices("cnc_adapters.control_profiles:PROFILES")
+SCENARIOS = _Choices("calibration.cooling_studies:SCENARIOS")
+GAINS = ("paper", "simc")
+"""The PID gain sets of active cooling: paper 000's, or SIMC rules on the identified step."""
+
+
+def _time_scale(text: str) -> float:
+    """``--time-scale``: a finite number > 0 (a real machine runs at 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a number > 0 (1 on a real machine)")
+    return value
+
+
 class _OneLineFormatter(logging.Formatter):
     """A logged message (a warning may quote a bad value too) as one bounded line; a
     traceback, if any, still follows it."""
@@ -75,6 +192,13 @@ class _OneLineFormatter(logging.Formatter):
         return super().formatMessage(record)
 
 
+SPINDLE_HELP = "the spindle: a [[spindle]] of the runtime configuration, by its name"
+MODEL_SPINDLE_ID_HELP = ("the spindle id written into the model: a runtime configuration whose spindle sets "
+                         "spindle_id loads only a model that carries the same")
+DIALECT_HELP = "NC dialect: %(choices)s"
+PRESET_HELP = "plant preset: %(choices)s"
+
+
 def _add_replay(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="free-run a model over a logged speed profile, and the offset "
                        "the runtime's shaping would write")
@@ -83,7 +207,7 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="RUNTIME.toml",
                    help="take the shaping (limits, transient policy, cutting signal) from this runtime "
                    "configuration (default: the runtime's own defaults)")
-    p.add_argument("--spindle", help="with --config: the [[spindle]] by name (default: the only one)")
+    p.add_argument("--spindle", metavar="NAME", help=f"with --config: {SPINDLE_HELP}")
     p.add_argument("--no-compare", action="store_true",
                    help="skip the side-by-side of the transient policies (two more passes of "
                    "the shaper with a dual-slew configuration: about 1.5 s per million rows)")
@@ -101,8 +225,7 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
                    help="noise (sigma) of those measurements; with --measurements, the sigma of rows "
                    "that state none")
     p.add_argument("--probe-seed", type=int, default=0, help="random seed of that noise")
-    p.add_argument("--applied", action="store_true",
-                   help="(always on now: the applied offset is in every report; kept for old scripts)")
+    p.add_argument("--applied", action=_NoLongerNeeded, why="the offset the runtime would apply is in every report")
     p.set_defaults(handler="thermocomp.commands.replay:replay")
 
 
@@ -111,7 +234,7 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     p.add_argument("runs", nargs="+", help="calibration run logs (CSV)")
     p.add_argument("--output", required=True, help="model file to write (JSON)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    p.add_argument("--spindle-id", default=None, help="spindle id stored in the model")
+    _old(p, "--spindle-id", p.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID", help=MODEL_SPINDLE_ID_HELP))
     p.add_argument("--machine-id", default=None, help="machine id stored in the model")
     p.add_argument("--method", choices=["cycles"], default="cycles",
                    help="cycles (the only method): baseline, physical form and ridge filter banks "
@@ -135,8 +258,10 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="write a run log from the virtual spindle plant")
-    p.add_argument("--preset", default="motorized-27k", help="plant preset")
-    p.add_argument("--program", default="paper-calibration", help="speed program")
+    p.add_argument("--preset", default="motorized-27k", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
+    p.add_argument("--program", default="paper-calibration", metavar="PROGRAM",
+                   choices=_Choices("compensator.speed_programs:PROGRAMS", "calibration.cooling_studies:SCENARIOS"),
+                   help="speed program: %(choices)s (with --cooling one of paper 000's scenarios, wc1..wc4)")
     p.add_argument("--dt", type=float, default=60.0, help="sample period [s]")
     p.add_argument("--seed", type=int, default=0, help="random seed (noise, ambient, program)")
     p.add_argument("--accel-rpm-per-s", type=float, default=None,
@@ -149,7 +274,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rite", type=float, default=None, help="with --cooling pid: RITE [um] (default the scenario's)")
     p.add_argument("--model", default=None, help="with --cooling: the model file (default: fit one on an "
                    "excitation run of the preset)")
-    p.add_argument("--gains", default="paper", help="with --cooling pid: paper or simc")
+    p.add_argument("--gains", default="paper", choices=GAINS, help="with --cooling pid: the gain set")
     p.set_defaults(handler="thermocomp.commands.sim:simulate")
 
 
@@ -157,16 +282,17 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("cooling", help="active cooling: compare on the virtual plant, tune, suggest RITE")
     cs = p.add_subparsers(dest="cooling_command", metavar="ACTION", required=True)
     c = cs.add_parser("compare", help="paper 000's scenarios: constant cooling, PID, PID plus the offset")
-    c.add_argument("--preset", default="mechanical-cooled")
-    c.add_argument("--scenario", action="append", help="wc1..wc4 (repeat; default all)")
-    c.add_argument("--gains", action="append", choices=("paper", "simc"), help="gain sets (default both)")
+    c.add_argument("--preset", default="mechanical-cooled", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
+    c.add_argument("--scenario", action="append", choices=SCENARIOS, metavar="NAME",
+                   help="paper 000's scenario: %(choices)s (repeat; default all)")
+    c.add_argument("--gains", action="append", choices=GAINS, help="gain sets (default both)")
     c.add_argument("--dt", type=float, default=1.0, help="control period [s] (the paper: 1 s)")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--plot", default=None, help="PNG to write")
     c.add_argument("--json", action="store_true")
     c.set_defaults(handler="calibration.cooling_commands:compare")
     t = cs.add_parser("tune", help="identify the chiller -> elongation step response and derive SIMC gains")
-    t.add_argument("--preset", default="mechanical-cooled")
+    t.add_argument("--preset", default="mechanical-cooled", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
     t.add_argument("--log", default=None, help="a logged step run with chiller_setpoint_c and elongation_um "
                    "(default: the plant's)")
     t.add_argument("--write-step", default=None, help="write the plant's step run to this run log")
@@ -182,7 +308,7 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
 
 def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("virtual-cnc", help="serve the virtual machine tool over OPC UA")
-    p.add_argument("--preset", default="motorized-27k", help="plant preset")
+    p.add_argument("--preset", default="motorized-27k", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
     p.add_argument("--program", default="job-shop-day",
                    help="speed program: a built-in name, or an NC program file (any of the four dialects)")
     p.add_argument("--wait-start", action="store_true",
@@ -190,7 +316,7 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start-delay", type=float, default=None,
                    help="with --wait-start: press cycle start by itself after this many wall seconds")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--time-scale", type=float, default=60.0, help="simulated seconds per second")
+    p.add_argument("--time-scale", type=_time_scale, default=60.0, help="simulated seconds per wall second")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     p.add_argument("--port", type=int, default=4840, help="TCP port")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
@@ -210,9 +336,9 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
 def _add_hal_plant(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("hal-plant", help="the virtual spindle as a LinuxCNC HAL component (sim configs)")
     p.add_argument("--name", default="thermocomp-plant", help="HAL component name")
-    p.add_argument("--preset", default="motorized-27k", help="plant preset")
+    p.add_argument("--preset", default="motorized-27k", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--time-scale", type=float, default=1.0, help="simulated seconds per second")
+    p.add_argument("--time-scale", type=_time_scale, default=1.0, help="simulated seconds per wall second")
     p.add_argument("--step-s", type=float, default=0.5, help="plant step [simulated s]")
     p.set_defaults(handler="thermocomp.commands.halplant:hal_plant")
 
@@ -233,7 +359,7 @@ def _add_measure(sub: argparse._SubParsersAction) -> None:
                    help="the measured elongation [um]: positive when the tool grew toward the workpiece")
     p.add_argument("--sigma-um", type=float, help="its standard deviation [um] (default: the "
                    "spindle's [spindle.observer] sigma_um)")
-    p.add_argument("--spindle", help="the spindle (default: the only one with an observer)")
+    p.add_argument("--spindle", metavar="NAME", help=f"{SPINDLE_HELP} (default: the only one with an observer)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--state-dir", help="the service's state directory (default /var/lib/thermocomp)")
     g.add_argument("--config", help="or the runtime configuration that names it")
@@ -248,17 +374,17 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hours", type=float, default=5.0,
                    help="length of the job-shop days the service compensates, open and closed loop "
                    "(1 to 24, default 5); the figures in the README are for 5")
-    p.add_argument("--profile", default="virtual",
-                   choices=["virtual", "sinumerik", "fanuc", "heidenhain", "haas", "linuxcnc", "beckhoff"],
-                   help="the control the virtual CNC acts as: its unit, resolution, limits and own rate "
-                   "limit (sinumerik: SD43900 with the SeaWrite right); default its own um node")
+    p.add_argument("--profile", default="virtual", choices=PROFILES, metavar="NAME",
+                   help="the control the virtual CNC acts as, one of %(choices)s: its unit, resolution, "
+                   "limits and own rate limit (sinumerik: SD43900 with the SeaWrite right); default its own "
+                   "um node")
     p.set_defaults(handler="thermocomp.demo:main")
 
 
 def _add_controls(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("controls", help="controller profiles: what each control family does with the offset")
-    p.add_argument("name", nargs="?", help="a profile (sinumerik, fanuc, heidenhain, haas, linuxcnc, "
-                   "beckhoff, virtual): its routes, units, limits and the NC/PLC snippet")
+    p.add_argument("name", nargs="?", choices=PROFILES, metavar="NAME",
+                   help="a profile, one of %(choices)s: its routes, units, limits and the NC/PLC snippet")
     p.add_argument("--json", action="store_true", help="print as JSON")
     p.set_defaults(handler="thermocomp.commands.controls:main")
 
@@ -266,7 +392,7 @@ def _add_controls(sub: argparse._SubParsersAction) -> None:
 def _add_profile(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("profile", help="write the NC program of the calibration (or validation) profile")
     p.add_argument("--max-rpm", type=float, required=True, help="the spindle's maximum speed [rpm]")
-    p.add_argument("--dialect", required=True, help="fanuc, sinumerik, heidenhain or linuxcnc")
+    p.add_argument("--dialect", required=True, choices=DIALECTS, metavar="DIALECT", help=DIALECT_HELP)
     p.add_argument("--output", required=True, help="NC program to write")
     p.add_argument("--validation", action="store_true", help="the validation profile (random, unlike calibration)")
     p.add_argument("--seed", type=int, default=1, help="seed of the validation profile")
@@ -283,7 +409,7 @@ def _add_probe_program(sub: argparse._SubParsersAction) -> None:
                        "since the cold reference to the service (closed loop)",
                        description="Measures the tool on the tool setter, writes (length now - cold "
                        "reference) in um to --value-var, then adds 1 to --counter-var. See docs/PROBING.md.")
-    p.add_argument("--dialect", required=True, metavar="{fanuc,sinumerik,heidenhain,linuxcnc}")
+    p.add_argument("--dialect", required=True, choices=DIALECTS, metavar="DIALECT", help=DIALECT_HELP)
     p.add_argument("--output", help="NC program to write (default: standard output)")
     p.add_argument("--reference", action="store_true",
                    help="write the program that takes the cold reference instead (run it cold)")
@@ -292,11 +418,12 @@ def _add_probe_program(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--counter-var", metavar="VAR", help="the counter (default #522, R22, QR22, #3022)")
     p.add_argument("--reference-var", metavar="VAR",
                    help="the cold reference [mm], kept through power cycles (default #520, R20, QR20, #3020)")
-    p.add_argument("--spindle", default="stop", metavar="{stop,low,keep}",
-                   help="stop: contact setter (default); low: laser setter, at --low-rpm; keep: laser setter "
-                   "measuring the gauge tool in the spindle at the program's speed (sees the growth that "
-                   "exists only while it turns)")
-    p.add_argument("--low-rpm", metavar="RPM", help="spindle speed with --spindle low")
+    _old(p, "--spindle", p.add_argument(
+        "--probe-spindle", dest="spindle", default="stop", choices=_Choices("calibration.probeprog:SPINDLE_MODES"),
+        metavar="MODE", help="the spindle while the setter measures: stop, a contact setter (default); low, a laser "
+        "setter, at --low-rpm; keep, a laser setter measuring the gauge tool in the spindle at the "
+        "program's speed (sees the growth that exists only while it turns)"))
+    p.add_argument("--low-rpm", metavar="RPM", help="spindle speed with --probe-spindle low")
     p.add_argument("--settle-s", default="2", metavar="S", help="dwell before probing (spindle run-down) [s]")
     p.add_argument("--setter-x-mm", metavar="MM", help="setter centre, machine X (default: probe in place)")
     p.add_argument("--setter-y-mm", metavar="MM", help="setter centre, machine Y")
@@ -324,7 +451,8 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="resume the session without asking")
     g = p.add_argument_group("1 identify")
     g.add_argument("--machine-id")
-    g.add_argument("--spindle-id")
+    _old(g, "--spindle-id", g.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID",
+                                           help=MODEL_SPINDLE_ID_HELP))
     g.add_argument("--max-rpm", type=float)
     g.add_argument("--source", choices=["sensor", "tool-setter", "import"],
                    help="live eddy-current sensor; the machine's tool setter alone (the program stops for it "
@@ -335,7 +463,7 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--rate-s", type=float, help="sample period [s] (default 1)")
     g.add_argument("--no-connection-test", action="store_true", help="skip the connection test")
     g = p.add_argument_group("2 program")
-    g.add_argument("--dialect", help="NC dialect: fanuc, sinumerik, heidenhain, linuxcnc")
+    g.add_argument("--dialect", choices=DIALECTS, metavar="DIALECT", help=DIALECT_HELP)
     g.add_argument("--step-min", type=float, help="minutes per staircase step (paper: 20)")
     g.add_argument("--cooldown-min", type=float, help="cool-down at 0 rpm [min] (default 60)")
     g.add_argument("--validation", dest="validation", action="store_true", default=None,
@@ -379,35 +507,47 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--import-offset-um", type=float, default=0.0)
     g = p.add_argument_group("5 save")
     g.add_argument("--report-format", choices=["html", "md"], default="html")
-    p.add_argument("--time-scale", type=float, default=1.0,
-                   help="the virtual machine tool only: its simulated seconds per wall second, as given to "
-                   "`thermocomp virtual-cnc` (durations are then shown in both)")
+    p.add_argument("--time-scale", type=_time_scale, default=1.0,
+                   help="the virtual machine tool only, which runs faster than the wall clock: its simulated "
+                   "seconds per wall second, as given to `thermocomp virtual-cnc --time-scale` (durations are then "
+                   "shown in both, and the runtime configuration written runs at it). Keep 1, the default, on a "
+                   "real machine: any other value makes the recording's time and the service's wrong")
     p.set_defaults(handler="calibration.wizard:main")
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("model", help="show or check a model file; a spindle's model history and rollback",
-                       usage="%(prog)s [-h] [--json] FILE | check FILE | --schema [--format FORMAT] | "
-                       "history --config RUNTIME.toml [--spindle NAME] | rollback [DIGEST] --config RUNTIME.toml "
-                       "[--spindle NAME] [--reason TEXT]",
-                       description="FILE: describe the model. check FILE: verify it as the runtime "
-                       "would load it (checksum, sanity, plausibility); exit 0 if it is ok, else 2 "
-                       "with a one-line reason. history: every model the service ran, every refit "
-                       "candidate and why it was promoted or rejected. rollback: put a kept model back "
-                       "(default: the one in use before the live one); the service reloads it, its state "
-                       "carried over.")
-    p.__class__ = _IntermixedParser  # add_parser makes every subparser of one class
-    p.add_argument("model", nargs="?", metavar="FILE", help="model file (JSON), or 'check'")
-    p.add_argument("file", nargs="?", metavar="FILE", help=argparse.SUPPRESS)  # after 'check'
-    p.add_argument("--schema", action="store_true", help="print a model format's JSON schema")
-    p.add_argument("--format", help="with --schema: the format (default: the speed-only model's), "
-                   "or 'all' for every format keyed by name")
-    p.add_argument("--json", action="store_true",
-                   help="print as JSON (check: {file, ok, reason, format, form, ...})")
-    p.add_argument("--config", metavar="RUNTIME.toml", help="history, rollback: the runtime configuration")
-    p.add_argument("--spindle", metavar="NAME", help="history, rollback: the spindle (needed with several)")
-    p.add_argument("--reason", help="rollback: why, for the history")
-    p.set_defaults(handler="thermocomp.commands.model:model")
+    p = sub.add_parser("model", help="show or check a model file, print a format's schema; a spindle's model "
+                       "history and rollback")
+    p.__class__ = _ModelParser  # add_parser makes every subparser of one class
+    # a positional that may follow the options (rollback --config X DIGEST) needs the intermixed parse
+    ms = p.add_subparsers(dest="model_command", metavar="ACTION", required=True, parser_class=_IntermixedParser)
+    s = ms.add_parser("show", help="describe a model file")
+    s.add_argument("file", metavar="FILE", help="model file (JSON)")
+    s.add_argument("--json", action="store_true", help="print the whole model as JSON")
+    s.set_defaults(handler="thermocomp.commands.model:show")
+    c = ms.add_parser("check", help="verify a model file as the runtime would load it",
+                      description="Checksum, sanity, plausibility: exit 0 if the runtime would take the file, "
+                      "else 2 with a one-line reason.")
+    c.add_argument("file", metavar="FILE", help="model file (JSON)")
+    c.add_argument("--json", action="store_true", help="print {file, ok, reason, format, form, ...} as JSON")
+    c.set_defaults(handler="thermocomp.commands.model:check_cmd")
+    f = ms.add_parser("schema", help="print a model format's JSON schema")
+    f.add_argument("--format", choices=_Choices("compensator.io:MODEL_TYPES", extra=("all",)), metavar="FORMAT",
+                   help="the format, one of %(choices)s (all: every format keyed by name; default: the "
+                   "speed-only model's)")
+    f.set_defaults(handler="thermocomp.commands.model:schema")
+    h = ms.add_parser("history", help="every model the service ran, every refit candidate and why it was "
+                      "promoted or rejected")
+    r = ms.add_parser("rollback", help="put a kept model back; the service reloads it, its state carried over")
+    r.add_argument("digest", nargs="?", metavar="DIGEST",
+                   help="the kept model (default: the one in use before the live one)")
+    for q in (h, r):
+        q.add_argument("--config", required=True, metavar="RUNTIME.toml", help="the runtime configuration")
+        q.add_argument("--spindle", metavar="NAME", help=f"{SPINDLE_HELP} (needed with several)")
+    h.add_argument("--json", action="store_true", help="print the history as JSON")
+    r.add_argument("--reason", help="why, for the history")
+    h.set_defaults(handler="thermocomp.commands.learning:history_cmd")
+    r.set_defaults(handler="thermocomp.commands.learning:rollback_cmd")
 
 
 def _add_refit(sub: argparse._SubParsersAction) -> None:
@@ -419,7 +559,7 @@ def _add_refit(sub: argparse._SubParsersAction) -> None:
                        "accepts replaces the configured model file and the service reloads it; every "
                        "candidate is kept in the model history with its figures and the reason.")
     p.add_argument("--config", required=True, metavar="RUNTIME.toml", help="the runtime configuration")
-    p.add_argument("--spindle", metavar="NAME", help="the spindle (needed with several)")
+    p.add_argument("--spindle", metavar="NAME", help=f"{SPINDLE_HELP} (needed with several)")
     p.add_argument("--from", dest="from_", metavar="WHEN",
                    help="refit on the journal from this ISO date or date-time (UTC unless it names a zone; "
                    "default: since the live model went into use)")
@@ -453,7 +593,7 @@ def _add_journal(sub: argparse._SubParsersAction) -> None:
     g = e.add_mutually_exclusive_group()
     g.add_argument("--config", metavar="RUNTIME.toml", help="the runtime configuration (its journal_dir)")
     g.add_argument("--journal-dir", help="or the journal directory itself")
-    e.add_argument("--spindle", help="the spindle (default: the only one journaled)")
+    e.add_argument("--spindle", metavar="NAME", help=f"{SPINDLE_HELP} (default: the only one journaled)")
     e.add_argument("--from", dest="from_", metavar="WHEN", help="start, ISO date or date-time (UTC unless "
                    "a zone is given), included")
     e.add_argument("--to", metavar="WHEN", help="end, excluded")
@@ -469,16 +609,50 @@ def _add_init(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="thermocomp.commands.init:main")
 
 
+GROUPS = (
+    ("edge box (beside the machine)", ("init", "run", "status", "measure", "journal", "refit")),
+    ("workstation (calibration and models)", ("wizard", "profile", "probe-program", "fit", "replay", "model",
+                                              "controls")),
+    ("virtual machine tool (no machine needed)", ("demo", "simulate", "virtual-cnc", "hal-plant", "cooling")),
+)
+"""The commands by audience, as ``thermocomp --help`` lists them; each command is in one group."""
+
+
+class _TopParser(_Parser):
+    """``thermocomp --help`` lists the commands in their ``GROUPS`` instead of argparse's one
+    flat list; parsing is argparse's own (``thermocomp COMMAND``)."""
+
+    def format_help(self) -> str:
+        formatter = self._get_formatter()
+        formatter.add_usage(self.usage, self._actions, self._mutually_exclusive_groups)
+        formatter.add_text(self.description)
+        commands = next(a for a in self._actions if isinstance(a, argparse._SubParsersAction))
+        listed = {a.dest: a for a in commands._choices_actions}
+        for title, names in GROUPS:
+            formatter.start_section(title)
+            formatter.add_arguments([listed[n] for n in names])
+            formatter.end_section()
+        for group in self._action_groups:
+            formatter.start_section(group.title)
+            formatter.add_text(group.description)
+            formatter.add_arguments([a for a in group._group_actions if a is not commands])
+            formatter.end_section()
+        formatter.add_text(self.epilog)
+        return formatter.format_help()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    """The whole command line, built without side effects (the docs build reads it too)."""
+    parser = _TopParser(
         prog="thermocomp",
         description="Cancel the thermal growth of machine-tool spindles from spindle speed.",
+        epilog="`thermocomp COMMAND --help` tells what a command takes.",
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_controls, _add_wizard, _add_profile, _add_probe_program, _add_fit, _add_replay, _add_run,
-                _add_measure, _add_status, _add_journal, _add_refit, _add_init, _add_simulate, _add_cooling,
-                _add_virtual_cnc, _add_hal_plant, _add_model):
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for add in (_add_init, _add_run, _add_status, _add_measure, _add_journal, _add_refit, _add_wizard,
+                _add_profile, _add_probe_program, _add_fit, _add_replay, _add_model, _add_controls, _add_demo,
+                _add_simulate, _add_virtual_cnc, _add_hal_plant, _add_cooling):
         add(sub)
     return parser
 
@@ -520,7 +694,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
-    from compensator.errors import ThermocompError
+    from compensator.errors import ConfigError, ThermocompError
 
     handler = logging.StreamHandler()
     handler.setFormatter(_OneLineFormatter("thermocomp: %(levelname)s: %(name)s: %(message)s"))
@@ -531,7 +705,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(resolve(args.handler)(args) or 0)
     except ThermocompError as err:
-        fail(str(err))
+        # a configuration's problems come one a line: each printed (and clipped) on its own
+        for line in str(err).splitlines() if isinstance(err, ConfigError) else [str(err)]:
+            fail(line)
         return 2
     except OSError as err:
         name = f"{err.filename}: " if getattr(err, "filename", None) else ""

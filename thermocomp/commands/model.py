@@ -1,4 +1,5 @@
-"""``thermocomp model``: show or check a model file, or print the JSON schema of a format."""
+"""``thermocomp model show|check|schema``: describe or check a model file, or print the JSON schema of a
+format (``history`` and ``rollback`` are in :mod:`.learning`)."""
 
 from __future__ import annotations
 
@@ -14,44 +15,25 @@ from compensator.plausibility import direction_of, not_following_refusal, steady
 REASON_CHARS = 500
 
 
-def model(args: argparse.Namespace) -> int:
-    if args.schema:
-        return _schema(args.format)
-    if args.format is not None:
-        raise ConfigError("--format goes with --schema")
-    if args.model in ("history", "rollback"):
-        from .learning import history_cmd, rollback_cmd
-
-        if not args.config:
-            raise ConfigError(f"thermocomp model {args.model} needs the runtime configuration: --config RUNTIME.toml")
-        if args.model == "history":
-            if args.file is not None:
-                raise ConfigError(f"thermocomp model history takes no file ({args.file!r})")
-            return history_cmd(args)
-        args.digest = args.file
-        return rollback_cmd(args)
-    for flag in ("config", "spindle", "reason"):
-        if getattr(args, flag, None) is not None:
-            raise ConfigError(f"--{flag} goes with thermocomp model history or rollback")
-    if args.model == "check":
-        if not args.file:
-            raise ConfigError("give the model file to check: thermocomp model check FILE "
-                              "(a model file named check: ./check)")
-        return check(args.file, as_json=args.json)
-    if args.file is not None:
-        raise ConfigError(f"one model file at a time ({args.model!r} is not a subcommand; "
-                          "thermocomp model check FILE checks one)")
-    if not args.model:
-        raise ConfigError("give a model file, check FILE, or --schema")
-    m = load_any_model(args.model)
+def show(args: argparse.Namespace) -> int:
+    """``thermocomp model show FILE``: what the model is, or the whole of it as JSON."""
+    m = load_any_model(args.file)
     if args.json:
         print(json.dumps(m.model_dump(mode="json"), indent=2))
         return 0
     first, *rest = m.describe()
-    print(f"{args.model}: {first}")
+    print(f"{args.file}: {first}")
     for line in rest:
         print(line)
     return 0
+
+
+def check_cmd(args: argparse.Namespace) -> int:
+    return check(args.file, as_json=args.json)
+
+
+def schema(args: argparse.Namespace) -> int:
+    return _schema(args.format)
 
 
 def _schema(fmt: str | None) -> int:
