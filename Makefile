@@ -7,13 +7,13 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-packages system-deps lint-imports slim test-lowest fresh-check
+.PHONY: demo test bench venv clean system-packages system-deps lint-imports slim test-lowest fresh-check docs
 
 venv: $(STAMP)
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[all,test]'
+	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[all,test,docs]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -66,7 +66,7 @@ $(LOWEST)/.stamp: pyproject.toml $(STAMP)
 	rm -rf $(LOWEST)
 	$(VENV)/bin/uv venv --quiet --python $(PYTHON) $(LOWEST)
 	$(VENV)/bin/uv pip install --quiet --python $(LOWEST)/bin/python --resolution lowest-direct \
-		-e '.[calibration,plc,ads,test]'
+		-e '.[calibration,plc,ads,test,docs]'
 	touch $@
 
 test-lowest: $(LOWEST)/.stamp system-deps
@@ -78,6 +78,11 @@ test-lowest: $(LOWEST)/.stamp system-deps
 RUNS ?= 1
 fresh-check:
 	bash scripts/fresh-check.sh $(RUNS)
+
+# The documentation site (mkdocs.yml, docs/): strict, so a broken link or anchor fails the build
+# (tests/test_docs.py runs the same build in `make test`); the result opens from build/site/index.html
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet -d build/site
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py

@@ -1,6 +1,6 @@
 """The stability figures of paper 000: STE, the thermal-equilibrium time and TEVR. Pure functions.
 
-Paper 000 (thermal error feedback control by active cooling, ``../shared/papers/000_*.txt``,
+Paper 000 (thermal error feedback control by active cooling, docs/REFERENCES.md,
 "Quantitative evaluation method of STE") judges a thermal-error record by
 
 - **STE** (stability of thermal error): the time derivative of a smooth least-squares fit f(t)
@@ -163,7 +163,7 @@ def ste_um_per_s(time_s: Any, error_um: Any, *, method: Method | None = None,
 
     References
     ----------
-    Paper 000, "Quantitative evaluation method of STE" (``../shared/papers/000_*.txt``).
+    Paper 000, "Quantitative evaluation method of STE" (docs/REFERENCES.md).
     P. Craven, G. Wahba, "Smoothing noisy data with spline functions", Numer. Math. 31 (1979).
     """
     t, y = _record(time_s, error_um)

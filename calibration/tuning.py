@@ -1,7 +1,7 @@
 """Controller tuning from a step response: FOPDT/SOPDT models, their fit, SIMC PID rules, the
 discrete PID of paper 000 in closed loop. Pure functions and immutable values.
 
-Paper 000 (thermal error feedback control by active cooling, ``../shared/papers/000_*.txt``)
+Paper 000 (thermal error feedback control by active cooling, docs/REFERENCES.md)
 drives the coolant temperature with a discrete PID, ``u_k = u_k0 + kp*e_k + ki*sum(e) +
 kd*(e_k - e_{k-1})``, ``e = RITE - E``, set "empirically" to kp = 2, ki = 0, kd = 50 at 1 s. This
 module gives the alternative a step test affords: fit a first- or second-order-plus-dead-time

@@ -1,6 +1,6 @@
 """Active cooling: hold the thermal error at a set point by steering the chiller. Pure: no I/O.
 
-Paper 000 (``../shared/MODEL.md``) preheats the spindle at a constant coolant temperature; once
+Paper 000 (docs/REFERENCES.md) preheats the spindle at a constant coolant temperature; once
 the estimated error Ê reaches the reference RITE, a PID sets the coolant-temperature instruction
 
     u_k = u_k0 + kp·e_k + ki·Σ e·Δt + kd·(e_k − e_{k−1})/Δt,   e = RITE − Ê,
