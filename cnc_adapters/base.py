@@ -27,7 +27,7 @@ import re
 import time
 import typing
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
@@ -38,9 +38,11 @@ from compensator.errors import (
     AdapterError,
     AdapterTimeoutError,
     BadValueError,
+    MAX_MESSAGE_CHARS,
     ConfigError,
     UnreachableError,
     WriteRejectedError,
+    clip,
 )
 from compensator.units import ControllerUnits
 
@@ -55,10 +57,13 @@ __all__ = [
     "ConfigError",
     "Link",
     "LinkSettings",
+    "Problem",
+    "SettingsError",
     "UnreachableError",
     "WriteRejectedError",
     "build",
     "check_settings",
+    "did_you_mean",
     "option_names",
     "query_params",
     "redact_url",
@@ -341,46 +346,249 @@ def option_names(model: type[BaseModel]) -> list[str]:
     return names
 
 
-def _locate(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[str, str | None, list[str]]:
-    """Where an error is: its dotted key (pydantic's union and type tags left out), the
-    :class:`Allowed` text of that option and the names of the options beside it."""
-    top = model.model_fields.get(str(loc[0])) if loc else None
-    if top is None:
-        return (str(loc[0]) if loc else ""), None, option_names(model)
-    nested = _nested_model(top.annotation)
-    if nested is None:
-        return str(loc[0]), _allowed_of(top), option_names(model)
-    parts = [str(loc[0])]
-    for part in loc[1:]:  # dict keys, then a field of the nested model
-        parts.append(str(part))
-        sub = nested.model_fields.get(str(part))
-        if sub is not None:
-            return ".".join(parts), _allowed_of(sub), option_names(nested)
-    return ".".join(parts), _allowed_of(top), option_names(nested)
+def did_you_mean(word: str, choices: Iterable[str]) -> str | None:
+    """The one "did you mean" of the product: the nearest of ``choices`` to a misspelt ``word``
+    (an adapter, sensor or chiller option, a configuration key, a backend), or None."""
+    near = difflib.get_close_matches(word, list(choices), n=1)
+    return near[0] if near else None
 
 
-def describe(label: str, model: type[BaseModel], err: ValidationError) -> str:
-    """The first error of ``err`` as one line: the key, the value given and what is allowed."""
-    # a misspelt key first: a required option it was meant to be is "missing" only for that
-    errors = sorted(err.errors(), key=lambda x: x["type"] != "extra_forbidden")
-    e = errors[0]
-    key, allowed, beside = _locate(model, tuple(e["loc"]))
-    msg = re.sub(r"^(Value error, |Assertion failed, )", "", e["msg"])
-    others = len({tuple(x["loc"][:1]) for x in errors}) - 1  # a union fails once per member
-    more = f" (and {others} more)" if others > 0 else ""
-    if e["type"] == "extra_forbidden":
-        near = difflib.get_close_matches(key.rpartition(".")[2], beside, n=1)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
-        return f"{label}: unknown option {key!r}{hint}; allowed: {', '.join(beside)}{more}"
-    if not key:  # a check across options
-        return f"{label}: {msg}{more}"
-    if e["type"] == "value_error":  # our own validators say what is allowed
-        allowed = msg
-    if e["type"] == "missing":
-        return f"{label}: {key} is required" + (f": {allowed}" if allowed else "") + more
-    if allowed is None:  # pydantic's own words, then
-        return f"{label}: {key}={short(e.get('input'))}: {msg}{more}"
-    return f"{label}: {key} must be {allowed}, not {short(e.get('input'))}{more}"
+_SECRET_WORDS = ("password", "passwd", "secret", "token", "credential", "private")
+
+
+def names_a_secret(key: str) -> bool:
+    """The key's name (or its table's) says that its value is secret: never echoed."""
+    return any(w in key.lower() for w in _SECRET_WORDS)
+
+
+_ABSENT: Any = object()
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One configuration problem, in the product's one dialect: the key as written (dotted,
+    from the mapping that was checked), the value given, and what is wrong: ``unknown key (did
+    you mean 'x'?)``, ``expected <what is allowed>``, or a check's own sentence."""
+
+    key: str
+    text: str
+    given: Any = _ABSENT
+
+    def under(self, prefix: str) -> Problem:
+        """The same problem, its key inside the table ``prefix``."""
+        return Problem(f"{prefix}.{self.key}" if prefix and self.key else prefix or self.key,
+                       self.text, self.given)
+
+    def line(self, scope: str = "") -> str:
+        """``scope: key = value: text``; a section's value (a table) and a secret's are not echoed."""
+        head = f"{scope}: " if scope else ""
+        if not self.key:
+            return f"{head}{self.text}"
+        table = isinstance(self.given, Mapping) or (
+            isinstance(self.given, (list, tuple)) and any(isinstance(v, Mapping) for v in self.given))
+        shown = not (self.given is _ABSENT or table or names_a_secret(self.key))
+        given = self.given
+        if isinstance(given, str) and "://" not in given:  # user:password@host, no scheme
+            given = re.sub(r"(?s)\A[^@/]*:.*@", "***@", given)
+        return f"{head}{self.key}{' = ' + short(given) if shown else ''}: {self.text}"
+
+
+MAX_PROBLEM_LINES = 20
+
+
+def problem_lines(lines: list[str]) -> str:
+    """Problems one a line, as many as fit one error message (the rest counted)."""
+    out: list[str] = []
+    size = 0
+    for i, line in enumerate(lines):
+        line = clip(line, 300)
+        if i >= MAX_PROBLEM_LINES or size + len(line) > MAX_MESSAGE_CHARS - 60:
+            out.append(f"({len(lines) - i} more problem(s) not shown)")
+            break
+        out.append(line)
+        size += len(line) + 1
+    return "\n".join(out)
+
+
+class SettingsError(ConfigError):
+    """Settings that do not validate: one :class:`Problem` a line, each ``label: key = value:
+    what is wrong``. A configuration that holds these settings (a spindle's ``adapter``, the
+    chiller) re-reads :attr:`problems` under its own key."""
+
+    def __init__(self, label: str, problems: list[Problem]):
+        self.label = label
+        self.problems = tuple(problems)
+        super().__init__(problem_lines([p.line(label) for p in self.problems]))
+
+    def under(self, prefix: str) -> SettingsError:
+        return SettingsError(self.label, [p.under(prefix) for p in self.problems])
+
+
+def _range(field: Any) -> str | None:
+    """A number field's type and bounds in words (``a number > 0 and <= 3600``), or None."""
+    ann = field.annotation
+    kinds = {a for a in (ann, *typing.get_args(ann)) if a in (int, float)}
+    if not kinds:
+        return None
+    words = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
+    bounds = [f"{words[k]} {getattr(m, k):g}" for m in field.metadata for k in words
+              if getattr(m, k, None) is not None]
+    kind = "a whole number" if kinds == {int} else "a number"
+    return " and ".join([f"{kind} {bounds[0]}", *bounds[1:]]) if bounds else kind
+
+
+_PLAIN = {
+    "bool_parsing": "true or false", "bool_type": "true or false",
+    "int_parsing": "a whole number", "int_type": "a whole number", "int_from_float": "a whole number",
+    "float_parsing": "a number", "float_type": "a number", "finite_number": "a finite number",
+    "string_type": "a string", "path_type": "a path (a string)", "list_type": "an array",
+    "tuple_type": "an array", "dict_type": "a table", "model_type": "a table",
+    "model_attributes_type": "a table", "missing": "a value",
+}
+_NUMERIC = {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number",
+            "int_parsing", "int_type", "int_from_float", "float_parsing", "float_type", "multiple_of"}
+
+
+def expected(e: Mapping[str, Any], field: Any = None) -> str:
+    """What the value must be, in words, from pydantic's error type and context and the
+    field's declaration (its :class:`Allowed` text first): never pydantic's own sentence."""
+    if field is not None:
+        allowed = _allowed_of(field)
+        if allowed is not None:
+            return allowed
+    t, ctx = e["type"], e.get("ctx") or {}
+    if t in _NUMERIC and field is not None and (words := _range(field)) is not None:
+        return words
+    if t in _PLAIN:
+        return _PLAIN[t]
+    if t in ("literal_error", "enum"):
+        return f"one of {ctx.get('expected')}"
+    bound = {"greater_than": ("gt", ">"), "greater_than_equal": ("ge", ">="),
+             "less_than": ("lt", "<"), "less_than_equal": ("le", "<="),
+             "multiple_of": ("multiple_of", "a multiple of")}.get(t)
+    if bound is not None:
+        return f"a number {bound[1]} {ctx.get(bound[0])}"
+    if t == "string_too_short":
+        return f"a string of at least {ctx.get('min_length')} character(s)"
+    if t == "string_too_long":
+        return f"a string of at most {ctx.get('max_length')} characters"
+    if t == "string_pattern_mismatch":
+        return f"a string matching {ctx.get('pattern')}"
+    if t == "too_short":
+        return f"at least {ctx.get('min_length')} entr(y/ies)"
+    if t == "too_long":
+        return f"at most {ctx.get('max_length')} entries"
+    # a type this table does not know: pydantic's words without their "Input should be"
+    return re.sub(r"^(Input should be |Value error, |Assertion failed, )", "", str(e.get("msg", t)))
+
+
+def key_names(model: type[BaseModel]) -> list[str]:
+    """The keys ``model`` takes: its options (:func:`option_names` order), then their aliases."""
+    names = option_names(model)
+    for f in model.model_fields.values():
+        for alias in (f.alias, f.validation_alias):
+            if isinstance(alias, str) and alias not in names:
+                names.append(alias)
+    return names
+
+
+def _field(model: Any, key: str) -> Any:
+    if model is None:
+        return None
+    found = model.model_fields.get(key)
+    if found is not None:
+        return found
+    return next((f for f in model.model_fields.values()
+                 if key in (f.alias, f.validation_alias)), None)
+
+
+def _is_table_of(annotation: Any) -> bool:
+    """A free-form table (``dict[str, ...]``), possibly optional: its keys are the user's names."""
+    if typing.get_origin(annotation) in (dict, Mapping):
+        return True
+    return any(_is_table_of(a) for a in typing.get_args(annotation) if a is not type(None))
+
+
+def walk(model: type[BaseModel], data: Any, loc: tuple[Any, ...]) -> tuple[list[str | int], Any, Any]:
+    """The key path of a pydantic error as written in ``data`` (pydantic's union and function
+    tags left out), the model that holds its last key and that key's field (None when unknown)."""
+    path: list[str | int] = []
+    holder: Any = model
+    field: Any = None
+    current: Any = model  # the model the next key belongs to (None inside a free-form table)
+    named = False  # the next key is a name of the user's (a free-form table's), not a field
+    for i, part in enumerate(loc):
+        last = i == len(loc) - 1
+        if isinstance(part, int) and isinstance(data, (list, tuple)):
+            path.append(part)
+            data = data[part] if -len(data) <= part < len(data) else None
+            continue
+        if isinstance(part, str) and isinstance(data, Mapping) and (part in data or last
+                                                                     or _field(current, part)):
+            path.append(part)
+            data = data.get(part)
+            if named:  # the value under the user's name is of the model found before
+                named = False
+                continue
+            holder, field = current, _field(current, part)
+            current = _nested_model(field.annotation) if field is not None else None
+            named = field is not None and _is_table_of(field.annotation)
+            continue
+        # a union member's or a validator's tag: not a key of the file
+    return path, holder, field
+
+
+def dotted(path: list[str | int]) -> str:
+    """``a.b[2].c``: a key path as written in TOML (an array's entries by index)."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else f".{part}" if out else str(part)
+    return out
+
+
+def problems_of(model: type[BaseModel], data: Any, err: ValidationError) -> list[Problem]:
+    """``err`` in the product's dialect: one :class:`Problem` per key (a union fails once per
+    member: the first said), misspelt keys first (a required key it was meant to be is missing
+    only for that). Keys are paths as written in ``data``; a check that raised a
+    :class:`SettingsError` (a nested adapter's or chiller's) gives its own problems, under
+    its key."""
+    out: list[Problem] = []
+    seen: set[tuple[Any, ...]] = set()
+    for e in sorted(err.errors(), key=lambda x: x["type"] != "extra_forbidden"):
+        path, holder, field = walk(model, data, tuple(e["loc"]))
+        if tuple(path) in seen:
+            continue
+        seen.add(tuple(path))
+        key = dotted(path)
+        given = e.get("input", _ABSENT)
+        inner = (e.get("ctx") or {}).get("error")
+        if isinstance(inner, SettingsError):
+            out += [p.under(key) for p in inner.problems]
+        elif e["type"] == "extra_forbidden":
+            choices = key_names(holder) if holder is not None else []
+            near = did_you_mean(str(path[-1]) if path else "", choices)
+            text = (f"unknown key (did you mean {near!r}?)" if near
+                    else "unknown key; allowed: " + ", ".join(choices) if choices else "unknown key")
+            out.append(Problem(key, text, given))
+        elif e["type"] == "missing":
+            want = expected(e, field)
+            out.append(Problem(key, "required key missing" + (f"; expected {want}" if want != "a value" else "")))
+        elif e["type"] in ("value_error", "assertion_error"):  # our own checks say what is wrong
+            text = str(inner) if inner is not None else expected(e)
+            # a settings model's field check says what is allowed ("+1 or -1", as the old "must
+            # be" messages did); the configuration's checks, and checks across keys, what is wrong
+            allowed = field is not None and (_allowed_of(field) is not None
+                                             or holder.model_config.get("hide_input_in_errors") is True)
+            out.append(Problem(key, f"expected {text}" if allowed else text, given))
+        else:
+            out.append(Problem(key, f"expected {expected(e, field)}", given))
+    return out
+
+
+def describe(label: str, model: type[BaseModel], data: Any, err: ValidationError) -> SettingsError:
+    """``err`` as a :class:`SettingsError`: one line per problem, each ``label: key = value:
+    what is wrong``."""
+    return SettingsError(label, problems_of(model, data, err))
 
 
 def check_settings(label: str, model: type[BaseModel], options: Mapping[str, Any]) -> BaseModel:
@@ -390,12 +598,13 @@ def check_settings(label: str, model: type[BaseModel], options: Mapping[str, Any
     for key in sorted(RUNTIME_ONLY & options.keys()):
         # plain data under such a key came from a file or a URL, where it means nothing
         if isinstance(options[key], (str, bytes, int, float, list, tuple, dict)):
-            raise ConfigError(f"{label}: {key!r} is no configuration option (the running program "
-                              f"passes its own), not {short(options[key])}")
+            raise SettingsError(label, [Problem(key, "no configuration option (the running "
+                                                "program passes its own)", options[key])])
+    data = {k: v for k, v in options.items() if k not in RUNTIME_ONLY}
     try:
-        return model.model_validate({k: v for k, v in options.items() if k not in RUNTIME_ONLY})
+        return model.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(describe(label, model, err)) from err
+        raise describe(label, model, data, err) from err
 
 
 def build(label: str, cls: Any, options: Mapping[str, Any]) -> Any:
@@ -419,7 +628,7 @@ def construct(label: str, factory: Any, *args: Any, **kw: Any) -> Any:
         m = re.search(r"unexpected keyword argument '(\w+)'", str(err))
         if m is None:
             raise
-        raise ConfigError(f"{label}: unknown option {m.group(1)!r}") from err
+        raise SettingsError(label, [Problem(m.group(1), "unknown key")]) from err
 
 
 # -- the adapter --------------------------------------------------------------------------

@@ -472,19 +472,19 @@ def test_every_backend_declares_its_settings():
     ("modbus", {"host": "h", "port": "/dev/ttyUSB0"}, "port must be a TCP port 1..65535"),
     ("modbus", {"transport": "rtu"}, "transport rtu needs port"),
     ("modbus", {"transport": "rtu", "port": "/dev/ttyUSB0", "host": "h"}, "takes no host"),
-    ("modbus", {"host": "h", "transport": "udp"}, "transport must be one of 'tcp', 'rtu'"),
-    ("modbus", {"host": "h", "data_type": "int32"}, "data_type must be one of 'int16', 'float32'"),
-    ("modbus", {"host": "h", "scale_c": 0}, "scale_c must be a finite number other than 0"),
-    ("modbus", {"host": "h", "timeout_s": math.nan}, "timeout_s must be a number > 0"),
+    ("modbus", {"host": "h", "transport": "udp"}, "transport = 'udp': expected one of 'tcp', 'rtu'"),
+    ("modbus", {"host": "h", "data_type": "int32"}, "data_type = 'int32': expected one of 'int16', 'float32'"),
+    ("modbus", {"host": "h", "scale_c": 0}, "scale_c = 0: expected a finite number other than 0"),
+    ("modbus", {"host": "h", "timeout_s": math.nan}, "timeout_s = nan: expected a number > 0"),
     ("modbus", {"host": "h", "min_c": 30, "max_c": 20}, "min_c < max_c"),
     ("modbus", {"host": "h", "max_c": 400}, "within -50..150"),
     ("modbus", {"host": "h", "supply_table": "holding", "data_type": "float32",
                 "setpoint_register": 10, "supply_register": 11}, "overlap"),
-    ("modbus", {"host": "h", "plant": "p"}, "unknown option 'plant'"),
-    ("opcua", {"url": "opc.tcp://h:4840", "setpoint_node": "ns=2;s=S"}, "supply_node is required"),
+    ("modbus", {"host": "h", "plant": "p"}, "plant = 'p': unknown key; allowed: transport, host, "),
+    ("opcua", {"url": "opc.tcp://h:4840", "setpoint_node": "ns=2;s=S"}, "supply_node: required key missing; expected a non-empty string"),
     ("opcua", {"url": "opc.tcp://u:secret@h:4840", "setpoint_node": "a", "supply_node": "b"},
      "carries a password"),
-    ("virtual", {"min_c": "cold"}, "min_c must be a finite number"),
+    ("virtual", {"min_c": "cold"}, "min_c = 'cold': expected a finite number"),
     ("virtual", [1, 2], "settings must be a table"),
 ])
 def test_a_bad_setting_is_one_config_error_line(backend, settings, message):
@@ -496,7 +496,7 @@ def test_a_bad_setting_is_one_config_error_line(backend, settings, message):
 
 
 def test_objects_never_come_in_the_settings(plant):
-    with pytest.raises(ConfigError, match="'clock' is no configuration option"):
+    with pytest.raises(ConfigError, match="clock = 1: no configuration option"):
         open_chiller("virtual", {"clock": 1}, plant=plant)
     with pytest.raises(ConfigError, match="both as settings and as objects"):
         open_chiller("virtual", {"min_c": 6.0}, plant=plant, min_c=7.0)

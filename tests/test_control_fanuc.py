@@ -247,7 +247,7 @@ def test_settings_are_checked_in_one_line():
                        ({"port": 70000}, "port")]:
         with pytest.raises(ConfigError, match=words):
             open_adapter({"type": "focas", "host": "h", **bad})
-    with pytest.raises(ConfigError, match="host is required"):
+    with pytest.raises(ConfigError, match="host: required key missing"):
         open_adapter({"type": "focas"})
 
 

@@ -6,6 +6,7 @@ See ``examples/machine.toml`` for an annotated example.
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -14,7 +15,7 @@ from urllib.parse import urlsplit
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from cnc_adapters import check_adapter
-from cnc_adapters.base import short
+from cnc_adapters.base import Problem, SettingsError, problem_lines, problems_of, short
 from cnc_adapters.chiller import check_chiller
 from cnc_adapters.control_profiles import ControllerProfile, control_count_um, profile
 from compensator.cooling_law import CoolingLaw, PidGains
@@ -307,7 +308,10 @@ class CoolingConfig(BaseModel):
             raise ValueError("cooling needs rite_um (thermocomp cooling rite suggests one)")
         if not isinstance(self.chiller.get("type"), str):
             raise ValueError("cooling.chiller needs a 'type' (modbus, opcua, virtual)")
-        check_chiller(self.chiller["type"], self.chiller_options)
+        try:
+            check_chiller(self.chiller["type"], self.chiller_options)
+        except SettingsError as err:  # its keys, as written: under chiller
+            raise err.under("chiller") from None
         self.law()  # the limits agree
         return self
 
@@ -482,12 +486,33 @@ class RuntimeConfig(BaseModel):
         return self.journal_dir or self.state_dir / "journal"
 
 
-_SECRET_WORDS = ("password", "passwd", "secret", "token", "credential", "private")
+_SPINDLE_KEY = re.compile(r"^spindle\[(\d+)\](?:\.(.*))?\Z", re.S)
 
 
-def _names_a_secret(loc: tuple[Any, ...]) -> bool:
-    """The key's name (or its table's) says that its value is secret: never echoed."""
-    return any(w in str(part).lower() for part in loc for w in _SECRET_WORDS)
+def _spindle_scope(data: Any, index: int) -> str:
+    """A ``[[spindle]]`` entry by its name as written (by its place when it has none)."""
+    entries = data.get("spindle") if isinstance(data, dict) else None
+    entry = entries[index] if isinstance(entries, list) and index < len(entries) else None
+    name = entry.get("name") if isinstance(entry, dict) else None
+    if not isinstance(name, str):
+        return f"spindle #{index + 1} (no name)"
+    return f'spindle "{name}"' if re.fullmatch(r"[\w.-]{1,64}", name) else f"spindle {short(name)}"
+
+
+def config_line(path: Path, data: Any, problem: Problem) -> str:
+    """One problem of a configuration file in the product's dialect: the file, the spindle by
+    name, the key as written inside it, the value given and what is wrong."""
+    m = _SPINDLE_KEY.match(problem.key)
+    if m is None:
+        return problem.line(str(path))
+    inside = Problem(m.group(2) or "", problem.text, problem.given)
+    return inside.line(f"{path}: {_spindle_scope(data, int(m.group(1)))}")
+
+
+def config_error(path: Path, data: Any, err: ValidationError) -> ConfigError:
+    """Every problem ``err`` holds, one line each (:func:`config_line`)."""
+    return ConfigError(problem_lines([config_line(path, data, p)
+                                      for p in problems_of(RuntimeConfig, data, err)]))
 
 
 def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
@@ -520,17 +545,11 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     try:
         cfg = RuntimeConfig.model_validate(data)
     except ValidationError as err:
-        e = err.errors()[0]
-        where = ".".join(str(x) for x in e["loc"])
-        more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
-        if e["type"] == "value_error":  # our own validators: their message says it all
-            msg, given = str(e.get("ctx", {}).get("error", e["msg"])), ""
-        else:
-            msg = e["msg"]
-            given = "" if e["type"] == "missing" or _names_a_secret(e["loc"]) \
-                else f" (given {short(e.get('input'))})"
-        raise ConfigError(clip(f"{p}: {where}: {msg}{given}{more}", 400)) from err
+        raise config_error(p, data, err) from err
     names = [s.name for s in cfg.spindle]
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{p}: spindle names must be unique")
+    twice = [(i, n) for i, n in enumerate(names) if n in names[:i]]
+    if twice:
+        raise ConfigError(problem_lines([config_line(p, data, Problem(
+            f"spindle[{i}].name", "another [[spindle]] has this name: names must be unique", n))
+            for i, n in twice]))
     return cfg
