@@ -115,12 +115,13 @@ class _OldSpelling(argparse.Action):
 
 
 class _NoLongerNeeded(argparse.Action):
-    """A former option that does nothing now: hidden, accepted with the deprecation line and
-    why, so that old scripts keep running for one release."""
+    """A former option that does nothing now: hidden, accepted (with its value, if it took one)
+    with the deprecation line and why, so that old scripts keep running for one release."""
 
-    def __init__(self, option_strings: list[str], dest: str, why: str, **_: object) -> None:
-        super().__init__(option_strings, argparse.SUPPRESS, nargs=0, default=argparse.SUPPRESS,
-                         help=argparse.SUPPRESS)
+    def __init__(self, option_strings: list[str], dest: str, why: str, nargs: int | str | None = 0,
+                 choices: Sequence[str] | None = None, **_: object) -> None:
+        super().__init__(option_strings, argparse.SUPPRESS, nargs=nargs, choices=choices, metavar="VALUE",
+                         default=argparse.SUPPRESS, help=argparse.SUPPRESS)
         self.why = why
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
@@ -230,15 +231,16 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_fit(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("fit", help="fit and validate a model from calibration runs")
+    p = sub.add_parser("fit", help="fit and validate a model from calibration runs",
+                       description="Baseline, physical form and ridge filter banks, scored by "
+                       "leave-one-cycle-out free run; the best one is written.")
     p.add_argument("runs", nargs="+", help="calibration run logs (CSV)")
     p.add_argument("--output", required=True, help="model file to write (JSON)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     _old(p, "--spindle-id", p.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID", help=MODEL_SPINDLE_ID_HELP))
     p.add_argument("--machine-id", default=None, help="machine id stored in the model")
-    p.add_argument("--method", choices=["cycles"], default="cycles",
-                   help="cycles (the only method): baseline, physical form and ridge filter banks "
-                   "scored by leave-one-cycle-out free run")
+    p.add_argument("--method", action=_NoLongerNeeded, nargs=None, choices=("cycles",),
+                   why="cycles, the only method, is what fit does")
     p.add_argument("--plot", help="write a PNG plot of the fit")
     p.add_argument("--inputs", help="extra run-log columns to use as inputs, comma separated, or "
                    "'all' (temperatures, spindle load, ambient); kept only if they help in "
@@ -287,9 +289,9 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
                    help="paper 000's scenario: %(choices)s (repeat; default all)")
     c.add_argument("--gains", action="append", choices=GAINS, help="gain sets (default both)")
     c.add_argument("--dt", type=float, default=1.0, help="control period [s] (the paper: 1 s)")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--seed", type=int, default=0, help="random seed (noise, ambient)")
     c.add_argument("--plot", default=None, help="PNG to write")
-    c.add_argument("--json", action="store_true")
+    c.add_argument("--json", action="store_true", help="print the figures as JSON")
     c.set_defaults(handler="calibration.cooling_commands:compare")
     t = cs.add_parser("tune", help="identify the chiller -> elongation step response and derive SIMC gains")
     t.add_argument("--preset", default="mechanical-cooled", choices=PRESETS, metavar="PRESET", help=PRESET_HELP)
@@ -300,7 +302,7 @@ def _add_cooling(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--plot", default=None, help="PNG: the fit and the closed-loop step responses")
     t.set_defaults(handler="calibration.cooling_commands:tune")
     r = cs.add_parser("rite", help="suggest RITE: the model's steady elongation at a journal's speed mix")
-    r.add_argument("--model", required=True)
+    r.add_argument("--model", required=True, help="model file (JSON)")
     r.add_argument("--input", action="append", help="NAME=VALUE for a model with inputs")
     r.add_argument("journal", nargs="+", help="journal or run-log files (time_s, speed_rpm)")
     r.set_defaults(handler="calibration.cooling_commands:rite")
@@ -450,10 +452,10 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--new", action="store_true", help="start a new session (the old one is kept aside)")
     p.add_argument("--resume", action="store_true", help="resume the session without asking")
     g = p.add_argument_group("1 identify")
-    g.add_argument("--machine-id")
+    g.add_argument("--machine-id", metavar="ID", help="the machine, in the model and the session's path")
     _old(g, "--spindle-id", g.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID",
                                            help=MODEL_SPINDLE_ID_HELP))
-    g.add_argument("--max-rpm", type=float)
+    g.add_argument("--max-rpm", type=float, help="the spindle's maximum speed [rpm]")
     g.add_argument("--source", choices=["sensor", "tool-setter", "import"],
                    help="live eddy-current sensor; the machine's tool setter alone (the program stops for it "
                    "every few minutes, the controller link reads it); or import DAQ CSV logs")
@@ -468,8 +470,9 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--cooldown-min", type=float, help="cool-down at 0 rpm [min] (default 60)")
     g.add_argument("--validation", dest="validation", action="store_true", default=None,
                    help="also record a different validation profile")
-    g.add_argument("--no-validation", dest="validation", action="store_false")
-    g.add_argument("--validation-seed", type=int, default=1)
+    g.add_argument("--no-validation", dest="validation", action="store_false",
+                   help="calibration run only (the fit is judged by cross-validation)")
+    g.add_argument("--validation-seed", type=int, default=1, help="seed of the random validation profile")
     g.add_argument("--probe-every-min", type=float,
                    help="--source tool-setter: minutes between tool-setter stops (default: planned from the "
                    "step and the fastest time constant)")
@@ -500,13 +503,13 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--import-calibration", help="DAQ CSV of the calibration run (--source import)")
     g.add_argument("--import-validation", help="DAQ CSV of the validation run (--source import)")
     g.add_argument("--import-time-column", default="time_s", help="seconds or ISO date-times")
-    g.add_argument("--import-displacement-column", default="displacement_um")
+    g.add_argument("--import-displacement-column", default="displacement_um", help="displacement column in the DAQ file")
     g.add_argument("--import-speed-column", help="speed column in the DAQ file, if it has one")
     g.add_argument("--import-speed-log", help="else a controller run log (time_s,speed_rpm) on the same clock")
     g.add_argument("--import-scale", type=float, default=1.0, help="um per DAQ unit (negative for a gap probe)")
-    g.add_argument("--import-offset-um", type=float, default=0.0)
+    g.add_argument("--import-offset-um", type=float, default=0.0, help="added after --import-scale [um]")
     g = p.add_argument_group("5 save")
-    g.add_argument("--report-format", choices=["html", "md"], default="html")
+    g.add_argument("--report-format", choices=["html", "md"], default="html", help="the calibration report's format")
     p.add_argument("--time-scale", type=_time_scale, default=1.0,
                    help="the virtual machine tool only, which runs faster than the wall clock: its simulated "
                    "seconds per wall second, as given to `thermocomp virtual-cnc --time-scale` (durations are then "
