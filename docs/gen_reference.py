@@ -286,14 +286,12 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
         else:
             metavar = action.metavar or action.dest
             names = f"`{metavar if isinstance(metavar, str) else ' '.join(metavar)}`"
-        text = action.help or ""
-        if "%(" in text:
-            try:
-                text = text % {**vars(action), "prog": parser.prog,
-                               "default": action.default}
-            except (KeyError, TypeError, ValueError):
-                pass
-        if action.choices and not isinstance(action.choices, dict):
+        raw = action.help or ""
+        try:  # argparse's own expansion of %(default)s, %(choices)s, %(prog)s
+            text = parser._get_formatter()._expand_help(action) if "%(" in raw else raw
+        except (KeyError, TypeError, ValueError, AttributeError):
+            text = raw
+        if action.choices and not isinstance(action.choices, dict) and "%(choices)" not in raw:
             text += " (one of: " + ", ".join(f"`{c}`" for c in action.choices) + ")"
         default = action.default
         if (action.option_strings and default not in (None, False, argparse.SUPPRESS)

@@ -93,7 +93,7 @@ def test_every_alarm_has_a_troubleshooting_entry():
     for alarm in Alarm:
         if alarm.value:
             body = text.split(f"### {alarm.name}\n", 1)[1].split("\n### ", 1)[0]
-            assert f"Bit {alarm.value}." in body, alarm.name
+            assert f"Bit {alarm.value} in" in body, alarm.name
             assert "**Means:**" in body and "**Does:**" in body and "**You:**" in body, alarm.name
 
 
