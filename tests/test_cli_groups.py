@@ -107,7 +107,8 @@ def parsed(capsys, argv: list[str]) -> tuple[dict, str]:
 OLD_AND_NEW = [
     (["fit", "r.csv", "--output", "m.json", "--spindle-id", "s1"],
      ["fit", "r.csv", "--output", "m.json", "--model-spindle-id", "s1"], "'--spindle-id'", "'--model-spindle-id'"),
-    (["wizard", "--spindle-id", "s1"], ["wizard", "--model-spindle-id", "s1"], "'--spindle-id'", "'--model-spindle-id'"),
+    (["wizard", "--spindle-id", "s1"], ["wizard", "--model-spindle-id", "s1"],
+     "'--spindle-id'", "'--model-spindle-id'"),
     (["probe-program", "--dialect", "fanuc", "--spindle", "low"],
      ["probe-program", "--dialect", "fanuc", "--probe-spindle", "low"], "'--spindle'", "'--probe-spindle'"),
     (["model", "FILE"], ["model", "show", "FILE"], "'thermocomp model FILE'", "'thermocomp model show FILE'"),

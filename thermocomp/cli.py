@@ -68,7 +68,7 @@ class _IntermixedParser(_Parser):
 class _ModelParser(_Parser):
     """``model`` also takes its earlier forms, for one release: ``model FILE`` (now ``model show
     FILE``), ``model --schema`` (now ``model schema``), and options before the action
-    (``model --json check FILE``), which argparse gives no subcommand."""
+    (``model --json check FILE``), which a subcommand's own parser would not take."""
 
     def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
         return super().parse_known_args(self._current_form(list(args or ())), namespace)
@@ -237,7 +237,8 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     p.add_argument("runs", nargs="+", help="calibration run logs (CSV)")
     p.add_argument("--output", required=True, help="model file to write (JSON)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    _old(p, "--spindle-id", p.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID", help=MODEL_SPINDLE_ID_HELP))
+    _old(p, "--spindle-id", p.add_argument("--model-spindle-id", dest="spindle_id", metavar="ID",
+                                           help=MODEL_SPINDLE_ID_HELP))
     p.add_argument("--machine-id", default=None, help="machine id stored in the model")
     p.add_argument("--method", action=_NoLongerNeeded, nargs=None, choices=("cycles",),
                    why="cycles, the only method, is what fit does")
@@ -503,13 +504,15 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--import-calibration", help="DAQ CSV of the calibration run (--source import)")
     g.add_argument("--import-validation", help="DAQ CSV of the validation run (--source import)")
     g.add_argument("--import-time-column", default="time_s", help="seconds or ISO date-times")
-    g.add_argument("--import-displacement-column", default="displacement_um", help="displacement column in the DAQ file")
+    g.add_argument("--import-displacement-column", default="displacement_um",
+                   help="displacement column in the DAQ file")
     g.add_argument("--import-speed-column", help="speed column in the DAQ file, if it has one")
     g.add_argument("--import-speed-log", help="else a controller run log (time_s,speed_rpm) on the same clock")
     g.add_argument("--import-scale", type=float, default=1.0, help="um per DAQ unit (negative for a gap probe)")
     g.add_argument("--import-offset-um", type=float, default=0.0, help="added after --import-scale [um]")
     g = p.add_argument_group("5 save")
-    g.add_argument("--report-format", choices=["html", "md"], default="html", help="the calibration report's format")
+    g.add_argument("--report-format", choices=["html", "md"], default="html",
+                   help="the calibration report's format")
     p.add_argument("--time-scale", type=_time_scale, default=1.0,
                    help="the virtual machine tool only, which runs faster than the wall clock: its simulated "
                    "seconds per wall second, as given to `thermocomp virtual-cnc --time-scale` (durations are then "
