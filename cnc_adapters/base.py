@@ -17,7 +17,6 @@ Backends are registered by name in :mod:`cnc_adapters.registry`.
 
 from __future__ import annotations
 
-import difflib
 import inspect
 import logging
 import math
@@ -27,7 +26,7 @@ import re
 import time
 import typing
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
@@ -43,6 +42,8 @@ from compensator.errors import (
     UnreachableError,
     WriteRejectedError,
     clip,
+    did_you_mean,
+    unknown,
 )
 from compensator.units import ControllerUnits
 
@@ -346,13 +347,6 @@ def option_names(model: type[BaseModel]) -> list[str]:
     return names
 
 
-def did_you_mean(word: str, choices: Iterable[str]) -> str | None:
-    """The one "did you mean" of the product: the nearest of ``choices`` to a misspelt ``word``
-    (an adapter, sensor or chiller option, a configuration key, a backend), or None."""
-    near = difflib.get_close_matches(word, list(choices), n=1)
-    return near[0] if near else None
-
-
 _SECRET_WORDS = ("password", "passwd", "secret", "token", "credential", "private")
 
 
@@ -569,7 +563,8 @@ def problems_of(model: type[BaseModel], data: Any, err: ValidationError) -> list
             near = did_you_mean(str(path[-1]) if path else "", choices)
             text = (f"unknown key (did you mean {near!r}?)" if near
                     else "unknown key; allowed: " + ", ".join(choices) if choices else "unknown key")
-            out.append(Problem(key, text, given))
+            # a misspelt secret's value is as secret as the one it was meant to be
+            out.append(Problem(key, text, _ABSENT if near and names_a_secret(near) else given))
         elif e["type"] == "missing":
             want = expected(e, field)
             out.append(Problem(key, "required key missing" + (f"; expected {want}" if want != "a value" else "")))

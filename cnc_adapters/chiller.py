@@ -58,6 +58,7 @@ from .base import (
     construct,
     one_of,
     short,
+    unknown,
 )
 from .modbus import Order, Parity, Register, Table
 from .opcua import OpcUaLink, OpcUaLinkSettings
@@ -475,7 +476,7 @@ def check_chiller(backend: str, settings: Mapping[str, Any]) -> BaseModel:
     (the key, the value, what is allowed) for an unknown backend or a bad option."""
     cls = CHILLERS.get(backend)
     if cls is None:
-        raise ConfigError(f"unknown chiller backend {short(backend)}; known: {', '.join(CHILLERS)}")
+        raise ConfigError(unknown("chiller backend", backend, CHILLERS))
     if not isinstance(settings, Mapping):
         raise ConfigError(f"{backend} chiller: settings must be a table of options, "
                           f"not {type(settings).__name__}")

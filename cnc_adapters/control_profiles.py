@@ -30,7 +30,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from compensator.errors import ConfigError
+from compensator.errors import ConfigError, unknown
 from compensator.units import ControllerUnits
 
 __all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "control_count_um", "profile"]
@@ -303,7 +303,7 @@ def profile(name: str) -> ControllerProfile:
     try:
         return PROFILES[name]
     except (KeyError, TypeError):
-        raise ConfigError(f"unknown controller profile {name!r}; known: {', '.join(PROFILES)}") from None
+        raise ConfigError(unknown("controller profile", name, PROFILES)) from None
 
 
 def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from .base import (
     construct,
     query_params,
     redact_url,
+    unknown,
     url_has_password,
 )
 from .control_profiles import adapter_settings
@@ -66,7 +67,7 @@ def backend(name: str) -> type[Adapter]:
         if ep.name == name:
             return ep.load()
     known = sorted(set(BACKENDS) | {ep.name for ep in plugins})
-    raise ConfigError(f"unknown adapter {name!r}; known: {', '.join(known)}")
+    raise ConfigError(unknown("adapter", name, known))
 
 
 def settings_model(kind: str) -> type[BaseModel] | None:

@@ -6,7 +6,10 @@ callers that only know ``ValueError`` or ``OSError`` still catch them.
 
 from __future__ import annotations
 
+import difflib
 import re
+from collections.abc import Iterable
+from typing import Any
 
 MAX_MESSAGE_CHARS = 2000
 """An error's message is clipped to this on construction: a huge bad value echoed back
@@ -54,6 +57,21 @@ def clip(text: str, limit: int = 300) -> str:
         keep -= max(1, (len(head) - room) // _WIDEST)
         head = _one_line(body[:keep])
     return f"{head}... ({len(body) - keep + cut_before} characters cut)"
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str | None:
+    """The one "did you mean" of the product: the nearest of ``choices`` to a misspelt ``word``
+    (an adapter, sensor or chiller option, a configuration key, a backend), or None."""
+    near = difflib.get_close_matches(word, list(choices), n=1)
+    return near[0] if near else None
+
+
+def unknown(what: str, name: Any, known: Iterable[str]) -> str:
+    """``unknown <what> 'x' (did you mean 'y'?); known: ...``: a name that is not one of ``known``."""
+    names = list(known)
+    near = did_you_mean(name, names) if isinstance(name, str) else None
+    return f"unknown {what} {name!r}" + (f" (did you mean {near!r}?)" if near else "") + \
+        f"; known: {', '.join(names)}"
 
 
 class ThermocompError(Exception):

@@ -66,7 +66,7 @@ def test_a_profile_presets_the_adapter_and_fixes_the_units():
         check_adapter({"profile": "sinumerik", "url": "opc.tcp://h:4840"})
     with pytest.raises(ConfigError, match="no route 'modbus'; known: opcua, s7"):
         adapter_settings({"profile": "sinumerik", "route": "modbus"})
-    with pytest.raises(ConfigError, match="unknown controller profile 'fanucc'; known: sinumerik"):
+    with pytest.raises(ConfigError, match="unknown controller profile 'fanucc' \\(did you mean 'fanuc'\\?\\); known: sinumerik"):
         adapter_settings({"profile": "fanucc"})
     with pytest.raises(ConfigError, match="profile 'linuxcnc' is for axis_units = 'mm'"):
         adapter_settings({"profile": "linuxcnc", "axis_units": "inch"})
