@@ -320,9 +320,9 @@ def _cli_section(name: str, help_: str, parser: argparse.ArgumentParser, depth: 
 
 
 def cli_page() -> str:
-    from thermocomp.cli import build_parser
+    from thermocomp import cli
 
-    parser = build_parser()
+    parser = cli.build_parser()
     out = [
         "# Command line",
         "",
@@ -330,12 +330,24 @@ def cli_page() -> str:
         "its usage and its arguments, as `thermocomp COMMAND --help` prints them. Errors are one",
         "line on stderr with exit status 2.",
         "",
-        "| command | what it does |",
-        "| --- | --- |",
     ]
-    for name, help_, sub in _subparsers(parser):
-        out.append(f"| [`{name}`](#{sub.prog.replace(' ', '-')}) | {_cell(help_)} |")
-    out.append("")
+    commands = _subparsers(parser)
+    # the audiences `thermocomp --help` groups the commands by, where the parser declares them
+    groups = [(title, list(names)) for title, names in getattr(cli, "GROUPS", ())]
+    grouped = {n for _, names in groups for n in names}
+    rest = [name for name, _, _ in commands if name not in grouped]
+    if rest:
+        groups.append(("other commands" if groups else "", rest))
+    by_name = {name: (help_, sub) for name, help_, sub in commands}
+    for title, names in groups:
+        if title:
+            out += [f"**{title[0].upper()}{title[1:]}**", ""]
+        out += ["| command | what it does |", "| --- | --- |"]
+        for name in names:
+            if name in by_name:
+                help_, sub = by_name[name]
+                out.append(f"| [`{name}`](#{sub.prog.replace(' ', '-')}) | {_cell(help_)} |")
+        out.append("")
     for name, help_, sub in _subparsers(parser):
         _cli_section(name, help_, sub, 2, out)
     return "\n".join(out) + "\n"
