@@ -222,6 +222,8 @@ def test_cold_start_on_a_turning_spindle_alarms_until_settled(tmp_path, calibrat
     s1 = svc.snapshot["spindles"][0]
     assert "COLD_START_TURNING" in s1["alarms"] and s1["state"] == "compensating"
     assert s1["state_reason"].startswith("estimate unsettled after a cold start on a turning spindle (until ")
+    # the status line counts it as compensating, and says on what
+    assert svc.snapshot["status"].startswith("compensating 1 spindle(s); s1 compensating: estimate unsettled")
     tau = slowest_tau_s(rt.estimate.model)
     assert tau is not None and 300 < tau < 86400
     # settled: 3 slowest time constants after the first cycle (the default cold_start_settle_taus)

@@ -131,6 +131,7 @@ def test_page_plots_live_and_shows_a_refused_reload(tmp_path, calibrated_model):
         assert now["updates"] > first["updates"] and now["points"] > first["points"]
         assert now["plotted"] >= first["plotted"] and now["spindle"] == "s1"
         assert now["state"] == "live" and now["offline"] is None and now["conn"] == "live"
+        assert now["spindle_state"] == "compensating"  # the service's state for s1, as the page shows it
         assert "RELOAD_FAILED" not in now["alarms"]
         if not now["alarms"]:
             assert now["banner"] == "no alarms"

@@ -449,7 +449,8 @@ class Service:
             head = f"NOT compensating (0 of {len(states)} spindle(s))"
         else:
             head = f"compensating {len(good)} of {len(states)} spindle(s)"
-        notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating]
+        # a spindle that compensates with a caveat (an unsettled cold start) is named too
+        notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating or st.reason]
         notes += ["reload refused, running the previous configuration"] if self.reload_failed else []
         notes += [f"{name}: cycles failing" for name in self._failing]
         notes += [f"{what} not started (see the log)" for what in self.not_started]
