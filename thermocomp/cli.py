@@ -584,7 +584,11 @@ def _add_status(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token-file", help="a file holding the token")
     p.add_argument("--json", action="store_true", help="print the endpoint's JSON as it came")
     p.add_argument("--timeout-s", type=float, default=10.0, help="wait this long for the answer")
-    p.add_argument("--exit-code", action="store_true", help="exit 1 while any alarm is raised")
+    p.add_argument("--exit-code", action="store_true",
+                   help="exit status by what the service says: 0 every spindle compensating and no alarm; "
+                   "1 an alarm raised (the chiller's too) or a spindle holding; 3 a spindle not writing "
+                   "(link down, or no offset through for faults.not_writing_cycles cycles); 2 the status "
+                   "could not be read")
     p.set_defaults(handler="thermocomp.commands.status:main")
 
 
