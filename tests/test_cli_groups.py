@@ -192,3 +192,13 @@ def test_replay_applied_changes_nothing_in_what_replay_does(capsys):
     assert not hasattr(args, "applied") and "does nothing" in capsys.readouterr().err
     replay = next(p for prog, p in parsers(build_parser()) if prog == "thermocomp replay")
     assert "--applied" not in replay.format_help()
+
+
+def test_a_value_set_the_slim_install_cannot_load_is_the_extras_one_line():
+    """The plant's presets need scipy: without it, `simulate --preset` and `simulate --help` say
+    which extra brings it, as the command itself would."""
+    for argv in (["simulate", "--preset", "motorized-27k", "--output", "x.csv"], ["simulate", "--help"]):
+        code = f"import sys; sys.modules['scipy'] = None; from thermocomp.cli import main; sys.exit(main({argv!r}))"
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+        assert "pip install 'thermocomp[calibration]'" in r.stderr and r.stdout == ""

@@ -691,9 +691,23 @@ class _EarlySignals:
             self.stop = True
 
 
+def _needs_extra(err: ModuleNotFoundError, command: str) -> int:
+    """A library of an optional extra is missing: say which extra brings it, in one line."""
+    extra = EXTRA_OF.get((err.name or "").partition(".")[0])
+    if extra is None:
+        raise err
+    fail(f"thermocomp {command} needs {err.name}, which comes with the '{extra}' extra: "
+         f"pip install 'thermocomp[{extra}]'")
+    return 2
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except ModuleNotFoundError as err:  # a value set (_Choices) lives in a layer the slim install cannot load
+        words = sys.argv[1:] if argv is None else argv
+        return _needs_extra(err, next((w for w in words if not w.startswith("-")), ""))
     if getattr(args, "command", None) == "run" and not getattr(args, "check", False):
         args.early_signals = _EarlySignals()
     if args.version:
@@ -727,12 +741,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("thermocomp: interrupted", file=sys.stderr)
         return 130
     except ModuleNotFoundError as err:
-        extra = EXTRA_OF.get((err.name or "").partition(".")[0])
-        if extra is None:
-            raise
-        fail(f"thermocomp {args.command} needs {err.name}, which comes with the '{extra}' extra: "
-             f"pip install 'thermocomp[{extra}]'")
-        return 2
+        return _needs_extra(err, args.command)
     except Exception as err:
         if not getattr(args, "json", False):
             raise
