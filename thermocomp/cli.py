@@ -348,7 +348,7 @@ def _add_hal_plant(sub: argparse._SubParsersAction) -> None:
 
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the compensation service")
-    p.add_argument("--config", required=True, help="runtime configuration (TOML)")
+    p.add_argument("--config", required=True, metavar="RUNTIME.toml", help="the runtime configuration")
     p.add_argument("--check", action="store_true",
                    help="validate, connect, read one speed, and exit without writing")
     p.set_defaults(handler="thermocomp.runtime.service:main")
@@ -365,7 +365,7 @@ def _add_measure(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spindle", metavar="NAME", help=f"{SPINDLE_HELP} (default: the only one with an observer)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--state-dir", help="the service's state directory (default /var/lib/thermocomp)")
-    g.add_argument("--config", help="or the runtime configuration that names it")
+    g.add_argument("--config", metavar="RUNTIME.toml", help="or the runtime configuration that names it")
     p.add_argument("--timeout-s", type=float, help="wait this long for the answer (default 60)")
     p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
     p.set_defaults(handler="thermocomp.runtime.service:measure")
