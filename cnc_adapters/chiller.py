@@ -388,26 +388,28 @@ class OpcUaChiller(OpcUaLink, Chiller):
     def _on_connected(self, client: Any, ns: str) -> None:
         self._setpoint = self._resolve_ref(client, self.setpoint_ref, ns, "setpoint_node")
         self._supply = self._resolve_ref(client, self.supply_ref, ns, "supply_node")
-        variant = self._call("read set point type", self._setpoint.read_data_type_as_variant_type)
+        variant = self._call("read set point node type", self._setpoint.read_data_type_as_variant_type,
+                             node=self._setpoint)
         if variant.name not in _INTEGER_VARIANTS and variant.name not in _FLOAT_VARIANTS:
             raise AdapterError(f"opcua chiller: setpoint_node {self.setpoint_ref} holds "
                                f"{variant.name}, not a number")
         self._variant = variant
         self.raw_range = _INTEGER_VARIANTS.get(variant.name)
-        self._call("read supply node", self._supply.read_value)
+        self._call("read supply node", self._supply.read_value, node=self._supply)
 
     def _write_setpoint_raw(self, raw: float) -> None:
         from asyncua import ua
 
         value = int(raw) if self.raw_range is not None else float(raw)
         dv = ua.DataValue(ua.Variant(value, self._variant))
-        self._call("write set point", self._setpoint.write_value, dv, refused=WriteRejectedError)
+        self._call("write set point node", self._setpoint.write_value, dv, node=self._setpoint,
+                   refused=WriteRejectedError)
 
     def _read_setpoint_raw(self) -> Any:
-        return self._call("read set point", self._setpoint.read_value)
+        return self._call("read set point node", self._setpoint.read_value, node=self._setpoint)
 
     def _read_supply_raw(self) -> Any:
-        return self._call("read supply temperature", self._supply.read_value)
+        return self._call("read supply node", self._supply.read_value, node=self._supply)
 
     def _forget(self) -> None:
         self._setpoint = None

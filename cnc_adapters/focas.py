@@ -251,10 +251,10 @@ class FocasAdapter(Adapter):
         try:
             ptype, _ = self._read_packet("open request", deadline)
         except _Malformed as err:
-            raise UnreachableError(f"{self.name}: {where} refused the FOCAS session: "
+            raise UnreachableError(f"{self.name} open session at {where}: refused: "
                                    f"{err}") from err
         if ptype != OPEN_RESPONSE:
-            raise UnreachableError(f"{self.name}: {where} answered the open request with packet "
+            raise UnreachableError(f"{self.name} open session at {where}: answered with packet "
                                    f"type {ptype:#06x}, not {OPEN_RESPONSE:#06x}")
 
     def _disconnect(self) -> None:
@@ -290,10 +290,10 @@ class FocasAdapter(Adapter):
                 raise _Malformed(f"packet type {ptype:#06x}, not {RESPONSE:#06x}")
             code, payload = _reply(body, cmd[:6])
         except _Malformed as err:
-            raise self._link_lost(f"{self.name} {what}: malformed reply ({err}); session dropped",
+            raise self._link_lost(f"{self.name} {what} at {self._tcp.address}: malformed reply ({err}); session dropped",
                                   AdapterError) from err
         if code != 0:
-            raise refused(f"{self.name} {what}: the CNC answered {focas_error(code)}")
+            raise refused(f"{self.name} {what} at {self._tcp.address}: the CNC answered {focas_error(code)}")
         return payload
 
     # -- macro variables -----------------------------------------------------------------
@@ -308,16 +308,16 @@ class FocasAdapter(Adapter):
         # 8 bytes per variable (pyfanuc, pyfocas's code); pyfocas's README shows one read of a
         # single variable answered with 16: the value is the first 8 either way
         if len(payload) < 8 or len(payload) % 8:
-            raise BadValueError(f"{self.name} {what}: {len(payload)} bytes, not 8-byte values")
+            raise BadValueError(f"{self.name} {what} at {self._tcp.address}: {len(payload)} bytes, not 8-byte values")
         try:
             return decode_scaled(payload[:8])
         except ValueError as err:
-            raise BadValueError(f"{self.name} {what}: {err}") from err
+            raise BadValueError(f"{self.name} {what} at {self._tcp.address}: {err}") from err
 
     def _value(self, number: int, what: str) -> float:
         value = self._read_macro(number, what)
         if value is None:
-            raise BadValueError(f"{self.name} {what}: #{number} is vacant (nothing written yet, "
+            raise BadValueError(f"{self.name} {what} at {self._tcp.address}: #{number} is vacant (nothing written yet, "
                                 "or cleared)")
         return value
 
@@ -342,13 +342,13 @@ class FocasAdapter(Adapter):
             raise BadValueError(f"{err}; a control without it can hand the speed over in a macro "
                                 "variable (speed_source = 'macro')") from err
         if len(payload) < 8:
-            raise BadValueError(f"{self.name} read speed (cnc_acts): {len(payload)} bytes")
+            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {len(payload)} bytes")
         try:
             rpm = decode_scaled(payload[:8])
         except ValueError as err:
-            raise BadValueError(f"{self.name} read speed (cnc_acts): {err}") from err
+            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {err}") from err
         if rpm is None:
-            raise BadValueError(f"{self.name} read speed (cnc_acts): no value")
+            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: no value")
         return rpm
 
     def _read_offset_raw(self) -> float:

@@ -93,9 +93,9 @@ class _MdcProtocol(HaasAdapter):
                          reject_reply=REJECT_REPLY, **haas)
         self._link = link
 
-    def exchange(self, request: str | None) -> str:
+    def exchange(self, request: str | None, op: str = "read") -> str:
         assert request is not None  # the Haas commands are all requests
-        return self._link.exchange(request)
+        return self._link.exchange(request, op)
 
 
 class HaasMdcAdapter(Adapter):
@@ -174,20 +174,21 @@ class HaasMdcAdapter(Adapter):
     def _abort(self) -> None:
         self._tcp.abort()  # a hung peer: do not wait for it
 
-    def exchange(self, request: str) -> str:
-        """Send one request line and return the reply line, cleaned (see the module docstring)."""
+    def exchange(self, request: str, op: str = "read") -> str:
+        """Send one request line and return the reply line, cleaned (see the module docstring);
+        a failure says ``op`` (``read speed``), the request and the control's address."""
         self.open()
         fresh, self._fresh = self._fresh, False
         try:
-            return self._round_trip(request, drop_on_timeout=not fresh)
+            return self._round_trip(request, op, drop_on_timeout=not fresh)
         except AdapterTimeoutError:
             if not fresh:
                 raise
         # the first request on a new connection may go unanswered: once more, on it
-        return self._round_trip(request)
+        return self._round_trip(request, op)
 
-    def _round_trip(self, request: str, *, drop_on_timeout: bool = True) -> str:
-        what = repr(request)
+    def _round_trip(self, request: str, op: str, *, drop_on_timeout: bool = True) -> str:
+        what = f"{op} {request!r}"
         self._tcp.drain(what)  # a stale reply must never answer this request
         self._tcp.send(what, (request + self.eol).encode("ascii"))
         deadline = self._tcp.deadline()
@@ -216,7 +217,7 @@ class HaasMdcAdapter(Adapter):
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError as err:
-            raise BadValueError(f"{self.name}: garbage reply {raw!r} to {request!r}") from err
+            raise BadValueError(f"{self.name} {request!r} at {self.address}: garbage reply {raw!r}") from err
         if STX in text:
             text = text.rsplit(STX, 1)[1]  # an echo or a prompt may precede the frame
         text = text.replace(ETB, "").strip().lstrip(">").strip()
@@ -254,7 +255,8 @@ class HaasMdcAdapter(Adapter):
         held = self._proto._read_offset_raw()
         step = 10.0 ** -self._proto_decimals
         if not (isinstance(held, (int, float)) and abs(held - value) <= step / 2 + 1e-12):
-            raise WriteRejectedError(f"{self.name}: wrote {value!r} to #{self._proto.offset_var}, the "
+            raise WriteRejectedError(f"{self.name} write offset #{self._proto.offset_var} at {self.address}: "
+                                     f"wrote {value!r}, the "
                                      f"control holds {held!r} (another client's reply taken for ours?)")
 
     def _read_measurement_raw(self) -> RawMeasurement | None:

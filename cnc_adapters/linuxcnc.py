@@ -249,7 +249,7 @@ class LinuxCncAdapter(Adapter):
             try:
                 c = hal.component(self.component)
             except hal.error as err:
-                raise UnreachableError(f"linuxcnc: cannot create HAL component {self.component!r}: {err} "
+                raise UnreachableError(f"linuxcnc create HAL component {self.component!r}: {err} "
                                        "(is LinuxCNC running, and the name free?)") from err
             c.newpin("speed-in", hal.HAL_FLOAT, hal.HAL_IN)
             c.newpin("eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
@@ -286,7 +286,7 @@ class LinuxCncAdapter(Adapter):
             try:
                 self._stat = self._lcnc.stat()
             except self._lcnc.error as err:
-                raise UnreachableError(f"linuxcnc: no status channel: {err}") from err
+                raise UnreachableError(f"linuxcnc open status channel (linuxcnc.stat): {err}") from err
 
     def _machine_ready(self) -> bool:
         c = self._comp
@@ -295,7 +295,7 @@ class LinuxCncAdapter(Adapter):
         try:
             self._stat.poll()
         except self._lcnc.error as err:
-            raise self._link_lost(f"linuxcnc: status poll failed: {err}") from err
+            raise self._link_lost(f"linuxcnc poll status channel (linuxcnc.stat): {err}") from err
         s = self._stat
         on = s.task_state == self._lcnc.STATE_ON and not s.estop
         return on and all(s.homed[: s.joints])
@@ -326,13 +326,14 @@ class LinuxCncAdapter(Adapter):
             raise AdapterError("linuxcnc: this LinuxCNC's hal module cannot read other pins; "
                                'set held_pin = "" (no read-back)') from err
         except RuntimeError as err:
-            raise AdapterError(f"linuxcnc: cannot read {self.held_pin}: {err} (held_pin names "
+            raise AdapterError(f"linuxcnc read offset pin {self.held_pin}: {err} (held_pin names "
                                "axis.<L>.eoffset-request of the axis the counts drive)") from err
 
     def _write_offset_raw(self, value: float) -> None:
         counts = round(value / self.count)
         if abs(counts) > S32:
-            raise BadValueError(f"linuxcnc: offset {value:g} does not fit the s32 counts at this scale")
+            raise BadValueError(f"linuxcnc write offset pin {self.component}.eoffset-counts: {value:g} "
+                                f"does not fit the s32 counts at this scale")
         c = self._comp
         c["offset-um"] = self.offset_um_requested
         if self._ready:

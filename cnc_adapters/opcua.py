@@ -290,28 +290,37 @@ class OpcUaLink:
         self.application_uri = application_uri
         self._client = None
 
-    def _call(self, what: str, fn, *args, refused: type[AdapterError] = AdapterError):
-        """Run one client call; map its failures onto the adapter exception tree. A timeout or
-        a lost connection drops the session (the next call reconnects)."""
+    def _call(self, what: str, fn, *args, node: Any = None, refused: type[AdapterError] = AdapterError):
+        """Run one client call; map its failures onto the adapter exception tree, each message
+        naming the operation, the node(s) (``node``: a node, a list of them, or the reference
+        as configured) and the server: ``opcua read speed node ns=2;s=Speed at opc.tcp://...:
+        BadNodeIdUnknown``. A timeout or a lost connection drops the session (the next call
+        reconnects)."""
         from asyncua import ua
         from asyncua.sync import ThreadLoopNotRunning
 
         try:
             return fn(*args)
         except ua.UaStatusCodeError as err:
-            raise refused(f"opcua {what}: {type(err).__name__}") from err
+            raise refused(f"{self._where(what, node)}: {type(err).__name__}") from err
         except (TimeoutError, concurrent.futures.TimeoutError) as err:
             # a server that does not answer in time has most likely hung (a stopped process):
             # its session will not answer again, so drop it, but still say it was a timeout
-            msg = f"opcua {what}: no answer from {self.shown_url} within {self.timeout_s:g} s"
+            msg = f"{self._where(what, node)}: no answer within {self.timeout_s:g} s"
             if self._client is None:
                 raise AdapterTimeoutError(msg) from err
             raise self._link_lost(msg, AdapterTimeoutError) from err
         except (ConnectionError, OSError, EOFError, ThreadLoopNotRunning) as err:
-            msg = f"opcua {what}: {self.shown_url}: {redact_url(str(err)) or type(err).__name__}"
+            msg = f"{self._where(what, node)}: {redact_url(str(err)) or type(err).__name__}"
             if self._client is None:
                 raise UnreachableError(msg) from err
             raise self._link_lost(msg) from err
+
+    def _where(self, what: str, node: Any = None) -> str:
+        """``opcua <operation> <node(s)> at <server>``: the head of every message of a call."""
+        nodes = node if isinstance(node, (list, tuple)) else [] if node is None else [node]
+        shown = ", ".join(n if isinstance(n, str) else _node_id(n) for n in nodes)
+        return f"opcua {what}{' ' + shown if shown else ''} at {self.shown_url}"
 
     def _credentials(self) -> tuple[str | None, str | None]:
         """The user name and password: a systemd credential, a password file or the environment.
@@ -397,7 +406,7 @@ class OpcUaLink:
         except ua.UaError as err:
             self._client = client
             self._abort()
-            raise UnreachableError(f"opcua connect: {self.shown_url}: {redact_url(str(err))}") from err
+            raise UnreachableError(f"{self._where('connect')}: {redact_url(str(err))}") from err
         except AdapterError:
             self._client = client
             self._abort()  # also stops the client's own event-loop thread
@@ -406,13 +415,14 @@ class OpcUaLink:
         try:
             ns = ""
             if self.namespace_uri:
-                ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri))
+                ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri,
+                                    node=self.namespace_uri))
             self._on_connected(client, ns)
         except (AdapterError, ValueError) as err:
             self._abort()
             if isinstance(err, AdapterError):
                 raise
-            raise AdapterError(f"opcua: bad node id: {err}") from err
+            raise AdapterError(f"{self._where('resolve nodes')}: bad node id: {err}") from err
 
     def _on_connected(self, client: Any, ns: str) -> None:
         """Look up the nodes of this link (``ns``: the index of ``namespace_uri``)."""
@@ -460,7 +470,7 @@ class OpcUaLink:
         if node_id:
             return client.get_node(node_id.replace("{ns}", ns))
         parts = path.replace("{ns}", ns).strip("/").split("/")  # type: ignore[union-attr]
-        return self._call(f"browse {path}", client.nodes.root.get_child, parts)
+        return self._call("browse", client.nodes.root.get_child, parts, node=path)
 
     def _resolve_ref(self, client, ref: str, ns: str, what: str):
         """A configured reference, a node id or a browse path (``0:Objects/...``), as a node; a
@@ -472,8 +482,8 @@ class OpcUaLink:
         except AdapterError:
             raise
         except Exception as err:  # noqa: BLE001 - asyncua's parse errors are RuntimeErrors
-            raise AdapterError(f"opcua: {what} {ref!r} is no node id or browse path: "
-                               f"{type(err).__name__}") from err
+            raise AdapterError(f"{self._where('resolve ' + what, ref)}: no node id or browse path "
+                               f"({type(err).__name__})") from err
 
 
 class OpcUaAdapter(OpcUaLink, Adapter):
@@ -586,16 +596,17 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._ns = ns
         self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
         self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
-        self._call("read speed node", self._speed.read_value)
+        self._call("read speed node", self._speed.read_value, node=self._speed)
         self._inputs = {name: self._resolve_ref(client, ref, ns, f"input {name}")
                         for name, ref in self.input_nodes.items()}
         if self._inputs:
-            self._call("read input nodes", client.read_values, list(self._inputs.values()))
+            self._call("read input nodes", client.read_values, list(self._inputs.values()),
+                       node=list(self._inputs.values()))
         if self.read_mode == "subscribe":
-            self._latest = _Latest()
+            self._latest = _Latest(self._where("speed subscription", self._speed))
             sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
                              self._latest)
-            self._call("subscribe", sub.subscribe_data_change, self._speed)
+            self._call("subscribe to speed node", sub.subscribe_data_change, self._speed, node=self._speed)
 
     def _read_speed_raw(self) -> Any:
         if self._latest is not None:
@@ -603,12 +614,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             if isinstance(value, BadValueError):
                 raise value
             if isinstance(value, BaseException):
-                raise self._link_lost(f"opcua subscription: {self.shown_url}: {value}")
+                raise self._link_lost(f"{self._where('speed subscription', self._speed)}: {value}")
             if value is None:
-                raise self._link_lost(f"opcua: no speed notification within {self.timeout_s:g} s",
-                                      AdapterTimeoutError)
+                raise self._link_lost(f"{self._where('speed subscription', self._speed)}: no "
+                                      f"notification within {self.timeout_s:g} s", AdapterTimeoutError)
         elif self._unverified is not None:
-            value, held, *cut = self._read_checked("read speed and offset",
+            value, held, *cut = self._read_checked("read speed and offset nodes",
                                                    [self._speed, self._offset, *self._with_speed()])
             self._cutting_raw = (cut[0],) if cut else None
             wrote, self._unverified = self._unverified, None
@@ -618,22 +629,23 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 self._mismatch = held
                 log.warning("opcua: wrote %r, controller holds %r", wrote, held)
         elif self._cutting is not None:
-            value, cut = self._read_checked("read speed", [self._speed, self._cutting])
+            value, cut = self._read_checked("read speed and cutting nodes", [self._speed, self._cutting])
             self._cutting_raw = (cut,)
         else:
-            value = self._call("read speed", self._speed.read_value)
+            value = self._call("read speed node", self._speed.read_value, node=self._speed)
         if isinstance(value, BadValueError):
             raise value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise BadValueError(f"opcua: speed node holds {type(value).__name__}, not a number")
+            raise BadValueError(f"{self._where('read speed node', self._speed)}: holds "
+                                f"{type(value).__name__}, not a number")
         return value
 
     def _read_checked(self, what: str, nodes: list[Any]) -> list[Any]:
         """The values of ``nodes`` in one request, each one's status checked: a node whose
         status is not Good gives a :class:`BadValueError` in its place, never its value (a
         BadSensorFailure may carry a number)."""
-        dvs = self._call(what, self._client.read_attributes, nodes)
-        return [_good_value(node, dv) for node, dv in zip(nodes, dvs)]
+        dvs = self._call(what, self._client.read_attributes, nodes, node=nodes)
+        return [_good_value(node, dv, self._where(what, node)) for node, dv in zip(nodes, dvs)]
 
     def _with_speed(self) -> list[Any]:
         return [] if self._cutting is None else [self._cutting]
@@ -650,9 +662,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         assert ref is not None
         if self._cutting_node is None:
             self._cutting_node = self._resolve_ref(self._client, ref, self._ns, "cutting node")
-        (dv,) = self._call("read cutting signal", self._client.read_attributes, [self._cutting_node])
+        (dv,) = self._call("read cutting node", self._client.read_attributes, [self._cutting_node],
+                           node=self._cutting_node)
         if not dv.StatusCode.is_good():
-            raise AdapterError(f"opcua: cutting node {ref}: {dv.StatusCode.name}")
+            raise AdapterError(f"{self._where('read cutting node', self._cutting_node)}: {dv.StatusCode.name}")
         if self._latest is None:
             self._cutting = self._cutting_node  # good: read in the speed's request from now on
         return None if dv.Value is None else dv.Value.Value
@@ -662,12 +675,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
     def _read_inputs_raw(self) -> dict[str, Any]:
         # an input whose status is not Good is missing, as one that holds no number
-        values = self._read_checked("read inputs", list(self._inputs.values()))
+        values = self._read_checked("read input nodes", list(self._inputs.values()))
         return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
                 for name, v in zip(self._inputs, values)}
 
     def _read_offset_raw(self) -> Any:
-        (held,) = self._read_checked("read offset", [self._offset])
+        (held,) = self._read_checked("read offset node", [self._offset])
         if isinstance(held, BadValueError):
             raise held
         return held
@@ -679,10 +692,11 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self._measurement is None:
             self._measurement = [self._resolve_ref(self._client, ref, self._ns, "measurement node")
                                  for ref in self.measurement_refs]
-        dvs = self._call("read measurement", self._client.read_attributes, self._measurement)
-        for ref, dv in zip(self.measurement_refs, dvs):
+        dvs = self._call("read measurement nodes", self._client.read_attributes, self._measurement,
+                         node=self._measurement)
+        for node, dv in zip(self._measurement, dvs):
             if not dv.StatusCode.is_good():
-                raise AdapterError(f"opcua: measurement node {ref}: {dv.StatusCode.name}")
+                raise AdapterError(f"{self._where('read measurement node', node)}: {dv.StatusCode.name}")
         seq, value, *sigma = (None if dv.Value is None else dv.Value.Value for dv in dvs)
         return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
 
@@ -691,7 +705,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
         try:
-            self._call("write refused", self._offset.write_value, dv, refused=WriteRejectedError)
+            self._call("write offset node", self._offset.write_value, dv, node=self._offset,
+                       refused=WriteRejectedError)
         except WriteRejectedError as err:
             if "AccessDenied" not in str(err):
                 raise
@@ -701,9 +716,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self.verify_writes == "deferred" and self._latest is None:
             self._unverified = value
         elif self.verify_writes:
-            back = self._call("read back", self._offset.read_value)
+            back = self._call("read back offset node", self._offset.read_value, node=self._offset)
             if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
-                raise WriteRejectedError(f"opcua: wrote {value!r}, controller holds {back!r}")
+                raise WriteRejectedError(f"{self._where('write offset node', self._offset)}: wrote "
+                                         f"{value!r}, controller holds {back!r}")
 
     def _take_mismatch_raw(self) -> Any:
         """What the controller holds, if a deferred check found that it did not take the last
@@ -720,11 +736,19 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._cutting_raw = None
 
 
-def _good_value(node: Any, dv: Any) -> Any:
-    """A DataValue's value if its status is Good, else a :class:`BadValueError` naming it."""
+def _node_id(node: Any) -> str:
+    """A node's id as a user writes it (``ns=2;s=Speed``)."""
+    nodeid = getattr(node, "nodeid", node)
+    to_string = getattr(nodeid, "to_string", None)
+    return to_string() if callable(to_string) else str(nodeid)
+
+
+def _good_value(node: Any, dv: Any, where: str) -> Any:
+    """A DataValue's value if its status is Good, else a :class:`BadValueError` saying
+    ``where`` (the operation, the node, the server) and the status."""
     status = getattr(dv, "StatusCode", None)
     if status is not None and not status.is_good():
-        return BadValueError(f"opcua: node {getattr(node, 'nodeid', node)}: status {status.name}")
+        return BadValueError(f"{where}: status {status.name}")
     return None if dv.Value is None else dv.Value.Value
 
 
@@ -732,19 +756,20 @@ class _Latest:
     """Subscription handler: keeps the last speed notification (or the link's failure); a
     notification whose status is not Good is kept as a :class:`BadValueError`."""
 
-    def __init__(self) -> None:
+    def __init__(self, where: str) -> None:
         import threading
 
+        self.where = where  # the operation, the node and the server, for every message
         self._value: Any = None
         self._event = threading.Event()
 
     def datachange_notification(self, node, val, data) -> None:
         dv = getattr(getattr(data, "monitored_item", None), "Value", None)
-        self._value = _good_value(node, dv) if dv is not None else val
+        self._value = _good_value(node, dv, self.where) if dv is not None else val
         self._event.set()
 
     def status_change_notification(self, status) -> None:
-        self._value = UnreachableError(f"subscription status {status}")
+        self._value = UnreachableError(f"{self.where}: subscription status {status}")
         self._event.set()
 
     def get(self, timeout_s: float) -> Any:

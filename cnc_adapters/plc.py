@@ -343,9 +343,14 @@ class _Driver:
     def __init__(self, owner: PlcAdapter):
         self.owner = owner
         self.name = owner.name
+        self.at = f"{owner.host}:{owner.port}"  # the endpoint every message names
+
+    def head(self, what: str) -> str:
+        """``plc <operation> (<address>) at <endpoint>``: the start of a request's message."""
+        return f"{self.name} {what} at {self.at}"
 
     def lost(self, message: str, error: type[AdapterError] = UnreachableError) -> AdapterError:
-        return self.owner._link_lost(f"{self.name}: {message}", error)
+        return self.owner._link_lost(message, error)
 
 
 class _S7(_Driver):
@@ -354,6 +359,7 @@ class _S7(_Driver):
         from snap7.error import S7Error
 
         o = self.owner
+        self.at = f"{o.host}:{o.port} (rack {o.rack}, slot {o.slot})"
         client = Client()
         try:
             client.connect(o.host, o.rack, o.slot, tcp_port=o.port)
@@ -381,19 +387,19 @@ class _S7(_Driver):
         try:
             return fn(*args)
         except S7TimeoutError as err:
-            raise self.lost(f"{what}: no answer within {self.owner.timeout_s:g} s: {err}",
+            raise self.lost(f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
                             AdapterTimeoutError) from err
         except (S7ConnectionError, OSError, *out_of_step) as err:
-            raise self.lost(f"{what}: link lost: {err}") from err
+            raise self.lost(f"{self.head(what)}: link lost: {err}") from err
         except S7Error as err:  # the PLC answered with an error: wrong DB, no PUT/GET access
-            raise refused(f"{self.name} {what}: the PLC refused: {err}") from err
+            raise refused(f"{self.head(what)}: the PLC refused: {err}") from err
 
     def read(self, what: str, a: Address) -> Any:
         from snap7.util import get_bool, get_dint, get_int, get_real
 
         data = self._call(what, self.client.db_read, a.number, a.start, a.size, refused=AdapterError)
         if len(data) < a.size:
-            raise BadValueError(f"{self.name} {what}: {len(data)} bytes from {a.text}, not {a.size}")
+            raise BadValueError(f"{self.head(what)}: {len(data)} bytes, not {a.size}")
         if a.dtype == "BOOL":
             return get_bool(data, 0, a.bit)
         return {"REAL": get_real, "DINT": get_dint, "INT": get_int}[a.dtype](data, 0)
@@ -454,6 +460,7 @@ class _Ads(_Driver):
                       "DINT": pyads.PLCTYPE_DINT, "INT": pyads.PLCTYPE_INT, "BOOL": pyads.PLCTYPE_BOOL}
         # the AdsLib takes host:port; the plain host reaches the router's own 48898
         where = o.host if o.port == DEFAULT_PORT["ads"] else f"{o.host}:{o.port}"
+        self.at = f"{o.ams_net_id}:{o.ams_port} via {where}"
         conn = None
         try:
             if o.local_ams_net_id is not None:
@@ -480,13 +487,13 @@ class _Ads(_Driver):
         except self.pyads.ADSError as err:
             code = getattr(err, "err_code", None)
             if code in _ADS_DEVICE:  # the target answered: no such symbol, wrong size, ...
-                raise refused(f"{self.name} {what}: the target refused: {err}") from err
+                raise refused(f"{self.head(what)}: the target refused: {err}") from err
             if code == _ADS_TIMEOUT:
-                raise self.lost(f"{what}: no answer within {self.owner.timeout_s:g} s: {err}",
+                raise self.lost(f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
                                 AdapterTimeoutError) from err
-            raise self.lost(f"{what}: link lost: {err}") from err
+            raise self.lost(f"{self.head(what)}: link lost: {err}") from err
         except OSError as err:
-            raise self.lost(f"{what}: link lost: {err}") from err
+            raise self.lost(f"{self.head(what)}: link lost: {err}") from err
 
     def read(self, what: str, a: Address) -> Any:
         t = self.types[a.dtype]

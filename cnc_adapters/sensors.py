@@ -271,12 +271,13 @@ class OpcUaSensor(OpcUaLink, Sensor):
 
     def _on_connected(self, client: Any, ns: str) -> None:
         self._node = self._resolve(client, self.node_id, self.path, ns)
-        self._call("read displacement node", self._node.read_value)
+        self._call("read displacement node", self._node.read_value, node=self._node)
 
     def _read_raw(self) -> Any:
-        value = self._call("read displacement", self._node.read_value)
+        value = self._call("read displacement node", self._node.read_value, node=self._node)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise BadValueError(f"opcua sensor: node holds {type(value).__name__}, not a number")
+            raise BadValueError(f"{self._where('read displacement node', self._node)}: holds "
+                                f"{type(value).__name__}, not a number")
         return value
 
     def _forget(self) -> None:

@@ -124,7 +124,7 @@ class SerialLine:
             self._ser = serial.Serial(self.port, self.baudrate, timeout=self.timeout_s,
                                       write_timeout=self.timeout_s)
         except (serial.SerialException, OSError) as err:
-            raise UnreachableError(f"{self.name}: cannot open {self.port}: {err}") from err
+            raise UnreachableError(f"{self.name} open at {self.port}: cannot open the port: {err}") from err
 
     def _disconnect(self) -> None:
         ser, self._ser = self._ser, None
@@ -134,8 +134,9 @@ class SerialLine:
             except Exception:  # noqa: BLE001 - the device may already be gone
                 pass
 
-    def exchange(self, request: str | None) -> str:
-        """Send one line and return the reply line (without its end of line).
+    def exchange(self, request: str | None, op: str = "read") -> str:
+        """Send one line and return the reply line (without its end of line); a failure says
+        ``op`` (``read speed``), the request and the port.
 
         With ``request=None`` the device talks on its own (a streaming amplifier): the
         input buffer is dropped and the first whole line after it is returned.
@@ -145,7 +146,7 @@ class SerialLine:
         self.open()  # type: ignore[attr-defined]
         ser = self._ser
         end = self.eol[-1].encode("ascii")
-        what = repr(request) if request is not None else "the stream"
+        head = self._head(op, request)
         try:
             ser.reset_input_buffer()
             if request is not None:
@@ -154,15 +155,20 @@ class SerialLine:
                 ser.read_until(end)  # most likely the tail of a line: dropped
             raw = ser.read_until(end)
         except (serial.SerialException, *_PORT_ERRORS) as err:
-            raise self._link_lost(f"{self.name}: {self.port} vanished: {err}") from err  # type: ignore[attr-defined]
+            raise self._link_lost(f"{head}: the port vanished: {err}") from err  # type: ignore[attr-defined]
         if not raw:
-            raise AdapterTimeoutError(f"{self.name}: no reply to {what} within {self.timeout_s:g} s")
+            raise AdapterTimeoutError(f"{head}: no reply within {self.timeout_s:g} s")
         if not raw.endswith(end):
-            raise AdapterTimeoutError(f"{self.name}: partial reply {raw!r} to {what}")
+            raise AdapterTimeoutError(f"{head}: partial reply {raw!r}")
         try:
             return raw.decode("ascii").strip()
         except UnicodeDecodeError as err:
-            raise BadValueError(f"{self.name}: garbage reply {raw!r} to {what}") from err
+            raise BadValueError(f"{head}: garbage reply {raw!r}") from err
+
+    def _head(self, op: str, request: str | None) -> str:
+        """``<link> <operation> <request> at <port>``: the start of an exchange's message."""
+        sent = repr(request) if request is not None else "(the stream)"
+        return f"{self.name} {op} {sent} at {self.port}"
 
 
 class LineAdapter(SerialLine, Adapter):
@@ -212,35 +218,35 @@ class LineAdapter(SerialLine, Adapter):
         return serial_options(url)
 
     def _read_speed_raw(self) -> float:
-        reply = self.exchange(self.speed_request)
+        reply = self.exchange(self.speed_request, "read speed")
         m = self.speed_reply.match(reply)
         if m is None:
-            raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {self.speed_request!r}")
+            raise BadValueError(f"{self._head('read speed', self.speed_request)}: unexpected reply {reply!r}")
         return float(m.group("value"))
 
     def _read_offset_raw(self) -> float:
         if self.offset_query is None:  # read_offset_um checks can_read_offset first
             return super()._read_offset_raw()
-        return self._query(self.offset_query, self.offset_query_reply)
+        return self._query(self.offset_query, self.offset_query_reply, "read offset")
 
-    def _query(self, request: str, reply_pattern: re.Pattern[str]) -> float:
+    def _query(self, request: str, reply_pattern: re.Pattern[str], op: str = "read") -> float:
         """The number in the reply to ``request``: :class:`AdapterError` when the controller
         refuses it, :class:`BadValueError` for a reply that does not match."""
-        reply = self.exchange(request)
+        reply = self.exchange(request, op)
         m = reply_pattern.match(reply)
         if m is not None:
             return float(m.group("value"))
         if self.reject_reply.match(reply):
-            raise AdapterError(f"{self.name}: controller refused {request!r}: {reply!r}")
-        raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {request!r}")
+            raise AdapterError(f"{self._head(op, request)}: controller refused it: {reply!r}")
+        raise BadValueError(f"{self._head(op, request)}: unexpected reply {reply!r}")
 
     def _write_offset_raw(self, value: float) -> None:
         request = self.offset_request.format(value=value)
-        reply = self.exchange(request)
+        reply = self.exchange(request, "write offset")
         if self.reject_reply.match(reply):
-            raise WriteRejectedError(f"{self.name}: controller refused {request!r}: {reply!r}")
+            raise WriteRejectedError(f"{self._head('write offset', request)}: controller refused it: {reply!r}")
         if not self.offset_reply.match(reply):
-            raise BadValueError(f"{self.name}: unexpected reply {reply!r} to {request!r}")
+            raise BadValueError(f"{self._head('write offset', request)}: unexpected reply {reply!r}")
 
 
 class HaasMacros(BaseModel):
@@ -337,6 +343,6 @@ class HaasAdapter(LineAdapter):
         self.measurement_scale = measurement_scale
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
-        reads = [lambda q=q: self._query(*q) for q in self.measurement_queries]
+        reads = [lambda q=q: self._query(*q, "read measurement") for q in self.measurement_queries]
         # one request each: the counter is read twice, around the value
         return read_handshake(self.name, reads[0], reads[1], reads[2] if len(reads) > 2 else None)

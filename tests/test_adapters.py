@@ -450,7 +450,9 @@ def test_modbus_exception_reply_on_a_bad_address(tmp_path):
     dev = ModbusDevice(pty.dev)
     try:
         link = ModbusRtuAdapter(pty.ctl, baudrate=115200, offset_register=200)
-        with pytest.raises(WriteRejectedError):
+        # the operation, the register, the port and the device address on the bus
+        where = rf"modbus write offset holding register 200( \(\+\d\))? at {re.escape(pty.ctl)} \(device 1\)"
+        with pytest.raises(WriteRejectedError, match=f"^{where}: exception reply"):
             link.write_offset_um(1.0)
         link.close()
     finally:
@@ -583,7 +585,7 @@ def test_a_refused_read_query_is_an_adapter_error(tmp_path):
     try:
         with LineAdapter(pty.ctl, offset_query="?OFFSET") as link:
             dev.mode = "reject"
-            with pytest.raises(AdapterError, match="refused '\\?OFFSET'"):
+            with pytest.raises(AdapterError, match="line read offset '\\?OFFSET' at .*: controller refused it"):
                 link.read_offset_um()
             dev.mode = "ok"
             regs.offset = -2.5
@@ -669,7 +671,7 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
     assert events == [(False, events[0][1])] and "no answer" in events[0][1]  # the session is dropped
     # the next call reconnects, and connecting to the stopped server honours timeout_s too
     start = time.monotonic()
-    with pytest.raises(AdapterTimeoutError, match="opcua connect: no answer"):
+    with pytest.raises(AdapterTimeoutError, match="opcua connect at opc.tcp://.*: no answer"):
         link.read_offset_um()
     assert time.monotonic() - start < timeout_s + 5.0
     with pytest.raises(UnreachableError, match="next attempt"):
@@ -754,7 +756,7 @@ def test_linuxcnc_reads_back_what_motion_holds_not_what_it_wrote():
     assert out["counts"] == 1200
     assert out["held"] == pytest.approx(-12.0, abs=1e-6)
     assert out["held2"] == pytest.approx(3.5, abs=1e-6)
-    assert re.match(r"AdapterError: linuxcnc: cannot read no\.such\.pin", out["missing_pin"])
+    assert re.match(r"AdapterError: linuxcnc read offset pin no\.such\.pin: ", out["missing_pin"])
 
 
 # -- the closed loop: a probe cycle's measurement, each value once ---------------------------

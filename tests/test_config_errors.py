@@ -201,3 +201,24 @@ def test_the_cli_prints_each_problem_on_its_own_line_and_exits_non_zero(tmp_path
             f"thermocomp: error: {p}: status.port = -1: expected a whole number >= 0 and <= 65535",
         ], err
         assert not any(re.search("|".join(PYDANTIC_WORDS), line) for line in err)
+
+
+# -- the controller side: the operation, the node and the server ----------------------------
+
+
+def test_an_opcua_read_of_a_missing_node_names_the_operation_the_node_and_the_server():
+    from machine_sim import SpindlePlant, preset
+    from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
+
+    from cnc_adapters import AdapterError, open_adapter
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    with running(VirtualCNC(vm)) as cnc:  # a real asyncua server
+        link = open_adapter({"type": "opcua", "url": cnc.url, "speed_node": "ns=2;s=/No/Such/Speed",
+                             "offset_node": "ns=2;s=/No/Such/Offset"})
+        try:
+            with pytest.raises(AdapterError) as info:
+                link.read_speed()
+        finally:
+            link.close()
+    assert str(info.value) == f"opcua read speed node ns=2;s=/No/Such/Speed at {cnc.url}: BadNodeIdUnknown"

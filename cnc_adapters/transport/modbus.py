@@ -104,7 +104,9 @@ class ModbusTransport:
         self.baudrate = int(baudrate)
         self.parity = parity
         self.stopbits = int(stopbits)
+        # every message names the device: the endpoint and its address on the bus
         self.where = f"{host}:{port}" if self.tcp else str(port)
+        self.where += f" (device {self.device_id})"
         self._lost = lost
         self.client: Any = None
 
@@ -127,7 +129,7 @@ class ModbusTransport:
             up, cause = False, err
         if not up:
             _quietly(client.close)
-            raise UnreachableError(f"{self.label}: cannot reach {self.where}"
+            raise UnreachableError(f"{self.label} connect at {self.where}: cannot reach it"
                                    + (f": {cause}" if cause else "")) from cause
         self.client = client
 
@@ -146,21 +148,20 @@ class ModbusTransport:
         ``refused``."""
         from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
+        head = f"{self.label} {what} at {self.where}"  # the operation, the register, the device
         if self.client is None:
-            raise UnreachableError(f"{self.label} {what}: not connected to {self.where}")
+            raise UnreachableError(f"{head}: not connected")
         try:
             rr = getattr(self.client, method)(*args, device_id=self.device_id, **kw)
         except ModbusIOException as err:
-            raise self._fault(f"{self.label} {what}: no valid reply from {self.where} within "
-                              f"{self.timeout_s:g} s", AdapterTimeoutError) from err
+            raise self._fault(f"{head}: no valid reply within {self.timeout_s:g} s",
+                              AdapterTimeoutError) from err
         except (ConnectionException, OSError) as err:
-            raise self._lost(f"{self.label} {what}: {self.where} lost: {err}",
-                             UnreachableError) from err
+            raise self._lost(f"{head}: link lost: {err}", UnreachableError) from err
         except ModbusException as err:
-            raise self._fault(f"{self.label} {what}: bad reply from {self.where}: {err}",
-                              AdapterError) from err
+            raise self._fault(f"{head}: bad reply: {err}", AdapterError) from err
         if rr.isError():
-            raise refused(f"{self.label} {what}: exception reply from {self.where}: {rr}")
+            raise refused(f"{head}: exception reply: {rr}")
         return rr
 
     def _fault(self, message: str, error: type[AdapterError]) -> AdapterError:
@@ -170,17 +171,18 @@ class ModbusTransport:
     def read_registers(self, what: str, table: str, address: int, count: int) -> list[int]:
         """``count`` registers from ``address`` of ``table`` (``input`` or ``holding``)."""
         method = "read_input_registers" if table == "input" else "read_holding_registers"
+        what = f"{what} {table} register {address}" + (f" (+{count - 1})" if count > 1 else "")
         rr = self.request(what, method, address, count=count)
         regs = list(rr.registers)
         if len(regs) < count:
-            raise BadValueError(f"{self.label} {what}: {len(regs)} registers from {table} "
-                                f"{address}, not {count}")
+            raise BadValueError(f"{self.label} {what} at {self.where}: {len(regs)} registers, "
+                                f"not {count}")
         return regs[:count]
 
     def read_bit(self, what: str, table: str, address: int) -> bool:
         """One bit: a ``coil`` or a discrete input (``di``)."""
         method = "read_coils" if table == "coil" else "read_discrete_inputs"
-        rr = self.request(what, method, address, count=1)
+        rr = self.request(f"{what} {table} {address}", method, address, count=1)
         return bool(rr.bits[0])
 
     def read_value(self, what: str, table: str, address: int, dtype: str) -> int | float:
@@ -189,12 +191,14 @@ class ModbusTransport:
 
     def write_registers(self, what: str, address: int, regs: list[int]) -> None:
         """Holding registers from ``address``; an exception reply is :class:`WriteRejectedError`."""
+        what = f"{what} holding register {address}" + (f" (+{len(regs) - 1})" if len(regs) > 1 else "")
         self.request(what, "write_registers", address, regs, refused=WriteRejectedError)
 
     def write_value(self, what: str, address: int, value: float, dtype: str) -> None:
         """``value`` as ``dtype`` into the holding registers at ``address``
         (:class:`BadValueError`, nothing sent, when it does not fit)."""
-        self.write_registers(what, address, self.codec.encode(value, dtype, self.label))
+        regs = self.codec.encode(value, dtype, f"{self.label} {what} holding register {address} at {self.where}")
+        self.write_registers(what, address, regs)
 
 
 def _quietly(fn: Callable[[], Any]) -> None:

@@ -67,10 +67,10 @@ class TcpTransport:
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
         except TimeoutError as err:
-            raise UnreachableError(f"{self.label}: cannot connect to {self.address}: no answer "
+            raise UnreachableError(f"{self.label} connect at {self.address}: no answer "
                                    f"within {self.connect_timeout_s:g} s") from err
         except OSError as err:
-            raise UnreachableError(f"{self.label}: cannot connect to {self.address}: "
+            raise UnreachableError(f"{self.label} connect at {self.address}: cannot connect: "
                                    f"{err}") from err
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -118,7 +118,7 @@ class TcpTransport:
 
     def _socket(self, what: str) -> socket.socket:
         if self.sock is None:
-            raise UnreachableError(f"{self.label} {what}: not connected to {self.address}")
+            raise UnreachableError(f"{self.label} {what} at {self.address}: not connected")
         return self.sock
 
     # -- sending and receiving ------------------------------------------------------------
@@ -134,10 +134,10 @@ class TcpTransport:
             sock.settimeout(self.timeout_s)
             sock.sendall(data)
         except TimeoutError as err:  # the peer takes nothing in: hung, as one that never answers
-            raise self._fail(f"{self.label} {what}: {self.address} took no data within "
+            raise self._fail(f"{self.label} {what} at {self.address}: took no data within "
                              f"{self.timeout_s:g} s", AdapterTimeoutError) from err
         except OSError as err:
-            raise self._fail(f"{self.label} {what}: {self.address} lost: {err}",
+            raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
                              UnreachableError) from err
 
     def drain(self, what: str) -> None:
@@ -152,7 +152,7 @@ class TcpTransport:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as err:
-                raise self._fail(f"{self.label} {what}: {self.address} lost: {err}",
+                raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
                                  UnreachableError) from err
             if not chunk:
                 raise self._closed(what)
@@ -184,7 +184,7 @@ class TcpTransport:
             left = deadline - time.monotonic()
             if left <= 0:
                 got = f"partial reply {self.pending[:80]!r}" if self.pending else "no reply"
-                message = (f"{self.label} {what}: {got} from {self.address} within "
+                message = (f"{self.label} {what} at {self.address}: {got} within "
                            f"{self.timeout_s:g} s")
                 if drop_on_timeout:
                     raise self._fail(message, AdapterTimeoutError)
@@ -195,7 +195,7 @@ class TcpTransport:
             except TimeoutError:
                 continue  # the deadline decides
             except OSError as err:
-                raise self._fail(f"{self.label} {what}: {self.address} lost: {err}",
+                raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
                                  UnreachableError) from err
             if not chunk:
                 raise self._closed(what)
@@ -205,5 +205,5 @@ class TcpTransport:
 
     def _closed(self, what: str) -> AdapterError:
         reason = self._closed_reason(self._tail) if self._closed_reason is not None else None
-        return self._fail(reason or f"{self.label} {what}: {self.address} closed the connection",
+        return self._fail(reason or f"{self.label} {what} at {self.address}: the peer closed the connection",
                           UnreachableError)
