@@ -418,6 +418,15 @@ class SettingsError(ConfigError):
         return SettingsError(self.label, [p.under(prefix) for p in self.problems])
 
 
+def _number(v: Any) -> str:
+    """A bound as a user writes it: 31536000, not 3.1536e+07; 0.01 as 0.01."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return str(int(f)) if f.is_integer() and abs(f) < 1e15 else f"{f:g}"
+
+
 def _range(field: Any) -> str | None:
     """A number field's type and bounds in words (``a number > 0 and <= 3600``), or None."""
     ann = field.annotation
@@ -425,7 +434,7 @@ def _range(field: Any) -> str | None:
     if not kinds:
         return None
     words = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
-    bounds = [f"{words[k]} {getattr(m, k):g}" for m in field.metadata for k in words
+    bounds = [f"{words[k]} {_number(getattr(m, k))}" for m in field.metadata for k in words
               if getattr(m, k, None) is not None]
     kind = "a whole number" if kinds == {int} else "a number"
     return " and ".join([f"{kind} {bounds[0]}", *bounds[1:]]) if bounds else kind
@@ -461,7 +470,7 @@ def expected(e: Mapping[str, Any], field: Any = None) -> str:
              "less_than": ("lt", "<"), "less_than_equal": ("le", "<="),
              "multiple_of": ("multiple_of", "a multiple of")}.get(t)
     if bound is not None:
-        return f"a number {bound[1]} {ctx.get(bound[0])}"
+        return f"a number {bound[1]} {_number(ctx.get(bound[0]))}"
     if t == "string_too_short":
         return f"a string of at least {ctx.get('min_length')} character(s)"
     if t == "string_too_long":
@@ -558,6 +567,9 @@ def problems_of(model: type[BaseModel], data: Any, err: ValidationError) -> list
         inner = (e.get("ctx") or {}).get("error")
         if isinstance(inner, SettingsError):
             out += [p.under(key) for p in inner.problems]
+        elif isinstance(inner, ValidationError):  # a model a check builds (its keys are ours too)
+            out += [Problem(".".join(filter(None, [key, dotted(list(x["loc"]))])),
+                            f"expected {expected(x)}", x.get("input", _ABSENT)) for x in inner.errors()]
         elif e["type"] == "extra_forbidden":
             choices = key_names(holder) if holder is not None else []
             near = did_you_mean(str(path[-1]) if path else "", choices)

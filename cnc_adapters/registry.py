@@ -24,6 +24,8 @@ from pydantic import BaseModel
 from .base import (
     Adapter,
     ConfigError,
+    Problem,
+    SettingsError,
     build,
     check_settings,
     construct,
@@ -128,7 +130,11 @@ def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
         return _resolve(url, {**cfg, **overrides})
     if not kind:
         raise ConfigError("adapter configuration needs a 'type' or a 'url'")
-    return str(kind), backend(str(kind)), {**cfg, **overrides}
+    try:
+        cls = backend(str(kind))
+    except ConfigError as err:  # the key as written: the configuration names it under adapter
+        raise SettingsError("adapter", [Problem("type", str(err), kind)]) from err
+    return str(kind), cls, {**cfg, **overrides}
 
 
 def check_adapter(target: str | Mapping[str, Any], **overrides: Any) -> BaseModel | None:

@@ -137,7 +137,7 @@ def test_the_spindle_is_named_even_when_it_is_not_the_first(tmp_path):
     (("spindle",), {"period_s": "fast"}, 'spindle "sp1": period_s = \'fast\': expected a number >= 0.01 and <= 3600'),
     (("spindle", "shaping"), {"max_offset_um": -5}, 'spindle "sp1": shaping.max_offset_um = -5: expected a number > 0'),
     (("spindle", "faults"), {"readback_every": 1.5},
-     'spindle "sp1": faults.readback_every = 1.5: expected a whole number >= 0 and <= 1e+06'),
+     'spindle "sp1": faults.readback_every = 1.5: expected a whole number >= 0 and <= 1000000'),
     (("spindle", "shaping", "transient"), {"mode": "fast"},
      'spindle "sp1": shaping.transient.mode = \'fast\': expected one of \'dual-slew\', \'slow\' or \'hold\''),
     (("spindle", "observer"), {"enabled": "maybe"}, 'spindle "sp1": observer.enabled = \'maybe\': expected true or false'),
@@ -175,6 +175,9 @@ def test_an_adapter_and_a_chiller_typo_speak_the_same_dialect_under_their_table(
     spindle = ["[[spindle]]", 'name = "sp1"', 'model = "m.json"', *toml_table("[spindle.adapter]", adapter)]
     p, text = load_error(tmp_path, "\n".join(spindle) + "\n")
     assert text == f"{p}: spindle \"sp1\": adapter.speed_nod = 'ns=2;s=Speed': unknown key (did you mean 'speed_node'?)"
+    p, text = load_error(tmp_path, config_text(("spindle",), {}).replace('{url = "sim://"}', '{type = "opcuaa"}'))
+    assert text.startswith(f"{p}: spindle \"sp1\": adapter.type = 'opcuaa': unknown adapter 'opcuaa' "
+                           "(did you mean 'opcua'?); known: "), text
     chiller = {"type": "modbus", "host": "h", "setpoint_regster": 3}
     p, text = load_error(tmp_path, config_text(("cooling",), {"mode": "both", "rite_um": 3.0, "chiller": chiller}))
     assert text == f"{p}: cooling.chiller.setpoint_regster = 3: unknown key (did you mean 'setpoint_register'?)"

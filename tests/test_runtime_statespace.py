@@ -240,13 +240,13 @@ def test_a_model_for_another_spindle_is_refused(tmp_path):
         SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: 0.0,
                        wall=lambda: WALL0)
     msg = str(err.value)
-    assert msg == f"spindle s1: model file {model} is for spindle 'sp-A', not 'sp-B'"
+    assert msg == f"spindle \"s1\": spindle_id = 'sp-B': the model file {model} is for spindle 'sp-A'"
     assert "\n" not in msg
     # a model that names no spindle does not prove it is this one's
     unnamed = tmp_path / "unnamed.json"
     save_model(unnamed, speed_only())
     cfg = load_config(write_config(tmp_path, unnamed, 'spindle_id = "sp-B"'))
-    with pytest.raises(ConfigError, match="is for spindle 'unknown', not 'sp-B'"):
+    with pytest.raises(ConfigError, match="spindle_id = 'sp-B': the model file .* is for spindle 'unknown'"):
         Service(tmp_path / "machine.toml", clock=lambda: 0.0, wall=lambda: WALL0, lock=False)
 
 
@@ -267,7 +267,7 @@ def test_spindle_id_checked_only_when_configured_and_at_reload(tmp_path, caplog)
     svc.tick()
     assert svc.reload_failed and svc.spindles["s1"].alarms & Alarm.RELOAD_FAILED
     refused = [r for r in caplog.records if getattr(r, "event", None) == "reload_refused"]
-    assert len(refused) == 1 and "is for spindle 'sp-A', not 'sp-B'" in refused[0].fields["error"]
+    assert len(refused) == 1 and "spindle_id = 'sp-B': the model file" in refused[0].fields["error"]
     assert svc.cfg.spindle[0].spindle_id == "sp-A"  # the running configuration stays
     svc.close()
 

@@ -228,8 +228,8 @@ class SpindleConfig(BaseModel):
     def refuse_other_spindle(self, model_spindle_id: str) -> None:
         """ConfigError when ``spindle_id`` is set and the model file is for another spindle."""
         if self.spindle_id is not None and model_spindle_id != self.spindle_id:
-            raise ConfigError(clip(f"spindle {self.name}: model file {self.model} is for spindle "
-                                   f"{model_spindle_id!r}, not {self.spindle_id!r}", 500))
+            raise ConfigError(clip(Problem("spindle_id", f"the model file {self.model} is for spindle "
+                                           f"{model_spindle_id!r}", self.spindle_id).line(spindle_scope(self.name)), 500))
 
     def estimate(self, model: Predictor) -> Estimate:
         """The estimate this spindle runs ``model`` with: the observer when enabled (its settings
@@ -241,7 +241,7 @@ class SpindleConfig(BaseModel):
             try:
                 observer = observer_config_of(model, self.observer.overrides())
             except ModelError as err:
-                raise ConfigError(f"spindle {self.name}: {err}") from err
+                raise ConfigError(f"{spindle_scope(self.name)}: observer: {err}") from err
         return Estimate(model, observer, self.faults.over_range, self.faults.input_stale_s,
                         self.faults.input_recover_s, self.faults.max_speed_rpm)
 
@@ -489,14 +489,17 @@ class RuntimeConfig(BaseModel):
 _SPINDLE_KEY = re.compile(r"^spindle\[(\d+)\](?:\.(.*))?\Z", re.S)
 
 
+def spindle_scope(name: str) -> str:
+    """``spindle "sp1"``: how every message names a spindle (an odd name quoted as Python would)."""
+    return f'spindle "{name}"' if re.fullmatch(r"[\w.-]{1,64}", name) else f"spindle {short(name)}"
+
+
 def _spindle_scope(data: Any, index: int) -> str:
     """A ``[[spindle]]`` entry by its name as written (by its place when it has none)."""
     entries = data.get("spindle") if isinstance(data, dict) else None
     entry = entries[index] if isinstance(entries, list) and index < len(entries) else None
     name = entry.get("name") if isinstance(entry, dict) else None
-    if not isinstance(name, str):
-        return f"spindle #{index + 1} (no name)"
-    return f'spindle "{name}"' if re.fullmatch(r"[\w.-]{1,64}", name) else f"spindle {short(name)}"
+    return spindle_scope(name) if isinstance(name, str) else f"spindle #{index + 1} (no name)"
 
 
 def config_line(path: Path, data: Any, problem: Problem) -> str:
