@@ -177,7 +177,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
     ValueError with one line that names the option, the value and the syntax allowed."""
     key = f"{role}_address"
     if not isinstance(text, str):  # a ValueError: the settings' one-line message
-        raise ValueError(f"{key} must be {SYNTAX[protocol]}, not {short(text)}")  # noqa: TRY004
+        raise ValueError(f"{key} = {short(text)}: expected {SYNTAX[protocol]}")  # noqa: TRY004
     addr = text.strip()
     if protocol == "s7":
         m = _S7_RE.fullmatch(addr)
@@ -186,7 +186,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
                or (width == "X") != (m.group(4) is not None)
                or (m.group(4) is not None and int(m.group(4)) > 7))
         if bad:
-            raise ValueError(f"{key} must be {S7_SYNTAX}, not {short(text)}")
+            raise ValueError(f"{key} = {short(text)}: expected {S7_SYNTAX}")
         own = {"D": ("REAL", "DINT"), "W": ("INT",), "X": ("BOOL",)}[width]
         if width == "X" and role != "cutting":
             raise ValueError(f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (a DBD or a DBW)")
@@ -199,7 +199,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
     elif protocol == "modbus-tcp":
         m = _MODBUS_RE.fullmatch(addr)
         if m is None or int(m.group(2)) > 65535:
-            raise ValueError(f"{key} must be {MODBUS_SYNTAX}, not {short(text)}")
+            raise ValueError(f"{key} = {short(text)}: expected {MODBUS_SYNTAX}")
         area = (m.group(1) or "hr").lower()
         bits = area in ("coil", "di")
         if bits and role != "cutting":
@@ -213,24 +213,24 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
         if found.start + found.registers > 65536:
             raise ValueError(f"{key} {addr}: a {dtype} runs past register 65535")
         if role == "offset" and area != "hr":
-            raise ValueError(f"{key} must be a holding register (hr:<n>), the one table a client "
-                             f"writes, not {short(text)}")
+            raise ValueError(f"{key} = {short(text)}: expected a holding register (hr:<n>), the one "
+                             "table a client writes")
     else:
         index = _ADS_INDEX_RE.fullmatch(addr)
         if index is None and _ADS_RE.fullmatch(addr) is None:
-            raise ValueError(f"{key} must be {ADS_SYNTAX}, not {short(text)}")
+            raise ValueError(f"{key} = {short(text)}: expected {ADS_SYNTAX}")
         dtype = dtype or ("BOOL" if role == "cutting" else "REAL")
         if index is not None:  # an object by its index (a CNC object, %MB of a PLC), no symbol
             group, offset = (int(x, 0) for x in index.groups())
             if group > 0xFFFFFFFF or offset > 0xFFFFFFFF:
-                raise ValueError(f"{key} must be {ADS_SYNTAX} (32-bit numbers), not {short(text)}")
+                raise ValueError(f"{key} = {short(text)}: expected {ADS_SYNTAX} (32-bit numbers)")
             found = Address(addr, dtype, "index", number=group, start=offset)
         else:
             found = Address(addr, dtype, "symbol", symbol=addr)
     if role != "cutting" and found.dtype not in _NUMBERS:
-        raise ValueError(f"{role}_type must be a number type (REAL, LREAL, DINT, INT), not {found.dtype}")
+        raise ValueError(f"{role}_type = {found.dtype!r}: expected a number type (REAL, LREAL, DINT, INT)")
     if role == "cutting" and found.dtype in ("REAL", "LREAL"):
-        raise ValueError("cutting_type must be BOOL or an integer type (a state), not " + found.dtype)
+        raise ValueError(f"cutting_type = {found.dtype!r}: expected BOOL or an integer type (a state)")
     return found
 
 

@@ -117,12 +117,12 @@ def test_urls_and_defaults_per_protocol():
 
 @pytest.mark.parametrize("options,expected", [
     ({"protocol": "s7", "offset_address": "DB100.DBD", "speed_address": "DB100.DBD4"},
-     ("plc adapter: offset_address must be an S7 address DB<n>.DBD<byte> (REAL or DINT), "
-      "DB<n>.DBW<byte> (INT) or DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0, not 'DB100.DBD'")),
+     ("plc adapter: offset_address = 'DB100.DBD': expected an S7 address DB<n>.DBD<byte> (REAL or DINT), "
+      "DB<n>.DBW<byte> (INT) or DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0")),
     ({"protocol": "s7", "offset_address": "DB100.DBD0", "speed_address": "MW4"},
-     "plc adapter: speed_address must be an S7 address"),
+     "plc adapter: speed_address = 'MW4': expected an S7 address"),
     ({"protocol": "s7", "offset_address": "DB100.DBX0.8", "speed_address": "DB100.DBD4"},
-     "plc adapter: offset_address must be an S7 address"),
+     "plc adapter: offset_address = 'DB100.DBX0.8': expected an S7 address"),
     ({"protocol": "s7", "offset_address": "DB100.DBW0", "offset_type": "REAL", "speed_address": "DB100.DBD4"},
      "plc adapter: offset_type REAL does not fit offset_address DB100.DBW0 (a DBW holds INT)"),
     ({"protocol": "s7", "offset_address": "DB100.DBX0.1", "speed_address": "DB100.DBD4"},
@@ -130,15 +130,15 @@ def test_urls_and_defaults_per_protocol():
     ({"protocol": "s7", "offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4", "device_id": 2},
      "plc adapter: device_id is an option of protocol 'modbus-tcp', not of 's7'"),
     ({"protocol": "modbus-tcp", "offset_address": "ir:0", "speed_address": "ir:2"},
-     "plc adapter: offset_address must be a holding register (hr:<n>)"),
+     "plc adapter: offset_address = 'ir:0': expected a holding register (hr:<n>)"),
     ({"protocol": "modbus-tcp", "offset_address": "hr:70000", "speed_address": "ir:2"},
-     "plc adapter: offset_address must be a Modbus address hr:<n>"),
+     "plc adapter: offset_address = 'hr:70000': expected a Modbus address hr:<n>"),
     ({"protocol": "modbus-tcp", "offset_address": "hr:0", "speed_address": "coil:2"},
      "plc adapter: speed_address coil:2 is a bit; the speed needs a number (hr:<n> or ir:<n>)"),
     ({"protocol": "modbus-tcp", "offset_address": "hr:0", "speed_address": "ir:0", "rack": 1},
      "plc adapter: rack is an option of protocol 's7', not of 'modbus-tcp'"),
     ({"protocol": "ads", "offset_address": "GVL..x", "speed_address": "GVL.y"},
-     "plc adapter: offset_address must be an ADS symbol name such as GVL_Thermo.nTempComp"),
+     "plc adapter: offset_address = 'GVL..x': expected an ADS symbol name such as GVL_Thermo.nTempComp"),
     ({"protocol": "ads", "host": "plc.local", "offset_address": "GVL.x", "speed_address": "GVL.y"},
      "plc adapter: ams_net_id is required: host 'plc.local' is no IPv4 address"),
     ({"protocol": "ads", "offset_address": "GVL.x", "speed_address": "GVL.y", "ams_net_id": "1.2.3"},
@@ -146,7 +146,7 @@ def test_urls_and_defaults_per_protocol():
     ({"protocol": "ads", "offset_address": "GVL.x", "offset_type": "WORD", "speed_address": "GVL.y"},
      "plc adapter: offset_type = 'WORD': expected one of REAL (real32), LREAL, DINT (int32), INT (int16), BOOL (bit)"),
     ({"protocol": "ads", "offset_address": "GVL.x", "speed_address": "GVL.y", "cutting_address": "GVL.c",
-      "cutting_type": "REAL"}, "plc adapter: cutting_type must be BOOL or an integer type"),
+      "cutting_type": "REAL"}, "plc adapter: cutting_type = 'REAL': expected BOOL or an integer type"),
     ({"protocol": "profinet", "offset_address": "x", "speed_address": "y"},
      "plc adapter: protocol = 'profinet': expected one of 's7', 'modbus-tcp', 'ads'"),
     ({"protocol": "s7", "offset_address": "DB1.DBD0"}, "plc adapter: speed_address: required key missing"),
@@ -167,7 +167,7 @@ def test_a_bad_address_or_option_is_one_line_naming_the_key_the_value_and_the_sy
 
 
 def test_the_constructor_checks_what_the_settings_check():
-    with pytest.raises(ConfigError, match="offset_address must be an S7 address"):
+    with pytest.raises(ConfigError, match="offset_address = 'DB1.X': expected an S7 address"):
         PlcAdapter(protocol="s7", host="h", offset_address="DB1.X", speed_address="DB1.DBD0")
     with pytest.raises(ConfigError, match="a data type must be one of REAL"):
         PlcAdapter(protocol="s7", host="h", offset_address="DB1.DBD0", offset_type="float128",
