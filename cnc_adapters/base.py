@@ -418,6 +418,12 @@ class SettingsError(ConfigError):
         return SettingsError(self.label, [p.under(prefix) for p in self.problems])
 
 
+def key_error(key: str, text: str, given: Any = _ABSENT) -> SettingsError:
+    """For a check across keys (a model validator) that can say which key is wrong: the
+    settings' error then names that key and its value (``port = 0: expected ...``)."""
+    return SettingsError("", [Problem(key, text, given)])
+
+
 def _number(v: Any) -> str:
     """A bound as a user writes it: 31536000, not 3.1536e+07; 0.01 as 0.01."""
     try:

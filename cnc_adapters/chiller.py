@@ -56,6 +56,7 @@ from .base import (
     WriteRejectedError,
     check_settings,
     construct,
+    key_error,
     one_of,
     short,
     unknown,
@@ -255,7 +256,7 @@ class ModbusChillerSettings(ChillerSettings):
             if not self.host:
                 raise ValueError("transport tcp needs host")
             if self.port is not None and (not isinstance(self.port, int) or not 1 <= self.port <= 65535):
-                raise ValueError(f"transport tcp: port must be a TCP port 1..65535, not {short(self.port)}")
+                raise key_error("port", "expected a TCP port 1..65535 (transport tcp)", self.port)
         else:
             if not (isinstance(self.port, str) and self.port):
                 raise ValueError("transport rtu needs port, a serial device such as /dev/ttyUSB0")

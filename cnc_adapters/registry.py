@@ -126,7 +126,7 @@ def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
     if not kind and "url" in cfg:
         url = cfg.pop("url")
         if not isinstance(url, str):
-            raise ConfigError(f"adapter url must be a string, not {type(url).__name__}")
+            raise SettingsError("adapter", [Problem("url", "expected a string (a URL)", url)])
         return _resolve(url, {**cfg, **overrides})
     if not kind:
         raise ConfigError("adapter configuration needs a 'type' or a 'url'")

@@ -469,7 +469,7 @@ def test_every_backend_declares_its_settings():
     ("ammonia", {}, "unknown chiller backend 'ammonia'; known: modbus, opcua, virtual"),
     ("modbus", {"host": "h", "setpoint_regster": 3}, "did you mean 'setpoint_register'?"),
     ("modbus", {}, "transport tcp needs host"),
-    ("modbus", {"host": "h", "port": "/dev/ttyUSB0"}, "port must be a TCP port 1..65535"),
+    ("modbus", {"host": "h", "port": "/dev/ttyUSB0"}, "port = '/dev/ttyUSB0': expected a TCP port 1..65535 (transport tcp)"),
     ("modbus", {"transport": "rtu"}, "transport rtu needs port"),
     ("modbus", {"transport": "rtu", "port": "/dev/ttyUSB0", "host": "h"}, "takes no host"),
     ("modbus", {"host": "h", "transport": "udp"}, "transport = 'udp': expected one of 'tcp', 'rtu'"),
