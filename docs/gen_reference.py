@@ -113,13 +113,22 @@ def _default(field: Any) -> str:
     return f"`{value}`"
 
 
+def _number(v: Any) -> str:
+    """A bound as written: 31536000, 0.5, 1e-06 (never 3.1536e+07)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return str(v)
+    if float(v).is_integer() and abs(v) < 1e15:
+        return str(int(v))
+    return f"{v:g}"
+
+
 def _bounds(field: Any) -> str:
     parts = []
     for m in field.metadata:
         for attr, sign in (("ge", "≥"), ("gt", ">"), ("le", "≤"), ("lt", "<")):
             v = getattr(m, attr, None)
             if v is not None:
-                parts.append(f"{sign} {v:g}" if isinstance(v, (int, float)) else f"{sign} {v}")
+                parts.append(f"{sign} {_number(v)}")
         pattern = getattr(m, "pattern", None)
         if pattern:
             parts.append(f"matches `{pattern}`")
