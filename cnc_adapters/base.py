@@ -34,10 +34,10 @@ from urllib.parse import parse_qsl, urlsplit
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 
 from compensator.errors import (
+    MAX_MESSAGE_CHARS,
     AdapterError,
     AdapterTimeoutError,
     BadValueError,
-    MAX_MESSAGE_CHARS,
     ConfigError,
     UnreachableError,
     WriteRejectedError,
@@ -71,6 +71,7 @@ __all__ = [
     "host_options",
     "serial_options",
     "typed_params",
+    "unknown",
 ]
 
 log = logging.getLogger("thermocomp.adapters")
