@@ -192,3 +192,31 @@ def test_page_asks_for_the_token_and_survives_a_restart(tmp_path, calibrated_mod
         if page is not None:
             page.close()
         stop(svc)
+
+
+def test_page_says_a_spindle_whose_link_is_down_is_not_writing(tmp_path, calibrated_model):
+    port, closed = free_port(), free_port()  # nothing listens on `closed`: a wrong URL
+    cfg = write_config(tmp_path, calibrated_model, port)
+    cfg.write_text(cfg.read_text().replace(
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}',
+        f'adapter = {{url = "opc.tcp://127.0.0.1:{closed}/thermocomp/virtual-cnc/", preset = "virtual-cnc", '
+        'timeout_s = 1.0}'))
+    log = tmp_path / "service.log"
+    svc = start_service(cfg, log)
+    page = None
+    try:
+        url = wait_url(tmp_path / "state" / "status.url", svc, log)
+        page = Page(url, tmp_path / "down.png", "not_writing", tmp_path / "browser.log")
+        down = page.expect("not_writing")
+        assert down["document_status"] == 200 and down["errors"] == []
+        assert down["spindle_state"] == "not writing" and down["spindle_reason"].startswith("link down since ")
+        assert down["state_bar"].startswith("S1 · NOT WRITING") and f"127.0.0.1:{closed}" in down["state_bar"]
+        assert down["state_border"] == "rgb(214, 40, 40)"  # red, as rendered
+        # the header is the service's line: it counts no spindle that does not write
+        assert down["header"].startswith("NOT compensating (0 of 1 spindle(s)); s1 not writing: link down")
+        assert "LINK_DOWN" in down["alarms"] and png_size(tmp_path / "down.png") == (1280, 800)
+        assert page.finish() == 0, (tmp_path / "browser.log").read_text()[-3000:]
+    finally:
+        if page is not None:
+            page.close()
+        stop(svc)

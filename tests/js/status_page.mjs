@@ -8,6 +8,8 @@
 //   SCENARIO "token": the service asks for the token (THERMOCOMP_STATUS_TOKEN here too):
 //     without it refused ("no_token"); with ?token= it plots ("token"); the test stops the
 //     service: "unreachable" (screenshot); starts it again: "recovered".
+//   SCENARIO "not_writing": a service whose link is down: the state bar and the header say so
+//     (screenshot, "not_writing").
 // Every wait is for a condition with a generous timeout: nothing here compares clocks.
 import { chromium } from "playwright-core";
 
@@ -96,6 +98,16 @@ try {
     // back: a new pid, so the page drops the old series and fetches the new history
     await until(page, () => window.thermocomp.state === "live" && window.thermocomp.plotted > 0);
     emit("recovered", { ...(await look(page)), errors });
+  } else if (scenario === "not_writing") {
+    const resp = await page.goto(url);
+    await until(page, () => window.thermocomp.spindle_state === "not writing");
+    await page.screenshot({ path: shot });
+    const bar = await page.evaluate(() => {
+      const el = document.getElementById("state"), svc = document.getElementById("svc");
+      return { state_bar: el.innerText, state_border: getComputedStyle(el).borderLeftColor,
+               header: svc.innerText, header_color: getComputedStyle(svc).color };
+    });
+    emit("not_writing", { document_status: resp.status(), ...(await look(page)), ...bar, screenshot: shot, errors });
   } else {
     throw new Error(`unknown scenario ${scenario}`);
   }

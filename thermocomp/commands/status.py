@@ -28,9 +28,8 @@ EXIT_CODES = {
     EXIT_NOT_WRITING: "a spindle is not writing: its link is down, or no offset has gone through for "
                       "faults.not_writing_cycles cycles",
 }
-"""``thermocomp status --exit-code``: the exit status, the worst that applies (3 over 1)."""
-
-EXIT_CODES_HELP = "exit status: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
+"""``thermocomp status --exit-code``: the exit status, the worst that applies (3 over 1); the
+option's help in ``thermocomp/cli.py`` says the same."""
 
 
 class StatusUnreachableError(ThermocompError, ConnectionError):

@@ -819,9 +819,8 @@ class SpindleRuntime:
     def _link_failed(self, now: float, err: Exception) -> Alarm:
         before = self.link.state
         state = self.link.failed(now)
-        if before is LinkState.CONNECTED:  # the cause; later attempts only say they failed again
-            self.link_error = str(err)[:200]
         if before is LinkState.CONNECTED:
+            self.link_error = str(err)[:200]  # the cause; later attempts only say they failed again
             name = "timeout" if isinstance(err, AdapterTimeoutError) else "link_down"
             event(name, self.cfg.name, "%s: link down: %s", self.cfg.name, err, level=logging.ERROR,
                   error=str(err)[:200])
@@ -1075,10 +1074,10 @@ class SpindleRuntime:
         k = self.cfg.cold_start_settle_taus
         self.cold_settle_s = now + k * tau if tau is not None else math.inf
         until = (f"until {iso(self.anchor_s + self.cold_settle_s)} ({k:g} x the model's slowest time constant, "
-                 f"{tau / 60:.0f} min)" if tau is not None else "(the model states no time constant)")
+                 f"{tau / 60:.0f} min) or" if tau is not None else "(the model states no time constant) until")
         event("cold_start_turning", self.cfg.name, "%s: COLD_START_TURNING: cold start with the spindle at "
               "%.0f rpm: the machine is probably warm while the estimate starts from rest; expect a large "
-              "error %s or until a measurement is accepted", self.cfg.name, speed_rpm, until,
+              "error %s a measurement is accepted", self.cfg.name, speed_rpm, until,
               level=logging.WARNING, speed_rpm=speed_rpm, tau_s=tau, settle_taus=k,
               settles_s=None if tau is None else self.anchor_s + self.cold_settle_s)
 
