@@ -44,6 +44,10 @@ class Candidate:
     """The forward residual with the inputs held to the range their past saw."""
     forward_distance: np.ndarray | None = None
     """How far the inputs of each row predicted forward lay outside the range their past saw."""
+    forward_decides: bool = True
+    """False when the folds are blocks of one cycle: each block of a calibration program holds
+    other speeds, so "forward" there is extrapolation in speed, which the error statement and the
+    extrapolation policy judge, not the choice."""
 
     @property
     def honest_rms_um(self) -> float:
@@ -54,8 +58,10 @@ class Candidate:
     def decisive_rms_um(self) -> float:
         """What the choice reads: the worse of the honest backward figure and the forward one
         (rolling origin), so that a candidate must hold on the future too; the backward one
-        alone while fewer than :data:`MIN_FORWARD_FOLDS` folds were predicted forward."""
-        if self.forward_rms_um is None or len(self.forward_folds_rms_um) < MIN_FORWARD_FOLDS:
+        alone while fewer than :data:`MIN_FORWARD_FOLDS` folds were predicted forward, or when
+        the forward figure does not decide (``forward_decides``)."""
+        if (self.forward_rms_um is None or not self.forward_decides
+                or len(self.forward_folds_rms_um) < MIN_FORWARD_FOLDS):
             return self.honest_rms_um
         return max(self.honest_rms_um, self.forward_rms_um)
 

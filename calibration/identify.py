@@ -144,7 +144,7 @@ MIN_SHARED_INPUTS = 6
 REGISTRY: tuple[Entry, ...] = (
     Entry(baseline.NAME, "speed", _baseline, "fitting the exponential baseline"),
     Entry(output_error.NAME, "speed", output_error.candidate,
-          f"fitting {output_error.PHYSICAL_FORM} per fold", every_row=True, option="physical"),
+          f"fitting {output_error.PHYSICAL_FORM} per fold", option="physical"),
     Entry("ridge", "speed", _ridge, "fitting ridge (speed)"),
     Entry("ridge+inputs", "inputs", _ridge_inputs, "fitting ridge with the inputs", needs_inputs=True),
     Entry("ridge+few", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "few"),
@@ -219,7 +219,7 @@ def _coverage(ds: Dataset) -> list[str]:
     if not ds.dense:
         m = int(ds.measured.sum())
         out.append(f"sparse targets: fitted and scored on the {m} measured rows of {ds.measured.size} (the "
-                   "cycles and the free run on every row); the physical form, the paper's OLS, the "
+                   "cycles and the free run on every row); the paper's OLS, the "
                    "closed-loop plan and the HAC standard errors need the elongation on every row and "
                    "are left out")
         if ds.dropped_folds:
@@ -266,6 +266,7 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
             continue
         say(entry.progress + suffix)
         c, f = entry.evaluate(ds, ctx)
+        c.forward_decides = ds.unit == "cycle"
         cands.append(c)
         fitted[c.name] = f
 

@@ -165,7 +165,8 @@ def resample(run: Run, dt_s: float) -> Run:
     Speed is the time average of |n| over each interval (the logged speed is
     taken as held over the interval that ends at its sample); elongation is
     interpolated at the grid instants. Sub-sampling a finer log is exact for
-    speed changes on interval edges.
+    speed changes on interval edges. A sparse run's measurements (NaN between them) go to their
+    nearest grid instants.
     """
     t0, t1 = run.time_s[0], run.time_s[-1]
     k = int(np.floor((t1 - t0) / dt_s + 1e-9))
@@ -185,7 +186,14 @@ def resample(run: Run, dt_s: float) -> Run:
     speed = np.empty_like(grid)
     speed[0] = n[0]
     speed[1:] = np.diff(integral(grid)) / dt_s
-    elong = np.interp(grid, run.time_s, run.elongation_um)
+    y = run.elongation_um
+    ok = np.isfinite(y)
+    if ok.all():
+        elong = np.interp(grid, run.time_s, y)
+    else:  # sparse: each measurement on its nearest grid instant, the rest stays unmeasured
+        elong = np.full(grid.size, np.nan)
+        at = np.clip(np.rint((run.time_s[ok] - t0) / dt_s).astype(int), 0, grid.size - 1)
+        elong[at] = y[ok]
     return Run(run.name, grid, speed, elong)
 
 

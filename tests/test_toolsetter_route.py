@@ -325,13 +325,15 @@ def test_the_tool_setter_route_identifies_the_thermal_growth_as_well_as_the_eddy
 def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     """Measured turning at the program's speed, the tool setter sees the growth that exists only
     while the spindle turns: with the same stops, its model's full held-out error is under half
-    the contact setter's at rest. (Within 1.5x of the eddy-current model's it is on this seed,
-    1.1x, but not on others: 1.4x to 26x over three seeds and three step lengths, the sparse log
-    falling back to the exponential baseline; docs/PROBING.md.)"""
+    the contact setter's at rest, and within 1.5x of the eddy-current model's or within the
+    setter's own repeatability, whichever is larger (an eddy-current model under the setter's
+    noise is a bar no sparse measurement can reach). docs/PROBING.md has the figures over seeds
+    and step lengths."""
     f = routes
     print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
     assert f["laser_stops"] == f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
     assert f["laser_rms_um"] < 0.5 * f["setter_rms_um"], (f["laser_rms_um"], f["setter_rms_um"])
+    assert f["laser_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
 
 
 @pytest.mark.xfail(strict=True, reason="a tool setter measures at rest and never sees the elastic "

@@ -6,8 +6,9 @@ Output-error fitting uses variable projection: for fixed time constants the free
 linear in every gain, so each evaluation filters the speed powers through each state (one pass
 each) and solves one least-squares problem; an outer search covers the one or two nonlinear
 parameters. Long logs are searched on a coarser grid, then the gains solved on the full one
-(:func:`fit_physical`). It fits on a uniform grid, so it needs the elongation on every row: it
-is left out for sparse targets.
+(:func:`fit_physical`). The free run covers every row of a uniform grid, the least squares only
+the measured ones, so a sparse log (a tool setter's stops) fits the same forms: each stretch
+starts at its first measurement, from which the free run is anchored.
 """
 
 from __future__ import annotations
@@ -173,8 +174,11 @@ def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, 
     if extra is not None:
         x = np.column_stack([x, extra])
     y = y - _initial_response(states, runs)
-    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
-    r = y - x @ coef
+    ok = np.isfinite(y)
+    if ok.sum() <= x.shape[1]:
+        return math.inf
+    coef, *_ = np.linalg.lstsq(x[ok], y[ok], rcond=None)
+    r = y[ok] - x[ok] @ coef
     return float(r @ r)
 
 
@@ -220,7 +224,11 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
     x, n_gain, states = _design(form, theta, runs, n_max)
     if extra is not None:
         x = np.column_stack([x, extra])
-    ols = _ols(x, y - _initial_response(states, runs))
+    y = y - _initial_response(states, runs)
+    ok = np.isfinite(y)  # a sparse log: the measured rows
+    if ok.sum() < 2 * x.shape[1]:  # no residual degrees of freedom left to judge the gains by
+        return FitResult(form, None, note=f"{int(ok.sum())} measurements for {x.shape[1]} gains", theta=theta)
+    ols = _ols(x[ok], y[ok])
     gains = np.asarray(ols.params)
     se = np.asarray(ols.bse)
     extra_gains, extra_se = (gains[n_gain:], se[n_gain:]) if extra is not None else (None, None)
@@ -295,13 +303,23 @@ PHYSICAL_FORM = "speed-state+elastic"
 NAME = "physical"
 
 
+MIN_SPARSE_MEASUREMENTS = 3
+"""A sparse stretch with fewer measurements than this is not fitted on."""
+
+
 def runs_of(ds: Dataset, rows: np.ndarray) -> list[Run]:
     """Contiguous stretches of ``rows`` within each segment, as runs on a uniform grid."""
     runs = []
     for a, b in ds.segments:
         for s, e in fl.stretches(rows[a:b]):
-            if e - s >= fl.MIN_FOLD_ROWS:
-                lo, hi = a + s, a + e
+            lo, hi = a + s, a + e
+            if not ds.dense:
+                # a sparse stretch starts at its first measurement: the free run needs its state
+                hit = np.flatnonzero(ds.measured[lo:hi])
+                if hit.size < MIN_SPARSE_MEASUREMENTS:
+                    continue
+                lo += int(hit[0])
+            if hi - lo >= fl.MIN_FOLD_ROWS:
                 r = Run(f"{len(runs)}", ds.time_s[lo:hi], ds.speed_rpm[lo:hi], ds.elongation_um[lo:hi])
                 runs.append(resample(r, ds.dt_s))
     return runs
@@ -318,11 +336,13 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, form: str = PHYSICAL_FORM, 
 
 
 def free_run(model: ThermalModel, ds: Dataset) -> np.ndarray:
-    """Each segment from its first measured elongation, never re-anchored."""
+    """Each segment from its first row's elongation (at rest when it was not measured), never
+    re-anchored."""
     out = np.empty(ds.time_s.size)
     with np.errstate(all="ignore"):
         for a, b in ds.segments:
-            out[a:b] = model.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], None, float(ds.elongation_um[a]))
+            y0 = float(ds.elongation_um[a])
+            out[a:b] = model.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], None, y0 if math.isfinite(y0) else None)
     return out
 
 
@@ -340,7 +360,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
             c.fit_cpu_s = time.process_time() - cpu0
             return c, None
         res[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
-    c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res)
+    c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res, ds.measured)
     c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
     c.held_out_residual_um = res
     splits = fl.forward_splits(ds.folds, first=2)
@@ -354,7 +374,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
                 c.fit_cpu_s = time.process_time() - cpu0
                 return c, None
             ahead[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
-        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
+        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]) & ds.measured)
         c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
         c.forward_residual_um = ahead
     full = fit(ds, **meta)
@@ -362,10 +382,10 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
         c.refusals.append(f"no stable fit on all rows ({full.note})")
     else:
         c.model = full.model
-        c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full.model, ds))
+        c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full.model, ds), ds.measured)
         c.details = {"coefficients": full.coefficients}
         top = abs(full.model.steady_state_um(full.model.speed_range_rpm[1]))
-        bound = GAIN_BOUND * float(np.max(np.abs(ds.elongation_um)))
+        bound = GAIN_BOUND * float(np.nanmax(np.abs(ds.elongation_um)))
         if not math.isfinite(top) or top > bound:
             c.refusals.append(f"steady elongation {top:.4g} um at the top speed is over "
                               f"{GAIN_BOUND:g} x the largest measured")
