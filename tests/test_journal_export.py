@@ -353,14 +353,16 @@ def test_a_densely_measured_export_fits_like_the_run_log(real, tmp_path, capsys)
     same = tmp_path / "same.csv"  # the equivalent run log: the same numbers, on the same clock
     write_run_log(same, {"time_s": log.time_s + T0, "speed_rpm": log.speed_rpm,
                          "elongation_um": log.elongation_um, **log.extras})
-    common = ("--inputs", "all", "--no-physical", "--no-nested")
+    # three temperatures: the equivalence is the export's, not the many-input structures'
+    names = sorted(log.extras)[:3]
+    common = ("--inputs", ",".join(names), "--no-physical", "--no-nested")
     a = fit_json(capsys, out, *common, "--output", tmp_path / "a.json")
     b = fit_json(capsys, same, *common, "--output", tmp_path / "b.json")
     assert a["chosen"] == b["chosen"] and a["chosen"].startswith("ridge+") and a["scored_by"] == b["scored_by"]
     for ca, cb in zip(a["candidates"], b["candidates"]):
         assert ca["name"] == cb["name"] and ca["cv_rms_um"] == pytest.approx(cb["cv_rms_um"], rel=1e-9)
     ma, mb = load_any_model(tmp_path / "a.json"), load_any_model(tmp_path / "b.json")
-    assert [c.name for c in ma.inputs] == [c.name for c in mb.inputs] == sorted(log.extras)
+    assert [c.name for c in ma.inputs] == [c.name for c in mb.inputs] == names
     np.testing.assert_allclose(ma.drive_um, mb.drive_um, rtol=1e-9)
 
 

@@ -208,7 +208,7 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
 
 
 def test_kill_9_while_writing_state(tmp_path, model_file):
-    """60 hard kills at random moments: every restart finds a valid state file, and the
+    """24 hard kills at random moments: every restart finds a valid state file, and the
     restored elongation is within 0.5 um of what the killed run computed in its last or, killed
     between a row and its save, its last but one cycle."""
     cfg = write_config(tmp_path, model_file,
@@ -219,10 +219,10 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
     state_path = tmp_path / "state" / "s1.state.json"
     checked = progressed = 0
     last_saved = None
-    for i in range(60):
+    for i in range(24):
         proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
-        if i % 10 != 9:  # most kills land while it cycles and saves; every tenth during start-up
+        if i % 6 != 5:  # most kills land while it cycles and saves; every sixth during start-up
             before = state_path.stat().st_mtime_ns if state_path.exists() else 0
             end = time.monotonic() + 60
             while time.monotonic() < end and (
@@ -245,8 +245,8 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
             last_preds = [float(ln.split(",")[2]) for ln in lines[-2:]]
             assert min(abs(state["elongation_um"] - p) for p in last_preds) <= 0.5, last_preds
             checked += 1
-    assert checked >= 54
-    assert progressed >= 48  # most kills landed while the service was cycling and saving
+    assert checked >= 21
+    assert progressed >= 18  # most kills landed while the service was cycling and saving
 
 
 def start_service(cfg: Path, env_extra=None):
