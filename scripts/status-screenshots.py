@@ -110,11 +110,12 @@ def service_config(d: Path, opc_port: int, status_port: int) -> Path:
 
 
 def shoot(chromium: str, url: str, out: Path, d: Path) -> None:
-    """The page as a browser shows it after a few polls (virtual time: no wall-clock wait)."""
+    """The page as a browser shows it after a few polls (virtual time: no wall-clock wait), its
+    plot over the last hour."""
     subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
                     "--no-first-run", "--disable-background-networking", "--disable-component-update",
                     "--no-proxy-server", f"--user-data-dir={d / 'chromium'}", "--window-size=1280,800",
-                    "--virtual-time-budget=10000", f"--screenshot={out}", url],
+                    "--virtual-time-budget=10000", f"--screenshot={out}", url + "?h=1"],
                    check=True, capture_output=True, timeout=120)
     print(f"wrote {out}")
 

@@ -255,6 +255,7 @@ def spindle_status(rt: Any, now_s: float, state: SpindleState | None = None) -> 
         "last_in_step_age_s": None if rt.last_in_step_s is None else max(0.0, now_s - rt.last_in_step_s),
         "cold_start_settles_s": (None if rt.cold_settle_s is None else rt.anchor_s + rt.cold_settle_s),
         "cutting": last.get("cutting"),
+        "cutting_source": last.get("cutting_source"),
         "policy_state": last.get("policy_state"),
         "slew_limit_um_per_s": last.get("slew_limit_um_per_s"),
         "link": rt.link.state.value,
