@@ -21,7 +21,7 @@ from test_mqtt import brokers  # noqa: F401 - the fixture: mosquitto on loopback
 
 from compensator.io import read_run_log
 from machine_sim.vcnc import free_port
-from thermocomp.commands.status import EXIT_NOT_WRITING, EXIT_OK, exit_status, table
+from thermocomp.commands.status import EXIT_ATTENTION, EXIT_NOT_WRITING, EXIT_OK, exit_status, table
 from thermocomp.runtime import Alarm, Service
 from thermocomp.runtime.spindle import slowest_tau_s
 from thermocomp.runtime.status import STATES, SpindleFacts, spindle_state
@@ -110,6 +110,19 @@ def test_the_rule():
     cold = spindle_state(facts(alarm_bits=int(Alarm.COLD_START_TURNING), cold_settle_s=WALL0 + 3600.0))
     assert cold.state == "compensating" and "until 23:13:20 UTC or a measurement accepted" in cold.reason
     assert spindle_state(facts(writes_offset=False, last_in_step_s=None)).state == "compensating"
+
+
+def test_exit_status_of_thermocomp_status():
+    def snap(*spindles, cooling=None):
+        return {"spindles": [{"name": f"s{i}", "state": w, "alarms": a} for i, (w, a) in enumerate(spindles)],
+                "cooling": cooling}
+
+    assert exit_status(snap(("compensating", []), ("compensating", []))) == EXIT_OK
+    assert exit_status(snap(("compensating", ["COLD_START_TURNING"]))) == EXIT_ATTENTION
+    assert exit_status(snap(("compensating", []), ("holding", []))) == EXIT_ATTENTION
+    assert exit_status(snap(("compensating", []), cooling={"alarm": "CHILLER_FAILED"})) == EXIT_ATTENTION
+    assert exit_status(snap(("holding", ["WRITE_REJECTED"]), ("not writing", ["LINK_DOWN"]))) == EXIT_NOT_WRITING
+    assert exit_status({"spindles": [{"name": "s1", "alarms": []}]}) == EXIT_ATTENTION  # an older service: no state
 
 
 # -- (1) a wrong endpoint --------------------------------------------------------------------
@@ -271,6 +284,8 @@ def test_cold_start_on_a_turning_spindle_clears_at_an_accepted_measurement(tmp_p
     assert clock.t < 3600.0 + 600.0 < rt.created_s + 3600.0 + slowest_tau_s(rt.estimate.model)  # long before settling
     cleared = [r for r in caplog.records if getattr(r, "event", None) == "cold_start_settled"]
     assert len(cleared) == 1 and cleared[0].fields["reason"] == "measurement"
+    # the model alone still carries the start's error: its misses are not taken as drift
+    assert rt.drift.seen == 0 and not rt.drift.detected
     run_for(svc, clock, 60)
     assert "COLD_START_TURNING" not in svc.snapshot["spindles"][0]["alarms"]
 

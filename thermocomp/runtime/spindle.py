@@ -283,6 +283,9 @@ class SpindleRuntime:
         # a measurement settles it); _cold_unjudged from a cold start until a speed is read
         self.cold_settle_s: float | None = None
         self._cold_unjudged = False
+        # until then the model alone still carries the cold start's error (a measurement corrects
+        # the estimate through the bias, not the model): its misses are no evidence of drift
+        self._cold_model_until_s = -math.inf
         self.link_error: str | None = None  # why the link went down, while it is
         # the last cycle the controller held the offset the shaper aimed at (a write went
         # through, or none was due): the spindle's state counts cycles from here
@@ -398,6 +401,7 @@ class SpindleRuntime:
         if isinstance(unsettled, (int, float)) and not isinstance(unsettled, bool) and unsettled > now:
             # a restart does not settle an estimate: the rest of the wait carries over
             self.cold_settle_s = self.clock() + min(float(unsettled) - now, 1e9)
+            self._cold_model_until_s = self.cold_settle_s
             event("cold_start_turning", self.cfg.name, "%s: COLD_START_TURNING carried over a restart: the "
                   "estimate of the last cold start settles at %s, or at a measurement accepted",
                   self.cfg.name, iso(float(unsettled)), level=logging.WARNING, settles_wall_s=float(unsettled),
@@ -430,6 +434,7 @@ class SpindleRuntime:
         """What the spindle's state is judged on goes on through a reload: the last writes, and an
         unsettled cold start (a new configuration does not settle an estimate)."""
         self.cold_settle_s, self._cold_unjudged = old.cold_settle_s, old._cold_unjudged
+        self._cold_model_until_s = old._cold_model_until_s
         self.last_write_s, self.last_in_step_s = old.last_write_s, old.last_in_step_s
         self.created_s = old.created_s
 
@@ -703,7 +708,13 @@ class SpindleRuntime:
 
     def _drift_step(self, now: float, miss_um: float, sigma_um: float) -> None:
         """One measurement into the drift detector; MODEL_DRIFT with one event on entry (the
-        size and start of the change, what to do) and one on leaving."""
+        size and start of the change, what to do) and one on leaving. Left out while the model
+        alone still carries the error of a cold start on a turning spindle (the k slowest time
+        constants of COLD_START_TURNING, even once a measurement cleared the alarm): that miss
+        is the start's, not a change of the spindle."""
+        if now < self._cold_model_until_s:
+            log.debug("%s: a measurement during an unsettled cold start: not a drift step", self.cfg.name)
+            return
         stated = self._stated()[0]
         rms = None if stated is None else stated.at(self._last_speed).rms_um
         was = self.drift.detected
@@ -1073,6 +1084,8 @@ class SpindleRuntime:
         tau = slowest_tau_s(self.estimate.model)
         k = self.cfg.cold_start_settle_taus
         self.cold_settle_s = now + k * tau if tau is not None else math.inf
+        if tau is not None:
+            self._cold_model_until_s = self.cold_settle_s
         until = (f"until {iso(self.anchor_s + self.cold_settle_s)} ({k:g} x the model's slowest time constant, "
                  f"{tau / 60:.0f} min) or" if tau is not None else "(the model states no time constant) until")
         event("cold_start_turning", self.cfg.name, "%s: COLD_START_TURNING: cold start with the spindle at "
