@@ -27,8 +27,10 @@ import json
 import math
 import os
 import platform
+import runpy
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -50,7 +52,7 @@ from compensator.expected import distance_outside, parse_expected  # noqa: E402
 from compensator.io import read_run_log  # noqa: E402
 from compensator.units import SPEED_SCALE_RPM  # noqa: E402
 
-DATA = Path("/work/shared/data/real-spindle")
+ROOT = Path(__file__).resolve().parents[1]
 CHANNELS = ("ch1", "ch2", "ch3", "ch4", "ch5")
 TEMPS = tuple(f"temp{i}_c" for i in range(1, 17))
 ALPHAS = np.logspace(-6, 3, 28)
@@ -295,11 +297,16 @@ def print_tables(out: dict) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, default=DATA, help=f"folder of ch1_train.csv .. (default {DATA})")
+    p.add_argument("--data", type=Path, help="folder of ch1_train.csv .. (default: written from the real "
+                   "record in tests/data/real-spindle)")
     p.add_argument("--channels", default=",".join(CHANNELS), help="comma-separated, e.g. ch1,ch3")
     p.add_argument("--json", type=Path, help="write every figure here")
     args = p.parse_args()
     channels = [c.strip() for c in args.channels.split(",") if c.strip()]
+    if args.data is None:
+        write = runpy.run_path(str(ROOT / "tests/data/real-spindle/channels.py"))["write_channels"]
+        args.data = Path(tempfile.mkdtemp(prefix="bench-forward-"))
+        write(args.data, tuple(channels))
     missing = [c for c in channels if not (args.data / f"{c}_train.csv").is_file()]
     if missing:
         print(f"bench_forward: skipped: no {', '.join(f'{c}_train.csv' for c in missing)} in {args.data} "

@@ -1,4 +1,4 @@
-"""Tool-setter probe cycles for the closed loop (issue 17). Settings in, NC text out; only the
+"""Tool-setter probe cycles for the closed loop. Settings in, NC text out; only the
 command handler at the end writes a file.
 
 A cycle measures the tool on the machine's tool setter, subtracts the reference taken cold at

@@ -80,7 +80,7 @@ def _duration(seconds: float) -> str:
 
 @dataclass(frozen=True)
 class Probes:
-    """Measurements to fuse (issue 17): times [s] on the log's clock, values and sigma [um]."""
+    """Measurements to fuse: times [s] on the log's clock, values and sigma [um]."""
 
     time_s: np.ndarray
     elongation_um: np.ndarray

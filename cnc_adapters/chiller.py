@@ -1,4 +1,4 @@
-"""Spindle chiller links (issue 20): thermocomp drives the coolant-temperature set point.
+"""Spindle chiller links: thermocomp drives the coolant-temperature set point.
 
 One base class, :class:`Chiller` (a :class:`~cnc_adapters.base.Link`: reconnection, back-off,
 a context manager), with the template methods :meth:`Chiller.write_setpoint_c`,

@@ -288,7 +288,7 @@ PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
         name="virtual", title="thermocomp virtual CNC", unit="um (ThermalOffset)",
         scale=1.0, sign=1, resolution=0.0, limit=1000.0,
         readback="ThermalOffset read back", snippet="(none: the virtual CNC applies ThermalOffset)",
-        doc="README.md#the-virtual-machine-tool",
+        doc="docs/reference/virtual-machine-tool.md",
         routes={
             "opcua": Route(
                 adapter={"type": "opcua", "preset": "virtual-cnc"},

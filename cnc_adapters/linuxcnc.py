@@ -46,7 +46,7 @@ times the scale, in machine units), read by name (``held_pin``, default
 ``axis.z.eoffset-request``; name the axis the counts are netted to, or ``""`` for no read-back).
 While the machine is not ready it applies no external offset, so the read-back is 0 then.
 
-The closed loop (issue 17): with ``measurement = true`` a tool-setter or probe cycle hands its
+The closed loop: with ``measurement = true`` a tool-setter or probe cycle hands its
 measurement over through ``measurement.value`` and ``measurement.sequence`` (the value first,
 then a changed counter; each value is used once, the counter found at the first read is stale).
 The value is in machine units like the offset (``measurement_scale = 1`` for a cycle that hands
@@ -62,7 +62,7 @@ analog outputs (``motion.analog-out-NN``, float; four unless ``num_aio`` says mo
 M68 sets the output at once; M67 with the next move. A sequence pin of type s32 or u32
 (``measurement_sequence_type``) takes a counter from an integer source (a ladder, a comp).
 
-The cutting signal (issue 18), so that the elastic step of a speed change is applied fast while
+The cutting signal, so that the elastic step of a speed change is applied fast while
 the tool is clear of the part and slowly while it cuts (``cutting``):
 
 - ``"feed"``: the tool cuts while the spindle is at speed and motion makes a feed move:

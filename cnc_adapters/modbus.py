@@ -11,14 +11,14 @@ exception reply (illegal address, device failure) is an :class:`AdapterError`, o
 :class:`WriteRejectedError` for a write. The offset is read back from the holding registers
 it is written to (an integer type holds it rounded to its unit).
 
-The closed loop (issue 17): a probe or tool-setter cycle leaves its measurement in
+The closed loop: a probe or tool-setter cycle leaves its measurement in
 ``measurement_register`` and then changes a counter in ``measurement_sequence_register``
 (optional: a sigma in ``measurement_sigma_register``), all in one table
 (``measurement_table``). The value is encoded like the offset (``measurement_type``, the word
 and byte order; an integer type in units of ``measurement_scale``, by default
 ``offset_scale``); each value is used once, and the counter found at the first read is stale.
 
-The cutting signal (issue 18): ``cutting_register`` (in ``cutting_table``, an integer of
+The cutting signal: ``cutting_register`` (in ``cutting_table``, an integer of
 ``cutting_type``) holds a state the PLC sets; ``cutting_values`` are the values that mean
 "cutting" (default 1). Without one, the runtime infers it from the speed.
 """

@@ -12,13 +12,13 @@ its namespace. Presets:
 - ``generic``: give ``speed_node``/``speed_path`` and ``offset_node``/``offset_path``
   (a browse path is ``0:Objects/2:Machine/2:Speed``, with ``{ns}`` for ``namespace_uri``).
 
-The closed loop (issue 17): ``measurement_node`` and ``measurement_sequence_node`` (optional
+The closed loop: ``measurement_node`` and ``measurement_sequence_node`` (optional
 ``measurement_sigma_node``) name the variables a probe or tool-setter cycle writes: the value
 first, then a changed counter. Each value is used once; the counter found at connect is stale
 (:meth:`~cnc_adapters.base.Adapter.read_measurement`). They are looked up at the first read,
 so a wrong node is a failed measurement, never a failed link.
 
-The cutting signal (issue 18): ``cutting_node`` names a boolean (at speed and feeding, a cut in
+The cutting signal: ``cutting_node`` names a boolean (at speed and feeding, a cut in
 progress) or an enumeration (a program or motion state); ``cutting_values`` are the values
 that mean "cutting" (default ``[true]``; ``[false]`` for an inverted bit such as feed hold).
 Polling, it is read on its own at first, then in the same request as the speed, so both

@@ -1,5 +1,5 @@
 """Generic PLC-register link: the offset goes into a PLC variable, the machine builder's PLC
-program applies it (issue 19). Three protocols behind one backend, ``plc``:
+program applies it. Three protocols behind one backend, ``plc``:
 
 - ``s7``: Siemens S7 (S7-300/400/1200/1500, the PLC of a SINUMERIK 840D sl) through
   python-snap7 (pure Python from 3.0). Addresses in Siemens syntax: ``DB100.DBD0`` (a double

@@ -20,7 +20,7 @@ one, answered ``!``. The spindle speed is macro #3027 by default; the offset goe
 configurable macro variable, which the part program or a macro applies as a tool-length
 offset (for example ``#2000 + T`` wear, via ``G10``), and is read back with ``?Q600`` too.
 
-The closed loop (issue 17), Haas: a probe or tool-setter cycle leaves its measurement in macro
+The closed loop, Haas: a probe or tool-setter cycle leaves its measurement in macro
 ``measurement_var`` and then changes a counter in ``measurement_sequence_var`` (optional: a
 sigma in ``measurement_sigma_var``), in the offset's unit (or ``measurement_scale``); all are
 read with ``?Q600``, the counter before and after the value. Each value is used once, and the

@@ -8,7 +8,7 @@ Nodes (temperatures in degC):
 4. coolant jacket (water), pulled toward the chiller's outlet temperature;
 5. machine structure (head/column), slowly following the ambient air.
 
-The chiller (issue 20) is two more states: its internal set point, which moves toward the
+The chiller is two more states: its internal set point, which moves toward the
 commanded one at ``chiller_rate_k_per_min`` at most (the controller's own set-point ramp), and
 its outlet temperature, a first-order lag of ``chiller_lag_s`` behind it. The jacket removes
 heat in proportion to (housing - coolant). :meth:`SpindlePlant.set_chiller_setpoint_c`

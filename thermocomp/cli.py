@@ -376,7 +376,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--output-dir", default="demo-output", help="where to write logs and plots")
     p.add_argument("--hours", type=float, default=5.0,
                    help="length of the job-shop days the service compensates, open and closed loop "
-                   "(1 to 24, default 5); the figures in the README are for 5")
+                   "(1 to 24, default 5); the figures in docs/getting-started.md are for 5")
     p.add_argument("--profile", default="virtual", choices=PROFILES, metavar="NAME",
                    help="the control the virtual CNC acts as, one of %(choices)s: its unit, resolution, "
                    "limits and own rate limit (sinumerik: SD43900 with the SeaWrite right); default its own "
@@ -576,7 +576,7 @@ def _add_refit(sub: argparse._SubParsersAction) -> None:
 
 def _add_status(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("status", help="what a running service is doing: its status endpoint as a table",
-                       description="Reads the service's /status (docs: the README's Live status). "
+                       description="Reads the service's /status (docs/service.md, Live status). "
                        "The token, where the service asks for one: THERMOCOMP_STATUS_TOKEN or --token-file.")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--url", help=f"the status endpoint (default {_DEFAULT_STATUS_URL})")

@@ -12,7 +12,7 @@ not fatal. A day file that already ends later than the first new row (the clock 
 back between two runs) is continued in a new part, ``<name>-<day>.p2.csv``; so is one written
 with other columns (an older version).
 
-Per cycle it also records how the offset was shaped (issue 18): ``cutting`` (1 when the tool
+Per cycle it also records how the offset was shaped: ``cutting`` (1 when the tool
 was taken to be in the part), ``cutting_source`` (``controller``: the controller's signal;
 ``speed``: inferred from the speed; ``speed-fallback``: inferred because the signal failed),
 ``policy_state`` (dual-slew ``cutting`` or ``clear``; slow/hold ``tracking``, ``window`` or

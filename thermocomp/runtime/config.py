@@ -97,7 +97,7 @@ class LearningSettings(BaseModel):
 
 
 class ObserverSettings(BaseModel):
-    """The closed loop: tool-setter or probe measurements fused with the model (issue 17).
+    """The closed loop: tool-setter or probe measurements fused with the model.
 
     The keys from ``bias_q_um2_per_s`` on override the observer settings fitted with the model
     (``fit.observer`` in the model file), key by key; unset, the fitted (or default) value holds.
@@ -134,7 +134,7 @@ class SpindleConfig(BaseModel):
     model: Path = Field(description="model file (JSON) written by thermocomp fit")
     spindle_id: str | None = Field(
         None, min_length=1, max_length=200,
-        description="the spindle id the model file must carry (thermocomp fit --spindle-id, the "
+        description="the spindle id the model file must carry (thermocomp fit --model-spindle-id, the "
         "wizard's): a model for any other spindle, or one that names none ('unknown'), is refused "
         "at start and at reload. Unset: not checked; the name above is only a label and need not "
         "match the model's spindle id")

@@ -33,7 +33,7 @@ EVENTS = (
     "shadow_started", "shadow_failed",
     "cold_start_turning", "cold_start_settled", "spindle_state",
 )
-"""Every event name the runtime emits (documented in the README)."""
+"""Every event name the runtime emits (documented in docs/reference)."""
 
 
 def event(name: str, spindle: str | None, message: str, *args: Any, level: int = logging.INFO,
