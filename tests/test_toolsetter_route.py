@@ -327,7 +327,7 @@ def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     while the spindle turns: with the same stops, its model's full held-out error is under half
     the contact setter's at rest, and within 1.5x of the eddy-current model's or within the
     setter's own repeatability, whichever is larger (an eddy-current model under the setter's
-    noise is a bar no sparse measurement can reach). docs/PROBING.md has the figures over seeds
+    noise is a bar no sparse measurement can reach). docs/benchmarks.md has the figures over seeds
     and step lengths."""
     f = routes
     print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
