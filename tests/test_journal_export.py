@@ -398,8 +398,8 @@ def test_a_sparsely_measured_export_fits_on_its_measured_rows(real, tmp_path, ca
 
 def test_one_identification_for_dense_and_sparse_logs(real):
     """Dense and sparse logs go through the one registry: the same log with most rows blanked
-    keeps the candidates that fit on the measured rows, leaves out the two that need every row
-    (and says so), and scores the rest on the measured rows of the same cycles."""
+    keeps the candidates that fit on the measured rows, leaves out the one that needs every row
+    (the paper's OLS, and says so), and scores the rest on the measured rows of the same cycles."""
     from calibration.identify import REGISTRY, LogData, identify
 
     log = read_run_log(real["ch1"])
