@@ -144,6 +144,11 @@ class Alarm(enum.IntFlag):
     ESTIMATE_REFUSED = 4194304
     EXPECTED_ERROR_HIGH = 8388608
     MODEL_DRIFT = 16777216
+    # a cold start (no usable saved state) whose first speed read shows the spindle turning (at
+    # least TURNING_MIN_RPM, or 1 % of the calibrated top): the machine is probably warm, the
+    # estimate starts from rest. Raised until cold_start_settle_taus (3) x the model's slowest
+    # time constant have passed (the start's error decayed to exp(-k), 5 %), or until the observer
+    # takes a measurement (accepted, or the bias restarted from it); a restart does not clear it.
     COLD_START_TURNING = 33554432
 
 
