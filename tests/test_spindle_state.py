@@ -127,50 +127,63 @@ def test_exit_status_of_thermocomp_status():
 
 # -- (1) a wrong endpoint --------------------------------------------------------------------
 
-@pytest.mark.skipif(not MOSQUITTO.exists(), reason="mosquitto is not installed (scripts/system-deps.sh)")
-def test_a_closed_endpoint_is_not_writing_everywhere(tmp_path, calibrated_model, services, brokers, caplog):
+def closed_endpoint(tmp_path: Path, model: Path, services, mqtt_port: int | None = None) -> tuple[Service, int]:
+    """A service whose controller's URL points where nothing listens (a wrong URL), 30 s on."""
+    closed = free_port()
+    svc, clock = services(config(
+        tmp_path, model, mqtt_port=mqtt_port,
+        adapter=f'{{url = "opc.tcp://127.0.0.1:{closed}/thermocomp/virtual-cnc/", preset = "virtual-cnc", '
+                'timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}'))
+    svc.start_status()
+    if mqtt_port is not None:
+        wait_for(lambda: svc.mqtt.connected, 10, "the service's connection to the broker")
+    run_for(svc, clock, 30)
+    return svc, closed
+
+
+def test_a_closed_endpoint_is_not_writing(tmp_path, calibrated_model, services, caplog):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
-    closed = free_port()  # nothing listens there
+    svc, closed = closed_endpoint(tmp_path, calibrated_model, services)
+    base = svc.status_server.url
+    st = get_json(base + "status")
+    (s1,) = st["spindles"]
+    assert s1["state"] == "not writing" and s1["compensating"] is False
+    assert s1["state_reason"].startswith("link down since 22:13:20 UTC (")
+    assert f"127.0.0.1:{closed}" in s1["state_reason"] and s1["last_write_age_s"] is None
+    # the header counts no spindle that does not write
+    assert st["status"].startswith("NOT compensating (0 of 1 spindle(s)); s1 not writing: link down")
+    assert "compensating 1 spindle" not in st["status"]
+
+    m = metrics(base)
+    assert m[("thermocomp_compensating", (("spindle", "s1"),))] == 0.0
+    assert state_gauges(m) == {"compensating": 0.0, "holding": 0.0, "not writing": 1.0}
+    assert m[("thermocomp_link_up", (("spindle", "s1"),))] == 0.0
+
+    r = status_cli(base, "--exit-code")
+    assert r.returncode == EXIT_NOT_WRITING == 3, r.stderr
+    lines = r.stdout.splitlines()
+    assert "NOT compensating" in lines[0]
+    assert next(x for x in lines if x.split()[:1] == ["s1"]).split()[1:3] == ["not", "writing"]
+    assert any(x.startswith("s1: not writing: link down since 22:13:20 UTC") for x in lines)
+    assert status_cli(base).returncode == 0  # without --exit-code: the table only
+    assert any(getattr(r, "event", None) == "spindle_state" and r.fields["state"] == "not writing"
+               for r in caplog.records)
+
+
+@pytest.mark.skipif(not MOSQUITTO.exists(), reason="mosquitto is not installed (scripts/system-deps.sh)")
+def test_a_closed_endpoint_is_not_writing_on_mqtt(tmp_path, calibrated_model, services, brokers):
     broker = brokers.start()
     sub = Subscriber(broker)
     try:
-        svc, clock = services(config(
-            tmp_path, calibrated_model, mqtt_port=broker,
-            adapter=f'{{url = "opc.tcp://127.0.0.1:{closed}/thermocomp/virtual-cnc/", preset = "virtual-cnc", '
-                    'timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}'))
-        svc.start_status()
-        wait_for(lambda: svc.mqtt.connected, 10, "the service's connection to the broker")
-        run_for(svc, clock, 30)
-        base = svc.status_server.url
-        st = get_json(base + "status")
-        (s1,) = st["spindles"]
-        assert s1["state"] == "not writing" and s1["compensating"] is False
-        assert s1["state_reason"].startswith("link down since 22:13:20 UTC (")
-        assert f"127.0.0.1:{closed}" in s1["state_reason"] and s1["last_write_age_s"] is None
-        # the header counts no spindle that does not write
-        assert st["status"].startswith("NOT compensating (0 of 1 spindle(s)); s1 not writing: link down")
-        assert "compensating 1 spindle" not in st["status"]
-
-        m = metrics(base)
-        assert m[("thermocomp_compensating", (("spindle", "s1"),))] == 0.0
-        assert state_gauges(m) == {"compensating": 0.0, "holding": 0.0, "not writing": 1.0}
-        assert m[("thermocomp_link_up", (("spindle", "s1"),))] == 0.0
-
-        r = status_cli(base, "--exit-code")
-        assert r.returncode == EXIT_NOT_WRITING == 3, r.stderr
-        lines = r.stdout.splitlines()
-        assert "NOT compensating" in lines[0]
-        assert next(x for x in lines if x.split()[:1] == ["s1"]).split()[1:3] == ["not", "writing"]
-        assert any(x.startswith("s1: not writing: link down since 22:13:20 UTC") for x in lines)
-        assert status_cli(base).returncode == 0  # without --exit-code: the table only
-
-        # MQTT: the spindle's own topic and the whole status say it too
+        svc, _ = closed_endpoint(tmp_path, calibrated_model, services, broker)
+        reason = svc.snapshot["spindles"][0]["state_reason"]
+        assert reason.startswith("link down since 22:13:20 UTC (")
+        # the spindle's own topic and the whole status say it, as /status does
         spindle = json.loads(sub.wait("spindle/s1", lambda p, r: json.loads(p).get("state") == "not writing"))
-        assert spindle["state_reason"] == s1["state_reason"] and spindle["compensating"] is False
+        assert spindle["state_reason"] == reason and spindle["compensating"] is False
         whole = json.loads(sub.wait("status", lambda p, r: json.loads(p)["status"].startswith("NOT")))
         assert whole["spindles"][0]["state"] == "not writing"
-        assert any(getattr(r, "event", None) == "spindle_state" and r.fields["state"] == "not writing"
-                   for r in caplog.records)
+        assert "compensating 1 spindle" not in whole["status"]
     finally:
         sub.close()
 
