@@ -40,7 +40,7 @@ cycle and saves the state when due. The controller's offset is the truth:
   serves the model in use: at a switch between the model with inputs and its fallback the bias
   is rebased so that the estimate does not jump. A correction reaches the controller through the
   shaper's slew limit like any change of the estimate;
-- speed transients (``[spindle.shaping]``, issue 18): each cycle the controller's cutting signal
+- speed transients (``[spindle.shaping]``): each cycle the controller's cutting signal
   is read where the adapter has one (``Adapter.read_cutting``) and handed to the shaper, which
   otherwise infers it from the speed. With the default ``dual-slew`` policy the offset moves at
   ``not_cutting_rate_um_per_s`` while the tool is clear of the part (the elastic step of a speed
