@@ -133,7 +133,7 @@ def test_the_configuration_refuses_a_model_of_another_spindle(session, tmp_path,
     assert check(str(config)) == 0
     other = session["model"].model_copy(update={"spindle_id": "spindle-2"})
     save_model(config.parent / ".." / "models" / session["model_path"].name, other)
-    with pytest.raises(ConfigError, match="is for spindle 'spindle-2', not 'main'"):
+    with pytest.raises(ConfigError, match="spindle_id = 'main': the model file .* is for spindle 'spindle-2'"):
         check(str(config))
     # the spindle_id line is what refuses it: without it the same model is taken
     lax = config.with_name("no-id.toml")
