@@ -100,7 +100,9 @@ try {
     emit("recovered", { ...(await look(page)), errors });
   } else if (scenario === "not_writing") {
     const resp = await page.goto(url);
-    await until(page, () => window.thermocomp.spindle_state === "not writing");
+    // past "starting" (no cycle yet, also not writing): the first cycle has met the closed port
+    await until(page, () => window.thermocomp.spindle_state === "not writing"
+                && (window.thermocomp.spindle_reason ?? "").startsWith("link down"));
     await page.screenshot({ path: shot });
     const bar = await page.evaluate(() => {
       const el = document.getElementById("state"), svc = document.getElementById("svc");
