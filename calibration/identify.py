@@ -324,6 +324,9 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
                                            if c.family == "speed"))
     best = min(speed, key=score)
     chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
+    kept = None if probe_every_s is not None else _physical_within_noise(speed, chosen, ds)
+    if kept is not None:
+        chosen, kept_why = kept
     basis = "nested " if chosen.nested_rms_um is not None else ""
     ahead = (f", forward {chosen.forward_rms_um:.2f} um" if chosen.forward_rms_um is not None else "")
     if probe_every_s is None:
@@ -336,7 +339,10 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         reason = (f"{chosen.name} has the lowest {ds.scheme} {what} among the speed-only candidates "
                   f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS "
                   f"{chosen.honest_rms_um:.2f} um{ahead}")
-    reason += f" (within {PARSIMONY:.0%} of {best.name}, and simpler)" if chosen is not best else ""
+    if kept is not None:
+        reason += f" ({kept_why})"
+    elif chosen is not best:
+        reason += f" (within {PARSIMONY:.0%} of {best.name}, and simpler)"
     model = _with_fit(chosen, ds, reason)
     final = chosen
     with_inputs = _best_with_inputs([c for c in cands if c.family == "inputs"], score)
@@ -364,6 +370,46 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
             update["fallback"] = fb.model_copy(update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}})
         model = model.model_copy(update=update)
     return Identification(ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop)
+
+
+def _paired_fold_mse_um2(simple: Candidate, rich: Candidate, ds: Dataset) -> tuple[float, float, int] | None:
+    """The mean over folds of (simple's held-out MSE - rich's) on the rows both scored, its
+    standard error, and the folds; None below 3 folds."""
+    a, b = simple.held_out_residual_um, rich.held_out_residual_um
+    if a is None or b is None:
+        return None
+    d = []
+    for lo, hi in ds.folds:
+        ok = np.isfinite(a[lo:hi]) & np.isfinite(b[lo:hi]) & ds.measured[lo:hi]
+        if ok.any():
+            d.append(float(np.mean(a[lo:hi][ok] ** 2) - np.mean(b[lo:hi][ok] ** 2)))
+    if len(d) < 3:
+        return None
+    return float(np.mean(d)), float(np.std(d, ddof=1) / math.sqrt(len(d))), len(d)
+
+
+def _physical_within_noise(speed: Sequence[Candidate], chosen: Candidate,
+                           ds: Dataset) -> tuple[Candidate, str] | None:
+    """The physical form instead of a flexible candidate that beats it by less than the noise of
+    the comparison: one standard error of their paired per-fold difference in held-out MSE (the
+    one-standard-error rule; Hastie, Tibshirani and Friedman, section 7.10). It has a handful of
+    parameters, each with a physical meaning, against a bank's dozens: on a tool setter's few
+    noisy measurements the flexible fit won by a hair in CV and erred 2-3x more held out. Judged
+    on the backward figure, so only where the forward one does not decide."""
+    phys = next((c for c in speed if c.name == output_error.NAME), None)
+    if phys is None or chosen is phys or chosen.name == baseline.NAME:
+        return None
+    if any(c.decisive_rms_um != c.honest_rms_um for c in (phys, chosen)):
+        return None
+    paired = _paired_fold_mse_um2(phys, chosen, ds)
+    if paired is None:
+        return None
+    gain, se, k = paired
+    if gain > se:
+        return None
+    return phys, (f"{chosen.name} is lower by {chosen.honest_rms_um:.2f} against {phys.honest_rms_um:.2f} um, "
+                  f"a gain in held-out MSE of {gain:.3f} um² within one standard error ({se:.3f} um² over "
+                  f"{k} {ds.unit}s): the physical form, with fewer parameters, is kept")
 
 
 def _best_with_inputs(cands: Sequence[Candidate], score: Callable[[Candidate], float]) -> Candidate | None:

@@ -10,7 +10,12 @@ The rule, in this order:
    while it moves, not only settled (interval <= tau_fastest / 2). The time constant comes from a
    former model of the spindle when there is one; without one it is assumed, ``ASSUMED_TAU_S``
    (10 min: motorized spindles' fastest states are minutes), and the plan says so;
-3. rounded **down** to whole minutes (so both bounds hold), at least one minute.
+3. rounded **down** to whole minutes (so both bounds hold), at least one minute;
+4. **a laser at speed** (the spindle keeps turning through the cycle) loses no growth at a stop,
+   so it stops more often: every whole minute at which the cycles add at most
+   :data:`AT_SPEED_OVERHEAD` to the program, when that is shorter. Its measurements are as noisy
+   as a contact setter's, and more of them is what brings its model to the eddy-current
+   sensor's (the benchmarks page has the figures).
 
 Each stop costs the cycle's time (``dwell_s``: the spindle at rest, the program waiting) and the
 growth that decays meanwhile: the fastest state loses 1 - exp(-dwell / tau) of itself per stop,
@@ -32,6 +37,8 @@ ASSUMED_TAU_S = 600.0
 """The fastest thermal time constant assumed without a former model [s]."""
 PER_STEP = 3
 """Measurements per staircase step, at least."""
+AT_SPEED_OVERHEAD = 0.2
+"""A laser at speed stops as often as its cycles add at most this share to the program."""
 
 
 @dataclass(frozen=True)
@@ -53,7 +60,7 @@ class ProbePlan:
     dwell_s: float
     program_s: float
     bound: str
-    """Which bound set the interval: "step", "tau" or "minimum"."""
+    """Which bound set the interval: "step", "tau", "minimum" or "overhead" (a laser at speed)."""
 
     def lines(self) -> list[str]:
         """What the wizard prints, one line each."""
@@ -61,7 +68,9 @@ class ProbePlan:
                else f"{self.fastest_tau_s / 60:.1f} min, from the former model")
         why = {"step": f"at least {PER_STEP} measurements per {self.step_s / 60:g}-min step",
                "tau": "half the fastest time constant",
-               "minimum": "one minute, the shortest interval planned"}[self.bound]
+               "minimum": "one minute, the shortest interval planned",
+               "overhead": (f"a laser at speed loses no growth at a stop: as often as the cycles add at most "
+                            f"{AT_SPEED_OVERHEAD:.0%} to the program")}[self.bound]
         return [
             f"tool-setter stop every {self.interval_s / 60:.0f} min ({why}; fastest time constant {tau})",
             f"{self.stops} stops of about {self.dwell_s:.0f} s: the program takes {self.added_s / 60:.1f} min "
@@ -93,6 +102,10 @@ def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
     minutes = math.floor(min(by_step, by_tau) / 60.0)
     bound = "minimum" if minutes < 1 else ("step" if by_step <= by_tau else "tau")
     interval = 60.0 * max(minutes, 1)
+    if at_speed:
+        often = 60.0 * max(math.ceil(dwell_s / AT_SPEED_OVERHEAD / 60.0), 1)
+        if often < interval:
+            interval, bound = often, "overhead"
     if program_s is None:
         program_s = paper_calibration(27000.0, cooldown_min=cooldown_s / 60.0, step_min=step_s / 60.0).duration_s
     n = len(probe_stops(program_s, interval))

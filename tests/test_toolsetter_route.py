@@ -231,6 +231,13 @@ def test_the_probe_interval_plan():
     assert plan_probe_interval(60.0, 0.0, 20.0).interval_s == 60.0  # never below a minute
     with pytest.raises(ValueError):
         plan_probe_interval(0.0, 0.0, 20.0)
+    # a laser at speed loses nothing at a stop: as often as 20 s cycles add at most 20 %
+    r = plan_probe_interval(1200.0, 3600.0, 20.0, at_speed=True)
+    assert r.interval_s == 120.0 and r.bound == "overhead" and r.loss_per_stop == 0.0 and r.stopped_share == 0.0
+    assert r.added_s / r.program_s <= 0.2
+    assert "laser at speed" in r.lines()[0]
+    assert plan_probe_interval(180.0, 0.0, 20.0, at_speed=True).bound == "step"  # already shorter
+    assert plan_probe_interval(1200.0, 3600.0, 90.0, at_speed=True).interval_s == 300.0  # long cycles: tau
 
 
 # -- the two routes on the same virtual spindle ---------------------------------------------------
@@ -267,8 +274,12 @@ def routes(tmp_path_factory):
     rec, _vm, _clock = setter_recording(tmp, nc, rate_s=RATE_S)
     setter = rec.run()
     setter_fit = fit_logs([read_run_log(setter.path)])
-    # (c) a laser setter measuring the turning gauge tool at the program's speed, same interval
-    laser_rec, _vm, _clock = setter_recording(tmp, nc, rate_s=RATE_S, at_speed=True, name="laser.csv")
+    # (c) a laser setter measuring the turning gauge tool at the program's speed, at its own plan
+    laser_plan = plan_probe_interval(STEP_MIN * 60, COOLDOWN_MIN * 60, DWELL_S, min(eddy_fit.model.time_constants_s()),
+                                     at_speed=True)
+    laser_nc = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN,
+                                                  probe_every_s=laser_plan.interval_s), "fanuc"))
+    laser_rec, _vm, _clock = setter_recording(tmp, laser_nc, rate_s=RATE_S, at_speed=True, name="laser.csv")
     laser = laser_rec.run()
     laser_log = read_run_log(laser.path)
     laser_fit = fit_logs([laser_log])
@@ -296,7 +307,7 @@ def routes(tmp_path_factory):
     fig["laser_ratio"] = fig["laser_rms_um"] / fig["eddy_rms_um"]
     fig["laser_model"] = laser_fit.chosen.name
     fig["laser_at_speed"] = int((laser_log.speed_rpm[laser_log.measured] > 1.0).sum())
-    fig["laser_stops"] = laser.measurements
+    fig["laser_stops"], fig["laser_plan_stops"] = laser.measurements, laser_plan.stops
     fig["thermal_ratio"] = fig["setter_plus_elastic_rms_um"] / fig["eddy_rms_um"]
     assert eddy.complete and setter.complete and not eddy.flagged and not setter.flagged
     assert setter.measurements == plan.stops
@@ -315,9 +326,10 @@ def figures(f) -> str:
 def test_the_tool_setter_route_identifies_the_thermal_growth_as_well_as_the_eddy_sensor(routes):
     f = routes
     # what a standstill measurement can see, it learns: with the elastic growth it cannot see
-    # put back, its held-out error is within 1.5x of the eddy-current model's
+    # put back, its held-out error is within 1.5x of the eddy-current model's, or within the
+    # setter's repeatability when the eddy-current model is better than a sparse measurement can judge
     print(figures(f))
-    assert f["thermal_ratio"] <= 1.5, figures(f)
+    assert f["setter_plus_elastic_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
     assert f["setter_rest_rms_um"] < 1.0, figures(f)
     assert f["stops"] >= 3 * 9, figures(f)  # at least 3 per staircase step
 
@@ -331,7 +343,7 @@ def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     and step lengths."""
     f = routes
     print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
-    assert f["laser_stops"] == f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
+    assert f["laser_stops"] == f["laser_plan_stops"] >= f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
     assert f["laser_rms_um"] < 0.5 * f["setter_rms_um"], (f["laser_rms_um"], f["setter_rms_um"])
     assert f["laser_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
 
