@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,29 @@ def pytest_collection_modifyitems(session, config, items):
         name = Path(str(item.fspath)).name
         return LONG_MODULES.index(name) if name in LONG_MODULES else len(LONG_MODULES)
     items.sort(key=rank)  # stable: the rest keep their order
+
+
+@pytest.fixture(scope="session")
+def computed_once(tmp_path_factory, worker_id):
+    """``computed_once(name, make)``: the directory ``make`` filled, made by the first pytest-xdist
+    worker that asks and read by the others, which wait for it (xdist's recipe for a fixture run
+    once per session, with a lock file). Workers share a module's fixtures only this way: a slow
+    one otherwise runs in every worker that takes one of its tests. Without xdist, this run's own."""
+    root = tmp_path_factory.getbasetemp()
+    if worker_id != "master":
+        root = root.parent  # the run's directory, above each worker's own
+
+    def get(name: str, make) -> Path:
+        d = root / f"once-{name}"
+        with open(root / f"once-{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not (d / ".done").exists():
+                d.mkdir(exist_ok=True)
+                make(d)
+                (d / ".done").touch()
+        return d
+
+    return get
 
 
 def first_order(**kw) -> ThermalModel:
