@@ -172,16 +172,25 @@ def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, 
         return math.inf
     if form.n_states == 2 and abs(theta[1] - theta[0]) < math.log(1.5):
         return math.inf  # two states must differ to be two
-    x, _, states = _design(form, theta, runs, n_max)
+    x, y, _, _ = _measured_system(form, theta, runs, y, n_max, extra)
+    if y.size <= x.shape[1]:
+        return math.inf
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    r = y - x @ coef
+    return float(r @ r)
+
+
+def _measured_system(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, n_max: float,
+                     extra: np.ndarray | None):
+    """The least-squares problem for the gains at ``theta``: the free-run columns (with the
+    ``extra`` ones) and the elongation less the initial state's decay, on the measured rows;
+    with the gains' count and the states."""
+    x, n_gain, states = _design(form, theta, runs, n_max)
     if extra is not None:
         x = np.column_stack([x, extra])
     y = y - _initial_response(states, runs)
-    ok = np.isfinite(y)
-    if ok.sum() <= x.shape[1]:
-        return math.inf
-    coef, *_ = np.linalg.lstsq(x[ok], y[ok], rcond=None)
-    r = y[ok] - x[ok] @ coef
-    return float(r @ r)
+    ok = np.isfinite(y)  # a sparse log or a held-out fold: the measured rows
+    return x[ok], y[ok], n_gain, states
 
 
 def _grid(form: FormSpec, runs: Sequence[Run]) -> list[np.ndarray]:
@@ -222,15 +231,11 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
     ``extra`` columns (input terms) are fitted jointly and their gains returned apart."""
     n_max = _n_max_krpm(runs)
     dt = _fit_dt(runs)
-    y = np.concatenate([r.elongation_um for r in runs])
-    x, n_gain, states = _design(form, theta, runs, n_max)
-    if extra is not None:
-        x = np.column_stack([x, extra])
-    y = y - _initial_response(states, runs)
-    ok = np.isfinite(y)  # a sparse log: the measured rows
-    if ok.sum() < 2 * x.shape[1]:  # no residual degrees of freedom left to judge the gains by
-        return FitResult(form, None, note=f"{int(ok.sum())} measurements for {x.shape[1]} gains", theta=theta)
-    ols = _ols(x[ok], y[ok])
+    x, y, n_gain, states = _measured_system(form, theta, runs, np.concatenate([r.elongation_um for r in runs]),
+                                            n_max, extra)
+    if y.size < 2 * x.shape[1]:  # no residual degrees of freedom left to judge the gains by
+        return FitResult(form, None, note=f"{y.size} measurements for {x.shape[1]} gains", theta=theta)
+    ols = _ols(x, y)
     gains = np.asarray(ols.params)
     se = np.asarray(ols.bse)
     extra_gains, extra_se = (gains[n_gain:], se[n_gain:]) if extra is not None else (None, None)
