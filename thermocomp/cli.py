@@ -575,24 +575,21 @@ def _add_refit(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_status(sub: argparse._SubParsersAction) -> None:
+    from thermocomp.status_codes import DEFAULT_URL, EXIT_CODES  # constants only: no layer below
+
     p = sub.add_parser("status", help="what a running service is doing: its status endpoint as a table",
                        description="Reads the service's /status (docs/service.md, Live status). "
                        "The token, where the service asks for one: THERMOCOMP_STATUS_TOKEN or --token-file.")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--url", help=f"the status endpoint (default {_DEFAULT_STATUS_URL})")
+    g.add_argument("--url", help=f"the status endpoint (default {DEFAULT_URL})")
     g.add_argument("--config", metavar="RUNTIME.toml", help="or the runtime configuration that names it")
     p.add_argument("--token-file", help="a file holding the token")
     p.add_argument("--json", action="store_true", help="print the endpoint's JSON as it came")
     p.add_argument("--timeout-s", type=float, default=10.0, help="wait this long for the answer")
     p.add_argument("--exit-code", action="store_true",
-                   help="exit status by what the service says: 0 every spindle compensating and no alarm; "
-                   "1 an alarm raised (the chiller's too) or a spindle holding; 3 a spindle not writing "
-                   "(link down, or no offset through for faults.not_writing_cycles cycles); 2 the status "
-                   "could not be read")
+                   help="exit status by what the service says, the worst that applies: "
+                   + "; ".join(f"{code} {what}" for code, what in sorted(EXIT_CODES.items())))
     p.set_defaults(handler="thermocomp.commands.status:main")
-
-
-_DEFAULT_STATUS_URL = "http://127.0.0.1:9740/"
 
 
 def _add_journal(sub: argparse._SubParsersAction) -> None:

@@ -4,7 +4,7 @@ Plain text (the edge box's slim install has no ``rich``); ``--json`` prints the 
 answer as it came. Each spindle's state (compensating, holding, not writing) and its reason are
 the service's own (:func:`thermocomp.runtime.status.spindle_state`): this only prints them.
 
-With ``--exit-code`` the exit status says how things stand (:data:`EXIT_CODES`).
+With ``--exit-code`` the exit status says how things stand (:data:`thermocomp.status_codes.EXIT_CODES`).
 """
 
 from __future__ import annotations
@@ -18,18 +18,13 @@ from typing import Any
 
 from compensator.errors import ConfigError, ThermocompError
 
-DEFAULT_URL = "http://127.0.0.1:9740/"
-
-EXIT_OK, EXIT_ATTENTION, EXIT_UNREACHABLE, EXIT_NOT_WRITING = 0, 1, 2, 3
-EXIT_CODES = {
-    EXIT_OK: "every spindle compensating, no alarm",
-    EXIT_ATTENTION: "an alarm is raised (the chiller loop's too), or a spindle is holding",
-    EXIT_UNREACHABLE: "the status could not be read (service not running, token refused, bad arguments)",
-    EXIT_NOT_WRITING: "a spindle is not writing: its link is down, or no offset has gone through for "
-                      "faults.not_writing_cycles cycles",
-}
-"""``thermocomp status --exit-code``: the exit status, the worst that applies (3 over 1); the
-option's help in ``thermocomp/cli.py`` says the same."""
+from thermocomp.status_codes import (  # the command line's help reads the same
+    DEFAULT_URL,
+    EXIT_ATTENTION,
+    EXIT_NOT_WRITING,
+    EXIT_OK,
+    EXIT_UNREACHABLE,
+)
 
 
 class StatusUnreachableError(ThermocompError, ConnectionError):
@@ -142,7 +137,7 @@ def main(args) -> int:
 
 
 def exit_status(st: dict[str, Any]) -> int:
-    """The exit status ``--exit-code`` gives for status ``st`` (:data:`EXIT_CODES`)."""
+    """The exit status ``--exit-code`` gives for status ``st`` (:data:`thermocomp.status_codes.EXIT_CODES`)."""
     spindles = st.get("spindles", [])
     if any(s.get("state") == "not writing" for s in spindles):
         return EXIT_NOT_WRITING
