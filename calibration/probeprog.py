@@ -471,7 +471,8 @@ def probe_program_cmd(args: argparse.Namespace) -> int:
     what = "cold-reference program" if args.reference else "tool-setter cycle"
     print(f"wrote {args.output}: {c.dialect} {what} for T{c.tool}; cold reference {c.reference_var}, "
           f"value {c.value_var} [um], counter {c.counter_var}")
-    print(f"spindle {'stopped' if c.spindle == 'stop' else f'at {c.low_rpm:g} rpm'} for about "
+    turning = {"stop": "stopped", "keep": "at the program's speed"}.get(c.spindle) or f"at {c.low_rpm:g} rpm"
+    print(f"spindle {turning} for about "
           f"{measuring_time_s(c):.0f} s per measurement (settle {c.settle_s:g} s + probing)")
     if args.reference:
         print("run it cold: after the rest, before the calibration run's first spindle start")

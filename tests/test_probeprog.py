@@ -265,6 +265,10 @@ def test_probe_program_command(tmp_path):
     assert r.returncode == 0 and r.stdout.startswith("%\n") and "#3020 = #<trip_mm>" in r.stdout
     r = thermocomp("--dialect", "linuxcnc", "--output", str(tmp_path / "p.ngc"))
     assert "3020 0" in r.stdout  # the .var lines that make the parameters persistent
+    # each spindle mode says what it does, the laser measuring the turning tool too
+    for mode, said in (("stop", "spindle stopped"), ("keep", "spindle at the program's speed")):
+        r = thermocomp("--dialect", "linuxcnc", "--probe-spindle", mode, "--output", str(tmp_path / f"{mode}.ngc"))
+        assert r.returncode == 0 and said in r.stdout, r.stdout + r.stderr
 
 
 @pytest.mark.parametrize("args,match", [
