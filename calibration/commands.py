@@ -197,8 +197,12 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
     out.print(t)
     out.print("CV: gains fitted without the held-out fold; nested: the fold also took no part in "
               "choosing alpha (the honest figure); forward: each fold from the third predicted by a model "
-              "chosen and fitted on the folds before it only. The choice reads the worse of nested and "
-              "forward. One-step R² is not used.")
+              "chosen and fitted on the folds before it only. "
+              + ("The choice reads the worse of nested and forward." if report.get("forward_decides", True) else
+                 "The folds are blocks of one cycle, each at speeds the others do not run: forward there is "
+                 "extrapolation in speed, shown but not chosen by; the choice and the error to expect read "
+                 "the held-out figure.")
+              + " One-step R² is not used.")
     out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {escape(report['reason'])}")
     for c in report["candidates"]:
         if c["name"] == report["chosen"] and "alpha" in c:

@@ -47,7 +47,8 @@ def _error_table(summary: dict[str, Any]) -> list[list[str]]:
              _f(chosen["honest_rms_um"]), _f(_held_out_max(chosen)), "-"]]
     folds = len(chosen.get("forward_folds_rms_um") or [])
     if chosen.get("forward_rms_um") is not None:
-        note = "" if folds >= MIN_FORWARD_FOLDS else " (too few to decide by)"
+        note = (" (blocks of one cycle: extrapolation in speed, not decided by)" if not rep.get("forward_decides", True)
+                else "" if folds >= MIN_FORWARD_FOLDS else " (too few to decide by)")
         rows.append([f"identification (held out): {chosen['name']}, predicted forward, {folds} fold"
                      f"{'' if folds == 1 else 's'} each from the ones before it{note}",
                      _f(chosen["forward_rms_um"]), _f(chosen["forward_max_abs_um"]), "-"])

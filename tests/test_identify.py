@@ -67,6 +67,7 @@ def test_temperatures_win_on_ch3_and_fit_says_speed_alone_cannot(ch3_fit):
     assert model.input_names and model.spindle_id == "real-1"
     base, ridge, with_t, paper = (_cand(rep, n) for n in ("exp-baseline", "ridge", rep["chosen"], "paper-ols"))
     # every candidate carries both held-out figures, and the choice reads the worse of them
+    assert rep["forward_decides"] is True  # the folds are cycles
     for c in (base, ridge, with_t):
         assert len(c["forward_folds_rms_um"]) == 3  # cycles 3, 4 and 5, each from the cycles before
         assert c["decisive_rms_um"] == pytest.approx(max(c["nested_rms_um"], c["forward_rms_um"]))

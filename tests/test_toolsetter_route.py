@@ -309,6 +309,7 @@ def routes(tmp_path_factory):
     fig["laser_at_speed"] = int((laser_log.speed_rpm[laser_log.measured] > 1.0).sum())
     fig["laser_stops"], fig["laser_plan_stops"] = laser.measurements, laser_plan.stops
     fig["thermal_ratio"] = fig["setter_plus_elastic_rms_um"] / fig["eddy_rms_um"]
+    fig["eddy_report"], fig["eddy_expected"] = eddy_fit.report(), eddy_fit.model.fit.get("expected_error")
     assert eddy.complete and setter.complete and not eddy.flagged and not setter.flagged
     assert setter.measurements == plan.stops
     return fig
@@ -346,6 +347,19 @@ def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     assert f["laser_stops"] == f["laser_plan_stops"] >= f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
     assert f["laser_rms_um"] < 0.5 * f["setter_rms_um"], (f["laser_rms_um"], f["setter_rms_um"])
     assert f["laser_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
+
+
+def test_within_one_cycle_the_error_to_expect_is_the_held_out_figure(routes):
+    """One calibration cycle is scored on blocks of it, each at speeds the others do not run: a
+    block predicted forward is an extrapolation in speed that the model, fitted on every block,
+    never makes. The forward figure is shown, but neither the choice nor the error to expect reads it."""
+    rep, expected = routes["eddy_report"], routes["eddy_expected"]
+    assert rep["forward_decides"] is False and rep["scored_by"].startswith("blocked")
+    chosen = next(c for c in rep["candidates"] if c["name"] == rep["chosen"])
+    assert chosen["forward_rms_um"] is not None and chosen["decisive_rms_um"] == chosen["honest_rms_um"]
+    bands = expected["bands"]
+    assert bands and {b["source"] for b in bands} == {"held out"} and expected["forward_folds"] == 0
+    assert max(b["rms_um"] for b in bands) < 5 * chosen["honest_rms_um"]
 
 
 @pytest.mark.xfail(strict=True, reason="a tool setter measures at rest and never sees the elastic "
