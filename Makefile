@@ -56,14 +56,19 @@ test:
 LOWEST := .venv-lowest
 # One or two modules per library, those that call its API directly; the modules that reach the
 # same calls through more of this project's code (the chiller's links, the controls' routes,
-# bad-cell replays, runtime trust) are left to `make test`.
+# bad-cell replays, runtime trust) are left to `make test`. Of the command line's tests, those
+# that fit, replay, plot and read model files (pandas, statsmodels, scipy, matplotlib, rich,
+# pydantic); its bad-input cases check this project's messages, not a library's.
+CLI := tests/test_cli.py::test_
 LOWEST_TESTS ?= tests/test_io.py tests/test_model.py tests/test_adapters.py \
 	tests/test_adapter_settings.py tests/test_control_plc.py \
-	tests/test_cli.py tests/test_stability.py tests/test_ident.py tests/test_tuning.py \
+	$(CLI)fit_writes_a_loadable_model_and_a_json_report $(CLI)fit_human_report_names_the_winner_and_the_reference \
+	$(CLI)replay_json_keys_and_outputs $(CLI)replay_without_measurement_has_null_residuals_and_warns_out_of_range \
+	$(CLI)bad_model_files $(CLI)model_command_shows_schema_and_a_model \
+	$(CLI)replay_applies_the_runtimes_shaping_and_compares_the_policies \
+	tests/test_stability.py tests/test_ident.py tests/test_tuning.py \
 	tests/test_opcua_security.py tests/test_wizard.py::test_wizard_imports_daq_logs \
-	tests/test_status.py tests/test_mqtt.py \
-	--deselect tests/test_cli.py::test_demo_end_to_end_with_a_relative_output_dir \
-	--deselect tests/test_cli.py::test_shaping_adds_at_most_1_um_on_any_1s_job_shop_log
+	tests/test_status.py tests/test_mqtt.py
 
 $(LOWEST)/.stamp: pyproject.toml $(STAMP)
 	rm -rf $(LOWEST)
