@@ -320,7 +320,7 @@ class VirtualMachine:
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
                 self._hist.append((self.plant.time_s, abs(self.plant._speed_rpm), true, meas,
-                                   self.offset_um, self.plant.cutting))
+                                   self.offset_um, self.cutting))
                 if self._probe_until_s is not None and self.plant.time_s >= self._probe_until_s - 1e-9:
                     self._finish_probe()
 

@@ -523,3 +523,42 @@ def test_a_spindle_whose_every_cycle_fails_stops_the_service_with_one_line(tmp_p
         assert "cycles failing" in svc.status_text()
     finally:
         svc.close()
+
+
+def test_cycles_that_run_late_are_said_and_so_is_their_end(tmp_path, simple_model, caplog):  # noqa: F811
+    """A box too busy (or a link too slow) for its period lags the offset behind the growth: the
+    service says so when a cycle runs a whole period late, in its status meanwhile, and again when
+    ten cycles in a row ran on time. Time moves only by the test's hand."""
+    import logging
+
+    from thermocomp.runtime.service import ON_TIME_CYCLES
+
+    t = [0.0]
+    svc = Service(write_config(tmp_path, simple_model), clock=lambda: t[0], wall=lambda: WALL0 + t[0])
+    period = svc.spindles["s1"].next_period_s()
+
+    def events(name: str) -> list:
+        return [r for r in caplog.records if getattr(r, "event", None) == name]
+
+    try:
+        with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+            for _ in range(5):  # on time: nothing said
+                svc.tick()
+                t[0] += period
+            assert not events("cycles_late") and "late" not in svc.status_text()
+            t[0] += 2.5 * period  # the box stalled: this cycle runs 2.5 periods after it was due
+            svc.tick()
+            late = events("cycles_late")
+            assert len(late) == 1 and late[0].fields["late_s"] == pytest.approx(2.5 * period)
+            assert "s1: cycles late" in svc.status_text()
+            t[0] += 3 * period  # late again: said once, the figure updated
+            svc.tick()
+            assert len(events("cycles_late")) == 1 and f"cycles late ({2 * period:.1f} s)" in svc.status_text()
+            for k in range(ON_TIME_CYCLES):
+                t[0] += period
+                svc.tick()
+                assert bool(events("cycles_on_time")) == (k == ON_TIME_CYCLES - 1)
+            assert "late" not in svc.status_text()
+        assert svc.spindles["s1"].counters["cycles"] >= 5 + 2 + ON_TIME_CYCLES
+    finally:
+        svc.close()

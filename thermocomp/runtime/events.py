@@ -31,7 +31,7 @@ EVENTS = (
     "expected_error_high", "expected_error_within_bound",
     "model_drift", "model_drift_cleared", "model_switched", "history_failed",
     "shadow_started", "shadow_failed",
-    "cold_start_turning", "cold_start_settled", "spindle_state",
+    "cold_start_turning", "cold_start_settled", "spindle_state", "cycles_late", "cycles_on_time",
 )
 """Every event name the runtime emits (documented in docs/reference)."""
 

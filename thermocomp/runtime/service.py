@@ -45,6 +45,8 @@ log = logging.getLogger("thermocomp.runtime")
 
 FAILING_EXIT_S = 60.0
 """A spindle whose every cycle has failed this long [s] stops the service (non-zero status)."""
+ON_TIME_CYCLES = 10
+"""Cycles in a row on time after late ones before the service says they are on time again."""
 
 PLAUSIBLE_ELONGATION_UM = 5000.0
 """A model whose steady elongation anywhere in its speed range exceeds this (5 mm) is not a
@@ -153,6 +155,8 @@ class Service:
         self._sweep_due = -math.inf
         self._publish_warned = -math.inf
         self._failing: dict[str, float] = {}  # spindle -> since when every cycle has failed
+        self._late: dict[str, list[float]] = {}  # spindle -> [cycles on time since, latest lateness s]
+        self._period: dict[str, float] = {}  # spindle -> the period its last cycle asked for
         self.not_started: list[str] = []  # optional parts that could not start (status, mqtt)
         self.exit_code = 0
         self.states: dict[str, SpindleState] = {}  # each spindle's state, derived once per tick
@@ -383,6 +387,7 @@ class Service:
         for name, rt in self.spindles.items():
             due = self._due.setdefault(name, now)
             if now >= due:
+                self._check_late(name, now - due)
                 rt.sticky_alarms = Alarm.RELOAD_FAILED if self.reload_failed else Alarm.NONE
                 try:
                     rt.cycle()
@@ -390,7 +395,7 @@ class Service:
                     self._cycle_failed(name, now, err)
                 else:
                     self._failing.pop(name, None)
-                period = rt.next_period_s()
+                period = self._period[name] = rt.next_period_s()
                 due += period
                 self._due[name] = due if due > now else now + period  # no catch-up burst
         if self.cooling is not None and now >= self._cooling_due:
@@ -421,6 +426,30 @@ class Service:
         if self.cooling is not None:
             due_next = min(due_next, self._cooling_due)
         return max(0.0, due_next - self.clock())
+
+    def _check_late(self, name: str, late_s: float) -> None:
+        """A cycle that runs a whole period or more after it was due is never silent: the offset
+        then follows the growth that much later (an overloaded box, a slow controller link, a
+        virtual machine run faster than the box can follow). An event when it begins, one when
+        :data:`ON_TIME_CYCLES` cycles in a row ran on time again; the status says so meanwhile."""
+        period = self._period.get(name)
+        if period is None:
+            return
+        late = self._late.get(name)
+        if late_s >= period:
+            if late is None:
+                event("cycles_late", name, "%s: cycles late: this one ran %.1f s after it was due (period "
+                      "%g s): the offset follows the growth that much later; an overloaded box or a slow "
+                      "controller link", name, late_s, period, level=logging.WARNING, late_s=round(late_s, 3),
+                      period_s=period)
+                self._late[name] = [0, late_s]
+            else:
+                late[0], late[1] = 0, late_s
+        elif late is not None:
+            late[0] += 1
+            if late[0] >= ON_TIME_CYCLES:
+                del self._late[name]
+                event("cycles_on_time", name, "%s: cycles on time again (%d in a row)", name, ON_TIME_CYCLES)
 
     def _cycle_failed(self, name: str, now: float, err: ThermocompError) -> None:
         """A cycle that could not run is never silent: an event when the failures begin, and once
@@ -453,6 +482,7 @@ class Service:
         notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating or st.reason]
         notes += ["reload refused, running the previous configuration"] if self.reload_failed else []
         notes += [f"{name}: cycles failing" for name in self._failing]
+        notes += [f"{name}: cycles late ({late[1]:.1f} s)" for name, late in self._late.items()]
         notes += [f"{what} not started (see the log)" for what in self.not_started]
         for name, rt in self.spindles.items():
             obs = rt.observer_status()
