@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import nnls
 
 from compensator.filters import decay
 from compensator.observer import ObserverConfig, fuse_series
@@ -81,6 +80,8 @@ def _nnls_variogram(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequenc
     cols = [lags, 2.0 * np.ones_like(lags)] + ([lags**3 / 3.0] if drift else [])
     a = np.column_stack(cols)
     scale = np.abs(a).max(axis=0)
+    from scipy.optimize import nnls  # scipy.optimize costs 1.5 s to import: only where a plan is made
+
     coef, _ = nnls(a / scale, v)
     return coef / scale
 

@@ -28,7 +28,6 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.polynomial import Polynomial
-from scipy.interpolate import make_smoothing_spline
 
 from compensator.errors import CalibrationError
 
@@ -112,6 +111,8 @@ def _spline_slope(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     # fit on [0, 1]: the roughness penalty spans ~20 decades less than in seconds
     t0, span = float(tb[0]), float(tb[-1] - tb[0])
     try:
+        from scipy.interpolate import make_smoothing_spline  # 1.7 s to import: only when STE is computed
+
         spline = make_smoothing_spline((tb - t0) / span, yb)
     except (ValueError, np.linalg.LinAlgError) as err:
         raise CalibrationError(f"the smoothing spline could not be fitted: {err}") from err

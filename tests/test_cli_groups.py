@@ -62,6 +62,15 @@ def test_building_the_parser_imports_no_layer_below_the_cli():
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
 
 
+def test_replay_fit_and_the_wizard_import_scipys_solvers_only_when_they_solve():
+    """scipy.optimize and scipy.interpolate cost about 1.6 s of CPU to import: every `replay`, every
+    `fit` that stops at a bad log and every wizard question paid it before the work began."""
+    code = ("import sys, calibration.replay, calibration.fit, calibration.wizard; "
+            "print(sorted(m for m in ('scipy.optimize', 'scipy.interpolate') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
 def test_every_commands_help_formats_and_its_value_sets_are_the_codes():
     from calibration.nc_programs import DIALECTS
     from machine_sim.plant import PRESETS

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize
 
 from compensator.errors import CalibrationError, ModelError
 from compensator.model import ThermalModel, ThermalStateCoefficients, filter_state
@@ -218,6 +217,8 @@ def fit_output_error(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
     best_val, _, best = candidates[0]
     if not math.isfinite(best_val):
         return FitResult(form, None, note="no stable parameters found")
+    from scipy.optimize import minimize  # 1.6 s to import: not for the commands that only read a log
+
     res = minimize(obj, best, method="Nelder-Mead",
                    options={"xatol": 1e-4, "fatol": 1e-10 * max(best_val, 1e-12), "maxiter": 400})
     if res.fun < best_val:
