@@ -33,7 +33,7 @@ from compensator.errors import ConfigError, ControlError, ThermocompError
 from compensator.io import load_any_model
 from compensator.observer import SIGMA_LIMIT_UM
 
-from .config import RuntimeConfig, load_config
+from .config import RuntimeConfig, load_config, spindle_scope
 from .control import ControlChannel, Pending, send_measurement
 from .cooling import CoolingRuntime
 from .events import JsonLines, event
@@ -112,7 +112,7 @@ def plausible(model, name: str) -> None:
     """Refuse a model that loads but cannot be a spindle's (ConfigError)."""
     why = implausible(model)
     if why is not None:
-        raise ConfigError(f"spindle {name}: {why}")
+        raise ConfigError(f"{spindle_scope(name)}: {why}")
 
 
 class Service:
@@ -589,7 +589,7 @@ def check(config_path: str) -> int:
             if names:
                 missing = sorted(set(names) - set(link.input_channels()))
                 if missing:
-                    raise ConfigError(f"spindle {sc.name}: the model needs input(s) {', '.join(missing)}; "
+                    raise ConfigError(f"{spindle_scope(sc.name)}: the model needs input(s) {', '.join(missing)}; "
                                       "map them in the adapter")
                 values = link.read_inputs()
                 extra = ", inputs " + ", ".join(f"{n} {values[n]:g}" for n in names)
