@@ -327,10 +327,8 @@ def runs_of(ds: Dataset, rows: np.ndarray) -> list[Run]:
     runs = []
     for a, b in ds.segments:
         hit = np.flatnonzero(rows[a:b] & ds.measured[a:b])
-        if hit.size < (MIN_SPARSE_MEASUREMENTS if not ds.dense else 2):
-            continue
-        hi = a + int(hit[-1]) + 1
-        if hi - a < fl.MIN_FOLD_ROWS:
+        hi = a + int(hit[-1]) + 1 if hit.size else a
+        if hi - a < fl.MIN_FOLD_ROWS or (not ds.dense and hit.size < MIN_SPARSE_MEASUREMENTS):
             continue
         y = np.where(rows[a:hi], ds.elongation_um[a:hi], np.nan)
         y[0] = ds.elongation_um[a]  # the free run's anchor, as free_run takes it: an input, not a target

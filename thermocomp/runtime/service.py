@@ -24,6 +24,7 @@ import signal
 import socket
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from cnc_adapters import open_adapter
@@ -47,6 +48,14 @@ FAILING_EXIT_S = 60.0
 """A spindle whose every cycle has failed this long [s] stops the service (non-zero status)."""
 ON_TIME_CYCLES = 10
 """Cycles in a row on time after late ones before the service says they are on time again."""
+
+
+@dataclass
+class _Late:
+    """A spindle whose cycles run late: the latest lateness [s], the cycles on time since."""
+
+    late_s: float
+    on_time: int = 0
 
 PLAUSIBLE_ELONGATION_UM = 5000.0
 """A model whose steady elongation anywhere in its speed range exceeds this (5 mm) is not a
@@ -155,7 +164,7 @@ class Service:
         self._sweep_due = -math.inf
         self._publish_warned = -math.inf
         self._failing: dict[str, float] = {}  # spindle -> since when every cycle has failed
-        self._late: dict[str, list[float]] = {}  # spindle -> [cycles on time since, latest lateness s]
+        self._late: dict[str, _Late] = {}  # spindle -> how late its cycles run, while they do
         self._period: dict[str, float] = {}  # spindle -> the period its last cycle asked for
         self.not_started: list[str] = []  # optional parts that could not start (status, mqtt)
         self.exit_code = 0
@@ -442,12 +451,10 @@ class Service:
                       "%g s): the offset follows the growth that much later; an overloaded box or a slow "
                       "controller link", name, late_s, period, level=logging.WARNING, late_s=round(late_s, 3),
                       period_s=period)
-                self._late[name] = [0, late_s]
-            else:
-                late[0], late[1] = 0, late_s
+            self._late[name] = _Late(late_s)
         elif late is not None:
-            late[0] += 1
-            if late[0] >= ON_TIME_CYCLES:
+            late.on_time += 1
+            if late.on_time >= ON_TIME_CYCLES:
                 del self._late[name]
                 event("cycles_on_time", name, "%s: cycles on time again (%d in a row)", name, ON_TIME_CYCLES)
 
@@ -482,7 +489,7 @@ class Service:
         notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating or st.reason]
         notes += ["reload refused, running the previous configuration"] if self.reload_failed else []
         notes += [f"{name}: cycles failing" for name in self._failing]
-        notes += [f"{name}: cycles late ({late[1]:.1f} s)" for name, late in self._late.items()]
+        notes += [f"{name}: cycles late ({late.late_s:.1f} s)" for name, late in self._late.items()]
         notes += [f"{what} not started (see the log)" for what in self.not_started]
         for name, rt in self.spindles.items():
             obs = rt.observer_status()
