@@ -87,7 +87,7 @@ print(sys.version.split()[0], sys.argv[1], json.dumps([p["dependencies"], p["opt
     /usr/bin/python3 -m venv --system-site-packages "$lvenv"
     # uv (make test installs it in .venv first) takes a fifth of pip's time; pip without it
     if [ -x .venv/bin/uv ]; then
-      .venv/bin/uv pip install --quiet --python "$lvenv/bin/python" ".[$extras]"
+      .venv/bin/uv pip install --quiet --compile-bytecode --python "$lvenv/bin/python" ".[$extras]"
     else
       "$lvenv/bin/pip" install --quiet --disable-pip-version-check ".[$extras]" 2>&1 | quiet_pip
     fi
