@@ -40,10 +40,11 @@ from machine_sim.vcnc import ToolSetter, VirtualMachine  # noqa: E402
 PRESET, MAX_RPM, DWELL_S, COOLDOWN_MIN, RATE_S = "motorized-27k", 27000.0, 20.0, 30.0, 10.0
 
 
-def record(path: Path, prog, seed: int, route: str):
+def record(path: Path, prog, seed: int, route: str, touches: int = 1):
     # lock-step: the recorder's sleep moves the machine on; its clock starts at an epoch
     clock, t0 = SteppedClock(1.7e9), 1.7e9
-    setter = None if route == "eddy" else ToolSetter(dwell_s=DWELL_S, seed=seed, at_speed=route == "laser")
+    setter = None if route == "eddy" else ToolSetter(dwell_s=DWELL_S, seed=seed, at_speed=route == "laser",
+                                                     touches=touches)
     vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=seed), None, clock=lambda: clock() - t0, plant_dt_s=1.0,
                         tool_setter=setter)
     vm.load_program(prog)
@@ -75,12 +76,15 @@ def case(tmp: Path, seed: int, step_min: float) -> dict:
     row = {"seed": seed, "step_min": step_min, "eddy_rms_um": rms(eddy.model.simulate_um(truth.speed_rpm, t) - truth.true_um),
            "eddy_model": eddy.chosen.name}
     for route in ("laser", "contact"):
-        plan = plan_probe_interval(60 * step_min, 60 * COOLDOWN_MIN, DWELL_S, tau, at_speed=route == "laser")
+        # the touch's time is the virtual setter's: the plan fills a laser's stops with touches
+        plan = plan_probe_interval(60 * step_min, 60 * COOLDOWN_MIN, DWELL_S, tau, at_speed=route == "laser",
+                                   touch_s=ToolSetter().touch_s)
         prog = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=step_min, cooldown_min=COOLDOWN_MIN,
                                                   probe_every_s=plan.interval_s), "fanuc"))
-        fit = fit_logs([record(tmp / f"{route}-{seed}-{step_min:g}.csv", prog, seed, route)])
+        fit = fit_logs([record(tmp / f"{route}-{seed}-{step_min:g}.csv", prog, seed, route, plan.touches)])
         pred = fit.model.simulate_um(truth.speed_rpm, t)
         row[f"{route}_every_min"] = plan.interval_s / 60
+        row[f"{route}_touches"] = plan.touches
         row[f"{route}_added_min"] = plan.added_s / 60
         row[f"{route}_model"] = fit.chosen.name
         row[f"{route}_rms_um"] = rms(pred - truth.true_um)
@@ -103,7 +107,7 @@ def main() -> None:
                 rows.append(case(Path(tmp), seed, step))
                 r = rows[-1]
                 print(f"seed {seed} step {step:g} min: eddy {r['eddy_rms_um']:.2f} ({r['eddy_model']}); laser every "
-                      f"{r['laser_every_min']:g} min {r['laser_rms_um']:.2f} ({r['laser_model']}, "
+                      f"{r['laser_every_min']:g} min x{r['laser_touches']} {r['laser_rms_um']:.2f} ({r['laser_model']}, "
                       f"ratio {r['laser_rms_um'] / r['eddy_rms_um']:.2f}); contact every {r['contact_every_min']:g} min "
                       f"{r['contact_rms_um']:.2f}, thermal part {r['contact_thermal_rms_um']:.2f} ({r['contact_model']})",
                       flush=True)

@@ -10,6 +10,12 @@ adds 1 to the counter (1..9999, then 1 again); a failed measurement (setter not 
 cold reference, growth beyond ``max_um``) stops with an alarm and writes neither. The adapter
 uses a value once, when the counter changed (see ``docs/PROBING.md``).
 
+With ``touches`` > 1 the slow touch is repeated that many times and the trips are averaged: the
+random part of the setter's repeatability falls as 1/sqrt(touches) (GUM, JCGM 100:2008, 4.2.3,
+the experimental standard deviation of the mean). Every touch must lie within ``spread_um`` of
+the first, else the cycle stops with an alarm (a chip or a coolant drop on the setter) and
+writes nothing.
+
 ==========  =========================  ==================================  ===============
 dialect     probing, result            trip in machine Z                   variables
 ==========  =========================  ==================================  ===============
@@ -46,6 +52,8 @@ SPINDLE_MODES = ("stop", "low", "keep")
 """The spindle through the cycle: stopped (a contact setter), at a low measuring speed (a laser),
 or kept at the speed the program runs (a laser measuring the turning tool: the measurement then
 includes the growth that exists only while the spindle turns)."""
+MAX_TOUCHES = 10
+"""Slow touches averaged per cycle, at most."""
 HEIDENHAIN_TT_S = 15.0
 """Nominal length of TCH PROBE 481 (its feeds are machine parameters): for the time estimate."""
 
@@ -109,6 +117,8 @@ class ProbeCycle:
     setter_xy_mm: tuple[float, float] | None
     approach_z_mm: float | None
     max_um: float
+    touches: int
+    spread_um: float
     probe_input: int
     value_aout: int
     counter_aout: int
@@ -159,7 +169,7 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
                 fast_feed_mm_min: float | str | None = None, slow_feed_mm_min: float | str | None = None,
                 setter_x_mm: float | str | None = None, setter_y_mm: float | str | None = None,
                 approach_z_mm: float | str | None = None, max_um: float | str = 300.0,
-                probe_input: int | str | None = None, value_aout: int | str | None = None,
+                touches: int | str = 1, spread_um: float | str = 5.0, probe_input: int | str | None = None, value_aout: int | str | None = None,
                 counter_aout: int | str | None = None, name: str = "TCPROBE") -> ProbeCycle:
     """Check every option for ``dialect`` and fill in its defaults; :class:`ConfigError` (one
     line, naming the option) on anything a control would refuse or that could not be safe."""
@@ -172,6 +182,10 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
     for key, why in _NOT_FOR[dialect].items():
         if given.get(key) is not None:
             raise ConfigError(f"{_option(key)} is not for {dialect}: {why}")
+    n_touches = int(_number("touches", touches, 1, MAX_TOUCHES, whole=True))
+    if n_touches > 1 and dialect == "heidenhain":
+        raise ConfigError("--touches is not for heidenhain: TCH PROBE 481 measures once per call; "
+                          "use --touches 1")
     if spindle not in SPINDLE_MODES:
         raise ConfigError(f"--probe-spindle {spindle!r}: choose stop, low or keep")
     if spindle == "keep" and dialect == "heidenhain":
@@ -196,7 +210,9 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
         raise ConfigError(f"reference, value and counter need three different variables, not "
                           f"{', '.join(map(str, variables))}")
     travel = _number("travel_mm", 10.0 if travel_mm is None else travel_mm, 0.5, 100)
-    backoff = _number("backoff_mm", 1.0 if backoff_mm is None else backoff_mm, 0.1, 10)
+    # a laser's beam has no stylus to clear: a short back-off keeps repeated touches cheap
+    default_backoff = 0.2 if spindle in ("low", "keep") else 1.0
+    backoff = _number("backoff_mm", default_backoff if backoff_mm is None else backoff_mm, 0.1, 10)
     if backoff * 2 > travel:
         raise ConfigError(f"--backoff-mm {backoff:g} is more than half of --travel-mm {travel:g}")
     fast = _number("fast_feed_mm_min", 200.0 if fast_feed_mm_min is None else fast_feed_mm_min, 1, 5000)
@@ -221,6 +237,7 @@ def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None 
         spindle=spindle, low_rpm=rpm, settle_s=_number("settle_s", settle_s, 0, 600),
         travel_mm=travel, backoff_mm=backoff, fast_feed_mm_min=fast, slow_feed_mm_min=slow,
         setter_xy_mm=xy, approach_z_mm=z, max_um=_number("max_um", max_um, 1, 5000),
+        touches=n_touches, spread_um=_number("spread_um", spread_um, 0.1, 1000),
         probe_input=int(_number("probe_input", 1 if probe_input is None else probe_input, 1, 2, whole=True)),
         value_aout=int(_number("value_aout", 0 if value_aout is None else value_aout, 0, 63, whole=True)),
         counter_aout=int(_number("counter_aout", 1 if counter_aout is None else counter_aout, 0, 63,
@@ -234,8 +251,12 @@ def measuring_time_s(cycle: ProbeCycle) -> float:
     if cycle.dialect == "heidenhain":
         return cycle.settle_s + HEIDENHAIN_TT_S
     fast_s = 60.0 * cycle.travel_mm / cycle.fast_feed_mm_min
-    slow_s = 60.0 * 2 * cycle.backoff_mm / cycle.slow_feed_mm_min
-    return cycle.settle_s + fast_s + slow_s
+    return cycle.settle_s + fast_s + cycle.touches * touch_time_s(cycle)
+
+
+def touch_time_s(cycle: ProbeCycle) -> float:
+    """One slow touch: off the setter by the back-off and onto it again at the slow feed [s]."""
+    return 60.0 * 2 * cycle.backoff_mm / cycle.slow_feed_mm_min
 
 
 def _mm(x: float) -> str:
@@ -259,6 +280,8 @@ def _header(c: ProbeCycle, reference: bool) -> list[str]:
         lines = [f"THERMOCOMP TOOL-SETTER CYCLE, T{c.tool}",
                  f"{val} = [TRIP NOW - COLD TRIP {ref}] X 1000: UM, + = TIP GREW TOWARD THE WORK",
                  f"THEN {cnt} + 1 [1..{COUNTER_WRAP}]. A FAILED MEASUREMENT WRITES NEITHER"]
+    if c.touches > 1:
+        lines.append(f"MEAN OF {c.touches} SLOW TOUCHES, EACH WITHIN {c.spread_um:g} UM OF THE FIRST")
     return lines + [f"{spindle}, ABOUT {measuring_time_s(c):.0f} S. SEE DOCS/PROBING.MD"]
 
 
@@ -311,13 +334,22 @@ def _fanuc(c: ProbeCycle, reference: bool) -> list[str]:
         "G90",
         f"IF [[#5063 - #1 + {_mm(c.travel_mm)}] LT 0.010] THEN #3000 = 101 (SETTER NOT TRIPPED)",
         "#2 = #5063",
+    ]
+    touch = [
         f"G91 G00 Z{_mm(b)}",
         f"G91 G31 Z-{_mm(2 * b)} F{_feed(c.slow_feed_mm_min)}",
         "#3 = #5063 + #5023 - #5043",  # the slow trip in machine Z: work offsets and TLO drop out
         "G90",
         f"IF [ABS[#5063 - #2] GT {_mm(b / 2)}] THEN #3000 = 101 (SETTER NOT TRIPPED)",
-        *_from_setter(c),
     ]
+    if c.touches == 1:
+        out += touch
+    else:  # #5 the first trip, #6 the sum, #7 the touches done
+        out += ["#6 = 0", "#7 = 0", f"WHILE [#7 LT {c.touches}] DO1", *touch,
+                "IF [#7 EQ 0] THEN #5 = #3",
+                f"IF [ABS[#3 - #5] * 1000 GT {c.spread_um:.1f}] THEN #3000 = 104 (TOUCHES DISAGREE)",
+                "#6 = #6 + #3", "#7 = #7 + 1", "END1", f"#3 = #6 / {c.touches}"]
+    out += _from_setter(c)
     if reference:
         out.append(f"{ref} = #3")
     else:
@@ -332,7 +364,10 @@ def _fanuc(c: ProbeCycle, reference: bool) -> list[str]:
 def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
     ref, val, cnt, n = c.reference_var, c.value_var, c.counter_var, c.probe_input
     out = [f"%_N_{c.name}_MPF", ";$PATH=/_N_MPF_DIR", *(f"; {t}" for t in _header(c, reference)),
-           "DEF REAL TC_FAST, TC_TRIP, TC_UM", "G17 G40 G71 G90 G94"]
+           "DEF REAL TC_FAST, TC_TRIP, TC_UM" + (", TC_FIRST, TC_SUM" if c.touches > 1 else "")]
+    if c.touches > 1:
+        out.append("DEF INT TC_K")
+    out.append("G17 G40 G71 G90 G94")
     if not reference:
         out.append(f"IF {ref}==0 GOTOF TC_NOREF")
     out += _to_setter(c)  # SUPA: machine coordinates, no frame, no offset
@@ -342,14 +377,24 @@ def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
         "STOPRE",  # the result is the main run's: read it after the block has run
         f"IF $AC_MEA[{n}]==0 GOTOF TC_NOTRIP",
         "TC_FAST=$AA_MM[Z]",
+    ]
+    touch = [
         f"G0 G91 Z{_mm(b)}",
         f"MEAS={n} G1 G91 Z-{_mm(2 * b)} F{c.slow_feed_mm_min:g}",
         "STOPRE",
         f"IF $AC_MEA[{n}]==0 GOTOF TC_NOTRIP",
         "TC_TRIP=$AA_MM[Z]",
         f"IF ABS(TC_TRIP-TC_FAST)>{_mm(b / 2)} GOTOF TC_NOTRIP",
-        *_from_setter(c),
     ]
+    if c.touches == 1:
+        out += touch
+    else:  # a loop by label: the jumps out of it to the alarms stay plain GOTOF
+        out += ["TC_SUM=0", "TC_K=0", "TC_TOUCH:", *touch,
+                "IF TC_K==0", "TC_FIRST=TC_TRIP", "ENDIF",
+                f"IF ABS(TC_TRIP-TC_FIRST)*1000>{c.spread_um:g} GOTOF TC_SPREAD",
+                "TC_SUM=TC_SUM+TC_TRIP", "TC_K=TC_K+1", f"IF TC_K<{c.touches} GOTOB TC_TOUCH",
+                f"TC_TRIP=TC_SUM/{c.touches}"]
+    out += _from_setter(c)
     if reference:
         out += [f"{ref}=TC_TRIP", "M30"]
     else:
@@ -359,6 +404,8 @@ def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
                 f"{cnt}={cnt}+1",
                 f"IF {cnt}>{COUNTER_WRAP}", f"{cnt}=1", "ENDIF",
                 "M30", "TC_NOREF:", "SETAL(65002)", "M30", "TC_RANGE:", "SETAL(65003)", "M30"]
+    if c.touches > 1:
+        out += ["TC_SPREAD:", "SETAL(65004)", "M30"]
     return out + ["TC_NOTRIP:", "SETAL(65001)", "M30"]
 
 
@@ -414,13 +461,25 @@ def _linuxcnc(c: ProbeCycle, reference: bool) -> list[str]:
     b = c.backoff_mm
     out += [
         f"G91 G38.2 Z-{_mm(c.travel_mm)} F{_feed(c.fast_feed_mm_min)}",  # G38.2: no trip is an error
-        f"G0 Z{_mm(b)}",
+    ]
+    touch = [
+        # G91 again each time round: the touch ends in G90
+        f"{'G91 ' if c.touches > 1 else ''}G0 Z{_mm(b)}",
         f"G38.2 Z-{_mm(2 * b)} F{_feed(c.slow_feed_mm_min)}",
         "G90",
         # the trip in machine Z: #5063 is in the probing frame; G49 is on, so G5x + G52/G92 only
         "#<trip_mm> = [#5063 + #[5203 + 20 * #5220] + #5213 * #5210]",
-        *_from_setter(c),
     ]
+    if c.touches == 1:
+        out += touch
+    else:
+        out += ["#<sum_mm> = 0", "#<k> = 0", f"o103 repeat [{c.touches}]", *touch,
+                "o104 if [#<k> EQ 0]", "#<first_mm> = #<trip_mm>", "o104 endif",
+                f"o105 if [ABS[#<trip_mm> - #<first_mm>] * 1000 GT {c.spread_um:g}]",
+                "(ABORT, TOUCHES DISAGREE)", "o105 endif",
+                "#<sum_mm> = [#<sum_mm> + #<trip_mm>]", "#<k> = [#<k> + 1]", "o103 endrepeat",
+                f"#<trip_mm> = [#<sum_mm> / {c.touches}]"]
+    out += _from_setter(c)
     if reference:
         out.append(f"{ref} = #<trip_mm>")
     else:
@@ -457,7 +516,8 @@ def probe_program_cmd(args: argparse.Namespace) -> int:
         counter_var=args.counter_var, spindle=args.spindle, low_rpm=args.low_rpm, settle_s=args.settle_s,
         travel_mm=args.travel_mm, backoff_mm=args.backoff_mm, fast_feed_mm_min=args.fast_feed_mm_min,
         slow_feed_mm_min=args.slow_feed_mm_min, setter_x_mm=args.setter_x_mm, setter_y_mm=args.setter_y_mm,
-        approach_z_mm=args.approach_z_mm, max_um=args.max_um, probe_input=args.probe_input,
+        approach_z_mm=args.approach_z_mm, max_um=args.max_um, touches=args.touches, spread_um=args.spread_um,
+        probe_input=args.probe_input,
         value_aout=args.value_aout, counter_aout=args.counter_aout,
         name=args.name or ("TCREF" if args.reference else "TCPROBE"))
     text = probe_program(cycle, reference=args.reference)
@@ -472,8 +532,9 @@ def probe_program_cmd(args: argparse.Namespace) -> int:
     print(f"wrote {args.output}: {c.dialect} {what} for T{c.tool}; cold reference {c.reference_var}, "
           f"value {c.value_var} [um], counter {c.counter_var}")
     turning = {"stop": "stopped", "keep": "at the program's speed"}.get(c.spindle) or f"at {c.low_rpm:g} rpm"
+    touches = f", {c.touches} slow touches averaged" if c.touches > 1 else ""
     print(f"spindle {turning} for about "
-          f"{measuring_time_s(c):.0f} s per measurement (settle {c.settle_s:g} s + probing)")
+          f"{measuring_time_s(c):.0f} s per measurement (settle {c.settle_s:g} s + probing{touches})")
     if args.reference:
         print("run it cold: after the rest, before the calibration run's first spindle start")
     if c.dialect == "linuxcnc":

@@ -91,7 +91,8 @@ def _sections(session: dict[str, Any], summary: dict[str, Any], model: Predictor
     elif session.get("source") == "tool-setter":
         plan = session.get("probe_plan") or {}
         displacement = ("the machine's tool setter, read by the controller link"
-                        + (f", every {plan['interval_s'] / 60:.0f} min ({plan['dwell_s']:.0f} s a stop)"
+                        + (f", every {plan['interval_s'] / 60:.0f} min ({plan['dwell_s']:.0f} s a stop"
+                           + (f", {plan['touches']} touches averaged" if plan.get("touches", 1) > 1 else "") + ")"
                            if plan else ""))
     else:
         displacement = str(session.get("source") or "-")

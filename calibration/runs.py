@@ -165,8 +165,10 @@ def resample(run: Run, dt_s: float) -> Run:
     Speed is the time average of |n| over each interval (the logged speed is
     taken as held over the interval that ends at its sample); elongation is
     interpolated at the grid instants. Sub-sampling a finer log is exact for
-    speed changes on interval edges. A sparse run's measurements (NaN between them) go to their
-    nearest grid instants.
+    speed changes on interval edges. A sparse run's measurements (NaN between them) go to the
+    grid instant at or before them: the speed of the interval that ends there is the one held
+    through the measuring cycle, where the nearest instant after it may average in the next
+    speed, and with it a growth at speed the measurement never saw.
     """
     t0, t1 = run.time_s[0], run.time_s[-1]
     k = int(np.floor((t1 - t0) / dt_s + 1e-9))
@@ -192,7 +194,7 @@ def resample(run: Run, dt_s: float) -> Run:
         elong = np.interp(grid, run.time_s, y)
     else:  # sparse: each measurement on its nearest grid instant, the rest stays unmeasured
         elong = np.full(grid.size, np.nan)
-        at = np.clip(np.rint((run.time_s[ok] - t0) / dt_s).astype(int), 0, grid.size - 1)
+        at = np.clip(np.floor((run.time_s[ok] - t0) / dt_s + 1e-9).astype(int), 0, grid.size - 1)
         elong[at] = y[ok]
     return Run(run.name, grid, speed, elong)
 

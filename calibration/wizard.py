@@ -346,24 +346,35 @@ class Wizard:
     def plan_probes(self) -> None:
         """The tool-setter route: how often the program stops for a measurement, and what the
         stops cost (``calibration.toolsetter_plan``)."""
-        from .probeprog import measuring_time_s, probe_cycle
+        from .probeprog import MAX_TOUCHES, measuring_time_s, probe_cycle, touch_time_s
         from .toolsetter_plan import plan_probe_interval
 
         a, s = self.args, self.session
         s["probe_spindle"] = a.probe_spindle or s.get("probe_spindle") or "stop"
+        touches = a.probe_touches if getattr(a, "probe_touches", None) is not None else s.get("probe_touches")
+        if touches is not None:
+            if not (float(touches) == int(touches) and 1 <= int(touches) <= MAX_TOUCHES):
+                raise ConfigError(f"--probe-touches {touches:g}: a whole number from 1 to {MAX_TOUCHES}")
+            if int(touches) > 1 and s["dialect"] == "heidenhain":
+                raise ConfigError("--probe-touches is not for heidenhain: TCH PROBE 481 measures once per call")
+            touches = s["probe_touches"] = int(touches)
         if a.probe_dwell_s is not None:
             s["probe_dwell_s"] = float(a.probe_dwell_s)
+            s["probe_touch_s"] = 0.0  # the cycle as timed on the machine, every touch included
         if "probe_dwell_s" not in s:
-            # the cycle's own measuring time with its default feeds, and the moves to and from the setter
+            # the cycle's own measuring time with its default feeds, one touch, and the moves to and
+            # from the setter; each further touch adds one slow touch's time
             cycle = probe_cycle(s["dialect"], spindle=s["probe_spindle"],
                                 approach_z_mm=-5.0 if s["dialect"] == "heidenhain" else None)
             s["probe_dwell_s"] = round(measuring_time_s(cycle) + PROBE_MOVES_S)
+            s["probe_touch_s"] = 0.0 if s["dialect"] == "heidenhain" else touch_time_s(cycle)
         dwell = s["probe_dwell_s"]
         if not (math.isfinite(dwell) and 0 <= dwell <= 3600):
             raise ConfigError(f"--probe-dwell-s {dwell:g}: one tool-setter cycle's seconds, 0 to 3600")
         taus = self._former_time_constants()
         plan = plan_probe_interval(60 * s["step_min"], 60 * s["cooldown_min"], dwell, min(taus) if taus else None,
-                                   at_speed=s["probe_spindle"] == "keep")
+                                   at_speed=s["probe_spindle"] == "keep", touches=touches,
+                                   touch_s=float(s.get("probe_touch_s") or 0.0))
         every_min = a.probe_every_min if a.probe_every_min is not None else s.get("probe_every_min")
         if every_min is not None:
             every_min = float(every_min)
@@ -379,8 +390,8 @@ class Wizard:
         if every_min is not None:
             self.out.print(f"  the program stops every {every_min:g} min, as given (--probe-every-min)")
         s["probe_plan"] = {"interval_s": s["probe_every_s"], "planned_interval_s": plan.interval_s,
-                           "dwell_s": dwell, "bound": plan.bound, "fastest_tau_s": plan.fastest_tau_s,
-                           "tau_assumed": plan.tau_assumed}
+                           "dwell_s": plan.cycle_s, "touches": plan.touches, "bound": plan.bound,
+                           "fastest_tau_s": plan.fastest_tau_s, "tau_assumed": plan.tau_assumed}
 
     def step_programs(self) -> None:
         a = self.args
@@ -412,7 +423,7 @@ class Wizard:
             write_text(path, text)
             files[name] = str(path)
             # with the tool setter, the program waits at each stop for the cycle
-            cycles_s = len(prog.probe_at_s) * float(s.get("probe_dwell_s") or 0.0)
+            cycles_s = len(prog.probe_at_s) * self._cycle_s()
             t.add_row(name, str(path), self.both(prog.duration_s + cycles_s),
                       f"{max(sp for _, sp in prog.segments):.0f} rpm")
         s["programs"] = files
@@ -422,14 +433,22 @@ class Wizard:
                        "yet). A warm spindle biases the model.")
         if s["source"] == "tool-setter":
             d = s["dialect"]
+            n = (s.get("probe_plan") or {}).get("touches", 1)
+            touches = f" --touches {n}" if n > 1 else ""
             self.out.print(
                 f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
                 f"cold-reference program, for this machine's tool and setter:\n"
                 f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
-                f"    thermocomp probe-program --dialect {d} --probe-spindle {s['probe_spindle']} --output tcprobe{ext}\n"
+                f"    thermocomp probe-program --dialect {d} --probe-spindle {s['probe_spindle']}{touches} "
+                f"--output tcprobe{ext}\n"
                 "  then run the reference program once on the cold spindle, before each run's first start.",
                 highlight=False)
         self.save_session()
+
+    def _cycle_s(self) -> float:
+        """One tool-setter stop as planned, every touch included [s] (0 without the tool setter)."""
+        plan = self.session.get("probe_plan") or {}
+        return float(plan.get("dwell_s", self.session.get("probe_dwell_s") or 0.0))
 
     def _former_time_constants(self) -> tuple[float, ...] | None:
         models = sorted((self.dir / "models").glob("*.json")) if (self.dir / "models").is_dir() else []
@@ -461,7 +480,7 @@ class Wizard:
         s = self.session
         log = Path(info["log"])
         resuming = log.exists() and log.stat().st_size > 0
-        cycles_s = len(prog.probe_at_s) * float(s.get("probe_dwell_s") or 0.0)
+        cycles_s = len(prog.probe_at_s) * self._cycle_s()
         self.out.print(f"  [bold]{name}[/]: load [cyan]{s['programs'][name]}[/] on the controller "
                        f"({self.both(prog.duration_s + cycles_s)}); the spindle must be cold (rested "
                        f"{self.both(s['rest_h'] * 3600)}).")

@@ -117,7 +117,9 @@ class SimClock(ScaledClock):
 class ToolSetter:
     """A tool setter (laser or contact): a probe cycle stops the spindle for ``dwell_s``
     (simulated), then measures the true tool-tip elongation with Gaussian noise of
-    ``noise_um`` (seeded), rounded to ``resolution_um``."""
+    ``noise_um`` (seeded), rounded to ``resolution_um``. With ``touches`` > 1 the cycle touches
+    that many times, ``touch_s`` longer for each one after the first, and hands on their mean
+    (independent touches: the noise falls as 1/sqrt(touches))."""
 
     dwell_s: float = 20.0
     noise_um: float = 0.5
@@ -126,12 +128,27 @@ class ToolSetter:
     at_speed: bool = False
     """A laser setter measuring the turning tool: the spindle keeps its speed through the cycle,
     and the measurement includes the growth that exists only while it turns."""
+    touches: int = 1
+    touch_s: float = 1.2
+    """One more touch: back off and touch again at the slow feed (0.2 mm each way at 20 mm/min)."""
 
     def __post_init__(self) -> None:
-        for name in ("dwell_s", "noise_um", "resolution_um"):
+        for name in ("dwell_s", "noise_um", "resolution_um", "touch_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"tool setter {name} must be a finite number >= 0, got {v}")
+        if not (isinstance(self.touches, int) and 1 <= self.touches <= 10):
+            raise ValueError(f"tool setter touches must be a whole number from 1 to 10, got {self.touches!r}")
+
+    @property
+    def cycle_s(self) -> float:
+        """One probe cycle, every touch included [s]."""
+        return self.dwell_s + (self.touches - 1) * self.touch_s
+
+    @property
+    def sigma_um(self) -> float:
+        """The noise of the value a cycle hands on: the mean of its touches."""
+        return self.noise_um / math.sqrt(self.touches)
 
 
 @dataclass
@@ -191,7 +208,7 @@ class VirtualMachine:
         # what the probe cycle left, as a controller's variables: value, then counter
         self.probe_value_um = 0.0
         self.probe_true_um = 0.0
-        self.probe_sigma_um = self.tool_setter.noise_um
+        self.probe_sigma_um = self.tool_setter.sigma_um
         self.probe_sequence = 0
 
     def load_program(self, program: Program | None) -> None:
@@ -226,7 +243,7 @@ class VirtualMachine:
             if self._probe_until_s is not None:
                 return 0
             self._probe_rpm = abs(self.plant._speed_rpm)
-            self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
+            self._probe_until_s = self.plant.time_s + self.tool_setter.cycle_s
             return self.probe_sequence + 1
 
     @property
@@ -242,18 +259,21 @@ class VirtualMachine:
             self._stops_done += 1
             self._stop_running = True
             self._probe_rpm = abs(self.plant._speed_rpm)
-            self._probe_until_s = self.plant.time_s + self.tool_setter.dwell_s
+            self._probe_until_s = self.plant.time_s + self.tool_setter.cycle_s
 
     def _finish_probe(self) -> None:
         ts = self.tool_setter
-        value = self.plant.true_elongation_um() + ts.noise_um * float(self._probe_rng.standard_normal())
+        true = self.plant.true_elongation_um()
+        # each touch is read at the setter's resolution, as the control reads the trip; the mean
+        # is the cycle's value
+        touches = true + ts.noise_um * self._probe_rng.standard_normal(ts.touches)
         if ts.resolution_um > 0:
-            value = round(value / ts.resolution_um) * ts.resolution_um
-        self.probe_true_um = self.plant.true_elongation_um()  # for scoring
-        self.probe_value_um = float(value)
-        self.probe_sigma_um = ts.noise_um
+            touches = np.round(touches / ts.resolution_um) * ts.resolution_um
+        self.probe_true_um = true  # for scoring
+        self.probe_value_um = float(np.mean(touches))
+        self.probe_sigma_um = ts.sigma_um
         self.probe_sequence += 1
-        self._program_start_s += ts.dwell_s  # the program waited for the probe cycle
+        self._program_start_s += ts.cycle_s  # the program waited for the probe cycle
         self._probe_until_s = None
         self._stop_running = False
 

@@ -83,6 +83,23 @@ def test_resampling_1s_to_60s_matches_a_60s_log_of_the_same_program():
     np.testing.assert_allclose(r.speed_rpm, coarse.speed_rpm)
 
 
+def test_a_sparse_measurement_keeps_the_speed_it_was_taken_at_on_the_grid():
+    """A tool-setter value logged between two samples (its cycle ended off the poll) goes to the
+    grid instant before it, whose interval ran at the speed held through the cycle; the instant
+    after would average in the speed the program moved on to, and with it a growth at speed
+    the measurement never saw."""
+    t = np.array([0.0, 10.0, 20.0, 30.0, 35.0, 40.0, 50.0, 60.0])
+    speed = np.array([9000.0, 9000, 9000, 9000, 9000, 27000, 27000, 27000])  # 35: the value, at 9000
+    y = np.full(t.size, np.nan)
+    y[[0, 4, 7]] = [0.0, 2.5, 8.0]
+    r = resample(Run("s", t, speed, y), 10.0)
+    measured = np.flatnonzero(np.isfinite(r.elongation_um))
+    assert r.time_s[measured].tolist() == [0.0, 30.0, 60.0]
+    assert r.speed_rpm[measured].tolist() == [9000.0, 9000.0, 27000.0]
+    assert r.elongation_um[measured].tolist() == [0.0, 2.5, 8.0]
+    assert r.speed_rpm[4] == 18000.0  # the interval (30, 40] is half at each speed
+
+
 def test_constant_speed_runs_are_refused():
     t = np.arange(100) * 60.0
     from calibration.runs import run_from_log

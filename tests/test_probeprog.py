@@ -38,10 +38,14 @@ SYNTAX = {
               r"#3 = #5063 \+ #5023 - #5043", (rf"IF \[ABS\[#5063 - #2\] GT {NUM}\] THEN #3000 = 101 "
                r"\(SETTER NOT TRIPPED\)"), r"#\d+ = #3", r"#4 = \[#3 - #\d+\] \* 1000",
               r"IF \[ABS\[#4\] GT \d+\.\d\] THEN #3000 = 103 \(GROWTH OUT OF RANGE\)", r"#\d+ = #4",
-              r"(#\d+) = \1 \+ 1", rf"IF \[(#\d+) GT {COUNTER_WRAP}\] THEN \1 = 1", r"M30"],
+              r"(#\d+) = \1 \+ 1", rf"IF \[(#\d+) GT {COUNTER_WRAP}\] THEN \1 = 1", r"M30",
+              # repeated touches: WHILE [..] DO1 .. END1, the mean in #3
+              r"#[67] = 0", r"WHILE \[#7 LT \d+\] DO1", r"IF \[#7 EQ 0\] THEN #5 = #3",
+              r"IF \[ABS\[#3 - #5\] \* 1000 GT \d+\.\d\] THEN #3000 = 104 \(TOUCHES DISAGREE\)",
+              r"#6 = #6 \+ #3", r"END1", r"#3 = #6 / \d+"],
     # SINUMERIK: archive header, ; comments, DEF first, MEAS=n G1 with STOPRE before $AC_MEA and
     # $AA_MM, SUPA (machine coordinates), G4 F<s> alone, IF .. GOTOF label, SETAL cycle alarms
-    "sinumerik": [r"%_N_[A-Z0-9_]+_MPF", r";\$PATH=/_N_MPF_DIR", r"; [^a-z]*", r"DEF REAL TC_FAST, TC_TRIP, TC_UM",
+    "sinumerik": [r"%_N_[A-Z0-9_]+_MPF", r";\$PATH=/_N_MPF_DIR", r"; [^a-z]*", r"DEF REAL TC_FAST, TC_TRIP, TC_UM(, TC_FIRST, TC_SUM)?",
                   r"G17 G40 G71 G90 G94", r"IF R\d+==0 GOTOF TC_NOREF", r"T\d+ M6", r"M5", r"S\d+ M3",
                   rf"SUPA G0 Z{NUM}", rf"SUPA G0 X{NUM} Y{NUM}", r"G4 F\d+(\.\d+)?",
                   rf"MEAS=[12] G1 G91 Z-{NUM} F\d+(\.\d+)?", r"STOPRE", r"IF \$AC_MEA\[[12]\]==0 GOTOF TC_NOTRIP",
@@ -49,7 +53,11 @@ SYNTAX = {
                   rf"IF ABS\(TC_TRIP-TC_FAST\)>{NUM} GOTOF TC_NOTRIP", r"G90", r"R\d+=TC_TRIP",
                   r"TC_UM=\(TC_TRIP-R\d+\)\*1000", r"IF ABS\(TC_UM\)>\d+(\.\d+)? GOTOF TC_RANGE", r"R\d+=TC_UM",
                   r"(R\d+)=\1\+1", rf"IF R\d+>{COUNTER_WRAP}", r"R\d+=1", r"ENDIF", r"M30",
-                  r"TC_(NOREF|NOTRIP|RANGE):", r"SETAL\(6500[1-3]\)"],
+                  r"TC_(NOREF|NOTRIP|RANGE|SPREAD):", r"SETAL\(6500[1-4]\)",
+                  # repeated touches: a loop by label (GOTOB), IF .. ENDIF, the mean in TC_TRIP
+                  r"DEF INT TC_K", r"TC_(SUM|K)=0", r"TC_TOUCH:", r"IF TC_K==0", r"TC_FIRST=TC_TRIP",
+                  r"IF ABS\(TC_TRIP-TC_FIRST\)\*1000>\d+(\.\d+)? GOTOF TC_SPREAD", r"TC_SUM=TC_SUM\+TC_TRIP",
+                  r"TC_K=TC_K\+1", r"IF TC_K<\d+ GOTOB TC_TOUCH", r"TC_TRIP=TC_SUM/\d+"],
     # TNC Klartext: numbered blocks (a "~" continues a block on unnumbered lines), BEGIN/END PGM,
     # FN 9/11/12 jumps to LBL, FN 14 errors, FN 17/18 ID50 tool table, TCH PROBE 481 with its Q
     # parameters, formulas, QL locals and QR non-volatile parameters
@@ -63,12 +71,16 @@ SYNTAX = {
                    r"\d+ LBL \d+", r"\d+ FN 14: ERROR = 20[1-3]", r"\d+ END PGM \w+ MM"],
     # RS274/NGC: % delimiters, (comments), o-word if/endif with (ABORT,), G38.2 probing, G53
     # machine moves, named and numbered parameters, M68 E<n> Q<value> to HAL, M2
-    "linuxcnc": [r"%", r"\([^()]*\)", r"G17 G21 G40 G49 G90 G94", r"o10[0-2] (if \[.+\]|endif)",
+    "linuxcnc": [r"%", r"\([^()]*\)", r"G17 G21 G40 G49 G90 G94",
+                 r"o10[0-5] (if \[.+\]|endif|repeat \[\d+\]|endrepeat)",
                  r"T\d+ M6", r"M5", r"S\d+ M3", rf"G53 G0 Z{NUM}", rf"G53 G0 X{NUM} Y{NUM}", r"G4 P\d+(\.\d+)?",
                  rf"(G91 )?G38\.2 Z-{NUM} F\d+\.\d", rf"(G91 )?G0 Z{NUM}", r"G90",
                  r"#<trip_mm> = \[#5063 \+ #\[5203 \+ 20 \* #5220\] \+ #5213 \* #5210\]",
                  r"#\d+ = #<trip_mm>", r"#<growth_um> = \[\[#<trip_mm> - #\d+\] \* 1000\]",
-                 r"#\d+ = #<growth_um>", r"(#\d+) = \[\1 \+ 1\]", r"#\d+ = 1", r"M68 E\d+ Q#\d+", r"M2"],
+                 r"#\d+ = #<growth_um>", r"(#\d+) = \[\1 \+ 1\]", r"#\d+ = 1", r"M68 E\d+ Q#\d+", r"M2",
+                 # repeated touches: named parameters, the mean in #<trip_mm>
+                 r"#<(sum_mm|k)> = 0", r"#<first_mm> = #<trip_mm>", r"#<sum_mm> = \[#<sum_mm> \+ #<trip_mm>\]",
+                 r"#<k> = \[#<k> \+ 1\]", r"#<trip_mm> = \[#<sum_mm> / \d+\]"],
 }
 
 VALUE_WRITE = {"fanuc": r"{v} = #4", "sinumerik": r"{v}=TC_UM", "heidenhain": r"\d+ FN 0: {v} = \+QL3",
@@ -88,6 +100,7 @@ def cycles(dialect: str):
     yield probe_cycle(dialect, tool=7, setter_x_mm=-412.5, setter_y_mm=-20, approach_z_mm=-5, travel_mm=25,
                       backoff_mm=2, fast_feed_mm_min=500, slow_feed_mm_min=10, settle_s=3.5)
     yield probe_cycle(dialect, spindle="low", low_rpm=800, approach_z_mm=-50, max_um=120)
+    yield probe_cycle(dialect, spindle="keep", touches=4, spread_um=2.5)
 
 
 def line_index(lines: list[str], pattern: str) -> int:
@@ -114,9 +127,13 @@ def test_every_line_follows_the_dialects_syntax(dialect, reference):
         if dialect == "sinumerik":
             first = next(ln for ln in lines if not ln.startswith((";", "%")))
             assert first.startswith("DEF ")  # definitions before the first executable block
-            for label in set(re.findall(r"GOTOF (\w+)", text)):
+            for label in set(re.findall(r"GOTO[FB] (\w+)", text)):
                 assert lines.count(f"{label}:") == 1
-            assert sum(ln.startswith("IF R") and "GOTOF" not in ln for ln in lines) == lines.count("ENDIF")
+            # a block IF (no jump on its line) closes with ENDIF
+            assert sum(ln.startswith("IF ") and "GOTO" not in ln for ln in lines) == lines.count("ENDIF")
+            for k, ln in enumerate(lines):  # GOTOB jumps back, GOTOF forward
+                for way, label in re.findall(r"GOTO([FB]) (\w+)", ln):
+                    assert (lines.index(f"{label}:") < k) == (way == "B"), ln
             for k, ln in enumerate(lines):  # a measurement's result is read after STOPRE
                 if ln.startswith("MEAS="):
                     assert lines[k + 1] == "STOPRE" and "$AC_MEA" in lines[k + 2]
@@ -186,6 +203,37 @@ def test_the_configured_variables_and_tool_are_used(dialect):
     assert str(bare.value_var).endswith("150") and str(bare.reference_var)[0] in "#RQ"
 
 
+# per dialect: the slow touch, the loop's head and end, the mean and the spread alarm
+LOOP = {"fanuc": (r"G91 G31 Z-{b} F", r"WHILE \[#7 LT {n}\] DO1", r"END1", r"#3 = #6 / {n}", r"GT {u}\] THEN #3000 = 104"),
+        "sinumerik": (r"MEAS=1 G1 G91 Z-{b} F", r"TC_TOUCH:", r"IF TC_K<{n} GOTOB TC_TOUCH", r"TC_TRIP=TC_SUM/{n}",
+                      r"\*1000>{u:g} GOTOF TC_SPREAD"),
+        "linuxcnc": (r"G38\.2 Z-{b} F", r"o103 repeat \[{n}\]", r"o103 endrepeat", r"#<trip_mm> = \[#<sum_mm> / {n}\]",
+                     r"\* 1000 GT {u:g}\]")}
+
+
+@pytest.mark.parametrize("dialect", sorted(LOOP))
+@pytest.mark.parametrize("reference", [False, True], ids=["measure", "reference"])
+def test_repeated_touches_are_averaged_and_must_agree(dialect, reference):
+    """With --touches N the slow touch runs N times inside one loop, the trip used is their sum
+    over N, and a touch farther than --spread-um from the first is an alarm before anything is
+    written; the cold reference is averaged the same way. One touch writes no loop at all."""
+    n, u = 4, 2.5
+    c = probe_cycle(dialect, spindle="keep", touches=n, spread_um=u)
+    lines = probe_program(c, reference=reference).splitlines()
+    slow, head, end, mean, alarm = (p.format(b="0.400", n=n, u=u) for p in LOOP[dialect])
+    at = {name: [k for k, ln in enumerate(lines) if re.search(p, ln)]
+          for name, p in (("slow", slow), ("head", head), ("end", end), ("mean", mean), ("alarm", alarm))}
+    assert all(len(v) == 1 for v in at.values()), at  # one slow touch, written once, inside one loop
+    assert at["head"][0] < at["slow"][0] < at["alarm"][0] < at["end"][0] < at["mean"][0]
+    written = [k for k, ln in enumerate(lines) if re.match(r"(#521|R21|#3021|#520|R20|#3020) ?=", ln)]
+    assert written and min(written) > at["mean"][0]  # nothing is written before the mean
+    assert "MEAN OF 4 SLOW TOUCHES" in "\n".join(lines)
+    single = probe_program(probe_cycle(dialect, spindle="keep"), reference=reference)
+    assert not any(re.search(p.format(b="0.400", n=1, u=5), single) for p in LOOP[dialect][1:3])
+    # the laser's back-off (0.2 mm at 20 mm/min): each further touch 1.2 s longer
+    assert measuring_time_s(c) - measuring_time_s(probe_cycle(dialect, spindle="keep")) == pytest.approx(3 * 1.2)
+
+
 def test_measuring_time_and_spindle_words():
     c = probe_cycle("fanuc", settle_s=2, travel_mm=10, fast_feed_mm_min=200, backoff_mm=1, slow_feed_mm_min=20)
     assert measuring_time_s(c) == pytest.approx(2 + 3 + 6)  # settle, 10 mm at 200, 2 mm at 20
@@ -237,6 +285,11 @@ def test_measuring_time_and_spindle_words():
     ("fanuc", {"slow_feed_mm_min": 300}, "--slow-feed-mm-min"),  # slower than the search
     ("fanuc", {"max_um": 0}, "--max-um"),
     ("fanuc", {"name": "9LIVES"}, "--name"),
+    ("fanuc", {"touches": 0}, "--touches"),
+    ("fanuc", {"touches": 11}, "--touches"),
+    ("sinumerik", {"touches": 2.5}, "whole number"),
+    ("linuxcnc", {"touches": 3, "spread_um": 0}, "--spread-um"),
+    ("heidenhain", {"approach_z_mm": 50, "touches": 2}, "--touches is not for heidenhain"),
 ])
 def test_bad_options_are_refused(dialect, options, match):
     with pytest.raises(ConfigError, match=match) as err:
@@ -297,6 +350,18 @@ def rs274(program: Path, var_file: Path, tool_table: Path) -> subprocess.Complet
                           check=False)
 
 
+def interpreter_files(tmp_path: Path, c: ProbeCycle, tool_line: str) -> tuple[Path, Path, Path, Path]:
+    """The tool table, a .var file listing the cycle's parameters, the reference program and the
+    cycle, for :func:`rs274`."""
+    tbl, var = tmp_path / "tool.tbl", tmp_path / "thermocomp.var"
+    tbl.write_text(tool_line + "\n")
+    var.write_text("\n".join(var_file_lines(c)) + "\n")
+    ref_ngc, cyc_ngc = tmp_path / "tcref.ngc", tmp_path / "tcprobe.ngc"
+    ref_ngc.write_text(probe_program(c, reference=True))
+    cyc_ngc.write_text(probe_program(c))
+    return tbl, var, ref_ngc, cyc_ngc
+
+
 def read_var(var_file: Path) -> dict[int, float]:
     pairs = (line.split() for line in var_file.read_text().splitlines())
     return {int(p[0]): float(p[1]) for p in pairs if len(p) == 2}
@@ -309,13 +374,7 @@ def test_linuxcnc_interpreter_runs_reference_then_cycle(tmp_path):
     HAL in that order; without a reference it aborts and writes nothing."""
     c: ProbeCycle = probe_cycle("linuxcnc", tool=5, setter_x_mm=-400, setter_y_mm=-20, approach_z_mm=-50,
                                 spindle="low", low_rpm=300, value_aout=2, counter_aout=3)
-    tbl = tmp_path / "tool.tbl"
-    tbl.write_text("T5 P5 Z0 D10 ;gauge tool\n")
-    var = tmp_path / "thermocomp.var"
-    var.write_text("\n".join(var_file_lines(c)) + "\n")
-    ref_ngc, cyc_ngc = tmp_path / "tcref.ngc", tmp_path / "tcprobe.ngc"
-    ref_ngc.write_text(probe_program(c, reference=True))
-    cyc_ngc.write_text(probe_program(c))
+    tbl, var, ref_ngc, cyc_ngc = interpreter_files(tmp_path, c, "T5 P5 Z0 D10 ;gauge tool")
 
     r = rs274(ref_ngc, var, tbl)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr
@@ -352,6 +411,29 @@ def test_linuxcnc_interpreter_runs_reference_then_cycle(tmp_path):
     bad = tmp_path / "bad.ngc"  # and the interpreter does refuse what it cannot run
     bad.write_text(probe_program(c).replace("G38.2 Z", "G38.9 Z", 1))
     assert rs274(bad, var, tbl).returncode != 0
+
+
+@needs_rs274
+def test_linuxcnc_interpreter_runs_repeated_touches(tmp_path):
+    """LinuxCNC's interpreter runs the loop: the fast touch and three slow ones, for the cold
+    reference and for the measurement alike, and hands HAL the growth between their means."""
+    # the standalone interpreter's trips move from touch to touch by tens of um: a spread the
+    # default tolerance (5 um) refuses, and 1 mm allows
+    c = probe_cycle("linuxcnc", touches=3, spindle="keep", spread_um=1000)
+    tbl, var, ref_ngc, cyc_ngc = interpreter_files(tmp_path, c, "T1 P1 Z0 D6 ;gauge tool")
+    r = rs274(ref_ngc, var, tbl)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr
+    assert r.stdout.count("STRAIGHT_PROBE") == 1 + 3
+    trip_mm = read_var(var)[3020]
+    var.write_text(var.read_text().replace(f"3020\t{trip_mm:f}", f"3020\t{trip_mm - 0.0123:f}"))
+    r = rs274(cyc_ngc, var, tbl)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr
+    assert r.stdout.count("STRAIGHT_PROBE") == 1 + 3
+    assert read_var(var)[3021] == pytest.approx(12.3, abs=1e-3) and read_var(var)[3022] == 1
+    cyc_ngc.write_text(probe_program(probe_cycle("linuxcnc", touches=3, spindle="keep")))
+    r = rs274(cyc_ngc, var, tbl)
+    assert r.returncode != 0 and "TOUCHES DISAGREE" in r.stdout + r.stderr
+    assert read_var(var)[3022] == 1 and "SET_AUX_OUTPUT_VALUE" not in r.stdout
 
 
 @needs_rs274

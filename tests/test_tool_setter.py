@@ -48,7 +48,7 @@ def probe(vm: VirtualMachine, clock: FakeClock) -> float:
     """One probe cycle, run to its end; the value it published."""
     seq = vm.start_probe()
     assert seq == vm.probe_sequence + 1
-    clock.t += vm.tool_setter.dwell_s
+    clock.t += vm.tool_setter.cycle_s
     vm.advance()
     assert vm.probe_sequence == seq and not vm.probing
     return vm.probe_value_um
@@ -98,6 +98,26 @@ def test_the_tool_setters_noise_and_resolution_are_as_configured_and_seeded():
     assert run(5, 5) != errors[:5]
     with pytest.raises(ValueError, match="noise_um"):
         ToolSetter(noise_um=math.nan)
+
+
+def test_a_cycle_of_several_touches_hands_on_their_mean():
+    """Four touches: the cycle lasts three touch times longer, the value's noise halves (each
+    touch read at the setter's resolution, then averaged), and the sigma published says so."""
+    def run(touches: int, n: int) -> tuple[list[float], VirtualMachine]:
+        clock = FakeClock()
+        vm = machine(clock, dwell_s=2.0, noise_um=0.5, seed=4, touches=touches, touch_s=1.5)
+        return [probe(vm, clock) - vm.probe_true_um for _ in range(n)], vm
+
+    one, _ = run(1, 400)
+    four, vm = run(4, 400)
+    assert vm.tool_setter.cycle_s == pytest.approx(2.0 + 3 * 1.5)
+    assert np.std(four) == pytest.approx(0.25, rel=0.15) and np.std(four) < 0.6 * np.std(one)
+    assert vm.probe_sigma_um == pytest.approx(0.25)
+    # a value is a mean of values at 0.1 um: a multiple of 0.025 um
+    assert all(abs(v / 0.025 - round(v / 0.025)) < 1e-6 for v in (vm.probe_value_um,))
+    for bad in (0, 11, 2.5):
+        with pytest.raises(ValueError, match="touches"):
+            ToolSetter(touches=bad)
 
 
 def test_the_sim_adapter_reads_each_probe_once_and_ignores_the_one_found_at_start():

@@ -140,11 +140,11 @@ def test_a_parsed_program_with_probe_calls_measures_at_its_program_times_over_op
 
 
 def setter_recording(tmp_path, prog: Program, *, rate_s: float = 10.0, should_stop=None, vm=None, clock=None,
-                     at_speed: bool = False, name: str = "setter.csv"):
+                     at_speed: bool = False, name: str = "setter.csv", touches: int = 1):
     clock = clock or FakeClock()
     if vm is None:
         vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=SEED), None, clock=clock.sim, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED, at_speed=at_speed))
+                            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED, at_speed=at_speed, touches=touches))
         vm.load_program(prog)
     rec = Recorder(SimAdapter(machine=vm), None, tmp_path / name, prog, max_rpm=MAX_RPM,
                    config=AcquireConfig(rate_s=rate_s), clock=clock, sleep=clock.sleep, wall=clock,
@@ -175,6 +175,31 @@ def test_the_tool_setter_recording_is_a_sparse_log_measured_at_rest(tmp_path):
     # the rest of every row as before: the speed followed, the controller's sensors beside
     assert np.isfinite(log.extras["bearing_temp_c"]).all()
     assert log.time_s[-1] == pytest.approx(prog.duration_s + 12 * DWELL_S, abs=10.0)
+
+
+def test_a_laser_value_at_speed_keeps_the_speed_it_was_taken_at(tmp_path):
+    """Four touches make a 23.6 s cycle, which ends between two 10 s polls: where the program
+    has moved on to another speed by the poll that reads the value, the value goes on a row
+    between the two at the speed held through the cycle, not on the new speed's row (whose
+    growth at speed differs by up to 16 um)."""
+    prog = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=6, cooldown_min=15, probe_every_s=120), "fanuc"))
+    rec, vm, clock = setter_recording(tmp_path, prog, at_speed=True, touches=4)
+    assert vm.tool_setter.cycle_s == pytest.approx(23.6)
+    held = []
+    finish = vm._finish_probe
+
+    def finish_and_note() -> None:  # the speed the cycle measured at, as it ends
+        held.append(vm.speed_rpm)
+        finish()
+
+    vm._finish_probe = finish_and_note
+    result = rec.run()
+    assert result.complete and result.measurements == len(prog.probe_at_s) == len(held)
+    log = read_run_log(result.path)
+    np.testing.assert_allclose(log.speed_rpm[log.measured], held, atol=1.0)
+    between = np.flatnonzero(log.measured & (np.abs(log.time_s - np.round(log.time_s / 10) * 10) > 1e-6))
+    assert between.size >= 3  # stops at a step's end, whose value came in after the program moved on
+    assert (log.speed_rpm[between + 1] != log.speed_rpm[between]).all()
 
 
 def test_a_tool_setter_recording_resumes_into_its_log_and_keeps_the_stops(tmp_path):
@@ -238,6 +263,19 @@ def test_the_probe_interval_plan():
     assert "laser at speed" in r.lines()[0]
     assert plan_probe_interval(180.0, 0.0, 20.0, at_speed=True).bound == "step"  # already shorter
     assert plan_probe_interval(1200.0, 3600.0, 90.0, at_speed=True).interval_s == 300.0  # long cycles: tau
+    # touches: a laser at speed fills its stops up to that 20 % (4 x 1.2 s more than one touch's
+    # 20 s would pass it at 2 min: 3 more), and says what their mean gains
+    t = plan_probe_interval(1200.0, 3600.0, 20.0, at_speed=True, touch_s=1.2)
+    assert t.interval_s == 120.0 and t.touches == 4 and t.touches_planned and t.cycle_s == pytest.approx(23.6)
+    assert t.added_s == pytest.approx(t.stops * 23.6) and t.added_s / t.program_s <= 0.2
+    assert "4 touches averaged" in t.lines()[-1] and "0.50 of one touch's noise" in t.lines()[-1]
+    # at rest one touch unless asked; asked, each touch lengthens the stop and its decay
+    assert plan_probe_interval(1200.0, 3600.0, 20.0, touch_s=6.0).touches == 1
+    a = plan_probe_interval(1200.0, 3600.0, 20.0, touches=3, touch_s=6.0)
+    assert a.touches == 3 and not a.touches_planned and a.loss_per_stop == pytest.approx(1 - np.exp(-32 / 600))
+    assert "as asked" in a.lines()[-1]
+    with pytest.raises(ValueError, match="touches"):
+        plan_probe_interval(1200.0, 3600.0, 20.0, touches=11)
 
 
 # -- the two routes on the same virtual spindle ---------------------------------------------------
@@ -275,11 +313,13 @@ def routes(tmp_path_factory):
     setter = rec.run()
     setter_fit = fit_logs([read_run_log(setter.path)])
     # (c) a laser setter measuring the turning gauge tool at the program's speed, at its own plan
+    # it averages as many touches per stop as the plan fits in (the virtual setter's touch time)
     laser_plan = plan_probe_interval(STEP_MIN * 60, COOLDOWN_MIN * 60, DWELL_S, min(eddy_fit.model.time_constants_s()),
-                                     at_speed=True)
+                                     at_speed=True, touch_s=ToolSetter().touch_s)
     laser_nc = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN,
                                                   probe_every_s=laser_plan.interval_s), "fanuc"))
-    laser_rec, _vm, _clock = setter_recording(tmp, laser_nc, rate_s=RATE_S, at_speed=True, name="laser.csv")
+    laser_rec, _vm, _clock = setter_recording(tmp, laser_nc, rate_s=RATE_S, at_speed=True, name="laser.csv",
+                                              touches=laser_plan.touches)
     laser = laser_rec.run()
     laser_log = read_run_log(laser.path)
     laser_fit = fit_logs([laser_log])
@@ -308,6 +348,7 @@ def routes(tmp_path_factory):
     fig["laser_model"] = laser_fit.chosen.name
     fig["laser_at_speed"] = int((laser_log.speed_rpm[laser_log.measured] > 1.0).sum())
     fig["laser_stops"], fig["laser_plan_stops"] = laser.measurements, laser_plan.stops
+    fig["laser_touches"] = laser_plan.touches
     fig["thermal_ratio"] = fig["setter_plus_elastic_rms_um"] / fig["eddy_rms_um"]
     fig["eddy_report"], fig["eddy_expected"] = eddy_fit.report(), eddy_fit.model.fit.get("expected_error")
     assert eddy.complete and setter.complete and not eddy.flagged and not setter.flagged
@@ -345,6 +386,7 @@ def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     f = routes
     print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
     assert f["laser_stops"] == f["laser_plan_stops"] >= f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
+    assert f["laser_touches"] > 1  # its stops average several touches
     assert f["laser_rms_um"] < 0.5 * f["setter_rms_um"], (f["laser_rms_um"], f["setter_rms_um"])
     assert f["laser_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
 

@@ -128,6 +128,10 @@ def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_
     s = c["session"]
     assert s["probe_spindle"] == "keep" and "no growth decays while it measures" in c["out"]
     assert "--probe-spindle keep" in c["out"] and "the tool setter measured at rest" not in c["out"]
+    # its stops average as many touches as fit, and the probe program to write says how many
+    n = s["probe_plan"]["touches"]
+    assert n > 1 and f"{n} touches averaged per stop" in c["out"] and f"--touches {n} " in c["out"]
+    assert calibrated["session"]["probe_plan"]["touches"] == 1 and "--touches" not in calibrated["out"]
     log = read_run_log(s["runs"]["calibration"]["log"])
     turning = log.speed_rpm[log.measured] > 1.0
     assert turning.mean() > 0.6  # the staircase turns at most stops; the cool-down ones are at rest

@@ -326,6 +326,9 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tool-setter", choices=["rest", "speed"], default="rest",
                    help="the machine's tool setter: a contact one, the spindle stopped for each cycle (default), "
                    "or a laser measuring the turning tool at the program's speed")
+    p.add_argument("--tool-setter-touches", type=int, default=1, choices=range(1, 11), metavar="N",
+                   help="touches each tool-setter cycle averages, 1 to 10 (default 1; as the probe program's "
+                   "--touches)")
     p.add_argument("--history", metavar="CSV",
                    help="on stop, write the machine's record (true growth, the offset held, the tool tip's "
                    "error) as a run log and print the error while cutting, with and without the offset")
@@ -434,10 +437,15 @@ def _add_probe_program(sub: argparse._SubParsersAction) -> None:
                    help="machine Z to rise to before moving across and after probing; heidenhain: "
                    "the clearance height Q260")
     p.add_argument("--travel-mm", metavar="MM", help="longest search down from the approach (default 10)")
-    p.add_argument("--backoff-mm", metavar="MM", help="back-off before the slow touch (default 1)")
+    p.add_argument("--backoff-mm", metavar="MM",
+                   help="back-off before each slow touch (default 1; 0.2 for a laser, --probe-spindle low or keep)")
     p.add_argument("--fast-feed-mm-min", metavar="F", help="search feed (default 200)")
     p.add_argument("--slow-feed-mm-min", metavar="F", help="measuring feed (default 20)")
     p.add_argument("--max-um", default="300", metavar="UM", help="a larger growth: alarm, nothing written")
+    p.add_argument("--touches", default="1", metavar="N",
+                   help="slow touches averaged per measurement, 1 to 10 (default 1; not heidenhain)")
+    p.add_argument("--spread-um", default="5", metavar="UM",
+                   help="with --touches: a touch farther than this from the first is an alarm, nothing written")
     p.add_argument("--probe-input", metavar="N", help="sinumerik: the setter's input, 1 or 2 (default 1)")
     p.add_argument("--value-aout", metavar="N", help="linuxcnc: M68 analog output, value (default 0)")
     p.add_argument("--counter-aout", metavar="N", help="linuxcnc: M68 analog output, counter (default 1)")
@@ -486,7 +494,10 @@ def _add_wizard(sub: argparse._SubParsersAction) -> None:
                    "this many wall seconds (default 900)")
     g.add_argument("--probe-dwell-s", type=float,
                    help="--source tool-setter: seconds one tool-setter cycle keeps the spindle stopped, moves "
-                   "included (default: the cycle's measuring time + 10 s)")
+                   "and every touch included (default: the cycle's measuring time + 10 s)")
+    g.add_argument("--probe-touches", type=float,
+                   help="--source tool-setter: slow touches the cycle averages per stop, 1 to 10 (default: a laser "
+                   "at speed as many as keep the stops within a fifth of the program, at rest 1)")
     g.add_argument("--programs-only", action="store_true", help="stop after writing the NC programs")
     g = p.add_argument_group("3 record")
     g.add_argument("--frozen-s", type=float, help="same reading this long: frozen (default 900)")

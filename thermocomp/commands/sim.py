@@ -86,7 +86,8 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.program}: {err}") from err
     vm = VirtualMachine(SpindlePlant(params, seed=args.seed), None if args.wait_start else prog,
                         clock=SimClock(args.time_scale),
-                        tool_setter=ToolSetter(at_speed=getattr(args, "tool_setter", "rest") == "speed"))
+                        tool_setter=ToolSetter(at_speed=getattr(args, "tool_setter", "rest") == "speed",
+                                               touches=getattr(args, "tool_setter_touches", 1)))
     if args.wait_start:
         vm.load_pending(prog)
     history = getattr(args, "history", None)
