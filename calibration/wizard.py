@@ -353,7 +353,7 @@ class Wizard:
         s["probe_spindle"] = a.probe_spindle or s.get("probe_spindle") or "stop"
         touches = a.probe_touches if getattr(a, "probe_touches", None) is not None else s.get("probe_touches")
         if touches is not None:
-            if not (float(touches) == int(touches) and 1 <= int(touches) <= MAX_TOUCHES):
+            if not (math.isfinite(touches) and touches == int(touches) and 1 <= touches <= MAX_TOUCHES):
                 raise ConfigError(f"--probe-touches {touches:g}: a whole number from 1 to {MAX_TOUCHES}")
             if int(touches) > 1 and s["dialect"] == "heidenhain":
                 raise ConfigError("--probe-touches is not for heidenhain: TCH PROBE 481 measures once per call")

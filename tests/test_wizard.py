@@ -414,6 +414,13 @@ def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
           "--source", "sensor", "--controller", cnc.url + "?preset=virtual-cnc",
           "--sensor", "serial:///dev/nonexistent-probe"], "sensor serial:///dev/nonexistent-probe"),
     ]
+    for k, (dialect, touches, message) in enumerate((("fanuc", "11", "--probe-touches 11: a whole number from 1 to 10"),
+                                                     ("fanuc", "nan", "--probe-touches nan"),
+                                                     ("heidenhain", "2", "--probe-touches is not for heidenhain"))):
+        cases.append((["--workdir", str(tmp_path), "--machine-id", f"t{k}", "--model-spindle-id", "s", "--max-rpm",
+                       "9000", "--source", "tool-setter", "--controller", cnc.url + "?preset=virtual-cnc",
+                       "--no-connection-test", "--programs-only", "--dialect", dialect, "--probe-touches", touches],
+                      message))
     for args, message in cases:
         r = subprocess.run([*THERMOCOMP, "wizard", "--yes", *args], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2, (args, r.stdout, r.stderr)
