@@ -17,6 +17,7 @@ from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
 from .candidate import MIN_FORWARD_FOLDS
+from .closedloop import PROBE_SIGMA_UM
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 """A runtime spindle name (``SpindleConfig.name``)."""
@@ -280,6 +281,11 @@ def runtime_config(session: dict[str, Any], model: Predictor, model_path: Path,
                   "# without measurements the observer goes stale (OBSERVER_STALE) and the model runs open loop",
                   "[spindle.observer]",
                   _line("enabled", True, "fuse the tool setter's measurements with the model (the closed loop)")]
+        touches = int((session.get("probe_plan") or {}).get("touches", 1))
+        if touches > 1:  # the cycle hands on the mean of its touches
+            sigma = PROBE_SIGMA_UM / math.sqrt(touches)
+            lines.append(_line("sigma_um", round(sigma, 3), f"one touch's default, over sqrt({touches}): the cycle "
+                               f"averages {touches} touches (probe-program --touches {touches})"))
     top = abs(model.steady_state_um(session["max_rpm"]))
     default = ShaperConfig().max_offset_um
     at = f"{top:.0f} um predicted at {session['max_rpm']:.0f} rpm"

@@ -132,6 +132,12 @@ def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_
     n = s["probe_plan"]["touches"]
     assert n > 1 and f"{n} touches averaged per stop" in c["out"] and f"--touches {n} " in c["out"]
     assert calibrated["session"]["probe_plan"]["touches"] == 1 and "--touches" not in calibrated["out"]
+    # the service takes the mean's sigma for the cycle's values, and its configuration loads
+    from thermocomp.runtime.config import load_config
+
+    fused = load_config(s["saved"]["config"]).spindle[0].observer
+    assert fused.enabled and fused.sigma_um == pytest.approx(0.5 / n**0.5, abs=1e-3)
+    assert "sigma_um" not in Path(calibrated["session"]["saved"]["config"]).read_text()
     log = read_run_log(s["runs"]["calibration"]["log"])
     turning = log.speed_rpm[log.measured] > 1.0
     assert turning.mean() > 0.6  # the staircase turns at most stops; the cool-down ones are at rest
