@@ -249,6 +249,7 @@ class Recorder:
         wall0 = last_sensor_ok = last_speed_ok = self.wall()
         paused_s = 0.0  # program time the machine spent in probe cycles: its program waited
         hold_wall: float | None = None  # wall time the program clock began to wait at a stop
+        last_seq: int | None = None  # the tool-setter counter of the last value seen
         if appender.first_row is not None:
             if self.sensor is not None:
                 reference = appender.first_row[3]
@@ -277,12 +278,17 @@ class Recorder:
                         raise AcquisitionError(f"no spindle speed from the controller for "
                                                f"{self.wall() - last_speed_ok:.0f} s ({err})") from err
                 meas: float | None = None  # a new tool-setter measurement [um]
+                ran = 1  # probe cycles since the last value seen: the counter's step
                 if self.sensor is None:
                     try:
                         got = self.controller.read_measurement()
                         last_sensor_ok = self.wall()
                         self._clear(t, Problem.SENSOR_FAULT, "tool setter's variables answer again")
                         meas = None if got is None else float(got.elongation_um)
+                        if got is not None:
+                            if last_seq is not None and got.sequence > last_seq:  # a wrap counts one
+                                ran = got.sequence - last_seq
+                            last_seq = got.sequence
                     except AdapterError as err:
                         flags |= Problem.SENSOR_FAULT
                         self._raise(t, Problem.SENSOR_FAULT, f"tool setter: {err}")
@@ -343,14 +349,24 @@ class Recorder:
                     held = (appender.last_row[1], appender.last_row[4])
                 if self.stops and ptime is not None and program_start is not None:
                     k = self.stops_done
-                    if meas is not None and k < len(self.stops) and \
-                            ptime >= self.stops[k] - cfg.follow_window_s - cfg.rate_s:
+                    if meas is not None and k < len(self.stops):
+                        # the program calls the cycle at its stops only: a new value is the next
+                        # stop's however late the recording saw it (a stalled computer), and a
+                        # counter that moved by more than one says stops went by unread
+                        missed = min(ran - 1, len(self.stops) - k - 1)
+                        k += missed
+                        behind = self.stops[k] - ptime
                         # the machine's program resumes at the stop once the value is in
                         paused_s = t_meas - program_start - self.stops[k]
                         ptime = t - program_start - paused_s
-                        self.stops_done += 1
+                        self.stops_done = k + 1
                         hold_wall = None
-                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (stop {k + 1}/{len(self.stops)})")
+                        note = ""
+                        if missed:
+                            note += f"; {missed} stop(s) went by while the recording did not read: their values are lost"
+                        if behind > cfg.follow_window_s + cfg.rate_s:
+                            note += f"; the recording's clock was {behind:.0f} s behind the machine's"
+                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (stop {k + 1}/{len(self.stops)}{note})")
                     elif meas is not None:
                         self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (not at a programmed stop)")
                     if self.stops_done < len(self.stops) and ptime >= self.stops[self.stops_done]:
@@ -475,15 +491,15 @@ class Recorder:
 
     def _stops_from_log(self, program_start: float) -> float:
         """On resume: the stops whose measurement is logged, by the rule the recording follows
-        (the program resumes at the stop on the measured row); the program time spent in cycles."""
+        (each value after the start is the next stop's; the program resumes at the stop on the
+        measured row); the program time spent in cycles."""
         from compensator.io import read_run_log
 
         log = read_run_log(self.path)
         paused = 0.0
-        tol = self.cfg.follow_window_s + self.cfg.rate_s
         for tm in log.time_s[log.measured]:
             k = self.stops_done
-            if k < len(self.stops) and tm - program_start - paused >= self.stops[k] - tol:
+            if k < len(self.stops) and tm > program_start:
                 paused = float(tm) - program_start - self.stops[k]
                 self.stops_done += 1
         return paused

@@ -245,7 +245,7 @@ class Wizard:
             shutil.move(str(p), str(aside / p.name))
         self.session = {}
         self.out.print(f"  a new session: the earlier one (answers, run logs, programs) was kept in "
-                       f"{aside.relative_to(self.workdir)}")
+                       f"{_shown(aside)}")
 
     def _set_run_aside(self, name: str) -> None:
         """A run to record again: its log kept beside as ``<name>.refused-N.csv``."""
@@ -917,6 +917,16 @@ def main(args: argparse.Namespace) -> int:
     except AcquisitionError as err:
         print(f"thermocomp: error: {clip(str(err))}", file=sys.stderr)
         return 3
+
+
+def _shown(path: Path) -> Path:
+    """``path`` as the user can open it from where the command ran: relative to the current
+    directory when it lies below it, else absolute."""
+    path = Path(path).resolve()
+    try:
+        return path.relative_to(Path.cwd().resolve())
+    except ValueError:
+        return path
 
 
 def profile_cmd(args: argparse.Namespace) -> int:

@@ -202,6 +202,34 @@ def test_a_laser_value_at_speed_keeps_the_speed_it_was_taken_at(tmp_path):
     assert (log.speed_rpm[between + 1] != log.speed_rpm[between]).all()
 
 
+@pytest.mark.parametrize("stall_s", [250.0, 650.0], ids=["one-stop-late", "two-stops-in-one-stall"])
+def test_a_recording_that_stalls_keeps_counting_the_stops_by_the_cycles_counter(tmp_path, stall_s):
+    """The recording's computer stalls (an overloaded workstation, a virtual machine at 600x):
+    the machine goes on through a stop, and perhaps the next, unobserved. The value that comes
+    in late is still the stop's, and a counter that moved by two says a stop's value was missed:
+    the recording goes on to the end instead of waiting forever for a stop already done."""
+    prog = calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=300)
+    clock = FakeClock()
+    stalled = []
+
+    def sleep(dt: float) -> None:  # once, past the third stop: a stall of stall_s
+        if not stalled and clock.sim() > 3 * 300.0 + 100.0:
+            stalled.append(clock.sim())
+            dt += stall_s
+        clock.sleep(dt)
+
+    rec, vm, _ = setter_recording(tmp_path, prog, clock=clock)
+    rec.sleep = sleep
+    rec.cfg = rec.cfg.model_copy(update={"probe_timeout_s": 600.0})
+    result = rec.run()
+    assert stalled and result.complete, result.events
+    missed = 1 if stall_s > 2 * (300.0 + DWELL_S) else 0
+    assert rec.stops_done == len(prog.probe_at_s) == vm.probe_sequence
+    assert result.measurements == len(prog.probe_at_s) - missed
+    said = " / ".join(e.message for e in result.events)
+    assert ("went by while the recording did not read" in said) == bool(missed), said
+
+
 def test_a_tool_setter_recording_resumes_into_its_log_and_keeps_the_stops(tmp_path):
     prog = calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=300)
     clock = FakeClock()
