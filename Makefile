@@ -42,7 +42,7 @@ slim:
 
 # three workers on two cores (pytest-xdist; the tests are independent: free loopback ports, their
 # own temporary directories, one HAL at a time by a lock): a sixth of the suite's time waits on
-# servers and child processes, and the third worker fills it (12:00 against 13:47 on two cores).
+# servers and child processes, and the third worker fills it.
 # A worker that is free takes tests from a busy one. PYTEST_WORKERS=0 runs them in this process.
 PYTEST_WORKERS ?= 3
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist worksteal)
