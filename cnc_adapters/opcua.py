@@ -585,6 +585,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._cutting_node = None  # resolved at its first read
         self._cutting = None  # its node, once read on its own: then read with the speed
         self._cutting_raw: tuple[Any] | None = None  # read with this cycle's speed
+        # the offset, input and measurement nodes read in the speed's request, each taken once
+        # by its own read in the same cycle: one round trip a cycle instead of four
+        self._ridden: dict[str, list[Any]] = {}
         self._ns = ""
 
     @classmethod
@@ -608,7 +611,42 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                              self._latest)
             self._call("subscribe to speed node", sub.subscribe_data_change, self._speed, node=self._speed)
 
+    def _riders(self) -> dict[str, list[Any]]:
+        """The nodes this cycle's other reads will ask for, once known (resolved): read with the speed."""
+        riders = {"offset": [self._offset]} if self._offset is not None else {}
+        if self._inputs:
+            riders["inputs"] = list(self._inputs.values())
+        if self._measurement is not None:
+            riders["measurement"] = list(self._measurement)
+        return riders
+
+    def _with_riders(self, what: str, head: list[Any], node: Any, checked: bool) -> list[Any]:
+        """Read ``head`` (the speed first) and this cycle's riders in one request; ``head``'s
+        values, each status checked (``checked``: a :class:`BadValueError` in its place, else the
+        speed's own read refuses a bad status as a lone ``read_value`` would)."""
+        from asyncua import ua
+
+        riders = self._riders()
+        nodes = head + [n for group in riders.values() for n in group]
+        dvs = self._call(what, self._client.read_attributes, nodes, node=node)
+        k = len(head)
+        for name, group in riders.items():
+            self._ridden[name] = dvs[k:k + len(group)]
+            k += len(group)
+        if checked:
+            return [_good_value(n, dv, self._where(what, n)) for n, dv in zip(head, dvs[:len(head)])]
+        try:
+            dvs[0].StatusCode.check()
+        except ua.UaStatusCodeError as err:
+            raise AdapterError(f"{self._where(what, node)}: {type(err).__name__}") from err
+        return [None if dvs[0].Value is None else dvs[0].Value.Value]
+
+    def _ride(self, name: str) -> list[Any] | None:
+        """What the speed's request read for ``name`` this cycle, once; None: read it now."""
+        return self._ridden.pop(name, None)
+
     def _read_speed_raw(self) -> Any:
+        self._ridden = {}  # last cycle's, if unread: never taken for this one's
         if self._latest is not None:
             value = self._latest.get(self.timeout_s)
             if isinstance(value, BadValueError):
@@ -619,8 +657,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 raise self._link_lost(f"{self._where('speed subscription', self._speed)}: no "
                                       f"notification within {self.timeout_s:g} s", AdapterTimeoutError)
         elif self._unverified is not None:
-            value, held, *cut = self._read_checked("read speed and offset nodes",
-                                                   [self._speed, self._offset, *self._with_speed()])
+            nodes = [self._speed, self._offset, *self._with_speed()]
+            value, held, *cut = self._with_riders("read speed and offset nodes", nodes, nodes, checked=True)
             self._cutting_raw = (cut[0],) if cut else None
             wrote, self._unverified = self._unverified, None
             if isinstance(held, BadValueError):  # not known: checked again by the next read-back
@@ -629,10 +667,11 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 self._mismatch = held
                 log.warning("opcua: wrote %r, controller holds %r", wrote, held)
         elif self._cutting is not None:
-            value, cut = self._read_checked("read speed and cutting nodes", [self._speed, self._cutting])
+            nodes = [self._speed, self._cutting]
+            value, cut = self._with_riders("read speed and cutting nodes", nodes, nodes, checked=True)
             self._cutting_raw = (cut,)
         else:
-            value = self._call("read speed node", self._speed.read_value, node=self._speed)
+            (value,) = self._with_riders("read speed node", [self._speed], self._speed, checked=False)
         if isinstance(value, BadValueError):
             raise value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -675,12 +714,17 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
     def _read_inputs_raw(self) -> dict[str, Any]:
         # an input whose status is not Good is missing, as one that holds no number
-        values = self._read_checked("read input nodes", list(self._inputs.values()))
+        nodes = list(self._inputs.values())
+        ridden = self._ride("inputs")
+        values = (self._read_checked("read input nodes", nodes) if ridden is None
+                  else [_good_value(n, dv, self._where("read input nodes", n)) for n, dv in zip(nodes, ridden)])
         return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
                 for name, v in zip(self._inputs, values)}
 
     def _read_offset_raw(self) -> Any:
-        (held,) = self._read_checked("read offset node", [self._offset])
+        ridden = self._ride("offset")
+        (held,) = (self._read_checked("read offset node", [self._offset]) if ridden is None
+                   else [_good_value(self._offset, ridden[0], self._where("read offset node", self._offset))])
         if isinstance(held, BadValueError):
             raise held
         return held
@@ -692,8 +736,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self._measurement is None:
             self._measurement = [self._resolve_ref(self._client, ref, self._ns, "measurement node")
                                  for ref in self.measurement_refs]
-        dvs = self._call("read measurement nodes", self._client.read_attributes, self._measurement,
-                         node=self._measurement)
+        dvs = self._ride("measurement")
+        if dvs is None:
+            dvs = self._call("read measurement nodes", self._client.read_attributes, self._measurement,
+                             node=self._measurement)
         for node, dv in zip(self._measurement, dvs):
             if not dv.StatusCode.is_good():
                 raise AdapterError(f"{self._where('read measurement node', node)}: {dv.StatusCode.name}")
@@ -703,6 +749,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua
 
+        self._ridden.pop("offset", None)  # read before this write: not what the controller holds now
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
         try:
             self._call("write offset node", self._offset.write_value, dv, node=self._offset,
@@ -734,6 +781,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._cutting_node = None
         self._cutting = None
         self._cutting_raw = None
+        self._ridden = {}
 
 
 def _node_id(node: Any) -> str:

@@ -185,6 +185,46 @@ def test_opcua_each_probe_value_is_used_once_and_a_stale_one_is_ignored():
         assert link.read_speed() == SPEED  # the program goes on after the probe cycle
 
 
+def test_opcua_a_cycles_reads_ride_in_the_speeds_request():
+    """After the first cycle, the offset read-back, the inputs and the probe's handshake come in
+    the speed's request: one round trip a cycle. Each is the cycle's own (a later read asks
+    again), and a write in between makes the read-back ask the controller itself."""
+    from machine_sim.vcnc import NODE_PATHS
+
+    clock = FakeClock()
+    vm = machine(clock)
+    inputs = {"bearing_temp_c": f"ns={{ns}};s={NODE_PATHS['bearing_temp_c']}"}
+    with running(VirtualCNC(vm)) as cnc, generic(cnc.url, input_nodes=inputs) as link:
+        call(cnc, cnc.tick)
+        link.read_speed(), link.read_measurement(), link.read_inputs(), link.read_offset_um()  # nodes resolved
+        requests = []
+        real = link._client.read_attributes
+
+        def counted(nodes):  # the real client's call, counted
+            requests.append(len(nodes))
+            return real(nodes)
+
+        link._client.read_attributes = counted
+        for k in range(3):
+            clock.t += 1.0
+            call(cnc, cnc.tick)
+            assert link.read_speed() == pytest.approx(vm.speed_rpm)
+            assert link.read_measurement() is None
+            assert link.read_inputs()["bearing_temp_c"] == pytest.approx(vm.sensor_values()["bearing_temp_c"], abs=1.0)
+            assert link.read_offset_um() == pytest.approx(vm.offset_um)
+            assert requests == [1 + 1 + 1 + 3] * (k + 1)  # speed, offset, input, the handshake's three
+        value = probe(vm, clock)  # a cycle of the tool setter, read in the same request as the speed
+        call(cnc, cnc.tick)
+        link.read_speed()
+        assert link.read_measurement().elongation_um == pytest.approx(value) and len(requests) == 4
+        link.read_inputs()
+        link.read_inputs()  # a second read in one cycle asks again
+        assert len(requests) == 5
+        link.write_offset_um(-3.0)
+        call(cnc, cnc.tick)
+        assert link.read_offset_um() == pytest.approx(-3.0)  # not the value read before the write
+
+
 def test_opcua_a_non_finite_measurement_is_refused_once():
     clock = FakeClock()
     vm = machine(clock)
