@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from compensator.speed_programs import paper_calibration
 
 from .nc_programs import probe_stops
+from .probeprog import MAX_TOUCHES
 
 ASSUMED_TAU_S = 600.0
 """The fastest thermal time constant assumed without a former model [s]."""
@@ -44,8 +45,6 @@ PER_STEP = 3
 """Measurements per staircase step, at least."""
 AT_SPEED_OVERHEAD = 0.2
 """A laser at speed stops as often as its cycles add at most this share to the program."""
-MAX_TOUCHES = 10
-"""Touches averaged per stop, at most (the probe cycle's limit too)."""
 
 
 @dataclass(frozen=True)

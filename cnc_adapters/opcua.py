@@ -634,7 +634,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             self._ridden[name] = dvs[k:k + len(group)]
             k += len(group)
         if checked:
-            return [_good_value(n, dv, self._where(what, n)) for n, dv in zip(head, dvs[:len(head)])]
+            return self._read_checked(what, head, dvs[:len(head)])
         try:
             dvs[0].StatusCode.check()
         except ua.UaStatusCodeError as err:
@@ -679,11 +679,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                                 f"{type(value).__name__}, not a number")
         return value
 
-    def _read_checked(self, what: str, nodes: list[Any]) -> list[Any]:
-        """The values of ``nodes`` in one request, each one's status checked: a node whose
-        status is not Good gives a :class:`BadValueError` in its place, never its value (a
-        BadSensorFailure may carry a number)."""
-        dvs = self._call(what, self._client.read_attributes, nodes, node=nodes)
+    def _read_checked(self, what: str, nodes: list[Any], dvs: list[Any] | None = None) -> list[Any]:
+        """The values of ``nodes`` in one request (or ``dvs``, read already with the speed), each
+        one's status checked: a node whose status is not Good gives a :class:`BadValueError` in
+        its place, never its value (a BadSensorFailure may carry a number)."""
+        if dvs is None:
+            dvs = self._call(what, self._client.read_attributes, nodes, node=nodes)
         return [_good_value(node, dv, self._where(what, node)) for node, dv in zip(nodes, dvs)]
 
     def _with_speed(self) -> list[Any]:
@@ -714,17 +715,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
     def _read_inputs_raw(self) -> dict[str, Any]:
         # an input whose status is not Good is missing, as one that holds no number
-        nodes = list(self._inputs.values())
-        ridden = self._ride("inputs")
-        values = (self._read_checked("read input nodes", nodes) if ridden is None
-                  else [_good_value(n, dv, self._where("read input nodes", n)) for n, dv in zip(nodes, ridden)])
+        values = self._read_checked("read input nodes", list(self._inputs.values()), self._ride("inputs"))
         return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
                 for name, v in zip(self._inputs, values)}
 
     def _read_offset_raw(self) -> Any:
-        ridden = self._ride("offset")
-        (held,) = (self._read_checked("read offset node", [self._offset]) if ridden is None
-                   else [_good_value(self._offset, ridden[0], self._where("read offset node", self._offset))])
+        (held,) = self._read_checked("read offset node", [self._offset], self._ride("offset"))
         if isinstance(held, BadValueError):
             raise held
         return held
