@@ -40,8 +40,13 @@ def cycle_latency(link, n: int = N) -> np.ndarray:
 
 
 def row(name: str, ms: np.ndarray) -> dict:
-    return {"link": name, "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-            "max_ms": float(ms.max()), "n": int(ms.size)}
+    return {
+        "link": name,
+        "p50_ms": float(np.percentile(ms, 50)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
+        "n": int(ms.size),
+    }
 
 
 def main() -> list[dict]:
@@ -49,9 +54,11 @@ def main() -> list[dict]:
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
     vm.override_speed(12000.0)
     with running(VirtualCNC(vm)) as cnc:
-        for name, kw in (("OPC UA poll, write + read-back", {}),
-                         ("OPC UA poll, write only", {"verify_writes": False}),
-                         ("OPC UA subscription, write only", {"read_mode": "subscribe", "verify_writes": False})):
+        for name, kw in (
+            ("OPC UA poll, write + read-back", {}),
+            ("OPC UA poll, write only", {"verify_writes": False}),
+            ("OPC UA subscription, write only", {"read_mode": "subscribe", "verify_writes": False}),
+        ):
             with OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw) as link:
                 rows.append(row(name, cycle_latency(link)))
     with tempfile.TemporaryDirectory() as tmp:
@@ -80,4 +87,6 @@ if __name__ == "__main__":
     res = main()
     print(f"# {platform.machine()}, Python {platform.python_version()}; read + write per cycle")
     for r in res:
-        print(f"{r['link']:36s} p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  max {r['max_ms']:6.2f} ms  (n={r['n']})")
+        print(
+            f"{r['link']:36s} p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  max {r['max_ms']:6.2f} ms  (n={r['n']})"
+        )

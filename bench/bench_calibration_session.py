@@ -37,7 +37,9 @@ P = preset("motorized-27k")
 
 
 def recorder_cost(n: int = 1000) -> np.ndarray:
-    vm = VirtualMachine(SpindlePlant(P, seed=1), calibration_profile(P.max_rpm), clock=SimClock(1.0))
+    vm = VirtualMachine(
+        SpindlePlant(P, seed=1), calibration_profile(P.max_rpm), clock=SimClock(1.0)
+    )
     with tempfile.TemporaryDirectory() as tmp, running(VirtualCNC(vm)) as cnc:
         pty = PtyPair(Path(tmp))
         dev = LineDevice(pty.dev, lambda text, mode: f"{vm.measured_um:+09.3f}")
@@ -58,9 +60,17 @@ def recorder_cost(n: int = 1000) -> np.ndarray:
 
         ctl = OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes=False)
         sensor = AsciiSensor(pty.ctl, request="M", baudrate=115200)
-        rec = Recorder(ctl, sensor, Path(tmp) / "run.csv", calibration_profile(P.max_rpm), max_rpm=P.max_rpm,
-                       config=AcquireConfig(rate_s=1.0, start_timeout_s=1e9), clock=clock, sleep=sleep,
-                       on_sample=on_sample)
+        rec = Recorder(
+            ctl,
+            sensor,
+            Path(tmp) / "run.csv",
+            calibration_profile(P.max_rpm),
+            max_rpm=P.max_rpm,
+            config=AcquireConfig(rate_s=1.0, start_timeout_s=1e9),
+            clock=clock,
+            sleep=sleep,
+            on_sample=on_sample,
+        )
         try:
             rec.run()
         except KeyboardInterrupt:
@@ -80,30 +90,42 @@ def plant_input_run(prog, seed: int, dt_s: float) -> LogData:
 
 
 def main() -> None:
-    print(f"machine: {platform.processor() or platform.machine()}, Python {platform.python_version()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, Python {platform.python_version()}"
+    )
     ms = recorder_cost()
-    print(f"recorder, one sample (OPC UA speed + ASCII probe on a pty + checks + flushed row): "
-          f"p50 {np.percentile(ms, 50):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms over {ms.size} samples")
-    runs = [plant_input_run(paper_calibration(P.max_rpm), 1, 20.0),
-            plant_input_run(random_validation(P.max_rpm, seed=2, hold_min=(10, 30)), 2, 20.0)]
+    print(
+        f"recorder, one sample (OPC UA speed + ASCII probe on a pty + checks + flushed row): "
+        f"p50 {np.percentile(ms, 50):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms over {ms.size} samples"
+    )
+    runs = [
+        plant_input_run(paper_calibration(P.max_rpm), 1, 20.0),
+        plant_input_run(random_validation(P.max_rpm, seed=2, hold_min=(10, 30)), 2, 20.0),
+    ]
     t0 = time.perf_counter()
     fit_data(runs)
     t1 = time.perf_counter()
     fit = fit_data(runs, list(runs[0].inputs))
     t2 = time.perf_counter()
     rows = sum(r.time_s.size for r in runs)
-    print(f"2 runs x {rows // 2} rows: speed only {t1 - t0:.1f} s; with 5 channels {t2 - t1:.1f} s "
-          f"(chosen {fit.chosen.name}, {len(fit.model.input_names)} inputs)")
+    print(
+        f"2 runs x {rows // 2} rows: speed only {t1 - t0:.1f} s; with 5 channels {t2 - t1:.1f} s "
+        f"(chosen {fit.chosen.name}, {len(fit.model.input_names)} inputs)"
+    )
     rng = np.random.default_rng(0)
     runs4 = [plant_input_run(paper_calibration(P.max_rpm), 1, 30.0)] + [
-        plant_input_run(random_validation(P.max_rpm, seed=s, hold_min=(10, 30)), s, 30.0) for s in (2, 3, 4)]
+        plant_input_run(random_validation(P.max_rpm, seed=s, hold_min=(10, 30)), s, 30.0)
+        for s in (2, 3, 4)
+    ]
     for r in runs4:
         for k in range(11):
             r.inputs[f"extra{k:02d}_c"] = 21 + np.cumsum(rng.normal(0, 0.02, r.time_s.size))
     t3 = time.perf_counter()
     fit4 = fit_data(runs4, list(runs4[0].inputs))
     t4 = time.perf_counter()
-    print(f"4 runs, 16 channels: {t4 - t3:.1f} s (chosen {fit4.chosen.name}, {len(fit4.model.input_names)} inputs)")
+    print(
+        f"4 runs, 16 channels: {t4 - t3:.1f} s (chosen {fit4.chosen.name}, {len(fit4.model.input_names)} inputs)"
+    )
 
 
 if __name__ == "__main__":

@@ -55,8 +55,15 @@ def main() -> dict:
     t, n = month_of_speeds(7)
     t, n = t[:600_000], n[:600_000]
     s = model.simulate(n, t).elongation_um + rng.normal(0, 0.05, t.size)
-    runs = [LogData(f"r{i}", np.arange(200_000, dtype=float), n[i * 200_000:(i + 1) * 200_000],
-                    s[i * 200_000:(i + 1) * 200_000]) for i in range(3)]
+    runs = [
+        LogData(
+            f"r{i}",
+            np.arange(200_000, dtype=float),
+            n[i * 200_000 : (i + 1) * 200_000],
+            s[i * 200_000 : (i + 1) * 200_000],
+        )
+        for i in range(3)
+    ]
     res["fit_rows"] = sum(r.time_s.size for r in runs)
     res["ols_fit_s"], _ = timed(lambda: paper_ols.fit_paper_ols(t, n, s))
     res["full_calibration_s"], cal = timed(lambda: fit_data(runs))
@@ -68,19 +75,38 @@ def main() -> dict:
         log = Path(tmp) / "month.csv"
         mfile = Path(tmp) / "m.json"
         save_model(mfile, model)
-        res["write_log_s"], _ = timed(lambda: write_run_log(log, {"time_s": t, "speed_rpm": n,
-                                                                  "elongation_um": np.round(meas, 2)}))
+        res["write_log_s"], _ = timed(
+            lambda: write_run_log(
+                log, {"time_s": t, "speed_rpm": n, "elongation_um": np.round(meas, 2)}
+            )
+        )
         res["replay_rows"] = int(t.size)
         res["parse_s"], parsed = timed(lambda: read_run_log(log))
         res["replay_model_s"], _ = timed(lambda: model.simulate_um(parsed.speed_rpm, parsed.time_s))
         res["replay_shaped_s"], _ = timed(lambda: replay(model, parsed, compare=False))
         res["replay_compute_s"], rep = timed(lambda: replay(model, parsed))
-        res["shaping_us_per_sample"] = 1e6 * (res["replay_shaped_s"] - res["replay_model_s"]) / t.size
+        res["shaping_us_per_sample"] = (
+            1e6 * (res["replay_shaped_s"] - res["replay_model_s"]) / t.size
+        )
         res["replay_end_to_end_s"] = res["parse_s"] + res["replay_compute_s"]
-        res["write_predictions_s"], _ = timed(lambda: write_run_log(Path(tmp) / "p.csv", rep.columns()))
+        res["write_predictions_s"], _ = timed(
+            lambda: write_run_log(Path(tmp) / "p.csv", rep.columns())
+        )
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "thermocomp", "replay", "--model", str(mfile),
-                        str(log), "--json"], check=True, capture_output=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "thermocomp",
+                "replay",
+                "--model",
+                str(mfile),
+                str(log),
+                "--json",
+            ],
+            check=True,
+            capture_output=True,
+        )
         res["replay_cli_wall_s"] = time.perf_counter() - t0
         res["replay_rms_um"] = rep.report["rms_residual_um"]
     return res

@@ -78,8 +78,13 @@ class AgingPlant(SpindlePlant):
 
         def scaled(c):
             return tuple(f * v for v in c)
-        self.params = replace(base, heat_shaft_w=scaled(base.heat_shaft_w), heat_nose_w=scaled(base.heat_nose_w),
-                              heat_housing_w=scaled(base.heat_housing_w))
+
+        self.params = replace(
+            base,
+            heat_shaft_w=scaled(base.heat_shaft_w),
+            heat_nose_w=scaled(base.heat_nose_w),
+            heat_housing_w=scaled(base.heat_housing_w),
+        )
         self._cache.clear()  # the transitions were computed with the old heat
 
     def air_c(self, t_s: float) -> float:
@@ -97,7 +102,10 @@ def aging(params, seed: int, heat_rise: float, days: float, season_k: float) -> 
 def calibrate(params, seed: int, workdir: Path) -> Path:
     """Day 0, as the wizard calibrates: the calibration profile and a validation run, dense."""
     logs = []
-    for prog, s in ((paper_calibration(params.max_rpm), seed), (random_validation(params.max_rpm, seed=seed + 1), seed + 1)):
+    for prog, s in (
+        (paper_calibration(params.max_rpm), seed),
+        (random_validation(params.max_rpm, seed=seed + 1), seed + 1),
+    ):
         t, n = prog.sample(10.0)
         run = SpindlePlant(params, seed=s).run(t, n)
         logs.append(RunLog(t, n, run.measured_um))
@@ -144,14 +152,27 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
     clock = lambda: t[0]  # noqa: E731
     wall = lambda: WALL0 + t[0]  # noqa: E731
     plant = aging(params, args.seed, args.heat_rise, args.days, args.season_k)
-    vm = VirtualMachine(plant, None, clock=clock, plant_dt_s=PLANT_DT_S,
-                        tool_setter=ToolSetter(dwell_s=DWELL_S, noise_um=0.3, seed=args.seed,
-                                               at_speed=args.setter == "speed"))
+    vm = VirtualMachine(
+        plant,
+        None,
+        clock=clock,
+        plant_dt_s=PLANT_DT_S,
+        tool_setter=ToolSetter(
+            dwell_s=DWELL_S, noise_um=0.3, seed=args.seed, at_speed=args.setter == "speed"
+        ),
+    )
 
     def start(previous=None):
         cfg = load_config(config)
-        return SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock, wall=wall,
-                              adapter=SimAdapter(machine=vm), previous=previous)
+        return SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=clock,
+            wall=wall,
+            adapter=SimAdapter(machine=vm),
+            previous=previous,
+        )
 
     rt = start()
     drifts = Drifts()
@@ -161,7 +182,9 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
     next_age = 0.0
     try:
         for day in range(int(args.days)):
-            prog = with_probe_stops(job_shop_day(params.max_rpm, seed=1000 + day, hours=SHIFT_H), PROBE_EVERY_S)
+            prog = with_probe_stops(
+                job_shop_day(params.max_rpm, seed=1000 + day, hours=SHIFT_H), PROBE_EVERY_S
+            )
             vm.load_program(prog)
             end = (day + 1) * DAY_S
             while t[0] < end:
@@ -197,21 +220,33 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
     weeks = []
 
     def rms(e):
-        return float(np.sqrt(np.mean(e ** 2))) if e.size else None
+        return float(np.sqrt(np.mean(e**2))) if e.size else None
 
     for w in range(math.ceil(args.days / 7)):
         span = (h.time_s >= w * 7 * DAY_S) & (h.time_s < min((w + 1) * 7, args.days) * DAY_S)
         e, es = err[span & h.cutting], err[span & steady]
-        weeks.append({"week": w + 1, "cutting_rms_um": rms(e), "cutting_max_um": float(np.max(np.abs(e))) if e.size else None,
-                      "steady_rms_um": rms(es), "steady_max_um": float(np.max(np.abs(es))) if es.size else None,
-                      "uncompensated_rms_um": rms(h.true_um[span & h.cutting])})
+        weeks.append(
+            {
+                "week": w + 1,
+                "cutting_rms_um": rms(e),
+                "cutting_max_um": float(np.max(np.abs(e))) if e.size else None,
+                "steady_rms_um": rms(es),
+                "steady_max_um": float(np.max(np.abs(es))) if es.size else None,
+                "uncompensated_rms_um": rms(h.true_um[span & h.cutting]),
+            }
+        )
     # the error while cutting in steady phases, daily RMS, for the plot
     days = np.floor(h.time_s / DAY_S)
     daily = {}
     for d in np.unique(days[steady]):
         daily[float(d)] = rms(err[(days == d) & steady])
-    return {"mode": mode, "weeks": weeks, "refits": refits,
-            "drifts": [{"day": (s - WALL0) / DAY_S, **f} for s, f in drifts.seen], "daily": daily}
+    return {
+        "mode": mode,
+        "weeks": weeks,
+        "refits": refits,
+        "drifts": [{"day": (s - WALL0) / DAY_S, **f} for s, f in drifts.seen],
+        "daily": daily,
+    }
 
 
 def main() -> int:
@@ -220,36 +255,50 @@ def main() -> int:
     ap.add_argument("--heat-rise", type=float, default=0.2)
     ap.add_argument("--season-k", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--setter", choices=["speed", "rest"], default="speed",
-                    help="the production tool setter: a laser measuring the turning tool (default), or a "
-                    "contact setter at rest")
+    ap.add_argument(
+        "--setter",
+        choices=["speed", "rest"],
+        default="speed",
+        help="the production tool setter: a laser measuring the turning tool (default), or a "
+        "contact setter at rest",
+    )
     ap.add_argument("--plot", help="PNG of the error while cutting over the month")
     ap.add_argument("--json", help="write every figure here")
     args = ap.parse_args()
     params = preset("motorized-27k")
     started = time.monotonic()
-    print(f"bench_learning: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"Python {platform.python_version()}; {args.days:g} days, heat +{100 * args.heat_rise:.0f} %, "
-          f"season {args.season_k:g} K, tool setter at {args.setter}")
+    print(
+        f"bench_learning: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"Python {platform.python_version()}; {args.days:g} days, heat +{100 * args.heat_rise:.0f} %, "
+        f"season {args.season_k:g} K, tool setter at {args.setter}"
+    )
     with tempfile.TemporaryDirectory(prefix="bench-learning-") as tmp:
         work = Path(tmp)
         model0 = calibrate(params, args.seed, work)
         results = {m: run(m, args, params, model0, work) for m in ("fixed", "learning")}
-    print("\nweek | uncompensated RMS | fixed model: RMS / max while cutting, steady RMS / max | "
-          "learning: RMS / max while cutting, steady RMS / max")
+    print(
+        "\nweek | uncompensated RMS | fixed model: RMS / max while cutting, steady RMS / max | "
+        "learning: RMS / max while cutting, steady RMS / max"
+    )
     for a, b in zip(results["fixed"]["weeks"], results["learning"]["weeks"]):
-        print(f"{a['week']:4d} | {a['uncompensated_rms_um']:6.2f} um | "
-              f"{a['cutting_rms_um']:5.2f} / {a['cutting_max_um']:5.2f}, {a['steady_rms_um']:5.2f} / {a['steady_max_um']:5.2f} um | "
-              f"{b['cutting_rms_um']:5.2f} / {b['cutting_max_um']:5.2f}, {b['steady_rms_um']:5.2f} / {b['steady_max_um']:5.2f} um")
+        print(
+            f"{a['week']:4d} | {a['uncompensated_rms_um']:6.2f} um | "
+            f"{a['cutting_rms_um']:5.2f} / {a['cutting_max_um']:5.2f}, {a['steady_rms_um']:5.2f} / {a['steady_max_um']:5.2f} um | "
+            f"{b['cutting_rms_um']:5.2f} / {b['cutting_max_um']:5.2f}, {b['steady_rms_um']:5.2f} / {b['steady_max_um']:5.2f} um"
+        )
     for mode in ("fixed", "learning"):
         for dft in results[mode]["drifts"]:
-            print(f"{mode}: MODEL_DRIFT from day {dft['day']:.2f}: {dft['size_um']:+.2f} um over "
-                  f"{dft['measurements']} measurements")
+            print(
+                f"{mode}: MODEL_DRIFT from day {dft['day']:.2f}: {dft['size_um']:+.2f} um over "
+                f"{dft['measurements']} measurements"
+            )
     for r in results["learning"]["refits"]:
         figs = ""
         if "candidate" in r and "live" in r:
-            figs = (f" (candidate {r['candidate'].get('open_loop_rms_um', float('nan')):.2f} um open loop, "
-                    f"live {r['live'].get('open_loop_rms_um', float('nan')):.2f} um)")
+            figs = (
+                f" (candidate {r['candidate'].get('open_loop_rms_um', float('nan')):.2f} um open loop, "
+                f"live {r['live'].get('open_loop_rms_um', float('nan')):.2f} um)"
+            )
         print(f"day {r['day']}: refit {r['outcome']}{figs}: {r.get('reason', '')}")
     print(f"{time.monotonic() - started:.0f} s")
     if args.json:
@@ -264,21 +313,43 @@ def main() -> int:
         for mode, color in (("fixed", "tab:red"), ("learning", "tab:blue")):
             dd = results[mode]["daily"]
             x = np.array(sorted(dd))
-            ax.plot(x + 0.5, [dd[k] for k in sorted(dd)], "o-", ms=3, color=color,
-                    label="day-0 model kept" if mode == "fixed" else "weekly refit")
+            ax.plot(
+                x + 0.5,
+                [dd[k] for k in sorted(dd)],
+                "o-",
+                ms=3,
+                color=color,
+                label="day-0 model kept" if mode == "fixed" else "weekly refit",
+            )
         for r in results["learning"]["refits"]:
             promoted = r["outcome"] == "promoted"
             ax.axvline(r["day"], color="tab:green" if promoted else "0.6", lw=1, ls="--")
-            ax.text(r["day"], ax.get_ylim()[1] * 0.97, " promoted" if promoted else " rejected", fontsize=8,
-                    va="top", color="tab:green" if promoted else "0.4")
+            ax.text(
+                r["day"],
+                ax.get_ylim()[1] * 0.97,
+                " promoted" if promoted else " rejected",
+                fontsize=8,
+                va="top",
+                color="tab:green" if promoted else "0.4",
+            )
         for mode, marker in (("fixed", "v"), ("learning", "^")):
             ds = [d["day"] for d in results[mode]["drifts"]]
-            ax.plot(ds, [0.02] * len(ds), marker, color="tab:orange", ms=6, ls="none",
-                    label="MODEL_DRIFT (" + ("day-0 model" if mode == "fixed" else "refit") + ")")
+            ax.plot(
+                ds,
+                [0.02] * len(ds),
+                marker,
+                color="tab:orange",
+                ms=6,
+                ls="none",
+                label="MODEL_DRIFT (" + ("day-0 model" if mode == "fixed" else "refit") + ")",
+            )
         ax.set_xlabel("day")
         ax.set_ylabel("tool-tip error while cutting,\nsteady phases, daily RMS [um]")
-        ax.set_title(f"Spindle heat +{100 * args.heat_rise:.0f} % over {args.days:g} days, air +/-{args.season_k:g} K; "
-                     f"tool setter at {args.setter}, every 30 min", fontsize=10)
+        ax.set_title(
+            f"Spindle heat +{100 * args.heat_rise:.0f} % over {args.days:g} days, air +/-{args.season_k:g} K; "
+            f"tool setter at {args.setter}, every 30 min",
+            fontsize=10,
+        )
         ax.set_ylim(bottom=0)
         ax.legend(fontsize=8, loc="upper left")
         fig.tight_layout()

@@ -27,4 +27,6 @@ def main() -> dict:
 if __name__ == "__main__":
     r = main()
     print(f"# {platform.machine()}, Python {platform.python_version()}")
-    print(f"8 h of plant at 1 s ({r['steps']} steps): {r['seconds']:.3f} s = {r['times_real_time']:.0f}x real time")
+    print(
+        f"8 h of plant at 1 s ({r['steps']} steps): {r['seconds']:.3f} s = {r['times_real_time']:.0f}x real time"
+    )

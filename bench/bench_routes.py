@@ -43,10 +43,18 @@ PRESET, MAX_RPM, DWELL_S, COOLDOWN_MIN, RATE_S = "motorized-27k", 27000.0, 20.0,
 def record(path: Path, prog, seed: int, route: str, touches: int = 1):
     # lock-step: the recorder's sleep moves the machine on; its clock starts at an epoch
     clock, t0 = SteppedClock(1.7e9), 1.7e9
-    setter = None if route == "eddy" else ToolSetter(dwell_s=DWELL_S, seed=seed, at_speed=route == "laser",
-                                                     touches=touches)
-    vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=seed), None, clock=lambda: clock() - t0, plant_dt_s=1.0,
-                        tool_setter=setter)
+    setter = (
+        None
+        if route == "eddy"
+        else ToolSetter(dwell_s=DWELL_S, seed=seed, at_speed=route == "laser", touches=touches)
+    )
+    vm = VirtualMachine(
+        SpindlePlant(preset(PRESET), seed=seed),
+        None,
+        clock=lambda: clock() - t0,
+        plant_dt_s=1.0,
+        tool_setter=setter,
+    )
     vm.load_program(prog)
 
     class Probe:  # the eddy-current sensor read directly (the serial link has its own tests)
@@ -55,9 +63,19 @@ def record(path: Path, prog, seed: int, route: str, touches: int = 1):
         def read_um(self) -> float:
             return vm.measured_um
 
-    Recorder(SimAdapter(machine=vm), Probe() if route == "eddy" else None, path, prog, max_rpm=MAX_RPM,
-             config=AcquireConfig(rate_s=RATE_S), clock=clock, sleep=clock.advance, wall=clock,
-             metadata={"spindle_id": f"bench-{seed}"}, at_speed=route == "laser").run()
+    Recorder(
+        SimAdapter(machine=vm),
+        Probe() if route == "eddy" else None,
+        path,
+        prog,
+        max_rpm=MAX_RPM,
+        config=AcquireConfig(rate_s=RATE_S),
+        clock=clock,
+        sleep=clock.advance,
+        wall=clock,
+        metadata={"spindle_id": f"bench-{seed}"},
+        at_speed=route == "laser",
+    ).run()
     return read_run_log(path)
 
 
@@ -73,15 +91,36 @@ def case(tmp: Path, seed: int, step_min: float) -> dict:
     plant = SpindlePlant(preset(PRESET), seed=seed)
     truth = plant.run(t, cmd)
     elastic = np.array([plant.elastic_um(s) for s in truth.speed_rpm])
-    row = {"seed": seed, "step_min": step_min, "eddy_rms_um": rms(eddy.model.simulate_um(truth.speed_rpm, t) - truth.true_um),
-           "eddy_model": eddy.chosen.name}
+    row = {
+        "seed": seed,
+        "step_min": step_min,
+        "eddy_rms_um": rms(eddy.model.simulate_um(truth.speed_rpm, t) - truth.true_um),
+        "eddy_model": eddy.chosen.name,
+    }
     for route in ("laser", "contact"):
         # the touch's time is the virtual setter's: the plan fills a laser's stops with touches
-        plan = plan_probe_interval(60 * step_min, 60 * COOLDOWN_MIN, DWELL_S, tau, at_speed=route == "laser",
-                                   touch_s=ToolSetter().touch_s)
-        prog = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=step_min, cooldown_min=COOLDOWN_MIN,
-                                                  probe_every_s=plan.interval_s), "fanuc"))
-        fit = fit_logs([record(tmp / f"{route}-{seed}-{step_min:g}.csv", prog, seed, route, plan.touches)])
+        plan = plan_probe_interval(
+            60 * step_min,
+            60 * COOLDOWN_MIN,
+            DWELL_S,
+            tau,
+            at_speed=route == "laser",
+            touch_s=ToolSetter().touch_s,
+        )
+        prog = parse_nc(
+            to_nc(
+                calibration_profile(
+                    MAX_RPM,
+                    step_min=step_min,
+                    cooldown_min=COOLDOWN_MIN,
+                    probe_every_s=plan.interval_s,
+                ),
+                "fanuc",
+            )
+        )
+        fit = fit_logs(
+            [record(tmp / f"{route}-{seed}-{step_min:g}.csv", prog, seed, route, plan.touches)]
+        )
         pred = fit.model.simulate_um(truth.speed_rpm, t)
         row[f"{route}_every_min"] = plan.interval_s / 60
         row[f"{route}_touches"] = plan.touches
@@ -106,17 +145,23 @@ def main() -> None:
             for step in (float(s) for s in a.steps.split(",")):
                 rows.append(case(Path(tmp), seed, step))
                 r = rows[-1]
-                print(f"seed {seed} step {step:g} min: eddy {r['eddy_rms_um']:.2f} ({r['eddy_model']}); laser every "
-                      f"{r['laser_every_min']:g} min x{r['laser_touches']} {r['laser_rms_um']:.2f} ({r['laser_model']}, "
-                      f"ratio {r['laser_rms_um'] / r['eddy_rms_um']:.2f}); contact every {r['contact_every_min']:g} min "
-                      f"{r['contact_rms_um']:.2f}, thermal part {r['contact_thermal_rms_um']:.2f} ({r['contact_model']})",
-                      flush=True)
+                print(
+                    f"seed {seed} step {step:g} min: eddy {r['eddy_rms_um']:.2f} ({r['eddy_model']}); laser every "
+                    f"{r['laser_every_min']:g} min x{r['laser_touches']} {r['laser_rms_um']:.2f} ({r['laser_model']}, "
+                    f"ratio {r['laser_rms_um'] / r['eddy_rms_um']:.2f}); contact every {r['contact_every_min']:g} min "
+                    f"{r['contact_rms_um']:.2f}, thermal part {r['contact_thermal_rms_um']:.2f} ({r['contact_model']})",
+                    flush=True,
+                )
     noise = ToolSetter().noise_um
     within = [r for r in rows if r["laser_rms_um"] <= 1.5 * r["eddy_rms_um"]]
     outside = ", ".join(f"{r['eddy_rms_um']:.2f}" for r in rows if r not in within) or "-"
-    print(f"laser within 1.5x of the eddy-current model: {len(within)} of {len(rows)}; outside, the eddy-current "
-          f"model errs {outside} um (the setter's repeatability: {noise} um)")
-    print(f"{time.perf_counter() - t0:.0f} s wall on {platform.machine()} {platform.processor() or ''}".strip())
+    print(
+        f"laser within 1.5x of the eddy-current model: {len(within)} of {len(rows)}; outside, the eddy-current "
+        f"model errs {outside} um (the setter's repeatability: {noise} um)"
+    )
+    print(
+        f"{time.perf_counter() - t0:.0f} s wall on {platform.machine()} {platform.processor() or ''}".strip()
+    )
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
 

@@ -49,9 +49,11 @@ class ConstantSpeed(Adapter):
 def config(tmp: Path, adapter: str, period: float) -> Path:
     save_model(tmp / "m.json", rich_form())
     p = tmp / "c.toml"
-    p.write_text(f'state_dir = "{tmp / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s"\n'
-                 f'model = "{tmp / "m.json"}"\nperiod_s = {period}\nadapter = {adapter}\n'
-                 '[spindle.shaping]\ndeadband_um = 0.0\nmax_rate_um_per_s = 100.0\n')
+    p.write_text(
+        f'state_dir = "{tmp / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s"\n'
+        f'model = "{tmp / "m.json"}"\nperiod_s = {period}\nadapter = {adapter}\n'
+        "[spindle.shaping]\ndeadband_um = 0.0\nmax_rate_um_per_s = 100.0\n"
+    )
     return p
 
 
@@ -66,8 +68,13 @@ def main() -> dict:
         tmp = Path(d)
         cfg = load_config(config(tmp, '{url = "sim://"}', 1.0))
         t = {"now": 0.0}
-        rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
-                            adapter=ConstantSpeed())
+        rt = SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: t["now"],
+            adapter=ConstantSpeed(),
+        )
         ms = []
         for _ in range(20000):
             t["now"] += 1.0
@@ -78,12 +85,30 @@ def main() -> dict:
         out["compute_ms_p50"], out["compute_ms_p99"] = np.percentile(ms, [50, 99])
 
         port = free_port()
-        server = subprocess.Popen([sys.executable, "-m", "thermocomp", "virtual-cnc", "--port",
-                                   str(port), "--time-scale", "1"], stdout=subprocess.PIPE, text=True)
+        server = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "thermocomp",
+                "virtual-cnc",
+                "--port",
+                str(port),
+                "--time-scale",
+                "1",
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         server.stdout.readline()
         url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
         try:
-            cfg = load_config(config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 0.1))
+            cfg = load_config(
+                config(
+                    tmp,
+                    f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}',
+                    0.1,
+                )
+            )
             rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
             lat, r2w = [], []
             next_t = time.monotonic()
@@ -96,12 +121,18 @@ def main() -> dict:
                 time.sleep(max(0.0, next_t - time.monotonic()))
             rt.close()
             out["cycle_10hz_ms_p50"], out["cycle_10hz_ms_p99"] = np.percentile(lat, [50, 99])
-            out["read_to_write_10hz_ms_p50"], out["read_to_write_10hz_ms_p99"] = np.percentile(r2w, [50, 99])
+            out["read_to_write_10hz_ms_p50"], out["read_to_write_10hz_ms_p99"] = np.percentile(
+                r2w, [50, 99]
+            )
             out["cycle_10hz_written"] = bool(rec["written"])
 
-            svc_cfg = config(tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 1.0)
-            svc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(svc_cfg)],
-                                   stderr=subprocess.DEVNULL)
+            svc_cfg = config(
+                tmp, f'{{url = "{url}", preset = "virtual-cnc", verify_writes = "deferred"}}', 1.0
+            )
+            svc = subprocess.Popen(
+                [sys.executable, "-m", "thermocomp", "run", "--config", str(svc_cfg)],
+                stderr=subprocess.DEVNULL,
+            )
             time.sleep(8)  # imports and connection
             c0, w0 = cpu_s(svc.pid), time.monotonic()
             time.sleep(60)

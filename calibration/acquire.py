@@ -80,25 +80,49 @@ class AcquireConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     rate_s: float = Field(1.0, gt=0, description="sample period")
-    max_rate_um_per_s: float = Field(0.5, gt=0, description="fastest thermal growth the spindle can show")
-    jump_um: float = Field(3.0, gt=0, description="allowed step on top of that (noise, quantisation)")
-    elastic_jump_um: float = Field(15.0, ge=0, description="extra allowed at a speed step (centrifugal growth)")
+    max_rate_um_per_s: float = Field(
+        0.5, gt=0, description="fastest thermal growth the spindle can show"
+    )
+    jump_um: float = Field(
+        3.0, gt=0, description="allowed step on top of that (noise, quantisation)"
+    )
+    elastic_jump_um: float = Field(
+        15.0, ge=0, description="extra allowed at a speed step (centrifugal growth)"
+    )
     frozen_s: float = Field(900.0, gt=0, description="same reading this long: frozen")
-    frozen_after_step_s: float = Field(120.0, gt=0, description="... or this long across a speed step")
+    frozen_after_step_s: float = Field(
+        120.0, gt=0, description="... or this long across a speed step"
+    )
     abort_frozen_s: float = Field(300.0, ge=0, description="frozen this long: the recording stops")
-    saturation_margin: float = Field(0.002, ge=0, lt=0.5, description="fraction of the range counted as its end")
+    saturation_margin: float = Field(
+        0.002, ge=0, lt=0.5, description="fraction of the range counted as its end"
+    )
     abort_saturated_s: float = Field(30.0, ge=0)
-    sensor_grace_s: float = Field(30.0, ge=0, description="a silent sensor this long (wall seconds) "
-                                  "stops the recording")
-    speed_grace_s: float = Field(30.0, ge=0, description="a silent controller this long (wall seconds) "
-                                 "stops the recording")
-    follow_tolerance_rpm: float | None = Field(None, gt=0, description="default: 3 % of max speed, >= 50 rpm")
-    follow_window_s: float = Field(30.0, ge=0, description="lag allowed around a programmed speed change")
+    sensor_grace_s: float = Field(
+        30.0, ge=0, description="a silent sensor this long (wall seconds) stops the recording"
+    )
+    speed_grace_s: float = Field(
+        30.0, ge=0, description="a silent controller this long (wall seconds) stops the recording"
+    )
+    follow_tolerance_rpm: float | None = Field(
+        None, gt=0, description="default: 3 % of max speed, >= 50 rpm"
+    )
+    follow_window_s: float = Field(
+        30.0, ge=0, description="lag allowed around a programmed speed change"
+    )
     follow_alarm_s: float = Field(60.0, gt=0)
-    start_timeout_s: float = Field(3600.0, gt=0, description="stop if the spindle has not started this "
-                                   "many wall seconds after the recording began (or resumed)")
-    probe_timeout_s: float = Field(900.0, gt=0, description="a probe stop without a new tool-setter "
-                                   "measurement this long (wall seconds) stops the recording")
+    start_timeout_s: float = Field(
+        3600.0,
+        gt=0,
+        description="stop if the spindle has not started this "
+        "many wall seconds after the recording began (or resumed)",
+    )
+    probe_timeout_s: float = Field(
+        900.0,
+        gt=0,
+        description="a probe stop without a new tool-setter "
+        "measurement this long (wall seconds) stops the recording",
+    )
 
 
 @dataclass
@@ -143,15 +167,25 @@ class Recorder:
     """Record ``program`` on ``controller`` and ``sensor`` into ``path`` (resumes if it exists);
     ``sensor=None``: the controller's tool setter at the program's probe stops (a sparse log)."""
 
-    def __init__(self, controller: Adapter, sensor: Sensor | None, path: str | Path, program: Program,
-                 *, max_rpm: float, config: AcquireConfig = AcquireConfig(),
-                 metadata: dict[str, Any] | None = None,
-                 clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
-                 on_sample: Callable[[Sample, Recorder], None] | None = None,
-                 on_event: Callable[[Event], None] | None = None,
-                 should_stop: Callable[[], bool] | None = None,
-                 wall: Callable[[], float] = time.monotonic,
-                 start_now: Callable[[], bool] | None = None, at_speed: bool = False):
+    def __init__(
+        self,
+        controller: Adapter,
+        sensor: Sensor | None,
+        path: str | Path,
+        program: Program,
+        *,
+        max_rpm: float,
+        config: AcquireConfig = AcquireConfig(),
+        metadata: dict[str, Any] | None = None,
+        clock: Callable[[], float] = time.time,
+        sleep: Callable[[float], None] = time.sleep,
+        on_sample: Callable[[Sample, Recorder], None] | None = None,
+        on_event: Callable[[Event], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        wall: Callable[[], float] = time.monotonic,
+        start_now: Callable[[], bool] | None = None,
+        at_speed: bool = False,
+    ):
         self.controller, self.sensor = controller, sensor
         self.at_speed = bool(at_speed)
         """The tool setter measures the turning tool (a laser at the program's speed): the
@@ -165,12 +199,18 @@ class Recorder:
         self.metadata = dict(metadata or {})
         self.stops = tuple(float(p) for p in program.probe_at_s)
         if sensor is None and not self.stops:
-            raise ConfigError("a recording with the tool setter alone needs a program with probe stops")
+            raise ConfigError(
+                "a recording with the tool setter alone needs a program with probe stops"
+            )
         if sensor is not None and self.stops:
-            raise ConfigError("probe stops are for a recording with the tool setter alone (no sensor)")
+            raise ConfigError(
+                "probe stops are for a recording with the tool setter alone (no sensor)"
+            )
         if self.stops and not controller.can_read_measurement:
-            raise ConfigError(f"the program stops for the tool setter, but the {controller.name} link reads "
-                              "no measurement: configure the controller's measurement variables")
+            raise ConfigError(
+                f"the program stops for the tool setter, but the {controller.name} link reads "
+                "no measurement: configure the controller's measurement variables"
+            )
         if sensor is None:
             self.metadata[ELONGATION_COLUMN] = SPARSE  # empty on the rows without a measurement
             self.metadata["tool_setter"] = "at speed" if self.at_speed else "at rest"
@@ -227,7 +267,9 @@ class Recorder:
         d = self.program.duration_s
         i0 = int(np.searchsorted(self._edges, max(t0, 0.0), side="right"))
         i1 = int(np.searchsorted(self._edges, max(t1, 0.0), side="right"))
-        speeds = list(self._speeds[min(i0, len(self._speeds) - 1): min(i1, len(self._speeds) - 1) + 1])
+        speeds = list(
+            self._speeds[min(i0, len(self._speeds) - 1) : min(i1, len(self._speeds) - 1) + 1]
+        )
         if t1 >= d or (not self.at_speed and any(t0 <= p <= t1 for p in self.stops)):
             speeds.append(0.0)
         return np.array(speeds)
@@ -236,9 +278,16 @@ class Recorder:
 
     def run(self) -> Recording:
         cfg = self.cfg
-        appender = RunLogAppender(self.path, self.columns, {**self.metadata, "start_epoch_s": f"{self.clock():.3f}",
-                                                       "columns": "flags: calibration.acquire.Problem"},
-                                  clock=self.clock)
+        appender = RunLogAppender(
+            self.path,
+            self.columns,
+            {
+                **self.metadata,
+                "start_epoch_s": f"{self.clock():.3f}",
+                "columns": "flags: calibration.acquire.Problem",
+            },
+            clock=self.clock,
+        )
         start = float(appender.metadata.get("start_epoch_s", self.clock()))
         program_start: float | None = None
         reference: float | None = None
@@ -275,8 +324,10 @@ class Recorder:
                     flags |= Problem.SPEED_FAULT
                     self._raise(t, Problem.SPEED_FAULT, f"controller: {err}")
                     if self.wall() - last_speed_ok > cfg.speed_grace_s:
-                        raise AcquisitionError(f"no spindle speed from the controller for "
-                                               f"{self.wall() - last_speed_ok:.0f} s ({err})") from err
+                        raise AcquisitionError(
+                            f"no spindle speed from the controller for "
+                            f"{self.wall() - last_speed_ok:.0f} s ({err})"
+                        ) from err
                 meas: float | None = None  # a new tool-setter measurement [um]
                 ran = 1  # probe cycles since the last value seen: the counter's step
                 if self.sensor is None:
@@ -286,15 +337,19 @@ class Recorder:
                         self._clear(t, Problem.SENSOR_FAULT, "tool setter's variables answer again")
                         meas = None if got is None else float(got.elongation_um)
                         if got is not None:
-                            if last_seq is not None and got.sequence > last_seq:  # a wrap counts one
+                            if (
+                                last_seq is not None and got.sequence > last_seq
+                            ):  # a wrap counts one
                                 ran = got.sequence - last_seq
                             last_seq = got.sequence
                     except AdapterError as err:
                         flags |= Problem.SENSOR_FAULT
                         self._raise(t, Problem.SENSOR_FAULT, f"tool setter: {err}")
                         if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
-                            raise AcquisitionError(f"no tool-setter measurement read from the controller for "
-                                                   f"{self.wall() - last_sensor_ok:.0f} s ({err})") from err
+                            raise AcquisitionError(
+                                f"no tool-setter measurement read from the controller for "
+                                f"{self.wall() - last_sensor_ok:.0f} s ({err})"
+                            ) from err
                 else:
                     try:
                         value = self.sensor.read_um()
@@ -304,45 +359,71 @@ class Recorder:
                         if lo_hi is not None:
                             margin = cfg.saturation_margin * (lo_hi[1] - lo_hi[0])
                             if value <= lo_hi[0] + margin or value >= lo_hi[1] - margin:
-                                raise SensorOverRangeError(f"reading {value:.2f} um at the end of the "
-                                                           f"range {lo_hi[0]:g}..{lo_hi[1]:g} um")
+                                raise SensorOverRangeError(
+                                    f"reading {value:.2f} um at the end of the "
+                                    f"range {lo_hi[0]:g}..{lo_hi[1]:g} um"
+                                )
                         self._clear(t, Problem.SATURATED, "sensor back in range")
                     except SensorOverRangeError as err:
                         flags |= Problem.SATURATED
                         self._raise(t, Problem.SATURATED, f"sensor saturated: {err}")
                         if self._lasted(Problem.SATURATED, t) >= cfg.abort_saturated_s:
-                            raise AcquisitionError(f"sensor saturated for {self._lasted(Problem.SATURATED, t):.0f} s "
-                                                   f"({err}): re-set the probe gap to mid-range") from err
+                            raise AcquisitionError(
+                                f"sensor saturated for {self._lasted(Problem.SATURATED, t):.0f} s "
+                                f"({err}): re-set the probe gap to mid-range"
+                            ) from err
                     except AdapterError as err:
                         value = None
                         flags |= Problem.SENSOR_FAULT
                         self._raise(t, Problem.SENSOR_FAULT, f"sensor: {err}")
                         if self.wall() - last_sensor_ok > cfg.sensor_grace_s:
-                            raise AcquisitionError(f"no reading from the sensor for {self.wall() - last_sensor_ok:.0f} s "
-                                                   f"({err}): is it unplugged?") from err
+                            raise AcquisitionError(
+                                f"no reading from the sensor for {self.wall() - last_sensor_ok:.0f} s "
+                                f"({err}): is it unplugged?"
+                            ) from err
 
                 # the program starts when the spindle first turns
                 if program_start is None and speed is not None and speed > IDLE_RPM:
                     program_start = t - min(cfg.rate_s, t)
                     if rec.rows == 0 and appender.rows_before == 0:
-                        self._event(t, Problem(0), "the spindle was already turning when the recording "
-                                    "started: the cold start and the program's first seconds are missed")
+                        self._event(
+                            t,
+                            Problem(0),
+                            "the spindle was already turning when the recording "
+                            "started: the cold start and the program's first seconds are missed",
+                        )
                     else:
                         self._event(t, Problem(0), "spindle started: program clock running")
                 if program_start is None and self.start_now():
                     program_start = t
                     self._event(t, Problem(0), "program started by hand: program clock running")
                 if program_start is None and self.wall() - wall0 > cfg.start_timeout_s:
-                    raise AcquisitionError(f"the spindle did not start within {cfg.start_timeout_s:.0f} s: "
-                                           "is the program loaded and cycle start pressed?")
+                    raise AcquisitionError(
+                        f"the spindle did not start within {cfg.start_timeout_s:.0f} s: "
+                        "is the program loaded and cycle start pressed?"
+                    )
                 ptime = None if program_start is None else t - program_start - paused_s
                 t_meas = t  # the row a measurement goes on: at the speed the cycle measured at
-                held = (0.0, 0.0)  # that speed and the commanded one: at rest, or a laser's held speed
-                if meas is not None and not self.at_speed and not (speed is not None and speed <= IDLE_RPM):
-                    last_t = appender.last_row[0] if appender.last_row is not None else t - cfg.rate_s
+                held = (
+                    0.0,
+                    0.0,
+                )  # that speed and the commanded one: at rest, or a laser's held speed
+                if (
+                    meas is not None
+                    and not self.at_speed
+                    and not (speed is not None and speed <= IDLE_RPM)
+                ):
+                    last_t = (
+                        appender.last_row[0] if appender.last_row is not None else t - cfg.rate_s
+                    )
                     t_meas = (last_t + t) / 2  # the spindle turns again: between the two samples
-                elif (meas is not None and self.at_speed and speed is not None and appender.last_row is not None
-                        and abs(speed - appender.last_row[1]) > HELD_RPM_SHARE * self.max_rpm):
+                elif (
+                    meas is not None
+                    and self.at_speed
+                    and speed is not None
+                    and appender.last_row is not None
+                    and abs(speed - appender.last_row[1]) > HELD_RPM_SHARE * self.max_rpm
+                ):
                     # the program moved on to another speed after the cycle: the value was taken at
                     # the speed held through it, whose growth at speed it includes
                     t_meas = (appender.last_row[0] + t) / 2
@@ -365,10 +446,18 @@ class Recorder:
                         if missed:
                             note += f"; {missed} stop(s) went by while the recording did not read: their values are lost"
                         if behind > cfg.follow_window_s + cfg.rate_s:
-                            note += f"; the recording's clock was {behind:.0f} s behind the machine's"
-                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (stop {k + 1}/{len(self.stops)}{note})")
+                            note += (
+                                f"; the recording's clock was {behind:.0f} s behind the machine's"
+                            )
+                        self._event(
+                            t,
+                            Problem(0),
+                            f"tool setter: {meas:+.1f} um (stop {k + 1}/{len(self.stops)}{note})",
+                        )
                     elif meas is not None:
-                        self._event(t, Problem(0), f"tool setter: {meas:+.1f} um (not at a programmed stop)")
+                        self._event(
+                            t, Problem(0), f"tool setter: {meas:+.1f} um (not at a programmed stop)"
+                        )
                     if self.stops_done < len(self.stops) and ptime >= self.stops[self.stops_done]:
                         ptime = self.stops[self.stops_done]  # the program waits for the cycle
                         if hold_wall is None:
@@ -377,7 +466,8 @@ class Recorder:
                             raise AcquisitionError(
                                 f"no tool-setter measurement {self.wall() - hold_wall:.0f} s after probe stop "
                                 f"{self.stops_done + 1}/{len(self.stops)}: did the cycle alarm (setter not "
-                                "tripped, no cold reference, growth out of range)?")
+                                "tripped, no cold reference, growth out of range)?"
+                            )
                 self.holding = hold_wall is not None
                 commanded = None
                 if ptime is not None:
@@ -391,30 +481,46 @@ class Recorder:
                                 flags |= Problem.NOT_FOLLOWING
                                 if not self._follow_told:
                                     self._follow_told = True
-                                    self._event(t, Problem.NOT_FOLLOWING,
-                                                f"spindle not following the program: {speed:.0f} rpm where "
-                                                f"{commanded:.0f} rpm is programmed (override not 100 %, feed "
-                                                "hold, or another program?)")
+                                    self._event(
+                                        t,
+                                        Problem.NOT_FOLLOWING,
+                                        f"spindle not following the program: {speed:.0f} rpm where "
+                                        f"{commanded:.0f} rpm is programmed (override not 100 %, feed "
+                                        "hold, or another program?)",
+                                    )
                         elif Problem.NOT_FOLLOWING in self._active:
                             del self._active[Problem.NOT_FOLLOWING]
                             if self._follow_told:
                                 self._follow_told = False
-                                self._event(t, Problem.NOT_FOLLOWING, "spindle follows the program again",
-                                            begins=False)
+                                self._event(
+                                    t,
+                                    Problem.NOT_FOLLOWING,
+                                    "spindle follows the program again",
+                                    begins=False,
+                                )
 
                 if value is not None:
                     if prev_value is not None and same_since is not None and value == prev_value:
                         # a live probe has noise, but a fine quantisation step can hold at a
                         # steady temperature; no change across a speed step is never physical
-                        stepped = (speed is not None and same_speed is not None
-                                   and abs(speed - same_speed) > 0.1 * self.max_rpm)
+                        stepped = (
+                            speed is not None
+                            and same_speed is not None
+                            and abs(speed - same_speed) > 0.1 * self.max_rpm
+                        )
                         if t - same_since >= (cfg.frozen_after_step_s if stepped else cfg.frozen_s):
                             flags |= Problem.FROZEN
-                            self._raise(t, Problem.FROZEN, f"sensor frozen: {value:.3f} um unchanged for "
-                                        f"{t - same_since:.0f} s")
+                            self._raise(
+                                t,
+                                Problem.FROZEN,
+                                f"sensor frozen: {value:.3f} um unchanged for "
+                                f"{t - same_since:.0f} s",
+                            )
                             if self._lasted(Problem.FROZEN, t) >= cfg.abort_frozen_s:
-                                raise AcquisitionError(f"sensor frozen at {value:.3f} um for "
-                                                       f"{t - same_since:.0f} s: check the amplifier and cable")
+                                raise AcquisitionError(
+                                    f"sensor frozen at {value:.3f} um for "
+                                    f"{t - same_since:.0f} s: check the amplifier and cable"
+                                )
                     else:
                         same_since, same_speed = t, speed
                         self._clear(t, Problem.FROZEN, "sensor reading changes again")
@@ -423,16 +529,25 @@ class Recorder:
                         allowed = cfg.jump_um + cfg.max_rate_um_per_s * dt
                         # speed and probe are read one after the other: a step may show in one
                         # sample's reading and the next sample's speed, so the program says too
-                        near = (self.commanded_between(ptime - 3 * cfg.rate_s, ptime + 3 * cfg.rate_s)
-                                if ptime is not None else np.zeros(1))
-                        if ((speed is not None and prev_speed is not None
-                                and abs(speed - prev_speed) > 0.02 * self.max_rpm)
-                                or np.ptp(near) > 0.02 * self.max_rpm):
+                        near = (
+                            self.commanded_between(ptime - 3 * cfg.rate_s, ptime + 3 * cfg.rate_s)
+                            if ptime is not None
+                            else np.zeros(1)
+                        )
+                        if (
+                            speed is not None
+                            and prev_speed is not None
+                            and abs(speed - prev_speed) > 0.02 * self.max_rpm
+                        ) or np.ptp(near) > 0.02 * self.max_rpm:
                             allowed += cfg.elastic_jump_um
                         if abs(value - prev_value) > allowed:
                             flags |= Problem.JUMP
-                            self._event(t, Problem.JUMP, f"sensor jumped {value - prev_value:+.2f} um in "
-                                        f"{dt:.1f} s (at most {allowed:.1f} um is physical): probe or bracket knocked?")
+                            self._event(
+                                t,
+                                Problem.JUMP,
+                                f"sensor jumped {value - prev_value:+.2f} um in "
+                                f"{dt:.1f} s (at most {allowed:.1f} um is physical): probe or bracket knocked?",
+                            )
                     prev_value = value
                     if reference is None:
                         reference = value  # growth is counted from the cold start
@@ -449,9 +564,13 @@ class Recorder:
                         rows.append((t_meas, held[0], meas, meas, held[1]))
                     if speed is not None:
                         on_row = meas if t_meas == t else None
-                        rows.append((t, speed, on_row, on_row, commanded if commanded is not None else 0.0))
+                        rows.append(
+                            (t, speed, on_row, on_row, commanded if commanded is not None else 0.0)
+                        )
                 elif speed is not None and value is not None:
-                    rows.append((t, speed, elong, value, commanded if commanded is not None else 0.0))
+                    rows.append(
+                        (t, speed, elong, value, commanded if commanded is not None else 0.0)
+                    )
                 if rows:
                     extra: tuple[float, ...] = ()
                     if len(self.columns) > len(COLUMNS):
@@ -459,10 +578,21 @@ class Recorder:
                             got = self.controller.read_inputs()
                         except AdapterError:
                             got = {}
-                        extra = tuple(float(got.get(c, math.nan)) for c in self.columns[len(COLUMNS):])
+                        extra = tuple(
+                            float(got.get(c, math.nan)) for c in self.columns[len(COLUMNS) :]
+                        )
                     for row_t, row_speed, row_elong, row_value, row_cmd in rows:
-                        appender.append((row_t, row_speed, math.nan if row_elong is None else row_elong,
-                                         math.nan if row_value is None else row_value, row_cmd, int(flags), *extra))
+                        appender.append(
+                            (
+                                row_t,
+                                row_speed,
+                                math.nan if row_elong is None else row_elong,
+                                math.nan if row_value is None else row_value,
+                                row_cmd,
+                                int(flags),
+                                *extra,
+                            )
+                        )
                         rec.rows += 1
                         for p in Problem:
                             if flags & p:
@@ -474,7 +604,11 @@ class Recorder:
                         rec.measurements += 1
                 if self.on_sample is not None:
                     self.on_sample(sample, self)
-                if ptime is not None and ptime >= self.program.duration_s and self.stops_done >= len(self.stops):
+                if (
+                    ptime is not None
+                    and ptime >= self.program.duration_s
+                    and self.stops_done >= len(self.stops)
+                ):
                     rec.complete = True
                     break
                 next_t += cfg.rate_s

@@ -60,22 +60,37 @@ class Candidate:
         (rolling origin), so that a candidate must hold on the future too; the backward one
         alone while fewer than :data:`MIN_FORWARD_FOLDS` folds were predicted forward, or when
         the forward figure does not decide (``forward_decides``)."""
-        if (self.forward_rms_um is None or not self.forward_decides
-                or len(self.forward_folds_rms_um) < MIN_FORWARD_FOLDS):
+        if (
+            self.forward_rms_um is None
+            or not self.forward_decides
+            or len(self.forward_folds_rms_um) < MIN_FORWARD_FOLDS
+        ):
             return self.honest_rms_um
         return max(self.honest_rms_um, self.forward_rms_um)
 
     def row(self) -> dict[str, Any]:
         def num(v: float | None) -> float | None:
             return None if v is None or not math.isfinite(v) else float(v)
-        return {"name": self.name, "family": self.family, "description": self.description,
-                "cv_rms_um": num(self.cv_rms_um), "cv_max_abs_um": num(self.cv_max_abs_um),
-                "nested_rms_um": num(self.nested_rms_um), "nested_max_abs_um": num(self.nested_max_abs_um),
-                "honest_rms_um": num(self.honest_rms_um), "folds_rms_um": [num(v) for v in self.folds_rms_um],
-                "forward_rms_um": num(self.forward_rms_um), "forward_max_abs_um": num(self.forward_max_abs_um),
-                "forward_folds_rms_um": [num(v) for v in self.forward_folds_rms_um],
-                "decisive_rms_um": num(self.decisive_rms_um),
-                "in_sample_rms_um": num(self.in_sample_rms_um),
-                "in_sample_max_abs_um": num(self.in_sample_max_abs_um), "accepted": self.accepted,
-                "refusals": list(self.refusals), "notes": list(self.notes), **self.details,
-                "fit_cpu_s": round(self.fit_cpu_s, 3)}
+
+        return {
+            "name": self.name,
+            "family": self.family,
+            "description": self.description,
+            "cv_rms_um": num(self.cv_rms_um),
+            "cv_max_abs_um": num(self.cv_max_abs_um),
+            "nested_rms_um": num(self.nested_rms_um),
+            "nested_max_abs_um": num(self.nested_max_abs_um),
+            "honest_rms_um": num(self.honest_rms_um),
+            "folds_rms_um": [num(v) for v in self.folds_rms_um],
+            "forward_rms_um": num(self.forward_rms_um),
+            "forward_max_abs_um": num(self.forward_max_abs_um),
+            "forward_folds_rms_um": [num(v) for v in self.forward_folds_rms_um],
+            "decisive_rms_um": num(self.decisive_rms_um),
+            "in_sample_rms_um": num(self.in_sample_rms_um),
+            "in_sample_max_abs_um": num(self.in_sample_max_abs_um),
+            "accepted": self.accepted,
+            "refusals": list(self.refusals),
+            "notes": list(self.notes),
+            **self.details,
+            "fit_cpu_s": round(self.fit_cpu_s, 3),
+        }

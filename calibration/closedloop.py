@@ -39,8 +39,12 @@ DEFAULT_TARGET_UM = 2.0
 """The RMS a recommended interval must meet unless the user gives another [um]."""
 
 
-def anchored(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple[int, int]],
-             slowest_tau_s: float) -> list[np.ndarray]:
+def anchored(
+    time_s: np.ndarray,
+    residual_um: np.ndarray,
+    cycles: Sequence[tuple[int, int]],
+    slowest_tau_s: float,
+) -> list[np.ndarray]:
     """Each cycle's residual as replay would see it on a fresh log: the model starts at the
     first measured value, its start error decaying with the slowest time constant."""
     out = []
@@ -50,8 +54,12 @@ def anchored(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple
     return out
 
 
-def variogram(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple[int, int]],
-              lags_s: Sequence[float] = LAGS_S) -> tuple[np.ndarray, np.ndarray]:
+def variogram(
+    time_s: np.ndarray,
+    residual_um: np.ndarray,
+    cycles: Sequence[tuple[int, int]],
+    lags_s: Sequence[float] = LAGS_S,
+) -> tuple[np.ndarray, np.ndarray]:
     """Mean squared change of the residual over each lag, pooled within ``cycles`` (lags with
     no pair are left out): (lags [s], E[(r(t+lag)-r(t))^2] [um^2])."""
     lags, values = [], []
@@ -71,8 +79,9 @@ def variogram(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tupl
     return np.array(lags), np.array(values)
 
 
-def _nnls_variogram(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple[int, int]],
-                    drift: bool) -> np.ndarray | None:
+def _nnls_variogram(
+    time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple[int, int]], drift: bool
+) -> np.ndarray | None:
     """(q_b, model_sd^2[, q_r]) fitted to the variogram pooled over ``cycles``; None if too short."""
     lags, v = variogram(time_s, residual_um, cycles)
     if lags.size < 2:
@@ -80,14 +89,20 @@ def _nnls_variogram(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequenc
     cols = [lags, 2.0 * np.ones_like(lags)] + ([lags**3 / 3.0] if drift else [])
     a = np.column_stack(cols)
     scale = np.abs(a).max(axis=0)
-    from scipy.optimize import nnls  # scipy.optimize costs 1.5 s to import: only where a plan is made
+    from scipy.optimize import (
+        nnls,
+    )  # scipy.optimize costs 1.5 s to import: only where a plan is made
 
     coef, _ = nnls(a / scale, v)
     return coef / scale
 
 
-def fit_noise(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tuple[int, int]],
-              drift: bool = False) -> ObserverConfig:
+def fit_noise(
+    time_s: np.ndarray,
+    residual_um: np.ndarray,
+    cycles: Sequence[tuple[int, int]],
+    drift: bool = False,
+) -> ObserverConfig:
     """The observer's noise from the residual's variogram (non-negative least squares).
 
     The bias intensity is the largest of the cycles' own (each cycle's variogram alone): a
@@ -106,9 +121,13 @@ def fit_noise(time_s: np.ndarray, residual_um: np.ndarray, cycles: Sequence[tupl
             qb = max(qb, float(own[0]))
     qb = max(qb, 1e-6 / 3600.0)  # never a frozen bias: (1 nm)^2 per hour at the least
     # the prior covers what the open loop missed on these cycles
-    prior = max(10.0, 2.0 * float(np.max(np.abs(residual_um[cycles[0][0]:cycles[-1][1]]))))
-    return ObserverConfig(bias_q_um2_per_s=qb, drift_q_um2_per_s3=qr, model_sd_um=math.sqrt(sd2),
-                          initial_bias_sd_um=min(prior, 1e3))
+    prior = max(10.0, 2.0 * float(np.max(np.abs(residual_um[cycles[0][0] : cycles[-1][1]]))))
+    return ObserverConfig(
+        bias_q_um2_per_s=qb,
+        drift_q_um2_per_s3=qr,
+        model_sd_um=math.sqrt(sd2),
+        initial_bias_sd_um=min(prior, 1e3),
+    )
 
 
 def probe_rows(time_s: np.ndarray, every_s: float) -> np.ndarray:
@@ -120,8 +139,14 @@ def probe_rows(time_s: np.ndarray, every_s: float) -> np.ndarray:
     return idx[idx < t.size]
 
 
-def closed_loop_error(cfg: ObserverConfig, time_s: np.ndarray, residual_um: np.ndarray, every_s: float,
-                      seed: int, sigma_um: float = PROBE_SIGMA_UM) -> tuple[np.ndarray, int]:
+def closed_loop_error(
+    cfg: ObserverConfig,
+    time_s: np.ndarray,
+    residual_um: np.ndarray,
+    every_s: float,
+    seed: int,
+    sigma_um: float = PROBE_SIGMA_UM,
+) -> tuple[np.ndarray, int]:
     """The fused estimate's error on one cycle with a probe every ``every_s`` from its start
     (as ``replay --probe-every``), and the number of probes rejected."""
     t = np.asarray(time_s, float)
@@ -154,34 +179,51 @@ class Plan:
         raise KeyError(f"no closed-loop figure planned for {every_s:g} s")
 
     def report(self) -> dict[str, Any]:
-        return {"observer": self.observer.model_dump(), "variant": self.variant, "reason": self.reason,
-                "probe_sigma_um": PROBE_SIGMA_UM, "target_rms_um": self.target_um,
-                "recommended_interval_s": self.recommended_s, "intervals": self.table,
-                "variants": self.variants}
+        return {
+            "observer": self.observer.model_dump(),
+            "variant": self.variant,
+            "reason": self.reason,
+            "probe_sigma_um": PROBE_SIGMA_UM,
+            "target_rms_um": self.target_um,
+            "recommended_interval_s": self.recommended_s,
+            "intervals": self.table,
+            "variants": self.variants,
+        }
 
     def lines(self) -> list[str]:
-        out = [f"closed loop (probe sigma {PROBE_SIGMA_UM:g} um): {self.reason}",
-               "  probe every      RMS um   max um   rejected"]
+        out = [
+            f"closed loop (probe sigma {PROBE_SIGMA_UM:g} um): {self.reason}",
+            "  probe every      RMS um   max um   rejected",
+        ]
         for row in self.table:
             name = "never" if row["interval_s"] is None else f"{row['interval_s']:.0f} s"
             rej = "" if row["rejected"] is None else f"{row['rejected']:.1f}"
             out.append(f"  {name:>11} {row['rms_um']:9.2f} {row['max_abs_um']:8.2f}   {rej}")
         if self.recommended_s is not None:
-            out.append(f"  recommended: a probe every {self.recommended_s:.0f} s, the longest interval "
-                       f"whose RMS meets {self.target_um:g} um")
+            out.append(
+                f"  recommended: a probe every {self.recommended_s:.0f} s, the longest interval "
+                f"whose RMS meets {self.target_um:g} um"
+            )
         else:
-            out.append(f"  no interval tried meets {self.target_um:g} um RMS: probe more often than "
-                       f"{min(r['interval_s'] for r in self.table[1:]):.0f} s, or add inputs to the model")
+            out.append(
+                f"  no interval tried meets {self.target_um:g} um RMS: probe more often than "
+                f"{min(r['interval_s'] for r in self.table[1:]):.0f} s, or add inputs to the model"
+            )
         return out
 
 
-def _scores(cfgs: Sequence[ObserverConfig], time_s: np.ndarray, pieces: Sequence[np.ndarray],
-            starts: Sequence[int], every_s: float) -> tuple[float, float, float]:
+def _scores(
+    cfgs: Sequence[ObserverConfig],
+    time_s: np.ndarray,
+    pieces: Sequence[np.ndarray],
+    starts: Sequence[int],
+    every_s: float,
+) -> tuple[float, float, float]:
     """Pooled RMS, mean per-cycle max |error| and mean rejections per cycle, over cycles and
     seeds; ``cfgs[i]`` serves cycle ``i``."""
     sq, n, mx, rej = 0.0, 0, [], 0
     for cfg, r, a in zip(cfgs, pieces, starts):
-        t = time_s[a:a + r.size]
+        t = time_s[a : a + r.size]
         for seed in SEEDS:
             e, k = closed_loop_error(cfg, t, r, every_s, seed)
             sq += float(np.sum(e * e))
@@ -191,21 +233,38 @@ def _scores(cfgs: Sequence[ObserverConfig], time_s: np.ndarray, pieces: Sequence
     return math.sqrt(sq / n), float(np.mean(mx)), rej / (len(pieces) * len(SEEDS))
 
 
-def _table(pieces: Sequence[np.ndarray], intervals_s: Sequence[float],
-           scores: Sequence[tuple[float, float, float]], target_um: float) -> tuple[list[dict[str, Any]], float | None]:
+def _table(
+    pieces: Sequence[np.ndarray],
+    intervals_s: Sequence[float],
+    scores: Sequence[tuple[float, float, float]],
+    target_um: float,
+) -> tuple[list[dict[str, Any]], float | None]:
     """The interval table (open loop first) and the longest interval meeting ``target_um``."""
     joined = np.concatenate(pieces)
-    table: list[dict[str, Any]] = [{"interval_s": None, "rms_um": float(np.sqrt(np.mean(joined**2))),
-                                    "max_abs_um": float(np.mean([np.max(np.abs(p)) for p in pieces])),
-                                    "rejected": None}]
-    table += [{"interval_s": e, "rms_um": sc[0], "max_abs_um": sc[1], "rejected": sc[2]}
-              for e, sc in zip(intervals_s, scores)]
+    table: list[dict[str, Any]] = [
+        {
+            "interval_s": None,
+            "rms_um": float(np.sqrt(np.mean(joined**2))),
+            "max_abs_um": float(np.mean([np.max(np.abs(p)) for p in pieces])),
+            "rejected": None,
+        }
+    ]
+    table += [
+        {"interval_s": e, "rms_um": sc[0], "max_abs_um": sc[1], "rejected": sc[2]}
+        for e, sc in zip(intervals_s, scores)
+    ]
     ok = [row["interval_s"] for row in table[1:] if row["rms_um"] <= target_um]
     return table, (max(ok) if ok else None)
 
 
-def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowest_tau_s: float,
-         target_um: float = DEFAULT_TARGET_UM, intervals_s: Sequence[float] = INTERVALS_S) -> Plan:
+def plan(
+    time_s: Any,
+    residual_um: Any,
+    cycles: Sequence[tuple[int, int]],
+    slowest_tau_s: float,
+    target_um: float = DEFAULT_TARGET_UM,
+    intervals_s: Sequence[float] = INTERVALS_S,
+) -> Plan:
     """Fit the observer's noise, choose the variant by held-out cycles, and tabulate interval →
     expected RMS and max (the mean over cycles of each cycle's max)."""
     t = np.asarray(time_s, float)
@@ -223,8 +282,13 @@ def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowe
             per.append(fit_noise(t, joined, rest, drift))
         scores = [_scores(per, t, pieces, starts, every) for every in intervals_s]
         mean_rms = float(np.mean([s[0] for s in scores]))
-        rows.append({"variant": name, "mean_rms_um": mean_rms,
-                     "rms_um": {f"{e:.0f}": s[0] for e, s in zip(intervals_s, scores)}})
+        rows.append(
+            {
+                "variant": name,
+                "mean_rms_um": mean_rms,
+                "rms_um": {f"{e:.0f}": s[0] for e, s in zip(intervals_s, scores)},
+            }
+        )
         # a drift state extrapolates: only when clearly better, on enough cycles to tell
         if best is None or (mean_rms < best[1] * (1 - DRIFT_GAIN) and len(cycles) >= 4):
             best = (name, mean_rms, per, scores)
@@ -234,18 +298,30 @@ def plan(time_s: Any, residual_um: Any, cycles: Sequence[tuple[int, int]], slowe
     never = [float(np.sqrt(np.mean(p * p))) for p in pieces]
     table, recommended = _table(pieces, intervals_s, scores, target_um)
     other = [row for row in rows if row["variant"] != name]
-    reason = (f"{name} observer (bias random walk {math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
-              f"model sd {cfg.model_sd_um:.2f} um"
-              + (f", drift {math.sqrt(cfg.drift_q_um2_per_s3) * 3600**1.5:.2g} um/h/sqrt(h)"
-                 if cfg.drift_q_um2_per_s3 > 0 else "")
-              + f") has mean RMS {mean_rms:.2f} um over the intervals"
-              + "".join(f"; {o['variant']} {o['mean_rms_um']:.2f} um" for o in other)
-              + f"; open loop {np.mean(never):.2f} um")
+    reason = (
+        f"{name} observer (bias random walk {math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
+        f"model sd {cfg.model_sd_um:.2f} um"
+        + (
+            f", drift {math.sqrt(cfg.drift_q_um2_per_s3) * 3600**1.5:.2g} um/h/sqrt(h)"
+            if cfg.drift_q_um2_per_s3 > 0
+            else ""
+        )
+        + f") has mean RMS {mean_rms:.2f} um over the intervals"
+        + "".join(f"; {o['variant']} {o['mean_rms_um']:.2f} um" for o in other)
+        + f"; open loop {np.mean(never):.2f} um"
+    )
     return Plan(cfg, name, reason, table, rows, target_um, recommended)
 
 
-def plan_on_run(fit_time_s: Any, fit_residual_um: Any, time_s: Any, residual_um: Any, slowest_tau_s: float,
-                target_um: float = DEFAULT_TARGET_UM, intervals_s: Sequence[float] = INTERVALS_S) -> Plan:
+def plan_on_run(
+    fit_time_s: Any,
+    fit_residual_um: Any,
+    time_s: Any,
+    residual_um: Any,
+    slowest_tau_s: float,
+    target_um: float = DEFAULT_TARGET_UM,
+    intervals_s: Sequence[float] = INTERVALS_S,
+) -> Plan:
     """The wizard's plan: the observer's noise from the calibration run's residual, the table on
     a validation run the fit never saw (one held-out run; no variant choice)."""
     tf, rf = np.asarray(fit_time_s, float), np.asarray(fit_residual_um, float)
@@ -254,7 +330,9 @@ def plan_on_run(fit_time_s: Any, fit_residual_um: Any, time_s: Any, residual_um:
     (piece,) = anchored(t, r, [(0, t.size)], slowest_tau_s)
     scores = [_scores([cfg], t, [piece], [0], every) for every in intervals_s]
     table, recommended = _table([piece], intervals_s, scores, target_um)
-    reason = (f"bias observer fitted on the calibration run (random walk "
-              f"{math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), model sd {cfg.model_sd_um:.2f} um), "
-              "scored on the validation run")
+    reason = (
+        f"bias observer fitted on the calibration run (random walk "
+        f"{math.sqrt(cfg.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), model sd {cfg.model_sd_um:.2f} um), "
+        "scored on the validation run"
+    )
     return Plan(cfg, "bias", reason, table, [], target_um, recommended)

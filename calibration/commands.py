@@ -38,7 +38,9 @@ def _fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, float):
         if math.isinf(v) or math.isnan(v):
             return "-"
-        return f"{v:.{digits}g}" if abs(v) >= 1e4 or (v != 0 and abs(v) < 1e-2) else f"{v:.{digits}f}"
+        return (
+            f"{v:.{digits}g}" if abs(v) >= 1e4 or (v != 0 and abs(v) < 1e-2) else f"{v:.{digits}f}"
+        )
     return str(v)
 
 
@@ -72,8 +74,13 @@ def progress(enabled: bool, total: int | None = None) -> Iterator[Callable[[str]
         return
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                  console=err, transient=True) as bar:
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+        console=err,
+        transient=True,
+    ) as bar:
         task = bar.add_task("starting", total=total)
 
         def say(msg: str) -> None:
@@ -84,8 +91,12 @@ def progress(enabled: bool, total: int | None = None) -> Iterator[Callable[[str]
 
 def _meta(args: argparse.Namespace, logs) -> dict[str, Any]:
     meta: dict[str, Any] = {}
-    spindle = args.spindle_id or next((lg.metadata.get("spindle_id") for lg in logs if lg.metadata.get("spindle_id")), None)
-    machine = args.machine_id or next((lg.metadata.get("machine_id") for lg in logs if lg.metadata.get("machine_id")), None)
+    spindle = args.spindle_id or next(
+        (lg.metadata.get("spindle_id") for lg in logs if lg.metadata.get("spindle_id")), None
+    )
+    machine = args.machine_id or next(
+        (lg.metadata.get("machine_id") for lg in logs if lg.metadata.get("machine_id")), None
+    )
     if spindle:
         meta["spindle_id"] = spindle
     if machine:
@@ -109,22 +120,34 @@ def _input_names(args: argparse.Namespace, logs) -> list[str]:
         if listed is not None:
             names = [n.strip() for n in listed.split(",") if n.strip()]
         else:
-            names = [k for k, v in logs[0].extras.items() if v.dtype != object and k not in NOT_INPUTS]
+            names = [
+                k for k, v in logs[0].extras.items() if v.dtype != object and k not in NOT_INPUTS
+            ]
         if not names:
-            raise CalibrationError(f"{logs[0].source}: --inputs all, but the log has no input column")
+            raise CalibrationError(
+                f"{logs[0].source}: --inputs all, but the log has no input column"
+            )
     else:
         names = [n.strip() for n in spec.split(",") if n.strip()]
     for log in logs:
         for n in names:
             col = log.extras.get(n)
             if col is None:
-                raise CalibrationError(f"{log.source}: no column {n!r} for --inputs "
-                                       f"(columns: {', '.join(log.extras) or 'none'})")
+                raise CalibrationError(
+                    f"{log.source}: no column {n!r} for --inputs "
+                    f"(columns: {', '.join(log.extras) or 'none'})"
+                )
             if col.dtype == object or not np.isfinite(np.asarray(col, dtype=float)).all():
-                bad = np.flatnonzero(~np.isfinite(np.asarray(col, dtype=float))) if col.dtype != object else [0]
+                bad = (
+                    np.flatnonzero(~np.isfinite(np.asarray(col, dtype=float)))
+                    if col.dtype != object
+                    else [0]
+                )
                 line = log.line_of(int(bad[0])) if len(bad) else None
-                raise CalibrationError(f"{log.source}{f':{line}' if line else ''}: column {n} is not a "
-                                       "finite number on every row")
+                raise CalibrationError(
+                    f"{log.source}{f':{line}' if line else ''}: column {n} is not a "
+                    "finite number on every row"
+                )
     return names
 
 
@@ -135,7 +158,9 @@ def fit(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.probe_target_um) and args.probe_target_um > 0):
         raise CalibrationError(f"--probe-target-um must be > 0, got {args.probe_target_um}")
-    if args.probe_every is not None and not (math.isfinite(args.probe_every) and args.probe_every > 0):
+    if args.probe_every is not None and not (
+        math.isfinite(args.probe_every) and args.probe_every > 0
+    ):
         raise CalibrationError(f"--probe-every must be > 0 s, got {args.probe_every}")
     with progress(not args.json) as say:
         logs = []
@@ -143,10 +168,17 @@ def fit(args: argparse.Namespace) -> int:
             say(f"reading {p}")
             logs.append(read_run_log(p))
         names = _input_names(args, logs)
-        result = fit_logs(logs, names, labels=[str(p) for p in args.runs], progress=say,
-                          nested=not args.no_nested, physical=not args.no_physical,
-                          probe_target_um=args.probe_target_um, probe_every_s=args.probe_every,
-                          **_meta(args, logs))
+        result = fit_logs(
+            logs,
+            names,
+            labels=[str(p) for p in args.runs],
+            progress=say,
+            nested=not args.no_nested,
+            physical=not args.no_physical,
+            probe_target_um=args.probe_target_um,
+            probe_every_s=args.probe_every,
+            **_meta(args, logs),
+        )
     model = result.model
     # validated before it is written: the same checks a load makes
     type(model).model_validate(model.model_dump(mode="json"))
@@ -156,10 +188,16 @@ def fit(args: argparse.Namespace) -> int:
     if args.plot:
         j = result.dataset
         pred = result.free_run_um()
-        panels = [Panel(nm, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[nm],
-                        j.elongation_um[a:b]) for nm, (a, b) in zip(j.names, j.segments)]
-        plot_panels(args.plot, panels, f"fit: {result.chosen.name} (spindle {model.spindle_id}), "
-                    "in-sample free run", max_rpm=model.speed_range_rpm[1])
+        panels = [
+            Panel(nm, j.time_s[a:b] - j.time_s[a], j.speed_rpm[a:b], pred[nm], j.elongation_um[a:b])
+            for nm, (a, b) in zip(j.names, j.segments)
+        ]
+        plot_panels(
+            args.plot,
+            panels,
+            f"fit: {result.chosen.name} (spindle {model.spindle_id}), in-sample free run",
+            max_rpm=model.speed_range_rpm[1],
+        )
         report["plot"] = str(args.plot)
     return _emit(args, report, lambda out: print_identification(result, report, out))
 
@@ -178,35 +216,69 @@ def _emit(args: argparse.Namespace, report: dict[str, Any], show: Callable[[Cons
 def print_identification(result, report: dict[str, Any], out: Console) -> None:
     m = result.model
     j = result.dataset
-    out.print(f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  {len(j.names)} log(s), "
-              f"{j.time_s.size} rows, scored by {report['scored_by']}")
+    out.print(
+        f"[bold]thermocomp fit[/bold]  spindle {m.spindle_id}  {len(j.names)} log(s), "
+        f"{j.time_s.size} rows, scored by {report['scored_by']}"
+    )
     out.print(f"Cycle rule: {report['cycle_rule']}")
     for line in report["cycles"]:
         out.print(f"  {line}")
-    t = Table(title="Candidates, free run (the model feeds on its own output; no measured elongation)")
-    for col in ("candidate", "CV RMS", "CV max", "nested RMS", "forward RMS", "in-sample RMS", "per fold RMS",
-                "verdict"):
-        t.add_column(col, justify="left" if col in ("candidate", "verdict", "per fold RMS") else "right")
+    t = Table(
+        title="Candidates, free run (the model feeds on its own output; no measured elongation)"
+    )
+    for col in (
+        "candidate",
+        "CV RMS",
+        "CV max",
+        "nested RMS",
+        "forward RMS",
+        "in-sample RMS",
+        "per fold RMS",
+        "verdict",
+    ):
+        t.add_column(
+            col, justify="left" if col in ("candidate", "verdict", "per fold RMS") else "right"
+        )
     for c in report["candidates"]:
         name = c["name"] + (" [bold green]<- chosen[/]" if c["name"] == report["chosen"] else "")
-        verdict = escape("reference only" if c["family"] == "reference" else
-                         "accepted" if c["accepted"] else "refused: " + "; ".join(c["refusals"]))
+        verdict = escape(
+            "reference only"
+            if c["family"] == "reference"
+            else "accepted"
+            if c["accepted"]
+            else "refused: " + "; ".join(c["refusals"])
+        )
         folds = " ".join(_fmt(v, 2) for v in c["folds_rms_um"])
-        t.add_row(name, _fmt(c["cv_rms_um"]), _fmt(c["cv_max_abs_um"]), _fmt(c["nested_rms_um"]),
-                  _fmt(c.get("forward_rms_um")), _fmt(c["in_sample_rms_um"]), folds, verdict)
+        t.add_row(
+            name,
+            _fmt(c["cv_rms_um"]),
+            _fmt(c["cv_max_abs_um"]),
+            _fmt(c["nested_rms_um"]),
+            _fmt(c.get("forward_rms_um")),
+            _fmt(c["in_sample_rms_um"]),
+            folds,
+            verdict,
+        )
     out.print(t)
-    out.print("CV: gains fitted without the held-out fold; nested: the fold also took no part in "
-              "choosing alpha (the honest figure); forward: each fold from the third predicted by a model "
-              "chosen and fitted on the folds before it only. "
-              + ("The choice reads the worse of nested and forward." if report.get("forward_decides", True) else
-                 "The folds are blocks of one cycle, each at speeds the others do not run: forward there is "
-                 "extrapolation in speed, shown but not chosen by; the choice and the error to expect read "
-                 "the held-out figure.")
-              + " One-step R² is not used.")
+    out.print(
+        "CV: gains fitted without the held-out fold; nested: the fold also took no part in "
+        "choosing alpha (the honest figure); forward: each fold from the third predicted by a model "
+        "chosen and fitted on the folds before it only. "
+        + (
+            "The choice reads the worse of nested and forward."
+            if report.get("forward_decides", True)
+            else "The folds are blocks of one cycle, each at speeds the others do not run: forward there is "
+            "extrapolation in speed, shown but not chosen by; the choice and the error to expect read "
+            "the held-out figure."
+        )
+        + " One-step R² is not used."
+    )
     out.print(f"Chosen: [bold]{report['chosen']}[/bold]: {escape(report['reason'])}")
     for c in report["candidates"]:
         if c["name"] == report["chosen"] and "alpha" in c:
-            out.print(f"  grid {c['grid']}, alpha {c['alpha']:.3g}, {c['states']} state(s)", markup=False)
+            out.print(
+                f"  grid {c['grid']}, alpha {c['alpha']:.3g}, {c['states']} state(s)", markup=False
+            )
     if report["derived"]:
         dt = Table(title="Derived quantities, HAC (Newey-West) standard errors")
         for col in ("quantity", "value", "std. error", "unit"):
@@ -218,10 +290,18 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
     if expected is not None:
         out.print("Error to expect (free run, held out), by speed band:", markup=False)
         for b in expected.bands:
-            far = (f"; inputs outside the trained range: RMS {b.outside.rms_um:.2f} um, 95 % within "
-                   f"{b.outside.p95_abs_um:.2f} um ({b.outside.source})" if b.outside is not None else "")
-            out.print(f"  {b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
-                      f"({b.source}, {b.samples} samples){far}", markup=False, highlight=False)
+            far = (
+                f"; inputs outside the trained range: RMS {b.outside.rms_um:.2f} um, 95 % within "
+                f"{b.outside.p95_abs_um:.2f} um ({b.outside.source})"
+                if b.outside is not None
+                else ""
+            )
+            out.print(
+                f"  {b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
+                f"({b.source}, {b.samples} samples){far}",
+                markup=False,
+                highlight=False,
+            )
     for line in m.describe():
         out.print(line, markup=False, highlight=False)
     for line in result.closed_loop.lines() if result.closed_loop is not None else ():
@@ -238,7 +318,9 @@ def _json_default(o: Any) -> Any:
 
 def print_replay_report(rep: Replay, out: Console) -> None:
     r = rep.report
-    t = Table(title=f"Replay of {r['samples']} samples, {r['duration_s'] / 3600:.2f} h, model {r['model_form']}")
+    t = Table(
+        title=f"Replay of {r['samples']} samples, {r['duration_s'] / 3600:.2f} h, model {r['model_form']}"
+    )
     t.add_column("figure")
     t.add_column("value", justify="right")
     rows = [
@@ -254,46 +336,86 @@ def print_replay_report(rep: Replay, out: Console) -> None:
         ("max |error| of the applied offset [um]", r["applied_max_abs_residual_um"]),
         ("  ... while cutting: RMS [um]", r["applied_cutting_rms_residual_um"]),
         ("  ... while cutting: max |error| [um]", r["applied_cutting_max_abs_residual_um"]),
-        (f"thermal equilibrium after [min] ({r['ste_source']})",
-         None if r["equilibrium_time_s"] is None else r["equilibrium_time_s"] / 60),
+        (
+            f"thermal equilibrium after [min] ({r['ste_source']})",
+            None if r["equilibrium_time_s"] is None else r["equilibrium_time_s"] / 60,
+        ),
         ("TEVR after equilibrium [um]", r["tevr_um"]),
     ]
     for k, v in rows:
         t.add_row(k, _fmt(v) if not isinstance(v, str) else v)
     out.print(t)
     sh = r["shaping"]
-    out.print(f"Shaping: {sh['policy']}, {sh['max_rate_um_per_s']:g} um/s while cutting"
-              + (f", {sh['not_cutting_rate_um_per_s']:g} um/s while not" if sh["policy"] == "dual-slew" else "")
-              + f"; cutting {100 * sh['cutting_fraction']:.0f} % of the samples, from {sh['cutting_source']}")
+    out.print(
+        f"Shaping: {sh['policy']}, {sh['max_rate_um_per_s']:g} um/s while cutting"
+        + (
+            f", {sh['not_cutting_rate_um_per_s']:g} um/s while not"
+            if sh["policy"] == "dual-slew"
+            else ""
+        )
+        + f"; cutting {100 * sh['cutting_fraction']:.0f} % of the samples, from {sh['cutting_source']}"
+    )
     if r.get("policies"):
         pt = Table(title="Transient policies on this log (error of the offset each would write)")
-        for col in ("policy", "RMS [um]", "max [um]", "cutting RMS", "cutting max", "max lag [um]",
-                    "max rate cutting [um/s]"):
+        for col in (
+            "policy",
+            "RMS [um]",
+            "max [um]",
+            "cutting RMS",
+            "cutting max",
+            "max lag [um]",
+            "max rate cutting [um/s]",
+        ):
             pt.add_column(col, justify="left" if col == "policy" else "right")
-        names = {"slow-slew": "slow slew only", "dual-slew": "dual slew", "longer-cycle": "longer cycle",
-                 "hold": "hold", "none": "no shaping (model bound)"}
+        names = {
+            "slow-slew": "slow slew only",
+            "dual-slew": "dual slew",
+            "longer-cycle": "longer cycle",
+            "hold": "hold",
+            "none": "no shaping (model bound)",
+        }
         for row in r["policies"]:
             name = names[row["policy"]] + (" <- configured" if row["configured"] else "")
-            pt.add_row(name, _fmt(row["rms_um"]), _fmt(row["max_abs_um"]), _fmt(row["cutting_rms_um"]),
-                       _fmt(row["cutting_max_abs_um"]), _fmt(row["max_lag_um"]),
-                       _fmt(row["max_cutting_rate_um_per_s"]))
+            pt.add_row(
+                name,
+                _fmt(row["rms_um"]),
+                _fmt(row["max_abs_um"]),
+                _fmt(row["cutting_rms_um"]),
+                _fmt(row["cutting_max_abs_um"]),
+                _fmt(row["max_lag_um"]),
+                _fmt(row["max_cutting_rate_um_per_s"]),
+            )
         out.print(pt)
     if r.get("expected_error"):
         et = Table(title="Error by speed band: what the fit expected, what this log shows")
-        for col in ("speed band", "expected RMS [um]", "stated 95 % [um]", "RMS here [um]", "within 95 %",
-                    "samples"):
+        for col in (
+            "speed band",
+            "expected RMS [um]",
+            "stated 95 % [um]",
+            "RMS here [um]",
+            "within 95 %",
+            "samples",
+        ):
             et.add_column(col, justify="left" if col == "speed band" else "right")
         for b in r["expected_error"]:
-            et.add_row(str(b["label"]), _fmt(b["expected_rms_um"]),
-                       _fmt(b["expected_p95_abs_um"]), _fmt(b["rms_um"]), f"{100 * b['within_p95']:.0f} %",
-                       str(b["samples"]))
+            et.add_row(
+                str(b["label"]),
+                _fmt(b["expected_rms_um"]),
+                _fmt(b["expected_p95_abs_um"]),
+                _fmt(b["rms_um"]),
+                f"{100 * b['within_p95']:.0f} %",
+                str(b["samples"]),
+            )
         out.print(et)
     for w in r["warnings"]:
         out.print(f"[yellow]warning:[/yellow] {w}")
 
 
-def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None,
-               estimate_of: Callable[[Any], Any] | None = None) -> int:
+def replay_cmd(
+    args: argparse.Namespace,
+    shaping: ShaperConfig | None = None,
+    estimate_of: Callable[[Any], Any] | None = None,
+) -> int:
     """``thermocomp replay``; ``shaping`` and ``estimate_of`` (the estimate a model runs with)
     from a runtime configuration (default: the runtime's defaults)."""
     from compensator.errors import CalibrationError
@@ -314,8 +436,15 @@ def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None,
             from .replay import probes_from_file
 
             probes = probes_from_file(log, args.measurements, args.probe_noise_um)
-        rep = replay(model, log, args.initial_um, shaping or ShaperConfig(), probes,
-                     compare=not getattr(args, "no_compare", False), estimate=estimate)
+        rep = replay(
+            model,
+            log,
+            args.initial_um,
+            shaping or ShaperConfig(),
+            probes,
+            compare=not getattr(args, "no_compare", False),
+            estimate=estimate,
+        )
         if args.output:
             say("writing predictions")
             meta = {"model": args.model, "source": args.log}
@@ -324,11 +453,21 @@ def replay_cmd(args: argparse.Namespace, shaping: ShaperConfig | None = None,
             write_run_log(args.output, rep.columns(), meta)
         if args.plot:
             say("plotting")
-            plot_panels(args.plot, [Panel(Path(args.log).name, rep.time_s, rep.speed_rpm,
-                                          rep.predicted_um, rep.measured_um,
-                                          extra=(("applied (-offset written)", -rep.applied_offset_um),))],
-                        f"replay: model {model.form} (spindle {model.spindle_id})",
-                        max_rpm=model.speed_range_rpm[1])
+            plot_panels(
+                args.plot,
+                [
+                    Panel(
+                        Path(args.log).name,
+                        rep.time_s,
+                        rep.speed_rpm,
+                        rep.predicted_um,
+                        rep.measured_um,
+                        extra=(("applied (-offset written)", -rep.applied_offset_um),),
+                    )
+                ],
+                f"replay: model {model.form} (spindle {model.spindle_id})",
+                max_rpm=model.speed_range_rpm[1],
+            )
     report = dict(rep.report)
     if args.output:
         report["output"] = str(args.output)

@@ -30,8 +30,10 @@ def _models(params, scenarios: Sequence[cooling.Scenario], say) -> dict[tuple[fl
         key = (sc.air_c, sc.preheat_c)
         if key not in out:
             ident = cooling.fit_cooling_model(cooling.plant_for(params, *key))
-            say(f"model for TA {key[0]:g} degC, TC {key[1]:g} degC: {ident.chosen.name} "
-                f"({ident.model.form}); {ident.reason}")
+            say(
+                f"model for TA {key[0]:g} degC, TC {key[1]:g} degC: {ident.chosen.name} "
+                f"({ident.model.form}); {ident.reason}"
+            )
             out[key] = ident.model
     return out
 
@@ -52,11 +54,13 @@ def compare(args: argparse.Namespace) -> int:
     names = args.scenario or list(cooling.SCENARIOS)
     unknown = [n for n in names if n not in cooling.SCENARIOS]
     if unknown:
-        raise ConfigError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(cooling.SCENARIOS)}")
+        raise ConfigError(
+            f"unknown scenario {unknown[0]!r}; choose from {', '.join(cooling.SCENARIOS)}"
+        )
     say = (lambda _m: None) if args.json else print
     scenarios = [cooling.SCENARIOS[n] for n in names]
     models = _models(params, scenarios, say)
-    gain_sets = {g: _gains(g, params, say) for g in (args.gains or ['paper', 'simc'])}
+    gain_sets = {g: _gains(g, params, say) for g in (args.gains or ["paper", "simc"])}
     rows, runs = [], {}
     for sc in scenarios:
         model = models[(sc.air_c, sc.preheat_c)]
@@ -66,37 +70,55 @@ def compare(args: argparse.Namespace) -> int:
         rows.append({**fb.row(), "gains": "-"})
         for gname, g in gain_sets.items():
             for mode in ("pid", "pid+offset"):
-                run = cooling.run_scenario(params, sc, model, mode, gains=g, dt_s=args.dt, seed=args.seed)
+                run = cooling.run_scenario(
+                    params, sc, model, mode, gains=g, dt_s=args.dt, seed=args.seed
+                )
                 runs[(sc.name, f"{mode}/{gname}")] = run
                 fr = cooling.figures_of(run)
                 row = {**fr.row(), "gains": gname}
-                if mode == "pid" and fb.figures.equilibrium_s and fr.figures.equilibrium_s is not None:
-                    row["sooner_pct"] = round(100 * (1 - fr.figures.equilibrium_s / fb.figures.equilibrium_s), 1)
+                if (
+                    mode == "pid"
+                    and fb.figures.equilibrium_s
+                    and fr.figures.equilibrium_s is not None
+                ):
+                    row["sooner_pct"] = round(
+                        100 * (1 - fr.figures.equilibrium_s / fb.figures.equilibrium_s), 1
+                    )
                 if mode == "pid" and fb.figures.tevr_um and fr.figures.tevr_um is not None:
                     row["tevr_ratio"] = round(fr.figures.tevr_um / fb.figures.tevr_um, 2)
                 rows.append(row)
     if args.json:
         print(json.dumps({"preset": params.name, "dt_s": args.dt, "rows": rows}, indent=1))
     else:
-        print(f"{'scenario':8} {'mode':11} {'gains':6} {'equilibrium':>12} {'sooner':>7} {'TEVR':>6} "
-              f"{'ratio':>6} {'mean':>6} {'set point':>11}")
+        print(
+            f"{'scenario':8} {'mode':11} {'gains':6} {'equilibrium':>12} {'sooner':>7} {'TEVR':>6} "
+            f"{'ratio':>6} {'mean':>6} {'set point':>11}"
+        )
         for r in rows:
             eq = "never" if r["equilibrium_min"] is None else f"{r['equilibrium_min']:.1f} min"
             tevr = "-" if r["tevr_um"] is None else f"{r['tevr_um']:.2f}"
             mean = "-" if r["mean_after_um"] is None else f"{r['mean_after_um']:.2f}"
-            print(f"{r['scenario']:8} {r['mode']:11} {r['gains']:6} {eq:>12} "
-                  f"{(str(r['sooner_pct']) + ' %') if 'sooner_pct' in r else '':>7} {tevr:>6} "
-                  f"{r.get('tevr_ratio', ''):>6} {mean:>6} {r['setpoint_c'][0]:>5.1f}-{r['setpoint_c'][1]:<5.1f}")
-        print("equilibrium: |STE| < 0.5e-3 um/s from then to the end (STE from a GCV smoothing spline); "
-              "TEVR: max - min of the error after it; with +offset the error is the tool tip's")
+            print(
+                f"{r['scenario']:8} {r['mode']:11} {r['gains']:6} {eq:>12} "
+                f"{(str(r['sooner_pct']) + ' %') if 'sooner_pct' in r else '':>7} {tevr:>6} "
+                f"{r.get('tevr_ratio', ''):>6} {mean:>6} {r['setpoint_c'][0]:>5.1f}-{r['setpoint_c'][1]:<5.1f}"
+            )
+        print(
+            "equilibrium: |STE| < 0.5e-3 um/s from then to the end (STE from a GCV smoothing spline); "
+            "TEVR: max - min of the error after it; with +offset the error is the tool tip's"
+        )
     if args.plot:
         plot_comparison(args.plot, runs, scenarios, list(gain_sets))
         say(f"wrote {args.plot}")
     return 0
 
 
-def plot_comparison(path: str | os.PathLike[str], runs: dict[tuple[str, str], cooling.CoolingRun],
-                    scenarios: Sequence[cooling.Scenario], gain_names: Sequence[str]) -> None:
+def plot_comparison(
+    path: str | os.PathLike[str],
+    runs: dict[tuple[str, str], cooling.CoolingRun],
+    scenarios: Sequence[cooling.Scenario],
+    gain_names: Sequence[str],
+) -> None:
     """Per scenario: the error under constant cooling, PID cooling and PID plus the offset
     (top), the coolant set points (bottom)."""
     import matplotlib
@@ -104,7 +126,9 @@ def plot_comparison(path: str | os.PathLike[str], runs: dict[tuple[str, str], co
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(scenarios), figsize=(4.2 * len(scenarios), 6.4), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        2, len(scenarios), figsize=(4.2 * len(scenarios), 6.4), sharex=True, squeeze=False
+    )
     for i, sc in enumerate(scenarios):
         top, bottom = axes[0][i], axes[1][i]
         base = runs[(sc.name, "constant")]
@@ -129,16 +153,24 @@ def plot_comparison(path: str | os.PathLike[str], runs: dict[tuple[str, str], co
             top.set_ylabel("thermal error [um]")
             bottom.set_ylabel("chiller set point [degC]")
             top.legend(fontsize=7, loc="lower right")
-    fig.suptitle("Active cooling on the virtual plant (paper 000's work conditions); dotted: equilibrium",
-                 fontsize=10)
+    fig.suptitle(
+        "Active cooling on the virtual plant (paper 000's work conditions); dotted: equilibrium",
+        fontsize=10,
+    )
     fig.tight_layout()
     with atomic_write(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=80)
     plt.close(fig)
 
 
-def step_run(params, *, speed_rpm: float | None = None, step_k: float = -3.0, seed: int = 4,
-             dt_s: float = 30.0) -> dict[str, np.ndarray]:
+def step_run(
+    params,
+    *,
+    speed_rpm: float | None = None,
+    step_k: float = -3.0,
+    seed: int = 4,
+    dt_s: float = 30.0,
+) -> dict[str, np.ndarray]:
     """The chiller step test on the plant: hold a speed until steady (6 h), step the chiller
     set point by ``step_k`` and hold 6 h more. Columns for a run log."""
     n0 = speed_rpm if speed_rpm is not None else params.max_rpm / 2
@@ -159,7 +191,9 @@ def _step_window(time_s: np.ndarray, setpoint_c: np.ndarray) -> tuple[int, int]:
     return max(0, int(np.searchsorted(time_s, time_s[k0] - 3600.0))), k0
 
 
-def identify_step(time_s: np.ndarray, setpoint_c: np.ndarray, elongation_um: np.ndarray, order: int = 2):
+def identify_step(
+    time_s: np.ndarray, setpoint_c: np.ndarray, elongation_um: np.ndarray, order: int = 2
+):
     """The set point -> elongation transfer from the part of a log after its first set-point
     change (from the last steady hour before it)."""
     start, _ = _step_window(time_s, setpoint_c)
@@ -167,10 +201,15 @@ def identify_step(time_s: np.ndarray, setpoint_c: np.ndarray, elongation_um: np.
     return tuning.fit_step_model(t, setpoint_c[start:], elongation_um[start:], order=order)
 
 
-def tune_plant(params, log: dict[str, np.ndarray] | None = None, tau_c_s: float | None = None) -> dict[str, Any]:
+def tune_plant(
+    params, log: dict[str, np.ndarray] | None = None, tau_c_s: float | None = None
+) -> dict[str, Any]:
     cols = log if log is not None else step_run(params)
-    model = identify_step(np.asarray(cols["time_s"]), np.asarray(cols["chiller_setpoint_c"]),
-                          np.asarray(cols["elongation_um"]))
+    model = identify_step(
+        np.asarray(cols["time_s"]),
+        np.asarray(cols["chiller_setpoint_c"]),
+        np.asarray(cols["elongation_um"]),
+    )
     tun = tuning.simc(model, tau_c_s=tau_c_s)
     gains = tun.parallel()
     return {"model": model, "tuning": tun, "gains": gains, "log": cols}
@@ -184,13 +223,26 @@ def tune(args: argparse.Namespace) -> int:
     if args.log:
         rl = read_run_log(args.log)
         if "chiller_setpoint_c" not in rl.extras or rl.elongation_um is None:
-            raise ConfigError(f"{args.log}: a step run needs elongation_um and chiller_setpoint_c columns")
-        log = {"time_s": rl.time_s, "elongation_um": rl.elongation_um,
-               "chiller_setpoint_c": np.asarray(rl.extras["chiller_setpoint_c"], dtype=float)}
+            raise ConfigError(
+                f"{args.log}: a step run needs elongation_um and chiller_setpoint_c columns"
+            )
+        log = {
+            "time_s": rl.time_s,
+            "elongation_um": rl.elongation_um,
+            "chiller_setpoint_c": np.asarray(rl.extras["chiller_setpoint_c"], dtype=float),
+        }
     elif args.write_step:
         cols = step_run(params)
-        write_run_log(args.write_step, cols, {"source": "thermocomp cooling tune", "preset": params.name,
-                                              "spindle_id": f"sim-{params.name}", "machine_id": "virtual"})
+        write_run_log(
+            args.write_step,
+            cols,
+            {
+                "source": "thermocomp cooling tune",
+                "preset": params.name,
+                "spindle_id": f"sim-{params.name}",
+                "machine_id": "virtual",
+            },
+        )
         print(f"wrote the step run to {args.write_step}")
         log = cols
     t = tune_plant(params, log, args.tau_c_s)
@@ -200,11 +252,15 @@ def tune(args: argparse.Namespace) -> int:
     print(f"  parallel gains: {gains.describe()}")
     print(f"paper 000: {PidGains.paper().describe()}")
     for name, g in (("simc", gains), ("paper", PidGains.paper())):
-        tt, y = tuning.closed_loop_step(model, g, dt_s=1.0, duration_s=4 * 3600.0, u_limits=(-8.0, 8.0))
+        tt, y = tuning.closed_loop_step(
+            model, g, dt_s=1.0, duration_s=4 * 3600.0, u_limits=(-8.0, 8.0)
+        )
         m = tuning.step_metrics(tt, y, 1.0)
         settle = "not within 4 h" if m.settling_s is None else f"{m.settling_s / 60:.1f} min"
-        print(f"  {name:5}: unit step in RITE, overshoot {m.overshoot_pct:.1f} %, settling (2 %) "
-              f"{settle}, IAE {m.iae:.0f}")
+        print(
+            f"  {name:5}: unit step in RITE, overshoot {m.overshoot_pct:.1f} %, settling (2 %) "
+            f"{settle}, IAE {m.iae:.0f}"
+        )
     if args.plot:
         plot_step(args.plot, t["log"], model, {"simc": gains, "paper": PidGains.paper()})
         print(f"wrote {args.plot}")
@@ -223,7 +279,7 @@ def plot_step(path, log: dict[str, np.ndarray], model, gains: dict[str, PidGains
     y = np.asarray(log["elongation_um"])
     start, k0 = _step_window(t, sp)
     tt = t[start:] - t[start]
-    fit = model.response(tt, sp[start:] - sp[start]) + float(np.mean(y[start:k0 + 1]))
+    fit = model.response(tt, sp[start:] - sp[start]) + float(np.mean(y[start : k0 + 1]))
     a.plot(tt / 60, y[start:], color="tab:grey", lw=1, label="measured")
     a.plot(tt / 60, fit, color="tab:red", lw=1.2, label="fitted step model")
     a.set_xlabel("time [min]")
@@ -231,7 +287,9 @@ def plot_step(path, log: dict[str, np.ndarray], model, gains: dict[str, PidGains
     a.set_title("chiller step: identification", fontsize=9)
     a.legend(fontsize=8)
     for name, g in gains.items():
-        ts, ys = tuning.closed_loop_step(model, g, dt_s=1.0, duration_s=4 * 3600.0, u_limits=(-8.0, 8.0))
+        ts, ys = tuning.closed_loop_step(
+            model, g, dt_s=1.0, duration_s=4 * 3600.0, u_limits=(-8.0, 8.0)
+        )
         b.plot(ts / 60, ys, lw=1.2, label=f"{name}: {g.describe()}")
     b.axhline(1.0, color="k", lw=0.5, ls="--")
     b.set_xlabel("time [min]")
@@ -244,8 +302,9 @@ def plot_step(path, log: dict[str, np.ndarray], model, gains: dict[str, PidGains
     plt.close(fig)
 
 
-def suggest_rite(model: Any, speed_rpm: np.ndarray, time_s: np.ndarray,
-                 inputs: dict[str, float] | None = None) -> tuple[float, list[tuple[float, float, float]]]:
+def suggest_rite(
+    model: Any, speed_rpm: np.ndarray, time_s: np.ndarray, inputs: dict[str, float] | None = None
+) -> tuple[float, list[tuple[float, float, float]]]:
     """RITE for a shop: the model's steady elongation at the speed mix of a journal, each speed
     band's steady elongation weighted by the share of running time it took. The model is linear
     in its states, so the mean state under a repeating mix is its equilibrium under the mean
@@ -278,8 +337,10 @@ def rite(args: argparse.Namespace) -> int:
     inputs = None
     if model.input_names:
         if not args.input:
-            raise ConfigError(f"the model reads {', '.join(model.input_names)}: give each as --input NAME=VALUE "
-                              "(the shop's typical values with the coolant at its constant)")
+            raise ConfigError(
+                f"the model reads {', '.join(model.input_names)}: give each as --input NAME=VALUE "
+                "(the shop's typical values with the coolant at its constant)"
+            )
         inputs = {}
         for item in args.input:
             name, _, value = item.partition("=")
@@ -304,7 +365,9 @@ def simulate_cooling(args: argparse.Namespace) -> int:
     params = preset(args.preset)
     sc = cooling.SCENARIOS.get(args.program)
     if sc is None:
-        raise ConfigError(f"with --cooling, --program is one of paper 000's scenarios: {', '.join(cooling.SCENARIOS)}")
+        raise ConfigError(
+            f"with --cooling, --program is one of paper 000's scenarios: {', '.join(cooling.SCENARIOS)}"
+        )
     if args.rite is not None:
         if not math.isfinite(args.rite):
             raise ConfigError(f"--rite must be a number, got {args.rite}")
@@ -314,16 +377,35 @@ def simulate_cooling(args: argparse.Namespace) -> int:
     else:
         model = _models(params, [sc], print)[(sc.air_c, sc.preheat_c)]
     mode = args.cooling + ("+offset" if args.offset else "")
-    run = cooling.run_scenario(params, sc, model, mode, gains=_gains(args.gains, params, print),
-                               dt_s=1.0, seed=args.seed, sample_s=max(1.0, args.dt))
-    meta = {"source": "thermocomp virtual spindle plant, active cooling", "preset": params.name,
-            "program": sc.name, "cooling": mode, "rite_um": sc.rite_um, "seed": args.seed,
-            "spindle_id": f"sim-{params.name}", "machine_id": "virtual"}
+    run = cooling.run_scenario(
+        params,
+        sc,
+        model,
+        mode,
+        gains=_gains(args.gains, params, print),
+        dt_s=1.0,
+        seed=args.seed,
+        sample_s=max(1.0, args.dt),
+    )
+    meta = {
+        "source": "thermocomp virtual spindle plant, active cooling",
+        "preset": params.name,
+        "program": sc.name,
+        "cooling": mode,
+        "rite_um": sc.rite_um,
+        "seed": args.seed,
+        "spindle_id": f"sim-{params.name}",
+        "machine_id": "virtual",
+    }
     write_run_log(args.output, run.columns(), meta)
     f = stability.stability(run.time_s, run.error_um)
-    print(f"wrote {run.time_s.size} rows of {sc.name} ({sc.title}), cooling {mode}, to {args.output}")
+    print(
+        f"wrote {run.time_s.size} rows of {sc.name} ({sc.title}), cooling {mode}, to {args.output}"
+    )
     if run.switch_s is not None:
-        print(f"the loop closed at {run.switch_s / 60:.1f} min (the estimate reached RITE {sc.rite_um:g} um)")
+        print(
+            f"the loop closed at {run.switch_s / 60:.1f} min (the estimate reached RITE {sc.rite_um:g} um)"
+        )
     for line in f.describe():
         print(line)
     return 0

@@ -56,12 +56,28 @@ class Scenario:
 
 _H = 8 * 3600.0
 SCENARIOS: dict[str, Scenario] = {
-    "wc1": Scenario("wc1", "3000 rpm, TA 18 degC, TC 16 degC, RITE 17 um", ((_H, 3000.0),), 17.0, 18.0, 16.0),
-    "wc2": Scenario("wc2", "2000 rpm, TA 18 degC, TC 14 degC, RITE 9 um", ((_H, 2000.0),), 9.0, 18.0, 14.0),
-    "wc3": Scenario("wc3", "3000/4000/2000 rpm, TA 18 degC, TC 16 degC, RITE 17 um",
-                    ((6000.0, 3000.0), (9000.0, 4000.0), (_H - 15000.0, 2000.0)), 17.0, 18.0, 16.0),
-    "wc4": Scenario("wc4", "2000/3000/2500 rpm, TA 16 degC, TC 14 degC, RITE 12 um",
-                    ((6000.0, 2000.0), (7200.0, 3000.0), (_H - 13200.0, 2500.0)), 12.0, 16.0, 14.0),
+    "wc1": Scenario(
+        "wc1", "3000 rpm, TA 18 degC, TC 16 degC, RITE 17 um", ((_H, 3000.0),), 17.0, 18.0, 16.0
+    ),
+    "wc2": Scenario(
+        "wc2", "2000 rpm, TA 18 degC, TC 14 degC, RITE 9 um", ((_H, 2000.0),), 9.0, 18.0, 14.0
+    ),
+    "wc3": Scenario(
+        "wc3",
+        "3000/4000/2000 rpm, TA 18 degC, TC 16 degC, RITE 17 um",
+        ((6000.0, 3000.0), (9000.0, 4000.0), (_H - 15000.0, 2000.0)),
+        17.0,
+        18.0,
+        16.0,
+    ),
+    "wc4": Scenario(
+        "wc4",
+        "2000/3000/2500 rpm, TA 16 degC, TC 14 degC, RITE 12 um",
+        ((6000.0, 2000.0), (7200.0, 3000.0), (_H - 13200.0, 2500.0)),
+        12.0,
+        16.0,
+        14.0,
+    ),
 }
 """Paper 000's work conditions #1-#4 (speeds and switch times from the paper, 8 h each)."""
 
@@ -71,8 +87,15 @@ def plant_for(params: PlantParams, air_c: float, chiller_c: float) -> PlantParam
     return replace(params, ambient_c=air_c, chiller_c=chiller_c)
 
 
-def excitation_run(params: PlantParams, *, seed: int = 11, cycles: int = 4, dt_s: float = 60.0,
-                   run_h: float = 6.0, rest_h: float = 5.0) -> tuple[LogData, dict[str, np.ndarray]]:
+def excitation_run(
+    params: PlantParams,
+    *,
+    seed: int = 11,
+    cycles: int = 4,
+    dt_s: float = 60.0,
+    run_h: float = 6.0,
+    rest_h: float = 5.0,
+) -> tuple[LogData, dict[str, np.ndarray]]:
     """Heat-up/cool-down cycles at mixed speeds with the chiller set point stepped at random
     every 20-60 min within ±5 K of its constant: a log a model with the coolant can be fitted on.
     Returns the log (with :data:`COOLING_INPUTS`) and its extra columns (set point, supply)."""
@@ -99,18 +122,34 @@ def excitation_run(params: PlantParams, *, seed: int = 11, cycles: int = 4, dt_s
     plant = SpindlePlant(params, seed=seed)
     run = plant.run(t, n, sp)
     sensors = plant.sensor_channels(run)
-    log = LogData("cooling-excitation", run.time_s, run.speed_rpm, run.measured_um,
-                  {k: sensors[k] for k in COOLING_INPUTS})
+    log = LogData(
+        "cooling-excitation",
+        run.time_s,
+        run.speed_rpm,
+        run.measured_um,
+        {k: sensors[k] for k in COOLING_INPUTS},
+    )
     return log, {"chiller_setpoint_c": sp, "supply_c": np.asarray(run.supply_c)}
 
 
-def fit_cooling_model(params: PlantParams, *, seed: int = 11, inputs: Sequence[str] = COOLING_INPUTS,
-                      progress: Any = None) -> Identification:
+def fit_cooling_model(
+    params: PlantParams,
+    *,
+    seed: int = 11,
+    inputs: Sequence[str] = COOLING_INPUTS,
+    progress: Any = None,
+) -> Identification:
     """The model the loop estimates Ê with, fitted on :func:`excitation_run` by the default
     identification (cycle folds, free run)."""
     log, _ = excitation_run(params, seed=seed)
-    return identify([log], inputs, probe_target_um=None, progress=progress,
-                    spindle_id=f"sim-{params.name}", machine_id="virtual")
+    return identify(
+        [log],
+        inputs,
+        probe_target_um=None,
+        progress=progress,
+        spindle_id=f"sim-{params.name}",
+        machine_id="virtual",
+    )
 
 
 @dataclass(frozen=True)
@@ -140,15 +179,31 @@ class CoolingRun:
         return self.measured_um + self.offset_um
 
     def columns(self) -> dict[str, np.ndarray]:
-        return {"time_s": self.time_s, "speed_rpm": self.speed_rpm, "elongation_um": self.measured_um,
-                "estimate_um": self.estimate_um, "offset_um": self.offset_um,
-                "chiller_setpoint_c": self.setpoint_c, "supply_c": np.round(self.supply_c, 3),
-                "coolant_temp_c": np.round(self.coolant_c, 3), "cooling_closed": self.closed.astype(np.int64)}
+        return {
+            "time_s": self.time_s,
+            "speed_rpm": self.speed_rpm,
+            "elongation_um": self.measured_um,
+            "estimate_um": self.estimate_um,
+            "offset_um": self.offset_um,
+            "chiller_setpoint_c": self.setpoint_c,
+            "supply_c": np.round(self.supply_c, 3),
+            "coolant_temp_c": np.round(self.coolant_c, 3),
+            "cooling_closed": self.closed.astype(np.int64),
+        }
 
 
-def simulate_cooling(params: PlantParams, program: Program, model: Any, law: CoolingLaw | None, *,
-                     dt_s: float = 1.0, seed: int = 0, offset: bool = False,
-                     shaper: ShaperConfig | None = None, sample_s: float = 60.0) -> CoolingRun:
+def simulate_cooling(
+    params: PlantParams,
+    program: Program,
+    model: Any,
+    law: CoolingLaw | None,
+    *,
+    dt_s: float = 1.0,
+    seed: int = 0,
+    offset: bool = False,
+    shaper: ShaperConfig | None = None,
+    sample_s: float = 60.0,
+) -> CoolingRun:
     """Run ``program`` on the plant with the chiller held at ``params.chiller_c`` (``law`` None:
     constant cooling) or driven by ``law`` every ``dt_s`` on the estimate of ``model`` (any
     :class:`~compensator.predictor.Predictor`; its inputs from the machine's sensors). With
@@ -179,9 +234,19 @@ def simulate_cooling(params: PlantParams, program: Program, model: Any, law: Coo
                 switch_s = now[0]
         if k % every == 0:
             true = plant.true_elongation_um()
-            rows.append((now[0], speed, true, float(plant.measure_um(true)), est, plant.chiller_setpoint_c,
-                         plant.supply_c, plant.coolant_c,
-                         float(law_state is not None and law_state.phase == "closed")))
+            rows.append(
+                (
+                    now[0],
+                    speed,
+                    true,
+                    float(plant.measure_um(true)),
+                    est,
+                    plant.chiller_setpoint_c,
+                    plant.supply_c,
+                    plant.coolant_c,
+                    float(law_state is not None and law_state.phase == "closed"),
+                )
+            )
     a = np.array(rows, dtype=float)
     t, n, true, meas, est = a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4]
     off = np.zeros_like(t)
@@ -189,8 +254,21 @@ def simulate_cooling(params: PlantParams, program: Program, model: Any, law: Coo
         cfg = shaper or ShaperConfig()
         off = shape_series(cfg, t, n, est).offset_um
     mode = ("pid" if law is not None else "constant") + ("+offset" if offset else "")
-    return CoolingRun(mode, t, n, true, meas, est, a[:, 5], a[:, 6], a[:, 7], a[:, 8] > 0.5, off, switch_s,
-                      {"dt_s": dt_s, "seed": seed, "plant": params.name})
+    return CoolingRun(
+        mode,
+        t,
+        n,
+        true,
+        meas,
+        est,
+        a[:, 5],
+        a[:, 6],
+        a[:, 7],
+        a[:, 8] > 0.5,
+        off,
+        switch_s,
+        {"dt_s": dt_s, "seed": seed, "plant": params.name},
+    )
 
 
 def _inputs(vm: VirtualMachine, names: Sequence[str]) -> dict[str, float] | None:
@@ -210,34 +288,64 @@ class ComparisonRow:
 
     def row(self) -> dict[str, Any]:
         f = self.figures
-        return {"scenario": self.scenario, "mode": self.mode,
-                "equilibrium_min": None if f.equilibrium_s is None else round(f.equilibrium_s / 60, 1),
-                "tevr_um": None if f.tevr_um is None else round(f.tevr_um, 2),
-                "mean_after_um": None if f.mean_after_um is None else round(f.mean_after_um, 2),
-                "max_abs_um": round(f.max_abs_um, 2),
-                "switch_min": None if self.switch_s is None else round(self.switch_s / 60, 1),
-                "setpoint_c": [round(v, 1) for v in self.setpoint_range_c]}
+        return {
+            "scenario": self.scenario,
+            "mode": self.mode,
+            "equilibrium_min": None if f.equilibrium_s is None else round(f.equilibrium_s / 60, 1),
+            "tevr_um": None if f.tevr_um is None else round(f.tevr_um, 2),
+            "mean_after_um": None if f.mean_after_um is None else round(f.mean_after_um, 2),
+            "max_abs_um": round(f.max_abs_um, 2),
+            "switch_min": None if self.switch_s is None else round(self.switch_s / 60, 1),
+            "setpoint_c": [round(v, 1) for v in self.setpoint_range_c],
+        }
 
 
 def figures_of(run: CoolingRun) -> ComparisonRow:
-    return ComparisonRow(run.meta.get("scenario", ""), run.mode, stability.stability(run.time_s, run.error_um),
-                         run.switch_s, (float(run.setpoint_c.min()), float(run.setpoint_c.max())))
+    return ComparisonRow(
+        run.meta.get("scenario", ""),
+        run.mode,
+        stability.stability(run.time_s, run.error_um),
+        run.switch_s,
+        (float(run.setpoint_c.min()), float(run.setpoint_c.max())),
+    )
 
 
 def law_for(scenario: Scenario, gains: PidGains | None = None, **limits: Any) -> CoolingLaw:
     """The paper's controller for a scenario: preheat at its TC, RITE, the gains (paper's by
     default), limits (default 8-26 degC, 1 K/min)."""
     cfg: dict[str, Any] = {"min_c": 8.0, "max_c": 26.0, "rate_k_per_min": 1.0, **limits}
-    return CoolingLaw(rite_um=scenario.rite_um, preheat_c=scenario.preheat_c,
-                      gains=gains or PidGains.paper(), **cfg)
+    return CoolingLaw(
+        rite_um=scenario.rite_um,
+        preheat_c=scenario.preheat_c,
+        gains=gains or PidGains.paper(),
+        **cfg,
+    )
 
 
-def run_scenario(params: PlantParams, scenario: Scenario, model: Any, mode: str, *,
-                 gains: PidGains | None = None, dt_s: float = 1.0, seed: int = 0,
-                 shaper: ShaperConfig | None = None, sample_s: float = 60.0) -> CoolingRun:
+def run_scenario(
+    params: PlantParams,
+    scenario: Scenario,
+    model: Any,
+    mode: str,
+    *,
+    gains: PidGains | None = None,
+    dt_s: float = 1.0,
+    seed: int = 0,
+    shaper: ShaperConfig | None = None,
+    sample_s: float = 60.0,
+) -> CoolingRun:
     """``mode``: ``constant``, ``pid``, ``pid+offset`` (``both``) or ``constant+offset``."""
     p = plant_for(params, scenario.air_c, scenario.preheat_c)
     law = law_for(scenario, gains) if mode.startswith("pid") else None
-    run = simulate_cooling(p, scenario.program(), model, law, dt_s=dt_s, seed=seed,
-                           offset=mode.endswith("+offset"), shaper=shaper, sample_s=max(sample_s, dt_s))
+    run = simulate_cooling(
+        p,
+        scenario.program(),
+        model,
+        law,
+        dt_s=dt_s,
+        seed=seed,
+        offset=mode.endswith("+offset"),
+        shaper=shaper,
+        sample_s=max(sample_s, dt_s),
+    )
     return replace(run, meta={**run.meta, "scenario": scenario.name})

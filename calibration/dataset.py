@@ -87,11 +87,16 @@ def _unit(scheme: str) -> str:
     return "block" if scheme.startswith("blocked") else "cycle"
 
 
-def log_data(logs: Sequence[RunLog], input_names: Sequence[str] = (),
-             labels: Sequence[str] | None = None) -> tuple[list[LogData], list[str]]:
+def log_data(
+    logs: Sequence[RunLog], input_names: Sequence[str] = (), labels: Sequence[str] | None = None
+) -> tuple[list[LogData], list[str]]:
     """The logs checked, gaps bridged, the named inputs taken: what the identification fits.
     Returns the data and one line per log that had gaps."""
-    labels = list(labels) if labels is not None else [lg.source or f"log{i + 1}" for i, lg in enumerate(logs)]
+    labels = (
+        list(labels)
+        if labels is not None
+        else [lg.source or f"log{i + 1}" for i, lg in enumerate(logs)]
+    )
     if len(labels) != len(logs):
         raise CalibrationError(f"{len(labels)} labels for {len(logs)} logs")
     data, notes = [], []
@@ -100,13 +105,17 @@ def log_data(logs: Sequence[RunLog], input_names: Sequence[str] = (),
         speed, gaps = bridge_gaps(run.time_s, run.speed_rpm)
         name = Path(label).name
         if gaps:
-            notes.append(f"{name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
-                         "integrated at the last logged speed (a gap that begins at rest cools)")
+            notes.append(
+                f"{name}: {len(gaps)} gap(s) of up to {max(g for _, g in gaps) / 3600:.1f} h: "
+                "integrated at the last logged speed (a gap that begins at rest cools)"
+            )
         inputs = {}
         for n in input_names:
             if n not in lg.extras:
-                raise CalibrationError(f"{lg.source or name}: no column {n!r} for --inputs "
-                                       f"(columns: {', '.join(lg.extras) or 'none'})")
+                raise CalibrationError(
+                    f"{lg.source or name}: no column {n!r} for --inputs "
+                    f"(columns: {', '.join(lg.extras) or 'none'})"
+                )
             inputs[n] = np.asarray(lg.extras[n], dtype=float)
         data.append(LogData(name, run.time_s, speed, run.elongation_um, inputs))
     return data, notes
@@ -145,37 +154,66 @@ def join(logs: Sequence[LogData], input_names: Sequence[str] = ()) -> Dataset:
         folds = fl.blocks(tj)
         scheme = f"blocked ({len(folds)} contiguous blocks of one cycle)"
         if len(folds) < 2 or min(b - a for a, b in folds) < fl.MIN_FOLD_ROWS:
-            raise CalibrationError(f"too few rows ({tj.size}) to validate: record a heat-up and a "
-                                   "cool-down, at least a few hundred samples")
+            raise CalibrationError(
+                f"too few rows ({tj.size}) to validate: record a heat-up and a "
+                "cool-down, at least a few hundred samples"
+            )
     y = np.concatenate(y_parts)
     measured = np.isfinite(y)
     dropped = 0
     if not measured.all():
         if measured.sum() < MIN_MEASURED_ROWS:
-            raise CalibrationError(f"the elongation is measured on {int(measured.sum())} rows; a "
-                                   f"calibration needs at least {MIN_MEASURED_ROWS}")
+            raise CalibrationError(
+                f"the elongation is measured on {int(measured.sum())} rows; a "
+                f"calibration needs at least {MIN_MEASURED_ROWS}"
+            )
         kept = tuple((a, b) for a, b in folds if measured[a:b].any())
         unit = _unit(scheme)
         if len(kept) < 2:
-            raise CalibrationError(f"the {int(measured.sum())} measurements fall in one {unit} of "
-                                   f"{len(folds)}: nothing to validate on; measure in another {unit} too")
+            raise CalibrationError(
+                f"the {int(measured.sum())} measurements fall in one {unit} of "
+                f"{len(folds)}: nothing to validate on; measure in another {unit} too"
+            )
         dropped, folds = len(folds) - len(kept), kept
         scheme = f"{scheme} (on the measured rows)"
-    return Dataset(tj, np.concatenate(s_parts), y, {k: np.concatenate(v) for k, v in ins.items()},
-                   tuple(segs), tuple(lg.name for lg in logs), tuple(cycles), folds, scheme,
-                   tuple(lines), dropped)
+    return Dataset(
+        tj,
+        np.concatenate(s_parts),
+        y,
+        {k: np.concatenate(v) for k, v in ins.items()},
+        tuple(segs),
+        tuple(lg.name for lg in logs),
+        tuple(cycles),
+        folds,
+        scheme,
+        tuple(lines),
+        dropped,
+    )
 
 
-def from_arrays(time_s: Any, speed_rpm: Any, elongation_um: Any,
-                inputs: Mapping[str, Any] | None = None, *,
-                folds: Sequence[tuple[int, int]] | None = None,
-                segments: Sequence[tuple[int, int]] | None = None) -> Dataset:
+def from_arrays(
+    time_s: Any,
+    speed_rpm: Any,
+    elongation_um: Any,
+    inputs: Mapping[str, Any] | None = None,
+    *,
+    folds: Sequence[tuple[int, int]] | None = None,
+    segments: Sequence[tuple[int, int]] | None = None,
+) -> Dataset:
     """A dataset from series already joined (the array-level entry points): ``folds`` default
     to the log's cycles (:func:`calibration.folds.split_cycles`), ``segments`` to one."""
     t = np.asarray(time_s, float)
     sp = np.asarray(speed_rpm, float)
     cyc = tuple(fl.split_cycles(t, sp))
-    return Dataset(t, sp, np.asarray(elongation_um, float),
-                   {k: np.asarray(v, float) for k, v in (inputs or {}).items()},
-                   tuple(segments) if segments else ((0, int(t.size)),), ("log",), cyc,
-                   tuple(folds) if folds is not None else cyc, "leave-one-cycle-out", ())
+    return Dataset(
+        t,
+        sp,
+        np.asarray(elongation_um, float),
+        {k: np.asarray(v, float) for k, v in (inputs or {}).items()},
+        tuple(segments) if segments else ((0, int(t.size)),),
+        ("log",),
+        cyc,
+        tuple(folds) if folds is not None else cyc,
+        "leave-one-cycle-out",
+        (),
+    )

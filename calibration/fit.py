@@ -46,8 +46,16 @@ TOP_SHARE = 2 / 3
 the elongation at rest."""
 PROBLEM_FLAGS = f"{Problem.__module__}.{Problem.__qualname__}"
 """What the recorder's run logs declare their ``flags`` column to hold (``# columns:``)."""
-UNIT_SUFFIXES = (("_c", "degC"), ("_k", "K"), ("_pct", "%"), ("_kw", "kW"), ("_w", "W"), ("_a", "A"),
-                 ("_nm", "N m"), ("_bar", "bar"))
+UNIT_SUFFIXES = (
+    ("_c", "degC"),
+    ("_k", "K"),
+    ("_pct", "%"),
+    ("_kw", "kW"),
+    ("_w", "W"),
+    ("_a", "A"),
+    ("_nm", "N m"),
+    ("_bar", "bar"),
+)
 
 
 def unit_of(name: str) -> str:
@@ -58,12 +66,20 @@ def unit_of(name: str) -> str:
     return "1"
 
 
-def fit_logs(logs: Sequence[RunLog], input_names: Sequence[str] = (), *,
-             labels: Sequence[str] | None = None, nested: bool = True, physical: bool = True,
-             probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
-             probe_every_s: float | None = None, units: Mapping[str, str] | None = None,
-             progress: Callable[[str], None] | None = None, growth_direction: int | None = None,
-             **meta: Any) -> Identification:
+def fit_logs(
+    logs: Sequence[RunLog],
+    input_names: Sequence[str] = (),
+    *,
+    labels: Sequence[str] | None = None,
+    nested: bool = True,
+    physical: bool = True,
+    probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
+    probe_every_s: float | None = None,
+    units: Mapping[str, str] | None = None,
+    progress: Callable[[str], None] | None = None,
+    growth_direction: int | None = None,
+    **meta: Any,
+) -> Identification:
     """Identify a model from run logs: every candidate on the same whole-cycle folds, scored in free
     run, the choice printed with its reason (:class:`calibration.identify.Identification`).
 
@@ -73,18 +89,37 @@ def fit_logs(logs: Sequence[RunLog], input_names: Sequence[str] = (), *,
     whose rows mostly did not follow the calibration program (the recorder's flags).
     """
     data, notes = log_data(logs, input_names, labels)
-    result = fit_data(data, input_names, nested=nested, physical=physical, probe_target_um=probe_target_um,
-                      probe_every_s=probe_every_s, units=units, progress=progress,
-                      growth_direction=growth_direction, not_following=not_following_rows(logs), **meta)
+    result = fit_data(
+        data,
+        input_names,
+        nested=nested,
+        physical=physical,
+        probe_target_um=probe_target_um,
+        probe_every_s=probe_every_s,
+        units=units,
+        progress=progress,
+        growth_direction=growth_direction,
+        not_following=not_following_rows(logs),
+        **meta,
+    )
     result.warnings[:0] = notes
     return result
 
 
-def fit_data(data: Sequence[LogData], input_names: Sequence[str] = (), *, nested: bool = True,
-             physical: bool = True, probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
-             probe_every_s: float | None = None, units: Mapping[str, str] | None = None,
-             progress: Callable[[str], None] | None = None, growth_direction: int | None = None,
-             not_following: tuple[int, int] | None = None, **meta: Any) -> Identification:
+def fit_data(
+    data: Sequence[LogData],
+    input_names: Sequence[str] = (),
+    *,
+    nested: bool = True,
+    physical: bool = True,
+    probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
+    probe_every_s: float | None = None,
+    units: Mapping[str, str] | None = None,
+    progress: Callable[[str], None] | None = None,
+    growth_direction: int | None = None,
+    not_following: tuple[int, int] | None = None,
+    **meta: Any,
+) -> Identification:
     """:func:`fit_logs` on logs already checked and bridged (:func:`log_data`), or on series held
     in memory (the virtual plant's): dense or sparse by the elongation's NaN cells.
 
@@ -102,15 +137,27 @@ def fit_data(data: Sequence[LogData], input_names: Sequence[str] = (), *, nested
         share = not_following[0] / not_following[1]
         why = not_following_refusal(share)
         if why is not None:
-            raise CalibrationError(f"calibration refused: {why} ({not_following[0]} of {not_following[1]} rows)")
+            raise CalibrationError(
+                f"calibration refused: {why} ({not_following[0]} of {not_following[1]} rows)"
+            )
     units = dict(units) if units is not None else {n: unit_of(n) for n in input_names}
     direction = growth_direction if growth_direction is not None else growth_direction_of(data)
     measured = np.concatenate([np.asarray(d.elongation_um, float) for d in data])
     measured = measured[np.isfinite(measured)]
     span_um = float(np.ptp(measured)) if measured.size else None  # the growth, wherever zero was
-    result = identify(data, input_names, units=units, progress=progress, nested=nested, physical=physical,
-                      probe_target_um=probe_target_um, probe_every_s=probe_every_s,
-                      growth_direction=direction, measured_span_um=span_um, **meta)
+    result = identify(
+        data,
+        input_names,
+        units=units,
+        progress=progress,
+        nested=nested,
+        physical=physical,
+        probe_target_um=probe_target_um,
+        probe_every_s=probe_every_s,
+        growth_direction=direction,
+        measured_span_um=span_um,
+        **meta,
+    )
     result.warnings[:0] = coverage_warnings(data)
     record: dict[str, Any] = {}
     if share is not None:
@@ -163,7 +210,9 @@ def growth_direction_of(data: Sequence[LogData]) -> int | None:
     of speeds minus the mean at rest before the spindle first turns in each log (the cold start;
     the mean at rest when no log starts at rest). None when the logs cannot tell: no measured
     row at the top or at rest, or a difference within the tolerance's floor (0.5 um)."""
-    top_rpm = max((float(np.max(np.abs(d.speed_rpm))) for d in data if len(d.speed_rpm)), default=0.0)
+    top_rpm = max(
+        (float(np.max(np.abs(d.speed_rpm))) for d in data if len(d.speed_rpm)), default=0.0
+    )
     if top_rpm <= 0:
         return None
     hot, cold, rest = [], [], []
@@ -196,10 +245,14 @@ def coverage_warnings(data: Sequence[LogData]) -> list[str]:
     then poorly separated)."""
     out = []
     if not any(has_cooldown(Run(d.name, d.time_s, d.speed_rpm, d.elongation_um)) for d in data):
-        out.append(NO_COOLDOWN + ": the cooling time constant is not identifiable, and a slow heat-up "
-                   "looks like a long time constant. Record a cool-down at 0 rpm")
+        out.append(
+            NO_COOLDOWN + ": the cooling time constant is not identifiable, and a slow heat-up "
+            "looks like a long time constant. Record a cool-down at 0 rpm"
+        )
     levels = np.unique(np.round(np.concatenate([np.abs(d.speed_rpm) for d in data]), -2))
     if levels.size < MIN_SPEED_LEVELS:
-        out.append(f"only {levels.size} {FEW_LEVELS}: the n and n² terms are poorly separated; use a "
-                   f"staircase of {MIN_SPEED_LEVELS} or more speeds")
+        out.append(
+            f"only {levels.size} {FEW_LEVELS}: the n and n² terms are poorly separated; use a "
+            f"staircase of {MIN_SPEED_LEVELS} or more speeds"
+        )
     return out

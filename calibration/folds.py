@@ -51,8 +51,14 @@ def duration_s(t: np.ndarray, a: int, b: int) -> float:
     return float(t[b - 1] - t[max(a - 1, 0)])
 
 
-def split_cycles(time_s: Any, speed_rpm: Any, *, idle_rpm: float = IDLE_RPM,
-                 min_rest_s: float = MIN_REST_S, min_run_s: float = MIN_RUN_S) -> list[Fold]:
+def split_cycles(
+    time_s: Any,
+    speed_rpm: Any,
+    *,
+    idle_rpm: float = IDLE_RPM,
+    min_rest_s: float = MIN_REST_S,
+    min_run_s: float = MIN_RUN_S,
+) -> list[Fold]:
     """Cut a log into cycles: half-open index ranges ``(start, stop)`` that cover it in order.
 
     The rule (:data:`CYCLE_RULE`): the spindle runs when |speed| > ``idle_rpm``; rests shorter
@@ -78,8 +84,9 @@ def split_cycles(time_s: Any, speed_rpm: Any, *, idle_rpm: float = IDLE_RPM,
     return [(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
 
 
-def describe_cycles(time_s: Any, speed_rpm: Any, cycles: Sequence[Fold],
-                    idle_rpm: float = IDLE_RPM) -> list[str]:
+def describe_cycles(
+    time_s: Any, speed_rpm: Any, cycles: Sequence[Fold], idle_rpm: float = IDLE_RPM
+) -> list[str]:
     """One line per cycle: when, how long it ran and at what speed, how long it rested."""
     t = np.asarray(time_s, float)
     n = np.abs(np.asarray(speed_rpm, float))
@@ -89,14 +96,17 @@ def describe_cycles(time_s: Any, speed_rpm: Any, cycles: Sequence[Fold],
         run = n[a:b] > idle_rpm
         run_s = float(np.sum(held[a:b][run]))
         top = float(n[a:b].max()) if b > a else 0.0
-        lines.append(f"cycle {i}: samples {a}..{b - 1}, {t[a] / H:.2f}-{t[b - 1] / H:.2f} h, "
-                     f"running {run_s / H:.2f} h up to {top:.0f} rpm, "
-                     f"at rest {(duration_s(t, a, b) - run_s) / H:.2f} h")
+        lines.append(
+            f"cycle {i}: samples {a}..{b - 1}, {t[a] / H:.2f}-{t[b - 1] / H:.2f} h, "
+            f"running {run_s / H:.2f} h up to {top:.0f} rpm, "
+            f"at rest {(duration_s(t, a, b) - run_s) / H:.2f} h"
+        )
     return lines
 
 
-def longest_stretch_s(time_s: Any, speed_rpm: Any, cycles: Sequence[Fold],
-                      idle_rpm: float = IDLE_RPM) -> float:
+def longest_stretch_s(
+    time_s: Any, speed_rpm: Any, cycles: Sequence[Fold], idle_rpm: float = IDLE_RPM
+) -> float:
     """The median over cycles of the longer of its run and its rest [s]: the longest time
     constant the log can pin down (a slow heat-up looks like a long time constant otherwise)."""
     t = np.asarray(time_s, float)
@@ -134,7 +144,7 @@ def rows_of(size: int, folds: Sequence[Fold], rows: np.ndarray | None = None) ->
 def without(size: int, fold: Fold, rows: np.ndarray | None = None) -> np.ndarray:
     """The training rows when ``fold`` is held out: ``rows`` (default every row) less the fold."""
     out = np.ones(size, bool) if rows is None else np.array(rows, dtype=bool)
-    out[fold[0]:fold[1]] = False
+    out[fold[0] : fold[1]] = False
     return out
 
 
@@ -142,6 +152,11 @@ def check_cover(folds: Sequence[Fold], size: int) -> None:
     """Folds must be non-empty and cover the rows in order."""
     from compensator.errors import CalibrationError
 
-    if (not folds or folds[0][0] != 0 or folds[-1][1] != size or any(b <= a for a, b in folds)
-            or any(x[1] != y[0] for x, y in itertools.pairwise(folds))):
+    if (
+        not folds
+        or folds[0][0] != 0
+        or folds[-1][1] != size
+        or any(b <= a for a, b in folds)
+        or any(x[1] != y[0] for x, y in itertools.pairwise(folds))
+    ):
         raise CalibrationError("cycles must be non-empty and cover the log in order")

@@ -59,15 +59,30 @@ Context = Mapping[str, Any]
 """What every entry may read: ``names`` (the inputs), ``nested``, ``meta`` (model fields)."""
 
 
-def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: Dataset) -> Candidate:
-    c = Candidate(name, family, description, res.cv_rms_um, res.cv_max_abs_um, res.nested_rms_um,
-                  res.nested_max_abs_um, [f.rms_um for f in res.folds], fit_cpu_s=res.fit_cpu_s)
+def _from_ridge(
+    name: str, family: str, description: str, res: rb.RidgeFit, ds: Dataset
+) -> Candidate:
+    c = Candidate(
+        name,
+        family,
+        description,
+        res.cv_rms_um,
+        res.cv_max_abs_um,
+        res.nested_rms_um,
+        res.nested_max_abs_um,
+        [f.rms_um for f in res.folds],
+        fit_cpu_s=res.fit_cpu_s,
+    )
     pred = res.predict_dataset(ds)
     c.in_sample_rms_um, c.in_sample_max_abs_um = measured_stats(
-        np.where(ds.measured, ds.elongation_um - pred, np.nan))
-    c.details = {"grid": res.grid.label, "alpha": res.alpha,
-                 "states": len({t for t in (*res.grid.speed_taus_s, *res.grid.input_taus_s) if t > 0}),
-                 "steady_range_um": res.steady_range_um()}
+        np.where(ds.measured, ds.elongation_um - pred, np.nan)
+    )
+    c.details = {
+        "grid": res.grid.label,
+        "alpha": res.alpha,
+        "states": len({t for t in (*res.grid.speed_taus_s, *res.grid.input_taus_s) if t > 0}),
+        "steady_range_um": res.steady_range_um(),
+    }
     c.notes += list(res.notes)
     c.refusals += list(res.refusals)
     c.held_out_residual_um = res.held_out_residual_um
@@ -75,7 +90,10 @@ def _from_ridge(name: str, family: str, description: str, res: rb.RidgeFit, ds: 
     c.forward_rms_um, c.forward_max_abs_um = res.forward_rms_um, res.forward_max_abs_um
     c.forward_folds_rms_um = [f.rms_um for f in res.forward_folds or ()]
     c.forward_residual_um = res.forward_residual_um
-    c.forward_clipped_residual_um, c.forward_distance = res.forward_clipped_residual_um, res.forward_distance
+    c.forward_clipped_residual_um, c.forward_distance = (
+        res.forward_clipped_residual_um,
+        res.forward_distance,
+    )
     return c
 
 
@@ -87,27 +105,51 @@ def _baseline(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
 
 
 def _ridge(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
-    res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, False)], nested=ctx["nested"])
-    return _from_ridge("ridge", "speed", "ridge over n, n² through first-order filter banks; alpha by CV",
-                       res, ds), res
+    res = rb.fit(
+        ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, False)], nested=ctx["nested"]
+    )
+    return _from_ridge(
+        "ridge", "speed", "ridge over n, n² through first-order filter banks; alpha by CV", res, ds
+    ), res
 
 
-def _ridge_inputs(ds: Dataset, ctx: Context, structure: str = "all") -> tuple[Candidate, rb.RidgeFit]:
+def _ridge_inputs(
+    ds: Dataset, ctx: Context, structure: str = "all"
+) -> tuple[Candidate, rb.RidgeFit]:
     names = ctx["names"]
     try:
-        res = rb.fit(ds, grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)], input_names=names,
-                     nested=ctx["nested"], structure=structure, units=ctx.get("units"))
+        res = rb.fit(
+            ds,
+            grids=[rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)],
+            input_names=names,
+            nested=ctx["nested"],
+            structure=structure,
+            units=ctx.get("units"),
+        )
     except CalibrationError as err:
         if structure == "all":
             raise
-        return Candidate(f"ridge+{structure}", "inputs", f"ridge with {structure} inputs", refusals=[str(err)]), None
+        return Candidate(
+            f"ridge+{structure}", "inputs", f"ridge with {structure} inputs", refusals=[str(err)]
+        ), None
     if structure == "few":
-        name, what = "ridge+few", f"ridge over n, n² and the inputs a forward selection kept ({', '.join(res.input_names)})"
+        name, what = (
+            "ridge+few",
+            f"ridge over n, n² and the inputs a forward selection kept ({', '.join(res.input_names)})",
+        )
     elif structure == "pca":
-        name, what = "ridge+pca", f"ridge over n, n² and {res.structure_detail} of {len(names)} input(s)"
+        name, what = (
+            "ridge+pca",
+            f"ridge over n, n² and {res.structure_detail} of {len(names)} input(s)",
+        )
     elif structure == "bounded":
-        name, what = "ridge+bounded", (f"ridge over n, n² and {len(names)} input(s), each temperature's steady "
-                                       f"sensitivity within {rb.BOUND_UM_PER_K:.1f} um/K")
+        name, what = (
+            "ridge+bounded",
+            (
+                f"ridge over n, n² and {len(names)} input(s), each temperature's steady "
+                f"sensitivity within {rb.BOUND_UM_PER_K:.1f} um/K"
+            ),
+        )
     else:
         name, what = "ridge+inputs", f"ridge over n, n² and {len(names)} input(s)"
     c = _from_ridge(name, "inputs", what + " through filter banks; alpha by CV", res, ds)
@@ -143,20 +185,47 @@ MIN_SHARED_INPUTS = 6
 
 REGISTRY: tuple[Entry, ...] = (
     Entry(baseline.NAME, "speed", _baseline, "fitting the exponential baseline"),
-    Entry(output_error.NAME, "speed", output_error.candidate,
-          f"fitting {output_error.PHYSICAL_FORM} per fold", option="physical"),
+    Entry(
+        output_error.NAME,
+        "speed",
+        output_error.candidate,
+        f"fitting {output_error.PHYSICAL_FORM} per fold",
+        option="physical",
+    ),
     Entry("ridge", "speed", _ridge, "fitting ridge (speed)"),
-    Entry("ridge+inputs", "inputs", _ridge_inputs, "fitting ridge with the inputs", needs_inputs=True),
-    Entry("ridge+few", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "few"),
-          "fitting ridge with the few inputs a forward selection keeps", needs_inputs=True, min_folds=3,
-          min_inputs=MIN_SHARED_INPUTS),
-    Entry("ridge+pca", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "pca"),
-          "fitting ridge with principal components of the inputs", needs_inputs=True, min_folds=3,
-          min_inputs=MIN_SHARED_INPUTS),
-    Entry("ridge+bounded", "inputs", lambda ds, ctx: _ridge_inputs(ds, ctx, "bounded"),
-          "fitting ridge with physically bounded sensitivities", needs_inputs=True, min_folds=3,
-          min_inputs=MIN_SHARED_INPUTS),
-    Entry(paper_ols.NAME, "reference", paper_ols.candidate, "scoring the paper's OLS", every_row=True),
+    Entry(
+        "ridge+inputs", "inputs", _ridge_inputs, "fitting ridge with the inputs", needs_inputs=True
+    ),
+    Entry(
+        "ridge+few",
+        "inputs",
+        lambda ds, ctx: _ridge_inputs(ds, ctx, "few"),
+        "fitting ridge with the few inputs a forward selection keeps",
+        needs_inputs=True,
+        min_folds=3,
+        min_inputs=MIN_SHARED_INPUTS,
+    ),
+    Entry(
+        "ridge+pca",
+        "inputs",
+        lambda ds, ctx: _ridge_inputs(ds, ctx, "pca"),
+        "fitting ridge with principal components of the inputs",
+        needs_inputs=True,
+        min_folds=3,
+        min_inputs=MIN_SHARED_INPUTS,
+    ),
+    Entry(
+        "ridge+bounded",
+        "inputs",
+        lambda ds, ctx: _ridge_inputs(ds, ctx, "bounded"),
+        "fitting ridge with physically bounded sensitivities",
+        needs_inputs=True,
+        min_folds=3,
+        min_inputs=MIN_SHARED_INPUTS,
+    ),
+    Entry(
+        paper_ols.NAME, "reference", paper_ols.candidate, "scoring the paper's OLS", every_row=True
+    ),
 )
 """The candidates, simple to rich within a family (a simpler one wins within PARSIMONY). The
 first is the bar every other must clear."""
@@ -186,8 +255,9 @@ class Identification:
             for name, (a, b) in zip(ds.names, ds.segments):
                 inputs = {n: v[a:b] for n, v in ds.inputs.items()} if m.input_names else None
                 y0 = float(ds.elongation_um[a])
-                out[name] = m.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], inputs,
-                                          y0 if math.isfinite(y0) else None)
+                out[name] = m.simulate_um(
+                    ds.speed_rpm[a:b], ds.time_s[a:b], inputs, y0 if math.isfinite(y0) else None
+                )
         return out
 
     def report(self) -> dict[str, Any]:
@@ -219,24 +289,38 @@ def _coverage(ds: Dataset) -> list[str]:
     out = []
     if not ds.dense:
         m = int(ds.measured.sum())
-        out.append(f"sparse targets: fitted and scored on the {m} measured rows of {ds.measured.size} (the "
-                   "cycles and the free run on every row); the paper's OLS, the "
-                   "closed-loop plan and the HAC standard errors need the elongation on every row and "
-                   "are left out")
+        out.append(
+            f"sparse targets: fitted and scored on the {m} measured rows of {ds.measured.size} (the "
+            "cycles and the free run on every row); the paper's OLS, the "
+            "closed-loop plan and the HAC standard errors need the elongation on every row and "
+            "are left out"
+        )
         if ds.dropped_folds:
-            out.append(f"{ds.dropped_folds} {ds.unit}(s) without a measurement: run through, not fitted or scored")
+            out.append(
+                f"{ds.dropped_folds} {ds.unit}(s) without a measurement: run through, not fitted or scored"
+            )
     if ds.unit == "block":
-        out.append("the logs hold one heat-up/cool-down cycle: scored on contiguous blocks of it; "
-                   "record another cycle for a leave-one-cycle-out score")
+        out.append(
+            "the logs hold one heat-up/cool-down cycle: scored on contiguous blocks of it; "
+            "record another cycle for a leave-one-cycle-out score"
+        )
     return out
 
 
-def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (), *,
-             units: Mapping[str, str] | None = None, physical: bool = True, nested: bool = True,
-             probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
-             probe_every_s: float | None = None,
-             progress: Callable[[str], None] | None = None, growth_direction: int | None = None,
-             measured_span_um: float | None = None, **meta: Any) -> Identification:
+def identify(
+    logs: Sequence[LogData] | Dataset,
+    input_names: Sequence[str] = (),
+    *,
+    units: Mapping[str, str] | None = None,
+    physical: bool = True,
+    nested: bool = True,
+    probe_target_um: float | None = closedloop.DEFAULT_TARGET_UM,
+    probe_every_s: float | None = None,
+    progress: Callable[[str], None] | None = None,
+    growth_direction: int | None = None,
+    measured_span_um: float | None = None,
+    **meta: Any,
+) -> Identification:
     """Fit every candidate of :data:`REGISTRY` that applies, score it on the same folds in free
     run, choose, and build the model.
 
@@ -252,8 +336,10 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
     names = tuple(sorted(set(input_names)))
     ds = logs if isinstance(logs, Dataset) else join(logs, names)
     if not ds.dense and probe_every_s is not None:
-        raise CalibrationError("--probe-every plans the closed loop on an elongation measured on every "
-                               "row; the logs have it on some rows only (sparse)")
+        raise CalibrationError(
+            "--probe-every plans the closed loop on an elongation measured on every "
+            "row; the logs have it on some rows only (sparse)"
+        )
     warnings = _coverage(ds)
     ctx = {"names": names, "nested": nested and len(ds.folds) >= 3, "meta": meta, "units": units}
     options = {"physical": physical}
@@ -261,9 +347,13 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
     cands: list[Candidate] = []
     fitted: dict[str, Any] = {}
     for entry in REGISTRY:
-        if ((entry.every_row and not ds.dense) or (entry.needs_inputs and not names)
-                or (entry.option is not None and not options[entry.option]) or len(ds.folds) < entry.min_folds
-                or len(names) < entry.min_inputs):
+        if (
+            (entry.every_row and not ds.dense)
+            or (entry.needs_inputs and not names)
+            or (entry.option is not None and not options[entry.option])
+            or len(ds.folds) < entry.min_folds
+            or len(names) < entry.min_inputs
+        ):
             continue
         say(entry.progress + suffix)
         c, f = entry.evaluate(ds, ctx)
@@ -273,18 +363,26 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
 
     # with probes planned, a candidate is judged by its closed loop on held-out folds
     plans: dict[str, closedloop.Plan | None] = {}
-    intervals = tuple(sorted({*closedloop.INTERVALS_S, *([probe_every_s] if probe_every_s else [])}))
+    intervals = tuple(
+        sorted({*closedloop.INTERVALS_S, *([probe_every_s] if probe_every_s else [])})
+    )
     target = probe_target_um if probe_target_um is not None else closedloop.DEFAULT_TARGET_UM
 
     def loop_of(c: Candidate) -> closedloop.Plan | None:
         if c.name not in plans:
-            tau = c.slowest_tau_s or (max(c.model.time_constants_s(0.0)) if c.model is not None else 0.0)
+            tau = c.slowest_tau_s or (
+                max(c.model.time_constants_s(0.0)) if c.model is not None else 0.0
+            )
             ok = c.held_out_residual_um is not None and tau > 0 and len(ds.folds) >= 2 and ds.dense
-            plans[c.name] = closedloop.plan(ds.time_s, c.held_out_residual_um, ds.folds, tau, target,
-                                            intervals) if ok else None
+            plans[c.name] = (
+                closedloop.plan(ds.time_s, c.held_out_residual_um, ds.folds, tau, target, intervals)
+                if ok
+                else None
+            )
             if plans[c.name] is not None:
-                c.details["closed_loop_rms_um"] = {f"{r['interval_s']:.0f}": round(r["rms_um"], 4)
-                                                   for r in plans[c.name].table[1:]}
+                c.details["closed_loop_rms_um"] = {
+                    f"{r['interval_s']:.0f}": round(r["rms_um"], 4) for r in plans[c.name].table[1:]
+                }
         return plans[c.name]
 
     def score(c: Candidate) -> float:
@@ -293,8 +391,11 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         p = loop_of(c)
         return math.inf if p is None else p.rms_at(probe_every_s)
 
-    what = ("held-out RMS (the worse of nested and forward)" if probe_every_s is None
-            else f"closed-loop RMS (a probe every {probe_every_s:g} s)")
+    what = (
+        "held-out RMS (the worse of nested and forward)"
+        if probe_every_s is None
+        else f"closed-loop RMS (a probe every {probe_every_s:g} s)"
+    )
     if probe_every_s is not None:
         say(f"scoring every candidate in closed loop, a probe every {probe_every_s:g} s")
     bar = score(cands[0])
@@ -302,8 +403,9 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         if c.family == "reference":
             continue
         if c is not cands[0] and score(c) > bar:
-            c.refusals.append(f"{what} {score(c):.2f} um is worse than the exponential "
-                              f"baseline's {bar:.2f} um")
+            c.refusals.append(
+                f"{what} {score(c):.2f} um is worse than the exponential baseline's {bar:.2f} um"
+            )
         c.accepted = not c.refusals
 
     # build the speed-only models the choice may need
@@ -320,26 +422,34 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
                 c.accepted, c.refusals = False, [*c.refusals, f"physics: {why}"]
     speed = [c for c in cands if c.family == "speed" and c.accepted and c.model is not None]
     if not speed:
-        raise CalibrationError("no speed-only candidate passed the checks: "
-                               + "; ".join(f"{c.name}: {', '.join(c.refusals)}" for c in cands
-                                           if c.family == "speed"))
+        raise CalibrationError(
+            "no speed-only candidate passed the checks: "
+            + "; ".join(f"{c.name}: {', '.join(c.refusals)}" for c in cands if c.family == "speed")
+        )
     best = min(speed, key=score)
     chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
     kept = None if probe_every_s is not None else _physical_within_noise(speed, chosen, ds)
     if kept is not None:
         chosen, kept_why = kept
     basis = "nested " if chosen.nested_rms_um is not None else ""
-    ahead = (f", forward {chosen.forward_rms_um:.2f} um" if chosen.forward_rms_um is not None else "")
+    ahead = f", forward {chosen.forward_rms_um:.2f} um" if chosen.forward_rms_um is not None else ""
     if probe_every_s is None:
-        figure = ("held-out free-run RMS (the worse of nested and forward)"
-                  if chosen.decisive_rms_um != chosen.honest_rms_um or len(chosen.forward_folds_rms_um) >= MIN_FORWARD_FOLDS
-                  else f"{basis}{ds.scheme} free-run RMS")
-        reason = (f"{chosen.name} has the lowest {figure} among the speed-only candidates, "
-                  f"{chosen.decisive_rms_um:.2f} um ({basis}{ds.scheme} {chosen.honest_rms_um:.2f} um{ahead})")
+        figure = (
+            "held-out free-run RMS (the worse of nested and forward)"
+            if chosen.decisive_rms_um != chosen.honest_rms_um
+            or len(chosen.forward_folds_rms_um) >= MIN_FORWARD_FOLDS
+            else f"{basis}{ds.scheme} free-run RMS"
+        )
+        reason = (
+            f"{chosen.name} has the lowest {figure} among the speed-only candidates, "
+            f"{chosen.decisive_rms_um:.2f} um ({basis}{ds.scheme} {chosen.honest_rms_um:.2f} um{ahead})"
+        )
     else:
-        reason = (f"{chosen.name} has the lowest {ds.scheme} {what} among the speed-only candidates "
-                  f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS "
-                  f"{chosen.honest_rms_um:.2f} um{ahead}")
+        reason = (
+            f"{chosen.name} has the lowest {ds.scheme} {what} among the speed-only candidates "
+            f"({', '.join(f'{c.name} {score(c):.2f} um' for c in speed)}); its {basis}free-run RMS "
+            f"{chosen.honest_rms_um:.2f} um{ahead}"
+        )
     if kept is not None:
         reason += f" ({kept_why})"
     elif chosen is not best:
@@ -348,17 +458,31 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
     final = chosen
     with_inputs = _best_with_inputs([c for c in cands if c.family == "inputs"], score)
     if with_inputs is not None:
-        model, final, reason = with_inputs_or_not(with_inputs, chosen, fitted[with_inputs.name], model, ds,
-                                                  reason, warnings, score=score, what=what,
-                                                  n_inputs=len(names), units=units, meta=meta)
+        model, final, reason = with_inputs_or_not(
+            with_inputs,
+            chosen,
+            fitted[with_inputs.name],
+            model,
+            ds,
+            reason,
+            warnings,
+            score=score,
+            what=what,
+            n_inputs=len(names),
+            units=units,
+            meta=meta,
+        )
     statement = _speed_alone(ds, chosen, final, fitted.get("ridge"), loop_of if ds.dense else None)
     if statement:
         warnings.append(statement)
     paper = next((c for c in cands if c.family == "reference"), None)
     if paper is not None and math.isfinite(paper.cv_rms_um):
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
-    derived = rb.derived(fitted[final.name], ds) if isinstance(fitted.get(final.name), rb.RidgeFit) \
-        and final.name != baseline.NAME else []
+    derived = (
+        rb.derived(fitted[final.name], ds)
+        if isinstance(fitted.get(final.name), rb.RidgeFit) and final.name != baseline.NAME
+        else []
+    )
     loop = None
     if probe_target_um is not None and ds.dense:
         say("planning the closed loop (probe intervals)")
@@ -368,12 +492,18 @@ def identify(logs: Sequence[LogData] | Dataset, input_names: Sequence[str] = (),
         fb_loop = loop_of(chosen) if fb is not None else None
         update: dict[str, Any] = {"fit": {**model.fit, "observer": loop.observer.model_dump()}}
         if fb is not None and fb_loop is not None:  # the fallback keeps the observer fitted to it
-            update["fallback"] = fb.model_copy(update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}})
+            update["fallback"] = fb.model_copy(
+                update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}}
+            )
         model = model.model_copy(update=update)
-    return Identification(ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop)
+    return Identification(
+        ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop
+    )
 
 
-def _paired_fold_mse_um2(simple: Candidate, rich: Candidate, ds: Dataset) -> tuple[float, float, int] | None:
+def _paired_fold_mse_um2(
+    simple: Candidate, rich: Candidate, ds: Dataset
+) -> tuple[float, float, int] | None:
     """The mean over folds of (simple's held-out MSE - rich's) on the rows both scored, its
     standard error, and the folds; None below 3 folds."""
     a, b = simple.held_out_residual_um, rich.held_out_residual_um
@@ -389,8 +519,9 @@ def _paired_fold_mse_um2(simple: Candidate, rich: Candidate, ds: Dataset) -> tup
     return float(np.mean(d)), float(np.std(d, ddof=1) / math.sqrt(len(d))), len(d)
 
 
-def _physical_within_noise(speed: Sequence[Candidate], chosen: Candidate,
-                           ds: Dataset) -> tuple[Candidate, str] | None:
+def _physical_within_noise(
+    speed: Sequence[Candidate], chosen: Candidate, ds: Dataset
+) -> tuple[Candidate, str] | None:
     """The physical form instead of a flexible candidate that beats it by less than the noise of
     the comparison: one standard error of their paired per-fold difference in held-out MSE (the
     one-standard-error rule; Hastie, Tibshirani and Friedman, section 7.10). It has a handful of
@@ -408,12 +539,16 @@ def _physical_within_noise(speed: Sequence[Candidate], chosen: Candidate,
     gain, se, k = paired
     if gain > se:
         return None
-    return phys, (f"{chosen.name} is lower by {chosen.honest_rms_um:.2f} against {phys.honest_rms_um:.2f} um, "
-                  f"a gain in held-out MSE of {gain:.3f} um² within one standard error ({se:.3f} um² over "
-                  f"{k} {ds.unit}s): the physical form, with fewer parameters, is kept")
+    return phys, (
+        f"{chosen.name} is lower by {chosen.honest_rms_um:.2f} against {phys.honest_rms_um:.2f} um, "
+        f"a gain in held-out MSE of {gain:.3f} um² within one standard error ({se:.3f} um² over "
+        f"{k} {ds.unit}s): the physical form, with fewer parameters, is kept"
+    )
 
 
-def _best_with_inputs(cands: Sequence[Candidate], score: Callable[[Candidate], float]) -> Candidate | None:
+def _best_with_inputs(
+    cands: Sequence[Candidate], score: Callable[[Candidate], float]
+) -> Candidate | None:
     """The structure for the inputs, chosen by data. The first (a bank per input) stands unless
     another beats it by more than PARSIMONY: a structure that shares strength must earn its
     place (on the virtual plant, three independent sensors lost to their own principal
@@ -425,12 +560,18 @@ def _best_with_inputs(cands: Sequence[Candidate], score: Callable[[Candidate], f
     if not ok:
         return default
     best = min(ok, key=score)
-    pick = best if (not default.accepted or score(best) < score(default) * (1 - PARSIMONY)) else default
+    pick = (
+        best
+        if (not default.accepted or score(best) < score(default) * (1 - PARSIMONY))
+        else default
+    )
     for c in ok:
         if c is not pick:
             c.accepted = False
             why = "lower" if score(pick) < score(c) else f"the plain bank, within {PARSIMONY:.0%}"
-            c.refusals.append(f"{pick.name} is {why} ({score(pick):.2f} um against {score(c):.2f} um)")
+            c.refusals.append(
+                f"{pick.name} is {why} ({score(pick):.2f} um against {score(c):.2f} um)"
+            )
     return pick
 
 
@@ -439,8 +580,13 @@ SPEED_ALONE_SHARE = 0.5
 uncompensated error or more."""
 
 
-def _speed_alone(ds: Dataset, chosen: Candidate, final: Candidate, ridge: Any,
-                 loop_of: Callable[[Candidate], closedloop.Plan | None] | None) -> str | None:
+def _speed_alone(
+    ds: Dataset,
+    chosen: Candidate,
+    final: Candidate,
+    ridge: Any,
+    loop_of: Callable[[Candidate], closedloop.Plan | None] | None,
+) -> str | None:
     """One line when speed alone cannot carry the log: the speed-only model's held-out error
     against the uncompensated one, how much alpha alone moves its forward error, and the
     cheapest remedy with its figure (the logged temperatures, a probe interval, a longer
@@ -451,45 +597,79 @@ def _speed_alone(ds: Dataset, chosen: Candidate, final: Candidate, ridge: Any,
     raw = float(np.sqrt(np.mean(ds.elongation_um[rows] ** 2)))
     if chosen.decisive_rms_um < SPEED_ALONE_SHARE * raw:
         return None
-    line = (f"speed alone cannot carry this log: the best speed-only model ({chosen.name}) errs "
-            f"{chosen.decisive_rms_um:.1f} um held out, against {raw:.1f} um uncompensated")
-    spread = [v for v in ridge.forward_rms_by_alpha_um if math.isfinite(v)] if isinstance(ridge, rb.RidgeFit) else []
+    line = (
+        f"speed alone cannot carry this log: the best speed-only model ({chosen.name}) errs "
+        f"{chosen.decisive_rms_um:.1f} um held out, against {raw:.1f} um uncompensated"
+    )
+    spread = (
+        [v for v in ridge.forward_rms_by_alpha_um if math.isfinite(v)]
+        if isinstance(ridge, rb.RidgeFit)
+        else []
+    )
     if spread:
-        line += (f"; alpha alone moves the speed-only ridge's forward error from {min(spread):.1f} to "
-                 f"{max(spread):.1f} um")
+        line += (
+            f"; alpha alone moves the speed-only ridge's forward error from {min(spread):.1f} to "
+            f"{max(spread):.1f} um"
+        )
     if final is not chosen:
-        return line + (f". The logged inputs carry it ({final.decisive_rms_um:.2f} um held out): keep "
-                       "them connected, and probe when one fails")
+        return line + (
+            f". The logged inputs carry it ({final.decisive_rms_um:.2f} um held out): keep "
+            "them connected, and probe when one fails"
+        )
     plan = loop_of(chosen) if loop_of is not None else None
     if plan is not None and plan.recommended_s is not None:
-        return line + (f". Cheapest remedy: probe every {plan.recommended_s / 60:.0f} min "
-                       f"({plan.rms_at(plan.recommended_s):.2f} um RMS held out); or log temperatures")
+        return line + (
+            f". Cheapest remedy: probe every {plan.recommended_s / 60:.0f} min "
+            f"({plan.rms_at(plan.recommended_s):.2f} um RMS held out); or log temperatures"
+        )
     tau_h = chosen.slowest_tau_s / 3600 if chosen.slowest_tau_s else 0.0
-    return line + (". Remedies: log temperatures (--inputs), probe often (fit --probe-every), or record "
-                   + (f"more cycles than the slowest time constant ({tau_h:.0f} h) spans" if tau_h
-                      else "more cycles"))
+    return line + (
+        ". Remedies: log temperatures (--inputs), probe often (fit --probe-every), or record "
+        + (
+            f"more cycles than the slowest time constant ({tau_h:.0f} h) spans"
+            if tau_h
+            else "more cycles"
+        )
+    )
 
 
-def with_inputs_or_not(c_in: Candidate, chosen: Candidate, ridge_in: Any, model: Any, ds: Dataset,
-                       reason: str, warnings: list[str], *, score: Callable[[Candidate], float], what: str,
-                       n_inputs: int, units: Any, meta: Mapping[str, Any]) -> tuple[Any, Candidate, str]:
+def with_inputs_or_not(
+    c_in: Candidate,
+    chosen: Candidate,
+    ridge_in: Any,
+    model: Any,
+    ds: Dataset,
+    reason: str,
+    warnings: list[str],
+    *,
+    score: Callable[[Candidate], float],
+    what: str,
+    n_inputs: int,
+    units: Any,
+    meta: Mapping[str, Any],
+) -> tuple[Any, Candidate, str]:
     """The model with inputs when it beats the chosen speed-only one by ``score`` (``what`` names
     the figure), with that one as its fallback; else the speed-only one, and why. Returns
     (model, the candidate chosen, the reason); refusals go to ``c_in`` and ``warnings``."""
     if c_in.accepted and score(c_in) >= score(chosen):
         c_in.accepted = False
-        c_in.refusals.append(f"no better than speed only ({what} {score(c_in):.2f} um against "
-                             f"{score(chosen):.2f} um)")
+        c_in.refusals.append(
+            f"no better than speed only ({what} {score(c_in):.2f} um against "
+            f"{score(chosen):.2f} um)"
+        )
     if c_in.accepted:
-        c_in.model, refusal = rb.to_model_or_refuse(ridge_in, c_in.name, units=units, fallback=model,
-                                                    fit={}, **meta)
+        c_in.model, refusal = rb.to_model_or_refuse(
+            ridge_in, c_in.name, units=units, fallback=model, fit={}, **meta
+        )
         if refusal:
             c_in.accepted, c_in.refusals = False, [*c_in.refusals, refusal]
     if not c_in.accepted:
         warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
         return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
-    reason += (f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
-               f"{chosen.name} stands in when one fails")
+    reason += (
+        f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
+        f"{chosen.name} stands in when one fails"
+    )
     policy, span, residual, why = extrapolation(c_in, chosen)
     c_in.details["extrapolation"] = why
     c_in.model = c_in.model.model_copy(update={"extrapolation": policy, "blend_span": span})
@@ -500,7 +680,9 @@ BLEND_SPANS = (0.25, 1.0)
 """A blend hands over to the fallback completely at this many spans outside the trained range."""
 
 
-def extrapolation(c_in: Candidate, fallback: Candidate) -> tuple[str, float, np.ndarray | None, str]:
+def extrapolation(
+    c_in: Candidate, fallback: Candidate
+) -> tuple[str, float, np.ndarray | None, str]:
     """What the model does when its inputs leave the trained range, chosen by data: on the rows
     of the forward splits whose inputs left the range the past saw, the RMS of the prediction
     with the gains carried on (``linear``), with the inputs held at the range's ends (``clip``)
@@ -509,34 +691,69 @@ def extrapolation(c_in: Candidate, fallback: Candidate) -> tuple[str, float, np.
     choice below :data:`MIN_FORWARD_FOLDS` folds predicted forward or :data:`MIN_BAND_ROWS`
     rows outside. Returns (policy, blend
     span, the forward residual under it, why in one line)."""
-    r_lin, r_clip, dist = c_in.forward_residual_um, c_in.forward_clipped_residual_um, c_in.forward_distance
+    r_lin, r_clip, dist = (
+        c_in.forward_residual_um,
+        c_in.forward_clipped_residual_um,
+        c_in.forward_distance,
+    )
     if r_lin is None or r_clip is None or dist is None:
-        return "linear", 1.0, r_lin, "outside the trained range: linear (no forward split to choose by)"
+        return (
+            "linear",
+            1.0,
+            r_lin,
+            "outside the trained range: linear (no forward split to choose by)",
+        )
     d = np.nan_to_num(dist, nan=0.0)
     out = np.isfinite(r_lin) & (d > 0)
     if len(c_in.forward_folds_rms_um) < MIN_FORWARD_FOLDS:
-        return "linear", 1.0, r_lin, (f"outside the trained range: linear ({len(c_in.forward_folds_rms_um)} "
-                                      "fold(s) predicted forward: too few to choose by)")
+        return (
+            "linear",
+            1.0,
+            r_lin,
+            (
+                f"outside the trained range: linear ({len(c_in.forward_folds_rms_um)} "
+                "fold(s) predicted forward: too few to choose by)"
+            ),
+        )
     if out.sum() < MIN_BAND_ROWS:
-        return "linear", 1.0, r_lin, (f"outside the trained range: linear ({int(out.sum())} forward row(s) left "
-                                      "the range: too few to choose by)")
+        return (
+            "linear",
+            1.0,
+            r_lin,
+            (
+                f"outside the trained range: linear ({int(out.sum())} forward row(s) left "
+                "the range: too few to choose by)"
+            ),
+        )
     options: list[tuple[str, float, np.ndarray]] = [("linear", 1.0, r_lin), ("clip", 1.0, r_clip)]
     r_fb = fallback.forward_residual_um
     if r_fb is not None:
         for span in BLEND_SPANS:
             w = np.minimum(d / span, 1.0)
-            options.append(("blend", span, np.where(np.isfinite(r_fb), (1 - w) * r_lin + w * r_fb, r_lin)))
+            options.append(
+                ("blend", span, np.where(np.isfinite(r_fb), (1 - w) * r_lin + w * r_fb, r_lin))
+            )
     rms = [float(np.sqrt(np.mean(r[out] ** 2))) for _, _, r in options]
     best = int(np.argmin(rms))
     pick = best if rms[best] < rms[0] * (1 - PARSIMONY) else 0
-    name = lambda k: options[k][0] + (f" {options[k][1]:g} span" if options[k][0] == "blend" else "")  # noqa: E731
+    name = lambda k: (
+        options[k][0] + (f" {options[k][1]:g} span" if options[k][0] == "blend" else "")
+    )  # noqa: E731
     figures = ", ".join(f"{name(k)} {v:.2f} um" for k, v in enumerate(rms))
-    return options[pick][0], options[pick][1], options[pick][2], (
-        f"outside the trained range: {name(pick)}, by forward RMS over the {int(out.sum())} row(s) "
-        f"that left it ({figures})")
+    return (
+        options[pick][0],
+        options[pick][1],
+        options[pick][2],
+        (
+            f"outside the trained range: {name(pick)}, by forward RMS over the {int(out.sum())} row(s) "
+            f"that left it ({figures})"
+        ),
+    )
 
 
-def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> dict[str, Any] | None:
+def _expected(
+    c: Candidate, ds: Dataset, forward: np.ndarray | None = None
+) -> dict[str, Any] | None:
     """The error to expect by speed band, inside and outside the trained input range
     (:func:`~calibration.metrics.expected_error`); ``forward`` is the forward residual under the
     extrapolation chosen (default: the candidate's own)."""
@@ -549,15 +766,27 @@ def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> d
     else:
         forward_res = c.forward_residual_um if forward is None else forward
         folds = len(c.forward_folds_rms_um)
-    out = expected_error(forward_res, c.held_out_residual_um, ds.speed_rpm, top, c.forward_distance,
-                         forward_folds=folds)
+    out = expected_error(
+        forward_res,
+        c.held_out_residual_um,
+        ds.speed_rpm,
+        top,
+        c.forward_distance,
+        forward_folds=folds,
+    )
     return out.model_dump(mode="json") if out is not None else None
 
 
 def _with_fit(c: Candidate, ds: Dataset, reason: str, forward: np.ndarray | None = None) -> Any:
-    fit = {"method": c.name, "scored_by": f"{ds.scheme} free run", "folds": len(ds.folds),
-           "cv_rms_um": round(c.cv_rms_um, 4), "cv_max_abs_um": round(c.cv_max_abs_um, 4),
-           "folds_rms_um": [round(v, 4) for v in c.folds_rms_um], "reason": reason}
+    fit = {
+        "method": c.name,
+        "scored_by": f"{ds.scheme} free run",
+        "folds": len(ds.folds),
+        "cv_rms_um": round(c.cv_rms_um, 4),
+        "cv_max_abs_um": round(c.cv_max_abs_um, 4),
+        "folds_rms_um": [round(v, 4) for v in c.folds_rms_um],
+        "reason": reason,
+    }
     expected = _expected(c, ds, forward)
     if expected is not None:
         fit["expected_error"] = expected

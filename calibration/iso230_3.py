@@ -51,7 +51,9 @@ class SpindleThermalTest:
     compensated: Drift | None
 
 
-def _drift(time_s: np.ndarray, z_um: np.ndarray, running: np.ndarray, rest_from: int | None) -> Drift:
+def _drift(
+    time_s: np.ndarray, z_um: np.ndarray, running: np.ndarray, rest_from: int | None
+) -> Drift:
     # a tool-setter log has no value on its first row: its measurements are from the cold
     # reference the cycle took before the start, so the start is zero
     z = z_um - (z_um[0] if np.isfinite(z_um[0]) else 0.0)
@@ -62,11 +64,17 @@ def _drift(time_s: np.ndarray, z_um: np.ndarray, running: np.ndarray, rest_from:
     if rest_from is not None and ok[rest_from:].any():
         tail = z[rest_from:][ok[rest_from:]]
         rest = float(tail[-1] - tail[0])
-    return Drift(float(z[k]), float(time_s[k] - time_s[0]), rest, float(np.ptp(z[ok])) if ok.any() else 0.0)
+    return Drift(
+        float(z[k]), float(time_s[k] - time_s[0]), rest, float(np.ptp(z[ok])) if ok.any() else 0.0
+    )
 
 
-def spindle_thermal_test(time_s: np.ndarray, speed_rpm: np.ndarray, z_um: np.ndarray,
-                         predicted_um: np.ndarray | None = None) -> SpindleThermalTest:
+def spindle_thermal_test(
+    time_s: np.ndarray,
+    speed_rpm: np.ndarray,
+    z_um: np.ndarray,
+    predicted_um: np.ndarray | None = None,
+) -> SpindleThermalTest:
     """The test's figures from a run: ``z_um`` the measured growth along the spindle axis (NaN
     where not measured), ``predicted_um`` the model's free run over the same rows (the
     compensated drift is ``z - predicted``)."""
@@ -82,7 +90,7 @@ def spindle_thermal_test(time_s: np.ndarray, speed_rpm: np.ndarray, z_um: np.nda
     # start to the last stop of the spindle, the probe stops inside it included
     part = running.copy()
     if turned.size and not np.isfinite(z).all():
-        part[turned[0]:turned[-1] + 1] = True
+        part[turned[0] : turned[-1] + 1] = True
     dt = np.diff(t, prepend=t[0])
     levels = np.unique(np.round(n[running], -2)) if running.any() else np.zeros(0)
     # a level held for less than a minute is a ramp passing through, not a level of the test
@@ -90,28 +98,56 @@ def spindle_thermal_test(time_s: np.ndarray, speed_rpm: np.ndarray, z_um: np.nda
     comp = None
     if predicted_um is not None:
         comp = _drift(t, z - np.asarray(predicted_um, float), part, rest_from)
-    return SpindleThermalTest("constant speed" if len(held) == 1 else "speed spectrum", held,
-                              float(dt[running].sum()), float(dt[~running][1:].sum()) if (~running).any() else 0.0,
-                              _drift(t, z, part, rest_from), comp)
+    return SpindleThermalTest(
+        "constant speed" if len(held) == 1 else "speed spectrum",
+        held,
+        float(dt[running].sum()),
+        float(dt[~running][1:].sum()) if (~running).any() else 0.0,
+        _drift(t, z, part, rest_from),
+        comp,
+    )
 
 
 def report_rows(runs: dict[str, SpindleThermalTest]) -> list[list[str]]:
     """One table for the calibration report: per run, the drift along Z without and with
     compensation; X, Y and tilts as not measured."""
+
     def f(v: float | None) -> str:
         return "-" if v is None else f"{v:+.2f}"
 
-    rows = [["run", "test", "speeds [rpm]", "running / rest [h]", "drift Z running [um]",
-             "at [h]", "drift Z over the rest [um]", "range Z [um]"]]
+    rows = [
+        [
+            "run",
+            "test",
+            "speeds [rpm]",
+            "running / rest [h]",
+            "drift Z running [um]",
+            "at [h]",
+            "drift Z over the rest [um]",
+            "range Z [um]",
+        ]
+    ]
     for name, r in runs.items():
-        levels = (f"{r.speeds_rpm[0]:.0f}" if len(r.speeds_rpm) == 1 else
-                  f"{len(r.speeds_rpm)} levels, {min(r.speeds_rpm):.0f}-{max(r.speeds_rpm):.0f}"
-                  if r.speeds_rpm else "-")
+        levels = (
+            f"{r.speeds_rpm[0]:.0f}"
+            if len(r.speeds_rpm) == 1
+            else f"{len(r.speeds_rpm)} levels, {min(r.speeds_rpm):.0f}-{max(r.speeds_rpm):.0f}"
+            if r.speeds_rpm
+            else "-"
+        )
         common = [r.kind, levels, f"{r.running_s / 3600:.2f} / {r.rest_s / 3600:.2f}"]
         for label, d in (("machine", r.machine), ("with thermocomp", r.compensated)):
             if d is None:
                 continue
-            rows.append([f"{name}: {label}", *common, f(d.running_um), f"{d.running_at_s / 3600:.2f}",
-                         f(d.rest_um), f"{d.range_um:.2f}"])
+            rows.append(
+                [
+                    f"{name}: {label}",
+                    *common,
+                    f(d.running_um),
+                    f"{d.running_at_s / 3600:.2f}",
+                    f(d.rest_um),
+                    f"{d.range_um:.2f}",
+                ]
+            )
     rows.append(["X, Y and the tilts", "not measured: one axial sensor", "", "", "", "", "", ""])
     return rows

@@ -98,11 +98,20 @@ class Refit:
 
     def figures(self) -> dict[str, Any]:
         """For the history record and --json."""
-        out: dict[str, Any] = {"measurements": self.measurements, "train": self.train, "holdout": self.holdout}
+        out: dict[str, Any] = {
+            "measurements": self.measurements,
+            "train": self.train,
+            "holdout": self.holdout,
+        }
         for name, s in (("live", self.live), ("candidate", self.scored)):
             if s is not None:
-                out[name] = {"open_loop_rms_um": round(s.open_loop_rms_um, 4), "open_loop_max_um": round(s.open_loop_max_um, 4),
-                             "observer_rms_um": None if s.observer_rms_um is None else round(s.observer_rms_um, 4)}
+                out[name] = {
+                    "open_loop_rms_um": round(s.open_loop_rms_um, 4),
+                    "open_loop_max_um": round(s.open_loop_max_um, 4),
+                    "observer_rms_um": None
+                    if s.observer_rms_um is None
+                    else round(s.observer_rms_um, 4),
+                }
         return out
 
 
@@ -141,23 +150,33 @@ def at_the_reference_row(log: RunLog, rows: np.ndarray) -> tuple[RunLog, np.ndar
     return replace(log, elongation_um=y, extras=extras), rows
 
 
-def score(estimate: Estimate, log: RunLog, rows: np.ndarray, probe_rows: np.ndarray,
-          sigma_um: np.ndarray, observer: bool) -> Score:
+def score(
+    estimate: Estimate,
+    log: RunLog,
+    rows: np.ndarray,
+    probe_rows: np.ndarray,
+    sigma_um: np.ndarray,
+    observer: bool,
+) -> Score:
     """``estimate``'s misses at ``rows`` over ``log``: open loop, and (``observer``) with the
     measurements of ``probe_rows`` fused, each scored before it was fused."""
     y = np.asarray(log.elongation_um, dtype=float)
     k = np.flatnonzero(rows)
-    open_loop = replay(estimate.model, log, compare=False, estimate=replace(estimate, observer=None)).predicted_um
+    open_loop = replay(
+        estimate.model, log, compare=False, estimate=replace(estimate, observer=None)
+    ).predicted_um
     miss = y[k] - open_loop[k]
     fused_rms = None
     if observer and estimate.fused is not None:
         p = np.flatnonzero(probe_rows)
         probes = Probes(log.time_s[p], y[p], sigma_um[p], "journal")
-        fused = replay(estimate.model, log, probes=probes, compare=False, estimate=estimate).predicted_um
+        fused = replay(
+            estimate.model, log, probes=probes, compare=False, estimate=estimate
+        ).predicted_um
         # the estimate before the measurement was fused: the row's own is after it (at or before)
         before = fused[np.maximum(k - 1, 0)] + (open_loop[k] - open_loop[np.maximum(k - 1, 0)])
         fused_rms = float(np.sqrt(np.mean((y[k] - before) ** 2)))
-    return Score(float(np.sqrt(np.mean(miss ** 2))), fused_rms, float(np.max(np.abs(miss))))
+    return Score(float(np.sqrt(np.mean(miss**2))), fused_rms, float(np.max(np.abs(miss))))
 
 
 AT_SPEED_CHECK_S = 60.0
@@ -187,10 +206,12 @@ def unseen_at_speed(live: Predictor, candidate: Predictor, margin: float) -> str
     if worst is None:
         return None
     n, a, b, allowed = worst
-    return (f"every measurement was taken at rest, so nothing vouches for the growth while the spindle "
-            f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {n:.0f} rpm it "
-            f"predicts {b:+.2f} um where the live model predicts {a:+.2f} um (more than {allowed:.2f} um apart); "
-            "measure at speed (a laser setter, --probe-spindle keep) to refit that part")
+    return (
+        f"every measurement was taken at rest, so nothing vouches for the growth while the spindle "
+        f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {n:.0f} rpm it "
+        f"predicts {b:+.2f} um where the live model predicts {a:+.2f} um (more than {allowed:.2f} um apart); "
+        "measure at speed (a laser setter, --probe-spindle keep) to refit that part"
+    )
 
 
 def decide(rule: Rule, live: Score, cand: Score) -> Decision:
@@ -198,22 +219,42 @@ def decide(rule: Rule, live: Score, cand: Score) -> Decision:
     observer."""
     bar = (1.0 - rule.margin) * live.open_loop_rms_um
     if not cand.open_loop_rms_um <= bar:
-        return Decision(False, f"open loop it misses {cand.open_loop_rms_um:.2f} um RMS on the held-out "
-                        f"measurements against the live model's {live.open_loop_rms_um:.2f} um: not "
-                        f"{100 * rule.margin:.0f} % better")
+        return Decision(
+            False,
+            f"open loop it misses {cand.open_loop_rms_um:.2f} um RMS on the held-out "
+            f"measurements against the live model's {live.open_loop_rms_um:.2f} um: not "
+            f"{100 * rule.margin:.0f} % better",
+        )
     if cand.observer_rms_um is not None and live.observer_rms_um is not None:
         worst = (1.0 + rule.observer_tolerance) * live.observer_rms_um
         if cand.observer_rms_um > worst:
-            return Decision(False, f"with the observer it misses {cand.observer_rms_um:.2f} um RMS against "
-                            f"the live model's {live.observer_rms_um:.2f} um")
-    return Decision(True, f"open loop {cand.open_loop_rms_um:.2f} um RMS on the held-out measurements "
-                    f"against the live model's {live.open_loop_rms_um:.2f} um"
-                    + ("" if cand.observer_rms_um is None or live.observer_rms_um is None else
-                       f"; with the observer {cand.observer_rms_um:.2f} against {live.observer_rms_um:.2f} um"))
+            return Decision(
+                False,
+                f"with the observer it misses {cand.observer_rms_um:.2f} um RMS against "
+                f"the live model's {live.observer_rms_um:.2f} um",
+            )
+    return Decision(
+        True,
+        f"open loop {cand.open_loop_rms_um:.2f} um RMS on the held-out measurements "
+        f"against the live model's {live.open_loop_rms_um:.2f} um"
+        + (
+            ""
+            if cand.observer_rms_um is None or live.observer_rms_um is None
+            else f"; with the observer {cand.observer_rms_um:.2f} against {live.observer_rms_um:.2f} um"
+        ),
+    )
 
 
-def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), spindle_id: str | None = None,
-          default_sigma_um: float = 0.5, **meta: Any) -> Refit:
+def refit(
+    log: RunLog,
+    live: Estimate,
+    make_estimate,
+    *,
+    rule: Rule = Rule(),
+    spindle_id: str | None = None,
+    default_sigma_um: float = 0.5,
+    **meta: Any,
+) -> Refit:
     """Fit a candidate on ``log`` (a journal export) before its newest measurements and judge it
     against ``live`` (the live model's estimate as the service runs it) on them.
     ``make_estimate(model)`` builds the candidate's estimate as the service would."""
@@ -223,13 +264,19 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
     log, rows = at_the_reference_row(log, rows)
     out = Refit(Decision(False, ""), measurements=int(rows.sum()))
     if faulted:
-        out.notes.append(f"{faulted} measurement(s) taken while the journal showed a fault (link, speed, "
-                         "inputs, clock) left out")
+        out.notes.append(
+            f"{faulted} measurement(s) taken while the journal showed a fault (link, speed, "
+            "inputs, clock) left out"
+        )
     n = out.measurements
     h = rule.holdout(n)
     if n - h < rule.min_train:
-        out.decision = Decision(False, f"{n} usable measurement(s): the rule needs {rule.min_train} to fit and "
-                                f"{max(rule.min_holdout, h)} to judge; nothing fitted", held_back=True)
+        out.decision = Decision(
+            False,
+            f"{n} usable measurement(s): the rule needs {rule.min_train} to fit and "
+            f"{max(rule.min_holdout, h)} to judge; nothing fitted",
+            held_back=True,
+        )
         return out
     k = np.flatnonzero(rows)
     first_held = int(k[n - h])
@@ -247,15 +294,23 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
         g = live.model.steady_state_um(top) - live.model.steady_state_um(0.0)
         direction = 1 if g >= 0 else -1
     try:
-        ident = fit_logs([train], names, labels=["production"], spindle_id=spindle_id, growth_direction=direction,
-                         **meta)
+        ident = fit_logs(
+            [train],
+            names,
+            labels=["production"],
+            spindle_id=spindle_id,
+            growth_direction=direction,
+            **meta,
+        )
     except CalibrationError as err:
         out.decision = Decision(False, f"the fit refused: {err}")
         return out
     out.identification, out.candidate = ident, ident.model
     held = rows.copy()
     held[:first_held] = False
-    sigma = np.asarray(log.extras.get("measurement_sigma_um", np.full(len(log), default_sigma_um)), dtype=float)
+    sigma = np.asarray(
+        log.extras.get("measurement_sigma_um", np.full(len(log), default_sigma_um)), dtype=float
+    )
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default_sigma_um)
     observer = live.fused is not None
     candidate = ident.model
@@ -264,7 +319,9 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
         # the observer's noise was fitted on the calibration's dense residuals, which measurements
         # minutes apart cannot give: the candidate keeps the live model's, so both are judged, and
         # the promoted one runs, with the observer the service has
-        candidate = candidate.model_copy(update={"fit": {**candidate.fit, "observer": live_observer}})
+        candidate = candidate.model_copy(
+            update={"fit": {**candidate.fit, "observer": live_observer}}
+        )
         out.candidate = candidate
     out.live = score(live, clean, held, rows, sigma, observer)
     out.scored = score(make_estimate(candidate), clean, held, rows, sigma, observer)
@@ -281,9 +338,14 @@ def refit(log: RunLog, live: Estimate, make_estimate, *, rule: Rule = Rule(), sp
 def _rows(log: RunLog, rows: slice) -> RunLog:
     """The rows ``rows`` of a log, every column with them."""
     extras = {k: np.asarray(v)[rows] for k, v in log.extras.items()}
-    return replace(log, time_s=log.time_s[rows], speed_rpm=log.speed_rpm[rows],
-                   elongation_um=None if log.elongation_um is None else log.elongation_um[rows],
-                   extras=extras, gaps=tuple(g for g in log.gaps if g.start_s + g.duration_s <= log.time_s[rows][-1]))
+    return replace(
+        log,
+        time_s=log.time_s[rows],
+        speed_rpm=log.speed_rpm[rows],
+        elongation_um=None if log.elongation_um is None else log.elongation_um[rows],
+        extras=extras,
+        gaps=tuple(g for g in log.gaps if g.start_s + g.duration_s <= log.time_s[rows][-1]),
+    )
 
 
 @dataclass
@@ -297,8 +359,11 @@ class ShadowJudgement:
         out: dict[str, Any] = {"measurements": self.measurements}
         for name, sc in (("live", self.live), ("candidate", self.shadow)):
             if sc is not None:
-                out[name] = {"open_loop_rms_um": round(sc.open_loop_rms_um, 4), "open_loop_max_um": round(sc.open_loop_max_um, 4),
-                             "observer_rms_um": None}
+                out[name] = {
+                    "open_loop_rms_um": round(sc.open_loop_rms_um, 4),
+                    "open_loop_max_um": round(sc.open_loop_max_um, 4),
+                    "observer_rms_um": None,
+                }
         return out
 
 
@@ -313,18 +378,28 @@ def judge_shadow(log: RunLog, live: Estimate, rule: Rule = Rule()) -> ShadowJudg
     n = int(have.sum())
     out = ShadowJudgement(Decision(False, ""), measurements=n)
     if n < rule.min_holdout:
-        out.decision = Decision(False, f"{n} measurement(s) while it ran in shadow: the rule needs "
-                                f"{rule.min_holdout}", held_back=True)
+        out.decision = Decision(
+            False,
+            f"{n} measurement(s) while it ran in shadow: the rule needs {rule.min_holdout}",
+            held_back=True,
+        )
         return out
     first = int(np.flatnonzero(np.isfinite(shadow))[0])
     # the live model from where the shadow started (both began at the live estimate there)
-    live_open = replay(live.model, _rows(log, slice(first, len(log))), initial_um=float(shadow[first]),
-                       compare=False, estimate=replace(live, observer=None)).predicted_um
+    live_open = replay(
+        live.model,
+        _rows(log, slice(first, len(log))),
+        initial_um=float(shadow[first]),
+        compare=False,
+        estimate=replace(live, observer=None),
+    ).predicted_um
     y = np.asarray(log.elongation_um, dtype=float)
     k = np.flatnonzero(have)
     miss_live, miss_shadow = y[k] - live_open[k - first], y[k] - shadow[k]
-    out.live = Score(float(np.sqrt(np.mean(miss_live ** 2))), None, float(np.max(np.abs(miss_live))))
-    out.shadow = Score(float(np.sqrt(np.mean(miss_shadow ** 2))), None, float(np.max(np.abs(miss_shadow))))
+    out.live = Score(float(np.sqrt(np.mean(miss_live**2))), None, float(np.max(np.abs(miss_live))))
+    out.shadow = Score(
+        float(np.sqrt(np.mean(miss_shadow**2))), None, float(np.max(np.abs(miss_shadow)))
+    )
     d = decide(rule, out.live, out.shadow)
     out.decision = Decision(d.promote, "in shadow: " + d.reason)
     return out

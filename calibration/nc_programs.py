@@ -51,8 +51,14 @@ FANUC_PROBE_NUMBER = 1100
 """The tool-setter cycle's program number on FANUC: probeprog writes it as ``O1100``."""
 
 
-def calibration_profile(max_rpm: float, *, step_min: float = 20.0, cooldown_min: float = 60.0,
-                        round_rpm: float = 10.0, probe_every_s: float | None = None) -> Program:
+def calibration_profile(
+    max_rpm: float,
+    *,
+    step_min: float = 20.0,
+    cooldown_min: float = 60.0,
+    round_rpm: float = 10.0,
+    probe_every_s: float | None = None,
+) -> Program:
     """The paper's profile at ``max_rpm``, speeds rounded to ``round_rpm``; with
     ``probe_every_s``, a tool-setter stop every that many seconds of program time
     (:func:`with_probe_stops`)."""
@@ -79,12 +85,15 @@ def with_probe_stops(program: Program, every_s: float) -> Program:
     return Program(program.name, program.segments, probe_stops(program.duration_s, every_s))
 
 
-def validation_profile(max_rpm: float, *, seed: int = 1, duration_min: float = 240.0,
-                       round_rpm: float = 10.0) -> Program:
+def validation_profile(
+    max_rpm: float, *, seed: int = 1, duration_min: float = 240.0, round_rpm: float = 10.0
+) -> Program:
     """Random speeds held 2-15 min with stops, then 30 min at rest: unlike calibration."""
     _check_max(max_rpm)
     p = random_validation(max_rpm, seed=seed, duration_min=duration_min)
-    return Program(f"validation-{seed}", _merged((round(d), _round(s, round_rpm)) for d, s in p.segments))
+    return Program(
+        f"validation-{seed}", _merged((round(d), _round(s, round_rpm)) for d, s in p.segments)
+    )
 
 
 def _merged(segments) -> tuple[tuple[float, float], ...]:
@@ -147,14 +156,21 @@ def _program_name(name: str, default: str) -> str:
 
 def _check_stops(program: Program) -> tuple[float, ...]:
     stops = tuple(float(p) for p in program.probe_at_s)
-    if any(not (math.isfinite(p) and 0 < p <= program.duration_s + 1e-9) for p in stops) or \
-            list(stops) != sorted(stops):
+    if any(not (math.isfinite(p) and 0 < p <= program.duration_s + 1e-9) for p in stops) or list(
+        stops
+    ) != sorted(stops):
         raise ValueError("probe stops must be ascending program times within the program")
     return stops
 
 
-def to_nc(program: Program, dialect: str, *, name: str = "THERMOCOMP", notes: tuple[str, ...] = (),
-          probe_name: str = PROBE_NAME) -> str:
+def to_nc(
+    program: Program,
+    dialect: str,
+    *,
+    name: str = "THERMOCOMP",
+    notes: tuple[str, ...] = (),
+    probe_name: str = PROBE_NAME,
+) -> str:
     """The NC program text for ``program`` in ``dialect``; with ``program.probe_at_s``, a call of
     the tool-setter cycle (``probe_name``; FANUC: ``O1100``) at each of those program times."""
     if dialect not in DIALECTS:
@@ -162,19 +178,26 @@ def to_nc(program: Program, dialect: str, *, name: str = "THERMOCOMP", notes: tu
     pname = _program_name(name, "THERMOCOMP")
     stops = _check_stops(program)
     call = probe_call(dialect, probe_name) if stops else ""
-    head = [f"THERMOCOMP {program.name.upper()} PROFILE",
-            f"DURATION {program.duration_s / 3600:.2f} H, MAX {max(s for _, s in program.segments):.0f} RPM"]
+    head = [
+        f"THERMOCOMP {program.name.upper()} PROFILE",
+        f"DURATION {program.duration_s / 3600:.2f} H, MAX {max(s for _, s in program.segments):.0f} RPM",
+    ]
     if stops:
-        head += [f"{len(stops)} TOOL-SETTER STOPS: {call.upper().replace(chr(34), '')}, THE CYCLE SETS THE SPINDLE",
-                 "NO AXIS MOVES BUT THE CYCLES. SPINDLE CLEAR OF THE WORK, GAUGE TOOL OF THE CYCLE IN THE SPINDLE",
-                 "PROGRAM TIMES BELOW DO NOT COUNT THE CYCLES"]
+        head += [
+            f"{len(stops)} TOOL-SETTER STOPS: {call.upper().replace(chr(34), '')}, THE CYCLE SETS THE SPINDLE",
+            "NO AXIS MOVES BUT THE CYCLES. SPINDLE CLEAR OF THE WORK, GAUGE TOOL OF THE CYCLE IN THE SPINDLE",
+            "PROGRAM TIMES BELOW DO NOT COUNT THE CYCLES",
+        ]
     else:
         head += ["NO AXIS MOVES. SPINDLE CLEAR OF THE WORK, PROBE IN PLACE"]
     head += [n.upper() for n in notes]
     out: list[str] = []
-    comment = {"fanuc": lambda t: f"({t.replace('(', '[').replace(')', ']')})",
-               "linuxcnc": lambda t: f"({t.replace('(', '[').replace(')', ']')})",
-               "sinumerik": lambda t: f"; {t}", "heidenhain": lambda t: f"; {t}"}[dialect]
+    comment = {
+        "fanuc": lambda t: f"({t.replace('(', '[').replace(')', ']')})",
+        "linuxcnc": lambda t: f"({t.replace('(', '[').replace(')', ']')})",
+        "sinumerik": lambda t: f"; {t}",
+        "heidenhain": lambda t: f"; {t}",
+    }[dialect]
     if dialect == "fanuc":
         out += ["%", f"O1000 ({pname[:16]})"]
     elif dialect == "linuxcnc":

@@ -39,8 +39,12 @@ def _shade(ax, t_min: np.ndarray, mask: np.ndarray) -> None:
         ax.axvspan(t_min[a], t_min[b], color="tab:orange", alpha=0.12, lw=0)
 
 
-def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle: str,
-                max_rpm: float | None = None) -> None:
+def plot_panels(
+    path: str | os.PathLike[str],
+    panels: Sequence[Panel],
+    suptitle: str,
+    max_rpm: float | None = None,
+) -> None:
     """Write one PNG (atomically) with three rows per panel column."""
     import matplotlib
 
@@ -48,8 +52,14 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
     import matplotlib.pyplot as plt
 
     cols = len(panels)
-    fig, axes = plt.subplots(3, cols, figsize=(6.5 * cols, 8.5), sharex="col", squeeze=False,
-                             gridspec_kw={"height_ratios": [1, 2, 1.3]})
+    fig, axes = plt.subplots(
+        3,
+        cols,
+        figsize=(6.5 * cols, 8.5),
+        sharex="col",
+        squeeze=False,
+        gridspec_kw={"height_ratios": [1, 2, 1.3]},
+    )
     for c, p in enumerate(panels):
         t_h = (p.time_s - p.time_s[0]) / 3600.0
         top = max_rpm or float(np.abs(p.speed_rpm).max()) or 1.0
@@ -59,7 +69,11 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
         ax_n.set_ylabel("speed [rpm]")
         ax_n.set_title(p.title)
         # a journal's probe measurements are isolated points: a line would not show them
-        dots = {} if p.measured_um is None or np.isfinite(p.measured_um).all() else {"marker": ".", "ls": "none"}
+        dots = (
+            {}
+            if p.measured_um is None or np.isfinite(p.measured_um).all()
+            else {"marker": ".", "ls": "none"}
+        )
         if p.measured_um is not None:
             ax_s.plot(t_h, p.measured_um, color="tab:blue", lw=1, label=p.measured_label, **dots)
         if p.predicted_um is not None:
@@ -72,21 +86,29 @@ def plot_panels(path: str | os.PathLike[str], panels: Sequence[Panel], suptitle:
             res = p.measured_um - p.predicted_um
             keep = np.ones(res.size, bool) if p.scored is None else np.asarray(p.scored, bool)
             if not keep.all():
-                ax_r.plot(t_h, res, color="0.75", lw=0.8, label="not scored (tool clear of the part)")
+                ax_r.plot(
+                    t_h, res, color="0.75", lw=0.8, label="not scored (tool clear of the part)"
+                )
                 ax_r.legend(loc="lower left", fontsize=7)
             ax_r.plot(t_h, np.where(keep, res, np.nan), color="tab:purple", lw=1, **dots)
             ax_r.axhline(0, color="k", lw=0.5)
             judged = res[keep]
             rms = float(np.sqrt(np.mean(judged**2)))
-            ax_r.set_title(f"{p.residual_label}: RMS {rms:.2f} um, max {np.abs(judged).max():.2f} um",
-                           fontsize=9)
+            ax_r.set_title(
+                f"{p.residual_label}: RMS {rms:.2f} um, max {np.abs(judged).max():.2f} um",
+                fontsize=9,
+            )
         ax_r.set_ylabel("residual [um]")
         ax_r.set_xlabel("time [h]")
         for ax in (ax_n, ax_s, ax_r):
             _shade(ax, t_h, mask)
             ax.grid(alpha=0.3)
-    shaded = any(transient_mask(p.time_s, p.speed_rpm, max_rpm or float(np.abs(p.speed_rpm).max()) or 1.0).any()
-                 for p in panels)
+    shaded = any(
+        transient_mask(
+            p.time_s, p.speed_rpm, max_rpm or float(np.abs(p.speed_rpm).max()) or 1.0
+        ).any()
+        for p in panels
+    )
     fig.suptitle(suptitle + ("\n(shaded: transient windows)" if shaded else ""), fontsize=11)
     fig.tight_layout()
     with atomic_write(path, "wb") as fh:

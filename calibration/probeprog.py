@@ -72,7 +72,10 @@ _VARIABLES = {
     "heidenhain": {"QR": ((0, 499),), "Q": ((1600, 1999),)},  # QR non-volatile, Q1600+ free
     "linuxcnc": {"#": ((31, 5000),)},  # user parameters; persistent once listed in the .var file
 }
-_RETAINED = {"fanuc": ((500, 999),), "heidenhain": None}  # the cold reference must survive power off
+_RETAINED = {
+    "fanuc": ((500, 999),),
+    "heidenhain": None,
+}  # the cold reference must survive power off
 
 # options a dialect's cycle has no use for: refused, not silently dropped
 _AOUT = dict.fromkeys(("value_aout", "counter_aout"), "analog outputs (M68) are LinuxCNC's")
@@ -81,8 +84,16 @@ _NOT_FOR = {
     "sinumerik": dict(_AOUT),
     "linuxcnc": {"probe_input": "LinuxCNC has one probe input (motion.probe-input)"},
     "heidenhain": dict.fromkeys(
-        ("setter_x_mm", "setter_y_mm", "travel_mm", "backoff_mm", "fast_feed_mm_min", "slow_feed_mm_min"),
-        "TCH PROBE 481 takes the setter's position, travel and feeds from the TT machine parameters")
+        (
+            "setter_x_mm",
+            "setter_y_mm",
+            "travel_mm",
+            "backoff_mm",
+            "fast_feed_mm_min",
+            "slow_feed_mm_min",
+        ),
+        "TCH PROBE 481 takes the setter's position, travel and feeds from the TT machine parameters",
+    )
     | {"probe_input": "the TT has its own input", **_AOUT},
 }
 
@@ -155,94 +166,163 @@ def parse_variable(dialect: str, text: str | int, role: str) -> Variable:
     var = Variable(prefix, int(m.group(2)))
     if role == "reference" and dialect in _RETAINED:
         kept = _RETAINED[dialect]
-        if (kept is None and prefix != "QR") or (kept and not any(lo <= var.number <= hi for lo, hi in kept)):
+        if (kept is None and prefix != "QR") or (
+            kept and not any(lo <= var.number <= hi for lo, hi in kept)
+        ):
             need = "a QR parameter" if kept is None else "#500-#999"
-            raise ConfigError(f"--reference-var {text!r}: the cold reference must survive a power cycle: "
-                              f"use {need}")
+            raise ConfigError(
+                f"--reference-var {text!r}: the cold reference must survive a power cycle: "
+                f"use {need}"
+            )
     return var
 
 
-def probe_cycle(dialect: str, *, tool: int | str = 1, reference_var: str | None = None,
-                value_var: str | None = None, counter_var: str | None = None, spindle: str = "stop",
-                low_rpm: float | str | None = None, settle_s: float | str = 2.0,
-                travel_mm: float | str | None = None, backoff_mm: float | str | None = None,
-                fast_feed_mm_min: float | str | None = None, slow_feed_mm_min: float | str | None = None,
-                setter_x_mm: float | str | None = None, setter_y_mm: float | str | None = None,
-                approach_z_mm: float | str | None = None, max_um: float | str = 300.0,
-                touches: int | str = 1, spread_um: float | str = 5.0, probe_input: int | str | None = None, value_aout: int | str | None = None,
-                counter_aout: int | str | None = None, name: str = "TCPROBE") -> ProbeCycle:
+def probe_cycle(
+    dialect: str,
+    *,
+    tool: int | str = 1,
+    reference_var: str | None = None,
+    value_var: str | None = None,
+    counter_var: str | None = None,
+    spindle: str = "stop",
+    low_rpm: float | str | None = None,
+    settle_s: float | str = 2.0,
+    travel_mm: float | str | None = None,
+    backoff_mm: float | str | None = None,
+    fast_feed_mm_min: float | str | None = None,
+    slow_feed_mm_min: float | str | None = None,
+    setter_x_mm: float | str | None = None,
+    setter_y_mm: float | str | None = None,
+    approach_z_mm: float | str | None = None,
+    max_um: float | str = 300.0,
+    touches: int | str = 1,
+    spread_um: float | str = 5.0,
+    probe_input: int | str | None = None,
+    value_aout: int | str | None = None,
+    counter_aout: int | str | None = None,
+    name: str = "TCPROBE",
+) -> ProbeCycle:
     """Check every option for ``dialect`` and fill in its defaults; :class:`ConfigError` (one
     line, naming the option) on anything a control would refuse or that could not be safe."""
     if dialect not in DIALECTS:
         raise ConfigError(f"--dialect {dialect!r}: choose from {', '.join(DIALECTS)}")
-    given = {"setter_x_mm": setter_x_mm, "setter_y_mm": setter_y_mm, "travel_mm": travel_mm,
-             "backoff_mm": backoff_mm, "fast_feed_mm_min": fast_feed_mm_min,
-             "slow_feed_mm_min": slow_feed_mm_min, "probe_input": probe_input, "value_aout": value_aout,
-             "counter_aout": counter_aout}
+    given = {
+        "setter_x_mm": setter_x_mm,
+        "setter_y_mm": setter_y_mm,
+        "travel_mm": travel_mm,
+        "backoff_mm": backoff_mm,
+        "fast_feed_mm_min": fast_feed_mm_min,
+        "slow_feed_mm_min": slow_feed_mm_min,
+        "probe_input": probe_input,
+        "value_aout": value_aout,
+        "counter_aout": counter_aout,
+    }
     for key, why in _NOT_FOR[dialect].items():
         if given.get(key) is not None:
             raise ConfigError(f"{_option(key)} is not for {dialect}: {why}")
     n_touches = int(_number("touches", touches, 1, MAX_TOUCHES, whole=True))
     if n_touches > 1 and dialect == "heidenhain":
-        raise ConfigError("--touches is not for heidenhain: TCH PROBE 481 measures once per call; "
-                          "use --touches 1")
+        raise ConfigError(
+            "--touches is not for heidenhain: TCH PROBE 481 measures once per call; use --touches 1"
+        )
     if spindle not in SPINDLE_MODES:
         raise ConfigError(f"--probe-spindle {spindle!r}: choose stop, low or keep")
     if spindle == "keep" and dialect == "heidenhain":
-        raise ConfigError("--probe-spindle keep is not for heidenhain: TCH PROBE 481 turns the spindle itself; "
-                          "use --probe-spindle stop")
+        raise ConfigError(
+            "--probe-spindle keep is not for heidenhain: TCH PROBE 481 turns the spindle itself; "
+            "use --probe-spindle stop"
+        )
     if spindle == "low":
         if dialect == "heidenhain":
-            raise ConfigError("--probe-spindle low is not for heidenhain: TCH PROBE 481 turns the spindle itself "
-                              "(tool table R-OFFS); use --probe-spindle stop")
+            raise ConfigError(
+                "--probe-spindle low is not for heidenhain: TCH PROBE 481 turns the spindle itself "
+                "(tool table R-OFFS); use --probe-spindle stop"
+            )
         if low_rpm is None:
-            raise ConfigError("--probe-spindle low needs --low-rpm (the laser setter's measuring speed)")
+            raise ConfigError(
+                "--probe-spindle low needs --low-rpm (the laser setter's measuring speed)"
+            )
         rpm: float | None = _number("low_rpm", low_rpm, 1, 5000)
     elif low_rpm is not None:
         raise ConfigError("--low-rpm goes with --probe-spindle low")
     else:
         rpm = None
     defaults = DEFAULT_VARIABLES[dialect]
-    variables = [parse_variable(dialect, text if text is not None else default, role)
-                 for text, default, role in zip((reference_var, value_var, counter_var), defaults,
-                                                ("reference", "value", "counter"))]
+    variables = [
+        parse_variable(dialect, text if text is not None else default, role)
+        for text, default, role in zip(
+            (reference_var, value_var, counter_var), defaults, ("reference", "value", "counter")
+        )
+    ]
     if len(set(variables)) < 3:
-        raise ConfigError(f"reference, value and counter need three different variables, not "
-                          f"{', '.join(map(str, variables))}")
+        raise ConfigError(
+            f"reference, value and counter need three different variables, not "
+            f"{', '.join(map(str, variables))}"
+        )
     travel = _number("travel_mm", 10.0 if travel_mm is None else travel_mm, 0.5, 100)
     # a laser's beam has no stylus to clear: a short back-off keeps repeated touches cheap
     default_backoff = 0.2 if spindle in ("low", "keep") else 1.0
     backoff = _number("backoff_mm", default_backoff if backoff_mm is None else backoff_mm, 0.1, 10)
     if backoff * 2 > travel:
         raise ConfigError(f"--backoff-mm {backoff:g} is more than half of --travel-mm {travel:g}")
-    fast = _number("fast_feed_mm_min", 200.0 if fast_feed_mm_min is None else fast_feed_mm_min, 1, 5000)
-    slow = _number("slow_feed_mm_min", 20.0 if slow_feed_mm_min is None else slow_feed_mm_min, 0.1, fast)
+    fast = _number(
+        "fast_feed_mm_min", 200.0 if fast_feed_mm_min is None else fast_feed_mm_min, 1, 5000
+    )
+    slow = _number(
+        "slow_feed_mm_min", 20.0 if slow_feed_mm_min is None else slow_feed_mm_min, 0.1, fast
+    )
     if (setter_x_mm is None) != (setter_y_mm is None):
-        raise ConfigError("--setter-x-mm and --setter-y-mm go together (the setter's centre, machine X and Y)")
+        raise ConfigError(
+            "--setter-x-mm and --setter-y-mm go together (the setter's centre, machine X and Y)"
+        )
     xy = None
     if setter_x_mm is not None and setter_y_mm is not None:
-        xy = (_number("setter_x_mm", setter_x_mm, -1e5, 1e5), _number("setter_y_mm", setter_y_mm, -1e5, 1e5))
+        xy = (
+            _number("setter_x_mm", setter_x_mm, -1e5, 1e5),
+            _number("setter_y_mm", setter_y_mm, -1e5, 1e5),
+        )
         if approach_z_mm is None:
-            raise ConfigError("--setter-x-mm/--setter-y-mm need --approach-z-mm: the cycle rises to it "
-                              "before it moves across")
+            raise ConfigError(
+                "--setter-x-mm/--setter-y-mm need --approach-z-mm: the cycle rises to it "
+                "before it moves across"
+            )
     if dialect == "heidenhain" and approach_z_mm is None:
-        raise ConfigError("heidenhain needs --approach-z-mm: the clearance height Q260 of TCH PROBE 481")
+        raise ConfigError(
+            "heidenhain needs --approach-z-mm: the clearance height Q260 of TCH PROBE 481"
+        )
     z = None if approach_z_mm is None else _number("approach_z_mm", approach_z_mm, -1e5, 1e5)
     pname = "".join(ch for ch in name.upper() if ch.isalnum() or ch == "_")[:24]
     if not pname or not pname[0].isalpha():
         raise ConfigError(f"--name {name!r}: letters, digits and _, starting with a letter")
     return ProbeCycle(
-        dialect=dialect, tool=int(_number("tool", tool, 1, 9999, whole=True)),
-        reference_var=variables[0], value_var=variables[1], counter_var=variables[2],
-        spindle=spindle, low_rpm=rpm, settle_s=_number("settle_s", settle_s, 0, 600),
-        travel_mm=travel, backoff_mm=backoff, fast_feed_mm_min=fast, slow_feed_mm_min=slow,
-        setter_xy_mm=xy, approach_z_mm=z, max_um=_number("max_um", max_um, 1, 5000),
-        touches=n_touches, spread_um=_number("spread_um", spread_um, 0.1, 1000),
-        probe_input=int(_number("probe_input", 1 if probe_input is None else probe_input, 1, 2, whole=True)),
-        value_aout=int(_number("value_aout", 0 if value_aout is None else value_aout, 0, 63, whole=True)),
-        counter_aout=int(_number("counter_aout", 1 if counter_aout is None else counter_aout, 0, 63,
-                                 whole=True)),
-        name=pname)
+        dialect=dialect,
+        tool=int(_number("tool", tool, 1, 9999, whole=True)),
+        reference_var=variables[0],
+        value_var=variables[1],
+        counter_var=variables[2],
+        spindle=spindle,
+        low_rpm=rpm,
+        settle_s=_number("settle_s", settle_s, 0, 600),
+        travel_mm=travel,
+        backoff_mm=backoff,
+        fast_feed_mm_min=fast,
+        slow_feed_mm_min=slow,
+        setter_xy_mm=xy,
+        approach_z_mm=z,
+        max_um=_number("max_um", max_um, 1, 5000),
+        touches=n_touches,
+        spread_um=_number("spread_um", spread_um, 0.1, 1000),
+        probe_input=int(
+            _number("probe_input", 1 if probe_input is None else probe_input, 1, 2, whole=True)
+        ),
+        value_aout=int(
+            _number("value_aout", 0 if value_aout is None else value_aout, 0, 63, whole=True)
+        ),
+        counter_aout=int(
+            _number("counter_aout", 1 if counter_aout is None else counter_aout, 0, 63, whole=True)
+        ),
+        name=pname,
+    )
 
 
 def measuring_time_s(cycle: ProbeCycle) -> float:
@@ -269,30 +349,58 @@ def _feed(x: float) -> str:
 
 def _header(c: ProbeCycle, reference: bool) -> list[str]:
     ref, val, cnt = c.reference_var, c.value_var, c.counter_var
-    spindle = ("SPINDLE STOPPED" if c.spindle == "stop"
-               else "SPINDLE KEEPS THE PROGRAM SPEED [LASER SETTER, GAUGE TOOL IN THE SPINDLE]" if c.spindle == "keep"
-               else f"SPINDLE AT {c.low_rpm:g} RPM [LASER SETTER]")
+    spindle = (
+        "SPINDLE STOPPED"
+        if c.spindle == "stop"
+        else "SPINDLE KEEPS THE PROGRAM SPEED [LASER SETTER, GAUGE TOOL IN THE SPINDLE]"
+        if c.spindle == "keep"
+        else f"SPINDLE AT {c.low_rpm:g} RPM [LASER SETTER]"
+    )
     if reference:
-        lines = [f"THERMOCOMP TOOL-SETTER COLD REFERENCE, T{c.tool}",
-                 "RUN IT COLD: AFTER THE REST, BEFORE THE FIRST SPINDLE START",
-                 f"STORES THE COLD TRIP POSITION [MM] IN {ref}"]
+        lines = [
+            f"THERMOCOMP TOOL-SETTER COLD REFERENCE, T{c.tool}",
+            "RUN IT COLD: AFTER THE REST, BEFORE THE FIRST SPINDLE START",
+            f"STORES THE COLD TRIP POSITION [MM] IN {ref}",
+        ]
     else:
-        lines = [f"THERMOCOMP TOOL-SETTER CYCLE, T{c.tool}",
-                 f"{val} = [TRIP NOW - COLD TRIP {ref}] X 1000: UM, + = TIP GREW TOWARD THE WORK",
-                 f"THEN {cnt} + 1 [1..{COUNTER_WRAP}]. A FAILED MEASUREMENT WRITES NEITHER"]
+        lines = [
+            f"THERMOCOMP TOOL-SETTER CYCLE, T{c.tool}",
+            f"{val} = [TRIP NOW - COLD TRIP {ref}] X 1000: UM, + = TIP GREW TOWARD THE WORK",
+            f"THEN {cnt} + 1 [1..{COUNTER_WRAP}]. A FAILED MEASUREMENT WRITES NEITHER",
+        ]
     if c.touches > 1:
-        lines.append(f"MEAN OF {c.touches} SLOW TOUCHES, EACH WITHIN {c.spread_um:g} UM OF THE FIRST")
+        lines.append(
+            f"MEAN OF {c.touches} SLOW TOUCHES, EACH WITHIN {c.spread_um:g} UM OF THE FIRST"
+        )
     return lines + [f"{spindle}, ABOUT {measuring_time_s(c):.0f} S. SEE DOCS/PROBING.MD"]
 
 
 # the words the ISO-style dialects spell differently around the probing itself
 _WORDS = {
-    "fanuc": {"tool": "T{} M06", "stop": "M05", "run": "S{:g} M03", "machine": "G53 G00", "dwell": "G04 X{:.1f}",
-              "up": "G91 G00 Z{}"},
-    "sinumerik": {"tool": "T{} M6", "stop": "M5", "run": "S{:g} M3", "machine": "SUPA G0", "dwell": "G4 F{:g}",
-                  "up": "G0 G91 Z{}"},
-    "linuxcnc": {"tool": "T{} M6", "stop": "M5", "run": "S{:g} M3", "machine": "G53 G0", "dwell": "G4 P{:g}",
-                 "up": "G91 G0 Z{}"},
+    "fanuc": {
+        "tool": "T{} M06",
+        "stop": "M05",
+        "run": "S{:g} M03",
+        "machine": "G53 G00",
+        "dwell": "G04 X{:.1f}",
+        "up": "G91 G00 Z{}",
+    },
+    "sinumerik": {
+        "tool": "T{} M6",
+        "stop": "M5",
+        "run": "S{:g} M3",
+        "machine": "SUPA G0",
+        "dwell": "G4 F{:g}",
+        "up": "G0 G91 Z{}",
+    },
+    "linuxcnc": {
+        "tool": "T{} M6",
+        "stop": "M5",
+        "run": "S{:g} M3",
+        "machine": "G53 G0",
+        "dwell": "G4 P{:g}",
+        "up": "G91 G0 Z{}",
+    },
 }
 
 
@@ -302,8 +410,14 @@ def _to_setter(c: ProbeCycle) -> list[str]:
     w = _WORDS[c.dialect]
     # keep: no tool change (it stops the spindle) and no speed word: the gauge tool in the
     # spindle is measured turning at the program's speed
-    out = [] if c.spindle == "keep" else \
-        [w["tool"].format(c.tool), w["stop"] if c.low_rpm is None else w["run"].format(c.low_rpm)]
+    out = (
+        []
+        if c.spindle == "keep"
+        else [
+            w["tool"].format(c.tool),
+            w["stop"] if c.low_rpm is None else w["run"].format(c.low_rpm),
+        ]
+    )
     if c.approach_z_mm is not None:
         out.append(f"{w['machine']} Z{_mm(c.approach_z_mm)}")
     if c.setter_xy_mm:
@@ -314,9 +428,11 @@ def _to_setter(c: ProbeCycle) -> list[str]:
 def _from_setter(c: ProbeCycle) -> list[str]:
     """Off the setter by the back-off, back to absolute, up to the approach height, spindle off."""
     w = _WORDS[c.dialect]
-    return [w["up"].format(_mm(c.backoff_mm)), "G90"] + \
-        ([f"{w['machine']} Z{_mm(c.approach_z_mm)}"] if c.approach_z_mm is not None else []) + \
-        ([w["stop"]] if c.low_rpm is not None else [])
+    return (
+        [w["up"].format(_mm(c.backoff_mm)), "G90"]
+        + ([f"{w['machine']} Z{_mm(c.approach_z_mm)}"] if c.approach_z_mm is not None else [])
+        + ([w["stop"]] if c.low_rpm is not None else [])
+    )
 
 
 def _fanuc(c: ProbeCycle, reference: bool) -> list[str]:
@@ -345,26 +461,40 @@ def _fanuc(c: ProbeCycle, reference: bool) -> list[str]:
     if c.touches == 1:
         out += touch
     else:  # #5 the first trip, #6 the sum, #7 the touches done
-        out += ["#6 = 0", "#7 = 0", f"WHILE [#7 LT {c.touches}] DO1", *touch,
-                "IF [#7 EQ 0] THEN #5 = #3",
-                f"IF [ABS[#3 - #5] * 1000 GT {c.spread_um:.1f}] THEN #3000 = 104 (TOUCHES DISAGREE)",
-                "#6 = #6 + #3", "#7 = #7 + 1", "END1", f"#3 = #6 / {c.touches}"]
+        out += [
+            "#6 = 0",
+            "#7 = 0",
+            f"WHILE [#7 LT {c.touches}] DO1",
+            *touch,
+            "IF [#7 EQ 0] THEN #5 = #3",
+            f"IF [ABS[#3 - #5] * 1000 GT {c.spread_um:.1f}] THEN #3000 = 104 (TOUCHES DISAGREE)",
+            "#6 = #6 + #3",
+            "#7 = #7 + 1",
+            "END1",
+            f"#3 = #6 / {c.touches}",
+        ]
     out += _from_setter(c)
     if reference:
         out.append(f"{ref} = #3")
     else:
-        out += [f"#4 = [#3 - {ref}] * 1000",
-                f"IF [ABS[#4] GT {c.max_um:.1f}] THEN #3000 = 103 (GROWTH OUT OF RANGE)",
-                f"{val} = #4",  # the value first ...
-                f"{cnt} = {cnt} + 1",  # ... then the counter that releases it
-                f"IF [{cnt} GT {COUNTER_WRAP}] THEN {cnt} = 1"]
+        out += [
+            f"#4 = [#3 - {ref}] * 1000",
+            f"IF [ABS[#4] GT {c.max_um:.1f}] THEN #3000 = 103 (GROWTH OUT OF RANGE)",
+            f"{val} = #4",  # the value first ...
+            f"{cnt} = {cnt} + 1",  # ... then the counter that releases it
+            f"IF [{cnt} GT {COUNTER_WRAP}] THEN {cnt} = 1",
+        ]
     return out + ["M30", "%"]
 
 
 def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
     ref, val, cnt, n = c.reference_var, c.value_var, c.counter_var, c.probe_input
-    out = [f"%_N_{c.name}_MPF", ";$PATH=/_N_MPF_DIR", *(f"; {t}" for t in _header(c, reference)),
-           "DEF REAL TC_FAST, TC_TRIP, TC_UM" + (", TC_FIRST, TC_SUM" if c.touches > 1 else "")]
+    out = [
+        f"%_N_{c.name}_MPF",
+        ";$PATH=/_N_MPF_DIR",
+        *(f"; {t}" for t in _header(c, reference)),
+        "DEF REAL TC_FAST, TC_TRIP, TC_UM" + (", TC_FIRST, TC_SUM" if c.touches > 1 else ""),
+    ]
     if c.touches > 1:
         out.append("DEF INT TC_K")
     out.append("G17 G40 G71 G90 G94")
@@ -389,21 +519,40 @@ def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
     if c.touches == 1:
         out += touch
     else:  # a loop by label: the jumps out of it to the alarms stay plain GOTOF
-        out += ["TC_SUM=0", "TC_K=0", "TC_TOUCH:", *touch,
-                "IF TC_K==0", "TC_FIRST=TC_TRIP", "ENDIF",
-                f"IF ABS(TC_TRIP-TC_FIRST)*1000>{c.spread_um:g} GOTOF TC_SPREAD",
-                "TC_SUM=TC_SUM+TC_TRIP", "TC_K=TC_K+1", f"IF TC_K<{c.touches} GOTOB TC_TOUCH",
-                f"TC_TRIP=TC_SUM/{c.touches}"]
+        out += [
+            "TC_SUM=0",
+            "TC_K=0",
+            "TC_TOUCH:",
+            *touch,
+            "IF TC_K==0",
+            "TC_FIRST=TC_TRIP",
+            "ENDIF",
+            f"IF ABS(TC_TRIP-TC_FIRST)*1000>{c.spread_um:g} GOTOF TC_SPREAD",
+            "TC_SUM=TC_SUM+TC_TRIP",
+            "TC_K=TC_K+1",
+            f"IF TC_K<{c.touches} GOTOB TC_TOUCH",
+            f"TC_TRIP=TC_SUM/{c.touches}",
+        ]
     out += _from_setter(c)
     if reference:
         out += [f"{ref}=TC_TRIP", "M30"]
     else:
-        out += [f"TC_UM=(TC_TRIP-{ref})*1000",
-                f"IF ABS(TC_UM)>{c.max_um:g} GOTOF TC_RANGE",
-                f"{val}=TC_UM",
-                f"{cnt}={cnt}+1",
-                f"IF {cnt}>{COUNTER_WRAP}", f"{cnt}=1", "ENDIF",
-                "M30", "TC_NOREF:", "SETAL(65002)", "M30", "TC_RANGE:", "SETAL(65003)", "M30"]
+        out += [
+            f"TC_UM=(TC_TRIP-{ref})*1000",
+            f"IF ABS(TC_UM)>{c.max_um:g} GOTOF TC_RANGE",
+            f"{val}=TC_UM",
+            f"{cnt}={cnt}+1",
+            f"IF {cnt}>{COUNTER_WRAP}",
+            f"{cnt}=1",
+            "ENDIF",
+            "M30",
+            "TC_NOREF:",
+            "SETAL(65002)",
+            "M30",
+            "TC_RANGE:",
+            "SETAL(65003)",
+            "M30",
+        ]
     if c.touches > 1:
         out += ["TC_SPREAD:", "SETAL(65004)", "M30"]
     return out + ["TC_NOTRIP:", "SETAL(65001)", "M30"]
@@ -420,26 +569,35 @@ def _heidenhain(c: ProbeCycle, reference: bool) -> list[str]:
     if not reference:  # keep L and DL: the check writes the deviation into DL, put back below
         out += [f"FN 18: SYSREAD QL1 = ID50 NR1 IDX{t}", f"FN 18: SYSREAD QL2 = ID50 NR4 IDX{t}"]
     # one block over four lines: "~" continues it, the parameter lines take no number
-    out += ["TCH PROBE 481 TOOL LENGTH ~", f"  Q340=+{0 if reference else 1} ;CHECK ~",
-            f"  Q260={c.approach_z_mm:+.3f} ;CLEARANCE HEIGHT ~", "  Q341=+0 ;PROBING THE TEETH"]
+    out += [
+        "TCH PROBE 481 TOOL LENGTH ~",
+        f"  Q340=+{0 if reference else 1} ;CHECK ~",
+        f"  Q260={c.approach_z_mm:+.3f} ;CLEARANCE HEIGHT ~",
+        "  Q341=+0 ;PROBING THE TEETH",
+    ]
     if reference:  # 481 measured: L = the cold length, DL = 0
         out += [f"FN 18: SYSREAD QL1 = ID50 NR1 IDX{t}", f"FN 0: {ref} = +QL1"]
     else:
-        out += [f"FN 17: SYSWRITE ID50 NR4 IDX{t} = QL2",  # the length compensation stays cold
-                "FN 9: IF +Q199 EQU +2 GOTO LBL 92",
-                f"QL3 = ( QL1 + Q115 - {ref} ) * 1000",
-                f"FN 11: IF +QL3 GT +{c.max_um:g} GOTO LBL 93",
-                f"FN 12: IF +QL3 LT -{c.max_um:g} GOTO LBL 93",
-                f"FN 0: {val} = +QL3",
-                f"{cnt} = {cnt} + 1",
-                f"FN 12: IF +{cnt} LT +{COUNTER_WRAP + 1} GOTO LBL 1",
-                f"FN 0: {cnt} = +1",
-                "LBL 1",
-                "FN 9: IF +0 EQU +0 GOTO LBL 99",
-                "LBL 91", "FN 14: ERROR = 202",  # no cold reference
-                "LBL 92", "FN 14: ERROR = 201",  # the TT found the tool broken (LBREAK)
-                "LBL 93", "FN 14: ERROR = 203",  # growth beyond max_um
-                "LBL 99"]
+        out += [
+            f"FN 17: SYSWRITE ID50 NR4 IDX{t} = QL2",  # the length compensation stays cold
+            "FN 9: IF +Q199 EQU +2 GOTO LBL 92",
+            f"QL3 = ( QL1 + Q115 - {ref} ) * 1000",
+            f"FN 11: IF +QL3 GT +{c.max_um:g} GOTO LBL 93",
+            f"FN 12: IF +QL3 LT -{c.max_um:g} GOTO LBL 93",
+            f"FN 0: {val} = +QL3",
+            f"{cnt} = {cnt} + 1",
+            f"FN 12: IF +{cnt} LT +{COUNTER_WRAP + 1} GOTO LBL 1",
+            f"FN 0: {cnt} = +1",
+            "LBL 1",
+            "FN 9: IF +0 EQU +0 GOTO LBL 99",
+            "LBL 91",
+            "FN 14: ERROR = 202",  # no cold reference
+            "LBL 92",
+            "FN 14: ERROR = 201",  # the TT found the tool broken (LBREAK)
+            "LBL 93",
+            "FN 14: ERROR = 203",  # growth beyond max_um
+            "LBL 99",
+        ]
     out.append(f"END PGM {c.name} MM")
     numbered, n = [], 0
     for k, line in enumerate(out):  # the TNC numbers every block
@@ -455,8 +613,11 @@ def _linuxcnc(c: ProbeCycle, reference: bool) -> list[str]:
     ref, val, cnt = c.reference_var, c.value_var, c.counter_var
     out = ["%", *(f"({t})" for t in _header(c, reference)), "G17 G21 G40 G49 G90 G94"]
     if not reference:
-        out += [f"o100 if [{ref} EQ 0]", "(ABORT, NO COLD REFERENCE: RUN THE REFERENCE PROGRAM)",
-                "o100 endif"]
+        out += [
+            f"o100 if [{ref} EQ 0]",
+            "(ABORT, NO COLD REFERENCE: RUN THE REFERENCE PROGRAM)",
+            "o100 endif",
+        ]
     out += _to_setter(c)
     b = c.backoff_mm
     out += [
@@ -473,27 +634,48 @@ def _linuxcnc(c: ProbeCycle, reference: bool) -> list[str]:
     if c.touches == 1:
         out += touch
     else:
-        out += ["#<sum_mm> = 0", "#<k> = 0", f"o103 repeat [{c.touches}]", *touch,
-                "o104 if [#<k> EQ 0]", "#<first_mm> = #<trip_mm>", "o104 endif",
-                f"o105 if [ABS[#<trip_mm> - #<first_mm>] * 1000 GT {c.spread_um:g}]",
-                "(ABORT, TOUCHES DISAGREE)", "o105 endif",
-                "#<sum_mm> = [#<sum_mm> + #<trip_mm>]", "#<k> = [#<k> + 1]", "o103 endrepeat",
-                f"#<trip_mm> = [#<sum_mm> / {c.touches}]"]
+        out += [
+            "#<sum_mm> = 0",
+            "#<k> = 0",
+            f"o103 repeat [{c.touches}]",
+            *touch,
+            "o104 if [#<k> EQ 0]",
+            "#<first_mm> = #<trip_mm>",
+            "o104 endif",
+            f"o105 if [ABS[#<trip_mm> - #<first_mm>] * 1000 GT {c.spread_um:g}]",
+            "(ABORT, TOUCHES DISAGREE)",
+            "o105 endif",
+            "#<sum_mm> = [#<sum_mm> + #<trip_mm>]",
+            "#<k> = [#<k> + 1]",
+            "o103 endrepeat",
+            f"#<trip_mm> = [#<sum_mm> / {c.touches}]",
+        ]
     out += _from_setter(c)
     if reference:
         out.append(f"{ref} = #<trip_mm>")
     else:
-        out += [f"#<growth_um> = [[#<trip_mm> - {ref}] * 1000]",
-                f"o101 if [ABS[#<growth_um>] GT {c.max_um:g}]", "(ABORT, GROWTH OUT OF RANGE)", "o101 endif",
-                f"{val} = #<growth_um>",
-                f"{cnt} = [{cnt} + 1]",
-                f"o102 if [{cnt} GT {COUNTER_WRAP}]", f"{cnt} = 1", "o102 endif",
-                f"M68 E{c.value_aout} Q{val}",  # HAL sees them in this order too
-                f"M68 E{c.counter_aout} Q{cnt}"]
+        out += [
+            f"#<growth_um> = [[#<trip_mm> - {ref}] * 1000]",
+            f"o101 if [ABS[#<growth_um>] GT {c.max_um:g}]",
+            "(ABORT, GROWTH OUT OF RANGE)",
+            "o101 endif",
+            f"{val} = #<growth_um>",
+            f"{cnt} = [{cnt} + 1]",
+            f"o102 if [{cnt} GT {COUNTER_WRAP}]",
+            f"{cnt} = 1",
+            "o102 endif",
+            f"M68 E{c.value_aout} Q{val}",  # HAL sees them in this order too
+            f"M68 E{c.counter_aout} Q{cnt}",
+        ]
     return out + ["M2", "%"]
 
 
-_WRITERS = {"fanuc": _fanuc, "sinumerik": _sinumerik, "heidenhain": _heidenhain, "linuxcnc": _linuxcnc}
+_WRITERS = {
+    "fanuc": _fanuc,
+    "sinumerik": _sinumerik,
+    "heidenhain": _heidenhain,
+    "linuxcnc": _linuxcnc,
+}
 
 
 def probe_program(cycle: ProbeCycle, *, reference: bool = False) -> str:
@@ -505,21 +687,40 @@ def probe_program(cycle: ProbeCycle, *, reference: bool = False) -> str:
 def var_file_lines(cycle: ProbeCycle) -> list[str]:
     """LinuxCNC keeps a user parameter across restarts only when its number is in the .var file
     (the interpreter rewrites the file's own lines at exit): the lines to add, in order."""
-    return [f"{v.number} 0" for v in sorted((cycle.reference_var, cycle.value_var, cycle.counter_var),
-                                            key=lambda v: v.number)]
+    return [
+        f"{v.number} 0"
+        for v in sorted(
+            (cycle.reference_var, cycle.value_var, cycle.counter_var), key=lambda v: v.number
+        )
+    ]
 
 
 def probe_program_cmd(args: argparse.Namespace) -> int:
     """``thermocomp probe-program``: write a tool-setter cycle (or its cold-reference program)."""
     cycle = probe_cycle(
-        args.dialect, tool=args.tool, reference_var=args.reference_var, value_var=args.value_var,
-        counter_var=args.counter_var, spindle=args.spindle, low_rpm=args.low_rpm, settle_s=args.settle_s,
-        travel_mm=args.travel_mm, backoff_mm=args.backoff_mm, fast_feed_mm_min=args.fast_feed_mm_min,
-        slow_feed_mm_min=args.slow_feed_mm_min, setter_x_mm=args.setter_x_mm, setter_y_mm=args.setter_y_mm,
-        approach_z_mm=args.approach_z_mm, max_um=args.max_um, touches=args.touches, spread_um=args.spread_um,
+        args.dialect,
+        tool=args.tool,
+        reference_var=args.reference_var,
+        value_var=args.value_var,
+        counter_var=args.counter_var,
+        spindle=args.spindle,
+        low_rpm=args.low_rpm,
+        settle_s=args.settle_s,
+        travel_mm=args.travel_mm,
+        backoff_mm=args.backoff_mm,
+        fast_feed_mm_min=args.fast_feed_mm_min,
+        slow_feed_mm_min=args.slow_feed_mm_min,
+        setter_x_mm=args.setter_x_mm,
+        setter_y_mm=args.setter_y_mm,
+        approach_z_mm=args.approach_z_mm,
+        max_um=args.max_um,
+        touches=args.touches,
+        spread_um=args.spread_um,
         probe_input=args.probe_input,
-        value_aout=args.value_aout, counter_aout=args.counter_aout,
-        name=args.name or ("TCREF" if args.reference else "TCPROBE"))
+        value_aout=args.value_aout,
+        counter_aout=args.counter_aout,
+        name=args.name or ("TCREF" if args.reference else "TCPROBE"),
+    )
     text = probe_program(cycle, reference=args.reference)
     if not args.output or args.output == "-":
         print(text, end="")
@@ -529,17 +730,25 @@ def probe_program_cmd(args: argparse.Namespace) -> int:
     write_text(args.output, text)
     c = cycle
     what = "cold-reference program" if args.reference else "tool-setter cycle"
-    print(f"wrote {args.output}: {c.dialect} {what} for T{c.tool}; cold reference {c.reference_var}, "
-          f"value {c.value_var} [um], counter {c.counter_var}")
-    turning = {"stop": "stopped", "keep": "at the program's speed"}.get(c.spindle) or f"at {c.low_rpm:g} rpm"
+    print(
+        f"wrote {args.output}: {c.dialect} {what} for T{c.tool}; cold reference {c.reference_var}, "
+        f"value {c.value_var} [um], counter {c.counter_var}"
+    )
+    turning = {"stop": "stopped", "keep": "at the program's speed"}.get(
+        c.spindle
+    ) or f"at {c.low_rpm:g} rpm"
     touches = f", {c.touches} slow touches averaged" if c.touches > 1 else ""
-    print(f"spindle {turning} for about "
-          f"{measuring_time_s(c):.0f} s per measurement (settle {c.settle_s:g} s + probing{touches})")
+    print(
+        f"spindle {turning} for about "
+        f"{measuring_time_s(c):.0f} s per measurement (settle {c.settle_s:g} s + probing{touches})"
+    )
     if args.reference:
         print("run it cold: after the rest, before the calibration run's first spindle start")
     if c.dialect == "linuxcnc":
-        print("to keep them through a restart, add to the .var file (sorted by number; LinuxCNC saves it "
-              "at a clean shutdown): " + ", ".join(f"'{line}'" for line in var_file_lines(c)))
+        print(
+            "to keep them through a restart, add to the .var file (sorted by number; LinuxCNC saves it "
+            "at a clean shutdown): " + ", ".join(f"'{line}'" for line in var_file_lines(c))
+        )
     if not args.output.lower().endswith(EXTENSIONS[c.dialect]):
         print(f"note: {c.dialect} programs usually end in {EXTENSIONS[c.dialect]}")
     return 0

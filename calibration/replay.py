@@ -94,8 +94,11 @@ def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int =
     if log.elongation_um is None:
         raise RunLogError("--probe-every needs a measured elongation_um column", log.source)
     if not np.isfinite(np.asarray(log.elongation_um, float)).all():
-        raise RunLogError("--probe-every draws its probes from an elongation measured on every row; "
-                          "this log's is sparse (its measurements are probes already)", log.source)
+        raise RunLogError(
+            "--probe-every draws its probes from an elongation measured on every row; "
+            "this log's is sparse (its measurements are probes already)",
+            log.source,
+        )
     if not (math.isfinite(every_s) and every_s > 0):
         raise NonFiniteInputError(f"--probe-every must be > 0 s, got {every_s}")
     if not (math.isfinite(noise_um) and noise_um > 0):
@@ -104,8 +107,12 @@ def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int =
     idx = probe_rows(t, every_s)
     rng = np.random.default_rng(seed)
     values = np.asarray(log.elongation_um, float)[idx] + rng.normal(0.0, noise_um, idx.size)
-    return Probes(t[idx], values, np.full(idx.size, noise_um),
-                  f"every {every_s:g} s from the measured column, noise {noise_um:g} um, seed {seed}")
+    return Probes(
+        t[idx],
+        values,
+        np.full(idx.size, noise_um),
+        f"every {every_s:g} s from the measured column, noise {noise_um:g} um, seed {seed}",
+    )
 
 
 def probes_from_file(log: RunLog, path: str, default_sigma_um: float = 0.5) -> Probes:
@@ -118,9 +125,14 @@ def probes_from_file(log: RunLog, path: str, default_sigma_um: float = 0.5) -> P
     out = (m.time_s < t0) | (m.time_s > t1)
     if out.any():
         k = int(np.flatnonzero(out)[0])
-        raise RunLogError(f"measurement at time_s {m.time_s[k]:g} lies outside the log's "
-                          f"{t0:g}..{t1:g} s: not on the log's clock", path)
-    return Probes(m.time_s, m.elongation_um, m.sigma_um, f"{m.time_s.size} measurement(s) from {path}")
+        raise RunLogError(
+            f"measurement at time_s {m.time_s[k]:g} lies outside the log's "
+            f"{t0:g}..{t1:g} s: not on the log's clock",
+            path,
+        )
+    return Probes(
+        m.time_s, m.elongation_um, m.sigma_um, f"{m.time_s.size} measurement(s) from {path}"
+    )
 
 
 CUTTING_COLUMN = "cutting"
@@ -137,9 +149,14 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
     col = log.extras.get(CUTTING_COLUMN)
     signal = shaping.cutting.signal
     if col is None or signal == "speed":
-        warn = None if col is not None or signal != "controller" else (
-            "the configuration takes the cutting signal from the controller, but the log has no "
-            "cutting column: inferred from the speed")
+        warn = (
+            None
+            if col is not None or signal != "controller"
+            else (
+                "the configuration takes the cutting signal from the controller, but the log has no "
+                "cutting column: inferred from the speed"
+            )
+        )
         return None, "inferred from the speed", warn
     import pandas as pd  # as the run-log reader: text cells become NaN, refused below
 
@@ -150,7 +167,9 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
     bad = ~np.isin(values, (0.0, 1.0)) & ~blank
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
-        raise RunLogError(f"column cutting: {col[row]!r} is not 0 or 1", log.source, log.line_of(row))
+        raise RunLogError(
+            f"column cutting: {col[row]!r} is not 0 or 1", log.source, log.line_of(row)
+        )
     values[blank] = np.nan
     if blank.all():
         return None, "inferred from the speed (the cutting column is blank)", None
@@ -168,16 +187,31 @@ def cutting_signal(log: RunLog, shaping: ShaperConfig) -> tuple[np.ndarray | Non
 def _error_stats(error: np.ndarray | None, mask: np.ndarray) -> dict[str, float | None]:
     """The error's figures on the rows where it is known (a sparse log: the measured rows)."""
     if error is None:
-        return {"rms_um": None, "max_abs_um": None, "cutting_rms_um": None, "cutting_max_abs_um": None}
+        return {
+            "rms_um": None,
+            "max_abs_um": None,
+            "cutting_rms_um": None,
+            "cutting_max_abs_um": None,
+        }
     known = np.isfinite(error)
     whole, cut = residual_stats(error[known]), residual_stats(error[mask & known])
-    return {"rms_um": whole["rms_um"], "max_abs_um": whole["max_abs_um"],
-            "cutting_rms_um": cut["rms_um"], "cutting_max_abs_um": cut["max_abs_um"]}
+    return {
+        "rms_um": whole["rms_um"],
+        "max_abs_um": whole["max_abs_um"],
+        "cutting_rms_um": cut["rms_um"],
+        "cutting_max_abs_um": cut["max_abs_um"],
+    }
 
 
-def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
-                     predicted_um: np.ndarray, measured_um: np.ndarray | None,
-                     cutting: np.ndarray | None, configured: ShapedSeries) -> list[dict[str, Any]]:
+def compare_policies(
+    shaping: ShaperConfig,
+    time_s: np.ndarray,
+    speed_rpm: np.ndarray,
+    predicted_um: np.ndarray,
+    measured_um: np.ndarray | None,
+    cutting: np.ndarray | None,
+    configured: ShapedSeries,
+) -> list[dict[str, Any]]:
     """Every transient policy with the configuration's limits, side by side, on one log: the
     error of the offset it would write (all samples, and the samples taken as cutting), how far
     it lags the model, and the fastest it moves while cutting and overall. ``none`` is the model
@@ -192,18 +226,26 @@ def compare_policies(shaping: ShaperConfig, time_s: np.ndarray, speed_rpm: np.nd
         if name == "none":  # judged on the samples the configured shaping took as cutting
             offset, cut = ideal, configured.cutting
         else:
-            series = configured if name == shaping.policy else shape_series(
-                shaping.with_policy(name), time_s, speed_rpm, predicted_um, cutting=cutting)
+            series = (
+                configured
+                if name == shaping.policy
+                else shape_series(
+                    shaping.with_policy(name), time_s, speed_rpm, predicted_um, cutting=cutting
+                )
+            )
             offset, cut = series.offset_um, series.cutting
         rate = np.abs(np.diff(offset)) / np.where(dt > 0, dt, np.inf)
         both = cut[1:] & cut[:-1]  # a step between two cutting samples
-        rows.append({
-            "policy": name, "configured": name == shaping.policy,
-            **_error_stats(None if measured_um is None else measured_um + offset, cut),
-            "max_lag_um": float(np.max(np.abs(offset - ideal))),
-            "max_rate_um_per_s": float(rate.max()) if rate.size else 0.0,
-            "max_cutting_rate_um_per_s": float(rate[both].max()) if both.any() else 0.0,
-        })
+        rows.append(
+            {
+                "policy": name,
+                "configured": name == shaping.policy,
+                **_error_stats(None if measured_um is None else measured_um + offset, cut),
+                "max_lag_um": float(np.max(np.abs(offset - ideal))),
+                "max_rate_um_per_s": float(rate.max()) if rate.size else 0.0,
+                "max_cutting_rate_um_per_s": float(rate[both].max()) if both.any() else 0.0,
+            }
+        )
     return rows
 
 
@@ -227,11 +269,17 @@ def _cold_start(log: RunLog) -> bool:
     """A service journal that begins with a cold start: the service's estimate began at the
     model's equilibrium at rest, and its offset at zero."""
     alarms = log.extras.get("alarms")
-    return alarms is not None and alarms.dtype != object and len(alarms) > 0 \
+    return (
+        alarms is not None
+        and alarms.dtype != object
+        and len(alarms) > 0
         and bool(int(alarms[0]) & ALARM_COLD_START)
+    )
 
 
-def _start(estimate: Estimate, log: RunLog, initial_um: float | None, speed_rpm: float) -> EstimateState:
+def _start(
+    estimate: Estimate, log: RunLog, initial_um: float | None, speed_rpm: float
+) -> EstimateState:
     """Where the estimate starts: where the service began for a journal that begins with a cold
     start (unless ``initial_um`` is given); else at ``initial_um`` (None: the model's
     equilibrium with the first speed)."""
@@ -244,9 +292,15 @@ EXPECTED_SHARE = 0.8
 """Fewer of a band's errors than this within the fit's stated 95 % band: replay says so."""
 
 
-def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
-           shaping: ShaperConfig | None = None, probes: Probes | None = None,
-           compare: bool = True, estimate: Estimate | None = None) -> Replay:
+def replay(
+    model: Predictor,
+    log: RunLog,
+    initial_um: float | None = None,
+    shaping: ShaperConfig | None = None,
+    probes: Probes | None = None,
+    compare: bool = True,
+    estimate: Estimate | None = None,
+) -> Replay:
     """Free-run ``model`` over the log's own time stamps.
 
     A sparse log (a journal export: the elongation measured at the probe instants only, NaN on
@@ -273,7 +327,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
     shaping = ShaperConfig() if shaping is None else shaping
     if estimate is None:
         estimate = Estimate(model, observer_config_of(model) if probes is not None else None)
-    elif probes is not None and estimate.fused is None:  # probes given: fuse them, as the model says
+    elif (
+        probes is not None and estimate.fused is None
+    ):  # probes given: fuse them, as the model says
         estimate = replace(estimate, observer=observer_config_of(model))
     warnings: list[str] = []
     measured = None if log.elongation_um is None else np.asarray(log.elongation_um, dtype=float)
@@ -289,8 +345,10 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         if rows[0]:
             initial_um = float(measured[0])
         else:
-            warnings.append("the first row has no measured elongation: the model starts from its own "
-                            "initial state (give --initial-um to start elsewhere)")
+            warnings.append(
+                "the first row has no measured elongation: the model starts from its own "
+                "initial state (give --initial-um to start elsewhere)"
+            )
     if initial_um is not None and not math.isfinite(initial_um):
         raise NonFiniteInputError(f"initial elongation is {initial_um}")
     missing = [n for n in model.input_names if n not in log.extras]
@@ -298,7 +356,9 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         raise RunLogError(f"the model needs input column(s) {', '.join(missing)}", log.source)
     inputs = {n: np.asarray(log.extras[n], dtype=float) for n in model.input_names}
     for name, col in inputs.items():
-        if np.isinf(col).any():  # a blank cell is an input the service could not use; inf is garbage
+        if np.isinf(
+            col
+        ).any():  # a blank cell is an input the service could not use; inf is garbage
             row = int(np.flatnonzero(np.isinf(col))[0])
             raise RunLogError(f"column {name}: not a finite number", log.source, log.line_of(row))
     blank = np.zeros(len(log), bool)
@@ -312,18 +372,35 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         pred = open_loop = estimate.simulate_um(speed_sim, step_time, initial_um)
     else:  # the service's estimate, cycle by cycle: inputs that fail, probes fused
         at = np.searchsorted(log.time_s, np.asarray([] if probes is None else probes.time_s) - 1e-3)
-        fused = [] if probes is None else list(zip(at.tolist(), probes.elongation_um.tolist(),
-                                                   probes.sigma_um.tolist()))
-        series = estimate.run(_start(estimate, log, initial_um, float(speed_sim[0])), step_time, speed_sim,
-                              dt_s=dt, wall_s=wall, inputs=inputs, probes=fused)
+        fused = (
+            []
+            if probes is None
+            else list(zip(at.tolist(), probes.elongation_um.tolist(), probes.sigma_um.tolist()))
+        )
+        series = estimate.run(
+            _start(estimate, log, initial_um, float(speed_sim[0])),
+            step_time,
+            speed_sim,
+            dt_s=dt,
+            wall_s=wall,
+            inputs=inputs,
+            probes=fused,
+        )
         pred, open_loop = series.estimate_um, series.model_um
         if series.fallback.any():
-            warnings.append(f"the speed-only fallback stands in on {int(series.fallback.sum())} rows "
-                            f"({int(blank.sum())} with a blank input cell), as in the service")
+            warnings.append(
+                f"the speed-only fallback stands in on {int(series.fallback.sum())} rows "
+                f"({int(blank.sum())} with a blank input cell), as in the service"
+            )
     cut_signal, cut_source, cut_warning = cutting_signal(log, shaping)
-    shaped = shape_series(shaping, step_time, estimate.clamp_series(speed_sim)[0], pred,
-                          initial_offset_um=0.0 if initial_um is None and _cold_start(log) else None,
-                          cutting=cut_signal)
+    shaped = shape_series(
+        shaping,
+        step_time,
+        estimate.clamp_series(speed_sim)[0],
+        pred,
+        initial_offset_um=0.0 if initial_um is None and _cold_start(log) else None,
+        cutting=cut_signal,
+    )
     applied = shaped.offset_um
     for name, values in (("predicted elongation", pred), ("applied offset", applied)):
         if not np.isfinite(values).all():  # no NaN reaches a report
@@ -332,7 +409,8 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             raise NonFiniteInputError(
                 f"{log.source or 'log'}: the {name} is not finite from row {row}"
                 + (f" (line {line})" if line else "")
-                + ": the model overflows on the log's values or time steps")
+                + ": the model overflows on the log's values or time steps"
+            )
 
     if cut_warning:
         warnings.insert(0, cut_warning)
@@ -346,8 +424,11 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             f"{over.sum()} samples ({100 * over.mean():.1f} %) above the calibrated range "
             f"(max {hi:.0f} rpm; {speed.max():.0f} rpm"
             + (f", first at line {line})" if line else ")")
-            + (": clamped to the top of the range, as the service does" if estimate.over_range == "clamp"
-               else ": predictions there are extrapolated (over_range = extrapolate)")
+            + (
+                ": clamped to the top of the range, as the service does"
+                if estimate.over_range == "clamp"
+                else ": predictions there are extrapolated (over_range = extrapolate)"
+            )
         )
     outside = getattr(model, "outside_trained", None)  # models that record trained input ranges
     for name in model.input_names if outside is not None else ():
@@ -356,12 +437,17 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
             why = outside({name: float(col[k])})
             if why is not None:
                 line = log.line_of(k)
-                warnings.append(f"{why}" + (f" (line {line})" if line else "")
-                                + ": predictions there are extrapolated")
+                warnings.append(
+                    f"{why}"
+                    + (f" (line {line})" if line else "")
+                    + ": predictions there are extrapolated"
+                )
                 break
     if log.duration_s > MAX_SPAN_S:
-        warnings.append(f"the log spans {log.duration_s / 86400:.0f} days: no equilibrium time or "
-                        f"TEVR beyond {MAX_SPAN_S / 86400:.0f} days")
+        warnings.append(
+            f"the log spans {log.duration_s / 86400:.0f} days: no equilibrium time or "
+            f"TEVR beyond {MAX_SPAN_S / 86400:.0f} days"
+        )
     if gaps:
         line = log.line_of(gaps[0][0])
         warnings.append(
@@ -390,9 +476,12 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         "gaps": len(gaps),
     }
     if probes is not None and series is not None:
-        report.update(probes=int(probes.time_s.size), probes_rejected=series.outcomes.count("rejected"),
-                      probe_restarts=series.outcomes.count("restarted"),
-                      probe_source=probes.source)
+        report.update(
+            probes=int(probes.time_s.size),
+            probes_rejected=series.outcomes.count("rejected"),
+            probe_restarts=series.outcomes.count("restarted"),
+            probe_source=probes.source,
+        )
     report["measured_samples"] = int(rows.sum()) if measured is not None else 0
     if measured is not None:
         y = measured[rows]  # a sparse log: its measured rows only
@@ -411,51 +500,83 @@ def replay(model: Predictor, log: RunLog, initial_um: float | None = None,
         )
         if probes is not None:
             ost = residual_stats(y - open_loop[rows])
-            report.update(open_loop_rms_residual_um=ost["rms_um"],
-                          open_loop_max_abs_residual_um=ost["max_abs_um"])
+            report.update(
+                open_loop_rms_residual_um=ost["rms_um"],
+                open_loop_max_abs_residual_um=ost["max_abs_um"],
+            )
         ast = residual_stats(y + applied[rows])
         cst = residual_stats((measured + applied)[rows & shaped.cutting])
-        report.update(applied_rms_residual_um=ast["rms_um"],
-                      applied_max_abs_residual_um=ast["max_abs_um"],
-                      applied_cutting_rms_residual_um=cst["rms_um"],
-                      applied_cutting_max_abs_residual_um=cst["max_abs_um"])
+        report.update(
+            applied_rms_residual_um=ast["rms_um"],
+            applied_max_abs_residual_um=ast["max_abs_um"],
+            applied_cutting_rms_residual_um=cst["rms_um"],
+            applied_cutting_max_abs_residual_um=cst["max_abs_um"],
+        )
         expected = parse_expected(getattr(model, "fit", None))
         if expected is not None:
             spans = None
             if model.input_names and hasattr(model, "distance_outside"):
                 spans = model.distance_outside({k: inputs[k][rows] for k in model.input_names})
-            report["expected_error"] = against_expected(expected, res, np.asarray(log.speed_rpm, float)[rows], spans)
+            report["expected_error"] = against_expected(
+                expected, res, np.asarray(log.speed_rpm, float)[rows], spans
+            )
             for b in report["expected_error"]:
                 if b["within_p95"] < EXPECTED_SHARE:
-                    warnings.append(f"the error is larger than the fit expected {place(str(b['label']))}: "
-                                    f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
-                                    f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate")
+                    warnings.append(
+                        f"the error is larger than the fit expected {place(str(b['label']))}: "
+                        f"{100 * b['within_p95']:.0f} % of it within the stated 95 % band "
+                        f"({b['expected_p95_abs_um']:.2f} um); probe or recalibrate"
+                    )
         error = pred if sparse else measured
         if sparse:
-            warnings.append(f"the elongation is measured on {int(rows.sum())} of {rows.size} rows (sparse): "
-                            "the error figures are on those rows; equilibrium time and TEVR from the "
-                            "prediction")
+            warnings.append(
+                f"the elongation is measured on {int(rows.sum())} of {rows.size} rows (sparse): "
+                "the error figures are on those rows; equilibrium time and TEVR from the "
+                "prediction"
+            )
     else:
-        for key in ("max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
-                    "std_uncompensated_um", "std_compensated_um", "std_reduction_pct",
-                    "max_abs_uncompensated_um", "applied_rms_residual_um",
-                    "applied_max_abs_residual_um", "applied_cutting_rms_residual_um",
-                    "applied_cutting_max_abs_residual_um"):
+        for key in (
+            "max_abs_residual_um",
+            "rms_residual_um",
+            "mean_abs_residual_um",
+            "std_uncompensated_um",
+            "std_compensated_um",
+            "std_reduction_pct",
+            "max_abs_uncompensated_um",
+            "applied_rms_residual_um",
+            "applied_max_abs_residual_um",
+            "applied_cutting_rms_residual_um",
+            "applied_cutting_max_abs_residual_um",
+        ):
             report[key] = None
         error = pred
     # paper 000's figures, as the cooling commands compute them (calibration.stability)
-    t_eq, tevr = (None, None) if log.duration_s > MAX_SPAN_S else equilibrium_and_tevr(log.time_s, error)
+    t_eq, tevr = (
+        (None, None) if log.duration_s > MAX_SPAN_S else equilibrium_and_tevr(log.time_s, error)
+    )
     report["equilibrium_time_s"] = t_eq
     report["tevr_um"] = tevr
     report["ste_source"] = "measured" if measured is not None and not sparse else "predicted"
     report["shaping"] = {
-        "policy": shaping.policy, "max_rate_um_per_s": shaping.max_rate_um_per_s,
+        "policy": shaping.policy,
+        "max_rate_um_per_s": shaping.max_rate_um_per_s,
         "not_cutting_rate_um_per_s": shaping.fast_rate_um_per_s,
-        "max_offset_um": shaping.max_offset_um, "deadband_um": shaping.deadband_um,
-        "cutting_source": cut_source, "cutting_fraction": float(np.mean(shaped.cutting)),
+        "max_offset_um": shaping.max_offset_um,
+        "deadband_um": shaping.deadband_um,
+        "cutting_source": cut_source,
+        "cutting_fraction": float(np.mean(shaped.cutting)),
     }
     if compare:
-        report["policies"] = compare_policies(shaping, step_time, estimate.clamp_series(speed_sim)[0], pred,
-                                              measured, cut_signal, shaped)
+        report["policies"] = compare_policies(
+            shaping,
+            step_time,
+            estimate.clamp_series(speed_sim)[0],
+            pred,
+            measured,
+            cut_signal,
+            shaped,
+        )
     report["warnings"] = warnings
-    return Replay(log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied, shaped.cutting)
+    return Replay(
+        log.time_s, log.speed_rpm, pred, measured, initial_um, report, applied, shaped.cutting
+    )

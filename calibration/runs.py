@@ -67,8 +67,9 @@ def gap_threshold_s(time_s: np.ndarray) -> float:
     return max(GAP_MEDIAN_STEPS * float(np.median(dt)), MIN_GAP_S) if dt.size else MIN_GAP_S
 
 
-def bridge_gaps(time_s: np.ndarray, speed_rpm: np.ndarray,
-                gap_s: float | None = None) -> tuple[np.ndarray, list[tuple[int, float]]]:
+def bridge_gaps(
+    time_s: np.ndarray, speed_rpm: np.ndarray, gap_s: float | None = None
+) -> tuple[np.ndarray, list[tuple[int, float]]]:
     """The speed with every gap in the log integrated at the last logged speed.
 
     ``speed_rpm[k]`` is held over ``(time_s[k-1], time_s[k]]``, so a sample ending a step
@@ -102,19 +103,26 @@ def _check_values(log: RunLog, src: str, elongation_um: np.ndarray) -> None:
         if bad.size:
             row = int(bad[0])
             raise CalibrationError(
-                f"{_at(log, src, row)}: column {col}: {values[row]} is not a finite number")
-    for col, values, limit in (("time_s", log.time_s, MAX_ABS_TIME_S),
-                               ("speed_rpm", log.speed_rpm, MAX_SPEED_RPM)):
+                f"{_at(log, src, row)}: column {col}: {values[row]} is not a finite number"
+            )
+    for col, values, limit in (
+        ("time_s", log.time_s, MAX_ABS_TIME_S),
+        ("speed_rpm", log.speed_rpm, MAX_SPEED_RPM),
+    ):
         over = np.flatnonzero(np.abs(values) > limit)
         if over.size:
             row = int(over[0])
-            raise CalibrationError(f"{_at(log, src, row)}: column {col}: {values[row]:g} is beyond "
-                                   f"{limit:g} (wrong unit?)")
+            raise CalibrationError(
+                f"{_at(log, src, row)}: column {col}: {values[row]:g} is beyond "
+                f"{limit:g} (wrong unit?)"
+            )
     back = np.flatnonzero(np.diff(log.time_s) <= 0)
     if back.size:
         row = int(back[0]) + 1
-        raise CalibrationError(f"{_at(log, src, row)}: time does not increase "
-                               f"({log.time_s[row]:g} s after {log.time_s[row - 1]:g} s)")
+        raise CalibrationError(
+            f"{_at(log, src, row)}: time does not increase "
+            f"({log.time_s[row]:g} s after {log.time_s[row - 1]:g} s)"
+        )
 
 
 def run_from_log(log: RunLog, name: str | None = None, *, sparse: bool = False) -> Run:
@@ -125,15 +133,21 @@ def run_from_log(log: RunLog, name: str | None = None, *, sparse: bool = False) 
     :data:`MIN_MEASURED_ROWS` must be. Without, every row needs a finite one."""
     src = log.source or name or "run"
     if log.elongation_um is None:
-        raise CalibrationError(f"{src}: no elongation_um column: a calibration run needs the measured growth")
+        raise CalibrationError(
+            f"{src}: no elongation_um column: a calibration run needs the measured growth"
+        )
     if len(log) < MIN_ROWS:
-        raise CalibrationError(f"{src}: {len(log)} rows; a calibration run needs at least {MIN_ROWS}")
+        raise CalibrationError(
+            f"{src}: {len(log)} rows; a calibration run needs at least {MIN_ROWS}"
+        )
     elong = np.asarray(log.elongation_um, dtype=float)
     measured = np.isfinite(elong)
     if sparse and not measured.all():
         if measured.sum() < MIN_MEASURED_ROWS:
-            raise CalibrationError(f"{src}: the elongation is measured on {int(measured.sum())} rows; a "
-                                   f"calibration needs at least {MIN_MEASURED_ROWS}")
+            raise CalibrationError(
+                f"{src}: the elongation is measured on {int(measured.sum())} rows; a "
+                f"calibration needs at least {MIN_MEASURED_ROWS}"
+            )
         _check_values(log, src, np.where(np.isnan(elong), 0.0, elong))  # NaN: not measured
     else:
         _check_values(log, src, elong)
@@ -199,8 +213,9 @@ def resample(run: Run, dt_s: float) -> Run:
     return Run(run.name, grid, speed, elong)
 
 
-def transient_mask(time_s: np.ndarray, speed_rpm: np.ndarray, max_rpm: float,
-                   window_s: float = TRANSIENT_WINDOW_S) -> np.ndarray:
+def transient_mask(
+    time_s: np.ndarray, speed_rpm: np.ndarray, max_rpm: float, window_s: float = TRANSIENT_WINDOW_S
+) -> np.ndarray:
     """True within ``window_s`` after a speed step of more than 10 % of ``max_rpm``."""
     n = np.abs(speed_rpm)
     steps = np.flatnonzero(np.abs(np.diff(n)) > TRANSIENT_STEP_FRACTION * max(max_rpm, 1.0)) + 1

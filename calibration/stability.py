@@ -79,7 +79,8 @@ def _poly_slope(t: np.ndarray, y: np.ndarray, degree: int | None) -> np.ndarray:
     if degree is not None:
         if not (isinstance(degree, int | np.integer) and 1 <= degree <= t.size - 2):
             raise CalibrationError(
-                f"degree must be an integer from 1 to {t.size - 2}, got {degree}")
+                f"degree must be an integer from 1 to {t.size - 2}, got {degree}"
+            )
         return Polynomial.fit(t, y, int(degree)).deriv()(t)
     best: tuple[float, Polynomial] | None = None
     n = t.size
@@ -111,7 +112,9 @@ def _spline_slope(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     # fit on [0, 1]: the roughness penalty spans ~20 decades less than in seconds
     t0, span = float(tb[0]), float(tb[-1] - tb[0])
     try:
-        from scipy.interpolate import make_smoothing_spline  # 1.7 s to import: only when STE is computed
+        from scipy.interpolate import (
+            make_smoothing_spline,
+        )  # 1.7 s to import: only when STE is computed
 
         spline = make_smoothing_spline((tb - t0) / span, yb)
     except (ValueError, np.linalg.LinAlgError) as err:
@@ -119,8 +122,9 @@ def _spline_slope(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     return spline.derivative()((t - t0) / span) / span
 
 
-def ste_um_per_s(time_s: Any, error_um: Any, *, method: Method | None = None,
-                 degree: int | None = None) -> np.ndarray:
+def ste_um_per_s(
+    time_s: Any, error_um: Any, *, method: Method | None = None, degree: int | None = None
+) -> np.ndarray:
     """Stability of thermal error, STE = df/dt [um/s], at each sample (paper 000).
 
     Parameters
@@ -193,9 +197,14 @@ def _first_stable(t: np.ndarray, ste: np.ndarray, threshold: float) -> float | N
     return float(t[i] + (a - threshold) / (a - b) * (t[i + 1] - t[i]))
 
 
-def equilibrium_time_s(time_s: Any, error_um: Any, *,
-                       threshold_um_per_s: float = STE_LIMIT_UM_PER_S,
-                       method: Method | None = None, degree: int | None = None) -> float | None:
+def equilibrium_time_s(
+    time_s: Any,
+    error_um: Any,
+    *,
+    threshold_um_per_s: float = STE_LIMIT_UM_PER_S,
+    method: Method | None = None,
+    degree: int | None = None,
+) -> float | None:
     """Thermal-equilibrium time [s, on the record's clock]: the first time after which |STE|
     stays below ``threshold_um_per_s`` until the end of the record (paper 000); None if |STE|
     is at or above it at the end.
@@ -272,20 +281,32 @@ class StabilityFigures:
         ``equilibrium at 97.2 min (|STE| < 0.5e-3 um/s), TEVR 1.92 um``."""
         limit = f"{self.threshold_um_per_s * 1e3:g}e-3 um/s"
         if self.equilibrium_s is None:
-            return [f"never in equilibrium (|STE| >= {limit} at the end of the record)",
-                    f"largest |error| {self.max_abs_um:.2f} um"]
+            return [
+                f"never in equilibrium (|STE| >= {limit} at the end of the record)",
+                f"largest |error| {self.max_abs_um:.2f} um",
+            ]
         return [
-            (f"equilibrium at {self.equilibrium_s / 60:.1f} min (|STE| < {limit}), "
-             f"TEVR {self.tevr_um:.2f} um"),
-            (f"after equilibrium: |STE| <= {self.ste_max_after_um_per_s * 1e3:.2f}e-3 um/s, "
-             f"mean error {self.mean_after_um:.2f} um"),
+            (
+                f"equilibrium at {self.equilibrium_s / 60:.1f} min (|STE| < {limit}), "
+                f"TEVR {self.tevr_um:.2f} um"
+            ),
+            (
+                f"after equilibrium: |STE| <= {self.ste_max_after_um_per_s * 1e3:.2f}e-3 um/s, "
+                f"mean error {self.mean_after_um:.2f} um"
+            ),
             f"largest |error| {self.max_abs_um:.2f} um (STE from a {self.method} fit)",
         ]
 
 
-def stability(time_s: Any, error_um: Any, *, threshold_um_per_s: float = STE_LIMIT_UM_PER_S,
-              start_s: float = 0.0, method: Method | None = None,
-              degree: int | None = None) -> StabilityFigures:
+def stability(
+    time_s: Any,
+    error_um: Any,
+    *,
+    threshold_um_per_s: float = STE_LIMIT_UM_PER_S,
+    start_s: float = 0.0,
+    method: Method | None = None,
+    degree: int | None = None,
+) -> StabilityFigures:
     """Paper 000's stability figures of a thermal-error record.
 
     Parameters
@@ -311,8 +332,9 @@ def stability(time_s: Any, error_um: Any, *, threshold_um_per_s: float = STE_LIM
         raise CalibrationError(f"start_s must be finite, got {start_s}")
     keep = t >= start_s
     if keep.sum() < MIN_SAMPLES:
-        raise CalibrationError(f"{int(keep.sum())} samples from {start_s} s on: "
-                               f"at least {MIN_SAMPLES} are needed")
+        raise CalibrationError(
+            f"{int(keep.sum())} samples from {start_s} s on: at least {MIN_SAMPLES} are needed"
+        )
     t, y = t[keep], y[keep]
     if method is None:
         method = "poly" if degree is not None else "spline"
@@ -333,8 +355,9 @@ def stability(time_s: Any, error_um: Any, *, threshold_um_per_s: float = STE_LIM
     )
 
 
-def equilibrium_and_tevr(time_s: Any, error_um: Any, *,
-                         threshold_um_per_s: float = STE_LIMIT_UM_PER_S) -> tuple[float | None, float | None]:
+def equilibrium_and_tevr(
+    time_s: Any, error_um: Any, *, threshold_um_per_s: float = STE_LIMIT_UM_PER_S
+) -> tuple[float | None, float | None]:
     """(equilibrium time [s from the record's first sample], TEVR [um]) by :func:`stability`,
     or (None, None) where they are undefined: never in equilibrium, or a record too short or
     not finite to judge. What replay reports for a log."""

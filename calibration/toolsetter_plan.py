@@ -82,34 +82,56 @@ class ProbePlan:
 
     def lines(self) -> list[str]:
         """What the wizard prints, one line each."""
-        tau = (f"{self.fastest_tau_s / 60:.1f} min, assumed (no former model)" if self.tau_assumed
-               else f"{self.fastest_tau_s / 60:.1f} min, from the former model")
-        why = {"step": f"at least {PER_STEP} measurements per {self.step_s / 60:g}-min step",
-               "tau": "half the fastest time constant",
-               "minimum": "one minute, the shortest interval planned",
-               "overhead": (f"a laser at speed loses no growth at a stop: as often as the cycles add at most "
-                            f"{AT_SPEED_OVERHEAD:.0%} to the program")}[self.bound]
+        tau = (
+            f"{self.fastest_tau_s / 60:.1f} min, assumed (no former model)"
+            if self.tau_assumed
+            else f"{self.fastest_tau_s / 60:.1f} min, from the former model"
+        )
+        why = {
+            "step": f"at least {PER_STEP} measurements per {self.step_s / 60:g}-min step",
+            "tau": "half the fastest time constant",
+            "minimum": "one minute, the shortest interval planned",
+            "overhead": (
+                f"a laser at speed loses no growth at a stop: as often as the cycles add at most "
+                f"{AT_SPEED_OVERHEAD:.0%} to the program"
+            ),
+        }[self.bound]
         lines = [
             f"tool-setter stop every {self.interval_s / 60:.0f} min ({why}; fastest time constant {tau})",
             f"{self.stops} stops of about {self.cycle_s:.0f} s: the program takes {self.added_s / 60:.1f} min "
             f"longer ({(self.program_s + self.added_s) / 3600:.2f} h in all)",
-            (f"each stop lets {100 * self.loss_per_stop:.1f} % of the fastest growth decay; "
-             f"{100 * self.stopped_share:.1f} % of the run is spent at rest measuring") if self.stopped_share > 0
+            (
+                f"each stop lets {100 * self.loss_per_stop:.1f} % of the fastest growth decay; "
+                f"{100 * self.stopped_share:.1f} % of the run is spent at rest measuring"
+            )
+            if self.stopped_share > 0
             else "the spindle keeps turning through each cycle: no growth decays while it measures",
         ]
         if self.touches > 1:
-            why = (f"as many as keep the cycles within {AT_SPEED_OVERHEAD:.0%} of the program" if self.touches_planned
-                   else "as asked")
-            lines.append(f"{self.touches} touches averaged per stop ({why}; {self.touch_s:.1f} s each after the "
-                         f"first): the mean has {1 / math.sqrt(self.touches):.2f} of one touch's noise, where "
-                         f"the touches are independent")
+            why = (
+                f"as many as keep the cycles within {AT_SPEED_OVERHEAD:.0%} of the program"
+                if self.touches_planned
+                else "as asked"
+            )
+            lines.append(
+                f"{self.touches} touches averaged per stop ({why}; {self.touch_s:.1f} s each after the "
+                f"first): the mean has {1 / math.sqrt(self.touches):.2f} of one touch's noise, where "
+                f"the touches are independent"
+            )
         return lines
 
 
-def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
-                        fastest_tau_s: float | None = None, *,
-                        program_s: float | None = None, at_speed: bool = False,
-                        touches: int | None = None, touch_s: float = 0.0) -> ProbePlan:
+def plan_probe_interval(
+    step_s: float,
+    cooldown_s: float,
+    dwell_s: float,
+    fastest_tau_s: float | None = None,
+    *,
+    program_s: float | None = None,
+    at_speed: bool = False,
+    touches: int | None = None,
+    touch_s: float = 0.0,
+) -> ProbePlan:
     """The probe interval for a calibration run with the tool setter alone (the rule is the
     module's): ``step_s``, the staircase step; ``cooldown_s``, the cool-down at rest;
     ``dwell_s``, one probe cycle's time with one touch (spindle stopped to program resumed);
@@ -117,7 +139,12 @@ def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
     ``ASSUMED_TAU_S``). ``program_s``: the program's duration without its stops (default: the
     calibration profile's at this step and cool-down). ``touches``: slow touches per stop (None:
     planned for a laser at speed, one at rest); ``touch_s``, what each after the first adds."""
-    for name, v in (("step_s", step_s), ("cooldown_s", cooldown_s), ("dwell_s", dwell_s), ("touch_s", touch_s)):
+    for name, v in (
+        ("step_s", step_s),
+        ("cooldown_s", cooldown_s),
+        ("dwell_s", dwell_s),
+        ("touch_s", touch_s),
+    ):
         if not (math.isfinite(v) and v >= 0) or (name == "step_s" and v <= 0):
             least = "> 0" if name == "step_s" else ">= 0"
             raise ValueError(f"{name} {v!r}: give a finite number of seconds {least}")
@@ -143,13 +170,29 @@ def plan_probe_interval(step_s: float, cooldown_s: float, dwell_s: float,
     touches = touches or 1
     cycle = dwell_s + (touches - 1) * touch_s
     if program_s is None:
-        program_s = paper_calibration(27000.0, cooldown_min=cooldown_s / 60.0, step_min=step_s / 60.0).duration_s
+        program_s = paper_calibration(
+            27000.0, cooldown_min=cooldown_s / 60.0, step_min=step_s / 60.0
+        ).duration_s
     n = len(probe_stops(program_s, interval))
     added = n * cycle
     # a laser at speed keeps the spindle turning through the cycle: no growth decays, none at rest
-    return ProbePlan(interval_s=interval, stops=n, added_s=added,
-                     loss_per_stop=0.0 if at_speed else 1.0 - math.exp(-cycle / tau),
-                     stopped_share=0.0 if at_speed else added / (program_s + added) if program_s + added > 0 else 0.0,
-                     fastest_tau_s=tau, tau_assumed=assumed, step_s=float(step_s), dwell_s=float(dwell_s),
-                     program_s=float(program_s), bound=bound, touches=touches, touch_s=float(touch_s),
-                     touches_planned=planned)
+    return ProbePlan(
+        interval_s=interval,
+        stops=n,
+        added_s=added,
+        loss_per_stop=0.0 if at_speed else 1.0 - math.exp(-cycle / tau),
+        stopped_share=0.0
+        if at_speed
+        else added / (program_s + added)
+        if program_s + added > 0
+        else 0.0,
+        fastest_tau_s=tau,
+        tau_assumed=assumed,
+        step_s=float(step_s),
+        dwell_s=float(dwell_s),
+        program_s=float(program_s),
+        bound=bound,
+        touches=touches,
+        touch_s=float(touch_s),
+        touches_planned=planned,
+    )

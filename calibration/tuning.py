@@ -59,8 +59,9 @@ def _finite(name: str, value: float) -> float:
 def _io(time_s: Any, **series: Any) -> tuple[np.ndarray, ...]:
     """Time [s] (finite, strictly increasing) and equally long finite series; one-line errors."""
     try:
-        arrays = [np.asarray(time_s, dtype=float)] + [np.asarray(v, dtype=float)
-                                                      for v in series.values()]
+        arrays = [np.asarray(time_s, dtype=float)] + [
+            np.asarray(v, dtype=float) for v in series.values()
+        ]
     except (TypeError, ValueError) as err:
         raise CalibrationError(f"time_s and {', '.join(series)} must be numeric") from err
     names = ["time_s", *series]
@@ -123,7 +124,7 @@ class _Model:
         y = np.zeros(t.size)
         chunk = max(1, _CHUNK_ELEMENTS // t.size)
         for a in range(0, changes.size, chunk):
-            j = changes[a:a + chunk]
+            j = changes[a : a + chunk]
             y += self.step_response(t[:, None] - t[j][None, :]) @ du[j]
         return y
 
@@ -157,13 +158,17 @@ class Fopdt(_Model):
         return self.gain * -np.expm1(-lag / self.tau_s)
 
     def _state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return (np.array([[-1.0 / self.tau_s]]), np.array([self.gain / self.tau_s]),
-                np.array([1.0]))
+        return (
+            np.array([[-1.0 / self.tau_s]]),
+            np.array([self.gain / self.tau_s]),
+            np.array([1.0]),
+        )
 
     def describe(self) -> str:
         fit = "" if self.rms is None else f", fit RMS {self.rms:.3g}"
-        return (f"FOPDT: gain {self.gain:.4g}, tau {self.tau_s:.4g} s, "
-                f"delay {self.delay_s:.4g} s{fit}")
+        return (
+            f"FOPDT: gain {self.gain:.4g}, tau {self.tau_s:.4g} s, delay {self.delay_s:.4g} s{fit}"
+        )
 
 
 @dataclass(frozen=True)
@@ -203,8 +208,10 @@ class Sopdt(_Model):
 
     def describe(self) -> str:
         fit = "" if self.rms is None else f", fit RMS {self.rms:.3g}"
-        return (f"SOPDT: gain {self.gain:.4g}, tau1 {self.tau_s:.4g} s, tau2 {self.tau2_s:.4g} s, "
-                f"delay {self.delay_s:.4g} s{fit}")
+        return (
+            f"SOPDT: gain {self.gain:.4g}, tau1 {self.tau_s:.4g} s, tau2 {self.tau2_s:.4g} s, "
+            f"delay {self.delay_s:.4g} s{fit}"
+        )
 
 
 def fit_step_model(time_s: Any, u: Any, y: Any, *, order: int = 2) -> Fopdt | Sopdt:
@@ -254,7 +261,7 @@ def fit_step_model(time_s: Any, u: Any, y: Any, *, order: int = 2) -> Fopdt | So
     first = int(moved[0])
     if t.size - first < 4:
         raise CalibrationError("fewer than 4 samples after the input's first change")
-    dy = yy - np.mean(yy[:first + 1])
+    dy = yy - np.mean(yy[: first + 1])
     span = float(t[-1] - t[first])
 
     def unit_model(p: np.ndarray) -> Fopdt | Sopdt:
@@ -275,8 +282,12 @@ def fit_step_model(time_s: Any, u: Any, y: Any, *, order: int = 2) -> Fopdt | So
         starts = [[math.log(f), d] for f in (1 / 30, 1 / 8, 1 / 2) for d in (0.0, 0.05)]
     else:
         lower, upper = [math.log(1e-4), 1e-3, 0.0], [math.log(10.0), 1.0, 0.5]
-        starts = [[math.log(f), r, d] for f in (1 / 30, 1 / 8, 1 / 2) for r in (0.1, 0.5)
-                  for d in (0.0, 0.05)]
+        starts = [
+            [math.log(f), r, d]
+            for f in (1 / 30, 1 / 8, 1 / 2)
+            for r in (0.1, 0.5)
+            for d in (0.0, 0.05)
+        ]
     best = None
     for x0 in starts:
         sol = least_squares(residual, x0, bounds=(lower, upper), x_scale=1.0)
@@ -302,7 +313,8 @@ def pid_gains(kp: float, ki_per_s: float, kd_s: float, source: str = "") -> PidG
         raise CalibrationError(
             f"PID gains kp {kp:.4g}, ki {ki_per_s:.4g} /s, kd {kd_s:.4g} s are not finite and "
             "non-negative (a negative plant gain? the cooling loop expects warmer coolant to "
-            "let the spindle grow)") from err
+            "let the spindle grow)"
+        ) from err
 
 
 @dataclass(frozen=True)
@@ -382,8 +394,9 @@ class PidTuning:
         return discrete_gains(self.parallel(), dt_s)
 
     def describe(self) -> str:
-        return (f"Kc {self.kc:.4g}, tauI {self.ti_s:.4g} s, tauD {self.td_s:.4g} s"
-                + (f" ({self.rule})" if self.rule else ""))
+        return f"Kc {self.kc:.4g}, tauI {self.ti_s:.4g} s, tauD {self.td_s:.4g} s" + (
+            f" ({self.rule})" if self.rule else ""
+        )
 
 
 def paper_tuning() -> PidGains:
@@ -422,8 +435,9 @@ def simc(model: Fopdt | Sopdt, *, tau_c_s: float | None = None) -> PidTuning:
     if tau_c_s is None:
         floor = TAU_C_FLOOR_FRACTION * tau1
         tau_c = max(theta, floor)
-        why = ("tau_c = theta" if theta >= floor
-               else f"tau_c = {TAU_C_FLOOR_FRACTION:g}*tau1 (floor)")
+        why = (
+            "tau_c = theta" if theta >= floor else f"tau_c = {TAU_C_FLOOR_FRACTION:g}*tau1 (floor)"
+        )
     else:
         tau_c = float(tau_c_s)
         if not (math.isfinite(tau_c) and tau_c >= 0 and tau_c + theta > 0):
@@ -445,9 +459,14 @@ def _discretise(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.
     return e[:n, :n], e[:n, n]
 
 
-def _simulate_loop(model: Fopdt | Sopdt, gains: PidGains | PidTuning, *, dt_s: float,
-                   duration_s: float, u_limits: tuple[float, float] | None = None,
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _simulate_loop(
+    model: Fopdt | Sopdt,
+    gains: PidGains | PidTuning,
+    *,
+    dt_s: float,
+    duration_s: float,
+    u_limits: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(time [s], output, controller output u) of :func:`closed_loop_step`."""
     if not (math.isfinite(dt_s) and dt_s > 0):
         raise CalibrationError(f"dt_s must be positive, got {dt_s}")
@@ -489,9 +508,14 @@ def _simulate_loop(model: Fopdt | Sopdt, gains: PidGains | PidTuning, *, dt_s: f
     return np.arange(steps + 1) * dt_s, y, u
 
 
-def closed_loop_step(model: Fopdt | Sopdt, gains: PidGains | PidTuning, *, dt_s: float,
-                     duration_s: float, u_limits: tuple[float, float] | None = None,
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def closed_loop_step(
+    model: Fopdt | Sopdt,
+    gains: PidGains | PidTuning,
+    *,
+    dt_s: float,
+    duration_s: float,
+    u_limits: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The model's output under paper 000's discrete PID for a unit set-point step at t = 0.
 
     Every ``dt_s`` the controller reads ``y_k`` and writes ``u_k = kp*e_k + ki*sum e +
@@ -533,8 +557,11 @@ class StepMetrics:
 
     def describe(self) -> str:
         rise = "never rises to 90 %" if self.rise_s is None else f"rise {self.rise_s:.4g} s"
-        settle = ("never settles within 2 %" if self.settling_s is None
-                  else f"settles (2 %) in {self.settling_s:.4g} s")
+        settle = (
+            "never settles within 2 %"
+            if self.settling_s is None
+            else f"settles (2 %) in {self.settling_s:.4g} s"
+        )
         return f"overshoot {self.overshoot_pct:.1f} %, {rise}, {settle}, IAE {self.iae:.4g}"
 
 

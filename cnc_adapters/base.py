@@ -142,7 +142,8 @@ class Link(ABC):
         if now < self._next_attempt:
             raise UnreachableError(
                 f"{self.name}: link down, next attempt in {self._next_attempt - now:.1f} s "
-                f"({self._failures} failed)")
+                f"({self._failures} failed)"
+            )
         try:
             self._connect()
         except AdapterError as err:
@@ -182,7 +183,9 @@ class Link(ABC):
                 self._open = False
         self._closed = True
 
-    def _link_lost(self, message: str, error: type[AdapterError] = UnreachableError) -> AdapterError:
+    def _link_lost(
+        self, message: str, error: type[AdapterError] = UnreachableError
+    ) -> AdapterError:
         """Drop a dead link so that the next call reconnects; the error to raise (``error``:
         :class:`UnreachableError`, or :class:`AdapterTimeoutError` for a peer that hangs)."""
         try:
@@ -227,8 +230,9 @@ class Allowed:
         return f"Allowed({self.text!r})"
 
 
-SETTINGS_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False,
-                             hide_input_in_errors=True)
+SETTINGS_CONFIG = ConfigDict(
+    extra="forbid", frozen=True, allow_inf_nan=False, hide_input_in_errors=True
+)
 """Every settings model: no unknown key, immutable, no NaN or infinity; and the input is kept
 out of pydantic's own message, which is chained to ours and might hold a secret."""
 
@@ -288,8 +292,9 @@ Count = Annotated[int, Field(ge=0), Allowed("a whole number >= 0")]
 Baud = Annotated[int, Field(gt=0), Allowed("a whole number > 0 (bits per second)")]
 Text = Annotated[str, Field(min_length=1), Allowed("a non-empty string")]
 Pattern = Annotated[str, AfterValidator(_pattern), Allowed("a regular expression")]
-ValuePattern = Annotated[str, AfterValidator(_value_pattern),
-                         Allowed("a regular expression with a (?P<value>...) group")]
+ValuePattern = Annotated[
+    str, AfterValidator(_value_pattern), Allowed("a regular expression with a (?P<value>...) group")
+]
 
 
 class LinkSettings(BaseModel):
@@ -309,14 +314,21 @@ class AdapterSettings(LinkSettings):
 
     # the defaults are not validated, so None stands for "the backend's own" here only
     offset_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="controller unit per um (0.001: mm); default 1, or the preset's")
+        None, description="controller unit per um (0.001: mm); default 1, or the preset's"
+    )
     offset_sign: Sign = Field(  # type: ignore[assignment]
-        None, description="-1 for a controller whose offset points the other way; default +1")
+        None, description="-1 for a controller whose offset points the other way; default +1"
+    )
     speed_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="rpm per controller speed unit; default 1")
-    offset_resolution: Annotated[float, Field(ge=0), Allowed("a number >= 0 (controller units)")] = Field(
-        None, description="one count of the controller's offset, in its unit; the written value "
-        "is rounded to it (a controller profile sets it); default 0: continuous")
+        None, description="rpm per controller speed unit; default 1"
+    )
+    offset_resolution: Annotated[
+        float, Field(ge=0), Allowed("a number >= 0 (controller units)")
+    ] = Field(
+        None,
+        description="one count of the controller's offset, in its unit; the written value "
+        "is rounded to it (a controller profile sets it); default 0: continuous",
+    )
 
 
 RUNTIME_ONLY = frozenset({"clock", "rng", "on_link_change", "machine"})
@@ -371,8 +383,11 @@ class Problem:
 
     def under(self, prefix: str) -> Problem:
         """The same problem, its key inside the table ``prefix``."""
-        return Problem(f"{prefix}.{self.key}" if prefix and self.key else prefix or self.key,
-                       self.text, self.given)
+        return Problem(
+            f"{prefix}.{self.key}" if prefix and self.key else prefix or self.key,
+            self.text,
+            self.given,
+        )
 
     def line(self, scope: str = "") -> str:
         """``scope: key = value: text``; a section's value (a table) and a secret's are not echoed."""
@@ -380,7 +395,9 @@ class Problem:
         if not self.key:
             return f"{head}{self.text}"
         table = isinstance(self.given, Mapping) or (
-            isinstance(self.given, (list, tuple)) and any(isinstance(v, Mapping) for v in self.given))
+            isinstance(self.given, (list, tuple))
+            and any(isinstance(v, Mapping) for v in self.given)
+        )
         shown = not (self.given is _ABSENT or table or names_a_secret(self.key))
         given = self.given
         if isinstance(given, str) and "://" not in given:  # user:password@host, no scheme
@@ -441,22 +458,47 @@ def _range(field: Any) -> str | None:
     if not kinds:
         return None
     words = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
-    bounds = [f"{words[k]} {_number(getattr(m, k))}" for m in field.metadata for k in words
-              if getattr(m, k, None) is not None]
+    bounds = [
+        f"{words[k]} {_number(getattr(m, k))}"
+        for m in field.metadata
+        for k in words
+        if getattr(m, k, None) is not None
+    ]
     kind = "a whole number" if kinds == {int} else "a number"
     return " and ".join([f"{kind} {bounds[0]}", *bounds[1:]]) if bounds else kind
 
 
 _PLAIN = {
-    "bool_parsing": "true or false", "bool_type": "true or false",
-    "int_parsing": "a whole number", "int_type": "a whole number", "int_from_float": "a whole number",
-    "float_parsing": "a number", "float_type": "a number", "finite_number": "a finite number",
-    "string_type": "a string", "path_type": "a path (a string)", "list_type": "an array",
-    "tuple_type": "an array", "dict_type": "a table", "model_type": "a table",
-    "model_attributes_type": "a table", "missing": "a value",
+    "bool_parsing": "true or false",
+    "bool_type": "true or false",
+    "int_parsing": "a whole number",
+    "int_type": "a whole number",
+    "int_from_float": "a whole number",
+    "float_parsing": "a number",
+    "float_type": "a number",
+    "finite_number": "a finite number",
+    "string_type": "a string",
+    "path_type": "a path (a string)",
+    "list_type": "an array",
+    "tuple_type": "an array",
+    "dict_type": "a table",
+    "model_type": "a table",
+    "model_attributes_type": "a table",
+    "missing": "a value",
 }
-_NUMERIC = {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number",
-            "int_parsing", "int_type", "int_from_float", "float_parsing", "float_type", "multiple_of"}
+_NUMERIC = {
+    "greater_than",
+    "greater_than_equal",
+    "less_than",
+    "less_than_equal",
+    "finite_number",
+    "int_parsing",
+    "int_type",
+    "int_from_float",
+    "float_parsing",
+    "float_type",
+    "multiple_of",
+}
 
 
 def expected(e: Mapping[str, Any], field: Any = None) -> str:
@@ -473,9 +515,13 @@ def expected(e: Mapping[str, Any], field: Any = None) -> str:
         return _PLAIN[t]
     if t in ("literal_error", "enum"):
         return f"one of {ctx.get('expected')}"
-    bound = {"greater_than": ("gt", ">"), "greater_than_equal": ("ge", ">="),
-             "less_than": ("lt", "<"), "less_than_equal": ("le", "<="),
-             "multiple_of": ("multiple_of", "a multiple of")}.get(t)
+    bound = {
+        "greater_than": ("gt", ">"),
+        "greater_than_equal": ("ge", ">="),
+        "less_than": ("lt", "<"),
+        "less_than_equal": ("le", "<="),
+        "multiple_of": ("multiple_of", "a multiple of"),
+    }.get(t)
     if bound is not None:
         return f"a number {bound[1]} {_number(ctx.get(bound[0]))}"
     if t == "string_too_short":
@@ -508,8 +554,9 @@ def _field(model: Any, key: str) -> Any:
     found = model.model_fields.get(key)
     if found is not None:
         return found
-    return next((f for f in model.model_fields.values()
-                 if key in (f.alias, f.validation_alias)), None)
+    return next(
+        (f for f in model.model_fields.values() if key in (f.alias, f.validation_alias)), None
+    )
 
 
 def _is_table_of(annotation: Any) -> bool:
@@ -519,7 +566,9 @@ def _is_table_of(annotation: Any) -> bool:
     return any(_is_table_of(a) for a in typing.get_args(annotation) if a is not type(None))
 
 
-def walk(model: type[BaseModel], data: Any, loc: tuple[Any, ...]) -> tuple[list[str | int], Any, Any]:
+def walk(
+    model: type[BaseModel], data: Any, loc: tuple[Any, ...]
+) -> tuple[list[str | int], Any, Any]:
     """The key path of a pydantic error as written in ``data`` (pydantic's union and function
     tags left out), the model that holds its last key and that key's field (None when unknown)."""
     path: list[str | int] = []
@@ -533,8 +582,11 @@ def walk(model: type[BaseModel], data: Any, loc: tuple[Any, ...]) -> tuple[list[
             path.append(part)
             data = data[part] if -len(data) <= part < len(data) else None
             continue
-        if isinstance(part, str) and isinstance(data, Mapping) and (part in data or last
-                                                                     or _field(current, part)):
+        if (
+            isinstance(part, str)
+            and isinstance(data, Mapping)
+            and (part in data or last or _field(current, part))
+        ):
             path.append(part)
             data = data.get(part)
             if named:  # the value under the user's name is of the model found before
@@ -575,24 +627,42 @@ def problems_of(model: type[BaseModel], data: Any, err: ValidationError) -> list
         if isinstance(inner, SettingsError):
             out += [p.under(key) for p in inner.problems]
         elif isinstance(inner, ValidationError):  # a model a check builds (its keys are ours too)
-            out += [Problem(".".join(filter(None, [key, dotted(list(x["loc"]))])),
-                            f"expected {expected(x)}", x.get("input", _ABSENT)) for x in inner.errors()]
+            out += [
+                Problem(
+                    ".".join(filter(None, [key, dotted(list(x["loc"]))])),
+                    f"expected {expected(x)}",
+                    x.get("input", _ABSENT),
+                )
+                for x in inner.errors()
+            ]
         elif e["type"] == "extra_forbidden":
             choices = key_names(holder) if holder is not None else []
             near = did_you_mean(str(path[-1]) if path else "", choices)
-            text = (f"unknown key (did you mean {near!r}?)" if near
-                    else "unknown key; allowed: " + ", ".join(choices) if choices else "unknown key")
+            text = (
+                f"unknown key (did you mean {near!r}?)"
+                if near
+                else "unknown key; allowed: " + ", ".join(choices)
+                if choices
+                else "unknown key"
+            )
             # a misspelt secret's value is as secret as the one it was meant to be
             out.append(Problem(key, text, _ABSENT if near and names_a_secret(near) else given))
         elif e["type"] == "missing":
             want = expected(e, field)
-            out.append(Problem(key, "required key missing" + (f"; expected {want}" if want != "a value" else "")))
+            out.append(
+                Problem(
+                    key,
+                    "required key missing" + (f"; expected {want}" if want != "a value" else ""),
+                )
+            )
         elif e["type"] in ("value_error", "assertion_error"):  # our own checks say what is wrong
             text = str(inner) if inner is not None else expected(e)
             # a settings model's field check says what is allowed ("+1 or -1", as the old "must
             # be" messages did); the configuration's checks, and checks across keys, what is wrong
-            allowed = field is not None and (_allowed_of(field) is not None
-                                             or holder.model_config.get("hide_input_in_errors") is True)
+            allowed = field is not None and (
+                _allowed_of(field) is not None
+                or holder.model_config.get("hide_input_in_errors") is True
+            )
             out.append(Problem(key, f"expected {text}" if allowed else text, given))
         else:
             out.append(Problem(key, f"expected {expected(e, field)}", given))
@@ -612,8 +682,16 @@ def check_settings(label: str, model: type[BaseModel], options: Mapping[str, Any
     for key in sorted(RUNTIME_ONLY & options.keys()):
         # plain data under such a key came from a file or a URL, where it means nothing
         if isinstance(options[key], (str, bytes, int, float, list, tuple, dict)):
-            raise SettingsError(label, [Problem(key, "no configuration option (the running "
-                                                "program passes its own)", options[key])])
+            raise SettingsError(
+                label,
+                [
+                    Problem(
+                        key,
+                        "no configuration option (the running program passes its own)",
+                        options[key],
+                    )
+                ],
+            )
     data = {k: v for k, v in options.items() if k not in RUNTIME_ONLY}
     try:
         return model.model_validate(data)
@@ -743,12 +821,16 @@ class Adapter(Link):
         written): :class:`BadValueError` when it is not a finite number, :class:`AdapterError`
         from a link that cannot read it (:attr:`can_read_offset` False)."""
         if not self.can_read_offset:
-            raise AdapterError(f"{self.name}: this link cannot read back the offset the "
-                               "controller holds (can_read_offset is false)")
+            raise AdapterError(
+                f"{self.name}: this link cannot read back the offset the "
+                "controller holds (can_read_offset is false)"
+            )
         self.open()
         raw = self._read_offset_raw()
         if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
-            raise BadValueError(f"{self.name}: the controller's offset {short(raw)} is not a number")
+            raise BadValueError(
+                f"{self.name}: the controller's offset {short(raw)} is not a number"
+            )
         value = float(raw)
         if not math.isfinite(value):
             raise BadValueError(f"{self.name}: the controller's offset is {value}")
@@ -756,8 +838,11 @@ class Adapter(Link):
 
     def write_offset_um(self, offset_um: float) -> None:
         """Write the thermal offset [um]; a non-finite value never leaves this method."""
-        if isinstance(offset_um, bool) or not isinstance(offset_um, (int, float)) \
-                or not math.isfinite(offset_um):
+        if (
+            isinstance(offset_um, bool)
+            or not isinstance(offset_um, (int, float))
+            or not math.isfinite(offset_um)
+        ):
             raise BadValueError(f"{self.name}: refusing to write offset {offset_um!r}")
         self.open()
         raw = self.units.to_controller(offset_um)
@@ -828,17 +913,24 @@ class Adapter(Link):
         self._measurement_seq = seq
         if last is None or seq == last:
             return None
-        if isinstance(raw.value, bool) or not isinstance(raw.value, numbers.Real) \
-                or not math.isfinite(float(raw.value)):
-            raise BadValueError(f"{self.name}: measurement {short(raw.value)} (sequence {seq}) is "
-                                "not a finite number")
+        if (
+            isinstance(raw.value, bool)
+            or not isinstance(raw.value, numbers.Real)
+            or not math.isfinite(float(raw.value))
+        ):
+            raise BadValueError(
+                f"{self.name}: measurement {short(raw.value)} (sequence {seq}) is "
+                "not a finite number"
+            )
         scale = self.measurement_scale or self.units.scale
         sigma = None
         if raw.sigma is not None:
             sigma = abs(float(raw.sigma)) / scale
             if not (math.isfinite(sigma) and sigma > 0):
-                raise BadValueError(f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
-                                    f"{seq}) is not a positive number")
+                raise BadValueError(
+                    f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
+                    f"{seq}) is not a positive number"
+                )
         return Measurement(float(raw.value) / scale, sigma, seq, self.name)
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
@@ -892,11 +984,14 @@ def cutting_of(name: str, raw: Any, values: tuple[Any, ...]) -> bool:
     """A raw cutting signal as a bool: True when it is one of ``values``. A configured boolean
     matches the signal's truth (a bit, or a 0/1 number), a configured number its whole value (a
     state code; a boolean signal counts as 0 or 1)."""
-    if isinstance(raw, bool) or (isinstance(raw, numbers.Real) and math.isfinite(float(raw))
-                                 and float(raw) == int(raw)):
+    if isinstance(raw, bool) or (
+        isinstance(raw, numbers.Real) and math.isfinite(float(raw)) and float(raw) == int(raw)
+    ):
         code = int(raw)
         return any((v == (code != 0)) if isinstance(v, bool) else v == code for v in values)
-    raise BadValueError(f"{name}: cutting signal {short(raw)} is neither a boolean nor a whole number")
+    raise BadValueError(
+        f"{name}: cutting signal {short(raw)} is neither a boolean nor a whole number"
+    )
 
 
 def cutting_values_of(v: Any) -> tuple[Any, ...]:
@@ -921,21 +1016,32 @@ def cutting_values_of(v: Any) -> tuple[Any, ...]:
     return tuple(out)
 
 
-CuttingValues = Annotated[tuple[bool | int, ...], BeforeValidator(cutting_values_of),
-                          Allowed("booleans or whole numbers (true, false, [2, 3], '2,3' in a URL)")]
+CuttingValues = Annotated[
+    tuple[bool | int, ...],
+    BeforeValidator(cutting_values_of),
+    Allowed("booleans or whole numbers (true, false, [2, 3], '2,3' in a URL)"),
+]
 
 
 def whole_sequence(name: str, raw: Any) -> int:
     """A measurement's sequence counter as an int (an analog output or a register may hold it as
     a float); :class:`BadValueError` when it is not a whole number."""
-    if isinstance(raw, bool) or not isinstance(raw, numbers.Real) or not math.isfinite(float(raw)) \
-            or float(raw) != int(raw):
+    if (
+        isinstance(raw, bool)
+        or not isinstance(raw, numbers.Real)
+        or not math.isfinite(float(raw))
+        or float(raw) != int(raw)
+    ):
         raise BadValueError(f"{name}: measurement sequence {short(raw)} is not a whole number")
     return int(raw)
 
 
-def read_handshake(name: str, sequence: Callable[[], Any], value: Callable[[], Any],
-                   sigma: Callable[[], Any] | None = None) -> RawMeasurement | None:
+def read_handshake(
+    name: str,
+    sequence: Callable[[], Any],
+    value: Callable[[], Any],
+    sigma: Callable[[], Any] | None = None,
+) -> RawMeasurement | None:
     """The counter, the value (and sigma), then the counter again, for controllers where each
     is its own request. The cycle writes the value before it changes the counter, so the value
     read is never older than the counter; None when the counter moved in between (the cycle
@@ -971,17 +1077,33 @@ def host_options(label: str, url: str) -> dict[str, Any]:
 def serial_options(url: str) -> dict[str, Any]:
     """``serial:///dev/ttyUSB0?protocol=haas&baudrate=9600``: the port and the query (the
     protocol picks the backend, so it is no option of it)."""
-    return {"port": urlsplit(url).path,
-            **{k: v for k, v in query_params(url).items() if k != "protocol"}}
+    return {
+        "port": urlsplit(url).path,
+        **{k: v for k, v in query_params(url).items() if k != "protocol"},
+    }
 
 
-INT_PARAMS = frozenset({"baudrate", "device_id", "speed_register", "offset_register", "offset_sign",
-                        "speed_var", "offset_var", "r_parameter"})
+INT_PARAMS = frozenset(
+    {
+        "baudrate",
+        "device_id",
+        "speed_register",
+        "offset_register",
+        "offset_sign",
+        "speed_var",
+        "offset_var",
+        "r_parameter",
+    }
+)
 FLOAT_PARAMS = frozenset({"timeout_s", "offset_scale", "speed_scale", "time_scale"})
 
 
-def typed_params(url: str, drop: tuple[str, ...] = ("protocol",), ints: frozenset[str] = INT_PARAMS,
-                 floats: frozenset[str] = FLOAT_PARAMS) -> dict[str, Any]:
+def typed_params(
+    url: str,
+    drop: tuple[str, ...] = ("protocol",),
+    ints: frozenset[str] = INT_PARAMS,
+    floats: frozenset[str] = FLOAT_PARAMS,
+) -> dict[str, Any]:
     """URL query parameters as constructor keywords, the ``ints`` and ``floats`` converted (for
     backends without a ``Settings`` model; built-in ones let it convert)."""
     out: dict[str, Any] = {}

@@ -90,18 +90,26 @@ INT16 = (-(2**15), 2**15 - 1)
 class ChillerSettings(LinkSettings):
     """Options of every chiller: the device range guard, the read-back and the link's back-off."""
 
-    min_c: Finite = Field(5.0, description="lowest set point sent [degC]; below: refused, nothing sent")
-    max_c: Finite = Field(35.0, description="highest set point sent [degC]; above: refused, nothing sent")
+    min_c: Finite = Field(
+        5.0, description="lowest set point sent [degC]; below: refused, nothing sent"
+    )
+    max_c: Finite = Field(
+        35.0, description="highest set point sent [degC]; above: refused, nothing sent"
+    )
     setpoint_readback: bool = Field(
-        True, description="read the set point back after each write; a device that holds another "
-        "value (clamped, ignored) is a refused write")
+        True,
+        description="read the set point back after each write; a device that holds another "
+        "value (clamped, ignored) is a refused write",
+    )
 
     @model_validator(mode="after")
     def _range(self) -> ChillerSettings:
         lo, hi = PLAUSIBLE_C
         if not lo <= self.min_c < self.max_c <= hi:
-            raise ValueError(f"min_c < max_c, both within {lo:g}..{hi:g} degC, "
-                             f"not {self.min_c:g}..{self.max_c:g}")
+            raise ValueError(
+                f"min_c < max_c, both within {lo:g}..{hi:g} degC, "
+                f"not {self.min_c:g}..{self.max_c:g}"
+            )
         return self
 
 
@@ -123,14 +131,23 @@ class Chiller(Link):
     supply_scale_c: float | None = None  # None: scale_c
     raw_range: tuple[int, int] | None = None
 
-    def __init__(self, *, min_c: float = 5.0, max_c: float = 35.0, setpoint_readback: bool = True,
-                 **link: Any):
+    def __init__(
+        self,
+        *,
+        min_c: float = 5.0,
+        max_c: float = 35.0,
+        setpoint_readback: bool = True,
+        **link: Any,
+    ):
         super().__init__(**link)
         self.min_c = float(min_c)
         self.max_c = float(max_c)
-        if not (math.isfinite(self.min_c) and math.isfinite(self.max_c) and self.min_c < self.max_c):
-            raise AdapterError(f"{self.name} chiller: need finite min_c < max_c, "
-                               f"not {min_c!r}..{max_c!r}")
+        if not (
+            math.isfinite(self.min_c) and math.isfinite(self.max_c) and self.min_c < self.max_c
+        ):
+            raise AdapterError(
+                f"{self.name} chiller: need finite min_c < max_c, not {min_c!r}..{max_c!r}"
+            )
         self.setpoint_readback = bool(setpoint_readback)
         self.setpoint_c_requested: float | None = None
 
@@ -142,13 +159,20 @@ class Chiller(Link):
         :class:`BadValueError` (nothing sent) for a value that is not a finite number, is outside
         ``min_c``..``max_c`` or does not fit the device's register; :class:`WriteRejectedError`
         when the device refuses it or, read back, holds another value."""
-        if isinstance(value_c, bool) or not isinstance(value_c, numbers.Real) \
-                or not math.isfinite(float(value_c)):
-            raise BadValueError(f"{self.name} chiller: refusing to write set point {short(value_c)}")
+        if (
+            isinstance(value_c, bool)
+            or not isinstance(value_c, numbers.Real)
+            or not math.isfinite(float(value_c))
+        ):
+            raise BadValueError(
+                f"{self.name} chiller: refusing to write set point {short(value_c)}"
+            )
         value_c = float(value_c)
         if not self.min_c <= value_c <= self.max_c:
-            raise BadValueError(f"{self.name} chiller: set point {value_c:g} degC is outside the "
-                                f"device range {self.min_c:g}..{self.max_c:g} degC; nothing written")
+            raise BadValueError(
+                f"{self.name} chiller: set point {value_c:g} degC is outside the "
+                f"device range {self.min_c:g}..{self.max_c:g} degC; nothing written"
+            )
         self.open()
         raw = self._raw_of(value_c)  # after open: an OPC UA node says its type at connect
         log.debug("%s chiller: write set point %.3f degC (raw %r)", self.name, value_c, raw)
@@ -159,7 +183,8 @@ class Chiller(Link):
             if not self._same_raw(held, raw):
                 raise WriteRejectedError(
                     f"{self.name} chiller: wrote set point {self._c_of(raw):g} degC, the device "
-                    f"holds {self._c_of(held):g} degC (outside its own range, or ignored)")
+                    f"holds {self._c_of(held):g} degC (outside its own range, or ignored)"
+                )
         return self._c_of(raw)
 
     def read_setpoint_c(self) -> float | None:
@@ -185,8 +210,10 @@ class Chiller(Link):
         whole = round(raw)
         lo, hi = self.raw_range
         if not lo <= whole <= hi:
-            raise BadValueError(f"{self.name} chiller: set point {value_c:g} degC is {whole} counts "
-                                f"of {self.scale_c:g} degC, outside {lo}..{hi}; nothing written")
+            raise BadValueError(
+                f"{self.name} chiller: set point {value_c:g} degC is {whole} counts "
+                f"of {self.scale_c:g} degC, outside {lo}..{hi}; nothing written"
+            )
         return whole
 
     def _c_of(self, raw: float, scale_c: float | None = None) -> float:
@@ -199,7 +226,11 @@ class Chiller(Link):
         return math.isclose(held, sent, rel_tol=1e-6, abs_tol=1e-9)
 
     def _number(self, what: str, raw: Any) -> float:
-        if isinstance(raw, bool) or not isinstance(raw, numbers.Real) or not math.isfinite(float(raw)):
+        if (
+            isinstance(raw, bool)
+            or not isinstance(raw, numbers.Real)
+            or not math.isfinite(float(raw))
+        ):
             raise BadValueError(f"{self.name} chiller: {what} {short(raw)} is not a finite number")
         return float(raw)
 
@@ -207,8 +238,10 @@ class Chiller(Link):
         value = self._c_of(self._number(what, raw), scale_c)
         lo, hi = PLAUSIBLE_C
         if not lo <= value <= hi:
-            raise BadValueError(f"{self.name} chiller: {what} {value:g} degC is outside {lo:g}..{hi:g} "
-                                "degC (a wrong register, scale or sensor)")
+            raise BadValueError(
+                f"{self.name} chiller: {what} {value:g} degC is outside {lo:g}..{hi:g} "
+                "degC (a wrong register, scale or sensor)"
+            )
         return value
 
     # -- backend hooks ---------------------------------------------------------
@@ -235,8 +268,12 @@ class ModbusChillerSettings(ChillerSettings):
 
     transport: Transport = Field("tcp", description="tcp: host and port; rtu: a serial port")
     host: Text | None = Field(None, description="tcp: the chiller's (or gateway's) address")
-    port: Annotated[int | str | None, Allowed("tcp: a TCP port 1..65535; rtu: a serial device")] = Field(
-        None, description="tcp: the TCP port (default 502); rtu: the serial device, /dev/ttyUSB0")
+    port: Annotated[int | str | None, Allowed("tcp: a TCP port 1..65535; rtu: a serial device")] = (
+        Field(
+            None,
+            description="tcp: the TCP port (default 502); rtu: the serial device, /dev/ttyUSB0",
+        )
+    )
     baudrate: Baud = Field(19200, description="rtu")
     parity: Parity = Field("N", description="rtu")
     stopbits: Annotated[int, Field(ge=1, le=2), Allowed("1 or 2")] = Field(1, description="rtu")
@@ -246,7 +283,8 @@ class ModbusChillerSettings(ChillerSettings):
     supply_table: Table = "input"
     data_type: ChillerDataType = Field("int16", description="of both registers")
     scale_c: NonZero = Field(  # type: ignore[assignment]
-        None, description="degC per register unit; default 0.1 for int16, 1 for float32")
+        None, description="degC per register unit; default 0.1 for int16, 1 for float32"
+    )
     word_order: Order = Field("big", description="float32: big: the high word first")
     timeout_s: Seconds = 0.5
 
@@ -255,7 +293,9 @@ class ModbusChillerSettings(ChillerSettings):
         if self.transport == "tcp":
             if not self.host:
                 raise ValueError("transport tcp needs host")
-            if self.port is not None and (not isinstance(self.port, int) or not 1 <= self.port <= 65535):
+            if self.port is not None and (
+                not isinstance(self.port, int) or not 1 <= self.port <= 65535
+            ):
                 raise key_error("port", "expected a TCP port 1..65535 (transport tcp)", self.port)
         else:
             if not (isinstance(self.port, str) and self.port):
@@ -263,10 +303,14 @@ class ModbusChillerSettings(ChillerSettings):
             if self.host is not None:
                 raise ValueError("transport rtu takes no host (port is the serial device)")
         width = WIDTH[self.data_type]
-        if self.supply_table == "holding" and \
-                abs(self.setpoint_register - self.supply_register) < width:
-            raise ValueError(f"setpoint_register {self.setpoint_register} and supply_register "
-                             f"{self.supply_register} ({self.data_type}, holding) overlap")
+        if (
+            self.supply_table == "holding"
+            and abs(self.setpoint_register - self.supply_register) < width
+        ):
+            raise ValueError(
+                f"setpoint_register {self.setpoint_register} and supply_register "
+                f"{self.supply_register} ({self.data_type}, holding) overlap"
+            )
         return self
 
 
@@ -283,19 +327,36 @@ class ModbusChiller(Chiller):
     Settings = ModbusChillerSettings
     can_read_setpoint: ClassVar[bool] = True
 
-    def __init__(self, *, transport: str = "tcp", host: str | None = None,
-                 port: int | str | None = None, baudrate: int = 19200, parity: str = "N",
-                 stopbits: int = 1, device_id: int = 1, setpoint_register: int = 0,
-                 supply_register: int = 0, supply_table: str = "input", data_type: str = "int16",
-                 scale_c: float | None = None, word_order: str = "big", timeout_s: float = 0.5,
-                 **base: Any):
+    def __init__(
+        self,
+        *,
+        transport: str = "tcp",
+        host: str | None = None,
+        port: int | str | None = None,
+        baudrate: int = 19200,
+        parity: str = "N",
+        stopbits: int = 1,
+        device_id: int = 1,
+        setpoint_register: int = 0,
+        supply_register: int = 0,
+        supply_table: str = "input",
+        data_type: str = "int16",
+        scale_c: float | None = None,
+        word_order: str = "big",
+        timeout_s: float = 0.5,
+        **base: Any,
+    ):
         super().__init__(**base)
         if transport not in ("tcp", "rtu") or data_type not in ("int16", "float32"):
-            raise AdapterError(f"modbus chiller: transport is tcp or rtu, data_type int16 or "
-                               f"float32, not {transport!r}, {data_type!r}")
+            raise AdapterError(
+                f"modbus chiller: transport is tcp or rtu, data_type int16 or "
+                f"float32, not {transport!r}, {data_type!r}"
+            )
         self.transport = transport
         self.host = host
-        self.port = (DEFAULT_TCP_PORT if port is None else int(port)) if transport == "tcp" else str(port)
+        self.port = (
+            (DEFAULT_TCP_PORT if port is None else int(port)) if transport == "tcp" else str(port)
+        )
         self.where = f"{host}:{self.port}" if transport == "tcp" else str(port)
         self.baudrate = int(baudrate)
         self.parity = parity
@@ -305,15 +366,24 @@ class ModbusChiller(Chiller):
         self.supply_register = int(supply_register)
         self.supply_table = supply_table
         self.data_type = data_type
-        self.scale_c = float(scale_c if scale_c is not None else 0.1 if data_type == "int16" else 1.0)
+        self.scale_c = float(
+            scale_c if scale_c is not None else 0.1 if data_type == "int16" else 1.0
+        )
         self.raw_range = INT16 if data_type == "int16" else None
         self.word_order = word_order
         self.timeout_s = float(timeout_s)
         self._modbus = ModbusTransport(
-            "modbus chiller", lost=self._link_lost, host=host if transport == "tcp" else None,
-            port=self.port, device_id=self.device_id, timeout_s=self.timeout_s,
-            codec=RegisterCodec(word_order), baudrate=self.baudrate, parity=parity,
-            stopbits=self.stopbits)
+            "modbus chiller",
+            lost=self._link_lost,
+            host=host if transport == "tcp" else None,
+            port=self.port,
+            device_id=self.device_id,
+            timeout_s=self.timeout_s,
+            codec=RegisterCodec(word_order),
+            baudrate=self.baudrate,
+            parity=parity,
+            stopbits=self.stopbits,
+        )
 
     def _connect(self) -> None:
         self._modbus.connect()
@@ -336,10 +406,16 @@ class ModbusChiller(Chiller):
 
 # -- OPC UA -------------------------------------------------------------------------------
 
-_INTEGER_VARIANTS = {"SByte": (-(2**7), 2**7 - 1), "Byte": (0, 2**8 - 1), "Int16": INT16,
-                     "UInt16": (0, 2**16 - 1), "Int32": (-(2**31), 2**31 - 1),
-                     "UInt32": (0, 2**32 - 1), "Int64": (-(2**63), 2**63 - 1),
-                     "UInt64": (0, 2**64 - 1)}
+_INTEGER_VARIANTS = {
+    "SByte": (-(2**7), 2**7 - 1),
+    "Byte": (0, 2**8 - 1),
+    "Int16": INT16,
+    "UInt16": (0, 2**16 - 1),
+    "Int32": (-(2**31), 2**31 - 1),
+    "UInt32": (0, 2**32 - 1),
+    "Int64": (-(2**63), 2**63 - 1),
+    "UInt64": (0, 2**64 - 1),
+}
 _FLOAT_VARIANTS = ("Float", "Double")
 
 
@@ -348,10 +424,12 @@ class OpcUaChillerSettings(OpcUaLinkSettings, ChillerSettings):
 
     setpoint_node: Text = Field(description="the set point: node id ({ns} allowed) or browse path")
     supply_node: Text = Field(description="the supply temperature: node id or browse path")
-    scale_c: NonZero = Field(1.0, description="degC per unit of the set-point node (0.1 for an "
-                             "integer node in 0.1 degC)")
+    scale_c: NonZero = Field(
+        1.0, description="degC per unit of the set-point node (0.1 for an integer node in 0.1 degC)"
+    )
     supply_scale_c: NonZero = Field(  # type: ignore[assignment]
-        None, description="degC per unit of the supply node; default scale_c")
+        None, description="degC per unit of the supply node; default scale_c"
+    )
 
 
 class OpcUaChiller(OpcUaLink, Chiller):
@@ -364,20 +442,42 @@ class OpcUaChiller(OpcUaLink, Chiller):
     Settings = OpcUaChillerSettings
     can_read_setpoint: ClassVar[bool] = True
 
-    def __init__(self, url: str, *, setpoint_node: str, supply_node: str, scale_c: float = 1.0,
-                 supply_scale_c: float | None = None,
-                 namespace_uri: str | None = None, timeout_s: float = 4.0, security: str = "None",
-                 certificate: str | None = None, private_key: str | None = None,
-                 trust_dir: str | None = None, username_env: str = "THERMOCOMP_OPCUA_USER",
-                 password_env: str = "THERMOCOMP_OPCUA_PASSWORD", password_file: str | None = None,
-                 password_credential: str | None = None,
-                 application_uri: str = "urn:thermocomp:client", **base: Any):
+    def __init__(
+        self,
+        url: str,
+        *,
+        setpoint_node: str,
+        supply_node: str,
+        scale_c: float = 1.0,
+        supply_scale_c: float | None = None,
+        namespace_uri: str | None = None,
+        timeout_s: float = 4.0,
+        security: str = "None",
+        certificate: str | None = None,
+        private_key: str | None = None,
+        trust_dir: str | None = None,
+        username_env: str = "THERMOCOMP_OPCUA_USER",
+        password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
+        password_file: str | None = None,
+        password_credential: str | None = None,
+        application_uri: str = "urn:thermocomp:client",
+        **base: Any,
+    ):
         super().__init__(**base)
-        self._init_opcua(url, namespace_uri=namespace_uri, timeout_s=timeout_s, security=security,
-                         certificate=certificate, private_key=private_key, trust_dir=trust_dir,
-                         username_env=username_env, password_env=password_env,
-                         password_file=password_file, application_uri=application_uri,
-                         password_credential=password_credential)
+        self._init_opcua(
+            url,
+            namespace_uri=namespace_uri,
+            timeout_s=timeout_s,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            trust_dir=trust_dir,
+            username_env=username_env,
+            password_env=password_env,
+            password_file=password_file,
+            application_uri=application_uri,
+            password_credential=password_credential,
+        )
         self.setpoint_ref = setpoint_node
         self.supply_ref = supply_node
         self.scale_c = float(scale_c)
@@ -389,11 +489,16 @@ class OpcUaChiller(OpcUaLink, Chiller):
     def _on_connected(self, client: Any, ns: str) -> None:
         self._setpoint = self._resolve_ref(client, self.setpoint_ref, ns, "setpoint_node")
         self._supply = self._resolve_ref(client, self.supply_ref, ns, "supply_node")
-        variant = self._call("read set point node type", self._setpoint.read_data_type_as_variant_type,
-                             node=self._setpoint)
+        variant = self._call(
+            "read set point node type",
+            self._setpoint.read_data_type_as_variant_type,
+            node=self._setpoint,
+        )
         if variant.name not in _INTEGER_VARIANTS and variant.name not in _FLOAT_VARIANTS:
-            raise AdapterError(f"opcua chiller: setpoint_node {self.setpoint_ref} holds "
-                               f"{variant.name}, not a number")
+            raise AdapterError(
+                f"opcua chiller: setpoint_node {self.setpoint_ref} holds "
+                f"{variant.name}, not a number"
+            )
         self._variant = variant
         self.raw_range = _INTEGER_VARIANTS.get(variant.name)
         self._call("read supply node", self._supply.read_value, node=self._supply)
@@ -403,8 +508,13 @@ class OpcUaChiller(OpcUaLink, Chiller):
 
         value = int(raw) if self.raw_range is not None else float(raw)
         dv = ua.DataValue(ua.Variant(value, self._variant))
-        self._call("write set point node", self._setpoint.write_value, dv, node=self._setpoint,
-                   refused=WriteRejectedError)
+        self._call(
+            "write set point node",
+            self._setpoint.write_value,
+            dv,
+            node=self._setpoint,
+            refused=WriteRejectedError,
+        )
 
     def _read_setpoint_raw(self) -> Any:
         return self._call("read set point node", self._setpoint.read_value, node=self._setpoint)
@@ -432,7 +542,9 @@ class VirtualChiller(Chiller):
 
     def __init__(self, *, plant: Any = None, lock: Any = None, **base: Any):
         if plant is None:
-            raise ConfigError("virtual chiller: needs plant= (a SpindlePlant), passed by the program")
+            raise ConfigError(
+                "virtual chiller: needs plant= (a SpindlePlant), passed by the program"
+            )
         super().__init__(**base)
         self.plant = plant
         self.lock = lock if lock is not None else contextlib.nullcontext()
@@ -455,7 +567,9 @@ class VirtualChiller(Chiller):
             try:
                 self.plant.set_chiller_setpoint_c(float(raw))
             except ValueError as err:
-                raise WriteRejectedError(f"virtual chiller: set point {raw!r} refused: {err}") from err
+                raise WriteRejectedError(
+                    f"virtual chiller: set point {raw!r} refused: {err}"
+                ) from err
 
     def _read_setpoint_raw(self) -> Any:
         self._reach("read set point")
@@ -470,8 +584,11 @@ class VirtualChiller(Chiller):
 
 # -- the registry -------------------------------------------------------------------------
 
-CHILLERS: dict[str, type[Chiller]] = {"modbus": ModbusChiller, "opcua": OpcUaChiller,
-                                      "virtual": VirtualChiller}
+CHILLERS: dict[str, type[Chiller]] = {
+    "modbus": ModbusChiller,
+    "opcua": OpcUaChiller,
+    "virtual": VirtualChiller,
+}
 
 
 def check_chiller(backend: str, settings: Mapping[str, Any]) -> BaseModel:
@@ -481,8 +598,9 @@ def check_chiller(backend: str, settings: Mapping[str, Any]) -> BaseModel:
     if cls is None:
         raise ConfigError(unknown("chiller backend", backend, CHILLERS))
     if not isinstance(settings, Mapping):
-        raise ConfigError(f"{backend} chiller: settings must be a table of options, "
-                          f"not {type(settings).__name__}")
+        raise ConfigError(
+            f"{backend} chiller: settings must be a table of options, not {type(settings).__name__}"
+        )
     return check_settings(f"{backend} chiller", cls.Settings, settings)
 
 
@@ -493,5 +611,7 @@ def open_chiller(backend: str, settings: Mapping[str, Any], **objects: Any) -> C
     checked = check_chiller(backend, settings).model_dump(exclude_unset=True)
     both = sorted(checked.keys() & objects.keys())
     if both:
-        raise ConfigError(f"{backend} chiller: {', '.join(both)} given both as settings and as objects")
+        raise ConfigError(
+            f"{backend} chiller: {', '.join(both)} given both as settings and as objects"
+        )
     return construct(f"{backend} chiller", CHILLERS[backend], **checked, **objects)

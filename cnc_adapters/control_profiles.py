@@ -33,7 +33,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from compensator.errors import ConfigError, unknown
 from compensator.units import ControllerUnits
 
-__all__ = ["PROFILES", "ControllerProfile", "Route", "adapter_settings", "control_count_um", "profile"]
+__all__ = [
+    "PROFILES",
+    "ControllerProfile",
+    "Route",
+    "adapter_settings",
+    "control_count_um",
+    "profile",
+]
 
 _FROZEN = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -48,8 +55,10 @@ class Route(BaseModel):
     tested: str = Field(description="how this route is tested here")
     control_side: str = Field(description="what the integrator must do on the control")
     requires: tuple[str, ...] = Field((), description="adapter options the user must give")
-    fixed: dict[str, Any] = Field(default_factory=dict, description="options the profile's units "
-                                  "hold for: a user's other value is refused")
+    fixed: dict[str, Any] = Field(
+        default_factory=dict,
+        description="options the profile's units hold for: a user's other value is refused",
+    )
 
 
 class ControllerProfile(BaseModel):
@@ -68,11 +77,18 @@ class ControllerProfile(BaseModel):
     resolution: float = Field(ge=0, description="control units of one count; 0: continuous")
     integer: bool = Field(False, description="the control takes whole counts only")
     limit: float = Field(gt=0, description="largest |value| the control takes, in its units")
-    max_step: float | None = Field(None, gt=0, description="largest change per write the control "
-                                   "takes without an alarm, in its units; None: no such limit")
+    max_step: float | None = Field(
+        None,
+        gt=0,
+        description="largest change per write the control "
+        "takes without an alarm, in its units; None: no such limit",
+    )
     control_rate_um_per_s: float | None = Field(
-        None, gt=0, description="the control moves its applied value at most this fast; None: "
-        "it applies each value at once")
+        None,
+        gt=0,
+        description="the control moves its applied value at most this fast; None: "
+        "it applies each value at once",
+    )
     rate_source: str = Field("", description="where the control's rate limit comes from")
     readback: str = Field(description="how the held value is read back")
     snippet: str = Field(description="the NC/PLC code that applies the value (the short form)")
@@ -113,30 +129,40 @@ class ControllerProfile(BaseModel):
         """The route ``name`` (None: the first, the family's usual one); ConfigError naming the
         known ones otherwise."""
         if not self.routes:
-            raise ConfigError(f"profile {self.name!r} has no route thermocomp can drive: "
-                              f"see {self.doc}")
+            raise ConfigError(
+                f"profile {self.name!r} has no route thermocomp can drive: see {self.doc}"
+            )
         key = self.route_name(name)
         try:
             return self.routes[key]
         except KeyError:
-            raise ConfigError(f"profile {self.name!r} has no route {key!r}; known: "
-                              f"{', '.join(self.routes)}") from None
+            raise ConfigError(
+                f"profile {self.name!r} has no route {key!r}; known: {', '.join(self.routes)}"
+            ) from None
 
     def describe(self, route: str | None = None) -> str:
         """One paragraph: what the profile will do (``thermocomp run --check`` prints it)."""
         r = self.route(route)
         key = self.route_name(route)
-        res = (f"resolution {self.resolution:g} ({self.resolution_um:g} um)" if self.resolution
-               else "continuous")
-        rate = (f"the control itself moves it at most {self.control_rate_um_per_s:g} um/s "
-                f"({self.rate_source})" if self.control_rate_um_per_s else
-                "the control applies each value at once (the shaper's slew is the only rate limit)")
+        res = (
+            f"resolution {self.resolution:g} ({self.resolution_um:g} um)"
+            if self.resolution
+            else "continuous"
+        )
+        rate = (
+            f"the control itself moves it at most {self.control_rate_um_per_s:g} um/s "
+            f"({self.rate_source})"
+            if self.control_rate_um_per_s
+            else "the control applies each value at once (the shaper's slew is the only rate limit)"
+        )
         step = f", an alarm at a step of more than {self.max_step:g}" if self.max_step else ""
         sign = "+S (the growth itself)" if self.sign == -1 else "-S (the offset A)"
-        return (f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
-                f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
-                f"{rate}; read-back: {self.readback}; on the control: {r.control_side}; "
-                f"recipe: {self.doc}")
+        return (
+            f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
+            f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
+            f"{rate}; read-back: {self.readback}; on the control: {r.control_side}; "
+            f"recipe: {self.doc}"
+        )
 
 
 _SINUMERIK_SNIPPET = """\
@@ -176,126 +202,200 @@ net tc-scale  thermocomp.eoffset-scale  => axis.z.eoffset-scale
 net tc-enable thermocomp.eoffset-enable => axis.z.eoffset-enable
 # [AXIS_Z] OFFSET_AV_RATIO = 0.1 (the share of velocity and acceleration external offsets may use)"""
 
-PROFILES: dict[str, ControllerProfile] = {p.name: p for p in (
-    ControllerProfile(
-        name="sinumerik", title="Siemens SINUMERIK 840D sl / ONE", unit="mm (SD43900, a REAL)",
-        scale=0.001, sign=-1, resolution=0.0, limit=1.0,
-        control_rate_um_per_s=5000.0,
-        rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO: the default "
-                    "factor 0.01 of an example 30 m/min; read yours off the machine",
-        readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
-        snippet=_SINUMERIK_SNIPPET, doc="docs/controls/sinumerik.md",
-        routes={
-            "opcua": Route(
-                adapter={"type": "opcua", "preset": "sinumerik-sea"},
-                library="asyncua", tested="the virtual CNC's SINUMERIK-like address space (asyncua "
-                "server): SD43900 node, writes refused without the SeaWrite right",
-                control_side="MD32750 bit 0 on the axis; the OPC UA option; a user with the SeaWrite "
-                "right (GiveUserAccess)",
-                requires=("url", "offset_node|offset_path")),
-            "s7": Route(
-                adapter={"type": "plc", "protocol": "s7", "rack": 0, "slot": 2},
-                library="python-snap7", tested="python-snap7's own S7 server (snap7.server) on "
-                "loopback, the synchronized action emulated",
-                control_side="MD32750 bit 0; a DB with PUT/GET access; the synchronized action "
-                "IDS=1 WHENEVER TRUE DO $$SA_TEMP_COMP_ABS_VALUE[Z]=$A_DBR[0]",
-                requires=("host", "offset_address", "speed_address")),
-        }),
-    ControllerProfile(
-        name="fanuc", title="FANUC 0i-F / 30i-B", unit="detection units (1 um: IS-B, metric)",
-        scale=1.0, sign=-1, resolution=1.0, integer=True, limit=32767.0, max_step=9998.0,
-        readback="#500 read back over FOCAS, or ack_macro: the value the ladder reports after THREND",
-        snippet=_FANUC_SNIPPET, doc="docs/controls/fanuc.md",
-        routes={
-            "focas": Route(
-                adapter={"type": "focas"},
-                library="socket (own FOCAS client, pyfocas's documented packet format)",
-                tested="a loopback FOCAS server built from the documented packet format; pyfocas, "
-                "an independent client, talks to it",
-                control_side="the option 'thermal growth compensation along tool vector'; the "
-                "builder's ladder (THD00-15, THSTB, THREND) or a macro copying the variable",
-                requires=("host",)),
-        }),
-    ControllerProfile(
-        name="heidenhain", title="HEIDENHAIN TNC",
-        unit="0.1 um (module 9231, TNC 426/430; W576-W582 of older TNCs take 1 um: the PLC divides by 10)",
-        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=30000.0,
-        control_rate_um_per_s=1.0, rate_source="the TNC follows W576-W582 at 1 um/s; module "
-        "9231's rate is not documented publicly, taken the same",
-        readback="the PLC word read back (any PLC route)",
-        snippet=_HEIDENHAIN_SNIPPET, doc="docs/controls/heidenhain.md",
-        routes={
-            "plc": Route(
-                adapter={"type": "plc"},
-                library="python-snap7 / pymodbus / pyads (the builder's PLC gateway)",
-                tested="docs only: nothing here speaks to a TNC (pylsv2 reads PLC memory but "
-                "cannot write it); the PLC route's own code is tested against S7, Modbus and ADS",
-                control_side="the machine builder maps a PLC word from a gateway to W576-W582, "
-                "module 9231, or the TEMPCOMP formula's PLC data",
-                requires=("protocol", "host", "offset_address", "speed_address")),
-        }),
-    ControllerProfile(
-        name="haas", title="Haas NGC", unit="mm (a macro variable; tool-length wear)",
-        scale=0.001, sign=-1, resolution=0.0001, limit=0.5,
-        readback="the macro variable read back with ?Q600",
-        snippet=_HAAS_SNIPPET, doc="docs/controls/haas.md",
-        routes={
-            "mdc": Route(
-                adapter={"type": "haas-mdc"},
-                library="socket (MDC over TCP)", tested="a loopback MDC server (threaded TCP) "
-                "emulating the reply forms reported for NGC over TCP and RS-232, the two-connection "
-                "limit and the wear applied at G43 safe points",
-                control_side="Setting 143 (MDC port); a macro that re-applies the wear with G43 at "
-                "safe points",
-                requires=("host",), fixed={"offset_decimals": 4}),
-            "serial": Route(
-                adapter={"type": "haas"},
-                library="pyserial", tested="pseudo-terminals: real serial links to an emulated Haas",
-                control_side="the RS-232 port; the same macro as the MDC route",
-                requires=("port",), fixed={"offset_decimals": 4}),
-        }),
-    ControllerProfile(
-        name="linuxcnc", title="LinuxCNC 2.9", unit="mm (external-offset counts of 0.01 um)",
-        scale=0.001, sign=-1, resolution=0.00001, limit=1.0,
-        control_rate_um_per_s=None,
-        rate_source="",
-        readback="axis.z.eoffset-request (the external offset motion is asked to apply; "
-                 "axis.z.eoffset, what it has reached, lags and stops at a soft limit)",
-        snippet=_LINUXCNC_SNIPPET, doc="docs/controls/linuxcnc.md",
-        routes={
-            "hal": Route(
-                adapter={"type": "linuxcnc"},
-                library="LinuxCNC's hal module", tested="a real LinuxCNC (halrun and a simulator "
-                "configuration)",
-                control_side="[AXIS_Z] OFFSET_AV_RATIO; net the eoffset pins",
-                fixed={"axis_units": "mm", "count_um": 0.01}),
-        }),
-    ControllerProfile(
-        name="beckhoff", title="Beckhoff TwinCAT CNC",
-        unit="0.1 um (P-AXIS-00273 temp_comp_offset_0, a DINT)",
-        scale=10.0, sign=-1, resolution=1.0, integer=True, limit=10000.0,
-        readback="the PLC's copy of TEMPC::actual_offset (held_address), or the variable read back",
-        snippet=_BECKHOFF_SNIPPET, doc="docs/controls/beckhoff.md",
-        routes={
-            "ads": Route(
-                adapter={"type": "plc", "protocol": "ads", "offset_type": "DINT"},
-                library="pyads", tested="pyads's own ADS test server on loopback",
-                control_side="an ADS route to the PC; temp_comp = 1, slope 0; the PLC checks "
-                "range and rate and writes TEMPC::offset_0",
-                requires=("host", "offset_address", "speed_address"), fixed={"offset_type": "DINT"}),
-        }),
-    ControllerProfile(
-        name="virtual", title="thermocomp virtual CNC", unit="um (ThermalOffset)",
-        scale=1.0, sign=1, resolution=0.0, limit=1000.0,
-        readback="ThermalOffset read back", snippet="(none: the virtual CNC applies ThermalOffset)",
-        doc="docs/reference/virtual-machine-tool.md",
-        routes={
-            "opcua": Route(
-                adapter={"type": "opcua", "preset": "virtual-cnc"},
-                library="asyncua", tested="the virtual CNC (asyncua server)",
-                control_side="nothing", requires=("url",)),
-        }),
-)}
+PROFILES: dict[str, ControllerProfile] = {
+    p.name: p
+    for p in (
+        ControllerProfile(
+            name="sinumerik",
+            title="Siemens SINUMERIK 840D sl / ONE",
+            unit="mm (SD43900, a REAL)",
+            scale=0.001,
+            sign=-1,
+            resolution=0.0,
+            limit=1.0,
+            control_rate_um_per_s=5000.0,
+            rate_source="MD32760 $MA_COMP_ADD_VELO_FACTOR x MD32000 $MA_MAX_AX_VELO: the default "
+            "factor 0.01 of an example 30 m/min; read yours off the machine",
+            readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
+            snippet=_SINUMERIK_SNIPPET,
+            doc="docs/controls/sinumerik.md",
+            routes={
+                "opcua": Route(
+                    adapter={"type": "opcua", "preset": "sinumerik-sea"},
+                    library="asyncua",
+                    tested="the virtual CNC's SINUMERIK-like address space (asyncua "
+                    "server): SD43900 node, writes refused without the SeaWrite right",
+                    control_side="MD32750 bit 0 on the axis; the OPC UA option; a user with the SeaWrite "
+                    "right (GiveUserAccess)",
+                    requires=("url", "offset_node|offset_path"),
+                ),
+                "s7": Route(
+                    adapter={"type": "plc", "protocol": "s7", "rack": 0, "slot": 2},
+                    library="python-snap7",
+                    tested="python-snap7's own S7 server (snap7.server) on "
+                    "loopback, the synchronized action emulated",
+                    control_side="MD32750 bit 0; a DB with PUT/GET access; the synchronized action "
+                    "IDS=1 WHENEVER TRUE DO $$SA_TEMP_COMP_ABS_VALUE[Z]=$A_DBR[0]",
+                    requires=("host", "offset_address", "speed_address"),
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="fanuc",
+            title="FANUC 0i-F / 30i-B",
+            unit="detection units (1 um: IS-B, metric)",
+            scale=1.0,
+            sign=-1,
+            resolution=1.0,
+            integer=True,
+            limit=32767.0,
+            max_step=9998.0,
+            readback="#500 read back over FOCAS, or ack_macro: the value the ladder reports after THREND",
+            snippet=_FANUC_SNIPPET,
+            doc="docs/controls/fanuc.md",
+            routes={
+                "focas": Route(
+                    adapter={"type": "focas"},
+                    library="socket (own FOCAS client, pyfocas's documented packet format)",
+                    tested="a loopback FOCAS server built from the documented packet format; pyfocas, "
+                    "an independent client, talks to it",
+                    control_side="the option 'thermal growth compensation along tool vector'; the "
+                    "builder's ladder (THD00-15, THSTB, THREND) or a macro copying the variable",
+                    requires=("host",),
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="heidenhain",
+            title="HEIDENHAIN TNC",
+            unit="0.1 um (module 9231, TNC 426/430; W576-W582 of older TNCs take 1 um: the PLC divides by 10)",
+            scale=10.0,
+            sign=-1,
+            resolution=1.0,
+            integer=True,
+            limit=30000.0,
+            control_rate_um_per_s=1.0,
+            rate_source="the TNC follows W576-W582 at 1 um/s; module "
+            "9231's rate is not documented publicly, taken the same",
+            readback="the PLC word read back (any PLC route)",
+            snippet=_HEIDENHAIN_SNIPPET,
+            doc="docs/controls/heidenhain.md",
+            routes={
+                "plc": Route(
+                    adapter={"type": "plc"},
+                    library="python-snap7 / pymodbus / pyads (the builder's PLC gateway)",
+                    tested="docs only: nothing here speaks to a TNC (pylsv2 reads PLC memory but "
+                    "cannot write it); the PLC route's own code is tested against S7, Modbus and ADS",
+                    control_side="the machine builder maps a PLC word from a gateway to W576-W582, "
+                    "module 9231, or the TEMPCOMP formula's PLC data",
+                    requires=("protocol", "host", "offset_address", "speed_address"),
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="haas",
+            title="Haas NGC",
+            unit="mm (a macro variable; tool-length wear)",
+            scale=0.001,
+            sign=-1,
+            resolution=0.0001,
+            limit=0.5,
+            readback="the macro variable read back with ?Q600",
+            snippet=_HAAS_SNIPPET,
+            doc="docs/controls/haas.md",
+            routes={
+                "mdc": Route(
+                    adapter={"type": "haas-mdc"},
+                    library="socket (MDC over TCP)",
+                    tested="a loopback MDC server (threaded TCP) "
+                    "emulating the reply forms reported for NGC over TCP and RS-232, the two-connection "
+                    "limit and the wear applied at G43 safe points",
+                    control_side="Setting 143 (MDC port); a macro that re-applies the wear with G43 at "
+                    "safe points",
+                    requires=("host",),
+                    fixed={"offset_decimals": 4},
+                ),
+                "serial": Route(
+                    adapter={"type": "haas"},
+                    library="pyserial",
+                    tested="pseudo-terminals: real serial links to an emulated Haas",
+                    control_side="the RS-232 port; the same macro as the MDC route",
+                    requires=("port",),
+                    fixed={"offset_decimals": 4},
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="linuxcnc",
+            title="LinuxCNC 2.9",
+            unit="mm (external-offset counts of 0.01 um)",
+            scale=0.001,
+            sign=-1,
+            resolution=0.00001,
+            limit=1.0,
+            control_rate_um_per_s=None,
+            rate_source="",
+            readback="axis.z.eoffset-request (the external offset motion is asked to apply; "
+            "axis.z.eoffset, what it has reached, lags and stops at a soft limit)",
+            snippet=_LINUXCNC_SNIPPET,
+            doc="docs/controls/linuxcnc.md",
+            routes={
+                "hal": Route(
+                    adapter={"type": "linuxcnc"},
+                    library="LinuxCNC's hal module",
+                    tested="a real LinuxCNC (halrun and a simulator configuration)",
+                    control_side="[AXIS_Z] OFFSET_AV_RATIO; net the eoffset pins",
+                    fixed={"axis_units": "mm", "count_um": 0.01},
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="beckhoff",
+            title="Beckhoff TwinCAT CNC",
+            unit="0.1 um (P-AXIS-00273 temp_comp_offset_0, a DINT)",
+            scale=10.0,
+            sign=-1,
+            resolution=1.0,
+            integer=True,
+            limit=10000.0,
+            readback="the PLC's copy of TEMPC::actual_offset (held_address), or the variable read back",
+            snippet=_BECKHOFF_SNIPPET,
+            doc="docs/controls/beckhoff.md",
+            routes={
+                "ads": Route(
+                    adapter={"type": "plc", "protocol": "ads", "offset_type": "DINT"},
+                    library="pyads",
+                    tested="pyads's own ADS test server on loopback",
+                    control_side="an ADS route to the PC; temp_comp = 1, slope 0; the PLC checks "
+                    "range and rate and writes TEMPC::offset_0",
+                    requires=("host", "offset_address", "speed_address"),
+                    fixed={"offset_type": "DINT"},
+                ),
+            },
+        ),
+        ControllerProfile(
+            name="virtual",
+            title="thermocomp virtual CNC",
+            unit="um (ThermalOffset)",
+            scale=1.0,
+            sign=1,
+            resolution=0.0,
+            limit=1000.0,
+            readback="ThermalOffset read back",
+            snippet="(none: the virtual CNC applies ThermalOffset)",
+            doc="docs/reference/virtual-machine-tool.md",
+            routes={
+                "opcua": Route(
+                    adapter={"type": "opcua", "preset": "virtual-cnc"},
+                    library="asyncua",
+                    tested="the virtual CNC (asyncua server)",
+                    control_side="nothing",
+                    requires=("url",),
+                ),
+            },
+        ),
+    )
+}
 
 
 def profile(name: str) -> ControllerProfile:
@@ -322,20 +422,30 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     r = p.route(route_name)
     for key in ("offset_scale", "offset_sign", "offset_resolution"):
         if key in user:
-            raise ConfigError(f"adapter: {key} is fixed by profile {p.name!r} ({p.unit}); "
-                              "leave it out, or drop the profile")
+            raise ConfigError(
+                f"adapter: {key} is fixed by profile {p.name!r} ({p.unit}); "
+                "leave it out, or drop the profile"
+            )
     if "type" in user and user["type"] != r.adapter.get("type"):
-        raise ConfigError(f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
-                          f"uses type {r.adapter.get('type')!r}, not {user['type']!r}")
+        raise ConfigError(
+            f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
+            f"uses type {r.adapter.get('type')!r}, not {user['type']!r}"
+        )
     for key, value in r.fixed.items():
         if key in user and user[key] != value:
-            raise ConfigError(f"adapter: profile {p.name!r} is for {key} = {value!r} ({p.unit}), not "
-                              f"{user[key]!r}: drop the profile and give the units yourself")
+            raise ConfigError(
+                f"adapter: profile {p.name!r} is for {key} = {value!r} ({p.unit}), not "
+                f"{user[key]!r}: drop the profile and give the units yourself"
+            )
     # "a|b": either will do
-    missing = [k.replace("|", " or ") for k in r.requires if not any(a in user for a in k.split("|"))]
+    missing = [
+        k.replace("|", " or ") for k in r.requires if not any(a in user for a in k.split("|"))
+    ]
     if missing:
-        raise ConfigError(f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
-                          f"needs {', '.join(missing)} ({p.doc})")
+        raise ConfigError(
+            f"adapter: profile {p.name!r}, route {p.route_name(route_name)!r} "
+            f"needs {', '.join(missing)} ({p.doc})"
+        )
     units: dict[str, Any] = {"offset_scale": p.scale, "offset_sign": p.sign}
     if p.resolution:
         units["offset_resolution"] = p.resolution

@@ -109,8 +109,9 @@ def _common_variable(v: int) -> int:
     return v
 
 
-CommonVariable = Annotated[int, AfterValidator(_common_variable),
-                           Allowed("a common macro variable: 100..199 or 500..999")]
+CommonVariable = Annotated[
+    int, AfterValidator(_common_variable), Allowed("a common macro variable: 100..199 or 500..999")
+]
 
 
 def packet(ptype: int, body: bytes, origin: int = CLIENT) -> bytes:
@@ -128,7 +129,8 @@ def command(function: int, *args: int, payload: bytes = b"") -> bytes:
 def request_packet(*commands: bytes) -> bytes:
     """A generic request carrying ``commands`` (each prefixed with its length)."""
     body = struct.pack(">H", len(commands)) + b"".join(
-        struct.pack(">H", len(c) + 2) + c for c in commands)
+        struct.pack(">H", len(c) + 2) + c for c in commands
+    )
     return packet(REQUEST, body)
 
 
@@ -158,22 +160,32 @@ class FocasSettings(AdapterSettings):
     timeout_s: Seconds = Field(2.0, description="connect and reply timeout")
     offset_macro: CommonVariable = Field(500, description="the common variable the offset goes to")
     ack_macro: CommonVariable = Field(  # type: ignore[assignment]
-        None, description="a variable the ladder/macro sets to the value the control took; "
-        "read back instead of offset_macro")
+        None,
+        description="a variable the ladder/macro sets to the value the control took; "
+        "read back instead of offset_macro",
+    )
     speed_source: one_of("acts", "macro") = Field(  # type: ignore[valid-type]
-        "acts", description="acts: cnc_acts; macro: speed_macro, filled by the ladder or a macro")
+        "acts", description="acts: cnc_acts; macro: speed_macro, filled by the ladder or a macro"
+    )
     speed_macro: CommonVariable = Field(  # type: ignore[assignment]
-        None, description="with speed_source = 'macro': the variable holding the actual speed")
+        None, description="with speed_source = 'macro': the variable holding the actual speed"
+    )
 
     @model_validator(mode="after")
     def _variables(self) -> FocasSettings:
-        check_variables(self.offset_macro, self.ack_macro, self.speed_source, self.speed_macro,
-                        ValueError)
+        check_variables(
+            self.offset_macro, self.ack_macro, self.speed_source, self.speed_macro, ValueError
+        )
         return self
 
 
-def check_variables(offset: int, ack: int | None, source: str, speed: int | None,
-                    error: type[Exception] = ConfigError) -> None:
+def check_variables(
+    offset: int,
+    ack: int | None,
+    source: str,
+    speed: int | None,
+    error: type[Exception] = ConfigError,
+) -> None:
     """The macro variables: a speed variable exactly with ``speed_source = "macro"``, and no
     two of them the same."""
     if source not in ("acts", "macro"):
@@ -186,11 +198,9 @@ def check_variables(offset: int, ack: int | None, source: str, speed: int | None
         if not any(v in r for r in COMMON_VARIABLES):
             raise error(f"{k} #{v} is not a common macro variable (100..199, 500..999)")
     for i, (ka, va) in enumerate(used):
-        for kb, vb in used[i + 1:]:
+        for kb, vb in used[i + 1 :]:
             if va == vb:
                 raise error(f"{ka} and {kb} are both #{va}")
-
-
 
 
 class FocasAdapter(Adapter):
@@ -230,8 +240,9 @@ class FocasAdapter(Adapter):
         self.ack_macro = None if ack_macro is None else int(ack_macro)
         self.speed_source = speed_source
         self.speed_macro = None if speed_macro is None else int(speed_macro)
-        self._tcp = TcpTransport(self.name, self.host, self.port, timeout_s=self.timeout_s,
-                                 lost=self._link_lost)
+        self._tcp = TcpTransport(
+            self.name, self.host, self.port, timeout_s=self.timeout_s, lost=self._link_lost
+        )
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -251,11 +262,12 @@ class FocasAdapter(Adapter):
         try:
             ptype, _ = self._read_packet("open request", deadline)
         except _Malformed as err:
-            raise UnreachableError(f"{self.name} open session at {where}: refused: "
-                                   f"{err}") from err
+            raise UnreachableError(f"{self.name} open session at {where}: refused: {err}") from err
         if ptype != OPEN_RESPONSE:
-            raise UnreachableError(f"{self.name} open session at {where}: answered with packet "
-                                   f"type {ptype:#06x}, not {OPEN_RESPONSE:#06x}")
+            raise UnreachableError(
+                f"{self.name} open session at {where}: answered with packet "
+                f"type {ptype:#06x}, not {OPEN_RESPONSE:#06x}"
+            )
 
     def _disconnect(self) -> None:
         self._tcp.close(goodbye=self._close_session)
@@ -290,10 +302,14 @@ class FocasAdapter(Adapter):
                 raise _Malformed(f"packet type {ptype:#06x}, not {RESPONSE:#06x}")
             code, payload = _reply(body, cmd[:6])
         except _Malformed as err:
-            raise self._link_lost(f"{self.name} {what} at {self._tcp.address}: malformed reply ({err}); session dropped",
-                                  AdapterError) from err
+            raise self._link_lost(
+                f"{self.name} {what} at {self._tcp.address}: malformed reply ({err}); session dropped",
+                AdapterError,
+            ) from err
         if code != 0:
-            raise refused(f"{self.name} {what} at {self._tcp.address}: the CNC answered {focas_error(code)}")
+            raise refused(
+                f"{self.name} {what} at {self._tcp.address}: the CNC answered {focas_error(code)}"
+            )
         return payload
 
     # -- macro variables -----------------------------------------------------------------
@@ -308,7 +324,9 @@ class FocasAdapter(Adapter):
         # 8 bytes per variable (pyfanuc, pyfocas's code); pyfocas's README shows one read of a
         # single variable answered with 16: the value is the first 8 either way
         if len(payload) < 8 or len(payload) % 8:
-            raise BadValueError(f"{self.name} {what} at {self._tcp.address}: {len(payload)} bytes, not 8-byte values")
+            raise BadValueError(
+                f"{self.name} {what} at {self._tcp.address}: {len(payload)} bytes, not 8-byte values"
+            )
         try:
             return decode_scaled(payload[:8])
         except ValueError as err:
@@ -317,8 +335,10 @@ class FocasAdapter(Adapter):
     def _value(self, number: int, what: str) -> float:
         value = self._read_macro(number, what)
         if value is None:
-            raise BadValueError(f"{self.name} {what} at {self._tcp.address}: #{number} is vacant (nothing written yet, "
-                                "or cleared)")
+            raise BadValueError(
+                f"{self.name} {what} at {self._tcp.address}: #{number} is vacant (nothing written yet, "
+                "or cleared)"
+            )
         return value
 
     def write_macro(self, number: int, value: float) -> None:
@@ -339,16 +359,24 @@ class FocasAdapter(Adapter):
         try:
             payload = self._exchange("read speed (cnc_acts)", command(READ_ACTS), BadValueError)
         except BadValueError as err:
-            raise BadValueError(f"{err}; a control without it can hand the speed over in a macro "
-                                "variable (speed_source = 'macro')") from err
+            raise BadValueError(
+                f"{err}; a control without it can hand the speed over in a macro "
+                "variable (speed_source = 'macro')"
+            ) from err
         if len(payload) < 8:
-            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {len(payload)} bytes")
+            raise BadValueError(
+                f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {len(payload)} bytes"
+            )
         try:
             rpm = decode_scaled(payload[:8])
         except ValueError as err:
-            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {err}") from err
+            raise BadValueError(
+                f"{self.name} read speed (cnc_acts) at {self._tcp.address}: {err}"
+            ) from err
         if rpm is None:
-            raise BadValueError(f"{self.name} read speed (cnc_acts) at {self._tcp.address}: no value")
+            raise BadValueError(
+                f"{self.name} read speed (cnc_acts) at {self._tcp.address}: no value"
+            )
         return rpm
 
     def _read_offset_raw(self) -> float:
@@ -365,14 +393,14 @@ def _reply(body: bytes, echo: bytes) -> tuple[int, bytes]:
     if len(body) < 2 or struct.unpack(">H", body[:2])[0] != 1:
         raise _Malformed("not one subpacket")
     n = struct.unpack(">H", body[2:4])[0] if len(body) >= 4 else 0
-    sub = body[4:2 + n]
+    sub = body[4 : 2 + n]
     if n < 16 or len(body) != 2 + n:
         raise _Malformed(f"subpacket of {n} bytes in a body of {len(body)}")
     if sub[:6] != echo:
         raise _Malformed(f"reply to {sub[:6].hex(' ')}, not to {echo.hex(' ')}")
     code = struct.unpack(">h", sub[6:8])[0]
     length = struct.unpack(">H", sub[12:14])[0]
-    payload = sub[14:14 + length]
+    payload = sub[14 : 14 + length]
     if len(payload) != length:
         raise _Malformed(f"payload of {len(payload)} bytes, not {length}")
     return code, payload

@@ -75,12 +75,14 @@ class HaasMdcSettings(HaasMacros, AdapterSettings):
     :class:`~cnc_adapters.serial_link.HaasSettings` (:class:`~cnc_adapters.serial_link.HaasMacros`)."""
 
     host: Annotated[str, Field(min_length=1), Allowed("a host name or IP address of the control")]
-    port: Annotated[int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535 (the control's "
-                                                        "Setting 143)")] = 5051
+    port: Annotated[
+        int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535 (the control's Setting 143)")
+    ] = 5051
     timeout_s: Seconds = Field(1.0, description="for one reply line")
     connect_timeout_s: Seconds = Field(3.0, description="for the TCP connection")
-    eol: Annotated[str, Field(min_length=1, pattern=r"^[\x00-\x7f]+$"),
-                   Allowed("a non-empty ASCII string")] = Field("\r\n", description="end of line, sent and expected")
+    eol: Annotated[
+        str, Field(min_length=1, pattern=r"^[\x00-\x7f]+$"), Allowed("a non-empty ASCII string")
+    ] = Field("\r\n", description="end of line, sent and expected")
 
 
 class _MdcProtocol(HaasAdapter):
@@ -89,8 +91,9 @@ class _MdcProtocol(HaasAdapter):
     name = "haas-mdc"
 
     def __init__(self, link: HaasMdcAdapter, **haas: Any):
-        super().__init__(link.address, eol=link.eol, timeout_s=link.timeout_s,
-                         reject_reply=REJECT_REPLY, **haas)
+        super().__init__(
+            link.address, eol=link.eol, timeout_s=link.timeout_s, reject_reply=REJECT_REPLY, **haas
+        )
         self._link = link
 
     def exchange(self, request: str | None, op: str = "read") -> str:
@@ -131,15 +134,27 @@ class HaasMdcAdapter(Adapter):
         self.timeout_s = float(timeout_s)
         self.connect_timeout_s = float(connect_timeout_s)
         self.eol = eol
-        self._tcp = TcpTransport(self.name, self.host, self.port, timeout_s=self.timeout_s,
-                                 connect_timeout_s=self.connect_timeout_s,
-                                 keepalive=True,  # Haas: keep MDC open
-                                 lost=self._link_lost, closed_reason=self._closed_reason)
+        self._tcp = TcpTransport(
+            self.name,
+            self.host,
+            self.port,
+            timeout_s=self.timeout_s,
+            connect_timeout_s=self.connect_timeout_s,
+            keepalive=True,  # Haas: keep MDC open
+            lost=self._link_lost,
+            closed_reason=self._closed_reason,
+        )
         self._fresh = False  # no request answered yet on this connection
         self._proto = _MdcProtocol(
-            self, speed_var=speed_var, offset_var=offset_var, offset_decimals=offset_decimals,
-            measurement_var=measurement_var, measurement_sequence_var=measurement_sequence_var,
-            measurement_sigma_var=measurement_sigma_var, measurement_scale=measurement_scale)
+            self,
+            speed_var=speed_var,
+            offset_var=offset_var,
+            offset_decimals=offset_decimals,
+            measurement_var=measurement_var,
+            measurement_sequence_var=measurement_sequence_var,
+            measurement_sigma_var=measurement_sigma_var,
+            measurement_scale=measurement_scale,
+        )
         self.speed_var = self._proto.speed_var
         self._proto_decimals = int(offset_decimals)
         self.offset_var = self._proto.offset_var
@@ -207,8 +222,10 @@ class HaasMdcAdapter(Adapter):
         said = [line for line in lines if _TOO_MANY.search(line)]
         if not said:
             return None
-        return (f"{self.name}: {self.address} refused the connection: "
-                f"{said[-1].strip(' >' + chr(13) + chr(10))!r} (MDC takes two connections)")
+        return (
+            f"{self.name}: {self.address} refused the connection: "
+            f"{said[-1].strip(' >' + chr(13) + chr(10))!r} (MDC takes two connections)"
+        )
 
     def _clean(self, raw: bytes, request: str) -> str:
         """The reply text in ``raw`` ('' for none): the STX frame's content without prompts;
@@ -217,13 +234,17 @@ class HaasMdcAdapter(Adapter):
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError as err:
-            raise BadValueError(f"{self.name} {request!r} at {self.address}: garbage reply {raw!r}") from err
+            raise BadValueError(
+                f"{self.name} {request!r} at {self.address}: garbage reply {raw!r}"
+            ) from err
         if STX in text:
             text = text.rsplit(STX, 1)[1]  # an echo or a prompt may precede the frame
         text = text.replace(ETB, "").strip().lstrip(">").strip()
         if _TOO_MANY.search(text):
-            raise self._link_lost(f"{self.name}: {self.address} refused the connection: {text!r} "
-                                  "(MDC takes two connections)")
+            raise self._link_lost(
+                f"{self.name}: {self.address} refused the connection: {text!r} "
+                "(MDC takes two connections)"
+            )
         if not text or _ECHO.match(text):
             return ""  # a prompt, or a request echoed (Setting 187), ours or another client's
         refusal = self._proto.reject_reply.match(text) is not None
@@ -253,11 +274,13 @@ class HaasMdcAdapter(Adapter):
         # the control answers every client: another's '!' may have been taken for ours, so
         # the value is read back before the write counts as taken
         held = self._proto._read_offset_raw()
-        step = 10.0 ** -self._proto_decimals
+        step = 10.0**-self._proto_decimals
         if not (isinstance(held, (int, float)) and abs(held - value) <= step / 2 + 1e-12):
-            raise WriteRejectedError(f"{self.name} write offset #{self._proto.offset_var} at {self.address}: "
-                                     f"wrote {value!r}, the "
-                                     f"control holds {held!r} (another client's reply taken for ours?)")
+            raise WriteRejectedError(
+                f"{self.name} write offset #{self._proto.offset_var} at {self.address}: "
+                f"wrote {value!r}, the "
+                f"control holds {held!r} (another client's reply taken for ours?)"
+            )
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         return self._proto._read_measurement_raw()

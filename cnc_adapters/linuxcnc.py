@@ -124,8 +124,10 @@ def import_linuxcnc(module: str):
     try:
         return importlib.import_module(module)
     except ImportError as err:
-        raise UnreachableError(f"linuxcnc: cannot import LinuxCNC's {module!r} module ({err}); "
-                               "is linuxcnc-uspace installed?") from err
+        raise UnreachableError(
+            f"linuxcnc: cannot import LinuxCNC's {module!r} module ({err}); "
+            "is linuxcnc-uspace installed?"
+        ) from err
 
 
 HAL_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
@@ -136,9 +138,13 @@ def _names(v: Any) -> Any:
     return [n.strip() for n in v.split(",") if n.strip()] if isinstance(v, str) else v
 
 
-InputName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$"), Allowed("letters, digits, '_' and '-'")]
+InputName = Annotated[
+    str, Field(pattern=r"^[A-Za-z0-9_-]+$"), Allowed("letters, digits, '_' and '-'")
+]
 ComponentName = Annotated[str, Field(pattern=HAL_NAME), Allowed("a HAL component name")]
-PinName = Annotated[str, Field(pattern=r"^$|" + HAL_NAME), Allowed("a HAL pin name, or '' for none")]
+PinName = Annotated[
+    str, Field(pattern=r"^$|" + HAL_NAME), Allowed("a HAL pin name, or '' for none")
+]
 SpeedUnit = one_of("rps", "rpm")
 AxisUnits = one_of("mm", "inch")
 MachineState = one_of("stat", "pins")
@@ -155,32 +161,53 @@ class LinuxCncSettings(AdapterSettings):
     speed_unit: SpeedUnit = Field("rps", description="of speed-in: rps, as spindle.N.speed-in")
     axis_units: AxisUnits = Field("mm", description="[TRAJ]LINEAR_UNITS")
     count_um: Positive = Field(0.01, description="um per external-offset count")
-    machine_state: MachineState = Field("stat", description="linuxcnc.stat, or pins machine-on/homed")
-    inputs: Annotated[list[InputName], BeforeValidator(_names),
-                      Allowed("names of letters, digits, '_' and '-' ('a,b' in a URL)")] = Field(
-        default_factory=list, description="extra channels: float IN pins input.<name>")
-    held_pin: PinName = Field("axis.z.eoffset-request", description="the pin holding the external "
-                              "offset motion applies (machine units); '' for no read-back")
+    machine_state: MachineState = Field(
+        "stat", description="linuxcnc.stat, or pins machine-on/homed"
+    )
+    inputs: Annotated[
+        list[InputName],
+        BeforeValidator(_names),
+        Allowed("names of letters, digits, '_' and '-' ('a,b' in a URL)"),
+    ] = Field(default_factory=list, description="extra channels: float IN pins input.<name>")
+    held_pin: PinName = Field(
+        "axis.z.eoffset-request",
+        description="the pin holding the external "
+        "offset motion applies (machine units); '' for no read-back",
+    )
     offset_sign: Sign = Field(-1, description="-1 for a vertical Z spindle (the default)")
-    measurement: bool = Field(False, description="closed loop: IN pins measurement.value and "
-                              "measurement.sequence for a probe cycle's measurement")
+    measurement: bool = Field(
+        False,
+        description="closed loop: IN pins measurement.value and "
+        "measurement.sequence for a probe cycle's measurement",
+    )
     measurement_sigma: bool = Field(False, description="an IN pin measurement.sigma too")
     measurement_sequence_type: SequenceType = Field(
-        "float", description="of measurement.sequence: float (netted to motion.analog-out-NN), s32, u32")
+        "float",
+        description="of measurement.sequence: float (netted to motion.analog-out-NN), s32, u32",
+    )
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="machine units per um of the measurement; default the offset's")
-    cutting: CuttingSource = Field("none", description="the cutting signal: pin (a bit), at-speed, "
-                                   "feed (at-speed and motion-type), or none (inferred from the speed)")
+        None, description="machine units per um of the measurement; default the offset's"
+    )
+    cutting: CuttingSource = Field(
+        "none",
+        description="the cutting signal: pin (a bit), at-speed, "
+        "feed (at-speed and motion-type), or none (inferred from the speed)",
+    )
     cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        list(FEED_MOTION_TYPES), description="feed: the motion types that count as cutting")
+        list(FEED_MOTION_TYPES), description="feed: the motion types that count as cutting"
+    )
 
     @model_validator(mode="after")
     def _measurement(self) -> LinuxCncSettings:
         if self.measurement_sigma and not self.measurement:
-            raise ValueError("measurement_sigma needs measurement = true (the value and its counter)")
+            raise ValueError(
+                "measurement_sigma needs measurement = true (the value and its counter)"
+            )
         if "cutting_values" in self.model_fields_set and self.cutting != "feed":
-            raise ValueError("cutting_values goes with cutting = \"feed\" (the motion types that cut); "
-                             "a bit (pin, at-speed) is true while cutting")
+            raise ValueError(
+                'cutting_values goes with cutting = "feed" (the motion types that cut); '
+                "a bit (pin, at-speed) is true while cutting"
+            )
         return self
 
 
@@ -190,13 +217,24 @@ class LinuxCncAdapter(Adapter):
     can_read_offset: ClassVar[bool] = True  # an instance with held_pin = "" cannot
     can_read_measurement: ClassVar[bool] = True  # an instance without measurement = true cannot
 
-    def __init__(self, *, component: str = "thermocomp", speed_unit: str = "rps",
-                 axis_units: str = "mm", count_um: float = 0.01, machine_state: str = "stat",
-                 inputs: list[str] | tuple[str, ...] = (), held_pin: str = "axis.z.eoffset-request",
-                 measurement: bool = False, measurement_sigma: bool = False,
-                 measurement_sequence_type: str = "float", measurement_scale: float | None = None,
-                 cutting: str = "none", cutting_values: tuple[Any, ...] = FEED_MOTION_TYPES,
-                 **kw: Any):
+    def __init__(
+        self,
+        *,
+        component: str = "thermocomp",
+        speed_unit: str = "rps",
+        axis_units: str = "mm",
+        count_um: float = 0.01,
+        machine_state: str = "stat",
+        inputs: list[str] | tuple[str, ...] = (),
+        held_pin: str = "axis.z.eoffset-request",
+        measurement: bool = False,
+        measurement_sigma: bool = False,
+        measurement_sequence_type: str = "float",
+        measurement_scale: float | None = None,
+        cutting: str = "none",
+        cutting_values: tuple[Any, ...] = FEED_MOTION_TYPES,
+        **kw: Any,
+    ):
         if speed_unit not in ("rps", "rpm"):
             raise AdapterError("linuxcnc: speed_unit is 'rps' (spindle.N.speed-in) or 'rpm'")
         if axis_units not in ("mm", "inch"):
@@ -220,7 +258,9 @@ class LinuxCncAdapter(Adapter):
         self.inputs = tuple(inputs)
         for name in self.inputs:
             if not name.replace("_", "").replace("-", "").isalnum():
-                raise AdapterError(f"linuxcnc: input name {name!r}: letters, digits, '_' and '-' only")
+                raise AdapterError(
+                    f"linuxcnc: input name {name!r}: letters, digits, '_' and '-' only"
+                )
         self.machine_state = machine_state
         self.held_pin = held_pin or None
         self.can_read_offset = self.held_pin is not None  # type: ignore[misc]
@@ -249,8 +289,10 @@ class LinuxCncAdapter(Adapter):
             try:
                 c = hal.component(self.component)
             except hal.error as err:
-                raise UnreachableError(f"linuxcnc create HAL component {self.component!r}: {err} "
-                                       "(is LinuxCNC running, and the name free?)") from err
+                raise UnreachableError(
+                    f"linuxcnc create HAL component {self.component!r}: {err} "
+                    "(is LinuxCNC running, and the name free?)"
+                ) from err
             c.newpin("speed-in", hal.HAL_FLOAT, hal.HAL_IN)
             c.newpin("eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
             c.newpin("eoffset-scale", hal.HAL_FLOAT, hal.HAL_OUT)
@@ -266,7 +308,9 @@ class LinuxCncAdapter(Adapter):
             if self.can_read_measurement:
                 seq_type = {"float": hal.HAL_FLOAT, "s32": hal.HAL_S32, "u32": hal.HAL_U32}
                 c.newpin("measurement.value", hal.HAL_FLOAT, hal.HAL_IN)
-                c.newpin("measurement.sequence", seq_type[self.measurement_sequence_type], hal.HAL_IN)
+                c.newpin(
+                    "measurement.sequence", seq_type[self.measurement_sequence_type], hal.HAL_IN
+                )
                 if self.measurement_sigma:
                     c.newpin("measurement.sigma", hal.HAL_FLOAT, hal.HAL_IN)
             if self.cutting == "pin":
@@ -280,13 +324,19 @@ class LinuxCncAdapter(Adapter):
             c["eoffset-enable"] = True
             c.ready()
             self._comp = c
-            log.info("linuxcnc: HAL component %s ready (%.6g machine units per count)", self.component, self.count)
+            log.info(
+                "linuxcnc: HAL component %s ready (%.6g machine units per count)",
+                self.component,
+                self.count,
+            )
         if self.machine_state == "stat":
             self._lcnc = import_linuxcnc("linuxcnc")
             try:
                 self._stat = self._lcnc.stat()
             except self._lcnc.error as err:
-                raise UnreachableError(f"linuxcnc open status channel (linuxcnc.stat): {err}") from err
+                raise UnreachableError(
+                    f"linuxcnc open status channel (linuxcnc.stat): {err}"
+                ) from err
 
     def _machine_ready(self) -> bool:
         c = self._comp
@@ -304,8 +354,12 @@ class LinuxCncAdapter(Adapter):
         ready = self._machine_ready()
         c = self._comp
         if ready != self._ready:
-            log.info("linuxcnc: machine %s", "on and homed: external offsets honoured, re-seeding from 0"
-                     if ready else "off, in E-stop or not homed: counts held at 0")
+            log.info(
+                "linuxcnc: machine %s",
+                "on and homed: external offsets honoured, re-seeding from 0"
+                if ready
+                else "off, in E-stop or not homed: counts held at 0",
+            )
             self._ready = ready
         if not ready:
             c["eoffset-counts"] = 0  # zeroed at machine-on anyway: no jump when it comes back
@@ -323,17 +377,23 @@ class LinuxCncAdapter(Adapter):
         try:
             return hal.get_value(self.held_pin)
         except AttributeError as err:  # hal.get_value came with LinuxCNC 2.8
-            raise AdapterError("linuxcnc: this LinuxCNC's hal module cannot read other pins; "
-                               'set held_pin = "" (no read-back)') from err
+            raise AdapterError(
+                "linuxcnc: this LinuxCNC's hal module cannot read other pins; "
+                'set held_pin = "" (no read-back)'
+            ) from err
         except RuntimeError as err:
-            raise AdapterError(f"linuxcnc read offset pin {self.held_pin}: {err} (held_pin names "
-                               "axis.<L>.eoffset-request of the axis the counts drive)") from err
+            raise AdapterError(
+                f"linuxcnc read offset pin {self.held_pin}: {err} (held_pin names "
+                "axis.<L>.eoffset-request of the axis the counts drive)"
+            ) from err
 
     def _write_offset_raw(self, value: float) -> None:
         counts = round(value / self.count)
         if abs(counts) > S32:
-            raise BadValueError(f"linuxcnc write offset pin {self.component}.eoffset-counts: {value:g} "
-                                f"does not fit the s32 counts at this scale")
+            raise BadValueError(
+                f"linuxcnc write offset pin {self.component}.eoffset-counts: {value:g} "
+                f"does not fit the s32 counts at this scale"
+            )
         c = self._comp
         c["offset-um"] = self.offset_um_requested
         if self._ready:
@@ -348,8 +408,12 @@ class LinuxCncAdapter(Adapter):
     def _read_measurement_raw(self) -> RawMeasurement | None:
         c = self._comp
         # two M68 land in different servo periods: the counter is read twice, around the value
-        return read_handshake(self.name, lambda: c["measurement.sequence"], lambda: c["measurement.value"],
-                              (lambda: c["measurement.sigma"]) if self.measurement_sigma else None)
+        return read_handshake(
+            self.name,
+            lambda: c["measurement.sequence"],
+            lambda: c["measurement.value"],
+            (lambda: c["measurement.sigma"]) if self.measurement_sigma else None,
+        )
 
     def _read_cutting_raw(self) -> Any:
         c = self._comp

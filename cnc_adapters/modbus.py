@@ -96,27 +96,39 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
     input_registers: dict[str, InputRegister] | None = None
     # the closed loop; None: no measurement (the defaults are not validated)
     measurement_register: Register = Field(  # type: ignore[assignment]
-        None, description="closed loop: the register(s) the probe cycle leaves its measurement in")
+        None, description="closed loop: the register(s) the probe cycle leaves its measurement in"
+    )
     measurement_sequence_register: Register = Field(  # type: ignore[assignment]
-        None, description="the counter the probe cycle changes after writing the measurement")
+        None, description="the counter the probe cycle changes after writing the measurement"
+    )
     measurement_sigma_register: Register = Field(  # type: ignore[assignment]
-        None, description="optional: the measurement's sigma, encoded as the measurement")
+        None, description="optional: the measurement's sigma, encoded as the measurement"
+    )
     measurement_table: Table = "holding"
     measurement_type: DataType = "float32"
     measurement_sequence_type: DataType = "uint16"
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="register unit per um of the measurement; default offset_scale")
+        None, description="register unit per um of the measurement; default offset_scale"
+    )
     cutting_register: Register = Field(  # type: ignore[assignment]
-        None, description="the register the PLC's cutting state is in; none: inferred from the speed")
+        None,
+        description="the register the PLC's cutting state is in; none: inferred from the speed",
+    )
     cutting_table: Table = "holding"
     cutting_type: DataType = "uint16"
     cutting_values: CuttingValues = Field([1], description="the values that mean cutting")  # type: ignore[assignment]
 
     @model_validator(mode="after")
     def _measurement(self) -> ModbusSettings:
-        check_measurement("", self.measurement_register, self.measurement_sequence_register,
-                          self.measurement_sigma_register, self.measurement_type,
-                          self.measurement_sequence_type, ValueError)
+        check_measurement(
+            "",
+            self.measurement_register,
+            self.measurement_sequence_register,
+            self.measurement_sigma_register,
+            self.measurement_type,
+            self.measurement_sequence_type,
+            ValueError,
+        )
         return self
 
 
@@ -127,8 +139,16 @@ class ModbusLink:
 
     name: str
 
-    def _init_modbus(self, port: str, baudrate: int, parity: str, device_id: int,
-                     word_order: str, byte_order: str, timeout_s: float) -> None:
+    def _init_modbus(
+        self,
+        port: str,
+        baudrate: int,
+        parity: str,
+        device_id: int,
+        word_order: str,
+        byte_order: str,
+        timeout_s: float,
+    ) -> None:
         self.port = port
         self.baudrate = int(baudrate)
         self.parity = parity
@@ -138,8 +158,15 @@ class ModbusLink:
         self.timeout_s = float(timeout_s)
         lost = self._link_lost  # type: ignore[attr-defined]
         self._modbus = ModbusTransport(
-            self.name, lost=lost, port=port, device_id=device_id, timeout_s=timeout_s, codec=RegisterCodec(word_order, byte_order), baudrate=baudrate,
-            parity=parity)
+            self.name,
+            lost=lost,
+            port=port,
+            device_id=device_id,
+            timeout_s=timeout_s,
+            codec=RegisterCodec(word_order, byte_order),
+            baudrate=baudrate,
+            parity=parity,
+        )
 
     def _connect(self) -> None:
         self._modbus.connect()
@@ -151,20 +178,32 @@ class ModbusLink:
         return float(self._modbus.read_value(what, table, register, dtype))
 
 
-def check_measurement(prefix: str, value: int | None, sequence: int | None, sigma: int | None,
-                      dtype: str, sequence_type: str, error: type[Exception] = AdapterError) -> None:
+def check_measurement(
+    prefix: str,
+    value: int | None,
+    sequence: int | None,
+    sigma: int | None,
+    dtype: str,
+    sequence_type: str,
+    error: type[Exception] = AdapterError,
+) -> None:
     """The measurement's registers: the value and its counter together, the sigma only with
     them, no two overlapping."""
     if (value is None) != (sequence is None) or (sigma is not None and value is None):
-        raise error(f"{prefix}a measurement needs both measurement_register and measurement_sequence_register "
-                    "(the handshake), measurement_sigma_register only with them")
+        raise error(
+            f"{prefix}a measurement needs both measurement_register and measurement_sequence_register "
+            "(the handshake), measurement_sigma_register only with them"
+        )
     if value is None:
         return
-    spans = [(value, dtype, "measurement_register"), (sequence, sequence_type, "measurement_sequence_register")]
+    spans = [
+        (value, dtype, "measurement_register"),
+        (sequence, sequence_type, "measurement_sequence_register"),
+    ]
     if sigma is not None:
         spans.append((sigma, dtype, "measurement_sigma_register"))
     for i, (a, ta, na) in enumerate(spans):
-        for b, tb, nb in spans[i + 1:]:
+        for b, tb, nb in spans[i + 1 :]:
             if a < b + WIDTH[tb] and b < a + WIDTH[ta]:
                 raise error(f"{prefix}{na} {a} ({ta}) and {nb} {b} ({tb}) overlap")
 
@@ -211,21 +250,48 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        check_types("modbus", speed_type, offset_type, measurement_type, measurement_sequence_type,
-                    cutting_type)
+        check_types(
+            "modbus",
+            speed_type,
+            offset_type,
+            measurement_type,
+            measurement_sequence_type,
+            cutting_type,
+        )
         if cutting_type == "float32":
-            raise AdapterError("modbus: cutting_type is an integer type (a state, not a measurement)")
-        self.cutting = None if cutting_register is None else (cutting_table, int(cutting_register), cutting_type)
+            raise AdapterError(
+                "modbus: cutting_type is an integer type (a state, not a measurement)"
+            )
+        self.cutting = (
+            None
+            if cutting_register is None
+            else (cutting_table, int(cutting_register), cutting_type)
+        )
         self.can_read_cutting = self.cutting is not None  # type: ignore[misc]
         self.cutting_values = tuple(cutting_values)
-        check_measurement("modbus: ", measurement_register, measurement_sequence_register,
-                          measurement_sigma_register, measurement_type, measurement_sequence_type)
+        check_measurement(
+            "modbus: ",
+            measurement_register,
+            measurement_sequence_register,
+            measurement_sigma_register,
+            measurement_type,
+            measurement_sequence_type,
+        )
         if measurement_table not in ("input", "holding"):
             raise AdapterError("modbus: measurement_table is 'input' or 'holding'")
         # (table, type, sequence type, value, sequence[, sigma]) registers of the probe cycle
-        self.measurement = (measurement_table, measurement_type, measurement_sequence_type,
-                            measurement_register, measurement_sequence_register,
-                            measurement_sigma_register) if measurement_register is not None else None
+        self.measurement = (
+            (
+                measurement_table,
+                measurement_type,
+                measurement_sequence_type,
+                measurement_register,
+                measurement_sequence_register,
+                measurement_sigma_register,
+            )
+            if measurement_register is not None
+            else None
+        )
         self.can_read_measurement = self.measurement is not None  # type: ignore[misc]
         self.measurement_scale = measurement_scale
         # extra channels: name -> {register, type (int16...), table (input/holding), scale}
@@ -234,7 +300,9 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
             spec = dict(spec)
             bad = set(spec) - {"register", "type", "table", "scale"}
             if bad or "register" not in spec:
-                raise AdapterError(f"modbus input {name}: give register [type, table, scale], not {sorted(bad)}")
+                raise AdapterError(
+                    f"modbus input {name}: give register [type, table, scale], not {sorted(bad)}"
+                )
             spec.setdefault("type", "int16")
             spec.setdefault("table", "input")
             spec.setdefault("scale", 1.0)
@@ -254,14 +322,21 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         return serial_options(url)
 
     def _read_speed_raw(self) -> float:
-        return self._read_value("read speed", self.speed_table, self.speed_register, self.speed_type)
+        return self._read_value(
+            "read speed", self.speed_table, self.speed_register, self.speed_type
+        )
 
     def input_channels(self) -> tuple[str, ...]:
         return tuple(self.input_registers)
 
     def _read_inputs_raw(self) -> dict[str, float]:
-        return {name: self._read_value(f"read {name}", spec["table"], int(spec["register"]), spec["type"])
-                * float(spec["scale"]) for name, spec in self.input_registers.items()}
+        return {
+            name: self._read_value(
+                f"read {name}", spec["table"], int(spec["register"]), spec["type"]
+            )
+            * float(spec["scale"])
+            for name, spec in self.input_registers.items()
+        }
 
     def _read_offset_raw(self) -> float:
         return self._read_value("read offset", "holding", self.offset_register, self.offset_type)
@@ -270,9 +345,13 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         table, dtype, seq_type, value, seq, sigma = self.measurement  # type: ignore[misc]
         # one request each: the counter is read twice, around the value
         return read_handshake(
-            self.name, lambda: self._read_value("read measurement sequence", table, seq, seq_type),
+            self.name,
+            lambda: self._read_value("read measurement sequence", table, seq, seq_type),
             lambda: self._read_value("read measurement", table, value, dtype),
-            None if sigma is None else lambda: self._read_value("read measurement sigma", table, sigma, dtype))
+            None
+            if sigma is None
+            else lambda: self._read_value("read measurement sigma", table, sigma, dtype),
+        )
 
     def _read_cutting_raw(self) -> int:
         table, register, dtype = self.cutting  # type: ignore[misc]

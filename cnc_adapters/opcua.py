@@ -83,9 +83,16 @@ PRESETS: dict[str, dict[str, Any]] = {
         "namespace_uri": "urn:thermocomp:virtual-cnc",
         "speed_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
         "offset_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
-        "input_nodes": {k: f"ns={{ns}};s=/CncInterface/CncSpindleList/Spindle1/Sensors/{v}" for k, v in (
-            ("bearing_temp_c", "BearingTemp"), ("motor_temp_c", "MotorTemp"), ("coolant_temp_c", "CoolantTemp"),
-            ("ambient_c", "AmbientTemp"), ("spindle_load_pct", "Load"))},
+        "input_nodes": {
+            k: f"ns={{ns}};s=/CncInterface/CncSpindleList/Spindle1/Sensors/{v}"
+            for k, v in (
+                ("bearing_temp_c", "BearingTemp"),
+                ("motor_temp_c", "MotorTemp"),
+                ("coolant_temp_c", "CoolantTemp"),
+                ("ambient_c", "AmbientTemp"),
+                ("spindle_load_pct", "Load"),
+            )
+        },
         # its simulated tool setter
         "measurement_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Measurement",
         "measurement_sequence_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
@@ -118,17 +125,22 @@ CREDENTIALS_ENV = "CREDENTIALS_DIRECTORY"
 
 def url_password_refusal(password_env: str = "THERMOCOMP_OPCUA_PASSWORD") -> str:
     """Why a URL with a password is refused, and where the password goes instead."""
-    return ("the URL carries a password: refused (it would end up in logs); put it in "
-            f"password_file, in a systemd credential (password_credential = \"<name>\" with "
-            f"LoadCredential=<name>:<file> in the unit) or in the environment variable {password_env}")
+    return (
+        "the URL carries a password: refused (it would end up in logs); put it in "
+        f'password_file, in a systemd credential (password_credential = "<name>" with '
+        f"LoadCredential=<name>:<file> in the unit) or in the environment variable {password_env}"
+    )
 
 
 def quiet_asyncua_debug() -> None:
     """Hold asyncua's loggers at INFO: at DEBUG they repeat every request verbatim, the
     ActivateSession with the user's password in it included."""
     tree = [logging.getLogger("asyncua")]
-    tree += [lg for name, lg in logging.root.manager.loggerDict.items()
-             if name.startswith("asyncua.") and isinstance(lg, logging.Logger)]
+    tree += [
+        lg
+        for name, lg in logging.root.manager.loggerDict.items()
+        if name.startswith("asyncua.") and isinstance(lg, logging.Logger)
+    ]
     quieted = False
     for lg in tree:
         if lg.getEffectiveLevel() < logging.INFO:
@@ -156,10 +168,16 @@ def _security(v: str) -> str:
 
 
 OpcUrl = Annotated[str, AfterValidator(_opc_url), Allowed("an opc.tcp://host:port URL")]
-Security = Annotated[str, AfterValidator(_security),
-                     Allowed("None, Basic256Sha256,Sign or Basic256Sha256,SignAndEncrypt")]
-EnvName = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$"),
-                    Allowed("an environment variable name (letters, digits, '_')")]
+Security = Annotated[
+    str,
+    AfterValidator(_security),
+    Allowed("None, Basic256Sha256,Sign or Basic256Sha256,SignAndEncrypt"),
+]
+EnvName = Annotated[
+    str,
+    Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$"),
+    Allowed("an environment variable name (letters, digits, '_')"),
+]
 
 
 def _credential(v: str) -> str:
@@ -168,10 +186,12 @@ def _credential(v: str) -> str:
     return v
 
 
-CredentialName = Annotated[str, AfterValidator(_credential),
-                           Allowed("a systemd credential name (a file name: no '/')")]
-VerifyWrites = Annotated[bool | Literal["immediate", "deferred"],
-                         Allowed("true, false, 'immediate' or 'deferred'")]
+CredentialName = Annotated[
+    str, AfterValidator(_credential), Allowed("a systemd credential name (a file name: no '/')")
+]
+VerifyWrites = Annotated[
+    bool | Literal["immediate", "deferred"], Allowed("true, false, 'immediate' or 'deferred'")
+]
 Preset = one_of(*PRESETS)
 ReadMode = one_of("poll", "subscribe")
 
@@ -192,16 +212,21 @@ class OpcUaLinkSettings(BaseModel):
     password_env: EnvName = "THERMOCOMP_OPCUA_PASSWORD"
     password_file: str | None = Field(None, description="a file holding the password")
     password_credential: CredentialName | None = Field(
-        None, description="a systemd credential holding the password: $CREDENTIALS_DIRECTORY/<name>")
+        None, description="a systemd credential holding the password: $CREDENTIALS_DIRECTORY/<name>"
+    )
     application_uri: Text = "urn:thermocomp:client"
 
     @model_validator(mode="after")
     def _session(self) -> OpcUaLinkSettings:
         if url_has_password(self.url):
             raise ValueError(url_password_refusal(self.password_env))
-        if self.security != "None" and not (self.certificate and self.private_key and self.trust_dir):
-            raise ValueError("a secure link (security other than None) needs certificate, "
-                             "private_key and trust_dir")
+        if self.security != "None" and not (
+            self.certificate and self.private_key and self.trust_dir
+        ):
+            raise ValueError(
+                "a secure link (security other than None) needs certificate, "
+                "private_key and trust_dir"
+            )
         if self.password_file and self.password_credential:
             raise ValueError("give password_file or password_credential, not both")
         return self
@@ -220,36 +245,53 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
     verify_writes: VerifyWrites = True
     read_mode: ReadMode = "poll"
     publish_interval_ms: Positive = 50.0
-    input_nodes: dict[str, str] | None = Field(None, description="extra channels: name = node "
-                                               "id or browse path")
+    input_nodes: dict[str, str] | None = Field(
+        None, description="extra channels: name = node id or browse path"
+    )
     measurement_node: str | None = Field(
-        None, description="closed loop: the tool length the probe cycle measured (node id or browse "
-        "path), in the offset's unit, positive when the tool grew toward the workpiece")
+        None,
+        description="closed loop: the tool length the probe cycle measured (node id or browse "
+        "path), in the offset's unit, positive when the tool grew toward the workpiece",
+    )
     measurement_sequence_node: str | None = Field(
-        None, description="the counter the probe cycle changes after writing measurement_node")
+        None, description="the counter the probe cycle changes after writing measurement_node"
+    )
     measurement_sigma_node: str | None = Field(
-        None, description="optional: the measurement's sigma, in the measurement's unit")
+        None, description="optional: the measurement's sigma, in the measurement's unit"
+    )
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="controller unit per um of the measurement; default the offset's "
-        "(1 for a probe cycle that hands over um while the offset is in mm)")
+        None,
+        description="controller unit per um of the measurement; default the offset's "
+        "(1 for a probe cycle that hands over um while the offset is in mm)",
+    )
     cutting_node: str | None = Field(
-        None, description="the controller's cutting signal (node id or browse path): a boolean or "
-        "an enumeration; '' for none, where a preset names one")
+        None,
+        description="the controller's cutting signal (node id or browse path): a boolean or "
+        "an enumeration; '' for none, where a preset names one",
+    )
     cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        [True], description="the values of cutting_node that mean cutting")
+        [True], description="the values of cutting_node that mean cutting"
+    )
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:
         p = PRESETS[self.preset]
         speed = self.speed_node or self.speed_path or p.get("speed_node") or p.get("speed_path")
-        offset = self.offset_node or self.offset_path or p.get("offset_node") or p.get("offset_path")
+        offset = (
+            self.offset_node or self.offset_path or p.get("offset_node") or p.get("offset_path")
+        )
         if not (speed and offset):
-            raise ValueError(f"preset {self.preset!r} needs the speed and offset nodes: give "
-                             "speed_node or speed_path and offset_node or offset_path")
+            raise ValueError(
+                f"preset {self.preset!r} needs the speed and offset nodes: give "
+                "speed_node or speed_path and offset_node or offset_path"
+            )
         if bool(self.measurement_node) != bool(self.measurement_sequence_node) or (
-                self.measurement_sigma_node and not self.measurement_node):
-            raise ValueError("a measurement needs both measurement_node and measurement_sequence_node "
-                             "(the handshake), measurement_sigma_node only with them")
+            self.measurement_sigma_node and not self.measurement_node
+        ):
+            raise ValueError(
+                "a measurement needs both measurement_node and measurement_sequence_node "
+                "(the handshake), measurement_sigma_node only with them"
+            )
         return self
 
 
@@ -260,10 +302,22 @@ class OpcUaLink:
 
     name: str
 
-    def _init_opcua(self, url: str, *, namespace_uri: str | None, timeout_s: float, security: str,
-                    certificate: str | None, private_key: str | None, trust_dir: str | None,
-                    username_env: str, password_env: str, password_file: str | None,
-                    application_uri: str, password_credential: str | None = None) -> None:
+    def _init_opcua(
+        self,
+        url: str,
+        *,
+        namespace_uri: str | None,
+        timeout_s: float,
+        security: str,
+        certificate: str | None,
+        private_key: str | None,
+        trust_dir: str | None,
+        username_env: str,
+        password_env: str,
+        password_file: str | None,
+        application_uri: str,
+        password_credential: str | None = None,
+    ) -> None:
         if url_has_password(url):
             raise AdapterError(f"opcua: {url_password_refusal(password_env)}")
         if password_file and password_credential:
@@ -276,10 +330,14 @@ class OpcUaLink:
         if security != "None":
             policy, _, mode = security.partition(",")
             if policy != "Basic256Sha256" or mode not in ("Sign", "SignAndEncrypt"):
-                raise AdapterError(f"opcua: security {security!r}: use None, Basic256Sha256,Sign "
-                                   "or Basic256Sha256,SignAndEncrypt")
+                raise AdapterError(
+                    f"opcua: security {security!r}: use None, Basic256Sha256,Sign "
+                    "or Basic256Sha256,SignAndEncrypt"
+                )
             if not (certificate and private_key and trust_dir):
-                raise AdapterError("opcua: a secure link needs certificate, private_key and trust_dir")
+                raise AdapterError(
+                    "opcua: a secure link needs certificate, private_key and trust_dir"
+                )
         self.certificate = certificate
         self.private_key = private_key
         self.trust_dir = trust_dir
@@ -290,7 +348,9 @@ class OpcUaLink:
         self.application_uri = application_uri
         self._client = None
 
-    def _call(self, what: str, fn, *args, node: Any = None, refused: type[AdapterError] = AdapterError):
+    def _call(
+        self, what: str, fn, *args, node: Any = None, refused: type[AdapterError] = AdapterError
+    ):
         """Run one client call; map its failures onto the adapter exception tree, each message
         naming the operation, the node(s) (``node``: a node, a list of them, or the reference
         as configured) and the server: ``opcua read speed node ns=2;s=Speed at opc.tcp://...:
@@ -332,9 +392,12 @@ class OpcUaLink:
                 raise AdapterError(
                     f"opcua: password_credential {self.password_credential!r}: ${CREDENTIALS_ENV} "
                     f"is not set; systemd sets it for a unit with LoadCredential="
-                    f"{self.password_credential}:<file>")
-            path, what = Path(directory) / self.password_credential, \
-                f"credential {self.password_credential!r} in ${CREDENTIALS_ENV}"
+                    f"{self.password_credential}:<file>"
+                )
+            path, what = (
+                Path(directory) / self.password_credential,
+                f"credential {self.password_credential!r} in ${CREDENTIALS_ENV}",
+            )
         elif self.password_file:
             path, what = Path(self.password_file), "password_file"
         else:
@@ -358,8 +421,11 @@ class OpcUaLink:
         for f in sorted(directory.iterdir()):
             data = f.read_bytes()
             try:
-                cert = (x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data
-                        else x509.load_der_x509_certificate(data))
+                cert = (
+                    x509.load_pem_x509_certificate(data)
+                    if b"-----BEGIN" in data
+                    else x509.load_der_x509_certificate(data)
+                )
             except ValueError:
                 continue
             prints.add(hashlib.sha256(cert.public_bytes(Encoding.DER)).hexdigest())
@@ -381,10 +447,21 @@ class OpcUaLink:
 
         client.aio_obj.certificate_validator = validate
         client.aio_obj.application_uri = self.application_uri
-        mode = (ua.MessageSecurityMode.Sign if self.security.endswith(",Sign")
-                else ua.MessageSecurityMode.SignAndEncrypt)
-        self._call("security", client.set_security, SecurityPolicyBasic256Sha256,
-                   self.certificate, self.private_key, None, None, mode)
+        mode = (
+            ua.MessageSecurityMode.Sign
+            if self.security.endswith(",Sign")
+            else ua.MessageSecurityMode.SignAndEncrypt
+        )
+        self._call(
+            "security",
+            client.set_security,
+            SecurityPolicyBasic256Sha256,
+            self.certificate,
+            self.private_key,
+            None,
+            None,
+            mode,
+        )
 
     def _connect(self) -> None:
         from asyncua import ua
@@ -392,7 +469,9 @@ class OpcUaLink:
 
         # every request waits timeout_s at most (connecting: one per step, and a hung server
         # stalls only one); the wrapper's own limit is a backstop, not the normal way out
-        client = Client(self.url, timeout=self.timeout_s, sync_wrapper_timeout=3 * self.timeout_s + 1)
+        client = Client(
+            self.url, timeout=self.timeout_s, sync_wrapper_timeout=3 * self.timeout_s + 1
+        )
         try:
             user, password = self._credentials()
             if user:
@@ -415,8 +494,14 @@ class OpcUaLink:
         try:
             ns = ""
             if self.namespace_uri:
-                ns = str(self._call("namespace lookup", client.get_namespace_index, self.namespace_uri,
-                                    node=self.namespace_uri))
+                ns = str(
+                    self._call(
+                        "namespace lookup",
+                        client.get_namespace_index,
+                        self.namespace_uri,
+                        node=self.namespace_uri,
+                    )
+                )
             self._on_connected(client, ns)
         except (AdapterError, ValueError) as err:
             self._abort()
@@ -482,8 +567,10 @@ class OpcUaLink:
         except AdapterError:
             raise
         except Exception as err:  # noqa: BLE001 - asyncua's parse errors are RuntimeErrors
-            raise AdapterError(f"{self._where('resolve ' + what, ref)}: no node id or browse path "
-                               f"({type(err).__name__})") from err
+            raise AdapterError(
+                f"{self._where('resolve ' + what, ref)}: no node id or browse path "
+                f"({type(err).__name__})"
+            ) from err
 
 
 class OpcUaAdapter(OpcUaLink, Adapter):
@@ -532,11 +619,20 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             if key in p and key not in scaling:
                 scaling[key] = p[key]
         super().__init__(**scaling)
-        self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
-                         security=security, certificate=certificate, private_key=private_key,
-                         trust_dir=trust_dir, username_env=username_env, password_env=password_env,
-                         password_file=password_file, application_uri=application_uri,
-                         password_credential=password_credential)
+        self._init_opcua(
+            url,
+            namespace_uri=namespace_uri or p.get("namespace_uri"),
+            timeout_s=timeout_s,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            trust_dir=trust_dir,
+            username_env=username_env,
+            password_env=password_env,
+            password_file=password_file,
+            application_uri=application_uri,
+            password_credential=password_credential,
+        )
         self.speed_node = speed_node or (None if speed_path else p.get("speed_node"))
         self.offset_node = offset_node or (None if offset_path else p.get("offset_node"))
         self.speed_path = None if self.speed_node else (speed_path or p.get("speed_path"))
@@ -544,8 +640,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self.speed_path:
             self.speed_path = self.speed_path.replace("{spindle}", spindle)
         if not (self.speed_node or self.speed_path) or not (self.offset_node or self.offset_path):
-            raise AdapterError("OPC UA adapter needs the speed and offset nodes (node id or browse "
-                               "path), or a preset that names them")
+            raise AdapterError(
+                "OPC UA adapter needs the speed and offset nodes (node id or browse "
+                "path), or a preset that names them"
+            )
         if self.offset_node:
             self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
         # True/"immediate": read the offset back after each write (one more round trip);
@@ -561,7 +659,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.publish_interval_ms = publish_interval_ms
         self._latest: _Latest | None = None
         # extra channels (temperatures, load) by name: node ids ({ns} allowed) or browse paths
-        self.input_nodes = dict(input_nodes if input_nodes is not None else p.get("input_nodes", {}))
+        self.input_nodes = dict(
+            input_nodes if input_nodes is not None else p.get("input_nodes", {})
+        )
         self._inputs: dict[str, Any] = {}
         self._speed = None
         self._offset = None
@@ -571,13 +671,23 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             measurement_sequence_node = p.get("measurement_sequence_node")
             measurement_sigma_node = measurement_sigma_node or p.get("measurement_sigma_node")
         if bool(measurement_node) != bool(measurement_sequence_node):
-            raise AdapterError("opcua: a measurement needs both measurement_node and "
-                               "measurement_sequence_node")
-        self.measurement_refs = tuple(r for r in (measurement_sequence_node, measurement_node,
-                                                  measurement_sigma_node) if r) if measurement_node else ()
+            raise AdapterError(
+                "opcua: a measurement needs both measurement_node and measurement_sequence_node"
+            )
+        self.measurement_refs = (
+            tuple(
+                r
+                for r in (measurement_sequence_node, measurement_node, measurement_sigma_node)
+                if r
+            )
+            if measurement_node
+            else ()
+        )
         self.can_read_measurement = bool(self.measurement_refs)
         self.measurement_scale = measurement_scale
-        self._measurement: list[Any] | None = None  # resolved lazily: a bad node never stops the link
+        self._measurement: list[Any] | None = (
+            None  # resolved lazily: a bad node never stops the link
+        )
         # the cutting signal; "" turns a preset's off
         self.cutting_ref = p.get("cutting_node") if cutting_node is None else (cutting_node or None)
         self.can_read_cutting = bool(self.cutting_ref)
@@ -600,16 +710,25 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._speed = self._resolve(client, self.speed_node, self.speed_path, ns)
         self._offset = self._resolve(client, self.offset_node, self.offset_path, ns)
         self._call("read speed node", self._speed.read_value, node=self._speed)
-        self._inputs = {name: self._resolve_ref(client, ref, ns, f"input {name}")
-                        for name, ref in self.input_nodes.items()}
+        self._inputs = {
+            name: self._resolve_ref(client, ref, ns, f"input {name}")
+            for name, ref in self.input_nodes.items()
+        }
         if self._inputs:
-            self._call("read input nodes", client.read_values, list(self._inputs.values()),
-                       node=list(self._inputs.values()))
+            self._call(
+                "read input nodes",
+                client.read_values,
+                list(self._inputs.values()),
+                node=list(self._inputs.values()),
+            )
         if self.read_mode == "subscribe":
             self._latest = _Latest(self._where("speed subscription", self._speed))
-            sub = self._call("subscribe", client.create_subscription, self.publish_interval_ms,
-                             self._latest)
-            self._call("subscribe to speed node", sub.subscribe_data_change, self._speed, node=self._speed)
+            sub = self._call(
+                "subscribe", client.create_subscription, self.publish_interval_ms, self._latest
+            )
+            self._call(
+                "subscribe to speed node", sub.subscribe_data_change, self._speed, node=self._speed
+            )
 
     def _riders(self) -> dict[str, list[Any]]:
         """The nodes this cycle's other reads will ask for, once known (resolved): read with the speed."""
@@ -631,10 +750,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         dvs = self._call(what, self._client.read_attributes, nodes, node=node)
         k = len(head)
         for name, group in riders.items():
-            self._ridden[name] = dvs[k:k + len(group)]
+            self._ridden[name] = dvs[k : k + len(group)]
             k += len(group)
         if checked:
-            return self._read_checked(what, head, dvs[:len(head)])
+            return self._read_checked(what, head, dvs[: len(head)])
         try:
             dvs[0].StatusCode.check()
         except ua.UaStatusCodeError as err:
@@ -654,29 +773,43 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             if isinstance(value, BaseException):
                 raise self._link_lost(f"{self._where('speed subscription', self._speed)}: {value}")
             if value is None:
-                raise self._link_lost(f"{self._where('speed subscription', self._speed)}: no "
-                                      f"notification within {self.timeout_s:g} s", AdapterTimeoutError)
+                raise self._link_lost(
+                    f"{self._where('speed subscription', self._speed)}: no "
+                    f"notification within {self.timeout_s:g} s",
+                    AdapterTimeoutError,
+                )
         elif self._unverified is not None:
             nodes = [self._speed, self._offset, *self._with_speed()]
-            value, held, *cut = self._with_riders("read speed and offset nodes", nodes, nodes, checked=True)
+            value, held, *cut = self._with_riders(
+                "read speed and offset nodes", nodes, nodes, checked=True
+            )
             self._cutting_raw = (cut[0],) if cut else None
             wrote, self._unverified = self._unverified, None
             if isinstance(held, BadValueError):  # not known: checked again by the next read-back
                 log.warning("opcua: deferred write check: %s", held)
-            elif not (isinstance(held, (int, float)) and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)):
+            elif not (
+                isinstance(held, (int, float))
+                and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)
+            ):
                 self._mismatch = held
                 log.warning("opcua: wrote %r, controller holds %r", wrote, held)
         elif self._cutting is not None:
             nodes = [self._speed, self._cutting]
-            value, cut = self._with_riders("read speed and cutting nodes", nodes, nodes, checked=True)
+            value, cut = self._with_riders(
+                "read speed and cutting nodes", nodes, nodes, checked=True
+            )
             self._cutting_raw = (cut,)
         else:
-            (value,) = self._with_riders("read speed node", [self._speed], self._speed, checked=False)
+            (value,) = self._with_riders(
+                "read speed node", [self._speed], self._speed, checked=False
+            )
         if isinstance(value, BadValueError):
             raise value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise BadValueError(f"{self._where('read speed node', self._speed)}: holds "
-                                f"{type(value).__name__}, not a number")
+            raise BadValueError(
+                f"{self._where('read speed node', self._speed)}: holds "
+                f"{type(value).__name__}, not a number"
+            )
         return value
 
     def _read_checked(self, what: str, nodes: list[Any], dvs: list[Any] | None = None) -> list[Any]:
@@ -702,10 +835,16 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         assert ref is not None
         if self._cutting_node is None:
             self._cutting_node = self._resolve_ref(self._client, ref, self._ns, "cutting node")
-        (dv,) = self._call("read cutting node", self._client.read_attributes, [self._cutting_node],
-                           node=self._cutting_node)
+        (dv,) = self._call(
+            "read cutting node",
+            self._client.read_attributes,
+            [self._cutting_node],
+            node=self._cutting_node,
+        )
         if not dv.StatusCode.is_good():
-            raise AdapterError(f"{self._where('read cutting node', self._cutting_node)}: {dv.StatusCode.name}")
+            raise AdapterError(
+                f"{self._where('read cutting node', self._cutting_node)}: {dv.StatusCode.name}"
+            )
         if self._latest is None:
             self._cutting = self._cutting_node  # good: read in the speed's request from now on
         return None if dv.Value is None else dv.Value.Value
@@ -715,9 +854,13 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
     def _read_inputs_raw(self) -> dict[str, Any]:
         # an input whose status is not Good is missing, as one that holds no number
-        values = self._read_checked("read input nodes", list(self._inputs.values()), self._ride("inputs"))
-        return {name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
-                for name, v in zip(self._inputs, values)}
+        values = self._read_checked(
+            "read input nodes", list(self._inputs.values()), self._ride("inputs")
+        )
+        return {
+            name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
+            for name, v in zip(self._inputs, values)
+        }
 
     def _read_offset_raw(self) -> Any:
         (held,) = self._read_checked("read offset node", [self._offset], self._ride("offset"))
@@ -730,39 +873,60 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         cycle writes the value before it changes the counter, so a new counter never comes with
         an old value."""
         if self._measurement is None:
-            self._measurement = [self._resolve_ref(self._client, ref, self._ns, "measurement node")
-                                 for ref in self.measurement_refs]
+            self._measurement = [
+                self._resolve_ref(self._client, ref, self._ns, "measurement node")
+                for ref in self.measurement_refs
+            ]
         dvs = self._ride("measurement")
         if dvs is None:
-            dvs = self._call("read measurement nodes", self._client.read_attributes, self._measurement,
-                             node=self._measurement)
+            dvs = self._call(
+                "read measurement nodes",
+                self._client.read_attributes,
+                self._measurement,
+                node=self._measurement,
+            )
         for node, dv in zip(self._measurement, dvs):
             if not dv.StatusCode.is_good():
-                raise AdapterError(f"{self._where('read measurement node', node)}: {dv.StatusCode.name}")
+                raise AdapterError(
+                    f"{self._where('read measurement node', node)}: {dv.StatusCode.name}"
+                )
         seq, value, *sigma = (None if dv.Value is None else dv.Value.Value for dv in dvs)
         return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
 
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua
 
-        self._ridden.pop("offset", None)  # read before this write: not what the controller holds now
+        self._ridden.pop(
+            "offset", None
+        )  # read before this write: not what the controller holds now
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
         try:
-            self._call("write offset node", self._offset.write_value, dv, node=self._offset,
-                       refused=WriteRejectedError)
+            self._call(
+                "write offset node",
+                self._offset.write_value,
+                dv,
+                node=self._offset,
+                refused=WriteRejectedError,
+            )
         except WriteRejectedError as err:
             if "AccessDenied" not in str(err):
                 raise
             raise WriteRejectedError(
                 f"{err}: the server's user may not write {self.offset_node or self.offset_path}; on a SINUMERIK, setting "
-                "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)") from err
+                "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)"
+            ) from err
         if self.verify_writes == "deferred" and self._latest is None:
             self._unverified = value
         elif self.verify_writes:
             back = self._call("read back offset node", self._offset.read_value, node=self._offset)
-            if not (isinstance(back, (int, float)) and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)):
-                raise WriteRejectedError(f"{self._where('write offset node', self._offset)}: wrote "
-                                         f"{value!r}, controller holds {back!r}")
+            if not (
+                isinstance(back, (int, float))
+                and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)
+            ):
+                raise WriteRejectedError(
+                    f"{self._where('write offset node', self._offset)}: wrote "
+                    f"{value!r}, controller holds {back!r}"
+                )
 
     def _take_mismatch_raw(self) -> Any:
         """What the controller holds, if a deferred check found that it did not take the last

@@ -80,8 +80,17 @@ SCHEME_PROTOCOL = {"s7": "s7", "modbustcp": "modbus-tcp", "ads": "ads"}
 # -- data types ---------------------------------------------------------------------------
 
 TYPES = ("REAL", "LREAL", "DINT", "INT", "BOOL")
-_ALIASES = {"REAL32": "REAL", "FLOAT32": "REAL", "FLOAT": "REAL", "LREAL": "LREAL",
-            "REAL64": "LREAL", "FLOAT64": "LREAL", "INT32": "DINT", "INT16": "INT", "BIT": "BOOL"}
+_ALIASES = {
+    "REAL32": "REAL",
+    "FLOAT32": "REAL",
+    "FLOAT": "REAL",
+    "LREAL": "LREAL",
+    "REAL64": "LREAL",
+    "FLOAT64": "LREAL",
+    "INT32": "DINT",
+    "INT16": "INT",
+    "BIT": "BOOL",
+}
 INT_RANGE = {"INT": (-(2**15), 2**15 - 1), "DINT": (-(2**31), 2**31 - 1)}
 REAL_MAX = 3.4028234663852886e38  # the largest finite IEEE 754 single
 _TYPE_TEXT = "one of REAL (real32), LREAL, DINT (int32), INT (int16), BOOL (bit)"
@@ -112,11 +121,15 @@ def encode_number(name: str, value: float, dtype: str) -> float | int | bool:
         lo, hi = INT_RANGE[dtype]
         whole = round(value)
         if not lo <= whole <= hi:
-            raise BadValueError(f"{name}: {value:g} rounds to {whole}, outside {dtype} "
-                                f"({lo}..{hi}); nothing written")
+            raise BadValueError(
+                f"{name}: {value:g} rounds to {whole}, outside {dtype} "
+                f"({lo}..{hi}); nothing written"
+            )
         return whole
     if dtype == "REAL" and abs(value) > REAL_MAX:
-        raise BadValueError(f"{name}: {value:g} does not fit a REAL (32-bit float); nothing written")
+        raise BadValueError(
+            f"{name}: {value:g} does not fit a REAL (32-bit float); nothing written"
+        )
     if dtype == "BOOL":
         raise BadValueError(f"{name}: a number cannot go into a BOOL")
     return float(value)
@@ -154,16 +167,22 @@ class Address:
 
 
 _S7_RE = re.compile(r"DB(\d{1,5})\.DB([XWD])(\d{1,5})(?:\.(\d+))?", re.IGNORECASE)
-S7_SYNTAX = ("an S7 address DB<n>.DBD<byte> (REAL or DINT), DB<n>.DBW<byte> (INT) or "
-             "DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0")
+S7_SYNTAX = (
+    "an S7 address DB<n>.DBD<byte> (REAL or DINT), DB<n>.DBW<byte> (INT) or "
+    "DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0"
+)
 _MODBUS_RE = re.compile(r"(?:(hr|ir|coil|di):)?(\d{1,5})", re.IGNORECASE)
-MODBUS_SYNTAX = ("a Modbus address hr:<n> (or <n>: a holding register), ir:<n> (input register), "
-                 "coil:<n> or di:<n> (discrete input), n 0..65535, e.g. hr:0")
+MODBUS_SYNTAX = (
+    "a Modbus address hr:<n> (or <n>: a holding register), ir:<n> (input register), "
+    "coil:<n> or di:<n> (discrete input), n 0..65535, e.g. hr:0"
+)
 _IDENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+(?:,\d+)*\])*"
 _ADS_RE = re.compile(rf"\.?{_IDENT}(?:\.{_IDENT})*")
 _ADS_INDEX_RE = re.compile(r"(0x[0-9a-f]{1,8}|\d{1,10}):(0x[0-9a-f]{1,8}|\d{1,10})", re.IGNORECASE)
-ADS_SYNTAX = ("an ADS symbol name such as GVL_Thermo.nTempComp or MAIN.fSpeed[1], or "
-              "<index group>:<index offset> such as 0x4020:0x10")
+ADS_SYNTAX = (
+    "an ADS symbol name such as GVL_Thermo.nTempComp or MAIN.fSpeed[1], or "
+    "<index group>:<index offset> such as 0x4020:0x10"
+)
 SYNTAX = {"s7": S7_SYNTAX, "modbus-tcp": MODBUS_SYNTAX, "ads": ADS_SYNTAX}
 
 # what each role may hold: the offset, its read-back and the speed are numbers
@@ -182,20 +201,34 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
     if protocol == "s7":
         m = _S7_RE.fullmatch(addr)
         width = m.group(2).upper() if m else ""
-        bad = (m is None or not 1 <= int(m.group(1)) <= 65535 or int(m.group(3)) > 65535
-               or (width == "X") != (m.group(4) is not None)
-               or (m.group(4) is not None and int(m.group(4)) > 7))
+        bad = (
+            m is None
+            or not 1 <= int(m.group(1)) <= 65535
+            or int(m.group(3)) > 65535
+            or (width == "X") != (m.group(4) is not None)
+            or (m.group(4) is not None and int(m.group(4)) > 7)
+        )
         if bad:
             raise ValueError(f"{key} = {short(text)}: expected {S7_SYNTAX}")
         own = {"D": ("REAL", "DINT"), "W": ("INT",), "X": ("BOOL",)}[width]
         if width == "X" and role != "cutting":
-            raise ValueError(f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (a DBD or a DBW)")
+            raise ValueError(
+                f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (a DBD or a DBW)"
+            )
         dtype = dtype or own[0]
         if dtype not in own:
-            raise ValueError(f"{role}_type {dtype} does not fit {key} {addr} (a DB{width} holds "
-                             f"{' or '.join(own)})")
-        found = Address(addr.upper(), dtype, "DB", int(m.group(1)), int(m.group(3)),
-                        None if m.group(4) is None else int(m.group(4)))
+            raise ValueError(
+                f"{role}_type {dtype} does not fit {key} {addr} (a DB{width} holds "
+                f"{' or '.join(own)})"
+            )
+        found = Address(
+            addr.upper(),
+            dtype,
+            "DB",
+            int(m.group(1)),
+            int(m.group(3)),
+            None if m.group(4) is None else int(m.group(4)),
+        )
     elif protocol == "modbus-tcp":
         m = _MODBUS_RE.fullmatch(addr)
         if m is None or int(m.group(2)) > 65535:
@@ -203,18 +236,23 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
         area = (m.group(1) or "hr").lower()
         bits = area in ("coil", "di")
         if bits and role != "cutting":
-            raise ValueError(f"{key} {addr} is a bit; the {_NOUN[role]} needs a number "
-                             "(hr:<n> or ir:<n>)")
+            raise ValueError(
+                f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (hr:<n> or ir:<n>)"
+            )
         dtype = dtype or ("BOOL" if bits else "INT" if role == "cutting" else "REAL")
         if bits != (dtype == "BOOL") or dtype == "LREAL":
             allowed = "BOOL" if bits else "REAL (real32), DINT (int32) or INT (int16)"
-            raise ValueError(f"{role}_type {dtype} does not fit {key} {addr} (a {area} holds {allowed})")
+            raise ValueError(
+                f"{role}_type {dtype} does not fit {key} {addr} (a {area} holds {allowed})"
+            )
         found = Address(f"{area}:{int(m.group(2))}", dtype, area, start=int(m.group(2)))
         if found.start + found.registers > 65536:
             raise ValueError(f"{key} {addr}: a {dtype} runs past register 65535")
         if role == "offset" and area != "hr":
-            raise ValueError(f"{key} = {short(text)}: expected a holding register (hr:<n>), the one "
-                             "table a client writes")
+            raise ValueError(
+                f"{key} = {short(text)}: expected a holding register (hr:<n>), the one "
+                "table a client writes"
+            )
     else:
         index = _ADS_INDEX_RE.fullmatch(addr)
         if index is None and _ADS_RE.fullmatch(addr) is None:
@@ -228,9 +266,13 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
         else:
             found = Address(addr, dtype, "symbol", symbol=addr)
     if role != "cutting" and found.dtype not in _NUMBERS:
-        raise ValueError(f"{role}_type = {found.dtype!r}: expected a number type (REAL, LREAL, DINT, INT)")
+        raise ValueError(
+            f"{role}_type = {found.dtype!r}: expected a number type (REAL, LREAL, DINT, INT)"
+        )
     if role == "cutting" and found.dtype in ("REAL", "LREAL"):
-        raise ValueError(f"cutting_type = {found.dtype!r}: expected BOOL or an integer type (a state)")
+        raise ValueError(
+            f"cutting_type = {found.dtype!r}: expected BOOL or an integer type (a state)"
+        )
     return found
 
 
@@ -244,65 +286,101 @@ def _net_id(v: str) -> str:
     return v
 
 
-NetId = Annotated[str, AfterValidator(_net_id),
-                  Allowed("an AMS Net ID: six numbers 0..255 joined by dots, e.g. 5.12.34.56.1.1")]
+NetId = Annotated[
+    str,
+    AfterValidator(_net_id),
+    Allowed("an AMS Net ID: six numbers 0..255 joined by dots, e.g. 5.12.34.56.1.1"),
+]
 Port = Annotated[int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535")]
 Order = one_of("big", "little")
 Protocol = one_of(*PROTOCOLS)
 
 # options of one protocol only: given for another, they are a mistake
-_OWN = {"s7": ("rack", "slot"), "modbus-tcp": ("device_id", "word_order", "byte_order"),
-        "ads": ("ams_net_id", "ams_port", "local_ams_net_id")}
+_OWN = {
+    "s7": ("rack", "slot"),
+    "modbus-tcp": ("device_id", "word_order", "byte_order"),
+    "ads": ("ams_net_id", "ams_port", "local_ams_net_id"),
+}
 
 
 class PlcSettings(AdapterSettings):
     """The options of :class:`PlcAdapter`."""
 
-    protocol: Protocol = Field(description="s7 (python-snap7), modbus-tcp (pymodbus) or ads (pyads)")
+    protocol: Protocol = Field(
+        description="s7 (python-snap7), modbus-tcp (pymodbus) or ads (pyads)"
+    )
     host: Text = Field(description="the PLC's address (IP or name)")
     port: Port = Field(  # type: ignore[assignment]
-        None, description="TCP port; default 102 (s7), 502 (modbus-tcp), 48898 (ads: the AMS router)")
+        None,
+        description="TCP port; default 102 (s7), 502 (modbus-tcp), 48898 (ads: the AMS router)",
+    )
     timeout_s: Seconds = Field(2.0, description="per request")
     rack: Annotated[int, Field(ge=0, le=7), Allowed("a rack number 0..7")] = Field(
-        0, description="s7: the CPU's rack")
+        0, description="s7: the CPU's rack"
+    )
     slot: Annotated[int, Field(ge=0, le=31), Allowed("a slot number 0..31")] = Field(
-        1, description="s7: the CPU's slot (S7-1200/1500: 1, or 0; S7-300 and SINUMERIK 840D sl: 2)")
+        1, description="s7: the CPU's slot (S7-1200/1500: 1, or 0; S7-300 and SINUMERIK 840D sl: 2)"
+    )
     device_id: Annotated[int, Field(ge=0, le=255), Allowed("a Modbus unit id 0..255")] = Field(
-        1, description="modbus-tcp: the unit id")
+        1, description="modbus-tcp: the unit id"
+    )
     word_order: Order = Field("big", description="modbus-tcp: big: the high word first")
-    byte_order: Order = Field("big", description="modbus-tcp: inside a register; big is the standard")
+    byte_order: Order = Field(
+        "big", description="modbus-tcp: inside a register; big is the standard"
+    )
     ams_net_id: NetId = Field(  # type: ignore[assignment]
-        None, description="ads: the target's AMS Net ID; default the host's IPv4 address + .1.1")
-    ams_port: Port = Field(851, description="ads: the AMS port (851: TwinCAT 3 PLC 1; 801: TwinCAT 2)")
+        None, description="ads: the target's AMS Net ID; default the host's IPv4 address + .1.1"
+    )
+    ams_port: Port = Field(
+        851, description="ads: the AMS port (851: TwinCAT 3 PLC 1; 801: TwinCAT 2)"
+    )
     local_ams_net_id: NetId = Field(  # type: ignore[assignment]
-        None, description="ads: this PC's AMS Net ID, as the target's route knows it (process-wide)")
+        None, description="ads: this PC's AMS Net ID, as the target's route knows it (process-wide)"
+    )
     offset_address: Text = Field(description="where the offset goes")
     offset_type: PlcType = Field(  # type: ignore[assignment]
-        None, description="default: the address's own, or REAL")
+        None, description="default: the address's own, or REAL"
+    )
     speed_address: Text = Field(description="where the actual speed is")
     speed_type: PlcType = Field(  # type: ignore[assignment]
-        None, description="default: the address's own, or REAL")
+        None, description="default: the address's own, or REAL"
+    )
     held_address: Text = Field(  # type: ignore[assignment]
-        None, description="where the PLC reports the value it applies; default: read the offset back")
+        None,
+        description="where the PLC reports the value it applies; default: read the offset back",
+    )
     held_type: PlcType = Field(None, description="default: offset_type")  # type: ignore[assignment]
     cutting_address: Text = Field(  # type: ignore[assignment]
-        None, description="a bit (or state) that says the tool cuts; none: inferred from the speed")
+        None, description="a bit (or state) that says the tool cuts; none: inferred from the speed"
+    )
     cutting_type: PlcType = Field(  # type: ignore[assignment]
-        None, description="default: BOOL (a Modbus register: INT)")
+        None, description="default: BOOL (a Modbus register: INT)"
+    )
     cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        [True], description="the values that mean cutting (a bit: true; false for an inverted one)")
+        [True], description="the values that mean cutting (a bit: true; false for an inverted one)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> PlcSettings:
-        check_plc(self.protocol, self.model_fields_set, self.host, self.ams_net_id,
-                  {r: (getattr(self, f"{r}_address"), getattr(self, f"{r}_type")) for r in ROLES},
-                  ValueError)
+        check_plc(
+            self.protocol,
+            self.model_fields_set,
+            self.host,
+            self.ams_net_id,
+            {r: (getattr(self, f"{r}_address"), getattr(self, f"{r}_type")) for r in ROLES},
+            ValueError,
+        )
         return self
 
 
-def check_plc(protocol: str, given: Any, host: str, ams_net_id: str | None,
-              addresses: dict[str, tuple[str | None, str | None]],
-              error: type[Exception] = ConfigError) -> dict[str, Address]:
+def check_plc(
+    protocol: str,
+    given: Any,
+    host: str,
+    ams_net_id: str | None,
+    addresses: dict[str, tuple[str | None, str | None]],
+    error: type[Exception] = ConfigError,
+) -> dict[str, Address]:
     """Every address parsed for ``protocol`` (the held value's type by default the offset's,
     where the held address can hold it); an option of another protocol among ``given`` and an
     ADS target without an AMS Net ID to derive are refused."""
@@ -329,8 +407,10 @@ def check_plc(protocol: str, given: Any, host: str, ams_net_id: str | None,
         try:
             ipaddress.IPv4Address(host)
         except ValueError:
-            raise error(f"ams_net_id is required: host {short(host)} is no IPv4 address to "
-                        "derive it from (<ip>.1.1)") from None
+            raise error(
+                f"ams_net_id is required: host {short(host)} is no IPv4 address to "
+                "derive it from (<ip>.1.1)"
+            ) from None
     return out
 
 
@@ -365,8 +445,9 @@ class _S7(_Driver):
             client.connect(o.host, o.rack, o.slot, tcp_port=o.port)
         except (S7Error, OSError) as err:
             _quietly(client.disconnect)
-            raise UnreachableError(f"{self.name}: no S7 PLC at {o.host}:{o.port} (rack {o.rack}, "
-                                   f"slot {o.slot}): {err}") from err
+            raise UnreachableError(
+                f"{self.name}: no S7 PLC at {o.host}:{o.port} (rack {o.rack}, slot {o.slot}): {err}"
+            ) from err
         # python-snap7 waits 5 s by default; a request waits timeout_s
         client.connection.timeout = o.timeout_s
         client.connection.socket.settimeout(o.timeout_s)
@@ -382,13 +463,18 @@ class _S7(_Driver):
         from snap7.error import S7ConnectionError, S7Error, S7TimeoutError
 
         # a reply out of step with its request: the stream is no longer trusted (newer releases)
-        out_of_step = tuple(getattr(error, n) for n in ("S7StalePacketError", "S7PacketLostError")
-                            if hasattr(error, n))
+        out_of_step = tuple(
+            getattr(error, n)
+            for n in ("S7StalePacketError", "S7PacketLostError")
+            if hasattr(error, n)
+        )
         try:
             return fn(*args)
         except S7TimeoutError as err:
-            raise self.lost(f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
-                            AdapterTimeoutError) from err
+            raise self.lost(
+                f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
+                AdapterTimeoutError,
+            ) from err
         except (S7ConnectionError, OSError, *out_of_step) as err:
             raise self.lost(f"{self.head(what)}: link lost: {err}") from err
         except S7Error as err:  # the PLC answered with an error: wrong DB, no PUT/GET access
@@ -397,7 +483,9 @@ class _S7(_Driver):
     def read(self, what: str, a: Address) -> Any:
         from snap7.util import get_bool, get_dint, get_int, get_real
 
-        data = self._call(what, self.client.db_read, a.number, a.start, a.size, refused=AdapterError)
+        data = self._call(
+            what, self.client.db_read, a.number, a.start, a.size, refused=AdapterError
+        )
         if len(data) < a.size:
             raise BadValueError(f"{self.head(what)}: {len(data)} bytes, not {a.size}")
         if a.dtype == "BOOL":
@@ -417,9 +505,15 @@ class _ModbusTcp(_Driver):
 
     def connect(self) -> None:
         o = self.owner
-        modbus = ModbusTransport(self.name, lost=o._link_lost, host=o.host, port=o.port,
-                                 device_id=o.device_id, timeout_s=o.timeout_s,
-                                 codec=RegisterCodec(o.word_order, o.byte_order))
+        modbus = ModbusTransport(
+            self.name,
+            lost=o._link_lost,
+            host=o.host,
+            port=o.port,
+            device_id=o.device_id,
+            timeout_s=o.timeout_s,
+            codec=RegisterCodec(o.word_order, o.byte_order),
+        )
         modbus.connect()
         self.modbus = modbus
 
@@ -452,12 +546,18 @@ class _Ads(_Driver):
         try:
             import pyads
         except ImportError as err:  # an optional extra: say which
-            raise AdapterError(f"{self.name}: protocol 'ads' needs pyads (pip install "
-                               f"thermocomp[ads]): {err}") from err
+            raise AdapterError(
+                f"{self.name}: protocol 'ads' needs pyads (pip install thermocomp[ads]): {err}"
+            ) from err
         o = self.owner
         self.pyads = pyads
-        self.types = {"REAL": pyads.PLCTYPE_REAL, "LREAL": pyads.PLCTYPE_LREAL,
-                      "DINT": pyads.PLCTYPE_DINT, "INT": pyads.PLCTYPE_INT, "BOOL": pyads.PLCTYPE_BOOL}
+        self.types = {
+            "REAL": pyads.PLCTYPE_REAL,
+            "LREAL": pyads.PLCTYPE_LREAL,
+            "DINT": pyads.PLCTYPE_DINT,
+            "INT": pyads.PLCTYPE_INT,
+            "BOOL": pyads.PLCTYPE_BOOL,
+        }
         # the AdsLib takes host:port; the plain host reaches the router's own 48898
         where = o.host if o.port == DEFAULT_PORT["ads"] else f"{o.host}:{o.port}"
         self.at = f"{o.ams_net_id}:{o.ams_port} via {where}"
@@ -472,8 +572,9 @@ class _Ads(_Driver):
         except (pyads.ADSError, OSError) as err:
             if conn is not None:
                 _quietly(conn.close)
-            raise UnreachableError(f"{self.name}: no ADS target {o.ams_net_id}:{o.ams_port} at "
-                                   f"{where}: {err}") from err
+            raise UnreachableError(
+                f"{self.name}: no ADS target {o.ams_net_id}:{o.ams_port} at {where}: {err}"
+            ) from err
         self.conn = conn
 
     def close(self) -> None:
@@ -489,8 +590,10 @@ class _Ads(_Driver):
             if code in _ADS_DEVICE:  # the target answered: no such symbol, wrong size, ...
                 raise refused(f"{self.head(what)}: the target refused: {err}") from err
             if code == _ADS_TIMEOUT:
-                raise self.lost(f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
-                                AdapterTimeoutError) from err
+                raise self.lost(
+                    f"{self.head(what)}: no answer within {self.owner.timeout_s:g} s: {err}",
+                    AdapterTimeoutError,
+                ) from err
             raise self.lost(f"{self.head(what)}: link lost: {err}") from err
         except OSError as err:
             raise self.lost(f"{self.head(what)}: link lost: {err}") from err
@@ -504,9 +607,13 @@ class _Ads(_Driver):
     def write(self, what: str, a: Address, value: float) -> None:
         t = self.types[a.dtype]
         if a.area == "index":
-            self._call(what, self.conn.write, a.number, a.start, value, t, refused=WriteRejectedError)
+            self._call(
+                what, self.conn.write, a.number, a.start, value, t, refused=WriteRejectedError
+            )
         else:
-            self._call(what, self.conn.write_by_name, a.symbol, value, t, refused=WriteRejectedError)
+            self._call(
+                what, self.conn.write_by_name, a.symbol, value, t, refused=WriteRejectedError
+            )
 
 
 _DRIVERS = {"s7": _S7, "modbus-tcp": _ModbusTcp, "ads": _Ads}
@@ -558,24 +665,45 @@ class PlcAdapter(Adapter):
     ):
         super().__init__(**scaling)
         if protocol not in PROTOCOLS:
-            raise ConfigError(f"plc adapter: protocol must be one of {', '.join(PROTOCOLS)}, "
-                              f"not {short(protocol)}")
-        given = {k for k, v in (("rack", rack != 0), ("slot", slot != 1), ("device_id", device_id != 1),
-                                ("word_order", word_order != "big"), ("byte_order", byte_order != "big"),
-                                ("ams_net_id", ams_net_id is not None), ("ams_port", ams_port != 851),
-                                ("local_ams_net_id", local_ams_net_id is not None)) if v}
+            raise ConfigError(
+                f"plc adapter: protocol must be one of {', '.join(PROTOCOLS)}, "
+                f"not {short(protocol)}"
+            )
+        given = {
+            k
+            for k, v in (
+                ("rack", rack != 0),
+                ("slot", slot != 1),
+                ("device_id", device_id != 1),
+                ("word_order", word_order != "big"),
+                ("byte_order", byte_order != "big"),
+                ("ams_net_id", ams_net_id is not None),
+                ("ams_port", ams_port != 851),
+                ("local_ams_net_id", local_ams_net_id is not None),
+            )
+            if v
+        }
 
         def typed(t: str | None) -> str | None:
             try:
                 return None if t is None else plc_type(t)
             except ValueError as err:
-                raise ConfigError(f"plc adapter: a data type must be {err}, not {short(t)}") from None
+                raise ConfigError(
+                    f"plc adapter: a data type must be {err}, not {short(t)}"
+                ) from None
 
-        found = check_plc(protocol, given, host, ams_net_id,
-                          {"offset": (offset_address, typed(offset_type)),
-                           "speed": (speed_address, typed(speed_type)),
-                           "held": (held_address, typed(held_type)),
-                           "cutting": (cutting_address, typed(cutting_type))})
+        found = check_plc(
+            protocol,
+            given,
+            host,
+            ams_net_id,
+            {
+                "offset": (offset_address, typed(offset_type)),
+                "speed": (speed_address, typed(speed_type)),
+                "held": (held_address, typed(held_type)),
+                "cutting": (cutting_address, typed(cutting_type)),
+            },
+        )
         self.protocol = protocol
         self.host = host
         self.port = int(port) if port is not None else DEFAULT_PORT[protocol]
@@ -600,8 +728,10 @@ class PlcAdapter(Adapter):
         parts = urlsplit(url)
         protocol = SCHEME_PROTOCOL.get(parts.scheme)
         if protocol is None:
-            raise ConfigError(f"plc adapter: no protocol for URL scheme {parts.scheme!r}; "
-                              f"known: {', '.join(SCHEME_PROTOCOL)}")
+            raise ConfigError(
+                f"plc adapter: no protocol for URL scheme {parts.scheme!r}; "
+                f"known: {', '.join(SCHEME_PROTOCOL)}"
+            )
         return {"protocol": protocol, **host_options("plc adapter", url)}
 
     # -- the link -----------------------------------------------------------------------

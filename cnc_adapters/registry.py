@@ -47,8 +47,16 @@ BACKENDS: dict[str, str] = {
     "focas": "cnc_adapters.focas:FocasAdapter",
     "haas-mdc": "cnc_adapters.haas_mdc:HaasMdcAdapter",
 }
-SCHEMES = {"opc.tcp": "opcua", "sim": "sim", "linuxcnc": "linuxcnc", "s7": "plc", "modbustcp": "plc",
-           "ads": "plc", "focas": "focas", "haas": "haas-mdc"}
+SCHEMES = {
+    "opc.tcp": "opcua",
+    "sim": "sim",
+    "linuxcnc": "linuxcnc",
+    "s7": "plc",
+    "modbustcp": "plc",
+    "ads": "plc",
+    "focas": "focas",
+    "haas": "haas-mdc",
+}
 """URL scheme -> backend; ``serial://`` picks its backend by ``?protocol=``."""
 SERIAL_PROTOCOLS = {"line": "line", "haas": "haas", "modbus": "modbus"}
 ENTRY_POINT_GROUP = "thermocomp.adapters"
@@ -88,8 +96,9 @@ def _url_kind(url: str) -> str:
         protocol = query_params(url).get("protocol", "line")
         kind = SERIAL_PROTOCOLS.get(protocol)
         if kind is None:
-            raise ConfigError(f"unknown serial protocol {protocol!r}; known: "
-                              f"{', '.join(SERIAL_PROTOCOLS)}")
+            raise ConfigError(
+                f"unknown serial protocol {protocol!r}; known: {', '.join(SERIAL_PROTOCOLS)}"
+            )
         return kind
     kind = SCHEMES.get(scheme)
     if kind is None:
@@ -106,12 +115,14 @@ def _refuse_password(kind: str, url: str, options: Mapping[str, Any]) -> None:
 
         env = options.get("password_env") or "THERMOCOMP_OPCUA_PASSWORD"
         raise ConfigError(f"opcua adapter: {url_password_refusal(str(env))}")
-    raise ConfigError(f"{kind} adapter: the URL carries a password, which this backend never "
-                      "uses: refused")
+    raise ConfigError(
+        f"{kind} adapter: the URL carries a password, which this backend never uses: refused"
+    )
 
 
-def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
-             ) -> tuple[str, type[Adapter], dict[str, Any] | None]:
+def _resolve(
+    target: str | Mapping[str, Any], overrides: Mapping[str, Any]
+) -> tuple[str, type[Adapter], dict[str, Any] | None]:
     """The backend name, its class and its options (None: a third-party backend that parses
     its URL itself)."""
     if isinstance(target, str):

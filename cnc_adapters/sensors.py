@@ -87,8 +87,11 @@ def _codes(v: Any) -> Any:
     return tuple(float(c) for c in v.split(",") if c.strip()) if isinstance(v, str) else v
 
 
-RangeUm = Annotated[tuple[float, float] | None, BeforeValidator(_range_option),
-                    Allowed("two finite numbers 'low,high' with low < high")]
+RangeUm = Annotated[
+    tuple[float, float] | None,
+    BeforeValidator(_range_option),
+    Allowed("two finite numbers 'low,high' with low < high"),
+]
 
 
 class SensorSettings(LinkSettings):
@@ -119,8 +122,11 @@ with warnings.catch_warnings():
         table: Table = "input"
         register: Register = 0
         type: DataType = "int16"
-        saturated_raw: Annotated[tuple[Finite, ...] | None, BeforeValidator(_codes),
-                                 Allowed("raw codes 'a,b' the module sends when over range")] = None
+        saturated_raw: Annotated[
+            tuple[Finite, ...] | None,
+            BeforeValidator(_codes),
+            Allowed("raw codes 'a,b' the module sends when over range"),
+        ] = None
 
 
 SensorPreset = one_of("virtual-cnc")
@@ -145,11 +151,19 @@ class Sensor(Link):
 
     Settings: ClassVar[type[BaseModel] | None] = None
 
-    def __init__(self, *, scale: float = 1.0, offset_um: float = 0.0,
-                 range_um: tuple[float, float] | str | None = None, **link: Any):
+    def __init__(
+        self,
+        *,
+        scale: float = 1.0,
+        offset_um: float = 0.0,
+        range_um: tuple[float, float] | str | None = None,
+        **link: Any,
+    ):
         scale, offset_um = float(scale), float(offset_um)
         if not (math.isfinite(scale) and scale != 0 and math.isfinite(offset_um)):
-            raise AdapterError(f"{self.name} sensor: scale must be finite and non-zero, offset finite")
+            raise AdapterError(
+                f"{self.name} sensor: scale must be finite and non-zero, offset finite"
+            )
         super().__init__(**link)
         self.scale = scale
         self.offset_um = offset_um
@@ -169,7 +183,8 @@ class Sensor(Link):
         if self.range_um is not None and not self.range_um[0] <= value <= self.range_um[1]:
             lo, hi = self.range_um
             raise SensorOverRangeError(
-                f"{self.name} sensor: {value:.2f} um is outside its range {lo:g}..{hi:g} um")
+                f"{self.name} sensor: {value:.2f} um is outside its range {lo:g}..{hi:g} um"
+            )
         return value
 
     @abstractmethod
@@ -182,10 +197,18 @@ class AsciiSensor(SerialLine, Sensor):
     name = "ascii"
     Settings = AsciiSettings
 
-    def __init__(self, port: str, *, baudrate: int = 9600, timeout_s: float = 1.0,
-                 request: str | None = None, reply: str = rf"(?P<value>{NUMBER})",
-                 over_range: str = r"(?i)(OVER|UNDER|OUT\s*OF\s*RANGE|OVR|OOR|-{3,}|\+{3,})",
-                 eol: str = "\r\n", **kw: Any):
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 9600,
+        timeout_s: float = 1.0,
+        request: str | None = None,
+        reply: str = rf"(?P<value>{NUMBER})",
+        over_range: str = r"(?i)(OVER|UNDER|OUT\s*OF\s*RANGE|OVR|OOR|-{3,}|\+{3,})",
+        eol: str = "\r\n",
+        **kw: Any,
+    ):
         super().__init__(**kw)
         self._init_serial(port, baudrate, timeout_s, eol)
         self.request = request or None
@@ -213,12 +236,22 @@ class ModbusSensor(ModbusLink, Sensor):
     name = "modbus"
     Settings = ModbusSensorSettings
 
-    def __init__(self, port: str, *, baudrate: int = 19200,
-                 parity: Literal["N", "E", "O"] = "N", device_id: int = 1,
-                 table: Literal["input", "holding"] = "input", register: int = 0,
-                 type: str = "int16", word_order: Literal["big", "little"] = "big",  # noqa: A002
-                 byte_order: Literal["big", "little"] = "big", timeout_s: float = 0.5,
-                 saturated_raw: tuple[float, ...] | str | None = None, **kw: Any):
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 19200,
+        parity: Literal["N", "E", "O"] = "N",
+        device_id: int = 1,
+        table: Literal["input", "holding"] = "input",
+        register: int = 0,
+        type: str = "int16",
+        word_order: Literal["big", "little"] = "big",  # noqa: A002
+        byte_order: Literal["big", "little"] = "big",
+        timeout_s: float = 0.5,
+        saturated_raw: tuple[float, ...] | str | None = None,
+        **kw: Any,
+    ):
         super().__init__(**kw)
         check_types("modbus sensor", type)
         if table not in ("input", "holding"):
@@ -233,8 +266,9 @@ class ModbusSensor(ModbusLink, Sensor):
     def _read_raw(self) -> float:
         value = self._read_value("read displacement", self.table, self.register, self.dtype)
         if value in self.saturated_raw:
-            raise SensorOverRangeError(f"modbus sensor: register {self.register} holds the "
-                                       f"over-range code {value:g}")
+            raise SensorOverRangeError(
+                f"modbus sensor: register {self.register} holds the over-range code {value:g}"
+            )
         return value
 
 
@@ -243,30 +277,57 @@ class OpcUaSensor(OpcUaLink, Sensor):
 
     name = "opcua"
     Settings = OpcUaSensorSettings
-    PRESETS = {"virtual-cnc": {"namespace_uri": "urn:thermocomp:virtual-cnc",
-                               "node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Displacement"}}
+    PRESETS = {
+        "virtual-cnc": {
+            "namespace_uri": "urn:thermocomp:virtual-cnc",
+            "node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Displacement",
+        }
+    }
 
-    def __init__(self, url: str, *, preset: str | None = None, node: str | None = None,
-                 path: str | None = None, namespace_uri: str | None = None,
-                 timeout_s: float = 4.0, security: str = "None", certificate: str | None = None,
-                 private_key: str | None = None, trust_dir: str | None = None,
-                 username_env: str = "THERMOCOMP_OPCUA_USER",
-                 password_env: str = "THERMOCOMP_OPCUA_PASSWORD", password_file: str | None = None,
-                 password_credential: str | None = None,
-                 application_uri: str = "urn:thermocomp:client", **kw: Any):
+    def __init__(
+        self,
+        url: str,
+        *,
+        preset: str | None = None,
+        node: str | None = None,
+        path: str | None = None,
+        namespace_uri: str | None = None,
+        timeout_s: float = 4.0,
+        security: str = "None",
+        certificate: str | None = None,
+        private_key: str | None = None,
+        trust_dir: str | None = None,
+        username_env: str = "THERMOCOMP_OPCUA_USER",
+        password_env: str = "THERMOCOMP_OPCUA_PASSWORD",
+        password_file: str | None = None,
+        password_credential: str | None = None,
+        application_uri: str = "urn:thermocomp:client",
+        **kw: Any,
+    ):
         super().__init__(**kw)
         p = self.PRESETS.get(preset or "", {})
         if preset and not p:
-            raise AdapterError(f"opcua sensor: unknown preset {preset!r}; known: {', '.join(self.PRESETS)}")
+            raise AdapterError(
+                f"opcua sensor: unknown preset {preset!r}; known: {', '.join(self.PRESETS)}"
+            )
         self.node_id = node or (None if path else p.get("node"))
         self.path = None if self.node_id else path
         if not (self.node_id or self.path):
             raise AdapterError("opcua sensor: give node (node id), path (browse path) or a preset")
-        self._init_opcua(url, namespace_uri=namespace_uri or p.get("namespace_uri"), timeout_s=timeout_s,
-                         security=security, certificate=certificate, private_key=private_key,
-                         trust_dir=trust_dir, username_env=username_env, password_env=password_env,
-                         password_file=password_file, application_uri=application_uri,
-                         password_credential=password_credential)
+        self._init_opcua(
+            url,
+            namespace_uri=namespace_uri or p.get("namespace_uri"),
+            timeout_s=timeout_s,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            trust_dir=trust_dir,
+            username_env=username_env,
+            password_env=password_env,
+            password_file=password_file,
+            application_uri=application_uri,
+            password_credential=password_credential,
+        )
         self._node = None
 
     def _on_connected(self, client: Any, ns: str) -> None:
@@ -276,15 +337,21 @@ class OpcUaSensor(OpcUaLink, Sensor):
     def _read_raw(self) -> Any:
         value = self._call("read displacement node", self._node.read_value, node=self._node)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise BadValueError(f"{self._where('read displacement node', self._node)}: holds "
-                                f"{type(value).__name__}, not a number")
+            raise BadValueError(
+                f"{self._where('read displacement node', self._node)}: holds "
+                f"{type(value).__name__}, not a number"
+            )
         return value
 
     def _forget(self) -> None:
         self._node = None
 
 
-SENSORS: dict[str, type[Sensor]] = {"ascii": AsciiSensor, "modbus": ModbusSensor, "opcua": OpcUaSensor}
+SENSORS: dict[str, type[Sensor]] = {
+    "ascii": AsciiSensor,
+    "modbus": ModbusSensor,
+    "opcua": OpcUaSensor,
+}
 
 
 def settings_model(kind: str) -> type[BaseModel]:
@@ -295,8 +362,9 @@ def settings_model(kind: str) -> type[BaseModel]:
     return cls.Settings  # type: ignore[return-value]
 
 
-def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
-             ) -> tuple[str, dict[str, Any]]:
+def _resolve(
+    target: str | Mapping[str, Any], overrides: Mapping[str, Any]
+) -> tuple[str, dict[str, Any]]:
     """The sensor type and its options, from a URL or a mapping."""
     if isinstance(target, str):
         parts = urlsplit(target)
@@ -307,7 +375,9 @@ def _resolve(target: str | Mapping[str, Any], overrides: Mapping[str, Any]
             return kind, {**serial_options(target), **overrides}
         if parts.scheme == "opc.tcp":
             if url_has_password(target):
-                env = {**query_params(target), **overrides}.get("password_env") or "THERMOCOMP_OPCUA_PASSWORD"
+                env = {**query_params(target), **overrides}.get(
+                    "password_env"
+                ) or "THERMOCOMP_OPCUA_PASSWORD"
                 raise ConfigError(f"opcua sensor: {url_password_refusal(str(env))}")
             return "opcua", {"url": target.split("?", 1)[0], **query_params(target), **overrides}
         raise ConfigError(f"no sensor for URL scheme {parts.scheme!r} in {redact_url(target)!r}")

@@ -87,8 +87,11 @@ def _offset_request(v: str) -> str:
     return v
 
 
-OffsetRequest = Annotated[str, AfterValidator(_offset_request),
-                          Allowed("a request with {value} in it, e.g. 'OFFSET {value:.4f}'")]
+OffsetRequest = Annotated[
+    str,
+    AfterValidator(_offset_request),
+    Allowed("a request with {value} in it, e.g. 'OFFSET {value:.4f}'"),
+]
 
 
 class LineSettings(SerialSettings, AdapterSettings):
@@ -99,8 +102,10 @@ class LineSettings(SerialSettings, AdapterSettings):
     offset_request: OffsetRequest = "OFFSET {value:.4f}"
     offset_reply: Pattern = r"^OK$"
     reject_reply: Pattern = r"^(ERR|ERROR|NAK|\?).*"
-    offset_query: str = Field("", description="reads the offset back (e.g. '?OFFSET'); empty: "
-                              "the device has no such query")
+    offset_query: str = Field(
+        "",
+        description="reads the offset back (e.g. '?OFFSET'); empty: the device has no such query",
+    )
     offset_query_reply: ValuePattern = rf"^OFFSET\s*=?\s*(?P<value>{NUMBER})$"
 
 
@@ -121,10 +126,13 @@ class SerialLine:
         import serial
 
         try:
-            self._ser = serial.Serial(self.port, self.baudrate, timeout=self.timeout_s,
-                                      write_timeout=self.timeout_s)
+            self._ser = serial.Serial(
+                self.port, self.baudrate, timeout=self.timeout_s, write_timeout=self.timeout_s
+            )
         except (serial.SerialException, OSError) as err:
-            raise UnreachableError(f"{self.name} open at {self.port}: cannot open the port: {err}") from err
+            raise UnreachableError(
+                f"{self.name} open at {self.port}: cannot open the port: {err}"
+            ) from err
 
     def _disconnect(self) -> None:
         ser, self._ser = self._ser, None
@@ -221,7 +229,9 @@ class LineAdapter(SerialLine, Adapter):
         reply = self.exchange(self.speed_request, "read speed")
         m = self.speed_reply.match(reply)
         if m is None:
-            raise BadValueError(f"{self._head('read speed', self.speed_request)}: unexpected reply {reply!r}")
+            raise BadValueError(
+                f"{self._head('read speed', self.speed_request)}: unexpected reply {reply!r}"
+            )
         return float(m.group("value"))
 
     def _read_offset_raw(self) -> float:
@@ -244,9 +254,13 @@ class LineAdapter(SerialLine, Adapter):
         request = self.offset_request.format(value=value)
         reply = self.exchange(request, "write offset")
         if self.reject_reply.match(reply):
-            raise WriteRejectedError(f"{self._head('write offset', request)}: controller refused it: {reply!r}")
+            raise WriteRejectedError(
+                f"{self._head('write offset', request)}: controller refused it: {reply!r}"
+            )
         if not self.offset_reply.match(reply):
-            raise BadValueError(f"{self._head('write offset', request)}: unexpected reply {reply!r}")
+            raise BadValueError(
+                f"{self._head('write offset', request)}: unexpected reply {reply!r}"
+            )
 
 
 class HaasMacros(BaseModel):
@@ -259,18 +273,29 @@ class HaasMacros(BaseModel):
     offset_decimals: Annotated[int, Field(ge=0, le=8), Allowed("a whole number 0..8")] = 4
     # the closed loop; None: no measurement (the defaults are not validated)
     measurement_var: Count = Field(  # type: ignore[assignment]
-        None, description="closed loop: the macro variable the probe cycle leaves its measurement in")
+        None,
+        description="closed loop: the macro variable the probe cycle leaves its measurement in",
+    )
     measurement_sequence_var: Count = Field(  # type: ignore[assignment]
-        None, description="the macro variable the probe cycle changes after writing the measurement")
+        None, description="the macro variable the probe cycle changes after writing the measurement"
+    )
     measurement_sigma_var: Count = Field(  # type: ignore[assignment]
-        None, description="optional: the macro variable of the measurement's sigma")
+        None, description="optional: the macro variable of the measurement's sigma"
+    )
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
-        None, description="macro unit per um of the measurement; default offset_scale")
+        None, description="macro unit per um of the measurement; default offset_scale"
+    )
 
     @model_validator(mode="after")
     def _measurement(self) -> HaasMacros:
-        check_macros("", self.offset_var, self.measurement_var, self.measurement_sequence_var,
-                     self.measurement_sigma_var, ValueError)
+        check_macros(
+            "",
+            self.offset_var,
+            self.measurement_var,
+            self.measurement_sequence_var,
+            self.measurement_sigma_var,
+            ValueError,
+        )
         return self
 
 
@@ -283,22 +308,33 @@ class HaasSettings(HaasMacros, LineSettings):
     offset_request: OffsetRequest | None = None
     offset_reply: Pattern | None = None
     reject_reply: Pattern | None = None
-    offset_query: str | None = Field(None, description="default '?Q600 <offset_var>'; empty: "
-                                     "no read-back")
+    offset_query: str | None = Field(
+        None, description="default '?Q600 <offset_var>'; empty: no read-back"
+    )
     offset_query_reply: ValuePattern | None = None
 
 
-def check_macros(prefix: str, offset_var: int, value: int | None, sequence: int | None,
-                 sigma: int | None, error: type[Exception] = AdapterError) -> None:
+def check_macros(
+    prefix: str,
+    offset_var: int,
+    value: int | None,
+    sequence: int | None,
+    sigma: int | None,
+    error: type[Exception] = AdapterError,
+) -> None:
     """The measurement's macro variables: the value and its counter together, the sigma only
     with them, all different and none the offset's."""
     if (value is None) != (sequence is None) or (sigma is not None and value is None):
-        raise error(f"{prefix}a measurement needs both measurement_var and measurement_sequence_var "
-                    "(the handshake), measurement_sigma_var only with them")
+        raise error(
+            f"{prefix}a measurement needs both measurement_var and measurement_sequence_var "
+            "(the handshake), measurement_sigma_var only with them"
+        )
     given = [v for v in (offset_var, value, sequence, sigma) if v is not None]
     if len(set(given)) < len(given):
-        raise error(f"{prefix}offset_var, measurement_var, measurement_sequence_var and "
-                    f"measurement_sigma_var must be different macro variables, not {given}")
+        raise error(
+            f"{prefix}offset_var, measurement_var, measurement_sequence_var and "
+            f"measurement_sigma_var must be different macro variables, not {given}"
+        )
 
 
 class HaasAdapter(LineAdapter):
@@ -310,21 +346,37 @@ class HaasAdapter(LineAdapter):
     can_read_offset: ClassVar[bool] = True
     can_read_measurement: ClassVar[bool] = True  # an instance without measurement_var cannot
 
-    def __init__(self, port: str, *, speed_var: int = 3027, offset_var: int = 10500,
-                 offset_decimals: int = 4, measurement_var: int | None = None,
-                 measurement_sequence_var: int | None = None, measurement_sigma_var: int | None = None,
-                 measurement_scale: float | None = None, **kw: Any):
+    def __init__(
+        self,
+        port: str,
+        *,
+        speed_var: int = 3027,
+        offset_var: int = 10500,
+        offset_decimals: int = 4,
+        measurement_var: int | None = None,
+        measurement_sequence_var: int | None = None,
+        measurement_sigma_var: int | None = None,
+        measurement_scale: float | None = None,
+        **kw: Any,
+    ):
         self.speed_var = int(speed_var)
         self.offset_var = int(offset_var)
-        check_macros("haas: ", self.offset_var, measurement_var, measurement_sequence_var,
-                     measurement_sigma_var)
+        check_macros(
+            "haas: ",
+            self.offset_var,
+            measurement_var,
+            measurement_sequence_var,
+            measurement_sigma_var,
+        )
         macro = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER})$"
         # (request, reply) per macro variable of the probe cycle: sequence, value[, sigma]; a
         # NaN is taken as read, so that it is refused once, like any value that is no number
         measured = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER}|(?i:[-+]?(?:nan|inf)))$"
         self.measurement_queries = tuple(
-            (f"?Q600 {v}", re.compile(measured.format(v))) for v in
-            (measurement_sequence_var, measurement_var, measurement_sigma_var) if v is not None)
+            (f"?Q600 {v}", re.compile(measured.format(v)))
+            for v in (measurement_sequence_var, measurement_var, measurement_sigma_var)
+            if v is not None
+        )
         defaults = {
             "speed_request": f"?Q600 {self.speed_var}",
             "speed_reply": macro.format(self.speed_var),

@@ -50,10 +50,17 @@ class DriftConfig:
     grace: int = GRACE_DEFAULT
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.k) and self.k >= 0 and math.isfinite(self.h) and self.h > 0
-                and self.grace >= 0):
-            raise ConfigError(f"drift detector: k >= 0, h > 0 and grace >= 0 are needed, got k={self.k!r}, "
-                              f"h={self.h!r}, grace={self.grace!r}")
+        if not (
+            math.isfinite(self.k)
+            and self.k >= 0
+            and math.isfinite(self.h)
+            and self.h > 0
+            and self.grace >= 0
+        ):
+            raise ConfigError(
+                f"drift detector: k >= 0, h > 0 and grace >= 0 are needed, got k={self.k!r}, "
+                f"h={self.h!r}, grace={self.grace!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -93,12 +100,19 @@ class DriftState:
         return None
 
 
-def update(state: DriftState, miss_um: float, sd_um: float, time_s: float,
-           config: DriftConfig = DriftConfig()) -> DriftState:
+def update(
+    state: DriftState,
+    miss_um: float,
+    sd_um: float,
+    time_s: float,
+    config: DriftConfig = DriftConfig(),
+) -> DriftState:
     """The state after one measurement whose model miss is ``miss_um`` (measured minus the
     model's estimate without bias) with standard deviation ``sd_um``, taken at ``time_s``. A
     non-finite miss or an sd that is not > 0 leaves the state as it was."""
-    if not (math.isfinite(miss_um) and math.isfinite(sd_um) and sd_um > 0 and math.isfinite(time_s)):
+    if not (
+        math.isfinite(miss_um) and math.isfinite(sd_um) and sd_um > 0 and math.isfinite(time_s)
+    ):
         return state
     if state.seen < config.grace:
         return replace(state, seen=state.seen + 1)
@@ -111,20 +125,36 @@ def update(state: DriftState, miss_um: float, sd_um: float, time_s: float,
     low = min(max(0.0, state.low - z - config.k), 2.0 * config.h)
     # each side's run: from the first measurement after it last stood at zero
     if high > 0.0:
-        h_from, h_sum, h_n = (state.high_from, state.high_sum_um + miss_um, state.high_n + 1) if state.high > 0 \
+        h_from, h_sum, h_n = (
+            (state.high_from, state.high_sum_um + miss_um, state.high_n + 1)
+            if state.high > 0
             else (time_s, miss_um, 1)
+        )
     else:
         h_from, h_sum, h_n = None, 0.0, 0
     if low > 0.0:
-        l_from, l_sum, l_n = (state.low_from, state.low_sum_um + miss_um, state.low_n + 1) if state.low > 0 \
+        l_from, l_sum, l_n = (
+            (state.low_from, state.low_sum_um + miss_um, state.low_n + 1)
+            if state.low > 0
             else (time_s, miss_um, 1)
+        )
     else:
         l_from, l_sum, l_n = None, 0.0, 0
     # raised above h, cleared below h/2: a change near the threshold does not flap the alarm
     stat = max(high, low)
     detected = stat > config.h or (state.detected and stat > 0.5 * config.h)
-    return DriftState(high=high, low=low, seen=state.seen + 1, high_from=h_from, low_from=l_from,
-                      high_sum_um=h_sum, low_sum_um=l_sum, high_n=h_n, low_n=l_n, detected=detected)
+    return DriftState(
+        high=high,
+        low=low,
+        seen=state.seen + 1,
+        high_from=h_from,
+        low_from=l_from,
+        high_sum_um=h_sum,
+        low_sum_um=l_sum,
+        high_n=h_n,
+        low_n=l_n,
+        detected=detected,
+    )
 
 
 def miss_sd_um(fit_rms_um: float | None, sigma_um: float, floor_um: float = 0.1) -> float:

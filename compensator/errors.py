@@ -22,7 +22,13 @@ _WIDEST = 10  # characters of the line one character of the text may become: \U0
 
 def _escape(char: str) -> str:
     code = ord(char)
-    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}" if code < 0x10000 else f"\\U{code:08x}"
+    return (
+        f"\\x{code:02x}"
+        if code < 0x100
+        else f"\\u{code:04x}"
+        if code < 0x10000
+        else f"\\U{code:08x}"
+    )
 
 
 def _one_line(text: str) -> str:
@@ -70,8 +76,11 @@ def unknown(what: str, name: Any, known: Iterable[str]) -> str:
     """``unknown <what> 'x' (did you mean 'y'?); known: ...``: a name that is not one of ``known``."""
     names = list(known)
     near = did_you_mean(name, names) if isinstance(name, str) else None
-    return f"unknown {what} {name!r}" + (f" (did you mean {near!r}?)" if near else "") + \
-        f"; known: {', '.join(names)}"
+    return (
+        f"unknown {what} {name!r}"
+        + (f" (did you mean {near!r}?)" if near else "")
+        + f"; known: {', '.join(names)}"
+    )
 
 
 class ThermocompError(Exception):

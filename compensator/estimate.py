@@ -148,10 +148,15 @@ class Saved:
 def _check(state: EstimateState, what: str) -> None:
     """ModelError (the caller keeps the state it had) where ``what`` would leave an estimate no
     spindle can have: not finite, or beyond :data:`~compensator.model.SAVED_LIMIT_UM`."""
-    for name, value in (("estimate", state.estimate_um), ("speed-only model", state.speed_only.elongation_um)):
+    for name, value in (
+        ("estimate", state.estimate_um),
+        ("speed-only model", state.speed_only.elongation_um),
+    ):
         if not abs(float(value)) <= SAVED_LIMIT_UM:
-            raise ModelError(f"{what} would set the {name} to {float(value):g} um, which no spindle "
-                             "reaches: refused, the estimate kept")
+            raise ModelError(
+                f"{what} would set the {name} to {float(value):g} um, which no spindle "
+                "reaches: refused, the estimate kept"
+            )
 
 
 @dataclass(frozen=True)
@@ -168,8 +173,11 @@ class Estimate:
 
     def __post_init__(self) -> None:
         speed_only = self.model.fallback or self.model
-        object.__setattr__(self, "_core", speed_only if self.observer is None
-                           else FusedPredictor(speed_only, self.observer))
+        object.__setattr__(
+            self,
+            "_core",
+            speed_only if self.observer is None else FusedPredictor(speed_only, self.observer),
+        )
 
     # -- what it is made of ----------------------------------------------------------------
     @property
@@ -214,26 +222,36 @@ class Estimate:
         if not abs(core.elongation_um) <= SAVED_LIMIT_UM:
             raise ModelError(f"elongation {core.elongation_um:g} um is not a spindle's")
         refs = saved.get("input_references")
-        refs = ({str(k): saved_numbers("input_references", [v], 1e9)[0] for k, v in refs.items()}
-                if isinstance(refs, dict) else None)
+        refs = (
+            {str(k): saved_numbers("input_references", [v], 1e9)[0] for k, v in refs.items()}
+            if isinstance(refs, dict)
+            else None
+        )
         wall = saved_numbers("saved_wall_s", [saved["saved_wall_s"]], 1e11)[0]
         input_state, input_wall = None, wall
         if self.with_inputs is not None and saved.get("input_state") is not None:
             input_state = self.with_inputs.state_from_dict(saved["input_state"])
             if not abs(input_state.elongation_um) <= SAVED_LIMIT_UM:
-                raise ModelError(f"input model's elongation {input_state.elongation_um:g} um is not a spindle's")
+                raise ModelError(
+                    f"input model's elongation {input_state.elongation_um:g} um is not a spindle's"
+                )
             input_wall = saved_numbers("input_wall_s", [saved.get("input_wall_s", wall)], 1e11)[0]
         return Saved(core, refs, input_state, input_wall)
 
-    def resume(self, saved: Saved, downtime_s: float, wall_s: float, max_age_s: float) -> EstimateState:
+    def resume(
+        self, saved: Saved, downtime_s: float, wall_s: float, max_age_s: float
+    ) -> EstimateState:
         """``saved`` advanced through ``downtime_s`` as an idle spindle (it stood still while
         nothing ran). Its input state is kept to resume when the inputs are read, if it is not
         older than ``max_age_s``."""
         core = self.core.step(saved.core, 0.0, max(0.0, downtime_s))
         refs = None
-        if self.with_inputs is not None and saved.references is not None \
-                and set(saved.references) >= set(self.with_inputs.input_names) \
-                and all(math.isfinite(v) for v in saved.references.values()):
+        if (
+            self.with_inputs is not None
+            and saved.references is not None
+            and set(saved.references) >= set(self.with_inputs.input_names)
+            and all(math.isfinite(v) for v in saved.references.values())
+        ):
             refs = dict(saved.references)  # the cold start's, kept across restarts
         kept = None
         if saved.input_state is not None and wall_s - saved.input_wall_s <= max_age_s:
@@ -262,37 +280,67 @@ class Estimate:
     def begin(self, elongation_um: float | None, speed_rpm: float) -> EstimateState:
         """A start at ``elongation_um`` (None: the model's own equilibrium) with the spindle at
         ``speed_rpm``, as a replay starts; the model with inputs starts with the first inputs."""
-        return EstimateState(self.core.start(elongation_um, self.clamp(speed_rpm)[0]),
-                             input_cold=elongation_um is None)
+        return EstimateState(
+            self.core.start(elongation_um, self.clamp(speed_rpm)[0]),
+            input_cold=elongation_um is None,
+        )
 
-    def step(self, state: EstimateState, speed_rpm: float, dt_s: float, *, now_s: float, wall_s: float,
-             inputs: Mapping[str, float] | None = None,
-             input_error: str | None = None) -> tuple[EstimateState, Step]:
+    def step(
+        self,
+        state: EstimateState,
+        speed_rpm: float,
+        dt_s: float,
+        *,
+        now_s: float,
+        wall_s: float,
+        inputs: Mapping[str, float] | None = None,
+        input_error: str | None = None,
+    ) -> tuple[EstimateState, Step]:
         """One cycle: ``speed_rpm`` as read (clamped here), held over ``dt_s``; ``inputs`` as read,
         or ``input_error`` when they could not be; ``now_s`` a monotonic time, ``wall_s`` the
         wall clock (a saved input state is advanced to it). On the first cycle after a start the
         model with inputs takes over at once; after a fault, once the inputs have recovered."""
         if not self.plausible(speed_rpm):
-            raise ModelError(f"speed {speed_rpm:g} rpm is no spindle's (above "
-                             f"{self.speed_limit_rpm:g} rpm): not stepped with")
+            raise ModelError(
+                f"speed {speed_rpm:g} rpm is no spindle's (above "
+                f"{self.speed_limit_rpm:g} rpm): not stepped with"
+            )
         speed, over = self.clamp(speed_rpm)
         first = not state.started
         st = replace(state, core=self.core.step(state.core, speed, dt_s), started=True)
         info = Step(speed, over)
         if self.with_inputs is not None:
-            st, info = self._inputs(st, info, speed, dt_s, now_s, wall_s, inputs, input_error, first)
+            st, info = self._inputs(
+                st, info, speed, dt_s, now_s, wall_s, inputs, input_error, first
+            )
         if self.fused is not None:
             last = st.last_cycle
             on_inputs = st.inputs is not None
-            ref = (last[1] if last is not None and last[0] < speed and last[2] == on_inputs
-                   else float(st.in_use.elongation_um))
-            st = replace(st, probe_reference_um=ref,
-                         last_cycle=(speed, float(st.in_use.elongation_um), on_inputs))
+            ref = (
+                last[1]
+                if last is not None and last[0] < speed and last[2] == on_inputs
+                else float(st.in_use.elongation_um)
+            )
+            st = replace(
+                st,
+                probe_reference_um=ref,
+                last_cycle=(speed, float(st.in_use.elongation_um), on_inputs),
+            )
         _check(st, "the step")
         return st, info
 
-    def _inputs(self, st: EstimateState, info: Step, speed: float, dt_s: float, now_s: float, wall_s: float,
-                values: Mapping[str, float] | None, error: str | None, first: bool) -> tuple[EstimateState, Step]:
+    def _inputs(
+        self,
+        st: EstimateState,
+        info: Step,
+        speed: float,
+        dt_s: float,
+        now_s: float,
+        wall_s: float,
+        values: Mapping[str, float] | None,
+        error: str | None,
+        first: bool,
+    ) -> tuple[EstimateState, Step]:
         model = self.with_inputs
         assert model is not None
         why = error if error is not None else model.check_inputs(values or {})
@@ -312,8 +360,15 @@ class Estimate:
             if st.inputs is not None:
                 st = self._rebase(st, st.inputs, st.speed_only)
             # from now on the fallback's elongation is the estimate to continue from
-            st = replace(st, inputs=None, inputs_good_since_s=None, input_cold=False, saved_input=None,
-                         extrapolated=None, outside_spans=0.0)
+            st = replace(
+                st,
+                inputs=None,
+                inputs_good_since_s=None,
+                input_cold=False,
+                saved_input=None,
+                extrapolated=None,
+                outside_spans=0.0,
+            )
             return st, replace(info, input_fallback=True, fell_back=fell)
         if st.inputs is None:
             good_since = st.inputs_good_since_s if st.inputs_good_since_s is not None else now_s
@@ -321,7 +376,9 @@ class Estimate:
             if now_s - good_since < self.input_recover_s and not first:
                 return st, replace(info, input_fallback=True)
             started = self._start_inputs(st, speed, wall_s, values)
-            st = self._rebase(replace(st, saved_input=None, input_cold=False), st.speed_only, started)
+            st = self._rebase(
+                replace(st, saved_input=None, input_cold=False), st.speed_only, started
+            )
             refs = getattr(started, "references", None)
             st = replace(st, inputs=started, references=dict(refs) if refs is not None else None)
             info = replace(info, restored=True)
@@ -329,12 +386,18 @@ class Estimate:
             st = replace(st, inputs=model.step(st.inputs, speed, dt_s, values))
         outside = getattr(model, "outside_trained", None)
         why_out = outside(values) if outside is not None else None
-        spans = float(model.distance_outside(values)) if why_out and hasattr(model, "distance_outside") else 0.0
+        spans = (
+            float(model.distance_outside(values))
+            if why_out and hasattr(model, "distance_outside")
+            else 0.0
+        )
         if why_out and spans > 0:
             why_out += f" ({spans:.2f} span(s) out)"
         return replace(st, extrapolated=why_out, outside_spans=spans), info
 
-    def _start_inputs(self, st: EstimateState, speed: float, wall_s: float, values: Mapping[str, float]) -> Any:
+    def _start_inputs(
+        self, st: EstimateState, speed: float, wall_s: float, values: Mapping[str, float]
+    ) -> Any:
         """The input model's state when it takes over: the saved one advanced idle through the
         downtime (inputs held at today's); at a cold start its equilibrium with this speed and
         these inputs; else the fallback's elongation (no jump at the switch)."""
@@ -344,7 +407,9 @@ class Estimate:
             state, since = st.saved_input
             return model.step(state, 0.0, max(0.0, wall_s - since), values)
         # a model with cold-start references takes these values as references (None: none yet)
-        return model.start(None if st.input_cold else st.speed_only.elongation_um, speed, values, st.references)
+        return model.start(
+            None if st.input_cold else st.speed_only.elongation_um, speed, values, st.references
+        )
 
     def _rebase(self, st: EstimateState, from_state: Any, to_state: Any) -> EstimateState:
         """The observer's bias moved from one model's estimate to the other's, so that the
@@ -355,16 +420,23 @@ class Estimate:
         return replace(st, core=replace(st.core, observer=moved.observer))
 
     # -- measurements -------------------------------------------------------------------------
-    def measure(self, state: EstimateState, measured_um: float, sigma_um: float) -> tuple[EstimateState, Update, float]:
+    def measure(
+        self, state: EstimateState, measured_um: float, sigma_um: float
+    ) -> tuple[EstimateState, Update, float]:
         """Fuse one measurement against this cycle's reference (:meth:`step`). Returns the new
         state, the observer's update and the estimate the measurement met [um]."""
         fused = self.fused
         if fused is None or not isinstance(state.core, FusedState):
             raise ModelError("this estimate has no observer")
-        ref = state.probe_reference_um if state.probe_reference_um is not None else float(state.in_use.elongation_um)
+        ref = (
+            state.probe_reference_um
+            if state.probe_reference_um is not None
+            else float(state.in_use.elongation_um)
+        )
         before = ref + state.bias_um
-        out, up = fused.measure(replace(state.core, model=state.in_use), measured_um, sigma_um,
-                                model_at_probe_um=ref)
+        out, up = fused.measure(
+            replace(state.core, model=state.in_use), measured_um, sigma_um, model_at_probe_um=ref
+        )
         new = replace(state, core=replace(out, model=state.speed_only))
         _check(new, f"the measurement {measured_um:g} um")
         return new, up, before
@@ -379,23 +451,35 @@ class Estimate:
             speed = np.where(over, np.copysign(top, speed), speed)
         return speed, over
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    initial_um: float | None = None) -> np.ndarray:
+    def simulate_um(
+        self, speed_rpm: np.ndarray, time_s: np.ndarray, initial_um: float | None = None
+    ) -> np.ndarray:
         """The speed-only estimate without measurements over a whole log, vectorised: what
         :meth:`run` gives from :meth:`begin` when there are no inputs and no probes (tested)."""
         if self.with_inputs is not None:
-            raise ModelError("a model with inputs runs through Estimate.run (its fallback may stand in)")
+            raise ModelError(
+                "a model with inputs runs through Estimate.run (its fallback may stand in)"
+            )
         speed = np.asarray(speed_rpm, dtype=float)
         bad = np.flatnonzero(~(np.abs(speed) <= self.speed_limit_rpm))
         if bad.size:
-            raise ModelError(f"row {int(bad[0])}: speed {speed[bad[0]]:g} rpm is no spindle's (above "
-                             f"{self.speed_limit_rpm:g} rpm)")
+            raise ModelError(
+                f"row {int(bad[0])}: speed {speed[bad[0]]:g} rpm is no spindle's (above "
+                f"{self.speed_limit_rpm:g} rpm)"
+            )
         return self.core.simulate_um(self.clamp_series(speed)[0], time_s, None, initial_um)
 
-    def run(self, state: EstimateState, time_s: np.ndarray, speed_rpm: np.ndarray, *,
-            dt_s: np.ndarray | None = None, wall_s: np.ndarray | None = None,
-            inputs: Mapping[str, np.ndarray] | None = None,
-            probes: Sequence[tuple[int, float, float]] = ()) -> Series:
+    def run(
+        self,
+        state: EstimateState,
+        time_s: np.ndarray,
+        speed_rpm: np.ndarray,
+        *,
+        dt_s: np.ndarray | None = None,
+        wall_s: np.ndarray | None = None,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        probes: Sequence[tuple[int, float, float]] = (),
+    ) -> Series:
         """:meth:`step` over every row of a log, as the service ran it: ``dt_s`` per row (default
         the time steps, 0 on the first row), ``inputs`` per row (a NaN cell is an input the
         service could not use), and ``probes`` (row, measured [um], sigma [um]), fused after
@@ -415,12 +499,24 @@ class Estimate:
         st = state
         for k in range(n):
             values = {name: float(col[k]) for name, col in cols.items()} if cols else None
-            st, info = self.step(st, float(speed_rpm[k]), float(dt[k]), now_s=float(now[k]),
-                                 wall_s=float(wall[k]), inputs=values)
+            st, info = self.step(
+                st,
+                float(speed_rpm[k]),
+                float(dt[k]),
+                now_s=float(now[k]),
+                wall_s=float(wall[k]),
+                inputs=values,
+            )
             for y, sigma in by_row.get(k, ()):
                 st, up, _ = self.measure(st, y, sigma)
-                outcomes.append("accepted" if up.accepted else "restarted" if up.restarted else "rejected")
-            est[k], model[k], used[k] = st.estimate_um, float(st.in_use.elongation_um), info.speed_rpm
+                outcomes.append(
+                    "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
+                )
+            est[k], model[k], used[k] = (
+                st.estimate_um,
+                float(st.in_use.elongation_um),
+                info.speed_rpm,
+            )
             over[k], fallback[k] = info.over_range, info.input_fallback
         return Series(est, model, used, over, fallback, tuple(outcomes), st)
 
@@ -436,8 +532,12 @@ class Estimate:
             out["input_references"] = dict(state.references)
         if self.with_inputs is not None:
             if state.inputs is not None:
-                out.update(input_state=self.with_inputs.state_dict(state.inputs), input_wall_s=wall_s)
+                out.update(
+                    input_state=self.with_inputs.state_dict(state.inputs), input_wall_s=wall_s
+                )
             elif state.saved_input is not None:
-                out.update(input_state=self.with_inputs.state_dict(state.saved_input[0]),
-                           input_wall_s=state.saved_input[1])
+                out.update(
+                    input_state=self.with_inputs.state_dict(state.saved_input[0]),
+                    input_wall_s=state.saved_input[1],
+                )
         return out

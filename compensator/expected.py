@@ -58,7 +58,9 @@ class Band(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    speed_rpm: tuple[float, float] = Field(description="(low, high] |speed| [rpm]; rest is (0, idle]")
+    speed_rpm: tuple[float, float] = Field(
+        description="(low, high] |speed| [rpm]; rest is (0, idle]"
+    )
     source: str
     samples: int = Field(ge=1)
     rms_um: float = Field(ge=0)
@@ -93,8 +95,11 @@ class ExpectedError(BaseModel):
 
     format: Literal["thermocomp.expected-error/1"] = EXPECTED_FORMAT
     bands: tuple[Band, ...] = Field(min_length=1)
-    outside_validated: float = Field(0.0, ge=0, description="largest distance outside the trained "
-                                     "range that validation scored, in spans")
+    outside_validated: float = Field(
+        0.0,
+        ge=0,
+        description="largest distance outside the trained range that validation scored, in spans",
+    )
     forward_folds: int = Field(0, ge=0, description="folds predicted forward behind the statement")
 
     def validated(self, speed_rpm: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
@@ -111,27 +116,35 @@ class ExpectedError(BaseModel):
         """Why validation scored no prediction like this one (:meth:`validated`), in words."""
         why = []
         if self.forward_folds < MIN_FORWARD_FOLDS:
-            why.append(f"the fit predicted {self.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}")
+            why.append(
+                f"the fit predicted {self.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}"
+            )
         top = self.bands[-1].speed_rpm[1]
         if abs(speed_rpm) > top * (1 + RANGE_TOLERANCE):
             why.append(f"{abs(speed_rpm):.0f} rpm is above the calibrated {top:.0f} rpm")
         if spans > self.outside_validated:
-            why.append(f"inputs {spans:.2f} spans outside the trained range, further than validation "
-                       f"scored ({self.outside_validated:.2f})")
+            why.append(
+                f"inputs {spans:.2f} spans outside the trained range, further than validation "
+                f"scored ({self.outside_validated:.2f})"
+            )
         return why or ["validation scored no prediction like this one"]
 
     @cached_property
     def _edges(self) -> tuple[np.ndarray, np.ndarray]:
         # the statement is frozen and parsed once per model load; the service reads it every cycle
-        return (np.array([b.speed_rpm[0] for b in self.bands], float),
-                np.array([b.speed_rpm[1] for b in self.bands], float))
+        return (
+            np.array([b.speed_rpm[0] for b in self.bands], float),
+            np.array([b.speed_rpm[1] for b in self.bands], float),
+        )
 
     def band_index(self, speed_rpm: np.ndarray) -> np.ndarray:
         """For each speed, the index of its band; the top band above the calibrated range or in
         a band left out (no residual covered it)."""
         n = np.abs(np.asarray(speed_rpm, float))
         lo, hi = self._edges
-        i = np.minimum(np.searchsorted(hi, n, side="left"), len(self.bands) - 1)  # first band reaching n
+        i = np.minimum(
+            np.searchsorted(hi, n, side="left"), len(self.bands) - 1
+        )  # first band reaching n
         inside = (n <= hi[i]) & ((n > lo[i]) | (lo[i] == 0.0))
         return np.where(inside, i, len(self.bands) - 1)
 
@@ -145,8 +158,12 @@ class ExpectedError(BaseModel):
         inside = np.array([b.p95_abs_um for b in self.bands])[which]
         if distance is None:
             return inside
-        out = np.array([max(b.p95_abs_um, b.outside.p95_abs_um) if b.outside else b.p95_abs_um
-                        for b in self.bands])[which]
+        out = np.array(
+            [
+                max(b.p95_abs_um, b.outside.p95_abs_um) if b.outside else b.p95_abs_um
+                for b in self.bands
+            ]
+        )[which]
         return np.where(np.asarray(distance, float) > 0, out, inside)
 
     def at(self, speed_rpm: float, distance: float = 0.0) -> Expectation:

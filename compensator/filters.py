@@ -84,8 +84,14 @@ def constant_decay(a: float, inc: np.ndarray, x0: float, gain: float = 1.0) -> n
     return lfilter([gain], [1.0, -a], inc, zi=[a * x0])[0]
 
 
-def decaying_sum(inc: np.ndarray, x0: float, *, ld: np.ndarray | None = None,
-                 cum: np.ndarray | None = None, span: float = SPAN) -> np.ndarray:
+def decaying_sum(
+    inc: np.ndarray,
+    x0: float,
+    *,
+    ld: np.ndarray | None = None,
+    cum: np.ndarray | None = None,
+    span: float = SPAN,
+) -> np.ndarray:
     """``x_k = exp(-ld_k)*x_{k-1} + inc_k`` for every k, from ``x_{-1} = x0``, in closed form.
 
     ``x_k = exp(-L_k) * (x_s + sum_{s<j<=k} inc_j*exp(L_j))`` with ``L`` the cumulative ``ld``
@@ -188,7 +194,9 @@ class Steps:
             if not math.isfinite(lo) or not math.isfinite(float(d.max())):
                 raise NonFiniteInputError("time_s spans more than a float can hold")
             if lo < 0:
-                raise ModelError(f"time goes backwards at sample {int(np.flatnonzero(d < 0)[0]) + 1}")
+                raise ModelError(
+                    f"time goes backwards at sample {int(np.flatnonzero(d < 0)[0]) + 1}"
+                )
         return cls(t, d, _runs(d))
 
     @classmethod
@@ -245,7 +253,9 @@ def lag(steps: Steps, u: np.ndarray, tau_s: float, y0: float | None = None) -> n
         ends = np.concatenate([runs[1:], [dt.size]])
         for s, e in zip(runs.tolist(), ends.tolist()):  # steps s..e-1 end at samples s+1..e
             ld = min(float(dt[s]) / tau_s, _LD_MAX)
-            y[s + 1:e + 1] = constant_decay(math.exp(-ld), u[s + 1:e + 1], y[s], -math.expm1(-ld))
+            y[s + 1 : e + 1] = constant_decay(
+                math.exp(-ld), u[s + 1 : e + 1], y[s], -math.expm1(-ld)
+            )
         return y
     t = steps.time_s
     s = 0
@@ -258,21 +268,23 @@ def lag(steps: Steps, u: np.ndarray, tau_s: float, y0: float | None = None) -> n
             # running sum of steps is not)
             c = np.divide(dt[s:e], -tau_s)
             np.expm1(c, out=c)
-            c *= u[s + 1:e + 1]
-            g = t[s + 1:e + 1] - t[s]
+            c *= u[s + 1 : e + 1]
+            g = t[s + 1 : e + 1] - t[s]
             g /= tau_s
             if e - s == 1 or not g[-1] <= SPAN * 1.01:  # one long step, or a subnormal tau
-                y[s + 1:e + 1] = decaying_sum(np.negative(c), ys, ld=np.minimum(dt[s:e] / tau_s, _LD_MAX))
+                y[s + 1 : e + 1] = decaying_sum(
+                    np.negative(c), ys, ld=np.minimum(dt[s:e] / tau_s, _LD_MAX)
+                )
                 s = e
                 continue
             np.exp(g, out=g)
             c *= g  # the closed form of decaying_sum, fused: this is the hot loop of a free run
             np.cumsum(c, out=c)
             np.subtract(ys, c, out=c)
-            np.divide(c, g, out=y[s + 1:e + 1])
+            np.divide(c, g, out=y[s + 1 : e + 1])
             if not math.isfinite(float(y[e])):  # an input near the float range: rescaled there
-                c = np.expm1(np.divide(dt[s:e], -tau_s)) * u[s + 1:e + 1]
-                y[s + 1:e + 1] = decaying_sum(np.negative(c), ys, cum=np.log(g))
+                c = np.expm1(np.divide(dt[s:e], -tau_s)) * u[s + 1 : e + 1]
+                y[s + 1 : e + 1] = decaying_sum(np.negative(c), ys, cum=np.log(g))
             s = e
     return y
 

@@ -35,7 +35,9 @@ OBSERVER_KEY = "observer"
 """Where a model's fit keeps the observer settings fitted at calibration."""
 
 
-def observer_config_of(model: Predictor, override: Mapping[str, Any] | None = None) -> ObserverConfig:
+def observer_config_of(
+    model: Predictor, override: Mapping[str, Any] | None = None
+) -> ObserverConfig:
     """The observer settings fitted with ``model`` (``fit["observer"]``), else the defaults;
     ``override`` (the runtime's configuration) wins key by key. ``ModelError`` if invalid."""
     fit = getattr(model, "fit", None) or {}
@@ -121,25 +123,46 @@ class FusedPredictor:
         return self.model.model_dump(**kwargs)
 
     # -- the Predictor interface -----------------------------------------------------------
-    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
-              references: Mapping[str, float] | None = None) -> FusedState:
-        return FusedState(self.model.start(elongation_um, speed_rpm, inputs, references),
-                          ObserverState.prior(self.config))
+    def start(
+        self,
+        elongation_um: float | None,
+        speed_rpm: float,
+        inputs: Mapping[str, float] | None = None,
+        references: Mapping[str, float] | None = None,
+    ) -> FusedState:
+        return FusedState(
+            self.model.start(elongation_um, speed_rpm, inputs, references),
+            ObserverState.prior(self.config),
+        )
 
-    def step(self, state: FusedState, speed_rpm: float, dt_s: float,
-             inputs: Mapping[str, float] | None = None) -> FusedState:
+    def step(
+        self,
+        state: FusedState,
+        speed_rpm: float,
+        dt_s: float,
+        inputs: Mapping[str, float] | None = None,
+    ) -> FusedState:
         inner = self.model.step(state.model, speed_rpm, dt_s, inputs)
         age = None if state.since_measurement_s is None else state.since_measurement_s + dt_s
         return FusedState(inner, time_update(self.config, state.observer, dt_s), age)
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float | None = None) -> np.ndarray:
+    def simulate_um(
+        self,
+        speed_rpm: np.ndarray,
+        time_s: np.ndarray,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        initial_um: float | None = None,
+    ) -> np.ndarray:
         """Without measurements the fused model is the model."""
         return self.model.simulate_um(speed_rpm, time_s, inputs, initial_um)
 
-    def measure(self, state: FusedState, measured_um: float, sigma_um: float,
-                model_at_probe_um: float | None = None) -> tuple[FusedState, Update]:
+    def measure(
+        self,
+        state: FusedState,
+        measured_um: float,
+        sigma_um: float,
+        model_at_probe_um: float | None = None,
+    ) -> tuple[FusedState, Update]:
         """Fuse one measurement of the elongation [um], with its sigma [um].
 
         ``model_at_probe_um``: the model's own elongation at the instant the measurement was
@@ -155,8 +178,11 @@ class FusedPredictor:
         """``model_state`` in place of the model's (a switch between a model and its fallback),
         the bias shifted so that the fused elongation does not jump."""
         shift = float(state.model.elongation_um) - float(model_state.elongation_um)
-        return replace(state, model=model_state,
-                       observer=replace(state.observer, bias_um=state.observer.bias_um + shift))
+        return replace(
+            state,
+            model=model_state,
+            observer=replace(state.observer, bias_um=state.observer.bias_um + shift),
+        )
 
     def is_stale(self, state: FusedState, max_age_s: float) -> bool:
         """No accepted measurement for longer than ``max_age_s`` (or none yet)."""
@@ -164,10 +190,15 @@ class FusedPredictor:
 
     def state_dict(self, state: FusedState) -> dict[str, Any]:
         z = state.observer
-        return {**self.model.state_dict(state.model),
-                OBSERVER_KEY: {"bias_um": z.bias_um, "drift_um_per_s": z.drift_um_per_s,
-                               "cov": [list(r) for r in z.cov],
-                               "since_measurement_s": state.since_measurement_s}}
+        return {
+            **self.model.state_dict(state.model),
+            OBSERVER_KEY: {
+                "bias_um": z.bias_um,
+                "drift_um_per_s": z.drift_um_per_s,
+                "cov": [list(r) for r in z.cov],
+                "since_measurement_s": state.since_measurement_s,
+            },
+        }
 
     def state_from_dict(self, data: Mapping[str, Any]) -> FusedState:
         """A state saved by :meth:`state_dict`, or the model's own (observer at its prior)."""
@@ -189,7 +220,9 @@ class FusedPredictor:
 
     def describe(self) -> list[str]:
         c = self.config
-        return [*self.model.describe(),
-                f"  observer: bias random walk {math.sqrt(c.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
-                f"drift {'on' if c.drift_q_um2_per_s3 > 0 else 'off'}, model sd {c.model_sd_um:.2f} um, "
-                f"gate {c.gate_sigma:g} sd, restart after {c.reaccept_after} agreeing refusals"]
+        return [
+            *self.model.describe(),
+            f"  observer: bias random walk {math.sqrt(c.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
+            f"drift {'on' if c.drift_q_um2_per_s3 > 0 else 'off'}, model sd {c.model_sd_um:.2f} um, "
+            f"gate {c.gate_sigma:g} sd, restart after {c.reaccept_after} agreeing refusals",
+        ]

@@ -39,9 +39,13 @@ class InputTerm(Channel):
     """One extra input and how it enters the elongation."""
 
     reference_mode: Literal["start", "fixed"] = Field(
-        "start", description="start: relative to the value at a cold start (each calibration run's "
-        "first sample; the runtime's first reading after a cold start); fixed: to `reference`")
-    reference: float = Field(description="the fixed reference; in start mode the calibration runs' mean start")
+        "start",
+        description="start: relative to the value at a cold start (each calibration run's "
+        "first sample; the runtime's first reading after a cold start); fixed: to `reference`",
+    )
+    reference: float = Field(
+        description="the fixed reference; in start mode the calibration runs' mean start"
+    )
     gain_um_per_unit: float
     tau_s: float = Field(ge=0, description="first-order time constant; 0 = static term")
 
@@ -60,7 +64,9 @@ class AugmentedModel(ModelBase):
     speed_model: ThermalModel
     inputs: tuple[InputTerm, ...] = Field(min_length=1)
     fallback: ThermalModel
-    selection: list[dict[str, Any]] = Field(default_factory=list, description="how the inputs were chosen")
+    selection: list[dict[str, Any]] = Field(
+        default_factory=list, description="how the inputs were chosen"
+    )
 
     @property
     def form(self) -> str:
@@ -78,8 +84,10 @@ class AugmentedModel(ModelBase):
 
     def references(self, first: Mapping[str, float]) -> dict[str, float]:
         """The reference of each input, given the values at a cold start."""
-        return {t.name: float(first[t.name]) if t.reference_mode == "start" else t.reference
-                for t in self.inputs}
+        return {
+            t.name: float(first[t.name]) if t.reference_mode == "start" else t.reference
+            for t in self.inputs
+        }
 
     def input_response(self, time_s: np.ndarray, inputs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Sum of the input terms over ``time_s`` (inputs held over each interval), each term at
@@ -99,21 +107,33 @@ class AugmentedModel(ModelBase):
             total += first_order(drive, np.diff(t, prepend=t[0]), term.tau_s, float(drive[0]))
         return total
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float | None = None) -> np.ndarray:
+    def simulate_um(
+        self,
+        speed_rpm: np.ndarray,
+        time_s: np.ndarray,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        initial_um: float | None = None,
+    ) -> np.ndarray:
         """Free-run elongation; the speed part starts from ``initial_um`` (None: 0) less the input terms'
         share at the first sample (each input term starts at its equilibrium)."""
         response = self.input_response(time_s, inputs or {})
-        state = self.speed_model.state_at((initial_um or 0.0) - float(response[0]), float(np.abs(speed_rpm[0])))
-        base = self.speed_model.simulate(np.asarray(speed_rpm, float), np.asarray(time_s, float),
-                                         state).elongation_um
+        state = self.speed_model.state_at(
+            (initial_um or 0.0) - float(response[0]), float(np.abs(speed_rpm[0]))
+        )
+        base = self.speed_model.simulate(
+            np.asarray(speed_rpm, float), np.asarray(time_s, float), state
+        ).elongation_um
         return base + response
 
     # -- the runtime's step ---------------------------------------------------------
 
-    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
-              references: Mapping[str, float] | None = None) -> AugmentedState:
+    def start(
+        self,
+        elongation_um: float | None,
+        speed_rpm: float,
+        inputs: Mapping[str, float] | None = None,
+        references: Mapping[str, float] | None = None,
+    ) -> AugmentedState:
         """Input terms at their equilibrium for ``inputs``, the speed part at ``elongation_um`` less
         their share. Without ``references`` these inputs are the cold start's (:meth:`references`)."""
         if inputs is None:
@@ -124,8 +144,13 @@ class AugmentedModel(ModelBase):
         speed = self.speed_model.state_at(elongation_um - float(sum(x)), speed_rpm)
         return AugmentedState(speed, x, refs)
 
-    def step(self, state: AugmentedState, speed_rpm: float, dt_s: float,
-             inputs: Mapping[str, float] | None = None) -> AugmentedState:
+    def step(
+        self,
+        state: AugmentedState,
+        speed_rpm: float,
+        dt_s: float,
+        inputs: Mapping[str, float] | None = None,
+    ) -> AugmentedState:
         if inputs is None:
             raise ModelError(f"the model needs inputs {', '.join(self.input_names)} to step")
         dt_s = require_dt(dt_s)
@@ -138,14 +163,19 @@ class AugmentedModel(ModelBase):
         return AugmentedState(speed_state, tuple(x), refs)
 
     def state_dict(self, state: AugmentedState) -> dict[str, Any]:
-        return {"speed": self.speed_model.state_dict(state.speed), "inputs_um": list(state.inputs),
-                "references": dict(state.references)}
+        return {
+            "speed": self.speed_model.state_dict(state.speed),
+            "inputs_um": list(state.inputs),
+            "references": dict(state.references),
+        }
 
     def state_from_dict(self, data: Mapping[str, Any]) -> AugmentedState:
         try:
             x = saved_numbers("inputs_um", data["inputs_um"])
-            refs = {t.name: saved_numbers("references", [data["references"][t.name]], 1e9)[0]
-                    for t in self.inputs}
+            refs = {
+                t.name: saved_numbers("references", [data["references"][t.name]], 1e9)[0]
+                for t in self.inputs
+            }
             speed = self.speed_model.state_from_dict(data["speed"])
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved state is not a state of this model ({err})") from err
@@ -154,12 +184,20 @@ class AugmentedModel(ModelBase):
         return AugmentedState(speed, x, refs)
 
     def describe(self) -> list[str]:
-        lines = [f"{self.format}, inputs {', '.join(self.input_names)}, spindle {self.spindle_id!r}"]
+        lines = [
+            f"{self.format}, inputs {', '.join(self.input_names)}, spindle {self.spindle_id!r}"
+        ]
         for t in self.inputs:
             dyn = "static" if t.tau_s == 0 else f"lag {t.tau_s:g} s"
-            ref = "its value at a cold start" if t.reference_mode == "start" else f"{t.reference:g} {t.unit}"
-            lines.append(f"  {t.name}: {t.gain_um_per_unit:.4g} um/{t.unit}, {dyn}, relative to {ref}, "
-                         f"valid {t.valid_range[0]:.3g}..{t.valid_range[1]:.3g} {t.unit}")
+            ref = (
+                "its value at a cold start"
+                if t.reference_mode == "start"
+                else f"{t.reference:g} {t.unit}"
+            )
+            lines.append(
+                f"  {t.name}: {t.gain_um_per_unit:.4g} um/{t.unit}, {dyn}, relative to {ref}, "
+                f"valid {t.valid_range[0]:.3g}..{t.valid_range[1]:.3g} {t.unit}"
+            )
         lines += self.fit_lines()
         lines.append("  speed part (fitted with the inputs):")
         lines.append(f"  fallback when a sensor fails: {self.fallback.form} (speed only)")

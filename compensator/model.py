@@ -208,14 +208,25 @@ class ThermalModel(ModelBase):
     def fallback(self) -> None:
         return None
 
-    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
-              references: Mapping[str, float] | None = None) -> ModelState:
+    def start(
+        self,
+        elongation_um: float | None,
+        speed_rpm: float,
+        inputs: Mapping[str, float] | None = None,
+        references: Mapping[str, float] | None = None,
+    ) -> ModelState:
         return self.state_at(0.0 if elongation_um is None else elongation_um, speed_rpm)
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float | None = None) -> np.ndarray:
-        state = self.state_at(0.0 if initial_um is None else initial_um, float(np.asarray(speed_rpm, dtype=float)[0]))
+    def simulate_um(
+        self,
+        speed_rpm: np.ndarray,
+        time_s: np.ndarray,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        initial_um: float | None = None,
+    ) -> np.ndarray:
+        state = self.state_at(
+            0.0 if initial_um is None else initial_um, float(np.asarray(speed_rpm, dtype=float)[0])
+        )
         return self.simulate(speed_rpm, time_s, state).elongation_um
 
     def state_dict(self, state: ModelState) -> dict[str, Any]:
@@ -228,16 +239,22 @@ class ThermalModel(ModelBase):
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved state is not a state of this model ({err})") from err
         if len(thermal) != self.order:
-            raise ModelError(f"saved state has {len(thermal)} thermal states, the model {self.order}")
+            raise ModelError(
+                f"saved state has {len(thermal)} thermal states, the model {self.order}"
+            )
         return ModelState(thermal, 0.0)
 
     def describe(self) -> list[str]:
         lo, hi = self.speed_range_rpm
-        lines = [f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
-                 f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; stable over that range"]
+        lines = [
+            f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
+            f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; stable over that range",
+        ]
         for n in (0.0, hi / 2, hi):
             taus = ", ".join(f"{t / 60:.1f}" for t in self.time_constants_s(n))
-            lines.append(f"  at {n:7.0f} rpm: tau = {taus} min, equilibrium {self.steady_state_um(n):7.2f} um")
+            lines.append(
+                f"  at {n:7.0f} rpm: tau = {taus} min, equilibrium {self.steady_state_um(n):7.2f} um"
+            )
         lines += self.fit_lines()
         return lines
 
@@ -269,8 +286,13 @@ class ThermalModel(ModelBase):
 
     # -- stepping -----------------------------------------------------------
 
-    def step(self, state: ModelState, speed_rpm: float, dt_s: float,
-             inputs: Mapping[str, float] | None = None) -> ModelState:
+    def step(
+        self,
+        state: ModelState,
+        speed_rpm: float,
+        dt_s: float,
+        inputs: Mapping[str, float] | None = None,
+    ) -> ModelState:
         """Advance ``state`` by ``dt_s`` seconds with ``speed_rpm`` held.
 
         Negative speed is reverse rotation (|n| is used); NaN or inf raises
@@ -283,8 +305,10 @@ class ThermalModel(ModelBase):
             raise ModelError(
                 f"state has {len(state.thermal_um)} thermal states, model has {self.order}"
             )
-        new = tuple(rate_step(x, st.rate_per_s(n), st.generation(n), dt_s)
-                    for x, st in zip(state.thermal_um, self.states))
+        new = tuple(
+            rate_step(x, st.rate_per_s(n), st.generation(n), dt_s)
+            for x, st in zip(state.thermal_um, self.states)
+        )
         return ModelState(new, self.elastic(speed_rpm))
 
     def simulate(

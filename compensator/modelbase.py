@@ -68,7 +68,12 @@ def model_error(err: ValidationError) -> ModelError:
 def speed_range(value: tuple[float, float], *, positive_max: bool = False) -> tuple[float, float]:
     """A calibrated |speed| range: finite, 0 <= min <= max (and max > 0 if ``positive_max``)."""
     lo, hi = value
-    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo or (positive_max and hi <= 0):
+    if (
+        not (math.isfinite(lo) and math.isfinite(hi))
+        or lo < 0
+        or hi < lo
+        or (positive_max and hi <= 0)
+    ):
         need = "0 <= min <= max, max > 0" if positive_max else "0 <= min <= max"
         raise ValueError(f"speed_range_rpm must satisfy {need}, got {value}")
     return value
@@ -106,7 +111,15 @@ def check_inputs(channels: Sequence[Channel], values: Mapping[str, Any]) -> str 
     return None
 
 
-FIT_SUMMARY = ("method", "folds", "alpha", "cv_rms_um", "cv_max_abs_um", "nested_rms_um", "forward_rms_um")
+FIT_SUMMARY = (
+    "method",
+    "folds",
+    "alpha",
+    "cv_rms_um",
+    "cv_max_abs_um",
+    "nested_rms_um",
+    "forward_rms_um",
+)
 """The fit record's entries a model's description shows."""
 
 

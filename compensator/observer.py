@@ -48,23 +48,32 @@ class ObserverConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     bias_q_um2_per_s: float = Field(
-        25.0 / 3600.0, ge=0,
+        25.0 / 3600.0,
+        ge=0,
         description="random-walk intensity of the bias [um^2/s]; default (5 um)^2 per hour, the "
-                    "order of the speed-only residual's increments on the real record")
+        "order of the speed-only residual's increments on the real record",
+    )
     drift_q_um2_per_s3: float = Field(
-        0.0, ge=0, description="random-walk intensity of a drift rate [um^2/s^3]; 0 = no drift state")
+        0.0,
+        ge=0,
+        description="random-walk intensity of a drift rate [um^2/s^3]; 0 = no drift state",
+    )
     model_sd_um: float = Field(
-        0.0, ge=0, description="the model's fast misses, counted as measurement noise [um]")
+        0.0, ge=0, description="the model's fast misses, counted as measurement noise [um]"
+    )
     gate_sigma: float = Field(5.0, gt=0, description="innovations beyond this many sd are rejected")
     initial_bias_sd_um: float = Field(
-        30.0, gt=0, description="prior spread of the bias before the first measurement [um]")
+        30.0, gt=0, description="prior spread of the bias before the first measurement [um]"
+    )
     reaccept_after: int = Field(
-        2, ge=0, description="consecutive rejected measurements that agree restart the bias "
-                             "(0 = never)")
+        2,
+        ge=0,
+        description="consecutive rejected measurements that agree restart the bias (0 = never)",
+    )
 
     def noise_var_um2(self, sigma_um: float) -> float:
         """Variance of one measurement's error as the filter sees it [um^2]."""
-        return sigma_um * sigma_um + self.model_sd_um ** 2
+        return sigma_um * sigma_um + self.model_sd_um**2
 
 
 @dataclass(frozen=True)
@@ -79,8 +88,10 @@ class ObserverState:
 
     @classmethod
     def prior(cls, cfg: ObserverConfig) -> ObserverState:
-        v = cfg.initial_bias_sd_um ** 2
-        return cls(0.0, 0.0, ((v, 0.0), (0.0, 0.0 if cfg.drift_q_um2_per_s3 == 0 else v / 3600.0**2)))
+        v = cfg.initial_bias_sd_um**2
+        return cls(
+            0.0, 0.0, ((v, 0.0), (0.0, 0.0 if cfg.drift_q_um2_per_s3 == 0 else v / 3600.0**2))
+        )
 
     @property
     def bias_sd_um(self) -> float:
@@ -99,8 +110,9 @@ def time_update(cfg: ObserverConfig, z: ObserverState, dt_s: float) -> ObserverS
     f = np.array([[1.0, dt], [0.0, 1.0]])
     qb, qr = cfg.bias_q_um2_per_s, cfg.drift_q_um2_per_s3
     q = np.array([[qb * dt + qr * dt**3 / 3, qr * dt**2 / 2], [qr * dt**2 / 2, qr * dt]])
-    return ObserverState(z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s, _cov(f @ p @ f.T + q),
-                         z.pending_um)
+    return ObserverState(
+        z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s, _cov(f @ p @ f.T + q), z.pending_um
+    )
 
 
 @dataclass(frozen=True)
@@ -114,23 +126,29 @@ class Update:
     bias restarted from them."""
 
 
-def measurement_update(cfg: ObserverConfig, z: ObserverState, measured_um: float,
-                       predicted_um: float, sigma_um: float) -> Update:
+def measurement_update(
+    cfg: ObserverConfig, z: ObserverState, measured_um: float, predicted_um: float, sigma_um: float
+) -> Update:
     """Fuse one measurement of the elongation taken now; refused beyond the gate."""
     y = require_finite("measured_um", measured_um)
     s_model = require_finite("predicted_um", predicted_um)
     sigma = require_finite("sigma_um", sigma_um)
     if not 0 < sigma <= SIGMA_LIMIT_UM:
-        raise ModelError(f"a measurement's sigma must be > 0 and at most {SIGMA_LIMIT_UM:g} um, got {sigma:g}")
+        raise ModelError(
+            f"a measurement's sigma must be > 0 and at most {SIGMA_LIMIT_UM:g} um, got {sigma:g}"
+        )
     r = cfg.noise_var_um2(sigma)
     p = np.array(z.cov)
     nu = y - (s_model + z.bias_um)
     s = float(p[0, 0]) + r
     sd = math.sqrt(s)
     if abs(nu) > cfg.gate_sigma * sd:
-        pending = (*z.pending_um, y - s_model)[-max(cfg.reaccept_after, 1):]
-        agree = (cfg.reaccept_after > 0 and len(pending) == cfg.reaccept_after
-                 and max(pending) - min(pending) <= cfg.gate_sigma * math.sqrt(2.0 * r))
+        pending = (*z.pending_um, y - s_model)[-max(cfg.reaccept_after, 1) :]
+        agree = (
+            cfg.reaccept_after > 0
+            and len(pending) == cfg.reaccept_after
+            and max(pending) - min(pending) <= cfg.gate_sigma * math.sqrt(2.0 * r)
+        )
         if not agree:
             return Update(ObserverState(z.bias_um, z.drift_um_per_s, z.cov, pending), False, nu, sd)
         # a real change: start again from the agreeing measurements, drift forgotten
@@ -156,8 +174,14 @@ class Fusion:
     restarts: int = 0
 
 
-def fuse_series(cfg: ObserverConfig, time_s: np.ndarray, predicted_um: np.ndarray,
-                probe_time_s: np.ndarray, probe_um: np.ndarray, probe_sigma_um: np.ndarray) -> Fusion:
+def fuse_series(
+    cfg: ObserverConfig,
+    time_s: np.ndarray,
+    predicted_um: np.ndarray,
+    probe_time_s: np.ndarray,
+    probe_um: np.ndarray,
+    probe_sigma_um: np.ndarray,
+) -> Fusion:
     """The fused estimate at every sample of a log: the model's free run plus the bias
     estimated from the probes taken at or before each sample (causal). Probe times must
     increase; a probe between two samples meets the model interpolated to its instant."""
@@ -174,7 +198,9 @@ def fuse_series(cfg: ObserverConfig, time_s: np.ndarray, predicted_um: np.ndarra
         while j < pt.size and pt[j] <= t[k]:
             z = time_update(cfg, z, max(pt[j] - t_z, 0.0))
             t_z = max(t_z, float(pt[j]))
-            up = measurement_update(cfg, z, float(py[j]), float(np.interp(pt[j], t, s)), float(ps[j]))
+            up = measurement_update(
+                cfg, z, float(py[j]), float(np.interp(pt[j], t, s)), float(ps[j])
+            )
             z = up.state
             acc += up.accepted
             rej += not up.accepted

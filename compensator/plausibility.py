@@ -30,16 +30,20 @@ tolerances."""
 NOT_FOLLOWING_LIMIT = 0.5
 """Above this share of calibration rows flagged NOT_FOLLOWING, the run did not calibrate."""
 
-RULE = ("the steady growth relative to rest, g(n) = S(n) - S(0) from 0 to the calibrated top speed, "
-        "must rise with speed in the growth direction d the calibration measured: d*g never below "
-        "-tol, never more than tol below its maximum at a lower speed (below the top speed tol is "
-        "at least the model's held-out RMS), and above tol at the top speed when the calibration "
-        f"measured more than {MEASURED_FACTOR:g} tol; tol = max({MIN_TOLERANCE_UM:g} um, "
-        f"{TOLERANCE_SHARE:.0%} of max|g|); a model with inputs is judged by its speed-only fallback")
+RULE = (
+    "the steady growth relative to rest, g(n) = S(n) - S(0) from 0 to the calibrated top speed, "
+    "must rise with speed in the growth direction d the calibration measured: d*g never below "
+    "-tol, never more than tol below its maximum at a lower speed (below the top speed tol is "
+    "at least the model's held-out RMS), and above tol at the top speed when the calibration "
+    f"measured more than {MEASURED_FACTOR:g} tol; tol = max({MIN_TOLERANCE_UM:g} um, "
+    f"{TOLERANCE_SHARE:.0%} of max|g|); a model with inputs is judged by its speed-only fallback"
+)
 """The growth rule in one sentence, for reports."""
 
-NOT_FOLLOWING_RULE = (f"at most {NOT_FOLLOWING_LIMIT:.0%} of the calibration rows may be flagged "
-                      "NOT_FOLLOWING (the spindle not at the program's speed)")
+NOT_FOLLOWING_RULE = (
+    f"at most {NOT_FOLLOWING_LIMIT:.0%} of the calibration rows may be flagged "
+    "NOT_FOLLOWING (the spindle not at the program's speed)"
+)
 """The program rule in one sentence, for reports."""
 
 
@@ -77,8 +81,9 @@ def direction_of(value: Any) -> int | None:
     return 1 if value == 1 else -1 if value == -1 else None
 
 
-def steady_growth_refusal(model: Any, direction: int | None = None, *,
-                          measured_um: float | None = None) -> str | None:
+def steady_growth_refusal(
+    model: Any, direction: int | None = None, *, measured_um: float | None = None
+) -> str | None:
     """Why ``model``'s steady growth is one physics forbids, in one line, or None (see
     :data:`RULE`).
 
@@ -104,22 +109,32 @@ def steady_growth_refusal(model: Any, direction: int | None = None, *,
         allowed_um = np.full(POINTS, shape_tol_um)
         allowed_um[-1] = tol_um
         k = int(np.argmin(signed_um + allowed_um))  # the worst against what is allowed there
-        return (f"steady growth {growth_um[k]:+.2f} um at {speed_rpm[k]:.0f} rpm (relative to rest) runs "
-                f"against the {way} by more than the tolerance {allowed_um[k]:.2f} um: heat rises with "
-                "speed, so the steady growth must follow the growth direction")
+        return (
+            f"steady growth {growth_um[k]:+.2f} um at {speed_rpm[k]:.0f} rpm (relative to rest) runs "
+            f"against the {way} by more than the tolerance {allowed_um[k]:.2f} um: heat rises with "
+            "speed, so the steady growth must follow the growth direction"
+        )
     drop_um = np.maximum.accumulate(signed_um) - signed_um
     if drop_um.max() > shape_tol_um:
         k = int(np.argmax(drop_um))
         j = int(np.argmax(signed_um[: k + 1]))
-        return (f"steady growth falls {drop_um[k]:.2f} um as speed rises ({growth_um[j]:+.2f} um at "
-                f"{speed_rpm[j]:.0f} rpm, {growth_um[k]:+.2f} um at {speed_rpm[k]:.0f} rpm; {way}; "
-                f"tolerance {shape_tol_um:.2f} um): heat rises with speed, so the steady growth must too")
+        return (
+            f"steady growth falls {drop_um[k]:.2f} um as speed rises ({growth_um[j]:+.2f} um at "
+            f"{speed_rpm[j]:.0f} rpm, {growth_um[k]:+.2f} um at {speed_rpm[k]:.0f} rpm; {way}; "
+            f"tolerance {shape_tol_um:.2f} um): heat rises with speed, so the steady growth must too"
+        )
     measured = measured_um if measured_um is not None else getattr(judged, "max_measured_um", None)
-    if (measured is not None and math.isfinite(measured) and abs(measured) > MEASURED_FACTOR * tol_um
-            and signed_um[-1] <= tol_um):
-        return (f"steady growth only {growth_um[-1]:+.2f} um at the top speed {top_rpm:.0f} rpm ({way}; "
-                f"tolerance {tol_um:.2f} um) while the calibration measured up to {abs(measured):.2f} um: "
-                "the model does not grow with speed")
+    if (
+        measured is not None
+        and math.isfinite(measured)
+        and abs(measured) > MEASURED_FACTOR * tol_um
+        and signed_um[-1] <= tol_um
+    ):
+        return (
+            f"steady growth only {growth_um[-1]:+.2f} um at the top speed {top_rpm:.0f} rpm ({way}; "
+            f"tolerance {tol_um:.2f} um) while the calibration measured up to {abs(measured):.2f} um: "
+            "the model does not grow with speed"
+        )
     return None
 
 
@@ -130,7 +145,9 @@ def not_following_refusal(share: float | None) -> str | None:
     if isinstance(share, bool) or not isinstance(share, (int, float)) or not math.isfinite(share):
         return None
     if share > NOT_FOLLOWING_LIMIT:
-        return (f"{share:.1%} of the calibration rows did not follow the program's speed "
-                f"(NOT_FOLLOWING), over the limit of {NOT_FOLLOWING_LIMIT:.0%}: the machine ran something "
-                "else; record the calibration run again with the machine running its program")
+        return (
+            f"{share:.1%} of the calibration rows did not follow the program's speed "
+            f"(NOT_FOLLOWING), over the limit of {NOT_FOLLOWING_LIMIT:.0%}: the machine ran something "
+            "else; record the calibration run again with the machine running its program"
+        )
     return None

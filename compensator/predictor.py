@@ -56,21 +56,31 @@ class Predictor(Protocol):
         is not a number."""
         ...
 
-    def start(self, elongation_um: float | None, speed_rpm: float, inputs: Mapping[str, float] | None = None,
-              references: Mapping[str, float] | None = None) -> Any:
+    def start(
+        self,
+        elongation_um: float | None,
+        speed_rpm: float,
+        inputs: Mapping[str, float] | None = None,
+        references: Mapping[str, float] | None = None,
+    ) -> Any:
         """A state whose elongation is ``elongation_um`` (None: none measured, the model's own
         equilibrium); input terms at their equilibrium, relative to ``references`` (default: the
         model's own, or these values for a cold start)."""
         ...
 
-    def step(self, state: Any, speed_rpm: float, dt_s: float,
-             inputs: Mapping[str, float] | None = None) -> Any:
+    def step(
+        self, state: Any, speed_rpm: float, dt_s: float, inputs: Mapping[str, float] | None = None
+    ) -> Any:
         """Advance ``state`` by ``dt_s`` with the speed (and inputs) held over the step."""
         ...
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float | None = None) -> np.ndarray:
+    def simulate_um(
+        self,
+        speed_rpm: np.ndarray,
+        time_s: np.ndarray,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        initial_um: float | None = None,
+    ) -> np.ndarray:
         """Free run over a whole log; ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
         ``initial_um`` as ``elongation_um`` in :meth:`start`."""
         ...

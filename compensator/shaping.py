@@ -83,7 +83,9 @@ class TransientPolicy(BaseModel):
     mode: Literal["dual-slew", "slow", "hold"] = "dual-slew"
     speed_rate_rpm_per_s: float = Field(500.0, gt=0, description="slow/hold: |dn/dt| threshold")
     speed_step_rpm: float = Field(3000.0, gt=0, description="slow/hold: |n_k - n_{k-1}| threshold")
-    window_s: float = Field(60.0, ge=0, description="slow/hold: window length after the last trigger")
+    window_s: float = Field(
+        60.0, ge=0, description="slow/hold: window length after the last trigger"
+    )
     slow_period_s: float = Field(15.0, gt=0, description="slow: target refresh period")
     release_rate_um_per_s: float | None = Field(
         None, gt=0, description="slow/hold: rate inside and after a window; default max_rate/4"
@@ -116,15 +118,24 @@ class ShaperConfig(BaseModel):
 
     max_offset_um: float = Field(100.0, gt=0, description="clamp: |A| <= max_offset_um")
     max_rate_um_per_s: float = Field(
-        1.0, gt=0, description="slew limit while cutting (and always, unless the policy is dual-slew)")
+        1.0,
+        gt=0,
+        description="slew limit while cutting (and always, unless the policy is dual-slew)",
+    )
     not_cutting_rate_um_per_s: float | None = Field(
-        None, gt=0, description="dual-slew: slew limit while the tool is not cutting; default "
-        f"{NOT_CUTTING_RATE_UM_PER_S:g} um/s, or max_rate_um_per_s if that is higher")
+        None,
+        gt=0,
+        description="dual-slew: slew limit while the tool is not cutting; default "
+        f"{NOT_CUTTING_RATE_UM_PER_S:g} um/s, or max_rate_um_per_s if that is higher",
+    )
     deadband_um: float = Field(0.1, ge=0, description="no write for smaller changes")
     resolution_um: float = Field(
-        0.0, ge=0, description="one count of the controller's value [um] (0: continuous): the "
+        0.0,
+        ge=0,
+        description="one count of the controller's value [um] (0: continuous): the "
         "output moves in whole counts, a count only once the slew limit allows a whole one since "
-        "the last move (a controller profile sets it)")
+        "the last move (a controller profile sets it)",
+    )
     transient: TransientPolicy = TransientPolicy()
     cutting: CuttingSignal = CuttingSignal()
 
@@ -143,8 +154,10 @@ class ShaperConfig(BaseModel):
             raise ValueError("transient.release_rate_um_per_s must not exceed max_rate_um_per_s")
         nc = self.not_cutting_rate_um_per_s
         if nc is not None and nc < self.max_rate_um_per_s:
-            raise ValueError("not_cutting_rate_um_per_s must not be below max_rate_um_per_s "
-                             "(the slew limit while cutting)")
+            raise ValueError(
+                "not_cutting_rate_um_per_s must not be below max_rate_um_per_s "
+                "(the slew limit while cutting)"
+            )
         return self
 
     @property
@@ -175,9 +188,12 @@ class ShaperConfig(BaseModel):
         """The same limits under another transient policy (:data:`POLICIES`), for comparisons."""
         if policy not in POLICIES:
             raise ValueError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
-        change = {"slow-slew": {"enabled": False}, "dual-slew": {"enabled": True, "mode": "dual-slew"},
-                  "longer-cycle": {"enabled": True, "mode": "slow"},
-                  "hold": {"enabled": True, "mode": "hold"}}[policy]
+        change = {
+            "slow-slew": {"enabled": False},
+            "dual-slew": {"enabled": True, "mode": "dual-slew"},
+            "longer-cycle": {"enabled": True, "mode": "slow"},
+            "hold": {"enabled": True, "mode": "hold"},
+        }[policy]
         return self.model_copy(update={"transient": self.transient.model_copy(update=change)})
 
 
@@ -231,7 +247,12 @@ def initial_state(config: ShaperConfig, offset_um: float = 0.0) -> ShaperState:
 
 _DUAL, _WINDOWED, _ONE = 0, 1, 2  # how the policy moves the offset: by the cutting state,
 # in windows opened by speed changes (slow, hold), or at one rate
-_NO_FLAGS, _CLAMPED, _SLEWED, _DEADBAND = int(Flag.NONE), int(Flag.CLAMPED), int(Flag.SLEW_LIMITED), int(Flag.DEADBAND)
+_NO_FLAGS, _CLAMPED, _SLEWED, _DEADBAND = (
+    int(Flag.NONE),
+    int(Flag.CLAMPED),
+    int(Flag.SLEW_LIMITED),
+    int(Flag.DEADBAND),
+)
 _TRANSIENT, _RELEASING = int(Flag.TRANSIENT), int(Flag.RELEASING)
 
 
@@ -260,10 +281,23 @@ class _Limits:
 def _limits(config: ShaperConfig) -> _Limits:
     t, c = config.transient, config.cutting
     kind = _ONE if not t.enabled else _DUAL if t.mode == "dual-slew" else _WINDOWED
-    return _Limits(config.max_offset_um, config.max_rate_um_per_s, config.fast_rate_um_per_s,
-                   config.release_rate_um_per_s, config.deadband_um, kind, t.mode == "hold",
-                   t.speed_rate_rpm_per_s, t.speed_step_rpm, t.window_s, t.slow_period_s, c.settle_s,
-                   c.speed_tolerance_rpm, c.speed_tolerance_pct / 100.0, config.resolution_um)
+    return _Limits(
+        config.max_offset_um,
+        config.max_rate_um_per_s,
+        config.fast_rate_um_per_s,
+        config.release_rate_um_per_s,
+        config.deadband_um,
+        kind,
+        t.mode == "hold",
+        t.speed_rate_rpm_per_s,
+        t.speed_step_rpm,
+        t.window_s,
+        t.slow_period_s,
+        c.settle_s,
+        c.speed_tolerance_rpm,
+        c.speed_tolerance_pct / 100.0,
+        config.resolution_um,
+    )
 
 
 _WORDS = ("cutting", "clear", "window", "releasing", "tracking")
@@ -271,8 +305,9 @@ _WORDS = ("cutting", "clear", "window", "releasing", "tracking")
 _State = tuple  # ShaperState's fields, in order
 
 
-def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float,
-             cutting: bool | None) -> tuple[_State, int, bool, float, int, float]:
+def _advance(
+    lim: _Limits, st: _State, elongation_um: float, n: float, dt: float, cutting: bool | None
+) -> tuple[_State, int, bool, float, int, float]:
     """One sample over checked numbers (``n`` the speed's magnitude): the new state and the
     flags, the cutting state, the slew limit, the index of the policy's word and the desired
     (clamped) offset. The one transition of the shaper: :func:`shape` and :func:`shape_series`
@@ -287,14 +322,18 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
         desired, flags = -m, _CLAMPED
 
     # the cutting state inferred from the speed: held within the band for settle_s, and turning
-    tol = lim.tolerance_rpm if lim.tolerance_rpm > lim.tolerance_frac * n else lim.tolerance_frac * n
+    tol = (
+        lim.tolerance_rpm if lim.tolerance_rpm > lim.tolerance_frac * n else lim.tolerance_frac * n
+    )
     if ref is None:
         ref, settled = n, lim.settle_s  # before any sample: settled (it may be cutting)
     elif abs(n - ref) > tol:
         ref, settled = n, 0.0
     else:
         settled += dt
-    is_cutting = (n > lim.tolerance_rpm and settled >= lim.settle_s) if cutting is None else bool(cutting)
+    is_cutting = (
+        (n > lim.tolerance_rpm and settled >= lim.settle_s) if cutting is None else bool(cutting)
+    )
 
     window = 0.0
     in_transient = False
@@ -330,7 +369,11 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
     diff = target - y
     inside = -m <= y <= m
     q = lim.resolution
-    if diff == 0.0 or (abs(diff) < lim.deadband and inside) or (q and abs(diff) < q * 0.5 and inside):
+    if (
+        diff == 0.0
+        or (abs(diff) < lim.deadband and inside)
+        or (q and abs(diff) < q * 0.5 and inside)
+    ):
         new_y = y
         credit = 0.0
         if diff != 0.0:
@@ -351,8 +394,14 @@ def _advance(lim: _Limits, st: _State, elongation_um: float, n: float, dt: float
             new_y, credit = _on_grid(y, new_y, q, limit, m)
     if releasing and not in_transient and abs(desired - new_y) <= max(lim.deadband, 0.5 * q, 1e-9):
         releasing = False
-    return ((new_y, target, n, window, latch_age, releasing, ref, settled, credit), flags, is_cutting,
-            rate, word, desired)
+    return (
+        (new_y, target, n, window, latch_age, releasing, ref, settled, credit),
+        flags,
+        is_cutting,
+        rate,
+        word,
+        desired,
+    )
 
 
 def _on_grid(y: float, new_y: float, q: float, limit: float, m: float) -> tuple[float, float]:
@@ -377,21 +426,39 @@ def _on_grid(y: float, new_y: float, q: float, limit: float, m: float) -> tuple[
 
 
 def _as_tuple(state: ShaperState) -> _State:
-    return (state.output_um, state.target_um, state.speed_rpm, state.window_left_s, state.latch_age_s,
-            state.releasing, state.settle_speed_rpm, state.settled_s, state.slew_credit_um)
+    return (
+        state.output_um,
+        state.target_um,
+        state.speed_rpm,
+        state.window_left_s,
+        state.latch_age_s,
+        state.releasing,
+        state.settle_speed_rpm,
+        state.settled_s,
+        state.slew_credit_um,
+    )
 
 
-def shape(config: ShaperConfig, state: ShaperState, elongation_um: float, speed_rpm: float,
-          dt_s: float, cutting: bool | None = None) -> tuple[ShaperState, ShapedOffset]:
+def shape(
+    config: ShaperConfig,
+    state: ShaperState,
+    elongation_um: float,
+    speed_rpm: float,
+    dt_s: float,
+    cutting: bool | None = None,
+) -> tuple[ShaperState, ShapedOffset]:
     """One sample, ``dt_s`` seconds after the previous one: the new state and what to write.
     ``cutting``: the controller's signal, or None to infer it from the speed."""
     s = require_finite("elongation_um", elongation_um)
     n = speed_magnitude_rpm(speed_rpm)
     dt_s = require_dt(dt_s)
-    new, flags, is_cutting, rate, word, desired = _advance(_limits(config), _as_tuple(state), s, n, dt_s, cutting)
+    new, flags, is_cutting, rate, word, desired = _advance(
+        _limits(config), _as_tuple(state), s, n, dt_s, cutting
+    )
     y = state.output_um
-    return ShaperState(*new), ShapedOffset(new[0], new[0] != y, Flag(flags), desired, is_cutting, rate,
-                                           _WORDS[word])
+    return ShaperState(*new), ShapedOffset(
+        new[0], new[0] != y, Flag(flags), desired, is_cutting, rate, _WORDS[word]
+    )
 
 
 class OffsetShaper:
@@ -410,19 +477,26 @@ class OffsetShaper:
         """The offset the controller holds now, as far as the shaper knows."""
         return self._state.output_um
 
-    def update(self, elongation_um: float, speed_rpm: float, dt_s: float,
-               cutting: bool | None = None) -> ShapedOffset:
+    def update(
+        self, elongation_um: float, speed_rpm: float, dt_s: float, cutting: bool | None = None
+    ) -> ShapedOffset:
         """One sample: ``dt_s`` seconds after the previous call; ``cutting`` the controller's
         signal, or None to infer it from the speed."""
-        self._state, shaped = shape(self.config, self._state, elongation_um, speed_rpm, dt_s, cutting)
+        self._state, shaped = shape(
+            self.config, self._state, elongation_um, speed_rpm, dt_s, cutting
+        )
         return shaped
 
     def follow(self, other: OffsetShaper) -> None:
         """Go on with ``other``'s view of the speed (a reload): the speed it was settling at and
         for how long, and the last speed, so that the cutting state does not restart."""
         o = other.state
-        self._state = replace(self._state, speed_rpm=o.speed_rpm, settle_speed_rpm=o.settle_speed_rpm,
-                              settled_s=o.settled_s)
+        self._state = replace(
+            self._state,
+            speed_rpm=o.speed_rpm,
+            settle_speed_rpm=o.settle_speed_rpm,
+            settled_s=o.settled_s,
+        )
 
     def hold(self, offset_um: float) -> None:
         """The controller holds ``offset_um``, not what the shaper last produced (a write failed
@@ -445,9 +519,14 @@ class ShapedSeries:
     """The slew limit in force."""
 
 
-def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray,
-                 elongation_um: np.ndarray, initial_offset_um: float | None = None,
-                 cutting: np.ndarray | None = None) -> ShapedSeries:
+def shape_series(
+    config: ShaperConfig,
+    time_s: np.ndarray,
+    speed_rpm: np.ndarray,
+    elongation_um: np.ndarray,
+    initial_offset_um: float | None = None,
+    cutting: np.ndarray | None = None,
+) -> ShapedSeries:
     """The offsets a controller would hold over a whole log, with their flags, cutting state
     and slew limit.
 
@@ -466,7 +545,9 @@ def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray
     dt = np.diff(t, prepend=t[0])
     for name, values in (("time_s", t), ("speed_rpm", n), ("elongation_um", s)):
         if not np.isfinite(values).all():
-            raise NonFiniteInputError(f"{name} is not finite at sample {int(np.argmin(np.isfinite(values)))}")
+            raise NonFiniteInputError(
+                f"{name} is not finite at sample {int(np.argmin(np.isfinite(values)))}"
+            )
     if (dt < 0).any():
         raise NonFiniteInputError(f"time goes back at sample {int(np.argmax(dt < 0))}")
     if cutting is None:
@@ -475,8 +556,10 @@ def shape_series(config: ShaperConfig, time_s: np.ndarray, speed_rpm: np.ndarray
         raw = np.asarray(cutting, dtype=float)
         bad = ~(np.isnan(raw) | (raw == 0) | (raw == 1))
         if bad.any():
-            raise NonFiniteInputError(f"shape_series: cutting is {raw[bad][0]!r} at sample "
-                                f"{int(np.argmax(bad))}: 1, 0, or NaN (infer it from the speed)")
+            raise NonFiniteInputError(
+                f"shape_series: cutting is {raw[bad][0]!r} at sample "
+                f"{int(np.argmax(bad))}: 1, 0, or NaN (infer it from the speed)"
+            )
         cut = [None if v != v else v == 1.0 for v in raw.tolist()]
     start = -float(s[0]) if initial_offset_um is None else initial_offset_um
     lim = _limits(config)

@@ -29,8 +29,10 @@ class Program:
         """Speed held just before ``t_s`` (the segment containing ``t_s - 0``)."""
         edges = np.cumsum([d for d, _ in self.segments])
         k = int(np.searchsorted(edges, t_s, side="left"))
-        return float(self.segments[min(k, len(self.segments) - 1)][1]) if t_s > 0 else float(
-            self.segments[0][1]
+        return (
+            float(self.segments[min(k, len(self.segments) - 1)][1])
+            if t_s > 0
+            else float(self.segments[0][1])
         )
 
     def sample(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -50,8 +52,9 @@ class Program:
 MIN = 60.0
 
 
-def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0,
-                      step_min: float = 20.0) -> Program:
+def paper_calibration(
+    max_rpm: float = 27000.0, cooldown_min: float = 60.0, step_min: float = 20.0
+) -> Program:
     """Paper 001, Fig. 3, scaled to ``max_rpm`` (27 000 rpm in the paper) and in time to
     ``step_min`` per staircase step (20 min in the paper).
 
@@ -67,12 +70,17 @@ def paper_calibration(max_rpm: float = 27000.0, cooldown_min: float = 60.0,
     segs += [(10 * MIN, 6000.0), (15 * MIN, 21000.0), (10 * MIN, 9000.0), (15 * MIN, 24000.0)]
     if cooldown_min > 0:
         segs.append((cooldown_min * MIN, 0.0))
-    return Program("paper-calibration", tuple((d * c if i < 16 else d, s * k) for i, (d, s) in enumerate(segs)))
+    return Program(
+        "paper-calibration", tuple((d * c if i < 16 else d, s * k) for i, (d, s) in enumerate(segs))
+    )
 
 
 def random_validation(
-    max_rpm: float = 27000.0, seed: int = 1, duration_min: float = 240.0,
-    min_rpm_frac: float = 0.11, hold_min: tuple[float, float] = (2.0, 15.0),
+    max_rpm: float = 27000.0,
+    seed: int = 1,
+    duration_min: float = 240.0,
+    min_rpm_frac: float = 0.11,
+    hold_min: tuple[float, float] = (2.0, 15.0),
 ) -> Program:
     """Random speeds between ~3000 and ``max_rpm`` (paper 001 validated on
     3000-15 000-10 000 rpm), held 2-15 min, with a few stops."""
@@ -106,8 +114,11 @@ def job_shop_day(max_rpm: float = 27000.0, seed: int = 7, hours: float = 8.0) ->
             had_lunch = True
             continue
         d = float(rng.uniform(1.0, 20.0)) * MIN
-        s = float(np.round(rng.choice([0.25, 0.4, 0.55, 0.7, 0.85, 1.0]) * max_rpm
-                           * rng.uniform(0.9, 1.0), -2))
+        s = float(
+            np.round(
+                rng.choice([0.25, 0.4, 0.55, 0.7, 0.85, 1.0]) * max_rpm * rng.uniform(0.9, 1.0), -2
+            )
+        )
         segs.append((d, s))
         segs.append((float(rng.uniform(5, 30)), 0.0))  # tool change
         total += d

@@ -70,8 +70,9 @@ def _finite(values: Any) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
-def steady_range_um(gains: Any, speed_max_rpm: float,
-                    inputs: list[tuple[float, tuple[float, float]]]) -> float:
+def steady_range_um(
+    gains: Any, speed_max_rpm: float, inputs: list[tuple[float, tuple[float, float]]]
+) -> float:
     """Largest |steady elongation change| that steady gains on [n, n^2, inputs...] imply over
     0..``speed_max_rpm``, each input (reference, (min, max)) at the worse end of its range [um]:
     the bound the fit and the model file are both held to."""
@@ -96,7 +97,9 @@ class InputChannel(Channel):
             raise ValueError(f"input {self.name}: reference and ranges must be finite")
         (tlo, thi), (vlo, vhi) = self.trained_range, self.valid_range
         if not (vlo <= tlo <= thi <= vhi):
-            raise ValueError(f"input {self.name}: need valid min <= trained min <= trained max <= valid max")
+            raise ValueError(
+                f"input {self.name}: need valid min <= trained min <= trained max <= valid max"
+            )
         return self
 
 
@@ -113,19 +116,31 @@ class StateSpaceModel(ModelBase):
     format: Literal["thermocomp.state-space-model/1"] = STATE_SPACE_FORMAT
     form: str = Field("ridge", description="how it was fitted: ridge, exp-baseline, ...")
     fitted_dt_s: float = Field(gt=0, description="median sample period of the calibration data [s]")
-    speed_range_rpm: tuple[float, float] = Field(description="(min, max) |speed| seen in calibration [rpm]")
+    speed_range_rpm: tuple[float, float] = Field(
+        description="(min, max) |speed| seen in calibration [rpm]"
+    )
     taus_s: tuple[float, ...] = Field(min_length=1, description="time constant of each state [s]")
     drive_um: tuple[tuple[float, ...], ...] = Field(
-        description="B: per state, the gains on [n, n^2, inputs...] [um per krpm**p or per unit]")
+        description="B: per state, the gains on [n, n^2, inputs...] [um per krpm**p or per unit]"
+    )
     feedthrough_um: tuple[float, ...] = Field(description="D: static gains on [n, n^2, inputs...]")
     offset_um: float = Field(0.0, description="c: constant elongation [um]")
     inputs: tuple[InputChannel, ...] = ()
-    max_measured_um: float = Field(gt=0, description="largest |elongation| measured in calibration [um]")
+    max_measured_um: float = Field(
+        gt=0, description="largest |elongation| measured in calibration [um]"
+    )
     fallback: Fallback | None = Field(None, description="speed-only model used when an input fails")
-    extrapolation: Extrapolation = Field("linear", description="outside the trained input range: "
-                                         "linear, clip (hold at the trained end) or blend (toward the fallback)")
-    blend_span: float = Field(1.0, gt=0, le=1, description="blend: spans outside the trained range "
-                              "at which the fallback alone is used")
+    extrapolation: Extrapolation = Field(
+        "linear",
+        description="outside the trained input range: "
+        "linear, clip (hold at the trained end) or blend (toward the fallback)",
+    )
+    blend_span: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="blend: spans outside the trained range at which the fallback alone is used",
+    )
 
     @field_validator("speed_range_rpm")
     @classmethod
@@ -136,22 +151,32 @@ class StateSpaceModel(ModelBase):
     def _sane(self) -> StateSpaceModel:
         width = 2 + len(self.inputs)
         if len(self.drive_um) != len(self.taus_s):
-            raise ModelError(f"{len(self.drive_um)} drive rows for {len(self.taus_s)} time constants")
+            raise ModelError(
+                f"{len(self.drive_um)} drive rows for {len(self.taus_s)} time constants"
+            )
         for row in (*self.drive_um, self.feedthrough_um):
             if len(row) != width:
-                raise ModelError(f"a gain row has {len(row)} entries; speed n, n^2 and "
-                                 f"{len(self.inputs)} input(s) need {width}")
-        gains = [v for row in self.drive_um for v in row] + list(self.feedthrough_um) + [self.offset_um]
+                raise ModelError(
+                    f"a gain row has {len(row)} entries; speed n, n^2 and "
+                    f"{len(self.inputs)} input(s) need {width}"
+                )
+        gains = (
+            [v for row in self.drive_um for v in row] + list(self.feedthrough_um) + [self.offset_um]
+        )
         if not _finite(gains) or not math.isfinite(self.max_measured_um):
             raise ModelError("gains must be finite")
         for tau in self.taus_s:
             if not (math.isfinite(tau) and self.fitted_dt_s <= tau <= MAX_TAU_S):
-                raise ModelError(f"time constant {tau:g} s is outside {self.fitted_dt_s:g} s (the "
-                                 f"sample period) .. {MAX_TAU_S / 86400:g} days")
+                raise ModelError(
+                    f"time constant {tau:g} s is outside {self.fitted_dt_s:g} s (the "
+                    f"sample period) .. {MAX_TAU_S / 86400:g} days"
+                )
         steady = self.steady_range_um()
         if not steady <= GAIN_BOUND * self.max_measured_um:
-            raise ModelError(f"the gains imply a steady elongation of {steady:.4g} um, over "
-                             f"{GAIN_BOUND:g} x the largest measured ({self.max_measured_um:.4g} um)")
+            raise ModelError(
+                f"the gains imply a steady elongation of {steady:.4g} um, over "
+                f"{GAIN_BOUND:g} x the largest measured ({self.max_measured_um:.4g} um)"
+            )
         if self.fallback is not None and self.fallback.input_names:
             raise ModelError("the fallback must be a speed-only model")
         if self.fallback is not None and not self.inputs:
@@ -190,8 +215,11 @@ class StateSpaceModel(ModelBase):
 
     def steady_range_um(self) -> float:
         """Largest |steady elongation change| the gains imply over the trained ranges."""
-        return steady_range_um(self.total_gains(), self.speed_range_rpm[1],
-                               [(c.reference, c.trained_range) for c in self.inputs])
+        return steady_range_um(
+            self.total_gains(),
+            self.speed_range_rpm[1],
+            [(c.reference, c.trained_range) for c in self.inputs],
+        )
 
     def steady_state_um(self, speed_rpm: float, inputs: Mapping[str, float] | None = None) -> float:
         """Equilibrium elongation with ``speed_rpm`` held, inputs at ``inputs`` (default: at
@@ -226,8 +254,11 @@ class StateSpaceModel(ModelBase):
         if not self.inputs:
             return 0.0
         u = np.column_stack([np.atleast_1d(np.asarray(values[c.name], float)) for c in self.inputs])
-        d = distance_outside(u, np.array([c.trained_range[0] for c in self.inputs]),
-                             np.array([c.trained_range[1] for c in self.inputs]))
+        d = distance_outside(
+            u,
+            np.array([c.trained_range[0] for c in self.inputs]),
+            np.array([c.trained_range[1] for c in self.inputs]),
+        )
         return float(d[0]) if np.ndim(values[self.inputs[0].name]) == 0 else d
 
     def _weight(self, inputs: Mapping[str, float] | None) -> float:
@@ -237,7 +268,10 @@ class StateSpaceModel(ModelBase):
         return min(1.0, float(self.distance_outside(inputs)) / self.blend_span)
 
     def _signals(self, speed_rpm: float, inputs: Mapping[str, float] | None) -> np.ndarray:
-        n = min(speed_magnitude_rpm(speed_rpm), SPEED_CLIP * self.speed_range_rpm[1]) / SPEED_SCALE_RPM
+        n = (
+            min(speed_magnitude_rpm(speed_rpm), SPEED_CLIP * self.speed_range_rpm[1])
+            / SPEED_SCALE_RPM
+        )
         v = [n, n * n]
         for c in self.inputs:
             if inputs is None or c.name not in inputs:
@@ -249,9 +283,13 @@ class StateSpaceModel(ModelBase):
 
     # -- the Predictor interface -----------------------------------------------------------
 
-    def start(self, elongation_um: float | None, speed_rpm: float,
-              inputs: Mapping[str, float] | None = None,
-              references: Mapping[str, float] | None = None) -> StateSpaceState:
+    def start(
+        self,
+        elongation_um: float | None,
+        speed_rpm: float,
+        inputs: Mapping[str, float] | None = None,
+        references: Mapping[str, float] | None = None,
+    ) -> StateSpaceState:
         """Every state at equilibrium with ``speed_rpm`` and ``inputs``; ``elongation_um`` (None:
         none measured) minus that equilibrium goes to the unexplained part, which decays with the
         slowest time constant. ``references`` is ignored: this model's are absolute and stored."""
@@ -264,28 +302,51 @@ class StateSpaceModel(ModelBase):
         if self.extrapolation != "blend" or self.fallback is None:
             return StateSpaceState(tuple(float(e) for e in x), residual, static)
         # both start at a measured elongation, so the blend starts there too
-        return StateSpaceState(tuple(float(e) for e in x), residual, static,
-                               self.fallback.start(elongation_um, speed_rpm), self._weight(inputs))
+        return StateSpaceState(
+            tuple(float(e) for e in x),
+            residual,
+            static,
+            self.fallback.start(elongation_um, speed_rpm),
+            self._weight(inputs),
+        )
 
-    def step(self, state: StateSpaceState, speed_rpm: float, dt_s: float,
-             inputs: Mapping[str, float] | None = None) -> StateSpaceState:
+    def step(
+        self,
+        state: StateSpaceState,
+        speed_rpm: float,
+        dt_s: float,
+        inputs: Mapping[str, float] | None = None,
+    ) -> StateSpaceState:
         """Advance by ``dt_s`` with the speed and inputs held (exact zero-order hold)."""
         dt_s = require_dt(dt_s)
         if len(state.states_um) != self.order:
             raise ModelError(f"state has {len(state.states_um)} states, the model {self.order}")
         v = self._signals(speed_rpm, inputs)
-        x = tuple(lag_step(x, float(u), dt_s, tau)
-                  for x, u, tau in zip(state.states_um, self._b @ v, self.taus_s))
+        x = tuple(
+            lag_step(x, float(u), dt_s, tau)
+            for x, u, tau in zip(state.states_um, self._b @ v, self.taus_s)
+        )
         r = lag_step(state.residual_um, 0.0, dt_s, self._slowest_s)
         if self.extrapolation != "blend" or self.fallback is None:
             return StateSpaceState(x, r, float(self.offset_um + self._d @ v))
-        fb = state.fallback if state.fallback is not None else self.fallback.start(state.own_um, 0.0)
-        return StateSpaceState(x, r, float(self.offset_um + self._d @ v),
-                               self.fallback.step(fb, speed_rpm, dt_s), self._weight(inputs))
+        fb = (
+            state.fallback if state.fallback is not None else self.fallback.start(state.own_um, 0.0)
+        )
+        return StateSpaceState(
+            x,
+            r,
+            float(self.offset_um + self._d @ v),
+            self.fallback.step(fb, speed_rpm, dt_s),
+            self._weight(inputs),
+        )
 
-    def simulate_um(self, speed_rpm: np.ndarray, time_s: np.ndarray,
-                    inputs: Mapping[str, np.ndarray] | None = None,
-                    initial_um: float | None = None) -> np.ndarray:
+    def simulate_um(
+        self,
+        speed_rpm: np.ndarray,
+        time_s: np.ndarray,
+        inputs: Mapping[str, np.ndarray] | None = None,
+        initial_um: float | None = None,
+    ) -> np.ndarray:
         """Free run over a whole log, ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
         states at equilibrium with the first sample, ``initial_um`` as in :meth:`start`.
         Vectorised: one matrix product gives the static part and every state's drive, then one
@@ -337,9 +398,13 @@ class StateSpaceModel(ModelBase):
         for tau, drive in zip(self.taus_s, y[1:]):
             out += lag(steps, drive, tau)
         if initial_um is not None:
-            out += (require_finite("initial_um", initial_um) - out[0]) * decay(steps.time_s, self._slowest_s)
+            out += (require_finite("initial_um", initial_um) - out[0]) * decay(
+                steps.time_s, self._slowest_s
+            )
         if self.extrapolation == "blend" and self.fallback is not None:
-            w = np.minimum(self.distance_outside(dict(zip(self.input_names, logged))) / self.blend_span, 1.0)
+            w = np.minimum(
+                self.distance_outside(dict(zip(self.input_names, logged))) / self.blend_span, 1.0
+            )
             out += w * (self.fallback.simulate_um(sp, steps.time_s, None, initial_um) - out)
         return out
 
@@ -348,10 +413,15 @@ class StateSpaceModel(ModelBase):
             series(c.name, u, u.size)  # raises, naming the sample
 
     def state_dict(self, state: StateSpaceState) -> dict[str, Any]:
-        out = {"states_um": list(state.states_um), "residual_um": state.residual_um,
-               "static_um": state.static_um}
+        out = {
+            "states_um": list(state.states_um),
+            "residual_um": state.residual_um,
+            "static_um": state.static_um,
+        }
         if state.fallback is not None and self.fallback is not None:
-            out.update(fallback_state=self.fallback.state_dict(state.fallback), blend_weight=state.weight)
+            out.update(
+                fallback_state=self.fallback.state_dict(state.fallback), blend_weight=state.weight
+            )
         return out
 
     def state_from_dict(self, data: Mapping[str, Any]) -> StateSpaceState:
@@ -372,26 +442,37 @@ class StateSpaceModel(ModelBase):
     def describe(self) -> list[str]:
         lo, hi = self.speed_range_rpm
         taus = ", ".join(f"{t / 60:.1f}" for t in self.taus_s)
-        lines = [f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
-                 f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; {self.order} state(s), "
-                 f"tau = {taus} min; constant {self.offset_um:.2f} um",
-                 f"  steady elongation range {self.steady_range_um():.1f} um (bound {GAIN_BOUND:g} x "
-                 f"{self.max_measured_um:.1f} um measured)"]
+        lines = [
+            f"{self.format}, form {self.form}, spindle {self.spindle_id!r}, machine {self.machine_id!r}",
+            f"  fitted at {self.fitted_dt_s:g} s over {lo:.0f}..{hi:.0f} rpm; {self.order} state(s), "
+            f"tau = {taus} min; constant {self.offset_um:.2f} um",
+            f"  steady elongation range {self.steady_range_um():.1f} um (bound {GAIN_BOUND:g} x "
+            f"{self.max_measured_um:.1f} um measured)",
+        ]
         for n in (0.0, hi / 2, hi):
-            lines.append(f"  at {n:7.0f} rpm, inputs at their references: equilibrium "
-                         f"{self.steady_state_um(n):7.2f} um")
+            lines.append(
+                f"  at {n:7.0f} rpm, inputs at their references: equilibrium "
+                f"{self.steady_state_um(n):7.2f} um"
+            )
         g = self.total_gains()
         for gi, c in zip(g[2:], self.inputs):
-            lines.append(f"  {c.name}: {gi:+.3g} um/{c.unit} in steady state, reference {c.reference:.3f} "
-                         f"{c.unit}, trained {c.trained_range[0]:.3g}..{c.trained_range[1]:.3g}, "
-                         f"valid {c.valid_range[0]:.3g}..{c.valid_range[1]:.3g}")
+            lines.append(
+                f"  {c.name}: {gi:+.3g} um/{c.unit} in steady state, reference {c.reference:.3f} "
+                f"{c.unit}, trained {c.trained_range[0]:.3g}..{c.trained_range[1]:.3g}, "
+                f"valid {c.valid_range[0]:.3g}..{c.valid_range[1]:.3g}"
+            )
         lines += self.fit_lines()
         if self.fallback is not None:
             lines.append(f"  fallback when an input fails: {self.fallback.form} (speed only)")
         if self.inputs:
-            how = {"linear": "the gains carried on to the valid range", "clip": "each input held at its trained end",
-                   "blend": f"moved toward the fallback, all of it {self.blend_span:g} span(s) out"}
-            lines.append(f"  outside the trained range: {self.extrapolation} ({how[self.extrapolation]})")
+            how = {
+                "linear": "the gains carried on to the valid range",
+                "clip": "each input held at its trained end",
+                "blend": f"moved toward the fallback, all of it {self.blend_span:g} span(s) out",
+            }
+            lines.append(
+                f"  outside the trained range: {self.extrapolation} ({how[self.extrapolation]})"
+            )
         return lines
 
 
@@ -423,5 +504,12 @@ class StateSpaceState:
         return (1.0 - self.weight) * self.own_um + self.weight * float(self.fallback.elongation_um)
 
 
-__all__ = ["GAIN_BOUND", "MAX_TAU_S", "MODEL_FORMAT", "STATE_SPACE_FORMAT", "InputChannel",
-           "StateSpaceModel", "StateSpaceState"]
+__all__ = [
+    "GAIN_BOUND",
+    "MAX_TAU_S",
+    "MODEL_FORMAT",
+    "STATE_SPACE_FORMAT",
+    "InputChannel",
+    "StateSpaceModel",
+    "StateSpaceState",
+]

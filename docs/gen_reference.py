@@ -29,6 +29,7 @@ PAGES = {
 
 # -- configuration ---------------------------------------------------------------------------
 
+
 def _type_name(annotation: Any) -> str:
     """A short readable type: ``float``, ``float | None``, ``"clamp" | "extrapolate"``."""
     origin = typing.get_origin(annotation)
@@ -47,8 +48,14 @@ def _type_name(annotation: Any) -> str:
     if annotation is type(None):
         return "none"
     if isinstance(annotation, type):
-        return {"str": "string", "Path": "path", "bool": "boolean", "int": "integer",
-                "float": "number", "PosixPath": "path"}.get(annotation.__name__, annotation.__name__)
+        return {
+            "str": "string",
+            "Path": "path",
+            "bool": "boolean",
+            "int": "integer",
+            "float": "number",
+            "PosixPath": "path",
+        }.get(annotation.__name__, annotation.__name__)
     return str(annotation).replace("typing.", "")
 
 
@@ -171,20 +178,26 @@ def _table(model: type, section: str, out: list[str], seen: set[str]) -> list[tu
         if entry is not None:
             keys = ", ".join(f"`{k}`" for k in entry.model_fields)
             desc = field.description or _doc_of(entry)
-            rows.append(f"| `{key}` | table of name = {{{keys}}} | {_default(field)} | {_cell(desc)} |")
+            rows.append(
+                f"| `{key}` | table of name = {{{keys}}} | {_default(field)} | {_cell(desc)} |"
+            )
             continue
         if inner:
             many = typing.get_origin(field.annotation) in (list, tuple)
             sub = f"{section}.{key}" if section else key
             subs.append((f"[[{sub}]]" if many else f"[{sub}]", inner[0]))
-            rows.append(f"| `{key}` | section [{sub}](#{_anchor(sub)}) | {_default(field)} | "
-                        f"{_cell(field.description or _doc_of(inner[0]))} |")
+            rows.append(
+                f"| `{key}` | section [{sub}](#{_anchor(sub)}) | {_default(field)} | "
+                f"{_cell(field.description or _doc_of(inner[0]))} |"
+            )
             continue
         desc = field.description or ""
         bounds = _bounds(field)
         if bounds:
             desc = f"{desc} ({bounds})" if desc else bounds
-        rows.append(f"| `{key}` | {_type_name(field.annotation)} | {_default(field)} | {_cell(desc)} |")
+        rows.append(
+            f"| `{key}` | {_type_name(field.annotation)} | {_default(field)} | {_cell(desc)} |"
+        )
     out += ["| key | type | default | meaning |", "| --- | --- | --- | --- |", *rows, ""]
     return subs
 
@@ -244,22 +257,27 @@ def _links_page_part() -> list[str]:
         try:
             model = settings_model(name)
         except Exception as err:  # a backend whose module cannot be imported here
-            out += [f"### `type = \"{name}\"`", "", f"(not importable at build time: {err})", ""]
+            out += [f'### `type = "{name}"`', "", f"(not importable at build time: {err})", ""]
             continue
-        out += [f"### `type = \"{name}\"` {{#adapter-{name}}}", ""]
+        out += [f'### `type = "{name}"` {{#adapter-{name}}}', ""]
         if model is None:
             out += ["No options of its own.", ""]
             continue
         _table(model, "", out, set())
-    out += ["## `[cooling.chiller]`: the chiller link {#section-cooling-chiller}", "",
-            "A `type` key names the backend; its options follow.", ""]
+    out += [
+        "## `[cooling.chiller]`: the chiller link {#section-cooling-chiller}",
+        "",
+        "A `type` key names the backend; its options follow.",
+        "",
+    ]
     for name, cls in CHILLERS.items():
-        out += [f"### `type = \"{name}\"` {{#chiller-{name}}}", ""]
+        out += [f'### `type = "{name}"` {{#chiller-{name}}}', ""]
         _table(cls.Settings, "", out, set())
     return out
 
 
 # -- command line ----------------------------------------------------------------------------
+
 
 def _subparsers(parser: argparse.ArgumentParser) -> list[tuple[str, str, argparse.ArgumentParser]]:
     """(name, help, parser) of each visible subcommand, in the order argparse lists them."""
@@ -303,15 +321,20 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
         if action.choices and not isinstance(action.choices, dict) and "%(choices)" not in raw:
             text += " (one of: " + ", ".join(f"`{c}`" for c in action.choices) + ")"
         default = action.default
-        if (action.option_strings and default not in (None, False, argparse.SUPPRESS)
-                and action.nargs != 0 and "default" not in text):
+        if (
+            action.option_strings
+            and default not in (None, False, argparse.SUPPRESS)
+            and action.nargs != 0
+            and "default" not in text
+        ):
             text += f" (default: `{default}`)"
         rows.append(f"| {names} | {_cell(text)} |")
     return rows
 
 
-def _cli_section(name: str, help_: str, parser: argparse.ArgumentParser, depth: int,
-                 out: list[str]) -> None:
+def _cli_section(
+    name: str, help_: str, parser: argparse.ArgumentParser, depth: int, out: list[str]
+) -> None:
     anchor = parser.prog.replace(" ", "-")
     out += [f"{'#' * depth} `{parser.prog}` {{#{anchor}}}", ""]
     text = parser.description or help_
@@ -364,6 +387,7 @@ def cli_page() -> str:
 
 # -- the example files -----------------------------------------------------------------------
 
+
 def examples_page() -> str:
     ex = ROOT / "examples"
     out = [
@@ -379,8 +403,14 @@ def examples_page() -> str:
     for path in files:
         rel = path.relative_to(ex)
         anchor = str(rel).replace("/", "-").replace(".", "").replace("_", "-").lower()
-        out += [f"## `{rel}` {{#{anchor}}}", "", f"```{lang.get(path.suffix, 'text')}",
-                path.read_text().rstrip("\n"), "```", ""]
+        out += [
+            f"## `{rel}` {{#{anchor}}}",
+            "",
+            f"```{lang.get(path.suffix, 'text')}",
+            path.read_text().rstrip("\n"),
+            "```",
+            "",
+        ]
     return "\n".join(out) + "\n"
 
 
@@ -388,6 +418,7 @@ GENERATORS = {"config": config_page, "cli": cli_page, "examples": examples_page}
 
 
 # -- the MkDocs hook ---------------------------------------------------------------------------
+
 
 def on_files(files: Any, config: Any) -> Any:
     """Add the generated pages to the site."""

@@ -46,9 +46,11 @@ class SimSettings(AdapterSettings):
     seed: Annotated[int, Field(ge=0), Allowed("a whole number >= 0")] = 0
     time_scale: Positive = Field(60.0, description="simulated seconds per second")
     accel_rpm_per_s: Positive = Field(  # type: ignore[assignment]
-        None, description="how fast the drive changes speed; default the preset's")
+        None, description="how fast the drive changes speed; default the preset's"
+    )
     approach_s: Annotated[float, Field(ge=0), Allowed("a number >= 0 (seconds)")] = Field(  # type: ignore[assignment]
-        None, description="from at-speed to the first cut; default the preset's")
+        None, description="from at-speed to the first cut; default the preset's"
+    )
 
 
 class SimAdapter(Adapter):
@@ -74,24 +76,32 @@ class SimAdapter(Adapter):
         if machine is None:
             if preset not in PRESETS:
                 raise AdapterError(f"unknown sim preset {preset!r}; known: {', '.join(PRESETS)}")
-            drive = {k: v for k, v in (("accel_rpm_per_s", accel_rpm_per_s), ("approach_s", approach_s))
-                     if v is not None}
+            drive = {
+                k: v
+                for k, v in (("accel_rpm_per_s", accel_rpm_per_s), ("approach_s", approach_s))
+                if v is not None
+            }
             params = replace(PRESETS[preset], **drive)
             try:
                 prog = make_program(program, params.max_rpm, seed=seed) if program else None
             except KeyError as err:
                 raise AdapterError(str(err.args[0])) from err
             # a clock handed in (the runtime's) drives the plant too, so both share one time
-            machine = VirtualMachine(SpindlePlant(params, seed=seed), prog,
-                                     clock=scaling.get("clock") or SimClock(time_scale))
+            machine = VirtualMachine(
+                SpindlePlant(params, seed=seed),
+                prog,
+                clock=scaling.get("clock") or SimClock(time_scale),
+            )
         self.machine = machine
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
         """``sim://motorized-27k?program=job-shop-day&seed=3``; ``program=`` (empty): idle."""
         parts = urlsplit(url)
-        kw: dict[str, Any] = {"preset": parts.netloc or "motorized-27k",
-                              **dict(parse_qsl(parts.query, keep_blank_values=True))}
+        kw: dict[str, Any] = {
+            "preset": parts.netloc or "motorized-27k",
+            **dict(parse_qsl(parts.query, keep_blank_values=True)),
+        }
         if kw.get("program") == "":
             kw["program"] = None
         return kw

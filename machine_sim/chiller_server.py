@@ -66,9 +66,17 @@ class ChillerServer:
     that device instead. ``lock`` guards the plant (a new lock by default). :attr:`writes`
     counts the write requests that reached the set point, refused ones included."""
 
-    def __init__(self, plant: Any, *, lock: Any = None, device_id: int = 1,
-                 word_order: str = "big", refuse_writes: bool = False,
-                 serial_port: str | None = None, baudrate: int = 19200):
+    def __init__(
+        self,
+        plant: Any,
+        *,
+        lock: Any = None,
+        device_id: int = 1,
+        word_order: str = "big",
+        refuse_writes: bool = False,
+        serial_port: str | None = None,
+        baudrate: int = 19200,
+    ):
         if word_order not in ("big", "little"):
             raise ValueError("word_order is 'big' or 'little'")
         self.plant = plant
@@ -95,15 +103,18 @@ class ChillerServer:
             return self
         if self._loop is None:
             self._loop = asyncio.new_event_loop()
-            self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
-                                            name="modbus-chiller")
+            self._thread = threading.Thread(
+                target=self._loop.run_forever, daemon=True, name="modbus-chiller"
+            )
             self._thread.start()
 
         async def go() -> Any:
             from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 
             if self.serial_port is not None:
-                server = ModbusSerialServer(self._device(), port=self.serial_port, baudrate=self.baudrate)
+                server = ModbusSerialServer(
+                    self._device(), port=self.serial_port, baudrate=self.baudrate
+                )
             else:
                 # port 0 the first time: the system picks a free one, with no race for it
                 server = ModbusTcpServer(self._device(), address=(self.host, self.port))
@@ -147,8 +158,11 @@ class ChillerServer:
         bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
         # (coils, discrete inputs, holding registers, input registers); the gaps between the
         # blocks are illegal addresses
-        return SimDevice(self.device_id, action=self._action, simdata=(
-            bits, list(bits), [regs(0, 1), regs(10, 2)], [regs(0, 2), regs(10, 4)]))
+        return SimDevice(
+            self.device_id,
+            action=self._action,
+            simdata=(bits, list(bits), [regs(0, 1), regs(10, 2)], [regs(0, 2), regs(10, 4)]),
+        )
 
     def _f32(self, value_c: float) -> list[int]:
         raw = struct.pack(">f", value_c)
@@ -159,14 +173,21 @@ class ChillerServer:
         hi, lo = regs[::-1] if self.word_order == "little" else regs
         return struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0]
 
-    async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                      values: list[int] | None) -> Any:
+    async def _action(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int] | None,
+    ) -> Any:
         """pymodbus's hook on every access (in its loop thread): a read shows the plant as it
         is now; a write goes to the plant, and the register keeps what it took."""
         from pymodbus.constants import ExcCodes
 
         def put(table: dict[str, int], name: str, regs: list[int]) -> None:
-            registers[table[name] - start:table[name] - start + len(regs)] = regs
+            registers[table[name] - start : table[name] - start + len(regs)] = regs
 
         if values is None:
             with self.lock:
@@ -193,7 +214,7 @@ class ChillerServer:
         if address <= HOLDING["setpoint"] < end:
             wanted = _signed(values[HOLDING["setpoint"] - address]) / _PER_C
         elif address <= f32 and f32 + 1 < end:
-            wanted = self._from_f32(list(values[f32 - address:f32 - address + 2]))
+            wanted = self._from_f32(list(values[f32 - address : f32 - address + 2]))
         else:  # half a float32
             return ExcCodes.ILLEGAL_ADDRESS
         try:

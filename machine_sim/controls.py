@@ -100,7 +100,11 @@ class EmulatedControl:
             if reason:
                 self.refused += 1
                 self.last_refusal = reason
-                value = float(raw) if isinstance(raw, (int, float)) and not isinstance(raw, bool) else math.nan
+                value = (
+                    float(raw)
+                    if isinstance(raw, (int, float)) and not isinstance(raw, bool)
+                    else math.nan
+                )
                 self.writes.append(Write(t, value, False, reason))
                 return False
             self.held_raw = float(raw)
@@ -117,6 +121,8 @@ class EmulatedControl:
             target = self.held_um
             diff = target - self.applied_um
             step = math.inf if self.rate_um_per_s == math.inf else self.rate_um_per_s * dt
-            self.applied_um = target if abs(diff) <= step else self.applied_um + math.copysign(step, diff)
+            self.applied_um = (
+                target if abs(diff) <= step else self.applied_um + math.copysign(step, diff)
+            )
             if not self.machine.apply_offset(self.applied_um):  # never: check() keeps to its travel
                 raise RuntimeError(f"the virtual machine refused {self.applied_um} um")

@@ -48,7 +48,13 @@ from typing import Any, Protocol
 SYNC = b"\xa0\xa0\xa0\xa0"
 SERVER = 0x0002  # the origin of a reply (captures show 0x0002 and 0x0004)
 OPEN, OPEN_REPLY, CLOSE, CLOSE_REPLY, GENERIC, GENERIC_REPLY = (
-    0x0101, 0x0102, 0x0201, 0x0202, 0x2101, 0x2102)
+    0x0101,
+    0x0102,
+    0x0201,
+    0x0202,
+    0x2101,
+    0x2102,
+)
 READ_MACRO, WRITE_MACRO_DOUBLE, ACTS = 0x15, 0xA8, 0x25
 EW_OK, EW_FUNC, EW_LENGTH, EW_NUMBER, EW_DATA = 0, 1, 2, 3, 5
 COMMON = (range(100, 200), range(500, 1000))
@@ -114,9 +120,18 @@ class FocasServer:
     not; ``calls`` counts the requests by function; ``sessions`` and ``closes`` count the open
     and close requests."""
 
-    def __init__(self, control: Control, *, offset_macro: int = 500, ack_macro: int | None = None,
-                 speed_macro: int | None = None, refuse_in: str = "focas", acts: bool = True,
-                 host: str = "127.0.0.1", port: int = 0):
+    def __init__(
+        self,
+        control: Control,
+        *,
+        offset_macro: int = 500,
+        ack_macro: int | None = None,
+        speed_macro: int | None = None,
+        refuse_in: str = "focas",
+        acts: bool = True,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ):
         if refuse_in not in ("focas", "ladder"):
             raise ValueError(f"refuse_in is 'focas' or 'ladder', not {refuse_in!r}")
         self.control = control
@@ -160,8 +175,12 @@ class FocasServer:
         self._released.clear()
         self._server = Server((self.host, self.port), Handler)
         self.port = self._server.server_address[1]
-        self._thread = threading.Thread(target=self._server.serve_forever, name="focas-server",
-                                        kwargs={"poll_interval": 0.05}, daemon=True)
+        self._thread = threading.Thread(
+            target=self._server.serve_forever,
+            name="focas-server",
+            kwargs={"poll_interval": 0.05},
+            daemon=True,
+        )
         self._thread.start()
         return self
 
@@ -240,11 +259,12 @@ class FocasServer:
         count = struct.unpack(">H", body[:2])[0]
         replies, n = [], 2
         for _ in range(count):
-            size = struct.unpack(">H", body[n:n + 2])[0]
-            replies.append(self._command(body[n + 2:n + size]))
+            size = struct.unpack(">H", body[n : n + 2])[0]
+            replies.append(self._command(body[n + 2 : n + size]))
             n += size
         return struct.pack(">H", len(replies)) + b"".join(
-            struct.pack(">H", len(r) + 2) + r for r in replies)
+            struct.pack(">H", len(r) + 2) + r for r in replies
+        )
 
     def _command(self, sub: bytes) -> bytes:
         cmd = sub[:6]
@@ -280,7 +300,11 @@ class FocasServer:
 
     def _read(self, cmd: bytes, first: int, last: int) -> bytes:
         numbers = range(first, last + 1)
-        if not numbers or len(numbers) > 100 or not all(any(n in r for r in COMMON) for n in numbers):
+        if (
+            not numbers
+            or len(numbers) > 100
+            or not all(any(n in r for r in COMMON) for n in numbers)
+        ):
             return _reply(cmd, EW_NUMBER)
         return _reply(cmd, EW_OK, b"".join(encode_scaled(self._value(n)) for n in numbers))
 

@@ -85,7 +85,7 @@ class _Handler(socketserver.BaseRequestHandler):
                 buf += chunk
                 while b"\n" in buf or b"\r" in buf:
                     cut = min(i for i in (buf.find(b"\n"), buf.find(b"\r")) if i >= 0)
-                    line, buf = buf[:cut], buf[cut + 1:]
+                    line, buf = buf[:cut], buf[cut + 1 :]
                     text = line.decode("ascii", "replace").strip()
                     if not text:
                         continue
@@ -129,8 +129,9 @@ class HaasMdcServer:
     ):
         if style not in ("ngc", "framed"):
             raise ValueError(f"style must be 'ngc' or 'framed', not {style!r}")
-        if safe_point_every_s is not None and not (math.isfinite(safe_point_every_s)
-                                                   and safe_point_every_s > 0):
+        if safe_point_every_s is not None and not (
+            math.isfinite(safe_point_every_s) and safe_point_every_s > 0
+        ):
             raise ValueError(f"safe_point_every_s must be a number > 0, not {safe_point_every_s!r}")
         self.control = control
         self.offset_var = int(offset_var)
@@ -177,8 +178,12 @@ class HaasMdcServer:
         server.owner = self
         self._port = int(server.server_address[1])
         self._server = server
-        self._thread = threading.Thread(target=server.serve_forever, name="haas-mdc",
-                                        kwargs={"poll_interval": 0.05}, daemon=True)
+        self._thread = threading.Thread(
+            target=server.serve_forever,
+            name="haas-mdc",
+            kwargs={"poll_interval": 0.05},
+            daemon=True,
+        )
         self._thread.start()
         return self
 
@@ -257,7 +262,9 @@ class HaasMdcServer:
         if rpm != self._rpm:
             reasons.append("operation")
         every = self.safe_point_every_s
-        if every is not None and math.floor(now / every + 1e-9) > math.floor(self._synced_s / every + 1e-9):
+        if every is not None and math.floor(now / every + 1e-9) > math.floor(
+            self._synced_s / every + 1e-9
+        ):
             reasons.append("interval")
         self._rpm, self._synced_s = rpm, now
         if not reasons:
@@ -270,7 +277,9 @@ class HaasMdcServer:
         """A safe point now (the operator runs the macro, a tool change outside the program)."""
         self.control.sync()
         self.applied_raw = self._raw_of(self.control.applied_um)
-        self.safe_points.append(SafePoint(self.control.machine.plant.time_s, reason, self.applied_raw))
+        self.safe_points.append(
+            SafePoint(self.control.machine.plant.time_s, reason, self.applied_raw)
+        )
 
     # -- the protocol ------------------------------------------------------------------------
 

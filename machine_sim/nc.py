@@ -119,7 +119,9 @@ def _iso_block(m: _Machine, block: str, line: int, dialect: str) -> None:
                 return m.dwell(float(value), line)
             if arg == "P" and "." not in value:
                 return m.dwell(float(value) / 1000.0, line)
-            raise NcSyntaxError("Fanuc dwell is G04 X<seconds with a decimal point> or G04 P<ms>", line)
+            raise NcSyntaxError(
+                "Fanuc dwell is G04 X<seconds with a decimal point> or G04 P<ms>", line
+            )
         want = {"sinumerik": "F", "linuxcnc": "P"}[dialect]
         if arg != want:
             raise NcSyntaxError(f"dwell is G4 {want}<seconds> in {dialect}", line)
@@ -157,7 +159,9 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
             if pending_dwell is not None:
                 dm = re.match(rf"^CYCL DEF 9\.1 DWELL\s*({NUMBER})$", body)
                 if not dm:
-                    raise NcSyntaxError("CYCL DEF 9.0 must be followed by CYCL DEF 9.1 DWELL <s>", lineno)
+                    raise NcSyntaxError(
+                        "CYCL DEF 9.0 must be followed by CYCL DEF 9.1 DWELL <s>", lineno
+                    )
                 m.dwell(float(dm.group(1)), lineno)
                 pending_dwell = None
                 continue
@@ -203,8 +207,10 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
     if pending_dwell is not None:
         raise NcSyntaxError("CYCL DEF 9.0 without 9.1", pending_dwell)
     if not m.ended:
-        raise NcSyntaxError(f"no end of program ({'END PGM' if dialect == 'heidenhain' else 'M30/M2'})",
-                            len(text.splitlines()))
+        raise NcSyntaxError(
+            f"no end of program ({'END PGM' if dialect == 'heidenhain' else 'M30/M2'})",
+            len(text.splitlines()),
+        )
     if not m.segments:
         raise NcSyntaxError("the program has no dwell: it would take no time", 1)
     return Program(name, tuple(m.segments), tuple(m.probes))

@@ -309,7 +309,9 @@ class SpindlePlant:
             + self._walk_k
         )
 
-    def _transition(self, n_krpm: float, dt_s: float, rate_k_per_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _transition(
+        self, n_krpm: float, dt_s: float, rate_k_per_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         key = (round(n_krpm, 9), round(dt_s, 12), rate_k_per_s)
         hit = self._cache.get(key)
         if hit is None:
@@ -333,8 +335,10 @@ class SpindlePlant:
             self._speed_rpm = speed_rpm
             return
         p = self.params
-        self._walk_k += p.ambient_walk_k_per_sqrt_h * math.sqrt(dt_s / 3600.0) * float(
-            self._rng.standard_normal()
+        self._walk_k += (
+            p.ambient_walk_k_per_sqrt_h
+            * math.sqrt(dt_s / 3600.0)
+            * float(self._rng.standard_normal())
         )
         air = self.air_c(self.time_s + dt_s / 2)
         n_krpm = speed_krpm(speed_rpm)
@@ -371,12 +375,18 @@ class SpindlePlant:
         reached = need_s <= dt_s
         ramp_s = need_s if reached else dt_s
         if ramp_s > 0:
-            end = command_rpm if reached else now + math.copysign(self.params.accel_rpm_per_s * dt_s, gap)
+            end = (
+                command_rpm
+                if reached
+                else now + math.copysign(self.params.accel_rpm_per_s * dt_s, gap)
+            )
             self._ramp(now, end, ramp_s)
         if reached:
             self.advance(command_rpm, dt_s - ramp_s)
             held_s = dt_s - ramp_s  # at the commanded speed within this step
-            self._at_speed_s = held_s if ramp_s > 0 or self._at_speed_s < 0 else self._at_speed_s + held_s
+            self._at_speed_s = (
+                held_s if ramp_s > 0 or self._at_speed_s < 0 else self._at_speed_s + held_s
+            )
 
     def _ramp(self, start_rpm: float, end_rpm: float, duration_s: float) -> None:
         """The speed from ``start_rpm`` to ``end_rpm`` in a straight line over ``duration_s``."""
@@ -408,7 +418,9 @@ class SpindlePlant:
     def cutting(self) -> bool:
         """The tool is in the part: the spindle turns at its commanded speed and has done so
         for ``approach_s``."""
-        return self._command_rpm != 0 and self.at_speed and self._at_speed_s >= self.params.approach_s
+        return (
+            self._command_rpm != 0 and self.at_speed and self._at_speed_s >= self.params.approach_s
+        )
 
     def elastic_um(self, speed_rpm: float | None = None) -> float:
         n = speed_krpm(self._speed_rpm if speed_rpm is None else speed_rpm)
@@ -426,8 +438,12 @@ class SpindlePlant:
         noisy = true_um + p.noise_um * self._rng.standard_normal(np.shape(true_um))
         return np.round(noisy / p.quantum_um) * p.quantum_um if p.quantum_um > 0 else noisy
 
-    def run(self, times_s: np.ndarray, speeds_rpm: np.ndarray,
-            chiller_setpoint_c: np.ndarray | None = None) -> PlantRun:
+    def run(
+        self,
+        times_s: np.ndarray,
+        speeds_rpm: np.ndarray,
+        chiller_setpoint_c: np.ndarray | None = None,
+    ) -> PlantRun:
         """Drive the plant over a sampled program (speeds[k] commanded over (times[k-1],
         times[k]]). The run's speed is the actual speed at each sample, as a drive reports it:
         it ramps at ``accel_rpm_per_s``. ``chiller_setpoint_c[k]``, if given, is commanded over
@@ -457,8 +473,17 @@ class SpindlePlant:
             temps[k] = self.temps_c
             air[k] = self.air_c(self.time_s)
         measured = np.asarray(self.measure_um(true), dtype=float)
-        return PlantRun(t, actual, true, measured, temps, air, cutting, supply,
-                        commanded if sp is not None else None)
+        return PlantRun(
+            t,
+            actual,
+            true,
+            measured,
+            temps,
+            air,
+            cutting,
+            supply,
+            commanded if sp is not None else None,
+        )
 
     def heat_w(self, speed_rpm: float | np.ndarray) -> float | np.ndarray:
         """Total heat the spindle dissipates at a speed [W]: what the drive's load shows."""
@@ -481,7 +506,9 @@ class SpindlePlant:
             y = first_order(x, dt, lag_s, float(x[0])) + noise * rng.standard_normal(x.size)
             out[name] = np.round(y / step) * step
         load = 100.0 * self.heat_w(run.speed_rpm) / float(self.heat_w(self.params.max_rpm))
-        out["spindle_load_pct"] = np.round(np.clip(load + 0.5 * rng.standard_normal(load.size), 0, None), 1)
+        out["spindle_load_pct"] = np.round(
+            np.clip(load + 0.5 * rng.standard_normal(load.size), 0, None), 1
+        )
         return out
 
     def with_params(self, **changes: float) -> SpindlePlant:

@@ -54,7 +54,9 @@ class EmulatedPlc:
         if "offset" not in addresses or "speed" not in addresses:
             raise ValueError("an emulated PLC needs at least the offset and the speed addresses")
         self.control = control
-        self.addresses = {role: (a, _TYPES.get(t.upper(), t.upper())) for role, (a, t) in addresses.items()}
+        self.addresses = {
+            role: (a, _TYPES.get(t.upper(), t.upper())) for role, (a, t) in addresses.items()
+        }
         self.host = HOST
         self.port = free_port(HOST)
         self.running = False
@@ -135,11 +137,20 @@ class S7Plc(EmulatedPlc):
 
     protocol = "s7"
 
-    def __init__(self, control: EmulatedControl, *, offset_address: str = "DB100.DBD0",
-                 offset_type: str = "REAL", speed_address: str = "DB100.DBD4",
-                 speed_type: str = "REAL", held_address: str | None = "DB100.DBD8",
-                 held_type: str | None = None, cutting_address: str | None = "DB100.DBX12.0",
-                 cutting_type: str = "BOOL", db_size: int = 64):
+    def __init__(
+        self,
+        control: EmulatedControl,
+        *,
+        offset_address: str = "DB100.DBD0",
+        offset_type: str = "REAL",
+        speed_address: str = "DB100.DBD4",
+        speed_type: str = "REAL",
+        held_address: str | None = "DB100.DBD8",
+        held_type: str | None = None,
+        cutting_address: str | None = "DB100.DBX12.0",
+        cutting_type: str = "BOOL",
+        db_size: int = 64,
+    ):
         addresses = {"offset": (offset_address, offset_type), "speed": (speed_address, speed_type)}
         if held_address:
             addresses["held"] = (held_address, held_type or offset_type)
@@ -263,11 +274,22 @@ class ModbusTcpPlc(EmulatedPlc):
 
     protocol = "modbus-tcp"
 
-    def __init__(self, control: EmulatedControl, *, offset_address: str = "hr:0",
-                 offset_type: str = "REAL", speed_address: str = "ir:0", speed_type: str = "REAL",
-                 held_address: str | None = "ir:2", held_type: str | None = None,
-                 cutting_address: str | None = "di:0", cutting_type: str = "BOOL",
-                 device_id: int = 1, word_order: str = "big", size: int = 64):
+    def __init__(
+        self,
+        control: EmulatedControl,
+        *,
+        offset_address: str = "hr:0",
+        offset_type: str = "REAL",
+        speed_address: str = "ir:0",
+        speed_type: str = "REAL",
+        held_address: str | None = "ir:2",
+        held_type: str | None = None,
+        cutting_address: str | None = "di:0",
+        cutting_type: str = "BOOL",
+        device_id: int = 1,
+        word_order: str = "big",
+        size: int = 64,
+    ):
         addresses = {"offset": (offset_address, offset_type), "speed": (speed_address, speed_type)}
         if held_address:
             addresses["held"] = (held_address, held_type or offset_type)
@@ -297,7 +319,9 @@ class ModbusTcpPlc(EmulatedPlc):
             return [SimData(0, count=self.size, values=0, datatype=DataType.REGISTERS)]
 
         # (coils, discrete inputs, holding registers, input registers): four tables
-        return SimDevice(self.device_id, simdata=(block(True), block(True), block(False), block(False)))
+        return SimDevice(
+            self.device_id, simdata=(block(True), block(True), block(False), block(False))
+        )
 
     def _run(self, coro: Any) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(10)  # type: ignore[arg-type]
@@ -307,8 +331,9 @@ class ModbusTcpPlc(EmulatedPlc):
 
         if self._loop is None:
             self._loop = asyncio.new_event_loop()
-            self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
-                                            name="modbus-tcp-plc")
+            self._thread = threading.Thread(
+                target=self._loop.run_forever, daemon=True, name="modbus-tcp-plc"
+            )
             self._thread.start()
         memory = self._snapshot()
 
@@ -327,8 +352,9 @@ class ModbusTcpPlc(EmulatedPlc):
         out = {}
         for table, start in set(self._where.values()):
             count = 1 if table in ("coil", "di") else 4
-            out[table, start] = self._run(self.server.async_getValues(
-                self.device_id, _MB_READ_FC[table], start, count))
+            out[table, start] = self._run(
+                self.server.async_getValues(self.device_id, _MB_READ_FC[table], start, count)
+            )
         return out
 
     def _stop(self) -> None:
@@ -354,8 +380,13 @@ class ModbusTcpPlc(EmulatedPlc):
 
     def get(self, role: str) -> Any:
         table, start = self._where[role]
-        values = list(self._run(self.server.async_getValues(
-            self.device_id, _MB_READ_FC[table], start, self._width(role))))
+        values = list(
+            self._run(
+                self.server.async_getValues(
+                    self.device_id, _MB_READ_FC[table], start, self._width(role)
+                )
+            )
+        )
         if table in ("coil", "di"):
             return bool(values[0])
         if self.word_order == "little":
@@ -370,7 +401,7 @@ class ModbusTcpPlc(EmulatedPlc):
             regs: list[Any] = [bool(v)]
         else:
             raw = struct.pack(_MB_FMT[self.dtype[role]], v)
-            regs = [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
+            regs = [int.from_bytes(raw[i : i + 2], "big") for i in range(0, len(raw), 2)]
             if self.word_order == "little":
                 regs.reverse()
         self._run(self.server.async_setValues(self.device_id, _MB_WRITE_FC[table], start, regs))
@@ -407,9 +438,11 @@ def _ads_handler_class() -> type:
                 group, offset, length = struct.unpack("<III", data[:12])
                 if group != constants.ADSIGRP_SYM_RELEASEHND:
                     try:
-                        var = (self.get_variable_by_handle(offset)
-                               if group == constants.ADSIGRP_SYM_VALBYHND
-                               else self.get_variable_by_indices(group, offset))
+                        var = (
+                            self.get_variable_by_handle(offset)
+                            if group == constants.ADSIGRP_SYM_VALBYHND
+                            else self.get_variable_by_indices(group, offset)
+                        )
                     except KeyError:
                         return self._refuse(request, ADSERR_DEVICE_SYMBOLNOTFOUND)
                     if length != var.size:
@@ -439,11 +472,19 @@ class AdsPlc(EmulatedPlc):
 
     protocol = "ads"
 
-    def __init__(self, control: EmulatedControl, *, offset_address: str = "GVL_Thermo.nTempComp",
-                 offset_type: str = "DINT", speed_address: str = "GVL_Thermo.fSpeed",
-                 speed_type: str = "REAL", held_address: str | None = "GVL_Thermo.nTempCompHeld",
-                 held_type: str | None = None, cutting_address: str | None = "GVL_Thermo.bCutting",
-                 cutting_type: str = "BOOL"):
+    def __init__(
+        self,
+        control: EmulatedControl,
+        *,
+        offset_address: str = "GVL_Thermo.nTempComp",
+        offset_type: str = "DINT",
+        speed_address: str = "GVL_Thermo.fSpeed",
+        speed_type: str = "REAL",
+        held_address: str | None = "GVL_Thermo.nTempCompHeld",
+        held_type: str | None = None,
+        cutting_address: str | None = "GVL_Thermo.bCutting",
+        cutting_type: str = "BOOL",
+    ):
         addresses = {"offset": (offset_address, offset_type), "speed": (speed_address, speed_type)}
         if held_address:
             addresses["held"] = (held_address, held_type or offset_type)
@@ -453,15 +494,22 @@ class AdsPlc(EmulatedPlc):
         from pyads import constants
         from pyads.testserver import PLCVariable
 
-        ads_type = {"REAL": constants.ADST_REAL32, "LREAL": constants.ADST_REAL64,
-                    "DINT": constants.ADST_INT32, "INT": constants.ADST_INT16,
-                    "BOOL": constants.ADST_BIT}
+        ads_type = {
+            "REAL": constants.ADST_REAL32,
+            "LREAL": constants.ADST_REAL64,
+            "DINT": constants.ADST_INT32,
+            "INT": constants.ADST_INT16,
+            "BOOL": constants.ADST_BIT,
+        }
         self.handler = _ads_handler_class()()
         self.variables: dict[str, Any] = {}
         for role, (name, t) in self.addresses.items():
             index = _ADS_INDEX.fullmatch(name)
-            where = {} if index is None else {"index_group": int(index.group(1), 0),
-                                              "index_offset": int(index.group(2), 0)}
+            where = (
+                {}
+                if index is None
+                else {"index_group": int(index.group(1), 0), "index_offset": int(index.group(2), 0)}
+            )
             var = PLCVariable(name, struct.pack(_ADS_FMT[t], 0), ads_type[t], t, **where)
             self.handler.add_variable(var)
             self.variables[role] = var
@@ -470,8 +518,9 @@ class AdsPlc(EmulatedPlc):
     def _start(self) -> None:
         from pyads.testserver import AdsTestServer
 
-        server = AdsTestServer(handler=self.handler, ip_address=self.host, port=self.port,
-                               logging=False)
+        server = AdsTestServer(
+            handler=self.handler, ip_address=self.host, port=self.port, logging=False
+        )
         # it listens only once its thread runs: listen now, so that a client connecting at
         # once is not refused (a second listen() in the thread changes nothing)
         server.server.listen(5)
@@ -491,4 +540,6 @@ class AdsPlc(EmulatedPlc):
         return struct.unpack(_ADS_FMT[self.dtype[role]], self.variables[role].value)[0]
 
     def put(self, role: str, value: Any) -> None:
-        self.variables[role].value = struct.pack(_ADS_FMT[self.dtype[role]], self._number(role, value))
+        self.variables[role].value = struct.pack(
+            _ADS_FMT[self.dtype[role]], self._number(role, value)
+        )

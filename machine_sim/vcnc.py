@@ -138,7 +138,9 @@ class ToolSetter:
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"tool setter {name} must be a finite number >= 0, got {v}")
         if not (isinstance(self.touches, int) and 1 <= self.touches <= 10):
-            raise ValueError(f"tool setter touches must be a whole number from 1 to 10, got {self.touches!r}")
+            raise ValueError(
+                f"tool setter touches must be a whole number from 1 to 10, got {self.touches!r}"
+            )
 
     @property
     def cycle_s(self) -> float:
@@ -194,8 +196,10 @@ class VirtualMachine:
         self._hist: list[tuple[float, float, float, float, float, bool]] = []
         self._lock = threading.Lock()
         # the machine's own sensors (temperatures, load), lagged like the real ones
-        self._lagged = {name: float(plant.air_c(0) if node is None else plant.temps_c[node])
-                        for name, node, *_ in SENSORS}
+        self._lagged = {
+            name: float(plant.air_c(0) if node is None else plant.temps_c[node])
+            for name, node, *_ in SENSORS
+        }
         self._sensor_rng = np.random.default_rng(plant.seed + 104729)
         self.sensor_faults: dict[str, str] = {}  # name -> "nan" | "frozen"
         self._frozen: dict[str, float] = {}
@@ -296,8 +300,11 @@ class VirtualMachine:
         if self.program is None:
             return True
         # a probe stop at the program's end belongs to the program
-        return (not self._stop_running and self._stops_done >= len(self.program.probe_at_s)
-                and self.plant.time_s - self._program_start_s >= self.program.duration_s)
+        return (
+            not self._stop_running
+            and self._stops_done >= len(self.program.probe_at_s)
+            and self.plant.time_s - self._program_start_s >= self.program.duration_s
+        )
 
     @property
     def speed_rpm(self) -> float:
@@ -318,8 +325,12 @@ class VirtualMachine:
 
     def apply_offset(self, offset_um: object) -> bool:
         """Take a written offset, as a CNC would: False (and ignored) if not acceptable."""
-        if (isinstance(offset_um, (int, float)) and not isinstance(offset_um, bool)
-                and math.isfinite(offset_um) and abs(offset_um) <= OFFSET_LIMIT_UM):
+        if (
+            isinstance(offset_um, (int, float))
+            and not isinstance(offset_um, bool)
+            and math.isfinite(offset_um)
+            and abs(offset_um) <= OFFSET_LIMIT_UM
+        ):
             self.offset_um = float(offset_um)
             return True
         self.rejected_writes += 1
@@ -335,13 +346,28 @@ class VirtualMachine:
                 rpm = self.commanded_rpm(self.plant.time_s + h / 2)
                 self.plant.drive(rpm, h)  # the drive ramps to it
                 for name, node, lag_s, *_ in SENSORS:
-                    x = self.plant.air_c(self.plant.time_s) if node is None else self.plant.temps_c[node]
+                    x = (
+                        self.plant.air_c(self.plant.time_s)
+                        if node is None
+                        else self.plant.temps_c[node]
+                    )
                     self._lagged[name] = lag_step(self._lagged[name], float(x), h, lag_s)
                 true = self.plant.true_elongation_um()
                 meas = float(self.plant.measure_um(true))
-                self._hist.append((self.plant.time_s, abs(self.plant._speed_rpm), true, meas,
-                                   self.offset_um, self.cutting))
-                if self._probe_until_s is not None and self.plant.time_s >= self._probe_until_s - 1e-9:
+                self._hist.append(
+                    (
+                        self.plant.time_s,
+                        abs(self.plant._speed_rpm),
+                        true,
+                        meas,
+                        self.offset_um,
+                        self.cutting,
+                    )
+                )
+                if (
+                    self._probe_until_s is not None
+                    and self.plant.time_s >= self._probe_until_s - 1e-9
+                ):
                     self._finish_probe()
 
     def sensor_values(self) -> dict[str, float]:
@@ -350,8 +376,14 @@ class VirtualMachine:
         for name, _node, _lag, noise, step in SENSORS:
             v = self._lagged[name] + noise * float(self._sensor_rng.standard_normal())
             out[name] = round(v / step) * step
-        load = 100.0 * float(self.plant.heat_w(self.speed_rpm)) / float(self.plant.heat_w(self.plant.params.max_rpm))
-        out["spindle_load_pct"] = round(max(0.0, load + 0.5 * float(self._sensor_rng.standard_normal())), 1)
+        load = (
+            100.0
+            * float(self.plant.heat_w(self.speed_rpm))
+            / float(self.plant.heat_w(self.plant.params.max_rpm))
+        )
+        out["spindle_load_pct"] = round(
+            max(0.0, load + 0.5 * float(self._sensor_rng.standard_normal())), 1
+        )
         for name, mode in self.sensor_faults.items():
             if mode == "nan":
                 out[name] = math.nan
@@ -450,8 +482,12 @@ class VirtualCNC:
         if self.certificate and self.private_key:
             await server.load_certificate(self.certificate)
             await server.load_private_key(self.private_key)
-            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
-                                        ua.SecurityPolicyType.Basic256Sha256_Sign])
+            server.set_security_policy(
+                [
+                    ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+                    ua.SecurityPolicyType.Basic256Sha256_Sign,
+                ]
+            )
         else:
             server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         if self.users is not None:
@@ -473,7 +509,9 @@ class VirtualCNC:
             parent_path, _, name = path.rpartition("/")
             parent = await folder(parent_path)
             node = await parent.add_variable(
-                f"ns={self.ns};s={path}", f"{self.ns}:{name}", ua.Variant(0.0, ua.VariantType.Double)
+                f"ns={self.ns};s={path}",
+                f"{self.ns}:{name}",
+                ua.Variant(0.0, ua.VariantType.Double),
             )
             if key == "thermal_offset":
                 await node.set_writable()  # for every client, like the CNC's own variable
@@ -481,13 +519,20 @@ class VirtualCNC:
         for key, path in STATE_PATHS.items():
             parent_path, _, name = path.rpartition("/")
             self._nodes[key] = await (await folder(parent_path)).add_variable(
-                f"ns={self.ns};s={path}", f"{self.ns}:{name}", ua.Variant(False, ua.VariantType.Boolean))
+                f"ns={self.ns};s={path}",
+                f"{self.ns}:{name}",
+                ua.Variant(False, ua.VariantType.Boolean),
+            )
         for key, path in TOOL_SETTER_PATHS.items():
             parent_path, _, name = path.rpartition("/")
-            initial = (ua.Variant(0, ua.VariantType.UInt32) if key == "probe_sequence"
-                       else ua.Variant(0.0, ua.VariantType.Double))
+            initial = (
+                ua.Variant(0, ua.VariantType.UInt32)
+                if key == "probe_sequence"
+                else ua.Variant(0.0, ua.VariantType.Double)
+            )
             self._nodes[key] = await (await folder(parent_path)).add_variable(
-                f"ns={self.ns};s={path}", f"{self.ns}:{name}", initial)
+                f"ns={self.ns};s={path}", f"{self.ns}:{name}", initial
+            )
         machine = self.machine
 
         @uamethod
@@ -495,12 +540,19 @@ class VirtualCNC:
             return ua.Variant(machine.start_probe(), ua.VariantType.UInt32)
 
         await (await folder(PROBE_METHOD_PATH.rpartition("/")[0])).add_method(
-            f"ns={self.ns};s={PROBE_METHOD_PATH}", f"{self.ns}:Probe", probe, [], [ua.VariantType.UInt32])
+            f"ns={self.ns};s={PROBE_METHOD_PATH}",
+            f"{self.ns}:Probe",
+            probe,
+            [],
+            [ua.VariantType.UInt32],
+        )
         if self.sinumerik:
             await self._add_sinumerik(server, folder, ua, uamethod)
         start = await (await folder("/CncInterface/Simulation")).add_variable(
-            f"ns={self.ns};s={CYCLE_START_PATH}", f"{self.ns}:CycleStart",
-            ua.Variant(False, ua.VariantType.Boolean))
+            f"ns={self.ns};s={CYCLE_START_PATH}",
+            f"{self.ns}:CycleStart",
+            ua.Variant(False, ua.VariantType.Boolean),
+        )
         await start.set_writable()
         self._nodes["cycle_start"] = start
         # a controller that restarts has lost the variable: 0, whatever the machine held before
@@ -519,27 +571,39 @@ class VirtualCNC:
         SD43900 writable only with the SeaWrite right, and GiveUserAccess."""
 
         speed = await (await folder("/Channel/Spindle")).add_variable(
-            f"ns={self.ns};s={SINUMERIK_SPEED_NODE}", f"{self.ns}:actSpeed", ua.Variant(0.0, ua.VariantType.Double))
+            f"ns={self.ns};s={SINUMERIK_SPEED_NODE}",
+            f"{self.ns}:actSpeed",
+            ua.Variant(0.0, ua.VariantType.Double),
+        )
         sd = await (await folder("/NC/_N_AX_SEA_ACX")).add_variable(
-            f"ns={self.ns};s={SINUMERIK_SD43900_NODE}", f"{self.ns}:$SA_TEMP_COMP_ABS_VALUE",
-            ua.Variant(0.0, ua.VariantType.Double))
+            f"ns={self.ns};s={SINUMERIK_SD43900_NODE}",
+            f"{self.ns}:$SA_TEMP_COMP_ABS_VALUE",
+            ua.Variant(0.0, ua.VariantType.Double),
+        )
         await sd.set_writable()
         self._nodes["sinumerik_speed"] = speed
         self._nodes["sd43900"] = sd
         sd_id = sd.nodeid
         vcnc = self
-        internal = server.iserver.isession.user  # the server's own writes (publishing, a refusal's undo)
+        internal = (
+            server.iserver.isession.user
+        )  # the server's own writes (publishing, a refusal's undo)
 
         @uamethod
         def give_user_access(parent, user, realms):
             # "StateRead; SeaRead; SeaWrite": one call may grant several
             vcnc.rights.setdefault(str(user), set()).update(
-                r.strip() for r in str(realms).split(";") if r.strip())
+                r.strip() for r in str(realms).split(";") if r.strip()
+            )
             return ua.Variant(True, ua.VariantType.Boolean)
 
         method = await (await folder("/Methods")).add_method(
-            f"ns={self.ns};s={SINUMERIK_GIVE_ACCESS}", f"{self.ns}:GiveUserAccess", give_user_access,
-            [ua.VariantType.String, ua.VariantType.String], [ua.VariantType.Boolean])
+            f"ns={self.ns};s={SINUMERIK_GIVE_ACCESS}",
+            f"{self.ns}:GiveUserAccess",
+            give_user_access,
+            [ua.VariantType.String, ua.VariantType.String],
+            [ua.VariantType.Boolean],
+        )
         method_id = method.nodeid
         service = server.iserver.attribute_service
         plain_write = service.write
@@ -547,14 +611,25 @@ class VirtualCNC:
         async def write(params, user=None):
             # setting data take a write only from a user with the SeaWrite right
             name = getattr(user, "name", None)
-            allowed = user is None or user is internal or SEA_WRITE in vcnc.rights.get(name or "", set())
+            allowed = (
+                user is None or user is internal or SEA_WRITE in vcnc.rights.get(name or "", set())
+            )
             denied = [wv.NodeId == sd_id and not allowed for wv in params.NodesToWrite]
             if not any(denied):
-                return await plain_write(params, user=user) if user is not None else await plain_write(params)
+                return (
+                    await plain_write(params, user=user)
+                    if user is not None
+                    else await plain_write(params)
+                )
             vcnc.denied_writes += sum(denied)
             kept = [wv for wv, d in zip(params.NodesToWrite, denied) if not d]
-            done = iter(await plain_write(ua.WriteParameters(NodesToWrite=kept), user=user) if kept else [])
-            return [ua.StatusCode(ua.StatusCodes.BadUserAccessDenied) if d else next(done) for d in denied]
+            done = iter(
+                await plain_write(ua.WriteParameters(NodesToWrite=kept), user=user) if kept else []
+            )
+            return [
+                ua.StatusCode(ua.StatusCodes.BadUserAccessDenied) if d else next(done)
+                for d in denied
+            ]
 
         service.write = write
         iserver = server.iserver
@@ -566,11 +641,17 @@ class VirtualCNC:
 
             async def call(params):
                 # GiveUserAccess: the administrators only (the session's user, once activated)
-                if any(req.MethodId == method_id for req in params) and \
-                        getattr(session.user, "name", None) not in vcnc.admins:
+                if (
+                    any(req.MethodId == method_id for req in params)
+                    and getattr(session.user, "name", None) not in vcnc.admins
+                ):
                     # as SINUMERIK documents it: a caller who is no administrator
-                    return [ua.CallMethodResult(StatusCode=ua.StatusCode(ua.StatusCodes.BadInvalidArgument))
-                            for _ in params]
+                    return [
+                        ua.CallMethodResult(
+                            StatusCode=ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+                        )
+                        for _ in params
+                    ]
                 return await plain_call(params)
 
             session.call = call
@@ -631,18 +712,31 @@ class VirtualCNC:
         values.update(m.sensor_values())
         if self.sinumerik:
             values["sinumerik_speed"] = m.speed_rpm
+
         def with_status(key: str, variant: Any) -> Any:
             bad = self.failed.get(key)
-            return variant if bad is None else ua.DataValue(variant, ua.StatusCode(getattr(ua.StatusCodes, bad)))
+            return (
+                variant
+                if bad is None
+                else ua.DataValue(variant, ua.StatusCode(getattr(ua.StatusCodes, bad)))
+            )
 
         for key, v in values.items():
-            await self._nodes[key].write_value(with_status(key, ua.Variant(float(v), ua.VariantType.Double)))
+            await self._nodes[key].write_value(
+                with_status(key, ua.Variant(float(v), ua.VariantType.Double))
+            )
         for key, flag in (("at_speed", m.at_speed), ("cutting", m.cutting)):
-            await self._nodes[key].write_value(with_status(key, ua.Variant(bool(flag), ua.VariantType.Boolean)))
+            await self._nodes[key].write_value(
+                with_status(key, ua.Variant(bool(flag), ua.VariantType.Boolean))
+            )
         # as a probe cycle writes them: the value, then the counter
         seq, value, sigma = m.probe_sequence, m.probe_value_um, m.probe_sigma_um
-        await self._nodes["probe_measurement"].write_value(ua.Variant(float(value), ua.VariantType.Double))
-        await self._nodes["probe_sigma"].write_value(ua.Variant(float(sigma), ua.VariantType.Double))
+        await self._nodes["probe_measurement"].write_value(
+            ua.Variant(float(value), ua.VariantType.Double)
+        )
+        await self._nodes["probe_sigma"].write_value(
+            ua.Variant(float(sigma), ua.VariantType.Double)
+        )
         await self._nodes["probe_sequence"].write_value(ua.Variant(int(seq), ua.VariantType.UInt32))
 
 

@@ -11,8 +11,12 @@ import tomllib
 from pathlib import Path
 
 project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
-specs = list(project["dependencies"]) + [d for k, v in project["optional-dependencies"].items()
-                                         for d in v if not d.startswith("thermocomp")]
+specs = list(project["dependencies"]) + [
+    d
+    for k, v in project["optional-dependencies"].items()
+    for d in v
+    if not d.startswith("thermocomp")
+]
 off = []
 for spec in specs:
     m = re.match(r"\s*([A-Za-z0-9_.\-]+)\s*>=\s*([0-9][0-9.]*)", spec)
@@ -26,5 +30,7 @@ for spec in specs:
         off.append(f"{name}: declared >={floor}, installed {have}")
 for line in off:
     print(f"check-lowest: {line}", file=sys.stderr)
-print(f"check-lowest: {len(specs) - len(off)} of {len(specs)} direct dependencies at their lower bound")
+print(
+    f"check-lowest: {len(specs) - len(off)} of {len(specs)} direct dependencies at their lower bound"
+)
 sys.exit(1 if off else 0)

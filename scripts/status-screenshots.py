@@ -53,8 +53,13 @@ def free_port() -> int:
 
 def thermocomp(args: list[str], log: Path) -> subprocess.Popen:
     with log.open("a") as out:  # a file, not a pipe nobody reads
-        return subprocess.Popen([sys.executable, "-m", "thermocomp", *args], cwd=ROOT, stdout=out,
-                                stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        return subprocess.Popen(
+            [sys.executable, "-m", "thermocomp", *args],
+            cwd=ROOT,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
 
 
 def stop(proc: subprocess.Popen) -> None:
@@ -72,7 +77,9 @@ def wait(what: str, cond: Callable[[], object], procs: list[subprocess.Popen], l
     while time.monotonic() < end:
         for p in procs:
             if p.poll() is not None:
-                sys.exit(f"{what}: a process stopped (exit {p.returncode}):\n{log.read_text()[-3000:]}")
+                sys.exit(
+                    f"{what}: a process stopped (exit {p.returncode}):\n{log.read_text()[-3000:]}"
+                )
         try:
             got = cond()
         except OSError:
@@ -100,28 +107,53 @@ def points(url: str) -> int:
 
 def service_config(d: Path, opc_port: int, status_port: int) -> Path:
     p = d / "machine.toml"
-    p.write_text(f'state_dir = "{d / "state"}"\nwatchdog = false\ntime_scale = {TIME_SCALE}\n'
-                 f'[status]\nport = {status_port}\nhistory_every_s = 20\n'
-                 f'[[spindle]]\nname = "s1"\nmodel = "{MODEL}"\nperiod_s = 5.0\n'
-                 f'adapter = {{url = "opc.tcp://127.0.0.1:{opc_port}/thermocomp/virtual-cnc/", '
-                 'preset = "virtual-cnc", timeout_s = 2.0}\n'
-                 '[spindle.shaping]\nmax_offset_um = 60.0\nmax_rate_um_per_s = 2.0\n')
+    p.write_text(
+        f'state_dir = "{d / "state"}"\nwatchdog = false\ntime_scale = {TIME_SCALE}\n'
+        f"[status]\nport = {status_port}\nhistory_every_s = 20\n"
+        f'[[spindle]]\nname = "s1"\nmodel = "{MODEL}"\nperiod_s = 5.0\n'
+        f'adapter = {{url = "opc.tcp://127.0.0.1:{opc_port}/thermocomp/virtual-cnc/", '
+        'preset = "virtual-cnc", timeout_s = 2.0}\n'
+        "[spindle.shaping]\nmax_offset_um = 60.0\nmax_rate_um_per_s = 2.0\n"
+    )
     return p
 
 
 def shoot(chromium: str, url: str, out: Path, d: Path) -> None:
     """The page as a browser shows it after a few polls (virtual time: no wall-clock wait), its
     plot over the last hour."""
-    subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                    "--no-first-run", "--disable-background-networking", "--disable-component-update",
-                    "--no-proxy-server", f"--user-data-dir={d / 'chromium'}", "--window-size=1280,800",
-                    "--virtual-time-budget=10000", f"--screenshot={out}", url + "?h=1"],
-                   check=True, capture_output=True, timeout=120)
+    subprocess.run(
+        [
+            chromium,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--no-proxy-server",
+            f"--user-data-dir={d / 'chromium'}",
+            "--window-size=1280,800",
+            "--virtual-time-budget=10000",
+            f"--screenshot={out}",
+            url + "?h=1",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
     print(f"wrote {out}")
 
 
-def scenario(name: str, out: Path, chromium: str, *, vcnc: list[str] | None, ready: Callable[[str], bool],
-             before_service_s: float = 0.0) -> None:
+def scenario(
+    name: str,
+    out: Path,
+    chromium: str,
+    *,
+    vcnc: list[str] | None,
+    ready: Callable[[str], bool],
+    before_service_s: float = 0.0,
+) -> None:
     with tempfile.TemporaryDirectory(prefix=f"thermocomp-{name}-") as tmp:
         d = Path(tmp)
         log = d / "processes.log"
@@ -131,11 +163,26 @@ def scenario(name: str, out: Path, chromium: str, *, vcnc: list[str] | None, rea
         try:
             if vcnc is not None:
                 args = [a.replace("{dir}", str(d)) for a in vcnc]
-                procs.append(thermocomp(["virtual-cnc", "--port", str(opc_port), "--time-scale", str(TIME_SCALE),
-                                         *args], log))
+                procs.append(
+                    thermocomp(
+                        [
+                            "virtual-cnc",
+                            "--port",
+                            str(opc_port),
+                            "--time-scale",
+                            str(TIME_SCALE),
+                            *args,
+                        ],
+                        log,
+                    )
+                )
                 wait("the virtual CNC", lambda: listening(opc_port), procs, log)
-                time.sleep(before_service_s)  # the machine runs (and warms) before the service starts
-            procs.append(thermocomp(["run", "--config", str(service_config(d, opc_port, status_port))], log))
+                time.sleep(
+                    before_service_s
+                )  # the machine runs (and warms) before the service starts
+            procs.append(
+                thermocomp(["run", "--config", str(service_config(d, opc_port, status_port))], log)
+            )
             url = f"http://127.0.0.1:{status_port}/"
             wait(f"{name}: the status to show it", lambda: ready(url), procs, log)
             shoot(chromium, url, out, d)
@@ -146,7 +193,9 @@ def scenario(name: str, out: Path, chromium: str, *, vcnc: list[str] | None, rea
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for the PNGs (default docs/)")
+    ap.add_argument(
+        "--out", type=Path, default=ROOT / "docs", help="folder for the PNGs (default docs/)"
+    )
     ap.add_argument("--chromium", default="/usr/bin/chromium", help="the headless browser")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -154,17 +203,37 @@ def main() -> int:
     def spindle(url: str) -> dict:
         return status(url)["spindles"][0]
 
-    scenario("compensating", args.out / "status-compensating.png", args.chromium,
-             vcnc=["--program", "job-shop-day", "--seed", "3", "--wait-start", "--start-delay", "4"],
-             ready=lambda url: spindle(url)["state"] == "compensating" and not spindle(url)["alarms"]
-             and (spindle(url)["speed_rpm"] or 0) > 1000 and points(url) > 60)
-    scenario("link-down", args.out / "status-link-down.png", args.chromium, vcnc=None,
-             ready=lambda url: spindle(url)["state"] == "not writing" and spindle(url)["link"] != "connected"
-             and points(url) > 10)
-    scenario("cold-start", args.out / "status-cold-start.png", args.chromium,
-             vcnc=["--program", "{dir}/warm-up.ngc"],
-             before_service_s=30.0,
-             ready=lambda url: "COLD_START_TURNING" in spindle(url)["alarms"] and points(url) > 20)
+    scenario(
+        "compensating",
+        args.out / "status-compensating.png",
+        args.chromium,
+        vcnc=["--program", "job-shop-day", "--seed", "3", "--wait-start", "--start-delay", "4"],
+        ready=lambda url: (
+            spindle(url)["state"] == "compensating"
+            and not spindle(url)["alarms"]
+            and (spindle(url)["speed_rpm"] or 0) > 1000
+            and points(url) > 60
+        ),
+    )
+    scenario(
+        "link-down",
+        args.out / "status-link-down.png",
+        args.chromium,
+        vcnc=None,
+        ready=lambda url: (
+            spindle(url)["state"] == "not writing"
+            and spindle(url)["link"] != "connected"
+            and points(url) > 10
+        ),
+    )
+    scenario(
+        "cold-start",
+        args.out / "status-cold-start.png",
+        args.chromium,
+        vcnc=["--program", "{dir}/warm-up.ngc"],
+        before_service_s=30.0,
+        ready=lambda url: "COLD_START_TURNING" in spindle(url)["alarms"] and points(url) > 20,
+    )
     return 0
 
 

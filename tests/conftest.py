@@ -13,14 +13,22 @@ from compensator import ThermalModel, ThermalStateCoefficients
 # The modules with the longest tests, collected first: pytest-xdist hands tests out in collection
 # order and a worker can take over only tests not yet started, so a long test left to the end keeps
 # the run waiting on one core. Each module's tests stay together (their module fixtures).
-LONG_MODULES = ("test_cli.py", "test_learning.py", "test_cooling_paper.py", "test_service.py",
-                "test_closed_loop.py", "test_wizard.py", "test_identify.py")
+LONG_MODULES = (
+    "test_cli.py",
+    "test_learning.py",
+    "test_cooling_paper.py",
+    "test_service.py",
+    "test_closed_loop.py",
+    "test_wizard.py",
+    "test_identify.py",
+)
 
 
 def pytest_collection_modifyitems(session, config, items):
     def rank(item) -> int:
         name = Path(str(item.fspath)).name
         return LONG_MODULES.index(name) if name in LONG_MODULES else len(LONG_MODULES)
+
     items.sort(key=rank)  # stable: the rest keep their order
 
 
@@ -99,7 +107,9 @@ def calibrated_model(tmp_path_factory) -> Path:
 
     from compensator.io import save_model
 
-    model = identify_runs([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]).model
+    model = identify_runs(
+        [plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]
+    ).model
     path = tmp_path_factory.mktemp("calibrated-model") / "model.json"
     save_model(path, model)
     return path

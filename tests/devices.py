@@ -39,7 +39,9 @@ class PtyPair:
                 os.unlink(p)
         self.proc = subprocess.Popen(
             ["socat", f"pty,raw,echo=0,link={self.ctl}", f"pty,raw,echo=0,link={self.dev}"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         end = time.monotonic() + 10
         while not (os.path.exists(self.ctl) and os.path.exists(self.dev)):
             if time.monotonic() > end:
@@ -135,8 +137,13 @@ def haas_handler(regs: Registers, speed_var: int = 3027, offset_var: int = 10500
         m = re.match(r"^\?Q600 (\d+)$", text)
         if m:
             var = int(m.group(1))
-            value = regs.speed_rpm if var == speed_var else (regs.offset or 0.0) if var == offset_var \
+            value = (
+                regs.speed_rpm
+                if var == speed_var
+                else (regs.offset or 0.0)
+                if var == offset_var
                 else regs.macros.get(var, 0.0)
+            )
             return f">MACRO, {var}, {value:.6f}"
         m = re.match(r"^\?E(\d+) (\S+)$", text)
         if m:
@@ -145,6 +152,7 @@ def haas_handler(regs: Registers, speed_var: int = 3027, offset_var: int = 10500
             regs.offset = float(m.group(2))
             return ">!"
         return "?, UNKNOWN COMMAND"
+
     return handle
 
 
@@ -159,6 +167,7 @@ def line_handler(regs: Registers):
             regs.offset = float(m.group(1))
             return "OK"
         return "ERR unknown"
+
     return handle
 
 
@@ -177,7 +186,9 @@ class ModbusDevice:
         # Modbus data blocks count from 1: wire address 0 is block address 1
         self.ir = ModbusSequentialDataBlock(1, [0] * 16)
         self.hr = ModbusSequentialDataBlock(1, [0] * 16)
-        self.context = ModbusServerContext(devices={1: ModbusDeviceContext(ir=self.ir, hr=self.hr)}, single=False)
+        self.context = ModbusServerContext(
+            devices={1: ModbusDeviceContext(ir=self.ir, hr=self.hr)}, single=False
+        )
         self.loop = asyncio.new_event_loop()
         self.server = None
         self.retained: list[tuple[int, int, list[int]]] = []  # set_registers: (fc, address, regs)
@@ -243,8 +254,13 @@ class NodeOpcuaServer:
         assert (JS / "node_modules" / "node-opcua-server").is_dir(), "run scripts/system-deps.sh"
         self.port = port
         self.url = f"opc.tcp://127.0.0.1:{port}/thermocomp/node"
-        self.proc = subprocess.Popen(["node", str(JS / "server.mjs"), str(port)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.proc = subprocess.Popen(
+            ["node", str(JS / "server.mjs"), str(port)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
         self.lines: list[str] = []
         self._ready = threading.Event()
         threading.Thread(target=self._pump, daemon=True).start()

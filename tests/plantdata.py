@@ -42,7 +42,15 @@ def inputs_model(fit, spindle_id: str = "sim"):
     if fit.model.input_names:
         return fit.model
     ds = fit.dataset
-    res = ridge_bank.fit(ds, grids=[ridge_bank.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)],
-                         input_names=tuple(ds.inputs))
-    return res.to_model("ridge+inputs", units={n: unit_of(n) for n in ds.inputs}, fallback=fit.model,
-                        fit={}, spindle_id=spindle_id)
+    res = ridge_bank.fit(
+        ds,
+        grids=[ridge_bank.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, True)],
+        input_names=tuple(ds.inputs),
+    )
+    return res.to_model(
+        "ridge+inputs",
+        units={n: unit_of(n) for n in ds.inputs},
+        fallback=fit.model,
+        fit={},
+        spindle_id=spindle_id,
+    )

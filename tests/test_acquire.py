@@ -74,12 +74,24 @@ def rig(tmp_path):
 def recorder(rig, *, on_sample=None, start_now=None, **cfg):
     clock, vm, pty, amp, prog, tmp = rig
     ctl = SimAdapter(machine=vm)
-    sensor = AsciiSensor(pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock,
-                         backoff_s=0.0)
+    sensor = AsciiSensor(
+        pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0
+    )
     conf = AcquireConfig(rate_s=10.0, **cfg)
-    return Recorder(ctl, sensor, tmp / "run.csv", prog, max_rpm=MAX_RPM, config=conf, clock=clock,
-                    sleep=clock.sleep, on_sample=on_sample, metadata={"spindle_id": "t"}, wall=clock,
-                    start_now=start_now)
+    return Recorder(
+        ctl,
+        sensor,
+        tmp / "run.csv",
+        prog,
+        max_rpm=MAX_RPM,
+        config=conf,
+        clock=clock,
+        sleep=clock.sleep,
+        on_sample=on_sample,
+        metadata={"spindle_id": "t"},
+        wall=clock,
+        start_now=start_now,
+    )
 
 
 def at(seconds: float, action):
@@ -89,6 +101,7 @@ def at(seconds: float, action):
         if not done and sample.time_s >= seconds:
             done.append(True)
             action()
+
     return hook
 
 
@@ -110,7 +123,9 @@ def test_clean_recording_matches_the_plant(rig):
 def test_frozen_sensor_stops_with_a_clear_message_and_keeps_the_data(rig):
     clock, vm, pty, amp, prog, tmp = rig
     rec = recorder(rig, on_sample=at(1500, lambda: setattr(amp, "mode", "frozen")))
-    with pytest.raises(AcquisitionError, match=r"sensor frozen at .* check the amplifier and cable"):
+    with pytest.raises(
+        AcquisitionError, match=r"sensor frozen at .* check the amplifier and cable"
+    ):
         rec.run()
     log = read_run_log(tmp / "run.csv")
     assert log.time_s[-1] >= 1500 and np.all(np.diff(log.time_s) > 0)
@@ -274,8 +289,10 @@ def test_modbus_sensor_reads_an_input_register_and_its_overrange_code(tmp_path):
     dev = ModbusDevice(pty.dev)
     try:
         dev.set_input(2, [-1234])  # int16 counts of 0.1 um
-        s = open_sensor(f"serial://{pty.ctl}?protocol=modbus&baudrate=115200&register=2&type=int16"
-                        "&scale=0.1&saturated_raw=32767,-32768")
+        s = open_sensor(
+            f"serial://{pty.ctl}?protocol=modbus&baudrate=115200&register=2&type=int16"
+            "&scale=0.1&saturated_raw=32767,-32768"
+        )
         assert isinstance(s, ModbusSensor)
         with s:
             assert s.read_um() == pytest.approx(-123.4)
@@ -297,10 +314,21 @@ def test_the_start_timeout_counts_wall_seconds_from_this_recording(rig):
     rows = []
     for _ in range(2):
         ctl = SimAdapter(machine=vm)
-        sensor = AsciiSensor(pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0)
-        rec = Recorder(ctl, sensor, tmp / "run.csv", prog, max_rpm=MAX_RPM, clock=clock, sleep=clock.sleep,
-                       config=AcquireConfig(rate_s=10.0, start_timeout_s=20), wall=wall,
-                       on_sample=lambda s, r: rows.append(s.time_s))
+        sensor = AsciiSensor(
+            pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0
+        )
+        rec = Recorder(
+            ctl,
+            sensor,
+            tmp / "run.csv",
+            prog,
+            max_rpm=MAX_RPM,
+            clock=clock,
+            sleep=clock.sleep,
+            config=AcquireConfig(rate_s=10.0, start_timeout_s=20),
+            wall=wall,
+            on_sample=lambda s, r: rows.append(s.time_s),
+        )
         t0 = clock.t
         with pytest.raises(AcquisitionError, match="did not start within 20 s"):
             rec.run()

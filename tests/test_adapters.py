@@ -70,8 +70,18 @@ class Rig:
     outside_write: Callable[[float], None]  # someone else sets the controller's offset (its unit)
 
 
-BACKENDS = ["sim", "opcua-asyncua", "opcua-node", "haas", "line", "modbus", "focas", "plc-s7",
-            "plc-modbus-tcp", "plc-ads"]
+BACKENDS = [
+    "sim",
+    "opcua-asyncua",
+    "opcua-node",
+    "haas",
+    "line",
+    "modbus",
+    "focas",
+    "plc-s7",
+    "plc-modbus-tcp",
+    "plc-ads",
+]
 
 
 def opcua_write(url: str, node_id: str, value: float) -> None:
@@ -80,9 +90,14 @@ def opcua_write(url: str, node_id: str, value: float) -> None:
     from asyncua.sync import Client
 
     with Client(url, timeout=10) as c:
-        node_id = node_id.replace("{ns}", str(c.get_namespace_index("urn:thermocomp:virtual-cnc"))) \
-            if "{ns}" in node_id else node_id
-        c.get_node(node_id).write_value(ua.DataValue(ua.Variant(float(value), ua.VariantType.Double)))
+        node_id = (
+            node_id.replace("{ns}", str(c.get_namespace_index("urn:thermocomp:virtual-cnc")))
+            if "{ns}" in node_id
+            else node_id
+        )
+        c.get_node(node_id).write_value(
+            ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
+        )
 
 
 def line_handler_with_query(regs: Registers):
@@ -93,6 +108,7 @@ def line_handler_with_query(regs: Registers):
         if text == "?OFFSET":
             return "ERR locked" if mode == "reject" else f"OFFSET={regs.offset or 0.0:.6f}"
         return base(text, mode)
+
     return handle
 
 
@@ -138,23 +154,39 @@ def rig(request, tmp_path):
     kind = request.param
     if kind == "sim":
         vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
-        yield Rig(lambda **kw: SimAdapter(machine=vm, **kw), vm.override_speed, lambda: vm.offset_um,
-                  vm.apply_offset)
+        yield Rig(
+            lambda **kw: SimAdapter(machine=vm, **kw),
+            vm.override_speed,
+            lambda: vm.offset_um,
+            vm.apply_offset,
+        )
     elif kind == "opcua-asyncua":
         vm, cnc = request.getfixturevalue("vcnc")
-        yield Rig(lambda **kw: OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw),
-                  vm.override_speed, lambda: vm.offset_um,
-                  lambda v: opcua_write(cnc.url, VCNC_OFFSET, v))
+        yield Rig(
+            lambda **kw: OpcUaAdapter(cnc.url, preset="virtual-cnc", **kw),
+            vm.override_speed,
+            lambda: vm.offset_um,
+            lambda v: opcua_write(cnc.url, VCNC_OFFSET, v),
+        )
     elif kind == "opcua-node":
         srv = request.getfixturevalue("node_opcua")
-        yield Rig(lambda **kw: OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                                            offset_node="ns=1;s=Spindle1.ThermalOffset", **kw),
-                  srv.set_speed, srv.offset,
-                  lambda v: opcua_write(srv.url, "ns=1;s=Spindle1.ThermalOffset", v))
+        yield Rig(
+            lambda **kw: OpcUaAdapter(
+                srv.url,
+                speed_node="ns=1;s=Spindle1.ActSpeed",
+                offset_node="ns=1;s=Spindle1.ThermalOffset",
+                **kw,
+            ),
+            srv.set_speed,
+            srv.offset,
+            lambda v: opcua_write(srv.url, "ns=1;s=Spindle1.ThermalOffset", v),
+        )
     elif kind in ("haas", "line"):
         pty = PtyPair(tmp_path)
         regs = Registers()
-        dev = LineDevice(pty.dev, haas_handler(regs) if kind == "haas" else line_handler_with_query(regs))
+        dev = LineDevice(
+            pty.dev, haas_handler(regs) if kind == "haas" else line_handler_with_query(regs)
+        )
 
         def make(**kw):
             if kind == "haas":
@@ -162,8 +194,12 @@ def rig(request, tmp_path):
             return LineAdapter(pty.ctl, offset_query="?OFFSET", **kw)  # with its read-back query
 
         try:
-            yield Rig(make, lambda v: setattr(regs, "speed_rpm", v), lambda: regs.offset,
-                      lambda v: setattr(regs, "offset", v))
+            yield Rig(
+                make,
+                lambda v: setattr(regs, "speed_rpm", v),
+                lambda: regs.offset,
+                lambda v: setattr(regs, "offset", v),
+            )
         finally:
             dev.stop()
             pty.close()
@@ -173,9 +209,12 @@ def rig(request, tmp_path):
 
         control = PlainControl()
         with FocasServer(control) as srv:
-            yield Rig(lambda **kw: FocasAdapter("127.0.0.1", port=srv.port, **kw),
-                      lambda v: setattr(control, "speed_rpm", v), lambda: control.held_raw,
-                      lambda v: setattr(control, "held_raw", v))
+            yield Rig(
+                lambda **kw: FocasAdapter("127.0.0.1", port=srv.port, **kw),
+                lambda v: setattr(control, "speed_rpm", v),
+                lambda: control.held_raw,
+                lambda v: setattr(control, "held_raw", v),
+            )
     elif kind.startswith("plc-"):
         from cnc_adapters.plc import PlcAdapter
         from machine_sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
@@ -183,12 +222,27 @@ def rig(request, tmp_path):
         cls, addresses = {
             "plc-s7": (S7Plc, {"offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4"}),
             "plc-modbus-tcp": (ModbusTcpPlc, {"offset_address": "hr:0", "speed_address": "hr:2"}),
-            "plc-ads": (AdsPlc, {"offset_address": "GVL.fOffset", "offset_type": "REAL",
-                                 "speed_address": "GVL.fSpeed"})}[kind]
-        plc = cls(None, held_address=None, cutting_address=None, **addresses).start()  # its memory is the controller
+            "plc-ads": (
+                AdsPlc,
+                {
+                    "offset_address": "GVL.fOffset",
+                    "offset_type": "REAL",
+                    "speed_address": "GVL.fSpeed",
+                },
+            ),
+        }[kind]
+        plc = cls(
+            None, held_address=None, cutting_address=None, **addresses
+        ).start()  # its memory is the controller
         try:
-            yield Rig(lambda **kw: PlcAdapter(protocol=cls.protocol, host=plc.host, port=plc.port, **addresses, **kw),
-                      lambda v: plc.put("speed", v), lambda: plc.get("offset"), lambda v: plc.put("offset", v))
+            yield Rig(
+                lambda **kw: PlcAdapter(
+                    protocol=cls.protocol, host=plc.host, port=plc.port, **addresses, **kw
+                ),
+                lambda v: plc.put("speed", v),
+                lambda: plc.get("offset"),
+                lambda v: plc.put("offset", v),
+            )
         finally:
             plc.close()
     else:
@@ -198,12 +252,21 @@ def rig(request, tmp_path):
         dev = ModbusDevice(pty.dev)
 
         def outside_write(v: float) -> None:  # the PLC's own program sets holding registers 0-1
-            dev._run(dev.server.context.async_setValues(1, 3, 0, C.convert_to_registers(v, C.DATATYPE.FLOAT32)))
+            dev._run(
+                dev.server.context.async_setValues(
+                    1, 3, 0, C.convert_to_registers(v, C.DATATYPE.FLOAT32)
+                )
+            )
 
         try:
-            yield Rig(lambda **kw: ModbusRtuAdapter(pty.ctl, baudrate=115200, speed_register=0,
-                                                    offset_register=0, **kw),
-                      dev.set_speed, dev.offset, outside_write)
+            yield Rig(
+                lambda **kw: ModbusRtuAdapter(
+                    pty.ctl, baudrate=115200, speed_register=0, offset_register=0, **kw
+                ),
+                dev.set_speed,
+                dev.offset,
+                outside_write,
+            )
         finally:
             dev.close()
             pty.close()
@@ -290,11 +353,22 @@ def test_close_is_idempotent_and_final(rig):
 def test_registry_by_name_and_url(tmp_path):
     assert backend("haas") is HaasAdapter and backend("modbus") is ModbusRtuAdapter
     assert isinstance(open_adapter("sim://motorized-27k?program=job-shop-day&seed=2"), SimAdapter)
-    assert isinstance(open_adapter("serial:///dev/ttyX?protocol=haas&offset_var=10600"), HaasAdapter)
+    assert isinstance(
+        open_adapter("serial:///dev/ttyX?protocol=haas&offset_var=10600"), HaasAdapter
+    )
     assert open_adapter("serial:///dev/ttyX?protocol=haas&offset_var=10600").offset_var == 10600
-    m = open_adapter("serial:///dev/ttyX?protocol=modbus&device_id=3&speed_type=int16&speed_scale=10")
+    m = open_adapter(
+        "serial:///dev/ttyX?protocol=modbus&device_id=3&speed_type=int16&speed_scale=10"
+    )
     assert isinstance(m, ModbusRtuAdapter) and m.device_id == 3 and m.speed_scale == 10
-    o = open_adapter({"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "preset": "sinumerik", "r_parameter": 7})
+    o = open_adapter(
+        {
+            "type": "opcua",
+            "url": "opc.tcp://127.0.0.1:4840",
+            "preset": "sinumerik",
+            "r_parameter": 7,
+        }
+    )
     assert o.offset_node.endswith("R[u1,7]") and o.offset_scale == 0.001
     with pytest.raises(ConfigError, match="unknown adapter"):
         open_adapter({"type": "nope"})
@@ -323,8 +397,12 @@ def test_opcua_server_killed_mid_session_and_restarted():
     vm.override_speed(8000.0)
     port = free_port()
     events = []
-    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", preset="virtual-cnc",
-                        timeout_s=2, on_link_change=lambda up, why: events.append(up))
+    link = OpcUaAdapter(
+        f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/",
+        preset="virtual-cnc",
+        timeout_s=2,
+        on_link_change=lambda up, why: events.append(up),
+    )
     with running(VirtualCNC(vm, port=port)):
         assert wait_for(lambda: link.read_speed() == 8000.0)
         link.write_offset_um(-2.0)
@@ -353,13 +431,15 @@ def test_opcua_wrong_node_id(vcnc):
 
 def test_opcua_write_refused_by_node_opcua(node_opcua):
     srv = node_opcua
-    locked = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                          offset_node="ns=1;s=Spindle1.LockedOffset")
+    locked = OpcUaAdapter(
+        srv.url, speed_node="ns=1;s=Spindle1.ActSpeed", offset_node="ns=1;s=Spindle1.LockedOffset"
+    )
     with pytest.raises(WriteRejectedError, match="BadNotWritable"):
         locked.write_offset_um(1.0)
     locked.close()
-    link = OpcUaAdapter(srv.url, speed_node="ns=1;s=Spindle1.ActSpeed",
-                        offset_node="ns=1;s=Spindle1.ThermalOffset")
+    link = OpcUaAdapter(
+        srv.url, speed_node="ns=1;s=Spindle1.ActSpeed", offset_node="ns=1;s=Spindle1.ThermalOffset"
+    )
     with pytest.raises(WriteRejectedError, match="BadOutOfRange"):
         link.write_offset_um(5000.0)  # beyond what this controller accepts
     link.close()
@@ -381,8 +461,10 @@ def haas(tmp_path):
     pty.close()
 
 
-@pytest.mark.parametrize("mode,error", [("silent", AdapterTimeoutError), ("partial", AdapterTimeoutError),
-                                        ("garbage", BadValueError)])
+@pytest.mark.parametrize(
+    "mode,error",
+    [("silent", AdapterTimeoutError), ("partial", AdapterTimeoutError), ("garbage", BadValueError)],
+)
 def test_serial_bad_replies(haas, mode, error):
     _, regs, dev, link = haas
     assert link.read_speed() == 6000.0
@@ -487,9 +569,17 @@ def test_reconnect_backs_off_exponentially_with_jitter_and_tells_the_runtime():
 
     clock = FakeClock()
     events = []
-    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{free_port()}/x", preset="virtual-cnc", timeout_s=1,
-                        backoff_s=1.0, max_backoff_s=8.0, jitter=0.2, clock=clock,
-                        rng=random.Random(1), on_link_change=lambda up, why: events.append(up))
+    link = OpcUaAdapter(
+        f"opc.tcp://127.0.0.1:{free_port()}/x",
+        preset="virtual-cnc",
+        timeout_s=1,
+        backoff_s=1.0,
+        max_backoff_s=8.0,
+        jitter=0.2,
+        clock=clock,
+        rng=random.Random(1),
+        on_link_change=lambda up, why: events.append(up),
+    )
     attempts = []
     real = link._connect
 
@@ -520,13 +610,19 @@ def test_opc40502_preset_finds_the_spindle_by_browse_path(vcnc):
     vm.override_speed(17000.0)
     path = "0:Objects/{ns}:CncInterface/{ns}:CncSpindleList/{ns}:Spindle1/{ns}:ThermalOffset"
     # the virtual CNC keeps the 40502 browse names in its own namespace
-    with OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
-                      offset_path=path) as link:
+    with OpcUaAdapter(
+        cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc", offset_path=path
+    ) as link:
         assert wait_for(lambda: link.read_speed() == 17000.0)
         link.write_offset_um(-2.5)
         assert wait_for(lambda: vm.offset_um == -2.5)
-    bad = OpcUaAdapter(cnc.url, preset="opc40502", namespace_uri="urn:thermocomp:virtual-cnc",
-                       spindle="Spindle9", offset_path=path)
+    bad = OpcUaAdapter(
+        cnc.url,
+        preset="opc40502",
+        namespace_uri="urn:thermocomp:virtual-cnc",
+        spindle="Spindle9",
+        offset_path=path,
+    )
     with pytest.raises(AdapterError, match="BadNoMatch|browse"):
         bad.read_speed()
     bad.close()
@@ -585,7 +681,9 @@ def test_a_refused_read_query_is_an_adapter_error(tmp_path):
     try:
         with LineAdapter(pty.ctl, offset_query="?OFFSET") as link:
             dev.mode = "reject"
-            with pytest.raises(AdapterError, match="line read offset '\\?OFFSET' at .*: controller refused it"):
+            with pytest.raises(
+                AdapterError, match="line read offset '\\?OFFSET' at .*: controller refused it"
+            ):
                 link.read_offset_um()
             dev.mode = "ok"
             regs.offset = -2.5
@@ -600,8 +698,9 @@ def test_modbus_reads_back_an_integer_register_in_its_unit(tmp_path):
     dev = ModbusDevice(pty.dev)
     try:
         # 0.1 um counts in an int16: -7.46 um is written as -75 counts and read back as -7.5 um
-        with ModbusRtuAdapter(pty.ctl, baudrate=115200, offset_register=4, offset_type="int16",
-                              offset_scale=10) as link:
+        with ModbusRtuAdapter(
+            pty.ctl, baudrate=115200, offset_register=4, offset_type="int16", offset_scale=10
+        ) as link:
             link.write_offset_um(-7.46)
             assert link.read_offset_um() == pytest.approx(-7.5)
     finally:
@@ -628,8 +727,12 @@ def vcnc_process():
     """The virtual CNC in a process of its own, so that it can be stopped (SIGSTOP) like a
     controller that hangs: its socket stays open, nothing answers."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-c", SERVE_VCNC, str(port), "7000"], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SERVE_VCNC, str(port), "7000"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout.readline().strip() == "ready"  # type: ignore[union-attr]
         yield proc, f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
@@ -654,8 +757,14 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
     clock = FakeClock()
     events = []
     timeout_s = 0.5
-    link = OpcUaAdapter(url, preset="virtual-cnc", timeout_s=timeout_s, clock=clock, backoff_s=1.0,
-                        on_link_change=lambda up, why: events.append((up, why)))
+    link = OpcUaAdapter(
+        url,
+        preset="virtual-cnc",
+        timeout_s=timeout_s,
+        clock=clock,
+        backoff_s=1.0,
+        on_link_change=lambda up, why: events.append((up, why)),
+    )
     assert link.read_speed() == 7000.0
     link.write_offset_um(-4.0)
     os.kill(proc.pid, signal.SIGSTOP)
@@ -668,7 +777,9 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
         link.read_speed()
     # ... within about timeout_s: nothing waits for a goodbye the server will never answer
     assert time.monotonic() - start < timeout_s + 5.0
-    assert events == [(False, events[0][1])] and "no answer" in events[0][1]  # the session is dropped
+    assert (
+        events == [(False, events[0][1])] and "no answer" in events[0][1]
+    )  # the session is dropped
     # the next call reconnects, and connecting to the stopped server honours timeout_s too
     start = time.monotonic()
     with pytest.raises(AdapterTimeoutError, match="opcua connect at opc.tcp://.*: no answer"):
@@ -767,7 +878,9 @@ MEASURING = ["haas", "modbus"]  # LinuxCNC's pins: tests/test_linuxcnc.py, in a 
 @dataclass
 class ProbeRig:
     make: Callable[..., Adapter]  # an unopened adapter with a measurement source; kwargs: scaling
-    publish: Callable[..., None]  # (value, sequence, sigma=None), the controller's unit: value first
+    publish: Callable[
+        ..., None
+    ]  # (value, sequence, sigma=None), the controller's unit: value first
     unplug: Callable[[], None]  # the controller goes away ...
     plug: Callable[[], None]  # ... and comes back
 
@@ -786,10 +899,19 @@ def probe_rig(request, tmp_path):
             regs.macros[10502] = seq
 
         try:
-            yield ProbeRig(lambda **kw: HaasAdapter(pty.ctl, timeout_s=0.3, measurement_var=10501,
-                                                    measurement_sequence_var=10502,
-                                                    measurement_sigma_var=10503, **kw),
-                           publish, pty.unplug, pty.plug)
+            yield ProbeRig(
+                lambda **kw: HaasAdapter(
+                    pty.ctl,
+                    timeout_s=0.3,
+                    measurement_var=10501,
+                    measurement_sequence_var=10502,
+                    measurement_sigma_var=10503,
+                    **kw,
+                ),
+                publish,
+                pty.unplug,
+                pty.plug,
+            )
         finally:
             dev.stop()
             pty.close()
@@ -799,9 +921,13 @@ def probe_rig(request, tmp_path):
         mdev = ModbusDevice(pty.dev)
 
         def publish(value: float, seq: int, sigma: float | None = None) -> None:
-            mdev.set_registers("holding", 8, C.convert_to_registers(float(value), C.DATATYPE.FLOAT32))
+            mdev.set_registers(
+                "holding", 8, C.convert_to_registers(float(value), C.DATATYPE.FLOAT32)
+            )
             if sigma is not None:
-                mdev.set_registers("holding", 12, C.convert_to_registers(float(sigma), C.DATATYPE.FLOAT32))
+                mdev.set_registers(
+                    "holding", 12, C.convert_to_registers(float(sigma), C.DATATYPE.FLOAT32)
+                )
             mdev.set_registers("holding", 10, [seq])
 
         def unplug() -> None:
@@ -813,11 +939,20 @@ def probe_rig(request, tmp_path):
             mdev.start()
 
         try:
-            yield ProbeRig(lambda **kw: ModbusRtuAdapter(pty.ctl, baudrate=115200, timeout_s=0.3,
-                                                         measurement_register=8,
-                                                         measurement_sequence_register=10,
-                                                         measurement_sigma_register=12, **kw),
-                           publish, unplug, plug)
+            yield ProbeRig(
+                lambda **kw: ModbusRtuAdapter(
+                    pty.ctl,
+                    baudrate=115200,
+                    timeout_s=0.3,
+                    measurement_register=8,
+                    measurement_sequence_register=10,
+                    measurement_sigma_register=12,
+                    **kw,
+                ),
+                publish,
+                unplug,
+                plug,
+            )
         finally:
             mdev.close()
             pty.close()
@@ -876,12 +1011,16 @@ def test_a_link_without_a_measurement_source_says_so_and_reads_nothing(tmp_path)
         assert not link._open
         link.close()
     assert not LineAdapter(port).can_read_measurement  # the generic protocol has no source
-    for bad, match in (({"measurement_var": 10501}, "needs both"),
-                       ({"measurement_var": 10500, "measurement_sequence_var": 10502}, "different")):
+    for bad, match in (
+        ({"measurement_var": 10501}, "needs both"),
+        ({"measurement_var": 10500, "measurement_sequence_var": 10502}, "different"),
+    ):
         with pytest.raises(ConfigError, match=match):
             open_adapter({"type": "haas", "port": port, **bad})
-    for bad, match in (({"measurement_sequence_register": 3}, "needs both"),
-                       ({"measurement_register": 2, "measurement_sequence_register": 3}, "overlap")):
+    for bad, match in (
+        ({"measurement_sequence_register": 3}, "needs both"),
+        ({"measurement_register": 2, "measurement_sequence_register": 3}, "overlap"),
+    ):
         with pytest.raises(ConfigError, match=match):
             open_adapter({"type": "modbus", "port": port, **bad})
 
@@ -893,15 +1032,26 @@ def test_modbus_measurement_in_integer_registers_of_the_input_table(tmp_path):
     dev = ModbusDevice(pty.dev)
     try:
         # 0.1 um counts in an int32, low word first, in input registers; the counter a uint16
-        with ModbusRtuAdapter(pty.ctl, baudrate=115200, word_order="little", measurement_table="input",
-                              measurement_register=4, measurement_type="int32",
-                              measurement_sequence_register=6, measurement_scale=10) as link:
+        with ModbusRtuAdapter(
+            pty.ctl,
+            baudrate=115200,
+            word_order="little",
+            measurement_table="input",
+            measurement_register=4,
+            measurement_type="int32",
+            measurement_sequence_register=6,
+            measurement_scale=10,
+        ) as link:
             dev.set_registers("input", 6, [65535])
             assert link.read_measurement() is None
-            dev.set_registers("input", 4, C.convert_to_registers(-125, C.DATATYPE.INT32, word_order="little"))
+            dev.set_registers(
+                "input", 4, C.convert_to_registers(-125, C.DATATYPE.INT32, word_order="little")
+            )
             dev.set_registers("input", 6, [0])  # wrapped
             m = link.read_measurement()
-            assert m.elongation_um == pytest.approx(-12.5) and m.sequence == 0 and m.sigma_um is None
+            assert (
+                m.elongation_um == pytest.approx(-12.5) and m.sequence == 0 and m.sigma_um is None
+            )
             assert link.read_measurement() is None
     finally:
         dev.close()
@@ -913,6 +1063,8 @@ def test_a_counter_that_moves_while_the_value_is_read_waits_for_the_next_read():
 
     counter = iter([4, 5, 5, 5])  # the cycle changed the counter between its two reads
     assert read_handshake("x", lambda: next(counter), lambda: 1.5) is None
-    assert read_handshake("x", lambda: next(counter), lambda: 1.5, lambda: 0.5) == RawMeasurement(5, 1.5, 0.5)
+    assert read_handshake("x", lambda: next(counter), lambda: 1.5, lambda: 0.5) == RawMeasurement(
+        5, 1.5, 0.5
+    )
     with pytest.raises(BadValueError, match="whole number"):
         read_handshake("x", lambda: 2.5, lambda: 1.5)

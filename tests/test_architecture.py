@@ -31,8 +31,12 @@ def test_link_health_connected_retrying_outage_and_back():
 
 
 def _cfg(rate=1.0):
-    return ShaperConfig(max_offset_um=40, max_rate_um_per_s=rate, deadband_um=0,
-                        transient=TransientPolicy(enabled=False))
+    return ShaperConfig(
+        max_offset_um=40,
+        max_rate_um_per_s=rate,
+        deadband_um=0,
+        transient=TransientPolicy(enabled=False),
+    )
 
 
 def test_offset_tracks_ramps_and_holds():
@@ -88,7 +92,9 @@ def test_a_backend_option_typo_is_a_one_line_config_error():
     from cnc_adapters.sensors import open_sensor
     from compensator.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="speed_nod = .*: unknown key \\(did you mean 'speed_node'\\?\\)"):
+    with pytest.raises(
+        ConfigError, match="speed_nod = .*: unknown key \\(did you mean 'speed_node'\\?\\)"
+    ):
         open_adapter("opc.tcp://127.0.0.1:4840?speed_nod=ns=2;s=x")
     with pytest.raises(ConfigError, match="bogus = 1: unknown key"):
         open_sensor({"type": "ascii", "port": "/dev/null", "bogus": 1})
@@ -108,8 +114,9 @@ def test_import_contracts_hold_and_a_wrong_way_import_breaks_them(tmp_path):
     units = tmp_path / "compensator" / "units.py"
     units.write_text(units.read_text() + "\nfrom thermocomp.runtime import spindle  # wrong way\n")
     env = {"PATH": str(lint.parent), "PYTHONPATH": str(tmp_path), "HOME": str(tmp_path)}
-    bad = subprocess.run([str(lint), "--no-cache"], cwd=tmp_path, capture_output=True, text=True,
-                         env=env)
+    bad = subprocess.run(
+        [str(lint), "--no-cache"], cwd=tmp_path, capture_output=True, text=True, env=env
+    )
     assert bad.returncode != 0
     assert "compensator.units -> thermocomp.runtime" in bad.stdout
 
@@ -120,10 +127,14 @@ def test_the_wheel_lists_every_package_and_ships_its_data():
     import tomllib
 
     root = Path(__file__).parents[1]
-    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
-    found = {".".join(p.parent.relative_to(root).parts)
-             for top in PACKAGES
-             for p in (root / top).rglob("__init__.py")}
+    listed = set(
+        tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    found = {
+        ".".join(p.parent.relative_to(root).parts)
+        for top in PACKAGES
+        for p in (root / top).rglob("__init__.py")
+    }
     assert found | {"thermocomp.examples"} == listed
     for top in PACKAGES:
         assert (root / top / "py.typed").exists()
@@ -143,8 +154,13 @@ def test_every_third_party_import_is_declared():
     norm = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
     req = lambda spec: norm(re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0])  # noqa: E731
     base = {req(d) for d in project["dependencies"]}
-    extras = {req(d) for k, v in project["optional-dependencies"].items() if k != "test" for d in v
-              if not d.startswith("thermocomp")}
+    extras = {
+        req(d)
+        for k, v in project["optional-dependencies"].items()
+        if k != "test"
+        for d in v
+        if not d.startswith("thermocomp")
+    }
     dists = {mod: {norm(d) for d in ds} for mod, ds in md.packages_distributions().items()}
     first_party = set(PACKAGES)
     # LinuxCNC's own modules come with LinuxCNC (Debian), not from PyPI
@@ -153,9 +169,13 @@ def test_every_third_party_import_is_declared():
     for top in first_party:
         for path in (root / top).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text(), str(path))):
-                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                         else [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module
-                         else [])
+                names = (
+                    [a.name for a in node.names]
+                    if isinstance(node, ast.Import)
+                    else [node.module]
+                    if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module
+                    else []
+                )
                 for name in names:
                     mod = name.split(".")[0]
                     if mod in first_party or mod in system or mod in sys.stdlib_module_names:
@@ -183,7 +203,13 @@ def test_the_architecture_tree_names_every_module():
         entry = re.match(r"^\s+(\S+\.py)\b", line)
         if entry:
             listed.add(f"{package}/{entry.group(1)}")
-    found = {str(p.relative_to(root)) for top in PACKAGES for p in (root / top).rglob("*.py")
-             if p.name not in ("__init__.py", "__main__.py")}
-    assert listed == found, (f"not in the tree: {sorted(found - listed)}; "
-                             f"in the tree, not in the code: {sorted(listed - found)}")
+    found = {
+        str(p.relative_to(root))
+        for top in PACKAGES
+        for p in (root / top).rglob("*.py")
+        if p.name not in ("__init__.py", "__main__.py")
+    }
+    assert listed == found, (
+        f"not in the tree: {sorted(found - listed)}; "
+        f"in the tree, not in the code: {sorted(listed - found)}"
+    )

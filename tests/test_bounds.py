@@ -25,8 +25,14 @@ LINE_MAX = 400  # the printed line, "thermocomp: error: " included
 
 
 def tc(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "thermocomp", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "thermocomp", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=120,
+        check=False,
+    )
 
 
 def assert_one_short_line(r: subprocess.CompletedProcess) -> str:
@@ -49,7 +55,7 @@ def test_clip_is_one_line_within_the_limit(text, limit):
     assert all(c.isprintable() or c == " " for c in out), repr(out)
 
 
-@given(st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7e)), st.integers(40, 500))
+@given(st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E)), st.integers(40, 500))
 def test_clip_keeps_a_printable_start_and_counts_the_rest(text, limit):
     out = clip(text, limit)
     if len(text) <= limit:
@@ -110,7 +116,13 @@ BOGUS = {
 @pytest.mark.parametrize("where", sorted(BOGUS))
 def test_run_check_with_a_megabyte_bogus_config_value(tmp_path, where):
     save_model(tmp_path / "m.json", first_order())
-    fields = {"name": "s1", "model": "m.json", "period": "1.0", "extra": "", "preset": "motorized-27k"}
+    fields = {
+        "name": "s1",
+        "model": "m.json",
+        "period": "1.0",
+        "extra": "",
+        "preset": "motorized-27k",
+    }
     fields.update(BOGUS[where])
     (tmp_path / "c.toml").write_text(CONFIG.format(**fields))
     assert_one_short_line(tc("run", "--config", tmp_path / "c.toml", "--check"))
@@ -119,18 +131,29 @@ def test_run_check_with_a_megabyte_bogus_config_value(tmp_path, where):
 def test_run_check_of_the_valid_config_passes(tmp_path):
     """The base of the bogus configs above is good: each fails for its bogus value only."""
     save_model(tmp_path / "m.json", first_order())
-    fields = {"name": "s1", "model": "m.json", "period": "1.0", "extra": "", "preset": "motorized-27k"}
+    fields = {
+        "name": "s1",
+        "model": "m.json",
+        "period": "1.0",
+        "extra": "",
+        "preset": "motorized-27k",
+    }
     (tmp_path / "c.toml").write_text(CONFIG.format(**fields))
     r = tc("run", "--config", tmp_path / "c.toml", "--check")
     assert r.returncode == 0, r.stderr
 
 
 def run_log(n=40):
-    return "time_s,speed_rpm,elongation_um\n" + "".join(f"{60 * k},{1000 * (k % 20)},{0.1 * k}\n" for k in range(n))
+    return "time_s,speed_rpm,elongation_um\n" + "".join(
+        f"{60 * k},{1000 * (k % 20)},{0.1 * k}\n" for k in range(n)
+    )
 
 
-@pytest.mark.parametrize("bogus", [f"60,{MB},0.1", f"{MB},1000,0.1", f'60,"{MB}\n{MB}",0.1'],
-                         ids=["speed", "time", "quoted-multiline"])
+@pytest.mark.parametrize(
+    "bogus",
+    [f"60,{MB},0.1", f"{MB},1000,0.1", f'60,"{MB}\n{MB}",0.1'],
+    ids=["speed", "time", "quoted-multiline"],
+)
 def test_replay_with_a_megabyte_bogus_cell(tmp_path, bogus):
     save_model(tmp_path / "m.json", first_order())
     (tmp_path / "log.csv").write_text(run_log().replace("60,1000,0.1", bogus))
@@ -140,7 +163,9 @@ def test_replay_with_a_megabyte_bogus_cell(tmp_path, bogus):
 
 def test_replay_with_a_terminal_escape_in_a_cell(tmp_path):
     save_model(tmp_path / "m.json", first_order())
-    (tmp_path / "log.csv").write_text(run_log().replace("60,1000,0.1", "60,\x1b[2J\x1b[31mfast,0.1"))
+    (tmp_path / "log.csv").write_text(
+        run_log().replace("60,1000,0.1", "60,\x1b[2J\x1b[31mfast,0.1")
+    )
     err = assert_one_short_line(tc("replay", tmp_path / "log.csv", "--model", tmp_path / "m.json"))
     assert "\x1b" not in err and "\\x1b[2J" in err
 
@@ -149,7 +174,10 @@ def test_a_huge_bad_argument_is_clipped_too(tmp_path):
     r = tc("fit", "run.csv", "--output", tmp_path / "m.json", "--probe-every", "Y" * 100_000)
     assert r.returncode == 2
     last = r.stderr.splitlines()[-1]
-    assert last.startswith("thermocomp fit: error: argument --probe-every") and "characters cut" in last
+    assert (
+        last.startswith("thermocomp fit: error: argument --probe-every")
+        and "characters cut" in last
+    )
     assert len(r.stderr) < 2000  # the usage, then one clipped line
 
 
@@ -159,7 +187,9 @@ def test_a_logged_message_is_one_bounded_line():
     from thermocomp.cli import LOG_CHARS, _OneLineFormatter
 
     fmt = _OneLineFormatter("thermocomp: %(levelname)s: %(name)s: %(message)s")
-    record = logging.LogRecord("cnc_adapters.opcua", logging.WARNING, __file__, 1, "bad value %r\nagain", (MB,), None)
+    record = logging.LogRecord(
+        "cnc_adapters.opcua", logging.WARNING, __file__, 1, "bad value %r\nagain", (MB,), None
+    )
     line = fmt.format(record)
     assert "\n" not in line and "characters cut" in line
     assert len(line) <= len("thermocomp: WARNING: cnc_adapters.opcua: ") + LOG_CHARS

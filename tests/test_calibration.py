@@ -18,20 +18,30 @@ def rms(x):
 
 
 def held_out_rms(model, run: Run) -> float:
-    return rms(run.elongation_um - model.simulate_um(run.speed_rpm, run.time_s, None, float(run.elongation_um[0])))
+    return rms(
+        run.elongation_um
+        - model.simulate_um(run.speed_rpm, run.time_s, None, float(run.elongation_um[0]))
+    )
 
 
 @pytest.fixture(scope="module")
 def cal60():
-    return identify_runs([plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)], spindle_id="t")
+    return identify_runs(
+        [plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)], spindle_id="t"
+    )
 
 
 def test_chosen_model_fitted_at_60s_holds_on_held_out_runs_at_1s_and_beats_the_paper(cal60):
-    paper = paper_ols.fit_paper_ols(cal60.dataset.time_s, cal60.dataset.speed_rpm, cal60.dataset.elongation_um)
+    paper = paper_ols.fit_paper_ols(
+        cal60.dataset.time_s, cal60.dataset.speed_rpm, cal60.dataset.elongation_um
+    )
     for run in (plant_run("validation", 1.0, 5), plant_run("jobshop", 1.0, 6)):
         chosen_rms = held_out_rms(cal60.model, run)
         with np.errstate(all="ignore"):
-            paper_rms = rms(run.elongation_um - paper.predict(run.time_s, run.speed_rpm, float(run.elongation_um[0])))
+            paper_rms = rms(
+                run.elongation_um
+                - paper.predict(run.time_s, run.speed_rpm, float(run.elongation_um[0]))
+            )
         assert chosen_rms < 1.0, (run.name, chosen_rms)
         assert not chosen_rms >= paper_rms / 2, (run.name, chosen_rms, paper_rms)
     assert cal60.chosen.name != "paper-ols"
@@ -45,7 +55,12 @@ def test_chosen_model_fitted_at_10s_holds_on_held_out_runs_at_60s():
 
 def test_report_scores_every_candidate_on_the_same_cycle_folds_and_says_why(cal60):
     rep = cal60.report()
-    assert [c["name"] for c in rep["candidates"]] == ["exp-baseline", "physical", "ridge", "paper-ols"]
+    assert [c["name"] for c in rep["candidates"]] == [
+        "exp-baseline",
+        "physical",
+        "ridge",
+        "paper-ols",
+    ]
     assert rep["scored_by"] == "leave-one-cycle-out free run" and len(rep["folds"]) >= 2
     for c in rep["candidates"]:
         assert len(c["folds_rms_um"]) == len(rep["folds"]) and c["cv_rms_um"] > 0
@@ -89,7 +104,9 @@ def test_a_sparse_measurement_keeps_the_speed_it_was_taken_at_on_the_grid():
     after would average in the speed the program moved on to, and with it a growth at speed
     the measurement never saw."""
     t = np.array([0.0, 10.0, 20.0, 30.0, 35.0, 40.0, 50.0, 60.0])
-    speed = np.array([9000.0, 9000, 9000, 9000, 9000, 27000, 27000, 27000])  # 35: the value, at 9000
+    speed = np.array(
+        [9000.0, 9000, 9000, 9000, 9000, 27000, 27000, 27000]
+    )  # 35: the value, at 9000
     y = np.full(t.size, np.nan)
     y[[0, 4, 7]] = [0.0, 2.5, 8.0]
     r = resample(Run("s", t, speed, y), 10.0)

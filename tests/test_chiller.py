@@ -94,11 +94,13 @@ class OpcUaChillerPlc:
         server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         ns = server.register_namespace(self.NAMESPACE)
         chiller = server.nodes.objects.add_object(f"ns={ns};s=Chiller", f"{ns}:Chiller")
-        setpoint = chiller.add_variable(self.SETPOINT.format(ns=ns), f"{ns}:SetPoint",
-                                        ua.Variant(0, ua.VariantType.Int16))
+        setpoint = chiller.add_variable(
+            self.SETPOINT.format(ns=ns), f"{ns}:SetPoint", ua.Variant(0, ua.VariantType.Int16)
+        )
         setpoint.set_writable()
-        supply = chiller.add_variable(self.SUPPLY.format(ns=ns), f"{ns}:Supply",
-                                      ua.Variant(0.0, ua.VariantType.Double))
+        supply = chiller.add_variable(
+            self.SUPPLY.format(ns=ns), f"{ns}:Supply", ua.Variant(0.0, ua.VariantType.Double)
+        )
 
         def read_setpoint(_nodeid: Any, _attr: Any) -> Any:
             with self.lock:
@@ -164,10 +166,21 @@ def rig(request, tmp_path) -> Iterator[Rig]:
         with ChillerServer(plant, lock=lock) as srv:
             settings: dict[str, Any] = {"host": srv.host, "port": srv.port, "timeout_s": 2.0}
             if f32:
-                settings.update(data_type="float32", setpoint_register=HOLDING["setpoint_f32"],
-                                supply_register=INPUT["supply_f32"])
-            yield Rig("modbus", settings, plant, lock, lambda _: srv.stop(), lambda _: srv.start(),
-                      lambda on: setattr(srv, "refuse_writes", on), 1e-5 if f32 else 0.1)
+                settings.update(
+                    data_type="float32",
+                    setpoint_register=HOLDING["setpoint_f32"],
+                    supply_register=INPUT["supply_f32"],
+                )
+            yield Rig(
+                "modbus",
+                settings,
+                plant,
+                lock,
+                lambda _: srv.stop(),
+                lambda _: srv.start(),
+                lambda on: setattr(srv, "refuse_writes", on),
+                1e-5 if f32 else 0.1,
+            )
     elif kind == "modbus-rtu":
         pty = PtyPair(tmp_path)
         srv = ChillerServer(plant, lock=lock, serial_port=pty.dev, baudrate=115200).start()
@@ -181,28 +194,58 @@ def rig(request, tmp_path) -> Iterator[Rig]:
             srv.start()
 
         try:
-            yield Rig("modbus", {"transport": "rtu", "port": pty.ctl, "baudrate": 115200,
-                                 "timeout_s": 2.0}, plant, lock, unplug, plug,
-                      lambda on: setattr(srv, "refuse_writes", on), 0.1)
+            yield Rig(
+                "modbus",
+                {"transport": "rtu", "port": pty.ctl, "baudrate": 115200, "timeout_s": 2.0},
+                plant,
+                lock,
+                unplug,
+                plug,
+                lambda on: setattr(srv, "refuse_writes", on),
+                0.1,
+            )
         finally:
             srv.close()
             pty.close()
     elif kind == "opcua":
         plc = OpcUaChillerPlc(plant, lock).start()
         try:
-            yield Rig("opcua", {"url": plc.url, "namespace_uri": plc.NAMESPACE,
-                                "setpoint_node": plc.SETPOINT, "supply_node": plc.SUPPLY,
-                                "scale_c": 0.1, "supply_scale_c": 1.0, "timeout_s": 4.0},
-                      plant, lock, lambda _: plc.stop(), lambda _: plc.start(),
-                      lambda on: setattr(plc, "refuse", on), 0.1)
+            yield Rig(
+                "opcua",
+                {
+                    "url": plc.url,
+                    "namespace_uri": plc.NAMESPACE,
+                    "setpoint_node": plc.SETPOINT,
+                    "supply_node": plc.SUPPLY,
+                    "scale_c": 0.1,
+                    "supply_scale_c": 1.0,
+                    "timeout_s": 4.0,
+                },
+                plant,
+                lock,
+                lambda _: plc.stop(),
+                lambda _: plc.start(),
+                lambda on: setattr(plc, "refuse", on),
+                0.1,
+            )
         finally:
             plc.stop()
     else:
+
         def reach(on: bool) -> Callable[[Chiller], None]:
             return lambda chiller: setattr(chiller, "reachable", on)
 
-        yield Rig("virtual", {}, plant, lock, reach(False), reach(True), None, 0.0,
-                  {"plant": plant, "lock": lock})
+        yield Rig(
+            "virtual",
+            {},
+            plant,
+            lock,
+            reach(False),
+            reach(True),
+            None,
+            0.0,
+            {"plant": plant, "lock": lock},
+        )
 
 
 # -- the contract ---------------------------------------------------------------------------
@@ -307,7 +350,9 @@ def server(plant) -> Iterator[ChillerServer]:
 
 
 def modbus(srv: ChillerServer, **settings: Any) -> Chiller:
-    return open_chiller("modbus", {"host": srv.host, "port": srv.port, "timeout_s": 2.0, **settings})
+    return open_chiller(
+        "modbus", {"host": srv.host, "port": srv.port, "timeout_s": 2.0, **settings}
+    )
 
 
 def test_modbus_nothing_is_sent_for_a_value_outside_the_guard(server, plant):
@@ -329,29 +374,42 @@ def test_modbus_an_integer_that_does_not_fit_int16_is_not_sent(server, plant):
 
 def test_modbus_a_wrong_scale_reads_as_an_implausible_temperature(server):
     # the supply register holds 160 counts of 0.1 degC; taken as whole degC it is no coolant
-    with modbus(server, scale_c=1.0) as chiller, pytest.raises(BadValueError, match="outside -50..150"):
+    with (
+        modbus(server, scale_c=1.0) as chiller,
+        pytest.raises(BadValueError, match="outside -50..150"),
+    ):
         chiller.read_supply_c()
 
 
 def test_modbus_float32_in_either_word_order(plant):
     with ChillerServer(plant, word_order="little") as srv:
-        f32 = {"data_type": "float32", "setpoint_register": HOLDING["setpoint_f32"],
-               "supply_register": INPUT["supply_f32"]}
+        f32 = {
+            "data_type": "float32",
+            "setpoint_register": HOLDING["setpoint_f32"],
+            "supply_register": INPUT["supply_f32"],
+        }
         with modbus(srv, word_order="little", **f32) as chiller:
             assert chiller.write_setpoint_c(21.3) == 21.3
             assert plant.chiller_setpoint_c == pytest.approx(21.3, abs=1e-6)  # as a float32
             assert chiller.read_supply_c() == 16.0
         # 21.3 is 0x41AA 0x6666: the words swapped, 2.7e23, no coolant temperature
-        with modbus(srv, word_order="big", **f32) as chiller, \
-                pytest.raises(BadValueError, match="outside -50..150"):
+        with (
+            modbus(srv, word_order="big", **f32) as chiller,
+            pytest.raises(BadValueError, match="outside -50..150"),
+        ):
             chiller.read_setpoint_c()
 
 
 def test_modbus_reads_the_supply_from_a_holding_register(server, plant):
     # some controllers keep everything in holding registers: here the set point itself
-    with modbus(server, supply_table="holding", supply_register=HOLDING["setpoint"],
-                setpoint_register=HOLDING["setpoint_f32"], data_type="int16",
-                setpoint_readback=False) as chiller:
+    with modbus(
+        server,
+        supply_table="holding",
+        supply_register=HOLDING["setpoint"],
+        setpoint_register=HOLDING["setpoint_f32"],
+        data_type="int16",
+        setpoint_readback=False,
+    ) as chiller:
         assert chiller.read_supply_c() == 16.0
 
 
@@ -377,8 +435,11 @@ def test_modbus_a_peer_that_never_answers_is_a_timeout():
         listener.listen(1)
         port = listener.getsockname()[1]
         changes: list[bool] = []
-        chiller = open_chiller("modbus", {"host": "127.0.0.1", "port": port, "timeout_s": 0.2},
-                               on_link_change=lambda up, _reason: changes.append(up))
+        chiller = open_chiller(
+            "modbus",
+            {"host": "127.0.0.1", "port": port, "timeout_s": 0.2},
+            on_link_change=lambda up, _reason: changes.append(up),
+        )
         with pytest.raises(AdapterTimeoutError, match="no valid reply"):
             chiller.read_supply_c()
         assert changes == [False]  # the hung connection was dropped: the next call reconnects
@@ -396,15 +457,20 @@ def test_the_server_holds_what_the_chiller_took(server, plant):
     try:
         assert not client.write_register(HOLDING["setpoint"], 380, device_id=1).isError()  # 38.0
         assert plant.chiller_setpoint_c == 35.0
-        assert client.read_holding_registers(HOLDING["setpoint"], count=1, device_id=1).registers == [350]
+        assert client.read_holding_registers(
+            HOLDING["setpoint"], count=1, device_id=1
+        ).registers == [350]
         f32 = client.read_holding_registers(HOLDING["setpoint_f32"], count=2, device_id=1).registers
         assert C.convert_from_registers(f32, C.DATATYPE.FLOAT32) == 35.0
         # a negative count is a signed int16; the chiller clamps it to its minimum
         client.write_register(HOLDING["setpoint"], (-20) & 0xFFFF, device_id=1)
         assert plant.chiller_setpoint_c == 5.0
         # a float32 NaN is a value the chiller cannot take
-        rr = client.write_registers(HOLDING["setpoint_f32"],
-                                    C.convert_to_registers(math.nan, C.DATATYPE.FLOAT32), device_id=1)
+        rr = client.write_registers(
+            HOLDING["setpoint_f32"],
+            C.convert_to_registers(math.nan, C.DATATYPE.FLOAT32),
+            device_id=1,
+        )
         assert rr.isError() and rr.exception_code == 3  # ILLEGAL_VALUE
         assert plant.chiller_setpoint_c == 5.0
         # half a float32, and an address the map does not have
@@ -465,28 +531,67 @@ def test_every_backend_declares_its_settings():
         assert cls.Settings.model_config["extra"] == "forbid"
 
 
-@pytest.mark.parametrize(("backend", "settings", "message"), [
-    ("ammonia", {}, "unknown chiller backend 'ammonia'; known: modbus, opcua, virtual"),
-    ("modbus", {"host": "h", "setpoint_regster": 3}, "did you mean 'setpoint_register'?"),
-    ("modbus", {}, "transport tcp needs host"),
-    ("modbus", {"host": "h", "port": "/dev/ttyUSB0"}, "port = '/dev/ttyUSB0': expected a TCP port 1..65535 (transport tcp)"),
-    ("modbus", {"transport": "rtu"}, "transport rtu needs port"),
-    ("modbus", {"transport": "rtu", "port": "/dev/ttyUSB0", "host": "h"}, "takes no host"),
-    ("modbus", {"host": "h", "transport": "udp"}, "transport = 'udp': expected one of 'tcp', 'rtu'"),
-    ("modbus", {"host": "h", "data_type": "int32"}, "data_type = 'int32': expected one of 'int16', 'float32'"),
-    ("modbus", {"host": "h", "scale_c": 0}, "scale_c = 0: expected a finite number other than 0"),
-    ("modbus", {"host": "h", "timeout_s": math.nan}, "timeout_s = nan: expected a number > 0"),
-    ("modbus", {"host": "h", "min_c": 30, "max_c": 20}, "min_c < max_c"),
-    ("modbus", {"host": "h", "max_c": 400}, "within -50..150"),
-    ("modbus", {"host": "h", "supply_table": "holding", "data_type": "float32",
-                "setpoint_register": 10, "supply_register": 11}, "overlap"),
-    ("modbus", {"host": "h", "plant": "p"}, "plant = 'p': unknown key; allowed: transport, host, "),
-    ("opcua", {"url": "opc.tcp://h:4840", "setpoint_node": "ns=2;s=S"}, "supply_node: required key missing; expected a non-empty string"),
-    ("opcua", {"url": "opc.tcp://u:secret@h:4840", "setpoint_node": "a", "supply_node": "b"},
-     "carries a password"),
-    ("virtual", {"min_c": "cold"}, "min_c = 'cold': expected a finite number"),
-    ("virtual", [1, 2], "settings must be a table"),
-])
+@pytest.mark.parametrize(
+    ("backend", "settings", "message"),
+    [
+        ("ammonia", {}, "unknown chiller backend 'ammonia'; known: modbus, opcua, virtual"),
+        ("modbus", {"host": "h", "setpoint_regster": 3}, "did you mean 'setpoint_register'?"),
+        ("modbus", {}, "transport tcp needs host"),
+        (
+            "modbus",
+            {"host": "h", "port": "/dev/ttyUSB0"},
+            "port = '/dev/ttyUSB0': expected a TCP port 1..65535 (transport tcp)",
+        ),
+        ("modbus", {"transport": "rtu"}, "transport rtu needs port"),
+        ("modbus", {"transport": "rtu", "port": "/dev/ttyUSB0", "host": "h"}, "takes no host"),
+        (
+            "modbus",
+            {"host": "h", "transport": "udp"},
+            "transport = 'udp': expected one of 'tcp', 'rtu'",
+        ),
+        (
+            "modbus",
+            {"host": "h", "data_type": "int32"},
+            "data_type = 'int32': expected one of 'int16', 'float32'",
+        ),
+        (
+            "modbus",
+            {"host": "h", "scale_c": 0},
+            "scale_c = 0: expected a finite number other than 0",
+        ),
+        ("modbus", {"host": "h", "timeout_s": math.nan}, "timeout_s = nan: expected a number > 0"),
+        ("modbus", {"host": "h", "min_c": 30, "max_c": 20}, "min_c < max_c"),
+        ("modbus", {"host": "h", "max_c": 400}, "within -50..150"),
+        (
+            "modbus",
+            {
+                "host": "h",
+                "supply_table": "holding",
+                "data_type": "float32",
+                "setpoint_register": 10,
+                "supply_register": 11,
+            },
+            "overlap",
+        ),
+        (
+            "modbus",
+            {"host": "h", "plant": "p"},
+            "plant = 'p': unknown key; allowed: transport, host, ",
+        ),
+        (
+            "opcua",
+            {"url": "opc.tcp://h:4840", "setpoint_node": "ns=2;s=S"},
+            "supply_node: required key missing; expected a non-empty string",
+        ),
+        (
+            "opcua",
+            {"url": "opc.tcp://u:secret@h:4840", "setpoint_node": "a", "supply_node": "b"},
+            "carries a password",
+        ),
+        ("virtual", {"min_c": "cold"}, "min_c = 'cold': expected a finite number"),
+        ("virtual", [1, 2], "settings must be a table"),
+    ],
+)
 def test_a_bad_setting_is_one_config_error_line(backend, settings, message):
     with pytest.raises(ConfigError) as err:
         open_chiller(backend, settings)
@@ -507,9 +612,24 @@ def test_modbus_defaults():
     assert isinstance(tcp, ModbusChiller)
     assert (tcp.port, tcp.device_id, tcp.scale_c, tcp.raw_range) == (502, 1, 0.1, (-32768, 32767))
     assert (tcp.min_c, tcp.max_c, tcp.setpoint_readback) == (5.0, 35.0, True)
-    rtu = open_chiller("modbus", {"transport": "rtu", "port": "/dev/ttyUSB0", "data_type": "float32",
-                                  "parity": "E", "stopbits": 2})
+    rtu = open_chiller(
+        "modbus",
+        {
+            "transport": "rtu",
+            "port": "/dev/ttyUSB0",
+            "data_type": "float32",
+            "parity": "E",
+            "stopbits": 2,
+        },
+    )
     assert (rtu.port, rtu.scale_c, rtu.raw_range, rtu.parity, rtu.stopbits) == (
-        "/dev/ttyUSB0", 1.0, None, "E", 2)
-    checked = check_chiller("opcua", {"url": "opc.tcp://h:4840", "setpoint_node": "a", "supply_node": "b"})
+        "/dev/ttyUSB0",
+        1.0,
+        None,
+        "E",
+        2,
+    )
+    checked = check_chiller(
+        "opcua", {"url": "opc.tcp://h:4840", "setpoint_node": "a", "supply_node": "b"}
+    )
     assert checked.scale_c == 1.0 and checked.setpoint_readback is True

@@ -14,23 +14,37 @@ from conftest import first_order
 from compensator.io import load_model, read_run_log, save_model, write_run_log
 
 REPLAY_KEYS = {
-    "samples", "duration_s", "max_abs_residual_um", "rms_residual_um", "mean_abs_residual_um",
-    "std_uncompensated_um", "std_compensated_um", "std_reduction_pct", "equilibrium_time_s",
+    "samples",
+    "duration_s",
+    "max_abs_residual_um",
+    "rms_residual_um",
+    "mean_abs_residual_um",
+    "std_uncompensated_um",
+    "std_compensated_um",
+    "std_reduction_pct",
+    "equilibrium_time_s",
     "tevr_um",
 }
 
 
 def tc(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "thermocomp", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "thermocomp", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+    )
 
 
 @pytest.fixture(scope="module")
 def logs(tmp_path_factory):
     d = tmp_path_factory.mktemp("logs")
-    for prog, seed, dt, name in (("paper-calibration", 0, 60, "cal.csv"),
-                                 ("random-validation", 1, 60, "val.csv"),
-                                 ("job-shop-day", 2, 1, "day.csv")):
+    for prog, seed, dt, name in (
+        ("paper-calibration", 0, 60, "cal.csv"),
+        ("random-validation", 1, 60, "val.csv"),
+        ("job-shop-day", 2, 1, "day.csv"),
+    ):
         r = tc("simulate", "--program", prog, "--seed", seed, "--dt", dt, "--output", d / name)
         assert r.returncode == 0, r.stderr
     return d
@@ -39,7 +53,16 @@ def logs(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fitted(logs):
     out = logs / "model.json"
-    r = tc("fit", logs / "cal.csv", logs / "val.csv", "--output", out, "--json", "--plot", logs / "fit.png")
+    r = tc(
+        "fit",
+        logs / "cal.csv",
+        logs / "val.csv",
+        "--output",
+        out,
+        "--json",
+        "--plot",
+        logs / "fit.png",
+    )
     assert r.returncode == 0, r.stderr
     return out, json.loads(r.stdout)
 
@@ -50,9 +73,14 @@ def test_fit_writes_a_loadable_model_and_a_json_report(fitted, logs):
     assert model.form == rep["model_form"]
     assert model.spindle_id == "sim-motorized-27k"  # from the logs' metadata
     assert (logs / "fit.png").stat().st_size > 10000
-    assert rep["candidates"] and rep["reason"] and rep["chosen"] in [c["name"] for c in rep["candidates"]]
+    assert (
+        rep["candidates"]
+        and rep["reason"]
+        and rep["chosen"] in [c["name"] for c in rep["candidates"]]
+    )
     assert model.fit["cv_rms_um"] == pytest.approx(
-        next(c for c in rep["candidates"] if c["name"] == rep["chosen"])["cv_rms_um"], abs=1e-3)
+        next(c for c in rep["candidates"] if c["name"] == rep["chosen"])["cv_rms_um"], abs=1e-3
+    )
 
 
 def test_fit_human_report_names_the_winner_and_the_reference(logs, tmp_path):
@@ -63,8 +91,17 @@ def test_fit_human_report_names_the_winner_and_the_reference(logs, tmp_path):
 
 def test_replay_json_keys_and_outputs(fitted, logs, tmp_path):
     path, _ = fitted
-    r = tc("replay", "--model", path, logs / "day.csv", "--json", "--output", tmp_path / "p.csv",
-           "--plot", tmp_path / "p.png")
+    r = tc(
+        "replay",
+        "--model",
+        path,
+        logs / "day.csv",
+        "--json",
+        "--output",
+        tmp_path / "p.csv",
+        "--plot",
+        tmp_path / "p.png",
+    )
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     assert REPLAY_KEYS <= set(rep)
@@ -72,14 +109,18 @@ def test_replay_json_keys_and_outputs(fitted, logs, tmp_path):
     assert rep["rms_residual_um"] < 1.0 and rep["std_reduction_pct"] > 80
     pred = read_run_log(tmp_path / "p.csv")
     np.testing.assert_allclose(pred.extras["offset_um"], -pred.extras["predicted_um"])
-    np.testing.assert_allclose(pred.extras["residual_um"], pred.elongation_um - pred.extras["predicted_um"], atol=1e-6)
+    np.testing.assert_allclose(
+        pred.extras["residual_um"], pred.elongation_um - pred.extras["predicted_um"], atol=1e-6
+    )
     assert (tmp_path / "p.png").stat().st_size > 10000
 
 
 def test_replay_without_measurement_has_null_residuals_and_warns_out_of_range(fitted, tmp_path):
     path, _ = fitted
     t = np.arange(0, 7200, 1.0)
-    write_run_log(tmp_path / "speeds.csv", {"time_s": t, "speed_rpm": np.where(t > 3600, 30000.0, 9000.0)})
+    write_run_log(
+        tmp_path / "speeds.csv", {"time_s": t, "speed_rpm": np.where(t > 3600, 30000.0, 9000.0)}
+    )
     r = tc("replay", "--model", path, tmp_path / "speeds.csv", "--json", "--initial-um", "2.5")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
@@ -92,15 +133,22 @@ def test_replay_without_measurement_has_null_residuals_and_warns_out_of_range(fi
 BAD_LOGS = {
     "malformed.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,3000,1,7\n", ":3: malformed CSV"),
     "nan.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,nan,1\n", ":3: column speed_rpm"),
-    "unsorted.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,10,1\n30,10,1\n", ":4: time does not increase"),
+    "unsorted.csv": (
+        "time_s,speed_rpm,elongation_um\n0,0,0\n60,10,1\n30,10,1\n",
+        ":4: time does not increase",
+    ),
     "short.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,3000,1\n", "at least 20"),
-    "text.csv": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,fast,1\n", ":3: column speed_rpm: 'fast'"),
+    "text.csv": (
+        "time_s,speed_rpm,elongation_um\n0,0,0\n60,fast,1\n",
+        ":3: column speed_rpm: 'fast'",
+    ),
 }
 
 
 def rows(speed, elong, n=40):
     return "time_s,speed_rpm,elongation_um\n" + "".join(
-        f"{60 * k},{speed(k)},{elong(k)}\n" for k in range(n))
+        f"{60 * k},{speed(k)},{elong(k)}\n" for k in range(n)
+    )
 
 
 BAD_LOGS["constant.csv"] = (rows(lambda k: 6000, lambda k: k * 0.1), "constant speed")
@@ -129,8 +177,11 @@ def test_bad_model_files(tmp_path, logs):
     unknown = tmp_path / "unknown.json"
     unknown.write_text(json.dumps({"format": "other/2"}))
     missing = tmp_path / "missing.json"
-    for path, expected in ((tampered, "checksum mismatch"), (unknown, "unknown model format"),
-                           (missing, "cannot read")):
+    for path, expected in (
+        (tampered, "checksum mismatch"),
+        (unknown, "unknown model format"),
+        (missing, "cannot read"),
+    ):
         r = tc("replay", "--model", path, logs / "cal.csv")
         assert r.returncode == 2
         assert r.stderr.count("\n") == 1 and expected in r.stderr, r.stderr
@@ -171,13 +222,26 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     """What `make demo` runs: record over OPC UA, fit, run the service, score; exit 0 only if
     compensation reduced the RMS error."""
     # a 3-hour day (the default is 5): both halves of a shift, lunch between, six probe cycles
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "3"],
-                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "3"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = tmp_path / "out"
-    for name in ("calibration_run.csv", "validation_run.csv", "model.json", "machine.toml", "demo.png",
-                 "virtual_cnc_history.csv", "machine-closed-loop.toml", "demo_closed_loop.png",
-                 "closed_loop_history.csv"):
+    for name in (
+        "calibration_run.csv",
+        "validation_run.csv",
+        "model.json",
+        "machine.toml",
+        "demo.png",
+        "virtual_cnc_history.csv",
+        "machine-closed-loop.toml",
+        "demo_closed_loop.png",
+        "closed_loop_history.csv",
+    ):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "runtime" / "journal").glob("demo-*.csv"))
     assert "reduction" in r.stdout and "compensated" in r.stdout
@@ -187,9 +251,14 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
     # the closed loop: the tool setter's values reached the service, journaled, and corrected it
     assert "Closed loop" in r.stdout and "probe cycles" in r.stdout
     meas = list((out / "runtime-closed-loop" / "journal").glob("demo.measurements-*.csv"))
-    assert meas and sum(line.count(",accepted,") for p in meas for line in p.read_text().splitlines()) >= 5
+    assert (
+        meas
+        and sum(line.count(",accepted,") for p in meas for line in p.read_text().splitlines()) >= 5
+    )
     closed = read_run_log(out / "closed_loop_history.csv")
-    assert np.sqrt(np.mean(closed.extras["tool_tip_error_um"] ** 2)) < 0.5 * np.sqrt(np.mean(closed.elongation_um**2))
+    assert np.sqrt(np.mean(closed.extras["tool_tip_error_um"] ** 2)) < 0.5 * np.sqrt(
+        np.mean(closed.elongation_um**2)
+    )
     # issue 18: the part sees at most 2 um in every phase (steady and after speed changes) and
     # 0.6 um RMS; every sample (the tool clear of the part too) 0.6 um RMS
     cutting = hist.extras["cutting"] == 1
@@ -205,11 +274,30 @@ def test_demo_end_to_end_with_a_relative_output_dir(tmp_path):
         assert (np.abs(np.diff(j["offset_um"]))[both] <= 1.0 * j["dt_s"][1:][both] + 1e-9).all()
     assert "while cutting" in r.stdout and "transient phases" in r.stdout
     # the demo fits as `thermocomp fit` does: the same logs give the same model
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", "out/calibration_run.csv",
-                        "out/validation_run.csv", "--model-spindle-id", "demo-spindle", "--machine-id", "virtual",
-                        "--output", "fit.json", "--json"], capture_output=True, text=True, cwd=tmp_path)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "fit",
+            "out/calibration_run.csv",
+            "out/validation_run.csv",
+            "--model-spindle-id",
+            "demo-spindle",
+            "--machine-id",
+            "virtual",
+            "--output",
+            "fit.json",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
-    demo_model, fit_model = (json.loads(p.read_text()) for p in (out / "model.json", tmp_path / "fit.json"))
+    demo_model, fit_model = (
+        json.loads(p.read_text()) for p in (out / "model.json", tmp_path / "fit.json")
+    )
     for m in (demo_model, fit_model):
         m.pop("created_utc", None)
         m.pop("sha256", None)  # of the file's contents, created_utc included
@@ -239,10 +327,16 @@ def test_replay_applies_the_runtimes_shaping_and_compares_the_policies(fitted, l
     assert rate[~both].max() > 3.0  # and the elastic step lands in the run-up, fast
     policies = {p["policy"]: p for p in rep["policies"]}
     assert set(policies) == {"slow-slew", "dual-slew", "longer-cycle", "none"}
-    assert policies["dual-slew"]["configured"] and policies["dual-slew"]["max_abs_um"] == rep["applied_max_abs_residual_um"]
+    assert (
+        policies["dual-slew"]["configured"]
+        and policies["dual-slew"]["max_abs_um"] == rep["applied_max_abs_residual_um"]
+    )
     assert policies["none"]["max_abs_um"] == pytest.approx(rep["max_abs_residual_um"])
     # one slow limit lags the elastic step into the cut: what issue 18 fixes
-    assert policies["slow-slew"]["cutting_max_abs_um"] > policies["dual-slew"]["cutting_max_abs_um"] + 3.0
+    assert (
+        policies["slow-slew"]["cutting_max_abs_um"]
+        > policies["dual-slew"]["cutting_max_abs_um"] + 3.0
+    )
     for name in ("slow-slew", "dual-slew", "longer-cycle"):
         assert policies[name]["max_cutting_rate_um_per_s"] <= 1.0 + 1e-9, name
     text = tc("replay", logs / "day.csv", "--model", path)
@@ -256,20 +350,44 @@ def test_shaping_adds_at_most_1_um_on_any_1s_job_shop_log(fitted, tmp_path, seed
     path, _ = fitted
     day = tmp_path / "day.csv"
     for accel in ("5000", "1e9"):
-        r = tc("simulate", "--program", "job-shop-day", "--seed", seed, "--dt", 1, "--accel-rpm-per-s", accel,
-               "--output", day)
+        r = tc(
+            "simulate",
+            "--program",
+            "job-shop-day",
+            "--seed",
+            seed,
+            "--dt",
+            1,
+            "--accel-rpm-per-s",
+            accel,
+            "--output",
+            day,
+        )
         assert r.returncode == 0, r.stderr
         log = read_run_log(day)
         plain = tmp_path / "plain.csv"
-        write_run_log(plain, {"time_s": log.time_s, "speed_rpm": log.speed_rpm, "elongation_um": log.elongation_um})
+        write_run_log(
+            plain,
+            {"time_s": log.time_s, "speed_rpm": log.speed_rpm, "elongation_um": log.elongation_um},
+        )
         for f in (day, plain):
             rep = json.loads(tc("replay", f, "--model", path, "--json").stdout)
-            assert rep["applied_max_abs_residual_um"] <= rep["max_abs_residual_um"] + 1.0, (accel, f.name)
+            assert rep["applied_max_abs_residual_um"] <= rep["max_abs_residual_um"] + 1.0, (
+                accel,
+                f.name,
+            )
             assert (f == plain) == (rep["shaping"]["cutting_source"] == "inferred from the speed")
 
 
 def test_demo_hours_out_of_range_is_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "0.5"],
-                       capture_output=True, text=True, cwd=tmp_path, timeout=120)
-    assert r.returncode == 2 and "--hours 0.5: from 1 to 24" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "demo", "--output-dir", "out", "--hours", "0.5"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert (
+        r.returncode == 2 and "--hours 0.5: from 1 to 24" in r.stderr and r.stderr.count("\n") == 1
+    ), r.stderr
     assert not (tmp_path / "out").exists()

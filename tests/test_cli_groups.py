@@ -48,16 +48,26 @@ def test_the_help_lists_every_command_once_in_its_audiences_group():
             listed[m.group(1)] = group
     assert set(listed) == commands()
     assert listed["run"] == listed["status"] == listed["measure"] == listed["journal"] == titles[0]
-    assert listed["wizard"] == listed["fit"] == listed["model"] == listed["probe-program"] == titles[1]
-    assert listed["simulate"] == listed["virtual-cnc"] == listed["hal-plant"] == listed["demo"] == titles[2]
+    assert (
+        listed["wizard"] == listed["fit"] == listed["model"] == listed["probe-program"] == titles[1]
+    )
+    assert (
+        listed["simulate"]
+        == listed["virtual-cnc"]
+        == listed["hal-plant"]
+        == listed["demo"]
+        == titles[2]
+    )
     assert "usage: thermocomp [-h] [--version] COMMAND ..." in text
 
 
 def test_building_the_parser_imports_no_layer_below_the_cli():
     """What `thermocomp --help` and the docs build pay: the value sets are read on use."""
-    code = ("import sys; from thermocomp.cli import build_parser; build_parser().format_help(); "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('calibration', 'machine_sim', 'compensator', 'cnc_adapters', 'numpy')))")
+    code = (
+        "import sys; from thermocomp.cli import build_parser; build_parser().format_help(); "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('calibration', 'machine_sim', 'compensator', 'cnc_adapters', 'numpy')))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
 
@@ -65,8 +75,10 @@ def test_building_the_parser_imports_no_layer_below_the_cli():
 def test_replay_fit_and_the_wizard_import_scipys_solvers_only_when_they_solve():
     """scipy.optimize and scipy.interpolate cost about 1.6 s of CPU to import: every `replay`, every
     `fit` that stops at a bad log and every wizard question paid it before the work began."""
-    code = ("import sys, calibration.replay, calibration.fit, calibration.wizard; "
-            "print(sorted(m for m in ('scipy.optimize', 'scipy.interpolate') if m in sys.modules))")
+    code = (
+        "import sys, calibration.replay, calibration.fit, calibration.wizard; "
+        "print(sorted(m for m in ('scipy.optimize', 'scipy.interpolate') if m in sys.modules))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
 
@@ -84,7 +96,11 @@ def test_every_commands_help_formats_and_its_value_sets_are_the_codes():
                 dialect_options.add(prog)
             if "--preset" in action.option_strings:
                 assert tuple(action.choices) == tuple(PRESETS), prog
-    assert dialect_options == {"thermocomp wizard", "thermocomp profile", "thermocomp probe-program"}
+    assert dialect_options == {
+        "thermocomp wizard",
+        "thermocomp profile",
+        "thermocomp probe-program",
+    }
 
 
 def test_an_option_name_has_one_meaning():
@@ -114,25 +130,63 @@ def parsed(capsys, argv: list[str]) -> tuple[dict, str]:
 
 
 OLD_AND_NEW = [
-    (["fit", "r.csv", "--output", "m.json", "--spindle-id", "s1"],
-     ["fit", "r.csv", "--output", "m.json", "--model-spindle-id", "s1"], "'--spindle-id'", "'--model-spindle-id'"),
-    (["wizard", "--spindle-id", "s1"], ["wizard", "--model-spindle-id", "s1"],
-     "'--spindle-id'", "'--model-spindle-id'"),
-    (["probe-program", "--dialect", "fanuc", "--spindle", "low"],
-     ["probe-program", "--dialect", "fanuc", "--probe-spindle", "low"], "'--spindle'", "'--probe-spindle'"),
-    (["model", "FILE"], ["model", "show", "FILE"], "'thermocomp model FILE'", "'thermocomp model show FILE'"),
-    (["model", "--json", "FILE"], ["model", "show", "--json", "FILE"], "'thermocomp model FILE'", "model show"),
-    (["model", "--schema", "--format", "all"], ["model", "schema", "--format", "all"],
-     "'thermocomp model --schema'", "'thermocomp model schema'"),
-    (["replay", "day.csv", "--model", "m.json", "--applied"], ["replay", "day.csv", "--model", "m.json"],
-     "'--applied'", "does nothing"),
-    (["fit", "r.csv", "--output", "m.json", "--method", "cycles"], ["fit", "r.csv", "--output", "m.json"],
-     "'--method'", "does nothing"),
+    (
+        ["fit", "r.csv", "--output", "m.json", "--spindle-id", "s1"],
+        ["fit", "r.csv", "--output", "m.json", "--model-spindle-id", "s1"],
+        "'--spindle-id'",
+        "'--model-spindle-id'",
+    ),
+    (
+        ["wizard", "--spindle-id", "s1"],
+        ["wizard", "--model-spindle-id", "s1"],
+        "'--spindle-id'",
+        "'--model-spindle-id'",
+    ),
+    (
+        ["probe-program", "--dialect", "fanuc", "--spindle", "low"],
+        ["probe-program", "--dialect", "fanuc", "--probe-spindle", "low"],
+        "'--spindle'",
+        "'--probe-spindle'",
+    ),
+    (
+        ["model", "FILE"],
+        ["model", "show", "FILE"],
+        "'thermocomp model FILE'",
+        "'thermocomp model show FILE'",
+    ),
+    (
+        ["model", "--json", "FILE"],
+        ["model", "show", "--json", "FILE"],
+        "'thermocomp model FILE'",
+        "model show",
+    ),
+    (
+        ["model", "--schema", "--format", "all"],
+        ["model", "schema", "--format", "all"],
+        "'thermocomp model --schema'",
+        "'thermocomp model schema'",
+    ),
+    (
+        ["replay", "day.csv", "--model", "m.json", "--applied"],
+        ["replay", "day.csv", "--model", "m.json"],
+        "'--applied'",
+        "does nothing",
+    ),
+    (
+        ["fit", "r.csv", "--output", "m.json", "--method", "cycles"],
+        ["fit", "r.csv", "--output", "m.json"],
+        "'--method'",
+        "does nothing",
+    ),
 ]
 
 
-@pytest.mark.parametrize("old,new,said,instead", OLD_AND_NEW, ids=[" ".join(c[0]) for c in OLD_AND_NEW])
-def test_an_old_spelling_parses_as_the_new_with_one_deprecation_line(capsys, model_file, old, new, said, instead):
+@pytest.mark.parametrize(
+    "old,new,said,instead", OLD_AND_NEW, ids=[" ".join(c[0]) for c in OLD_AND_NEW]
+)
+def test_an_old_spelling_parses_as_the_new_with_one_deprecation_line(
+    capsys, model_file, old, new, said, instead
+):
     old = [str(model_file) if w == "FILE" else w for w in old]
     new = [str(model_file) if w == "FILE" else w for w in new]
     now, quiet = parsed(capsys, new)
@@ -151,12 +205,16 @@ def test_an_old_spelling_still_runs_the_command(capsys, model_file):
     assert capsys.readouterr() == (out, "")
 
 
-def test_model_check_is_a_subcommand_that_passes_a_good_file_and_refuses_a_bad_one(capsys, model_file, tmp_path):
+def test_model_check_is_a_subcommand_that_passes_a_good_file_and_refuses_a_bad_one(
+    capsys, model_file, tmp_path
+):
     assert main(["model", "check", str(model_file)]) == 0
     out, err = capsys.readouterr()
     assert out.startswith(f"{model_file}: ok: ") and err == ""
     bad = tmp_path / "bad.json"
-    bad.write_text(model_file.read_text().replace('"spindle_id": "unknown"', '"spindle_id": "other"'))
+    bad.write_text(
+        model_file.read_text().replace('"spindle_id": "unknown"', '"spindle_id": "other"')
+    )
     assert main(["model", "check", str(bad)]) == 2
     out, err = capsys.readouterr()
     assert out == "" and err.count("\n") == 1 and "checksum mismatch" in err
@@ -167,11 +225,14 @@ def test_model_check_is_a_subcommand_that_passes_a_good_file_and_refuses_a_bad_o
     assert build_parser().parse_args(["model", "check", str(bad)]).model_command == "check"
 
 
-@pytest.mark.parametrize("argv", [
-    ["wizard", "--dialect", "mazak"],
-    ["profile", "--max-rpm", "12000", "--dialect", "mazak", "--output", "x.nc"],
-    ["probe-program", "--dialect", "mazak"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["wizard", "--dialect", "mazak"],
+        ["profile", "--max-rpm", "12000", "--dialect", "mazak", "--output", "x.nc"],
+        ["probe-program", "--dialect", "mazak"],
+    ],
+)
 def test_an_unknown_dialect_is_argparses_one_line_refusal(capsys, argv):
     with pytest.raises(SystemExit) as stop:
         build_parser().parse_args(argv)
@@ -179,7 +240,8 @@ def test_an_unknown_dialect_is_argparses_one_line_refusal(capsys, argv):
     errors = [line for line in err.splitlines() if "error:" in line]
     assert stop.value.code == 2 and errors == [
         f"thermocomp {argv[0]}: error: argument --dialect: invalid choice: 'mazak' "
-        "(choose from 'fanuc', 'sinumerik', 'heidenhain', 'linuxcnc')"]
+        "(choose from 'fanuc', 'sinumerik', 'heidenhain', 'linuxcnc')"
+    ]
 
 
 def test_the_wizards_time_scale_is_shown_and_checked(capsys):
@@ -206,7 +268,10 @@ def test_replay_applied_changes_nothing_in_what_replay_does(capsys):
 def test_a_value_set_the_slim_install_cannot_load_is_the_extras_one_line():
     """The plant's presets need scipy: without it, `simulate --preset` and `simulate --help` say
     which extra brings it, as the command itself would."""
-    for argv in (["simulate", "--preset", "motorized-27k", "--output", "x.csv"], ["simulate", "--help"]):
+    for argv in (
+        ["simulate", "--preset", "motorized-27k", "--output", "x.csv"],
+        ["simulate", "--help"],
+    ):
         code = f"import sys; sys.modules['scipy'] = None; from thermocomp.cli import main; sys.exit(main({argv!r}))"
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr

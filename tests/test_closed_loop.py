@@ -49,13 +49,30 @@ def simple_model(tmp_path_factory) -> Path:
     return p
 
 
-def config(tmp_path: Path, model: Path, observer: str = "enabled = true", period_s: float = 1.0,
-           shaping: str = f"max_offset_um = 60.0\nmax_rate_um_per_s = {RATE}\ndeadband_um = 0.0",
-           extra: str = "") -> Path:
-    lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0",
-             "[[spindle]]", 'name = "s1"', f'model = "{model}"', f"period_s = {period_s}",
-             "state_save_every_s = 600.0", 'adapter = {url = "sim://"}', extra,
-             "[spindle.shaping]", shaping, "[spindle.observer]", observer]
+def config(
+    tmp_path: Path,
+    model: Path,
+    observer: str = "enabled = true",
+    period_s: float = 1.0,
+    shaping: str = f"max_offset_um = 60.0\nmax_rate_um_per_s = {RATE}\ndeadband_um = 0.0",
+    extra: str = "",
+) -> Path:
+    lines = [
+        f'state_dir = "{tmp_path / "state"}"',
+        "watchdog = false",
+        "journal_fsync_s = 3600.0",
+        "[[spindle]]",
+        'name = "s1"',
+        f'model = "{model}"',
+        f"period_s = {period_s}",
+        "state_save_every_s = 600.0",
+        'adapter = {url = "sim://"}',
+        extra,
+        "[spindle.shaping]",
+        shaping,
+        "[spindle.observer]",
+        observer,
+    ]
     tmp_path.mkdir(parents=True, exist_ok=True)
     p = tmp_path / "machine.toml"
     p.write_text("\n".join(lines) + "\n")
@@ -69,7 +86,9 @@ class Bench:
         self.t = 0.0
         self.cfg = load_config(config(tmp_path, model, **kw))
         if make_vm is None:
-            self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock)
+            self.vm = VirtualMachine(
+                SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock
+            )
             self.vm.override_speed(SPEED)
         else:
             self.vm = make_vm(self.clock)
@@ -85,8 +104,15 @@ class Bench:
 
     def start(self, previous: SpindleRuntime | None = None) -> SpindleRuntime:
         sc = self.cfg.spindle[0]
-        return SpindleRuntime(sc, self.cfg.state_dir, self.cfg.journal_path, clock=self.clock,
-                              wall=self.wall, adapter=self.adapter_cls(machine=self.vm), previous=previous)
+        return SpindleRuntime(
+            sc,
+            self.cfg.state_dir,
+            self.cfg.journal_path,
+            clock=self.clock,
+            wall=self.wall,
+            adapter=self.adapter_cls(machine=self.vm),
+            previous=previous,
+        )
 
     def reload(self, tmp_path: Path, model: Path, **kw) -> None:
         """What SIGHUP does: a runtime from the new configuration goes on from the running one."""
@@ -126,28 +152,41 @@ def answer_box() -> tuple[list[dict], Callable[[dict], None]]:
 
 # -- the issue's test: an unmodelled ambient drift -----------------------------------------------
 
+
 @pytest.fixture
 def fitted_model(calibrated_model) -> Path:
     """A speed-only model fitted on the plant in a hall at constant temperature."""
     return calibrated_model
 
 
-def drift_day(tmp_path: Path, model: Path, enabled: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, Bench]:
+def drift_day(
+    tmp_path: Path, model: Path, enabled: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Bench]:
     """Eight hours of a job shop while the hall warms by 1 K/h, a probe cycle every 30 min
     (the spindle stops for the tool setter either way): times, estimate errors, tool-tip errors."""
     p = preset("motorized-27k")
 
     def warming_hall(clock) -> VirtualMachine:
-        vm = VirtualMachine(SpindlePlant(p, seed=5).with_params(ambient_drift_k_per_h=1.0), None,
-                            clock=clock, plant_dt_s=2.0)
+        vm = VirtualMachine(
+            SpindlePlant(p, seed=5).with_params(ambient_drift_k_per_h=1.0),
+            None,
+            clock=clock,
+            plant_dt_s=2.0,
+        )
         vm.load_program(job_shop_day(p.max_rpm, seed=5, hours=8))
         return vm
 
     # the hall warms 1 K/h, which a calibration at constant temperature never saw: its fitted bias
     # random walk is far too small for that, so the shop states the one it sees (5 um per sqrt(h))
     observer = f"enabled = {str(enabled).lower()}\nbias_q_um2_per_s = {25.0 / 3600.0!r}"
-    b = Bench(tmp_path, model, make_vm=warming_hall, observer=observer,
-              period_s=10.0, shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 1.0\ndeadband_um = 0.0")
+    b = Bench(
+        tmp_path,
+        model,
+        make_vm=warming_hall,
+        observer=observer,
+        period_s=10.0,
+        shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 1.0\ndeadband_um = 0.0",
+    )
     vm = b.vm
     next_probe = 1800.0
     while not vm.program_done:
@@ -190,8 +229,10 @@ def test_observer_on_the_virtual_plant_with_unmodelled_ambient_drift(tmp_path, f
     assert len(rows) == b.rt.counters["probes_accepted"] == vm_probes(b) >= 15
     assert {r["outcome"] for r in rows} == {"accepted"} and {r["source"] for r in rows} == {"sim"}
     assert [int(r["sequence"]) for r in rows] == list(range(1, len(rows) + 1))
-    assert not any(r["alarms"] & (Alarm.PROBE_REJECTED | Alarm.PROBE_FAILED | Alarm.OBSERVER_STALE)
-                   for r in b.rows)
+    assert not any(
+        r["alarms"] & (Alarm.PROBE_REJECTED | Alarm.PROBE_FAILED | Alarm.OBSERVER_STALE)
+        for r in b.rows
+    )
 
 
 def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, fitted_model):
@@ -199,8 +240,11 @@ def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, 
     has restarted the spindle (here at 22 500 rpm, ~11 um of elastic growth the model knows)."""
 
     def steady(clock) -> VirtualMachine:
-        return VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1),
-                              Program("steady", ((20000.0, 22500.0),)), clock=clock)
+        return VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=1),
+            Program("steady", ((20000.0, 22500.0),)),
+            clock=clock,
+        )
 
     b = Bench(tmp_path, fitted_model, make_vm=steady, period_s=3.0)
     b.run(600)
@@ -212,11 +256,14 @@ def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, 
     assert abs(float(m["innovation_um"])) < 1.5  # met the estimate at rest, not the one at speed
     assert abs(b.rt.state.bias_um) < 1.5
     h = b.vm.history()
-    assert abs(np.interp(b.rows[-1]["time_s"], h.time_s, h.true_um) - b.rows[-1]["predicted_um"]) < 1.5
+    assert (
+        abs(np.interp(b.rows[-1]["time_s"], h.time_s, h.true_um) - b.rows[-1]["predicted_um"]) < 1.5
+    )
     b.rt.close()
 
 
 # -- safety: slew limit, outliers, failing sources, staleness ------------------------------------
+
 
 def test_slew_limits_respected_after_a_large_correction(tmp_path, simple_model):
     b = Bench(tmp_path, simple_model)
@@ -226,19 +273,25 @@ def test_slew_limits_respected_after_a_large_correction(tmp_path, simple_model):
     box, reply = answer_box()
     b.rt.submit(s + 30.0, 0.5, reply)  # the tool grew 30 um more than the model says
     rows = b.run(40)
-    assert box[0]["outcome"] == "accepted" and box[0]["innovation_um"] == pytest.approx(30.0, abs=0.2)
+    assert box[0]["outcome"] == "accepted" and box[0]["innovation_um"] == pytest.approx(
+        30.0, abs=0.2
+    )
     assert rows[0]["predicted_um"] > s + 29.0  # the estimate takes the correction at once...
     off = np.array([r["offset_um"] for r in b.rows])
     assert np.all(np.abs(np.diff(off)) <= RATE * 1.0 + 1e-9)  # ...the controller never jumps
     assert rows[0]["offset_um"] == pytest.approx(b.rows[-41]["offset_um"] - RATE)
-    assert rows[-1]["offset_um"] == pytest.approx(-rows[-1]["predicted_um"], abs=1e-6)  # and arrives
+    assert rows[-1]["offset_um"] == pytest.approx(
+        -rows[-1]["predicted_um"], abs=1e-6
+    )  # and arrives
     h = b.vm.history()  # what the controller held, every 0.5 s of the plant
     held = h.offset_um[h.time_s >= 590.0]
     assert np.abs(np.diff(held)).max() <= RATE + 1e-9
     b.rt.close()
 
 
-def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(tmp_path, simple_model, caplog):
+def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(
+    tmp_path, simple_model, caplog
+):
     b = Bench(tmp_path, simple_model)
     b.run(300)
     b.rt.submit(b.rows[-1]["predicted_um"] + 1.0, 0.5)
@@ -250,13 +303,20 @@ def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(tmp_
         b.rt.submit(b.rows[-1]["predicted_um"] + 40.0, 0.5, reply)
         rows = b.run(5)
     assert box[0]["outcome"] == "rejected" and not box[0]["accepted"]
-    assert box[0]["innovation_um"] == pytest.approx(40.0, abs=0.2) and box[0]["innovation_sd_um"] < 2.0
+    assert (
+        box[0]["innovation_um"] == pytest.approx(40.0, abs=0.2) and box[0]["innovation_sd_um"] < 2.0
+    )
     assert b.rt.state.bias_um == bias  # unchanged
     for r in rows:  # the estimate is the model's plus the same bias
         assert r["alarms"] & Alarm.PROBE_REJECTED  # held until a measurement is taken again
-    assert rows[-1]["predicted_um"] == pytest.approx(b.rt.speed_only_state.elongation_um + bias, abs=1e-12)
+    assert rows[-1]["predicted_um"] == pytest.approx(
+        b.rt.speed_only_state.elongation_um + bias, abs=1e-12
+    )
     (rejected,) = events(caplog, "probe_rejected")
-    assert rejected.fields["innovation_um"] == pytest.approx(40.0, abs=0.2) and rejected.levelno == logging.WARNING
+    assert (
+        rejected.fields["innovation_um"] == pytest.approx(40.0, abs=0.2)
+        and rejected.levelno == logging.WARNING
+    )
     b.rt.submit(b.rows[-1]["predicted_um"] + 0.3, 0.5)
     assert not b.run(1)[0]["alarms"] & Alarm.PROBE_REJECTED  # taken: cleared
     # two refusals that agree are a real change (a new tool holder): the bias restarts
@@ -264,10 +324,18 @@ def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(tmp_
         b.rt.submit(b.rows[-1]["predicted_um"] + 40.0, 0.5)
         b.run(1)
     assert b.rt.state.bias_um == pytest.approx(bias + 40.0, abs=1.0)
-    assert [r["outcome"] for r in b.measurements()] == ["accepted", "rejected", "accepted", "rejected",
-                                                        "restarted"]
+    assert [r["outcome"] for r in b.measurements()] == [
+        "accepted",
+        "rejected",
+        "accepted",
+        "rejected",
+        "restarted",
+    ]
     row = b.measurements()[1]
-    assert float(row["innovation_um"]) == pytest.approx(40.0, abs=0.2) and float(row["innovation_sd_um"]) > 0
+    assert (
+        float(row["innovation_um"]) == pytest.approx(40.0, abs=0.2)
+        and float(row["innovation_sd_um"]) > 0
+    )
     assert row["source"] == "control" and row["sequence"] == ""
     b.rt.close()
 
@@ -283,10 +351,15 @@ class FlakySource(SimAdapter):
         return super()._read_measurement_raw()
 
 
-def test_a_failing_measurement_source_alarms_and_compensation_goes_on(tmp_path, simple_model, caplog):
+def test_a_failing_measurement_source_alarms_and_compensation_goes_on(
+    tmp_path, simple_model, caplog
+):
     b = Bench(tmp_path, simple_model, adapter_cls=FlakySource)
     b.run(100)
-    b.vm.probe_value_um, b.vm.probe_sequence = math.nan, b.vm.probe_sequence + 1  # a probe cycle's NaN
+    b.vm.probe_value_um, b.vm.probe_sequence = (
+        math.nan,
+        b.vm.probe_sequence + 1,
+    )  # a probe cycle's NaN
     with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
         rows = b.run(3)
     assert all(r["alarms"] & Alarm.PROBE_FAILED for r in rows)  # held: the value was refused
@@ -297,8 +370,10 @@ def test_a_failing_measurement_source_alarms_and_compensation_goes_on(tmp_path, 
     rows = b.run(25)
     assert not rows[-1]["alarms"] & Alarm.PROBE_FAILED and b.rt.counters["probes_accepted"] == 1
     b.vm.override_speed(12000.0)
-    for error in (AdapterError("sim: measurement variable unreadable"),
-                  AdapterTimeoutError("sim: the probe's variables do not answer")):
+    for error in (
+        AdapterError("sim: measurement variable unreadable"),
+        AdapterTimeoutError("sim: the probe's variables do not answer"),
+    ):
         b.rt.adapter.broken = error
         rows = b.run(3)
         assert all(r["alarms"] & Alarm.PROBE_FAILED and r["offset_mode"] != "holding" for r in rows)
@@ -309,17 +384,23 @@ def test_a_failing_measurement_source_alarms_and_compensation_goes_on(tmp_path, 
     b.rt.close()
 
 
-def test_a_stale_observer_says_so_in_the_alarms_the_events_and_the_status(tmp_path, simple_model, caplog):
+def test_a_stale_observer_says_so_in_the_alarms_the_events_and_the_status(
+    tmp_path, simple_model, caplog
+):
     b = Bench(tmp_path, simple_model, observer="enabled = true\nstale_after_s = 60.0")
     with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
         rows = b.run(70)
     # a new installation: counted from the start, not stale at once
-    assert not rows[58]["alarms"] & Alarm.OBSERVER_STALE and rows[-1]["alarms"] & Alarm.OBSERVER_STALE
+    assert (
+        not rows[58]["alarms"] & Alarm.OBSERVER_STALE and rows[-1]["alarms"] & Alarm.OBSERVER_STALE
+    )
     assert rows[-1]["observer"]["stale"] and len(events(caplog, "observer_stale")) == 1
     b.rt.submit(rows[-1]["predicted_um"], 0.5)
     with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
         rows = b.run(62)
-    assert not rows[0]["alarms"] & Alarm.OBSERVER_STALE and len(events(caplog, "observer_fresh")) == 1
+    assert (
+        not rows[0]["alarms"] & Alarm.OBSERVER_STALE and len(events(caplog, "observer_fresh")) == 1
+    )
     assert rows[0]["observer"]["since_measurement_s"] == 0.0
     assert not rows[-2]["alarms"] & Alarm.OBSERVER_STALE  # 60 s: not yet
     assert rows[-1]["alarms"] & Alarm.OBSERVER_STALE and len(events(caplog, "observer_stale")) == 2
@@ -330,6 +411,7 @@ def test_a_stale_observer_says_so_in_the_alarms_the_events_and_the_status(tmp_pa
 
 
 # -- state, switches, configuration ---------------------------------------------------------
+
 
 def test_the_observer_state_is_saved_and_restored_through_the_downtime(tmp_path, simple_model):
     b = Bench(tmp_path, simple_model)
@@ -352,9 +434,13 @@ def test_one_observer_serves_the_model_in_use_and_a_switch_does_not_jump(tmp_pat
     model = tmp_path / "inputs.json"
     save_model(model, with_inputs())
     values = {"temp1_c": 27.0}
-    b = Bench(tmp_path, model, adapter_cls=lambda machine: InputSim(machine, values),
-              shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0",
-              extra="[spindle.faults]\ninput_stale_s = 86400.0\ninput_recover_s = 5.0")
+    b = Bench(
+        tmp_path,
+        model,
+        adapter_cls=lambda machine: InputSim(machine, values),
+        shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0",
+        extra="[spindle.faults]\ninput_stale_s = 86400.0\ninput_recover_s = 5.0",
+    )
     b.vm.override_speed(5000.0)
     b.run(200)
     assert b.rt.input_state is not None
@@ -393,7 +479,10 @@ def test_a_reload_carries_the_observer_and_its_waiting_measurements_on(tmp_path,
     assert box[0]["outcome"] == "accepted"
     b.reload(tmp_path, simple_model, observer="enabled = false")  # the model alone again
     rows = b.run(5)
-    assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um) and rows[-1]["observer"] is None
+    assert (
+        rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um)
+        and rows[-1]["observer"] is None
+    )
     off = np.array([r["offset_um"] for r in b.rows])
     assert np.all(np.abs(np.diff(off)) <= RATE + 1e-9)  # the bias leaves through the slew limit
     b.reload(tmp_path, simple_model)  # and on again: from the prior
@@ -407,11 +496,20 @@ def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, 
     cfg = load_config(EXAMPLES / "closed-loop.toml")
     obs = cfg.spindle[0].observer
     assert obs.enabled and obs.sigma_um == 0.5 and obs.overrides() == {"gate_sigma": 5.0}
-    b = Bench(tmp_path, simple_model, observer="enabled = true\ngate_sigma = 3.0\nreaccept_after = 0")
-    assert b.rt.estimate.fused.config.gate_sigma == 3.0 and b.rt.estimate.fused.config.reaccept_after == 0
+    b = Bench(
+        tmp_path, simple_model, observer="enabled = true\ngate_sigma = 3.0\nreaccept_after = 0"
+    )
+    assert (
+        b.rt.estimate.fused.config.gate_sigma == 3.0
+        and b.rt.estimate.fused.config.reaccept_after == 0
+    )
     b.rt.close()
-    for bad, match in (("gate_sigma = 0.0", "gate_sigma"), ("bogus = 1", "bogus"),
-                       ("sigma_um = -1", "sigma_um"), ("stale_after_s = nan", "stale_after_s")):
+    for bad, match in (
+        ("gate_sigma = 0.0", "gate_sigma"),
+        ("bogus = 1", "bogus"),
+        ("sigma_um = -1", "sigma_um"),
+        ("stale_after_s = nan", "stale_after_s"),
+    ):
         with pytest.raises(ConfigError, match=match) as exc:
             load_config(config(tmp_path, simple_model, f"enabled = true\n{bad}"))
         assert "\n" not in str(exc.value)
@@ -425,23 +523,33 @@ def test_observer_settings_are_validated_and_override_the_fitted_ones(tmp_path, 
 
 # -- over OPC UA, the virtual CNC's tool setter ------------------------------------------------
 
-def test_the_runtime_takes_the_controllers_probe_once_over_opcua_and_refuses_a_nan(tmp_path, simple_model, caplog):
+
+def test_the_runtime_takes_the_controllers_probe_once_over_opcua_and_refuses_a_nan(
+    tmp_path, simple_model, caplog
+):
     t = [0.0]
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=lambda: t[0])
     vm.override_speed(SPEED)
     cfg = load_config(config(tmp_path, simple_model))
     with running(VirtualCNC(vm)) as cnc:
         link = OpcUaAdapter(cnc.url, preset="virtual-cnc", timeout_s=5.0)
-        rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t[0],
-                            wall=lambda: WALL0 + t[0], adapter=link)
+        rt = SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: t[0],
+            wall=lambda: WALL0 + t[0],
+            adapter=link,
+        )
         try:
             opcua_probe_cycles(cnc, vm, rt, t, caplog)
         finally:
             rt.close()  # and the link: its client thread would outlive the test
 
 
-def opcua_probe_cycles(cnc: VirtualCNC, vm: VirtualMachine, rt: SpindleRuntime, t: list[float],
-                       caplog) -> None:
+def opcua_probe_cycles(
+    cnc: VirtualCNC, vm: VirtualMachine, rt: SpindleRuntime, t: list[float], caplog
+) -> None:
     from asyncua.sync import Client
 
     def cycles(n: int) -> list[dict]:

@@ -13,8 +13,9 @@ from compensator.fusion import FusedPredictor, observer_config_of
 from compensator.observer import ObserverConfig
 
 
-def _walk(seed: int, hours: float = 40.0, dt_s: float = 15.0, q_um2_per_h: float = 4.0,
-          sd_um: float = 0.6) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
+def _walk(
+    seed: int, hours: float = 40.0, dt_s: float = 15.0, q_um2_per_h: float = 4.0, sd_um: float = 0.6
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
     """A residual made of a random walk (q) plus white misses (sd), cut into 8 h cycles."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, hours * 3600.0, dt_s)
@@ -57,7 +58,9 @@ def test_the_plan_tabulates_every_interval_and_recommends_the_longest_that_meets
     t, r, cycles = _walk(5)
     plan = cl.plan(t, r, cycles, 3600.0, target_um=1.5)
     rows = plan.table
-    assert rows[0]["interval_s"] is None and [row["interval_s"] for row in rows[1:]] == list(cl.INTERVALS_S)
+    assert rows[0]["interval_s"] is None and [row["interval_s"] for row in rows[1:]] == list(
+        cl.INTERVALS_S
+    )
     rms = [row["rms_um"] for row in rows[1:]]
     assert rms == sorted(rms)  # probing less often never helps
     assert rows[0]["rms_um"] > rms[-1]  # and any probing beats none
@@ -72,12 +75,17 @@ def test_the_plan_tabulates_every_interval_and_recommends_the_longest_that_meets
 def test_observer_settings_come_from_the_model_and_the_runtime_overrides_them():
     from compensator.model import ThermalModel
 
-    m = ThermalModel.from_discrete(0.98, (0.0, 0.002, 0.0004, 0.0), 60.0, speed_range_rpm=(0.0, 20000.0))
+    m = ThermalModel.from_discrete(
+        0.98, (0.0, 0.002, 0.0004, 0.0), 60.0, speed_range_rpm=(0.0, 20000.0)
+    )
     assert observer_config_of(m) == ObserverConfig()
-    fitted = m.model_copy(update={"fit": {"observer": {"bias_q_um2_per_s": 0.001, "model_sd_um": 0.3}}})
+    fitted = m.model_copy(
+        update={"fit": {"observer": {"bias_q_um2_per_s": 0.001, "model_sd_um": 0.3}}}
+    )
     cfg = observer_config_of(fitted, {"gate_sigma": 4.0})
     assert (cfg.bias_q_um2_per_s, cfg.model_sd_um, cfg.gate_sigma) == (0.001, 0.3, 4.0)
     from compensator.errors import ModelError
+
     with pytest.raises(ModelError, match="observer settings"):
         observer_config_of(fitted, {"gate_sigma": -1.0})
     f = FusedPredictor(fitted, cfg)
@@ -101,17 +109,49 @@ def test_fit_for_a_closed_loop_chooses_by_the_closed_loop_on_held_out_cycles(tmp
 
     channels = runpy.run_path(str(Path(__file__).parent / "data" / "real-spindle" / "channels.py"))
     log = channels["write_channels"](tmp_path, ("ch3",))["ch3"]
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", str(log), "--no-physical", "--no-nested",
-                        "--probe-every", "1800", "--output", str(tmp_path / "m.json"), "--json"],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "fit",
+            str(log),
+            "--no-physical",
+            "--no-nested",
+            "--probe-every",
+            "1800",
+            "--output",
+            str(tmp_path / "m.json"),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     speed = [c for c in rep["candidates"] if c["family"] == "speed" and c["accepted"]]
     loop = {c["name"]: c["closed_loop_rms_um"]["1800"] for c in speed}
     assert rep["chosen"] == min(loop, key=loop.get) and "closed-loop RMS" in rep["reason"]
-    assert rep["closed_loop"]["intervals"][2]["rms_um"] == pytest.approx(loop[rep["chosen"]], abs=1e-3)
+    assert rep["closed_loop"]["intervals"][2]["rms_um"] == pytest.approx(
+        loop[rep["chosen"]], abs=1e-3
+    )
     assert load_any_model(tmp_path / "m.json").fit["observer"] == rep["closed_loop"]["observer"]
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", str(log), "--probe-every", "-5",
-                        "--output", str(tmp_path / "n.json")], capture_output=True, text=True)
-    assert r.returncode != 0 and r.stderr.count("\n") == 1 and "--probe-every must be > 0" in r.stderr
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "fit",
+            str(log),
+            "--probe-every",
+            "-5",
+            "--output",
+            str(tmp_path / "n.json"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert (
+        r.returncode != 0 and r.stderr.count("\n") == 1 and "--probe-every must be > 0" in r.stderr
+    )
     assert not (tmp_path / "n.json").exists()

@@ -38,12 +38,16 @@ from compensator.speed_programs import Program
 
 FANUC = profile("fanuc")
 # a warm-up, two operations with a tool change, a run-down: half an hour of the thermal transient
-PROGRAM = Program("fanuc-day", ((5.0, 0.0), (600.0, 22500.0), (20.0, 0.0), (600.0, 9000.0),
-                                (300.0, 24000.0), (300.0, 0.0)))
+PROGRAM = Program(
+    "fanuc-day",
+    ((5.0, 0.0), (600.0, 22500.0), (20.0, 0.0), (600.0, 9000.0), (300.0, 24000.0), (300.0, 0.0)),
+)
 
 
 def fanuc_machine(**kw) -> tuple[VirtualMachine, EmulatedControl]:
-    vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=kw.pop("clock", None))
+    vm = VirtualMachine(
+        SpindlePlant(preset("motorized-27k"), seed=4), None, clock=kw.pop("clock", None)
+    )
     return vm, EmulatedControl(vm, FANUC, **kw)
 
 
@@ -62,15 +66,24 @@ class Clock:
 
 def test_the_client_sends_the_documented_packets_byte_for_byte():
     packet = pytest.importorskip("pyfocas.protocol.packet")
-    PacketOrigin, PacketType, create_packet = packet.PacketOrigin, packet.PacketType, packet.create_packet
+    PacketOrigin, PacketType, create_packet = (
+        packet.PacketOrigin,
+        packet.PacketType,
+        packet.create_packet,
+    )
 
     # the README's read of #502: 00 1c | 00 01 | 00 01 00 15 | 00 00 01 f6 | 00 00 01 f6 | 12 x 00
-    readme = bytes.fromhex("a0a0a0a0 0001 2101 001e 0001 001c 0001 00010015 000001f6 000001f6") + bytes(12)
+    readme = bytes.fromhex(
+        "a0a0a0a0 0001 2101 001e 0001 001c 0001 00010015 000001f6 000001f6"
+    ) + bytes(12)
     assert request_packet(command(0x15, 502, 502)) == readme
     # and what pyfocas sends for a write of 12.0 to #500 (its write_macro_double)
     cmd = struct.pack(">HHH", 1, 1, 0xA8)
-    theirs = create_packet(PacketOrigin.CLIENT, PacketType.GENERIC_REQUEST,
-                           cmd + struct.pack(">iiiiid", 500, 0, 0, 0, 8, 12.0))
+    theirs = create_packet(
+        PacketOrigin.CLIENT,
+        PacketType.GENERIC_REQUEST,
+        cmd + struct.pack(">iiiiid", 500, 0, 0, 0, 8, 12.0),
+    )
     assert request_packet(command(0xA8, 500, 0, 0, 0, 8, payload=struct.pack(">d", 12.0))) == theirs
     # 38 bytes after the length field (the README's table says "00 38": decimal, not hex)
     assert struct.unpack(">H", theirs[8:10])[0] == 0x26
@@ -129,8 +142,10 @@ def test_round_trip_speed_offset_and_read_back():
 def test_the_speed_from_a_macro_variable_and_the_read_back_from_the_ack():
     control = PlainControl(speed_rpm=15000.0)
     with FocasServer(control, offset_macro=500, ack_macro=501, speed_macro=502, acts=False) as srv:
-        url = (f"focas://127.0.0.1:{srv.port}?offset_macro=500&ack_macro=501"
-               "&speed_source=macro&speed_macro=502")
+        url = (
+            f"focas://127.0.0.1:{srv.port}?offset_macro=500&ack_macro=501"
+            "&speed_source=macro&speed_macro=502"
+        )
         link = open_adapter(url)
         try:
             assert link.read_speed() == 15000.0
@@ -142,7 +157,10 @@ def test_the_speed_from_a_macro_variable_and_the_read_back_from_the_ack():
 
 
 def test_a_control_without_cnc_acts_says_so_and_names_the_alternative():
-    with FocasServer(PlainControl(), acts=False) as srv, FocasAdapter("127.0.0.1", port=srv.port) as link:
+    with (
+        FocasServer(PlainControl(), acts=False) as srv,
+        FocasAdapter("127.0.0.1", port=srv.port) as link,
+    ):
         with pytest.raises(BadValueError, match=r"FOCAS error 1 .*speed_source = 'macro'"):
             link.read_speed()
         link.write_offset_um(1.0)  # the session is still good
@@ -150,7 +168,9 @@ def test_a_control_without_cnc_acts_says_so_and_names_the_alternative():
 
 def test_a_vacant_variable_is_a_bad_value_not_a_zero():
     with FocasServer(PlainControl(), speed_macro=None) as srv:
-        with FocasAdapter("127.0.0.1", port=srv.port, speed_source="macro", speed_macro=510) as link:
+        with FocasAdapter(
+            "127.0.0.1", port=srv.port, speed_source="macro", speed_macro=510
+        ) as link:
             with pytest.raises(BadValueError, match="vacant"):
                 link.read_speed()
 
@@ -179,7 +199,9 @@ def test_the_ladder_refusing_shows_in_the_ack_not_in_focas():
     vm, control = fanuc_machine()
     with FocasServer(control, ack_macro=501, refuse_in="ladder") as srv:
         plain = open_adapter({"profile": "fanuc", "host": "127.0.0.1", "port": srv.port})
-        acked = open_adapter({"profile": "fanuc", "host": "127.0.0.1", "port": srv.port, "ack_macro": 501})
+        acked = open_adapter(
+            {"profile": "fanuc", "host": "127.0.0.1", "port": srv.port, "ack_macro": 501}
+        )
         try:
             plain.write_offset_um(-20.0)
             plain.write_offset_um(-10020.0)  # FOCAS takes it; the ladder refuses the step
@@ -197,8 +219,12 @@ def test_the_control_gone_is_unreachable_then_the_link_recovers():
     changes = []
     srv = FocasServer(control).start()
     try:
-        link = FocasAdapter("127.0.0.1", port=srv.port, clock=clock,
-                            on_link_change=lambda up, why: changes.append(up))
+        link = FocasAdapter(
+            "127.0.0.1",
+            port=srv.port,
+            clock=clock,
+            on_link_change=lambda up, why: changes.append(up),
+        )
         link.write_offset_um(2.0)
         srv.stop()
         with pytest.raises(UnreachableError):
@@ -234,17 +260,29 @@ def test_a_hung_control_times_out_and_the_next_call_opens_a_new_session():
 
 def test_settings_are_checked_in_one_line():
     a = open_adapter("focas://10.0.0.7?offset_macro=510&ack_macro=511")
-    assert (a.host, a.port, a.offset_macro, a.ack_macro, a.speed_source) == \
-        ("10.0.0.7", 8193, 510, 511, "acts")
+    assert (a.host, a.port, a.offset_macro, a.ack_macro, a.speed_source) == (
+        "10.0.0.7",
+        8193,
+        510,
+        511,
+        "acts",
+    )
     p = open_adapter({"profile": "fanuc", "route": "focas", "host": "h"})
-    assert (p.offset_scale, p.offset_sign, p.units.resolution, p.offset_macro) == (1.0, -1, 1.0, 500)
-    for bad, words in [({"offset_macro": 1000}, "common macro variable"),
-                       ({"offset_macro": 33}, "common macro variable"),
-                       ({"ack_macro": 500}, "both #500"),
-                       ({"speed_source": "macro"}, "speed_macro goes with"),
-                       ({"speed_macro": 502}, "speed_macro goes with"),
-                       ({"speed_source": "plc"}, "speed_source"),
-                       ({"port": 70000}, "port")]:
+    assert (p.offset_scale, p.offset_sign, p.units.resolution, p.offset_macro) == (
+        1.0,
+        -1,
+        1.0,
+        500,
+    )
+    for bad, words in [
+        ({"offset_macro": 1000}, "common macro variable"),
+        ({"offset_macro": 33}, "common macro variable"),
+        ({"ack_macro": 500}, "both #500"),
+        ({"speed_source": "macro"}, "speed_macro goes with"),
+        ({"speed_macro": 502}, "speed_macro goes with"),
+        ({"speed_source": "plc"}, "speed_source"),
+        ({"port": 70000}, "port"),
+    ]:
         with pytest.raises(ConfigError, match=words):
             open_adapter({"type": "focas", "host": "h", **bad})
     with pytest.raises(ConfigError, match="host: required key missing"):
@@ -254,7 +292,6 @@ def test_settings_are_checked_in_one_line():
 # -- the runtime, lock-step with the virtual machine --------------------------------------------
 
 
-
 def fanuc_day(tmp_path: Path, model: Path, program: Program = PROGRAM):
     """The runtime over FOCAS to the emulated FANUC control, one stepped clock for all: the
     rows, the machine, the control, what the server received (clock time, raw) and the journal."""
@@ -262,8 +299,7 @@ def fanuc_day(tmp_path: Path, model: Path, program: Program = PROGRAM):
     vm, control = fanuc_machine(clock=clock)
     received: list[tuple[float, float]] = []
     with FocasServer(control) as srv:
-        adapter = (f'{{profile = "fanuc", route = "focas", host = "127.0.0.1", '
-                   f'port = {srv.port}}}')
+        adapter = f'{{profile = "fanuc", route = "focas", host = "127.0.0.1", port = {srv.port}}}'
         rt = control_runtime(tmp_path, model, adapter, clock)
 
         def cycle() -> dict:
@@ -284,7 +320,9 @@ def fanuc_day(tmp_path: Path, model: Path, program: Program = PROGRAM):
     return rows, vm, control, received, read_run_log(path)
 
 
-def test_fanuc_end_to_end_the_offset_reaches_the_axis_in_detection_units(tmp_path, calibrated_model):
+def test_fanuc_end_to_end_the_offset_reaches_the_axis_in_detection_units(
+    tmp_path, calibrated_model
+):
     rows, vm, control, received, log = fanuc_day(tmp_path, calibrated_model)
 
     # the service wrote, the control took every value, and the axis carries it
@@ -314,7 +352,7 @@ def test_fanuc_end_to_end_the_offset_reaches_the_axis_in_detection_units(tmp_pat
 
     # the virtual workpiece: the error shrinks as with the OPC UA route
     h = vm.history()
-    rms_off = float(np.sqrt(np.mean(h.true_um ** 2)))
-    rms_on = float(np.sqrt(np.mean(h.tool_tip_error_um ** 2)))
+    rms_off = float(np.sqrt(np.mean(h.true_um**2)))
+    rms_on = float(np.sqrt(np.mean(h.tool_tip_error_um**2)))
     assert rms_on < 0.1 * rms_off  # measured: 13.1 um -> 0.58 um
     assert np.abs(h.tool_tip_error_um).max() < 0.5 * np.abs(h.true_um).max()

@@ -42,8 +42,18 @@ from compensator.io import read_run_log
 from compensator.speed_programs import Program
 
 HAAS = profile("haas")
-PROGRAM = Program("three-ops", ((5.0, 0.0), (400.0, 22500.0), (15.0, 0.0), (300.0, 9000.0),
-                                (15.0, 0.0), (300.0, 18000.0), (60.0, 0.0)))
+PROGRAM = Program(
+    "three-ops",
+    (
+        (5.0, 0.0),
+        (400.0, 22500.0),
+        (15.0, 0.0),
+        (300.0, 9000.0),
+        (15.0, 0.0),
+        (300.0, 18000.0),
+        (60.0, 0.0),
+    ),
+)
 
 
 class FakeClock:
@@ -73,8 +83,14 @@ def macro(link: HaasMdcAdapter, var: int) -> float:
 
 
 def link_cfg(server: HaasMdcServer, **kw) -> dict:
-    return {"profile": "haas", "route": "mdc", "host": "127.0.0.1", "port": server.port,
-            "timeout_s": 2.0, **kw}  # a loaded machine answers late; the faults time out all the same
+    return {
+        "profile": "haas",
+        "route": "mdc",
+        "host": "127.0.0.1",
+        "port": server.port,
+        "timeout_s": 2.0,
+        **kw,
+    }  # a loaded machine answers late; the faults time out all the same
 
 
 def client(server: HaasMdcServer, **kw) -> HaasMdcAdapter:
@@ -146,11 +162,21 @@ def test_the_url_form():
 
 
 def test_the_haas_options_are_the_serial_links():
-    for name in ("speed_var", "offset_var", "offset_decimals", "measurement_var",
-                 "measurement_sequence_var", "measurement_sigma_var", "measurement_scale"):
+    for name in (
+        "speed_var",
+        "offset_var",
+        "offset_decimals",
+        "measurement_var",
+        "measurement_sequence_var",
+        "measurement_sigma_var",
+        "measurement_scale",
+    ):
         mine, theirs = HaasMdcSettings.model_fields[name], HaasSettings.model_fields[name]
-        assert (mine.default, mine.description, repr(mine.metadata)) == \
-            (theirs.default, theirs.description, repr(theirs.metadata)), name
+        assert (mine.default, mine.description, repr(mine.metadata)) == (
+            theirs.default,
+            theirs.description,
+            repr(theirs.metadata),
+        ), name
     with pytest.raises(ConfigError, match="baudrate = 9600: unknown key"):
         check_adapter({"type": "haas-mdc", "host": "cnc-1", "baudrate": 9600})
     with pytest.raises(ConfigError, match="measurement_sequence_var"):
@@ -194,8 +220,9 @@ def test_unknown_requests_and_variables_are_refused(rig):
 
 def test_the_probe_cycles_measurement_handshake(rig):
     _, _, _, server, link = rig
-    probe = client(server, measurement_var=10510, measurement_sequence_var=10511,
-                   measurement_sigma_var=10512)
+    probe = client(
+        server, measurement_var=10510, measurement_sequence_var=10511, measurement_sigma_var=10512
+    )
     try:
         server.set_macro(10510, 0.0)
         server.set_macro(10511, 3.0)
@@ -215,9 +242,10 @@ def test_the_probe_cycles_measurement_handshake(rig):
 # -- faults of the link -----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("mode,error", [("silent", AdapterTimeoutError),
-                                        ("partial", AdapterTimeoutError),
-                                        ("garbage", BadValueError)])
+@pytest.mark.parametrize(
+    "mode,error",
+    [("silent", AdapterTimeoutError), ("partial", AdapterTimeoutError), ("garbage", BadValueError)],
+)
 def test_bad_replies_are_errors_and_the_next_request_is_clean(rig, mode, error):
     _, vm, _, server, link = rig
     assert link.read_speed() == pytest.approx(vm.speed_rpm)
@@ -337,7 +365,6 @@ def test_a_third_connection_is_refused_by_the_control():
 # -- end to end: the runtime, the MDC link, the macro, the axis --------------------------------
 
 
-
 def haas_day(tmp_path: Path, model: Path, safe_point_every_s: float | None):
     """The runtime over MDC against the emulated Haas in lock-step on one stepped clock. The
     machine, the control, the server, (clock time, raw, taken) of every write the control
@@ -349,8 +376,13 @@ def haas_day(tmp_path: Path, model: Path, safe_point_every_s: float | None):
     received: list[tuple[float, float, bool]] = []
     gap_um = 0.0
     with HaasMdcServer(control, safe_point_every_s=safe_point_every_s) as server:
-        rt = control_runtime(tmp_path, model, '{profile = "haas", route = "mdc", host = "127.0.0.1", '
-                             f'port = {server.port}, timeout_s = 2.0}}', clock)
+        rt = control_runtime(
+            tmp_path,
+            model,
+            '{profile = "haas", route = "mdc", host = "127.0.0.1", '
+            f"port = {server.port}, timeout_s = 2.0}}",
+            clock,
+        )
 
         def cycle() -> None:
             nonlocal gap_um
@@ -376,7 +408,8 @@ def rms(x: np.ndarray) -> float:
 
 
 def test_end_to_end_the_wear_follows_at_safe_points_within_the_controls_limits(
-        tmp_path, calibrated_model):
+    tmp_path, calibrated_model
+):
     vm, control, server, received, gap_um, log = haas_day(tmp_path, calibrated_model, 10.0)
     times = np.array([t for t, _, _ in received])
     raws = np.array([r for _, r, _ in received])
@@ -416,7 +449,8 @@ def test_end_to_end_the_wear_follows_at_safe_points_within_the_controls_limits(
 
 
 def test_end_to_end_a_wear_applied_only_at_tool_changes_misses_the_growth_within_an_operation(
-        tmp_path, calibrated_model):
+    tmp_path, calibrated_model
+):
     often = haas_day(tmp_path / "often", calibrated_model, 10.0)[0].history()
     rarely_vm, _, server, *_ = haas_day(tmp_path / "rarely", calibrated_model, None)
     rarely = rarely_vm.history()

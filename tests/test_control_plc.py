@@ -42,16 +42,44 @@ from thermocomp.runtime import Alarm
 
 # each protocol: the emulated PLC, where its program keeps the variables, the control behind it
 SETUPS = {
-    "s7": (S7Plc, {"offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4",
-                   "held_address": "DB100.DBD8", "cutting_address": "DB100.DBX12.0"}, "sinumerik"),
-    "modbus-tcp": (ModbusTcpPlc, {"offset_address": "hr:0", "speed_address": "ir:0",
-                                  "held_address": "ir:2", "cutting_address": "di:0"}, "sinumerik"),
-    "ads": (AdsPlc, {"offset_address": "GVL_Thermo.nTempComp", "offset_type": "DINT",
-                     "speed_address": "GVL_Thermo.fSpeed", "held_address": "GVL_Thermo.nTempCompHeld",
-                     "cutting_address": "GVL_Thermo.bCutting"}, "heidenhain"),
+    "s7": (
+        S7Plc,
+        {
+            "offset_address": "DB100.DBD0",
+            "speed_address": "DB100.DBD4",
+            "held_address": "DB100.DBD8",
+            "cutting_address": "DB100.DBX12.0",
+        },
+        "sinumerik",
+    ),
+    "modbus-tcp": (
+        ModbusTcpPlc,
+        {
+            "offset_address": "hr:0",
+            "speed_address": "ir:0",
+            "held_address": "ir:2",
+            "cutting_address": "di:0",
+        },
+        "sinumerik",
+    ),
+    "ads": (
+        AdsPlc,
+        {
+            "offset_address": "GVL_Thermo.nTempComp",
+            "offset_type": "DINT",
+            "speed_address": "GVL_Thermo.fSpeed",
+            "held_address": "GVL_Thermo.nTempCompHeld",
+            "cutting_address": "GVL_Thermo.bCutting",
+        },
+        "heidenhain",
+    ),
 }
 PROTOCOLS = list(SETUPS)
-LIBRARY = {"s7": "snap7", "modbus-tcp": "pymodbus", "ads": "pyads"}  # optional extras: plc, serial, ads
+LIBRARY = {
+    "s7": "snap7",
+    "modbus-tcp": "pymodbus",
+    "ads": "pyads",
+}  # optional extras: plc, serial, ads
 
 
 class Clock:
@@ -80,9 +108,18 @@ def bench(protocol: str, prof: ControllerProfile | None = None, **plc_kw):
     p = prof or profile(name)
     control = EmulatedControl(machine(), p)
     plc = cls(control, **{**addresses, **plc_kw})
-    options = {"type": "plc", "protocol": protocol, "host": plc.host, "port": plc.port,
-               "timeout_s": 2.0, "offset_scale": p.scale, "offset_sign": p.sign,
-               "offset_resolution": p.resolution, **addresses, **plc_kw}
+    options = {
+        "type": "plc",
+        "protocol": protocol,
+        "host": plc.host,
+        "port": plc.port,
+        "timeout_s": 2.0,
+        "offset_scale": p.scale,
+        "offset_sign": p.sign,
+        "offset_resolution": p.resolution,
+        **addresses,
+        **plc_kw,
+    }
     return plc, control, options
 
 
@@ -90,74 +127,214 @@ def bench(protocol: str, prof: ControllerProfile | None = None, **plc_kw):
 
 
 def test_urls_and_defaults_per_protocol():
-    a = open_adapter("s7://10.0.0.5?rack=0&slot=2&offset_address=DB100.DBD0&speed_address=DB100.DBD4"
-                     "&held_address=db100.dbd8&cutting_address=DB100.DBX12.3")
+    a = open_adapter(
+        "s7://10.0.0.5?rack=0&slot=2&offset_address=DB100.DBD0&speed_address=DB100.DBD4"
+        "&held_address=db100.dbd8&cutting_address=DB100.DBX12.3"
+    )
     assert (a.protocol, a.host, a.port, a.rack, a.slot) == ("s7", "10.0.0.5", 102, 0, 2)
     assert (a.offset.number, a.offset.start, a.offset.dtype) == (100, 0, "REAL")
-    assert a.held.text == "DB100.DBD8" and (a.cutting.start, a.cutting.bit) == (12, 3) and a.can_read_cutting
-    m = open_adapter("modbustcp://10.0.0.6:1502?device_id=3&offset_address=hr:10&offset_type=int16"
-                     "&speed_address=ir:0&word_order=little")
+    assert (
+        a.held.text == "DB100.DBD8"
+        and (a.cutting.start, a.cutting.bit) == (12, 3)
+        and a.can_read_cutting
+    )
+    m = open_adapter(
+        "modbustcp://10.0.0.6:1502?device_id=3&offset_address=hr:10&offset_type=int16"
+        "&speed_address=ir:0&word_order=little"
+    )
     assert (m.protocol, m.port, m.device_id, m.word_order) == ("modbus-tcp", 1502, 3, "little")
-    assert (m.offset.area, m.offset.start, m.offset.dtype, m.held is m.offset) == ("hr", 10, "INT", True)
+    assert (m.offset.area, m.offset.start, m.offset.dtype, m.held is m.offset) == (
+        "hr",
+        10,
+        "INT",
+        True,
+    )
     assert not m.can_read_cutting and m.can_read_offset
-    b = open_adapter("ads://10.0.0.7?offset_address=GVL.nTempComp&offset_type=DINT&speed_address=GVL.fSpeed")
+    b = open_adapter(
+        "ads://10.0.0.7?offset_address=GVL.nTempComp&offset_type=DINT&speed_address=GVL.fSpeed"
+    )
     assert (b.protocol, b.port, b.ams_net_id, b.ams_port) == ("ads", 48898, "10.0.0.7.1.1", 851)
     assert b.offset.dtype == "DINT" and b.speed.dtype == "REAL"
-    c = open_adapter({"type": "plc", "protocol": "ads", "host": "h", "ams_net_id": "5.1.2.3.1.1",
-                      "ams_port": 551, "offset_address": "0x120300:0x10044", "speed_address": "MAIN.f"})
+    c = open_adapter(
+        {
+            "type": "plc",
+            "protocol": "ads",
+            "host": "h",
+            "ams_net_id": "5.1.2.3.1.1",
+            "ams_port": 551,
+            "offset_address": "0x120300:0x10044",
+            "speed_address": "MAIN.f",
+        }
+    )
     assert (c.offset.area, c.offset.number, c.offset.start) == ("index", 0x120300, 0x10044)
     # the profiles' routes
-    s = open_adapter({"profile": "sinumerik", "route": "s7", "host": "10.0.0.5", "slot": 2,
-                      "offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4"})
+    s = open_adapter(
+        {
+            "profile": "sinumerik",
+            "route": "s7",
+            "host": "10.0.0.5",
+            "slot": 2,
+            "offset_address": "DB100.DBD0",
+            "speed_address": "DB100.DBD4",
+        }
+    )
     assert (s.protocol, s.offset_scale, s.offset_sign) == ("s7", 0.001, -1)
-    k = open_adapter({"profile": "beckhoff", "route": "ads", "host": "10.0.0.7", "ams_net_id": "10.0.0.7.1.1",
-                      "offset_address": "GVL.nTempComp", "offset_type": "DINT", "speed_address": "GVL.fSpeed"})
+    k = open_adapter(
+        {
+            "profile": "beckhoff",
+            "route": "ads",
+            "host": "10.0.0.7",
+            "ams_net_id": "10.0.0.7.1.1",
+            "offset_address": "GVL.nTempComp",
+            "offset_type": "DINT",
+            "speed_address": "GVL.fSpeed",
+        }
+    )
     assert (k.protocol, k.offset_scale, k.offset_sign, k.units.resolution) == ("ads", 10.0, -1, 1.0)
 
 
-@pytest.mark.parametrize("options,expected", [
-    ({"protocol": "s7", "offset_address": "DB100.DBD", "speed_address": "DB100.DBD4"},
-     ("plc adapter: offset_address = 'DB100.DBD': expected an S7 address DB<n>.DBD<byte> (REAL or DINT), "
-      "DB<n>.DBW<byte> (INT) or DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0")),
-    ({"protocol": "s7", "offset_address": "DB100.DBD0", "speed_address": "MW4"},
-     "plc adapter: speed_address = 'MW4': expected an S7 address"),
-    ({"protocol": "s7", "offset_address": "DB100.DBX0.8", "speed_address": "DB100.DBD4"},
-     "plc adapter: offset_address = 'DB100.DBX0.8': expected an S7 address"),
-    ({"protocol": "s7", "offset_address": "DB100.DBW0", "offset_type": "REAL", "speed_address": "DB100.DBD4"},
-     "plc adapter: offset_type REAL does not fit offset_address DB100.DBW0 (a DBW holds INT)"),
-    ({"protocol": "s7", "offset_address": "DB100.DBX0.1", "speed_address": "DB100.DBD4"},
-     "plc adapter: offset_address DB100.DBX0.1 is a bit; the offset needs a number (a DBD or a DBW)"),
-    ({"protocol": "s7", "offset_address": "DB100.DBD0", "speed_address": "DB100.DBD4", "device_id": 2},
-     "plc adapter: device_id is an option of protocol 'modbus-tcp', not of 's7'"),
-    ({"protocol": "modbus-tcp", "offset_address": "ir:0", "speed_address": "ir:2"},
-     "plc adapter: offset_address = 'ir:0': expected a holding register (hr:<n>)"),
-    ({"protocol": "modbus-tcp", "offset_address": "hr:70000", "speed_address": "ir:2"},
-     "plc adapter: offset_address = 'hr:70000': expected a Modbus address hr:<n>"),
-    ({"protocol": "modbus-tcp", "offset_address": "hr:0", "speed_address": "coil:2"},
-     "plc adapter: speed_address coil:2 is a bit; the speed needs a number (hr:<n> or ir:<n>)"),
-    ({"protocol": "modbus-tcp", "offset_address": "hr:0", "speed_address": "ir:0", "rack": 1},
-     "plc adapter: rack is an option of protocol 's7', not of 'modbus-tcp'"),
-    ({"protocol": "ads", "offset_address": "GVL..x", "speed_address": "GVL.y"},
-     "plc adapter: offset_address = 'GVL..x': expected an ADS symbol name such as GVL_Thermo.nTempComp"),
-    ({"protocol": "ads", "host": "plc.local", "offset_address": "GVL.x", "speed_address": "GVL.y"},
-     "plc adapter: ams_net_id is required: host 'plc.local' is no IPv4 address"),
-    ({"protocol": "ads", "offset_address": "GVL.x", "speed_address": "GVL.y", "ams_net_id": "1.2.3"},
-     "plc adapter: ams_net_id = '1.2.3': expected an AMS Net ID: six numbers 0..255 joined by dots"),
-    ({"protocol": "ads", "offset_address": "GVL.x", "offset_type": "WORD", "speed_address": "GVL.y"},
-     "plc adapter: offset_type = 'WORD': expected one of REAL (real32), LREAL, DINT (int32), INT (int16), BOOL (bit)"),
-    ({"protocol": "ads", "offset_address": "GVL.x", "speed_address": "GVL.y", "cutting_address": "GVL.c",
-      "cutting_type": "REAL"}, "plc adapter: cutting_type = 'REAL': expected BOOL or an integer type"),
-    ({"protocol": "profinet", "offset_address": "x", "speed_address": "y"},
-     "plc adapter: protocol = 'profinet': expected one of 's7', 'modbus-tcp', 'ads'"),
-    ({"protocol": "s7", "offset_address": "DB1.DBD0"}, "plc adapter: speed_address: required key missing"),
-    ({"protocol": "s7", "offset_address": "DB1.DBD0", "speed_address": "DB1.DBD4", "held_type": "INT"},
-     "plc adapter: held_type needs held_address"),
-    ({"protocol": "s7", "offset_address": "DB1.DBD0", "speed_address": "DB1.DBD4", "port": 0},
-     "plc adapter: port = 0: expected a TCP port 1..65535"),
-    ({"protocol": "s7", "offset_address": "DB1.DBD0", "speed_address": "DB1.DBD4", "slot": 40},
-     "plc adapter: slot = 40: expected a slot number 0..31"),
-])
-def test_a_bad_address_or_option_is_one_line_naming_the_key_the_value_and_the_syntax(options, expected):
+@pytest.mark.parametrize(
+    "options,expected",
+    [
+        (
+            {"protocol": "s7", "offset_address": "DB100.DBD", "speed_address": "DB100.DBD4"},
+            (
+                "plc adapter: offset_address = 'DB100.DBD': expected an S7 address DB<n>.DBD<byte> (REAL or DINT), "
+                "DB<n>.DBW<byte> (INT) or DB<n>.DBX<byte>.<bit 0-7> (BOOL), e.g. DB100.DBD0"
+            ),
+        ),
+        (
+            {"protocol": "s7", "offset_address": "DB100.DBD0", "speed_address": "MW4"},
+            "plc adapter: speed_address = 'MW4': expected an S7 address",
+        ),
+        (
+            {"protocol": "s7", "offset_address": "DB100.DBX0.8", "speed_address": "DB100.DBD4"},
+            "plc adapter: offset_address = 'DB100.DBX0.8': expected an S7 address",
+        ),
+        (
+            {
+                "protocol": "s7",
+                "offset_address": "DB100.DBW0",
+                "offset_type": "REAL",
+                "speed_address": "DB100.DBD4",
+            },
+            "plc adapter: offset_type REAL does not fit offset_address DB100.DBW0 (a DBW holds INT)",
+        ),
+        (
+            {"protocol": "s7", "offset_address": "DB100.DBX0.1", "speed_address": "DB100.DBD4"},
+            "plc adapter: offset_address DB100.DBX0.1 is a bit; the offset needs a number (a DBD or a DBW)",
+        ),
+        (
+            {
+                "protocol": "s7",
+                "offset_address": "DB100.DBD0",
+                "speed_address": "DB100.DBD4",
+                "device_id": 2,
+            },
+            "plc adapter: device_id is an option of protocol 'modbus-tcp', not of 's7'",
+        ),
+        (
+            {"protocol": "modbus-tcp", "offset_address": "ir:0", "speed_address": "ir:2"},
+            "plc adapter: offset_address = 'ir:0': expected a holding register (hr:<n>)",
+        ),
+        (
+            {"protocol": "modbus-tcp", "offset_address": "hr:70000", "speed_address": "ir:2"},
+            "plc adapter: offset_address = 'hr:70000': expected a Modbus address hr:<n>",
+        ),
+        (
+            {"protocol": "modbus-tcp", "offset_address": "hr:0", "speed_address": "coil:2"},
+            "plc adapter: speed_address coil:2 is a bit; the speed needs a number (hr:<n> or ir:<n>)",
+        ),
+        (
+            {
+                "protocol": "modbus-tcp",
+                "offset_address": "hr:0",
+                "speed_address": "ir:0",
+                "rack": 1,
+            },
+            "plc adapter: rack is an option of protocol 's7', not of 'modbus-tcp'",
+        ),
+        (
+            {"protocol": "ads", "offset_address": "GVL..x", "speed_address": "GVL.y"},
+            "plc adapter: offset_address = 'GVL..x': expected an ADS symbol name such as GVL_Thermo.nTempComp",
+        ),
+        (
+            {
+                "protocol": "ads",
+                "host": "plc.local",
+                "offset_address": "GVL.x",
+                "speed_address": "GVL.y",
+            },
+            "plc adapter: ams_net_id is required: host 'plc.local' is no IPv4 address",
+        ),
+        (
+            {
+                "protocol": "ads",
+                "offset_address": "GVL.x",
+                "speed_address": "GVL.y",
+                "ams_net_id": "1.2.3",
+            },
+            "plc adapter: ams_net_id = '1.2.3': expected an AMS Net ID: six numbers 0..255 joined by dots",
+        ),
+        (
+            {
+                "protocol": "ads",
+                "offset_address": "GVL.x",
+                "offset_type": "WORD",
+                "speed_address": "GVL.y",
+            },
+            "plc adapter: offset_type = 'WORD': expected one of REAL (real32), LREAL, DINT (int32), INT (int16), BOOL (bit)",
+        ),
+        (
+            {
+                "protocol": "ads",
+                "offset_address": "GVL.x",
+                "speed_address": "GVL.y",
+                "cutting_address": "GVL.c",
+                "cutting_type": "REAL",
+            },
+            "plc adapter: cutting_type = 'REAL': expected BOOL or an integer type",
+        ),
+        (
+            {"protocol": "profinet", "offset_address": "x", "speed_address": "y"},
+            "plc adapter: protocol = 'profinet': expected one of 's7', 'modbus-tcp', 'ads'",
+        ),
+        (
+            {"protocol": "s7", "offset_address": "DB1.DBD0"},
+            "plc adapter: speed_address: required key missing",
+        ),
+        (
+            {
+                "protocol": "s7",
+                "offset_address": "DB1.DBD0",
+                "speed_address": "DB1.DBD4",
+                "held_type": "INT",
+            },
+            "plc adapter: held_type needs held_address",
+        ),
+        (
+            {
+                "protocol": "s7",
+                "offset_address": "DB1.DBD0",
+                "speed_address": "DB1.DBD4",
+                "port": 0,
+            },
+            "plc adapter: port = 0: expected a TCP port 1..65535",
+        ),
+        (
+            {
+                "protocol": "s7",
+                "offset_address": "DB1.DBD0",
+                "speed_address": "DB1.DBD4",
+                "slot": 40,
+            },
+            "plc adapter: slot = 40: expected a slot number 0..31",
+        ),
+    ],
+)
+def test_a_bad_address_or_option_is_one_line_naming_the_key_the_value_and_the_syntax(
+    options, expected
+):
     cfg = {"type": "plc", "host": "127.0.0.1", **options}
     for call in (open_adapter, check_adapter):
         with pytest.raises(ConfigError) as info:
@@ -170,18 +347,37 @@ def test_the_constructor_checks_what_the_settings_check():
     with pytest.raises(ConfigError, match="offset_address = 'DB1.X': expected an S7 address"):
         PlcAdapter(protocol="s7", host="h", offset_address="DB1.X", speed_address="DB1.DBD0")
     with pytest.raises(ConfigError, match="a data type must be one of REAL"):
-        PlcAdapter(protocol="s7", host="h", offset_address="DB1.DBD0", offset_type="float128",
-                   speed_address="DB1.DBD4")
+        PlcAdapter(
+            protocol="s7",
+            host="h",
+            offset_address="DB1.DBD0",
+            offset_type="float128",
+            speed_address="DB1.DBD4",
+        )
     with pytest.raises(ConfigError, match="word_order is an option of protocol 'modbus-tcp'"):
-        PlcAdapter(protocol="ads", host="1.2.3.4", offset_address="a", speed_address="b", word_order="little")
+        PlcAdapter(
+            protocol="ads",
+            host="1.2.3.4",
+            offset_address="a",
+            speed_address="b",
+            word_order="little",
+        )
 
 
 def test_integer_types_round_and_refuse_what_they_cannot_hold():
-    assert encode_number("plc", 12.5, "INT") == 12 and encode_number("plc", 13.5, "INT") == 14  # half to even
+    assert (
+        encode_number("plc", 12.5, "INT") == 12 and encode_number("plc", 13.5, "INT") == 14
+    )  # half to even
     assert encode_number("plc", -32768.4, "INT") == -32768
     assert encode_number("plc", 2147483647.0, "DINT") == 2147483647
-    for value, dtype in ((32767.5, "INT"), (-32769.0, "INT"), (2.0**31, "DINT"), (1e39, "REAL"),
-                         (math.nan, "REAL"), (math.inf, "LREAL")):
+    for value, dtype in (
+        (32767.5, "INT"),
+        (-32769.0, "INT"),
+        (2.0**31, "DINT"),
+        (1e39, "REAL"),
+        (math.nan, "REAL"),
+        (math.inf, "LREAL"),
+    ):
         with pytest.raises(BadValueError, match="nothing written|refusing"):
             encode_number("plc", value, dtype)
     assert parse_address("s7", "held", "DB7.DBW2").dtype == "INT"
@@ -220,11 +416,14 @@ def test_round_trip_speed_cutting_offset_and_the_held_value(protocol):
             link.close()
 
 
-@pytest.mark.parametrize("protocol,offset", [
-    ("s7", {"offset_address": "DB100.DBW0", "held_address": "DB100.DBW8"}),
-    ("modbus-tcp", {"offset_type": "int16"}),
-    ("ads", {"offset_type": "INT"}),
-])
+@pytest.mark.parametrize(
+    "protocol,offset",
+    [
+        ("s7", {"offset_address": "DB100.DBW0", "held_address": "DB100.DBW8"}),
+        ("modbus-tcp", {"offset_type": "int16"}),
+        ("ads", {"offset_type": "INT"}),
+    ],
+)
 def test_a_value_outside_the_integer_type_is_refused_before_anything_is_sent(protocol, offset):
     # 0.1 um counts in an INT: 3276.7 um fits, 3276.8 does not
     plc, control, options = bench(protocol, profile("heidenhain"), **offset)
@@ -236,9 +435,13 @@ def test_a_value_outside_the_integer_type_is_refused_before_anything_is_sent(pro
             assert plc.get("offset") == 32767
             plc.sync()
             # the INT takes it, the control does not: module 9231 takes +-30000
-            assert control.held_raw == 0 and "past the control's limit 30000" in control.last_refusal
+            assert (
+                control.held_raw == 0 and "past the control's limit 30000" in control.last_refusal
+            )
             before = plc.get("offset")
-            with pytest.raises(BadValueError, match=r"outside INT \(-32768..32767\); nothing written"):
+            with pytest.raises(
+                BadValueError, match=r"outside INT \(-32768..32767\); nothing written"
+            ):
                 link.write_offset_um(-3276.8)
             with pytest.raises(BadValueError):
                 link.write_offset_um(3276.9)
@@ -279,11 +482,14 @@ def test_the_plc_gone_is_unreachable_then_the_link_recovers(protocol):
         plc.close()
 
 
-@pytest.mark.parametrize("protocol,where,words", [
-    ("s7", "DB7.DBD0", "the PLC refused"),  # no DB7 in this PLC
-    ("modbus-tcp", "hr:60000", "exception reply"),  # past its registers
-    ("ads", "GVL_Thermo.nNoSuchVar", "symbol not found"),
-])
+@pytest.mark.parametrize(
+    "protocol,where,words",
+    [
+        ("s7", "DB7.DBD0", "the PLC refused"),  # no DB7 in this PLC
+        ("modbus-tcp", "hr:60000", "exception reply"),  # past its registers
+        ("ads", "GVL_Thermo.nNoSuchVar", "symbol not found"),
+    ],
+)
 def test_a_write_the_plc_refuses_is_write_rejected_and_the_link_stays_up(protocol, where, words):
     plc, _, options = bench(protocol)
     with plc:
@@ -320,8 +526,12 @@ def test_modbus_word_order_little_and_an_ads_object_by_its_indices():
         finally:
             link.close()
     # a CNC object of TwinCAT's GEO task (AMS port 551) by index group and offset, no PLC symbol
-    plc, control, options = bench("ads", profile("beckhoff"), offset_address="0x120300:0x10044",
-                                  held_address="0x120300:0x10042")
+    plc, control, options = bench(
+        "ads",
+        profile("beckhoff"),
+        offset_address="0x120300:0x10044",
+        held_address="0x120300:0x10042",
+    )
     with plc:
         link = open_adapter({**options, "ams_port": 551})
         try:
@@ -337,19 +547,36 @@ def test_modbus_word_order_little_and_an_ads_object_by_its_indices():
 # -- the runtime, lock-step with the virtual machine ------------------------------------------
 
 # a warm-up, two operations with a tool change, a run-down: half an hour of the thermal transient
-PROGRAM = Program("plc-day", ((5.0, 0.0), (600.0, 22500.0), (20.0, 0.0), (600.0, 9000.0),
-                              (300.0, 24000.0), (300.0, 0.0)))
+PROGRAM = Program(
+    "plc-day",
+    ((5.0, 0.0), (600.0, 22500.0), (20.0, 0.0), (600.0, 9000.0), (300.0, 24000.0), (300.0, 0.0)),
+)
 # the generic PLC: what a builder's program might take, an INT of 0.1 um holding A itself
 GENERIC = ControllerProfile(
-    name="generic-plc", title="a builder's PLC (Modbus TCP)", unit="0.1 um (INT, A itself)",
-    scale=10.0, sign=1, resolution=1.0, integer=True, limit=32767.0,
-    readback="the value the PLC applies, in an input register", snippet="", doc="docs/controls/plc.md",
-    routes={})
+    name="generic-plc",
+    title="a builder's PLC (Modbus TCP)",
+    unit="0.1 um (INT, A itself)",
+    scale=10.0,
+    sign=1,
+    resolution=1.0,
+    integer=True,
+    limit=32767.0,
+    readback="the value the PLC applies, in an input register",
+    snippet="",
+    doc="docs/controls/plc.md",
+    routes={},
+)
 
 
-
-def plc_day(tmp_path: Path, model: Path, prof: ControllerProfile, make_plc, adapter: str,
-            shaping: tuple[str, ...] = (), clamp_um: float = MAX_OFFSET_UM):
+def plc_day(
+    tmp_path: Path,
+    model: Path,
+    prof: ControllerProfile,
+    make_plc,
+    adapter: str,
+    shaping: tuple[str, ...] = (),
+    clamp_um: float = MAX_OFFSET_UM,
+):
     """The runtime through an emulated PLC to the emulated control, one stepped clock for all:
     the rows, the machine, the control, the values the PLC received (clock time, raw) and the
     journal. ``adapter`` is the TOML inline table, ``{port}`` the PLC's port."""
@@ -359,8 +586,14 @@ def plc_day(tmp_path: Path, model: Path, prof: ControllerProfile, make_plc, adap
     control = EmulatedControl(vm, prof)
     received: list[tuple[float, float]] = []
     with make_plc(control) as plc:
-        rt = control_runtime(tmp_path, model, adapter.replace("{port}", str(plc.port)), clock,
-                             clamp_um=clamp_um, shaping=shaping)
+        rt = control_runtime(
+            tmp_path,
+            model,
+            adapter.replace("{port}", str(plc.port)),
+            clock,
+            clamp_um=clamp_um,
+            shaping=shaping,
+        )
 
         def cycle() -> dict:
             vm.advance()
@@ -383,13 +616,23 @@ def plc_day(tmp_path: Path, model: Path, prof: ControllerProfile, make_plc, adap
     return rows, vm, control, received, read_run_log(path)
 
 
-def check_day(rows, vm, control, received, log, prof: ControllerProfile, growth_sign: int,
-              clamp_um: float = MAX_OFFSET_UM) -> dict:
+def check_day(
+    rows,
+    vm,
+    control,
+    received,
+    log,
+    prof: ControllerProfile,
+    growth_sign: int,
+    clamp_um: float = MAX_OFFSET_UM,
+) -> dict:
     """What every route must show; the figures, for the report."""
     # the service wrote, the control took every value, and the axis carries it
     assert sum(r["written"] for r in rows) >= 20
     assert control.refused == 0 and all(w.taken for w in control.writes)
-    assert [w.raw for w in control.writes] == pytest.approx([float(v) for _, v in received], rel=1e-12)
+    assert [w.raw for w in control.writes] == pytest.approx(
+        [float(v) for _, v in received], rel=1e-12
+    )
     assert not any(r["alarms"] & int(Alarm.OFFSET_MISMATCH) for r in rows)  # the held value agrees
     assert set(log.extras["cutting_source"]) == {"controller"}  # the PLC's cutting bit
     # in the control's units: the clamp, the sign of the growth, whole counts where it counts
@@ -415,15 +658,21 @@ def check_day(rows, vm, control, received, log, prof: ControllerProfile, growth_
     h = vm.history()
     later = h.time_s > h.time_s[0] + 300.0
     cut = h.cutting & later
-    def rms(x: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(x ** 2)))
 
-    return {"rms_off_um": rms(h.true_um[later]), "rms_on_um": rms(h.tool_tip_error_um[later]),
-            "max_off_um": float(np.abs(h.true_um[later]).max()),
-            "max_on_um": float(np.abs(h.tool_tip_error_um[later]).max()),
-            "max_off_cutting_um": float(np.abs(h.true_um[cut]).max()),
-            "max_on_cutting_um": float(np.abs(h.tool_tip_error_um[cut]).max()),
-            "largest_step_raw": largest, "largest_raw": float(np.abs(raw).max()), "writes": len(received)}
+    def rms(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(x**2)))
+
+    return {
+        "rms_off_um": rms(h.true_um[later]),
+        "rms_on_um": rms(h.tool_tip_error_um[later]),
+        "max_off_um": float(np.abs(h.true_um[later]).max()),
+        "max_on_um": float(np.abs(h.tool_tip_error_um[later]).max()),
+        "max_off_cutting_um": float(np.abs(h.true_um[cut]).max()),
+        "max_on_cutting_um": float(np.abs(h.tool_tip_error_um[cut]).max()),
+        "largest_step_raw": largest,
+        "largest_raw": float(np.abs(raw).max()),
+        "writes": len(received),
+    }
 
 
 def assert_compensated(f: dict) -> None:
@@ -439,9 +688,11 @@ def test_sinumerik_s7_route_end_to_end(tmp_path, calibrated_model):
     action copies it to SD43900 (emulated: the PLC's scan and the control; its own rate limit,
     MD32760, is made to bind in tests/test_controls.py)."""
     prof = profile("sinumerik")
-    adapter = ('{profile = "sinumerik", route = "s7", host = "127.0.0.1", port = {port}, rack = 0, slot = 2, '
-               'offset_address = "DB100.DBD0", speed_address = "DB100.DBD4", held_address = "DB100.DBD8", '
-               'cutting_address = "DB100.DBX12.0"}')
+    adapter = (
+        '{profile = "sinumerik", route = "s7", host = "127.0.0.1", port = {port}, rack = 0, slot = 2, '
+        'offset_address = "DB100.DBD0", speed_address = "DB100.DBD4", held_address = "DB100.DBD8", '
+        'cutting_address = "DB100.DBX12.0"}'
+    )
     out = plc_day(tmp_path, calibrated_model, prof, S7Plc, adapter)
     figures = check_day(*out, prof, growth_sign=+1)
     assert_compensated(figures)
@@ -452,10 +703,12 @@ def test_beckhoff_ads_route_end_to_end(tmp_path, calibrated_model):
     """TwinCAT CNC: the growth in 0.1 um as a DINT symbol; the builder's PLC hands it to the
     axis's temperature compensation (emulated)."""
     prof = profile("beckhoff")
-    adapter = ('{profile = "beckhoff", route = "ads", host = "127.0.0.1", port = {port}, '
-               'ams_net_id = "127.0.0.1.1.1", offset_address = "GVL_Thermo.nTempComp", offset_type = "DINT", '
-               'speed_address = "GVL_Thermo.fSpeed", held_address = "GVL_Thermo.nTempCompHeld", '
-               'cutting_address = "GVL_Thermo.bCutting"}')
+    adapter = (
+        '{profile = "beckhoff", route = "ads", host = "127.0.0.1", port = {port}, '
+        'ams_net_id = "127.0.0.1.1.1", offset_address = "GVL_Thermo.nTempComp", offset_type = "DINT", '
+        'speed_address = "GVL_Thermo.fSpeed", held_address = "GVL_Thermo.nTempCompHeld", '
+        'cutting_address = "GVL_Thermo.bCutting"}'
+    )
     out = plc_day(tmp_path, calibrated_model, prof, AdsPlc, adapter)
     figures = check_day(*out, prof, growth_sign=+1)
     assert_compensated(figures)
@@ -467,13 +720,22 @@ def test_generic_modbus_tcp_plc_end_to_end_with_explicit_units(tmp_path, calibra
     """A builder's PLC over Modbus TCP, no profile: A itself in 0.1 um counts in an INT holding
     register, read back from an input register, the speed a real32 in input registers. The
     clamp (15 um) is below the growth (21 um): the PLC receives exactly the clamp, never more."""
-    adapter = ('{type = "plc", protocol = "modbus-tcp", host = "127.0.0.1", port = {port}, device_id = 1, '
-               'offset_address = "hr:0", offset_type = "int16", speed_address = "ir:0", speed_type = "real32", '
-               'held_address = "ir:2", cutting_address = "di:0", '
-               'offset_scale = 10.0, offset_sign = 1, offset_resolution = 1.0}')
+    adapter = (
+        '{type = "plc", protocol = "modbus-tcp", host = "127.0.0.1", port = {port}, device_id = 1, '
+        'offset_address = "hr:0", offset_type = "int16", speed_address = "ir:0", speed_type = "real32", '
+        'held_address = "ir:2", cutting_address = "di:0", '
+        "offset_scale = 10.0, offset_sign = 1, offset_resolution = 1.0}"
+    )
 
-    out = plc_day(tmp_path, calibrated_model, GENERIC, functools.partial(ModbusTcpPlc, offset_type="INT"),
-                  adapter, shaping=("resolution_um = 0.1",), clamp_um=15.0)
+    out = plc_day(
+        tmp_path,
+        calibrated_model,
+        GENERIC,
+        functools.partial(ModbusTcpPlc, offset_type="INT"),
+        adapter,
+        shaping=("resolution_um = 0.1",),
+        clamp_um=15.0,
+    )
     figures = check_day(*out, GENERIC, growth_sign=-1, clamp_um=15.0)  # A: negative as it grows
     assert figures["largest_raw"] == 150.0  # the clamp binds: 15 um in 0.1 um counts
     assert figures["largest_step_raw"] <= FAST_RATE * GENERIC.scale

@@ -52,21 +52,42 @@ def test_every_family_has_a_profile_with_a_doc_and_a_route_or_says_why():
 
 
 def test_a_profile_presets_the_adapter_and_fixes_the_units():
-    merged = adapter_settings({"profile": "sinumerik", "url": "opc.tcp://10.0.0.5:4840",
-                               "offset_node": "ns=2;s=/x"})
+    merged = adapter_settings(
+        {"profile": "sinumerik", "url": "opc.tcp://10.0.0.5:4840", "offset_node": "ns=2;s=/x"}
+    )
     assert merged["type"] == "opcua" and merged["preset"] == "sinumerik-sea"
     assert merged["offset_scale"] == 0.001 and merged["offset_sign"] == -1
     assert merged["url"] == "opc.tcp://10.0.0.5:4840"
-    assert adapter_settings({"profile": "beckhoff", "route": "ads", "host": "h", "ams_net_id": "1.2.3.4.1.1",
-                             "offset_address": "a", "speed_address": "b"})["offset_resolution"] == 1.0
+    assert (
+        adapter_settings(
+            {
+                "profile": "beckhoff",
+                "route": "ads",
+                "host": "h",
+                "ams_net_id": "1.2.3.4.1.1",
+                "offset_address": "a",
+                "speed_address": "b",
+            }
+        )["offset_resolution"]
+        == 1.0
+    )
     with pytest.raises(ConfigError, match="offset_scale is fixed by profile 'sinumerik'"):
-        adapter_settings({"profile": "sinumerik", "url": "opc.tcp://h:4840", "offset_node": "x",
-                          "offset_scale": 1.0})
+        adapter_settings(
+            {
+                "profile": "sinumerik",
+                "url": "opc.tcp://h:4840",
+                "offset_node": "x",
+                "offset_scale": 1.0,
+            }
+        )
     with pytest.raises(ConfigError, match="needs offset_node or offset_path"):
         check_adapter({"profile": "sinumerik", "url": "opc.tcp://h:4840"})
     with pytest.raises(ConfigError, match="no route 'modbus'; known: opcua, s7"):
         adapter_settings({"profile": "sinumerik", "route": "modbus"})
-    with pytest.raises(ConfigError, match="unknown controller profile 'fanucc' \\(did you mean 'fanuc'\\?\\); known: sinumerik"):
+    with pytest.raises(
+        ConfigError,
+        match="unknown controller profile 'fanucc' \\(did you mean 'fanuc'\\?\\); known: sinumerik",
+    ):
         adapter_settings({"profile": "fanucc"})
     with pytest.raises(ConfigError, match="profile 'linuxcnc' is for axis_units = 'mm'"):
         adapter_settings({"profile": "linuxcnc", "axis_units": "inch"})
@@ -76,12 +97,16 @@ def test_a_profile_presets_the_adapter_and_fixes_the_units():
 
 def _spindle_config(tmp_path: Path, adapter: str, shaping: str = "") -> Path:
     p = tmp_path / "m.toml"
-    p.write_text(f'state_dir = "{tmp_path}"\n[[spindle]]\nname = "s"\nmodel = "m.json"\n'
-                 f"adapter = {adapter}\n[spindle.shaping]\n{shaping}\n")
+    p.write_text(
+        f'state_dir = "{tmp_path}"\n[[spindle]]\nname = "s"\nmodel = "m.json"\n'
+        f"adapter = {adapter}\n[spindle.shaping]\n{shaping}\n"
+    )
     return p
 
 
-def test_the_runtime_config_takes_the_profiles_resolution_and_refuses_a_clamp_past_its_limit(tmp_path):
+def test_the_runtime_config_takes_the_profiles_resolution_and_refuses_a_clamp_past_its_limit(
+    tmp_path,
+):
     fanuc = '{profile = "fanuc", host = "127.0.0.1"}'
     cfg = load_config(_spindle_config(tmp_path, fanuc))
     assert cfg.spindle[0].shaping.resolution_um == 1.0 and cfg.spindle[0].route == "focas"
@@ -97,19 +122,31 @@ def test_the_runtime_config_takes_the_profiles_resolution_and_refuses_a_clamp_pa
     with pytest.raises(ConfigError, match="profile 'haas' is for offset_decimals = 4"):
         load_config(_spindle_config(tmp_path, haas))
     with pytest.raises(ConfigError, match=r"max_offset_um 600 is past what profile 'haas' takes"):
-        load_config(_spindle_config(tmp_path, '{profile = "haas", host = "127.0.0.1"}', "max_offset_um = 600.0"))
+        load_config(
+            _spindle_config(
+                tmp_path, '{profile = "haas", host = "127.0.0.1"}', "max_offset_um = 600.0"
+            )
+        )
 
 
 # -- whole counts --------------------------------------------------------------------------
 
 
 @settings(max_examples=60, deadline=None)
-@given(q=st.sampled_from([0.1, 1.0, 2.54]), rate=st.sampled_from([0.3, 1.0, 5.0]),
-       dt=st.sampled_from([0.25, 1.0, 2.0]),
-       s=st.lists(st.floats(-90, 90), min_size=5, max_size=60))
+@given(
+    q=st.sampled_from([0.1, 1.0, 2.54]),
+    rate=st.sampled_from([0.3, 1.0, 5.0]),
+    dt=st.sampled_from([0.25, 1.0, 2.0]),
+    s=st.lists(st.floats(-90, 90), min_size=5, max_size=60),
+)
 def test_the_shaper_moves_in_whole_counts_within_the_clamp_and_the_slew_limit(q, rate, dt, s):
-    cfg = ShaperConfig(max_offset_um=60.0, max_rate_um_per_s=rate, not_cutting_rate_um_per_s=rate,
-                       deadband_um=0.0, resolution_um=q)
+    cfg = ShaperConfig(
+        max_offset_um=60.0,
+        max_rate_um_per_s=rate,
+        not_cutting_rate_um_per_s=rate,
+        deadband_um=0.0,
+        resolution_um=q,
+    )
     sh = OffsetShaper(cfg)
     t, last_move_t, y = 0.0, 0.0, 0.0
     for target in np.repeat(s, 20):
@@ -166,24 +203,36 @@ def _give_access(url: str, user: str, password: str, who: str) -> None:
     client.connect()
     try:
         methods = client.get_node(f"ns=2;s={SINUMERIK_GIVE_ACCESS.rpartition('/')[0]}")
-        methods.call_method(client.get_node(f"ns=2;s={SINUMERIK_GIVE_ACCESS}"), ua.Variant(who, ua.VariantType.String),
-                            ua.Variant("StateRead; SeaRead; SeaWrite", ua.VariantType.String))
+        methods.call_method(
+            client.get_node(f"ns=2;s={SINUMERIK_GIVE_ACCESS}"),
+            ua.Variant(who, ua.VariantType.String),
+            ua.Variant("StateRead; SeaRead; SeaWrite", ua.VariantType.String),
+        )
     finally:
         client.disconnect()
 
 
-def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_path, calibrated_model, monkeypatch):
+def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(
+    tmp_path, calibrated_model, monkeypatch
+):
     monkeypatch.setenv("THERMOCOMP_OPCUA_USER", "thermocomp")
     monkeypatch.setenv("THERMOCOMP_OPCUA_PASSWORD", "tc-pw")
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=clock)
     # MD32760 x MD32000 made to bind: the axis follows SD43900 at 0.5 um/s at most
     control = EmulatedControl(vm, profile("sinumerik"), rate_um_per_s=0.5)
-    vcnc = VirtualCNC(vm, tick_s=None, users={"thermocomp": "tc-pw", "auduser": "adm-pw"},
-                      control=control, admins=frozenset({"auduser"}))
+    vcnc = VirtualCNC(
+        vm,
+        tick_s=None,
+        users={"thermocomp": "tc-pw", "auduser": "adm-pw"},
+        control=control,
+        admins=frozenset({"auduser"}),
+    )
     with running(vcnc) as cnc:
-        adapter = (f'{{profile = "sinumerik", route = "opcua", url = "{cnc.url}", '
-                   f'offset_node = "ns=2;s={SINUMERIK_SD43900_NODE}", verify_writes = true}}')
+        adapter = (
+            f'{{profile = "sinumerik", route = "opcua", url = "{cnc.url}", '
+            f'offset_node = "ns=2;s={SINUMERIK_SD43900_NODE}", verify_writes = true}}'
+        )
         rt = control_runtime(tmp_path, calibrated_model, adapter, clock, period_s=2.0)
         try:
             step(cnc)
@@ -194,7 +243,9 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
                 clock.advance(rt.next_period_s())
                 step(cnc)
                 rows.append(rt.cycle())
-            assert cnc.denied_writes > 0 and control.held_raw == 0.0 and not control.writes  # none reached it
+            assert (
+                cnc.denied_writes > 0 and control.held_raw == 0.0 and not control.writes
+            )  # none reached it
             assert rows[-1]["alarms"] & int(Alarm.WRITE_REJECTED)
             assert abs(vm.history().tool_tip_error_um[-1]) > 3.0  # the growth goes uncompensated
             # an operator cannot give the right; the administrator can
@@ -238,8 +289,13 @@ def test_sinumerik_opcua_route_writes_sd43900_only_with_the_seawrite_right(tmp_p
 def test_the_example_configuration_names_a_route_for_every_tested_family():
     cfg = load_config(Path(__file__).resolve().parents[1] / "examples" / "controls.toml")
     routes = {(s.profile.name, s.route) for s in cfg.spindle}
-    assert routes == {("sinumerik", "opcua"), ("sinumerik", "s7"), ("fanuc", "focas"), ("haas", "mdc"),
-                      ("beckhoff", "ads")}
+    assert routes == {
+        ("sinumerik", "opcua"),
+        ("sinumerik", "s7"),
+        ("fanuc", "focas"),
+        ("haas", "mdc"),
+        ("beckhoff", "ads"),
+    }
     fanuc = next(s for s in cfg.spindle if s.profile.name == "fanuc")
     assert fanuc.shaping.resolution_um == 1.0  # whole detection units
 
@@ -258,7 +314,9 @@ def test_the_demo_can_act_as_every_profile(tmp_path, name):
     else:  # the family's units on the virtual CNC's OPC UA node
         p = profile(name)
         assert (link.offset_scale, link.offset_sign) == (p.scale, p.sign)
-        assert s.shaping.resolution_um == pytest.approx(p.resolution_um)  # whole counts of the control
+        assert s.shaping.resolution_um == pytest.approx(
+            p.resolution_um
+        )  # whole counts of the control
     if name == "sinumerik":
         assert options["rights"]["thermocomp"] == {"SeaWrite"}
 
@@ -274,14 +332,21 @@ def test_thermocomp_controls_lists_the_profiles_and_shows_one(capsys):
     assert "route opcua" in shown and "route s7" in shown and "$$SA_TEMP_COMP_ABS_VALUE[Z]" in shown
     with pytest.raises(SystemExit) as stop:  # argparse's refusal, naming the profiles
         main(["controls", "nope"])
-    assert stop.value.code == 2 and "invalid choice: 'nope' (choose from 'sinumerik'" in capsys.readouterr().err
-    demo = next(a for a in build_parser()._subparsers._group_actions[0].choices["demo"]._actions
-                if a.dest == "profile")
+    assert (
+        stop.value.code == 2
+        and "invalid choice: 'nope' (choose from 'sinumerik'" in capsys.readouterr().err
+    )
+    demo = next(
+        a
+        for a in build_parser()._subparsers._group_actions[0].choices["demo"]._actions
+        if a.dest == "profile"
+    )
     assert set(demo.choices) == set(PROFILES)  # the demo can act as every profile
 
 
-def test_run_check_prints_what_the_profile_will_do_and_warns_of_a_slow_control(tmp_path, calibrated_model,
-                                                                              capsys):
+def test_run_check_prints_what_the_profile_will_do_and_warns_of_a_slow_control(
+    tmp_path, calibrated_model, capsys
+):
     from machine_sim.plc_servers import S7Plc
     from thermocomp.runtime.service import check
 
@@ -289,16 +354,25 @@ def test_run_check_prints_what_the_profile_will_do_and_warns_of_a_slow_control(t
     vm.override_speed(9000.0)
     vm.clock.advance(5.0)
     vm.advance()
-    with S7Plc(EmulatedControl(vm, profile("heidenhain")), offset_type="INT",
-               offset_address="DB100.DBW0", held_address=None) as plc:
+    with S7Plc(
+        EmulatedControl(vm, profile("heidenhain")),
+        offset_type="INT",
+        offset_address="DB100.DBW0",
+        held_address=None,
+    ) as plc:
         plc.sync()
         cfg = tmp_path / "m.toml"
-        cfg.write_text(f'state_dir = "{tmp_path}"\n[[spindle]]\nname = "tnc"\nmodel = "{calibrated_model}"\n'
-                       f'[spindle.adapter]\nprofile = "heidenhain"\nprotocol = "s7"\nhost = "127.0.0.1"\n'
-                       f'port = {plc.port}\noffset_address = "DB100.DBW0"\nspeed_address = "DB100.DBD4"\n')
+        cfg.write_text(
+            f'state_dir = "{tmp_path}"\n[[spindle]]\nname = "tnc"\nmodel = "{calibrated_model}"\n'
+            f'[spindle.adapter]\nprofile = "heidenhain"\nprotocol = "s7"\nhost = "127.0.0.1"\n'
+            f'port = {plc.port}\noffset_address = "DB100.DBW0"\nspeed_address = "DB100.DBD4"\n'
+        )
         assert check(str(cfg)) == 0
     out = capsys.readouterr().out
     assert "tnc: profile heidenhain (HEIDENHAIN TNC), route plc" in out
     assert "in whole counts of 0.1 um" in out and "speed 9000 rpm" in out
-    assert "warning: the control moves the offset at most 1 um/s, slower than the shaping's 50 um/s" in out
+    assert (
+        "warning: the control moves the offset at most 1 um/s, slower than the shaping's 50 um/s"
+        in out
+    )
     assert plc.passed_on == 0  # --check writes nothing

@@ -14,8 +14,15 @@ from compensator.errors import ConfigError, NonFiniteInputError
 
 
 def law(**kw):
-    cfg = dict(rite_um=17.0, preheat_c=16.0, min_c=10.0, max_c=24.0, rate_k_per_min=1.0,
-               resolution_c=0.1, derivative_filter_s=5.0)
+    cfg = dict(
+        rite_um=17.0,
+        preheat_c=16.0,
+        min_c=10.0,
+        max_c=24.0,
+        rate_k_per_min=1.0,
+        resolution_c=0.1,
+        derivative_filter_s=5.0,
+    )
     cfg.update(kw)
     return CoolingLaw(**cfg)
 
@@ -94,10 +101,14 @@ def test_derivative_filter_damps_a_noisy_estimate():
     rng = np.random.default_rng(1)
     noisy = 17.0 + 0.05 * rng.standard_normal(600)
     gains = PidGains.paper()
-    raw = run(law(gains=gains, derivative_filter_s=0.0, rate_k_per_min=1000.0, resolution_c=0.0),
-              [17.0, *noisy])
-    filt = run(law(gains=gains, derivative_filter_s=30.0, rate_k_per_min=1000.0, resolution_c=0.0),
-               [17.0, *noisy])
+    raw = run(
+        law(gains=gains, derivative_filter_s=0.0, rate_k_per_min=1000.0, resolution_c=0.0),
+        [17.0, *noisy],
+    )
+    filt = run(
+        law(gains=gains, derivative_filter_s=30.0, rate_k_per_min=1000.0, resolution_c=0.0),
+        [17.0, *noisy],
+    )
     spread = lambda xs: float(np.std([x.setpoint_c for x in xs[100:]]))  # noqa: E731
     assert spread(filt) < spread(raw) / 4
 
@@ -145,25 +156,55 @@ def test_bad_settings_and_steps_are_refused():
     assert CoolingState.from_dict(s.to_dict()).setpoint_c == s.setpoint_c
 
 
-estimates = st.one_of(st.none(), st.sampled_from([math.nan, math.inf, -math.inf]),
-                      st.floats(-1e6, 1e6, allow_nan=False))
+estimates = st.one_of(
+    st.none(),
+    st.sampled_from([math.nan, math.inf, -math.inf]),
+    st.floats(-1e6, 1e6, allow_nan=False),
+)
 
 
 @settings(max_examples=200, deadline=None)
 @given(
-    kp=st.floats(0, 1e3), ki=st.floats(0, 10), kd=st.floats(0, 1e4),
-    lo=st.floats(-20, 30), span=st.floats(0.5, 30), rate=st.floats(0.01, 20),
+    kp=st.floats(0, 1e3),
+    ki=st.floats(0, 10),
+    kd=st.floats(0, 1e4),
+    lo=st.floats(-20, 30),
+    span=st.floats(0.5, 30),
+    rate=st.floats(0.01, 20),
     res=st.sampled_from([0.0, 0.01, 0.1, 0.5]),
-    seq=st.lists(st.tuples(estimates, st.floats(0.05, 600), st.booleans(),
-                           st.one_of(st.none(), st.floats(-30, 40))), min_size=1, max_size=60),
+    seq=st.lists(
+        st.tuples(
+            estimates, st.floats(0.05, 600), st.booleans(), st.one_of(st.none(), st.floats(-30, 40))
+        ),
+        min_size=1,
+        max_size=60,
+    ),
 )
 # a denormal kp makes the back-calculation's tracking time kp/ki underflow to zero
-@example(kp=5e-324, ki=2.0, kd=0.0, lo=0.0, span=1.0, rate=1.0, res=0.0,
-         seq=[(10.0, 1.0, False, None), (0.0, 1.0, False, None)])
-def test_never_a_set_point_outside_the_limits_or_faster_than_the_rate(kp, ki, kd, lo, span, rate, res, seq):
-    cl = CoolingLaw(rite_um=10.0, preheat_c=lo + span / 2, min_c=lo, max_c=lo + span,
-                    gains=PidGains(kp=kp, ki_per_s=ki, kd_s=kd), rate_k_per_min=rate, resolution_c=res,
-                    dew_margin_k=1.0, hold_s=30.0)
+@example(
+    kp=5e-324,
+    ki=2.0,
+    kd=0.0,
+    lo=0.0,
+    span=1.0,
+    rate=1.0,
+    res=0.0,
+    seq=[(10.0, 1.0, False, None), (0.0, 1.0, False, None)],
+)
+def test_never_a_set_point_outside_the_limits_or_faster_than_the_rate(
+    kp, ki, kd, lo, span, rate, res, seq
+):
+    cl = CoolingLaw(
+        rite_um=10.0,
+        preheat_c=lo + span / 2,
+        min_c=lo,
+        max_c=lo + span,
+        gains=PidGains(kp=kp, ki_per_s=ki, kd_s=kd),
+        rate_k_per_min=rate,
+        resolution_c=res,
+        dew_margin_k=1.0,
+        hold_s=30.0,
+    )
     s = cl.initial()
     prev = s.setpoint_c
     for est, dt, running, dew in seq:

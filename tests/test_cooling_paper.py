@@ -18,7 +18,22 @@ from thermocomp.cli import main
 @pytest.mark.parametrize("scenario", ["wc1", "wc2"])
 def test_pid_reaches_equilibrium_40_percent_sooner_with_half_the_tevr(scenario, capsys):
     # a 5 s control period keeps the test short; the README's table runs the paper's 1 s
-    assert main(["cooling", "compare", "--scenario", scenario, "--gains", "paper", "--dt", "5", "--json"]) == 0
+    assert (
+        main(
+            [
+                "cooling",
+                "compare",
+                "--scenario",
+                scenario,
+                "--gains",
+                "paper",
+                "--dt",
+                "5",
+                "--json",
+            ]
+        )
+        == 0
+    )
     rows = {r["mode"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
     const, pid, both = rows["constant"], rows["pid"], rows["pid+offset"]
     assert const["equilibrium_min"] is not None and pid["equilibrium_min"] is not None
@@ -55,24 +70,39 @@ def test_rite_is_the_steady_growth_at_the_journals_speed_mix(tmp_path, capsys):
     t = np.arange(0.0, 4 * 3600.0, 10.0)
     n = np.where(t < 3600.0, 0.0, np.where(t < 2 * 3600.0, 2000.0, 3000.0))
     write_run_log(tmp_path / "j.csv", {"time_s": t, "speed_rpm": n})
-    inputs = ["--input", "bearing_temp_c=20", "--input", "motor_temp_c=18", "--input", "coolant_temp_c=16.5"]
+    inputs = [
+        "--input",
+        "bearing_temp_c=20",
+        "--input",
+        "motor_temp_c=18",
+        "--input",
+        "coolant_temp_c=16.5",
+    ]
     assert main(["cooling", "rite", "--model", str(model), *inputs, str(tmp_path / "j.csv")]) == 0
     out = capsys.readouterr().out
     value = float(out.split("rite_um = ")[1].split()[0])
     vals = {"bearing_temp_c": 20.0, "motor_temp_c": 18.0, "coolant_temp_c": 16.5}
     s2, s3 = (ident.model.start(None, rpm, vals).elongation_um for rpm in (2000.0, 3000.0))
-    assert value == pytest.approx((s2 + 2 * s3) / 3, abs=0.06)  # rest left out: 1 h at 2000, 2 h at 3000
+    assert value == pytest.approx(
+        (s2 + 2 * s3) / 3, abs=0.06
+    )  # rest left out: 1 h at 2000, 2 h at 3000
     assert main(["cooling", "rite", "--model", str(model), str(tmp_path / "j.csv")]) == 2
     assert "give each as --input" in capsys.readouterr().err
 
 
 def test_simulate_cooling_writes_the_coolant_columns(tmp_path, capsys):
     out = tmp_path / "run.csv"
-    assert main(["simulate", "--cooling", "pid", "--program", "wc2", "--offset", "--output", str(out)]) == 0
+    assert (
+        main(["simulate", "--cooling", "pid", "--program", "wc2", "--offset", "--output", str(out)])
+        == 0
+    )
     text = capsys.readouterr().out
     assert "equilibrium at" in text and "the loop closed at" in text
     rl = read_run_log(out)
     assert {"chiller_setpoint_c", "coolant_temp_c", "offset_um", "estimate_um"} <= set(rl.extras)
     assert rl.extras["chiller_setpoint_c"].min() < 14.0  # the PID cooled below the constant
-    assert main(["simulate", "--cooling", "pid", "--program", "job-shop-day", "--output", str(out)]) == 2
+    assert (
+        main(["simulate", "--cooling", "pid", "--program", "job-shop-day", "--output", str(out)])
+        == 2
+    )
     assert "one of paper 000's scenarios" in capsys.readouterr().err

@@ -34,17 +34,44 @@ def cooling_model(tmp_path_factory):
     return path
 
 
-def config(tmp_path, model, mode="both", chiller='{ type = "modbus", host = "127.0.0.1", port = 1 }', extra=""):
+def config(
+    tmp_path,
+    model,
+    mode="both",
+    chiller='{ type = "modbus", host = "127.0.0.1", port = 1 }',
+    extra="",
+):
     p = tmp_path / "machine.toml"
-    p.write_text("\n".join([
-        f'state_dir = "{tmp_path / "state"}"', "watchdog = false",
-        "[[spindle]]", 'name = "s1"', f'model = "{model}"', f"period_s = {PERIOD_S}",
-        'adapter = { url = "sim://mechanical-cooled" }',
-        "[spindle.shaping]", "max_offset_um = 60.0", "max_rate_um_per_s = 2.0",
-        "[spindle.faults]", "input_stale_s = 86400.0",
-        "[cooling]", f'mode = "{mode}"', "rite_um = 17.0", "preheat_c = 16.0", "min_c = 8.0",
-        "max_c = 26.0", "dew_point_c = 5.0", f"period_s = {PERIOD_S}", "hold_s = 120.0",
-        f"chiller = {chiller}", extra]) + "\n")
+    p.write_text(
+        "\n".join(
+            [
+                f'state_dir = "{tmp_path / "state"}"',
+                "watchdog = false",
+                "[[spindle]]",
+                'name = "s1"',
+                f'model = "{model}"',
+                f"period_s = {PERIOD_S}",
+                'adapter = { url = "sim://mechanical-cooled" }',
+                "[spindle.shaping]",
+                "max_offset_um = 60.0",
+                "max_rate_um_per_s = 2.0",
+                "[spindle.faults]",
+                "input_stale_s = 86400.0",
+                "[cooling]",
+                f'mode = "{mode}"',
+                "rite_um = 17.0",
+                "preheat_c = 16.0",
+                "min_c = 8.0",
+                "max_c = 26.0",
+                "dew_point_c = 5.0",
+                f"period_s = {PERIOD_S}",
+                "hold_s = 120.0",
+                f"chiller = {chiller}",
+                extra,
+            ]
+        )
+        + "\n"
+    )
     return p
 
 
@@ -57,18 +84,35 @@ class Rig:
         self.plant = SpindlePlant(preset("mechanical-cooled"), seed=2)
         self.lock = threading.Lock()
         # the service runs before the spindle starts: a cold start at rest
-        self.vm = VirtualMachine(self.plant, Program("wc1", ((60.0, 0.0), (8 * 3600.0, 3000.0))),
-                                 clock=lambda: self.t, plant_dt_s=PERIOD_S)
+        self.vm = VirtualMachine(
+            self.plant,
+            Program("wc1", ((60.0, 0.0), (8 * 3600.0, 3000.0))),
+            clock=lambda: self.t,
+            plant_dt_s=PERIOD_S,
+        )
         self.cfg = load_config(config(tmp_path, model, mode, chiller_table))
         clock, wall = (lambda: self.t), (lambda: WALL0 + self.t)
-        self.spindle = SpindleRuntime(self.cfg.spindle[0], self.cfg.state_dir, self.cfg.journal_path,
-                                      clock=clock, wall=wall, adapter=SimAdapter(machine=self.vm, clock=clock))
+        self.spindle = SpindleRuntime(
+            self.cfg.spindle[0],
+            self.cfg.state_dir,
+            self.cfg.journal_path,
+            clock=clock,
+            wall=wall,
+            adapter=SimAdapter(machine=self.vm, clock=clock),
+        )
         self.spindle.writes_offset = mode != "cooling"
         self.clock, self.wall = clock, wall
 
     def cooling(self, chiller):
-        self.rt = CoolingRuntime(self.cfg.cooling, self.spindle, self.cfg.journal_path, clock=self.clock,
-                                 wall=self.wall, anchor_s=WALL0, chiller=chiller)
+        self.rt = CoolingRuntime(
+            self.cfg.cooling,
+            self.spindle,
+            self.cfg.journal_path,
+            clock=self.clock,
+            wall=self.wall,
+            anchor_s=WALL0,
+            chiller=chiller,
+        )
         return self.rt
 
     def run(self, seconds):
@@ -84,8 +128,9 @@ class Rig:
 def test_pid_over_modbus_holds_the_error_and_the_offset_cancels_the_rest(tmp_path, cooling_model):
     rig = Rig(tmp_path, cooling_model, '{ type = "modbus", host = "127.0.0.1", port = 1 }')
     with ChillerServer(rig.plant, lock=rig.lock) as server:
-        chiller = open_chiller("modbus", {"host": "127.0.0.1", "port": server.port, "timeout_s": 2.0},
-                               clock=rig.clock)
+        chiller = open_chiller(
+            "modbus", {"host": "127.0.0.1", "port": server.port, "timeout_s": 2.0}, clock=rig.clock
+        )
         rt = rig.cooling(chiller)
         rows = rig.run(6 * 3600)
         assert server.writes > 0
@@ -116,7 +161,9 @@ def test_pid_over_modbus_holds_the_error_and_the_offset_cancels_the_rest(tmp_pat
     rig.spindle.close()
 
 
-def test_chiller_fault_holds_then_goes_to_the_constant_then_resumes_bumplessly(tmp_path, cooling_model):
+def test_chiller_fault_holds_then_goes_to_the_constant_then_resumes_bumplessly(
+    tmp_path, cooling_model
+):
     rig = Rig(tmp_path, cooling_model, '{ type = "virtual" }', mode="cooling")
     chiller = open_chiller("virtual", {}, plant=rig.plant, lock=rig.lock, clock=rig.clock)
     rt = rig.cooling(chiller)
@@ -128,7 +175,9 @@ def test_chiller_fault_holds_then_goes_to_the_constant_then_resumes_bumplessly(t
     assert all(r["alarm"] == CHILLER_FAILED and not r["sent"] for r in down)
     # the chiller keeps what it took; the law holds it for hold_s, then goes to the constant
     assert rig.plant.chiller_setpoint_c == last_taken
-    assert [r["setpoint_c"] for r in down[: int(110 / PERIOD_S)]] == [last_taken] * int(110 / PERIOD_S)
+    assert [r["setpoint_c"] for r in down[: int(110 / PERIOD_S)]] == [last_taken] * int(
+        110 / PERIOD_S
+    )
     assert down[-1]["setpoint_c"] == pytest.approx(16.0)
     chiller.reachable = True
     back = rig.run(120)
@@ -150,10 +199,17 @@ def test_chiller_fault_holds_then_goes_to_the_constant_then_resumes_bumplessly(t
 def test_cooling_configuration_is_checked_in_one_line(tmp_path, cooling_model):
     cfg = load_config(config(tmp_path, cooling_model))
     assert cfg.cooling_spindle == "s1" and cfg.cooling.law().rite_um == 17.0
-    for extra, msg in (("min_c = 20.0", "outside the limits"), ("surprise = 1", "surprise"),
-                       ("gains = { kp = -1.0 }", "kp")):
+    for extra, msg in (
+        ("min_c = 20.0", "outside the limits"),
+        ("surprise = 1", "surprise"),
+        ("gains = { kp = -1.0 }", "kp"),
+    ):
         p = config(tmp_path, cooling_model, extra=extra)
-        text = p.read_text().replace("min_c = 8.0\n", "") if extra.startswith("min_c") else p.read_text()
+        text = (
+            p.read_text().replace("min_c = 8.0\n", "")
+            if extra.startswith("min_c")
+            else p.read_text()
+        )
         p.write_text(text)
         with pytest.raises(ConfigError, match=msg) as err:
             load_config(p)

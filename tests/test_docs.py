@@ -22,8 +22,11 @@ USER_FILES = sorted(
     [ROOT / "README.md", ROOT / "mkdocs.yml"]
     + [p for p in DOCS.rglob("*") if p.suffix in (".md", ".py")]
     + [p for p in (ROOT / "examples").rglob("*") if p.is_file() and p.suffix != ".py"]
-    + [ROOT / "compensator" / "cooling_law.py", ROOT / "calibration" / "stability.py",
-       ROOT / "calibration" / "tuning.py"]
+    + [
+        ROOT / "compensator" / "cooling_law.py",
+        ROOT / "calibration" / "stability.py",
+        ROOT / "calibration" / "tuning.py",
+    ]
 )
 
 
@@ -37,15 +40,27 @@ def test_the_site_builds_strict_without_a_warning(tmp_path):
     """`mkdocs build --strict`, as `make docs` runs it: a link to a missing page or anchor, a page
     left out of the navigation, or a missing image aborts it; no warning may pass either."""
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1", "PYTHONWARNINGS": "ignore::DeprecationWarning"}
-    run = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(tmp_path / "site")],
-                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    run = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(tmp_path / "site")],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     out = run.stdout + run.stderr
     assert run.returncode == 0, out[-4000:]
     warnings = [line for line in out.splitlines() if re.match(r"\s*(WARNING|ERROR)\b", line)]
     assert not warnings, "\n".join(warnings)
     site = tmp_path / "site"
-    for page in ("index.html", "reference/configuration.html", "reference/cli.html",
-                 "reference/examples.html", "sign-convention.html", "troubleshooting.html"):
+    for page in (
+        "index.html",
+        "reference/configuration.html",
+        "reference/cli.html",
+        "reference/examples.html",
+        "sign-convention.html",
+        "troubleshooting.html",
+    ):
         assert (site / page).is_file(), page
     assert "spindle.shaping" in (site / "reference" / "configuration.html").read_text()
     assert "thermocomp run" in (site / "reference" / "cli.html").read_text()
@@ -119,7 +134,12 @@ def test_the_readme_is_a_short_front_door():
 @pytest.mark.parametrize("kind", ["config", "cli", "examples"])
 def test_the_generated_reference_pages_run_on_their_own(kind):
     """`python docs/gen_reference.py KIND` prints the page (what the hook adds at build time)."""
-    run = subprocess.run([sys.executable, str(DOCS / "gen_reference.py"), kind], cwd=ROOT,
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [sys.executable, str(DOCS / "gen_reference.py"), kind],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.startswith("# ")

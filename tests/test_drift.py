@@ -48,7 +48,9 @@ def test_the_change_is_dated_and_sized_and_clears_when_it_ends():
             cleared = k
     k, (size, since, n) = found
     assert k == 23 and since == 2000.0 and n == 4 and size == pytest.approx(2.0)  # 4 x 1.5 > 5
-    assert cleared is not None and 28 + 10 <= cleared <= 28 + 16  # below h/2 after about 1.5 h/k normal ones
+    assert (
+        cleared is not None and 28 + 10 <= cleared <= 28 + 16
+    )  # below h/2 after about 1.5 h/k normal ones
 
 
 def test_grace_and_bad_values_hold_back():
@@ -62,7 +64,9 @@ def test_grace_and_bad_values_hold_back():
     with pytest.raises(ConfigError):
         DriftConfig(h=0.0)
     assert miss_sd_um(None, 0.5) == 0.5 and miss_sd_um(0.3, 0.4) == pytest.approx(0.5)
-    assert miss_sd_um(0.0, 0.0) == 0.1  # a fit that states no error does not make every miss a drift
+    assert (
+        miss_sd_um(0.0, 0.0) == 0.1
+    )  # a fit that states no error does not make every miss a drift
 
 
 def test_one_wild_measurement_is_no_drift_but_three_are():
@@ -100,19 +104,25 @@ def test_a_model_that_holds_raises_no_drift(settled, caplog):
     assert not events(caplog, "model_drift") and settled.rt.drift.seen == 60
 
 
-def test_a_sustained_shift_raises_model_drift_naming_its_size_and_start(settled, caplog, tmp_path, simple_model):  # noqa: F811
+def test_a_sustained_shift_raises_model_drift_naming_its_size_and_start(
+    settled, caplog, tmp_path, simple_model
+):  # noqa: F811
     caplog.set_level(logging.INFO)
     for k in range(6):
         measure(settled, model_only(settled.rt) + (0.2 if k % 2 else -0.2))
     start = settled.rt.anchor_s + settled.t + 1.0  # the next measurement's cycle
     raised = []
     for _ in range(6):  # the spindle now grows 3 um more than the model says
-        raised.append(bool(measure(settled, model_only(settled.rt) + 3.0)["alarms"] & Alarm.MODEL_DRIFT))
+        raised.append(
+            bool(measure(settled, model_only(settled.rt) + 3.0)["alarms"] & Alarm.MODEL_DRIFT)
+        )
     assert raised.index(True) == 2, raised  # each miss counts 3 sd at most: the third crosses
     ev = events(caplog, "model_drift")
     assert len(ev) == 1
     fields = ev[0].fields
-    assert fields["size_um"] == pytest.approx(3.0, abs=0.1) and fields["since_s"] == pytest.approx(start)
+    assert fields["size_um"] == pytest.approx(3.0, abs=0.1) and fields["since_s"] == pytest.approx(
+        start
+    )
     assert "refit" in ev[0].getMessage()
     # the observer follows the change (its bias), which is why the detector reads the model alone
     assert settled.rt.observer_status()["bias_um"] > 1.5
@@ -120,12 +130,18 @@ def test_a_sustained_shift_raises_model_drift_naming_its_size_and_start(settled,
     assert status["detected"] and status["size_um"] == pytest.approx(3.0, abs=0.1)
     # a new model is a known event: the detector starts again, and the estimate does not jump
     other = tmp_path / "other.json"
-    save_model(other, ThermalModel.from_discrete(0.995, (0.0, 0.021, 0.0, 0.0), 1.0,
-                                                 speed_range_rpm=(0.0, 27000.0)))
+    save_model(
+        other,
+        ThermalModel.from_discrete(
+            0.995, (0.0, 0.021, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 27000.0)
+        ),
+    )
     before = settled.rt.estimate_um()
     settled.reload(tmp_path / "a", other, observer="enabled = true\ngate_sigma = 1000.0")
     assert settled.rt.drift.statistic == 0.0 and not settled.rt.drift.detected
     assert abs(settled.rt.estimate_um() - before) < 1e-9
     row = settled.run(1)[0]
     assert not row["alarms"] & Alarm.MODEL_DRIFT
-    assert abs(row["predicted_um"] - before) < 0.1  # one second of the new model, from the old estimate
+    assert (
+        abs(row["predicted_um"] - before) < 0.1
+    )  # one second of the new model, from the old estimate

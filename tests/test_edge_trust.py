@@ -39,13 +39,28 @@ WALL0 = day_start_s("2026-03-02") + 8 * 3600.0
 CLAMP_UM, RATE = 60.0, 1.0
 
 
-def write_config(tmp_path: Path, model: Path, *, observer: bool = True, faults: str = "",
-                 extra: str = "") -> Path:
-    lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0", extra,
-             "[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0", 'adapter = {url = "sim://"}',
-             "[spindle.shaping]", f"max_offset_um = {CLAMP_UM}", f"max_rate_um_per_s = {RATE}",
-             "deadband_um = 0.0", "[spindle.observer]", f"enabled = {str(observer).lower()}",
-             "[spindle.faults]", faults]
+def write_config(
+    tmp_path: Path, model: Path, *, observer: bool = True, faults: str = "", extra: str = ""
+) -> Path:
+    lines = [
+        f'state_dir = "{tmp_path / "state"}"',
+        "watchdog = false",
+        "journal_fsync_s = 3600.0",
+        extra,
+        "[[spindle]]",
+        'name = "s1"',
+        f'model = "{model}"',
+        "period_s = 1.0",
+        'adapter = {url = "sim://"}',
+        "[spindle.shaping]",
+        f"max_offset_um = {CLAMP_UM}",
+        f"max_rate_um_per_s = {RATE}",
+        "deadband_um = 0.0",
+        "[spindle.observer]",
+        f"enabled = {str(observer).lower()}",
+        "[spindle.faults]",
+        faults,
+    ]
     tmp_path.mkdir(parents=True, exist_ok=True)
     p = tmp_path / "machine.toml"
     p.write_text("\n".join(lines) + "\n")
@@ -59,10 +74,18 @@ class Rig:
         self.t = 0.0
         self.wall0 = wall0  # what the wall clock says at t = 0 (a test may step it)
         cfg = load_config(write_config(tmp_path, model, **kw))
-        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=lambda: self.t)
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=1), None, clock=lambda: self.t
+        )
         self.adapter = SimAdapter(machine=self.vm)
-        self.rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: self.t,
-                                 wall=lambda: self.wall0 + self.t, adapter=self.adapter)
+        self.rt = SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: self.t,
+            wall=lambda: self.wall0 + self.t,
+            adapter=self.adapter,
+        )
 
     def cycles(self, n: int, dt: float = 1.0) -> list[dict]:
         out = []
@@ -83,16 +106,21 @@ def rig(tmp_path, simple_model):  # noqa: F811 - the fixture imported above
 
 
 @settings(max_examples=300, deadline=None)
-@given(measured=st.floats(allow_nan=True, allow_infinity=True, width=64),
-       sigma=st.floats(allow_nan=True, allow_infinity=True, width=64),
-       bias=st.floats(-1e4, 1e4), var=st.floats(0, 1e12))
+@given(
+    measured=st.floats(allow_nan=True, allow_infinity=True, width=64),
+    sigma=st.floats(allow_nan=True, allow_infinity=True, width=64),
+    bias=st.floats(-1e4, 1e4),
+    var=st.floats(0, 1e12),
+)
 def test_an_observer_update_is_refused_or_finite(measured, sigma, bias, var):
     cfg = ObserverConfig()
     z = ObserverState(bias, 0.0, ((var, 0.0), (0.0, 0.0)))
     try:
         up = measurement_update(cfg, z, measured, 5.0, sigma)
     except (ModelError, NonFiniteInputError):
-        assert not (math.isfinite(measured) and math.isfinite(sigma) and 0 < sigma <= SIGMA_LIMIT_UM)
+        assert not (
+            math.isfinite(measured) and math.isfinite(sigma) and 0 < sigma <= SIGMA_LIMIT_UM
+        )
         return
     s = up.state
     assert all(math.isfinite(v) for v in (s.bias_um, s.drift_um_per_s, *s.cov[0], *s.cov[1]))
@@ -190,10 +218,12 @@ def test_a_speed_or_signal_with_a_bad_status_is_never_used():
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
         clock.advance(10.0)
         step(cnc)
-        links = {"poll": OpcUaAdapter(cnc.url, preset="virtual-cnc"),
-                 "cutting": OpcUaAdapter(cnc.url, preset="virtual-cnc", cutting_node=cutting),
-                 "deferred": OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes="deferred"),
-                 "subscribe": OpcUaAdapter(cnc.url, preset="virtual-cnc", read_mode="subscribe")}
+        links = {
+            "poll": OpcUaAdapter(cnc.url, preset="virtual-cnc"),
+            "cutting": OpcUaAdapter(cnc.url, preset="virtual-cnc", cutting_node=cutting),
+            "deferred": OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes="deferred"),
+            "subscribe": OpcUaAdapter(cnc.url, preset="virtual-cnc", read_mode="subscribe"),
+        }
         try:
             for name, link in links.items():
                 assert link.read_speed() == 9000.0, name
@@ -222,7 +252,9 @@ def test_a_speed_or_signal_with_a_bad_status_is_never_used():
                     pytest.fail(f"{name}: the bad speed was never refused (last {value})")
             with pytest.raises(AdapterError, match="BadSensorFailure"):
                 links["poll"].read_cutting()
-            assert not math.isfinite(links["poll"].read_inputs()["bearing_temp_c"])  # missing, not its value
+            assert not math.isfinite(
+                links["poll"].read_inputs()["bearing_temp_c"]
+            )  # missing, not its value
         finally:
             for link in links.values():
                 link.close()
@@ -243,7 +275,9 @@ def test_a_clock_behind_at_the_start_is_corrected_at_its_first_step(tmp_path, si
     for name, wall0 in (("wrong", shut), ("right", shut + later)):
         d = tmp_path / name
         (d / "state").mkdir(parents=True)
-        (d / "state" / "s1.state.json").write_bytes((tmp_path / "a" / "state" / "s1.state.json").read_bytes())
+        (d / "state" / "s1.state.json").write_bytes(
+            (tmp_path / "a" / "state" / "s1.state.json").read_bytes()
+        )
         r = Rig(d, simple_model, wall0=wall0, observer=False)
         r.vm.override_speed(0.0)
         r.cycles(60)
@@ -261,7 +295,9 @@ def test_a_clock_behind_at_the_start_is_corrected_at_its_first_step(tmp_path, si
 # -- the service dead -----------------------------------------------------------------------------
 
 
-def test_a_latin1_byte_in_the_configuration_is_one_line_and_a_reload_keeps_running(tmp_path, simple_model):  # noqa: F811
+def test_a_latin1_byte_in_the_configuration_is_one_line_and_a_reload_keeps_running(
+    tmp_path, simple_model
+):  # noqa: F811
     cfg = write_config(tmp_path, simple_model)
     bad = cfg.read_bytes() + "# für 20°C\n".encode("latin-1")
     other = tmp_path / "bad.toml"
@@ -354,8 +390,13 @@ def test_a_clock_months_ahead_deletes_no_history(tmp_path, simple_model):  # noq
     ahead = WALL0 + 91 * DAY_S  # a box without a real-time clock, its NTP not yet in
     for synced, kept in ((False, True), (True, False)):
         t = [0.0]
-        svc = Service(cfg, clock=lambda: t[0], wall=lambda: ahead + t[0], lock=False,
-                      clock_synchronized=lambda synced=synced: synced)
+        svc = Service(
+            cfg,
+            clock=lambda: t[0],
+            wall=lambda: ahead + t[0],
+            lock=False,
+            clock_synchronized=lambda synced=synced: synced,
+        )
         svc.tick()
         svc.close()
         assert all(p.exists() for p in days) == kept
@@ -368,7 +409,9 @@ def test_a_stray_quote_or_a_huge_line_in_a_journal_loses_no_other_row(tmp_path, 
     jdir = tmp_path / "journal"
     j = Journal(jdir, "s1", {"spindle": "s1"})
     for k in range(200):
-        j.write(WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k))
+        j.write(
+            WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k)
+        )
     j.close()
     path = next(jdir.glob("s1-*.csv"))
     lines = path.read_text().splitlines(keepends=True)
@@ -376,8 +419,9 @@ def test_a_stray_quote_or_a_huge_line_in_a_journal_loses_no_other_row(tmp_path, 
     lines[120] = "9" * 200_000 + "\n"  # a line over csv's 128 KB field limit
     path.write_text("".join(lines))
     out = tmp_path / "run.csv"
-    ns = argparse.Namespace(journal_dir=str(jdir), config=None, spindle=None, from_=None, to=None,
-                            output=str(out))
+    ns = argparse.Namespace(
+        journal_dir=str(jdir), config=None, spindle=None, from_=None, to=None, output=str(out)
+    )
     assert export(ns) == 0
     assert "2 unreadable journal row(s) skipped" in capsys.readouterr().out
     assert read_run_log(out).time_s.size == 198
@@ -388,7 +432,9 @@ def test_a_torn_or_nul_filled_last_line_is_cut_and_kept_aside(tmp_path):
     for tail in (b"1700000123.5,120", b"\x00" * 300, b"17000001\x00\x00\x00,1,2\n"):
         j = Journal(jdir, "s1", {"spindle": "s1"})
         for k in range(5):
-            j.write(WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k))
+            j.write(
+                WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k)
+            )
         j.close()
         path = next(jdir.glob("s1-*.csv"))
         whole = path.read_bytes()
@@ -428,18 +474,35 @@ def test_an_export_across_an_older_journal_replays(tmp_path, simple_model):  # n
     old.write_text("# spindle: s1\n" + "\n".join(rows) + "\n")
     j = Journal(jdir, "s1", {"spindle": "s1"})
     for k in range(100):
-        j.write(WALL0 + k, 8000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k),
-                cutting=True, cutting_source="controller", policy_state="cutting", slew_limit_um_per_s=1.0)
+        j.write(
+            WALL0 + k,
+            8000.0,
+            1.0,
+            -1.0,
+            True,
+            0,
+            0,
+            dt_s=1.0,
+            wall_s=WALL0 + k,
+            now_s=float(k),
+            cutting=True,
+            cutting_source="controller",
+            policy_state="cutting",
+            slew_limit_um_per_s=1.0,
+        )
     j.close()
     out = tmp_path / "run.csv"
-    ns = argparse.Namespace(journal_dir=str(jdir), config=None, spindle=None, from_=None, to=None,
-                            output=str(out))
+    ns = argparse.Namespace(
+        journal_dir=str(jdir), config=None, spindle=None, from_=None, to=None, output=str(out)
+    )
     assert export(ns) == 0
     res = replay(load_model(simple_model), read_run_log(out), shaping=ShaperConfig())
     assert np.isfinite(res.predicted_um).all() and res.predicted_um.size == 200
 
 
-def test_idle_connections_to_the_control_socket_never_keep_a_measurement_waiting(tmp_path, simple_model):  # noqa: F811
+def test_idle_connections_to_the_control_socket_never_keep_a_measurement_waiting(
+    tmp_path, simple_model
+):  # noqa: F811
     import socket
 
     from test_measure import Rig as ServiceRig
@@ -472,7 +535,9 @@ def test_a_broker_that_takes_the_connection_and_never_answers_is_an_outage(caplo
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.bind(("127.0.0.1", 0))
     srv.listen(4)  # the kernel accepts; nothing ever answers the MQTT CONNECT
-    pub = MqttPublisher(MqttConfig(host="127.0.0.1", port=srv.getsockname()[1], keepalive_s=5)).start()
+    pub = MqttPublisher(
+        MqttConfig(host="127.0.0.1", port=srv.getsockname()[1], keepalive_s=5)
+    ).start()
     try:
         with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
             for now in (0.0, 10.0, 20.0):  # the service's clock: publishes due every 10 s
@@ -486,10 +551,12 @@ def test_a_broker_that_takes_the_connection_and_never_answers_is_an_outage(caplo
 
 def test_no_secret_is_echoed_and_a_host_with_a_password_is_refused(tmp_path, simple_model):  # noqa: F811
     base = write_config(tmp_path, simple_model).read_text()
-    for extra, secret in (('[mqtt]\nhost = "broker"\npassword = "hunter2-secret"\n', "hunter2-secret"),
-                          ('[status]\ntoken = "tok-very-secret-0123"\n', "tok-very-secret-0123"),
-                          ('[mqtt]\nhost = "user:pw-secret@broker"\n', "pw-secret"),
-                          ('[mqtt]\nhost = "mqtt://user:pw-secret@broker"\n', "pw-secret")):
+    for extra, secret in (
+        ('[mqtt]\nhost = "broker"\npassword = "hunter2-secret"\n', "hunter2-secret"),
+        ('[status]\ntoken = "tok-very-secret-0123"\n', "tok-very-secret-0123"),
+        ('[mqtt]\nhost = "user:pw-secret@broker"\n', "pw-secret"),
+        ('[mqtt]\nhost = "mqtt://user:pw-secret@broker"\n', "pw-secret"),
+    ):
         p = tmp_path / "secret.toml"
         p.write_text(base + extra)
         with pytest.raises(ConfigError) as info:
@@ -502,11 +569,15 @@ def test_no_secret_is_echoed_and_a_host_with_a_password_is_refused(tmp_path, sim
         load_config(p).status.token()
 
 
-def test_a_spindle_whose_every_cycle_fails_stops_the_service_with_one_line(tmp_path, simple_model, caplog):  # noqa: F811
+def test_a_spindle_whose_every_cycle_fails_stops_the_service_with_one_line(
+    tmp_path, simple_model, caplog
+):  # noqa: F811
     import logging
 
     t = [0.0]
-    svc = Service(write_config(tmp_path, simple_model), clock=lambda: t[0], wall=lambda: WALL0 + t[0])
+    svc = Service(
+        write_config(tmp_path, simple_model), clock=lambda: t[0], wall=lambda: WALL0 + t[0]
+    )
 
     def broken() -> dict:
         raise ModelError("the model cannot step")  # whatever makes every cycle fail
@@ -534,7 +605,9 @@ def test_cycles_that_run_late_are_said_and_so_is_their_end(tmp_path, simple_mode
     from thermocomp.runtime.service import ON_TIME_CYCLES
 
     t = [0.0]
-    svc = Service(write_config(tmp_path, simple_model), clock=lambda: t[0], wall=lambda: WALL0 + t[0])
+    svc = Service(
+        write_config(tmp_path, simple_model), clock=lambda: t[0], wall=lambda: WALL0 + t[0]
+    )
     period = svc.spindles["s1"].next_period_s()
 
     def events(name: str) -> list:
@@ -553,7 +626,10 @@ def test_cycles_that_run_late_are_said_and_so_is_their_end(tmp_path, simple_mode
             assert "s1: cycles late" in svc.status_text()
             t[0] += 3 * period  # late again: said once, the figure updated
             svc.tick()
-            assert len(events("cycles_late")) == 1 and f"cycles late ({2 * period:.1f} s)" in svc.status_text()
+            assert (
+                len(events("cycles_late")) == 1
+                and f"cycles late ({2 * period:.1f} s)" in svc.status_text()
+            )
             for k in range(ON_TIME_CYCLES):
                 t[0] += period
                 svc.tick()

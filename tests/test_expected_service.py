@@ -23,21 +23,45 @@ from test_runtime_statespace import WALL0, Bench, events, speed_only, with_input
 MID = "3333-6667 rpm"  # the band of the bench's 5000 rpm
 
 
-def statement(mid_p95: float = 9.3, outside: Figure | None = None, validated: float = 0.0,
-              scale: float = 1.0, folds: int = MIN_FORWARD_FOLDS) -> ExpectedError:
+def statement(
+    mid_p95: float = 9.3,
+    outside: Figure | None = None,
+    validated: float = 0.0,
+    scale: float = 1.0,
+    folds: int = MIN_FORWARD_FOLDS,
+) -> ExpectedError:
     """A fit's statement over the test models' 0..10000 rpm: at rest and three bands, from
     ``folds`` folds predicted forward."""
+
     def band(lo, hi, rms, p95, out=None):
-        return Band(speed_rpm=(lo, hi), source="forward", samples=120, rms_um=rms * scale,
-                    p95_abs_um=p95 * scale, outside=out)
-    return ExpectedError(bands=(band(0.0, 1.0, 0.2, 0.5), band(1.0, 3333.3, 1.0, 2.0),
-                                band(3333.3, 6666.7, 4.1, mid_p95, outside), band(6666.7, 10000.0, 5.0, 11.0)),
-                         outside_validated=validated, forward_folds=folds)
+        return Band(
+            speed_rpm=(lo, hi),
+            source="forward",
+            samples=120,
+            rms_um=rms * scale,
+            p95_abs_um=p95 * scale,
+            outside=out,
+        )
+
+    return ExpectedError(
+        bands=(
+            band(0.0, 1.0, 0.2, 0.5),
+            band(1.0, 3333.3, 1.0, 2.0),
+            band(3333.3, 6666.7, 4.1, mid_p95, outside),
+            band(6666.7, 10000.0, 5.0, 11.0),
+        ),
+        outside_validated=validated,
+        forward_folds=folds,
+    )
 
 
 def stating(model, expected: ExpectedError | None):
     """``model`` with ``expected`` in its fit record (the way a fit stores it)."""
-    fit = {**model.fit, "expected_error": expected.model_dump(mode="json")} if expected else dict(model.fit)
+    fit = (
+        {**model.fit, "expected_error": expected.model_dump(mode="json")}
+        if expected
+        else dict(model.fit)
+    )
     return model.model_copy(update={"fit": fit})
 
 
@@ -46,13 +70,26 @@ def spindle_model(expected: ExpectedError | None = None):
 
 
 def metrics(b: Bench) -> dict:
-    snap = snapshot(version="test", pid=1, time_s=WALL0 + b.t, uptime_s=b.t, text="", reload_failed=False,
-                    spindles=[spindle_status(b.rt, b.t)], cooling=None)
+    snap = snapshot(
+        version="test",
+        pid=1,
+        time_s=WALL0 + b.t,
+        uptime_s=b.t,
+        text="",
+        reload_failed=False,
+        spindles=[spindle_status(b.rt, b.t)],
+        cooling=None,
+    )
     json.dumps(snap, allow_nan=False)  # what /status and MQTT send
     fams = {f.name: f for f in text_string_to_metric_families(metrics_text(snap).decode())}
-    return {name: {s.labels.get("spindle"): s.value for s in fams[name].samples}
-            for name in ("thermocomp_expected_error_p95_micrometres", "thermocomp_expected_error_rms_micrometres",
-                         "thermocomp_expected_error_bound_micrometres")}
+    return {
+        name: {s.labels.get("spindle"): s.value for s in fams[name].samples}
+        for name in (
+            "thermocomp_expected_error_p95_micrometres",
+            "thermocomp_expected_error_rms_micrometres",
+            "thermocomp_expected_error_bound_micrometres",
+        )
+    }
 
 
 def high(rows: list[dict]) -> list[bool]:
@@ -62,9 +99,16 @@ def high(rows: list[dict]) -> list[bool]:
 def test_the_stated_error_is_in_the_status_and_the_metrics(tmp_path):
     b = Bench(tmp_path, spindle_model(statement()))
     row = b.run(3)[-1]
-    assert row["expected_error"] == {"band": MID, "rms_um": 4.1, "p95_abs_um": 9.3, "source": "forward",
-                                     "outside": False, "outside_spans": 0.0, "validated": True,
-                                     "bound_um": None}
+    assert row["expected_error"] == {
+        "band": MID,
+        "rms_um": 4.1,
+        "p95_abs_um": 9.3,
+        "source": "forward",
+        "outside": False,
+        "outside_spans": 0.0,
+        "validated": True,
+        "bound_um": None,
+    }
     assert not any(high([row]))  # no bound configured: no alarm
     assert spindle_status(b.rt, b.t)["expected_error"] == row["expected_error"]
     m = metrics(b)
@@ -75,12 +119,17 @@ def test_the_stated_error_is_in_the_status_and_the_metrics(tmp_path):
     b.vm.override_speed(0.0)
     rows = b.run(5)
     assert rows[-1]["speed_rpm"] == 0.0
-    assert rows[-1]["expected_error"]["band"] == "at rest" and rows[-1]["expected_error"]["p95_abs_um"] == 0.5
+    assert (
+        rows[-1]["expected_error"]["band"] == "at rest"
+        and rows[-1]["expected_error"]["p95_abs_um"] == 0.5
+    )
     assert metrics(b)["thermocomp_expected_error_p95_micrometres"] == {"s1": 0.5}
     b.rt.close()
 
 
-def test_a_bound_below_the_stated_error_raises_the_alarm_and_never_moves_the_offset(tmp_path, caplog):
+def test_a_bound_below_the_stated_error_raises_the_alarm_and_never_moves_the_offset(
+    tmp_path, caplog
+):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
     model = spindle_model(statement())
     bounded = Bench(tmp_path / "bounded", model, extra="max_expected_error_um = 5.0")
@@ -92,8 +141,10 @@ def test_a_bound_below_the_stated_error_raises_the_alarm_and_never_moves_the_off
     assert [r["offset_um"] for r in rows] == [r["offset_um"] for r in plain]
     assert [r["predicted_um"] for r in rows] == [r["predicted_um"] for r in plain]
     (entered,) = events(caplog, "expected_error_high")
-    assert entered.getMessage() == ("s1: EXPECTED_ERROR_HIGH: expected error 9.3 um (95 %) over the bound "
-                                    "5 um at 3333-6667 rpm: probe or recalibrate")
+    assert entered.getMessage() == (
+        "s1: EXPECTED_ERROR_HIGH: expected error 9.3 um (95 %) over the bound "
+        "5 um at 3333-6667 rpm: probe or recalibrate"
+    )
     assert entered.fields["p95_abs_um"] == 9.3 and entered.fields["band"] == MID
     assert "EXPECTED_ERROR_HIGH" in spindle_status(bounded.rt, bounded.t)["alarms"]
     assert metrics(bounded)["thermocomp_expected_error_bound_micrometres"] == {"s1": 5.0}
@@ -121,13 +172,18 @@ def test_a_bound_above_the_stated_error_holds_back(tmp_path, caplog):
     b.rt.close()
 
 
-def test_inputs_outside_the_trained_range_use_the_outside_figure_and_alarm_beyond_validation(tmp_path, caplog):
+def test_inputs_outside_the_trained_range_use_the_outside_figure_and_alarm_beyond_validation(
+    tmp_path, caplog
+):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
     outside = Figure(source="forward, outside", samples=40, rms_um=2.0, p95_abs_um=4.0)
     model = with_inputs()
     model = stating(model, statement(mid_p95=3.0, outside=outside, validated=0.5)).model_copy(
-        update={"fallback": stating(model.fallback, statement(scale=0.5, mid_p95=3.0))})
-    b = Bench(tmp_path, model, extra="max_expected_error_um = 5.0")  # trained 20..30 degC, valid 10..40
+        update={"fallback": stating(model.fallback, statement(scale=0.5, mid_p95=3.0))}
+    )
+    b = Bench(
+        tmp_path, model, extra="max_expected_error_um = 5.0"
+    )  # trained 20..30 degC, valid 10..40
     ex = b.run(5)[-1]["expected_error"]
     assert (ex["p95_abs_um"], ex["outside"], ex["validated"]) == (3.0, False, True)
     # 0.2 spans out: the outside figure, which validation scored and the bound takes: no alarm
@@ -136,7 +192,9 @@ def test_inputs_outside_the_trained_range_use_the_outside_figure_and_alarm_beyon
     ex = row["expected_error"]
     assert (ex["p95_abs_um"], ex["outside"], ex["validated"]) == (4.0, True, True)
     assert ex["outside_spans"] == pytest.approx(0.2)
-    assert row["alarms"] & Alarm.INPUTS_EXTRAPOLATED and not row["alarms"] & Alarm.EXPECTED_ERROR_HIGH
+    assert (
+        row["alarms"] & Alarm.INPUTS_EXTRAPOLATED and not row["alarms"] & Alarm.EXPECTED_ERROR_HIGH
+    )
     # 0.8 spans out, validation scored 0.5: the figure is a floor, and the bound alarms
     b.inputs["temp1_c"] = 38.0
     rows = b.run(5)
@@ -146,13 +204,19 @@ def test_inputs_outside_the_trained_range_use_the_outside_figure_and_alarm_beyon
     assert entered.getMessage() == (
         "s1: EXPECTED_ERROR_HIGH: expected error at least 4.0 um (95 %) at 3333-6667 rpm (bound 5 um), "
         "not validated here: inputs 0.80 spans outside the trained range, further than validation "
-        "scored (0.50): probe or recalibrate")
+        "scored (0.50): probe or recalibrate"
+    )
     # beyond the valid range: a sensor fault, the fallback stands in with its own statement
     b.inputs["temp1_c"] = 45.0
     row = b.run(1)[0]
     assert row["alarms"] & Alarm.INPUT_FALLBACK and not row["alarms"] & Alarm.EXPECTED_ERROR_HIGH
     ex = row["expected_error"]
-    assert (ex["p95_abs_um"], ex["rms_um"], ex["outside"], ex["outside_spans"]) == (1.5, 2.05, False, 0.0)
+    assert (ex["p95_abs_um"], ex["rms_um"], ex["outside"], ex["outside_spans"]) == (
+        1.5,
+        2.05,
+        False,
+        0.0,
+    )
     assert len(events(caplog, "expected_error_within_bound")) == 1
     b.rt.close()
 
@@ -166,26 +230,37 @@ def test_a_floor_alarms_under_a_bound_whatever_its_figure(tmp_path, caplog):
     b.vm.override_speed(12000.0)  # the model was calibrated to 10000 rpm
     row = b.run(3)[-1]
     assert row["alarms"] & Alarm.OVER_RANGE and row["alarms"] & Alarm.EXPECTED_ERROR_HIGH
-    assert row["expected_error"]["validated"] is False and row["expected_error"]["p95_abs_um"] == 11.0
+    assert (
+        row["expected_error"]["validated"] is False and row["expected_error"]["p95_abs_um"] == 11.0
+    )
     (entered,) = events(caplog, "expected_error_high")
-    assert entered.getMessage().endswith("at least 11.0 um (95 %) at 6667-10000 rpm (bound 20 um), not "
-                                         "validated here: 12000 rpm is above the calibrated 10000 rpm: "
-                                         "probe or recalibrate")
+    assert entered.getMessage().endswith(
+        "at least 11.0 um (95 %) at 6667-10000 rpm (bound 20 um), not "
+        "validated here: 12000 rpm is above the calibrated 10000 rpm: "
+        "probe or recalibrate"
+    )
     b.vm.override_speed(5000.0)
     assert not any(high(b.run(3)))
     b.rt.close()
     caplog.clear()
-    b = Bench(tmp_path / "folds", spindle_model(statement(folds=1)), extra="max_expected_error_um = 20.0")
+    b = Bench(
+        tmp_path / "folds", spindle_model(statement(folds=1)), extra="max_expected_error_um = 20.0"
+    )
     assert any("rests on 1 fold(s) predicted forward" in r.getMessage() for r in caplog.records)
     rows = b.run(5)
     assert all(high(rows)) and rows[-1]["expected_error"]["p95_abs_um"] == 9.3
-    assert "the fit predicted 1 fold(s) forward, fewer than 2" in events(caplog, "expected_error_high")[0].getMessage()
+    assert (
+        "the fit predicted 1 fold(s) forward, fewer than 2"
+        in events(caplog, "expected_error_high")[0].getMessage()
+    )
     b.rt.close()
 
 
 def test_a_model_that_states_nothing_gives_null_and_no_alarm(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
-    for k, fit in enumerate(({}, {"expected_error": {"bands": "not a list"}}, {"expected_error": 3.0})):
+    for k, fit in enumerate(
+        ({}, {"expected_error": {"bands": "not a list"}}, {"expected_error": 3.0})
+    ):
         model = speed_only(spindle_id="sp-A").model_copy(update={"fit": fit})
         b = Bench(tmp_path / str(k), model, extra="max_expected_error_um = 0.001")
         rows = b.run(60)
@@ -199,14 +274,34 @@ def test_a_model_that_states_nothing_gives_null_and_no_alarm(tmp_path, caplog):
 
 
 def test_an_older_statement_of_bands_alone_still_gives_its_figure_as_a_floor(tmp_path):
-    old = {"bands": [{"speed_rpm": [0.0, 1.0], "source": "held out", "samples": 30, "rms_um": 0.3, "p95_abs_um": 0.6},
-                     {"speed_rpm": [1.0, 10000.0], "source": "forward", "samples": 90, "rms_um": 1.1,
-                      "p95_abs_um": 2.4}]}
+    old = {
+        "bands": [
+            {
+                "speed_rpm": [0.0, 1.0],
+                "source": "held out",
+                "samples": 30,
+                "rms_um": 0.3,
+                "p95_abs_um": 0.6,
+            },
+            {
+                "speed_rpm": [1.0, 10000.0],
+                "source": "forward",
+                "samples": 90,
+                "rms_um": 1.1,
+                "p95_abs_um": 2.4,
+            },
+        ]
+    }
     model = speed_only(spindle_id="sp-A").model_copy(update={"fit": {"expected_error": old}})
     b = Bench(tmp_path, model, extra="max_expected_error_um = 2.0")
     row = b.run(3)[-1]
-    assert row["expected_error"]["band"] == "1-10000 rpm" and row["expected_error"]["p95_abs_um"] == 2.4
-    assert row["expected_error"]["validated"] is False  # it names no fold predicted forward: a floor
+    assert (
+        row["expected_error"]["band"] == "1-10000 rpm"
+        and row["expected_error"]["p95_abs_um"] == 2.4
+    )
+    assert (
+        row["expected_error"]["validated"] is False
+    )  # it names no fold predicted forward: a floor
     assert row["alarms"] & Alarm.EXPECTED_ERROR_HIGH
     b.rt.close()
 
@@ -223,8 +318,12 @@ def test_a_reload_keeps_the_alarm_and_takes_a_new_bound(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
     path = tmp_path / "model.json"
     save_model(path, spindle_model(statement(scale=2.0)))  # 1 um (95 %) at rest and more above
-    cfg = write_config(tmp_path, path, "max_expected_error_um = 0.5",
-                       adapter='url = "sim://motorized-27k?program=&seed=4"')
+    cfg = write_config(
+        tmp_path,
+        path,
+        "max_expected_error_um = 0.5",
+        adapter='url = "sim://motorized-27k?program=&seed=4"',
+    )
     clock = FakeClock()
     svc = Service(cfg, clock=clock, wall=lambda: WALL0 + clock.t, lock=False)
 
@@ -232,6 +331,7 @@ def test_a_reload_keeps_the_alarm_and_takes_a_new_bound(tmp_path, caplog):
         end = clock.t + seconds
         while clock.t < end:
             clock.t += max(svc.tick(), 0.25)
+
     try:
         run(120)
         assert svc.spindles["s1"].alarms & Alarm.EXPECTED_ERROR_HIGH
@@ -239,7 +339,9 @@ def test_a_reload_keeps_the_alarm_and_takes_a_new_bound(tmp_path, caplog):
         run(60)
         assert svc.spindles["s1"].alarms & Alarm.EXPECTED_ERROR_HIGH
         assert len(events(caplog, "expected_error_high")) == 1
-        cfg.write_text(cfg.read_text().replace("max_expected_error_um = 0.5", "max_expected_error_um = 50.0"))
+        cfg.write_text(
+            cfg.read_text().replace("max_expected_error_um = 0.5", "max_expected_error_um = 50.0")
+        )
         svc.reload()
         run(60)
         assert not svc.spindles["s1"].alarms & Alarm.EXPECTED_ERROR_HIGH
@@ -252,7 +354,9 @@ def test_a_reload_keeps_the_alarm_and_takes_a_new_bound(tmp_path, caplog):
 MOSQUITTO = Path("/usr/sbin/mosquitto")
 
 
-@pytest.mark.skipif(not MOSQUITTO.exists(), reason="mosquitto is not installed (scripts/system-deps.sh)")
+@pytest.mark.skipif(
+    not MOSQUITTO.exists(), reason="mosquitto is not installed (scripts/system-deps.sh)"
+)
 def test_the_expected_error_is_published_with_the_spindle(tmp_path):
     from test_mqtt import TOPIC, Brokers, Subscriber, tick_until_published, wait_for
 
@@ -261,11 +365,13 @@ def test_the_expected_error_is_published_with_the_spindle(tmp_path):
     path = tmp_path / "model.json"
     save_model(path, spindle_model(statement(scale=2.0)))
     cfg = tmp_path / "mqtt.toml"
-    cfg.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[status]\nenabled = false\n'
-                   f'[mqtt]\ntopic = "{TOPIC}"\nhost = "127.0.0.1"\nport = {port}\npublish_every_s = 10\n'
-                   f'[[spindle]]\nname = "s1"\nmodel = "{path}"\nmax_expected_error_um = 0.5\n'
-                   'adapter = {url = "sim://motorized-27k?program=&seed=4"}\n'
-                   '[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n')
+    cfg.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[status]\nenabled = false\n'
+        f'[mqtt]\ntopic = "{TOPIC}"\nhost = "127.0.0.1"\nport = {port}\npublish_every_s = 10\n'
+        f'[[spindle]]\nname = "s1"\nmodel = "{path}"\nmax_expected_error_um = 0.5\n'
+        'adapter = {url = "sim://motorized-27k?program=&seed=4"}\n'
+        "[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n"
+    )
     clock = FakeClock()
     svc = Service(cfg, clock=clock, wall=lambda: WALL0 + clock.t, lock=False)
     svc.start_status()
@@ -277,8 +383,12 @@ def test_the_expected_error_is_published_with_the_spindle(tmp_path):
         tick_until_published(svc, clock)
         want = svc.snapshot["spindles"][0]
         assert want["expected_error"]["bound_um"] == 0.5 and "EXPECTED_ERROR_HIGH" in want["alarms"]
-        sp = json.loads(sub.wait("spindle/s1", lambda p, r: json.loads(p)["time_s"] == want["time_s"]))
-        assert sp["expected_error"] == want["expected_error"] and "EXPECTED_ERROR_HIGH" in sp["alarms"]
+        sp = json.loads(
+            sub.wait("spindle/s1", lambda p, r: json.loads(p)["time_s"] == want["time_s"])
+        )
+        assert (
+            sp["expected_error"] == want["expected_error"] and "EXPECTED_ERROR_HIGH" in sp["alarms"]
+        )
     finally:
         sub.close()
         svc.close()

@@ -12,17 +12,39 @@ from compensator.statespace import InputChannel, StateSpaceModel
 
 
 def model(policy: str = "linear", span: float = 1.0) -> StateSpaceModel:
-    temp = InputChannel(name="temp1_c", unit="degC", reference=25.0, trained_range=(20.0, 30.0),
-                        valid_range=(10.0, 40.0))
-    fallback = StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0,),
-                               drive_um=((2.0, 0.1),), feedthrough_um=(0.0, 0.0), max_measured_um=40.0)
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0, 5400.0),
-                           drive_um=((0.5, 0.05, 0.8), (2.0, 0.2, 0.4)), feedthrough_um=(0.1, 0.0, 0.05),
-                           offset_um=0.5, max_measured_um=40.0, inputs=(temp,), fallback=fallback,
-                           extrapolation=policy, blend_span=span)
+    temp = InputChannel(
+        name="temp1_c",
+        unit="degC",
+        reference=25.0,
+        trained_range=(20.0, 30.0),
+        valid_range=(10.0, 40.0),
+    )
+    fallback = StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0,),
+        drive_um=((2.0, 0.1),),
+        feedthrough_um=(0.0, 0.0),
+        max_measured_um=40.0,
+    )
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0, 5400.0),
+        drive_um=((0.5, 0.05, 0.8), (2.0, 0.2, 0.4)),
+        feedthrough_um=(0.1, 0.0, 0.05),
+        offset_um=0.5,
+        max_measured_um=40.0,
+        inputs=(temp,),
+        fallback=fallback,
+        extrapolation=policy,
+        blend_span=span,
+    )
 
 
-def run(m: StateSpaceModel, temps: np.ndarray, speed: float = 5000.0) -> tuple[np.ndarray, np.ndarray]:
+def run(
+    m: StateSpaceModel, temps: np.ndarray, speed: float = 5000.0
+) -> tuple[np.ndarray, np.ndarray]:
     """The whole-log run and the cycle-by-cycle steps over the same inputs."""
     t = np.arange(temps.size) * 15.0
     sp = np.full(temps.size, speed)
@@ -55,7 +77,9 @@ def test_the_policies_agree_inside_the_range_and_part_outside_it():
     held, _ = run(model("clip"), np.minimum(RAMP, 30.0))
     np.testing.assert_allclose(clip, held, atol=1e-12)
     # blend: the fallback alone half a span out and beyond
-    fb = model().fallback.simulate_um(np.full(RAMP.size, 5000.0), np.arange(RAMP.size) * 15.0, None, 3.0)
+    fb = model().fallback.simulate_um(
+        np.full(RAMP.size, 5000.0), np.arange(RAMP.size) * 15.0, None, 3.0
+    )
     far = (RAMP - 30.0) / 10.0 >= 0.5
     np.testing.assert_allclose(blend[far], fb[far], atol=1e-9)
     between = (RAMP > 30.0) & ~far
@@ -70,7 +94,9 @@ def test_a_blends_state_is_saved_and_restored_whole():
     back = m.state_from_dict(m.state_dict(st))
     assert back == st and 0.0 < back.weight < 1.0
     # a state saved without its fallback (another policy's) restarts the fallback at its estimate
-    plain = m.state_from_dict({k: v for k, v in m.state_dict(st).items() if k not in ("fallback_state", "blend_weight")})
+    plain = m.state_from_dict(
+        {k: v for k, v in m.state_dict(st).items() if k not in ("fallback_state", "blend_weight")}
+    )
     assert m.step(plain, 5000.0, 15.0, {"temp1_c": 25.0}).fallback is not None
 
 
@@ -93,7 +119,9 @@ def test_the_estimate_says_how_far_out_the_inputs_are():
 
 def test_a_speed_only_model_has_no_extrapolation_policy():
     with pytest.raises(ValueError, match="for a model with inputs"):
-        model().fallback.model_copy(update={}).model_validate({**model().fallback.model_dump(), "extrapolation": "clip"})
+        model().fallback.model_copy(update={}).model_validate(
+            {**model().fallback.model_dump(), "extrapolation": "clip"}
+        )
 
 
 def test_bounded_sensitivities_keep_only_the_penalties_physics_allows():
@@ -107,10 +135,14 @@ def test_bounded_sensitivities_keep_only_the_penalties_physics_allows():
     size = 2000
     t = np.arange(size) * 15.0
     common = 25 + 3 * np.sin(t / 20000.0)
-    u = np.column_stack([common + 0.01 * rng.normal(size=size), common + 0.01 * rng.normal(size=size)])
+    u = np.column_stack(
+        [common + 0.01 * rng.normal(size=size), common + 0.01 * rng.normal(size=size)]
+    )
     y = 4.0 * (common - 25) + 20.0 * (u[:, 0] - u[:, 1]) + rng.normal(0, 0.05, size)
-    bank = rb.FilterBank(t, {"n": np.zeros(size), "n2": np.zeros(size),
-                             "in:a_c": u[:, 0] - 25, "in:b_c": u[:, 1] - 25})
+    bank = rb.FilterBank(
+        t,
+        {"n": np.zeros(size), "n2": np.zeros(size), "in:a_c": u[:, 0] - 25, "in:b_c": u[:, 1] - 25},
+    )
     grid = rb.TauGrid((0.0,), (0.0,))
     alphas = (0.0, 1e-4, 1e-2, 1.0)
     cfg = rb.Config(grid, alphas, ("a_c", "b_c"))

@@ -38,8 +38,9 @@ def loop(t: np.ndarray, u: np.ndarray, tau: float, y0: float | None = None) -> n
 
 CLOCKS = {
     "uniform": lambda rng, n: 1.7e9 + np.arange(n) * 1.0,
-    "runs with gaps": lambda rng, n: 1.7e9 + np.cumsum(np.repeat(rng.choice([1.0, 15.0, 3600.0], n // 500 + 1),
-                                                                 500)[:n]),
+    "runs with gaps": lambda rng, n: (
+        1.7e9 + np.cumsum(np.repeat(rng.choice([1.0, 15.0, 3600.0], n // 500 + 1), 500)[:n])
+    ),
     "mixed": lambda rng, n: np.cumsum(rng.choice([0.1, 1.0, 15.0, 60.0, 600.0], n)),
     "wandering": lambda rng, n: 1.7e9 + np.cumsum(rng.uniform(0.9, 1.1, n)),
 }
@@ -64,11 +65,15 @@ def test_the_scalar_steps_are_the_loop_and_its_limits():
     assert lag_step(1.0, 5.0, 0.0, 600.0) == 1.0  # no time
     assert lag_step(1.0, 5.0, 3.2e9, 1e-300) == 5.0  # any gap is one step
     a, h = rate_gains(1 / 600.0, 60.0)
-    assert a == pytest.approx(math.exp(-0.1), rel=1e-15) and h == pytest.approx(600 * (1 - a), rel=1e-14)
+    assert a == pytest.approx(math.exp(-0.1), rel=1e-15) and h == pytest.approx(
+        600 * (1 - a), rel=1e-14
+    )
     assert rate_gains(0.0, 60.0) == (1.0, 60.0)  # the limit: the drive integrates
     assert rate_step(2.0, 0.0, 0.5, 10.0) == 7.0
     # the lag is the rate form with rate 1/tau and drive u/tau
-    assert rate_step(1.0, 1 / 600.0, 5.0 / 600.0, 60.0) == pytest.approx(lag_step(1.0, 5.0, 60.0, 600.0), rel=1e-14)
+    assert rate_step(1.0, 1 / 600.0, 5.0 / 600.0, 60.0) == pytest.approx(
+        lag_step(1.0, 5.0, 60.0, 600.0), rel=1e-14
+    )
 
 
 def test_first_order_takes_the_steps_ending_at_each_sample():
@@ -106,12 +111,17 @@ def test_the_recursion_stays_finite_near_the_float_range():
         warnings.simplefilter("error")
         with np.errstate(over="ignore"):  # only the first attempt overflows, and is redone
             x = decaying_sum(inc, 0.0, ld=np.full(5000, 1e-3))
-    assert np.isfinite(x).all() and x[-1] == pytest.approx(1e300 * -math.expm1(-5.0) / -math.expm1(-1e-3), rel=1e-9)
+    assert np.isfinite(x).all() and x[-1] == pytest.approx(
+        1e300 * -math.expm1(-5.0) / -math.expm1(-1e-3), rel=1e-9
+    )
 
 
 @settings(max_examples=30, deadline=None)
-@given(u=st.lists(st.floats(-1e6, 1e6), min_size=2, max_size=60),
-       dts=st.lists(st.floats(0.0, 1e7), min_size=59, max_size=59), tau=st.floats(1e-3, 1e7))
+@given(
+    u=st.lists(st.floats(-1e6, 1e6), min_size=2, max_size=60),
+    dts=st.lists(st.floats(0.0, 1e7), min_size=59, max_size=59),
+    tau=st.floats(1e-3, 1e7),
+)
 def test_lag_stays_within_its_input_for_any_steps(u, dts, tau):
     u = np.array(u)
     t = np.concatenate([[0.0], np.cumsum(dts)])[: u.size]
@@ -122,15 +132,35 @@ def test_lag_stays_within_its_input_for_any_steps(u, dts, tau):
 
 def model_with_inputs() -> StateSpaceModel:
     names = ("a_c", "b_c", "c_c")
-    chans = tuple(InputChannel(name=n, unit="degC", reference=22.0, trained_range=(15.0, 35.0),
-                               valid_range=(5.0, 45.0)) for n in names)
-    fallback = StateSpaceModel(fitted_dt_s=1.0, speed_range_rpm=(0.0, 20000.0), taus_s=(300.0,),
-                               drive_um=((1.0, 0.1),), feedthrough_um=(0.1, 0.0), max_measured_um=60.0)
-    return StateSpaceModel(fitted_dt_s=1.0, speed_range_rpm=(0.0, 20000.0), taus_s=(300.0, 1800.0, 7200.0),
-                           drive_um=((1.0, 0.1, 0.3, -0.2, 0.1), (2.0, 0.05, 0.1, 0.2, -0.3),
-                                     (0.5, 0.02, -0.1, 0.4, 0.2)),
-                           feedthrough_um=(0.1, 0.0, 0.05, 0.0, -0.02), offset_um=0.7,
-                           max_measured_um=60.0, inputs=chans, fallback=fallback)
+    chans = tuple(
+        InputChannel(
+            name=n, unit="degC", reference=22.0, trained_range=(15.0, 35.0), valid_range=(5.0, 45.0)
+        )
+        for n in names
+    )
+    fallback = StateSpaceModel(
+        fitted_dt_s=1.0,
+        speed_range_rpm=(0.0, 20000.0),
+        taus_s=(300.0,),
+        drive_um=((1.0, 0.1),),
+        feedthrough_um=(0.1, 0.0),
+        max_measured_um=60.0,
+    )
+    return StateSpaceModel(
+        fitted_dt_s=1.0,
+        speed_range_rpm=(0.0, 20000.0),
+        taus_s=(300.0, 1800.0, 7200.0),
+        drive_um=(
+            (1.0, 0.1, 0.3, -0.2, 0.1),
+            (2.0, 0.05, 0.1, 0.2, -0.3),
+            (0.5, 0.02, -0.1, 0.4, 0.2),
+        ),
+        feedthrough_um=(0.1, 0.0, 0.05, 0.0, -0.02),
+        offset_um=0.7,
+        max_measured_um=60.0,
+        inputs=chans,
+        fallback=fallback,
+    )
 
 
 @pytest.mark.parametrize("clock", CLOCKS.values(), ids=CLOCKS.keys())
@@ -141,7 +171,9 @@ def test_state_space_free_run_is_its_own_step_at_any_clock(clock):
     rng = np.random.default_rng(11)
     t = clock(rng, 12_000)
     speed = np.repeat(rng.uniform(-25000, 25000, t.size // 300 + 1), 300)[: t.size]
-    inputs = {n: 22.0 + np.cumsum(rng.normal(0, 0.3, t.size)) for n in model.input_names}  # leaves its range
+    inputs = {
+        n: 22.0 + np.cumsum(rng.normal(0, 0.3, t.size)) for n in model.input_names
+    }  # leaves its range
     free = model.simulate_um(speed, t, inputs)
     state = model.start(None, speed[0], {n: v[0] for n, v in inputs.items()})
     stepped = [state.elongation_um]

@@ -15,7 +15,13 @@ from hypothesis import strategies as st
 
 from calibration.estimators.baseline import BASELINE_TAUS_S
 from calibration.estimators.paper_ols import fit_paper_ols, paper_ols_cv
-from calibration.estimators.ridge_bank import DEFAULT_ALPHAS, TauGrid, auto_grid, fit_ridge_cv, hac_stderr
+from calibration.estimators.ridge_bank import (
+    DEFAULT_ALPHAS,
+    TauGrid,
+    auto_grid,
+    fit_ridge_cv,
+    hac_stderr,
+)
 from calibration.folds import CYCLE_RULE, describe_cycles, split_cycles
 from compensator.filters import filter_bank
 from compensator.errors import CalibrationError, NonFiniteInputError
@@ -38,14 +44,20 @@ def profile(segments: list[tuple[float, float]], dt_s: float = 60.0, t0: float =
 
 
 def test_split_cycles_synthetic_profile():
-    t, n = profile([
-        (1800, 0),                        # leading rest: joins the first cycle
-        (3600, 6000), (300, 0), (3600, 9000),  # a 5 min pause inside a heat-up: bridged
-        (3 * H, 0),
-        (2 * H, 12000),
-        (H, 0), (300, 3000), (2 * H, 0),  # a 5 min blip during the cool-down: ignored
-        (2 * H, 8000),                    # the log ends running: a cycle without cool-down
-    ])
+    t, n = profile(
+        [
+            (1800, 0),  # leading rest: joins the first cycle
+            (3600, 6000),
+            (300, 0),
+            (3600, 9000),  # a 5 min pause inside a heat-up: bridged
+            (3 * H, 0),
+            (2 * H, 12000),
+            (H, 0),
+            (300, 3000),
+            (2 * H, 0),  # a 5 min blip during the cool-down: ignored
+            (2 * H, 8000),  # the log ends running: a cycle without cool-down
+        ]
+    )
     cycles = split_cycles(t, n)
     starts = [a for a, _ in cycles]
     # the second and third cycles start at the first sample of their heat-ups
@@ -100,8 +112,11 @@ def test_filter_bank_exact_at_mixed_dt():
     y = filter_bank(t, u, taus)
     elapsed = np.clip(t - t[ks], 0, None)
     for j, tau in enumerate(taus):
-        exact = u.copy() if tau == 0 else np.where(
-            np.arange(t.size) <= ks, 2.0, 7.0 + (2.0 - 7.0) * np.exp(-elapsed / tau))
+        exact = (
+            u.copy()
+            if tau == 0
+            else np.where(np.arange(t.size) <= ks, 2.0, 7.0 + (2.0 - 7.0) * np.exp(-elapsed / tau))
+        )
         np.testing.assert_allclose(y[:, j], exact, rtol=0, atol=1e-11)
     # an arbitrary input at mixed steps: the recursion itself
     v = rng.normal(size=t.size).cumsum()
@@ -155,14 +170,34 @@ def test_filter_bank_finite_and_bounded_for_any_finite_input(u, dts, tau):
 
 def synthetic(seed: int = 0, dt_s: float = 60.0):
     """Four cycles of a plant that the bank can represent exactly, plus an ambient input."""
-    t, n = profile([(H, 6000), (H, 9000), (2.5 * H, 0), (2 * H, 12000), (2.5 * H, 0),
-                    (H, 3000), (H, 15000), (2.5 * H, 0), (H, 9000), (H, 4000), (2.5 * H, 0)], dt_s)
+    t, n = profile(
+        [
+            (H, 6000),
+            (H, 9000),
+            (2.5 * H, 0),
+            (2 * H, 12000),
+            (2.5 * H, 0),
+            (H, 3000),
+            (H, 15000),
+            (2.5 * H, 0),
+            (H, 9000),
+            (H, 4000),
+            (2.5 * H, 0),
+        ],
+        dt_s,
+    )
     rng = np.random.default_rng(seed)
     amb = 21 + 1.5 * np.sin(2 * np.pi * t / (9 * H)) + 0.05 * rng.normal(size=t.size)
     k = n / 1000
     bank = lambda u, tau: filter_bank(t, u, (tau,))[:, 0]
-    y = (0.4 + 0.08 * k + 0.9 * bank(k, 600.0) + 0.05 * bank(k * k, 1800.0)
-         + 1.2 * bank(amb - 21.0, 1800.0) + 0.3 * (amb - 21.0))
+    y = (
+        0.4
+        + 0.08 * k
+        + 0.9 * bank(k, 600.0)
+        + 0.05 * bank(k * k, 1800.0)
+        + 1.2 * bank(amb - 21.0, 1800.0)
+        + 0.3 * (amb - 21.0)
+    )
     return t, n, {"amb_c": amb}, y + 0.02 * rng.normal(size=t.size)
 
 
@@ -194,11 +229,16 @@ def test_hac_stderr_is_statsmodels_newey_west_at_alpha_zero():
 
     t, n, inputs, y = synthetic()
     res = fit_ridge_cv(t, n, y, inputs, grids=[GRID], alphas=(0.0,))
-    x = np.column_stack([filter_bank(t, n / 1000, GRID.speed_taus_s),
-                         filter_bank(t, (n / 1000) ** 2, GRID.speed_taus_s),
-                         filter_bank(t, inputs["amb_c"] - res.references["amb_c"], GRID.input_taus_s)])
-    ols = sm.OLS(y, sm.add_constant(x)).fit(cov_type="HAC",
-                                           cov_kwds={"maxlags": 30, "use_correction": False})
+    x = np.column_stack(
+        [
+            filter_bank(t, n / 1000, GRID.speed_taus_s),
+            filter_bank(t, (n / 1000) ** 2, GRID.speed_taus_s),
+            filter_bank(t, inputs["amb_c"] - res.references["amb_c"], GRID.input_taus_s),
+        ]
+    )
+    ols = sm.OLS(y, sm.add_constant(x)).fit(
+        cov_type="HAC", cov_kwds={"maxlags": 30, "use_correction": False}
+    )
     np.testing.assert_allclose(res.gains, ols.params[1:], rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(hac_stderr(res, t, n, y, inputs, maxlags=30), ols.bse[1:], rtol=1e-6)
 
@@ -209,7 +249,9 @@ def test_predict_is_a_free_run_of_the_runtime_model(fitted):
     res, (t, n, inputs, y) = fitted
     ss = res.state_space()
     assert ss.taus_s == (600.0, 1800.0)  # one state per distinct time constant
-    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model("ridge", spindle_id="t")
+    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model(
+        "ridge", spindle_id="t"
+    )
     model = res.to_model("ridge+inputs", fallback=speed_only, spindle_id="t")
     tt, nn = t[::7], n[::7]  # irregular steps
     tt = tt + np.linspace(0, 50, tt.size)
@@ -218,7 +260,9 @@ def test_predict_is_a_free_run_of_the_runtime_model(fitted):
     state = model.start(None, nn[0], {k: float(v[0]) for k, v in uu.items()})
     out = [state.elongation_um]
     for k in range(1, tt.size):
-        state = model.step(state, nn[k], tt[k] - tt[k - 1], {key: float(v[k]) for key, v in uu.items()})
+        state = model.step(
+            state, nn[k], tt[k] - tt[k - 1], {key: float(v[k]) for key, v in uu.items()}
+        )
         out.append(state.elongation_um)
     np.testing.assert_allclose(pred, out, rtol=0, atol=1e-9)
 
@@ -234,7 +278,9 @@ def test_suffix_replay_invariance_after_settling(fitted):
         assert late.any()
         np.testing.assert_allclose(part[late], full[m:][late], rtol=0, atol=1e-6)
     # at the start itself it differs: the state starts at equilibrium with the first sample
-    assert abs(res.predict(t[400:], n[400:], {"amb_c": inputs["amb_c"][400:]})[0] - full[400]) > 1e-3
+    assert (
+        abs(res.predict(t[400:], n[400:], {"amb_c": inputs["amb_c"][400:]})[0] - full[400]) > 1e-3
+    )
 
 
 def test_speed_only_maps_onto_the_runtime_model():
@@ -293,8 +339,19 @@ def test_predict_refuses_nan_and_missing_inputs(fitted):
 
 
 def test_paper_ols_recovers_its_own_form_and_runs_free():
-    t, n = profile([(H, 3000), (H, 6000), (H, 12000), (2 * H, 0),
-                    (H, 15000), (H, 9000), (H, 4000), (2 * H, 0)], 60.0)
+    t, n = profile(
+        [
+            (H, 3000),
+            (H, 6000),
+            (H, 12000),
+            (2 * H, 0),
+            (H, 15000),
+            (H, 9000),
+            (H, 4000),
+            (2 * H, 0),
+        ],
+        60.0,
+    )
     k = n / 1000
     a, b = 0.97, (0.01, 0.02, 0.003, 0.0001)
     s = np.empty(t.size)
@@ -335,8 +392,13 @@ def _collinear(seed: int = 4):
     t, n, inputs, y = synthetic()
     rng = np.random.default_rng(seed)
     amb = inputs["amb_c"]
-    sensors = {"amb_c": amb, "decoy_c": 22 + 0.3 * np.sin(2 * np.pi * t / (5 * H)) + 0.05 * rng.normal(size=t.size)}
-    for k, (gain, offset) in enumerate(((1.0, 0.5), (0.8, 1.0), (1.1, -0.7), (0.9, 0.2), (1.05, 0.1))):
+    sensors = {
+        "amb_c": amb,
+        "decoy_c": 22 + 0.3 * np.sin(2 * np.pi * t / (5 * H)) + 0.05 * rng.normal(size=t.size),
+    }
+    for k, (gain, offset) in enumerate(
+        ((1.0, 0.5), (0.8, 1.0), (1.1, -0.7), (0.9, 0.2), (1.05, 0.1))
+    ):
         sensors[f"copy{k}_c"] = offset + gain * amb + 0.05 * rng.normal(size=t.size)
     return t, n, sensors, y
 
@@ -353,15 +415,21 @@ def test_structures_that_share_strength_map_onto_the_runtime_model(structure):
     ds = from_arrays(t, n, y, sensors)
     res = rb.fit(ds, grids=[GRID], input_names=tuple(sensors), structure=structure, nested=True)
     if structure == "pca":
-        assert set(res.input_names) == set(sensors) and "principal component" in res.structure_detail
+        assert (
+            set(res.input_names) == set(sensors) and "principal component" in res.structure_detail
+        )
     else:
         assert 1 <= len(res.input_names) <= rb.MAX_FEW and "decoy_c" not in res.input_names
         assert res.structure_detail.startswith("kept ")
     assert res.nested_rms_um < 0.2 and res.forward_rms_um < 0.2  # the plant is still represented
-    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model("ridge", spindle_id="t")
+    speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model(
+        "ridge", spindle_id="t"
+    )
     model = res.to_model(f"ridge+{structure}", fallback=speed_only, spindle_id="t")
     used = {k: v for k, v in sensors.items() if k in model.input_names}
-    np.testing.assert_allclose(model.simulate_um(n, t, used, None), res.predict(t, n, used), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        model.simulate_um(n, t, used, None), res.predict(t, n, used), rtol=0, atol=1e-9
+    )
 
 
 def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
@@ -371,17 +439,29 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
 
     t, n, sensors, y = _collinear()
     a, b = split_cycles(t, n)[2]
-    two = identify([LogData("two", t[:a], n[:a], y[:a], {k: v[:a] for k, v in sensors.items()})],
-                   tuple(sensors), physical=False, probe_target_um=None)
-    four = identify([LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None)
+    two = identify(
+        [LogData("two", t[:a], n[:a], y[:a], {k: v[:a] for k, v in sensors.items()})],
+        tuple(sensors),
+        physical=False,
+        probe_target_um=None,
+    )
+    four = identify(
+        [LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None
+    )
     names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]  # noqa: E731
     assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs"]
     assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca", "ridge+bounded"]
-    few = identify([LogData("few", t, n, y, {k: sensors[k] for k in list(sensors)[:3]})], tuple(sensors)[:3],
-                   physical=False, probe_target_um=None)
+    few = identify(
+        [LogData("few", t, n, y, {k: sensors[k] for k in list(sensors)[:3]})],
+        tuple(sensors)[:3],
+        physical=False,
+        probe_target_um=None,
+    )
     assert names(few) == ["ridge+inputs"]
     assert sum(c.accepted for c in four.candidates if c.family == "inputs") == 1
-    assert any(r.startswith("ridge+") for c in four.candidates if c.family == "inputs" for r in c.refusals)
+    assert any(
+        r.startswith("ridge+") for c in four.candidates if c.family == "inputs" for r in c.refusals
+    )
 
 
 def test_the_fit_states_the_error_to_expect_by_speed_band():
@@ -451,25 +531,60 @@ def test_extrapolation_is_chosen_by_data_on_the_rows_that_left_the_range():
     base = rng.normal(0, 1.0, size)
     fb = Candidate("ridge", "speed", "", forward_residual_um=base * 6)
     two = {"forward_folds_rms_um": [1.0, 1.0]}
-    clip_better = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 3, 1),
-                            forward_clipped_residual_um=base, forward_distance=d, **two)
+    clip_better = Candidate(
+        "ridge+inputs",
+        "inputs",
+        "",
+        forward_residual_um=base * np.where(d > 0, 3, 1),
+        forward_clipped_residual_um=base,
+        forward_distance=d,
+        **two,
+    )
     policy, _, residual, why = extrapolation(clip_better, fb)
     assert policy == "clip" and np.array_equal(residual, base) and "clip" in why
-    same = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base, forward_clipped_residual_um=base * 1.01,
-                     forward_distance=d, **two)
+    same = Candidate(
+        "ridge+inputs",
+        "inputs",
+        "",
+        forward_residual_um=base,
+        forward_clipped_residual_um=base * 1.01,
+        forward_distance=d,
+        **two,
+    )
     assert extrapolation(same, fb)[0] == "linear"
-    few = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * 3, forward_clipped_residual_um=base,
-                    forward_distance=np.where(np.arange(size) < 5, 0.3, 0.0), **two)
+    few = Candidate(
+        "ridge+inputs",
+        "inputs",
+        "",
+        forward_residual_um=base * 3,
+        forward_clipped_residual_um=base,
+        forward_distance=np.where(np.arange(size) < 5, 0.3, 0.0),
+        **two,
+    )
     policy, _, _, why = extrapolation(few, fb)
     assert policy == "linear" and "too few" in why
     # a blend toward a fallback that did better out there
-    blend = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * np.where(d > 0, 5, 1),
-                      forward_clipped_residual_um=base * np.where(d > 0, 5, 1), forward_distance=d, **two)
+    blend = Candidate(
+        "ridge+inputs",
+        "inputs",
+        "",
+        forward_residual_um=base * np.where(d > 0, 5, 1),
+        forward_clipped_residual_um=base * np.where(d > 0, 5, 1),
+        forward_distance=d,
+        **two,
+    )
     good_fb = Candidate("ridge", "speed", "", forward_residual_um=base * 0.5)
     assert extrapolation(blend, good_fb)[:2] == ("blend", 0.25)
     # one fold predicted forward is too noisy to choose by
-    one = Candidate("ridge+inputs", "inputs", "", forward_residual_um=base * 3, forward_clipped_residual_um=base,
-                    forward_distance=d, forward_folds_rms_um=[1.0])
+    one = Candidate(
+        "ridge+inputs",
+        "inputs",
+        "",
+        forward_residual_um=base * 3,
+        forward_clipped_residual_um=base,
+        forward_distance=d,
+        forward_folds_rms_um=[1.0],
+    )
     assert extrapolation(one, fb)[0] == "linear"
 
 
@@ -482,15 +597,26 @@ def test_replay_sets_the_error_beside_what_the_fit_expected(tmp_path):
     from compensator.io import read_run_log, write_run_log
 
     t, n, inputs, y = synthetic()
-    model = identify([LogData("s", t, n, y, inputs)], ("amb_c",), physical=False, probe_target_um=None).model
+    model = identify(
+        [LogData("s", t, n, y, inputs)], ("amb_c",), physical=False, probe_target_um=None
+    ).model
     assert model.input_names == ("amb_c",)
     for name, shift in (("same", 0.0), ("grown", 3.0)):
-        write_run_log(tmp_path / f"{name}.csv", {"time_s": t, "speed_rpm": n, "elongation_um": y + shift, **inputs})
+        write_run_log(
+            tmp_path / f"{name}.csv",
+            {"time_s": t, "speed_rpm": n, "elongation_um": y + shift, **inputs},
+        )
         rep = replay(model, read_run_log(tmp_path / f"{name}.csv"), compare=False).report
         bands = rep["expected_error"]
         assert bands and all(b["samples"] >= 10 for b in bands)
-        said = [w for w in rep["warnings"] if w.startswith("the error is larger than the fit expected")]
+        said = [
+            w for w in rep["warnings"] if w.startswith("the error is larger than the fit expected")
+        ]
         if shift == 0.0:
             assert min(b["within_p95"] for b in bands) >= 0.8 and not said
         else:
-            assert max(b["within_p95"] for b in bands) < 0.5 and said and "probe or recalibrate" in said[0]
+            assert (
+                max(b["within_p95"] for b in bands) < 0.5
+                and said
+                and "probe or recalibrate" in said[0]
+            )

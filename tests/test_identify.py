@@ -25,8 +25,13 @@ CHANNELS = runpy.run_path(str(ROOT / "tests/data/real-spindle/channels.py"))["wr
 
 
 def tc(*args, check=False):
-    return subprocess.run([sys.executable, "-m", "thermocomp", *map(str, args)], capture_output=True,
-                          text=True, cwd=ROOT, check=check)
+    return subprocess.run(
+        [sys.executable, "-m", "thermocomp", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=check,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +42,18 @@ def real(tmp_path_factory):
 @pytest.fixture(scope="module")
 def ch3_fit(real, computed_once):
     def make(d: Path) -> None:
-        r = tc("fit", real["ch3"], "--inputs", "all", "--no-physical", "--model-spindle-id", "real-1",
-               "--output", d / "ch3.json", "--json")
+        r = tc(
+            "fit",
+            real["ch3"],
+            "--inputs",
+            "all",
+            "--no-physical",
+            "--model-spindle-id",
+            "real-1",
+            "--output",
+            d / "ch3.json",
+            "--json",
+        )
         assert r.returncode == 0, r.stderr
         (d / "report.json").write_text(r.stdout)
 
@@ -63,9 +78,13 @@ def test_temperatures_win_on_ch3_and_fit_says_speed_alone_cannot(ch3_fit):
     path, rep = ch3_fit
     model = load_any_model(path)
     # the temperatures win; which structure shares their strength is the data's choice
-    assert rep["chosen"] in ("ridge+few", "ridge+pca", "ridge+inputs") and model.form == rep["chosen"]
+    assert (
+        rep["chosen"] in ("ridge+few", "ridge+pca", "ridge+inputs") and model.form == rep["chosen"]
+    )
     assert model.input_names and model.spindle_id == "real-1"
-    base, ridge, with_t, paper = (_cand(rep, n) for n in ("exp-baseline", "ridge", rep["chosen"], "paper-ols"))
+    base, ridge, with_t, paper = (
+        _cand(rep, n) for n in ("exp-baseline", "ridge", rep["chosen"], "paper-ols")
+    )
     # every candidate carries both held-out figures, and the choice reads the worse of them
     assert rep["forward_decides"] is True  # the folds are cycles
     for c in (base, ridge, with_t):
@@ -95,7 +114,9 @@ def test_replay_of_a_suffix_settles_onto_the_full_replay(ch3_fit, real):
     settle_s = 3 * max(model.taus_s)
     for start_h in (20.1, 22.1, 24.5):  # a rest after 4 h at 3750 rpm, 2 h into it, into a run
         k = int(np.searchsorted(log.time_s, start_h * 3600))
-        part = model.simulate_um(log.speed_rpm[k:], log.time_s[k:], {a: b[k:] for a, b in inputs.items()}, None)
+        part = model.simulate_um(
+            log.speed_rpm[k:], log.time_s[k:], {a: b[k:] for a, b in inputs.items()}, None
+        )
         diff = np.abs(part - full[k:])
         since = log.time_s[k:] - log.time_s[k]
         assert diff[since < 3600].max() > 2.0  # it did start elsewhere: the check can fail
@@ -109,7 +130,9 @@ def test_measured_start_goes_to_the_unexplained_part(ch3_fit, real):
     eq = model.start(None, 0.0, first)
     warm = model.start(eq.elongation_um + 7.0, 0.0, first)
     assert warm.states_um == eq.states_um  # the speed/input states stay at equilibrium
-    assert warm.residual_um == pytest.approx(7.0) and warm.elongation_um == pytest.approx(eq.elongation_um + 7.0)
+    assert warm.residual_um == pytest.approx(7.0) and warm.elongation_um == pytest.approx(
+        eq.elongation_um + 7.0
+    )
     later = model.step(warm, 0.0, 4 * 3600.0, first)
     assert later.residual_um == pytest.approx(7.0 * math.exp(-4 * 3600.0 / max(model.taus_s)))
 
@@ -119,7 +142,10 @@ def test_speed_only_fit_beats_the_papers_method_on_ch1(real, tmp_path):
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     chosen = _cand(rep, rep["chosen"])
-    assert rep["chosen"] in ("ridge", "exp-baseline") and not load_any_model(tmp_path / "m.json").input_names
+    assert (
+        rep["chosen"] in ("ridge", "exp-baseline")
+        and not load_any_model(tmp_path / "m.json").input_names
+    )
     assert chosen["honest_rms_um"] < _cand(rep, "paper-ols")["cv_rms_um"] / 2
     assert rep["derived"] and all(d["hac_stderr"] > 0 for d in rep["derived"])
     # the closed-loop plan: an interval table by held-out cycles, its observer kept in the model
@@ -150,7 +176,9 @@ def test_virtual_plant_targets_at_60_s_and_at_1_s(tmp_path):
 def test_fit_refusals_are_one_line_and_write_nothing(tmp_path, real):
     out = tmp_path / "m.json"
     r = tc("fit", real["ch1"], "--method", "forms", "--output", out, "--json")
-    assert r.returncode == 2 and "invalid choice: 'forms'" in r.stderr and "Traceback" not in r.stderr
+    assert (
+        r.returncode == 2 and "invalid choice: 'forms'" in r.stderr and "Traceback" not in r.stderr
+    )
     r = tc("fit", real["ch1"], "--inputs", "nope_c", "--output", out, "--json")
     assert r.returncode == 2 and "no column 'nope_c'" in r.stderr and "Traceback" not in r.stderr
     assert not out.exists()
@@ -158,30 +186,52 @@ def test_fit_refusals_are_one_line_and_write_nothing(tmp_path, real):
 
 # -- the model value -------------------------------------------------------------------------------
 
+
 def _speed_model(**kw):
-    base = dict(fitted_dt_s=15.0, speed_range_rpm=(0.0, 10000.0), taus_s=(600.0, 5400.0),
-                drive_um=((0.5, 0.05), (2.0, 0.2)), feedthrough_um=(0.1, 0.0), offset_um=0.3,
-                max_measured_um=40.0)
+    base = dict(
+        fitted_dt_s=15.0,
+        speed_range_rpm=(0.0, 10000.0),
+        taus_s=(600.0, 5400.0),
+        drive_um=((0.5, 0.05), (2.0, 0.2)),
+        feedthrough_um=(0.1, 0.0),
+        offset_um=0.3,
+        max_measured_um=40.0,
+    )
     return StateSpaceModel(**{**base, **kw})
 
 
 def _input_model(**kw):
-    ch = InputChannel(name="temp1_c", unit="degC", reference=25.0, trained_range=(20.0, 30.0),
-                      valid_range=(10.0, 40.0))
-    base = dict(fitted_dt_s=15.0, speed_range_rpm=(0.0, 10000.0), taus_s=(600.0, 5400.0),
-                drive_um=((0.5, 0.05, 0.2), (2.0, 0.2, 0.5)), feedthrough_um=(0.1, 0.0, 0.1),
-                inputs=(ch,), max_measured_um=40.0, fallback=_speed_model())
+    ch = InputChannel(
+        name="temp1_c",
+        unit="degC",
+        reference=25.0,
+        trained_range=(20.0, 30.0),
+        valid_range=(10.0, 40.0),
+    )
+    base = dict(
+        fitted_dt_s=15.0,
+        speed_range_rpm=(0.0, 10000.0),
+        taus_s=(600.0, 5400.0),
+        drive_um=((0.5, 0.05, 0.2), (2.0, 0.2, 0.5)),
+        feedthrough_um=(0.1, 0.0, 0.1),
+        inputs=(ch,),
+        max_measured_um=40.0,
+        fallback=_speed_model(),
+    )
     return StateSpaceModel(**{**base, **kw})
 
 
-@pytest.mark.parametrize("change, why", [
-    ({"taus_s": (5.0, 5400.0)}, "outside 15 s (the sample period)"),
-    ({"taus_s": (600.0, 1e7)}, "outside 15 s"),
-    ({"drive_um": ((0.5, 0.05), (2000.0, 0.2))}, "over 10 x the largest measured"),
-    ({"drive_um": ((0.5, 0.05),)}, "1 drive rows for 2 time constants"),
-    ({"feedthrough_um": (0.1,)}, "need 2"),
-    ({"offset_um": math.inf}, "finite"),
-])
+@pytest.mark.parametrize(
+    "change, why",
+    [
+        ({"taus_s": (5.0, 5400.0)}, "outside 15 s (the sample period)"),
+        ({"taus_s": (600.0, 1e7)}, "outside 15 s"),
+        ({"drive_um": ((0.5, 0.05), (2000.0, 0.2))}, "over 10 x the largest measured"),
+        ({"drive_um": ((0.5, 0.05),)}, "1 drive rows for 2 time constants"),
+        ({"feedthrough_um": (0.1,)}, "need 2"),
+        ({"offset_um": math.inf}, "finite"),
+    ],
+)
 def test_insane_coefficients_are_refused(change, why):
     with pytest.raises(ModelError, match=why.replace("(", r"\(").replace(")", r"\)")):
         _speed_model(**change)
@@ -219,24 +269,34 @@ def test_stepping_matches_the_free_run_at_irregular_dt():
 
 
 @settings(max_examples=150, deadline=None)
-@given(speed=st.floats(-1e300, 1e300), dt=st.floats(0, 1e300), temp=st.floats(-1e300, 1e300),
-       start=st.floats(-1e4, 1e4))
+@given(
+    speed=st.floats(-1e300, 1e300),
+    dt=st.floats(0, 1e300),
+    temp=st.floats(-1e300, 1e300),
+    start=st.floats(-1e4, 1e4),
+)
 def test_no_finite_input_gives_a_non_finite_output(speed, dt, temp, start):
     m = _input_model()
     s = m.start(start, speed, {"temp1_c": temp})
     s = m.step(s, speed, dt, {"temp1_c": temp})
     assert math.isfinite(s.elongation_um)
-    sim = m.simulate_um(np.array([0.0, speed, speed]), np.array([0.0, dt / 2, dt]),
-                        {"temp1_c": np.array([25.0, temp, temp])}, start)
+    sim = m.simulate_um(
+        np.array([0.0, speed, speed]),
+        np.array([0.0, dt / 2, dt]),
+        {"temp1_c": np.array([25.0, temp, temp])},
+        start,
+    )
     assert np.isfinite(sim).all()
 
 
 def test_json_mode_never_prints_a_traceback_even_for_a_bug(real, tmp_path):
-    code = ("import sys, calibration.identify as m\n"
-            "def boom(*a, **k): raise RuntimeError('boom')\n"
-            "m.identify = boom\n"
-            "from thermocomp.cli import main\n"
-            f"sys.exit(main(['fit', {str(real['ch1'])!r}, '--output', {str(tmp_path / 'm.json')!r}, '--json']))")
+    code = (
+        "import sys, calibration.identify as m\n"
+        "def boom(*a, **k): raise RuntimeError('boom')\n"
+        "m.identify = boom\n"
+        "from thermocomp.cli import main\n"
+        f"sys.exit(main(['fit', {str(real['ch1'])!r}, '--output', {str(tmp_path / 'm.json')!r}, '--json']))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr == "thermocomp: error: internal error: RuntimeError: boom\n"
@@ -252,7 +312,9 @@ def test_a_log_with_hours_missing_fits_and_says_how_the_gap_was_taken(real, tmp_
     r = tc("fit", gappy, "--no-physical", "--no-nested", "--output", tmp_path / "m.json", "--json")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
-    assert any("gap" in w and "last logged speed" in w and "10.0 h" in w for w in rep["warnings"]), rep["warnings"]
+    assert any(
+        "gap" in w and "last logged speed" in w and "10.0 h" in w for w in rep["warnings"]
+    ), rep["warnings"]
     log = read_run_log(gappy)
     pred = load_any_model(tmp_path / "m.json").simulate_um(log.speed_rpm, log.time_s, None, None)
     assert np.isfinite(pred).all() and np.abs(pred).max() < 100
@@ -269,6 +331,8 @@ def test_replay_warns_when_an_input_leaves_its_trained_range(ch3_fit, real, tmp_
     r = tc("replay", hot, "--model", ch3_fit[0], "--json")
     assert r.returncode == 0, r.stderr
     warnings = json.loads(r.stdout)["warnings"]
-    assert any(w.startswith("temp5_c: 45 degC is outside the trained") and "line 6" in w for w in warnings), warnings
+    assert any(
+        w.startswith("temp5_c: 45 degC is outside the trained") and "line 6" in w for w in warnings
+    ), warnings
     r = tc("replay", real["ch3"], "--model", ch3_fit[0], "--json")
     assert not any("trained" in w for w in json.loads(r.stdout)["warnings"])

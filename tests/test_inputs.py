@@ -39,23 +39,28 @@ def plant_run(prog: Program, seed: int, dt_s: float = 20.0) -> tuple[LogData, di
 
 def short_stairs() -> Program:
     """Short steps up and down with no stops: unlike the long holds of calibration."""
-    return Program("short-stairs", tuple((120.0 + 60 * (i % 3), 3000.0 * (1 + i % 9)) for i in range(120))
-                   + ((3600.0, 0.0),))
+    return Program(
+        "short-stairs",
+        tuple((120.0 + 60 * (i % 3), 3000.0 * (1 + i % 9)) for i in range(120)) + ((3600.0, 0.0),),
+    )
 
 
 @pytest.fixture(scope="module")
 def trained():
     """The identification on the plant's two runs with its five sensors, and the ridge model with
     those inputs it fitted (its fallback the speed-only model it chose)."""
-    train = [plant_run(paper_calibration(P.max_rpm), 1)[0],
-             plant_run(random_validation(P.max_rpm, seed=2, hold_min=(10, 30)), 2)[0]]
+    train = [
+        plant_run(paper_calibration(P.max_rpm), 1)[0],
+        plant_run(random_validation(P.max_rpm, seed=2, hold_min=(10, 30)), 2)[0],
+    ]
     fit = fit_data(train, SENSORS, spindle_id="sim", nested=False)
     return fit, inputs_model(fit), train
 
 
 def free_run_rms(model, d: LogData) -> float:
-    pred = model.simulate_um(d.speed_rpm, d.time_s, d.inputs if model.input_names else None,
-                             float(d.elongation_um[0]))
+    pred = model.simulate_um(
+        d.speed_rpm, d.time_s, d.inputs if model.input_names else None, float(d.elongation_um[0])
+    )
     return float(np.sqrt(np.mean((d.elongation_um - pred) ** 2)))
 
 
@@ -79,14 +84,18 @@ def decoy_runs() -> list[LogData]:
     rng = np.random.default_rng(3)
     runs = []
     progs = [(paper_calibration(P.max_rpm), 1)] + [
-        (random_validation(P.max_rpm, seed=s, hold_min=(10, 30)), s) for s in (2, 3, 4, 5)]
+        (random_validation(P.max_rpm, seed=s, hold_min=(10, 30)), s) for s in (2, 3, 4, 5)
+    ]
     for prog, seed in progs:
         d, _ = plant_run(prog, seed, dt_s=30.0)
         t = d.time_s
         chans = {}
         for k in range(16):  # slow temperatures: a few daily-ish swings each, and sensor noise
-            swing = sum(rng.uniform(0.2, 0.6) * np.sin(2 * np.pi * t / rng.uniform(3600, 6 * 3600)
-                                                       + rng.uniform(0, 6.3)) for _ in range(3))
+            swing = sum(
+                rng.uniform(0.2, 0.6)
+                * np.sin(2 * np.pi * t / rng.uniform(3600, 6 * 3600) + rng.uniform(0, 6.3))
+                for _ in range(3)
+            )
             name = list(DECOY_WEIGHTS)[k] if k < 3 else f"decoy{k:02d}_c"
             chans[name] = 21.0 + swing + rng.normal(0, 0.02, t.size)
         extra = np.zeros_like(t)
@@ -103,8 +112,10 @@ DECOY_WEIGHTS = {"table_c": (1.5, 0.0), "column_c": (-1.2, 1800.0), "fixture_c":
 def decoys():
     runs = decoy_runs()
     train, held = runs[:-1], runs[-1]
-    fits = {k: inputs_model(fit_data(train, names, spindle_id="sim", nested=False, physical=False))
-            for k, names in (("three", list(DECOY_WEIGHTS)), ("all", list(train[0].inputs)))}
+    fits = {
+        k: inputs_model(fit_data(train, names, spindle_id="sim", nested=False, physical=False))
+        for k, names in (("three", list(DECOY_WEIGHTS)), ("all", list(train[0].inputs)))
+    }
     return fits, held
 
 
@@ -114,8 +125,11 @@ def test_the_inputs_that_carry_signal_halve_the_error_on_a_held_out_run(decoys):
     assert free_run_rms(model, held) < 0.5 * free_run_rms(model.fallback, held)
 
 
-@pytest.mark.xfail(strict=True, reason="ridge over every input does not select: 13 decoys among 16 "
-                   "temperatures overfit (held-out 2.6 um against 0.36 um with the three that matter)")
+@pytest.mark.xfail(
+    strict=True,
+    reason="ridge over every input does not select: 13 decoys among 16 "
+    "temperatures overfit (held-out 2.6 um against 0.36 um with the three that matter)",
+)
 def test_thirteen_decoys_among_sixteen_inputs_cost_little_on_a_held_out_run(decoys):
     fits, held = decoys
     assert free_run_rms(fits["all"], held) <= 1.25 * free_run_rms(fits["three"], held)
@@ -133,21 +147,39 @@ def test_model_file_replay_and_fit_command(trained, tmp_path):
     save_model(path, model)
     back = load_any_model(path)
     assert isinstance(back, StateSpaceModel) and back == model
-    assert back.inputs[0].unit == "degC" and back.fallback is not None and not back.fallback.input_names
+    assert (
+        back.inputs[0].unit == "degC"
+        and back.fallback is not None
+        and not back.fallback.input_names
+    )
     with pytest.raises(Exception, match="extra inputs"):
         load_model(path)  # speed-only readers say why they refuse it
     _, cols = plant_run(short_stairs(), 11)
     log = tmp_path / "day.csv"
     write_run_log(log, cols)
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", str(log), "--model", str(path),
-                        "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "replay", str(log), "--model", str(path), "--json"],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["rms_residual_um"] < 0.3
     # a log without the column: one line, exit 2
     del cols["bearing_temp_c"]
     write_run_log(tmp_path / "bare.csv", cols)
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", str(tmp_path / "bare.csv"),
-                        "--model", str(path)], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "replay",
+            str(tmp_path / "bare.csv"),
+            "--model",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
 
 
@@ -157,14 +189,19 @@ def runtime_config(tmp_path, model, body: str):
     save_model(path_model, model)
     model = path_model
     path = tmp_path / "machine.toml"
-    path.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
-                    f'model = "{model}"\n' + body)
+    path.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
+        f'model = "{model}"\n' + body
+    )
     return path
 
 
 def test_runtime_falls_back_to_speed_only_within_one_cycle(trained, tmp_path):
     _, model, _ = trained
-    cfg_path = runtime_config(tmp_path, model, """period_s = 1.0
+    cfg_path = runtime_config(
+        tmp_path,
+        model,
+        """period_s = 1.0
 adapter = {url = "sim://"}
 [spindle.shaping]
 max_offset_um = 40.0
@@ -175,19 +212,35 @@ enabled = false
 [spindle.faults]
 input_stale_s = 120.0
 input_recover_s = 60.0
-""")
+""",
+    )
     cfg = load_config(cfg_path)
     t = {"now": 0.0}
-    vm = VirtualMachine(SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=3), clock=lambda: t["now"])
-    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
-                        wall=lambda: 1699923600.0 + t["now"], adapter=SimAdapter(machine=vm))
+    vm = VirtualMachine(
+        SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=3), clock=lambda: t["now"]
+    )
+    rt = SpindleRuntime(
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=lambda: t["now"],
+        wall=lambda: 1699923600.0 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     rows = []
 
     def cycle():
         t["now"] += 1.0
         out = rt.cycle()
-        rows.append((t["now"], out["offset_um"], int(out["alarms"]), rt.input_state is not None,
-                     vm.plant.true_elongation_um()))
+        rows.append(
+            (
+                t["now"],
+                out["offset_um"],
+                int(out["alarms"]),
+                rt.input_state is not None,
+                vm.plant.true_elongation_um(),
+            )
+        )
 
     for _ in range(2400):
         cycle()
@@ -215,7 +268,9 @@ input_recover_s = 60.0
     assert np.max(np.abs(np.diff(off))) <= 0.5 + 1e-9  # 1-s cycles, 0.5 um/s
     # compensation works through all of it
     err = np.array([r[4] for r in rows]) + off
-    assert np.sqrt(np.mean(err[1800:] ** 2)) < 0.35 * np.sqrt(np.mean(np.array([r[4] for r in rows])[1800:] ** 2))
+    assert np.sqrt(np.mean(err[1800:] ** 2)) < 0.35 * np.sqrt(
+        np.mean(np.array([r[4] for r in rows])[1800:] ** 2)
+    )
     journal = read_run_log(sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))[0])
     assert (journal.extras["alarms"].astype(int) & 256).any()
     # every input channel is journaled: the value read, a blank where the sensor gave NaN
@@ -230,13 +285,23 @@ def test_a_speed_only_model_journals_the_links_inputs_too(trained, tmp_path):
     fit, _, _ = trained
     mpath = tmp_path / "speed.json"
     save_model(mpath, fit.model)
-    (tmp_path / "r.toml").write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
-                                     f'[[spindle]]\nname = "s1"\nmodel = "{mpath}"\nadapter = {{url = "sim://"}}\n')
+    (tmp_path / "r.toml").write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
+        f'[[spindle]]\nname = "s1"\nmodel = "{mpath}"\nadapter = {{url = "sim://"}}\n'
+    )
     cfg = load_config(tmp_path / "r.toml")
     t = {"now": 0.0}
-    vm = VirtualMachine(SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=1), clock=lambda: t["now"])
-    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
-                        wall=lambda: 1699923600.0 + t["now"], adapter=SimAdapter(machine=vm))
+    vm = VirtualMachine(
+        SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=1), clock=lambda: t["now"]
+    )
+    rt = SpindleRuntime(
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=lambda: t["now"],
+        wall=lambda: 1699923600.0 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     assert rt.estimate.with_inputs is None
     for k in range(600):
         t["now"] += 1.0
@@ -246,7 +311,13 @@ def test_a_speed_only_model_journals_the_links_inputs_too(trained, tmp_path):
         rt.cycle()
     rt.close()
     journal = read_run_log(sorted((tmp_path / "state" / "journal").glob("s1-*.csv"))[0])
-    for name in ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct"):
+    for name in (
+        "bearing_temp_c",
+        "motor_temp_c",
+        "coolant_temp_c",
+        "ambient_c",
+        "spindle_load_pct",
+    ):
         assert name in journal.extras
     motor = journal.extras["motor_temp_c"]
     assert np.isnan(motor[300]) and np.isfinite(np.delete(motor, 300)).all()
@@ -254,18 +325,26 @@ def test_a_speed_only_model_journals_the_links_inputs_too(trained, tmp_path):
 
 def test_a_model_with_inputs_refuses_to_start_without_their_mapping(trained, tmp_path):
     _, model, _ = trained
-    cfg_path = runtime_config(tmp_path, model, """[spindle.adapter]
+    cfg_path = runtime_config(
+        tmp_path,
+        model,
+        """[spindle.adapter]
 type = "opcua"
 url = "opc.tcp://127.0.0.1:4840"
 preset = "generic"
 speed_node = "ns=2;s=Speed"
 offset_node = "ns=2;s=Offset"
-""")
+""",
+    )
     cfg = load_config(cfg_path)
     with pytest.raises(ConfigError, match="needs input\\(s\\) .*bearing_temp_c.*; map them"):
         SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path)
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg_path)],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "bearing_temp_c" in r.stderr and r.stderr.count("\n") == 1
 
 
@@ -280,8 +359,13 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
     # lock-step: the machine stands still between two reads, so the reading and the truth are of
     # one instant
     clock = SteppedClock()
-    vm = VirtualMachine(SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=clock)
-    with running(VirtualCNC(vm, tick_s=None)) as cnc, open_adapter(cnc.url + "?preset=virtual-cnc") as link:
+    vm = VirtualMachine(
+        SpindlePlant(P, seed=2), Program("steady", ((36000.0, 18000.0),)), clock=clock
+    )
+    with (
+        running(VirtualCNC(vm, tick_s=None)) as cnc,
+        open_adapter(cnc.url + "?preset=virtual-cnc") as link,
+    ):
         clock.advance(1800.0)
         step(cnc)
         assert set(link.input_channels()) == set(SENSORS)
@@ -297,8 +381,11 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
     dev = ModbusDevice(pty.dev)
     try:
         dev.set_input(4, [254])  # 25.4 degC in 0.1 K counts
-        a = ModbusRtuAdapter(pty.ctl, baudrate=115200,
-                             input_registers={"bearing_temp_c": {"register": 4, "type": "int16", "scale": 0.1}})
+        a = ModbusRtuAdapter(
+            pty.ctl,
+            baudrate=115200,
+            input_registers={"bearing_temp_c": {"register": 4, "type": "int16", "scale": 0.1}},
+        )
         with a:
             assert a.input_channels() == ("bearing_temp_c",)
             assert a.read_inputs() == {"bearing_temp_c": pytest.approx(25.4)}

@@ -71,8 +71,12 @@ def test_errors_name_file_and_line(tmp_path, text, line, match):
 
 @pytest.mark.parametrize(
     "text,match",
-    [("", "no header"), ("# only a comment\n", "no header"), ("time_s,speed_rpm\n", "no data rows"),
-     ("time_s,speed_rpm\n0,0,1,2\n1,0\n", "malformed CSV")],
+    [
+        ("", "no header"),
+        ("# only a comment\n", "no header"),
+        ("time_s,speed_rpm\n", "no data rows"),
+        ("time_s,speed_rpm\n0,0,1,2\n1,0\n", "malformed CSV"),
+    ],
 )
 def test_structural_errors_are_one_line(tmp_path, text, match):
     with pytest.raises(RunLogError, match=match) as exc:
@@ -223,8 +227,14 @@ def signed(data: dict) -> str:
 def augmented():
     from compensator.inputs import AugmentedModel, InputTerm
 
-    term = InputTerm(name="t_spindle", unit="degC", reference=20.0, gain_um_per_unit=0.5, tau_s=600.0,
-                     valid_range=(0.0, 80.0))
+    term = InputTerm(
+        name="t_spindle",
+        unit="degC",
+        reference=20.0,
+        gain_um_per_unit=0.5,
+        tau_s=600.0,
+        valid_range=(0.0, 80.0),
+    )
     return AugmentedModel(speed_model=first_order(), inputs=(term,), fallback=first_order())
 
 
@@ -241,14 +251,28 @@ def without(data: dict, *keys: str) -> dict:
 
 GOOD_MODEL = first_order().model_dump(mode="json")
 CORRUPT = {
-    "nan": (json.dumps(GOOD_MODEL).replace('"fitted_dt_s": 60.0', '"fitted_dt_s": NaN'), "NaN is not a JSON number"),
-    "infinity": (json.dumps({**GOOD_MODEL, "elastic_um": [0, -1e400]}), "-Infinity is not a JSON number"),
+    "nan": (
+        json.dumps(GOOD_MODEL).replace('"fitted_dt_s": 60.0', '"fitted_dt_s": NaN'),
+        "NaN is not a JSON number",
+    ),
+    "infinity": (
+        json.dumps({**GOOD_MODEL, "elastic_um": [0, -1e400]}),
+        "-Infinity is not a JSON number",
+    ),
     "deep array": ("[" * 10_000 + "]" * 10_000, "nested too deeply"),
-    "deep in a key": ('{"format": "thermocomp.model/1", "fit": ' + "[" * 10_000 + "]" * 10_000 + "}",
-                      "nested too deeply"),
-    "deep but parsable": (signed({**GOOD_MODEL, "fit": json.loads("[" * 200 + "]" * 200)}), "nested deeper than"),
+    "deep in a key": (
+        '{"format": "thermocomp.model/1", "fit": ' + "[" * 10_000 + "]" * 10_000 + "}",
+        "nested too deeply",
+    ),
+    "deep but parsable": (
+        signed({**GOOD_MODEL, "fit": json.loads("[" * 200 + "]" * 200)}),
+        "nested deeper than",
+    ),
     "missing states": (signed(without(GOOD_MODEL, "states")), "states: Field required"),
-    "missing a coefficient": (signed(without(GOOD_MODEL, "states.0.generation_um_per_s")), "generation_um_per_s"),
+    "missing a coefficient": (
+        signed(without(GOOD_MODEL, "states.0.generation_um_per_s")),
+        "generation_um_per_s",
+    ),
     "missing format": (signed(without(GOOD_MODEL, "format")), "unknown model format None"),
     "no checksum": (json.dumps(GOOD_MODEL), "no sha256"),
     "huge string": ('{"format": "' + "x" * 50_000_000 + '"}', "larger than 8 MiB"),
@@ -276,8 +300,11 @@ def test_corrupt_model_with_inputs_is_one_line_model_file_error(tmp_path):
 
     good = augmented().model_dump(mode="json")
     assert load_any_model(write(tmp_path, signed(good), "ok.json")) == augmented()
-    for key, expected in (("inputs.0.gain_um_per_unit", "gain_um_per_unit"), ("fallback", "fallback"),
-                          ("speed_model.states", "states")):
+    for key, expected in (
+        ("inputs.0.gain_um_per_unit", "gain_um_per_unit"),
+        ("fallback", "fallback"),
+        ("speed_model.states", "states"),
+    ):
         p = write(tmp_path, signed(without(good, key)), "m.json")
         with pytest.raises(ModelFileError, match=f"invalid model: .*{expected}") as info:
             load_any_model(p)
@@ -309,8 +336,26 @@ def test_a_damaged_model_file_loads_or_is_refused_in_one_line(tmp_path_factory, 
     raw = bytearray(p.read_bytes())
     for _ in range(data.draw(st.integers(1, 4))):
         at = data.draw(st.integers(0, len(raw) - 1))
-        raw[at:at + 1] = data.draw(st.sampled_from([b"", b"[", b"{", b"]", b'"', b"9", b"-", b"N", b"\x00",
-                                                    b"\xff", b"NaN", b"1e999", b" ", b"\n"]))
+        raw[at : at + 1] = data.draw(
+            st.sampled_from(
+                [
+                    b"",
+                    b"[",
+                    b"{",
+                    b"]",
+                    b'"',
+                    b"9",
+                    b"-",
+                    b"N",
+                    b"\x00",
+                    b"\xff",
+                    b"NaN",
+                    b"1e999",
+                    b" ",
+                    b"\n",
+                ]
+            )
+        )
     p.write_bytes(bytes(raw))
     try:
         load_model(p)

@@ -40,6 +40,8 @@ def test_one_speed_is_a_constant_speed_test():
     z = 20 * (1 - np.exp(-np.minimum(t, 3 * 3600) / 1800))
     r = spindle_thermal_test(t, n, z)
     assert r.kind == "constant speed" and r.speeds_rpm == (12000.0,)
-    assert r.running_s == pytest.approx(3 * 3600, abs=20) and r.rest_s == pytest.approx(3600, abs=20)
+    assert r.running_s == pytest.approx(3 * 3600, abs=20) and r.rest_s == pytest.approx(
+        3600, abs=20
+    )
     with pytest.raises(ValueError, match="one time, speed and displacement"):
         spindle_thermal_test(t[:1], n[:1], z[:1])

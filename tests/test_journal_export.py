@@ -46,7 +46,14 @@ ADDED = ["elongation_um", "measurement_sigma_um", "chiller_setpoint_c", "supply_
 
 
 def namespace(**kw) -> argparse.Namespace:
-    base = {"journal_dir": None, "config": None, "spindle": None, "from_": None, "to": None, "output": None}
+    base = {
+        "journal_dir": None,
+        "config": None,
+        "spindle": None,
+        "from_": None,
+        "to": None,
+        "output": None,
+    }
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -79,19 +86,37 @@ def sim(tmp_path_factory, calibrated_model):
     measure`'s path), a chiller command every minute from the 20th cycle on."""
     tmp = tmp_path_factory.mktemp("journal")
     cfg_path = tmp / "machine.toml"
-    cfg_path.write_text("\n".join([
-        f'state_dir = "{tmp / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0",
-        "[[spindle]]", 'name = "s1"', f'model = "{calibrated_model}"', f"period_s = {PERIOD_S}",
-        "state_save_every_s = 600.0",
-        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}',
-        "[spindle.observer]", "enabled = true"]) + "\n")
+    cfg_path.write_text(
+        "\n".join(
+            [
+                f'state_dir = "{tmp / "state"}"',
+                "watchdog = false",
+                "journal_fsync_s = 3600.0",
+                "[[spindle]]",
+                'name = "s1"',
+                f'model = "{calibrated_model}"',
+                f"period_s = {PERIOD_S}",
+                "state_save_every_s = 600.0",
+                'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}',
+                "[spindle.observer]",
+                "enabled = true",
+            ]
+        )
+        + "\n"
+    )
     cfg = load_config(cfg_path)
     t = {"now": 0.0}
     clock = lambda: t["now"]
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=clock)
     vm.load_program(job_shop_day(preset("motorized-27k").max_rpm, seed=1, hours=4))
-    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock,
-                        wall=lambda: WALL0 + t["now"], adapter=SimAdapter(machine=vm))
+    rt = SpindleRuntime(
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: WALL0 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     chiller = CoolingJournal(cfg.journal_path, "s1", {"spindle": "s1", "source": "test"})
     rng = np.random.default_rng(0)
     for i in range(CYCLES):
@@ -100,9 +125,16 @@ def sim(tmp_path_factory, calibrated_model):
             rt.submit(vm.plant.true_elongation_um() + 0.3 * float(rng.standard_normal()), 0.5)
         rt.cycle()
         if i >= COOL_FROM and (i - COOL_FROM) % COOL_EVERY == 0:
-            chiller.record(rt.anchor_s + t["now"], estimate_um=rt.estimate_um(), rite_um=10.0, phase="pid",
-                           setpoint_c=round(20.0 + 0.01 * i, 3), sent=True, supply_c=round(20.5 + 0.01 * i, 3),
-                           alarm="")
+            chiller.record(
+                rt.anchor_s + t["now"],
+                estimate_um=rt.estimate_um(),
+                rite_um=10.0,
+                phase="pid",
+                setpoint_c=round(20.0 + 0.01 * i, 3),
+                sent=True,
+                supply_c=round(20.5 + 0.01 * i, 3),
+                alarm="",
+            )
     rt.close()
     chiller.close()
     return {"config": cfg_path, "dir": cfg.journal_path, "model": calibrated_model}
@@ -174,8 +206,14 @@ def test_chiller_commands_are_carried_forward(sim, whole):
 def test_a_range_takes_its_rows_only_and_what_came_before(sim, tmp_path):
     out = tmp_path / "r.csv"
     # 02:00+02:00 is 00:00 UTC: the day file of 2024-05-01 starts exactly there
-    export(namespace(journal_dir=str(sim["dir"]), from_="2024-05-01T02:00+02:00", to="2024-05-01T01:00",
-                     output=str(out)))
+    export(
+        namespace(
+            journal_dir=str(sim["dir"]),
+            from_="2024-05-01T02:00+02:00",
+            to="2024-05-01T01:00",
+            output=str(out),
+        )
+    )
     header, rows = rows_of([out])
     t = np.array([float(r[0]) for r in rows])
     lo, hi = day_start_s("2024-05-01"), day_start_s("2024-05-01") + 3600
@@ -203,23 +241,46 @@ def test_parts_are_merged_repeated_instants_dropped_and_a_torn_row_skipped(tmp_p
     # a second run after the clock was set back 5 s: its rows go to part 2
     second = Journal(d, "m2", {"spindle": "m2"}, input_columns=("ambient_c",), fsync_every_s=-1)
     for k in range(5, 15):
-        second.write(t0 + k, 2000.0, 2.0, -2.0, True, 0, 0, dt_s=1.0, inputs={} if k == 7 else {"ambient_c": 30.0})
+        second.write(
+            t0 + k,
+            2000.0,
+            2.0,
+            -2.0,
+            True,
+            0,
+            0,
+            dt_s=1.0,
+            inputs={} if k == 7 else {"ambient_c": 30.0},
+        )
     second.close()
     probes = MeasurementJournal(d, "m2", {"spindle": "m2"}, fsync_every_s=-1)
-    probes.record(t0 + 2.5, elongation_um=3.25, sigma_um=0.5, source="setter", sequence=1, outcome="accepted")
-    probes.record(t0 + 3.0, elongation_um=9.0, sigma_um=0.5, source="setter", sequence=2, outcome="rejected")
-    probes.record(t0 + 11.2, elongation_um=4.0, sigma_um=0.5, source="setter", sequence=3, outcome="accepted")
-    probes.record(t0 + 11.7, elongation_um=4.5, sigma_um=0.4, source="setter", sequence=4, outcome="restarted")
+    probes.record(
+        t0 + 2.5, elongation_um=3.25, sigma_um=0.5, source="setter", sequence=1, outcome="accepted"
+    )
+    probes.record(
+        t0 + 3.0, elongation_um=9.0, sigma_um=0.5, source="setter", sequence=2, outcome="rejected"
+    )
+    probes.record(
+        t0 + 11.2, elongation_um=4.0, sigma_um=0.5, source="setter", sequence=3, outcome="accepted"
+    )
+    probes.record(
+        t0 + 11.7, elongation_um=4.5, sigma_um=0.4, source="setter", sequence=4, outcome="restarted"
+    )
     probes.close()
-    assert sorted(p.name for p in d.iterdir()) == ["m2-2024-06-01.csv", "m2-2024-06-01.p2.csv",
-                                                    "m2.measurements-2024-06-01.csv"]
+    assert sorted(p.name for p in d.iterdir()) == [
+        "m2-2024-06-01.csv",
+        "m2-2024-06-01.p2.csv",
+        "m2.measurements-2024-06-01.csv",
+    ]
     with open(d / "m2-2024-06-01.p2.csv", "a", encoding="utf-8") as fh:
         fh.write(f"{t0 + 20:.3f},3000,3")  # a row being written: no newline yet
     out = tmp_path / "m2.csv"
     export(namespace(journal_dir=str(d), output=str(out)))
     log = read_run_log(out)
     np.testing.assert_array_equal(log.time_s, t0 + np.arange(15))
-    np.testing.assert_array_equal(log.speed_rpm, [1000] * 10 + [2000] * 5)  # part 1 kept where both have a row
+    np.testing.assert_array_equal(
+        log.speed_rpm, [1000] * 10 + [2000] * 5
+    )  # part 1 kept where both have a row
     amb = log.extras["ambient_c"]
     assert amb[3] == 23.0 and amb[12] == 30.0 and np.isnan(log.extras["ambient_c"][7]) is np.False_
     assert "chiller_setpoint_c" not in log.extras  # no cooling journal: no cooling columns
@@ -240,26 +301,49 @@ def test_replay_reports_its_error_on_the_measured_rows(sim, whole, capsys):
     assert rep.report["measured_samples"] == int(m.sum()) > 30
     assert rep.report["rms_residual_um"] == pytest.approx(float(np.sqrt(np.mean(r * r))))
     assert rep.report["max_abs_residual_um"] == pytest.approx(float(np.abs(r).max()))
-    assert rep.report["ste_source"] == "predicted" and math.isfinite(rep.report["applied_rms_residual_um"])
+    assert rep.report["ste_source"] == "predicted" and math.isfinite(
+        rep.report["applied_rms_residual_um"]
+    )
     assert any("measured on" in w and "sparse" in w for w in rep.report["warnings"])
     for row in rep.report["policies"]:
         assert math.isfinite(row["rms_um"])
     out = whole.parent / "replayed.csv"
-    assert main(["replay", str(whole), "--model", str(sim["model"]), "--config", str(sim["config"]),
-                 "--output", str(out), "--json"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(whole),
+                "--model",
+                str(sim["model"]),
+                "--config",
+                str(sim["config"]),
+                "--output",
+                str(out),
+                "--json",
+            ]
+        )
+        == 0
+    )
     rp = json.loads(capsys.readouterr().out)
     assert rp["measured_samples"] == int(m.sum()) and math.isfinite(rp["rms_residual_um"])
     again = read_run_log(out)  # the replay's own output reads back (its elongation is sparse too)
     assert again.sparse and int(again.measured.sum()) == int(m.sum())
 
 
-@pytest.mark.parametrize("kw,error,match", [
-    ({"from_": "2024-06-01", "to": "2024-06-02"}, RunLogError, r"no journal rows of spindle s1 in \[2024-06-01"),
-    ({"from_": "yesterday"}, ConfigError, "--from 'yesterday': not an ISO date"),
-    ({"to": "2024-05-01T25:00"}, ConfigError, "--to '2024-05-01T25:00': not an ISO date"),
-    ({"from_": "2024-05-01", "to": "2024-04-30"}, ConfigError, "is not before --to"),
-    ({"spindle": "s9"}, ConfigError, "no journal of spindle 's9'"),
-])
+@pytest.mark.parametrize(
+    "kw,error,match",
+    [
+        (
+            {"from_": "2024-06-01", "to": "2024-06-02"},
+            RunLogError,
+            r"no journal rows of spindle s1 in \[2024-06-01",
+        ),
+        ({"from_": "yesterday"}, ConfigError, "--from 'yesterday': not an ISO date"),
+        ({"to": "2024-05-01T25:00"}, ConfigError, "--to '2024-05-01T25:00': not an ISO date"),
+        ({"from_": "2024-05-01", "to": "2024-04-30"}, ConfigError, "is not before --to"),
+        ({"spindle": "s9"}, ConfigError, "no journal of spindle 's9'"),
+    ],
+)
 def test_errors_are_one_line(sim, tmp_path, kw, error, match):
     out = tmp_path / "x.csv"
     with pytest.raises(error, match=match) as exc:
@@ -277,34 +361,59 @@ def test_directory_with_two_spindles_needs_one_named(tmp_path):
         export(namespace(journal_dir=str(tmp_path), output=str(tmp_path / "x.csv")))
     with pytest.raises(ConfigError, match=r"\(--journal-dir\) or the runtime configuration"):
         export(namespace(output=str(tmp_path / "x.csv")))
-    assert export(namespace(journal_dir=str(tmp_path), spindle="b", output=str(tmp_path / "b.csv"))) == 0
+    assert (
+        export(namespace(journal_dir=str(tmp_path), spindle="b", output=str(tmp_path / "b.csv")))
+        == 0
+    )
     assert read_run_log(tmp_path / "b.csv").metadata["spindle"] == "b"
 
 
-@pytest.mark.skipif(not cli_wired(), reason="`thermocomp journal` is not wired into thermocomp/cli.py yet")
+@pytest.mark.skipif(
+    not cli_wired(), reason="`thermocomp journal` is not wired into thermocomp/cli.py yet"
+)
 def test_cli_exit_codes(sim, tmp_path, capsys):
     from thermocomp.cli import main
 
     out = tmp_path / "c.csv"
-    assert main(["journal", "export", "--journal-dir", str(sim["dir"]), "--from", "2024-05-01",
-                 "--output", str(out)]) == 0
+    assert (
+        main(
+            [
+                "journal",
+                "export",
+                "--journal-dir",
+                str(sim["dir"]),
+                "--from",
+                "2024-05-01",
+                "--output",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert out.exists() and capsys.readouterr().out.count("\n") == 1
     for bad in (["--from", "2030-01-01"], ["--to", "noon"]):
-        assert main(["journal", "export", "--config", str(sim["config"]), *bad, "--output", str(out)]) != 0
+        assert (
+            main(["journal", "export", "--config", str(sim["config"]), *bad, "--output", str(out)])
+            != 0
+        )
         err = capsys.readouterr().err
         assert err.startswith("thermocomp: error: ") and err.count("\n") == 1
 
 
 def test_the_export_needs_neither_pandas_nor_scipy(sim, tmp_path):
     # (with --config, load_config validates the adapter's settings: sim:// brings its plant's scipy)
-    code = ("import sys, argparse\n"
-            "from thermocomp.commands.journal import export\n"
-            f"ns = argparse.Namespace(journal_dir={str(sim['dir'])!r}, config=None, spindle=None, "
-            f"from_='2024-05-01', to=None, output={str(tmp_path / 'e.csv')!r})\n"
-            "assert export(ns) == 0\n"
-            "heavy = [m for m in ('pandas', 'scipy', 'statsmodels', 'matplotlib') if m in sys.modules]\n"
-            "assert not heavy, heavy\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=False)
+    code = (
+        "import sys, argparse\n"
+        "from thermocomp.commands.journal import export\n"
+        f"ns = argparse.Namespace(journal_dir={str(sim['dir'])!r}, config=None, spindle=None, "
+        f"from_='2024-05-01', to=None, output={str(tmp_path / 'e.csv')!r})\n"
+        "assert export(ns) == 0\n"
+        "heavy = [m for m in ('pandas', 'scipy', 'statsmodels', 'matplotlib') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=False
+    )
     assert r.returncode == 0, r.stderr
 
 
@@ -327,10 +436,26 @@ def journal_of(log, directory: Path, probe_every: int) -> None:
     m = MeasurementJournal(directory, "r1", {"spindle": "r1"}, fsync_every_s=-1)
     dt = np.diff(log.time_s, prepend=log.time_s[0])
     for k, (t, n) in enumerate(zip(log.time_s, log.speed_rpm)):
-        j.write(T0 + t, n, 0.0, 0.0, False, 0, 0, dt_s=dt[k], inputs={c: log.extras[c][k] for c in names})
+        j.write(
+            T0 + t,
+            n,
+            0.0,
+            0.0,
+            False,
+            0,
+            0,
+            dt_s=dt[k],
+            inputs={c: log.extras[c][k] for c in names},
+        )
         if k % probe_every == 0:
-            m.record(T0 + t, elongation_um=float(log.elongation_um[k]), sigma_um=0.5, source="setter",
-                     sequence=k, outcome="accepted")
+            m.record(
+                T0 + t,
+                elongation_um=float(log.elongation_um[k]),
+                sigma_um=0.5,
+                source="setter",
+                sequence=k,
+                outcome="accepted",
+            )
     j.close()
     m.close()
 
@@ -349,18 +474,35 @@ def test_a_densely_measured_export_fits_like_the_run_log(real, tmp_path, capsys)
     out = tmp_path / "export.csv"
     export(namespace(journal_dir=str(tmp_path / "j"), output=str(out)))
     exported = read_run_log(out)
-    assert not exported.sparse and len(exported) == len(log) and "elongation_um" not in exported.metadata
+    assert (
+        not exported.sparse
+        and len(exported) == len(log)
+        and "elongation_um" not in exported.metadata
+    )
     same = tmp_path / "same.csv"  # the equivalent run log: the same numbers, on the same clock
-    write_run_log(same, {"time_s": log.time_s + T0, "speed_rpm": log.speed_rpm,
-                         "elongation_um": log.elongation_um, **log.extras})
+    write_run_log(
+        same,
+        {
+            "time_s": log.time_s + T0,
+            "speed_rpm": log.speed_rpm,
+            "elongation_um": log.elongation_um,
+            **log.extras,
+        },
+    )
     # three temperatures: the equivalence is the export's, not the many-input structures'
     names = sorted(log.extras)[:3]
     common = ("--inputs", ",".join(names), "--no-physical", "--no-nested")
     a = fit_json(capsys, out, *common, "--output", tmp_path / "a.json")
     b = fit_json(capsys, same, *common, "--output", tmp_path / "b.json")
-    assert a["chosen"] == b["chosen"] and a["chosen"].startswith("ridge+") and a["scored_by"] == b["scored_by"]
+    assert (
+        a["chosen"] == b["chosen"]
+        and a["chosen"].startswith("ridge+")
+        and a["scored_by"] == b["scored_by"]
+    )
     for ca, cb in zip(a["candidates"], b["candidates"]):
-        assert ca["name"] == cb["name"] and ca["cv_rms_um"] == pytest.approx(cb["cv_rms_um"], rel=1e-9)
+        assert ca["name"] == cb["name"] and ca["cv_rms_um"] == pytest.approx(
+            cb["cv_rms_um"], rel=1e-9
+        )
     ma, mb = load_any_model(tmp_path / "a.json"), load_any_model(tmp_path / "b.json")
     assert [c.name for c in ma.inputs] == [c.name for c in mb.inputs] == names
     np.testing.assert_allclose(ma.drive_um, mb.drive_um, rtol=1e-9)
@@ -378,13 +520,17 @@ def test_a_sparsely_measured_export_fits_on_its_measured_rows(real, tmp_path, ca
     rep = fit_json(capsys, out, "--output", tmp_path / "s.json")
     assert rep["scored_by"] == "leave-one-cycle-out (on the measured rows) free run"
     assert len(rep["folds"]) == 5 and rep["chosen"] in ("ridge", "exp-baseline")
-    assert any(w.startswith("sparse targets: fitted and scored on the 480 measured rows of 9600")
-               for w in rep["warnings"])
+    assert any(
+        w.startswith("sparse targets: fitted and scored on the 480 measured rows of 9600")
+        for w in rep["warnings"]
+    )
     dense = fit_json(capsys, real["ch1"], "--no-physical", "--output", tmp_path / "d.json")
     # fitted on one row in twenty, it predicts every row of the dense log about as well
     errs = {}
     for name in ("s", "d"):
-        pred = load_any_model(tmp_path / f"{name}.json").simulate_um(log.speed_rpm, log.time_s, None, None)
+        pred = load_any_model(tmp_path / f"{name}.json").simulate_um(
+            log.speed_rpm, log.time_s, None, None
+        )
         errs[name] = float(np.sqrt(np.mean((log.elongation_um - pred) ** 2)))
     assert errs["s"] < 1.25 * errs["d"], (errs, dense["chosen"])
     # what needs every row says so in one line
@@ -407,15 +553,22 @@ def test_one_identification_for_dense_and_sparse_logs(real):
     dense = identify(data, probe_target_um=None)
     assert [c.name for c in dense.candidates] == [e.name for e in REGISTRY if not e.needs_inputs]
     blank = np.where(np.arange(log.time_s.size) % 20 == 0, log.elongation_um, np.nan)
-    sparse = identify([LogData("ch1", log.time_s, log.speed_rpm, blank)])  # a plan asked for, not made
-    assert [c.name for c in sparse.candidates] == [e.name for e in REGISTRY
-                                                    if not (e.every_row or e.needs_inputs)]
+    sparse = identify(
+        [LogData("ch1", log.time_s, log.speed_rpm, blank)]
+    )  # a plan asked for, not made
+    assert [c.name for c in sparse.candidates] == [
+        e.name for e in REGISTRY if not (e.every_row or e.needs_inputs)
+    ]
     assert sparse.dataset.cycles == dense.dataset.cycles
     assert int(sparse.dataset.measured.sum()) == int(np.ceil(log.time_s.size / 20))
-    assert any("left out" in w for w in sparse.warnings) and not any("left out" in w for w in dense.warnings)
+    assert any("left out" in w for w in sparse.warnings) and not any(
+        "left out" in w for w in dense.warnings
+    )
     for c in sparse.candidates:
         d = next(x for x in dense.candidates if x.name == c.name)
-        assert math.isfinite(c.honest_rms_um) and c.honest_rms_um == pytest.approx(d.honest_rms_um, rel=0.25)
+        assert math.isfinite(c.honest_rms_um) and c.honest_rms_um == pytest.approx(
+            d.honest_rms_um, rel=0.25
+        )
     assert sparse.closed_loop is None
 
 
@@ -429,8 +582,17 @@ def test_blank_input_cells_hold_the_last_value_so_the_export_fits(tmp_path):
     t0 = 1_700_000_000.0
     temps = [None, 20.0, 20.5, None, None, 21.5, 22.0]
     for k, temp in enumerate(temps):
-        j.write(t0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0,
-                inputs={"temp_c": float("nan") if k == 4 else temp, "load_pct": 10.0 + k})
+        j.write(
+            t0 + k,
+            1000.0,
+            1.0,
+            -1.0,
+            True,
+            0,
+            0,
+            dt_s=1.0,
+            inputs={"temp_c": float("nan") if k == 4 else temp, "load_pct": 10.0 + k},
+        )
     j.close()
     done = export_journal(tmp_path / "j", tmp_path / "out.csv")
     assert done.filled_cells == 3

@@ -31,26 +31,43 @@ PERIOD_S = 30.0
 PROBE_EVERY_S = 1800.0
 OBSERVER = "enabled = true\ngate_sigma = 1000.0"  # every measurement fused: the refit judges them
 RULE = "[spindle.learning]\nmin_train = 16\nmin_holdout = 6"  # 12 h of shop: 24 measurements
-KW = {"period_s": PERIOD_S, "observer": OBSERVER,
-      "shaping": "max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0"}
+KW = {
+    "period_s": PERIOD_S,
+    "observer": OBSERVER,
+    "shaping": "max_offset_um = 80.0\nmax_rate_um_per_s = 2.0\ndeadband_um = 0.0",
+}
 
 
-def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bias_um=None, extra: str = "",
-         at_speed: bool = True) -> Bench:
+def shop(
+    tmp_path: Path,
+    model: Path,
+    hours: float,
+    *,
+    seed: int = 3,
+    setter_bias_um=None,
+    extra: str = "",
+    at_speed: bool = True,
+) -> Bench:
     """``hours`` of a job shop on the plant, the service compensating and journaling; the tool
     setter (a laser at the program's speed, or ``at_speed=False`` a contact one at rest) measures
     every 30 min (``setter_bias_um(t_s)`` added to what it reads: a faulty one)."""
     prog = with_probe_stops(job_shop_day(P.max_rpm, seed=seed, hours=hours), PROBE_EVERY_S)
 
     def make_vm(clock):
-        vm = VirtualMachine(SpindlePlant(P, seed=seed), prog, clock=clock, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=60.0, noise_um=0.3, seed=seed, at_speed=at_speed))
+        vm = VirtualMachine(
+            SpindlePlant(P, seed=seed),
+            prog,
+            clock=clock,
+            plant_dt_s=1.0,
+            tool_setter=ToolSetter(dwell_s=60.0, noise_um=0.3, seed=seed, at_speed=at_speed),
+        )
         if setter_bias_um is not None:
             finish = vm._finish_probe
 
             def biased() -> None:
                 finish()
                 vm.probe_value_um += setter_bias_um(vm.plant.time_s)
+
             vm._finish_probe = biased
         return vm
 
@@ -65,7 +82,9 @@ def shop(tmp_path: Path, model: Path, hours: float, *, seed: int = 3, setter_bia
 @pytest.fixture(scope="module")
 def good_model(tmp_path_factory) -> Path:
     """The wizard's model of this plant: fitted on its calibration and validation runs."""
-    fit = identify_runs([plant_run("calibration", 20.0, 1), plant_run("validation", 20.0, 2)], spindle_id="s1")
+    fit = identify_runs(
+        [plant_run("calibration", 20.0, 1), plant_run("validation", 20.0, 2)], spindle_id="s1"
+    )
     p = tmp_path_factory.mktemp("good") / "model.json"
     save_model(p, fit.model)
     return p
@@ -85,6 +104,7 @@ def refit(b: Bench, capsys, *extra: str) -> dict:
 
 # -- the rule ----------------------------------------------------------------------------------
 
+
 def test_the_promotion_rule_holds_back_unless_better_by_the_margin():
     rule = Rule(margin=0.10, observer_tolerance=0.05)
     live = Score(2.0, 1.0, 5.0)
@@ -98,7 +118,10 @@ def test_the_promotion_rule_holds_back_unless_better_by_the_margin():
 
 # -- production --------------------------------------------------------------------------------
 
-def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_path, simple_model, capsys):  # noqa: F811
+
+def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(
+    tmp_path, simple_model, capsys
+):  # noqa: F811
     """The live model (2 um per krpm, tau 100 s) is far from the plant: a day of production with a
     measurement every 30 min gives a candidate that misses less on the newest measurements, open
     loop and with the observer; it is promoted. Rolled back during the run, the offset walks back
@@ -113,7 +136,9 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert out["measurements"] >= 22 and out["holdout"] >= 6
     assert out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]
     new = load_any_model(model)
-    assert model_digest(new) != old_digest and new.spindle_id == old.spindle_id  # the same spindle's
+    assert (
+        model_digest(new) != old_digest and new.spindle_id == old.spindle_id
+    )  # the same spindle's
     history = ModelHistory.of(b.cfg.state_dir, "s1")
     events = [r.event for r in history.records()]
     assert events == ["in_use", "promoted"]
@@ -137,16 +162,22 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(tmp_pat
     assert abs(b.rt.estimate_um() - est_before) < 1e-9  # the state carried over
     rows = b.run(120)
     held = np.array([held_before] + [r["offset_um"] for r in rows])
-    assert np.max(np.abs(np.diff(held))) <= 2.0 * PERIOD_S + 1e-9  # never faster than the slew limit
+    assert (
+        np.max(np.abs(np.diff(held))) <= 2.0 * PERIOD_S + 1e-9
+    )  # never faster than the slew limit
     records = ModelHistory.of(b.cfg.state_dir, "s1").records()
-    assert [r.event for r in records] == ["in_use", "promoted", "rollback"] and records[-1].reason == "test"
+    assert [r.event for r in records] == ["in_use", "promoted", "rollback"] and records[
+        -1
+    ].reason == "test"
     capsys.readouterr()
     assert cli(["model", "history", "--config", str(b.cfg_path)]) == 0
     listing = capsys.readouterr().out
     assert listing.count("\n") == 4 and "* " in listing and "rollback" in listing
 
 
-def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouched(tmp_path, good_model, capsys):
+def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouched(
+    tmp_path, good_model, capsys
+):
     """A chip on the tool setter for the first 8 h reads 4 um too much; it is cleaned for the
     last hours, whose measurements judge. The candidate learned the chip: it misses more than the
     live model there, and is rejected; the model file is the same to the byte."""
@@ -160,7 +191,10 @@ def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouch
     assert model.read_bytes() == first
     records = ModelHistory.of(b.cfg.state_dir, "s1").records()
     assert [r.event for r in records] == ["in_use", "rejected"]
-    assert records[-1].reason and ModelHistory.of(b.cfg.state_dir, "s1").live().digest == records[0].digest
+    assert (
+        records[-1].reason
+        and ModelHistory.of(b.cfg.state_dir, "s1").live().digest == records[0].digest
+    )
 
 
 def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model, capsys):  # noqa: F811
@@ -215,7 +249,9 @@ def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, sim
     b.cfg_path = tmp_path / "machine.toml"
     out = refit(b, capsys)
     assert out["outcome"] == "rejected" and "taken at rest" in out["reason"], out
-    assert out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]  # better at rest
+    assert (
+        out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]
+    )  # better at rest
     assert model.read_bytes() == first
 
 
@@ -235,8 +271,12 @@ def test_measurements_taken_during_a_fault_are_left_out(tmp_path):
     from compensator.io import RunLog
 
     t = np.arange(6.0)
-    log = RunLog(t, np.zeros(6), np.array([1.0, np.nan, 2.0, 3.0, np.nan, 4.0]),
-                 extras={"alarms": np.array([0, 0, 8, 0, 64, 1 << 20], dtype=float)})
+    log = RunLog(
+        t,
+        np.zeros(6),
+        np.array([1.0, np.nan, 2.0, 3.0, np.nan, 4.0]),
+        extras={"alarms": np.array([0, 0, 8, 0, 64, 1 << 20], dtype=float)},
+    )
     rows, faulted = usable_measurements(log)
     # LINK_DOWN on row 2 leaves its measurement out; PROBE_FAILED (row 5) is no fault of the row
     assert rows.tolist() == [True, False, False, True, False, True] and faulted == 1

@@ -122,12 +122,20 @@ class LinuxCnc:
         ini = (directory / "thermocomp_sim.ini").read_text()
         ini = ini.replace("DISPLAY = axis", f"DISPLAY = linuxcncrsh --port {self.port}")
         (directory / "thermocomp_sim.ini").write_text(ini)
-        env = {"PATH": f"{linuxcnc_venv() / 'bin'}:/usr/bin:/bin", "HOME": str(directory),
-               "LANG": "C.UTF-8"}
-        self.proc = subprocess.Popen(as_user(["env", *(f"{k}={v}" for k, v in env.items()),
-                                              "linuxcnc", "thermocomp_sim.ini"]),
-                                     cwd=directory, stdout=open(directory / "linuxcnc.out", "w"),
-                                     stderr=subprocess.STDOUT, start_new_session=True)
+        env = {
+            "PATH": f"{linuxcnc_venv() / 'bin'}:/usr/bin:/bin",
+            "HOME": str(directory),
+            "LANG": "C.UTF-8",
+        }
+        self.proc = subprocess.Popen(
+            as_user(
+                ["env", *(f"{k}={v}" for k, v in env.items()), "linuxcnc", "thermocomp_sim.ini"]
+            ),
+            cwd=directory,
+            stdout=open(directory / "linuxcnc.out", "w"),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         end = time.monotonic() + 90
         while True:
             try:
@@ -148,8 +156,13 @@ class LinuxCnc:
 
     def getps(self, pins: tuple[str, ...]) -> list[float | bool]:
         """Several pins read by one halcmd, microseconds apart."""
-        r = subprocess.run(as_user(["halcmd", "-s", "-f"]), input="".join(f"getp {p}\n" for p in pins),
-                           capture_output=True, text=True, timeout=20)
+        r = subprocess.run(
+            as_user(["halcmd", "-s", "-f"]),
+            input="".join(f"getp {p}\n" for p in pins),
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
         assert r.returncode == 0, r.stderr
         values = r.stdout.split()
         assert len(values) == len(pins), r.stdout
@@ -186,7 +199,9 @@ def linuxcnc_rig(adapter_options: str, hal_lines: str = ""):
     directory = Path(tempfile.mkdtemp(prefix="thermocomp-linuxcnc-", dir="/tmp"))
     shutil.copytree(EXAMPLE, directory, dirs_exist_ok=True)
     toml = directory / "thermocomp.toml"
-    toml.write_text(toml.read_text().replace('axis_units = "mm"', 'axis_units = "mm"\n' + adapter_options))
+    toml.write_text(
+        toml.read_text().replace('axis_units = "mm"', 'axis_units = "mm"\n' + adapter_options)
+    )
     with open(directory / "thermocomp.hal", "a") as f:
         f.write(hal_lines)
     if os.geteuid() == 0:
@@ -204,7 +219,9 @@ def linuxcnc_rig(adapter_options: str, hal_lines: str = ""):
 
 @pytest.fixture
 def cnc():
-    with linuxcnc_rig('inputs = ["ambient_c"]') as rig:  # an extra input pin, as a model with inputs needs
+    with linuxcnc_rig(
+        'inputs = ["ambient_c"]'
+    ) as rig:  # an extra input pin, as a model with inputs needs
         yield rig
 
 
@@ -231,16 +248,31 @@ def sample(cnc: LinuxCnc, seconds: float, pins: tuple[str, ...]) -> np.ndarray:
 def journal(cnc: LinuxCnc):
     files = sorted((cnc.dir / "state" / "journal").glob("sim-mill-*.csv"))
     logs = [read_run_log(f) for f in files]
-    cat = {k: np.concatenate([getattr(lg, k) if k in ("time_s", "speed_rpm") else lg.extras[k] for lg in logs])
-           for k in ("time_s", "speed_rpm", "offset_um", "alarms", "written", "dt_s", "cutting",
-                     "cutting_source", "slew_limit_um_per_s")}
+    cat = {
+        k: np.concatenate(
+            [getattr(lg, k) if k in ("time_s", "speed_rpm") else lg.extras[k] for lg in logs]
+        )
+        for k in (
+            "time_s",
+            "speed_rpm",
+            "offset_um",
+            "alarms",
+            "written",
+            "dt_s",
+            "cutting",
+            "cutting_source",
+            "slew_limit_um_per_s",
+        )
+    }
     return cat
 
 
 def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     r = cnc.rsh
     assert cnc.getp("thermocomp.ready") is False  # in E-stop at start: nothing applied
-    subprocess.run(as_user(["halcmd", "setp", "thermocomp.input.ambient_c", "21.5"]), check=True, timeout=20)
+    subprocess.run(
+        as_user(["halcmd", "setp", "thermocomp.input.ambient_c", "21.5"]), check=True, timeout=20
+    )
     assert cnc.getp("thermocomp.input.ambient_c") == 21.5
     on_and_homed(cnc)
     r.set("mdi m3 s12000")
@@ -249,8 +281,14 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     cnc.wait(lambda: abs(cnc.getp("thermocomp.speed-in") * 60 - 12000) < 120)
     assert cnc.wait(lambda: cnc.getp("thermocomp.ready"))
     cnc.wait(lambda: cnc.getp("thermocomp-plant.growth-um") > 3.0, timeout=60)
-    pins = ("thermocomp.offset-um", "axis.z.eoffset", "axis.z.eoffset-request", "thermocomp-plant.growth-um",
-            "thermocomp-plant.tip-error-um", "thermocomp.eoffset-counts")
+    pins = (
+        "thermocomp.offset-um",
+        "axis.z.eoffset",
+        "axis.z.eoffset-request",
+        "thermocomp-plant.growth-um",
+        "thermocomp-plant.tip-error-um",
+        "thermocomp.eoffset-counts",
+    )
     data = sample(cnc, 6.0, pins)
     t, offset, eoffset, request, growth, tip, counts = data.T
     # axis.z.eoffset follows the model's offset: +Z by the growth (A = -S, offset_sign -1)
@@ -266,7 +304,9 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
 
     # machine off: counts to zero, the runtime told that the controller applies nothing
     r.set("machine off")
-    cnc.wait(lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0)
+    cnc.wait(
+        lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0
+    )
     time.sleep(1.0)
     assert cnc.getp("thermocomp.eoffset-counts") == 0
     # machine on again: LinuxCNC zeroes the offset; thermocomp re-seeds it from zero (through
@@ -290,7 +330,9 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
 
     # E-stop: the same
     r.set("estop on")
-    cnc.wait(lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0)
+    cnc.wait(
+        lambda: cnc.getp("thermocomp.ready") is False and cnc.getp("thermocomp.eoffset-counts") == 0
+    )
     r.set("estop off")
     r.set("machine on")
     assert cnc.wait(lambda: cnc.getp("thermocomp.ready"))
@@ -337,8 +379,14 @@ def test_linuxcnc_interpreter_accepts_the_wizards_programs(tmp_path):
     for prog in (calibration_profile(18000), validation_profile(18000, seed=4)):
         path = tmp_path / f"{prog.name}.ngc"
         path.write_text(to_nc(prog, "linuxcnc"))
-        r = subprocess.run(["rs274", "-g", str(path)], input="\n\n\n", capture_output=True, text=True,
-                           timeout=60, cwd=tmp_path)
+        r = subprocess.run(
+            ["rs274", "-g", str(path)],
+            input="\n\n\n",
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+        )
         assert r.returncode == 0, r.stdout[-2000:] + r.stderr
         canon = r.stdout
         dwell = sum(float(x) for x in re.findall(r"DWELL\(([\d.]+)\)", canon))
@@ -349,7 +397,9 @@ def test_linuxcnc_interpreter_accepts_the_wizards_programs(tmp_path):
         assert not re.search(r"STRAIGHT_(TRAVERSE|FEED)", canon)  # no axis moves
     bad = tmp_path / "bad.ngc"
     bad.write_text("%\nG1 X10 F100 Q\nM2\n%\n")
-    r = subprocess.run(["rs274", "-g", str(bad)], input="\n\n\n", capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        ["rs274", "-g", str(bad)], input="\n\n\n", capture_output=True, text=True, timeout=60
+    )
     assert r.returncode != 0
 
 
@@ -417,16 +467,23 @@ def run_in_hal(script: str, hal: str = "loadusr -w {python} {script}\n") -> dict
     directory = Path(tempfile.mkdtemp(prefix="thermocomp-hal-", dir="/tmp"))
     try:
         (directory / "run.py").write_text(script)
-        (directory / "run.hal").write_text(hal.format(python=linuxcnc_venv() / "bin" / "python",
-                                                      script=directory / "run.py"))
+        (directory / "run.hal").write_text(
+            hal.format(python=linuxcnc_venv() / "bin" / "python", script=directory / "run.py")
+        )
         if os.geteuid() == 0:
             shutil.chown(directory, USER)
             for f in directory.iterdir():
                 shutil.chown(f, USER)
         env = ["env", f"PYTHONPATH={ROOT}", f"HOME={directory}"]
         with hal_lock():
-            r = subprocess.run(as_user([*env, "halrun", "-f", str(directory / "run.hal")]), check=False,
-                               capture_output=True, text=True, timeout=120, cwd=directory)
+            r = subprocess.run(
+                as_user([*env, "halrun", "-f", str(directory / "run.hal")]),
+                check=False,
+                capture_output=True,
+                text=True,
+                timeout=120,
+                cwd=directory,
+            )
         lines = [x for x in r.stdout.splitlines() if x.startswith("@@ ")]
         assert lines, r.stdout[-2000:] + r.stderr[-2000:]
         return json.loads(lines[-1][3:])
@@ -443,17 +500,31 @@ def test_linuxcnc_measurement_pins_each_value_once_and_a_stale_one_ignored():
     assert re.match(r"BadValueError: linuxcnc: measurement nan \(sequence 9\)", out["nan"][0])
     assert out["nan"][1] is None  # refused once
     (value, sigma, seq), again, reconnects = out["after_reconnect"]
-    assert (value, sigma, seq, again, reconnects) == (pytest.approx(-2.0), pytest.approx(0.5), 10, None, 1)
-    assert re.match(r"BadValueError: linuxcnc: measurement sequence 10\.5 is not a whole number", out["fraction"])
+    assert (value, sigma, seq, again, reconnects) == (
+        pytest.approx(-2.0),
+        pytest.approx(0.5),
+        10,
+        None,
+        1,
+    )
+    assert re.match(
+        r"BadValueError: linuxcnc: measurement sequence 10\.5 is not a whole number",
+        out["fraction"],
+    )
     assert out["s32"] == [None, [6.5, None, -2]]
-    assert out["s32_pins"] == {"tc-meas-s32.measurement.value": 2, "tc-meas-s32.measurement.sequence": 3}
+    assert out["s32_pins"] == {
+        "tc-meas-s32.measurement.value": 2,
+        "tc-meas-s32.measurement.sequence": 3,
+    }
     assert out["none"] == [False, None, []]  # no measurement: no pins, nothing read
 
 
 def test_linuxcnc_a_probe_programs_m68_reaches_the_measurement_pins():
     # the documented wiring: motion's analog outputs netted to the component's pins
-    nets = ("net tc-meas     motion.analog-out-00 => thermocomp.measurement.value\n"
-            "net tc-meas-seq motion.analog-out-01 => thermocomp.measurement.sequence\n")
+    nets = (
+        "net tc-meas     motion.analog-out-00 => thermocomp.measurement.value\n"
+        "net tc-meas-seq motion.analog-out-01 => thermocomp.measurement.sequence\n"
+    )
     with linuxcnc_rig("measurement = true", nets) as cnc:
         pins = ("thermocomp.measurement.value", "thermocomp.measurement.sequence")
         assert cnc.getps(pins) == [0.0, 0.0]

@@ -26,8 +26,9 @@ THERMOCOMP = Path(sys.executable).parent / "thermocomp"  # .venv/bin/thermocomp
 
 def model() -> ThermalModel:
     # tau = 60 s / -ln(0.99) ~ 100 min; heats ~ 0.0100 um/krpm + 0.001 um/krpm^2 per step
-    return ThermalModel.from_discrete(0.99, (0.0, 0.01, 0.001, 0.0), 60.0,
-                                      speed_range_rpm=(0.0, 12000.0))
+    return ThermalModel.from_discrete(
+        0.99, (0.0, 0.01, 0.001, 0.0), 60.0, speed_range_rpm=(0.0, 12000.0)
+    )
 
 
 @pytest.fixture()
@@ -44,9 +45,13 @@ def write(tmp_path, text, name="log.csv"):
 
 
 def cli_replay(log, model_path):
-    return subprocess.run([str(THERMOCOMP), "replay", str(log), "--model", str(model_path),
-                           "--json"],
-                          capture_output=True, text=True, timeout=300, check=False)
+    return subprocess.run(
+        [str(THERMOCOMP), "replay", str(log), "--model", str(model_path), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
 
 
 def rows(times, speeds):
@@ -61,22 +66,43 @@ HEADER = "# spindle_id: sp1\ntime_s,speed_rpm\n"  # data row k is on line k + 3
 EPOCH_MS = 1_700_000_000_000.0  # 2023-11-14 in milliseconds
 
 BAD = {
-    "epoch_ms": (HEADER + rows(EPOCH_MS + 60_000 * np.arange(5), [0, 100, 100, 100, 0]),
-                 3, r"time_s looks like milliseconds \(.*\); divide by 1000"),
-    "epoch_us": (HEADER + rows(EPOCH_MS * 1e3 + 6e7 * np.arange(5), [0] * 5),
-                 3, r"time_s looks like microseconds .*divide by 1e6"),
-    "absurd_time": (HEADER + "0,0\n60,0\n1e21,0\n1e22,0\n", 5,
-                    r"time_s 1e\+21 s is beyond 1e\+11 s"),
-    "speed_1e12": (HEADER + "0,0\n60,3000\n120,1e12\n180,3000\n", 5,
-                   r"column speed_rpm: 1e\+12 rpm is beyond 1e\+06 rpm"),
+    "epoch_ms": (
+        HEADER + rows(EPOCH_MS + 60_000 * np.arange(5), [0, 100, 100, 100, 0]),
+        3,
+        r"time_s looks like milliseconds \(.*\); divide by 1000",
+    ),
+    "epoch_us": (
+        HEADER + rows(EPOCH_MS * 1e3 + 6e7 * np.arange(5), [0] * 5),
+        3,
+        r"time_s looks like microseconds .*divide by 1e6",
+    ),
+    "absurd_time": (
+        HEADER + "0,0\n60,0\n1e21,0\n1e22,0\n",
+        5,
+        r"time_s 1e\+21 s is beyond 1e\+11 s",
+    ),
+    "speed_1e12": (
+        HEADER + "0,0\n60,3000\n120,1e12\n180,3000\n",
+        5,
+        r"column speed_rpm: 1e\+12 rpm is beyond 1e\+06 rpm",
+    ),
     "negative_speed_1e12": (HEADER + "0,0\n60,-1e12\n", 4, r"speed_rpm: -1e\+12 rpm is beyond"),
-    "elongation_in_pm": ("time_s,speed_rpm,elongation_um\n0,0,0\n60,100,2e9\n", 3,
-                         r"column elongation_um: 2e\+09 um is beyond 1e\+06 um"),
+    "elongation_in_pm": (
+        "time_s,speed_rpm,elongation_um\n0,0,0\n60,100,2e9\n",
+        3,
+        r"column elongation_um: 2e\+09 um is beyond 1e\+06 um",
+    ),
     "nan_cell": (HEADER + "0,0\n60,3000\n120,nan\n", 5, r"column speed_rpm: 'nan' is not a finite"),
-    "time_steps_back": (HEADER + "0,0\n60,3000\n120,3000\n90,3000\n", 6,
-                        r"time does not increase \(90 s after 120 s\)"),
-    "time_ms_column": ("time_ms,speed_rpm\n0,0\n1000,100\n", 1,
-                       r"column time_ms: time must be in seconds.*divide by 1000"),
+    "time_steps_back": (
+        HEADER + "0,0\n60,3000\n120,3000\n90,3000\n",
+        6,
+        r"time does not increase \(90 s after 120 s\)",
+    ),
+    "time_ms_column": (
+        "time_ms,speed_rpm\n0,0\n1000,100\n",
+        1,
+        r"column time_ms: time must be in seconds.*divide by 1000",
+    ),
 }
 
 
@@ -131,20 +157,27 @@ def test_run_from_log_names_the_line_of_an_implausible_elongation(tmp_path):
     e = np.linspace(0, 20, 30)
     e[17] = 8000.0  # 8 mm: nm taken for um
     write_run_log(tmp_path / "cal.csv", {"time_s": t, "speed_rpm": n, "elongation_um": e})
-    with pytest.raises(CalibrationError,
-                       match=r"cal\.csv:19: elongation 8000 um is over 5 mm") as err:
+    with pytest.raises(
+        CalibrationError, match=r"cal\.csv:19: elongation 8000 um is over 5 mm"
+    ) as err:
         run_from_log(read_run_log(tmp_path / "cal.csv"))
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("col,value,match", [
-    ("speed_rpm", math.nan, r"row 7\): column speed_rpm: nan is not a finite"),
-    ("speed_rpm", 1e12, r"row 7\): column speed_rpm: 1e\+12 is beyond"),
-    ("time_s", 1.0, r"row 7\): time does not increase"),
-])
+@pytest.mark.parametrize(
+    "col,value,match",
+    [
+        ("speed_rpm", math.nan, r"row 7\): column speed_rpm: nan is not a finite"),
+        ("speed_rpm", 1e12, r"row 7\): column speed_rpm: 1e\+12 is beyond"),
+        ("time_s", 1.0, r"row 7\): time does not increase"),
+    ],
+)
 def test_run_from_log_checks_a_log_built_in_memory(col, value, match):
-    cols = {"time_s": np.arange(30) * 60.0, "speed_rpm": np.linspace(0, 6000, 30),
-            "elongation_um": np.linspace(0, 20, 30)}
+    cols = {
+        "time_s": np.arange(30) * 60.0,
+        "speed_rpm": np.linspace(0, 6000, 30),
+        "elongation_um": np.linspace(0, 20, 30),
+    }
     cols[col][7] = value
     log = RunLog(cols["time_s"], cols["speed_rpm"], cols["elongation_um"])
     with pytest.raises(CalibrationError, match=match):
@@ -152,6 +185,7 @@ def test_run_from_log_checks_a_log_built_in_memory(col, value, match):
 
 
 # -- gaps: integrated at the last logged speed ----------------------------------------------
+
 
 def test_bridge_gaps_holds_the_last_logged_speed_over_each_gap():
     t = np.array([0, 60, 120, 180, 180 + 10 * H, 180 + 10 * H + 60, 180 + 10 * H + 120])
@@ -196,8 +230,12 @@ def test_a_ten_hour_gap_cools_gives_finite_predictions_and_a_warning(tmp_path):
     assert np.isfinite(rep.predicted_um).all()
     assert rep.report["gaps"] == 1
     gap_warnings = [w for w in rep.report["warnings"] if "gap" in w]
-    assert gap_warnings == [(f"1 gap(s) of up to 10.0 h in the log (first ending at line {k + 2}): "
-                             "integrated at the last logged speed (a gap that begins at rest cools)")]
+    assert gap_warnings == [
+        (
+            f"1 gap(s) of up to 10.0 h in the log (first ending at line {k + 2}): "
+            "integrated at the last logged speed (a gap that begins at rest cools)"
+        )
+    ]
     np.testing.assert_array_equal(rep.speed_rpm, log.speed_rpm)  # the plot shows what was logged
     hot = rep.predicted_um[k - 2]
     assert hot > 1.0
@@ -218,6 +256,7 @@ def test_cli_replays_a_ten_hour_gap_with_a_warning(tmp_path, model_file):
 
 # -- replay output is finite ----------------------------------------------------------------
 
+
 def _numbers(obj):
     if isinstance(obj, dict):
         for v in obj.values():
@@ -236,8 +275,11 @@ def test_replay_output_is_finite_or_refused(tmp_path, seed):
     every number it returns is finite."""
     rng = np.random.default_rng(seed)
     size = int(rng.integers(2, 400))
-    dt = rng.choice([1e-3, 1.0, 60.0, 10 * H, 60 * 24 * H, 3e9], size=size - 1,
-                    p=[0.2, 0.4, 0.3, 0.06, 0.03, 0.01])
+    dt = rng.choice(
+        [1e-3, 1.0, 60.0, 10 * H, 60 * 24 * H, 3e9],
+        size=size - 1,
+        p=[0.2, 0.4, 0.3, 0.06, 0.03, 0.01],
+    )
     steps_s = dt * rng.uniform(0.5, 1.5, size - 1)
     t = rng.choice([0.0, 1.7e9]) + np.concatenate([[0.0], np.cumsum(steps_s)])
     top = rng.choice([12000.0, 3e5, MAX_SPEED_RPM])

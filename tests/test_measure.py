@@ -25,12 +25,21 @@ from thermocomp.runtime.control import SOCKET_NAME, send_measurement
 WALL0 = 1.7e9
 
 
-def write_config(directory: Path, model: Path, spindles=(("s1", True),), observer: str = "") -> Path:
+def write_config(
+    directory: Path, model: Path, spindles=(("s1", True),), observer: str = ""
+) -> Path:
     lines = [f'state_dir = "{directory / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0"]
     for name, enabled in spindles:
-        lines += ["[[spindle]]", f'name = "{name}"', f'model = "{model}"', "period_s = 1.0",
-                  'adapter = {url = "sim://?program="}', "[spindle.observer]",
-                  f"enabled = {str(enabled).lower()}", observer]
+        lines += [
+            "[[spindle]]",
+            f'name = "{name}"',
+            f'model = "{model}"',
+            "period_s = 1.0",
+            'adapter = {url = "sim://?program="}',
+            "[spindle.observer]",
+            f"enabled = {str(enabled).lower()}",
+            observer,
+        ]
     directory.mkdir(parents=True, exist_ok=True)
     p = directory / "machine.toml"
     p.write_text("\n".join(lines) + "\n")
@@ -91,7 +100,9 @@ def rig(tmp_path, model_file):
 
 
 def test_a_measurement_is_fused_at_the_next_cycle_and_answered(rig):
-    assert stat.S_IMODE(os.stat(rig.path).st_mode) == 0o600 and stat.S_ISSOCK(os.stat(rig.path).st_mode)
+    assert stat.S_IMODE(os.stat(rig.path).st_mode) == 0o600 and stat.S_ISSOCK(
+        os.stat(rig.path).st_mode
+    )
     answer = rig.ask(b'{"elongation_um": 2.5, "sigma_um": 0.4}\n')
     assert answer["ok"] and answer["spindle"] == "s1" and answer["outcome"] == "accepted"
     assert answer["innovation_um"] == pytest.approx(2.5) and answer["sigma_um"] == 0.4
@@ -105,17 +116,20 @@ def test_a_measurement_is_fused_at_the_next_cycle_and_answered(rig):
     assert "last measurement rejected" in rig.svc.status_text()
 
 
-@pytest.mark.parametrize("line,match", [
-    (b"12.5\n", "JSON object"),
-    (b"not json\n", "JSON object"),
-    (b'{"elongation_um": NaN}\n', "finite"),
-    (b'{"elongation_um": "12"}\n', "finite"),
-    (b'{"elongation_um": 1, "sigma_um": 0}\n', "sigma_um"),
-    (b'{"elongation_um": 1, "um": 2}\n', "unknown key 'um'"),
-    (b'{"elongation_um": 1, "spindle": "s9"}\n', "no spindle 's9'"),
-    (b'{"elongation_um": 1e6}\n', "not usable"),
-    (b"\xff\xfe\n", "JSON object"),
-])
+@pytest.mark.parametrize(
+    "line,match",
+    [
+        (b"12.5\n", "JSON object"),
+        (b"not json\n", "JSON object"),
+        (b'{"elongation_um": NaN}\n', "finite"),
+        (b'{"elongation_um": "12"}\n', "finite"),
+        (b'{"elongation_um": 1, "sigma_um": 0}\n', "sigma_um"),
+        (b'{"elongation_um": 1, "um": 2}\n', "unknown key 'um'"),
+        (b'{"elongation_um": 1, "spindle": "s9"}\n', "no spindle 's9'"),
+        (b'{"elongation_um": 1e6}\n', "not usable"),
+        (b"\xff\xfe\n", "JSON object"),
+    ],
+)
 def test_a_bad_request_is_answered_with_one_line_and_changes_nothing(rig, line, match):
     answer = rig.ask(line)
     assert answer["ok"] is False and match in answer["error"] and "\n" not in answer["error"]
@@ -166,8 +180,13 @@ def test_a_deep_state_directory_and_a_dead_instances_socket(tmp_path, model_file
     r = Rig(deep, model_file)
     try:
         out: list = []
-        r.serve(threading.Thread(target=lambda: out.append(
-            send_measurement(deep / "state", 1.5, 0.5, None, timeout_s=60))))
+        r.serve(
+            threading.Thread(
+                target=lambda: out.append(
+                    send_measurement(deep / "state", 1.5, 0.5, None, timeout_s=60)
+                )
+            )
+        )
         assert out[0]["outcome"] == "accepted" and out[0]["measured_um"] == 1.5
     finally:
         r.close()
@@ -199,23 +218,35 @@ def test_thermocomp_measure_end_to_end(tmp_path, model_file, capsys):
         text = "".join(p.read_text() for p in rows)
         assert ",3,0.5,control,,accepted," in text
         # rejected: exit 1, and a line for people
-        r.serve(threading.Thread(target=lambda: codes.append(
-            cli(["measure", "--um", "90", "--state-dir", str(tmp_path / "state")]))))
-        assert codes[-1] == 1 and capsys.readouterr().out.startswith("s1: rejected: measured 90.000 um")
+        r.serve(
+            threading.Thread(
+                target=lambda: codes.append(
+                    cli(["measure", "--um", "90", "--state-dir", str(tmp_path / "state")])
+                )
+            )
+        )
+        assert codes[-1] == 1 and capsys.readouterr().out.startswith(
+            "s1: rejected: measured 90.000 um"
+        )
     finally:
         r.close()
 
 
-@pytest.mark.parametrize("args,match", [
-    (["--um", "nan"], "--um must be a finite"),
-    (["--um", "1", "--sigma-um", "-1"], "--sigma-um must be"),
-    (["--um", "1", "--sigma-um", "inf"], "--sigma-um must be"),
-    (["--um", "1"], "no thermocomp service is running"),
-])
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        (["--um", "nan"], "--um must be a finite"),
+        (["--um", "1", "--sigma-um", "-1"], "--sigma-um must be"),
+        (["--um", "1", "--sigma-um", "inf"], "--sigma-um must be"),
+        (["--um", "1"], "no thermocomp service is running"),
+    ],
+)
 def test_thermocomp_measure_errors_are_one_line(tmp_path, capsys, args, match):
     code = cli(["measure", *args, "--state-dir", str(tmp_path)])
     err = capsys.readouterr().err
-    assert code == 2 and match in err and err.count("\n") == 1 and err.startswith("thermocomp: error:")
+    assert (
+        code == 2 and match in err and err.count("\n") == 1 and err.startswith("thermocomp: error:")
+    )
 
 
 def test_thermocomp_measure_with_a_bad_config_is_one_line(tmp_path, capsys):

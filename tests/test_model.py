@@ -70,7 +70,9 @@ def test_step_size_invariance_with_irregular_substeps(d0, d1, g, e, speeds, seed
     model = ThermalModel(
         fitted_dt_s=60.0,
         speed_range_rpm=(0.0, 27000.0),
-        states=(ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g)),),
+        states=(
+            ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g)),
+        ),
         elastic_um=tuple(e),
     )
     coarse, _ = loop(model, speeds, [60.0] * len(speeds))
@@ -193,7 +195,9 @@ def test_from_discrete_round_trips_paper_coefficients():
     assert model.step(model.state_at(s), 15000, 60).elongation_um == pytest.approx(expected)
 
 
-@pytest.mark.parametrize("a,err", [(1.0, UnstableModelError), (1.02, UnstableModelError), (-0.3, ModelError)])
+@pytest.mark.parametrize(
+    "a,err", [(1.0, UnstableModelError), (1.02, UnstableModelError), (-0.3, ModelError)]
+)
 def test_from_discrete_rejects_bad_poles(a, err):
     with pytest.raises(err):
         ThermalModel.from_discrete(a, (0, 1, 0, 0), 60.0, speed_range_rpm=(0, 27000))

@@ -20,26 +20,59 @@ from compensator.statespace import InputChannel, StateSpaceModel
 
 
 def speed_only() -> StateSpaceModel:
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0,),
-                           drive_um=((0.5, 0.05),), feedthrough_um=(0.1, 0.0), max_measured_um=40.0)
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0,),
+        drive_um=((0.5, 0.05),),
+        feedthrough_um=(0.1, 0.0),
+        max_measured_um=40.0,
+    )
 
 
 def state_space(*names: str) -> StateSpaceModel:
-    chans = tuple(InputChannel(name=n, unit="degC", reference=25.0, trained_range=(20.0, 30.0),
-                               valid_range=(10.0, 40.0)) for n in names)
+    chans = tuple(
+        InputChannel(
+            name=n,
+            unit="degC",
+            reference=25.0,
+            trained_range=(20.0, 30.0),
+            valid_range=(10.0, 40.0),
+        )
+        for n in names
+    )
     w = len(names)
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0,),
-                           drive_um=((0.5, 0.05) + (0.2,) * w,), feedthrough_um=(0.1, 0.0) + (0.0,) * w,
-                           max_measured_um=40.0, inputs=chans, fallback=speed_only())
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0,),
+        drive_um=((0.5, 0.05) + (0.2,) * w,),
+        feedthrough_um=(0.1, 0.0) + (0.0,) * w,
+        max_measured_um=40.0,
+        inputs=chans,
+        fallback=speed_only(),
+    )
 
 
 def augmented(*names: str) -> AugmentedModel:
-    terms = tuple(InputTerm(name=n, unit="degC", reference=25.0, gain_um_per_unit=0.5, tau_s=600.0,
-                            valid_range=(10.0, 40.0)) for n in names)
+    terms = tuple(
+        InputTerm(
+            name=n,
+            unit="degC",
+            reference=25.0,
+            gain_um_per_unit=0.5,
+            tau_s=600.0,
+            valid_range=(10.0, 40.0),
+        )
+        for n in names
+    )
     return AugmentedModel(speed_model=first_order(), inputs=terms, fallback=first_order())
 
 
-MODELS_WITH_INPUTS = {"state space": lambda: state_space("amb_c"), "augmented": lambda: augmented("amb_c")}
+MODELS_WITH_INPUTS = {
+    "state space": lambda: state_space("amb_c"),
+    "augmented": lambda: augmented("amb_c"),
+}
 
 
 @pytest.mark.parametrize("make", MODELS_WITH_INPUTS.values(), ids=MODELS_WITH_INPUTS.keys())
@@ -77,8 +110,11 @@ def test_check_inputs_over_plain_channels():
         Channel(name="a", unit="%", valid_range=(1.0, 0.0))
 
 
-@pytest.mark.parametrize("make", [lambda: state_space("a", "a"), lambda: augmented("a", "a")],
-                         ids=["state space", "augmented"])
+@pytest.mark.parametrize(
+    "make",
+    [lambda: state_space("a", "a"), lambda: augmented("a", "a")],
+    ids=["state space", "augmented"],
+)
 def test_an_input_twice_is_one_model_error(make):
     with pytest.raises(ModelError, match="an input appears twice"):
         make()
@@ -87,21 +123,35 @@ def test_an_input_twice_is_one_model_error(make):
 def test_every_model_shares_the_base_fields_and_fails_with_a_model_error():
     for model in (first_order(), state_space("amb_c"), augmented("amb_c")):
         assert isinstance(model, ModelBase)
-        assert (model.spindle_id, model.machine_id, model.fit, model.created_utc) == ("unknown", "", {}, None)
+        assert (model.spindle_id, model.machine_id, model.fit, model.created_utc) == (
+            "unknown",
+            "",
+            {},
+            None,
+        )
         changed = model.replace(spindle_id="sp-7")
         assert changed.spindle_id == "sp-7" and type(changed) is type(model)
         with pytest.raises(ModelError):
             type(model).model_validate({**model.model_dump(), "spindle_id": 7})
         with pytest.raises(ModelError):
             type(model)(**{**model.model_dump(), "unknown_field": 1})
-    bad_term = {"name": "amb_c", "unit": "degC", "reference": 0.0, "gain_um_per_unit": 1.0, "tau_s": 0.0,
-                "valid_range": [1.0]}
+    bad_term = {
+        "name": "amb_c",
+        "unit": "degC",
+        "reference": 0.0,
+        "gain_um_per_unit": 1.0,
+        "tau_s": 0.0,
+        "valid_range": [1.0],
+    }
     with pytest.raises(ModelError, match="inputs.0.valid_range"):
         AugmentedModel.model_validate({**augmented("amb_c").model_dump(), "inputs": [bad_term]})
 
 
-@pytest.mark.parametrize("model", [first_order(), state_space("amb_c"), augmented("amb_c")],
-                         ids=["speed only", "state space", "augmented"])
+@pytest.mark.parametrize(
+    "model",
+    [first_order(), state_space("amb_c"), augmented("amb_c")],
+    ids=["speed only", "state space", "augmented"],
+)
 def test_each_format_round_trips_through_its_file(model, tmp_path):
     save_model(tmp_path / "m.json", model)
     again = load_any_model(tmp_path / "m.json")
@@ -124,7 +174,10 @@ def test_speed_only_model_still_accepts_a_zero_top_speed_and_the_state_space_doe
 def test_the_old_homes_of_moved_names_still_serve_them():
     from compensator import filters, inputs, model, modelbase
 
-    assert model.saved_numbers is modelbase.saved_numbers and model.SAVED_LIMIT_UM == modelbase.SAVED_LIMIT_UM
+    assert (
+        model.saved_numbers is modelbase.saved_numbers
+        and model.SAVED_LIMIT_UM == modelbase.SAVED_LIMIT_UM
+    )
     assert inputs.first_order is filters.first_order
     with pytest.raises(ModelError, match="bool, not a number"):
         model.saved_numbers("x", [True])

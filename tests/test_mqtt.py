@@ -23,8 +23,10 @@ from thermocomp.runtime import Service
 from thermocomp.runtime.mqtt import RECONNECT_MAX_S
 
 MOSQUITTO = Path("/usr/sbin/mosquitto")
-pytestmark = pytest.mark.skipif(not MOSQUITTO.exists(), reason="mosquitto is not installed "
-                                "(apt-get install mosquitto; scripts/system-deps.sh does)")
+pytestmark = pytest.mark.skipif(
+    not MOSQUITTO.exists(),
+    reason="mosquitto is not installed (apt-get install mosquitto; scripts/system-deps.sh does)",
+)
 WALL0 = 1_700_000_000.0
 TOPIC = "shop/m1"
 
@@ -57,20 +59,38 @@ class Brokers:
         d = self.tmp_path / f"mosquitto-{port}-{len(self.procs)}"
         d.mkdir()
         # as root it would switch to the user `mosquitto`, which cannot read tmp_path
-        conf = [f"user {pwd.getpwuid(os.getuid()).pw_name}", f"listener {port} 127.0.0.1",
-                "persistence false", "log_dest stderr", "log_type all"]
+        conf = [
+            f"user {pwd.getpwuid(os.getuid()).pw_name}",
+            f"listener {port} 127.0.0.1",
+            "persistence false",
+            "log_dest stderr",
+            "log_type all",
+        ]
         if users:
             pw = d / "passwd"
             for i, (user, password) in enumerate(users.items()):
-                subprocess.run(["mosquitto_passwd", "-b", *(["-c"] if i == 0 else []), str(pw), user,
-                                password], check=True, capture_output=True)
+                subprocess.run(
+                    [
+                        "mosquitto_passwd",
+                        "-b",
+                        *(["-c"] if i == 0 else []),
+                        str(pw),
+                        user,
+                        password,
+                    ],
+                    check=True,
+                    capture_output=True,
+                )
             conf += ["allow_anonymous false", f"password_file {pw}"]
         else:
             conf.append("allow_anonymous true")
         (d / "mosquitto.conf").write_text("\n".join(conf) + "\n")
         self.log = d / "mosquitto.log"
-        proc = subprocess.Popen([str(MOSQUITTO), "-c", str(d / "mosquitto.conf")],
-                                stdout=subprocess.DEVNULL, stderr=self.log.open("w"))
+        proc = subprocess.Popen(
+            [str(MOSQUITTO), "-c", str(d / "mosquitto.conf")],
+            stdout=subprocess.DEVNULL,
+            stderr=self.log.open("w"),
+        )
         self.procs.append(proc)
 
         def listening() -> bool:
@@ -135,7 +155,9 @@ class Subscriber:
 
 def status_at(uptime_s: float, retained: bool | None = None):
     """A predicate: the status JSON of the tick at ``uptime_s`` (the fake clock)."""
-    return lambda p, r: json.loads(p)["uptime_s"] == uptime_s and (retained is None or r == retained)
+    return lambda p, r: (
+        json.loads(p)["uptime_s"] == uptime_s and (retained is None or r == retained)
+    )
 
 
 class FakeClock:
@@ -148,12 +170,14 @@ class FakeClock:
 
 def config(tmp_path: Path, model: Path, mqtt: str, top: str = "") -> Path:
     p = tmp_path / "machine.toml"
-    p.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n{top}\n'
-                 '[status]\nenabled = false\n'
-                 f'[mqtt]\ntopic = "{TOPIC}"\n{mqtt}\n'
-                 f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
-                 'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}\n'
-                 '[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n')
+    p.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n{top}\n'
+        "[status]\nenabled = false\n"
+        f'[mqtt]\ntopic = "{TOPIC}"\n{mqtt}\n'
+        f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}\n'
+        "[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n"
+    )
     return p
 
 
@@ -195,8 +219,11 @@ def mqtt_events(caplog, name: str) -> list[logging.LogRecord]:
 
 def test_retained_status_and_availability(tmp_path, calibrated_model, brokers, services):
     port = brokers.start()
-    svc, clock = services(config(tmp_path, calibrated_model,
-                                 f"host = \"127.0.0.1\"\nport = {port}\npublish_every_s = 10"))
+    svc, clock = services(
+        config(
+            tmp_path, calibrated_model, f'host = "127.0.0.1"\nport = {port}\npublish_every_s = 10'
+        )
+    )
     live = Subscriber(port)
     try:
         wait_for(lambda: svc.mqtt.connected, 10, "the service's connection")
@@ -206,13 +233,19 @@ def test_retained_status_and_availability(tmp_path, calibrated_model, brokers, s
         snap = svc.snapshot
         # and the spindle's message of the same publish: it follows the status, and a subscriber
         # that connects between the two would get the previous one as the retained message
-        live.wait("spindle/s1", lambda p, r: json.loads(p)["time_s"] == snap["spindles"][0]["time_s"])
+        live.wait(
+            "spindle/s1", lambda p, r: json.loads(p)["time_s"] == snap["spindles"][0]["time_s"]
+        )
         late = Subscriber(port)  # connects after the publish: retained messages only
         st = json.loads(late.wait("status", status_at(at, retained=True)))
         assert st == snap and st["spindles"][0]["name"] == "s1"
         assert st["spindles"][0]["elongation_um"] == snap["spindles"][0]["elongation_um"] > 0
-        sp = json.loads(late.wait("spindle/s1", lambda p, r: r and json.loads(p)["time_s"]
-                                  == snap["spindles"][0]["time_s"]))
+        sp = json.loads(
+            late.wait(
+                "spindle/s1",
+                lambda p, r: r and json.loads(p)["time_s"] == snap["spindles"][0]["time_s"],
+            )
+        )
         assert sp == snap["spindles"][0]
         assert late.wait("availability", lambda p, r: r) == "online"
         late.close()
@@ -229,12 +262,19 @@ def test_retained_status_and_availability(tmp_path, calibrated_model, brokers, s
 
 def test_last_will_when_the_service_is_killed(tmp_path, calibrated_model, brokers):
     port = brokers.start()
-    cfg = config(tmp_path, calibrated_model, f'host = "127.0.0.1"\nport = {port}\nkeepalive_s = 5',
-                 top=f'time_scale = 60.0\nlog_file = "{tmp_path / "log.jsonl"}"')
+    cfg = config(
+        tmp_path,
+        calibrated_model,
+        f'host = "127.0.0.1"\nport = {port}\nkeepalive_s = 5',
+        top=f'time_scale = 60.0\nlog_file = "{tmp_path / "log.jsonl"}"',
+    )
     sub = Subscriber(port)
-    proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     try:
         sub.wait("availability", lambda p, r: p == "online", timeout=60)
         st = json.loads(sub.wait("status", timeout=30))
@@ -249,14 +289,19 @@ def test_last_will_when_the_service_is_killed(tmp_path, calibrated_model, broker
             proc.wait()
         sub.close()
     lines = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
-    assert [x["event"] for x in lines if x.get("event", "").startswith("mqtt")] == ["mqtt_connected"]
+    assert [x["event"] for x in lines if x.get("event", "").startswith("mqtt")] == [
+        "mqtt_connected"
+    ]
 
 
 def test_broker_down_at_start_then_up(tmp_path, calibrated_model, brokers, services, caplog):
     caplog.set_level(logging.INFO, logger="thermocomp.runtime")
     port = free_port()  # nobody listens yet
-    svc, clock = services(config(tmp_path, calibrated_model,
-                                 f"host = \"127.0.0.1\"\nport = {port}\npublish_every_s = 10"))
+    svc, clock = services(
+        config(
+            tmp_path, calibrated_model, f'host = "127.0.0.1"\nport = {port}\npublish_every_s = 10'
+        )
+    )
     wait_for(lambda: mqtt_events(caplog, "mqtt_lost"), 10, "the mqtt_lost event")
     run_for(svc, clock, 1800)
     rt = svc.spindles["s1"]
@@ -311,9 +356,14 @@ def test_username_and_password(tmp_path, calibrated_model, brokers, services, ca
     (tmp_path / "good").mkdir()
     pw = tmp_path / "mqtt.pass"
     pw.write_text("right-pass\n")
-    good, gclock = services(config(tmp_path / "good", calibrated_model,
-                                   f'host = "127.0.0.1"\nport = {port}\nusername = "thermo"\n'
-                                   f'password_file = "{pw}"\nclient_id = "good"'))
+    good, gclock = services(
+        config(
+            tmp_path / "good",
+            calibrated_model,
+            f'host = "127.0.0.1"\nport = {port}\nusername = "thermo"\n'
+            f'password_file = "{pw}"\nclient_id = "good"',
+        )
+    )
     try:
         wait_for(lambda: good.mqtt.connected, 10, "the connection with the right password")
         at = tick_until_published(good, gclock)
@@ -325,13 +375,20 @@ def test_username_and_password(tmp_path, calibrated_model, brokers, services, ca
         monkeypatch.setenv("THERMOCOMP_MQTT_PASSWORD", "wrong-pass")
         (tmp_path / "bad").mkdir()
         caplog.clear()
-        bad, clock = services(config(tmp_path / "bad", calibrated_model,
-                                     f'host = "127.0.0.1"\nport = {port}\nusername = "thermo"\n'
-                                     'client_id = "bad"'))
+        bad, clock = services(
+            config(
+                tmp_path / "bad",
+                calibrated_model,
+                f'host = "127.0.0.1"\nport = {port}\nusername = "thermo"\nclient_id = "bad"',
+            )
+        )
         run_for(bad, clock, 600)
         # paho retries after 1 s, then 2 s: three refusals at the broker
-        wait_for(lambda: brokers.log.read_text().count("not authorised") >= 3, 15,
-                 "three refused attempts")
+        wait_for(
+            lambda: brokers.log.read_text().count("not authorised") >= 3,
+            15,
+            "three refused attempts",
+        )
         run_for(bad, clock, 600)
         assert bad.spindles["s1"].counters["cycles"] >= 1100
         assert bad.spindles["s1"].counters["writes"] > 10
@@ -345,8 +402,11 @@ def test_username_and_password(tmp_path, calibrated_model, brokers, services, ca
 
 def test_an_alarm_change_is_published_at_once(tmp_path, calibrated_model, brokers, services):
     port = brokers.start()
-    svc, clock = services(config(tmp_path, calibrated_model,
-                                 f"host = \"127.0.0.1\"\nport = {port}\npublish_every_s = 600"))
+    svc, clock = services(
+        config(
+            tmp_path, calibrated_model, f'host = "127.0.0.1"\nport = {port}\npublish_every_s = 600'
+        )
+    )
     sub = Subscriber(port)
     try:
         wait_for(lambda: svc.mqtt.connected, 10, "the service's connection")
@@ -360,7 +420,9 @@ def test_an_alarm_change_is_published_at_once(tmp_path, calibrated_model, broker
         assert at <= 181  # the next tick, not 600 s after the last publish
         st = json.loads(sub.wait("status", status_at(at)))
         assert st["spindles"][0]["alarms"] == ["RELOAD_FAILED"] and st["reload_failed"] is True
-        sp = json.loads(sub.wait("spindle/s1", lambda p, r: "RELOAD_FAILED" in json.loads(p)["alarms"]))
+        sp = json.loads(
+            sub.wait("spindle/s1", lambda p, r: "RELOAD_FAILED" in json.loads(p)["alarms"])
+        )
         assert sp["alarm_bits"] == st["spindles"][0]["alarm_bits"]
     finally:
         sub.close()

@@ -24,8 +24,16 @@ def make_cert(directory: Path, name: str, uri: str, server: bool) -> tuple[str, 
 
     key, cert = directory / f"{name}-key.pem", directory / f"{name}-cert.der"
     use = [ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]
-    asyncio.run(setup_self_signed_certificate(key, cert, uri, socket.gethostname(), use,
-                                              {"commonName": name, "organizationName": "thermocomp tests"}))
+    asyncio.run(
+        setup_self_signed_certificate(
+            key,
+            cert,
+            uri,
+            socket.gethostname(),
+            use,
+            {"commonName": name, "organizationName": "thermocomp tests"},
+        )
+    )
     return str(cert), str(key)
 
 
@@ -41,23 +49,40 @@ def pki(tmp_path_factory):
     untrusted = d / "untrusted"
     untrusted.mkdir()
     shutil.copy(other[0], untrusted / "impostor.der")
-    return {"server": server, "client": client, "trust": str(trust), "untrusted": str(untrusted), "dir": d}
+    return {
+        "server": server,
+        "client": client,
+        "trust": str(trust),
+        "untrusted": str(untrusted),
+        "dir": d,
+    }
 
 
 @pytest.fixture
 def secure_cnc(pki):
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
     vm.override_speed(15000.0)
-    cnc = VirtualCNC(vm, certificate=pki["server"][0], private_key=pki["server"][1],
-                     users={"operator": "s3cret-pw"})
+    cnc = VirtualCNC(
+        vm,
+        certificate=pki["server"][0],
+        private_key=pki["server"][1],
+        users={"operator": "s3cret-pw"},
+    )
     with running(cnc):
         yield cnc, vm
 
 
 def secure_link(cnc, pki, mode="SignAndEncrypt", trust=None, **kw):
-    return OpcUaAdapter(cnc.url, preset="virtual-cnc", security=f"Basic256Sha256,{mode}",
-                        certificate=pki["client"][0], private_key=pki["client"][1],
-                        trust_dir=trust or pki["trust"], timeout_s=5, **kw)
+    return OpcUaAdapter(
+        cnc.url,
+        preset="virtual-cnc",
+        security=f"Basic256Sha256,{mode}",
+        certificate=pki["client"][0],
+        private_key=pki["client"][1],
+        trust_dir=trust or pki["trust"],
+        timeout_s=5,
+        **kw,
+    )
 
 
 @pytest.mark.parametrize("mode", ["Sign", "SignAndEncrypt"])
@@ -116,10 +141,18 @@ def test_server_outside_the_trust_list_is_refused(secure_cnc, pki, monkeypatch):
 
 def test_secure_configuration_is_checked():
     with pytest.raises(AdapterError, match="trust_dir"):
-        OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", security="Basic256Sha256,SignAndEncrypt")
+        OpcUaAdapter(
+            "opc.tcp://127.0.0.1:1", preset="virtual-cnc", security="Basic256Sha256,SignAndEncrypt"
+        )
     with pytest.raises(AdapterError, match="security"):
-        OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", security="Basic128Rsa15,Sign",
-                     certificate="c", private_key="k", trust_dir="t")
+        OpcUaAdapter(
+            "opc.tcp://127.0.0.1:1",
+            preset="virtual-cnc",
+            security="Basic128Rsa15,Sign",
+            certificate="c",
+            private_key="k",
+            trust_dir="t",
+        )
     with pytest.raises(TypeError):
         OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", password="plain")  # type: ignore[call-arg]
 
@@ -147,11 +180,15 @@ def test_password_from_a_systemd_credential(secure_cnc, pki, monkeypatch, tmp_pa
 
 def test_a_credential_without_systemd_is_one_clear_line(monkeypatch, tmp_path):
     monkeypatch.delenv("CREDENTIALS_DIRECTORY", raising=False)
-    link = OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", password_credential="opcua-pw")
+    link = OpcUaAdapter(
+        "opc.tcp://127.0.0.1:1", preset="virtual-cnc", password_credential="opcua-pw"
+    )
     with pytest.raises(AdapterError) as info:
         link.read_speed()
     text = str(info.value)
-    assert "CREDENTIALS_DIRECTORY" in text and "LoadCredential=opcua-pw" in text and "\n" not in text
+    assert (
+        "CREDENTIALS_DIRECTORY" in text and "LoadCredential=opcua-pw" in text and "\n" not in text
+    )
     monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(tmp_path))  # but no such credential in it
     link._next_attempt = float("-inf")  # past the back-off
     with pytest.raises(AdapterError, match="cannot read credential 'opcua-pw'"):
@@ -202,10 +239,14 @@ def test_user_information_in_a_url_is_redacted_from_messages():
             open_adapter(target)
         assert secret not in chain(info.value)
     with pytest.raises(ConfigError) as info:
-        open_adapter({"type": "opcua", "url": f"http://someone:{secret}@host:1", "preset": "virtual-cnc"})
+        open_adapter(
+            {"type": "opcua", "url": f"http://someone:{secret}@host:1", "preset": "virtual-cnc"}
+        )
     assert secret not in chain(info.value) and "***@host" in str(info.value)
     # a user name alone is allowed in the URL, but not repeated in messages either
-    link = OpcUaAdapter(f"opc.tcp://someone@127.0.0.1:{free_port()}/x", preset="virtual-cnc", timeout_s=2)
+    link = OpcUaAdapter(
+        f"opc.tcp://someone@127.0.0.1:{free_port()}/x", preset="virtual-cnc", timeout_s=2
+    )
     with pytest.raises(UnreachableError) as info:
         link.read_speed()
     assert "someone" not in str(info.value) and "://***@127.0.0.1" in str(info.value)

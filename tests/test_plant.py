@@ -38,7 +38,9 @@ def test_elastic_jump_is_instantaneous():
     assert before - plant.true_elongation_um() == pytest.approx(expected, rel=0.01)
 
 
-@pytest.mark.parametrize("name,fast_min,slow_min", [("motorized-27k", 1.0, 10), ("mechanical-8k", 10, 90)])
+@pytest.mark.parametrize(
+    "name,fast_min,slow_min", [("motorized-27k", 1.0, 10), ("mechanical-8k", 10, 90)]
+)
 def test_time_constants(name, fast_min, slow_min):
     p = preset(name)
     taus = sorted(-1 / np.linalg.eigvals(_system(p, p.max_rpm / 1000)[0]).real / 60)
@@ -49,7 +51,10 @@ def test_time_constants(name, fast_min, slow_min):
 
 def test_mechanical_preset_is_slow_and_large():
     p = preset("mechanical-8k")
-    plant = SpindlePlant(p, seed=0, ).with_params(ambient_daily_amplitude_k=0, ambient_walk_k_per_sqrt_h=0)
+    plant = SpindlePlant(
+        p,
+        seed=0,
+    ).with_params(ambient_daily_amplitude_k=0, ambient_walk_k_per_sqrt_h=0)
     plant.advance(8000, 3600)
     one_hour = plant.true_elongation_um()
     plant.advance(8000, 5 * 3600)
@@ -86,7 +91,8 @@ def _chiller_run(dt_s):
     """3000 rpm with the chiller set point stepped 16 -> 11 -> 19 degC."""
     # still air: the ambient walk draws one number per step, which no step size can share
     plant = SpindlePlant(preset("mechanical-cooled"), seed=3).with_params(
-        ambient_walk_k_per_sqrt_h=0.0, ambient_daily_amplitude_k=0.0)
+        ambient_walk_k_per_sqrt_h=0.0, ambient_daily_amplitude_k=0.0
+    )
     t = np.arange(0.0, 4 * 3600 + dt_s / 2, dt_s)
     sp = np.where(t <= 3600, 16.0, np.where(t <= 7200, 11.0, 19.0))
     return t, plant.run(t, np.full(t.size, 3000.0), sp)
@@ -98,7 +104,9 @@ def test_the_chiller_lags_ramps_and_the_step_is_exact_at_any_dt():
     at = lambda t, x, s: x[np.searchsorted(t, s)]  # noqa: E731
     for s in (1800.0, 3660.0, 3600 + 300.0, 7200.0 + 600.0, 14400.0):
         # same trajectory at the shared instants, however the set point ramp falls in a step
-        assert at(t1, fine.temps_c[:, 2], s) == pytest.approx(at(t60, coarse.temps_c[:, 2], s), abs=1e-6)
+        assert at(t1, fine.temps_c[:, 2], s) == pytest.approx(
+            at(t60, coarse.temps_c[:, 2], s), abs=1e-6
+        )
         assert at(t1, fine.supply_c, s) == pytest.approx(at(t60, coarse.supply_c, s), abs=1e-6)
     p = preset("mechanical-cooled")
     rate = np.diff(fine.supply_c) / np.diff(t1)
@@ -106,7 +114,11 @@ def test_the_chiller_lags_ramps_and_the_step_is_exact_at_any_dt():
     assert np.max(np.abs(rate)) <= p.chiller_rate_k_per_min / 60 + 1e-9
     # one lag after the 5 K ramp has ended (5 min), the outlet is within 1/e of the rest
     k = np.searchsorted(t1, 3600 + 300 + p.chiller_lag_s)
-    assert 11.0 < fine.supply_c[k] < 11.0 + 5.0 * (1 - np.exp(-300 / p.chiller_lag_s)) * np.exp(-1) + 0.5
+    assert (
+        11.0
+        < fine.supply_c[k]
+        < 11.0 + 5.0 * (1 - np.exp(-300 / p.chiller_lag_s)) * np.exp(-1) + 0.5
+    )
     # colder coolant shrinks the spindle; warmer grows it
     assert at(t1, fine.true_um, 7200) < at(t1, fine.true_um, 3600) + 1.0
     assert at(t1, fine.true_um, 14400) > at(t1, fine.true_um, 7200) + 3.0

@@ -21,8 +21,14 @@ from calibration.runs import Run
 from compensator.errors import CalibrationError
 from compensator.io import RunLog, save_model, write_run_log
 from compensator.model import ThermalModel
-from compensator.plausibility import (NOT_FOLLOWING_LIMIT, NOT_FOLLOWING_RULE, RULE,
-                                      not_following_refusal, steady_growth_refusal, steady_growth_um)
+from compensator.plausibility import (
+    NOT_FOLLOWING_LIMIT,
+    NOT_FOLLOWING_RULE,
+    RULE,
+    not_following_refusal,
+    steady_growth_refusal,
+    steady_growth_um,
+)
 from compensator.statespace import InputChannel, StateSpaceModel
 from thermocomp.cli import main
 
@@ -30,22 +36,49 @@ ROOT = Path(__file__).resolve().parents[1]
 FIT = dict(nested=False, physical=False, probe_target_um=None, spindle_id="t")
 
 
-def speed_only(n_um: float, n2_um: float, *, top_rpm: float = 10000.0, measured_um: float = 40.0,
-               fit: dict | None = None) -> StateSpaceModel:
+def speed_only(
+    n_um: float,
+    n2_um: float,
+    *,
+    top_rpm: float = 10000.0,
+    measured_um: float = 40.0,
+    fit: dict | None = None,
+) -> StateSpaceModel:
     """A one-state model whose steady growth is g(n) = n_um * n + n2_um * n**2 (n in krpm)."""
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, top_rpm), taus_s=(600.0,),
-                           drive_um=((n_um, n2_um),), feedthrough_um=(0.0, 0.0), offset_um=1.5,
-                           max_measured_um=measured_um, spindle_id="sp-A", fit=fit or {})
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, top_rpm),
+        taus_s=(600.0,),
+        drive_um=((n_um, n2_um),),
+        feedthrough_um=(0.0, 0.0),
+        offset_um=1.5,
+        max_measured_um=measured_um,
+        spindle_id="sp-A",
+        fit=fit or {},
+    )
 
 
 def with_inputs(fallback: StateSpaceModel, fit: dict | None = None) -> StateSpaceModel:
     """A model with one temperature, its speed part growing with speed, over ``fallback``."""
-    temp = InputChannel(name="temp1_c", unit="degC", reference=25.0, trained_range=(20.0, 30.0),
-                        valid_range=(10.0, 40.0))
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0,),
-                           drive_um=((2.0, 0.1, 1.0),), feedthrough_um=(0.0, 0.0, 0.0),
-                           max_measured_um=40.0, inputs=(temp,), fallback=fallback, spindle_id="sp-A",
-                           fit=fit or {})
+    temp = InputChannel(
+        name="temp1_c",
+        unit="degC",
+        reference=25.0,
+        trained_range=(20.0, 30.0),
+        valid_range=(10.0, 40.0),
+    )
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0,),
+        drive_um=((2.0, 0.1, 1.0),),
+        feedthrough_um=(0.0, 0.0, 0.0),
+        max_measured_um=40.0,
+        inputs=(temp,),
+        fallback=fallback,
+        spindle_id="sp-A",
+        fit=fit or {},
+    )
 
 
 GROWING = (2.6, 0.25)  # 0 .. 51 um over 0 .. 10 krpm
@@ -65,15 +98,39 @@ def test_a_model_growing_with_speed_passes_either_way_it_is_asked():
     assert g == pytest.approx([0.0, 19.25, 51.0])  # relative to rest: the offset drops out
 
 
-@pytest.mark.parametrize("gains, words", [
-    (BELOW_ZERO, ["-4.50 um at 3000 rpm", "runs against the measured growth direction +1",
-                  "tolerance 2.00 um"]),
-    (NOT_MONOTONIC, ["falls 5.00 um as speed rises", "+20.00 um at 6700 rpm", "+15.00 um at 10000 rpm",
-                     "tolerance 2.00 um"]),
-    (FLAT, ["only +0.20 um at the top speed 10000 rpm", "tolerance 0.50 um",
-            "measured up to 40.00 um"]),
-])
-def test_growth_below_zero_not_monotonic_or_flat_is_refused_in_one_line_with_its_numbers(gains, words):
+@pytest.mark.parametrize(
+    "gains, words",
+    [
+        (
+            BELOW_ZERO,
+            [
+                "-4.50 um at 3000 rpm",
+                "runs against the measured growth direction +1",
+                "tolerance 2.00 um",
+            ],
+        ),
+        (
+            NOT_MONOTONIC,
+            [
+                "falls 5.00 um as speed rises",
+                "+20.00 um at 6700 rpm",
+                "+15.00 um at 10000 rpm",
+                "tolerance 2.00 um",
+            ],
+        ),
+        (
+            FLAT,
+            [
+                "only +0.20 um at the top speed 10000 rpm",
+                "tolerance 0.50 um",
+                "measured up to 40.00 um",
+            ],
+        ),
+    ],
+)
+def test_growth_below_zero_not_monotonic_or_flat_is_refused_in_one_line_with_its_numbers(
+    gains, words
+):
     why = steady_growth_refusal(speed_only(*gains), 1)
     assert why is not None and "\n" not in why and len(why) < 250  # one line the CLI prints whole
     for w in words:
@@ -85,7 +142,9 @@ def test_a_flat_model_passes_when_the_calibration_measured_no_more():
     assert steady_growth_refusal(speed_only(*FLAT, measured_um=2.0), 1) is None
     assert steady_growth_refusal(speed_only(*FLAT), 1, measured_um=2.0) is None
     # a speed-only ThermalModel has no measured figure of its own: the fit hands it in
-    flat = ThermalModel.from_discrete(0.99, (0.0, 0.0001, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 10000.0))
+    flat = ThermalModel.from_discrete(
+        0.99, (0.0, 0.0001, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 10000.0)
+    )
     assert steady_growth_refusal(flat, 1) is None
     assert "does not grow with speed" in steady_growth_refusal(flat, 1, measured_um=30.0)
 
@@ -96,8 +155,12 @@ def test_a_log_measuring_growth_negative_passes_with_its_direction_and_is_refuse
     assert steady_growth_refusal(ch3_like) is None  # its own direction
     why = steady_growth_refusal(ch3_like, 1)
     assert why is not None and "-51.00 um at 10000 rpm" in why and "direction +1" in why
-    thermal = ThermalModel.from_discrete(0.99, (0.0, -0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 27000.0))
-    assert steady_growth_refusal(thermal, -1) is None and steady_growth_refusal(thermal, 1) is not None
+    thermal = ThermalModel.from_discrete(
+        0.99, (0.0, -0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 27000.0)
+    )
+    assert (
+        steady_growth_refusal(thermal, -1) is None and steady_growth_refusal(thermal, 1) is not None
+    )
 
 
 def test_below_the_top_speed_the_shape_is_judged_within_the_models_held_out_error():
@@ -154,7 +217,9 @@ def test_fit_refuses_a_direction_the_model_runs_against_and_takes_the_datas_own(
     msg = str(err.value)
     # every speed-only candidate is refused for it, so none is left to choose
     assert msg.startswith("no speed-only candidate passed the checks: ")
-    assert "exp-baseline: physics: " in msg and "runs against the measured growth direction -1" in msg
+    assert (
+        "exp-baseline: physics: " in msg and "runs against the measured growth direction -1" in msg
+    )
     assert "\n" not in msg
     # the same run measured the other way (a sensor facing the spindle): fits, direction -1
     flipped = Run("flipped", plant_cal.time_s, plant_cal.speed_rpm, -plant_cal.elongation_um)
@@ -207,22 +272,36 @@ def job_shop_log(path: Path, share: float) -> Path:
     run = plant_run("jobshop", 60.0, 3)
     flags = np.zeros(run.time_s.size, dtype=int)
     flags[: int(round(share * flags.size))] = int(Problem.NOT_FOLLOWING)
-    write_run_log(path, {"time_s": run.time_s, "speed_rpm": run.speed_rpm, "elongation_um": run.elongation_um,
-                         "flags": flags}, {"run": "calibration", "columns": f"flags: {PROBLEM_FLAGS}"})
+    write_run_log(
+        path,
+        {
+            "time_s": run.time_s,
+            "speed_rpm": run.speed_rpm,
+            "elongation_um": run.elongation_um,
+            "flags": flags,
+        },
+        {"run": "calibration", "columns": f"flags: {PROBLEM_FLAGS}"},
+    )
     return path
 
 
 def test_the_fit_command_refuses_it_in_one_line_and_writes_no_model(tmp_path):
     log = job_shop_log(tmp_path / "calibration.csv", 0.9)
     out = tmp_path / "model.json"
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "fit", str(log), "--out", str(out)],
-                       capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "fit", str(log), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert r.returncode != 0 and r.stdout == ""
     assert r.stderr.count("\n") == 1
     rows = plant_run("jobshop", 60.0, 3).time_s.size
     flagged = int(round(0.9 * rows))
-    assert r.stderr.startswith(f"thermocomp: error: calibration refused: {flagged / rows:.1%} of the "
-                               "calibration rows did not follow the program's speed (NOT_FOLLOWING)")
+    assert r.stderr.startswith(
+        f"thermocomp: error: calibration refused: {flagged / rows:.1%} of the "
+        "calibration rows did not follow the program's speed (NOT_FOLLOWING)"
+    )
     assert r.stderr.endswith(f"({flagged} of {rows} rows)\n") and len(r.stderr) < 300
     assert not out.exists()
 

@@ -37,12 +37,17 @@ TOP_RPM = 0.7 * P.max_rpm  # calibrated up to here; the day runs faster at times
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory) -> Path:
     logs = []
-    for prog, seed in ((paper_calibration(TOP_RPM), 1), (random_validation(TOP_RPM, seed=2, hold_min=(10, 30)), 2)):
+    for prog, seed in (
+        (paper_calibration(TOP_RPM), 1),
+        (random_validation(TOP_RPM, seed=2, hold_min=(10, 30)), 2),
+    ):
         t, n = prog.sample(20.0)
         plant = SpindlePlant(P, seed=seed)
         r = plant.run(t, n)
         ch = plant.sensor_channels(r)
-        logs.append(LogData(f"{prog.name}-{seed}", t, n, r.measured_um, {k: ch[k] for k in SENSORS}))
+        logs.append(
+            LogData(f"{prog.name}-{seed}", t, n, r.measured_um, {k: ch[k] for k in SENSORS})
+        )
     model = inputs_model(fit_data(logs, SENSORS, spindle_id="sim", nested=False, physical=False))
     assert model.input_names and model.fallback is not None
     path = tmp_path_factory.mktemp("model") / "model.json"
@@ -52,7 +57,7 @@ def model_path(tmp_path_factory) -> Path:
 
 def write_config(tmp_path: Path, model: Path, save_every_s: float) -> Path:
     path = tmp_path / "machine.toml"
-    path.write_text(f"""state_dir = "{tmp_path / 'state'}"
+    path.write_text(f"""state_dir = "{tmp_path / "state"}"
 watchdog = false
 journal_fsync_s = 3600.0
 [[spindle]]
@@ -76,15 +81,28 @@ sigma_um = 0.5
     return path
 
 
-def test_replay_of_a_service_journal_reproduces_its_estimate_and_offset_step_for_step(tmp_path, model_path):
+def test_replay_of_a_service_journal_reproduces_its_estimate_and_offset_step_for_step(
+    tmp_path, model_path
+):
     clock = {"t": 0.0}
-    vm = VirtualMachine(SpindlePlant(P, seed=5), job_shop_day(P.max_rpm, seed=3, hours=3),
-                        clock=lambda: clock["t"], tool_setter=ToolSetter(dwell_s=20.0, seed=4))
+    vm = VirtualMachine(
+        SpindlePlant(P, seed=5),
+        job_shop_day(P.max_rpm, seed=3, hours=3),
+        clock=lambda: clock["t"],
+        tool_setter=ToolSetter(dwell_s=20.0, seed=4),
+    )
     cfg = load_config(write_config(tmp_path, model_path, 600.0))
 
     def start(previous=None) -> SpindleRuntime:
-        return SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: clock["t"],
-                              wall=lambda: WALL0 + clock["t"], adapter=SimAdapter(machine=vm), previous=previous)
+        return SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: clock["t"],
+            wall=lambda: WALL0 + clock["t"],
+            adapter=SimAdapter(machine=vm),
+            previous=previous,
+        )
 
     rt = start()
     alarms = Alarm.NONE
@@ -117,20 +135,31 @@ def test_replay_of_a_service_journal_reproduces_its_estimate_and_offset_step_for
     (journal,) = sorted(journal_dir.glob("s1-*.csv"))
     (measurements,) = sorted(journal_dir.glob("s1.measurements-*.csv"))
     log = read_run_log(journal)
-    outcomes = [line.split(",")[5] for line in measurements.read_text().splitlines()
-                if line and not line.startswith(("#", "time_s"))]
+    outcomes = [
+        line.split(",")[5]
+        for line in measurements.read_text().splitlines()
+        if line and not line.startswith(("#", "time_s"))
+    ]
     assert outcomes.count("accepted") >= 4 and len(outcomes) >= 7, outcomes
 
     model = load_any_model(model_path)
     probes = probes_from_file(log, str(measurements), 0.5)
-    rep = replay(model, log, shaping=cfg.spindle[0].shaping, probes=probes,
-                 estimate=cfg.spindle[0].estimate(model), compare=False)
+    rep = replay(
+        model,
+        log,
+        shaping=cfg.spindle[0].shaping,
+        probes=probes,
+        estimate=cfg.spindle[0].estimate(model),
+        compare=False,
+    )
     service_estimate = np.asarray(log.extras["predicted_um"], dtype=float)
     service_offset = np.asarray(log.extras["offset_um"], dtype=float)
     assert len(rep.predicted_um) == 3 * 3600
     np.testing.assert_allclose(rep.predicted_um, service_estimate, rtol=0, atol=1e-6)
     np.testing.assert_allclose(rep.applied_offset_um, service_offset, rtol=0, atol=1e-6)
-    assert rep.report["probes"] == len(outcomes) and rep.report["probes_rejected"] == outcomes.count("rejected")
+    assert rep.report["probes"] == len(outcomes) and rep.report[
+        "probes_rejected"
+    ] == outcomes.count("rejected")
     assert any("fallback stands in" in w for w in rep.report["warnings"])
     # the service journals the speed it stepped with: clamped to the calibrated top, the alarm beside it
     over = (np.asarray(log.extras["alarms"], dtype=int) & int(Alarm.OVER_RANGE)) != 0
@@ -146,16 +175,22 @@ def test_the_vectorised_replay_is_the_cycle_by_cycle_estimate(calibrated_model):
     model = load_any_model(calibrated_model)
     top = model.speed_range_rpm[1]
     rng = np.random.default_rng(1)
-    steps = tuple((float(d), float(f) * top) for d, f in zip(rng.uniform(120, 900, 24), rng.uniform(0, 1.3, 24)))
+    steps = tuple(
+        (float(d), float(f) * top)
+        for d, f in zip(rng.uniform(120, 900, 24), rng.uniform(0, 1.3, 24))
+    )
     t, n = Program("over-range", steps + ((1800.0, 0.0),)).sample(1.0)
     t = np.cumsum(rng.uniform(0.5, 1.5, t.size))  # a clock that wanders
-    t[t.size // 2:] += 1800.0  # and a gap
+    t[t.size // 2 :] += 1800.0  # and a gap
     for policy in ("clamp", "extrapolate"):
         est = Estimate(model, over_range=policy)
         fast = est.simulate_um(n, t, 3.0)
         series = est.run(est.begin(3.0, float(n[0])), t, n)
         np.testing.assert_allclose(series.estimate_um, fast, rtol=0, atol=1e-9)
-        assert series.over_range.any() and (series.over_range == (np.abs(n) > top * (1 + RANGE_TOLERANCE))).all()
+        assert (
+            series.over_range.any()
+            and (series.over_range == (np.abs(n) > top * (1 + RANGE_TOLERANCE))).all()
+        )
         clamped = np.abs(series.speed_rpm).max()
         limit = top * (1 + RANGE_TOLERANCE)
         assert (clamped <= limit) if policy == "clamp" else (clamped > limit)

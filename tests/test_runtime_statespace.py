@@ -23,30 +23,70 @@ SPEED = 5000.0
 
 
 def speed_only(**kw) -> StateSpaceModel:
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0, 5400.0),
-                           drive_um=((0.5, 0.05), (2.0, 0.2)), feedthrough_um=(0.1, 0.0),
-                           offset_um=0.0, max_measured_um=40.0, **kw)
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0, 5400.0),
+        drive_um=((0.5, 0.05), (2.0, 0.2)),
+        feedthrough_um=(0.1, 0.0),
+        offset_um=0.0,
+        max_measured_um=40.0,
+        **kw,
+    )
 
 
 def with_inputs(spindle_id: str = "sp-A") -> StateSpaceModel:
-    temp = InputChannel(name="temp1_c", unit="degC", reference=25.0, trained_range=(20.0, 30.0),
-                        valid_range=(10.0, 40.0))
-    return StateSpaceModel(fitted_dt_s=15, speed_range_rpm=(0, 10000), taus_s=(600.0, 5400.0),
-                           drive_um=((0.5, 0.05, 0.2), (2.0, 0.2, 0.3)), feedthrough_um=(0.1, 0.0, 0.05),
-                           offset_um=0.5, max_measured_um=40.0, inputs=(temp,),
-                           fallback=speed_only(spindle_id=spindle_id), spindle_id=spindle_id)
+    temp = InputChannel(
+        name="temp1_c",
+        unit="degC",
+        reference=25.0,
+        trained_range=(20.0, 30.0),
+        valid_range=(10.0, 40.0),
+    )
+    return StateSpaceModel(
+        fitted_dt_s=15,
+        speed_range_rpm=(0, 10000),
+        taus_s=(600.0, 5400.0),
+        drive_um=((0.5, 0.05, 0.2), (2.0, 0.2, 0.3)),
+        feedthrough_um=(0.1, 0.0, 0.05),
+        offset_um=0.5,
+        max_measured_um=40.0,
+        inputs=(temp,),
+        fallback=speed_only(spindle_id=spindle_id),
+        spindle_id=spindle_id,
+    )
 
 
-def write_config(tmp_path: Path, model: Path, extra: str = "", adapter: str = 'url = "sim://"') -> Path:
+def write_config(
+    tmp_path: Path, model: Path, extra: str = "", adapter: str = 'url = "sim://"'
+) -> Path:
     p = tmp_path / "machine.toml"
-    p.write_text("\n".join([
-        f'state_dir = "{tmp_path / "state"}"', "watchdog = false",
-        "[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0",
-        "state_save_every_s = 10.0", extra, f"adapter = {{{adapter}}}",
-        "[spindle.shaping]", "max_offset_um = 40.0", "max_rate_um_per_s = 2.0", "deadband_um = 0.0",
-        "[spindle.shaping.transient]", "enabled = false",
-        # constant test inputs must not go stale
-        "[spindle.faults]", "input_stale_s = 86400.0", "input_recover_s = 5.0"]) + "\n")
+    p.write_text(
+        "\n".join(
+            [
+                f'state_dir = "{tmp_path / "state"}"',
+                "watchdog = false",
+                "[[spindle]]",
+                'name = "s1"',
+                f'model = "{model}"',
+                "period_s = 1.0",
+                "state_save_every_s = 10.0",
+                extra,
+                f"adapter = {{{adapter}}}",
+                "[spindle.shaping]",
+                "max_offset_um = 40.0",
+                "max_rate_um_per_s = 2.0",
+                "deadband_um = 0.0",
+                "[spindle.shaping.transient]",
+                "enabled = false",
+                # constant test inputs must not go stale
+                "[spindle.faults]",
+                "input_stale_s = 86400.0",
+                "input_recover_s = 5.0",
+            ]
+        )
+        + "\n"
+    )
     return p
 
 
@@ -70,7 +110,9 @@ class Bench:
         self.model_path = tmp_path / "model.json"
         save_model(self.model_path, model)
         self.cfg = load_config(write_config(tmp_path, self.model_path, extra))
-        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock)
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock
+        )
         self.vm.override_speed(SPEED)
         self.inputs = {"temp1_c": 27.0}
         self.rt = self.start()
@@ -83,8 +125,14 @@ class Bench:
 
     def start(self) -> SpindleRuntime:
         sc = self.cfg.spindle[0]
-        return SpindleRuntime(sc, self.cfg.state_dir, self.cfg.journal_path, clock=self.clock,
-                              wall=self.wall, adapter=InputSim(self.vm, self.inputs))
+        return SpindleRuntime(
+            sc,
+            self.cfg.state_dir,
+            self.cfg.journal_path,
+            clock=self.clock,
+            wall=self.wall,
+            adapter=InputSim(self.vm, self.inputs),
+        )
 
     def run(self, cycles: int) -> list[dict]:
         out = []
@@ -170,7 +218,11 @@ def test_a_corrupt_saved_input_state_means_a_cold_start(tmp_path):
     b.run(30)
     b.rt.close()
     body = load_state(b.rt.state_path)
-    body["input_state"] = {"states_um": [1.0], "residual_um": 0.0, "static_um": 0.0}  # one state of two
+    body["input_state"] = {
+        "states_um": [1.0],
+        "residual_um": 0.0,
+        "static_um": 0.0,
+    }  # one state of two
     body.pop("format")
     save_state(b.rt.state_path, body)
     b.rt = b.start()
@@ -202,7 +254,9 @@ def test_an_input_outside_the_trained_range_alarms_once_per_entry(tmp_path, capl
     b.rt.close()
     journal = read_run_log(min((tmp_path / "state" / "journal").glob("s1-*.csv")))
     assert Alarm.INPUTS_EXTRAPOLATED == 131072
-    assert int(((journal.extras["alarms"].astype(int) & 131072) != 0).sum()) == 21  # 20 at 35, 1 at 19
+    assert (
+        int(((journal.extras["alarms"].astype(int) & 131072) != 0).sum()) == 21
+    )  # 20 at 35, 1 at 19
 
 
 def test_after_an_input_fault_the_model_with_inputs_continues_from_the_fallback(tmp_path):
@@ -212,10 +266,15 @@ def test_after_an_input_fault_the_model_with_inputs_continues_from_the_fallback(
     assert b.run(1)[0]["alarms"] & Alarm.INPUT_FALLBACK
     b.inputs["temp1_c"] = 27.0
     rows = b.run(6)  # input_recover_s = 5
-    assert rows[3]["alarms"] & Alarm.INPUT_FALLBACK and not rows[-1]["alarms"] & Alarm.INPUT_FALLBACK
+    assert (
+        rows[3]["alarms"] & Alarm.INPUT_FALLBACK and not rows[-1]["alarms"] & Alarm.INPUT_FALLBACK
+    )
     # the fallback's elongation at the switch, not the input model's equilibrium
     assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um, abs=1e-9)
-    assert abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
+    assert (
+        abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs))
+        > 1.0
+    )
     b.rt.close()
 
 
@@ -228,7 +287,10 @@ def test_inputs_faulty_at_a_cold_start_then_good_continue_from_the_fallback(tmp_
     assert not rows[-1]["alarms"] & Alarm.INPUT_FALLBACK
     # the fallback has been running: its estimate is the runtime's own now, not nothing
     assert rows[-1]["predicted_um"] == pytest.approx(b.rt.state.elongation_um, abs=1e-9)
-    assert abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs)) > 1.0
+    assert (
+        abs(rows[-1]["predicted_um"] - b.rt.estimate.with_inputs.steady_state_um(SPEED, b.inputs))
+        > 1.0
+    )
     b.rt.close()
 
 
@@ -237,16 +299,21 @@ def test_a_model_for_another_spindle_is_refused(tmp_path):
     save_model(model, with_inputs("sp-A"))
     cfg = load_config(write_config(tmp_path, model, 'spindle_id = "sp-B"'))
     with pytest.raises(ConfigError) as err:
-        SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: 0.0,
-                       wall=lambda: WALL0)
+        SpindleRuntime(
+            cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: 0.0, wall=lambda: WALL0
+        )
     msg = str(err.value)
-    assert msg == f"spindle \"s1\": spindle_id = 'sp-B': the model file {model} is for spindle 'sp-A'"
+    assert (
+        msg == f"spindle \"s1\": spindle_id = 'sp-B': the model file {model} is for spindle 'sp-A'"
+    )
     assert "\n" not in msg
     # a model that names no spindle does not prove it is this one's
     unnamed = tmp_path / "unnamed.json"
     save_model(unnamed, speed_only())
     cfg = load_config(write_config(tmp_path, unnamed, 'spindle_id = "sp-B"'))
-    with pytest.raises(ConfigError, match="spindle_id = 'sp-B': the model file .* is for spindle 'unknown'"):
+    with pytest.raises(
+        ConfigError, match="spindle_id = 'sp-B': the model file .* is for spindle 'unknown'"
+    ):
         Service(tmp_path / "machine.toml", clock=lambda: 0.0, wall=lambda: WALL0, lock=False)
 
 

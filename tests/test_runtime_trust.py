@@ -41,11 +41,22 @@ def model_file(tmp_path_factory):
 def config(tmp_path: Path, model: Path, faults: str = "", **top) -> Path:
     lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false"]
     lines += [f"{k} = {json.dumps(v)}" for k, v in top.items()]
-    lines += ["[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0",
-              "state_save_every_s = 10.0", 'adapter = {url = "sim://"}',
-              "[spindle.shaping]", f"max_offset_um = {CLAMP}", f"max_rate_um_per_s = {RATE}",
-              "deadband_um = 0.0", "[spindle.shaping.transient]", "enabled = false",
-              "[spindle.faults]", faults]
+    lines += [
+        "[[spindle]]",
+        'name = "s1"',
+        f'model = "{model}"',
+        "period_s = 1.0",
+        "state_save_every_s = 10.0",
+        'adapter = {url = "sim://"}',
+        "[spindle.shaping]",
+        f"max_offset_um = {CLAMP}",
+        f"max_rate_um_per_s = {RATE}",
+        "deadband_um = 0.0",
+        "[spindle.shaping.transient]",
+        "enabled = false",
+        "[spindle.faults]",
+        faults,
+    ]
     p = tmp_path / "machine.toml"
     p.write_text("\n".join(lines) + "\n")
     return p
@@ -58,11 +69,19 @@ class Bench:
         self.t = 0.0
         self.wall_offset = wall0
         self.cfg = load_config(config(tmp_path, model, faults, **top))
-        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock)
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=1), None, clock=self.clock
+        )
         self.vm.override_speed(10000.0)
         sc = self.cfg.spindle[0]
-        self.rt = SpindleRuntime(sc, self.cfg.state_dir, self.cfg.journal_path, clock=self.clock,
-                                 wall=self.wall, adapter=SimAdapter(machine=self.vm))
+        self.rt = SpindleRuntime(
+            sc,
+            self.cfg.state_dir,
+            self.cfg.journal_path,
+            clock=self.clock,
+            wall=self.wall,
+            adapter=SimAdapter(machine=self.vm),
+        )
         self.rows: list[dict] = []
 
     def clock(self) -> float:
@@ -123,7 +142,7 @@ def test_an_outside_write_beyond_the_clamp_is_never_written_back(tmp_path, model
     (k,) = [i for i, r in enumerate(rows) if r["alarms"] & Alarm.OFFSET_MISMATCH]
     assert rows[k]["written"] and off[k] == CLAMP  # the clamp in the cycle that saw it
     assert np.all(np.abs(off) <= CLAMP)
-    assert np.all(np.diff(off[k:k + 60]) <= 0)  # then only ever towards the model
+    assert np.all(np.diff(off[k : k + 60]) <= 0)  # then only ever towards the model
     assert (off[k:] > -CLAMP).sum() > 20  # at the slew limit, not in a jump
     assert_slew(b.rows[1:], {99 + k: CLAMP})
     assert b.vm.offset_um == pytest.approx(-b.rows[-1]["predicted_um"], abs=1e-9)
@@ -191,9 +210,16 @@ def test_a_state_that_cannot_be_saved_alarms_escalates_and_recovers(tmp_path, mo
     assert path.is_file()
 
 
-@pytest.mark.parametrize("text", ['{"format": "thermocomp.state/1", "thermal_um": [NaN]}',
-                                  "[" * 100000 + "]" * 100000, "{", '{"format": "thermocomp.state/1"}',
-                                  "\x00\xff garbage"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"format": "thermocomp.state/1", "thermal_um": [NaN]}',
+        "[" * 100000 + "]" * 100000,
+        "{",
+        '{"format": "thermocomp.state/1"}',
+        "\x00\xff garbage",
+    ],
+)
 def test_a_corrupt_state_file_is_kept_aside_and_means_a_cold_start(tmp_path, model_file, text):
     b = Bench(tmp_path, model_file)
     b.run(3)
@@ -234,16 +260,23 @@ def test_one_instance_per_state_directory(tmp_path):
         pass
 
 
-@pytest.mark.parametrize(("extra", "match"), [
-    ("period_s = inf", "period_s"),
-    ("period_s = nan", "period_s"),
-    ("state_save_every_s = 1e400", "state_save_every_s"),
-])
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        ("period_s = inf", "period_s"),
+        ("period_s = nan", "period_s"),
+        ("state_save_every_s = 1e400", "state_save_every_s"),
+    ],
+)
 def test_config_values_are_finite_and_bounded(tmp_path, model_file, extra, match):
     p = config(tmp_path, model_file)
     key = extra.split(" =")[0]
-    p.write_text("\n".join(extra if line.startswith(f"{key} =") else line
-                           for line in p.read_text().splitlines()) + "\n")
+    p.write_text(
+        "\n".join(
+            extra if line.startswith(f"{key} =") else line for line in p.read_text().splitlines()
+        )
+        + "\n"
+    )
     with pytest.raises(ConfigError, match=match) as exc:
         load_config(p)
     assert "\n" not in str(exc.value)
@@ -253,7 +286,9 @@ def test_time_scale_inf_and_a_password_in_the_url_are_refused(tmp_path, model_fi
     with pytest.raises(ConfigError, match="time_scale"):
         load_config(config(tmp_path, model_file, time_scale=1e309))
     p = config(tmp_path, model_file)
-    p.write_text(p.read_text().replace('url = "sim://"', 'url = "opc.tcp://op:Hunter2@127.0.0.1:4840"'))
+    p.write_text(
+        p.read_text().replace('url = "sim://"', 'url = "opc.tcp://op:Hunter2@127.0.0.1:4840"')
+    )
     with pytest.raises(ConfigError, match="password_file") as exc:
         load_config(p)
     assert "Hunter2" not in str(exc.value)
@@ -261,7 +296,9 @@ def test_time_scale_inf_and_a_password_in_the_url_are_refused(tmp_path, model_fi
 
 def test_events_are_json_lines_with_their_fields_and_short_messages():
     fmt = JsonLines()
-    rec = logging.LogRecord("thermocomp.runtime", logging.ERROR, __file__, 1, "x" * 100000, None, None)
+    rec = logging.LogRecord(
+        "thermocomp.runtime", logging.ERROR, __file__, 1, "x" * 100000, None, None
+    )
     rec.event, rec.spindle, rec.fields = "outage", "s1", {"down_s": 12.5, "error": "e" * 5000}
     out = json.loads(fmt.format(rec))
     assert out["event"] == "outage" and out["spindle"] == "s1" and out["down_s"] == 12.5

@@ -34,9 +34,18 @@ def model_file(calibrated_model):
 def write_config(tmp_path: Path, model: Path, adapter: str, **extra) -> Path:
     lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false"]
     lines += [f"{k} = {json.dumps(v)}" for k, v in extra.pop("top", {}).items()]
-    lines += ["[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0",
-              f"state_save_every_s = {extra.pop('save_every', 5.0)}", adapter,
-              "[spindle.shaping]", "max_offset_um = 40.0", "max_rate_um_per_s = 2.0", "deadband_um = 0.1"]
+    lines += [
+        "[[spindle]]",
+        'name = "s1"',
+        f'model = "{model}"',
+        "period_s = 1.0",
+        f"state_save_every_s = {extra.pop('save_every', 5.0)}",
+        adapter,
+        "[spindle.shaping]",
+        "max_offset_um = 40.0",
+        "max_rate_um_per_s = 2.0",
+        "deadband_um = 0.1",
+    ]
     p = tmp_path / "machine.toml"
     p.write_text("\n".join(lines) + "\n")
     return p
@@ -48,12 +57,18 @@ def test_example_configuration_is_valid():
     assert cfg.spindle[0].shaping.transient.mode == "dual-slew"
 
 
-@pytest.mark.parametrize("text,match", [
-    ('state_dir = "x"\nbogus = 1\n[[spindle]]\nname="a"\nmodel="m"\nadapter={url="sim://"}\n', "bogus"),
-    ('[[spindle]]\nname="a"\nmodel="m"\nadapter={type="opcua", password="x"}\n', "password"),
-    ('[[spindle]]\nname="a b"\nmodel="m"\nadapter={url="sim://"}\n', "name"),
-    ("[[spindle\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        (
+            'state_dir = "x"\nbogus = 1\n[[spindle]]\nname="a"\nmodel="m"\nadapter={url="sim://"}\n',
+            "bogus",
+        ),
+        ('[[spindle]]\nname="a"\nmodel="m"\nadapter={type="opcua", password="x"}\n', "password"),
+        ('[[spindle]]\nname="a b"\nmodel="m"\nadapter={url="sim://"}\n', "name"),
+        ("[[spindle\n", "not valid TOML"),
+    ],
+)
 def test_bad_configuration_is_one_line(tmp_path, text, match):
     p = tmp_path / "c.toml"
     p.write_text(text)
@@ -75,9 +90,12 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
     p = preset("motorized-27k")
     vm = VirtualMachine(SpindlePlant(p, seed=31), None, clock=clock)
     port = free_port()
-    cfg = write_config(tmp_path, model_file,
-                       f'adapter = {{url = "opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", '
-                       'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}')
+    cfg = write_config(
+        tmp_path,
+        model_file,
+        f'adapter = {{url = "opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", '
+        'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}',
+    )
     cnc = VirtualCNC(vm, port=port, tick_s=None)
     with running(cnc):
         step(cnc)
@@ -107,7 +125,9 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
 
 def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     # from 23:30 UTC: the journal rotates at midnight, half an hour in
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=1.0, wall0=1700006400.0 - 1800)
+    vm, svc, journal = run_service_against_vcnc(
+        tmp_path, model_file, hours=1.0, wall0=1700006400.0 - 1800
+    )
     h = vm.history()
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
@@ -128,15 +148,30 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     state = load_state(tmp_path / "state" / "s1.state.json")
     assert state is not None and state["spindle"] == "s1"
     # `thermocomp replay` reads the journal directly
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "replay", "--model", str(model_file),
-                        str(journal[1]), "--json"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "replay",
+            "--model",
+            str(model_file),
+            str(journal[1]),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["samples"] == len(logs[1])
 
 
 @pytest.mark.parametrize("outage_s", [20.0, 600.0])
 def test_outage_of_the_controller(tmp_path, model_file, outage_s):
-    vm, svc, journal = run_service_against_vcnc(tmp_path, model_file, hours=0.5, outage=(600, outage_s))
+    vm, svc, journal = run_service_against_vcnc(
+        tmp_path, model_file, hours=0.5, outage=(600, outage_s)
+    )
     assert len(journal) == 1
     log = read_run_log(journal[0])
     alarms = log.extras["alarms"].astype(int)
@@ -180,8 +215,14 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
 
     cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
     sc = cfg.spindle[0]
-    a = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
-                       adapter=SimAdapter(machine=vm))
+    a = SpindleRuntime(
+        sc,
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: 1e9 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     assert a.alarms & Alarm.COLD_START
     for _ in range(1800):
         t["now"] += 1.0
@@ -193,16 +234,28 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
     for _ in range(7200):
         ref = a.estimate.core.step(ref, 0.0, 1.0)
     t["now"] += 7200.0
-    b = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
-                       adapter=SimAdapter(machine=vm))
+    b = SpindleRuntime(
+        sc,
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: 1e9 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     assert not b.alarms & Alarm.COLD_START
     assert abs(b.state.elongation_um - ref.elongation_um) < 1e-6
     assert saved.elongation_um - b.state.elongation_um > 1.0  # it did cool
     b.close()
     # too old: cold start, and said so
     t["now"] += 3 * 86400.0
-    c = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + t["now"],
-                       adapter=SimAdapter(machine=vm))
+    c = SpindleRuntime(
+        sc,
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: 1e9 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     assert c.alarms & Alarm.COLD_START and c.est == c.estimate.cold()
     c.close()
 
@@ -211,22 +264,31 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
     """24 hard kills at random moments: every restart finds a valid state file, and the
     restored elongation is within 0.5 um of what the killed run computed in its last or, killed
     between a row and its save, its last but one cycle."""
-    cfg = write_config(tmp_path, model_file,
-                       'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}',
-                       save_every=0.5, top={"time_scale": 300.0})
+    cfg = write_config(
+        tmp_path,
+        model_file,
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}',
+        save_every=0.5,
+        top={"time_scale": 300.0},
+    )
     rng = random.Random(7)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     state_path = tmp_path / "state" / "s1.state.json"
     checked = progressed = 0
     last_saved = None
     for i in range(24):
-        proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=env,
+        )
         if i % 6 != 5:  # most kills land while it cycles and saves; every sixth during start-up
             before = state_path.stat().st_mtime_ns if state_path.exists() else 0
             end = time.monotonic() + 60
             while time.monotonic() < end and (
-                    not state_path.exists() or state_path.stat().st_mtime_ns == before):
+                not state_path.exists() or state_path.stat().st_mtime_ns == before
+            ):
                 time.sleep(0.01)
         time.sleep(rng.uniform(0.0, 0.3))
         proc.send_signal(signal.SIGKILL)
@@ -236,8 +298,9 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
         progressed += state["saved_wall_s"] != last_saved
         last_saved = state["saved_wall_s"]
         # newest part: under time_scale each restart's time starts behind the last run's
-        journal = sorted((tmp_path / "state" / "journal").glob("s1-*.csv"),
-                         key=lambda p: p.stat().st_mtime_ns)
+        journal = sorted(
+            (tmp_path / "state" / "journal").glob("s1-*.csv"), key=lambda p: p.stat().st_mtime_ns
+        )
         if journal:
             lines = [ln for ln in journal[-1].read_text().splitlines() if ln and ln[0].isdigit()]
             # a cycle journals its row, then saves: a kill in between leaves the state one row
@@ -251,8 +314,13 @@ def test_kill_9_while_writing_state(tmp_path, model_file):
 
 def start_service(cfg: Path, env_extra=None):
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
-    return subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
 
 
 def wait_file(path: Path, timeout=60.0) -> bool:
@@ -271,7 +339,7 @@ def test_two_spindles_sigterm_sighup_and_systemd_notify(tmp_path, model_file):
     cfg = tmp_path / "two.toml"
     body = f"""state_dir = "{state}"
 time_scale = 120.0
-log_file = "{tmp_path / 'log.jsonl'}"
+log_file = "{tmp_path / "log.jsonl"}"
 [[spindle]]
 name = "a"
 model = "{model_file}"
@@ -318,25 +386,42 @@ adapter = {{url = "sim://mechanical-8k?program=job-shop-day&seed=2"}}
 
 
 def test_run_check_reads_one_speed_and_writes_nothing(tmp_path, model_file):
-    cfg = write_config(tmp_path, model_file, 'adapter = {url = "sim://motorized-27k?program=job-shop-day"}')
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
-                       capture_output=True, text=True, timeout=120)
+    cfg = write_config(
+        tmp_path, model_file, 'adapter = {url = "sim://motorized-27k?program=job-shop-day"}'
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     assert "link ok" in r.stdout and "nothing was written" in r.stdout
     assert "shaping: dual slew" in r.stdout and "cutting signal from the controller" in r.stdout
     assert not (tmp_path / "state").exists()
     # the speed decides where the configuration says so; a signal required but missing: refused
     cfg.write_text(cfg.read_text() + '[spindle.shaping.cutting]\nsignal = "speed"\n')
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0 and "cutting inferred from the speed" in r.stdout, r.stderr
 
 
 def test_run_check_unreachable_controller_is_one_line(tmp_path, model_file):
-    cfg = write_config(tmp_path, model_file,
-                       f'adapter = {{url = "opc.tcp://127.0.0.1:{free_port()}/x", preset = "virtual-cnc", timeout_s = 1.0}}')
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
-                       capture_output=True, text=True, timeout=120)
+    cfg = write_config(
+        tmp_path,
+        model_file,
+        f'adapter = {{url = "opc.tcp://127.0.0.1:{free_port()}/x", preset = "virtual-cnc", timeout_s = 1.0}}',
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "thermocomp: error:" in r.stderr
 
@@ -348,8 +433,14 @@ def test_write_refused_raises_an_alarm_and_is_retried(tmp_path, model_file):
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: t["now"])
     vm.override_speed(20000.0)
     cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
-    rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: t["now"],
-                        wall=lambda: 1e9 + t["now"], adapter=SimAdapter(machine=vm))
+    rt = SpindleRuntime(
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=lambda: t["now"],
+        wall=lambda: 1e9 + t["now"],
+        adapter=SimAdapter(machine=vm),
+    )
     real = vm.apply_offset
     vm.apply_offset = lambda v: False  # the controller refuses every write
     for _ in range(20):
@@ -371,11 +462,16 @@ def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file
     vm.override_speed(20000.0)
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
         step(cnc)
-        cfg = load_config(write_config(
-            tmp_path, model_file,
-            f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc", verify_writes = "deferred"}}'))
-        rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock,
-                            wall=lambda: 1e9 + clock())
+        cfg = load_config(
+            write_config(
+                tmp_path,
+                model_file,
+                f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc", verify_writes = "deferred"}}',
+            )
+        )
+        rt = SpindleRuntime(
+            cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: 1e9 + clock()
+        )
         real = vm.apply_offset
         vm.apply_offset = lambda v: False  # this CNC now refuses every offset (and reverts it)
         alarms = Alarm.NONE
@@ -392,5 +488,7 @@ def test_deferred_write_check_alarms_and_retries_over_opcua(tmp_path, model_file
             step(cnc)
             rt.cycle()
         step(cnc)
-        assert vm.offset_um != 0.0 and vm.offset_um == pytest.approx(rt.offset.shaper.output_um, abs=0.01)
+        assert vm.offset_um != 0.0 and vm.offset_um == pytest.approx(
+            rt.offset.shaper.output_um, abs=0.01
+        )
         rt.close()

@@ -39,8 +39,9 @@ def test_offset_is_minus_elongation_when_unconstrained():
 
 
 def test_clamp():
-    sh = OffsetShaper(ShaperConfig(max_offset_um=20, max_rate_um_per_s=100, deadband_um=0,
-                                   transient=NO_TRANSIENT))
+    sh = OffsetShaper(
+        ShaperConfig(max_offset_um=20, max_rate_um_per_s=100, deadband_um=0, transient=NO_TRANSIENT)
+    )
     outs, res, _ = run(sh, [(15, 0, 1.0), (35, 0, 1.0), (-50, 0, 1.0)])
     assert outs == [-15, -20, 20]
     assert Flag.CLAMPED in res[1].flags and Flag.CLAMPED in res[2].flags
@@ -69,8 +70,13 @@ def test_deadband_suppresses_small_changes_but_never_stalls():
 
 
 def test_hold_mode_freezes_the_offset_during_a_transient_then_releases_smoothly():
-    pol = TransientPolicy(mode="hold", window_s=30, speed_step_rpm=5000, speed_rate_rpm_per_s=2000,
-                          release_rate_um_per_s=0.2)
+    pol = TransientPolicy(
+        mode="hold",
+        window_s=30,
+        speed_step_rpm=5000,
+        speed_rate_rpm_per_s=2000,
+        release_rate_um_per_s=0.2,
+    )
     sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=2.0, deadband_um=0, transient=pol))
     warm = [(30.0, 27000, 1.0)] * 60  # settle at -30
     drop = [(14.0, 12000, 1.0)] * 200  # elastic drop: 16 um at once
@@ -87,8 +93,14 @@ def test_hold_mode_freezes_the_offset_during_a_transient_then_releases_smoothly(
 
 
 def test_slow_mode_lengthens_the_target_update_cycle():
-    pol = TransientPolicy(mode="slow", window_s=60, slow_period_s=20, speed_step_rpm=5000,
-                          speed_rate_rpm_per_s=2000, release_rate_um_per_s=1.0)
+    pol = TransientPolicy(
+        mode="slow",
+        window_s=60,
+        slow_period_s=20,
+        speed_step_rpm=5000,
+        speed_rate_rpm_per_s=2000,
+        release_rate_um_per_s=1.0,
+    )
     sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=1.0, deadband_um=0, transient=pol))
     warm = [(30.0, 27000, 1.0)] * 40
     # during the window the prediction keeps falling; targets are latched every 20 s
@@ -150,8 +162,9 @@ samples = st.lists(
     start=st.floats(-1000, 1000),
     signals=st.lists(st.sampled_from([None, True, False]), min_size=80, max_size=80),
 )
-def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, fast, deadband, mode, enabled,
-                                               start, signals):
+def test_invariants_clamp_slew_deadband_finite(
+    samples, clamp, rate, fast, deadband, mode, enabled, start, signals
+):
     cfg = ShaperConfig(
         max_offset_um=clamp,
         max_rate_um_per_s=rate,
@@ -178,7 +191,9 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, fast, deadb
         assert abs(y - prev) <= cfg.rate_limit_um_per_s * dt * (1 + 1e-12) + 1e-12
         if signal is not None:
             assert res.cutting is signal  # the controller's word wins
-        if res.cutting or cfg.policy != "dual-slew":  # while cutting: never faster than the slow limit
+        if (
+            res.cutting or cfg.policy != "dual-slew"
+        ):  # while cutting: never faster than the slow limit
             assert abs(y - prev) <= rate * dt * (1 + 1e-12) + 1e-12
         assert res.write == (y != prev)
         if not res.write:
@@ -192,14 +207,17 @@ def test_invariants_clamp_slew_deadband_finite(samples, clamp, rate, fast, deadb
 @settings(max_examples=100, deadline=None)
 @given(target=st.floats(-80, 80), rate=st.floats(0.1, 5), deadband=st.floats(0, 0.5))
 def test_converges_to_within_deadband_of_a_steady_target(target, rate, deadband):
-    sh = OffsetShaper(ShaperConfig(max_rate_um_per_s=rate, deadband_um=deadband, transient=NO_TRANSIENT))
+    sh = OffsetShaper(
+        ShaperConfig(max_rate_um_per_s=rate, deadband_um=deadband, transient=NO_TRANSIENT)
+    )
     outs, _, _ = run(sh, [(target, 0, 1.0)] * int(100 / rate + 5))
     assert abs(outs[-1] - (-target)) <= deadband + 1e-9
 
 
 def test_hold_moves_on_from_what_the_controller_holds_through_the_slew_limit():
-    sh = OffsetShaper(ShaperConfig(max_offset_um=50, max_rate_um_per_s=1.0, deadband_um=0,
-                                   transient=NO_TRANSIENT))
+    sh = OffsetShaper(
+        ShaperConfig(max_offset_um=50, max_rate_um_per_s=1.0, deadband_um=0, transient=NO_TRANSIENT)
+    )
     run(sh, [(10.0, 0, 1.0)] * 20)
     assert sh.output_um == pytest.approx(-10.0)
     sh.hold(0.0)  # the controller was reset: it holds 0, not -10
@@ -229,7 +247,9 @@ def test_shape_series_is_the_runtime_shaper_over_a_log():
     s = np.where(t < 10, 0.0, 5.0)
     series = shape_series(cfg, t, np.zeros_like(t), s)
     out, flags = series.offset_um, series.flags
-    expected, _, _ = run(OffsetShaper(cfg), [(float(v), 0, 1.0 if k else 0.0) for k, v in enumerate(s)])
+    expected, _, _ = run(
+        OffsetShaper(cfg), [(float(v), 0, 1.0 if k else 0.0) for k, v in enumerate(s)]
+    )
     assert out.tolist() == pytest.approx(expected)
     assert out[-1] == pytest.approx(-5.0) and out[12] == pytest.approx(-1.5)
     assert int(flags[10]) & int(Flag.SLEW_LIMITED)
@@ -241,7 +261,9 @@ def test_shape_series_is_the_runtime_shaper_over_a_log():
 
 def dual(**kw) -> ShaperConfig:
     kw.setdefault("cutting", CuttingSignal(settle_s=2.0))
-    return ShaperConfig(max_rate_um_per_s=1.0, not_cutting_rate_um_per_s=50.0, deadband_um=0.0, **kw)
+    return ShaperConfig(
+        max_rate_um_per_s=1.0, not_cutting_rate_um_per_s=50.0, deadband_um=0.0, **kw
+    )
 
 
 def test_dual_slew_lands_the_elastic_step_during_the_run_up_and_creeps_while_cutting():

@@ -126,9 +126,13 @@ def test_start_s_leaves_out_the_start_and_keeps_the_clock():
 
 
 def test_describe_reads_like_the_paper():
-    figures = st.StabilityFigures(equilibrium_s=97.2 * 60, tevr_um=1.92,
-                                  ste_max_after_um_per_s=0.2e-3, mean_after_um=17.0,
-                                  max_abs_um=17.8)
+    figures = st.StabilityFigures(
+        equilibrium_s=97.2 * 60,
+        tevr_um=1.92,
+        ste_max_after_um_per_s=0.2e-3,
+        mean_after_um=17.0,
+        max_abs_um=17.8,
+    )
     lines = figures.describe()
     assert lines[0] == "equilibrium at 97.2 min (|STE| < 0.5e-3 um/s), TEVR 1.92 um"
     assert "0.20e-3 um/s" in lines[1]
@@ -143,16 +147,26 @@ def test_a_long_record_at_one_second_is_binned_to_the_same_answer():
     assert st.equilibrium_time_s(t, y) == pytest.approx(EXP_EQ_S, abs=5 * 60.0)
 
 
-@pytest.mark.parametrize(("time_s", "error_um", "match"), [
-    (np.arange(20.0), np.zeros(19), "20 samples but error_um has 19"),
-    (np.arange(5.0), np.zeros(5), "at least 10"),
-    (np.arange(20.0), np.r_[np.zeros(7), np.nan, np.zeros(12)], "error_um at sample 7 is nan"),
-    (np.r_[np.arange(10.0), np.inf, np.arange(11.0, 20.0)], np.zeros(20), "time_s at sample 10"),
-    (np.r_[np.arange(10.0), 9.0, np.arange(11.0, 20.0)], np.zeros(20),
-     "does not increase at sample 10"),
-    (np.zeros((4, 5)), np.zeros((4, 5)), "one-dimensional"),
-    (["a"] * 20, np.zeros(20), "numeric"),
-])
+@pytest.mark.parametrize(
+    ("time_s", "error_um", "match"),
+    [
+        (np.arange(20.0), np.zeros(19), "20 samples but error_um has 19"),
+        (np.arange(5.0), np.zeros(5), "at least 10"),
+        (np.arange(20.0), np.r_[np.zeros(7), np.nan, np.zeros(12)], "error_um at sample 7 is nan"),
+        (
+            np.r_[np.arange(10.0), np.inf, np.arange(11.0, 20.0)],
+            np.zeros(20),
+            "time_s at sample 10",
+        ),
+        (
+            np.r_[np.arange(10.0), 9.0, np.arange(11.0, 20.0)],
+            np.zeros(20),
+            "does not increase at sample 10",
+        ),
+        (np.zeros((4, 5)), np.zeros((4, 5)), "one-dimensional"),
+        (["a"] * 20, np.zeros(20), "numeric"),
+    ],
+)
 def test_bad_input_is_one_clear_line(time_s, error_um, match):
     for call in (st.ste_um_per_s, st.equilibrium_time_s, st.stability):
         with pytest.raises(CalibrationError, match=match) as info:

@@ -27,11 +27,13 @@ def model_file(calibrated_model):
 def config(tmp_path: Path, model: Path, status: str = "port = 0", extra: str = "") -> Path:
     tmp_path.mkdir(parents=True, exist_ok=True)
     p = tmp_path / "machine.toml"
-    p.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n{extra}\n'
-                 f'[status]\n{status}\n'
-                 f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
-                 'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}\n'
-                 '[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n')
+    p.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n{extra}\n'
+        f"[status]\n{status}\n"
+        f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=4"}\n'
+        "[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n"
+    )
     return p
 
 
@@ -61,7 +63,9 @@ def get(url: str, token: str | None = None) -> tuple[int, bytes, str]:
 @pytest.fixture
 def service(tmp_path, model_file):
     clock = FakeClock()
-    svc = Service(config(tmp_path, model_file), clock=clock, wall=lambda: WALL0 + clock.t, lock=False)
+    svc = Service(
+        config(tmp_path, model_file), clock=clock, wall=lambda: WALL0 + clock.t, lock=False
+    )
     svc.start_status()
     yield svc, clock
     svc.close()
@@ -109,11 +113,18 @@ def test_status_history_and_metrics_of_a_running_service(service):
     assert code == 200 and ctype.startswith("text/plain")
     st = json.loads(get(base + "status")[1])
     fams = {f.name: f for f in text_string_to_metric_families(body.decode())}
-    val = lambda fam, **lab: next(s.value for s in fams[fam].samples  # noqa: E731
-                                  if all(s.labels.get(k) == v for k, v in lab.items()))
+    val = lambda fam, **lab: next(
+        s.value
+        for s in fams[fam].samples  # noqa: E731
+        if all(s.labels.get(k) == v for k, v in lab.items())
+    )
     assert val("thermocomp_up") == 1.0
-    assert val("thermocomp_elongation_micrometres", spindle="s1") == pytest.approx(st["spindles"][0]["elongation_um"])
-    assert val("thermocomp_offset_held_micrometres", spindle="s1") == pytest.approx(st["spindles"][0]["offset_held_um"])
+    assert val("thermocomp_elongation_micrometres", spindle="s1") == pytest.approx(
+        st["spindles"][0]["elongation_um"]
+    )
+    assert val("thermocomp_offset_held_micrometres", spindle="s1") == pytest.approx(
+        st["spindles"][0]["offset_held_um"]
+    )
     assert val("thermocomp_alarm", spindle="s1", alarm="LINK_DOWN") == 0.0
     assert val("thermocomp_cycles", spindle="s1") == st["spindles"][0]["counters"]["cycles"]
     assert len([s for s in fams["thermocomp_alarm"].samples]) == len([a for a in Alarm if a])
@@ -143,8 +154,12 @@ def test_alarms_show_in_status_history_and_metrics(service):
 def test_token_access(tmp_path, model_file, monkeypatch):
     monkeypatch.setenv("THERMOCOMP_STATUS_TOKEN", "s3cret-token-0123456789")
     clock = FakeClock()
-    svc = Service(config(tmp_path, model_file, 'port = 0\naccess = "token"'), clock=clock,
-                  wall=lambda: WALL0 + clock.t, lock=False)
+    svc = Service(
+        config(tmp_path, model_file, 'port = 0\naccess = "token"'),
+        clock=clock,
+        wall=lambda: WALL0 + clock.t,
+        lock=False,
+    )
     svc.start_status()
     try:
         run_for(svc, clock, 60)
@@ -154,9 +169,13 @@ def test_token_access(tmp_path, model_file, monkeypatch):
             assert get(base + path, "wrong-token-0123456789")[0] == 401
         assert get(base + "status", "s3cret-token-0123456789")[0] == 200
         assert get(base + "metrics?token=s3cret-token-0123456789")[0] == 200
-        r = subprocess.run([sys.executable, "-m", "thermocomp", "status", "--url", base],
-                           capture_output=True, text=True, timeout=60,
-                           env={**__import__("os").environ, "THERMOCOMP_STATUS_TOKEN": ""})
+        r = subprocess.run(
+            [sys.executable, "-m", "thermocomp", "status", "--url", base],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**__import__("os").environ, "THERMOCOMP_STATUS_TOKEN": ""},
+        )
         assert r.returncode == 2 and r.stderr.count("\n") == 1 and "token" in r.stderr
     finally:
         svc.close()
@@ -167,8 +186,12 @@ def test_a_short_token_or_busy_port_never_stops_compensation(tmp_path, model_fil
 
     monkeypatch.setenv("THERMOCOMP_STATUS_TOKEN", "short")
     clock = FakeClock()
-    svc = Service(config(tmp_path, model_file, 'port = 0\naccess = "token"'), clock=clock,
-                  wall=lambda: WALL0 + clock.t, lock=False)
+    svc = Service(
+        config(tmp_path, model_file, 'port = 0\naccess = "token"'),
+        clock=clock,
+        wall=lambda: WALL0 + clock.t,
+        lock=False,
+    )
     with pytest.raises(ConfigError, match="at least 16"):
         svc.cfg.status.token()  # what `run --check` says in one line
     svc.start_status()
@@ -183,8 +206,12 @@ def test_a_short_token_or_busy_port_never_stops_compensation(tmp_path, model_fil
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        svc = Service(config(tmp_path / "b", model_file, f"port = {port}"), clock=clock,
-                      wall=lambda: WALL0 + clock.t, lock=False)
+        svc = Service(
+            config(tmp_path / "b", model_file, f"port = {port}"),
+            clock=clock,
+            wall=lambda: WALL0 + clock.t,
+            lock=False,
+        )
         svc.start_status()
         assert svc.status_server is None
         run_for(svc, clock, 120)
@@ -196,25 +223,42 @@ def test_thermocomp_status_prints_a_table_and_json(service):
     svc, clock = service
     run_for(svc, clock, 1800)
     url = svc.status_server.url
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "status", "--url", url],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "status", "--url", url],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     st = json.loads(get(url + "status")[1])
     s1 = st["spindles"][0]
     lines = r.stdout.splitlines()
     row = next(x for x in lines if x.split()[:1] == ["s1"])
     assert f"{s1['elongation_um']:.2f}" in row.split() or f"{s1['elongation_um']:.2f}" in row
-    assert lines[1].split()[:4] == ["spindle", "state", "speed_rpm", "S_um"]  # the header, then the row
+    assert lines[1].split()[:4] == [
+        "spindle",
+        "state",
+        "speed_rpm",
+        "S_um",
+    ]  # the header, then the row
     assert row.split()[1] == "compensating" and "s1: compensating" in lines
     assert lines[0].endswith("compensating 1 spindle(s)")
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "status", "--config",
-                        str(svc.config_path), "--json"], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "status", "--config", str(svc.config_path), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["spindles"][0]["name"] == "s1"
     # nothing listening: one line, exit 2
     svc.status_server.close()
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "status", "--url", url],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "status", "--url", url],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not reach" in r.stderr
     svc.status_server = None
 

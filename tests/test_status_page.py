@@ -24,10 +24,14 @@ CHROMIUM = Path("/usr/bin/chromium")
 JS = Path(__file__).parent / "js"
 
 pytestmark = [
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium (/usr/bin/chromium) is not installed: "
-                       "scripts/system-deps.sh installs it"),
-    pytest.mark.skipif(not (JS / "node_modules" / "playwright-core").is_dir(),
-                       reason="tests/js/node_modules/playwright-core is missing: scripts/system-deps.sh runs npm ci"),
+    pytest.mark.skipif(
+        not CHROMIUM.exists(),
+        reason="Chromium (/usr/bin/chromium) is not installed: scripts/system-deps.sh installs it",
+    ),
+    pytest.mark.skipif(
+        not (JS / "node_modules" / "playwright-core").is_dir(),
+        reason="tests/js/node_modules/playwright-core is missing: scripts/system-deps.sh runs npm ci",
+    ),
 ]
 
 PHASE_TIMEOUT_S = 150.0  # generous: a loaded CI machine; a pass takes seconds
@@ -35,19 +39,27 @@ PHASE_TIMEOUT_S = 150.0  # generous: a loaded CI machine; a pass takes seconds
 
 def write_config(tmp_path: Path, model: Path, port: int, access: str = "open") -> Path:
     p = tmp_path / "machine.toml"
-    p.write_text(f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\ntime_scale = 60\n'
-                 f'[status]\nport = {port}\nhistory_every_s = 5\naccess = "{access}"\n'
-                 f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
-                 'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}\n')
+    p.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\ntime_scale = 60\n'
+        f'[status]\nport = {port}\nhistory_every_s = 5\naccess = "{access}"\n'
+        f'[[spindle]]\nname = "s1"\nmodel = "{model}"\n'
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}\n'
+    )
     return p
 
 
-def start_service(cfg: Path, log: Path, env_extra: dict[str, str] | None = None) -> subprocess.Popen:
+def start_service(
+    cfg: Path, log: Path, env_extra: dict[str, str] | None = None
+) -> subprocess.Popen:
     # output to a file, not a pipe nobody reads: a full pipe would stall the service
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
     with log.open("a") as out:
-        return subprocess.Popen([sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
-                                stdout=out, stderr=subprocess.STDOUT, env=env)
+        return subprocess.Popen(
+            [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
 
 
 def wait_url(path: Path, proc: subprocess.Popen, log: Path, timeout: float = 60.0) -> str:
@@ -62,11 +74,23 @@ def wait_url(path: Path, proc: subprocess.Popen, log: Path, timeout: float = 60.
 class Page:
     """status_page.mjs in its own process: its phase lines, read as they come."""
 
-    def __init__(self, url: str, shot: Path, scenario: str, log: Path, env_extra: dict[str, str] | None = None):
+    def __init__(
+        self,
+        url: str,
+        shot: Path,
+        scenario: str,
+        log: Path,
+        env_extra: dict[str, str] | None = None,
+    ):
         self.log = log
-        self.proc = subprocess.Popen(["node", str(JS / "status_page.mjs"), url, str(shot), scenario],
-                                     cwd=JS, stdout=subprocess.PIPE, stderr=log.open("w"), text=True,
-                                     env={**os.environ, **(env_extra or {})})
+        self.proc = subprocess.Popen(
+            ["node", str(JS / "status_page.mjs"), url, str(shot), scenario],
+            cwd=JS,
+            stdout=subprocess.PIPE,
+            stderr=log.open("w"),
+            text=True,
+            env={**os.environ, **(env_extra or {})},
+        )
         self.lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -81,7 +105,9 @@ class Page:
         except queue.Empty:
             pytest.fail(f"no {phase!r} from the browser in {PHASE_TIMEOUT_S:.0f} s")
         if line is None:
-            pytest.fail(f"the browser script ended before {phase!r}:\n{self.log.read_text()[-3000:]}")
+            pytest.fail(
+                f"the browser script ended before {phase!r}:\n{self.log.read_text()[-3000:]}"
+            )
         out = json.loads(line)
         assert out["phase"] == phase, out
         return out
@@ -131,7 +157,9 @@ def test_page_plots_live_and_shows_a_refused_reload(tmp_path, calibrated_model):
         assert now["updates"] > first["updates"] and now["points"] > first["points"]
         assert now["plotted"] >= first["plotted"] and now["spindle"] == "s1"
         assert now["state"] == "live" and now["offline"] is None and now["conn"] == "live"
-        assert now["spindle_state"] == "compensating"  # the service's state for s1, as the page shows it
+        assert (
+            now["spindle_state"] == "compensating"
+        )  # the service's state for s1, as the page shows it
         assert "RELOAD_FAILED" not in now["alarms"]
         if not now["alarms"]:
             assert now["banner"] == "no alarms"
@@ -142,8 +170,12 @@ def test_page_plots_live_and_shows_a_refused_reload(tmp_path, calibrated_model):
         alarm = page.expect("alarm")
         assert "RELOAD_FAILED" in alarm["alarms"] and "RELOAD_FAILED" in alarm["banner"]
         assert alarm["banner_bg"] == "rgb(214, 40, 40)"  # the red banner, as rendered
-        assert alarm["banded"] > now["banded"] and alarm["red_pixels"] > 0  # its band under the time axis
-        assert alarm["state"] == "live" and alarm["points"] > now["points"] and alarm["errors"] == []
+        assert (
+            alarm["banded"] > now["banded"] and alarm["red_pixels"] > 0
+        )  # its band under the time axis
+        assert (
+            alarm["state"] == "live" and alarm["points"] > now["points"] and alarm["errors"] == []
+        )
         assert png_size(shot) == (1280, 800)
         assert page.finish() == 0, (tmp_path / "browser.log").read_text()[-3000:]
         assert svc.poll() is None  # refused: still running on the old configuration
@@ -169,7 +201,9 @@ def test_page_asks_for_the_token_and_survives_a_restart(tmp_path, calibrated_mod
         refused = page.expect("no_token")
         assert refused["document_status"] == 401  # the service gives nothing without the token
         assert refused["state"] == "unauthorised" and "Not authorised" in refused["offline"]
-        assert refused["plotted"] == 0 and refused["updates"] == 0 and refused["colored_pixels"] == 0
+        assert (
+            refused["plotted"] == 0 and refused["updates"] == 0 and refused["colored_pixels"] == 0
+        )
 
         ok = page.expect("token")
         assert ok["document_status"] == 200 and ok["state"] == "live" and ok["offline"] is None
@@ -197,10 +231,13 @@ def test_page_asks_for_the_token_and_survives_a_restart(tmp_path, calibrated_mod
 def test_page_says_a_spindle_whose_link_is_down_is_not_writing(tmp_path, calibrated_model):
     port, closed = free_port(), free_port()  # nothing listens on `closed`: a wrong URL
     cfg = write_config(tmp_path, calibrated_model, port)
-    cfg.write_text(cfg.read_text().replace(
-        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}',
-        f'adapter = {{url = "opc.tcp://127.0.0.1:{closed}/thermocomp/virtual-cnc/", preset = "virtual-cnc", '
-        'timeout_s = 1.0}'))
+    cfg.write_text(
+        cfg.read_text().replace(
+            'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}',
+            f'adapter = {{url = "opc.tcp://127.0.0.1:{closed}/thermocomp/virtual-cnc/", preset = "virtual-cnc", '
+            "timeout_s = 1.0}",
+        )
+    )
     log = tmp_path / "service.log"
     svc = start_service(cfg, log)
     page = None
@@ -209,11 +246,18 @@ def test_page_says_a_spindle_whose_link_is_down_is_not_writing(tmp_path, calibra
         page = Page(url, tmp_path / "down.png", "not_writing", tmp_path / "browser.log")
         down = page.expect("not_writing")
         assert down["document_status"] == 200 and down["errors"] == []
-        assert down["spindle_state"] == "not writing" and down["spindle_reason"].startswith("link down since ")
-        assert down["state_bar"].startswith("S1 · NOT WRITING") and f"127.0.0.1:{closed}" in down["state_bar"]
+        assert down["spindle_state"] == "not writing" and down["spindle_reason"].startswith(
+            "link down since "
+        )
+        assert (
+            down["state_bar"].startswith("S1 · NOT WRITING")
+            and f"127.0.0.1:{closed}" in down["state_bar"]
+        )
         assert down["state_border"] == "rgb(214, 40, 40)"  # red, as rendered
         # the header is the service's line: it counts no spindle that does not write
-        assert down["header"].startswith("NOT compensating (0 of 1 spindle(s)); s1 not writing: link down")
+        assert down["header"].startswith(
+            "NOT compensating (0 of 1 spindle(s)); s1 not writing: link down"
+        )
         assert "LINK_DOWN" in down["alarms"] and png_size(tmp_path / "down.png") == (1280, 800)
         assert page.finish() == 0, (tmp_path / "browser.log").read_text()[-3000:]
     finally:

@@ -40,8 +40,12 @@ class FakeClock:
 
 def machine(clock: FakeClock, **setter) -> VirtualMachine:
     program = Program("steady", ((36000.0, SPEED),))
-    return VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=1), program, clock=clock,
-                          tool_setter=ToolSetter(**setter))
+    return VirtualMachine(
+        SpindlePlant(preset("motorized-27k"), seed=1),
+        program,
+        clock=clock,
+        tool_setter=ToolSetter(**setter),
+    )
 
 
 def probe(vm: VirtualMachine, clock: FakeClock) -> float:
@@ -70,7 +74,9 @@ def test_a_probe_cycle_stops_the_spindle_then_measures_the_true_elongation():
     vm.advance()
     assert vm.probe_sequence == 1 and not vm.probing
     assert abs(vm.probe_value_um - vm.probe_true_um) < 5 * 0.5 + 0.05
-    assert vm.probe_value_um == pytest.approx(round(vm.probe_value_um / 0.1) * 0.1, abs=1e-9)  # resolution
+    assert vm.probe_value_um == pytest.approx(
+        round(vm.probe_value_um / 0.1) * 0.1, abs=1e-9
+    )  # resolution
     assert vm.probe_true_um > 5.0  # 30 min at 20 000 rpm: a warm spindle
     h = vm.history()
     stopping = h.speed_rpm[(h.time_s > 1800.0) & (h.time_s <= 1820.0)]
@@ -83,7 +89,9 @@ def test_a_probe_cycle_stops_the_spindle_then_measures_the_true_elongation():
     clock.t += 4.0
     vm.advance()
     assert vm.speed_rpm == SPEED
-    assert vm.program.duration_s - (vm.plant.time_s - vm._program_start_s) == pytest.approx(36000.0 - 1805.0)
+    assert vm.program.duration_s - (vm.plant.time_s - vm._program_start_s) == pytest.approx(
+        36000.0 - 1805.0
+    )
 
 
 def test_the_tool_setters_noise_and_resolution_are_as_configured_and_seeded():
@@ -103,6 +111,7 @@ def test_the_tool_setters_noise_and_resolution_are_as_configured_and_seeded():
 def test_a_cycle_of_several_touches_hands_on_their_mean():
     """Four touches: the cycle lasts three touch times longer, the value's noise halves (each
     touch read at the setter's resolution, then averaged), and the sigma published says so."""
+
     def run(touches: int, n: int) -> tuple[list[float], VirtualMachine]:
         clock = FakeClock()
         vm = machine(clock, dwell_s=2.0, noise_um=0.5, seed=4, touches=touches, touch_s=1.5)
@@ -137,17 +146,23 @@ def test_the_sim_adapter_reads_each_probe_once_and_ignores_the_one_found_at_star
 
 # -- OPC UA --------------------------------------------------------------------------------
 
-NODES = {"measurement_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_measurement']}",
-         "measurement_sequence_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_sequence']}",
-         "measurement_sigma_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_sigma']}"}
+NODES = {
+    "measurement_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_measurement']}",
+    "measurement_sequence_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_sequence']}",
+    "measurement_sigma_node": f"ns={{ns}};s={TOOL_SETTER_PATHS['probe_sigma']}",
+}
 
 
 def generic(url: str, **kw) -> OpcUaAdapter:
     """The virtual CNC as a generic OPC UA controller: every node id from configuration."""
-    return OpcUaAdapter(url, namespace_uri=NAMESPACE_URI, timeout_s=5.0,
-                        speed_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
-                        offset_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
-                        **{**NODES, **kw})
+    return OpcUaAdapter(
+        url,
+        namespace_uri=NAMESPACE_URI,
+        timeout_s=5.0,
+        speed_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ActSpeed",
+        offset_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ThermalOffset",
+        **{**NODES, **kw},
+    )
 
 
 def call_probe(url: str) -> int:
@@ -196,7 +211,12 @@ def test_opcua_a_cycles_reads_ride_in_the_speeds_request():
     inputs = {"bearing_temp_c": f"ns={{ns}};s={NODE_PATHS['bearing_temp_c']}"}
     with running(VirtualCNC(vm)) as cnc, generic(cnc.url, input_nodes=inputs) as link:
         call(cnc, cnc.tick)
-        link.read_speed(), link.read_measurement(), link.read_inputs(), link.read_offset_um()  # nodes resolved
+        (
+            link.read_speed(),
+            link.read_measurement(),
+            link.read_inputs(),
+            link.read_offset_um(),
+        )  # nodes resolved
         requests = []
         real = link._client.read_attributes
 
@@ -210,10 +230,16 @@ def test_opcua_a_cycles_reads_ride_in_the_speeds_request():
             call(cnc, cnc.tick)
             assert link.read_speed() == pytest.approx(vm.speed_rpm)
             assert link.read_measurement() is None
-            assert link.read_inputs()["bearing_temp_c"] == pytest.approx(vm.sensor_values()["bearing_temp_c"], abs=1.0)
+            assert link.read_inputs()["bearing_temp_c"] == pytest.approx(
+                vm.sensor_values()["bearing_temp_c"], abs=1.0
+            )
             assert link.read_offset_um() == pytest.approx(vm.offset_um)
-            assert requests == [1 + 1 + 1 + 3] * (k + 1)  # speed, offset, input, the handshake's three
-        value = probe(vm, clock)  # a cycle of the tool setter, read in the same request as the speed
+            assert requests == [1 + 1 + 1 + 3] * (
+                k + 1
+            )  # speed, offset, input, the handshake's three
+        value = probe(
+            vm, clock
+        )  # a cycle of the tool setter, read in the same request as the speed
         call(cnc, cnc.tick)
         link.read_speed()
         assert link.read_measurement().elongation_um == pytest.approx(value) and len(requests) == 4
@@ -229,7 +255,10 @@ def test_opcua_a_non_finite_measurement_is_refused_once():
     clock = FakeClock()
     vm = machine(clock)
     # a controller whose offset is in mm, whose probe cycle hands over um
-    with running(VirtualCNC(vm)) as cnc, generic(cnc.url, offset_scale=0.001, measurement_scale=1.0) as link:
+    with (
+        running(VirtualCNC(vm)) as cnc,
+        generic(cnc.url, offset_scale=0.001, measurement_scale=1.0) as link,
+    ):
         call(cnc, cnc.tick)
         assert link.read_measurement() is None
         vm.probe_value_um, vm.probe_sequence = math.nan, vm.probe_sequence + 1
@@ -240,13 +269,20 @@ def test_opcua_a_non_finite_measurement_is_refused_once():
         value = probe(vm, clock)
         call(cnc, cnc.tick)
         m = link.read_measurement()
-        assert m is not None and m.elongation_um == pytest.approx(value) and m.sigma_um == pytest.approx(0.5)
+        assert (
+            m is not None
+            and m.elongation_um == pytest.approx(value)
+            and m.sigma_um == pytest.approx(0.5)
+        )
 
 
 def test_opcua_a_wrong_measurement_node_fails_the_measurement_not_the_link():
     clock = FakeClock()
     vm = machine(clock)
-    nowhere = {"measurement_node": "ns={ns};s=/Nowhere", "measurement_sequence_node": "ns={ns};s=/Nor"}
+    nowhere = {
+        "measurement_node": "ns={ns};s=/Nowhere",
+        "measurement_sequence_node": "ns={ns};s=/Nor",
+    }
     with running(VirtualCNC(vm)) as cnc, generic(cnc.url, **nowhere) as link:
         clock.t = 60.0
         call(cnc, cnc.tick)
@@ -257,17 +293,29 @@ def test_opcua_a_wrong_measurement_node_fails_the_measurement_not_the_link():
 
 
 def test_opcua_measurement_settings_need_the_handshake():
-    base = {"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "speed_node": "ns=2;s=S",
-            "offset_node": "ns=2;s=O"}
+    base = {
+        "type": "opcua",
+        "url": "opc.tcp://127.0.0.1:4840",
+        "speed_node": "ns=2;s=S",
+        "offset_node": "ns=2;s=O",
+    }
     with pytest.raises(ConfigError, match="measurement_sequence_node"):
         open_adapter({**base, "measurement_node": "ns=2;s=M"})
     with pytest.raises(ConfigError, match="measurement_sigma_node only with"):
         open_adapter({**base, "measurement_sigma_node": "ns=2;s=E"})
-    link = open_adapter({**base, "measurement_node": "ns=2;s=M", "measurement_sequence_node": "ns=2;s=N",
-                         "measurement_scale": 1})
+    link = open_adapter(
+        {
+            **base,
+            "measurement_node": "ns=2;s=M",
+            "measurement_sequence_node": "ns=2;s=N",
+            "measurement_scale": 1,
+        }
+    )
     assert link.can_read_measurement and link.measurement_refs == ("ns=2;s=N", "ns=2;s=M")
     assert link.measurement_scale == 1.0
     with pytest.raises(ConfigError, match="measurement_scale"):
         open_adapter({**base, "measurement_scale": 0})
     assert not open_adapter(base).can_read_measurement
-    assert open_adapter({"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "preset": "virtual-cnc"}).can_read_measurement
+    assert open_adapter(
+        {"type": "opcua", "url": "opc.tcp://127.0.0.1:4840", "preset": "virtual-cnc"}
+    ).can_read_measurement

@@ -68,15 +68,22 @@ def test_the_probe_stops_survive_the_nc_text_in_every_dialect(dialect):
     prog = calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=600)
     assert prog.probe_at_s == (600.0, 1200.0, 1800.0, 2400.0, 3000.0, prog.duration_s)
     text = to_nc(prog, dialect)
-    call = {"fanuc": "M98 P1100", "sinumerik": 'CALL "TCPROBE"', "heidenhain": "CALL PGM TCPROBE",
-            "linuxcnc": "o<tcprobe> call"}[dialect]
+    call = {
+        "fanuc": "M98 P1100",
+        "sinumerik": 'CALL "TCPROBE"',
+        "heidenhain": "CALL PGM TCPROBE",
+        "linuxcnc": "o<tcprobe> call",
+    }[dialect]
     calls = [ln for ln in text.splitlines() if re.sub(r"^\d+ ", "", ln) == call]
     assert len(calls) == len(prog.probe_at_s)
     run = parse_nc(text)
     assert run.segments == prog.segments and run.probe_at_s == prog.probe_at_s
     # the program starts the spindle again after each cycle (the cycle leaves it stopped)
-    blocks = [b for b in (re.sub(r"^\d+ ", "", ln) for ln in text.splitlines())
-              if not b.startswith(("(", ";"))]
+    blocks = [
+        b
+        for b in (re.sub(r"^\d+ ", "", ln) for ln in text.splitlines())
+        if not b.startswith(("(", ";"))
+    ]
     after = [blocks[k + 1] for k, b in enumerate(blocks) if b == call]
     for p, nxt in zip(prog.probe_at_s, after):
         if p < prog.duration_s and prog.speed_at(p + 1) > 0:
@@ -88,14 +95,22 @@ def test_the_probe_stops_survive_the_nc_text_in_every_dialect(dialect):
 
 @pytest.mark.parametrize("dialect", DIALECTS)
 def test_the_call_names_the_cycle_probe_program_writes(dialect):
-    cycle = probe_program(probe_cycle(dialect, approach_z_mm=-5 if dialect == "heidenhain" else None))
+    cycle = probe_program(
+        probe_cycle(dialect, approach_z_mm=-5 if dialect == "heidenhain" else None)
+    )
     head = cycle.splitlines()[1 if dialect == "fanuc" else 0]
     if dialect == "fanuc":
-        assert head.startswith(f"O{FANUC_PROBE_NUMBER} ") and probe_call(dialect) == f"M98 P{FANUC_PROBE_NUMBER}"
+        assert (
+            head.startswith(f"O{FANUC_PROBE_NUMBER} ")
+            and probe_call(dialect) == f"M98 P{FANUC_PROBE_NUMBER}"
+        )
     elif dialect == "sinumerik":
         assert head == f"%_N_{PROBE_NAME}_MPF" and probe_call(dialect) == f'CALL "{PROBE_NAME}"'
     elif dialect == "heidenhain":
-        assert head == f"0 BEGIN PGM {PROBE_NAME} MM" and probe_call(dialect) == f"CALL PGM {PROBE_NAME}"
+        assert (
+            head == f"0 BEGIN PGM {PROBE_NAME} MM"
+            and probe_call(dialect) == f"CALL PGM {PROBE_NAME}"
+        )
     else:  # the file tcprobe.ngc on the subroutine path
         assert probe_call(dialect) == f"o<{PROBE_NAME.lower()}> call"
     assert probe_call(dialect, "TCPRB2").lower().count("tcprb2") == (0 if dialect == "fanuc" else 1)
@@ -108,8 +123,12 @@ def test_a_parsed_program_with_probe_calls_measures_at_its_program_times_over_op
     prog = Program("steps", ((120.0, 12000.0), (120.0, 24000.0), (60.0, 0.0)), (90.0, 240.0, 300.0))
     run = parse_nc(to_nc(prog, "linuxcnc"))
     clock = SteppedClock()
-    vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=SEED), None, clock=clock,
-                        tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED))
+    vm = VirtualMachine(
+        SpindlePlant(preset(PRESET), seed=SEED),
+        None,
+        clock=clock,
+        tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED),
+    )
     got = []
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
         link = open_adapter({"type": "opcua", "url": cnc.url, "preset": "virtual-cnc"})
@@ -139,22 +158,52 @@ def test_a_parsed_program_with_probe_calls_measures_at_its_program_times_over_op
 # -- the recorder takes the tool setter -----------------------------------------------------------
 
 
-def setter_recording(tmp_path, prog: Program, *, rate_s: float = 10.0, should_stop=None, vm=None, clock=None,
-                     at_speed: bool = False, name: str = "setter.csv", touches: int = 1):
+def setter_recording(
+    tmp_path,
+    prog: Program,
+    *,
+    rate_s: float = 10.0,
+    should_stop=None,
+    vm=None,
+    clock=None,
+    at_speed: bool = False,
+    name: str = "setter.csv",
+    touches: int = 1,
+):
     clock = clock or FakeClock()
     if vm is None:
-        vm = VirtualMachine(SpindlePlant(preset(PRESET), seed=SEED), None, clock=clock.sim, plant_dt_s=1.0,
-                            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED, at_speed=at_speed, touches=touches))
+        vm = VirtualMachine(
+            SpindlePlant(preset(PRESET), seed=SEED),
+            None,
+            clock=clock.sim,
+            plant_dt_s=1.0,
+            tool_setter=ToolSetter(dwell_s=DWELL_S, seed=SEED, at_speed=at_speed, touches=touches),
+        )
         vm.load_program(prog)
-    rec = Recorder(SimAdapter(machine=vm), None, tmp_path / name, prog, max_rpm=MAX_RPM,
-                   config=AcquireConfig(rate_s=rate_s), clock=clock, sleep=clock.sleep, wall=clock,
-                   should_stop=should_stop, metadata={"spindle_id": "t"}, at_speed=at_speed)
+    rec = Recorder(
+        SimAdapter(machine=vm),
+        None,
+        tmp_path / name,
+        prog,
+        max_rpm=MAX_RPM,
+        config=AcquireConfig(rate_s=rate_s),
+        clock=clock,
+        sleep=clock.sleep,
+        wall=clock,
+        should_stop=should_stop,
+        metadata={"spindle_id": "t"},
+        at_speed=at_speed,
+    )
     return rec, vm, clock
 
 
 def test_the_tool_setter_recording_is_a_sparse_log_measured_at_rest(tmp_path):
-    prog = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=300),
-                          "sinumerik"))
+    prog = parse_nc(
+        to_nc(
+            calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=300),
+            "sinumerik",
+        )
+    )
     rec, vm, clock = setter_recording(tmp_path, prog)
     result = rec.run()
     assert result.complete and result.measurements == len(prog.probe_at_s) == 12
@@ -170,7 +219,9 @@ def test_the_tool_setter_recording_is_a_sparse_log_measured_at_rest(tmp_path):
     assert len(seqs) == 12 and all("stop" in s for s in seqs)
     h = vm.history()
     at_rest = [h.true_um[np.flatnonzero((h.time_s <= t) & (h.speed_rpm == 0.0))[-1]] for t in sim_t]
-    assert np.max(np.abs(log.elongation_um[log.measured] - at_rest)) < 5 * 0.5 + 0.05  # the setter's noise
+    assert (
+        np.max(np.abs(log.elongation_um[log.measured] - at_rest)) < 5 * 0.5 + 0.05
+    )  # the setter's noise
     assert log.elongation_um[log.measured].max() > 5.0
     # the rest of every row as before: the speed followed, the controller's sensors beside
     assert np.isfinite(log.extras["bearing_temp_c"]).all()
@@ -182,7 +233,9 @@ def test_a_laser_value_at_speed_keeps_the_speed_it_was_taken_at(tmp_path):
     has moved on to another speed by the poll that reads the value, the value goes on a row
     between the two at the speed held through the cycle, not on the new speed's row (whose
     growth at speed differs by up to 16 um)."""
-    prog = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=6, cooldown_min=15, probe_every_s=120), "fanuc"))
+    prog = parse_nc(
+        to_nc(calibration_profile(MAX_RPM, step_min=6, cooldown_min=15, probe_every_s=120), "fanuc")
+    )
     rec, vm, clock = setter_recording(tmp_path, prog, at_speed=True, touches=4)
     assert vm.tool_setter.cycle_s == pytest.approx(23.6)
     held = []
@@ -197,8 +250,12 @@ def test_a_laser_value_at_speed_keeps_the_speed_it_was_taken_at(tmp_path):
     assert result.complete and result.measurements == len(prog.probe_at_s) == len(held)
     log = read_run_log(result.path)
     np.testing.assert_allclose(log.speed_rpm[log.measured], held, atol=1.0)
-    between = np.flatnonzero(log.measured & (np.abs(log.time_s - np.round(log.time_s / 10) * 10) > 1e-6))
-    assert between.size >= 3  # stops at a step's end, whose value came in after the program moved on
+    between = np.flatnonzero(
+        log.measured & (np.abs(log.time_s - np.round(log.time_s / 10) * 10) > 1e-6)
+    )
+    assert (
+        between.size >= 3
+    )  # stops at a step's end, whose value came in after the program moved on
     assert (log.speed_rpm[between + 1] != log.speed_rpm[between]).all()
 
 
@@ -234,7 +291,9 @@ def test_a_tool_setter_recording_resumes_into_its_log_and_keeps_the_stops(tmp_pa
     prog = calibration_profile(MAX_RPM, step_min=3, cooldown_min=15, probe_every_s=300)
     clock = FakeClock()
     stop_at = clock.t + 1500.0
-    rec, vm, clock = setter_recording(tmp_path, prog, clock=clock, should_stop=lambda: clock() > stop_at)
+    rec, vm, clock = setter_recording(
+        tmp_path, prog, clock=clock, should_stop=lambda: clock() > stop_at
+    )
     with pytest.raises(KeyboardInterrupt):
         rec.run()
     kept = read_run_log(tmp_path / "setter.csv")
@@ -286,21 +345,37 @@ def test_the_probe_interval_plan():
         plan_probe_interval(0.0, 0.0, 20.0)
     # a laser at speed loses nothing at a stop: as often as 20 s cycles add at most 20 %
     r = plan_probe_interval(1200.0, 3600.0, 20.0, at_speed=True)
-    assert r.interval_s == 120.0 and r.bound == "overhead" and r.loss_per_stop == 0.0 and r.stopped_share == 0.0
+    assert (
+        r.interval_s == 120.0
+        and r.bound == "overhead"
+        and r.loss_per_stop == 0.0
+        and r.stopped_share == 0.0
+    )
     assert r.added_s / r.program_s <= 0.2
     assert "laser at speed" in r.lines()[0]
     assert plan_probe_interval(180.0, 0.0, 20.0, at_speed=True).bound == "step"  # already shorter
-    assert plan_probe_interval(1200.0, 3600.0, 90.0, at_speed=True).interval_s == 300.0  # long cycles: tau
+    assert (
+        plan_probe_interval(1200.0, 3600.0, 90.0, at_speed=True).interval_s == 300.0
+    )  # long cycles: tau
     # touches: a laser at speed fills its stops up to that 20 % (4 x 1.2 s more than one touch's
     # 20 s would pass it at 2 min: 3 more), and says what their mean gains
     t = plan_probe_interval(1200.0, 3600.0, 20.0, at_speed=True, touch_s=1.2)
-    assert t.interval_s == 120.0 and t.touches == 4 and t.touches_planned and t.cycle_s == pytest.approx(23.6)
+    assert (
+        t.interval_s == 120.0
+        and t.touches == 4
+        and t.touches_planned
+        and t.cycle_s == pytest.approx(23.6)
+    )
     assert t.added_s == pytest.approx(t.stops * 23.6) and t.added_s / t.program_s <= 0.2
     assert "4 touches averaged" in t.lines()[-1] and "0.50 of one touch's noise" in t.lines()[-1]
     # at rest one touch unless asked; asked, each touch lengthens the stop and its decay
     assert plan_probe_interval(1200.0, 3600.0, 20.0, touch_s=6.0).touches == 1
     a = plan_probe_interval(1200.0, 3600.0, 20.0, touches=3, touch_s=6.0)
-    assert a.touches == 3 and not a.touches_planned and a.loss_per_stop == pytest.approx(1 - np.exp(-32 / 600))
+    assert (
+        a.touches == 3
+        and not a.touches_planned
+        and a.loss_per_stop == pytest.approx(1 - np.exp(-32 / 600))
+    )
     assert "as asked" in a.lines()[-1]
     with pytest.raises(ValueError, match="touches"):
         plan_probe_interval(1200.0, 3600.0, 20.0, touches=11)
@@ -324,30 +399,63 @@ def routes(tmp_path_factory):
     prog = calibration_profile(MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN)
     vm.load_program(prog)
     pty = PtyPair(tmp)
-    dev = LineDevice(pty.dev, lambda text, _mode: f"{vm.measured_um:+09.3f}" if text == "M" else "ERR")
+    dev = LineDevice(
+        pty.dev, lambda text, _mode: f"{vm.measured_um:+09.3f}" if text == "M" else "ERR"
+    )
     try:
-        sensor = AsciiSensor(pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0)
-        eddy = Recorder(SimAdapter(machine=vm), sensor, tmp / "eddy.csv", prog, max_rpm=MAX_RPM,
-                        config=AcquireConfig(rate_s=RATE_S), clock=clock, sleep=clock.sleep, wall=clock).run()
+        sensor = AsciiSensor(
+            pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0
+        )
+        eddy = Recorder(
+            SimAdapter(machine=vm),
+            sensor,
+            tmp / "eddy.csv",
+            prog,
+            max_rpm=MAX_RPM,
+            config=AcquireConfig(rate_s=RATE_S),
+            clock=clock,
+            sleep=clock.sleep,
+            wall=clock,
+        ).run()
     finally:
         dev.stop()
         pty.close()
     eddy_fit = fit_logs([read_run_log(eddy.path)])
     # (b) the tool setter alone, every N from the plan (the eddy model is the "former model")
-    plan = plan_probe_interval(STEP_MIN * 60, COOLDOWN_MIN * 60, DWELL_S, min(eddy_fit.model.time_constants_s()))
-    probed = calibration_profile(MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN, probe_every_s=plan.interval_s)
+    plan = plan_probe_interval(
+        STEP_MIN * 60, COOLDOWN_MIN * 60, DWELL_S, min(eddy_fit.model.time_constants_s())
+    )
+    probed = calibration_profile(
+        MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN, probe_every_s=plan.interval_s
+    )
     nc = parse_nc(to_nc(probed, "fanuc"))
     rec, _vm, _clock = setter_recording(tmp, nc, rate_s=RATE_S)
     setter = rec.run()
     setter_fit = fit_logs([read_run_log(setter.path)])
     # (c) a laser setter measuring the turning gauge tool at the program's speed, at its own plan
     # it averages as many touches per stop as the plan fits in (the virtual setter's touch time)
-    laser_plan = plan_probe_interval(STEP_MIN * 60, COOLDOWN_MIN * 60, DWELL_S, min(eddy_fit.model.time_constants_s()),
-                                     at_speed=True, touch_s=ToolSetter().touch_s)
-    laser_nc = parse_nc(to_nc(calibration_profile(MAX_RPM, step_min=STEP_MIN, cooldown_min=COOLDOWN_MIN,
-                                                  probe_every_s=laser_plan.interval_s), "fanuc"))
-    laser_rec, _vm, _clock = setter_recording(tmp, laser_nc, rate_s=RATE_S, at_speed=True, name="laser.csv",
-                                              touches=laser_plan.touches)
+    laser_plan = plan_probe_interval(
+        STEP_MIN * 60,
+        COOLDOWN_MIN * 60,
+        DWELL_S,
+        min(eddy_fit.model.time_constants_s()),
+        at_speed=True,
+        touch_s=ToolSetter().touch_s,
+    )
+    laser_nc = parse_nc(
+        to_nc(
+            calibration_profile(
+                MAX_RPM,
+                step_min=STEP_MIN,
+                cooldown_min=COOLDOWN_MIN,
+                probe_every_s=laser_plan.interval_s,
+            ),
+            "fanuc",
+        )
+    )
+    laser_rec, _vm, _clock = setter_recording(
+        tmp, laser_nc, rate_s=RATE_S, at_speed=True, name="laser.csv", touches=laser_plan.touches
+    )
     laser = laser_rec.run()
     laser_log = read_run_log(laser.path)
     laser_fit = fit_logs([laser_log])
@@ -364,12 +472,22 @@ def routes(tmp_path_factory):
     ps = setter_fit.model.simulate_um(truth.speed_rpm, t)
     pl = laser_fit.model.simulate_um(truth.speed_rpm, t)
     rest = truth.speed_rpm < 1.0
-    fig = {"eddy_rms_um": rms(pe - truth.true_um), "setter_rms_um": rms(ps - truth.true_um),
-           "eddy_rest_rms_um": rms((pe - truth.true_um)[rest]), "setter_rest_rms_um": rms((ps - truth.true_um)[rest]),
-           "setter_plus_elastic_rms_um": rms(ps + elastic - truth.true_um), "max_elastic_um": float(elastic.max()),
-           "interval_min": plan.interval_s / 60, "stops": setter.measurements, "added_min": plan.added_s / 60,
-           "eddy_model": eddy_fit.chosen.name, "setter_model": setter_fit.chosen.name,
-           "setter_rows": setter.rows, "eddy_rows": eddy.rows, "plan": plan.lines()}
+    fig = {
+        "eddy_rms_um": rms(pe - truth.true_um),
+        "setter_rms_um": rms(ps - truth.true_um),
+        "eddy_rest_rms_um": rms((pe - truth.true_um)[rest]),
+        "setter_rest_rms_um": rms((ps - truth.true_um)[rest]),
+        "setter_plus_elastic_rms_um": rms(ps + elastic - truth.true_um),
+        "max_elastic_um": float(elastic.max()),
+        "interval_min": plan.interval_s / 60,
+        "stops": setter.measurements,
+        "added_min": plan.added_s / 60,
+        "eddy_model": eddy_fit.chosen.name,
+        "setter_model": setter_fit.chosen.name,
+        "setter_rows": setter.rows,
+        "eddy_rows": eddy.rows,
+        "plan": plan.lines(),
+    }
     fig["ratio"] = fig["setter_rms_um"] / fig["eddy_rms_um"]
     fig["laser_rms_um"] = rms(pl - truth.true_um)
     fig["laser_ratio"] = fig["laser_rms_um"] / fig["eddy_rms_um"]
@@ -378,19 +496,24 @@ def routes(tmp_path_factory):
     fig["laser_stops"], fig["laser_plan_stops"] = laser.measurements, laser_plan.stops
     fig["laser_touches"] = laser_plan.touches
     fig["thermal_ratio"] = fig["setter_plus_elastic_rms_um"] / fig["eddy_rms_um"]
-    fig["eddy_report"], fig["eddy_expected"] = eddy_fit.report(), eddy_fit.model.fit.get("expected_error")
+    fig["eddy_report"], fig["eddy_expected"] = (
+        eddy_fit.report(),
+        eddy_fit.model.fit.get("expected_error"),
+    )
     assert eddy.complete and setter.complete and not eddy.flagged and not setter.flagged
     assert setter.measurements == plan.stops
     return fig
 
 
 def figures(f) -> str:
-    return (f"held-out RMS: eddy {f['eddy_rms_um']:.2f} um ({f['eddy_model']}), tool setter "
-            f"{f['setter_rms_um']:.2f} um ({f['setter_model']}), ratio {f['ratio']:.2f}; at rest "
-            f"{f['eddy_rest_rms_um']:.2f} vs {f['setter_rest_rms_um']:.2f} um; tool setter + the plant's elastic "
-            f"term {f['setter_plus_elastic_rms_um']:.2f} um (ratio {f['thermal_ratio']:.2f}, elastic up to "
-            f"{f['max_elastic_um']:.1f} um); every {f['interval_min']:.0f} min, {f['stops']} stops, "
-            f"+{f['added_min']:.1f} min; " + " / ".join(f["plan"]))
+    return (
+        f"held-out RMS: eddy {f['eddy_rms_um']:.2f} um ({f['eddy_model']}), tool setter "
+        f"{f['setter_rms_um']:.2f} um ({f['setter_model']}), ratio {f['ratio']:.2f}; at rest "
+        f"{f['eddy_rest_rms_um']:.2f} vs {f['setter_rest_rms_um']:.2f} um; tool setter + the plant's elastic "
+        f"term {f['setter_plus_elastic_rms_um']:.2f} um (ratio {f['thermal_ratio']:.2f}, elastic up to "
+        f"{f['max_elastic_um']:.1f} um); every {f['interval_min']:.0f} min, {f['stops']} stops, "
+        f"+{f['added_min']:.1f} min; " + " / ".join(f["plan"])
+    )
 
 
 def test_the_tool_setter_route_identifies_the_thermal_growth_as_well_as_the_eddy_sensor(routes):
@@ -399,7 +522,9 @@ def test_the_tool_setter_route_identifies_the_thermal_growth_as_well_as_the_eddy
     # put back, its held-out error is within 1.5x of the eddy-current model's, or within the
     # setter's repeatability when the eddy-current model is better than a sparse measurement can judge
     print(figures(f))
-    assert f["setter_plus_elastic_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
+    assert f["setter_plus_elastic_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), (
+        figures(f)
+    )
     assert f["setter_rest_rms_um"] < 1.0, figures(f)
     assert f["stops"] >= 3 * 9, figures(f)  # at least 3 per staircase step
 
@@ -412,8 +537,14 @@ def test_a_laser_setter_at_speed_sees_the_growth_at_speed(routes):
     noise is a bar no sparse measurement can reach). docs/benchmarks.md has the figures over seeds
     and step lengths."""
     f = routes
-    print(figures(f) + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}")
-    assert f["laser_stops"] == f["laser_plan_stops"] >= f["stops"] and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
+    print(
+        figures(f)
+        + f"; laser at speed {f['laser_rms_um']:.2f} um ({f['laser_model']}), ratio {f['laser_ratio']:.2f}"
+    )
+    assert (
+        f["laser_stops"] == f["laser_plan_stops"] >= f["stops"]
+        and f["laser_at_speed"] >= 0.5 * f["laser_stops"]
+    )
     assert f["laser_touches"] > 1  # its stops average several touches
     assert f["laser_rms_um"] < 0.5 * f["setter_rms_um"], (f["laser_rms_um"], f["setter_rms_um"])
     assert f["laser_rms_um"] <= max(1.5 * f["eddy_rms_um"], ToolSetter().noise_um), figures(f)
@@ -426,14 +557,20 @@ def test_within_one_cycle_the_error_to_expect_is_the_held_out_figure(routes):
     rep, expected = routes["eddy_report"], routes["eddy_expected"]
     assert rep["forward_decides"] is False and rep["scored_by"].startswith("blocked")
     chosen = next(c for c in rep["candidates"] if c["name"] == rep["chosen"])
-    assert chosen["forward_rms_um"] is not None and chosen["decisive_rms_um"] == chosen["honest_rms_um"]
+    assert (
+        chosen["forward_rms_um"] is not None
+        and chosen["decisive_rms_um"] == chosen["honest_rms_um"]
+    )
     bands = expected["bands"]
     assert bands and {b["source"] for b in bands} == {"held out"} and expected["forward_folds"] == 0
     assert max(b["rms_um"] for b in bands) < 5 * chosen["honest_rms_um"]
 
 
-@pytest.mark.xfail(strict=True, reason="a tool setter measures at rest and never sees the elastic "
-                   "(centrifugal, preload) growth the spindle shows at speed: up to 16 um at 27 000 rpm "
-                   "on this plant; docs/PROBING.md, 'Assumptions of every cycle'")
+@pytest.mark.xfail(
+    strict=True,
+    reason="a tool setter measures at rest and never sees the elastic "
+    "(centrifugal, preload) growth the spindle shows at speed: up to 16 um at 27 000 rpm "
+    "on this plant; docs/PROBING.md, 'Assumptions of every cycle'",
+)
 def test_the_tool_setter_models_full_error_is_within_1_5x_of_the_eddy_models(routes):
     assert routes["ratio"] <= 1.5, figures(routes)

@@ -31,20 +31,42 @@ from compensator.speed_programs import Program
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
-PROGRAM = Program("two-ops", ((5.0, 0.0), (100.0, 22500.0), (15.0, 0.0), (100.0, 9000.0), (20.0, 0.0)))
-SHAPING = ["[spindle.shaping]", "max_offset_um = 60.0", f"max_rate_um_per_s = {MAX_RATE}",
-           f"not_cutting_rate_um_per_s = {FAST_RATE}", "deadband_um = 0.1"]
+PROGRAM = Program(
+    "two-ops", ((5.0, 0.0), (100.0, 22500.0), (15.0, 0.0), (100.0, 9000.0), (20.0, 0.0))
+)
+SHAPING = [
+    "[spindle.shaping]",
+    "max_offset_um = 60.0",
+    f"max_rate_um_per_s = {MAX_RATE}",
+    f"not_cutting_rate_um_per_s = {FAST_RATE}",
+    "deadband_um = 0.1",
+]
 
 
 def runtime(tmp_path: Path, model: Path, adapter: str, clock, **kw) -> SpindleRuntime:
-    lines = [f'state_dir = "{tmp_path / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0",
-             "[[spindle]]", 'name = "s1"', f'model = "{model}"', "period_s = 1.0",
-             "state_save_every_s = 600.0", f"adapter = {adapter}", *SHAPING]
+    lines = [
+        f'state_dir = "{tmp_path / "state"}"',
+        "watchdog = false",
+        "journal_fsync_s = 3600.0",
+        "[[spindle]]",
+        'name = "s1"',
+        f'model = "{model}"',
+        "period_s = 1.0",
+        "state_save_every_s = 600.0",
+        f"adapter = {adapter}",
+        *SHAPING,
+    ]
     path = tmp_path / "machine.toml"
     path.write_text("\n".join(lines) + "\n")
     cfg = load_config(path)
-    return SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock,
-                          wall=lambda: WALL0 + clock(), **kw)
+    return SpindleRuntime(
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: WALL0 + clock(),
+        **kw,
+    )
 
 
 def journal(tmp_path: Path):
@@ -59,7 +81,9 @@ def opcua_day(tmp_path: Path, model: Path, adapter_extra: str = "", program: Pro
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=clock)
     rows, truth = [], []
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
-        rt = runtime(tmp_path, model, f'{{url = "{cnc.url}", preset = "virtual-cnc"{adapter_extra}}}', clock)
+        rt = runtime(
+            tmp_path, model, f'{{url = "{cnc.url}", preset = "virtual-cnc"{adapter_extra}}}', clock
+        )
         step(cnc)
         rows.append(rt.cycle())
         truth.append(vm.cutting)
@@ -86,7 +110,9 @@ def test_opcua_the_controllers_cutting_node_keeps_the_offset_slow_in_the_cut(tmp
 
 def test_opcua_a_wrong_cutting_node_fails_the_signal_not_the_link(tmp_path, model_file):
     short = Program("short", ((30.0, 12000.0),))
-    rows, _, log = opcua_day(tmp_path, model_file, ', cutting_node = "ns={ns};s=/No/Such/Node"', short)
+    rows, _, log = opcua_day(
+        tmp_path, model_file, ', cutting_node = "ns={ns};s=/No/Such/Node"', short
+    )
     assert all(r["alarms"] & Alarm.CUTTING_SIGNAL_FAILED for r in rows)
     assert all(r["link"] == "connected" for r in rows)
     assert set(log.extras["cutting_source"]) == {"speed-fallback"}
@@ -104,18 +130,26 @@ def test_opcua_cutting_values_read_an_enumeration_or_an_inverted_bit():
         step(cnc)
         assert vm.cutting
         node = "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting"
-        inverted = OpcUaAdapter(cnc.url, preset="virtual-cnc", cutting_node=node, cutting_values=(False,))
+        inverted = OpcUaAdapter(
+            cnc.url, preset="virtual-cnc", cutting_node=node, cutting_values=(False,)
+        )
         plain = open_adapter({"url": cnc.url, "preset": "virtual-cnc"})
         off = open_adapter({"url": cnc.url, "preset": "virtual-cnc", "cutting_node": ""})
         try:
-            assert (plain.read_cutting(), inverted.read_cutting(), off.read_cutting()) == (True, False, None)
+            assert (plain.read_cutting(), inverted.read_cutting(), off.read_cutting()) == (
+                True,
+                False,
+                None,
+            )
             plain.read_speed()  # from now on the signal comes in the speed's request
             assert plain._cutting is not None and plain.read_cutting() is True
         finally:
             for a in (inverted, plain, off):
                 a.close()
     with pytest.raises(Exception, match="cutting_values"):
-        open_adapter({"url": "opc.tcp://127.0.0.1:9/", "preset": "virtual-cnc", "cutting_values": "maybe"})
+        open_adapter(
+            {"url": "opc.tcp://127.0.0.1:9/", "preset": "virtual-cnc", "cutting_values": "maybe"}
+        )
 
 
 def test_modbus_the_plcs_cutting_register_keeps_the_offset_slow_in_the_cut(tmp_path, model_file):
@@ -123,12 +157,25 @@ def test_modbus_the_plcs_cutting_register_keeps_the_offset_slow_in_the_cut(tmp_p
     dev = ModbusDevice(pty.dev)
     t = [0.0]
     try:
-        rt = runtime(tmp_path, model_file, f'{{url = "serial://{pty.ctl}?protocol=modbus", baudrate = 115200, '
-                     'cutting_register = 8}', lambda: t[0])
+        rt = runtime(
+            tmp_path,
+            model_file,
+            f'{{url = "serial://{pty.ctl}?protocol=modbus", baudrate = 115200, '
+            "cutting_register = 8}",
+            lambda: t[0],
+        )
         # a run-up to 20 000 rpm, the approach, a cut; a run-down; a cut at 8000 (state 1 = cutting)
-        profile = [(0.0, 0)] * 2 + [(5000.0 * k, 0) for k in (1, 2, 3, 4)] + [(20000.0, 0)] * 3 \
-            + [(20000.0, 1)] * 60 + [(20000.0 - 5000.0 * k, 0) for k in (1, 2, 3, 4)] \
-            + [(0.0, 0)] * 3 + [(4000.0, 0), (8000.0, 0)] + [(8000.0, 0)] * 3 + [(8000.0, 1)] * 60
+        profile = (
+            [(0.0, 0)] * 2
+            + [(5000.0 * k, 0) for k in (1, 2, 3, 4)]
+            + [(20000.0, 0)] * 3
+            + [(20000.0, 1)] * 60
+            + [(20000.0 - 5000.0 * k, 0) for k in (1, 2, 3, 4)]
+            + [(0.0, 0)] * 3
+            + [(4000.0, 0), (8000.0, 0)]
+            + [(8000.0, 0)] * 3
+            + [(8000.0, 1)] * 60
+        )
         rows = []
         for rpm, state in profile:
             dev.set_speed(rpm)
@@ -230,7 +277,9 @@ def test_linuxcnc_at_speed_and_motion_type_pins_keep_the_offset_slow_in_feed_mov
     assert out["feed"] == [False, False, True, True, False, False]
     assert out["pin"] == [True, False] and out["at_speed"] is True
     assert out["none"] == [False, None]
-    assert {"at-speed", "motion-type"} <= set(out["pins"]["tc-feed"]) and "cutting" not in out["pins"]["tc-feed"]
+    assert {"at-speed", "motion-type"} <= set(out["pins"]["tc-feed"]) and "cutting" not in out[
+        "pins"
+    ]["tc-feed"]
     assert "cutting" in out["pins"]["tc-pin"] and "motion-type" not in out["pins"]["tc-at"]
     assert not {"cutting", "at-speed", "motion-type"} & set(out["pins"]["tc-none"])
     cutting = np.array(out["cutting"]) == 1

@@ -21,6 +21,7 @@ def _steps(time_s: np.ndarray) -> np.ndarray:
 
 # --- the models' responses ---------------------------------------------------------------------
 
+
 def test_fopdt_step_response_is_the_analytic_curve():
     m = tu.Fopdt(gain=2.0, tau_s=100.0, delay_s=30.0)
     t = np.arange(0.0, 600.0, 7.0)
@@ -62,6 +63,7 @@ def test_model_values_are_checked_and_frozen():
 
 
 # --- the fit -----------------------------------------------------------------------------------
+
 
 def test_fit_recovers_a_fopdt_from_one_noisy_step():
     true = tu.Fopdt(gain=2.0, tau_s=600.0, delay_s=120.0)
@@ -121,6 +123,7 @@ def test_fit_refuses_what_it_cannot_fit():
 
 
 # --- SIMC and the PID forms --------------------------------------------------------------------
+
 
 def test_simc_gives_skogestads_numbers():
     # Skogestad (2003): k = 1, tau1 = 1, theta = 0.1, tau_c = theta -> Kc = 5, tauI = 0.8
@@ -185,11 +188,13 @@ def test_a_negative_plant_gain_gives_gains_the_cooling_loop_refuses():
 
 # --- the closed loop ---------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize(("tau_s", "delay_s"), [(1.0, 0.1), (10.0, 0.5), (1.0, 1.0)])
 def test_simc_settles_a_fopdt_with_the_overshoot_simc_predicts(tau_s, delay_s):
     model = tu.Fopdt(2.0, tau_s, delay_s)
-    t, y = tu.closed_loop_step(model, tu.simc(model), dt_s=delay_s / 20,
-                               duration_s=5 * tau_s + 40 * delay_s)
+    t, y = tu.closed_loop_step(
+        model, tu.simc(model), dt_s=delay_s / 20, duration_s=5 * tau_s + 40 * delay_s
+    )
     m = tu.step_metrics(t, y, 1.0)
     # SIMC's tight tuning: about 10 % setpoint overshoot (4-10 % measured here)
     assert 2.0 < m.overshoot_pct < 15.0

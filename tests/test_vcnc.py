@@ -54,8 +54,15 @@ def test_asyncua_client_reads_speed_and_writes_the_offset():
         assert wait_for(lambda: node["act_speed"].read_value() == 20000.0)
         node["thermal_offset"].write_value(-7.25)
         assert wait_for(lambda: vm.offset_um == -7.25)
-        assert wait_for(lambda: abs(node["tool_tip_error"].read_value()
-                                    - (node["true_elongation"].read_value() - 7.25)) < 1e-9)
+        assert wait_for(
+            lambda: (
+                abs(
+                    node["tool_tip_error"].read_value()
+                    - (node["true_elongation"].read_value() - 7.25)
+                )
+                < 1e-9
+            )
+        )
         t0 = node["sim_time"].read_value()
         assert wait_for(lambda: node["sim_time"].read_value() > t0)  # accelerated time runs
     h = vm.history()
@@ -76,13 +83,19 @@ def test_virtual_cnc_ignores_a_non_finite_or_huge_offset():
     assert vm.offset_um == 0.0
 
 
-@pytest.mark.skipif(shutil.which("node") is None, reason="Node.js is not installed (make test installs it)")
+@pytest.mark.skipif(
+    shutil.which("node") is None, reason="Node.js is not installed (make test installs it)"
+)
 def test_independent_node_opcua_client_reads_and_writes():
     assert (JS / "node_modules" / "node-opcua-client").is_dir(), "run scripts/system-deps.sh"
     vm = machine()
     with running(VirtualCNC(vm)) as cnc:
-        r = subprocess.run(["node", str(JS / "vcnc_client.mjs"), cnc.url, "-4.5"],
-                           capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            ["node", str(JS / "vcnc_client.mjs"), cnc.url, "-4.5"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         out = json.loads(r.stdout.strip().splitlines()[-1])
         assert r.returncode == 0, (out, r.stderr[-2000:])
         assert out["browse_status"] == "Good"
@@ -110,7 +123,9 @@ def test_opcua_adapter_against_the_virtual_cnc():
 
 
 def test_opcua_adapter_unreachable():
-    link = OpcUaAdapter(f"opc.tcp://127.0.0.1:{free_port()}/nothing", preset="virtual-cnc", timeout_s=2)
+    link = OpcUaAdapter(
+        f"opc.tcp://127.0.0.1:{free_port()}/nothing", preset="virtual-cnc", timeout_s=2
+    )
     with pytest.raises(UnreachableError):
         link.read_speed()
     with pytest.raises(ConnectionError):  # also the builtin it refines
@@ -171,9 +186,25 @@ def test_virtual_cnc_writes_the_machines_record_on_sigterm(tmp_path):
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     out = tmp_path / "machine.csv"
-    proc = subprocess.Popen([sys.executable, "-m", "thermocomp", "virtual-cnc", "--program", "job-shop-day",
-                             "--time-scale", "3000", "--port", str(port), "--history", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "virtual-cnc",
+            "--program",
+            "job-shop-day",
+            "--time-scale",
+            "3000",
+            "--port",
+            str(port),
+            "--history",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         head = []
         for line in proc.stdout:  # the server is up once it prints its nodes
@@ -181,7 +212,9 @@ def test_virtual_cnc_writes_the_machines_record_on_sigterm(tmp_path):
             if line.startswith("nodes:"):
                 break
         with Client(f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", timeout=10) as c:
-            node = c.get_node(f"ns={c.get_namespace_index(NAMESPACE_URI)};s={NODE_PATHS['sim_time']}")
+            node = c.get_node(
+                f"ns={c.get_namespace_index(NAMESPACE_URI)};s={NODE_PATHS['sim_time']}"
+            )
             for _ in range(600):  # until the machine has a record of a few simulated minutes
                 if node.read_value() > 300.0:
                     break

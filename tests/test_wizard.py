@@ -54,7 +54,9 @@ def press_cycle_start(url: str) -> None:
 
     with Client(url, timeout=10) as c:
         ns = c.get_namespace_index(NAMESPACE_URI)
-        c.get_node(f"ns={ns};s={CYCLE_START_PATH}").write_value(ua.DataValue(ua.Variant(True, ua.VariantType.Boolean)))
+        c.get_node(f"ns={ns};s={CYCLE_START_PATH}").write_value(
+            ua.DataValue(ua.Variant(True, ua.VariantType.Boolean))
+        )
 
 
 class Killed(BaseException):
@@ -69,7 +71,9 @@ class LockStep:
 
     def __init__(self, seed: int = 21):
         self.clock = SteppedClock()
-        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=seed), None, clock=self.clock)
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=seed), None, clock=self.clock
+        )
         self.cnc: VirtualCNC | None = None
         self.session_dir: Path | None = None
         self.pending = False  # the wizard waits for the spindle: load the next program
@@ -111,8 +115,13 @@ class LockStep:
         from thermocomp.cli import build_parser
 
         args = build_parser().parse_args(["wizard", *argv])
-        console = Console(file=LineTee(self.on_line, out), width=130, highlight=False,
-                          force_terminal=stdin_tty, color_system=None)
+        console = Console(
+            file=LineTee(self.on_line, out),
+            width=130,
+            highlight=False,
+            force_terminal=stdin_tty,
+            color_system=None,
+        )
         wiz = Wizard(args, console=console, clock=self.clock, sleep=self.sleep)
         return wiz.run()
 
@@ -182,11 +191,30 @@ def lockstep():
 
 
 def unattended_args(work: Path, cnc, *extra: str) -> list[str]:
-    return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7",
-            "--model-spindle-id", "main", "--max-rpm", "27000", "--source", "sensor",
-            "--controller", cnc.url + "?preset=virtual-cnc",
-            "--sensor", cnc.url + "?preset=virtual-cnc&range_um=-250,250",
-            "--rate-s", str(RATE_S), "--dialect", "linuxcnc", "--step-min", "10", *extra]
+    return [
+        "--yes",
+        "--workdir",
+        str(work),
+        "--machine-id",
+        "vmc-7",
+        "--model-spindle-id",
+        "main",
+        "--max-rpm",
+        "27000",
+        "--source",
+        "sensor",
+        "--controller",
+        cnc.url + "?preset=virtual-cnc",
+        "--sensor",
+        cnc.url + "?preset=virtual-cnc&range_um=-250,250",
+        "--rate-s",
+        str(RATE_S),
+        "--dialect",
+        "linuxcnc",
+        "--step-min",
+        "10",
+        *extra,
+    ]
 
 
 def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(lockstep, tmp_path):
@@ -214,7 +242,10 @@ def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(lockstep,
     # the interruption is visible, not papered over: 15 min and one sample period
     assert [round(g.duration_s) for g in full.gaps if g.duration_s > 60] == [15 * 60 + RATE_S]
     # the controller's own sensor channels are logged beside, ready for `fit --inputs`
-    assert np.isfinite(full.extras["bearing_temp_c"]).all() and np.ptp(full.extras["bearing_temp_c"]) > 3
+    assert (
+        np.isfinite(full.extras["bearing_temp_c"]).all()
+        and np.ptp(full.extras["bearing_temp_c"]) > 3
+    )
     assert "validation run, free run on data the fit never saw" in out
     session = json.loads((sdir / "session.json").read_text())
     saved = session["saved"]
@@ -224,14 +255,26 @@ def test_unattended_wizard_survives_a_kill_resumes_and_its_model_works(lockstep,
     assert "data:image/png;base64," in html and "validation (held out)" in html
 
     # the model works in replay, on the held-out validation run
-    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "validation.csv"), "--model", str(model),
-                        "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            *THERMOCOMP,
+            "replay",
+            str(sdir / "runs" / "validation.csv"),
+            "--model",
+            str(model),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     peak = float(np.abs(read_run_log(sdir / "runs" / "validation.csv").elongation_um).max())
     assert peak > 15 and rep["rms_residual_um"] < 0.15 * peak
     # the runtime configuration is valid and reaches the controller
-    r = subprocess.run([*THERMOCOMP, "run", "--config", str(config), "--check"], capture_output=True, text=True)
+    r = subprocess.run(
+        [*THERMOCOMP, "run", "--config", str(config), "--check"], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stdout + r.stderr
 
     # a second save never overwrites the first model
@@ -250,18 +293,32 @@ def test_the_wizard_killed_by_sigkill_mid_recording_keeps_every_row_and_resumes(
     vm, cnc = vcnc
     work = tmp_path / "cal"
     sdir = work / "vmc-7" / "main"
-    cmd = [*THERMOCOMP, "wizard", *unattended_args(work, cnc, "--no-validation", "--programs-only"),
-           "--time-scale", str(SCALE)]
+    cmd = [
+        *THERMOCOMP,
+        "wizard",
+        *unattended_args(work, cnc, "--no-validation", "--programs-only"),
+        "--time-scale",
+        str(SCALE),
+    ]
     assert subprocess.run(cmd, capture_output=True, text=True, timeout=120).returncode == 0
-    vm.load_pending(parse_nc(Path(json.loads((sdir / "session.json").read_text())["programs"]["calibration"])
-                             .read_text()))
+    vm.load_pending(
+        parse_nc(
+            Path(
+                json.loads((sdir / "session.json").read_text())["programs"]["calibration"]
+            ).read_text()
+        )
+    )
     press_cycle_start(cnc.url)
     cmd.remove("--programs-only")
     log = sdir / "runs" / "calibration.csv"
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     try:
         end = time.monotonic() + 120
-        while time.monotonic() < end and proc.poll() is None and not (log.exists() and _rows_in(log) >= 20):
+        while (
+            time.monotonic() < end
+            and proc.poll() is None
+            and not (log.exists() and _rows_in(log) >= 20)
+        ):
             time.sleep(0.05)
         assert proc.poll() is None, "the wizard ended before it was killed"
         proc.send_signal(signal.SIGKILL)  # the worst case: no clean-up at all
@@ -296,12 +353,19 @@ def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatc
     work = tmp_path / "cal"
     ls.session_dir = sdir = work / "vmc-9" / "sp1"
     with at_a_terminal(monkeypatch) as (child, tty_out):
-        th, result = in_thread(lambda: ls.wizard(["--workdir", str(work), "--step-min", "10"], stdin_tty=True,
-                                                 out=tty_out))
+        th, result = in_thread(
+            lambda: ls.wizard(
+                ["--workdir", str(work), "--step-min", "10"], stdin_tty=True, out=tty_out
+            )
+        )
         answers = [
-            ("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
-            ("Displacement from", "sensor"), ("Controller link", ls.cnc.url + "?preset=virtual-cnc"),
-            ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"), ("Sample period", str(RATE_S)),
+            ("Machine id", "vmc-9"),
+            ("Spindle id", "sp1"),
+            ("Maximum spindle speed", "27000"),
+            ("Displacement from", "sensor"),
+            ("Controller link", ls.cnc.url + "?preset=virtual-cnc"),
+            ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"),
+            ("Sample period", str(RATE_S)),
             ("Test the connections now", "y"),
         ]
         for prompt, answer in answers:
@@ -324,8 +388,18 @@ def test_interactive_wizard_under_a_real_terminal(lockstep, tmp_path, monkeypatc
     assert session["programs"]["calibration"].endswith(".mpf")
     saved = session["saved"]
     assert Path(saved["model"]).exists() and Path(saved["config"]).exists()
-    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "calibration.csv"), "--model", saved["model"],
-                        "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            *THERMOCOMP,
+            "replay",
+            str(sdir / "runs" / "calibration.csv"),
+            "--model",
+            saved["model"],
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0 and json.loads(r.stdout)["rms_residual_um"] < 1.5
 
 
@@ -335,9 +409,11 @@ def test_wizard_imports_daq_logs(tmp_path):
     params = preset("motorized-27k")
     epoch = 1.78e9
     speed_t, speed_n = [], []
-    for name, prog, seed, day in (("cal", paper_calibration(params.max_rpm), 1, 0),
-                                  ("val", random_validation(params.max_rpm, seed=5), 2, 1),
-                                  ("late", random_validation(params.max_rpm, seed=5), 2, 30)):
+    for name, prog, seed, day in (
+        ("cal", paper_calibration(params.max_rpm), 1, 0),
+        ("val", random_validation(params.max_rpm, seed=5), 2, 1),
+        ("late", random_validation(params.max_rpm, seed=5), 2, 30),
+    ):
         t, n = prog.sample(1.0)
         run = SpindlePlant(params, seed=seed).run(t, n)
         t0 = epoch + day * 86400.0
@@ -346,29 +422,70 @@ def test_wizard_imports_daq_logs(tmp_path):
             speed_n.append(n)
         # the DAQ: a gap probe in mm every 5 s, with ISO time stamps
         k = slice(0, None, 5)
-        stamps = (np.datetime64("1970-01-01T00:00:00", "ms")
-                  + ((t0 + t[k]) * 1000).astype("int64").astype("timedelta64[ms]"))
+        stamps = np.datetime64("1970-01-01T00:00:00", "ms") + ((t0 + t[k]) * 1000).astype(
+            "int64"
+        ).astype("timedelta64[ms]")
         gap_mm = 1.0 - run.measured_um[k] / 1000.0
         with open(tmp_path / f"{name}-daq.csv", "w") as fh:
             fh.write("timestamp;gap_mm;temp\n")
             fh.writelines(f"{s}Z;{g:.6f};21.0\n" for s, g in zip(stamps.astype(str), gap_mm))
-    write_run_log(tmp_path / "speed.csv", {"time_s": np.concatenate(speed_t), "speed_rpm": np.concatenate(speed_n)})
+    write_run_log(
+        tmp_path / "speed.csv",
+        {"time_s": np.concatenate(speed_t), "speed_rpm": np.concatenate(speed_n)},
+    )
     sdir = tmp_path / "w" / "m1" / "s1"
-    base = [*THERMOCOMP, "wizard", "--yes", "--workdir", str(tmp_path / "w"), "--machine-id", "m1",
-            "--model-spindle-id", "s1", "--max-rpm", "27000", "--source", "import", "--dialect", "fanuc",
-            "--import-time-column", "timestamp", "--import-displacement-column", "gap_mm",
-            "--import-scale", "-1000", "--validation", "--import-speed-log", str(tmp_path / "speed.csv"),
-            "--report-format", "md", "--import-calibration", str(tmp_path / "cal-daq.csv")]
+    base = [
+        *THERMOCOMP,
+        "wizard",
+        "--yes",
+        "--workdir",
+        str(tmp_path / "w"),
+        "--machine-id",
+        "m1",
+        "--model-spindle-id",
+        "s1",
+        "--max-rpm",
+        "27000",
+        "--source",
+        "import",
+        "--dialect",
+        "fanuc",
+        "--import-time-column",
+        "timestamp",
+        "--import-displacement-column",
+        "gap_mm",
+        "--import-scale",
+        "-1000",
+        "--validation",
+        "--import-speed-log",
+        str(tmp_path / "speed.csv"),
+        "--report-format",
+        "md",
+        "--import-calibration",
+        str(tmp_path / "cal-daq.csv"),
+    ]
     # a DAQ file from another day than the speed log: refused in one line, what was imported kept
-    r = subprocess.run([*base, "--import-validation", str(tmp_path / "late-daq.csv")], capture_output=True, text=True)
-    assert r.returncode == 2 and "same clock" in r.stderr and r.stderr.count("\n") == 1, r.stdout + r.stderr
+    r = subprocess.run(
+        [*base, "--import-validation", str(tmp_path / "late-daq.csv")],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "same clock" in r.stderr and r.stderr.count("\n") == 1, (
+        r.stdout + r.stderr
+    )
     assert json.loads((sdir / "session.json").read_text())["runs"]["calibration"]["complete"]
-    r = subprocess.run([*base, "--import-validation", str(tmp_path / "val-daq.csv")], capture_output=True, text=True,
-                       umask=0o022)
+    r = subprocess.run(
+        [*base, "--import-validation", str(tmp_path / "val-daq.csv")],
+        capture_output=True,
+        text=True,
+        umask=0o022,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert "imported" in r.stdout and "calibration: already recorded" in r.stdout
     # the probe-interval table, judged on the validation run, and its observer kept in the model
-    assert "probe every" in r.stdout and ("recommended: a probe every" in r.stdout or "no interval" in r.stdout)
+    assert "probe every" in r.stdout and (
+        "recommended: a probe every" in r.stdout or "no interval" in r.stdout
+    )
     saved = json.loads((sdir / "session.json").read_text())["saved"]
     assert "bias_q_um2_per_s" in json.loads(Path(saved["model"]).read_text())["fit"]["observer"]
     # the model, its report and config are readable by all (no secret in them); the session,
@@ -381,14 +498,34 @@ def test_wizard_imports_daq_logs(tmp_path):
     assert "## Closed loop with a tool setter" in md and "| 1800 s |" in md
     cal = read_run_log(sdir / "runs" / "calibration.csv")
     assert cal.elongation_um.max() > 20  # the gap probe's sign was turned into growth
-    r = subprocess.run([*THERMOCOMP, "replay", str(sdir / "runs" / "validation.csv"), "--model", saved["model"],
-                        "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            *THERMOCOMP,
+            "replay",
+            str(sdir / "runs" / "validation.csv"),
+            "--model",
+            saved["model"],
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["rms_residual_um"] < 2.0
     # the wizard fits as `thermocomp fit` does: the same log gives the same model (the wizard
     # then plans its observer on the validation run, which `fit` has not seen)
-    r = subprocess.run([*THERMOCOMP, "fit", str(sdir / "runs" / "calibration.csv"), "--output",
-                        str(tmp_path / "fit.json"), "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            *THERMOCOMP,
+            "fit",
+            str(sdir / "runs" / "calibration.csv"),
+            "--output",
+            str(tmp_path / "fit.json"),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     wiz, fit = (json.loads(Path(p).read_text()) for p in (saved["model"], tmp_path / "fit.json"))
     for m in (wiz, fit):
@@ -402,27 +539,108 @@ def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
     vm, cnc = vcnc
     cases = [
         (["--workdir", str(tmp_path), "--model-spindle-id", "s"], "--machine-id is needed"),
-        (["--workdir", str(tmp_path), "--machine-id", "m/x", "--model-spindle-id", "s"], "--machine-id 'm/x'"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", ".."], "--model-spindle-id '..'"),
-        (["--workdir", str(tmp_path), "--machine-id", "../../up", "--model-spindle-id", "s"], "--machine-id '../../up'"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "5",
-          "--source", "sensor"], "not a plausible spindle speed"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "9000",
-          "--source", "sensor", "--controller", "opc.tcp://127.0.0.1:1/x?preset=virtual-cnc",
-          "--sensor", cnc.url + "?preset=virtual-cnc"], "controller opc.tcp://127.0.0.1:1"),
-        (["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", "s", "--max-rpm", "9000",
-          "--source", "sensor", "--controller", cnc.url + "?preset=virtual-cnc",
-          "--sensor", "serial:///dev/nonexistent-probe"], "sensor serial:///dev/nonexistent-probe"),
+        (
+            ["--workdir", str(tmp_path), "--machine-id", "m/x", "--model-spindle-id", "s"],
+            "--machine-id 'm/x'",
+        ),
+        (
+            ["--workdir", str(tmp_path), "--machine-id", "m", "--model-spindle-id", ".."],
+            "--model-spindle-id '..'",
+        ),
+        (
+            ["--workdir", str(tmp_path), "--machine-id", "../../up", "--model-spindle-id", "s"],
+            "--machine-id '../../up'",
+        ),
+        (
+            [
+                "--workdir",
+                str(tmp_path),
+                "--machine-id",
+                "m",
+                "--model-spindle-id",
+                "s",
+                "--max-rpm",
+                "5",
+                "--source",
+                "sensor",
+            ],
+            "not a plausible spindle speed",
+        ),
+        (
+            [
+                "--workdir",
+                str(tmp_path),
+                "--machine-id",
+                "m",
+                "--model-spindle-id",
+                "s",
+                "--max-rpm",
+                "9000",
+                "--source",
+                "sensor",
+                "--controller",
+                "opc.tcp://127.0.0.1:1/x?preset=virtual-cnc",
+                "--sensor",
+                cnc.url + "?preset=virtual-cnc",
+            ],
+            "controller opc.tcp://127.0.0.1:1",
+        ),
+        (
+            [
+                "--workdir",
+                str(tmp_path),
+                "--machine-id",
+                "m",
+                "--model-spindle-id",
+                "s",
+                "--max-rpm",
+                "9000",
+                "--source",
+                "sensor",
+                "--controller",
+                cnc.url + "?preset=virtual-cnc",
+                "--sensor",
+                "serial:///dev/nonexistent-probe",
+            ],
+            "sensor serial:///dev/nonexistent-probe",
+        ),
     ]
-    for k, (dialect, touches, message) in enumerate((("fanuc", "11", "--probe-touches 11: a whole number from 1 to 10"),
-                                                     ("fanuc", "nan", "--probe-touches nan"),
-                                                     ("heidenhain", "2", "--probe-touches is not for heidenhain"))):
-        cases.append((["--workdir", str(tmp_path), "--machine-id", f"t{k}", "--model-spindle-id", "s", "--max-rpm",
-                       "9000", "--source", "tool-setter", "--controller", cnc.url + "?preset=virtual-cnc",
-                       "--no-connection-test", "--programs-only", "--dialect", dialect, "--probe-touches", touches],
-                      message))
+    for k, (dialect, touches, message) in enumerate(
+        (
+            ("fanuc", "11", "--probe-touches 11: a whole number from 1 to 10"),
+            ("fanuc", "nan", "--probe-touches nan"),
+            ("heidenhain", "2", "--probe-touches is not for heidenhain"),
+        )
+    ):
+        cases.append(
+            (
+                [
+                    "--workdir",
+                    str(tmp_path),
+                    "--machine-id",
+                    f"t{k}",
+                    "--model-spindle-id",
+                    "s",
+                    "--max-rpm",
+                    "9000",
+                    "--source",
+                    "tool-setter",
+                    "--controller",
+                    cnc.url + "?preset=virtual-cnc",
+                    "--no-connection-test",
+                    "--programs-only",
+                    "--dialect",
+                    dialect,
+                    "--probe-touches",
+                    touches,
+                ],
+                message,
+            )
+        )
     for args, message in cases:
-        r = subprocess.run([*THERMOCOMP, "wizard", "--yes", *args], capture_output=True, text=True, timeout=60)
+        r = subprocess.run(
+            [*THERMOCOMP, "wizard", "--yes", *args], capture_output=True, text=True, timeout=60
+        )
         assert r.returncode == 2, (args, r.stdout, r.stderr)
         assert message in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
@@ -446,8 +664,30 @@ def quiet_wizard(args):
     return Wizard(args, console=Console(file=io.StringIO()))
 
 
-BAD_IDS = ["..", ".", "../x", "x/..", "a/b", "/etc", "a\\b", "a\x00b", "a b", " ", "", "a\nb", "-rf", "_x",
-           ".hidden", "a..b", "x" * 65, "ä", "a;b", "$(id)", "a*", "x" * 1_000_000]
+BAD_IDS = [
+    "..",
+    ".",
+    "../x",
+    "x/..",
+    "a/b",
+    "/etc",
+    "a\\b",
+    "a\x00b",
+    "a b",
+    " ",
+    "",
+    "a\nb",
+    "-rf",
+    "_x",
+    ".hidden",
+    "a..b",
+    "x" * 65,
+    "ä",
+    "a;b",
+    "$(id)",
+    "a*",
+    "x" * 1_000_000,
+]
 
 
 @pytest.mark.parametrize("bad", BAD_IDS, ids=[repr(b[:8]) for b in BAD_IDS])
@@ -457,7 +697,9 @@ def test_an_unsafe_id_is_refused_in_one_line_and_nothing_is_written(tmp_path, fl
 
     work = tmp_path / "w" / "calibrations"
     ids = {"--machine-id": "m1", "--model-spindle-id": "s1", flag: bad}
-    wiz = quiet_wizard(wizard_args(work, *(f"{k}={v}" for k, v in ids.items()), "--max-rpm", "9000"))
+    wiz = quiet_wizard(
+        wizard_args(work, *(f"{k}={v}" for k, v in ids.items()), "--max-rpm", "9000")
+    )
     with pytest.raises(ConfigError) as info:
         wiz.step_identify()
     msg = str(info.value)
@@ -469,8 +711,19 @@ def test_an_unsafe_id_is_refused_in_one_line_and_nothing_is_written(tmp_path, fl
 @pytest.mark.parametrize("good", ["vmc-7", "A.b_c-9", "0", "x" * 64, "  padded  "])
 def test_a_safe_id_names_the_session_directory(tmp_path, good):
     work = tmp_path / "w"
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", good, "--model-spindle-id", "s1", "--max-rpm", "9000",
-                                   "--source", "import"))
+    wiz = quiet_wizard(
+        wizard_args(
+            work,
+            "--machine-id",
+            good,
+            "--model-spindle-id",
+            "s1",
+            "--max-rpm",
+            "9000",
+            "--source",
+            "import",
+        )
+    )
     wiz.step_identify()
     assert wiz.dir == work.resolve() / good.strip() / "s1"
     assert (wiz.dir / "session.json").is_file()
@@ -483,7 +736,9 @@ def test_a_symlink_out_of_the_work_directory_is_refused(tmp_path):
     work.mkdir()
     outside.mkdir()
     (work / "m1").symlink_to(outside)
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--model-spindle-id", "s1", "--max-rpm", "9000"))
+    wiz = quiet_wizard(
+        wizard_args(work, "--machine-id", "m1", "--model-spindle-id", "s1", "--max-rpm", "9000")
+    )
     with pytest.raises(ConfigError, match="the session directory .* is outside the work directory"):
         wiz.step_identify()
     assert list(outside.iterdir()) == []
@@ -496,16 +751,44 @@ def test_an_edited_session_cannot_send_a_run_log_outside(tmp_path):
     work, outside = tmp_path / "w", tmp_path / "outside.csv"
     sdir = work / "m1" / "s1"
     sdir.mkdir(parents=True)
-    (sdir / "session.json").write_text(json.dumps({
-        "format": SESSION_FORMAT, "runs": {"calibration": {"log": str(sdir / ".." / ".." / ".." / "outside.csv"),
-                                                           "complete": False}}}))
+    (sdir / "session.json").write_text(
+        json.dumps(
+            {
+                "format": SESSION_FORMAT,
+                "runs": {
+                    "calibration": {
+                        "log": str(sdir / ".." / ".." / ".." / "outside.csv"),
+                        "complete": False,
+                    }
+                },
+            }
+        )
+    )
     (tmp_path / "daq.csv").write_text("time_s,displacement_um,speed_rpm\n0,0,0\n1,0,0\n")
-    wiz = quiet_wizard(wizard_args(work, "--machine-id", "m1", "--model-spindle-id", "s1", "--max-rpm", "9000",
-                                   "--source", "import", "--dialect", "fanuc", "--no-validation",
-                                   "--import-calibration", str(tmp_path / "daq.csv"),
-                                   "--import-speed-column", "speed_rpm"))
+    wiz = quiet_wizard(
+        wizard_args(
+            work,
+            "--machine-id",
+            "m1",
+            "--model-spindle-id",
+            "s1",
+            "--max-rpm",
+            "9000",
+            "--source",
+            "import",
+            "--dialect",
+            "fanuc",
+            "--no-validation",
+            "--import-calibration",
+            str(tmp_path / "daq.csv"),
+            "--import-speed-column",
+            "speed_rpm",
+        )
+    )
     wiz.step_identify()
     wiz.step_programs()
-    with pytest.raises(ConfigError, match=f"the calibration run log {outside} is outside the work directory"):
+    with pytest.raises(
+        ConfigError, match=f"the calibration run log {outside} is outside the work directory"
+    ):
         wiz.step_acquire()
     assert not outside.exists()

@@ -55,22 +55,43 @@ def session(tmp_path_factory):
     sdir = work / "vmc-7" / "main"
     (sdir / "runs").mkdir(parents=True)
     runs = {}
-    for name, run in (("calibration", plant_run("calibration", 20.0, 1)),
-                      ("validation", plant_run("validation", 20.0, 2))):
+    for name, run in (
+        ("calibration", plant_run("calibration", 20.0, 1)),
+        ("validation", plant_run("validation", 20.0, 2)),
+    ):
         log = sdir / "runs" / f"{name}.csv"
-        write_run_log(log, {"time_s": run.time_s, "speed_rpm": run.speed_rpm, "elongation_um": run.elongation_um},
-                      {"machine_id": "vmc-7", "spindle_id": "main", "run": name})
+        write_run_log(
+            log,
+            {"time_s": run.time_s, "speed_rpm": run.speed_rpm, "elongation_um": run.elongation_um},
+            {"machine_id": "vmc-7", "spindle_id": "main", "run": name},
+        )
         runs[name] = {"log": str(log), "complete": True, "rows": len(run.time_s)}
-    args = build_parser().parse_args(["wizard", "--yes", "--workdir", str(work), "--report-format", "md"])
+    args = build_parser().parse_args(
+        ["wizard", "--yes", "--workdir", str(work), "--report-format", "md"]
+    )
     wiz = Wizard(args, console=Console(file=io.StringIO(), width=130))
     wiz.dir = sdir
-    wiz.session = {"format": SESSION_FORMAT, "machine_id": "vmc-7", "spindle_id": "main",
-                   "max_rpm": preset("motorized-27k").max_rpm, "source": "import", "controller": CONTROLLER,
-                   "validation": True, "runs": runs}
+    wiz.session = {
+        "format": SESSION_FORMAT,
+        "machine_id": "vmc-7",
+        "spindle_id": "main",
+        "max_rpm": preset("motorized-27k").max_rpm,
+        "source": "import",
+        "controller": CONTROLLER,
+        "validation": True,
+        "runs": runs,
+    }
     summary = wiz.step_fit()
     saved = wiz.step_save(summary)
-    return {"dir": sdir, "session": wiz.session, "summary": summary, "model": wiz._model,
-            "model_path": Path(saved["model"]), "report": Path(saved["report"]), "config": Path(saved["config"])}
+    return {
+        "dir": sdir,
+        "session": wiz.session,
+        "summary": summary,
+        "model": wiz._model,
+        "model_path": Path(saved["model"]),
+        "report": Path(saved["report"]),
+        "config": Path(saved["config"]),
+    }
 
 
 def moved(session, dest: Path) -> Path:
@@ -86,8 +107,21 @@ def test_the_written_configuration_passes_run_check_as_written_from_anywhere(ses
     config = moved(session, tmp_path / "moved" / "main")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    r = subprocess.run([sys.executable, "-m", "thermocomp", "run", "--config", os.path.relpath(config, elsewhere),
-                        "--check"], capture_output=True, text=True, cwd=elsewhere, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "thermocomp",
+            "run",
+            "--config",
+            os.path.relpath(config, elsewhere),
+            "--check",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=elsewhere,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert "link ok" in r.stdout and ": ok (1 spindle(s))" in r.stdout
     # the model file the copy names, found next to it
@@ -97,9 +131,13 @@ def test_the_written_configuration_passes_run_check_as_written_from_anywhere(ses
     raw = tomllib.loads(config.read_text())
     sp = raw["spindle"][0]
     assert sp["spindle_id"] == "main" == load_model(session["model_path"]).spindle_id
-    assert sp["model"] == f"../models/{session['model_path'].name}" and raw["state_dir"] == "../state"
+    assert (
+        sp["model"] == f"../models/{session['model_path'].name}" and raw["state_dir"] == "../state"
+    )
     cfg = load_config(config)
-    assert cfg.state_dir == config.parent / ".." / "state" and cfg.spindle[0].adapter == {"url": CONTROLLER}
+    assert cfg.state_dir == config.parent / ".." / "state" and cfg.spindle[0].adapter == {
+        "url": CONTROLLER
+    }
 
 
 def test_a_session_on_a_faster_virtual_machine_writes_its_time_scale(session, tmp_path):
@@ -108,8 +146,14 @@ def test_a_session_on_a_faster_virtual_machine_writes_its_time_scale(session, tm
     assert "time_scale" not in tomllib.loads(session["config"].read_text())
     path = tmp_path / "config" / "fast.toml"
     path.parent.mkdir()
-    path.write_text(runtime_config({**session["session"], "time_scale": 600.0}, session["model"],
-                                   session["model_path"], config_dir=path.parent))
+    path.write_text(
+        runtime_config(
+            {**session["session"], "time_scale": 600.0},
+            session["model"],
+            session["model_path"],
+            config_dir=path.parent,
+        )
+    )
     assert tomllib.loads(path.read_text())["time_scale"] == 600.0
     assert load_config(path).time_scale == 600.0
 
@@ -123,7 +167,9 @@ def test_the_configuration_keeps_the_products_shaping(session):
     top = session["model"].steady_state_um(session["session"]["max_rpm"])
     assert 20 < top < ShaperConfig().max_offset_um / 1.5
     # only a spindle whose predicted growth the default clamp would cut gets its own
-    big = runtime_config({**session["session"], "max_rpm": 1e5}, session["model"], session["model_path"])
+    big = runtime_config(
+        {**session["session"], "max_rpm": 1e5}, session["model"], session["model_path"]
+    )
     clamp = tomllib.loads(big)["spindle"][0]["shaping"]
     assert set(clamp) == {"max_offset_um"} and clamp["max_offset_um"] > ShaperConfig().max_offset_um
 
@@ -133,12 +179,19 @@ def test_the_configuration_refuses_a_model_of_another_spindle(session, tmp_path,
     assert check(str(config)) == 0
     other = session["model"].model_copy(update={"spindle_id": "spindle-2"})
     save_model(config.parent / ".." / "models" / session["model_path"].name, other)
-    with pytest.raises(ConfigError, match="spindle_id = 'main': the model file .* is for spindle 'spindle-2'"):
+    with pytest.raises(
+        ConfigError, match="spindle_id = 'main': the model file .* is for spindle 'spindle-2'"
+    ):
         check(str(config))
     # the spindle_id line is what refuses it: without it the same model is taken
     lax = config.with_name("no-id.toml")
-    lax.write_text("".join(ln for ln in config.read_text().splitlines(keepends=True)
-                           if not ln.startswith("spindle_id")))
+    lax.write_text(
+        "".join(
+            ln
+            for ln in config.read_text().splitlines(keepends=True)
+            if not ln.startswith("spindle_id")
+        )
+    )
     assert check(str(lax)) == 0
 
 
@@ -165,9 +218,13 @@ def test_a_job_shop_day_through_the_configuration_holds_the_demos_bound(session,
     assert slow["shaping"]["policy"] == "longer-cycle"
     # the longer update cycle lags the elastic step of a speed change into the cut
     assert slow["applied_cutting_max_abs_residual_um"] > 3 * DEMO_CUTTING_MAX_UM
-    assert slow["applied_cutting_max_abs_residual_um"] > 5 * new["applied_cutting_max_abs_residual_um"]
-    print(f"cutting max: dual slew {new['applied_cutting_max_abs_residual_um']:.2f} um, "
-          f"slow {slow['applied_cutting_max_abs_residual_um']:.2f} um")
+    assert (
+        slow["applied_cutting_max_abs_residual_um"] > 5 * new["applied_cutting_max_abs_residual_um"]
+    )
+    print(
+        f"cutting max: dual slew {new['applied_cutting_max_abs_residual_um']:.2f} um, "
+        f"slow {slow['applied_cutting_max_abs_residual_um']:.2f} um"
+    )
 
 
 def md_table(md: str, heading: str) -> list[dict[str, str]]:
@@ -188,16 +245,25 @@ def test_the_report_states_each_figure_by_what_it_was_scored_on(session):
     # every held-out figure is called held out, with the identification's and the run's own values
     held = [lb for lb in labels if "(held out)" in lb]
     assert len(held) >= 3 and not any("in sample" in lb or "in-sample" in lb for lb in held)
-    ident = [r for r in md_table(md, "Free-run error") if r["figure"].startswith("identification (held out)")]
+    ident = [
+        r
+        for r in md_table(md, "Free-run error")
+        if r["figure"].startswith("identification (held out)")
+    ]
     assert float(ident[0]["RMS [um]"]) == pytest.approx(chosen["honest_rms_um"], abs=0.006)
     assert "forward" in ident[1]["figure"]
     assert float(ident[1]["RMS [um]"]) == pytest.approx(chosen["forward_rms_um"], abs=0.006)
     assert float(ident[1]["max [um]"]) == pytest.approx(chosen["forward_max_abs_um"], abs=0.006)
-    val = next(r for r in md_table(md, "Free-run error")
-               if r["figure"].startswith("validation (held out): a run"))
+    val = next(
+        r
+        for r in md_table(md, "Free-run error")
+        if r["figure"].startswith("validation (held out): a run")
+    )
     v = summary["validation"]
     assert float(val["RMS [um]"]) == pytest.approx(v["rms_um"], abs=0.006)
-    assert float(val["max [um]"]) == pytest.approx(v["max_abs_um"], abs=0.006) and val["samples"] == str(v["samples"])
+    assert float(val["max [um]"]) == pytest.approx(v["max_abs_um"], abs=0.006) and val[
+        "samples"
+    ] == str(v["samples"])
     # the one figure called in sample is the calibration run's own free run
     (insample,) = [lb for lb in labels if "in sample" in lb or "in-sample" in lb]
     cal = rows["calibration (in sample)"]
@@ -214,7 +280,9 @@ def test_the_report_states_each_figure_by_what_it_was_scored_on(session):
         assert float(row["forward RMS [um]"]) == pytest.approx(c["forward_rms_um"], abs=0.006)
         assert float(row["decisive RMS [um]"]) == pytest.approx(c["decisive_rms_um"], abs=0.006)
         assert float(row["in-sample RMS [um]"]) == pytest.approx(c["in_sample_rms_um"], abs=0.006)
-        for cited in re.findall(r"held-out RMS \(the worse of nested and forward\) ([0-9.]+) um", row["verdict"]):
+        for cited in re.findall(
+            r"held-out RMS \(the worse of nested and forward\) ([0-9.]+) um", row["verdict"]
+        ):
             assert cited == row["decisive RMS [um]"]
     # the runs: which was fitted and which held out
     use = {r["run"]: r["in this report"] for r in md_table(md, "Runs")}
@@ -222,15 +290,23 @@ def test_the_report_states_each_figure_by_what_it_was_scored_on(session):
     # the fit's one-cycle warning is put beside the run that is the check on a second cycle
     if rep["scored_by"].startswith("blocked"):
         assert f"second cycle, which the fit never saw: free-run RMS {v['rms_um']:.2f} um" in md
-    html = calibration_report(session["session"], summary, session["model"], session["model_path"], "html", "v1")
+    html = calibration_report(
+        session["session"], summary, session["model"], session["model_path"], "html", "v1"
+    )
     assert "validation (held out): a run the fit never saw" in html and "one run only" not in html
 
 
 def test_the_report_without_a_validation_run_claims_none(session):
-    summary = {k: v for k, v in session["summary"].items()
-               if k not in ("validation", "validation_report", "closed_loop")}
-    s = {**session["session"], "validation": False,
-         "runs": {"calibration": session["session"]["runs"]["calibration"]}}
+    summary = {
+        k: v
+        for k, v in session["summary"].items()
+        if k not in ("validation", "validation_report", "closed_loop")
+    }
+    s = {
+        **session["session"],
+        "validation": False,
+        "runs": {"calibration": session["session"]["runs"]["calibration"]},
+    }
     md = calibration_report(s, summary, session["model"], session["model_path"], "md", "v1")
     labels = [r["figure"] for r in md_table(md, "Free-run error")]
     assert not any(lb.startswith("validation") for lb in labels) and "Closed loop" not in md
@@ -239,26 +315,47 @@ def test_the_report_without_a_validation_run_claims_none(session):
 
 def test_a_password_in_the_controller_link_is_never_written(session, tmp_path):
     secret = "s3cr3t-pw"
-    s = {**session["session"], "controller": f"opc.tcp://operator:{secret}@127.0.0.1:4840/x?preset=virtual-cnc",
-         "sensor": f"opc.tcp://operator:{secret}@127.0.0.1:4840/x?preset=virtual-cnc"}
+    s = {
+        **session["session"],
+        "controller": f"opc.tcp://operator:{secret}@127.0.0.1:4840/x?preset=virtual-cnc",
+        "sensor": f"opc.tcp://operator:{secret}@127.0.0.1:4840/x?preset=virtual-cnc",
+    }
     (tmp_path / "config").mkdir()
-    text = runtime_config(s, session["model"], session["model_path"], config_dir=tmp_path / "config")
-    assert secret not in text and 'url = "opc.tcp://operator@127.0.0.1:4840/x?preset=virtual-cnc"' in text
+    text = runtime_config(
+        s, session["model"], session["model_path"], config_dir=tmp_path / "config"
+    )
+    assert (
+        secret not in text
+        and 'url = "opc.tcp://operator@127.0.0.1:4840/x?preset=virtual-cnc"' in text
+    )
     path = tmp_path / "config" / "c.toml"
     path.write_text(text)
     sc = load_config(path).spindle[0]  # the runtime takes it (it refuses a URL with a password)
     assert sc.model.resolve() == session["model_path"].resolve()
-    md = calibration_report(s, session["summary"], session["model"], session["model_path"], "md", "v1")
+    md = calibration_report(
+        s, session["summary"], session["model"], session["model_path"], "md", "v1"
+    )
     assert secret not in md
     # ids of 64 characters each: the spindle's name stays within what the runtime takes
     long = {**session["session"], "machine_id": "m" * 64, "spindle_id": "s" * 64}
-    path.write_text(runtime_config(long, session["model"], session["model_path"], config_dir=tmp_path / "config"))
+    path.write_text(
+        runtime_config(
+            long, session["model"], session["model_path"], config_dir=tmp_path / "config"
+        )
+    )
     sc = load_config(path).spindle[0]
     assert sc.name == "s" * 64 == sc.spindle_id
 
 
 def test_the_configuration_is_valid_toml_whatever_the_link_holds(session):
-    for url in ('sim://motorized-27k?seed=3#"\\x', "opc.tcp://h:4840/a\x01b\x7f", "opc.tcp://h:4840/é"):
-        raw = tomllib.loads(runtime_config({**session["session"], "controller": url}, session["model"],
-                                           session["model_path"]))
+    for url in (
+        'sim://motorized-27k?seed=3#"\\x',
+        "opc.tcp://h:4840/a\x01b\x7f",
+        "opc.tcp://h:4840/é",
+    ):
+        raw = tomllib.loads(
+            runtime_config(
+                {**session["session"], "controller": url}, session["model"], session["model_path"]
+            )
+        )
         assert raw["spindle"][0]["adapter"]["url"] == url

@@ -46,7 +46,9 @@ def test_new_keeps_the_earlier_session_aside_and_starts_a_fresh_log(lockstep, tm
     assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation")) == 0
     assert "calibration 25 rows, not complete" in said(ls)
     ls.lines.clear()
-    assert ls.wizard(unattended_args(work, ls.cnc, "--new", "--programs-only", "--no-validation")) == 0
+    assert (
+        ls.wizard(unattended_args(work, ls.cnc, "--new", "--programs-only", "--no-validation")) == 0
+    )
     out = said(ls)
     assert "a new session" in out and "resuming" not in out
     aside = [p for p in (sdir / "earlier").iterdir()]
@@ -62,11 +64,20 @@ def test_durations_show_wall_time_when_the_machine_runs_faster(lockstep, tmp_pat
     ls = lockstep
     work = tmp_path / "cal"
     ls.session_dir = work / "vmc-7" / "main"
-    assert ls.wizard(unattended_args(work, ls.cnc, "--programs-only", "--no-validation", "--time-scale", "600")) == 0
+    assert (
+        ls.wizard(
+            unattended_args(
+                work, ls.cnc, "--programs-only", "--no-validation", "--time-scale", "600"
+            )
+        )
+        == 0
+    )
     assert "wall at 600x" in said(ls)
 
 
-def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tmp_path, monkeypatch):
+def test_a_failed_connection_test_asks_again_and_keeps_every_answer(
+    lockstep, tmp_path, monkeypatch
+):
     """At a real terminal: a controller link that does not answer returns to its question; the
     answers given before it are already in the session file; the right link then passes."""
     pytest.importorskip("pexpect")
@@ -75,12 +86,23 @@ def test_a_failed_connection_test_asks_again_and_keeps_every_answer(lockstep, tm
     ls.session_dir = sdir = work / "vmc-9" / "sp1"
     dead = f"opc.tcp://127.0.0.1:{free_port()}?preset=virtual-cnc"
     with at_a_terminal(monkeypatch) as (child, tty_out):
-        th, result = in_thread(lambda: ls.wizard(["--workdir", str(work), "--programs-only", "--no-validation"],
-                                                 stdin_tty=True, out=tty_out))
-        for prompt, answer in [("Machine id", "vmc-9"), ("Spindle id", "sp1"), ("Maximum spindle speed", "27000"),
-                               ("Displacement from", "sensor"), ("Controller link", dead),
-                               ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"),
-                               ("Sample period", str(RATE_S)), ("Test the connections now", "y")]:
+        th, result = in_thread(
+            lambda: ls.wizard(
+                ["--workdir", str(work), "--programs-only", "--no-validation"],
+                stdin_tty=True,
+                out=tty_out,
+            )
+        )
+        for prompt, answer in [
+            ("Machine id", "vmc-9"),
+            ("Spindle id", "sp1"),
+            ("Maximum spindle speed", "27000"),
+            ("Displacement from", "sensor"),
+            ("Controller link", dead),
+            ("Sensor", ls.cnc.url + "?preset=virtual-cnc&range_um=-250,250"),
+            ("Sample period", str(RATE_S)),
+            ("Test the connections now", "y"),
+        ]:
             child.expect(prompt)
             child.sendline(answer)
         child.expect("connection test failed")

@@ -20,10 +20,32 @@ from machine_sim.nc import parse_nc
 
 
 def setter_args(work: Path, cnc, *extra: str) -> list[str]:
-    return ["--yes", "--workdir", str(work), "--machine-id", "vmc-7", "--model-spindle-id", "main",
-            "--max-rpm", "27000", "--source", "tool-setter", "--controller", cnc.url + "?preset=virtual-cnc",
-            "--rate-s", str(RATE_S), "--dialect", "sinumerik", "--step-min", "10", "--cooldown-min", "60",
-            "--report-format", "md", *extra]
+    return [
+        "--yes",
+        "--workdir",
+        str(work),
+        "--machine-id",
+        "vmc-7",
+        "--model-spindle-id",
+        "main",
+        "--max-rpm",
+        "27000",
+        "--source",
+        "tool-setter",
+        "--controller",
+        cnc.url + "?preset=virtual-cnc",
+        "--rate-s",
+        str(RATE_S),
+        "--dialect",
+        "sinumerik",
+        "--step-min",
+        "10",
+        "--cooldown-min",
+        "60",
+        "--report-format",
+        "md",
+        *extra,
+    ]
 
 
 def said(ls) -> str:
@@ -81,8 +103,13 @@ def test_the_tool_setter_route_records_sparse_runs_measured_at_rest(calibrated):
 def test_the_tool_setter_models_held_out_error_is_small_against_the_growth(calibrated):
     c = calibrated
     out = c["out"]
-    assert "validation run, free run on data the fit never saw" in out and "tool-setter measurements" in out
-    rms = float(out.split("validation run, free run on data the fit never saw: RMS ")[1].split(" ")[0])
+    assert (
+        "validation run, free run on data the fit never saw" in out
+        and "tool-setter measurements" in out
+    )
+    rms = float(
+        out.split("validation run, free run on data the fit never saw: RMS ")[1].split(" ")[0]
+    )
     val = read_run_log(c["session"]["runs"]["validation"]["log"])
     peak = float(np.nanmax(np.abs(val.elongation_um)))
     assert rms < 0.2 * peak, (rms, peak)
@@ -108,8 +135,11 @@ def test_the_configuration_fuses_the_tool_setter_and_passes_run_check(calibrated
     assert drift["validation: with thermocomp"] < 0.5 * drift["validation: machine"], drift
     # run --check needs the controller: the link is gone with the fixture's CNC; the
     # configuration and model are checked offline
-    r = subprocess.run([*THERMOCOMP, "model", "check", c["session"]["saved"]["model"]],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [*THERMOCOMP, "model", "check", c["session"]["saved"]["model"]],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
 
 
@@ -119,7 +149,9 @@ def test_the_route_at_rest_says_what_it_cannot_see(calibrated):
     assert "the model is good" not in out
 
 
-def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_growth(laser, calibrated):
+def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_growth(
+    laser, calibrated
+):
     """--probe-spindle keep: the cycles keep the spindle turning, the measurements land on rows at
     the program's speed, and the model's steady growth at top speed takes in the growth that
     exists only while it turns (the at-rest model's misses it)."""
@@ -131,7 +163,9 @@ def test_a_laser_setter_at_speed_measures_the_turning_tool_and_sees_the_elastic_
     # its stops average as many touches as fit, and the probe program to write says how many
     n = s["probe_plan"]["touches"]
     assert n > 1 and f"{n} touches averaged per stop" in c["out"] and f"--touches {n} " in c["out"]
-    assert calibrated["session"]["probe_plan"]["touches"] == 1 and "--touches" not in calibrated["out"]
+    assert (
+        calibrated["session"]["probe_plan"]["touches"] == 1 and "--touches" not in calibrated["out"]
+    )
     # the service takes the mean's sigma for the cycle's values, and its configuration loads
     from thermocomp.runtime.config import load_config
 

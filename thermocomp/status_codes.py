@@ -11,6 +11,6 @@ EXIT_CODES = {
     EXIT_ATTENTION: "an alarm is raised (the chiller loop's too), or a spindle is holding",
     EXIT_UNREACHABLE: "the status could not be read (service not running, token refused, bad arguments)",
     EXIT_NOT_WRITING: "a spindle is not writing: its link is down, or no offset has gone through for "
-                      "faults.not_writing_cycles cycles",
+    "faults.not_writing_cycles cycles",
 }
 """``thermocomp status --exit-code``: the exit status, the worst that applies (3 over 1)."""

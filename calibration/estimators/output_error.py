@@ -33,6 +33,7 @@ from ..candidate import Candidate
 from ..dataset import Dataset
 from ..metrics import fold_scores, pooled_stats
 
+
 @dataclass(frozen=True)
 class FormSpec:
     """A candidate model form."""
@@ -47,13 +48,20 @@ class FormSpec:
 
 FORMS: tuple[FormSpec, ...] = (
     FormSpec("paper-oe", "paper's form, refined on free-run (output) error", "oe"),
-    FormSpec("speed-state", "paper's form + speed x state dissipation (b5*n*S)", "oe", speed_state=True),
+    FormSpec(
+        "speed-state", "paper's form + speed x state dissipation (b5*n*S)", "oe", speed_state=True
+    ),
     FormSpec("elastic", "paper's form + instantaneous elastic e1*n + e2*n^2", "oe", elastic=True),
     FormSpec("two-state", "two thermal states (fast and slow)", "oe", n_states=2),
-    FormSpec("two-state+elastic", "two thermal states + elastic term", "oe", n_states=2, elastic=True),
     FormSpec(
-        "speed-state+elastic", "speed x state dissipation + elastic term", "oe",
-        speed_state=True, elastic=True,
+        "two-state+elastic", "two thermal states + elastic term", "oe", n_states=2, elastic=True
+    ),
+    FormSpec(
+        "speed-state+elastic",
+        "speed x state dissipation + elastic term",
+        "oe",
+        speed_state=True,
+        elastic=True,
     ),
 )
 FORM_BY_NAME = {f.name: f for f in FORMS}
@@ -135,7 +143,9 @@ def _initial_response(states: list[tuple[float, float]], runs: Sequence[Run]) ->
     parts = []
     for r in runs:
         s0 = float(r.elongation_um[0])
-        s0 = s0 if math.isfinite(s0) else 0.0  # a sparse log starts at rest, as the free run scores it
+        s0 = (
+            s0 if math.isfinite(s0) else 0.0
+        )  # a sparse log starts at rest, as the free run scores it
         parts.append(sum(_decay(d0, d1, r) for d0, d1 in states) * (s0 / len(states)))
     return np.concatenate(parts)
 
@@ -145,7 +155,9 @@ def _powers(state_index: int) -> tuple[int, ...]:
     return (0, 1, 2, 3) if state_index == 0 else (1, 2, 3)
 
 
-def _states_from_theta(form: FormSpec, theta: np.ndarray, n_max: float) -> list[tuple[float, float]]:
+def _states_from_theta(
+    form: FormSpec, theta: np.ndarray, n_max: float
+) -> list[tuple[float, float]]:
     taus = np.exp(np.sort(theta[: form.n_states]))
     states = [(1.0 / t, 0.0) for t in taus]
     if form.speed_state:
@@ -162,8 +174,14 @@ def _tau_bounds(runs: Sequence[Run]) -> tuple[float, float]:
     return math.log(max(dt, 1.0) * 0.5), math.log(max(duration, 10 * dt) * 3)
 
 
-def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, n_max: float,
-         extra: np.ndarray | None = None) -> float:
+def _rss(
+    form: FormSpec,
+    theta: np.ndarray,
+    runs: Sequence[Run],
+    y: np.ndarray,
+    n_max: float,
+    extra: np.ndarray | None = None,
+) -> float:
     lo, hi = _tau_bounds(runs)
     if not all(lo <= v <= hi for v in theta[: form.n_states]):
         return math.inf
@@ -179,8 +197,14 @@ def _rss(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, 
     return float(r @ r)
 
 
-def _measured_system(form: FormSpec, theta: np.ndarray, runs: Sequence[Run], y: np.ndarray, n_max: float,
-                     extra: np.ndarray | None):
+def _measured_system(
+    form: FormSpec,
+    theta: np.ndarray,
+    runs: Sequence[Run],
+    y: np.ndarray,
+    n_max: float,
+    extra: np.ndarray | None,
+):
     """The least-squares problem for the gains at ``theta``: the free-run columns (with the
     ``extra`` ones) and the elongation less the initial state's decay, on the measured rows;
     with the gains' count and the states."""
@@ -212,30 +236,41 @@ def fit_output_error(form: FormSpec, runs: Sequence[Run], **meta) -> FitResult:
     def obj(th: np.ndarray) -> float:
         return _rss(form, np.asarray(th, dtype=float), runs, y, n_max)
 
-    candidates = sorted(((obj(th), i, th) for i, th in enumerate(_grid(form, runs))),
-                        key=lambda c: (c[0], c[1]))
+    candidates = sorted(
+        ((obj(th), i, th) for i, th in enumerate(_grid(form, runs))), key=lambda c: (c[0], c[1])
+    )
     best_val, _, best = candidates[0]
     if not math.isfinite(best_val):
         return FitResult(form, None, note="no stable parameters found")
-    from scipy.optimize import minimize  # 1.6 s to import: not for the commands that only read a log
+    from scipy.optimize import (
+        minimize,
+    )  # 1.6 s to import: not for the commands that only read a log
 
-    res = minimize(obj, best, method="Nelder-Mead",
-                   options={"xatol": 1e-4, "fatol": 1e-10 * max(best_val, 1e-12), "maxiter": 400})
+    res = minimize(
+        obj,
+        best,
+        method="Nelder-Mead",
+        options={"xatol": 1e-4, "fatol": 1e-10 * max(best_val, 1e-12), "maxiter": 400},
+    )
     if res.fun < best_val:
         best = np.asarray(res.x)
     return solve_output_error(form, best, runs, **meta)
 
 
-def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
-                       extra: np.ndarray | None = None, **meta) -> FitResult:
+def solve_output_error(
+    form: FormSpec, theta: np.ndarray, runs: Sequence[Run], extra: np.ndarray | None = None, **meta
+) -> FitResult:
     """Gains by OLS (statsmodels, with standard errors) for fixed nonlinear parameters;
     ``extra`` columns (input terms) are fitted jointly and their gains returned apart."""
     n_max = _n_max_krpm(runs)
     dt = _fit_dt(runs)
-    x, y, n_gain, states = _measured_system(form, theta, runs, np.concatenate([r.elongation_um for r in runs]),
-                                            n_max, extra)
+    x, y, n_gain, states = _measured_system(
+        form, theta, runs, np.concatenate([r.elongation_um for r in runs]), n_max, extra
+    )
     if y.size < 2 * x.shape[1]:  # no residual degrees of freedom left to judge the gains by
-        return FitResult(form, None, note=f"{y.size} measurements for {x.shape[1]} gains", theta=theta)
+        return FitResult(
+            form, None, note=f"{y.size} measurements for {x.shape[1]} gains", theta=theta
+        )
     ols = _ols(x, y)
     gains = np.asarray(ols.params)
     se = np.asarray(ols.bse)
@@ -247,10 +282,18 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
         g = [0.0, 0.0, 0.0, 0.0]
         for p in _powers(j):
             g[p] = float(gains[k])
-            coefs.append({"name": f"g{p}[{j + 1}]", "value": float(gains[k]),
-                          "stderr": float(se[k]), "unit": f"um/s/krpm^{p}"})
+            coefs.append(
+                {
+                    "name": f"g{p}[{j + 1}]",
+                    "value": float(gains[k]),
+                    "stderr": float(se[k]),
+                    "unit": f"um/s/krpm^{p}",
+                }
+            )
             k += 1
-        st_coefs.append(ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g)))
+        st_coefs.append(
+            ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g))
+        )
         coefs.append({"name": f"tau[{j + 1}]", "value": 1.0 / d0, "stderr": None, "unit": "s"})
         if d1:
             coefs.append({"name": f"d1[{j + 1}]", "value": d1, "stderr": None, "unit": "1/s/krpm"})
@@ -258,17 +301,30 @@ def solve_output_error(form: FormSpec, theta: np.ndarray, runs: Sequence[Run],
     if form.elastic:
         elastic = (float(gains[k]), float(gains[k + 1]))
         coefs.append({"name": "e1", "value": elastic[0], "stderr": float(se[k]), "unit": "um/krpm"})
-        coefs.append({"name": "e2", "value": elastic[1], "stderr": float(se[k + 1]), "unit": "um/krpm^2"})
+        coefs.append(
+            {"name": "e2", "value": elastic[1], "stderr": float(se[k + 1]), "unit": "um/krpm^2"}
+        )
     try:
         model = ThermalModel(
-            form=form.name, fitted_dt_s=dt, speed_range_rpm=_speed_range(runs),
-            states=tuple(st_coefs), elastic_um=elastic, **meta,
+            form=form.name,
+            fitted_dt_s=dt,
+            speed_range_rpm=_speed_range(runs),
+            states=tuple(st_coefs),
+            elastic_um=elastic,
+            **meta,
         )
     except ModelError as err:
         return FitResult(form, None, coefs, note=f"not usable: {err}", theta=theta)
     taus = ", ".join(f"{1 / d0 / 60:.1f}" for d0, _ in states)
-    return FitResult(form, model, coefs, note=f"tau = {taus} min", theta=theta,
-                     extra_gains=extra_gains, extra_stderr=extra_se)
+    return FitResult(
+        form,
+        model,
+        coefs,
+        note=f"tau = {taus} min",
+        theta=theta,
+        extra_gains=extra_gains,
+        extra_stderr=extra_se,
+    )
 
 
 # -- the estimator ------------------------------------------------------------------
@@ -331,12 +387,16 @@ def runs_of(ds: Dataset, rows: np.ndarray) -> list[Run]:
         if hi - a < fl.MIN_FOLD_ROWS or (not ds.dense and hit.size < MIN_SPARSE_MEASUREMENTS):
             continue
         y = np.where(rows[a:hi], ds.elongation_um[a:hi], np.nan)
-        y[0] = ds.elongation_um[a]  # the free run's anchor, as free_run takes it: an input, not a target
+        y[0] = ds.elongation_um[
+            a
+        ]  # the free run's anchor, as free_run takes it: an input, not a target
         runs.append(resample(Run(f"{len(runs)}", ds.time_s[a:hi], ds.speed_rpm[a:hi], y), ds.dt_s))
     return runs
 
 
-def fit(ds: Dataset, rows: np.ndarray | None = None, form: str = PHYSICAL_FORM, **meta: Any) -> FitResult:
+def fit(
+    ds: Dataset, rows: np.ndarray | None = None, form: str = PHYSICAL_FORM, **meta: Any
+) -> FitResult:
     """:data:`PHYSICAL_FORM` fitted on the stretches of ``rows`` (default: all), resampled to the
     dataset's period. A fit without a usable stretch is a result without a model."""
     runs = runs_of(ds, np.ones(ds.time_s.size, bool) if rows is None else rows)
@@ -353,7 +413,9 @@ def free_run(model: ThermalModel, ds: Dataset) -> np.ndarray:
     with np.errstate(all="ignore"):
         for a, b in ds.segments:
             y0 = float(ds.elongation_um[a])
-            out[a:b] = model.simulate_um(ds.speed_rpm[a:b], ds.time_s[a:b], None, y0 if math.isfinite(y0) else None)
+            out[a:b] = model.simulate_um(
+                ds.speed_rpm[a:b], ds.time_s[a:b], None, y0 if math.isfinite(y0) else None
+            )
     return out
 
 
@@ -367,7 +429,9 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     for a, b in ds.folds:
         f = fit(ds, fl.without(ds.time_s.size, (a, b)), **meta)
         if f.model is None:
-            c.refusals.append(f"no stable fit without fold rows {a}..{b - 1}" + (f" ({f.note})" if f.note else ""))
+            c.refusals.append(
+                f"no stable fit without fold rows {a}..{b - 1}" + (f" ({f.note})" if f.note else "")
+            )
             c.fit_cpu_s = time.process_time() - cpu0
             return c, None
         res[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
@@ -380,12 +444,16 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
         for past, (a, b) in splits:
             f = fit(ds, fl.rows_of(ds.time_s.size, past), **meta)
             if f.model is None:
-                c.refusals.append(f"no stable fit on the folds before rows {a}..{b - 1}"
-                                  + (f" ({f.note})" if f.note else ""))
+                c.refusals.append(
+                    f"no stable fit on the folds before rows {a}..{b - 1}"
+                    + (f" ({f.note})" if f.note else "")
+                )
                 c.fit_cpu_s = time.process_time() - cpu0
                 return c, None
             ahead[a:b] = (ds.elongation_um - free_run(f.model, ds))[a:b]
-        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]) & ds.measured)
+        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(
+            ahead, fl.rows_of(ahead.size, [f for _, f in splits]) & ds.measured
+        )
         c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
         c.forward_residual_um = ahead
     full = fit(ds, **meta)
@@ -393,12 +461,16 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
         c.refusals.append(f"no stable fit on all rows ({full.note})")
     else:
         c.model = full.model
-        c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full.model, ds), ds.measured)
+        c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(
+            ds.elongation_um - free_run(full.model, ds), ds.measured
+        )
         c.details = {"coefficients": full.coefficients}
         top = abs(full.model.steady_state_um(full.model.speed_range_rpm[1]))
         bound = GAIN_BOUND * float(np.nanmax(np.abs(ds.elongation_um)))
         if not math.isfinite(top) or top > bound:
-            c.refusals.append(f"steady elongation {top:.4g} um at the top speed is over "
-                              f"{GAIN_BOUND:g} x the largest measured")
+            c.refusals.append(
+                f"steady elongation {top:.4g} um at the top speed is over "
+                f"{GAIN_BOUND:g} x the largest measured"
+            )
     c.fit_cpu_s = time.process_time() - cpu0
     return c, full

@@ -53,15 +53,18 @@ class PaperFit:
                 out[1:] = constant_decay(self.a, f[1:], initial_um)
                 return out
             if not 0 < self.a < 1:
-                raise CalibrationError(f"a = {self.a:.6g}: no continuous form to step at another dt")
+                raise CalibrationError(
+                    f"a = {self.a:.6g}: no continuous form to step at another dt"
+                )
             lam = -math.log(self.a) / self.dt_s
             gk = -np.expm1(-lam * dt) / (1 - self.a)
             out[1:] = decaying_sum(gk * f[1:], initial_um, ld=lam * dt)
         return out
 
 
-def fit_paper_ols(time_s: Any, speed_rpm: Any, elongation_um: Any,
-                  train: np.ndarray | None = None) -> PaperFit:
+def fit_paper_ols(
+    time_s: Any, speed_rpm: Any, elongation_um: Any, train: np.ndarray | None = None
+) -> PaperFit:
     """The paper's eqs. 11-12 by OLS one step ahead on the measured S[k-1]; a row k is used when
     samples k-1 and k are both in ``train`` (default: all)."""
     t = as_times(time_s)
@@ -98,8 +101,13 @@ def free_run(model: PaperFit, ds: Dataset) -> np.ndarray:
     return out
 
 
-def paper_ols_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
-                 cycles: Sequence[tuple[int, int]], restart: bool = False) -> dict[str, Any]:
+def paper_ols_cv(
+    time_s: Any,
+    speed_rpm: Any,
+    elongation_um: Any,
+    cycles: Sequence[tuple[int, int]],
+    restart: bool = False,
+) -> dict[str, Any]:
     """Leave-one-cycle-out free run of the paper's OLS over one log. The free run starts from the
     log's first measured elongation and runs over the whole log; with ``restart`` it starts again
     from the held-out cycle's first measured value (the most favourable reading of the paper)."""
@@ -118,16 +126,25 @@ def paper_ols_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
                 pred = f.predict(t, speed_rpm, float(y[0]))[a:b]
         res[a:b] = y[a:b] - pred
     rms, mx = pooled_stats(res)
-    return {"folds": fold_scores(res, cycles), "cv_rms_um": rms, "cv_max_abs_um": mx,
-            "a": [f.a for f in fits], "one_step_r2": [f.one_step_r2 for f in fits]}
+    return {
+        "folds": fold_scores(res, cycles),
+        "cv_rms_um": rms,
+        "cv_max_abs_um": mx,
+        "a": [f.a for f in fits],
+        "one_step_r2": [f.one_step_r2 for f in fits],
+    }
 
 
 def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     """The paper's OLS refitted without each fold and free-run over every segment; scored on the
     held-out fold, for the comparison."""
     cpu0 = time.process_time()
-    c = Candidate(NAME, "reference", "paper 001 eqs. 11-12: OLS one step ahead on the measured "
-                  "S[k-1], scored in free run (for comparison; never chosen)")
+    c = Candidate(
+        NAME,
+        "reference",
+        "paper 001 eqs. 11-12: OLS one step ahead on the measured "
+        "S[k-1], scored in free run (for comparison; never chosen)",
+    )
     res = np.empty(ds.time_s.size)
     per_fold = []
     try:
@@ -138,7 +155,9 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
         splits = fl.forward_splits(ds.folds, first=2)
         ahead = np.full(ds.time_s.size, np.nan)
         for past, (a, b) in splits:
-            ahead[a:b] = (ds.elongation_um - free_run(fit(ds, fl.rows_of(ds.time_s.size, past)), ds))[a:b]
+            ahead[a:b] = (
+                ds.elongation_um - free_run(fit(ds, fl.rows_of(ds.time_s.size, past)), ds)
+            )[a:b]
         full = fit(ds)
     except CalibrationError as err:
         c.refusals.append(str(err))
@@ -146,7 +165,9 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res)
     c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
     if splits:
-        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(ahead, fl.rows_of(ahead.size, [f for _, f in splits]))
+        c.forward_rms_um, c.forward_max_abs_um = pooled_stats(
+            ahead, fl.rows_of(ahead.size, [f for _, f in splits])
+        )
         c.forward_folds_rms_um = [f.rms_um for f in fold_scores(ahead, [f for _, f in splits])]
         c.forward_residual_um = ahead
     c.in_sample_rms_um, c.in_sample_max_abs_um = pooled_stats(ds.elongation_um - free_run(full, ds))

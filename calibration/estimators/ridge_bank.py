@@ -70,8 +70,14 @@ class TauGrid:
     @property
     def label(self) -> str:
         def fmt(taus: tuple[float, ...]) -> str:
-            return ",".join("static" if t == 0 else (f"{t / H:g}h" if t >= H else f"{t / 60:g}min")
-                            for t in taus) or "-"
+            return (
+                ",".join(
+                    "static" if t == 0 else (f"{t / H:g}h" if t >= H else f"{t / 60:g}min")
+                    for t in taus
+                )
+                or "-"
+            )
+
         return f"speed[{fmt(self.speed_taus_s)}] inputs[{fmt(self.input_taus_s)}]"
 
     @property
@@ -116,8 +122,12 @@ class FilterBank:
     """Filtered columns of a dataset (each segment on its own: every filter restarts at
     equilibrium at a segment's start), computed once per (drive, tau) and reused."""
 
-    def __init__(self, time_s: np.ndarray, drives: Mapping[str, np.ndarray],
-                 segments: Sequence[tuple[int, int]] | None = None):
+    def __init__(
+        self,
+        time_s: np.ndarray,
+        drives: Mapping[str, np.ndarray],
+        segments: Sequence[tuple[int, int]] | None = None,
+    ):
         self.time_s = time_s
         self.drives = drives
         self.segments = tuple(segments) if segments else ((0, int(time_s.size)),)
@@ -127,8 +137,9 @@ class FilterBank:
         key = (drive, tau)
         if key not in self.cache:
             u = self.drives[drive]
-            self.cache[key] = np.concatenate([filter_bank(self.time_s[a:b], u[a:b], (tau,))[:, 0]
-                                              for a, b in self.segments])
+            self.cache[key] = np.concatenate(
+                [filter_bank(self.time_s[a:b], u[a:b], (tau,))[:, 0] for a, b in self.segments]
+            )
         return self.cache[key]
 
     def design(self, grid: TauGrid, names: Sequence[str]) -> np.ndarray:
@@ -137,7 +148,9 @@ class FilterBank:
         return np.column_stack(cols)
 
 
-def ridge_path(x: np.ndarray, y: np.ndarray, alphas: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def ridge_path(
+    x: np.ndarray, y: np.ndarray, alphas: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray]:
     """Gains (p, len(alphas)) and intercepts (len(alphas),) of ridge on standardised columns,
     ``||y - c - Xb||^2/m + alpha*||b_std||^2``; the intercept is not penalised."""
     m = y.size
@@ -158,8 +171,14 @@ def ridge_path(x: np.ndarray, y: np.ndarray, alphas: Sequence[float]) -> tuple[n
     return gains, intercepts
 
 
-def cv_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds: Folds,
-                 alphas: Sequence[float], train: np.ndarray | None = None) -> np.ndarray:
+def cv_residuals(
+    x: np.ndarray,
+    y: np.ndarray,
+    measured: np.ndarray,
+    folds: Folds,
+    alphas: Sequence[float],
+    train: np.ndarray | None = None,
+) -> np.ndarray:
     """Held-out residuals [um] (rows, alphas) of leave-one-fold-out ridge fitted on the measured
     rows (within ``train``); NaN on every row not measured or in no fold."""
     base = measured if train is None else measured & train
@@ -167,7 +186,9 @@ def cv_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds: Fold
     for a, b in folds:
         tr = fl.without(y.size, (a, b), base)
         if tr.sum() < 2:
-            raise CalibrationError(f"rows {a}..{b - 1} held out leave fewer than two measured rows to fit on")
+            raise CalibrationError(
+                f"rows {a}..{b - 1} held out leave fewer than two measured rows to fit on"
+            )
         g, c = ridge_path(x[tr], y[tr], alphas)
         rows = a + np.flatnonzero(measured[a:b])
         res[rows] = y[rows, None] - (x[rows] @ g + c)
@@ -179,9 +200,15 @@ FORWARD_FIRST = 2
 heat-up) says too little about the next to judge a penalty by."""
 
 
-def forward_residuals(x: np.ndarray, y: np.ndarray, measured: np.ndarray, folds: Folds,
-                      alphas: Sequence[float], train: np.ndarray | None = None,
-                      first: int = FORWARD_FIRST) -> np.ndarray:
+def forward_residuals(
+    x: np.ndarray,
+    y: np.ndarray,
+    measured: np.ndarray,
+    folds: Folds,
+    alphas: Sequence[float],
+    train: np.ndarray | None = None,
+    first: int = FORWARD_FIRST,
+) -> np.ndarray:
     """Held-out residuals [um] (rows, alphas) of rolling-origin ridge: each fold from index
     ``first`` predicted by gains fitted on the measured rows of the folds before it (within
     ``train``); NaN on the earlier folds and on every row not measured."""
@@ -216,9 +243,16 @@ class Config:
     names: tuple[str, ...]
 
 
-def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Sequence[Config],
-           folds: Folds, train: np.ndarray | None = None, rule: str = "parsimony",
-           forward: bool = True) -> tuple[int, float, list[dict[str, Any]]]:
+def select(
+    bank: FilterBank,
+    y: np.ndarray,
+    measured: np.ndarray,
+    configs: Sequence[Config],
+    folds: Folds,
+    train: np.ndarray | None = None,
+    rule: str = "parsimony",
+    forward: bool = True,
+) -> tuple[int, float, list[dict[str, Any]]]:
     """(config index, alpha, table) chosen by free-run error on the measured rows of held-out
     folds: leave-one-fold-out and, with ``forward``, rolling origin (each fold predicted from
     the folds before it). A config is judged by the worse of the two mean squares, so one that
@@ -242,7 +276,9 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
             per_fold.append(np.where(np.isfinite(f), f, np.inf))
         if forward and later.size:
             fres = forward_residuals(x, y, measured, folds, cfg.alphas, train)
-            q = _pooled_mse(fres, later[~np.isnan(fres[later, 0])])  # a fold with no past to fit on: not scored
+            q = _pooled_mse(
+                fres, later[~np.isnan(fres[later, 0])]
+            )  # a fold with no past to fit on: not scored
         else:
             q = np.zeros_like(p)
         loco.append(p)
@@ -264,12 +300,21 @@ def select(bank: FilterBank, y: np.ndarray, measured: np.ndarray, configs: Seque
         j = int(ok[np.argmax(np.asarray(cfg.alphas)[ok])]) if ok.size else int(np.argmin(p))
         if choice is None and ok.size:
             choice = (k, j)
-        table.append({"grid": cfg.grid.label, "alpha": cfg.alphas[j], "score_rms_um": math.sqrt(p[j]),
-                      "cv_rms_um": math.sqrt(loco[k][j]),
-                      "forward_rms_um": math.sqrt(ahead[k][j]) if forward and later.size else None,
-                      "best_alpha": cfg.alphas[int(np.argmin(p))], "best_score_rms_um": math.sqrt(p.min())})
+        table.append(
+            {
+                "grid": cfg.grid.label,
+                "alpha": cfg.alphas[j],
+                "score_rms_um": math.sqrt(p[j]),
+                "cv_rms_um": math.sqrt(loco[k][j]),
+                "forward_rms_um": math.sqrt(ahead[k][j]) if forward and later.size else None,
+                "best_alpha": cfg.alphas[int(np.argmin(p))],
+                "best_score_rms_um": math.sqrt(p.min()),
+            }
+        )
     if choice is None:
-        raise CalibrationError("no configuration could be scored")  # unreachable: best is one of them
+        raise CalibrationError(
+            "no configuration could be scored"
+        )  # unreachable: best is one of them
     k, j = choice
     return k, configs[k].alphas[j], table
 
@@ -344,7 +389,9 @@ class RidgeFit:
 
     # -- prediction ---------------------------------------------------------------------
 
-    def drives(self, t: np.ndarray, speed_rpm: Any, inputs: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
+    def drives(
+        self, t: np.ndarray, speed_rpm: Any, inputs: Mapping[str, Any] | None
+    ) -> dict[str, np.ndarray]:
         sp = np.abs(as_series("speed_rpm", speed_rpm, t.size))
         np.minimum(sp, SPEED_CLIP * max(self.speed_max_rpm, 1.0), out=sp)
         out = speed_terms(sp)
@@ -356,20 +403,29 @@ class RidgeFit:
             out[f"in:{nm}"] = u - self.references[nm]
         return out
 
-    def predict(self, time_s: Any, speed_rpm: Any, inputs: Mapping[str, Any] | None = None,
-                segments: Sequence[tuple[int, int]] | None = None) -> np.ndarray:
+    def predict(
+        self,
+        time_s: Any,
+        speed_rpm: Any,
+        inputs: Mapping[str, Any] | None = None,
+        segments: Sequence[tuple[int, int]] | None = None,
+    ) -> np.ndarray:
         """Free-run elongation [um] over a log: no measured elongation is used. Every state starts
         at equilibrium with the first sample; inputs are deviations from the stored references,
         so after :meth:`settling_time_s` the prediction does not depend on where the log starts.
         |speed| is clipped to ``SPEED_CLIP`` times the calibrated maximum and inputs to their
         valid ranges, so any finite input gives a finite output."""
         t = as_times(time_s)
-        x = FilterBank(t, self.drives(t, speed_rpm, inputs), segments).design(self.grid, self.input_names)
+        x = FilterBank(t, self.drives(t, speed_rpm, inputs), segments).design(
+            self.grid, self.input_names
+        )
         return self.intercept_um + x @ self.gains
 
     def predict_dataset(self, ds: Dataset) -> np.ndarray:
         """:meth:`predict` over a dataset, each segment from its own start."""
-        return self.predict(ds.time_s, ds.speed_rpm, ds.inputs if self.input_names else None, ds.segments)
+        return self.predict(
+            ds.time_s, ds.speed_rpm, ds.inputs if self.input_names else None, ds.segments
+        )
 
     @property
     def gains(self) -> np.ndarray:
@@ -400,28 +456,44 @@ class RidgeFit:
             for j, tau in enumerate(self.grid.input_taus_s):
                 row = feed if tau == 0 else drive[taus.index(tau)]
                 row[2 + i] += self.input_gains_um[i, j]
-        return StateSpace(tuple(taus), drive, feed, self.intercept_um, self.input_names,
-                          dict(self.references))
+        return StateSpace(
+            tuple(taus), drive, feed, self.intercept_um, self.input_names, dict(self.references)
+        )
 
-    def to_thermal_model(self, dt_s: float, **fields: Any) -> tuple[ThermalModel, ModelState, float]:
+    def to_thermal_model(
+        self, dt_s: float, **fields: Any
+    ) -> tuple[ThermalModel, ModelState, float]:
         """The speed-only part as the runtime's :class:`ThermalModel`, its state at rest, and the
         constant it lacks: elongation = ``model`` output + ``offset_um``. Exact: state j has
         dissipation 1/tau_j and generation (g_n*n + g_n2*n^2)/tau_j; static terms are elastic."""
         if self.input_names:
             raise CalibrationError("a model with inputs has no ThermalModel form (see state_space)")
         ss = self.state_space()
-        states = tuple(ThermalStateCoefficients(
-            dissipation_per_s=(1 / tau, 0.0),
-            generation_um_per_s=(0.0, float(b[0]) / tau, float(b[1]) / tau, 0.0))
-            for tau, b in zip(ss.taus_s, ss.drive))
-        model = ThermalModel(fitted_dt_s=dt_s, speed_range_rpm=(0.0, self.speed_max_rpm),
-                             states=states, elastic_um=(float(ss.feedthrough[0]), float(ss.feedthrough[1])),
-                             form="ident-ridge", **fields)
+        states = tuple(
+            ThermalStateCoefficients(
+                dissipation_per_s=(1 / tau, 0.0),
+                generation_um_per_s=(0.0, float(b[0]) / tau, float(b[1]) / tau, 0.0),
+            )
+            for tau, b in zip(ss.taus_s, ss.drive)
+        )
+        model = ThermalModel(
+            fitted_dt_s=dt_s,
+            speed_range_rpm=(0.0, self.speed_max_rpm),
+            states=states,
+            elastic_um=(float(ss.feedthrough[0]), float(ss.feedthrough[1])),
+            form="ident-ridge",
+            **fields,
+        )
         return model, ModelState((0.0,) * len(states), 0.0), self.intercept_um
 
-    def to_model(self, form: str, units: Mapping[str, str] | None = None,
-                 fallback: Any = None, fit: Mapping[str, Any] | None = None,
-                 **fields: Any) -> StateSpaceModel:
+    def to_model(
+        self,
+        form: str,
+        units: Mapping[str, str] | None = None,
+        fallback: Any = None,
+        fit: Mapping[str, Any] | None = None,
+        **fields: Any,
+    ) -> StateSpaceModel:
         """The runtime's :class:`~compensator.statespace.StateSpaceModel`: exact (the same
         states, gains, references and ranges), so it free-runs a log to :meth:`predict`."""
         ss = self.state_space()
@@ -430,15 +502,29 @@ class RidgeFit:
             lo, hi = self.valid_ranges[nm]
             span = (hi - lo) / 3
             tlo, thi = self.trained_ranges.get(nm, (lo + span, hi - span))
-            inputs.append(InputChannel(name=nm, unit=(units or {}).get(nm, "1"),
-                                       reference=float(self.references[nm]),
-                                       trained_range=(min(tlo, thi), max(tlo, thi)), valid_range=(lo, hi)))
+            inputs.append(
+                InputChannel(
+                    name=nm,
+                    unit=(units or {}).get(nm, "1"),
+                    reference=float(self.references[nm]),
+                    trained_range=(min(tlo, thi), max(tlo, thi)),
+                    valid_range=(lo, hi),
+                )
+            )
         return StateSpaceModel(
-            form=form, fitted_dt_s=self.fitted_dt_s, speed_range_rpm=(0.0, self.speed_max_rpm),
-            taus_s=ss.taus_s, drive_um=tuple(tuple(float(v) for v in row) for row in ss.drive),
-            feedthrough_um=tuple(float(v) for v in ss.feedthrough), offset_um=float(ss.offset_um),
-            inputs=tuple(inputs), max_measured_um=max(self.max_measured_um, 1e-3),
-            fallback=fallback, fit=dict(fit or {}), **fields)
+            form=form,
+            fitted_dt_s=self.fitted_dt_s,
+            speed_range_rpm=(0.0, self.speed_max_rpm),
+            taus_s=ss.taus_s,
+            drive_um=tuple(tuple(float(v) for v in row) for row in ss.drive),
+            feedthrough_um=tuple(float(v) for v in ss.feedthrough),
+            offset_um=float(ss.offset_um),
+            inputs=tuple(inputs),
+            max_measured_um=max(self.max_measured_um, 1e-3),
+            fallback=fallback,
+            fit=dict(fit or {}),
+            **fields,
+        )
 
     # -- sanity -----------------------------------------------------------------------------
 
@@ -450,19 +536,29 @@ class RidgeFit:
         for nm in self.input_names:
             lo, hi = self.valid_ranges[nm]
             span = (hi - lo) / 3  # valid range = measured range widened by its span each side
-            inputs.append((self.references[nm], self.trained_ranges.get(nm, (lo + span, hi - span))))
+            inputs.append(
+                (self.references[nm], self.trained_ranges.get(nm, (lo + span, hi - span)))
+            )
         return steady_range_um(gains, self.speed_max_rpm, inputs)
 
     def describe(self) -> list[str]:
-        lines = [(f"grid {self.grid.label}, alpha {self.alpha:.3g}, "
-                  f"{'accepted' if self.accepted else 'REFUSED'}"),
-                 f"  leave-one-fold-out free run: RMS {self.cv_rms_um:.2f} um, max {self.cv_max_abs_um:.2f} um"]
+        lines = [
+            (
+                f"grid {self.grid.label}, alpha {self.alpha:.3g}, "
+                f"{'accepted' if self.accepted else 'REFUSED'}"
+            ),
+            f"  leave-one-fold-out free run: RMS {self.cv_rms_um:.2f} um, max {self.cv_max_abs_um:.2f} um",
+        ]
         if self.nested_rms_um is not None:
-            lines.append(f"  nested (held-out fold not used to choose): RMS {self.nested_rms_um:.2f} um, "
-                         f"max {self.nested_max_abs_um:.2f} um")
+            lines.append(
+                f"  nested (held-out fold not used to choose): RMS {self.nested_rms_um:.2f} um, "
+                f"max {self.nested_max_abs_um:.2f} um"
+            )
         if self.baseline:
-            lines.append(f"  exponential baseline: tau {self.baseline['tau_s'] / 60:.0f} min, "
-                         f"RMS {self.baseline['cv_rms_um']:.2f} um")
+            lines.append(
+                f"  exponential baseline: tau {self.baseline['tau_s'] / 60:.0f} min, "
+                f"RMS {self.baseline['cv_rms_um']:.2f} um"
+            )
         lines += [f"  refused: {r}" for r in self.refusals] + [f"  note: {n}" for n in self.notes]
         return lines
 
@@ -473,8 +569,10 @@ class RidgeFit:
 def _validate_grid(grid: TauGrid, dt_s: float, names: Sequence[str]) -> None:
     for tau in (*grid.speed_taus_s, *grid.input_taus_s):
         if tau != 0 and not (dt_s <= tau <= MAX_TAU_S):
-            raise CalibrationError(f"time constant {tau:g} s is outside {dt_s:g} s (the sample "
-                                   f"period) .. {MAX_TAU_S / 86400:g} days")
+            raise CalibrationError(
+                f"time constant {tau:g} s is outside {dt_s:g} s (the sample "
+                f"period) .. {MAX_TAU_S / 86400:g} days"
+            )
     if not grid.speed_taus_s:
         raise CalibrationError("the speed bank needs at least one time constant")
     if names and not grid.input_taus_s:
@@ -500,8 +598,9 @@ gains trading off against each other, not expansion."""
 TEMPERATURE_UNITS = ("degC", "K")
 
 
-def _components(drives: Mapping[str, np.ndarray], names: Sequence[str],
-                rows: np.ndarray) -> dict[str, tuple[np.ndarray, float]]:
+def _components(
+    drives: Mapping[str, np.ndarray], names: Sequence[str], rows: np.ndarray
+) -> dict[str, tuple[np.ndarray, float]]:
     """The principal components of the inputs standardised on ``rows``: name -> (the weight of
     each input's deviation, in 1/unit, and the share of variance). Temperatures on one casting
     move together; a few components carry what 16 nearly collinear gains would trade off."""
@@ -514,8 +613,9 @@ def _components(drives: Mapping[str, np.ndarray], names: Sequence[str],
     return {f"pc{j + 1}": (vt[j] / sd, float(share[j])) for j in range(count)}
 
 
-def _bounded(bank: FilterBank, y: np.ndarray, rows: np.ndarray, configs: Sequence[Config],
-             limits: np.ndarray) -> list[Config]:
+def _bounded(
+    bank: FilterBank, y: np.ndarray, rows: np.ndarray, configs: Sequence[Config], limits: np.ndarray
+) -> list[Config]:
     """``configs`` with only the α whose steady sensitivities (the sum of an input's gains over
     its filters, each of unit steady gain) lie within ``limits``, fitted on ``rows``; a config
     with none left is dropped. :class:`CalibrationError` when none is left at all."""
@@ -524,25 +624,38 @@ def _bounded(bank: FilterBank, y: np.ndarray, rows: np.ndarray, configs: Sequenc
         x = bank.design(cfg.grid, cfg.names)
         g, _ = ridge_path(x[rows], y[rows], cfg.alphas)
         ns = 2 * len(cfg.grid.speed_taus_s)
-        sens = g[ns:].reshape(len(cfg.names), len(cfg.grid.input_taus_s), len(cfg.alphas)).sum(axis=1)
+        sens = (
+            g[ns:].reshape(len(cfg.names), len(cfg.grid.input_taus_s), len(cfg.alphas)).sum(axis=1)
+        )
         ok = np.all(np.abs(sens) <= limits[:, None], axis=0)
         if ok.any():
             out.append(replace(cfg, alphas=tuple(a for a, k in zip(cfg.alphas, ok) if k)))
     if not out:
-        raise CalibrationError(f"no penalty brings every steady sensitivity within {BOUND_UM_PER_K:.1f} um/K")
+        raise CalibrationError(
+            f"no penalty brings every steady sensitivity within {BOUND_UM_PER_K:.1f} um/K"
+        )
     return out
 
 
-def _mix(drives: dict[str, np.ndarray], mixes: Mapping[str, tuple[np.ndarray, float]],
-         names: Sequence[str]) -> None:
+def _mix(
+    drives: dict[str, np.ndarray],
+    mixes: Mapping[str, tuple[np.ndarray, float]],
+    names: Sequence[str],
+) -> None:
     """Each principal component's drive, from the input drives of ``names``."""
     for pc, (w, _) in mixes.items():
         drives[f"in:{pc}"] = sum(wi * drives[f"in:{nm}"] for wi, nm in zip(w, names))
 
 
-def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Sequence[str],
-                   mixes: Mapping[str, tuple[np.ndarray, float]], cfg: Config,
-                   end: int) -> tuple[np.ndarray, np.ndarray]:
+def _held_to_range(
+    bank: FilterBank,
+    ds: Dataset,
+    train: np.ndarray,
+    used: Sequence[str],
+    mixes: Mapping[str, tuple[np.ndarray, float]],
+    cfg: Config,
+    end: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """The design of ``cfg`` over rows ``..end`` with every input of ``used`` held to the range
     it had on ``train`` (clipped), and each row's distance outside that range."""
     lo = np.array([float(np.min(ds.inputs[nm][train])) for nm in used])
@@ -553,8 +666,11 @@ def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Seque
     for j, nm in enumerate(used):  # a clip shifts the deviation by the same amount
         drives[f"in:{nm}"] = bank.drives[f"in:{nm}"] + (np.clip(u[:, j], lo[j], hi[j]) - u[:, j])
     _mix(drives, mixes, used)
-    held = FilterBank(bank.time_s[:end], {k: v[:end] for k, v in drives.items()},
-                      [(a, min(b, end)) for a, b in bank.segments if a < end])
+    held = FilterBank(
+        bank.time_s[:end],
+        {k: v[:end] for k, v in drives.items()},
+        [(a, min(b, end)) for a, b in bank.segments if a < end],
+    )
     held.cache.update({k: v[:end] for k, v in bank.cache.items() if k[0] in ("n", "n2")})
     xe = held.design(cfg.grid, cfg.names)
     x = np.zeros((bank.time_s.size, xe.shape[1]))
@@ -562,9 +678,18 @@ def _held_to_range(bank: FilterBank, ds: Dataset, train: np.ndarray, used: Seque
     return x, d
 
 
-def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequence[TauGrid],
-            alphas: tuple[float, ...], names: Sequence[str], folds: Folds, train: np.ndarray | None,
-            rule: str, penalty_forward: bool) -> tuple[Config, float, list[dict[str, Any]]]:
+def _greedy(
+    bank: FilterBank,
+    y: np.ndarray,
+    measured: np.ndarray,
+    grids: Sequence[TauGrid],
+    alphas: tuple[float, ...],
+    names: Sequence[str],
+    folds: Folds,
+    train: np.ndarray | None,
+    rule: str,
+    penalty_forward: bool,
+) -> tuple[Config, float, list[dict[str, Any]]]:
     """Forward selection of inputs: add the one that lowers the held-out error most, while it
     lowers it by more than PARSIMONY, up to :data:`MAX_FEW`; then α and grid as :func:`select`."""
     kept: tuple[str, ...] = ()
@@ -576,22 +701,35 @@ def _greedy(bank: FilterBank, y: np.ndarray, measured: np.ndarray, grids: Sequen
         scores = []
         for trial in trials:
             configs = [Config(g, alphas, trial) for g in grids]
-            _, _, tab = select(bank, y, measured, configs, folds, train, rule="min", forward=penalty_forward)
+            _, _, tab = select(
+                bank, y, measured, configs, folds, train, rule="min", forward=penalty_forward
+            )
             scores.append(min(r["best_score_rms_um"] for r in tab))
         j = int(np.argmin(scores))
         if not scores[j] < best * (1 - PARSIMONY):
             break
         kept, best = trials[j], scores[j]
     configs = [Config(g, alphas, kept) for g in grids]
-    k, al, tab = select(bank, y, measured, configs, folds, train, rule=rule, forward=penalty_forward)
+    k, al, tab = select(
+        bank, y, measured, configs, folds, train, rule=rule, forward=penalty_forward
+    )
     return configs[k], al, tab
 
 
-def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid] | None = None,
-        input_names: Sequence[str] = (), alphas: Sequence[float] = DEFAULT_ALPHAS,
-        nested: bool = False, rule: str = "parsimony", forward: bool = True,
-        penalty_forward: bool = False, structure: str = "all",
-        units: Mapping[str, str] | None = None) -> RidgeFit:
+def fit(
+    ds: Dataset,
+    rows: np.ndarray | None = None,
+    *,
+    grids: Sequence[TauGrid] | None = None,
+    input_names: Sequence[str] = (),
+    alphas: Sequence[float] = DEFAULT_ALPHAS,
+    nested: bool = False,
+    rule: str = "parsimony",
+    forward: bool = True,
+    penalty_forward: bool = False,
+    structure: str = "all",
+    units: Mapping[str, str] | None = None,
+) -> RidgeFit:
     """Ridge banks fitted on the measured rows of ``rows`` (default: all), α and grid chosen by
     leave-one-fold-out free-run error on the measured rows of ``ds.folds``.
 
@@ -623,10 +761,14 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     measured = ds.measured if rows is None else ds.measured & rows
     folds = tuple(ds.folds)
     if len(folds) < 2:
-        raise CalibrationError("one cycle only: nothing to validate on; record a heat-up and a "
-                               "cool-down more (see CYCLE_RULE)")
+        raise CalibrationError(
+            "one cycle only: nothing to validate on; record a heat-up and a "
+            "cool-down more (see CYCLE_RULE)"
+        )
     if any(not measured[a:b].any() for a, b in folds):
-        raise CalibrationError("two folds or more, each with a measured row, are needed to validate")
+        raise CalibrationError(
+            "two folds or more, each with a measured row, are needed to validate"
+        )
     names = tuple(sorted(input_names))
     dt_s = ds.dt_s
     cand = list(grids) if grids is not None else [auto_grid(t, sp, ds.cycles, bool(names))]
@@ -643,24 +785,39 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         ranges[nm], trained[nm] = (lo - (hi - lo), hi + (hi - lo)), (lo, hi)
         drives[f"in:{nm}"] = u - refs[nm]
     if structure not in STRUCTURES:
-        raise CalibrationError(f"unknown input structure {structure!r}; known: {', '.join(STRUCTURES)}")
+        raise CalibrationError(
+            f"unknown input structure {structure!r}; known: {', '.join(STRUCTURES)}"
+        )
     mixes = _components(drives, names, measured) if structure == "pca" and names else {}
-    limits = np.array([BOUND_UM_PER_K if (units or {}).get(nm) in TEMPERATURE_UNITS else math.inf for nm in names])
+    limits = np.array(
+        [BOUND_UM_PER_K if (units or {}).get(nm) in TEMPERATURE_UNITS else math.inf for nm in names]
+    )
     _mix(drives, mixes, names)
     bank = FilterBank(t, drives, ds.segments)
     y0 = np.where(measured, y, 0.0)  # never read off the measured rows; keeps the arithmetic finite
 
-    def choose(over: Folds, train: np.ndarray | None = None) -> tuple[Config, float, list[dict[str, Any]]]:
+    def choose(
+        over: Folds, train: np.ndarray | None = None
+    ) -> tuple[Config, float, list[dict[str, Any]]]:
         if structure == "few" and names:
-            return _greedy(bank, y0, measured, cand, tuple(alphas), names, over, train, rule, penalty_forward)
+            return _greedy(
+                bank, y0, measured, cand, tuple(alphas), names, over, train, rule, penalty_forward
+            )
         if structure == "pca" and names:
-            configs = [Config(g, tuple(alphas), tuple(list(mixes)[:m])) for m in range(1, len(mixes) + 1)
-                       for g in cand]
+            configs = [
+                Config(g, tuple(alphas), tuple(list(mixes)[:m]))
+                for m in range(1, len(mixes) + 1)
+                for g in cand
+            ]
         else:
             configs = [Config(g, tuple(alphas), names) for g in cand]
         if structure == "bounded" and names:
-            configs = _bounded(bank, y0, measured if train is None else measured & train, configs, limits)
-        ki, al, tab = select(bank, y0, measured, configs, over, train, rule=rule, forward=penalty_forward)
+            configs = _bounded(
+                bank, y0, measured if train is None else measured & train, configs, limits
+            )
+        ki, al, tab = select(
+            bank, y0, measured, configs, over, train, rule=rule, forward=penalty_forward
+        )
         return configs[ki], al, tab
 
     cfg, alpha, table = choose(folds)
@@ -676,7 +833,7 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
             ci, al, _ = choose(inner, train)
             xi = bank.design(ci.grid, ci.names)
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
-            scored = fold[0] + np.flatnonzero(measured[fold[0]:fold[1]])
+            scored = fold[0] + np.flatnonzero(measured[fold[0] : fold[1]])
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
         nested_folds = fold_scores(outer, folds)
         nested_rms, nested_max = measured_stats(outer)
@@ -702,19 +859,23 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
         fwd_folds = fold_scores(ahead, [f for _, f in splits])
         fwd_rms, fwd_max = measured_stats(ahead)
         later = fl.rows_of(t.size, [f for _, f in splits], measured)
-        by_alpha = _pooled_mse(forward_residuals(x, y0, measured, folds, alphas), np.flatnonzero(later))
+        by_alpha = _pooled_mse(
+            forward_residuals(x, y0, measured, folds, alphas), np.flatnonzero(later)
+        )
         fwd_spread = tuple(math.sqrt(v) if math.isfinite(v) else math.inf for v in by_alpha)
     g, c = ridge_path(x[measured], y0[measured], (alpha,))
     gains, intercept = g[:, 0], float(c[0])
     ns = len(cfg.grid.speed_taus_s)
-    per_column = gains[2 * ns:].reshape(len(cfg.names), len(cfg.grid.input_taus_s))
+    per_column = gains[2 * ns :].reshape(len(cfg.names), len(cfg.grid.input_taus_s))
     detail = ""
     if structure == "pca" and names:  # a component's gain, spread back over the inputs it mixes
         kept = names
         share = sum(mixes[pc][1] for pc in cfg.names)
         detail = f"{len(cfg.names)} principal component(s) ({share:.0%} of the variance)"
-        input_gains = sum((np.outer(mixes[pc][0], row) for pc, row in zip(cfg.names, per_column)),
-                          np.zeros((len(names), len(cfg.grid.input_taus_s))))
+        input_gains = sum(
+            (np.outer(mixes[pc][0], row) for pc, row in zip(cfg.names, per_column)),
+            np.zeros((len(names), len(cfg.grid.input_taus_s))),
+        )
     else:
         kept = cfg.names
         input_gains = per_column
@@ -723,46 +884,83 @@ def fit(ds: Dataset, rows: np.ndarray | None = None, *, grids: Sequence[TauGrid]
     ranges = {nm: ranges[nm] for nm in kept}
     trained = {nm: trained[nm] for nm in kept}
     result = RidgeFit(
-        grid=cfg.grid, input_names=kept, references=refs, intercept_um=intercept,
+        grid=cfg.grid,
+        input_names=kept,
+        references=refs,
+        intercept_um=intercept,
         speed_gains_um=gains[: 2 * ns].reshape(2, ns),
-        input_gains_um=np.asarray(input_gains, float).reshape(len(kept), len(cfg.grid.input_taus_s)),
-        alpha=alpha, cycles=folds, folds=fold_scores(res, folds), cv_rms_um=cv_rms, cv_max_abs_um=cv_max,
-        speed_max_rpm=float(np.abs(sp).max()), valid_ranges=ranges,
-        max_measured_um=float(np.abs(y[measured]).max()), nested_folds=nested_folds,
-        nested_rms_um=nested_rms, nested_max_abs_um=nested_max, selection=tuple(table),
-        fitted_dt_s=dt_s, segments=tuple(ds.segments), trained_ranges=trained,
-        held_out_residual_um=outer if outer is not None else res, forward_folds=fwd_folds,
-        forward_rms_um=fwd_rms, forward_max_abs_um=fwd_max, forward_rms_by_alpha_um=fwd_spread,
-        forward_residual_um=ahead, structure_detail=detail, forward_clipped_residual_um=clipped,
-        forward_distance=distance)
+        input_gains_um=np.asarray(input_gains, float).reshape(
+            len(kept), len(cfg.grid.input_taus_s)
+        ),
+        alpha=alpha,
+        cycles=folds,
+        folds=fold_scores(res, folds),
+        cv_rms_um=cv_rms,
+        cv_max_abs_um=cv_max,
+        speed_max_rpm=float(np.abs(sp).max()),
+        valid_ranges=ranges,
+        max_measured_um=float(np.abs(y[measured]).max()),
+        nested_folds=nested_folds,
+        nested_rms_um=nested_rms,
+        nested_max_abs_um=nested_max,
+        selection=tuple(table),
+        fitted_dt_s=dt_s,
+        segments=tuple(ds.segments),
+        trained_ranges=trained,
+        held_out_residual_um=outer if outer is not None else res,
+        forward_folds=fwd_folds,
+        forward_rms_um=fwd_rms,
+        forward_max_abs_um=fwd_max,
+        forward_rms_by_alpha_um=fwd_spread,
+        forward_residual_um=ahead,
+        structure_detail=detail,
+        forward_clipped_residual_um=clipped,
+        forward_distance=distance,
+    )
     refusals, notes = [], []
     steady = result.steady_range_um()
     if steady > GAIN_BOUND * result.max_measured_um:
-        refusals.append(f"the gains imply a steady elongation of {steady:.0f} um, over {GAIN_BOUND:g} x "
-                        f"the largest measured ({result.max_measured_um:.1f} um)")
+        refusals.append(
+            f"the gains imply a steady elongation of {steady:.0f} um, over {GAIN_BOUND:g} x "
+            f"the largest measured ({result.max_measured_um:.1f} um)"
+        )
     if alpha in (alphas[0], alphas[-1]) and len(alphas) > 1:
         notes.append(f"alpha {alpha:.3g} is at the end of the grid tried")
     if nested and len(folds) < 3:
         notes.append("nested cross-validation needs three folds or more: not done")
     if not any(b - a > 1 and (np.abs(sp[a:b]) <= fl.IDLE_RPM).any() for a, b in folds):
         notes.append("no fold has a rest: the cooling time constants are not identifiable")
-    return replace(result, accepted=not refusals, refusals=tuple(refusals), notes=tuple(notes),
-                   fit_cpu_s=time.process_time() - cpu0)
+    return replace(
+        result,
+        accepted=not refusals,
+        refusals=tuple(refusals),
+        notes=tuple(notes),
+        fit_cpu_s=time.process_time() - cpu0,
+    )
 
 
-def fit_baseline(ds: Dataset, rows: np.ndarray | None = None, *, nested: bool = False,
-                 forward: bool = True) -> RidgeFit:
+def fit_baseline(
+    ds: Dataset, rows: np.ndarray | None = None, *, nested: bool = False, forward: bool = True
+) -> RidgeFit:
     """The exponential baseline: one rung, no static term, no penalty; the time constant (at or
     above the sample period) with the lowest held-out free-run error (:func:`select`)."""
     grids = [TauGrid((tau,)) for tau in BASELINE_TAUS_S if tau >= ds.dt_s]
     return fit(ds, rows, grids=grids, alphas=(0.0,), rule="min", nested=nested, forward=forward)
 
 
-def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
-                 inputs: Mapping[str, Any] | None = None, *,
-                 cycles: Folds | None = None, grids: Sequence[TauGrid] | None = None,
-                 alphas: Sequence[float] = DEFAULT_ALPHAS, nested: bool = False,
-                 rule: str = "parsimony", segments: Folds | None = None) -> RidgeFit:
+def fit_ridge_cv(
+    time_s: Any,
+    speed_rpm: Any,
+    elongation_um: Any,
+    inputs: Mapping[str, Any] | None = None,
+    *,
+    cycles: Folds | None = None,
+    grids: Sequence[TauGrid] | None = None,
+    alphas: Sequence[float] = DEFAULT_ALPHAS,
+    nested: bool = False,
+    rule: str = "parsimony",
+    segments: Folds | None = None,
+) -> RidgeFit:
     """:func:`fit` on series (one log, or several joined with ``segments``), judged against the
     exponential baseline on the same folds (:func:`fit_baseline`): refused
     when its CV (or nested) RMS is worse.
@@ -780,30 +978,57 @@ def fit_ridge_cv(time_s: Any, speed_rpm: Any, elongation_um: Any,
     ds = from_arrays(t, sp, y, inputs, folds=cycles, segments=segments)
     fl.check_cover(ds.folds, t.size)
     if len(ds.folds) < 2:
-        raise CalibrationError("one cycle only: nothing to validate on; record a heat-up and a "
-                               "cool-down more (see CYCLE_RULE)")
-    res = fit(ds, grids=grids, input_names=tuple(inputs or ()), alphas=alphas, nested=nested, rule=rule)
+        raise CalibrationError(
+            "one cycle only: nothing to validate on; record a heat-up and a "
+            "cool-down more (see CYCLE_RULE)"
+        )
+    res = fit(
+        ds, grids=grids, input_names=tuple(inputs or ()), alphas=alphas, nested=nested, rule=rule
+    )
     base = fit_baseline(ds, nested=nested)
-    baseline = {"tau_s": base.grid.speed_taus_s[0], "cv_rms_um": base.cv_rms_um,
-                "cv_max_abs_um": base.cv_max_abs_um}
+    baseline = {
+        "tau_s": base.grid.speed_taus_s[0],
+        "cv_rms_um": base.cv_rms_um,
+        "cv_max_abs_um": base.cv_max_abs_um,
+    }
     refusals = list(res.refusals)
     if res.cv_rms_um > base.cv_rms_um:
-        refusals.insert(0, f"CV RMS {res.cv_rms_um:.2f} um is worse than the exponential baseline's "
-                           f"{base.cv_rms_um:.2f} um")
+        refusals.insert(
+            0,
+            f"CV RMS {res.cv_rms_um:.2f} um is worse than the exponential baseline's "
+            f"{base.cv_rms_um:.2f} um",
+        )
     if base.nested_rms_um is not None:
-        baseline |= {"nested_rms_um": base.nested_rms_um, "nested_max_abs_um": base.nested_max_abs_um}
+        baseline |= {
+            "nested_rms_um": base.nested_rms_um,
+            "nested_max_abs_um": base.nested_max_abs_um,
+        }
         if res.nested_rms_um is not None and res.nested_rms_um > base.nested_rms_um:
-            refusals.insert(1, f"nested CV RMS {res.nested_rms_um:.2f} um is worse than the baseline's "
-                               f"{base.nested_rms_um:.2f} um")
-    return replace(res, baseline=baseline, refusals=tuple(refusals), accepted=not refusals,
-                   fit_cpu_s=time.process_time() - cpu0)
+            refusals.insert(
+                1,
+                f"nested CV RMS {res.nested_rms_um:.2f} um is worse than the baseline's "
+                f"{base.nested_rms_um:.2f} um",
+            )
+    return replace(
+        res,
+        baseline=baseline,
+        refusals=tuple(refusals),
+        accepted=not refusals,
+        fit_cpu_s=time.process_time() - cpu0,
+    )
 
 
 # -- the candidate ----------------------------------------------------------------------------
 
 
-def hac_covariance(result: RidgeFit, time_s: Any, speed_rpm: Any, elongation_um: Any,
-                   inputs: Mapping[str, Any] | None = None, maxlags: int | None = None) -> np.ndarray:
+def hac_covariance(
+    result: RidgeFit,
+    time_s: Any,
+    speed_rpm: Any,
+    elongation_um: Any,
+    inputs: Mapping[str, Any] | None = None,
+    maxlags: int | None = None,
+) -> np.ndarray:
     """Newey-West (HAC) covariance of the gains, design-column order (NaN for a constant column).
 
     Sandwich of the ridge estimator, ``(Z'Z + a*m*I)^-1 S (Z'Z + a*m*I)^-1`` on the standardised
@@ -818,7 +1043,9 @@ def hac_covariance(result: RidgeFit, time_s: Any, speed_rpm: Any, elongation_um:
     t = as_times(time_s)
     y = as_series("elongation_um", elongation_um, t.size)
     segs = result.segments if result.segments and result.segments[-1][1] == t.size else None
-    x = FilterBank(t, result.drives(t, speed_rpm, inputs), segs).design(result.grid, result.input_names)
+    x = FilterBank(t, result.drives(t, speed_rpm, inputs), segs).design(
+        result.grid, result.input_names
+    )
     e = y - (result.intercept_um + x @ result.gains)
     mu, sd = x.mean(axis=0), x.std(axis=0)
     keep = sd > 1e-12 * np.maximum(np.abs(mu), 1.0)
@@ -834,8 +1061,14 @@ def hac_covariance(result: RidgeFit, time_s: Any, speed_rpm: Any, elongation_um:
     return cov
 
 
-def hac_stderr(result: RidgeFit, time_s: Any, speed_rpm: Any, elongation_um: Any,
-               inputs: Mapping[str, Any] | None = None, maxlags: int | None = None) -> np.ndarray:
+def hac_stderr(
+    result: RidgeFit,
+    time_s: Any,
+    speed_rpm: Any,
+    elongation_um: Any,
+    inputs: Mapping[str, Any] | None = None,
+    maxlags: int | None = None,
+) -> np.ndarray:
     """HAC standard errors of the gains (:func:`hac_covariance`), design-column order."""
     cov = hac_covariance(result, time_s, speed_rpm, elongation_um, inputs, maxlags)
     return np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -848,8 +1081,9 @@ def derived(res: RidgeFit, ds: Dataset) -> list[dict[str, Any]]:
     if not ds.dense:
         return []
     try:
-        cov = hac_covariance(res, ds.time_s, ds.speed_rpm, ds.elongation_um,
-                             ds.inputs if res.input_names else None)
+        cov = hac_covariance(
+            res, ds.time_s, ds.speed_rpm, ds.elongation_um, ds.inputs if res.input_names else None
+        )
     except (np.linalg.LinAlgError, ValueError):
         return []
     cov = np.nan_to_num(cov)
@@ -860,19 +1094,33 @@ def derived(res: RidgeFit, ds: Dataset) -> list[dict[str, Any]]:
         n = rpm / 1000.0
         w = np.zeros(res.gains.size)
         w[:ns] = n
-        w[ns:2 * ns] = n * n
-        out.append({"quantity": f"steady rise at {rpm:.0f} rpm", "unit": "um",
-                    "value": float(w @ res.gains), "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0)))})
+        w[ns : 2 * ns] = n * n
+        out.append(
+            {
+                "quantity": f"steady rise at {rpm:.0f} rpm",
+                "unit": "um",
+                "value": float(w @ res.gains),
+                "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0))),
+            }
+        )
     ni = len(res.grid.input_taus_s)
     for i, nm in enumerate(res.input_names):
         w = np.zeros(res.gains.size)
-        w[2 * ns + i * ni: 2 * ns + (i + 1) * ni] = 1.0
-        out.append({"quantity": f"steady sensitivity to {nm}", "unit": "um per unit",
-                    "value": float(w @ res.gains), "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0)))})
+        w[2 * ns + i * ni : 2 * ns + (i + 1) * ni] = 1.0
+        out.append(
+            {
+                "quantity": f"steady sensitivity to {nm}",
+                "unit": "um per unit",
+                "value": float(w @ res.gains),
+                "hac_stderr": float(math.sqrt(max(w @ cov @ w, 0.0))),
+            }
+        )
     return out
 
 
-def to_model_or_refuse(res: RidgeFit, name: str, **kwargs: Any) -> tuple[StateSpaceModel | None, str | None]:
+def to_model_or_refuse(
+    res: RidgeFit, name: str, **kwargs: Any
+) -> tuple[StateSpaceModel | None, str | None]:
     """The runtime model, or None and why the model class refused it."""
     try:
         return res.to_model(name, **kwargs), None

@@ -34,8 +34,12 @@ __all__ = ["RANGE", "WIDTH", "ModbusTransport", "RegisterCodec"]
 
 WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
 """Registers each data type spans."""
-RANGE = {"int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
-         "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
+RANGE = {
+    "int16": (-(2**15), 2**15 - 1),
+    "uint16": (0, 2**16 - 1),
+    "int32": (-(2**31), 2**31 - 1),
+    "uint32": (0, 2**32 - 1),
+}
 FLOAT32_MAX = 3.4028234663852886e38
 _STRUCT = {"int16": ">h", "uint16": ">H", "int32": ">i", "uint32": ">I", "float32": ">f"}
 
@@ -80,7 +84,7 @@ class RegisterCodec:
             if math.isfinite(value) and abs(value) > FLOAT32_MAX:
                 raise BadValueError(f"{label}: {value} does not fit {dtype}")
             raw = struct.pack(_STRUCT[dtype], value)
-        regs = [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
+        regs = [int.from_bytes(raw[i : i + 2], "big") for i in range(0, len(raw), 2)]
         if self.word_order == "little":
             regs.reverse()
         return _swap(regs) if self.byte_order == "little" else regs
@@ -91,9 +95,20 @@ class ModbusTransport:
     device; ``baudrate``, ``parity``, ``stopbits``), for the link whose ``_link_lost`` is
     ``lost``. ``label`` starts every message. Not connected until :meth:`connect`."""
 
-    def __init__(self, label: str, *, lost: Lost, port: int | str, host: str | None = None,
-                 device_id: int = 1, timeout_s: float = 0.5, codec: RegisterCodec | None = None,
-                 baudrate: int = 19200, parity: str = "N", stopbits: int = 1):
+    def __init__(
+        self,
+        label: str,
+        *,
+        lost: Lost,
+        port: int | str,
+        host: str | None = None,
+        device_id: int = 1,
+        timeout_s: float = 0.5,
+        codec: RegisterCodec | None = None,
+        baudrate: int = 19200,
+        parity: str = "N",
+        stopbits: int = 1,
+    ):
         self.label = label
         self.tcp = host is not None
         self.host = host
@@ -117,11 +132,18 @@ class ModbusTransport:
 
         # retries=0: a retry would answer a late reply with the next request's
         if self.tcp:
-            client = ModbusTcpClient(self.host, port=int(self.port), timeout=self.timeout_s,
-                                     retries=0)
+            client = ModbusTcpClient(
+                self.host, port=int(self.port), timeout=self.timeout_s, retries=0
+            )
         else:
-            client = ModbusSerialClient(str(self.port), baudrate=self.baudrate, parity=self.parity,
-                                        stopbits=self.stopbits, timeout=self.timeout_s, retries=0)
+            client = ModbusSerialClient(
+                str(self.port),
+                baudrate=self.baudrate,
+                parity=self.parity,
+                stopbits=self.stopbits,
+                timeout=self.timeout_s,
+                retries=0,
+            )
         cause: Exception | None = None
         try:
             up = client.connect()
@@ -129,8 +151,10 @@ class ModbusTransport:
             up, cause = False, err
         if not up:
             _quietly(client.close)
-            raise UnreachableError(f"{self.label} connect at {self.where}: cannot reach it"
-                                   + (f": {cause}" if cause else "")) from cause
+            raise UnreachableError(
+                f"{self.label} connect at {self.where}: cannot reach it"
+                + (f": {cause}" if cause else "")
+            ) from cause
         self.client = client
 
     def close(self) -> None:
@@ -141,8 +165,14 @@ class ModbusTransport:
 
     # -- requests -----------------------------------------------------------------------
 
-    def request(self, what: str, method: str, *args: Any,
-                refused: type[AdapterError] = AdapterError, **kw: Any) -> Any:
+    def request(
+        self,
+        what: str,
+        method: str,
+        *args: Any,
+        refused: type[AdapterError] = AdapterError,
+        **kw: Any,
+    ) -> Any:
         """The reply of the client's ``method`` (``read_holding_registers``, ...) to this
         device, its faults mapped as the module docstring says; an exception reply raises
         ``refused``."""
@@ -154,8 +184,9 @@ class ModbusTransport:
         try:
             rr = getattr(self.client, method)(*args, device_id=self.device_id, **kw)
         except ModbusIOException as err:
-            raise self._fault(f"{head}: no valid reply within {self.timeout_s:g} s",
-                              AdapterTimeoutError) from err
+            raise self._fault(
+                f"{head}: no valid reply within {self.timeout_s:g} s", AdapterTimeoutError
+            ) from err
         except (ConnectionException, OSError) as err:
             raise self._lost(f"{head}: link lost: {err}", UnreachableError) from err
         except ModbusException as err:
@@ -175,8 +206,9 @@ class ModbusTransport:
         rr = self.request(what, method, address, count=count)
         regs = list(rr.registers)
         if len(regs) < count:
-            raise BadValueError(f"{self.label} {what} at {self.where}: {len(regs)} registers, "
-                                f"not {count}")
+            raise BadValueError(
+                f"{self.label} {what} at {self.where}: {len(regs)} registers, not {count}"
+            )
         return regs[:count]
 
     def read_bit(self, what: str, table: str, address: int) -> bool:
@@ -191,13 +223,17 @@ class ModbusTransport:
 
     def write_registers(self, what: str, address: int, regs: list[int]) -> None:
         """Holding registers from ``address``; an exception reply is :class:`WriteRejectedError`."""
-        what = f"{what} holding register {address}" + (f" (+{len(regs) - 1})" if len(regs) > 1 else "")
+        what = f"{what} holding register {address}" + (
+            f" (+{len(regs) - 1})" if len(regs) > 1 else ""
+        )
         self.request(what, "write_registers", address, regs, refused=WriteRejectedError)
 
     def write_value(self, what: str, address: int, value: float, dtype: str) -> None:
         """``value`` as ``dtype`` into the holding registers at ``address``
         (:class:`BadValueError`, nothing sent, when it does not fit)."""
-        regs = self.codec.encode(value, dtype, f"{self.label} {what} holding register {address} at {self.where}")
+        regs = self.codec.encode(
+            value, dtype, f"{self.label} {what} holding register {address} at {self.where}"
+        )
         self.write_registers(what, address, regs)
 
 

@@ -38,14 +38,25 @@ class TcpTransport:
     last bytes it sent (a "too many connections" line), as the message of the error raised.
     Bytes received and not yet taken stay in :attr:`pending`."""
 
-    def __init__(self, label: str, host: str, port: int, *, timeout_s: float, lost: Lost,
-                 connect_timeout_s: float | None = None, keepalive: bool = False,
-                 closed_reason: Callable[[bytes], str | None] | None = None):
+    def __init__(
+        self,
+        label: str,
+        host: str,
+        port: int,
+        *,
+        timeout_s: float,
+        lost: Lost,
+        connect_timeout_s: float | None = None,
+        keepalive: bool = False,
+        closed_reason: Callable[[bytes], str | None] | None = None,
+    ):
         self.label = label
         self.host = host
         self.port = int(port)
         self.timeout_s = float(timeout_s)
-        self.connect_timeout_s = float(timeout_s if connect_timeout_s is None else connect_timeout_s)
+        self.connect_timeout_s = float(
+            timeout_s if connect_timeout_s is None else connect_timeout_s
+        )
         self.keepalive = keepalive
         self._lost = lost
         self._closed_reason = closed_reason
@@ -67,11 +78,14 @@ class TcpTransport:
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
         except TimeoutError as err:
-            raise UnreachableError(f"{self.label} connect at {self.address}: no answer "
-                                   f"within {self.connect_timeout_s:g} s") from err
+            raise UnreachableError(
+                f"{self.label} connect at {self.address}: no answer "
+                f"within {self.connect_timeout_s:g} s"
+            ) from err
         except OSError as err:
-            raise UnreachableError(f"{self.label} connect at {self.address}: cannot connect: "
-                                   f"{err}") from err
+            raise UnreachableError(
+                f"{self.label} connect at {self.address}: cannot connect: {err}"
+            ) from err
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self.keepalive:
@@ -134,11 +148,14 @@ class TcpTransport:
             sock.settimeout(self.timeout_s)
             sock.sendall(data)
         except TimeoutError as err:  # the peer takes nothing in: hung, as one that never answers
-            raise self._fail(f"{self.label} {what} at {self.address}: took no data within "
-                             f"{self.timeout_s:g} s", AdapterTimeoutError) from err
+            raise self._fail(
+                f"{self.label} {what} at {self.address}: took no data within {self.timeout_s:g} s",
+                AdapterTimeoutError,
+            ) from err
         except OSError as err:
-            raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
-                             UnreachableError) from err
+            raise self._fail(
+                f"{self.label} {what} at {self.address}: link lost: {err}", UnreachableError
+            ) from err
 
     def drain(self, what: str) -> None:
         """Drop what arrived unasked (a late reply, a prompt, another client's output): a stale
@@ -152,8 +169,9 @@ class TcpTransport:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as err:
-                raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
-                                 UnreachableError) from err
+                raise self._fail(
+                    f"{self.label} {what} at {self.address}: link lost: {err}", UnreachableError
+                ) from err
             if not chunk:
                 raise self._closed(what)
             self._tail = (self._tail + chunk)[-_TAIL:]
@@ -165,8 +183,9 @@ class TcpTransport:
         out, self.pending = self.pending[:n], self.pending[n:]
         return out
 
-    def recv_until(self, what: str, ends: tuple[bytes, ...], deadline: float, *,
-                   drop_on_timeout: bool = True) -> bytes:
+    def recv_until(
+        self, what: str, ends: tuple[bytes, ...], deadline: float, *, drop_on_timeout: bool = True
+    ) -> bytes:
         """The input up to and including the first of ``ends``, by ``deadline``.
         ``drop_on_timeout`` False keeps the connection on a timeout (for a caller that asks
         once more on it); the error is :class:`AdapterTimeoutError` all the same."""
@@ -184,8 +203,9 @@ class TcpTransport:
             left = deadline - time.monotonic()
             if left <= 0:
                 got = f"partial reply {self.pending[:80]!r}" if self.pending else "no reply"
-                message = (f"{self.label} {what} at {self.address}: {got} within "
-                           f"{self.timeout_s:g} s")
+                message = (
+                    f"{self.label} {what} at {self.address}: {got} within {self.timeout_s:g} s"
+                )
                 if drop_on_timeout:
                     raise self._fail(message, AdapterTimeoutError)
                 raise AdapterTimeoutError(message)
@@ -195,8 +215,9 @@ class TcpTransport:
             except TimeoutError:
                 continue  # the deadline decides
             except OSError as err:
-                raise self._fail(f"{self.label} {what} at {self.address}: link lost: {err}",
-                                 UnreachableError) from err
+                raise self._fail(
+                    f"{self.label} {what} at {self.address}: link lost: {err}", UnreachableError
+                ) from err
             if not chunk:
                 raise self._closed(what)
             self.pending += chunk
@@ -205,5 +226,7 @@ class TcpTransport:
 
     def _closed(self, what: str) -> AdapterError:
         reason = self._closed_reason(self._tail) if self._closed_reason is not None else None
-        return self._fail(reason or f"{self.label} {what} at {self.address}: the peer closed the connection",
-                          UnreachableError)
+        return self._fail(
+            reason or f"{self.label} {what} at {self.address}: the peer closed the connection",
+            UnreachableError,
+        )

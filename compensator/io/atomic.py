@@ -17,8 +17,9 @@ _TMP_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike[str], open_mode: str = "w", *,
-                 mode: int = 0o666) -> Iterator[IO[Any]]:
+def atomic_write(
+    path: str | os.PathLike[str], open_mode: str = "w", *, mode: int = 0o666
+) -> Iterator[IO[Any]]:
     """Write to a temporary file beside ``path``, fsync, then rename over it.
 
     A crash at any moment leaves either the old file or the new one, never a
@@ -28,8 +29,10 @@ def atomic_write(path: str | os.PathLike[str], open_mode: str = "w", *,
     secret. An overwritten file's own mode is not kept.
     """
     if isinstance(mode, str):  # the open mode was once the keyword ``mode``
-        raise TypeError(f"atomic_write: mode is the permission bits (e.g. 0o600), not {mode!r}; "
-                        "the open mode is open_mode")
+        raise TypeError(
+            f"atomic_write: mode is the permission bits (e.g. 0o600), not {mode!r}; "
+            "the open mode is open_mode"
+        )
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     # os.open lets the kernel apply the umask (and any default ACL) at creation, where

@@ -49,11 +49,15 @@ class HistoryRecord(BaseModel):
     at_wall_s: float = Field(description="when [epoch s]")
     digest: str = Field(min_length=64, max_length=64, description="the model file's checksum")
     copy_name: str = Field(description="the copy in the history directory")
-    source: str = Field(description="where the model came from: its file, or the refit that made it")
+    source: str = Field(
+        description="where the model came from: its file, or the refit that made it"
+    )
     reason: str = ""
     fit: dict[str, Any] = Field(default_factory=dict, description="the fit's headline figures")
     data: dict[str, Any] = Field(default_factory=dict, description="what it was fitted on")
-    judged: dict[str, Any] = Field(default_factory=dict, description="how it was judged against the live model")
+    judged: dict[str, Any] = Field(
+        default_factory=dict, description="how it was judged against the live model"
+    )
 
     @property
     def short(self) -> str:
@@ -65,13 +69,17 @@ class ModelHistory:
 
     def __init__(self, directory: str | os.PathLike[str], keep_models: int = KEEP_MODELS):
         if keep_models < 2:
-            raise ConfigError(f"model history: keep_models must be 2 or more (the live model and one "
-                              f"to roll back to), got {keep_models}")
+            raise ConfigError(
+                f"model history: keep_models must be 2 or more (the live model and one "
+                f"to roll back to), got {keep_models}"
+            )
         self.directory = Path(directory)
         self.keep_models = keep_models
 
     @classmethod
-    def of(cls, state_dir: str | os.PathLike[str], spindle: str, keep_models: int = KEEP_MODELS) -> ModelHistory:
+    def of(
+        cls, state_dir: str | os.PathLike[str], spindle: str, keep_models: int = KEEP_MODELS
+    ) -> ModelHistory:
         return cls(Path(state_dir) / "history" / spindle, keep_models)
 
     @property
@@ -85,7 +93,9 @@ class ModelHistory:
         except FileNotFoundError:
             return []
         except OSError as err:
-            raise ConfigError(f"{self.records_path}: cannot read the model history: {err.strerror}") from err
+            raise ConfigError(
+                f"{self.records_path}: cannot read the model history: {err.strerror}"
+            ) from err
         out = []
         for line in text.splitlines():
             try:
@@ -117,8 +127,10 @@ class ModelHistory:
         copy is still kept; a one-line ConfigError otherwise."""
         p = prefix.strip().lower()
         if len(p) < 4 or any(c not in "0123456789abcdef" for c in p):
-            raise ConfigError(f"model digest {prefix[:70]!r}: give 4 or more hex digits of it "
-                              "(thermocomp model history lists them)")
+            raise ConfigError(
+                f"model digest {prefix[:70]!r}: give 4 or more hex digits of it "
+                "(thermocomp model history lists them)"
+            )
         hits = [r for r in self.records() if r.digest.startswith(p)]
         if not hits:
             raise ConfigError(f"no model {p} in the history {self.directory}")
@@ -129,9 +141,18 @@ class ModelHistory:
             raise ConfigError(f"model {p}: its copy was pruned from the history (keep_models)")
         return rec
 
-    def add(self, event: Event, model_file: str | os.PathLike[str], *, source: str | None = None,
-            reason: str = "", at_wall_s: float, fit: dict[str, Any] | None = None,
-            data: dict[str, Any] | None = None, judged: dict[str, Any] | None = None) -> HistoryRecord:
+    def add(
+        self,
+        event: Event,
+        model_file: str | os.PathLike[str],
+        *,
+        source: str | None = None,
+        reason: str = "",
+        at_wall_s: float,
+        fit: dict[str, Any] | None = None,
+        data: dict[str, Any] | None = None,
+        judged: dict[str, Any] | None = None,
+    ) -> HistoryRecord:
         """Keep a copy of ``model_file`` (verified) and append the record; prune. OSError and
         ConfigError go to the caller, which decides whether they matter."""
         try:
@@ -146,9 +167,17 @@ class ModelHistory:
             data_bytes = Path(model_file).read_bytes()
             with atomic_write(copy, "wb") as fh:
                 fh.write(data_bytes)
-        rec = HistoryRecord(event=event, at_wall_s=float(at_wall_s), digest=digest, copy_name=name,
-                            source=str(source if source is not None else model_file), reason=reason,
-                            fit=fit or {}, data=data or {}, judged=judged or {})
+        rec = HistoryRecord(
+            event=event,
+            at_wall_s=float(at_wall_s),
+            digest=digest,
+            copy_name=name,
+            source=str(source if source is not None else model_file),
+            reason=reason,
+            fit=fit or {},
+            data=data or {},
+            judged=judged or {},
+        )
         line = rec.model_dump_json() + "\n"
         fd = os.open(self.records_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         try:
@@ -185,6 +214,9 @@ def fit_summary(model: Any) -> dict[str, Any]:
     """The headline figures of a model's fit record, for a history record."""
     fit = getattr(model, "fit", None) or {}
     keys = ("method", "folds", "nested_rms_um", "forward_rms_um", "cv_rms_um", "alpha")
-    out: dict[str, Any] = {"form": getattr(model, "form", None), "created_utc": getattr(model, "created_utc", None)}
+    out: dict[str, Any] = {
+        "form": getattr(model, "form", None),
+        "created_utc": getattr(model, "created_utc", None),
+    }
     out.update({k: fit[k] for k in keys if k in fit and isinstance(fit[k], (int, float, str))})
     return out

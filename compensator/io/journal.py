@@ -40,9 +40,16 @@ log = logging.getLogger("thermocomp.journal")
 ALARM_COLD_START = 32
 """The bit of the ``alarms`` column that marks a cold start (no saved state): the estimate began
 at the model's own equilibrium at rest."""
-FAULT_ALARM_BITS = {"SPEED_READ_FAILED": 1, "IDLE_ASSUMED": 2, "LINK_DOWN": 8, "OUTAGE": 64,
-                    "NOT_READY": 128, "INPUT_FALLBACK": 256, "CLOCK_STEP": 32768,
-                    "ESTIMATE_REFUSED": 4194304}
+FAULT_ALARM_BITS = {
+    "SPEED_READ_FAILED": 1,
+    "IDLE_ASSUMED": 2,
+    "LINK_DOWN": 8,
+    "OUTAGE": 64,
+    "NOT_READY": 128,
+    "INPUT_FALLBACK": 256,
+    "CLOCK_STEP": 32768,
+    "ESTIMATE_REFUSED": 4194304,
+}
 """The bits of the ``alarms`` column that mark a cycle whose speed, inputs or time cannot be
 trusted: a measurement taken then judges no model (``calibration.learning``)."""
 FAULT_ALARMS = sum(FAULT_ALARM_BITS.values())
@@ -56,18 +63,44 @@ MAX_PENDING_ROWS = 250_000
 class Journal:
     """The runtime's journal: the common run-log format, one file per UTC day."""
 
-    COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms",
-               "dt_s", "wall_s", "cutting", "cutting_source", "policy_state", "slew_limit_um_per_s")
+    COLUMNS = (
+        "time_s",
+        "speed_rpm",
+        "predicted_um",
+        "offset_um",
+        "written",
+        "flags",
+        "alarms",
+        "dt_s",
+        "wall_s",
+        "cutting",
+        "cutting_source",
+        "policy_state",
+        "slew_limit_um_per_s",
+    )
 
-    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], *,
-                 fsync_every_s: float = 10.0, retry_s: float = 1.0, max_retry_s: float = 60.0,
-                 max_pending_rows: int = MAX_PENDING_ROWS, input_columns: tuple[str, ...] = ()):
+    def __init__(
+        self,
+        directory: str | os.PathLike[str],
+        name: str,
+        metadata: Mapping[str, Any],
+        *,
+        fsync_every_s: float = 10.0,
+        retry_s: float = 1.0,
+        max_retry_s: float = 60.0,
+        max_pending_rows: int = MAX_PENDING_ROWS,
+        input_columns: tuple[str, ...] = (),
+    ):
         self.directory = Path(directory)
-        bad = sorted({c for c in input_columns if _word(c) != c or not c}
-                     | (set(input_columns) & set(type(self).COLUMNS)))
+        bad = sorted(
+            {c for c in input_columns if _word(c) != c or not c}
+            | (set(input_columns) & set(type(self).COLUMNS))
+        )
         if bad or len(set(input_columns)) != len(input_columns):
-            raise ConfigError(f"{name}: input channel names must be letters, digits, - and _ (40 at "
-                              f"most), unique, and not a journal column: {', '.join(bad) or 'duplicates'}")
+            raise ConfigError(
+                f"{name}: input channel names must be letters, digits, - and _ (40 at "
+                f"most), unique, and not a journal column: {', '.join(bad) or 'duplicates'}"
+            )
         self.input_columns = tuple(input_columns)
         self._inputs = tuple(input_columns)
         self.name = name
@@ -75,7 +108,9 @@ class Journal:
         self.fsync_every_s = fsync_every_s
         self.retry_s = retry_s
         self.max_retry_s = max_retry_s
-        self._pending: collections.deque[tuple[float, str]] = collections.deque(maxlen=max_pending_rows)
+        self._pending: collections.deque[tuple[float, str]] = collections.deque(
+            maxlen=max_pending_rows
+        )
         self.dropped_rows = 0
         self._fd: int | None = None
         self._day: str | None = None
@@ -97,14 +132,29 @@ class Journal:
         return len(self._pending)
 
     def path_for(self, day: str, part: int = 1) -> Path:
-        return self.directory / (f"{self.name}-{day}.csv" if part == 1 else f"{self.name}-{day}.p{part}.csv")
+        return self.directory / (
+            f"{self.name}-{day}.csv" if part == 1 else f"{self.name}-{day}.p{part}.csv"
+        )
 
-    def write(self, time_s: float, speed_rpm: float, predicted_um: float, offset_um: float,
-              written: bool, flags: int, alarms: int, *, dt_s: float = 0.0,
-              wall_s: float | None = None, now_s: float | None = None, cutting: bool = False,
-              cutting_source: str = "speed", policy_state: str = "tracking",
-              slew_limit_um_per_s: float | None = None,
-              inputs: Mapping[str, float] | None = None) -> bool:
+    def write(
+        self,
+        time_s: float,
+        speed_rpm: float,
+        predicted_um: float,
+        offset_um: float,
+        written: bool,
+        flags: int,
+        alarms: int,
+        *,
+        dt_s: float = 0.0,
+        wall_s: float | None = None,
+        now_s: float | None = None,
+        cutting: bool = False,
+        cutting_source: str = "speed",
+        policy_state: str = "tracking",
+        slew_limit_um_per_s: float | None = None,
+        inputs: Mapping[str, float] | None = None,
+    ) -> bool:
         """Queue one row and write what the disk takes; True when nothing is left queued.
 
         ``now_s`` (monotonic seconds, default ``time_s``) paces the retries and the fsync.
@@ -113,9 +163,11 @@ class Journal:
         """
         t = self._next_time(time_s)
         wall = t if wall_s is None else wall_s
-        row = (f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
-               f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f},{int(cutting)},{_word(cutting_source)},"
-               f"{_word(policy_state)},{_cell(slew_limit_um_per_s)}")
+        row = (
+            f"{t:.3f},{speed_rpm:.9g},{predicted_um:.12g},{offset_um:.12g},{int(written)},"
+            f"{int(flags)},{int(alarms)},{dt_s:.9f},{wall:.3f},{int(cutting)},{_word(cutting_source)},"
+            f"{_word(policy_state)},{_cell(slew_limit_um_per_s)}"
+        )
         if self._inputs:
             got = inputs or {}
             row += "," + ",".join(_cell(got.get(name), ".9g") for name in self._inputs)
@@ -155,8 +207,9 @@ class Journal:
                 self._append("".join(batch))
                 for _ in batch:
                     self._pending.popleft()
-            if self.fsync_every_s >= 0 and (self._last_sync is None
-                                            or now_s - self._last_sync >= self.fsync_every_s):
+            if self.fsync_every_s >= 0 and (
+                self._last_sync is None or now_s - self._last_sync >= self.fsync_every_s
+            ):
                 self._sync(now_s)
         except OSError as err:
             self._failures += 1
@@ -263,26 +316,65 @@ class MeasurementJournal(Journal):
     (not a usable value: its cells are empty). Its ``time_s,elongation_um,sigma_um`` columns
     are a measurements file as replay reads one."""
 
-    COLUMNS = ("time_s", "elongation_um", "sigma_um", "source", "sequence", "outcome",
-               "predicted_um", "innovation_um", "innovation_sd_um", "bias_um", "bias_sd_um", "wall_s")
+    COLUMNS = (
+        "time_s",
+        "elongation_um",
+        "sigma_um",
+        "source",
+        "sequence",
+        "outcome",
+        "predicted_um",
+        "innovation_um",
+        "innovation_sd_um",
+        "bias_um",
+        "bias_sd_um",
+        "wall_s",
+    )
 
-    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any],
-                 **kw: Any):
+    def __init__(
+        self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], **kw: Any
+    ):
         super().__init__(directory, f"{name}.measurements", metadata, **kw)
 
-    def record(self, time_s: float, *, elongation_um: float | None, sigma_um: float | None,
-               source: str, sequence: int | None, outcome: str, predicted_um: float | None = None,
-               innovation_um: float | None = None, innovation_sd_um: float | None = None,
-               bias_um: float | None = None, bias_sd_um: float | None = None,
-               wall_s: float | None = None, now_s: float | None = None) -> bool:
+    def record(
+        self,
+        time_s: float,
+        *,
+        elongation_um: float | None,
+        sigma_um: float | None,
+        source: str,
+        sequence: int | None,
+        outcome: str,
+        predicted_um: float | None = None,
+        innovation_um: float | None = None,
+        innovation_sd_um: float | None = None,
+        bias_um: float | None = None,
+        bias_sd_um: float | None = None,
+        wall_s: float | None = None,
+        now_s: float | None = None,
+    ) -> bool:
         """Queue one measurement's row and write what the disk takes (never raises)."""
         t = self._next_time(time_s)
         src = _word(source, "-_.:") or "unknown"
-        row = ",".join((f"{t:.3f}", _cell(elongation_um, ".12g"), _cell(sigma_um), src,
-                        "" if sequence is None else str(int(sequence)), outcome,
-                        _cell(predicted_um, ".12g"), _cell(innovation_um), _cell(innovation_sd_um),
-                        _cell(bias_um, ".12g"), _cell(bias_sd_um),
-                        f"{t if wall_s is None else wall_s:.3f}")) + "\n"
+        row = (
+            ",".join(
+                (
+                    f"{t:.3f}",
+                    _cell(elongation_um, ".12g"),
+                    _cell(sigma_um),
+                    src,
+                    "" if sequence is None else str(int(sequence)),
+                    outcome,
+                    _cell(predicted_um, ".12g"),
+                    _cell(innovation_um),
+                    _cell(innovation_sd_um),
+                    _cell(bias_um, ".12g"),
+                    _cell(bias_sd_um),
+                    f"{t if wall_s is None else wall_s:.3f}",
+                )
+            )
+            + "\n"
+        )
         return self._enqueue(t, row, now_s)
 
 
@@ -292,21 +384,55 @@ class CoolingJournal(Journal):
     temperature and the alarm. ``<spindle>.cooling-YYYY-MM-DD.csv`` beside the journal, on its
     time base; it never raises."""
 
-    COLUMNS = ("time_s", "estimate_um", "rite_um", "phase", "setpoint_c", "sent", "supply_c",
-               "alarm", "wall_s")
+    COLUMNS = (
+        "time_s",
+        "estimate_um",
+        "rite_um",
+        "phase",
+        "setpoint_c",
+        "sent",
+        "supply_c",
+        "alarm",
+        "wall_s",
+    )
 
-    def __init__(self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any],
-                 **kw: Any):
+    def __init__(
+        self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], **kw: Any
+    ):
         super().__init__(directory, f"{name}.cooling", metadata, **kw)
 
-    def record(self, time_s: float, *, estimate_um: float | None, rite_um: float, phase: str,
-               setpoint_c: float, sent: bool, supply_c: float | None, alarm: str,
-               wall_s: float | None = None, now_s: float | None = None) -> bool:
+    def record(
+        self,
+        time_s: float,
+        *,
+        estimate_um: float | None,
+        rite_um: float,
+        phase: str,
+        setpoint_c: float,
+        sent: bool,
+        supply_c: float | None,
+        alarm: str,
+        wall_s: float | None = None,
+        now_s: float | None = None,
+    ) -> bool:
         """Queue one command's row and write what the disk takes (never raises)."""
         t = self._next_time(time_s)
-        row = ",".join((f"{t:.3f}", _cell(estimate_um, ".6g"), _cell(rite_um, ".6g"), _word(phase, "-_") or "-",
-                        _cell(setpoint_c, ".6g"), "1" if sent else "0", _cell(supply_c, ".6g"),
-                        _word(alarm, "-_|") or "", f"{t if wall_s is None else wall_s:.3f}")) + "\n"
+        row = (
+            ",".join(
+                (
+                    f"{t:.3f}",
+                    _cell(estimate_um, ".6g"),
+                    _cell(rite_um, ".6g"),
+                    _word(phase, "-_") or "-",
+                    _cell(setpoint_c, ".6g"),
+                    "1" if sent else "0",
+                    _cell(supply_c, ".6g"),
+                    _word(alarm, "-_|") or "",
+                    f"{t if wall_s is None else wall_s:.3f}",
+                )
+            )
+            + "\n"
+        )
         return self._enqueue(t, row, now_s)
 
 
@@ -335,7 +461,7 @@ def cut_torn_tail(path: Path) -> Path | None:
                 nl = tail.rfind(b"\n", 0, end - 1)
                 if nl < 0 and start > 0:
                     break  # the line began before the window: it ended whole
-                line = tail[nl + 1:end - 1]
+                line = tail[nl + 1 : end - 1]
                 if not _whole_line(line, header):
                     end = nl + 1
                     continue
@@ -348,8 +474,12 @@ def cut_torn_tail(path: Path) -> Path | None:
             fh.truncate(start + end)
     except OSError:
         return None  # not readable or not writable: the append fails and says so
-    log.warning("%s: cut back to its last complete row; the torn tail (%d bytes) is in %s",
-                path, len(tail) - end, aside.name)
+    log.warning(
+        "%s: cut back to its last complete row; the torn tail (%d bytes) is in %s",
+        path,
+        len(tail) - end,
+        aside.name,
+    )
     return aside
 
 

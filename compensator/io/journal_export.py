@@ -85,7 +85,9 @@ class _Table:
         header = [c.strip() for c in next(reader, [])]
         if not header or header[0] != "time_s":
             if header:  # not a journal this module can read: say so rather than guess
-                raise RunLogError(f"header {','.join(header)[:80]!r} does not start with time_s", str(path))
+                raise RunLogError(
+                    f"header {','.join(header)[:80]!r} does not start with time_s", str(path)
+                )
             return
         for c in header:
             if c not in self.columns:
@@ -133,17 +135,26 @@ def _spindle_of(files: dict[JournalFile, int], spindle: str | None, directory: P
         raise ConfigError(f"{directory}: no journal files (NAME-YYYY-MM-DD.csv)")
     if spindle is None:
         if len(names) > 1:
-            raise ConfigError(f"{directory} holds the journals of {len(names)} spindles "
-                              f"({', '.join(names)}): name one with --spindle")
+            raise ConfigError(
+                f"{directory} holds the journals of {len(names)} spindles "
+                f"({', '.join(names)}): name one with --spindle"
+            )
         return names[0]
     if spindle not in names:
-        raise ConfigError(f"{directory}: no journal of spindle {spindle!r} (it has {', '.join(names)})")
+        raise ConfigError(
+            f"{directory}: no journal of spindle {spindle!r} (it has {', '.join(names)})"
+        )
     return spindle
 
 
-def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[str], *,
-                   spindle: str | None = None, start_s: float | None = None,
-                   end_s: float | None = None) -> Exported:
+def export_journal(
+    directory: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    *,
+    spindle: str | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
+) -> Exported:
     """Write one run log of ``spindle``'s journal rows in [``start_s``, ``end_s``) [epoch s; None:
     unbounded] to ``output``, atomically (see the module's docstring). A one-line
     :class:`RunLogError` when no row is in range, :class:`ConfigError` for a bad range or spindle."""
@@ -171,19 +182,32 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
     rows = [r for r in cyc.rows[first:] if r[0] < hi]
     if not rows:
         days = [f.day for f in mine if f.kind == "cycles"]
-        have = f"its journal has {days[0]} .. {days[-1]} (UTC)" if days else "it has no cycle journal"
-        raise RunLogError(f"no journal rows of spindle {name} in [{iso(lo) if start_s is not None else 'start'}, "
-                          f"{iso(hi) if end_s is not None else 'end'}): {have}", str(d))
+        have = (
+            f"its journal has {days[0]} .. {days[-1]} (UTC)" if days else "it has no cycle journal"
+        )
+        raise RunLogError(
+            f"no journal rows of spindle {name} in [{iso(lo) if start_s is not None else 'start'}, "
+            f"{iso(hi) if end_s is not None else 'end'}): {have}",
+            str(d),
+        )
     if REQUIRED_COLUMNS[1] not in cyc.columns:
-        raise RunLogError(f"the journal of spindle {name} has no {REQUIRED_COLUMNS[1]} column", str(d))
+        raise RunLogError(
+            f"the journal of spindle {name} has no {REQUIRED_COLUMNS[1]} column", str(d)
+        )
     clash = [c for c in ADDED_COLUMNS if c in cyc.columns]
     if clash:
-        raise RunLogError(f"the journal of spindle {name} has a column {clash[0]} already: the export "
-                          "adds its own", str(d))
+        raise RunLogError(
+            f"the journal of spindle {name} has a column {clash[0]} already: the export "
+            "adds its own",
+            str(d),
+        )
 
     # measurements: the last accepted (or restarted) one in each row's cycle
-    probes = [(t, c, fn) for t, c, fn in meas.rows
-              if c.get("outcome") in PROBE_OUTCOMES and _finite(c.get("elongation_um"))]
+    probes = [
+        (t, c, fn)
+        for t, c, fn in meas.rows
+        if c.get("outcome") in PROBE_OUTCOMES and _finite(c.get("elongation_um"))
+    ]
     probe_t = [p[0] for p in probes]
     placed: dict[int, tuple[float, dict[str, str], str]] = {}
     taken: set[int] = set()
@@ -243,11 +267,15 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
         out.writerow(line)
 
     files = tuple(sorted(used, key=lambda fn: next(f for f in mine if f.name == fn)))
-    meta = {"spindle": name, "source": SOURCE,
-            "from": iso(start_s) if start_s is not None else "-",
-            "to": iso(end_s) if end_s is not None else "-",
-            "files": ",".join(files), "inputs": ",".join(inputs),
-            "measurements": str(len(placed))}
+    meta = {
+        "spindle": name,
+        "source": SOURCE,
+        "from": iso(start_s) if start_s is not None else "-",
+        "to": iso(end_s) if end_s is not None else "-",
+        "files": ",".join(files),
+        "inputs": ",".join(inputs),
+        "measurements": str(len(placed)),
+    }
     if placed and len(placed) < len(rows):
         meta[ELONGATION_COLUMN] = SPARSE
     if filled:
@@ -256,8 +284,19 @@ def export_journal(directory: str | os.PathLike[str], output: str | os.PathLike[
         fh.write(header_text(columns, meta))
         fh.write(buf.getvalue())
     skipped = sum(t.skipped for t in tables.values())
-    return Exported(Path(output), name, len(rows), rows[0][0], rows[-1][0], len(placed),
-                    unplaced, files, inputs, skipped, filled)
+    return Exported(
+        Path(output),
+        name,
+        len(rows),
+        rows[0][0],
+        rows[-1][0],
+        len(placed),
+        unplaced,
+        files,
+        inputs,
+        skipped,
+        filled,
+    )
 
 
 def _float(text: str | None) -> float:

@@ -47,29 +47,40 @@ def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> 
     times, values, sigmas = [], [], []
     try:
         with open(src, newline="", encoding="utf-8") as fh:
-            rows = ((n, r) for n, r in enumerate(csv.reader(fh), start=1)
-                    if r and not r[0].lstrip().startswith("#"))
+            rows = (
+                (n, r)
+                for n, r in enumerate(csv.reader(fh), start=1)
+                if r and not r[0].lstrip().startswith("#")
+            )
             try:
                 line, header = next(rows)
             except StopIteration:
-                raise RunLogError("empty file (expected time_s,elongation_um[,sigma_um])", src) from None
+                raise RunLogError(
+                    "empty file (expected time_s,elongation_um[,sigma_um])", src
+                ) from None
             cols = [c.strip() for c in header]
             missing = [c for c in ("time_s", "elongation_um") if c not in cols]
             if missing:
-                raise RunLogError(f"missing column(s) {', '.join(missing)} in header {','.join(cols)}",
-                                  src, line)
+                raise RunLogError(
+                    f"missing column(s) {', '.join(missing)} in header {','.join(cols)}", src, line
+                )
             it, iy = cols.index("time_s"), cols.index("elongation_um")
             isg = cols.index("sigma_um") if "sigma_um" in cols else None
             io = cols.index("outcome") if "outcome" in cols else None
             for line, row in rows:
                 if len(row) != len(cols):
-                    raise RunLogError(f"{len(row)} fields where the header has {len(cols)}", src, line)
+                    raise RunLogError(
+                        f"{len(row)} fields where the header has {len(cols)}", src, line
+                    )
                 if io is not None and row[io].strip() == "refused":
                     continue
                 t = _number(row[it], "time_s", src, line)
                 y = _number(row[iy], "elongation_um", src, line)
-                s = default_sigma_um if isg is None or not row[isg].strip() else \
-                    _number(row[isg], "sigma_um", src, line)
+                s = (
+                    default_sigma_um
+                    if isg is None or not row[isg].strip()
+                    else _number(row[isg], "sigma_um", src, line)
+                )
                 if s <= 0:
                     raise RunLogError(f"column sigma_um: {s:g} must be > 0", src, line)
                 if times and t <= times[-1]:

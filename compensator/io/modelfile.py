@@ -21,8 +21,11 @@ from ..statespace import STATE_SPACE_FORMAT, StateSpaceModel
 from .atomic import atomic_write, read_regular
 from .checksum import digest
 
-MODEL_TYPES: dict[str, Any] = {MODEL_FORMAT: ThermalModel, AUGMENTED_FORMAT: AugmentedModel,
-                               STATE_SPACE_FORMAT: StateSpaceModel}
+MODEL_TYPES: dict[str, Any] = {
+    MODEL_FORMAT: ThermalModel,
+    AUGMENTED_FORMAT: AugmentedModel,
+    STATE_SPACE_FORMAT: StateSpaceModel,
+}
 """Model classes by the ``format`` their files carry: a new model form registers here."""
 
 
@@ -59,9 +62,14 @@ def load_model(path: str | os.PathLike[str]) -> ThermalModel:
     """
     model = load_any_model(path)
     if model.input_names:
-        raise ModelFileError(clip(f"{os.fspath(path)}: a model with extra inputs "
-                                  f"({', '.join(model.input_names)}); this command takes speed-only "
-                                  "models", 500))
+        raise ModelFileError(
+            clip(
+                f"{os.fspath(path)}: a model with extra inputs "
+                f"({', '.join(model.input_names)}); this command takes speed-only "
+                "models",
+                500,
+            )
+        )
     return model  # type: ignore[return-value]
 
 
@@ -75,7 +83,9 @@ def _too_deep(payload: Any) -> bool:
     stack = [(payload, 1)]
     while stack:
         value, depth = stack.pop()
-        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+        children = (
+            value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+        )
         for child in children:
             if isinstance(child, (dict, list)):
                 if depth >= MAX_MODEL_DEPTH:
@@ -150,8 +160,13 @@ def load_any_model(path: str | os.PathLike[str]) -> Predictor:
     fmt = payload.get("format")
     cls = MODEL_TYPES.get(fmt) if isinstance(fmt, str) else None
     if cls is None:
-        raise ModelFileError(clip(f"{src}: unknown model format {clip(repr(fmt), 80)} "
-                                  f"(this thermocomp reads {' and '.join(MODEL_TYPES)})", 500))
+        raise ModelFileError(
+            clip(
+                f"{src}: unknown model format {clip(repr(fmt), 80)} "
+                f"(this thermocomp reads {' and '.join(MODEL_TYPES)})",
+                500,
+            )
+        )
     expected = payload.pop("sha256", None)
     if expected is None:
         raise ModelFileError(f"{src}: no sha256 checksum; refusing an unverified model")
@@ -160,8 +175,14 @@ def load_any_model(path: str | os.PathLike[str]) -> Predictor:
     except ValueError as err:
         raise ModelFileError(f"{src}: non-finite number in model file") from err
     if actual != expected:
-        raise ModelFileError(f"{src}: checksum mismatch: the file was modified after it was written")
+        raise ModelFileError(
+            f"{src}: checksum mismatch: the file was modified after it was written"
+        )
     try:
         return cls.model_validate(payload)
-    except (ValueError, TypeError, KeyError) as err:  # ModelError, or pydantic's from a nested model
+    except (
+        ValueError,
+        TypeError,
+        KeyError,
+    ) as err:  # ModelError, or pydantic's from a nested model
         raise _invalid(src, err) from err

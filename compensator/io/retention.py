@@ -35,7 +35,8 @@ KINDS = ("cycles", "measurements", "cooling")
 
 _NAME = re.compile(
     r"^(?P<spindle>[A-Za-z0-9][A-Za-z0-9_.-]*?)(?:\.(?P<kind>measurements|cooling))?"
-    r"-(?P<day>\d{4}-\d{2}-\d{2})(?:\.p(?P<part>[1-9]\d{0,8}))?\.csv$")
+    r"-(?P<day>\d{4}-\d{2}-\d{2})(?:\.p(?P<part>[1-9]\d{0,8}))?\.csv$"
+)
 
 
 @dataclass(frozen=True, order=True)
@@ -107,8 +108,15 @@ class SweepResult:
     """One line per failure (``path: reason``); the sweep went on after each."""
 
 
-def plan(files: Mapping[JournalFile, int], *, now_wall_s: float, max_age_days: float,
-         max_bytes: int, protected: Collection[str] = (), by_age: bool = True) -> list[JournalFile]:
+def plan(
+    files: Mapping[JournalFile, int],
+    *,
+    now_wall_s: float,
+    max_age_days: float,
+    max_bytes: int,
+    protected: Collection[str] = (),
+    by_age: bool = True,
+) -> list[JournalFile]:
     """The files to remove, in order; pure.
 
     ``files`` maps each journal file to its size [bytes]; ``now_wall_s`` is the wall clock
@@ -176,9 +184,15 @@ def _names_in(directory: Path, keep: Iterable[str | os.PathLike[str]]) -> set[st
     return names
 
 
-def sweep(directory: str | os.PathLike[str], *, now_wall_s: float, max_age_days: float = 90,
-          max_bytes: int = 1 << 30, keep: Collection[str | os.PathLike[str]] = (),
-          by_age: bool = True) -> SweepResult:
+def sweep(
+    directory: str | os.PathLike[str],
+    *,
+    now_wall_s: float,
+    max_age_days: float = 90,
+    max_bytes: int = 1 << 30,
+    keep: Collection[str | os.PathLike[str]] = (),
+    by_age: bool = True,
+) -> SweepResult:
     """Remove old journal files from ``directory`` (:func:`plan`): those whose UTC day ended more
     than ``max_age_days`` [days] before ``now_wall_s`` [epoch s], then the oldest while the
     journal files exceed ``max_bytes`` [bytes]. Never a file of today (UTC), one in ``keep`` (the
@@ -187,8 +201,14 @@ def sweep(directory: str | os.PathLike[str], *, now_wall_s: float, max_age_days:
     size rule only (see :func:`plan`)."""
     d = Path(directory)
     sizes, errors = journal_files(d)
-    chosen = plan(sizes, now_wall_s=now_wall_s, max_age_days=max_age_days, max_bytes=max_bytes,
-                  protected=_names_in(d, keep), by_age=by_age)
+    chosen = plan(
+        sizes,
+        now_wall_s=now_wall_s,
+        max_age_days=max_age_days,
+        max_bytes=max_bytes,
+        protected=_names_in(d, keep),
+        by_age=by_age,
+    )
     removed: list[Path] = []
     freed = 0
     for f in chosen:

@@ -235,8 +235,9 @@ def _check_time_unit(time_s: np.ndarray, src: str) -> None:
     )
 
 
-def _check_magnitude(values: np.ndarray, limit: float, col: str, unit: str, why: str,
-                     src: str) -> None:
+def _check_magnitude(
+    values: np.ndarray, limit: float, col: str, unit: str, why: str, src: str
+) -> None:
     """Refuse the first |value| over ``limit``: a unit mix-up or garbage, not a measurement."""
     over = np.flatnonzero(np.abs(values) > limit)
     if over.size:
@@ -311,7 +312,11 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
         raw = df[col]
         values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
         # allowed: cells empty (or nan, NA...): no value; text that is not a number never is
-        bad = np.isinf(values) | (np.isnan(values) & raw.notna().to_numpy()) if allow_nan else ~np.isfinite(values)
+        bad = (
+            np.isinf(values) | (np.isnan(values) & raw.notna().to_numpy())
+            if allow_nan
+            else ~np.isfinite(values)
+        )
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
             line = _line_of_row(src, row)
@@ -341,8 +346,14 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
         )
     _check_magnitude(speed, MAX_SPEED_RPM, "speed_rpm", "rpm", "no spindle turns that fast", src)
     if elong is not None:
-        _check_magnitude(elong, MAX_ABS_ELONGATION_UM, ELONGATION_COLUMN, "um",
-                         "over 1 m: wrong unit or a sensor fault?", src)
+        _check_magnitude(
+            elong,
+            MAX_ABS_ELONGATION_UM,
+            ELONGATION_COLUMN,
+            "um",
+            "over 1 m: wrong unit or a sensor fault?",
+            src,
+        )
     extras: dict[str, np.ndarray] = {}
     for col in df.columns:
         if col in REQUIRED_COLUMNS or col == ELONGATION_COLUMN:
@@ -357,9 +368,7 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
     if dt.size:
         idx = np.flatnonzero(dt > GAP_FACTOR * float(np.median(dt)))
         lines = _lines_of_rows(src, [int(k) + 1 for k in idx[:100]])
-        gaps = tuple(
-            Gap(lines.get(int(k) + 1, -1), float(time_s[k]), float(dt[k])) for k in idx
-        )
+        gaps = tuple(Gap(lines.get(int(k) + 1, -1), float(time_s[k]), float(dt[k])) for k in idx)
     return RunLog(
         time_s=time_s,
         speed_rpm=speed,
@@ -401,9 +410,15 @@ class RunLogAppender:
     flushed; the file is fsynced every ``fsync_every_s`` of ``clock`` and on close.
     """
 
-    def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...],
-                 metadata: Mapping[str, Any] | None = None, *, fsync_every_s: float = 5.0,
-                 clock: Any = None):
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        columns: tuple[str, ...],
+        metadata: Mapping[str, Any] | None = None,
+        *,
+        fsync_every_s: float = 5.0,
+        clock: Any = None,
+    ):
         if tuple(columns[:2]) != REQUIRED_COLUMNS:
             raise RunLogError(f"a run log starts with columns {REQUIRED_COLUMNS}")
         self.path = Path(path)
@@ -441,8 +456,12 @@ class RunLogAppender:
             lines = fh.read().splitlines()
         header = tuple(c.strip() for c in lines[header_line - 1].split(","))
         if header != self.columns:
-            raise RunLogError(f"header {','.join(header)} differs from {','.join(self.columns)}: "
-                              "not a log of this recording", src, header_line)
+            raise RunLogError(
+                f"header {','.join(header)} differs from {','.join(self.columns)}: "
+                "not a log of this recording",
+                src,
+                header_line,
+            )
         rows = [ln for ln in lines[header_line:] if not _is_skipped(ln)]
         self.rows_before = len(rows)
         if rows:
@@ -454,7 +473,9 @@ class RunLogAppender:
 
     def append(self, values: tuple[float, ...] | list[float]) -> None:
         if len(values) != len(self.columns):
-            raise RunLogError(f"{len(values)} values for {len(self.columns)} columns", str(self.path))
+            raise RunLogError(
+                f"{len(values)} values for {len(self.columns)} columns", str(self.path)
+            )
         if self.last_row is not None and not values[0] > self.last_row[0]:
             return  # the format needs increasing time; a repeated instant adds nothing
         self._fh.write(self._fmt % tuple(values) + "\n")
@@ -482,8 +503,9 @@ class RunLogAppender:
         self.close()
 
 
-def read_daq_csv(path: str | os.PathLike[str], time_column: str,
-                 columns: Mapping[str, str]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def read_daq_csv(
+    path: str | os.PathLike[str], time_column: str, columns: Mapping[str, str]
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Time [s] and named columns from a CSV a data-acquisition system wrote.
 
     ``columns`` maps the names wanted to the file's column names. The time column may hold
@@ -503,11 +525,15 @@ def read_daq_csv(path: str | os.PathLike[str], time_column: str,
     want = {"time": time_column, **columns}
     missing = [c for c in want.values() if c not in df.columns]
     if missing:
-        raise RunLogError(f"no column(s) {', '.join(missing)}; the file has {', '.join(df.columns)}", src)
-    header_line = (_read_metadata(src)[1] or 1)
+        raise RunLogError(
+            f"no column(s) {', '.join(missing)}; the file has {', '.join(df.columns)}", src
+        )
+    header_line = _read_metadata(src)[1] or 1
 
     def bad(row: int, col: str, cell: Any) -> RunLogError:
-        return RunLogError(f"column {col}: {cell!r} is not a finite number", src, header_line + 1 + row)
+        return RunLogError(
+            f"column {col}: {cell!r} is not a finite number", src, header_line + 1 + row
+        )
 
     raw_t = df[time_column]
     t = pd.to_numeric(raw_t, errors="coerce").to_numpy(dtype=float)
@@ -515,8 +541,11 @@ def read_daq_csv(path: str | os.PathLike[str], time_column: str,
         stamps = pd.to_datetime(raw_t, errors="coerce", utc=True, format="ISO8601")
         if stamps.isna().any():
             row = int(np.flatnonzero(stamps.isna().to_numpy())[0])
-            raise RunLogError(f"column {time_column}: {raw_t.iloc[row]!r} is neither seconds nor a "
-                              "date-time", src, header_line + 1 + row)
+            raise RunLogError(
+                f"column {time_column}: {raw_t.iloc[row]!r} is neither seconds nor a date-time",
+                src,
+                header_line + 1 + row,
+            )
         t = (stamps - pd.Timestamp("1970-01-01", tz="UTC")).dt.total_seconds().to_numpy(dtype=float)
     elif not np.isfinite(t).all():
         row = int(np.flatnonzero(~np.isfinite(t))[0])

@@ -73,9 +73,18 @@ class Case:
         self.undo: list = []  # e.g. chattr -i, before the temporary directory is removed
 
     def setup(self, model: str = "quick", timeout_s: float = 1.0, **kw) -> Setup:
-        s = Setup(root=self.root, model=self.models[model],
-                  adapter={"url": self.vcnc.url, "preset": "virtual-cnc", "timeout_s": timeout_s,
-                           "backoff_s": 0.1, "max_backoff_s": 0.5}, **kw)
+        s = Setup(
+            root=self.root,
+            model=self.models[model],
+            adapter={
+                "url": self.vcnc.url,
+                "preset": "virtual-cnc",
+                "timeout_s": timeout_s,
+                "backoff_s": 0.1,
+                "max_backoff_s": 0.5,
+            },
+            **kw,
+        )
         s.write()
         return s
 

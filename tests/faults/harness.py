@@ -32,8 +32,17 @@ from thermocomp.runtime import Alarm
 
 PYTHON = sys.executable
 OFFSET_NODE = NODE_PATHS["thermal_offset"]
-COLUMNS = ("time_s", "speed_rpm", "predicted_um", "offset_um", "written", "flags", "alarms",
-           "dt_s", "wall_s")
+COLUMNS = (
+    "time_s",
+    "speed_rpm",
+    "predicted_um",
+    "offset_um",
+    "written",
+    "flags",
+    "alarms",
+    "dt_s",
+    "wall_s",
+)
 SPEED_RPM = 20000.0
 """The virtual CNC holds this speed (``hold.ngc``); every model here grows 30 um at it."""
 
@@ -62,9 +71,15 @@ def spindle_model(tau_s: float, steady_um: float = 30.0) -> ThermalModel:
     20 000 rpm (40.5 um at the 27 000 rpm top of its range: plausible)."""
     lam = 1.0 / tau_s
     return ThermalModel(
-        fitted_dt_s=1.0, speed_range_rpm=(0.0, 27000.0),
-        states=(ThermalStateCoefficients(dissipation_per_s=(lam, 0.0),
-                                         generation_um_per_s=(0.0, steady_um * lam / 20.0, 0.0, 0.0)),))
+        fitted_dt_s=1.0,
+        speed_range_rpm=(0.0, 27000.0),
+        states=(
+            ThermalStateCoefficients(
+                dissipation_per_s=(lam, 0.0),
+                generation_um_per_s=(0.0, steady_um * lam / 20.0, 0.0, 0.0),
+            ),
+        ),
+    )
 
 
 HOLD_NC = "%\n(thermocomp fault suite: one speed, held)\nS20000 M3\nG4 P1000000\nM2\n%\n"
@@ -86,8 +101,14 @@ def _toml(v: Any) -> str:
 
 
 DEFAULT_SHAPING = {"max_offset_um": 60.0, "max_rate_um_per_s": 100.0, "deadband_um": 0.1}
-DEFAULT_FAULTS = {"max_outage_s": 1.0, "readback_every": 2, "speed_hold_s": 0.5,
-                  "state_retry_s": 0.25, "max_write_backoff_s": 1.0, "state_stale_s": 1.5}
+DEFAULT_FAULTS = {
+    "max_outage_s": 1.0,
+    "readback_every": 2,
+    "speed_hold_s": 0.5,
+    "state_retry_s": 0.25,
+    "max_write_backoff_s": 1.0,
+    "state_stale_s": 1.5,
+}
 
 
 @dataclass
@@ -140,14 +161,24 @@ class Setup:
 
     def write(self) -> Path:
         fa = {**DEFAULT_FAULTS, **self.faults}
-        lines = [f"state_dir = {_toml(self.state_dir)}", "watchdog = false",
-                 f"log_file = {_toml(self.log_file)}", "journal_fsync_s = 1.0",
-                 "[[spindle]]", 'name = "s1"', f"model = {_toml(self.model)}",
-                 f"period_s = {self.period_s!r}", f"state_save_every_s = {self.save_every_s!r}",
-                 f"adapter = {_toml(self.adapter)}",
-                 "[spindle.shaping]", *(f"{k} = {_toml(v)}" for k, v in self.sh.items()),
-                 "[spindle.shaping.transient]", "enabled = false",
-                 "[spindle.faults]", *(f"{k} = {_toml(v)}" for k, v in fa.items())]
+        lines = [
+            f"state_dir = {_toml(self.state_dir)}",
+            "watchdog = false",
+            f"log_file = {_toml(self.log_file)}",
+            "journal_fsync_s = 1.0",
+            "[[spindle]]",
+            'name = "s1"',
+            f"model = {_toml(self.model)}",
+            f"period_s = {self.period_s!r}",
+            f"state_save_every_s = {self.save_every_s!r}",
+            f"adapter = {_toml(self.adapter)}",
+            "[spindle.shaping]",
+            *(f"{k} = {_toml(v)}" for k, v in self.sh.items()),
+            "[spindle.shaping.transient]",
+            "enabled = false",
+            "[spindle.faults]",
+            *(f"{k} = {_toml(v)}" for k, v in fa.items()),
+        ]
         tmp = self.config.with_suffix(".tmp")
         tmp.write_text("\n".join(lines) + "\n")
         os.replace(tmp, self.config)  # a SIGHUP never reads half a file
@@ -178,16 +209,33 @@ class VirtualCncProcess:
         self.starts += 1
         with open(self.out, "w") as fh:
             self.proc = subprocess.Popen(
-                [PYTHON, "-m", "thermocomp", "virtual-cnc", "--port", str(self.port),
-                 "--time-scale", "1", "--program", str(self.program), "--accel-rpm-per-s", "1e9"],
-                stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                [
+                    PYTHON,
+                    "-m",
+                    "thermocomp",
+                    "virtual-cnc",
+                    "--port",
+                    str(self.port),
+                    "--time-scale",
+                    "1",
+                    "--program",
+                    str(self.program),
+                    "--accel-rpm-per-s",
+                    "1e9",
+                ],
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
         self.stopped = False
 
     def ready(self) -> bool:
         assert self.proc is not None
         if self.proc.poll() is not None:
-            raise AssertionError(f"virtual CNC exited {self.proc.returncode}: {self.out.read_text()[-2000:]}")
+            raise AssertionError(
+                f"virtual CNC exited {self.proc.returncode}: {self.out.read_text()[-2000:]}"
+            )
         return "virtual CNC (" in self.out.read_text()
 
     def wait_ready(self, timeout: float = 120.0) -> float:
@@ -241,11 +289,13 @@ class VirtualCncProcess:
     def read_offset(self) -> float:
         async def read(node, ua):
             return float(await node.read_value())
+
         return self._node(read)
 
     def write_offset(self, value: float) -> None:
         async def write(node, ua):
             await node.write_value(ua.DataValue(ua.Variant(float(value), ua.VariantType.Double)))
+
         self._node(write)
 
     def close(self) -> None:
@@ -258,17 +308,26 @@ class VirtualCncProcess:
 class ServiceProcess:
     """``thermocomp run --config`` as a subprocess, with its journal and JSON log."""
 
-    def __init__(self, setup: Setup, *, preexec_fn: Callable[[], None] | None = None,
-                 env: Mapping[str, str] | None = None, tag: str = "svc"):
+    def __init__(
+        self,
+        setup: Setup,
+        *,
+        preexec_fn: Callable[[], None] | None = None,
+        env: Mapping[str, str] | None = None,
+        tag: str = "svc",
+    ):
         self.setup = setup
         self.stderr_path = setup.root / f"{tag}.stderr"
         with open(self.stderr_path, "w") as err:
             self.proc = subprocess.Popen(
                 [PYTHON, "-m", "thermocomp", "run", "--config", str(setup.config)],
-                stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                stdin=subprocess.DEVNULL,
                 # preexec_fn: only a setrlimit, async-signal-safe enough for the fork
                 preexec_fn=preexec_fn,  # noqa: PLW1509
-                env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+                env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+            )
         self.t_start = time.monotonic()
         self.pid = self.proc.pid
 
@@ -281,7 +340,9 @@ class ServiceProcess:
 
     def check_alive(self) -> None:
         if not self.alive():
-            raise AssertionError(f"the service exited {self.proc.returncode}: {self.stderr[-3000:]}")
+            raise AssertionError(
+                f"the service exited {self.proc.returncode}: {self.stderr[-3000:]}"
+            )
 
     def rows(self) -> dict[str, np.ndarray]:
         self.check_alive()
@@ -291,15 +352,28 @@ class ServiceProcess:
         return read_events(self.setup.log_file)
 
     def wait_rows(self, n: int, timeout: float = 60.0) -> dict[str, np.ndarray]:
-        return wait_for(lambda: (r := self.rows()) and len(r["time_s"]) >= n and r, timeout,
-                        f"{n} journal rows", poll=0.05)
+        return wait_for(
+            lambda: (r := self.rows()) and len(r["time_s"]) >= n and r,
+            timeout,
+            f"{n} journal rows",
+            poll=0.05,
+        )
 
-    def wait_event(self, name: str, timeout: float = 30.0, after: int = 0,
-                   where: Callable[[dict[str, Any]], bool] = lambda e: True) -> dict[str, Any]:
+    def wait_event(
+        self,
+        name: str,
+        timeout: float = 30.0,
+        after: int = 0,
+        where: Callable[[dict[str, Any]], bool] = lambda e: True,
+    ) -> dict[str, Any]:
         """The first event ``name`` (after the first ``after`` log records) matching ``where``."""
+
         def find():
             self.check_alive()
-            return next((e for e in self.events()[after:] if e.get("event") == name and where(e)), None)
+            return next(
+                (e for e in self.events()[after:] if e.get("event") == name and where(e)), None
+            )
+
         return wait_for(find, timeout, f"event {name!r}")
 
     def wait_settled(self, timeout: float = 30.0, n: int = 3) -> dict[str, np.ndarray]:
@@ -313,9 +387,13 @@ class ServiceProcess:
                 return None
             tail = slice(-n, None)
             want = np.clip(-r["predicted_um"][tail], -s.clamp, s.clamp)
-            ok = (np.abs(r["offset_um"][tail] - want) <= s.deadband + 1e-9).all() \
-                and not r["written"][tail].any() and abs(r["offset_um"][-1]) > 1.0
+            ok = (
+                (np.abs(r["offset_um"][tail] - want) <= s.deadband + 1e-9).all()
+                and not r["written"][tail].any()
+                and abs(r["offset_um"][-1]) > 1.0
+            )
             return r if ok else None
+
         return wait_for(settled, timeout, "the offset to settle on the model's value")
 
     def signal(self, sig: int) -> None:
@@ -342,7 +420,9 @@ def read_only_dir(path: Path) -> Callable[[], None] | None:
         path.chmod(0o500)
         return lambda: path.chmod(0o755)
     try:
-        r = subprocess.run(["chattr", "+i", str(path)], capture_output=True, timeout=30, check=False)
+        r = subprocess.run(
+            ["chattr", "+i", str(path)], capture_output=True, timeout=30, check=False
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     if r.returncode != 0:
@@ -383,7 +463,7 @@ def live_rows(journal_dir: Path, name: str = "s1") -> dict[str, np.ndarray]:
             continue
         for line in text.split("\n")[:-1]:  # the last piece has no newline yet
             if line and line[0].isdigit():
-                rows.append([float(x) for x in line.split(",")[:len(COLUMNS)]] + [k])
+                rows.append([float(x) for x in line.split(",")[: len(COLUMNS)]] + [k])
     if not rows:
         return _empty()
     a = np.array(rows, dtype=float)
@@ -438,10 +518,17 @@ class Checked:
     runtime_starts: int
 
 
-def check_invariants(j: dict[str, np.ndarray], *, rate: float, clamp: float | np.ndarray,
-                     events: list[dict[str, Any]], period_s: float,
-                     gap_ok: Callable[[float, float], bool] = lambda w0, w1: False,
-                     max_gap_periods: float = 8.0, one_process: bool = True) -> Checked:
+def check_invariants(
+    j: dict[str, np.ndarray],
+    *,
+    rate: float,
+    clamp: float | np.ndarray,
+    events: list[dict[str, Any]],
+    period_s: float,
+    gap_ok: Callable[[float, float], bool] = lambda w0, w1: False,
+    max_gap_periods: float = 8.0,
+    one_process: bool = True,
+) -> Checked:
     """What must hold on every journal, whatever the fault:
 
     - every offset is finite;
@@ -462,39 +549,55 @@ def check_invariants(j: dict[str, np.ndarray], *, rate: float, clamp: float | np
     clamp_a = np.broadcast_to(np.asarray(clamp, dtype=float), off.shape)
     mism = [float(e["held_um"]) for e in named(events, "offset_mismatch")]
     mrows = np.flatnonzero(has(alarms, Alarm.OFFSET_MISMATCH))
-    assert len(mrows) == len(mism), (f"{len(mrows)} rows with OFFSET_MISMATCH, {len(mism)} "
-                                     "offset_mismatch events")
+    assert len(mrows) == len(mism), (
+        f"{len(mrows)} rows with OFFSET_MISMATCH, {len(mism)} offset_mismatch events"
+    )
     ref = np.r_[np.nan, off[:-1]]
     ref[mrows] = mism
     # across a process boundary nothing is known about what happened in between
-    new_proc = np.r_[True, np.diff(j["part"]) != 0] if not one_process else np.r_[True, np.zeros(n - 1, bool)]
+    new_proc = (
+        np.r_[True, np.diff(j["part"]) != 0]
+        if not one_process
+        else np.r_[True, np.zeros(n - 1, bool)]
+    )
     back = np.flatnonzero((np.diff(t) <= 0) & ~new_proc[1:]) + 1
     assert back.size == 0, f"time_s not increasing at rows {back}"
     # from a value held beyond the clamp (none of ours) the write steps to the clamp at once
     step = np.abs(off - np.clip(ref, -clamp_a, clamp_a))
     bad = np.flatnonzero(~new_proc & (step > rate * dt + slew_tol(rate, off, ref)))
-    assert bad.size == 0, ("slew limit broken: " + "; ".join(
-        f"row {k}: {ref[k]:.6g} -> {off[k]:.6g} in {dt[k]:.4f} s" for k in bad[:5]))
+    assert bad.size == 0, "slew limit broken: " + "; ".join(
+        f"row {k}: {ref[k]:.6g} -> {off[k]:.6g} in {dt[k]:.4f} s" for k in bad[:5]
+    )
     written = j["written"] == 1
     beyond = np.abs(off) > clamp_a + 1e-9
     for k in np.flatnonzero(beyond):  # only the controller's own value, never one written
-        assert not written[k] and (new_proc[k] or off[k] == ref[k]), \
+        assert not written[k] and (new_proc[k] or off[k] == ref[k]), (
             f"row {k}: offset {off[k]:.6g} beyond the clamp {clamp_a[k]:g} (from {ref[k]:.6g})"
+        )
     # rows lost: a runtime's consecutive rows are dt_s apart (3 decimals in time_s)
     within = ~new_proc & (dt > 0)
     lost = int(np.count_nonzero(within & (np.abs(np.r_[0.0, np.diff(t)] - dt) > 1.5e-3)))
     gaps = np.diff(t)
     wall = j["wall_s"]
     # (a runtime's first cycle connects to the controller: the step after it may be long)
-    big = [k for k in np.flatnonzero(gaps > max_gap_periods * period_s)
-           if not new_proc[k + 1] and dt[k] != 0 and not gap_ok(wall[k], wall[k + 1])]
+    big = [
+        k
+        for k in np.flatnonzero(gaps > max_gap_periods * period_s)
+        if not new_proc[k + 1] and dt[k] != 0 and not gap_ok(wall[k], wall[k + 1])
+    ]
     assert not big, "gaps: " + ", ".join(f"{gaps[k]:.2f} s after row {k}" for k in big[:5])
     assert lost == 0, f"{lost} row(s) lost (time steps that are not the row's dt_s)"
-    return Checked(rows=n, lost=lost, max_gap_s=float(gaps.max()),
-                   runtime_starts=int(np.count_nonzero(dt == 0)))
+    return Checked(
+        rows=n,
+        lost=lost,
+        max_gap_s=float(gaps.max()),
+        runtime_starts=int(np.count_nonzero(dt == 0)),
+    )
 
 
-def slew_tol(rate: float, a: float | np.ndarray = 0.0, b: float | np.ndarray = 0.0) -> float | np.ndarray:
+def slew_tol(
+    rate: float, a: float | np.ndarray = 0.0, b: float | np.ndarray = 0.0
+) -> float | np.ndarray:
     """1e-6 um, plus what the journal's print precision hides: ``dt_s`` has 6 decimals (up to
     0.5 us off, so a full-slew step may look ``rate * 5e-7`` too long) and offsets 9
     significant digits."""
@@ -513,8 +616,13 @@ def tracking(j: dict[str, np.ndarray], clamp: float, deadband: float) -> np.ndar
     return np.abs(j["offset_um"] - want) <= deadband + 1e-9
 
 
-def recovered_at(j: dict[str, np.ndarray], since_wall: float, clamp: float, deadband: float,
-                 also: np.ndarray | None = None) -> int:
+def recovered_at(
+    j: dict[str, np.ndarray],
+    since_wall: float,
+    clamp: float,
+    deadband: float,
+    also: np.ndarray | None = None,
+) -> int:
     """Index of the first row at or after ``since_wall`` from which every row tracks the model."""
     ok = tracking(j, clamp, deadband) & (also if also is not None else True)
     tail_bad = np.flatnonzero(~ok)
@@ -535,14 +643,24 @@ SUMMARY: list[dict[str, str]] = []
 
 def summarize(case: str, fault: str, does: str, alarm: str, recover: str, lost: str) -> None:
     SUMMARY[:] = [r for r in SUMMARY if r["case"] != case]
-    SUMMARY.append({"case": case, "fault": fault, "does": does, "alarm": alarm,
-                    "recover": recover, "lost": lost})
+    SUMMARY.append(
+        {
+            "case": case,
+            "fault": fault,
+            "does": does,
+            "alarm": alarm,
+            "recover": recover,
+            "lost": lost,
+        }
+    )
 
 
 def summary_table() -> list[str]:
     head = ("#", "fault", "what the runtime does", "alarm", "time to recover", "data lost")
-    rows = [(r["case"], r["fault"], r["does"], r["alarm"], r["recover"], r["lost"])
-            for r in sorted(SUMMARY, key=lambda r: (int(r["case"].rstrip("ab")), r["case"]))]
+    rows = [
+        (r["case"], r["fault"], r["does"], r["alarm"], r["recover"], r["lost"])
+        for r in sorted(SUMMARY, key=lambda r: (int(r["case"].rstrip("ab")), r["case"]))
+    ]
     out = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     out += ["| " + " | ".join(r) + " |" for r in rows]
     return out

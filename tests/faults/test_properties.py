@@ -43,8 +43,12 @@ EXAMPLES = int(os.environ.get("THERMOCOMP_FAULT_EXAMPLES", "25"))
 WALL0 = 1.77e9
 CLAMP_UM, RATE, FAST = 40.0, 0.5, 5.0
 TOLERANCE_UM = 0.5  # faults.offset_tolerance_um
-SETTINGS = settings(max_examples=EXAMPLES, deadline=None, derandomize=False,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=False,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 
 anything = st.floats(allow_nan=True, allow_infinity=True, width=64)
 fault = st.one_of(
@@ -63,18 +67,40 @@ def model_file(directory: Path) -> Path:
     # tau 100 s, 2 um per krpm at steady state; with an observer
     path = directory / "model.json"
     if not path.exists():
-        save_model(path, ThermalModel.from_discrete(0.99, (0.0, 0.02, 0.0, 0.0), 1.0,
-                                                    speed_range_rpm=(0.0, 24000.0)))
+        save_model(
+            path,
+            ThermalModel.from_discrete(
+                0.99, (0.0, 0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 24000.0)
+            ),
+        )
     return path
 
 
 def config_text(directory: Path) -> str:
-    return "\n".join([
-        f'state_dir = "{directory / "state"}"', "watchdog = false", "journal_fsync_s = 3600.0",
-        "[[spindle]]", 'name = "s1"', f'model = "{model_file(directory)}"', "period_s = 1.0",
-        'adapter = {url = "sim://"}', "[spindle.shaping]", f"max_offset_um = {CLAMP_UM}",
-        f"max_rate_um_per_s = {RATE}", f"not_cutting_rate_um_per_s = {FAST}", "deadband_um = 0.0",
-        "[spindle.observer]", "enabled = true", "[spindle.faults]", "speed_hold_s = 5.0"]) + "\n"
+    return (
+        "\n".join(
+            [
+                f'state_dir = "{directory / "state"}"',
+                "watchdog = false",
+                "journal_fsync_s = 3600.0",
+                "[[spindle]]",
+                'name = "s1"',
+                f'model = "{model_file(directory)}"',
+                "period_s = 1.0",
+                'adapter = {url = "sim://"}',
+                "[spindle.shaping]",
+                f"max_offset_um = {CLAMP_UM}",
+                f"max_rate_um_per_s = {RATE}",
+                f"not_cutting_rate_um_per_s = {FAST}",
+                "deadband_um = 0.0",
+                "[spindle.observer]",
+                "enabled = true",
+                "[spindle.faults]",
+                "speed_hold_s = 5.0",
+            ]
+        )
+        + "\n"
+    )
 
 
 class Runtime:
@@ -87,11 +113,19 @@ class Runtime:
         cfg_path.write_text(config_text(directory))
         cfg = load_config(cfg_path)
         self.t, self.skew = 0.0, 0.0
-        self.vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=2), None, clock=lambda: self.t)
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=2), None, clock=lambda: self.t
+        )
         self.vm.load_program(job_shop_day(preset("motorized-27k").max_rpm, seed=2, hours=2))
         self.adapter = SimAdapter(machine=self.vm)
-        self.rt = SpindleRuntime(cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=lambda: self.t,
-                                 wall=lambda: WALL0 + self.t + self.skew, adapter=self.adapter)
+        self.rt = SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: self.t,
+            wall=lambda: WALL0 + self.t + self.skew,
+            adapter=self.adapter,
+        )
         self.speed: list = []  # a value (or an exception) the next speed read returns
         self.hang_s = 0.0
         # (clock when the value took effect, the value, how far the runtime may take it to be):
@@ -118,8 +152,10 @@ class Runtime:
 
 
 @SETTINGS
-@given(faults=st.lists(fault, min_size=5, max_size=60), dts=st.lists(st.floats(0.05, 3.0), min_size=60,
-                                                                      max_size=60))
+@given(
+    faults=st.lists(fault, min_size=5, max_size=60),
+    dts=st.lists(st.floats(0.05, 3.0), min_size=60, max_size=60),
+)
 def test_no_fault_breaks_the_offset_or_the_record(tmp_path_factory, faults, dts):
     r = Runtime(tmp_path_factory.mktemp("prop"))
     rt = r.rt
@@ -176,7 +212,9 @@ def test_random_bytes_in_a_configuration_are_one_line_a_problem(tmp_path_factory
     except ConfigError as err:
         # one line a problem (several bytes can make several), each naming the file
         lines = str(err).split("\n")
-        assert str(err) and all(line.startswith(f"{path}: ") and line.isprintable() for line in lines), str(err)
+        assert str(err) and all(
+            line.startswith(f"{path}: ") and line.isprintable() for line in lines
+        ), str(err)
 
 
 @SETTINGS
@@ -199,14 +237,18 @@ def test_random_bytes_at_the_end_of_a_journal_day_lose_no_complete_row(tmp_path_
     d = tmp_path_factory.mktemp("journal")
     j = Journal(d, "s1", {"spindle": "s1"})
     for k in range(20):
-        j.write(WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k))
+        j.write(
+            WALL0 + k, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + k, now_s=float(k)
+        )
     j.close()
     (path,) = d.glob("s1-*.csv")
     whole = path.read_bytes()
-    data = whole[:len(whole) - cut % 200] + tail  # a power loss, then garbage
+    data = whole[: len(whole) - cut % 200] + tail  # a power loss, then garbage
     path.write_bytes(data)
     # the rows of the file as written that are still whole in it (the garbage may complete one)
-    common = next((i for i, (a, b) in enumerate(zip(data, whole)) if a != b), min(len(data), len(whole)))
+    common = next(
+        (i for i, (a, b) in enumerate(zip(data, whole)) if a != b), min(len(data), len(whole))
+    )
     kept = read_rows(whole[:common])
     j = Journal(d, "s1", {"spindle": "s1"})
     j.write(WALL0 + 100, 1000.0, 1.0, -1.0, True, 0, 0, dt_s=1.0, wall_s=WALL0 + 100, now_s=100.0)
@@ -236,8 +278,14 @@ def test_a_link_that_fails_every_read_leaves_the_service_alive(tmp_path):
         r.rt.close()
 
 
-STATUSES = ("Good", "BadSensorFailure", "BadCommunicationError", "BadOutOfService",
-            "UncertainLastUsableValue", "BadWaitingForInitialData")
+STATUSES = (
+    "Good",
+    "BadSensorFailure",
+    "BadCommunicationError",
+    "BadOutOfService",
+    "UncertainLastUsableValue",
+    "BadWaitingForInitialData",
+)
 NODES = ("act_speed", "cutting", "bearing_temp_c", "motor_temp_c")
 
 
@@ -250,8 +298,11 @@ def lockstep_cnc():
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
     with running(VirtualCNC(vm, tick_s=None)) as cnc:
-        link = OpcUaAdapter(cnc.url, preset="virtual-cnc",
-                            cutting_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting")
+        link = OpcUaAdapter(
+            cnc.url,
+            preset="virtual-cnc",
+            cutting_node="ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting",
+        )
         try:
             yield vm, cnc, link, (lambda: (clock.advance(1.0), step(cnc)))
         finally:
@@ -259,7 +310,9 @@ def lockstep_cnc():
 
 
 @SETTINGS
-@given(statuses=st.tuples(*(st.sampled_from(STATUSES) for _ in NODES)), speed=st.floats(0.0, 24000.0))
+@given(
+    statuses=st.tuples(*(st.sampled_from(STATUSES) for _ in NODES)), speed=st.floats(0.0, 24000.0)
+)
 def test_no_value_with_a_status_other_than_good_is_used(lockstep_cnc, statuses, speed):
     vm, cnc, link, tick = lockstep_cnc
     vm.override_speed(speed)
@@ -273,7 +326,9 @@ def test_no_value_with_a_status_other_than_good_is_used(lockstep_cnc, statuses, 
         except AdapterError as err:
             assert "act_speed" in bad, err
         else:
-            assert "act_speed" not in bad and read == pytest.approx(abs(vm.speed_rpm))  # as published
+            assert "act_speed" not in bad and read == pytest.approx(
+                abs(vm.speed_rpm)
+            )  # as published
         try:
             link.read_cutting()
         except AdapterError:
@@ -283,8 +338,11 @@ def test_no_value_with_a_status_other_than_good_is_used(lockstep_cnc, statuses, 
         assert math.isfinite(inputs[name]) == (name not in bad)
 
 
-@settings(max_examples=max(3, EXAMPLES // 8), deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=max(3, EXAMPLES // 8),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(hup=st.one_of(st.none(), st.floats(0.0, 0.5)), term=st.floats(0.0, 0.6))
 def test_signals_at_any_moment_after_the_command_line_is_read(tmp_path_factory, hup, term):
     """`thermocomp run` in this process; another thread sends SIGHUP and SIGTERM at drawn
@@ -302,7 +360,9 @@ def test_signals_at_any_moment_after_the_command_line_is_read(tmp_path_factory, 
     d = tmp_path_factory.mktemp("signals")
     log_file = d / "log.jsonl"
     cfg = d / "machine.toml"
-    cfg.write_text(f'log_file = "{log_file}"\n' + config_text(d).replace("period_s = 1.0", "period_s = 0.05"))
+    cfg.write_text(
+        f'log_file = "{log_file}"\n' + config_text(d).replace("period_s = 1.0", "period_s = 0.05")
+    )
     root = logging.getLogger()
     saved_logging = (root.handlers[:], root.level, logging.raiseExceptions)
     sigs = (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)
@@ -333,6 +393,8 @@ def test_signals_at_any_moment_after_the_command_line_is_read(tmp_path_factory, 
         root.setLevel(saved_logging[1])
         logging.raiseExceptions = saved_logging[2]
     assert rc == 0
-    names = [json.loads(line).get("event") for line in log_file.read_text().splitlines() if line.strip()]
+    names = [
+        json.loads(line).get("event") for line in log_file.read_text().splitlines() if line.strip()
+    ]
     assert names.count("started") == 1 and names.count("reload") <= 1
     assert not any(n in ("reload_refused", "cycle_failed") for n in names)

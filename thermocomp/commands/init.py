@@ -25,13 +25,17 @@ def main(args) -> int:
     files = list(_files(resources.files("thermocomp.examples")))
     clash = [name for name, _ in files if (out / name).exists()]
     if clash and not args.force:
-        raise ConfigError(f"{out}: {', '.join(clash[:3])}{' ...' if len(clash) > 3 else ''} exist(s); "
-                          "nothing written (--force overwrites)")
+        raise ConfigError(
+            f"{out}: {', '.join(clash[:3])}{' ...' if len(clash) > 3 else ''} exist(s); "
+            "nothing written (--force overwrites)"
+        )
     for name, entry in files:
         target = out / name
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(entry.read_bytes())
         print(target)
-    print(f"thermocomp: {len(files)} example file(s) written; start with machine.toml, then "
-          "`thermocomp run --config machine.toml --check`")
+    print(
+        f"thermocomp: {len(files)} example file(s) written; start with machine.toml, then "
+        "`thermocomp run --config machine.toml --check`"
+    )
     return 0

@@ -28,7 +28,9 @@ def parse_when(text: str | None, flag: str) -> float | None:
     try:
         when = datetime.fromisoformat(text.strip())
     except ValueError as err:
-        raise ConfigError(f"{flag} {text[:60]!r}: not an ISO date or date-time ({WHEN_FORMS})") from err
+        raise ConfigError(
+            f"{flag} {text[:60]!r}: not an ISO date or date-time ({WHEN_FORMS})"
+        ) from err
     if when.tzinfo is None:
         when = when.replace(tzinfo=UTC)
     return when.timestamp()
@@ -45,7 +47,9 @@ def journal_dir_of(args: argparse.Namespace) -> Path:
         from ..runtime.config import load_config
 
         return load_config(config).journal_path
-    raise ConfigError("give the journal directory (--journal-dir) or the runtime configuration (--config)")
+    raise ConfigError(
+        "give the journal directory (--journal-dir) or the runtime configuration (--config)"
+    )
 
 
 def export(args: argparse.Namespace) -> int:
@@ -54,18 +58,27 @@ def export(args: argparse.Namespace) -> int:
     end = parse_when(getattr(args, "to", None), "--to")
     if getattr(args, "output", None) is None:
         raise ConfigError("give the run log to write (--output)")
-    done = export_journal(journal_dir_of(args), args.output, spindle=getattr(args, "spindle", None),
-                          start_s=start, end_s=end)
+    done = export_journal(
+        journal_dir_of(args),
+        args.output,
+        spindle=getattr(args, "spindle", None),
+        start_s=start,
+        end_s=end,
+    )
     notes = []
     if done.measurements_unplaced:
-        notes.append(f"{done.measurements_unplaced} measurement(s) in range on no row of their own "
-                     "(several in one cycle: the last kept)")
+        notes.append(
+            f"{done.measurements_unplaced} measurement(s) in range on no row of their own "
+            "(several in one cycle: the last kept)"
+        )
     if done.filled_cells:
         notes.append(f"{done.filled_cells} blank input cell(s) (not read) hold the last value read")
     if done.skipped_rows:
         notes.append(f"{done.skipped_rows} unreadable journal row(s) skipped")
-    print(f"{done.path}: {done.rows} rows of spindle {done.spindle}, {iso(done.first_s)} .. "
-          f"{iso(done.last_s)}, {done.measured_rows} with a measured elongation, "
-          f"{len(done.input_columns)} input column(s), from {len(done.files)} journal file(s)"
-          + "".join(f"; {n}" for n in notes))
+    print(
+        f"{done.path}: {done.rows} rows of spindle {done.spindle}, {iso(done.first_s)} .. "
+        f"{iso(done.last_s)}, {done.measured_rows} with a measured elongation, "
+        f"{len(done.input_columns)} input column(s), from {len(done.files)} journal file(s)"
+        + "".join(f"; {n}" for n in notes)
+    )
     return 0

@@ -43,7 +43,9 @@ def _spindle(cfg: RuntimeConfig, name: str | None) -> SpindleConfig:
     names = [s.name for s in cfg.spindle]
     if name is None:
         if len(names) > 1:
-            raise ConfigError(f"the configuration has {len(names)} spindles ({', '.join(names)}): give --spindle")
+            raise ConfigError(
+                f"the configuration has {len(names)} spindles ({', '.join(names)}): give --spindle"
+            )
         return cfg.spindle[0]
     for sc in cfg.spindle:
         if sc.name == name:
@@ -61,8 +63,13 @@ def _live(history: ModelHistory, sc: SpindleConfig, now: float) -> HistoryRecord
     live = history.live()
     model = load_any_model(sc.model)
     if live is None or live.digest != model_digest(model):
-        live = history.add("in_use", sc.model, reason="found in the configuration by refit", at_wall_s=now,
-                           fit=fit_summary(model))
+        live = history.add(
+            "in_use",
+            sc.model,
+            reason="found in the configuration by refit",
+            at_wall_s=now,
+            fit=fit_summary(model),
+        )
     return live
 
 
@@ -80,7 +87,9 @@ def _tell_service(cfg: RuntimeConfig) -> str:
     if not held:
         return f"no service runs on {cfg.state_dir}: its next start uses it"
     if pid is None:
-        return f"the service on {cfg.state_dir} names no pid: reload it (systemctl reload thermocomp)"
+        return (
+            f"the service on {cfg.state_dir} names no pid: reload it (systemctl reload thermocomp)"
+        )
     try:
         os.kill(pid, signal.SIGHUP)
     except OSError as err:
@@ -94,8 +103,15 @@ def _put_in_use(cfg: RuntimeConfig, sc: SpindleConfig, model: Any) -> str:
     return f"written to {sc.model}; " + _tell_service(cfg)
 
 
-def _judge_shadow(args: argparse.Namespace, cfg: RuntimeConfig, sc: SpindleConfig, history: ModelHistory,
-                  shadow: HistoryRecord, live_model: Any, rule: Any) -> int:
+def _judge_shadow(
+    args: argparse.Namespace,
+    cfg: RuntimeConfig,
+    sc: SpindleConfig,
+    history: ModelHistory,
+    shadow: HistoryRecord,
+    live_model: Any,
+    rule: Any,
+) -> int:
     """The candidate in shadow: held while it has run less than ``shadow_h``; then promoted or
     rejected on its own misses, and taken out of shadow either way."""
     from calibration.learning import judge_shadow
@@ -111,13 +127,27 @@ def _judge_shadow(args: argparse.Namespace, cfg: RuntimeConfig, sc: SpindleConfi
         except ThermocompError:
             log = None
     # how long it ran, by the journal's own clock: the rows that carry its estimate
-    ran = None if log is None else np.flatnonzero(np.isfinite(np.asarray(
-        log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)))
-    ran_h = 0.0 if ran is None or not ran.size else float(log.time_s[ran[-1]] - log.time_s[ran[0]]) / 3600.0
+    ran = (
+        None
+        if log is None
+        else np.flatnonzero(
+            np.isfinite(
+                np.asarray(log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)
+            )
+        )
+    )
+    ran_h = (
+        0.0
+        if ran is None or not ran.size
+        else float(log.time_s[ran[-1]] - log.time_s[ran[0]]) / 3600.0
+    )
     out["ran_h"] = round(ran_h, 3)
     if ran_h < sc.learning.shadow_h:
-        why = ("the service has not run it yet (reload it)" if ran is None or not ran.size
-               else f"it has run {ran_h:.1f} h of {sc.learning.shadow_h:g} h")
+        why = (
+            "the service has not run it yet (reload it)"
+            if ran is None or not ran.size
+            else f"it has run {ran_h:.1f} h of {sc.learning.shadow_h:g} h"
+        )
         out.update(outcome="held back", reason=f"candidate {shadow.short} in shadow: {why}")
     else:
         judged = judge_shadow(log, sc.estimate(live_model), rule)
@@ -133,25 +163,49 @@ def _judge_shadow(args: argparse.Namespace, cfg: RuntimeConfig, sc: SpindleConfi
                     model = _checked(sc, path)
                 except ThermocompError as err:
                     decision = type(decision)(False, f"the checks of a reload refused it: {err}")
-            event = "promoted" if decision.promote and not args.dry_run else "candidate" if decision.promote else "rejected"
+            event = (
+                "promoted"
+                if decision.promote and not args.dry_run
+                else "candidate"
+                if decision.promote
+                else "rejected"
+            )
             if not args.dry_run or not decision.promote:
-                history.add(event, path, source=shadow.source, reason=decision.reason, at_wall_s=end_s,
-                            fit=shadow.fit, data=shadow.data, judged={**judged.figures(), "reason": decision.reason})
+                history.add(
+                    event,
+                    path,
+                    source=shadow.source,
+                    reason=decision.reason,
+                    at_wall_s=end_s,
+                    fit=shadow.fit,
+                    data=shadow.data,
+                    judged={**judged.figures(), "reason": decision.reason},
+                )
             if args.dry_run:
-                out.update(outcome="candidate" if decision.promote else "rejected", reason=decision.reason)
+                out.update(
+                    outcome="candidate" if decision.promote else "rejected", reason=decision.reason
+                )
             else:
                 path.unlink()  # out of shadow either way
                 said = _put_in_use(cfg, sc, model) if decision.promote else _tell_service(cfg)
-                out.update(outcome="promoted" if decision.promote else "rejected", reason=decision.reason, written=said)
+                out.update(
+                    outcome="promoted" if decision.promote else "rejected",
+                    reason=decision.reason,
+                    written=said,
+                )
     if args.json:
         print(json.dumps(out, indent=2))
     else:
-        print(f"refit {sc.name}: {out['outcome']} the candidate {shadow.short} in shadow: {out['reason']}"
-              + (f"; {out['written']}" if "written" in out else ""))
+        print(
+            f"refit {sc.name}: {out['outcome']} the candidate {shadow.short} in shadow: {out['reason']}"
+            + (f"; {out['written']}" if "written" in out else "")
+        )
     return 0
 
 
-def _opened(args: argparse.Namespace) -> tuple[RuntimeConfig, SpindleConfig, ModelHistory, float, HistoryRecord]:
+def _opened(
+    args: argparse.Namespace,
+) -> tuple[RuntimeConfig, SpindleConfig, ModelHistory, float, HistoryRecord]:
     """The configuration, the spindle, its history, now, and the live model's record."""
     cfg = load_config(args.config)
     sc = _spindle(cfg, args.spindle)
@@ -166,9 +220,13 @@ def refit_cmd(args: argparse.Namespace) -> int:
     cfg, sc, history, now, live_rec = _opened(args)
     live_model = _checked(sc, Path(sc.model))
     start = parse_when(args.from_, "--from") if args.from_ else live_rec.at_wall_s
-    rule = Rule(min_train=sc.learning.min_train, min_holdout=sc.learning.min_holdout,
-                holdout_share=sc.learning.holdout_share, margin=sc.learning.margin,
-                observer_tolerance=sc.learning.observer_tolerance)
+    rule = Rule(
+        min_train=sc.learning.min_train,
+        min_holdout=sc.learning.min_holdout,
+        holdout_share=sc.learning.holdout_share,
+        margin=sc.learning.margin,
+        observer_tolerance=sc.learning.observer_tolerance,
+    )
     shadow = history.shadow()
     if shadow is not None:
         return _judge_shadow(args, cfg, sc, history, shadow, live_model, rule)
@@ -178,26 +236,45 @@ def refit_cmd(args: argparse.Namespace) -> int:
         try:
             done = export_journal(cfg.journal_path, export, spindle=sc.name, start_s=start)
         except ThermocompError as err:
-            raise ConfigError(f"refit {sc.name}: nothing to refit on since {iso(start)}: {err}") from err
+            raise ConfigError(
+                f"refit {sc.name}: nothing to refit on since {iso(start)}: {err}"
+            ) from err
         log = read_run_log(export)
-        result = refit(log, sc.estimate(live_model), sc.estimate, rule=rule,
-                       spindle_id=sc.spindle_id or live_model.spindle_id,
-                       machine_id=getattr(live_model, "machine_id", None),
-                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-                       default_sigma_um=sc.observer.sigma_um)
-        data = {"from": iso(done.first_s), "to": iso(done.last_s), "rows": done.rows,
-                "journal_files": list(done.files)[:20]}
+        result = refit(
+            log,
+            sc.estimate(live_model),
+            sc.estimate,
+            rule=rule,
+            spindle_id=sc.spindle_id or live_model.spindle_id,
+            machine_id=getattr(live_model, "machine_id", None),
+            created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+            default_sigma_um=sc.observer.sigma_um,
+        )
+        data = {
+            "from": iso(done.first_s),
+            "to": iso(done.last_s),
+            "rows": done.rows,
+            "journal_files": list(done.files)[:20],
+        }
         out.update(data=data, notes=result.notes, **result.figures())
-        say = [f"refit {sc.name}: the journal from {iso(done.first_s)} to {iso(done.last_s)}, {done.rows} rows, "
-               f"{result.measurements} usable measurement(s)"]
+        say = [
+            f"refit {sc.name}: the journal from {iso(done.first_s)} to {iso(done.last_s)}, {done.rows} rows, "
+            f"{result.measurements} usable measurement(s)"
+        ]
         say += [f"  {n}" for n in result.notes]
         decision = result.decision
         if result.candidate is not None:
             # the journal's time is the wall clock's (anchored once): an instant as it is
-            say.append(f"  fitted on {result.train} measurement(s) before {iso(result.cut_s)}, judged on "
-                       f"the {result.holdout} from there")
-            say.append(f"  candidate {result.candidate.form}: " + _figs(result.scored)
-                       + f"; live model {live_rec.short}: " + _figs(result.live))
+            say.append(
+                f"  fitted on {result.train} measurement(s) before {iso(result.cut_s)}, judged on "
+                f"the {result.holdout} from there"
+            )
+            say.append(
+                f"  candidate {result.candidate.form}: "
+                + _figs(result.scored)
+                + f"; live model {live_rec.short}: "
+                + _figs(result.live)
+            )
             cand_path = Path(tmp) / "candidate.json"
             save_model(cand_path, result.candidate)
             if decision.promote:
@@ -207,32 +284,60 @@ def refit_cmd(args: argparse.Namespace) -> int:
                     decision = type(decision)(False, f"the checks of a reload refused it: {err}")
             judged = {**result.figures(), "rule": vars(rule), "reason": decision.reason}
             to_shadow = decision.promote and not args.dry_run and sc.learning.shadow_h > 0
-            event = ("shadow" if to_shadow else "promoted" if decision.promote and not args.dry_run
-                     else "candidate" if decision.promote else "rejected")
+            event = (
+                "shadow"
+                if to_shadow
+                else "promoted"
+                if decision.promote and not args.dry_run
+                else "candidate"
+                if decision.promote
+                else "rejected"
+            )
             # dated at the end of the data it was judged on: the journal's clock, which the next
             # refit's export starts from
-            rec = history.add(event, cand_path, source=f"refit of {data['from']} .. {data['to']}",
-                              reason=decision.reason, at_wall_s=done.last_s, fit=fit_summary(result.candidate),
-                              data=data, judged=judged)
-            out["candidate"] = {**out.get("candidate", {}), "digest": rec.short, "form": result.candidate.form}
+            rec = history.add(
+                event,
+                cand_path,
+                source=f"refit of {data['from']} .. {data['to']}",
+                reason=decision.reason,
+                at_wall_s=done.last_s,
+                fit=fit_summary(result.candidate),
+                data=data,
+                judged=judged,
+            )
+            out["candidate"] = {
+                **out.get("candidate", {}),
+                "digest": rec.short,
+                "form": result.candidate.form,
+            }
             if to_shadow:
                 save_model(history.shadow_path, result.candidate)
                 said = _tell_service(cfg)
-                say.append(f"into shadow for {sc.learning.shadow_h:g} h: {rec.short} ({decision.reason}); {said}")
+                say.append(
+                    f"into shadow for {sc.learning.shadow_h:g} h: {rec.short} ({decision.reason}); {said}"
+                )
                 out.update(outcome="shadow", reason=decision.reason, written=said)
             elif decision.promote and not args.dry_run:
                 said = _put_in_use(cfg, sc, result.candidate)
                 say.append(f"promoted {rec.short}: {decision.reason}; {said}")
                 out.update(outcome="promoted", reason=decision.reason, written=said)
             elif decision.promote:
-                say.append(f"would promote {rec.short} (--dry-run: kept as a candidate): {decision.reason}")
+                say.append(
+                    f"would promote {rec.short} (--dry-run: kept as a candidate): {decision.reason}"
+                )
                 out.update(outcome="candidate", reason=decision.reason)
             else:
                 say.append(f"rejected {rec.short}, kept in the history: {decision.reason}")
                 out.update(outcome="rejected", reason=decision.reason)
         else:
-            say.append(f"held back: {decision.reason}" if decision.held_back else f"no candidate: {decision.reason}")
-            out.update(outcome="held back" if decision.held_back else "rejected", reason=decision.reason)
+            say.append(
+                f"held back: {decision.reason}"
+                if decision.held_back
+                else f"no candidate: {decision.reason}"
+            )
+            out.update(
+                outcome="held back" if decision.held_back else "rejected", reason=decision.reason
+            )
     if args.json:
         print(json.dumps(out, indent=2))
     else:
@@ -244,7 +349,9 @@ def _figs(s: Any) -> str:
     if s is None:
         return "-"
     text = f"open loop {s.open_loop_rms_um:.2f} um RMS (max {s.open_loop_max_um:.2f})"
-    return text + (f", with the observer {s.observer_rms_um:.2f} um" if s.observer_rms_um is not None else "")
+    return text + (
+        f", with the observer {s.observer_rms_um:.2f} um" if s.observer_rms_um is not None else ""
+    )
 
 
 def history_cmd(args: argparse.Namespace) -> int:
@@ -254,12 +361,25 @@ def history_cmd(args: argparse.Namespace) -> int:
     records = history.records()
     live = history.live()
     if args.json:
-        print(json.dumps([{**r.model_dump(mode="json"), "live": live is not None and r is live,
-                           "copy_kept": history.copy_path(r).is_file()} for r in records], indent=2))
+        print(
+            json.dumps(
+                [
+                    {
+                        **r.model_dump(mode="json"),
+                        "live": live is not None and r is live,
+                        "copy_kept": history.copy_path(r).is_file(),
+                    }
+                    for r in records
+                ],
+                indent=2,
+            )
+        )
         return 0
     if not records:
-        print(f"{sc.name}: no model history yet in {history.directory} (the service records the model it "
-              "starts with)")
+        print(
+            f"{sc.name}: no model history yet in {history.directory} (the service records the model it "
+            "starts with)"
+        )
         return 0
     print(f"{sc.name}: {len(records)} record(s) in {history.directory}; * the model in use")
     for r in records:
@@ -267,8 +387,14 @@ def history_cmd(args: argparse.Namespace) -> int:
         mark = "*" if live is not None and r is live else " "
         kept = "" if history.copy_path(r).is_file() else " (copy pruned)"
         figs = r.judged.get("candidate", {}) if r.judged else {}
-        fig = f" open loop {figs['open_loop_rms_um']:.2f} um" if figs.get("open_loop_rms_um") is not None else ""
-        print(f"{mark} {when}  {r.event:<9} {r.short}  {r.fit.get('form') or '-':<14}{fig}  {r.reason}{kept}")
+        fig = (
+            f" open loop {figs['open_loop_rms_um']:.2f} um"
+            if figs.get("open_loop_rms_um") is not None
+            else ""
+        )
+        print(
+            f"{mark} {when}  {r.event:<9} {r.short}  {r.fit.get('form') or '-':<14}{fig}  {r.reason}{kept}"
+        )
     return 0
 
 
@@ -277,8 +403,13 @@ def rollback_cmd(args: argparse.Namespace) -> int:
     if args.digest:
         target = history.find(args.digest)
     else:
-        earlier = [r for r in history.records() if r.event in ("in_use", "promoted", "rollback")
-                   and r.digest != live.digest and history.copy_path(r).is_file()]
+        earlier = [
+            r
+            for r in history.records()
+            if r.event in ("in_use", "promoted", "rollback")
+            and r.digest != live.digest
+            and history.copy_path(r).is_file()
+        ]
         if not earlier:
             raise ConfigError(f"{sc.name}: no earlier model in the history to roll back to")
         target = earlier[-1]
@@ -287,9 +418,19 @@ def rollback_cmd(args: argparse.Namespace) -> int:
         return 0
     model = _checked(sc, history.copy_path(target))
     reason = args.reason or f"rolled back by hand from {live.short}"
-    history.add("rollback", history.copy_path(target), source=target.source, reason=reason, at_wall_s=now,
-                fit=fit_summary(model), data=target.data, judged=target.judged)
+    history.add(
+        "rollback",
+        history.copy_path(target),
+        source=target.source,
+        reason=reason,
+        at_wall_s=now,
+        fit=fit_summary(model),
+        data=target.data,
+        judged=target.judged,
+    )
     said = _put_in_use(cfg, sc, model)
-    print(f"{sc.name}: rolled back to {target.short} ({target.event} {iso(target.at_wall_s)}, "
-          f"{target.fit.get('form') or '-'}); {said}")
+    print(
+        f"{sc.name}: rolled back to {target.short} ({target.event} {iso(target.at_wall_s)}, "
+        f"{target.fit.get('form') or '-'}); {said}"
+    )
     return 0

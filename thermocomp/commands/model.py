@@ -40,12 +40,20 @@ def _schema(fmt: str | None) -> int:
     """One format's schema (default: the speed-only model's, as before), or every registered
     format's keyed by format name (``all``)."""
     if fmt == "all":
-        print(json.dumps({name: cls.model_json_schema() for name, cls in MODEL_TYPES.items()}, indent=2))
+        print(
+            json.dumps(
+                {name: cls.model_json_schema() for name, cls in MODEL_TYPES.items()}, indent=2
+            )
+        )
         return 0
     cls = MODEL_TYPES.get(fmt or MODEL_FORMAT)
     if cls is None:
-        raise ConfigError(clip(f"--format {fmt!r}: not a model format; known: "
-                               f"{', '.join(MODEL_TYPES)}, or all", 500))
+        raise ConfigError(
+            clip(
+                f"--format {fmt!r}: not a model format; known: {', '.join(MODEL_TYPES)}, or all",
+                500,
+            )
+        )
     print(json.dumps(cls.model_json_schema(), indent=2))
     return 0
 
@@ -53,10 +61,17 @@ def _schema(fmt: str | None) -> int:
 def summary(m: Any) -> dict[str, Any]:
     """What a checked model is, for people and for ``--json``."""
     lo, hi = m.speed_range_rpm
-    return {"format": m.format, "form": m.form, "spindle_id": m.spindle_id, "machine_id": m.machine_id,
-            "states": getattr(m, "order", None), "inputs": list(m.input_names),
-            "speed_range_rpm": [lo, hi], "fallback": m.fallback.form if m.fallback is not None else None,
-            "sha256": model_digest(m)}
+    return {
+        "format": m.format,
+        "form": m.form,
+        "spindle_id": m.spindle_id,
+        "machine_id": m.machine_id,
+        "states": getattr(m, "order", None),
+        "inputs": list(m.input_names),
+        "speed_range_rpm": [lo, hi],
+        "fallback": m.fallback.form if m.fallback is not None else None,
+        "sha256": model_digest(m),
+    }
 
 
 def check(path: str, as_json: bool = False) -> int:
@@ -80,7 +95,9 @@ def check(path: str, as_json: bool = False) -> int:
         if not as_json:
             raise  # the CLI prints it as one line and exits 2
         reason = str(err)
-        reason = reason[len(path) + 2:] if reason.startswith(f"{path}: ") else reason  # "file" says it
+        reason = (
+            reason[len(path) + 2 :] if reason.startswith(f"{path}: ") else reason
+        )  # "file" says it
         print(json.dumps({"file": path, "ok": False, "reason": clip(reason, REASON_CHARS)}))
         return 2
     info = summary(m)
@@ -90,6 +107,11 @@ def check(path: str, as_json: bool = False) -> int:
     states = f", {info['states']} states" if info["states"] is not None else ""
     inputs = ", inputs " + ", ".join(info["inputs"]) if info["inputs"] else ", speed only"
     lo, hi = info["speed_range_rpm"]
-    print(clip(f"{path}: ok: {info['form']} ({info['format']}), spindle {info['spindle_id']!r}"
-               f"{states}{inputs}, {lo:.0f}..{hi:.0f} rpm", 1000))
+    print(
+        clip(
+            f"{path}: ok: {info['form']} ({info['format']}), spindle {info['spindle_id']!r}"
+            f"{states}{inputs}, {lo:.0f}..{hi:.0f} rpm",
+            1000,
+        )
+    )
     return 0

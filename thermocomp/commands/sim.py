@@ -35,8 +35,10 @@ def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
             continue
         if not (math.isfinite(value) and (value > 0 if key == "accel_rpm_per_s" else value >= 0)):
             flag = "--" + key.replace("_", "-")
-            raise ConfigError(f"{flag} must be a number {'> 0' if key == 'accel_rpm_per_s' else '>= 0'}, "
-                              f"got {value}")
+            raise ConfigError(
+                f"{flag} must be a number {'> 0' if key == 'accel_rpm_per_s' else '>= 0'}, "
+                f"got {value}"
+            )
         changes[key] = value
     return dataclasses.replace(params, **changes) if changes else params
 
@@ -69,7 +71,9 @@ def simulate(args: argparse.Namespace) -> int:
         "machine_id": "virtual",
     }
     write_run_log(args.output, run.columns(), meta)
-    print(f"wrote {t.size} rows, {prog.duration_s / 3600:.2f} h of {prog.name} on {params.name} to {args.output}")
+    print(
+        f"wrote {t.size} rows, {prog.duration_s / 3600:.2f} h of {prog.name} on {params.name} to {args.output}"
+    )
     return 0
 
 
@@ -84,19 +88,30 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         raise ConfigError(str(err.args[0])) from err
     except NcSyntaxError as err:
         raise ConfigError(f"{args.program}: {err}") from err
-    vm = VirtualMachine(SpindlePlant(params, seed=args.seed), None if args.wait_start else prog,
-                        clock=SimClock(args.time_scale),
-                        tool_setter=ToolSetter(at_speed=getattr(args, "tool_setter", "rest") == "speed",
-                                               touches=getattr(args, "tool_setter_touches", 1)))
+    vm = VirtualMachine(
+        SpindlePlant(params, seed=args.seed),
+        None if args.wait_start else prog,
+        clock=SimClock(args.time_scale),
+        tool_setter=ToolSetter(
+            at_speed=getattr(args, "tool_setter", "rest") == "speed",
+            touches=getattr(args, "tool_setter_touches", 1),
+        ),
+    )
     if args.wait_start:
         vm.load_pending(prog)
     history = getattr(args, "history", None)
     # SIGTERM (systemd, kill, a test) ends the loop like Ctrl-C, so the history is still written
     signal.signal(signal.SIGTERM, _interrupt)
     with running(VirtualCNC(vm, host=args.host, port=args.port)) as cnc:
-        print(f"virtual CNC ({params.name}, {prog.name}, {args.time_scale:g}x) at {cnc.url}", flush=True)
+        print(
+            f"virtual CNC ({params.name}, {prog.name}, {args.time_scale:g}x) at {cnc.url}",
+            flush=True,
+        )
         if args.wait_start:
-            print(f"program loaded; write true to ns={cnc.ns};s={CYCLE_START_PATH} to start it", flush=True)
+            print(
+                f"program loaded; write true to ns={cnc.ns};s={CYCLE_START_PATH} to start it",
+                flush=True,
+            )
         print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
         if args.wait_start and args.start_delay is not None:
             print(f"... or it starts by itself in {args.start_delay:g} s", flush=True)
@@ -105,8 +120,11 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         try:
             while end is None or time.monotonic() < end:
                 time.sleep(0.2)
-                if (vm.pending is not None and args.start_delay is not None
-                        and time.monotonic() - t0 >= args.start_delay):
+                if (
+                    vm.pending is not None
+                    and args.start_delay is not None
+                    and time.monotonic() - t0 >= args.start_delay
+                ):
                     vm.advance()
                     vm.cycle_start()
                     print("cycle start", flush=True)
@@ -141,19 +159,38 @@ def error_line(vm: VirtualMachine) -> str:
         return "tool-tip error: no record yet"
 
     def figs(e) -> str:
-        return f"RMS {math.sqrt(float((e ** 2).mean())):.2f} um, max {float(abs(e).max()):.2f} um" if e.size else "-"
+        return (
+            f"RMS {math.sqrt(float((e**2).mean())):.2f} um, max {float(abs(e).max()):.2f} um"
+            if e.size
+            else "-"
+        )
 
     cut = h.cutting
-    return (f"tool-tip error over {h.time_s[-1] - h.time_s[0]:.0f} s: uncompensated {figs(h.true_um)}; "
-            f"with the offset {figs(err)}; while cutting ({int(cut.sum())} rows): uncompensated "
-            f"{figs(h.true_um[cut])}, with the offset {figs(err[cut])}")
+    return (
+        f"tool-tip error over {h.time_s[-1] - h.time_s[0]:.0f} s: uncompensated {figs(h.true_um)}; "
+        f"with the offset {figs(err)}; while cutting ({int(cut.sum())} rows): uncompensated "
+        f"{figs(h.true_um[cut])}, with the offset {figs(err[cut])}"
+    )
 
 
 def write_history(path: str, vm: VirtualMachine, preset_name: str, program_name: str) -> None:
     h, err = tool_tip_error(vm)
-    write_run_log(path, {"time_s": h.time_s, "speed_rpm": h.speed_rpm, "elongation_um": h.true_um,
-                         "offset_um": h.offset_um, "error_um": err, "cutting": h.cutting.astype(int)},
-                  {"source": "thermocomp virtual-cnc", "preset": preset_name, "program": program_name,
-                   "elongation_um": "the plant's true growth; error_um = growth + offset"})
+    write_run_log(
+        path,
+        {
+            "time_s": h.time_s,
+            "speed_rpm": h.speed_rpm,
+            "elongation_um": h.true_um,
+            "offset_um": h.offset_um,
+            "error_um": err,
+            "cutting": h.cutting.astype(int),
+        },
+        {
+            "source": "thermocomp virtual-cnc",
+            "preset": preset_name,
+            "program": program_name,
+            "elongation_um": "the plant's true growth; error_um = growth + offset",
+        },
+    )
     print(error_line(vm), flush=True)
     print(f"wrote the machine's record, {h.time_s.size} rows, to {path}", flush=True)

@@ -58,14 +58,18 @@ def _token(args) -> str | None:
 
 
 def fetch(url: str, token: str | None, timeout_s: float = 10.0) -> dict[str, Any]:
-    req = urllib.request.Request(url + "status", headers={"Authorization": f"Bearer {token}"} if token else {})
+    req = urllib.request.Request(
+        url + "status", headers={"Authorization": f"Bearer {token}"} if token else {}
+    )
     try:
         with urllib.request.urlopen(req, timeout=timeout_s) as r:
             return json.loads(r.read())
     except urllib.error.HTTPError as err:
         if err.code == 401:
-            raise ConfigError(f"{url}: the service asks for a token (THERMOCOMP_STATUS_TOKEN or "
-                              "--token-file)" + (": this one was refused" if token else "")) from err
+            raise ConfigError(
+                f"{url}: the service asks for a token (THERMOCOMP_STATUS_TOKEN or "
+                "--token-file)" + (": this one was refused" if token else "")
+            ) from err
         if err.code == 503:
             raise StatusUnreachableError(f"{url}: the service has not run a cycle yet") from err
         raise StatusUnreachableError(f"{url}: HTTP {err.code}") from err
@@ -84,45 +88,86 @@ def _age(s: float | None) -> str:
     if s is None:
         return "never"
     s = int(s)
-    return f"{s}s" if s < 120 else f"{s // 60}m" if s < 7200 else f"{s // 3600}h{s % 3600 // 60:02d}m"
+    return (
+        f"{s}s" if s < 120 else f"{s // 60}m" if s < 7200 else f"{s // 3600}h{s % 3600 // 60:02d}m"
+    )
 
 
 def table(st: dict[str, Any]) -> str:
     """The status as lines of aligned text."""
-    head = (f"thermocomp {st.get('version')} · pid {st.get('pid')} · up {_age(st.get('uptime_s'))} · "
-            f"{st.get('status')}")
-    cols = ("spindle", "state", "speed_rpm", "S_um", "target_um", "held_um", "read_back_um", "last_write",
-            "link", "estimate", "offset", "alarms")
+    head = (
+        f"thermocomp {st.get('version')} · pid {st.get('pid')} · up {_age(st.get('uptime_s'))} · "
+        f"{st.get('status')}"
+    )
+    cols = (
+        "spindle",
+        "state",
+        "speed_rpm",
+        "S_um",
+        "target_um",
+        "held_um",
+        "read_back_um",
+        "last_write",
+        "link",
+        "estimate",
+        "offset",
+        "alarms",
+    )
     rows = []
     for s in st.get("spindles", []):
-        rows.append((s["name"], str(s.get("state", "?")), _num(s.get("speed_rpm"), ".0f"), _num(s.get("elongation_um")),
-                     _num(s.get("offset_target_um")), _num(s.get("offset_held_um")),
-                     _num(s.get("offset_read_back_um")), _age(s.get("last_write_age_s")),
-                     str(s.get("link")), str(s.get("estimate")), str(s.get("offset_mode")),
-                     ",".join(s.get("alarms") or []) or "-"))
-    widths = [max(len(c), *(len(r[i]) for r in rows)) if rows else len(c) for i, c in enumerate(cols)]
+        rows.append(
+            (
+                s["name"],
+                str(s.get("state", "?")),
+                _num(s.get("speed_rpm"), ".0f"),
+                _num(s.get("elongation_um")),
+                _num(s.get("offset_target_um")),
+                _num(s.get("offset_held_um")),
+                _num(s.get("offset_read_back_um")),
+                _age(s.get("last_write_age_s")),
+                str(s.get("link")),
+                str(s.get("estimate")),
+                str(s.get("offset_mode")),
+                ",".join(s.get("alarms") or []) or "-",
+            )
+        )
+    widths = [
+        max(len(c), *(len(r[i]) for r in rows)) if rows else len(c) for i, c in enumerate(cols)
+    ]
     out = [head, "  ".join(c.ljust(w) for c, w in zip(cols, widths))]
     out += ["  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in rows]
-    for s in st.get("spindles", []):  # one state word and one reason per spindle, as the service says
+    for s in st.get(
+        "spindles", []
+    ):  # one state word and one reason per spindle, as the service says
         reason = s.get("state_reason")
-        out.append(f"{s['name']}: {s.get('state', 'state unknown (an older service)')}" + (f": {reason}" if reason else ""))
+        out.append(
+            f"{s['name']}: {s.get('state', 'state unknown (an older service)')}"
+            + (f": {reason}" if reason else "")
+        )
     for s in st.get("spindles", []):
         m = s.get("model") or {}
         lo, hi = (m.get("speed_range_rpm") or [None, None])[:2]
-        line = f"{s['name']}: model {m.get('form')} ({Path(str(m.get('file'))).name}, {str(m.get('digest'))[:12]}), " \
-               f"{_num(lo, '.0f')}-{_num(hi, '.0f')} rpm"
+        line = (
+            f"{s['name']}: model {m.get('form')} ({Path(str(m.get('file'))).name}, {str(m.get('digest'))[:12]}), "
+            f"{_num(lo, '.0f')}-{_num(hi, '.0f')} rpm"
+        )
         if m.get("inputs"):
             line += ", inputs " + ", ".join(m["inputs"])
         obs = s.get("observer")
         if obs:
-            line += (f"; observer bias {_num(obs.get('bias_um'))} um, last measurement "
-                     f"{_age(obs.get('since_measurement_s'))} ago" + (" (stale)" if obs.get("stale") else ""))
+            line += (
+                f"; observer bias {_num(obs.get('bias_um'))} um, last measurement "
+                f"{_age(obs.get('since_measurement_s'))} ago"
+                + (" (stale)" if obs.get("stale") else "")
+            )
         out.append(line)
     c = st.get("cooling")
     if c:
-        out.append(f"cooling: {c.get('mode')} {c.get('phase')}, set point {_num(c.get('setpoint_c'), '.1f')} °C, "
-                   f"supply {_num(c.get('supply_c'), '.1f')} °C, RITE {_num(c.get('rite_um'), '.1f')} um"
-                   + (f", {c.get('alarm')}" if c.get("alarm") else ""))
+        out.append(
+            f"cooling: {c.get('mode')} {c.get('phase')}, set point {_num(c.get('setpoint_c'), '.1f')} °C, "
+            f"supply {_num(c.get('supply_c'), '.1f')} °C, RITE {_num(c.get('rite_um'), '.1f')} um"
+            + (f", {c.get('alarm')}" if c.get("alarm") else "")
+        )
     return "\n".join(out)
 
 

@@ -13,5 +13,17 @@ from .offset import OffsetMode, OffsetTracker
 from .service import Service, check
 from .spindle import Alarm, SpindleRuntime
 
-__all__ = ["Alarm", "FaultPolicy", "LinkHealth", "LinkState", "OffsetMode", "OffsetTracker",
-           "RuntimeConfig", "Service", "SpindleConfig", "SpindleRuntime", "check", "load_config"]
+__all__ = [
+    "Alarm",
+    "FaultPolicy",
+    "LinkHealth",
+    "LinkState",
+    "OffsetMode",
+    "OffsetTracker",
+    "RuntimeConfig",
+    "Service",
+    "SpindleConfig",
+    "SpindleRuntime",
+    "check",
+    "load_config",
+]

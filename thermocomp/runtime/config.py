@@ -35,33 +35,86 @@ class FaultPolicy(BaseModel):
 
     model_config = _FROZEN
 
-    speed_hold_s: float = Field(30.0, ge=0, le=86400, description="hold the last speed this long after a failed read, then assume idle")
+    speed_hold_s: float = Field(
+        30.0,
+        ge=0,
+        le=86400,
+        description="hold the last speed this long after a failed read, then assume idle",
+    )
     over_range: Literal["clamp", "extrapolate"] = Field(
-        "clamp", description="speed above the calibrated range: clamp to its top, or trust the model beyond it")
+        "clamp",
+        description="speed above the calibrated range: clamp to its top, or trust the model beyond it",
+    )
     max_speed_rpm: float | None = Field(
-        None, gt=0, le=1e6, description="the spindle's rated maximum speed [rpm]: a speed read more than "
-        "10 % above it is a failed read, in either over_range policy (default: twice the calibrated top)")
-    max_outage_s: float = Field(600.0, gt=0, le=86400, description="a link outage (refused, lost or timing out) "
-                                "longer than this raises the OUTAGE alarm")
-    input_stale_s: float = Field(300.0, gt=0, le=86400, description="an input (temperature, load) unchanged this long "
-                                 "is stale: the speed-only fallback takes over")
-    input_recover_s: float = Field(60.0, ge=0, le=86400, description="after an input fault, inputs must be good "
-                                   "this long before the model with inputs takes over again")
-    readback_every: int = Field(1, ge=0, le=1_000_000, description="read back the offset the controller holds "
-                                "every this many cycles (also at start and after every reconnect); 0: only then. "
-                                "1 (one more read a cycle) sees a reset before the next write could jump")
-    offset_tolerance_um: float = Field(0.5, gt=0, le=1000, description="a held offset further than this from the "
-                                       "one written raises OFFSET_MISMATCH (covers the controller's rounding)")
-    max_mismatches: int = Field(3, ge=1, le=1000, description="this many mismatches in a row: the controller keeps "
-                                "refusing; writes back off (doubling, up to max_write_backoff_s)")
+        None,
+        gt=0,
+        le=1e6,
+        description="the spindle's rated maximum speed [rpm]: a speed read more than "
+        "10 % above it is a failed read, in either over_range policy (default: twice the calibrated top)",
+    )
+    max_outage_s: float = Field(
+        600.0,
+        gt=0,
+        le=86400,
+        description="a link outage (refused, lost or timing out) "
+        "longer than this raises the OUTAGE alarm",
+    )
+    input_stale_s: float = Field(
+        300.0,
+        gt=0,
+        le=86400,
+        description="an input (temperature, load) unchanged this long "
+        "is stale: the speed-only fallback takes over",
+    )
+    input_recover_s: float = Field(
+        60.0,
+        ge=0,
+        le=86400,
+        description="after an input fault, inputs must be good "
+        "this long before the model with inputs takes over again",
+    )
+    readback_every: int = Field(
+        1,
+        ge=0,
+        le=1_000_000,
+        description="read back the offset the controller holds "
+        "every this many cycles (also at start and after every reconnect); 0: only then. "
+        "1 (one more read a cycle) sees a reset before the next write could jump",
+    )
+    offset_tolerance_um: float = Field(
+        0.5,
+        gt=0,
+        le=1000,
+        description="a held offset further than this from the "
+        "one written raises OFFSET_MISMATCH (covers the controller's rounding)",
+    )
+    max_mismatches: int = Field(
+        3,
+        ge=1,
+        le=1000,
+        description="this many mismatches in a row: the controller keeps "
+        "refusing; writes back off (doubling, up to max_write_backoff_s)",
+    )
     max_write_backoff_s: float = Field(300.0, gt=0, le=86400)
-    not_writing_cycles: int = Field(3, ge=1, le=1_000_000, description="a spindle whose controller has not "
-                                    "held the offset aimed at (no write went through, and one was due) for more "
-                                    "than this many cycles (period_s each) is shown as 'not writing' in the "
-                                    "status, the page, /metrics and MQTT, like one whose link is down")
-    state_retry_s: float = Field(5.0, gt=0, le=3600, description="first retry after a failed state save (doubling)")
-    state_stale_s: float = Field(600.0, gt=0, le=7 * 86400, description="no state saved this long: the "
-                                 "STATE_STALE alarm (a restart would then start further from the truth)")
+    not_writing_cycles: int = Field(
+        3,
+        ge=1,
+        le=1_000_000,
+        description="a spindle whose controller has not "
+        "held the offset aimed at (no write went through, and one was due) for more "
+        "than this many cycles (period_s each) is shown as 'not writing' in the "
+        "status, the page, /metrics and MQTT, like one whose link is down",
+    )
+    state_retry_s: float = Field(
+        5.0, gt=0, le=3600, description="first retry after a failed state save (doubling)"
+    )
+    state_stale_s: float = Field(
+        600.0,
+        gt=0,
+        le=7 * 86400,
+        description="no state saved this long: the "
+        "STATE_STALE alarm (a restart would then start further from the truth)",
+    )
 
 
 class DriftSettings(BaseModel):
@@ -70,10 +123,18 @@ class DriftSettings(BaseModel):
 
     model_config = _FROZEN
 
-    k: float = Field(0.5, ge=0, le=10, description="reference value [sd]: half the shift to find quickly")
-    h: float = Field(5.0, gt=0, le=100, description="decision interval [sd]: larger, fewer false alarms "
-                     "and later detection")
-    grace: int = Field(2, ge=0, le=1000, description="measurements left out after a start or a new model")
+    k: float = Field(
+        0.5, ge=0, le=10, description="reference value [sd]: half the shift to find quickly"
+    )
+    h: float = Field(
+        5.0,
+        gt=0,
+        le=100,
+        description="decision interval [sd]: larger, fewer false alarms and later detection",
+    )
+    grace: int = Field(
+        2, ge=0, le=1000, description="measurements left out after a start or a new model"
+    )
 
 
 class LearningSettings(BaseModel):
@@ -82,18 +143,40 @@ class LearningSettings(BaseModel):
 
     model_config = _FROZEN
 
-    min_train: int = Field(24, ge=4, le=100_000, description="measurements a candidate must be fitted on, at least")
-    min_holdout: int = Field(8, ge=3, le=100_000, description="newest measurements it must be judged on, at least")
-    holdout_share: float = Field(0.25, gt=0, lt=1, description="the newest share of the measurements held out to judge")
-    margin: float = Field(0.10, ge=0, lt=1, description="open loop, the candidate must miss less than the live "
-                          "model by this share on the held-out measurements")
-    observer_tolerance: float = Field(0.05, ge=0, le=1, description="with the observer, it may miss more than "
-                                      "the live model by this share at most")
-    keep_models: int = Field(20, ge=2, le=1000, description="model copies kept in the history (the live one always)")
-    shadow_h: float = Field(0.0, ge=0, le=24 * 365, description="a candidate the rule accepts first runs in "
-                            "shadow this long (hours): stepped beside the live model and journaled, never written; "
-                            "the next refit promotes it only if its own misses there beat the live model's by the "
-                            "margin. 0: promote at once")
+    min_train: int = Field(
+        24, ge=4, le=100_000, description="measurements a candidate must be fitted on, at least"
+    )
+    min_holdout: int = Field(
+        8, ge=3, le=100_000, description="newest measurements it must be judged on, at least"
+    )
+    holdout_share: float = Field(
+        0.25, gt=0, lt=1, description="the newest share of the measurements held out to judge"
+    )
+    margin: float = Field(
+        0.10,
+        ge=0,
+        lt=1,
+        description="open loop, the candidate must miss less than the live "
+        "model by this share on the held-out measurements",
+    )
+    observer_tolerance: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="with the observer, it may miss more than the live model by this share at most",
+    )
+    keep_models: int = Field(
+        20, ge=2, le=1000, description="model copies kept in the history (the live one always)"
+    )
+    shadow_h: float = Field(
+        0.0,
+        ge=0,
+        le=24 * 365,
+        description="a candidate the rule accepts first runs in "
+        "shadow this long (hours): stepped beside the live model and journaled, never written; "
+        "the next refit promotes it only if its own misses there beat the live model's by the "
+        "margin. 0: promote at once",
+    )
 
 
 class ObserverSettings(BaseModel):
@@ -105,11 +188,21 @@ class ObserverSettings(BaseModel):
 
     model_config = _FROZEN
 
-    enabled: bool = Field(False, description="fuse measurements: from the controller (the adapter's "
-                          "measurement nodes or variables) and from `thermocomp measure`")
-    sigma_um: float = Field(0.5, gt=0, le=SIGMA_LIMIT_UM, description="sigma of a measurement that states none [um]")
-    stale_after_s: float = Field(3600.0, gt=0, le=365 * 86400, description="no accepted measurement "
-                                 "this long: OBSERVER_STALE (the estimate is open loop again)")
+    enabled: bool = Field(
+        False,
+        description="fuse measurements: from the controller (the adapter's "
+        "measurement nodes or variables) and from `thermocomp measure`",
+    )
+    sigma_um: float = Field(
+        0.5, gt=0, le=SIGMA_LIMIT_UM, description="sigma of a measurement that states none [um]"
+    )
+    stale_after_s: float = Field(
+        3600.0,
+        gt=0,
+        le=365 * 86400,
+        description="no accepted measurement "
+        "this long: OBSERVER_STALE (the estimate is open loop again)",
+    )
     bias_q_um2_per_s: float | None = Field(None, ge=0, le=1e6)
     drift_q_um2_per_s3: float | None = Field(None, ge=0, le=1e6)
     model_sd_um: float | None = Field(None, ge=0, le=1000)
@@ -124,44 +217,67 @@ class ObserverSettings(BaseModel):
 
     def overrides(self) -> dict[str, Any]:
         """The observer settings given here (the rest come from the model file)."""
-        return {k: v for k in ObserverConfig.model_fields if (v := getattr(self, k, None)) is not None}
+        return {
+            k: v for k in ObserverConfig.model_fields if (v := getattr(self, k, None)) is not None
+        }
 
 
 class SpindleConfig(BaseModel):
     model_config = _FROZEN
 
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="used in file names and logs")
+    name: str = Field(
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="used in file names and logs"
+    )
     model: Path = Field(description="model file (JSON) written by thermocomp fit")
     spindle_id: str | None = Field(
-        None, min_length=1, max_length=200,
+        None,
+        min_length=1,
+        max_length=200,
         description="the spindle id the model file must carry (thermocomp fit --model-spindle-id, the "
         "wizard's): a model for any other spindle, or one that names none ('unknown'), is refused "
         "at start and at reload. Unset: not checked; the name above is only a label and need not "
-        "match the model's spindle id")
-    adapter: dict[str, Any] = Field(description="adapter settings: a 'type' key and its options, or a 'url'")
+        "match the model's spindle id",
+    )
+    adapter: dict[str, Any] = Field(
+        description="adapter settings: a 'type' key and its options, or a 'url'"
+    )
     period_s: float = Field(1.0, ge=0.01, le=3600, description="cycle period")
     run_up_period_s: float | None = Field(
-        None, ge=0.01, le=3600, description="while the spindle changes speed and the tool is not "
+        None,
+        ge=0.01,
+        le=3600,
+        description="while the spindle changes speed and the tool is not "
         "cutting, cycle this often instead (the offset follows the elastic growth through the "
-        "run-up in finer steps); unset: period_s")
+        "run-up in finer steps); unset: period_s",
+    )
     shaping: ShaperConfig = ShaperConfig()
     faults: FaultPolicy = FaultPolicy()
     observer: ObserverSettings = ObserverSettings()
     drift: DriftSettings = DriftSettings()
     learning: LearningSettings = LearningSettings()
     state_save_every_s: float = Field(30.0, gt=0, le=86400)
-    max_state_age_s: float = Field(2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold")
+    max_state_age_s: float = Field(
+        2 * 86400.0, gt=0, le=365 * 86400, description="older saved state: start cold"
+    )
     cold_start_settle_taus: float = Field(
-        3.0, gt=0, le=100, description="after a cold start with the spindle turning, COLD_START_TURNING stands "
+        3.0,
+        gt=0,
+        le=100,
+        description="after a cold start with the spindle turning, COLD_START_TURNING stands "
         "for this many of the model's slowest time constants (the error of the cold start then decays to "
-        "exp(-k) of itself: 5 % at 3), or until a measurement is accepted by the observer")
+        "exp(-k) of itself: 5 % at 3), or until a measurement is accepted by the observer",
+    )
     max_expected_error_um: float | None = Field(
-        None, gt=0, le=10000, description="the error the work tolerates [um]: when the error the "
+        None,
+        gt=0,
+        le=10000,
+        description="the error the work tolerates [um]: when the error the "
         "model's fit states for the current speed and inputs (95 % of |error|) is larger, or is "
         "only a floor there (validation scored nothing like it: too few folds predicted forward, "
         "a speed above the calibrated range, inputs further out than it reached), "
         "EXPECTED_ERROR_HIGH is raised (advice: the offset is unchanged). Unset: no alarm; a "
-        "model that states no expected error is never checked")
+        "model that states no expected error is never checked",
+    )
 
     @field_validator("name")
     @classmethod
@@ -186,16 +302,24 @@ class SpindleConfig(BaseModel):
         if not count:
             return data
         shaping = data.get("shaping")
-        given = (shaping.resolution_um if "resolution_um" in shaping.model_fields_set else None) \
-            if isinstance(shaping, ShaperConfig) else (shaping or {}).get("resolution_um")
+        given = (
+            (shaping.resolution_um if "resolution_um" in shaping.model_fields_set else None)
+            if isinstance(shaping, ShaperConfig)
+            else (shaping or {}).get("resolution_um")
+        )
         if given is None:
-            shaping = (shaping.model_copy(update={"resolution_um": count}) if isinstance(shaping, ShaperConfig)
-                       else {**(shaping or {}), "resolution_um": count})
+            shaping = (
+                shaping.model_copy(update={"resolution_um": count})
+                if isinstance(shaping, ShaperConfig)
+                else {**(shaping or {}), "resolution_um": count}
+            )
             return {**data, "shaping": shaping}
         k = float(given) / count if isinstance(given, (int, float)) else -1.0
         if not (k >= 1 - 1e-9 and abs(k - round(k)) <= 1e-6):
-            raise ValueError(f"shaping.resolution_um {given!r} must be a whole multiple of the "
-                             f"controller's count, {count:g} um (or left out)")
+            raise ValueError(
+                f"shaping.resolution_um {given!r} must be a whole multiple of the "
+                f"controller's count, {count:g} um (or left out)"
+            )
         return data
 
     @model_validator(mode="after")
@@ -207,11 +331,15 @@ class SpindleConfig(BaseModel):
             return self
         m = self.shaping.max_offset_um
         if m > p.limit_um:
-            raise ValueError(f"shaping.max_offset_um {m:g} is past what profile {p.name!r} takes "
-                             f"({p.limit:g} {p.unit} = {p.limit_um:g} um)")
+            raise ValueError(
+                f"shaping.max_offset_um {m:g} is past what profile {p.name!r} takes "
+                f"({p.limit:g} {p.unit} = {p.limit_um:g} um)"
+            )
         if p.max_step_um is not None and 2 * m > p.max_step_um:
-            raise ValueError(f"shaping.max_offset_um {m:g}: a move across the clamp ({2 * m:g} um) "
-                             f"would raise profile {p.name!r}'s step alarm ({p.max_step_um:g} um)")
+            raise ValueError(
+                f"shaping.max_offset_um {m:g}: a move across the clamp ({2 * m:g} um) "
+                f"would raise profile {p.name!r}'s step alarm ({p.max_step_um:g} um)"
+            )
         return self
 
     @property
@@ -228,8 +356,16 @@ class SpindleConfig(BaseModel):
     def refuse_other_spindle(self, model_spindle_id: str) -> None:
         """ConfigError when ``spindle_id`` is set and the model file is for another spindle."""
         if self.spindle_id is not None and model_spindle_id != self.spindle_id:
-            raise ConfigError(clip(Problem("spindle_id", f"the model file {self.model} is for spindle "
-                                           f"{model_spindle_id!r}", self.spindle_id).line(spindle_scope(self.name)), 500))
+            raise ConfigError(
+                clip(
+                    Problem(
+                        "spindle_id",
+                        f"the model file {self.model} is for spindle {model_spindle_id!r}",
+                        self.spindle_id,
+                    ).line(spindle_scope(self.name)),
+                    500,
+                )
+            )
 
     def estimate(self, model: Predictor) -> Estimate:
         """The estimate this spindle runs ``model`` with: the observer when enabled (its settings
@@ -242,8 +378,14 @@ class SpindleConfig(BaseModel):
                 observer = observer_config_of(model, self.observer.overrides())
             except ModelError as err:
                 raise ConfigError(f"{spindle_scope(self.name)}: observer: {err}") from err
-        return Estimate(model, observer, self.faults.over_range, self.faults.input_stale_s,
-                        self.faults.input_recover_s, self.faults.max_speed_rpm)
+        return Estimate(
+            model,
+            observer,
+            self.faults.over_range,
+            self.faults.input_stale_s,
+            self.faults.input_recover_s,
+            self.faults.max_speed_rpm,
+        )
 
     @field_validator("adapter")
     @classmethod
@@ -252,9 +394,11 @@ class SpindleConfig(BaseModel):
             raise ValueError("adapter needs a 'type', a 'url' or a 'profile'")
         for secret in ("password", "passwd", "secret"):
             if secret in v:
-                raise ValueError(f"adapter.{secret}: passwords never go in the configuration file; "
-                                 "use password_file, password_credential (systemd LoadCredential=) "
-                                 "or the environment")
+                raise ValueError(
+                    f"adapter.{secret}: passwords never go in the configuration file; "
+                    "use password_file, password_credential (systemd LoadCredential=) "
+                    "or the environment"
+                )
         url = v.get("url")
         if isinstance(url, str):
             try:
@@ -262,9 +406,13 @@ class SpindleConfig(BaseModel):
             except ValueError:
                 has_password = False
             if has_password:
-                raise ValueError("adapter.url carries a password: refused; put it in password_file, "
-                                 "password_credential (systemd LoadCredential=) or the environment")
-        check_adapter(v)  # the backend's own typed settings: one line naming key, value, what is allowed
+                raise ValueError(
+                    "adapter.url carries a password: refused; put it in password_file, "
+                    "password_credential (systemd LoadCredential=) or the environment"
+                )
+        check_adapter(
+            v
+        )  # the backend's own typed settings: one line naming key, value, what is allowed
         return v
 
 
@@ -277,16 +425,24 @@ class CoolingConfig(BaseModel):
 
     model_config = _FROZEN
     mode: Literal["off", "cooling", "both"] = "off"
-    spindle: str | None = Field(None, description="whose estimate drives the chiller; default the only spindle")
-    chiller: dict[str, Any] = Field(default_factory=dict, description="a 'type' key (modbus, opcua, "
-                                    "virtual) and its options")
-    rite_um: float | None = Field(None, description="the thermal error to hold [um]; "
-                                  "`thermocomp cooling rite` suggests one from a journal")
+    spindle: str | None = Field(
+        None, description="whose estimate drives the chiller; default the only spindle"
+    )
+    chiller: dict[str, Any] = Field(
+        default_factory=dict, description="a 'type' key (modbus, opcua, virtual) and its options"
+    )
+    rite_um: float | None = Field(
+        None,
+        description="the thermal error to hold [um]; "
+        "`thermocomp cooling rite` suggests one from a journal",
+    )
     preheat_c: float = Field(description="constant set point in preheat and after a fault [degC]")
     min_c: float = 10.0
     max_c: float = 30.0
-    dew_point_c: float | None = Field(None, description="the shop's design dew point [degC]: the set point "
-                                      "stays dew_margin_k above it")
+    dew_point_c: float | None = Field(
+        None,
+        description="the shop's design dew point [degC]: the set point stays dew_margin_k above it",
+    )
     dew_margin_k: float = Field(2.0, ge=0, le=20)
     rate_k_per_min: float = Field(1.0, gt=0, le=60)
     resolution_c: float = Field(0.1, ge=0, le=5)
@@ -294,11 +450,21 @@ class CoolingConfig(BaseModel):
     derivative_filter_s: float = Field(10.0, ge=0, le=3600)
     start: Literal["rite", "immediate"] = "rite"
     idle_release_s: float = Field(1800.0, gt=0, le=7 * 86400)
-    hold_s: float = Field(300.0, ge=0, le=86400, description="chiller or estimate lost: hold the last "
-                          "set point this long, then go to preheat_c")
+    hold_s: float = Field(
+        300.0,
+        ge=0,
+        le=86400,
+        description="chiller or estimate lost: hold the last "
+        "set point this long, then go to preheat_c",
+    )
     period_s: float = Field(1.0, ge=0.1, le=600)
-    refresh_s: float = Field(60.0, gt=0, le=3600, description="write the set point again this often "
-                             "even unchanged (a chiller that restarted forgets it)")
+    refresh_s: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="write the set point again this often "
+        "even unchanged (a chiller that restarted forgets it)",
+    )
 
     @model_validator(mode="after")
     def _valid(self) -> CoolingConfig:
@@ -328,7 +494,9 @@ class CoolingConfig(BaseModel):
         try:
             return CoolingLaw(**shared)
         except ValidationError as err:
-            raise ValueError(str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))) from err
+            raise ValueError(
+                str(err.errors()[0].get("ctx", {}).get("error", err.errors()[0]["msg"]))
+            ) from err
 
 
 MAX_HISTORY_POINTS = 20_000
@@ -345,24 +513,43 @@ class StatusConfig(BaseModel):
     model_config = _FROZEN
 
     enabled: bool = True
-    bind: str = Field("127.0.0.1", min_length=1, max_length=255,
-                      description="address to listen on; 0.0.0.0 or :: for every interface")
-    port: int = Field(9740, ge=0, le=65535, description="TCP port; 0: any free one (the URL goes to "
-                      "<state_dir>/status.url)")
+    bind: str = Field(
+        "127.0.0.1",
+        min_length=1,
+        max_length=255,
+        description="address to listen on; 0.0.0.0 or :: for every interface",
+    )
+    port: int = Field(
+        9740,
+        ge=0,
+        le=65535,
+        description="TCP port; 0: any free one (the URL goes to <state_dir>/status.url)",
+    )
     access: Literal["open", "token"] = "open"
     token_file: Path | None = Field(None, description="with access = token: the file holding it")
-    history_h: float = Field(6.0, gt=0, le=168, description="hours of history kept for /history (the "
-                             "page plots up to 6 h of it)")
-    history_every_s: float = Field(10.0, ge=1, le=3600, description="one history point per this many "
-                                   "seconds per spindle (the last values; alarms of the whole interval)")
+    history_h: float = Field(
+        6.0,
+        gt=0,
+        le=168,
+        description="hours of history kept for /history (the page plots up to 6 h of it)",
+    )
+    history_every_s: float = Field(
+        10.0,
+        ge=1,
+        le=3600,
+        description="one history point per this many "
+        "seconds per spindle (the last values; alarms of the whole interval)",
+    )
 
     @model_validator(mode="after")
     def _valid(self) -> StatusConfig:
         if self.history_h * 3600.0 / self.history_every_s > MAX_HISTORY_POINTS:
-            raise ValueError(f"status: history_h / history_every_s keeps more than {MAX_HISTORY_POINTS} "
-                             "points per spindle; raise history_every_s")
+            raise ValueError(
+                f"status: history_h / history_every_s keeps more than {MAX_HISTORY_POINTS} "
+                "points per spindle; raise history_every_s"
+            )
         if self.token_file is not None and self.access != "token":
-            raise ValueError("status.token_file is set but status.access is not \"token\"")
+            raise ValueError('status.token_file is set but status.access is not "token"')
         return self
 
     def token(self) -> str | None:
@@ -374,8 +561,10 @@ class StatusConfig(BaseModel):
         else:
             tok = os.environ.get("THERMOCOMP_STATUS_TOKEN", "").strip()
         if len(tok) < 16:
-            raise ConfigError("status.access = \"token\": the token (token_file or "
-                              "THERMOCOMP_STATUS_TOKEN) must be at least 16 characters")
+            raise ConfigError(
+                'status.access = "token": the token (token_file or '
+                "THERMOCOMP_STATUS_TOKEN) must be at least 16 characters"
+            )
         return tok
 
 
@@ -403,26 +592,42 @@ class MqttConfig(BaseModel):
     enabled: bool = True
     host: str = Field(min_length=1, max_length=255)
     port: int = Field(1883, ge=1, le=65535)
-    topic: str = Field("thermocomp", min_length=1, max_length=200, pattern=r"^[^#+\x00]+$",
-                       description="topic prefix (no wildcards)")
-    client_id: str | None = Field(None, max_length=200, description="default: thermocomp-<host name>")
+    topic: str = Field(
+        "thermocomp",
+        min_length=1,
+        max_length=200,
+        pattern=r"^[^#+\x00]+$",
+        description="topic prefix (no wildcards)",
+    )
+    client_id: str | None = Field(
+        None, max_length=200, description="default: thermocomp-<host name>"
+    )
     publish_every_s: float = Field(10.0, gt=0, le=3600)
-    keepalive_s: int = Field(30, ge=5, le=3600, description="the broker declares the service lost "
-                             "(and publishes the last will) after 1.5 times this without a word")
+    keepalive_s: int = Field(
+        30,
+        ge=5,
+        le=3600,
+        description="the broker declares the service lost "
+        "(and publishes the last will) after 1.5 times this without a word",
+    )
     qos: Literal[0, 1] = 1
     username: str | None = Field(None, max_length=200)
     password_file: Path | None = Field(None, description="or THERMOCOMP_MQTT_PASSWORD; never here")
     tls: bool = False
-    ca_file: Path | None = Field(None, description="with tls: the broker's CA (default: the system's)")
+    ca_file: Path | None = Field(
+        None, description="with tls: the broker's CA (default: the system's)"
+    )
 
     @field_validator("host")
     @classmethod
     def _plain_host(cls, v: str) -> str:
         # "user:pw@host" or "mqtt://…" would put a password in every log line that names the broker
         if "@" in v or "/" in v or any(c.isspace() for c in v):
-            raise ValueError("mqtt.host takes a host name or address only (no scheme, user or "
-                             "password): the user goes in username, the password in password_file "
-                             "or THERMOCOMP_MQTT_PASSWORD")
+            raise ValueError(
+                "mqtt.host takes a host name or address only (no scheme, user or "
+                "password): the user goes in username, the password in password_file "
+                "or THERMOCOMP_MQTT_PASSWORD"
+            )
         return v
 
     def password(self) -> str | None:
@@ -440,7 +645,9 @@ class JournalRetention(BaseModel):
 
     max_age_days: float = Field(90.0, gt=0, le=36500)
     max_size_mb: float = Field(1024.0, gt=0, le=1e7)
-    sweep_every_s: float = Field(3600.0, gt=0, le=86400, description="look this often (and at start)")
+    sweep_every_s: float = Field(
+        3600.0, gt=0, le=86400, description="look this often (and at start)"
+    )
 
 
 class RuntimeConfig(BaseModel):
@@ -448,13 +655,22 @@ class RuntimeConfig(BaseModel):
 
     state_dir: Path = Path("/var/lib/thermocomp")
     journal_dir: Path | None = Field(None, description="default: <state_dir>/journal")
-    journal_fsync_s: float = Field(10.0, ge=0, le=3600, description="fsync the journal this often (0: every "
-                                   "row); always on rotation and at stop")
+    journal_fsync_s: float = Field(
+        10.0,
+        ge=0,
+        le=3600,
+        description="fsync the journal this often (0: every row); always on rotation and at stop",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_file: Path | None = Field(None, description="JSON-lines log; default stderr")
     watchdog: bool = True
-    time_scale: float = Field(1.0, gt=0, le=10000, description="simulated seconds per second: for the "
-                              "virtual machine tool only; 1 on a real machine")
+    time_scale: float = Field(
+        1.0,
+        gt=0,
+        le=10000,
+        description="simulated seconds per second: for the "
+        "virtual machine tool only; 1 on a real machine",
+    )
     spindle: list[SpindleConfig] = Field(min_length=1, max_length=64)
     cooling: CoolingConfig | None = None
     status: StatusConfig = StatusConfig()
@@ -468,9 +684,13 @@ class RuntimeConfig(BaseModel):
             return self
         names = [s.name for s in self.spindle]
         if c.spindle is None and len(names) > 1:
-            raise ValueError(f"cooling.spindle: name the spindle whose estimate drives the chiller ({', '.join(names)})")
+            raise ValueError(
+                f"cooling.spindle: name the spindle whose estimate drives the chiller ({', '.join(names)})"
+            )
         if c.spindle is not None and c.spindle not in names:
-            raise ValueError(f"cooling.spindle: no spindle named {c.spindle!r} ({', '.join(names)})")
+            raise ValueError(
+                f"cooling.spindle: no spindle named {c.spindle!r} ({', '.join(names)})"
+            )
         return self
 
     @property
@@ -514,8 +734,9 @@ def config_line(path: Path, data: Any, problem: Problem) -> str:
 
 def config_error(path: Path, data: Any, err: ValidationError) -> ConfigError:
     """Every problem ``err`` holds, one line each (:func:`config_line`)."""
-    return ConfigError(problem_lines([config_line(path, data, p)
-                                      for p in problems_of(RuntimeConfig, data, err)]))
+    return ConfigError(
+        problem_lines([config_line(path, data, p) for p in problems_of(RuntimeConfig, data, err)])
+    )
 
 
 def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
@@ -524,19 +745,27 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     try:
         raw = read_regular(p, MAX_CONFIG_BYTES)  # a FIFO is refused, never waited on
         if len(raw) > MAX_CONFIG_BYTES:
-            raise ConfigError(f"{p}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a configuration")
+            raise ConfigError(
+                f"{p}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a configuration"
+            )
         data = tomllib.loads(raw.decode("utf-8"))
     except OSError as err:
         raise ConfigError(f"{p}: cannot read: {err.strerror or err}") from err
     except UnicodeDecodeError as err:
-        line = raw[:err.start].count(b"\n") + 1
-        raise ConfigError(f"{p}: line {line}: not UTF-8 text (byte 0x{raw[err.start]:02x}); "
-                          "save the file as UTF-8") from None
+        line = raw[: err.start].count(b"\n") + 1
+        raise ConfigError(
+            f"{p}: line {line}: not UTF-8 text (byte 0x{raw[err.start]:02x}); "
+            "save the file as UTF-8"
+        ) from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from err
     base = p.parent
     for sp in data.get("spindle", []) if isinstance(data.get("spindle"), list) else []:
-        if isinstance(sp, dict) and isinstance(sp.get("model"), str) and not os.path.isabs(sp["model"]):
+        if (
+            isinstance(sp, dict)
+            and isinstance(sp.get("model"), str)
+            and not os.path.isabs(sp["model"])
+        ):
             sp["model"] = str(base / sp["model"])  # relative to the config file
     for key in ("state_dir", "journal_dir", "log_file"):
         if isinstance(data.get(key), str) and not os.path.isabs(data[key]):
@@ -552,7 +781,20 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     names = [s.name for s in cfg.spindle]
     twice = [(i, n) for i, n in enumerate(names) if n in names[:i]]
     if twice:
-        raise ConfigError(problem_lines([config_line(p, data, Problem(
-            f"spindle[{i}].name", "another [[spindle]] has this name: names must be unique", n))
-            for i, n in twice]))
+        raise ConfigError(
+            problem_lines(
+                [
+                    config_line(
+                        p,
+                        data,
+                        Problem(
+                            f"spindle[{i}].name",
+                            "another [[spindle]] has this name: names must be unique",
+                            n,
+                        ),
+                    )
+                    for i, n in twice
+                ]
+            )
+        )
     return cfg

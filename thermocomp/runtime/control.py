@@ -75,15 +75,23 @@ def parse_request(line: bytes) -> MeasureRequest:
         raise ConfigError("the request is not a JSON object")
     unknown = sorted(set(data) - REQUEST_KEYS)
     if unknown:
-        raise ConfigError(f"unknown key {clip(unknown[0], 60)!r}; allowed: {', '.join(sorted(REQUEST_KEYS))}")
+        raise ConfigError(
+            f"unknown key {clip(unknown[0], 60)!r}; allowed: {', '.join(sorted(REQUEST_KEYS))}"
+        )
     value = data.get("elongation_um")
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ConfigError(f"elongation_um must be a finite number, not {clip(repr(value), 60)}")
     sigma = data.get("sigma_um")
-    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
-                              or not math.isfinite(sigma) or not 0 < sigma <= SIGMA_LIMIT_UM):
-        raise ConfigError(f"sigma_um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, "
-                          f"not {clip(repr(sigma), 60)}")
+    if sigma is not None and (
+        isinstance(sigma, bool)
+        or not isinstance(sigma, (int, float))
+        or not math.isfinite(sigma)
+        or not 0 < sigma <= SIGMA_LIMIT_UM
+    ):
+        raise ConfigError(
+            f"sigma_um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, "
+            f"not {clip(repr(sigma), 60)}"
+        )
     spindle = data.get("spindle")
     if spindle is not None and not isinstance(spindle, str):
         raise ConfigError("spindle must be a name")
@@ -119,8 +127,13 @@ class Pending:
 class ControlChannel:
     """The service's end of the control socket in ``state_dir``."""
 
-    def __init__(self, state_dir: str | os.PathLike[str], clock: Callable[[], float], *,
-                 request_timeout_s: float = 10.0):
+    def __init__(
+        self,
+        state_dir: str | os.PathLike[str],
+        clock: Callable[[], float],
+        *,
+        request_timeout_s: float = 10.0,
+    ):
         self.path = socket_path(state_dir)
         self.clock = clock
         self.request_timeout_s = request_timeout_s
@@ -227,8 +240,13 @@ class ControlChannel:
                 os.unlink(self.path)
 
 
-def send_measurement(state_dir: str | os.PathLike[str], elongation_um: float, sigma_um: float | None,
-                     spindle: str | None, timeout_s: float = 60.0) -> dict[str, Any]:
+def send_measurement(
+    state_dir: str | os.PathLike[str],
+    elongation_um: float,
+    sigma_um: float | None,
+    spindle: str | None,
+    timeout_s: float = 60.0,
+) -> dict[str, Any]:
     """Send one measurement to the service running on ``state_dir`` and wait for its answer
     (the spindle's next cycle). :class:`ControlError` when no service answers."""
     path = socket_path(state_dir)
@@ -243,11 +261,14 @@ def send_measurement(state_dir: str | os.PathLike[str], elongation_um: float, si
             with _addressable(path) as address:
                 sock.connect(address)
         except (FileNotFoundError, ConnectionRefusedError, NotADirectoryError) as err:
-            raise ControlError(f"no thermocomp service is running on {Path(state_dir)} "
-                               f"(no one listens on {path})") from err
+            raise ControlError(
+                f"no thermocomp service is running on {Path(state_dir)} (no one listens on {path})"
+            ) from err
         except PermissionError as err:
-            raise ControlError(f"{path}: permission denied (the socket is the service user's "
-                               "only: run as that user)") from err
+            raise ControlError(
+                f"{path}: permission denied (the socket is the service user's "
+                "only: run as that user)"
+            ) from err
         except OSError as err:
             raise ControlError(f"{path}: {err.strerror or err}") from err
         try:

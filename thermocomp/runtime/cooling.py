@@ -37,15 +37,28 @@ CHILLER_FAILED = "CHILLER_FAILED"
 class CoolingRuntime:
     """One chiller driven by one spindle's estimate."""
 
-    def __init__(self, cfg: CoolingConfig, spindle: Any, journal_dir: Path, *, clock, wall, anchor_s: float,
-                 journal_fsync_s: float = 10.0, chiller: Chiller | None = None,
-                 previous: CoolingRuntime | None = None):
+    def __init__(
+        self,
+        cfg: CoolingConfig,
+        spindle: Any,
+        journal_dir: Path,
+        *,
+        clock,
+        wall,
+        anchor_s: float,
+        journal_fsync_s: float = 10.0,
+        chiller: Chiller | None = None,
+        previous: CoolingRuntime | None = None,
+    ):
         self.cfg = cfg
         self.law = cfg.law()
         self.spindle = spindle
         self.clock, self.wall, self.anchor_s = clock, wall, anchor_s
-        self.chiller = chiller if chiller is not None else open_chiller(cfg.chiller["type"], cfg.chiller_options,
-                                                                        clock=clock)
+        self.chiller = (
+            chiller
+            if chiller is not None
+            else open_chiller(cfg.chiller["type"], cfg.chiller_options, clock=clock)
+        )
         # a reload keeps the loop where it was; the limits of the new law apply from the next step
         self.state: CoolingState = previous.state if previous is not None else self.law.initial()
         self.last_sent_c: float | None = previous.last_sent_c if previous is not None else None
@@ -55,9 +68,17 @@ class CoolingRuntime:
         self.error: str | None = None
         self.supply_c: float | None = None
         self.counters = {"cycles": 0, "writes": 0, "write_failed": 0}
-        self.journal = CoolingJournal(journal_dir, spindle.cfg.name, {
-            "spindle": spindle.cfg.name, "source": "thermocomp run", "mode": cfg.mode,
-            "chiller": cfg.chiller["type"]}, fsync_every_s=journal_fsync_s)
+        self.journal = CoolingJournal(
+            journal_dir,
+            spindle.cfg.name,
+            {
+                "spindle": spindle.cfg.name,
+                "source": "thermocomp run",
+                "mode": cfg.mode,
+                "chiller": cfg.chiller["type"],
+            },
+            fsync_every_s=journal_fsync_s,
+        )
 
     @property
     def alarm(self) -> str:
@@ -77,15 +98,35 @@ class CoolingRuntime:
                 self.state = self.law.step(self.state, estimate, dt, running=running)
         sp = self.state.setpoint_c
         sent = False
-        if sp != self.last_sent_c or now - self._sent_at >= self.cfg.refresh_s or self.down_since is not None:
+        if (
+            sp != self.last_sent_c
+            or now - self._sent_at >= self.cfg.refresh_s
+            or self.down_since is not None
+        ):
             sent = self._send(now, sp)
         if sent or self.down_since is None:
             self._read_supply(now)
-        self.journal.record(self.anchor_s + now, estimate_um=estimate, rite_um=self.law.rite_um,
-                            phase=self.state.phase, setpoint_c=sp, sent=sent, supply_c=self.supply_c,
-                            alarm=self.alarm, wall_s=self.wall(), now_s=now)
-        return {"time_s": now, "estimate_um": estimate, "phase": self.state.phase, "setpoint_c": sp,
-                "sent": sent, "supply_c": self.supply_c, "alarm": self.alarm}
+        self.journal.record(
+            self.anchor_s + now,
+            estimate_um=estimate,
+            rite_um=self.law.rite_um,
+            phase=self.state.phase,
+            setpoint_c=sp,
+            sent=sent,
+            supply_c=self.supply_c,
+            alarm=self.alarm,
+            wall_s=self.wall(),
+            now_s=now,
+        )
+        return {
+            "time_s": now,
+            "estimate_um": estimate,
+            "phase": self.state.phase,
+            "setpoint_c": sp,
+            "sent": sent,
+            "supply_c": self.supply_c,
+            "alarm": self.alarm,
+        }
 
     def _send(self, now: float, value_c: float) -> bool:
         try:
@@ -95,9 +136,15 @@ class CoolingRuntime:
             self._failed(now, err)
             return False
         if self.down_since is not None:
-            event("chiller_restored", self.spindle.cfg.name, "%s: the chiller takes the set point again "
-                  "(%.1f degC) after %.0f s", self.spindle.cfg.name, value_c, now - self.down_since,
-                  outage_s=round(now - self.down_since, 1))
+            event(
+                "chiller_restored",
+                self.spindle.cfg.name,
+                "%s: the chiller takes the set point again (%.1f degC) after %.0f s",
+                self.spindle.cfg.name,
+                value_c,
+                now - self.down_since,
+                outage_s=round(now - self.down_since, 1),
+            )
             self.down_since, self.error = None, None
         self.counters["writes"] += 1
         self.last_sent_c, self._sent_at = value_c, now
@@ -107,12 +154,22 @@ class CoolingRuntime:
         why = str(err)[:200]
         if self.down_since is None:
             self.down_since = now
-            event("chiller_failed", self.spindle.cfg.name, "%s: CHILLER_FAILED: %s; holding %s degC "
-                  "for %g s, then %.1f degC", self.spindle.cfg.name, why,
-                  "the last set point" if self.last_sent_c is None else f"{self.last_sent_c:.1f}",
-                  self.law.hold_s, self.law.preheat_c, level=logging.ERROR, error=why)
+            event(
+                "chiller_failed",
+                self.spindle.cfg.name,
+                "%s: CHILLER_FAILED: %s; holding %s degC for %g s, then %.1f degC",
+                self.spindle.cfg.name,
+                why,
+                "the last set point" if self.last_sent_c is None else f"{self.last_sent_c:.1f}",
+                self.law.hold_s,
+                self.law.preheat_c,
+                level=logging.ERROR,
+                error=why,
+            )
             if self.last_sent_c is not None:  # the chiller holds what it took last
-                self.state = replace(self.state, setpoint_c=self.last_sent_c, ramp_c=self.last_sent_c)
+                self.state = replace(
+                    self.state, setpoint_c=self.last_sent_c, ramp_c=self.last_sent_c
+                )
         self.error = why
 
     def _read_supply(self, now: float) -> None:
@@ -126,9 +183,16 @@ class CoolingRuntime:
             self.supply_c = None
 
     def status(self) -> dict[str, Any]:
-        return {"mode": self.cfg.mode, "phase": self.state.phase, "setpoint_c": self.state.setpoint_c,
-                "rite_um": self.law.rite_um, "supply_c": self.supply_c, "alarm": self.alarm,
-                "error": self.error, **self.counters}
+        return {
+            "mode": self.cfg.mode,
+            "phase": self.state.phase,
+            "setpoint_c": self.state.setpoint_c,
+            "rite_um": self.law.rite_um,
+            "supply_c": self.supply_c,
+            "alarm": self.alarm,
+            "error": self.error,
+            **self.counters,
+        }
 
     def close(self) -> None:
         try:

@@ -40,8 +40,10 @@ class StateDirLock:
             os.close(fd)
             holder = _read_pid(self.path)
             who = f"pid {holder}" if holder else "another process"
-            raise AlreadyRunningError(f"state directory {self.path.parent} is in use by {who}; "
-                                      "one instance per state directory") from err
+            raise AlreadyRunningError(
+                f"state directory {self.path.parent} is in use by {who}; "
+                "one instance per state directory"
+            ) from err
         try:
             with open(self.path, "w", encoding="ascii") as fh:
                 fh.write(f"{os.getpid()}\n")

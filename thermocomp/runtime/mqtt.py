@@ -79,8 +79,9 @@ class MqttPublisher:
         network: a broker that is down or not found is retried in the background."""
         cfg = self.cfg
         client_id = cfg.client_id or f"thermocomp-{socket.gethostname()}"
-        c = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=client_id,
-                        protocol=paho.MQTTv311)
+        c = paho.Client(
+            paho.CallbackAPIVersion.VERSION2, client_id=client_id, protocol=paho.MQTTv311
+        )
         c.enable_logger(paho_log)
         c.will_set(self.availability, "offline", qos=cfg.qos, retain=True)
         if cfg.username is not None:
@@ -109,8 +110,15 @@ class MqttPublisher:
         self.connected, self._outage = True, None
         self._connects += 1  # after `connected`: a publish that sees the new count can send
         client.publish(self.availability, "online", qos=self.cfg.qos, retain=True)
-        event("mqtt_connected", None, "mqtt: connected to %s:%d", self.cfg.host, self.cfg.port,
-              host=self.cfg.host, port=self.cfg.port)
+        event(
+            "mqtt_connected",
+            None,
+            "mqtt: connected to %s:%d",
+            self.cfg.host,
+            self.cfg.port,
+            host=self.cfg.host,
+            port=self.cfg.port,
+        )
 
     def _on_disconnect(self, client, userdata, flags, reason, properties) -> None:
         was, self.connected = self.connected, False
@@ -127,9 +135,18 @@ class MqttPublisher:
             return
         if self._outage is None:
             cfg = self.cfg
-            event("mqtt_lost", None, "mqtt: %s:%d %s; retrying, compensation goes on", cfg.host,
-                  cfg.port, why, level=logging.WARNING, host=cfg.host, port=cfg.port,
-                  reason=why[:200])
+            event(
+                "mqtt_lost",
+                None,
+                "mqtt: %s:%d %s; retrying, compensation goes on",
+                cfg.host,
+                cfg.port,
+                why,
+                level=logging.WARNING,
+                host=cfg.host,
+                port=cfg.port,
+                reason=why[:200],
+            )
         elif why != self._outage:
             log.debug("mqtt: %s", why)
         self._outage = why
@@ -145,8 +162,13 @@ class MqttPublisher:
             return
         try:
             # a new alarm or a new state (compensating, holding, not writing) goes out at once
-            alarms = ([(s.get("name"), s.get("alarms"), s.get("state")) for s in snapshot.get("spindles") or ()],
-                      (snapshot.get("cooling") or {}).get("alarm"))
+            alarms = (
+                [
+                    (s.get("name"), s.get("alarms"), s.get("state"))
+                    for s in snapshot.get("spindles") or ()
+                ],
+                (snapshot.get("cooling") or {}).get("alarm"),
+            )
             conn = self._connects
             if conn == self._due_conn and now_s < self._next_s and alarms == self._alarms:
                 return
@@ -175,8 +197,13 @@ class MqttPublisher:
         # NO_CONN: the connection dropped just now; at qos 1 paho sends it again on reconnect
         if info.rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_NO_CONN):
             self.dropped += 1
-            self._warn(now_s, "mqtt: %s not queued: %s (%d dropped so far)", sub,
-                       paho.error_string(info.rc), self.dropped)
+            self._warn(
+                now_s,
+                "mqtt: %s not queued: %s (%d dropped so far)",
+                sub,
+                paho.error_string(info.rc),
+                self.dropped,
+            )
 
     def _warn(self, now_s: float, msg: str, *args: Any) -> None:
         if self._warn_s is None or now_s - self._warn_s >= WARN_EVERY_S:

@@ -36,8 +36,9 @@ class OffsetTracker:
         self.pending = False
         self.mode = OffsetMode.TRACKING
 
-    def plan(self, elongation_um: float, speed_rpm: float, dt_s: float,
-             cutting: bool | None = None) -> ShapedOffset:
+    def plan(
+        self, elongation_um: float, speed_rpm: float, dt_s: float, cutting: bool | None = None
+    ) -> ShapedOffset:
         """The shaped offset for this cycle (not yet written); ``cutting`` the controller's
         signal, or None for the shaper to infer it from the speed."""
         return self.shaper.update(elongation_um, speed_rpm, dt_s, cutting)

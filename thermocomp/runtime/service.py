@@ -40,7 +40,15 @@ from .cooling import CoolingRuntime
 from .events import JsonLines, event
 from .lock import AlreadyRunningError, StateDirLock
 from .spindle import Alarm, SpindleRuntime, cutting_from_controller
-from .status import History, SpindleState, StatusServer, snapshot, spindle_status, start_server, state_of
+from .status import (
+    History,
+    SpindleState,
+    StatusServer,
+    snapshot,
+    spindle_status,
+    start_server,
+    state_of,
+)
 
 log = logging.getLogger("thermocomp.runtime")
 
@@ -56,6 +64,7 @@ class _Late:
 
     late_s: float
     on_time: int = 0
+
 
 PLAUSIBLE_ELONGATION_UM = 5000.0
 """A model whose steady elongation anywhere in its speed range exceeds this (5 mm) is not a
@@ -79,8 +88,9 @@ def kernel_clock_synchronized() -> bool | None:
 
 
 def setup_logging(cfg: RuntimeConfig) -> None:
-    handler: logging.Handler = (logging.FileHandler(cfg.log_file) if cfg.log_file
-                                else logging.StreamHandler())
+    handler: logging.Handler = (
+        logging.FileHandler(cfg.log_file) if cfg.log_file else logging.StreamHandler()
+    )
     handler.setFormatter(JsonLines())
     root = logging.getLogger()
     for h in list(root.handlers):
@@ -127,16 +137,24 @@ def plausible(model, name: str) -> None:
 class Service:
     """All spindles of one configuration, in one process."""
 
-    def __init__(self, config_path: str | os.PathLike[str], *, clock=time.monotonic, wall=time.time,
-                 sleep=time.sleep, cfg: RuntimeConfig | None = None, lock: bool = True,
-                 clock_synchronized: Callable[[], bool | None] | None = None):
+    def __init__(
+        self,
+        config_path: str | os.PathLike[str],
+        *,
+        clock=time.monotonic,
+        wall=time.time,
+        sleep=time.sleep,
+        cfg: RuntimeConfig | None = None,
+        lock: bool = True,
+        clock_synchronized: Callable[[], bool | None] | None = None,
+    ):
         self.config_path = config_path
         self.cfg = cfg if cfg is not None else load_config(config_path)
         if self.cfg.time_scale != 1.0 and clock is time.monotonic:
             sim = ScaledClock(self.cfg.time_scale, time.monotonic)
             w0 = wall()
             clock, wall = sim, (lambda: w0 + sim())
-            sleep = (lambda s, _k=self.cfg.time_scale: time.sleep(s / _k))
+            sleep = lambda s, _k=self.cfg.time_scale: time.sleep(s / _k)
         self.clock, self.wall, self.sleep = clock, wall, sleep
         self.clock_synchronized = clock_synchronized or kernel_clock_synchronized
         self._age_paused_said = False
@@ -180,8 +198,14 @@ class Service:
             self.status_server = start_server(st, self.history, self.cfg.state_dir / "status.url")
         except ConfigError as err:  # a token missing: no endpoint (never an open one instead)
             self.not_started.append("status endpoint")
-            event("status_failed", None, "status endpoint not started: %s; compensation goes on", err,
-                  level=logging.ERROR, error=str(err)[:200])
+            event(
+                "status_failed",
+                None,
+                "status endpoint not started: %s; compensation goes on",
+                err,
+                level=logging.ERROR,
+                error=str(err)[:200],
+            )
         if self.cfg.mqtt is not None and self.cfg.mqtt.enabled:
             from .mqtt import MqttPublisher
 
@@ -189,8 +213,14 @@ class Service:
                 self.mqtt = MqttPublisher(self.cfg.mqtt).start()
             except ConfigError as err:
                 self.not_started.append("mqtt")
-                event("mqtt_lost", None, "mqtt not started: %s; compensation goes on", err,
-                      level=logging.ERROR, reason=str(err)[:200])
+                event(
+                    "mqtt_lost",
+                    None,
+                    "mqtt not started: %s; compensation goes on",
+                    err,
+                    level=logging.ERROR,
+                    reason=str(err)[:200],
+                )
         try:
             self._publish(self.clock())
         except Exception as err:  # noqa: BLE001 - the status never stops the offset
@@ -203,9 +233,17 @@ class Service:
         for name, st in states.items():
             before = self.states.get(name)
             if before is None or before.state != st.state:
-                event("spindle_state", name, "%s: %s", name, st.line,
-                      level=logging.INFO if st.compensating or before is None else logging.WARNING,
-                      state=st.state, reason=st.reason, was=None if before is None else before.state)
+                event(
+                    "spindle_state",
+                    name,
+                    "%s: %s",
+                    name,
+                    st.line,
+                    level=logging.INFO if st.compensating or before is None else logging.WARNING,
+                    state=st.state,
+                    reason=st.reason,
+                    was=None if before is None else before.state,
+                )
         self.states = states
         return states
 
@@ -215,16 +253,28 @@ class Service:
         if self.status_server is None and self.mqtt is None and self.history is None:
             return
         spindles = [spindle_status(rt, now, states[name]) for name, rt in self.spindles.items()]
-        snap = snapshot(version=_version(), pid=os.getpid(), time_s=self.anchor_s + now,
-                               uptime_s=now - self._started_s, text=self.status_text(),
-                               reload_failed=self.reload_failed, spindles=spindles,
-                               cooling=None if self.cooling is None else self.cooling.status())
+        snap = snapshot(
+            version=_version(),
+            pid=os.getpid(),
+            time_s=self.anchor_s + now,
+            uptime_s=now - self._started_s,
+            text=self.status_text(),
+            reload_failed=self.reload_failed,
+            spindles=spindles,
+            cooling=None if self.cooling is None else self.cooling.status(),
+        )
         self.snapshot = snap
         if self.history is not None:
             for sp in spindles:
                 if sp["time_s"] is not None:
-                    self.history.add(sp["name"], sp["time_s"], sp["speed_rpm"], sp["elongation_um"],
-                                     sp["offset_held_um"], sp["alarm_bits"])
+                    self.history.add(
+                        sp["name"],
+                        sp["time_s"],
+                        sp["speed_rpm"],
+                        sp["elongation_um"],
+                        sp["offset_held_um"],
+                        sp["alarm_bits"],
+                    )
         if self.status_server is not None:
             self.status_server.publish(snap)
         if self.mqtt is not None:
@@ -239,9 +289,16 @@ class Service:
         try:
             self.control = channel.open()
         except OSError as err:
-            event("control_failed", None, "cannot listen on %s: %s; `thermocomp measure` will not "
-                  "reach this service", channel.path, err.strerror or err, level=logging.ERROR,
-                  path=str(channel.path), error=str(err)[:200])
+            event(
+                "control_failed",
+                None,
+                "cannot listen on %s: %s; `thermocomp measure` will not reach this service",
+                channel.path,
+                err.strerror or err,
+                level=logging.ERROR,
+                path=str(channel.path),
+                error=str(err)[:200],
+            )
 
     def _dispatch(self, request: Pending) -> None:
         """Hand a measurement to its spindle (named, or the only one with an observer)."""
@@ -251,7 +308,9 @@ class Service:
         name = req.spindle
         if name is None:
             if len(fused) != 1:
-                request.fail(f"name the spindle (--spindle): observers on {', '.join(fused) or 'none'}")
+                request.fail(
+                    f"name the spindle (--spindle): observers on {', '.join(fused) or 'none'}"
+                )
                 return
             name = fused[0]
         rt = self.spindles.get(name)
@@ -264,8 +323,11 @@ class Service:
         try:
             self.cfg.state_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            log.error("state directory %s: %s; running without saving state",
-                      self.cfg.state_dir, err.strerror or err)
+            log.error(
+                "state directory %s: %s; running without saving state",
+                self.cfg.state_dir,
+                err.strerror or err,
+            )
         if self._lock is None:
             return
         try:
@@ -274,8 +336,15 @@ class Service:
             raise
         except OSError as err:
             # nothing can write there either; compensation matters more than the lock
-            event("lock_failed", None, "cannot lock %s: %s; running unlocked", self._lock.path,
-                  err.strerror or err, level=logging.ERROR, path=str(self._lock.path))
+            event(
+                "lock_failed",
+                None,
+                "cannot lock %s: %s; running unlocked",
+                self._lock.path,
+                err.strerror or err,
+                level=logging.ERROR,
+                path=str(self._lock.path),
+            )
 
     def _build(self, cfg: RuntimeConfig) -> dict[str, SpindleRuntime]:
         for sc in cfg.spindle:  # every model first: a refused reload leaves no trace
@@ -285,10 +354,16 @@ class Service:
         out: dict[str, SpindleRuntime] = {}
         try:
             for sc in cfg.spindle:
-                out[sc.name] = SpindleRuntime(sc, cfg.state_dir, cfg.journal_path, clock=self.clock,
-                                              wall=self.wall, anchor_s=self.anchor_s,
-                                              journal_fsync_s=cfg.journal_fsync_s,
-                                              previous=self.spindles.get(sc.name))
+                out[sc.name] = SpindleRuntime(
+                    sc,
+                    cfg.state_dir,
+                    cfg.journal_path,
+                    clock=self.clock,
+                    wall=self.wall,
+                    anchor_s=self.anchor_s,
+                    journal_fsync_s=cfg.journal_fsync_s,
+                    previous=self.spindles.get(sc.name),
+                )
         except BaseException:
             for rt in out.values():
                 rt.journal.close()
@@ -296,16 +371,27 @@ class Service:
             raise
         return out
 
-    def _build_cooling(self, cfg: RuntimeConfig, spindles: dict[str, SpindleRuntime]) -> CoolingRuntime | None:
+    def _build_cooling(
+        self, cfg: RuntimeConfig, spindles: dict[str, SpindleRuntime]
+    ) -> CoolingRuntime | None:
         """The chiller loop of ``[cooling]``, or None; in mode ``cooling`` its spindle writes no offset."""
         name = cfg.cooling_spindle
         for sname, rt in spindles.items():
-            rt.writes_offset = not (name == sname and cfg.cooling is not None and cfg.cooling.mode == "cooling")
+            rt.writes_offset = not (
+                name == sname and cfg.cooling is not None and cfg.cooling.mode == "cooling"
+            )
         if name is None or cfg.cooling is None:
             return None
-        return CoolingRuntime(cfg.cooling, spindles[name], cfg.journal_path, clock=self.clock, wall=self.wall,
-                              anchor_s=self.anchor_s, journal_fsync_s=cfg.journal_fsync_s,
-                              previous=self.cooling)
+        return CoolingRuntime(
+            cfg.cooling,
+            spindles[name],
+            cfg.journal_path,
+            clock=self.clock,
+            wall=self.wall,
+            anchor_s=self.anchor_s,
+            journal_fsync_s=cfg.journal_fsync_s,
+            previous=self.cooling,
+        )
 
     def sweep_journal(self, now: float) -> None:
         """Retention: remove the oldest journal days past ``[journal]``'s age or size, never a
@@ -321,19 +407,33 @@ class Service:
         by_age = self.clock_synchronized() is not False
         if not by_age and not self._age_paused_said:
             self._age_paused_said = True
-            log.warning("journal retention: the wall clock is not synchronised: files are removed "
-                        "for the size limit only, not for their age, until it is")
+            log.warning(
+                "journal retention: the wall clock is not synchronised: files are removed "
+                "for the size limit only, not for their age, until it is"
+            )
         try:
-            res = sweep(self.cfg.journal_path, now_wall_s=self.anchor_s + now, max_age_days=ret.max_age_days,
-                        max_bytes=int(ret.max_size_mb * 2**20), keep=[j.path for j in journals if j.path],
-                        by_age=by_age)
+            res = sweep(
+                self.cfg.journal_path,
+                now_wall_s=self.anchor_s + now,
+                max_age_days=ret.max_age_days,
+                max_bytes=int(ret.max_size_mb * 2**20),
+                keep=[j.path for j in journals if j.path],
+                by_age=by_age,
+            )
         except Exception as err:  # noqa: BLE001 - retention is housekeeping
             log.error("journal retention failed: %s", err)
             return
         if res.removed:
-            event("journal_swept", None, "journal: removed %d old file(s), %.1f MB freed; %.1f MB kept",
-                  len(res.removed), res.freed_bytes / 2**20, res.total_bytes / 2**20,
-                  removed=[p.name for p in res.removed][:50], freed_bytes=res.freed_bytes)
+            event(
+                "journal_swept",
+                None,
+                "journal: removed %d old file(s), %.1f MB freed; %.1f MB kept",
+                len(res.removed),
+                res.freed_bytes / 2**20,
+                res.total_bytes / 2**20,
+                removed=[p.name for p in res.removed][:50],
+                freed_bytes=res.freed_bytes,
+            )
         for err in res.errors[:3]:
             log.warning("journal retention: %s", err)
 
@@ -356,8 +456,14 @@ class Service:
             built = self._build(new)
         except (ThermocompError, OSError) as err:
             self.reload_failed = True
-            event("reload_refused", None, "reload refused, keeping the running configuration: %s",
-                  err, level=logging.ERROR, error=str(err)[:300])
+            event(
+                "reload_refused",
+                None,
+                "reload refused, keeping the running configuration: %s",
+                err,
+                level=logging.ERROR,
+                error=str(err)[:300],
+            )
             return
         try:
             cooling = self._build_cooling(new, built)
@@ -366,8 +472,14 @@ class Service:
                 rt.journal.close()
                 rt.adapter.close()
             self.reload_failed = True
-            event("reload_refused", None, "reload refused, keeping the running configuration: %s",
-                  err, level=logging.ERROR, error=str(err)[:300])
+            event(
+                "reload_refused",
+                None,
+                "reload refused, keeping the running configuration: %s",
+                err,
+                level=logging.ERROR,
+                error=str(err)[:300],
+            )
             return
         for name, rt in self.spindles.items():
             if name in built:
@@ -380,8 +492,13 @@ class Service:
         self.cfg, self.spindles, self.reload_failed = new, built, False
         self.cooling = cooling
         self._open_control()
-        event("reload", None, "configuration reloaded: %d spindle(s)", len(self.spindles),
-              spindles=list(self.spindles))
+        event(
+            "reload",
+            None,
+            "configuration reloaded: %d spindle(s)",
+            len(self.spindles),
+            spindles=list(self.spindles),
+        )
 
     def tick(self) -> float:
         """Run every spindle that is due; the seconds until the next one is."""
@@ -447,16 +564,31 @@ class Service:
         late = self._late.get(name)
         if late_s >= period:
             if late is None:
-                event("cycles_late", name, "%s: cycles late: this one ran %.1f s after it was due (period "
-                      "%g s): the offset follows the growth that much later; an overloaded box or a slow "
-                      "controller link", name, late_s, period, level=logging.WARNING, late_s=round(late_s, 3),
-                      period_s=period)
+                event(
+                    "cycles_late",
+                    name,
+                    "%s: cycles late: this one ran %.1f s after it was due (period "
+                    "%g s): the offset follows the growth that much later; an overloaded box or a slow "
+                    "controller link",
+                    name,
+                    late_s,
+                    period,
+                    level=logging.WARNING,
+                    late_s=round(late_s, 3),
+                    period_s=period,
+                )
             self._late[name] = _Late(late_s)
         elif late is not None:
             late.on_time += 1
             if late.on_time >= ON_TIME_CYCLES:
                 del self._late[name]
-                event("cycles_on_time", name, "%s: cycles on time again (%d in a row)", name, ON_TIME_CYCLES)
+                event(
+                    "cycles_on_time",
+                    name,
+                    "%s: cycles on time again (%d in a row)",
+                    name,
+                    ON_TIME_CYCLES,
+                )
 
     def _cycle_failed(self, name: str, now: float, err: ThermocompError) -> None:
         """A cycle that could not run is never silent: an event when the failures begin, and once
@@ -465,11 +597,23 @@ class Service:
         from the last good state rather than leaving the controller's offset frozen."""
         since = self._failing.setdefault(name, now)
         if since == now:
-            event("cycle_failed", name, "%s: CYCLE_FAILED: %s; the offset is not written until a "
-                  "cycle runs again", name, err, level=logging.ERROR, error=str(err)[:200])
+            event(
+                "cycle_failed",
+                name,
+                "%s: CYCLE_FAILED: %s; the offset is not written until a cycle runs again",
+                name,
+                err,
+                level=logging.ERROR,
+                error=str(err)[:200],
+            )
         if now - since >= FAILING_EXIT_S and not self._stop:
-            log.error("%s: every cycle has failed for %.0f s (%s): stopping so that the service is "
-                      "restarted", name, now - since, str(err)[:200])
+            log.error(
+                "%s: every cycle has failed for %.0f s (%s): stopping so that the service is "
+                "restarted",
+                name,
+                now - since,
+                str(err)[:200],
+            )
             self.exit_code = 1
             self._stop = True
 
@@ -487,7 +631,9 @@ class Service:
             head = f"compensating {len(good)} of {len(states)} spindle(s)"
         # a spindle that compensates with a caveat (an unsettled cold start) is named too
         notes = [f"{n} {st.line}" for n, st in states.items() if not st.compensating or st.reason]
-        notes += ["reload refused, running the previous configuration"] if self.reload_failed else []
+        notes += (
+            ["reload refused, running the previous configuration"] if self.reload_failed else []
+        )
         notes += [f"{name}: cycles failing" for name in self._failing]
         notes += [f"{name}: cycles late ({late.late_s:.1f} s)" for name, late in self._late.items()]
         notes += [f"{what} not started (see the log)" for what in self.not_started]
@@ -496,8 +642,10 @@ class Service:
             if obs is None:
                 continue
             if obs["stale"]:
-                notes.append(f"{name}: observer stale (no measurement for > "
-                             f"{rt.cfg.observer.stale_after_s:g} s)")
+                notes.append(
+                    f"{name}: observer stale (no measurement for > "
+                    f"{rt.cfg.observer.stale_after_s:g} s)"
+                )
             if obs["rejected"]:
                 notes.append(f"{name}: last measurement rejected")
             if obs["failed_sources"]:
@@ -523,8 +671,15 @@ class Service:
         except Exception as err:  # noqa: BLE001 - nothing optional keeps the offset from starting
             log.error("status and mqtt not started: %s", err)
         sd_notify("READY=1")
-        event("started", None, "running %d spindle(s), pid %d", len(self.spindles), os.getpid(),
-              spindles=list(self.spindles), pid=os.getpid())
+        event(
+            "started",
+            None,
+            "running %d spindle(s), pid %d",
+            len(self.spindles),
+            os.getpid(),
+            spindles=list(self.spindles),
+            pid=os.getpid(),
+        )
         try:
             while not self._stop:
                 wait = self.tick()
@@ -570,15 +725,19 @@ def shaping_check(sc, link) -> str:
     state comes from (read once now); a ConfigError where the controller's signal is required
     and the link has none."""
     sh = sc.shaping
-    words = {"dual-slew": f"dual slew {sh.max_rate_um_per_s:g} um/s cutting, {sh.fast_rate_um_per_s:g} um/s not",
-             "longer-cycle": f"longer cycle in transients, {sh.max_rate_um_per_s:g} um/s",
-             "hold": f"hold in transients, {sh.max_rate_um_per_s:g} um/s",
-             "slow-slew": f"one slew limit, {sh.max_rate_um_per_s:g} um/s"}
+    words = {
+        "dual-slew": f"dual slew {sh.max_rate_um_per_s:g} um/s cutting, {sh.fast_rate_um_per_s:g} um/s not",
+        "longer-cycle": f"longer cycle in transients, {sh.max_rate_um_per_s:g} um/s",
+        "hold": f"hold in transients, {sh.max_rate_um_per_s:g} um/s",
+        "slow-slew": f"one slew limit, {sh.max_rate_um_per_s:g} um/s",
+    }
     if cutting_from_controller(sc, link):
         source = f"cutting signal from the controller, now {'cutting' if link.read_cutting() else 'not cutting'}"
     else:
-        source = (f"cutting inferred from the speed (held {sh.cutting.settle_s:g} s within "
-                  f"{sh.cutting.speed_tolerance_rpm:g} rpm or {sh.cutting.speed_tolerance_pct:g} %)")
+        source = (
+            f"cutting inferred from the speed (held {sh.cutting.settle_s:g} s within "
+            f"{sh.cutting.speed_tolerance_rpm:g} rpm or {sh.cutting.speed_tolerance_pct:g} %)"
+        )
     return f"shaping: {words[sh.policy]}; {source}"
 
 
@@ -596,8 +755,10 @@ def check(config_path: str) -> int:
             if names:
                 missing = sorted(set(names) - set(link.input_channels()))
                 if missing:
-                    raise ConfigError(f"{spindle_scope(sc.name)}: the model needs input(s) {', '.join(missing)}; "
-                                      "map them in the adapter")
+                    raise ConfigError(
+                        f"{spindle_scope(sc.name)}: the model needs input(s) {', '.join(missing)}; "
+                        "map them in the adapter"
+                    )
                 values = link.read_inputs()
                 extra = ", inputs " + ", ".join(f"{n} {values[n]:g}" for n in names)
             if getattr(link, "can_read_offset", False):
@@ -605,27 +766,38 @@ def check(config_path: str) -> int:
             extra += "; " + shaping_check(sc, link)
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
         if sc.profile is not None:
-            res = (f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"
-                   if sc.shaping.resolution_um else "")
+            res = (
+                f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"
+                if sc.shaping.resolution_um
+                else ""
+            )
             print(f"{sc.name}: {sc.profile.describe(sc.route)}{res}")
             ctl = sc.profile.control_rate_um_per_s
             if ctl is not None and ctl < sc.shaping.rate_limit_um_per_s:
-                print(f"{sc.name}: warning: the control moves the offset at most {ctl:g} um/s, slower "
-                      f"than the shaping's {sc.shaping.rate_limit_um_per_s:g} um/s: the elastic step of a "
-                      "speed change lands late, in the first seconds of the next cut")
+                print(
+                    f"{sc.name}: warning: the control moves the offset at most {ctl:g} um/s, slower "
+                    f"than the shaping's {sc.shaping.rate_limit_um_per_s:g} um/s: the elastic step of a "
+                    "speed change lands late, in the first seconds of the next cut"
+                )
     c = cfg.cooling
     if c is not None and c.mode != "off":
         with open_chiller(c.chiller["type"], c.chiller_options) as chiller:
             supply = chiller.read_supply_c()
-        mode = "the chiller only, no offset" if c.mode == "cooling" else "the chiller and the offset"
-        print(f"cooling ({mode}) on {cfg.cooling_spindle}'s estimate: chiller {c.chiller['type']} ok, "
-              f"supply {supply:.1f} degC")
+        mode = (
+            "the chiller only, no offset" if c.mode == "cooling" else "the chiller and the offset"
+        )
+        print(
+            f"cooling ({mode}) on {cfg.cooling_spindle}'s estimate: chiller {c.chiller['type']} ok, "
+            f"supply {supply:.1f} degC"
+        )
         for line in c.law().describe():
             print(f"cooling: {line}")
     st = cfg.status
     if st.enabled:
         st.token()  # a missing or short token: a one-line ConfigError now, not at the service's start
-        print(f"status: http://{st.bind}:{st.port}/ ({'token' if st.access == 'token' else 'open'} access)")
+        print(
+            f"status: http://{st.bind}:{st.port}/ ({'token' if st.access == 'token' else 'open'} access)"
+        )
     if cfg.mqtt is not None and cfg.mqtt.enabled:
         m = cfg.mqtt
         m.password()
@@ -643,23 +815,30 @@ def measure(args) -> int:
     if not math.isfinite(um) or abs(um) > 1e4:
         raise ConfigError(f"--um must be a finite elongation in um (|um| <= 10000), not {um:g}")
     if sigma is not None and not (math.isfinite(sigma) and 0 < sigma <= SIGMA_LIMIT_UM):
-        raise ConfigError(f"--sigma-um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, not {sigma:g}")
+        raise ConfigError(
+            f"--sigma-um must be a number > 0 and at most {SIGMA_LIMIT_UM:g} um, not {sigma:g}"
+        )
     if args.timeout_s is not None and not (math.isfinite(args.timeout_s) and args.timeout_s > 0):
         raise ConfigError("--timeout-s must be a number > 0")
     if args.state_dir and args.config:
         raise ConfigError("give --state-dir or --config, not both")
-    state_dir = args.state_dir or (load_config(args.config).state_dir if args.config
-                                   else RuntimeConfig.model_fields["state_dir"].default)
+    state_dir = args.state_dir or (
+        load_config(args.config).state_dir
+        if args.config
+        else RuntimeConfig.model_fields["state_dir"].default
+    )
     answer = send_measurement(state_dir, um, sigma, args.spindle, args.timeout_s or 60.0)
     if not answer.get("ok"):
         raise ControlError(f"the service refused it: {answer.get('error', 'no reason given')}")
     if args.json:
         print(json.dumps(answer, allow_nan=False))
     else:
-        print(f"{answer.get('spindle')}: {answer.get('outcome')}: measured {answer.get('measured_um', um):.3f} um, "
-              f"estimate {answer.get('estimate_um', math.nan):.3f} um, innovation "
-              f"{answer.get('innovation_um', math.nan):+.3f} um (sd {answer.get('innovation_sd_um', math.nan):.3f} "
-              f"um); bias now {answer.get('bias_um', math.nan):+.3f} um")
+        print(
+            f"{answer.get('spindle')}: {answer.get('outcome')}: measured {answer.get('measured_um', um):.3f} um, "
+            f"estimate {answer.get('estimate_um', math.nan):.3f} um, innovation "
+            f"{answer.get('innovation_um', math.nan):+.3f} um (sd {answer.get('innovation_sd_um', math.nan):.3f} "
+            f"um); bias now {answer.get('bias_um', math.nan):+.3f} um"
+        )
     return 1 if answer.get("outcome") == "rejected" else 0
 
 

@@ -87,10 +87,17 @@ def model_status(rt: Any) -> dict[str, Any]:
         rng = getattr(c, "trained_range", None)
         if rng is not None and getattr(c, "name", None):
             ranges[c.name] = [finite(rng[0]), finite(rng[1])]
-    return {"file": str(rt.cfg.model), "digest": rt.digest, "format": getattr(model, "format", None),
-            "form": getattr(model, "form", None), "spindle_id": getattr(model, "spindle_id", None),
-            "machine_id": getattr(model, "machine_id", None), "speed_range_rpm": [finite(lo), finite(hi)],
-            "inputs": list(getattr(model, "input_names", ()) or ()), "input_ranges": ranges}
+    return {
+        "file": str(rt.cfg.model),
+        "digest": rt.digest,
+        "format": getattr(model, "format", None),
+        "form": getattr(model, "form", None),
+        "spindle_id": getattr(model, "spindle_id", None),
+        "machine_id": getattr(model, "machine_id", None),
+        "speed_range_rpm": [finite(lo), finite(hi)],
+        "inputs": list(getattr(model, "input_names", ()) or ()),
+        "input_ranges": ranges,
+    }
 
 
 # -- the spindle's state: one derivation ------------------------------------------------------
@@ -115,14 +122,21 @@ class SpindleFacts(BaseModel):
     link_state: str = "connected"
     link_down_since_s: float | None = None
     link_error: str | None = None
-    last_in_step_s: float | None = Field(None, description="the last cycle the controller held the offset "
-                                         "aimed at: a write went through, or none was due")
+    last_in_step_s: float | None = Field(
+        None,
+        description="the last cycle the controller held the offset "
+        "aimed at: a write went through, or none was due",
+    )
     last_write_s: float | None = None
-    since_s: float = Field(description="when the runtime began: a spindle never in step counts from here")
+    since_s: float = Field(
+        description="when the runtime began: a spindle never in step counts from here"
+    )
     alarm_bits: int = 0
     offset_mode: str = "tracking"
-    cold_settle_s: float | None = Field(None, description="COLD_START_TURNING: when the estimate settles "
-                                        "(inf: only at a measurement)")
+    cold_settle_s: float | None = Field(
+        None,
+        description="COLD_START_TURNING: when the estimate settles (inf: only at a measurement)",
+    )
 
 
 class SpindleState(BaseModel):
@@ -172,15 +186,24 @@ def spindle_state(f: SpindleFacts) -> SpindleState:
         why = f" ({f.link_error})" if f.link_error else ""
         return SpindleState(state="not writing", reason=f"{word}{since}{why}")
     if not f.writes_offset:
-        return SpindleState(state="compensating", reason="by the chiller ([cooling] mode = cooling): no offset "
-                            "is written")
+        return SpindleState(
+            state="compensating",
+            reason="by the chiller ([cooling] mode = cooling): no offset is written",
+        )
     if bits & Alarm.NOT_READY:
-        return SpindleState(state="holding", reason="machine not ready (off, E-stop or not homed): the "
-                            "controller applies its own offset")
+        return SpindleState(
+            state="holding",
+            reason="machine not ready (off, E-stop or not homed): the "
+            "controller applies its own offset",
+        )
     ref = f.last_in_step_s if f.last_in_step_s is not None else f.since_s
     behind_s = f.now_s - ref
     if behind_s > f.not_writing_cycles * f.period_s:
-        last = ("never written" if f.last_write_s is None else f"last write {clock_time(f.last_write_s)}")
+        last = (
+            "never written"
+            if f.last_write_s is None
+            else f"last write {clock_time(f.last_write_s)}"
+        )
         if bits & Alarm.WRITE_BACKOFF:
             cause = "the controller keeps refusing the offset: writes paused"
         elif bits & Alarm.WRITE_REJECTED:
@@ -190,20 +213,30 @@ def spindle_state(f: SpindleFacts) -> SpindleState:
             cause = f"no write has gone through since {clock_time(ref)}"
         return SpindleState(state="not writing", reason=f"{cause}; {last}")
     if bits & Alarm.ESTIMATE_REFUSED:
-        return SpindleState(state="holding", reason="estimate step refused: offset held at its last value")
+        return SpindleState(
+            state="holding", reason="estimate step refused: offset held at its last value"
+        )
     if bits & Alarm.IDLE_ASSUMED:
         return SpindleState(state="holding", reason="sensor fault: speed not read, idle assumed")
     if bits & Alarm.SPEED_READ_FAILED:
         return SpindleState(state="holding", reason="sensor fault: speed not read, last speed held")
     if bits & Alarm.WRITE_BACKOFF:
-        return SpindleState(state="holding", reason="the controller refused the offset: writes paused, "
-                            "offset held at its last value")
+        return SpindleState(
+            state="holding",
+            reason="the controller refused the offset: writes paused, "
+            "offset held at its last value",
+        )
     if f.offset_mode == "holding":
-        return SpindleState(state="holding", reason="offset held at its last value: the write is pending")
+        return SpindleState(
+            state="holding", reason="offset held at its last value: the write is pending"
+        )
     notes = []
     if bits & Alarm.COLD_START_TURNING:
-        until = ("a measurement is accepted" if f.cold_settle_s is None or not math.isfinite(f.cold_settle_s)
-                 else f"{clock_time(f.cold_settle_s)} or a measurement accepted")
+        until = (
+            "a measurement is accepted"
+            if f.cold_settle_s is None or not math.isfinite(f.cold_settle_s)
+            else f"{clock_time(f.cold_settle_s)} or a measurement accepted"
+        )
         notes.append(f"estimate unsettled after a cold start on a turning spindle (until {until})")
     if bits & Alarm.INPUT_FALLBACK:
         notes.append("on the speed-only fallback (input fault)")
@@ -216,12 +249,22 @@ def spindle_facts(rt: Any, now_s: float) -> SpindleFacts:
     at = lambda t: None if t is None else a + t  # noqa: E731 - clock time -> journal time
     cfg = rt.cfg
     return SpindleFacts(
-        now_s=a + now_s, period_s=cfg.period_s, not_writing_cycles=cfg.faults.not_writing_cycles,
-        cycles=int(rt.counters.get("cycles", 0)), writes_offset=bool(rt.writes_offset),
-        link_up=rt.link.up, link_state=rt.link.state.value, link_down_since_s=at(rt.link.down_since),
-        link_error=rt.link_error, last_in_step_s=at(rt.last_in_step_s), last_write_s=at(rt.last_write_s),
-        since_s=a + rt.created_s, alarm_bits=int(rt.alarms), offset_mode=rt.offset.mode.value,
-        cold_settle_s=at(rt.cold_settle_s))
+        now_s=a + now_s,
+        period_s=cfg.period_s,
+        not_writing_cycles=cfg.faults.not_writing_cycles,
+        cycles=int(rt.counters.get("cycles", 0)),
+        writes_offset=bool(rt.writes_offset),
+        link_up=rt.link.up,
+        link_state=rt.link.state.value,
+        link_down_since_s=at(rt.link.down_since),
+        link_error=rt.link_error,
+        last_in_step_s=at(rt.last_in_step_s),
+        last_write_s=at(rt.last_write_s),
+        since_s=a + rt.created_s,
+        alarm_bits=int(rt.alarms),
+        offset_mode=rt.offset.mode.value,
+        cold_settle_s=at(rt.cold_settle_s),
+    )
 
 
 def state_of(rt: Any, now_s: float) -> SpindleState:
@@ -237,48 +280,76 @@ def spindle_status(rt: Any, now_s: float, state: SpindleState | None = None) -> 
     alarms = int(rt.alarms)
     write_age = None if rt.last_write_s is None else max(0.0, now_s - rt.last_write_s)
     journal = rt.journal
-    return _clean({
-        "name": rt.cfg.name,
-        "state": state.state,
-        "state_reason": state.reason,
-        "compensating": state.compensating,
-        "time_s": None if not last else rt.anchor_s + last["time_s"],
-        "speed_rpm": last.get("speed_rpm"),
-        "elongation_um": last.get("predicted_um"),
-        "estimate": last.get("estimate"),
-        "offset_target_um": last.get("target_um"),
-        "offset_held_um": rt.offset.held_um,
-        "offset_read_back_um": rt.last_readback_um,
-        "offset_mode": rt.offset.mode.value,
-        "writes_offset": rt.writes_offset,
-        "last_write_age_s": write_age,
-        "last_in_step_age_s": None if rt.last_in_step_s is None else max(0.0, now_s - rt.last_in_step_s),
-        "cold_start_settles_s": (None if rt.cold_settle_s is None else rt.anchor_s + rt.cold_settle_s),
-        "cutting": last.get("cutting"),
-        "cutting_source": last.get("cutting_source"),
-        "policy_state": last.get("policy_state"),
-        "slew_limit_um_per_s": last.get("slew_limit_um_per_s"),
-        "link": rt.link.state.value,
-        "alarms": alarm_names(alarms),
-        "alarm_bits": alarms,
-        "observer": rt.observer_status(),
-        "expected_error": last.get("expected_error"),
-        "inputs": last.get("inputs", {}),
-        "model": model_status(rt),
-        "counters": dict(rt.counters),
-        "journal": {"file": str(journal.path) if journal.path else None, "error": journal.error,
-                    "pending_rows": journal.pending_rows},
-    })
+    return _clean(
+        {
+            "name": rt.cfg.name,
+            "state": state.state,
+            "state_reason": state.reason,
+            "compensating": state.compensating,
+            "time_s": None if not last else rt.anchor_s + last["time_s"],
+            "speed_rpm": last.get("speed_rpm"),
+            "elongation_um": last.get("predicted_um"),
+            "estimate": last.get("estimate"),
+            "offset_target_um": last.get("target_um"),
+            "offset_held_um": rt.offset.held_um,
+            "offset_read_back_um": rt.last_readback_um,
+            "offset_mode": rt.offset.mode.value,
+            "writes_offset": rt.writes_offset,
+            "last_write_age_s": write_age,
+            "last_in_step_age_s": None
+            if rt.last_in_step_s is None
+            else max(0.0, now_s - rt.last_in_step_s),
+            "cold_start_settles_s": (
+                None if rt.cold_settle_s is None else rt.anchor_s + rt.cold_settle_s
+            ),
+            "cutting": last.get("cutting"),
+            "cutting_source": last.get("cutting_source"),
+            "policy_state": last.get("policy_state"),
+            "slew_limit_um_per_s": last.get("slew_limit_um_per_s"),
+            "link": rt.link.state.value,
+            "alarms": alarm_names(alarms),
+            "alarm_bits": alarms,
+            "observer": rt.observer_status(),
+            "expected_error": last.get("expected_error"),
+            "inputs": last.get("inputs", {}),
+            "model": model_status(rt),
+            "counters": dict(rt.counters),
+            "journal": {
+                "file": str(journal.path) if journal.path else None,
+                "error": journal.error,
+                "pending_rows": journal.pending_rows,
+            },
+        }
+    )
 
 
-def snapshot(*, version: str, pid: int, time_s: float, uptime_s: float, text: str,
-             reload_failed: bool, spindles: Iterable[dict[str, Any]],
-             cooling: dict[str, Any] | None) -> dict[str, Any]:
+def snapshot(
+    *,
+    version: str,
+    pid: int,
+    time_s: float,
+    uptime_s: float,
+    text: str,
+    reload_failed: bool,
+    spindles: Iterable[dict[str, Any]],
+    cooling: dict[str, Any] | None,
+) -> dict[str, Any]:
     """The whole service's status: ``time_s`` journal time (epoch seconds), ``text`` the line
     `systemctl status` shows."""
-    return _clean({"service": "thermocomp", "version": version, "pid": pid, "time_s": time_s,
-                   "uptime_s": uptime_s, "status": text, "reload_failed": reload_failed,
-                   "spindles": list(spindles), "cooling": cooling, "alarm_names": ALARM_NAMES})
+    return _clean(
+        {
+            "service": "thermocomp",
+            "version": version,
+            "pid": pid,
+            "time_s": time_s,
+            "uptime_s": uptime_s,
+            "status": text,
+            "reload_failed": reload_failed,
+            "spindles": list(spindles),
+            "cooling": cooling,
+            "alarm_names": ALARM_NAMES,
+        }
+    )
 
 
 class History:
@@ -295,8 +366,15 @@ class History:
         self._open: dict[str, list] = {}  # the interval being gathered: [start, point, alarm bits]
         self._lock = threading.Lock()
 
-    def add(self, name: str, time_s: float, speed_rpm: float | None, elongation_um: float | None,
-            offset_um: float | None, alarm_bits: int) -> None:
+    def add(
+        self,
+        name: str,
+        time_s: float,
+        speed_rpm: float | None,
+        elongation_um: float | None,
+        offset_um: float | None,
+        alarm_bits: int,
+    ) -> None:
         acc = self._open.get(name)
         if acc is None or time_s - acc[0] >= self.every_s:
             if acc is not None:
@@ -331,6 +409,7 @@ class History:
 
 # -- Prometheus -------------------------------------------------------------------------------
 
+
 def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
     """The snapshot in Prometheus' text format, through ``prometheus_client``'s own exposition
     (a registry of one collector that reads this snapshot)."""
@@ -347,70 +426,143 @@ def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
             info = InfoMetricFamily("thermocomp_build", "the service's version")
             info.add_metric([], {"version": str(snap.get("version"))})
             yield info
-            yield _gauge("thermocomp_uptime_seconds", "seconds since the service started", [],
-                         [([], snap.get("uptime_s"))])
-            yield _gauge("thermocomp_reload_failed", "1 while a refused reload keeps the old configuration",
-                         [], [([], 1.0 if snap.get("reload_failed") else 0.0)])
+            yield _gauge(
+                "thermocomp_uptime_seconds",
+                "seconds since the service started",
+                [],
+                [([], snap.get("uptime_s"))],
+            )
+            yield _gauge(
+                "thermocomp_reload_failed",
+                "1 while a refused reload keeps the old configuration",
+                [],
+                [([], 1.0 if snap.get("reload_failed") else 0.0)],
+            )
             sp = snap.get("spindles") or []
             gauges = {
                 "speed_rpm": ("thermocomp_spindle_speed_rpm", "spindle speed read [rpm]"),
-                "elongation_um": ("thermocomp_elongation_micrometres", "estimated thermal elongation S [um]"),
-                "offset_target_um": ("thermocomp_offset_target_micrometres", "offset the shaper aims at [um]"),
-                "offset_held_um": ("thermocomp_offset_held_micrometres", "offset the controller holds [um]"),
-                "last_write_age_s": ("thermocomp_last_write_age_seconds", "seconds since an offset was written"),
+                "elongation_um": (
+                    "thermocomp_elongation_micrometres",
+                    "estimated thermal elongation S [um]",
+                ),
+                "offset_target_um": (
+                    "thermocomp_offset_target_micrometres",
+                    "offset the shaper aims at [um]",
+                ),
+                "offset_held_um": (
+                    "thermocomp_offset_held_micrometres",
+                    "offset the controller holds [um]",
+                ),
+                "last_write_age_s": (
+                    "thermocomp_last_write_age_seconds",
+                    "seconds since an offset was written",
+                ),
             }
             for key, (name, doc) in gauges.items():
                 yield _gauge(name, doc, ["spindle"], [([s["name"]], s.get(key)) for s in sp])
-            yield _gauge("thermocomp_compensating", "1 while the spindle's state is compensating (0: holding "
-                         "or not writing; the reason is in /status)", ["spindle"],
-                         [([s["name"]], 1.0 if s.get("state") == "compensating" else 0.0) for s in sp])
-            state = GaugeMetricFamily("thermocomp_spindle_state", "1 for the spindle's state, 0 for the others "
-                                      "(every state is listed)", labels=["spindle", "state"])
+            yield _gauge(
+                "thermocomp_compensating",
+                "1 while the spindle's state is compensating (0: holding "
+                "or not writing; the reason is in /status)",
+                ["spindle"],
+                [([s["name"]], 1.0 if s.get("state") == "compensating" else 0.0) for s in sp],
+            )
+            state = GaugeMetricFamily(
+                "thermocomp_spindle_state",
+                "1 for the spindle's state, 0 for the others (every state is listed)",
+                labels=["spindle", "state"],
+            )
             for s in sp:
                 for word in STATES:
                     state.add_metric([s["name"], word], 1.0 if s.get("state") == word else 0.0)
             yield state
-            yield _gauge("thermocomp_link_up", "1 while the controller link is up", ["spindle"],
-                         [([s["name"]], 1.0 if s.get("link") == "connected" else 0.0) for s in sp])
-            yield _gauge("thermocomp_cutting", "1 while the tool is taken to cut", ["spindle"],
-                         [([s["name"]], 1.0 if s.get("cutting") else 0.0) for s in sp])
-            alarm = GaugeMetricFamily("thermocomp_alarm", "1 while the alarm is raised (every alarm "
-                                      "is listed, so a 0 means clear)", labels=["spindle", "alarm"])
+            yield _gauge(
+                "thermocomp_link_up",
+                "1 while the controller link is up",
+                ["spindle"],
+                [([s["name"]], 1.0 if s.get("link") == "connected" else 0.0) for s in sp],
+            )
+            yield _gauge(
+                "thermocomp_cutting",
+                "1 while the tool is taken to cut",
+                ["spindle"],
+                [([s["name"]], 1.0 if s.get("cutting") else 0.0) for s in sp],
+            )
+            alarm = GaugeMetricFamily(
+                "thermocomp_alarm",
+                "1 while the alarm is raised (every alarm is listed, so a 0 means clear)",
+                labels=["spindle", "alarm"],
+            )
             for s in sp:
                 bits = int(s.get("alarm_bits") or 0)
                 for bit, aname in ALARM_NAMES.items():
                     alarm.add_metric([s["name"], aname], 1.0 if bits & bit else 0.0)
             yield alarm
-            yield _gauge("thermocomp_observer_bias_micrometres", "the probe observer's bias [um]", ["spindle"],
-                         [([s["name"]], (s.get("observer") or {}).get("bias_um")) for s in sp if s.get("observer")])
+            yield _gauge(
+                "thermocomp_observer_bias_micrometres",
+                "the probe observer's bias [um]",
+                ["spindle"],
+                [
+                    ([s["name"]], (s.get("observer") or {}).get("bias_um"))
+                    for s in sp
+                    if s.get("observer")
+                ],
+            )
             # absent for a spindle whose model states no expected error
             stated = [(s["name"], s["expected_error"]) for s in sp if s.get("expected_error")]
-            yield _gauge("thermocomp_expected_error_p95_micrometres", "the error to expect now, as the "
-                         "fit stated it: 95th percentile of |error| [um]", ["spindle"],
-                         [([name], e.get("p95_abs_um")) for name, e in stated])
-            yield _gauge("thermocomp_expected_error_rms_micrometres", "the error to expect now, as the "
-                         "fit stated it: RMS [um]", ["spindle"], [([name], e.get("rms_um")) for name, e in stated])
-            yield _gauge("thermocomp_expected_error_bound_micrometres", "max_expected_error_um: above it "
-                         "EXPECTED_ERROR_HIGH [um]", ["spindle"], [([name], e.get("bound_um")) for name, e in stated])
-            yield _gauge("thermocomp_input_value", "the link's extra inputs (temperatures, load)",
-                         ["spindle", "input"],
-                         [([s["name"], k], v) for s in sp for k, v in (s.get("inputs") or {}).items()])
+            yield _gauge(
+                "thermocomp_expected_error_p95_micrometres",
+                "the error to expect now, as the fit stated it: 95th percentile of |error| [um]",
+                ["spindle"],
+                [([name], e.get("p95_abs_um")) for name, e in stated],
+            )
+            yield _gauge(
+                "thermocomp_expected_error_rms_micrometres",
+                "the error to expect now, as the fit stated it: RMS [um]",
+                ["spindle"],
+                [([name], e.get("rms_um")) for name, e in stated],
+            )
+            yield _gauge(
+                "thermocomp_expected_error_bound_micrometres",
+                "max_expected_error_um: above it EXPECTED_ERROR_HIGH [um]",
+                ["spindle"],
+                [([name], e.get("bound_um")) for name, e in stated],
+            )
+            yield _gauge(
+                "thermocomp_input_value",
+                "the link's extra inputs (temperatures, load)",
+                ["spindle", "input"],
+                [([s["name"], k], v) for s in sp for k, v in (s.get("inputs") or {}).items()],
+            )
             names = sorted({k for s in sp for k in (s.get("counters") or {})})
             for key in names:
-                c = CounterMetricFamily(f"thermocomp_{key}", f"count of {key.replace('_', ' ')}",
-                                        labels=["spindle"])
+                c = CounterMetricFamily(
+                    f"thermocomp_{key}", f"count of {key.replace('_', ' ')}", labels=["spindle"]
+                )
                 for s in sp:
                     if key in (s.get("counters") or {}):
                         c.add_metric([s["name"]], float(s["counters"][key]))
                 yield c
             cool = snap.get("cooling")
             if cool:
-                yield _gauge("thermocomp_chiller_setpoint_celsius", "set point sent to the chiller [degC]",
-                             [], [([], cool.get("setpoint_c"))])
-                yield _gauge("thermocomp_chiller_supply_celsius", "chiller supply temperature read [degC]",
-                             [], [([], cool.get("supply_c"))])
-                yield _gauge("thermocomp_chiller_alarm", "1 while the chiller loop has an alarm", [],
-                             [([], 1.0 if cool.get("alarm") else 0.0)])
+                yield _gauge(
+                    "thermocomp_chiller_setpoint_celsius",
+                    "set point sent to the chiller [degC]",
+                    [],
+                    [([], cool.get("setpoint_c"))],
+                )
+                yield _gauge(
+                    "thermocomp_chiller_supply_celsius",
+                    "chiller supply temperature read [degC]",
+                    [],
+                    [([], cool.get("supply_c"))],
+                )
+                yield _gauge(
+                    "thermocomp_chiller_alarm",
+                    "1 while the chiller loop has an alarm",
+                    [],
+                    [([], 1.0 if cool.get("alarm") else 0.0)],
+                )
 
     registry = CollectorRegistry(auto_describe=False)
     registry.register(_Snapshot())
@@ -429,6 +581,7 @@ def _gauge(name: str, doc: str, labels: list[str], values: Iterable[tuple[list[s
 
 
 # -- HTTP ---------------------------------------------------------------------------------------
+
 
 def page_html() -> bytes:
     """The status page: one self-contained HTML file shipped with the package."""
@@ -466,8 +619,12 @@ class StatusServer:
         cls = _V6Server if ":" in self.bind else _Server
         self._httpd = cls((self.bind, self.port), Handler)
         self.port = self._httpd.server_address[1]
-        self._thread = threading.Thread(target=self._httpd.serve_forever, name="thermocomp-status",
-                                        kwargs={"poll_interval": 0.5}, daemon=True)
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever,
+            name="thermocomp-status",
+            kwargs={"poll_interval": 0.5},
+            daemon=True,
+        )
         self._thread.start()
         return self
 
@@ -488,7 +645,10 @@ class _Server(http.server.ThreadingHTTPServer):
         # DNS would hold the service's start
         socketserver_bind = http.server.socketserver.TCPServer.server_bind
         socketserver_bind(self)
-        self.server_name, self.server_port = str(self.server_address[0]), int(self.server_address[1])
+        self.server_name, self.server_port = (
+            str(self.server_address[0]),
+            int(self.server_address[1]),
+        )
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         # a broken client is one debug line, never a traceback on stderr
@@ -588,9 +748,16 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self._json(404, {"error": f"no spindle {name[:50]!r}; spindles: {', '.join(names)}"})
             return
         # the snapshot's time as latest_s: the series' own time_s column follows
-        self._json(200, {"spindle": name, "every_s": hist.every_s,
-                         "latest_s": None if snap is None else snap.get("time_s"),
-                         "alarm_names": ALARM_NAMES, **series})
+        self._json(
+            200,
+            {
+                "spindle": name,
+                "every_s": hist.every_s,
+                "latest_s": None if snap is None else snap.get("time_s"),
+                "alarm_names": ALARM_NAMES,
+                **series,
+            },
+        )
 
 
 def start_server(cfg: Any, history: History, url_file: Any) -> StatusServer | None:
@@ -600,13 +767,24 @@ def start_server(cfg: Any, history: History, url_file: Any) -> StatusServer | No
         return None
     token = cfg.token()  # a missing token is a configuration error, said at start
     if token is None and cfg.bind not in ("127.0.0.1", "::1", "localhost"):
-        log.warning("status: serving %s:%d without a token: anyone on the network can read it",
-                    cfg.bind, cfg.port)
+        log.warning(
+            "status: serving %s:%d without a token: anyone on the network can read it",
+            cfg.bind,
+            cfg.port,
+        )
     try:
         server = StatusServer(cfg.bind, cfg.port, token=token, history=history).start()
     except OSError as err:
-        event("status_failed", None, "status endpoint %s:%d not started: %s; compensation goes on",
-              cfg.bind, cfg.port, err.strerror or err, level=logging.ERROR, error=str(err)[:200])
+        event(
+            "status_failed",
+            None,
+            "status endpoint %s:%d not started: %s; compensation goes on",
+            cfg.bind,
+            cfg.port,
+            err.strerror or err,
+            level=logging.ERROR,
+            error=str(err)[:200],
+        )
         return None
     try:
         url_file.write_text(server.url + "\n", encoding="utf-8")
