@@ -17,13 +17,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from devices import LineDevice, ModbusDevice, PtyPair, Registers, haas_handler  # noqa: E402
+from devices import LineDevice, ModbusDevice, PtyPair, Registers, haas_handler
 
-from cnc_adapters.modbus import ModbusRtuAdapter  # noqa: E402
-from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
-from cnc_adapters.serial_link import HaasAdapter  # noqa: E402
-from machine_sim import SpindlePlant, preset  # noqa: E402
-from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
+from cnc_adapters.modbus import ModbusRtuAdapter
+from cnc_adapters.opcua import OpcUaAdapter
+from cnc_adapters.serial_link import HaasAdapter
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
 
 N = 1000
 

@@ -21,17 +21,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from devices import LineDevice, PtyPair  # noqa: E402
+from devices import LineDevice, PtyPair
 
-from calibration.acquire import AcquireConfig, Recorder  # noqa: E402
-from calibration.fit import fit_data  # noqa: E402
-from calibration.identify import LogData  # noqa: E402
-from calibration.nc_programs import calibration_profile  # noqa: E402
-from cnc_adapters.opcua import OpcUaAdapter  # noqa: E402
-from cnc_adapters.sensors import AsciiSensor  # noqa: E402
-from machine_sim import SpindlePlant, preset  # noqa: E402
-from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running  # noqa: E402
-from compensator.speed_programs import paper_calibration, random_validation  # noqa: E402
+from calibration.acquire import AcquireConfig, Recorder
+from calibration.fit import fit_data
+from calibration.identify import LogData
+from calibration.nc_programs import calibration_profile
+from cnc_adapters.opcua import OpcUaAdapter
+from cnc_adapters.sensors import AsciiSensor
+from compensator.speed_programs import paper_calibration, random_validation
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
 
 P = preset("motorized-27k")
 

@@ -35,24 +35,24 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_real_spindle import ENV, cand  # noqa: E402
+from bench_real_spindle import ENV, cand
 
 # one BLAS thread, as the real-spindle bench; it must be set before numpy loads
 os.environ.update(
     {k: ENV[k] for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
 )
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import calibration  # noqa: E402
-from calibration.dataset import LogData, log_data  # noqa: E402
-from calibration.estimators.paper_ols import fit_paper_ols  # noqa: E402
-from calibration.fit import fit_data  # noqa: E402
-from calibration.folds import split_cycles  # noqa: E402
-from calibration.metrics import residual_stats  # noqa: E402
-from compensator.expected import distance_outside, parse_expected  # noqa: E402
-from compensator.io import read_run_log  # noqa: E402
-from compensator.units import SPEED_SCALE_RPM  # noqa: E402
+import calibration
+from calibration.dataset import LogData, log_data
+from calibration.estimators.paper_ols import fit_paper_ols
+from calibration.fit import fit_data
+from calibration.folds import split_cycles
+from calibration.metrics import residual_stats
+from compensator.expected import distance_outside, parse_expected
+from compensator.io import read_run_log
+from compensator.units import SPEED_SCALE_RPM
 
 ROOT = Path(__file__).resolve().parents[1]
 CHANNELS = ("ch1", "ch2", "ch3", "ch4", "ch5")

@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from machine_sim import SpindlePlant, preset
 from compensator.speed_programs import job_shop_day
+from machine_sim import SpindlePlant, preset
 
 
 def main() -> dict:

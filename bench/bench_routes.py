@@ -26,16 +26,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration.acquire import AcquireConfig, Recorder  # noqa: E402
-from calibration.fit import fit_logs  # noqa: E402
-from calibration.nc_programs import calibration_profile, to_nc, validation_profile  # noqa: E402
-from calibration.toolsetter_plan import plan_probe_interval  # noqa: E402
-from compensator.clock import SteppedClock  # noqa: E402
-from compensator.io import read_run_log  # noqa: E402
-from machine_sim import SpindlePlant, preset  # noqa: E402
-from machine_sim.adapter import SimAdapter  # noqa: E402
-from machine_sim.nc import parse_nc  # noqa: E402
-from machine_sim.vcnc import ToolSetter, VirtualMachine  # noqa: E402
+from calibration.acquire import AcquireConfig, Recorder
+from calibration.fit import fit_logs
+from calibration.nc_programs import calibration_profile, to_nc, validation_profile
+from calibration.toolsetter_plan import plan_probe_interval
+from compensator.clock import SteppedClock
+from compensator.io import read_run_log
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.nc import parse_nc
+from machine_sim.vcnc import ToolSetter, VirtualMachine
 
 PRESET, MAX_RPM, DWELL_S, COOLDOWN_MIN, RATE_S = "motorized-27k", 27000.0, 20.0, 30.0, 10.0
 

@@ -22,8 +22,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 from conftest import rich_form  # noqa: E402
 
 from cnc_adapters import Adapter  # noqa: E402
-from machine_sim.vcnc import free_port  # noqa: E402
 from compensator.io import save_model  # noqa: E402
+from machine_sim.vcnc import free_port  # noqa: E402
 from thermocomp.runtime import SpindleRuntime  # noqa: E402
 from thermocomp.runtime.config import load_config  # noqa: E402
 
@@ -138,7 +138,7 @@ def main() -> dict:
             time.sleep(60)
             c1, w1 = cpu_s(svc.pid), time.monotonic()
             svc.send_signal(signal.SIGTERM)
-            _, status, usage = os.wait4(svc.pid, 0)
+            _, _status, usage = os.wait4(svc.pid, 0)
             out["service_cpu_pct_1hz"] = 100 * (c1 - c0) / (w1 - w0)
             out["service_peak_rss_mb"] = usage.ru_maxrss / 1024
         finally:

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from conftest import first_order, rich_form  # noqa: E402
+from conftest import first_order, rich_form
 
 N = 10_000_000
 
@@ -105,7 +105,7 @@ def state_space_case(rng: np.random.Generator) -> dict:
 
 if __name__ == "__main__":
     res = main()
-    load = ", load %.1f" % os.getloadavg()[0] if hasattr(os, "getloadavg") else ""
+    load = f", load {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
     print(
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores{load}, "
         f"Python {platform.python_version()}, numpy {np.__version__}"

@@ -175,7 +175,7 @@ class Recorder:
         program: Program,
         *,
         max_rpm: float,
-        config: AcquireConfig = AcquireConfig(),
+        config: AcquireConfig = AcquireConfig(),  # noqa: B008 - frozen: one default serves all
         metadata: dict[str, Any] | None = None,
         clock: Callable[[], float] = time.time,
         sleep: Callable[[float], None] = time.sleep,

@@ -8,6 +8,7 @@ import math
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
@@ -16,10 +17,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from compensator.expected import parse_expected
 from compensator.io import load_any_model, read_run_log, save_model, write_run_log
 from compensator.io.journal_export import NOT_INPUTS
 from compensator.io.runlog import ELONGATION_COLUMN, SPARSE
-from compensator.expected import parse_expected
 from compensator.shaping import ShaperConfig
 
 from .plots import Panel, plot_panels
@@ -101,9 +102,9 @@ def _meta(args: argparse.Namespace, logs) -> dict[str, Any]:
         meta["spindle_id"] = spindle
     if machine:
         meta["machine_id"] = machine
-    from datetime import datetime, timezone
+    from datetime import datetime
 
-    meta["created_utc"] = datetime.now(timezone.utc).replace(microsecond=0).isoformat()
+    meta["created_utc"] = datetime.now(UTC).replace(microsecond=0).isoformat()
     return meta
 
 

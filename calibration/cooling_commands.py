@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from machine_sim.plant import SpindlePlant, preset
 from compensator.cooling_law import PidGains
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import atomic_write, load_any_model, read_run_log, write_run_log
+from machine_sim.plant import SpindlePlant, preset
 
 from . import cooling_studies as cooling
 from . import stability, tuning

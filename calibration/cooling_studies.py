@@ -23,12 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from machine_sim.plant import PlantParams, SpindlePlant
-from machine_sim.vcnc import VirtualMachine
 from compensator.cooling_law import CoolingLaw, CoolingState, PidGains
 from compensator.errors import CalibrationError
-from compensator.speed_programs import Program
 from compensator.shaping import ShaperConfig, shape_series
+from compensator.speed_programs import Program
+from machine_sim.plant import PlantParams, SpindlePlant
+from machine_sim.vcnc import VirtualMachine
 
 from . import stability
 from .identify import Identification, LogData, identify
@@ -217,8 +217,8 @@ def simulate_cooling(
     names = tuple(model.input_names)
     state: Any = model.start(0.0, 0.0, _inputs(vm, names))  # the growth counts from the cold start
     law_state: CoolingState | None = law.initial(params.chiller_c) if law is not None else None
-    steps = int(round(program.duration_s / dt_s))
-    every = max(1, int(round(sample_s / dt_s)))
+    steps = round(program.duration_s / dt_s)
+    every = max(1, round(sample_s / dt_s))
     rows: list[tuple[float, ...]] = []
     switch_s = None
     for k in range(1, steps + 1):

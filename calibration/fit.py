@@ -34,9 +34,9 @@ from compensator.plausibility import MIN_TOLERANCE_UM, not_following_refusal, st
 
 from . import closedloop
 from .acquire import Problem
-from .runs import IDLE_RPM, Run, has_cooldown
 from .dataset import LogData, log_data
 from .identify import Identification, identify
+from .runs import IDLE_RPM, Run, has_cooldown
 
 NO_COOLDOWN = "no log has a cool-down (10 min or more at rest after running)"
 FEW_LEVELS = "distinct speed levels"

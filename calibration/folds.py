@@ -122,8 +122,8 @@ def longest_stretch_s(
 def blocks(time_s: np.ndarray, count: int = BLOCKS) -> tuple[Fold, ...]:
     """``count`` contiguous blocks of equal duration (the folds of a one-cycle log)."""
     edges = np.searchsorted(time_s, np.linspace(time_s[0], time_s[-1], count + 1)[1:-1])
-    bounds = [0, *sorted(set(int(e) for e in edges)), int(time_s.size)]
-    return tuple((a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
+    bounds = [0, *sorted({int(e) for e in edges}), int(time_s.size)]
+    return tuple((a, b) for a, b in itertools.pairwise(bounds) if b > a)
 
 
 def forward_splits(folds: Sequence[Fold], first: int = 1) -> list[tuple[tuple[Fold, ...], Fold]]:

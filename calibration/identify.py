@@ -736,9 +736,10 @@ def extrapolation(
     rms = [float(np.sqrt(np.mean(r[out] ** 2))) for _, _, r in options]
     best = int(np.argmin(rms))
     pick = best if rms[best] < rms[0] * (1 - PARSIMONY) else 0
-    name = lambda k: (
-        options[k][0] + (f" {options[k][1]:g} span" if options[k][0] == "blend" else "")
-    )  # noqa: E731
+
+    def name(k: int) -> str:
+        return options[k][0] + (f" {options[k][1]:g} span" if options[k][0] == "blend" else "")
+
     figures = ", ".join(f"{name(k)} {v:.2f} um" for k, v in enumerate(rms))
     return (
         options[pick][0],

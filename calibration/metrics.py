@@ -5,6 +5,7 @@ run that diverged) counts as 1e9 um, so that it loses. Pure."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -137,7 +138,7 @@ def expected_error(
     pooled = _figure("forward, outside, all speeds", np.where(out_rows, fwd, np.nan))
     edges = np.linspace(0.0, max(top_rpm, idle_rpm), SPEED_BANDS + 1)
     regions = [(0.0, idle_rpm, n <= idle_rpm)]
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in itertools.pairwise(edges):
         regions.append((max(lo, idle_rpm), float(hi), (n > max(lo, idle_rpm)) & (n <= hi)))
     bands = []
     for lo, hi, inside in regions:

@@ -372,7 +372,7 @@ def _header(c: ProbeCycle, reference: bool) -> list[str]:
         lines.append(
             f"MEAN OF {c.touches} SLOW TOUCHES, EACH WITHIN {c.spread_um:g} UM OF THE FIRST"
         )
-    return lines + [f"{spindle}, ABOUT {measuring_time_s(c):.0f} S. SEE DOCS/PROBING.MD"]
+    return [*lines, f"{spindle}, ABOUT {measuring_time_s(c):.0f} S. SEE DOCS/PROBING.MD"]
 
 
 # the words the ISO-style dialects spell differently around the probing itself
@@ -484,7 +484,7 @@ def _fanuc(c: ProbeCycle, reference: bool) -> list[str]:
             f"{cnt} = {cnt} + 1",  # ... then the counter that releases it
             f"IF [{cnt} GT {COUNTER_WRAP}] THEN {cnt} = 1",
         ]
-    return out + ["M30", "%"]
+    return [*out, "M30", "%"]
 
 
 def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
@@ -555,7 +555,7 @@ def _sinumerik(c: ProbeCycle, reference: bool) -> list[str]:
         ]
     if c.touches > 1:
         out += ["TC_SPREAD:", "SETAL(65004)", "M30"]
-    return out + ["TC_NOTRIP:", "SETAL(65001)", "M30"]
+    return [*out, "TC_NOTRIP:", "SETAL(65001)", "M30"]
 
 
 def _heidenhain(c: ProbeCycle, reference: bool) -> list[str]:
@@ -667,7 +667,7 @@ def _linuxcnc(c: ProbeCycle, reference: bool) -> list[str]:
             f"M68 E{c.value_aout} Q{val}",  # HAL sees them in this order too
             f"M68 E{c.counter_aout} Q{cnt}",
         ]
-    return out + ["M2", "%"]
+    return [*out, "M2", "%"]
 
 
 _WRITERS = {

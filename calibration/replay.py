@@ -26,9 +26,8 @@ from compensator.shaping import POLICIES, ShapedSeries, ShaperConfig, shape_seri
 from compensator.units import RANGE_TOLERANCE
 
 from .closedloop import probe_rows
-from .runs import bridge_gaps, gap_threshold_s
-
 from .metrics import against_expected, residual_stats
+from .runs import bridge_gaps, gap_threshold_s
 from .stability import equilibrium_and_tevr
 
 MAX_SPAN_S = 2 * 365.25 * 86400.0
@@ -414,7 +413,7 @@ def replay(
 
     if cut_warning:
         warnings.insert(0, cut_warning)
-    lo, hi = model.speed_range_rpm
+    _lo, hi = model.speed_range_rpm
     speed = np.abs(log.speed_rpm)
     over = speed > hi * (1 + RANGE_TOLERANCE)  # Predictor.above_range, vectorised
     if over.any():

@@ -361,7 +361,7 @@ def _without_password(url: str) -> tuple[str, bool]:
     carries one: it would end up in logs), and whether there was one."""
     try:
         parts = urlsplit(url)
-        userinfo, at, host = parts.netloc.rpartition("@")
+        userinfo, _at, host = parts.netloc.rpartition("@")
     except ValueError:
         return redact_url(url), "@" in url
     if not url_has_password(url):

@@ -17,7 +17,7 @@ import re
 import sys
 import time
 from collections.abc import Callable
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -914,7 +914,7 @@ class Wizard:
 
         self.out.rule("[bold]5/5 Save")
         s = self.session
-        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d")
+        stamp = datetime.now(UTC).strftime("%Y-%m-%d")
         base = f"{s['machine_id']}_{s['spindle_id']}_{stamp}"
         model_path = versioned_path(self.dir / "models" / f"{base}.json")
         model_path.parent.mkdir(parents=True, exist_ok=True)
@@ -1075,7 +1075,7 @@ def _console() -> Console:
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).replace(microsecond=0).isoformat()
+    return datetime.now(UTC).replace(microsecond=0).isoformat()
 
 
 def _clock(scale: float, anchor_s: float) -> Callable[[], float]:

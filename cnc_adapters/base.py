@@ -65,10 +65,10 @@ __all__ = [
     "build",
     "check_settings",
     "did_you_mean",
+    "host_options",
     "option_names",
     "query_params",
     "redact_url",
-    "host_options",
     "serial_options",
     "typed_params",
     "unknown",
@@ -166,7 +166,7 @@ class Link(ABC):
         if self.on_link_change is not None:
             try:
                 self.on_link_change(up, reason)
-            except Exception:  # noqa: BLE001 - a faulty listener must not break the link
+            except Exception:
                 log.exception("%s: on_link_change failed", self.name)
 
     def _set_down(self, reason: str) -> None:
@@ -245,7 +245,7 @@ def _nonzero(v: float) -> float:
 
 def _sign(v: Any) -> Any:
     if isinstance(v, bool):
-        raise ValueError("+1 or -1")  # noqa: TRY004 - pydantic reports a ValueError, not a TypeError
+        raise ValueError("+1 or -1")
     if isinstance(v, str):
         try:
             v = float(v)

@@ -53,8 +53,8 @@ from .base import (
     WriteRejectedError,
     query_params,
 )
-from .transport.tcp import TcpTransport
 from .serial_link import HaasAdapter, HaasMacros
+from .transport.tcp import TcpTransport
 
 __all__ = ["HaasMdcAdapter", "HaasMdcSettings"]
 

@@ -68,11 +68,11 @@ from .base import (
     Seconds,
     Text,
     UnreachableError,
-    url_has_password,
     WriteRejectedError,
     one_of,
     query_params,
     redact_url,
+    url_has_password,
     whole_sequence,
 )
 
@@ -566,7 +566,7 @@ class OpcUaLink:
             return self._resolve(client, ref, None, ns)
         except AdapterError:
             raise
-        except Exception as err:  # noqa: BLE001 - asyncua's parse errors are RuntimeErrors
+        except Exception as err:
             raise AdapterError(
                 f"{self._where('resolve ' + what, ref)}: no node id or browse path "
                 f"({type(err).__name__})"

@@ -100,7 +100,7 @@ def plc_type(v: Any) -> str:
     """A data type's canonical IEC name (``REAL``, ``LREAL``, ``DINT``, ``INT``, ``BOOL``) from
     any accepted spelling (``real32``, ``int16``, ``bit``, any case)."""
     if not isinstance(v, str):
-        raise ValueError(_TYPE_TEXT)  # noqa: TRY004 - pydantic reports a ValueError
+        raise ValueError(_TYPE_TEXT)
     word = v.strip().upper()
     word = _ALIASES.get(word, word)
     if word not in TYPES:
@@ -196,7 +196,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
     ValueError with one line that names the option, the value and the syntax allowed."""
     key = f"{role}_address"
     if not isinstance(text, str):  # a ValueError: the settings' one-line message
-        raise ValueError(f"{key} = {short(text)}: expected {SYNTAX[protocol]}")  # noqa: TRY004
+        raise ValueError(f"{key} = {short(text)}: expected {SYNTAX[protocol]}")
     addr = text.strip()
     if protocol == "s7":
         m = _S7_RE.fullmatch(addr)
@@ -622,7 +622,7 @@ _DRIVERS = {"s7": _S7, "modbus-tcp": _ModbusTcp, "ads": _Ads}
 def _quietly(fn: Any) -> None:
     try:
         fn()
-    except Exception:  # noqa: BLE001, S110 - closing what is already dead
+    except Exception:  # noqa: BLE001 - closing what is already dead
         pass
 
 

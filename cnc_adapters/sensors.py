@@ -246,7 +246,7 @@ class ModbusSensor(ModbusLink, Sensor):
         table: Literal["input", "holding"] = "input",
         register: int = 0,
         type: str = "int16",
-        word_order: Literal["big", "little"] = "big",  # noqa: A002
+        word_order: Literal["big", "little"] = "big",
         byte_order: Literal["big", "little"] = "big",
         timeout_s: float = 0.5,
         saturated_raw: tuple[float, ...] | str | None = None,
@@ -277,7 +277,7 @@ class OpcUaSensor(OpcUaLink, Sensor):
 
     name = "opcua"
     Settings = OpcUaSensorSettings
-    PRESETS = {
+    PRESETS: ClassVar[dict[str, dict[str, str]]] = {
         "virtual-cnc": {
             "namespace_uri": "urn:thermocomp:virtual-cnc",
             "node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Displacement",

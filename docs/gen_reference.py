@@ -242,8 +242,8 @@ def config_page() -> str:
 
 def _links_page_part() -> list[str]:
     """The options of each controller link, sensor-less: the `[spindle.adapter]` table."""
-    from cnc_adapters.registry import BACKENDS, settings_model
     from cnc_adapters.chiller import CHILLERS
+    from cnc_adapters.registry import BACKENDS, settings_model
 
     out = [
         "## `[spindle.adapter]`: the controller link {#section-spindle-adapter}",
@@ -256,7 +256,7 @@ def _links_page_part() -> list[str]:
     for name in BACKENDS:
         try:
             model = settings_model(name)
-        except Exception as err:  # a backend whose module cannot be imported here
+        except Exception as err:  # noqa: BLE001 - a backend whose module cannot be imported here
             out += [f'### `type = "{name}"`', "", f"(not importable at build time: {err})", ""]
             continue
         out += [f'### `type = "{name}"` {{#adapter-{name}}}', ""]

@@ -17,9 +17,6 @@ from urllib.parse import parse_qsl, urlsplit
 
 from pydantic import Field
 
-from compensator.speed_programs import PROGRAMS
-from compensator.speed_programs import program as make_program
-
 from cnc_adapters.base import (
     Adapter,
     AdapterError,
@@ -30,6 +27,9 @@ from cnc_adapters.base import (
     WriteRejectedError,
     one_of,
 )
+from compensator.speed_programs import PROGRAMS
+from compensator.speed_programs import program as make_program
+
 from .plant import PRESETS, SpindlePlant
 from .vcnc import SimClock, VirtualMachine
 

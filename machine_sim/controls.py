@@ -21,6 +21,7 @@ import threading
 from dataclasses import dataclass, field
 
 from cnc_adapters.control_profiles import ControllerProfile
+
 from .vcnc import OFFSET_LIMIT_UM, VirtualMachine
 
 

@@ -53,7 +53,7 @@ def detect_dialect(text: str) -> str:
             continue
         if re.match(r"^\d+\s+BEGIN PGM\b", s):
             return "heidenhain"
-        if s.startswith("%_N_") or s.startswith(";"):
+        if s.startswith(("%_N_", ";")):
             return "sinumerik"
         if re.match(r"^O\d+", s):
             return "fanuc"
@@ -190,7 +190,7 @@ def parse_nc(text: str, name: str = "nc-program") -> Program:
         if dialect == "fanuc":
             if re.match(r"^O\d{1,5}\s*(\(.*\))?$", s):
                 continue
-        if dialect == "sinumerik" and (s.startswith("%_N_") or s.startswith(";$PATH")):
+        if dialect == "sinumerik" and (s.startswith(("%_N_", ";$PATH"))):
             continue
         body = s
         if dialect in ("fanuc", "linuxcnc"):

@@ -9,7 +9,6 @@ import pytest
 
 from compensator import ThermalModel, ThermalStateCoefficients
 
-
 # The modules with the longest tests, collected first: pytest-xdist hands tests out in collection
 # order and a worker can take over only tests not yet started, so a long test left to the end keeps
 # the run waiting on one core. Each module's tests stay together (their module fixtures).

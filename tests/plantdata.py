@@ -4,14 +4,14 @@ ambient drift, 0.05 um noise and 0.1 um quantisation)."""
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 from calibration.runs import Run
-from machine_sim import SpindlePlant, preset
 from compensator.speed_programs import job_shop_day, paper_calibration, random_validation
+from machine_sim import SpindlePlant, preset
 
 
-@lru_cache(maxsize=None)
+@cache
 def plant_run(program: str, dt_s: float, seed: int, preset_name: str = "motorized-27k") -> Run:
     p = preset(preset_name)
     prog = {

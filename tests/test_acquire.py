@@ -11,11 +11,11 @@ from calibration.acquire import COLUMNS, AcquireConfig, Problem, Recorder
 from calibration.nc_programs import calibration_profile
 from cnc_adapters.base import AdapterTimeoutError, UnreachableError
 from cnc_adapters.sensors import AsciiSensor, ModbusSensor, SensorOverRangeError, open_sensor
+from compensator.errors import AcquisitionError
+from compensator.io import RunLogAppender, read_run_log
 from machine_sim import SpindlePlant, preset
 from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import VirtualMachine
-from compensator.errors import AcquisitionError
-from compensator.io import RunLogAppender, read_run_log
 
 MAX_RPM = 27000.0
 
@@ -72,7 +72,7 @@ def rig(tmp_path):
 
 
 def recorder(rig, *, on_sample=None, start_now=None, **cfg):
-    clock, vm, pty, amp, prog, tmp = rig
+    clock, vm, pty, _amp, prog, tmp = rig
     ctl = SimAdapter(machine=vm)
     sensor = AsciiSensor(
         pty.ctl, request="M", timeout_s=0.5, range_um=(-500, 500), clock=clock, backoff_s=0.0
@@ -106,7 +106,7 @@ def at(seconds: float, action):
 
 
 def test_clean_recording_matches_the_plant(rig):
-    clock, vm, *_ = rig
+    _clock, vm, *_ = rig
     rec = recorder(rig).run()
     assert rec.complete and rec.rows > 100 and not rec.flagged
     log = read_run_log(rec.path)
@@ -121,7 +121,7 @@ def test_clean_recording_matches_the_plant(rig):
 
 
 def test_frozen_sensor_stops_with_a_clear_message_and_keeps_the_data(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    _clock, _vm, _pty, amp, _prog, tmp = rig
     rec = recorder(rig, on_sample=at(1500, lambda: setattr(amp, "mode", "frozen")))
     with pytest.raises(
         AcquisitionError, match=r"sensor frozen at .* check the amplifier and cable"
@@ -143,7 +143,7 @@ def test_frozen_sensor_stops_with_a_clear_message_and_keeps_the_data(rig):
 
 
 def test_saturated_sensor_stops_and_says_to_reset_the_gap(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    _clock, _vm, _pty, amp, _prog, tmp = rig
     rec = recorder(rig, on_sample=at(900, lambda: setattr(amp, "mode", "over")))
     with pytest.raises(AcquisitionError, match=r"saturated.*re-set the probe gap"):
         rec.run()
@@ -153,7 +153,7 @@ def test_saturated_sensor_stops_and_says_to_reset_the_gap(rig):
 
 
 def test_unplugged_sensor_stops_keeps_the_data_and_resumes_when_plugged_back(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    clock, _vm, pty, _amp, _prog, tmp = rig
     rec = recorder(rig, on_sample=at(1200, pty.unplug))
     with pytest.raises(AcquisitionError, match=r"no reading from the sensor for \d+ s .*unplugged"):
         rec.run()
@@ -171,7 +171,7 @@ def test_unplugged_sensor_stops_keeps_the_data_and_resumes_when_plugged_back(rig
 
 
 def test_a_knocked_probe_is_flagged_as_a_jump_and_the_recording_goes_on(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    _clock, _vm, _pty, amp, _prog, _tmp = rig
     rec = recorder(rig, on_sample=at(2000, lambda: setattr(amp, "bump_um", 40.0))).run()
     assert rec.complete
     jumps = [e for e in rec.events if e.problem == Problem.JUMP]
@@ -180,7 +180,7 @@ def test_a_knocked_probe_is_flagged_as_a_jump_and_the_recording_goes_on(rig):
 
 
 def test_a_spindle_that_does_not_follow_the_program_is_reported(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    _clock, vm, _pty, _amp, _prog, _tmp = rig
 
     def override(sample, _rec):  # the operator turns the override knob for ten minutes
         vm.override_speed(2000.0 if 1000 <= sample.time_s < 1600 else None)
@@ -193,7 +193,7 @@ def test_a_spindle_that_does_not_follow_the_program_is_reported(rig):
 
 
 def test_no_spindle_start_times_out(rig):
-    clock, vm, pty, amp, prog, tmp = rig
+    _clock, vm, _pty, _amp, _prog, _tmp = rig
     vm.load_program(None)
     with pytest.raises(AcquisitionError, match="did not start within 300 s"):
         recorder(rig, start_timeout_s=300).run()
@@ -308,9 +308,9 @@ def test_the_start_timeout_counts_wall_seconds_from_this_recording(rig):
     """A resumed recording waits its full time-out again (it used to count from the log's
     start and give up at once), and a simulated clock 100x faster than the wall does not
     shorten it."""
-    clock, vm, pty, amp, prog, tmp = rig
+    clock, vm, pty, _amp, prog, tmp = rig
     vm.load_program(None)
-    wall = lambda: (clock.t - clock.t0) / 100  # noqa: E731
+    wall = lambda: (clock.t - clock.t0) / 100
     rows = []
     for _ in range(2):
         ctl = SimAdapter(machine=vm)
@@ -339,10 +339,10 @@ def test_the_start_timeout_counts_wall_seconds_from_this_recording(rig):
 def test_a_start_by_hand_begins_the_program_clock(rig):
     """The operator's "start now" begins the program though the spindle has not turned yet
     (a program that opens with a rest); the event says so."""
-    clock, vm, pty, amp, prog, tmp = rig
+    clock, vm, _pty, _amp, _prog, _tmp = rig
     vm.load_program(None)  # the spindle stays at rest: only the hand starts the clock
     t0 = clock.t
-    pressed = lambda: clock.t - t0 >= 100  # noqa: E731
+    pressed = lambda: clock.t - t0 >= 100
     rec = recorder(rig, start_now=pressed, start_timeout_s=1e6)
     events = []
     rec.on_event = events.append

@@ -15,9 +15,9 @@ from cnc_adapters import BACKENDS, backend, check_adapter, open_adapter, setting
 from cnc_adapters.base import RUNTIME_ONLY, Link
 from cnc_adapters.sensors import SENSORS, open_sensor
 from cnc_adapters.sensors import settings_model as sensor_settings_model
+from compensator.errors import ConfigError
 from machine_sim import SpindlePlant, preset
 from machine_sim.vcnc import SimClock, VirtualMachine
-from compensator.errors import ConfigError
 
 # the smallest configuration of each, by URL
 MINIMAL = {

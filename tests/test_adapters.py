@@ -8,7 +8,6 @@ a real HAL (halrun) where LinuxCNC is installed.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -16,9 +15,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import pytest
 from devices import (
@@ -466,7 +465,7 @@ def haas(tmp_path):
     [("silent", AdapterTimeoutError), ("partial", AdapterTimeoutError), ("garbage", BadValueError)],
 )
 def test_serial_bad_replies(haas, mode, error):
-    _, regs, dev, link = haas
+    _, _regs, dev, link = haas
     assert link.read_speed() == 6000.0
     dev.mode = mode
     with pytest.raises(error):
@@ -486,7 +485,7 @@ def test_serial_write_refused(haas):
 
 
 def test_serial_device_vanishes_and_returns(haas):
-    pty, regs, dev, link = haas
+    pty, regs, _dev, link = haas
     assert link.read_speed() == 6000.0
     pty.unplug()
     with pytest.raises(UnreachableError):
@@ -629,8 +628,8 @@ def test_opc40502_preset_finds_the_spindle_by_browse_path(vcnc):
 
 
 def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take():
-    from machine_sim.vcnc import step
     from compensator.clock import SteppedClock
+    from machine_sim.vcnc import step
 
     # lock-step: each server tick (take the write or refuse and revert it) is done when step returns
     clock = SteppedClock()
@@ -798,7 +797,6 @@ def test_a_hung_controller_times_out_drops_the_session_and_reconnects(vcnc_proce
 
 from test_linuxcnc import run_in_hal  # noqa: E402 - one HAL at a time, as LinuxCNC starts it
 from test_linuxcnc import why_not as _no_hal  # noqa: E402
-
 
 # the adapter in a HAL of its own (halrun), as LinuxCNC starts it; motion's
 # axis.z.eoffset-request (accumulated counts x scale) stood in for by conv_s32_float and mult2

@@ -151,8 +151,8 @@ def test_every_third_party_import_is_declared():
 
     root = Path(__file__).parents[1]
     project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
-    norm = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
-    req = lambda spec: norm(re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0])  # noqa: E731
+    norm = lambda name: re.sub(r"[-_.]+", "-", name).lower()
+    req = lambda spec: norm(re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0])
     base = {req(d) for d in project["dependencies"]}
     extras = {
         req(d)

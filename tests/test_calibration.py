@@ -7,8 +7,8 @@ import pytest
 from plantdata import identify_runs, plant_run
 
 from calibration.estimators import paper_ols
-from calibration.runs import Run, has_cooldown, resample
 from calibration.fit import NO_COOLDOWN
+from calibration.runs import Run, has_cooldown, resample
 from calibration.stability import equilibrium_and_tevr as equilibrium
 from compensator import CalibrationError
 

@@ -25,9 +25,6 @@ from cnc_adapters.chiller import (
     check_chiller,
     open_chiller,
 )
-from machine_sim import SpindlePlant, preset
-from machine_sim.chiller_server import HOLDING, INPUT, ChillerServer
-from machine_sim.vcnc import free_port
 from compensator.errors import (
     AdapterError,
     AdapterTimeoutError,
@@ -36,6 +33,9 @@ from compensator.errors import (
     UnreachableError,
     WriteRejectedError,
 )
+from machine_sim import SpindlePlant, preset
+from machine_sim.chiller_server import HOLDING, INPUT, ChillerServer
+from machine_sim.vcnc import free_port
 
 
 class Clock:

@@ -320,7 +320,7 @@ def test_replay_applies_the_runtimes_shaping_and_compares_the_policies(fitted, l
     assert 0.5 < rep["shaping"]["cutting_fraction"] < 0.95
     log = read_run_log(out)
     cols, t = log.extras, log.time_s
-    applied, ideal, cutting = cols["applied_offset_um"], cols["offset_um"], cols["cutting"] == 1
+    applied, _ideal, cutting = cols["applied_offset_um"], cols["offset_um"], cols["cutting"] == 1
     rate = np.abs(np.diff(applied)) / np.diff(t)
     both = cutting[1:] & cutting[:-1]
     assert rate[both].max() <= 1.0 + 1e-9  # the runtime's default slew limit while cutting

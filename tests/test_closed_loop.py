@@ -17,6 +17,10 @@ from test_runtime_statespace import InputSim, with_inputs
 
 from cnc_adapters import AdapterError, AdapterTimeoutError
 from cnc_adapters.opcua import OpcUaAdapter
+from compensator import ConfigError
+from compensator.io import load_state, read_run_log, save_model
+from compensator.model import ThermalModel
+from compensator.speed_programs import Program, job_shop_day
 from machine_sim import SpindlePlant, preset
 from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import (
@@ -27,10 +31,6 @@ from machine_sim.vcnc import (
     call,
     running,
 )
-from compensator import ConfigError
-from compensator.io import load_state, read_run_log, save_model
-from compensator.model import ThermalModel
-from compensator.speed_programs import Program, job_shop_day
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

@@ -284,12 +284,12 @@ def test_an_adapter_and_a_chiller_typo_speak_the_same_dialect_under_their_table(
 
 
 def test_a_secret_is_never_echoed(tmp_path):
-    p, text = load_error(tmp_path, config_text(("mqtt",), {"pasword_file": "hunter2-secret"}))
+    _p, text = load_error(tmp_path, config_text(("mqtt",), {"pasword_file": "hunter2-secret"}))
     assert (
         "hunter2" not in text
         and "mqtt.pasword_file: unknown key (did you mean 'password_file'?)" in text
     )
-    p, text = load_error(
+    _p, text = load_error(
         tmp_path,
         config_text(("mqtt",), {"host": "user:hunter2@broker"}).replace('host = "broker"\n', "", 1),
     )
@@ -317,10 +317,9 @@ def test_the_cli_prints_each_problem_on_its_own_line_and_exits_non_zero(tmp_path
 
 
 def test_an_opcua_read_of_a_missing_node_names_the_operation_the_node_and_the_server():
+    from cnc_adapters import AdapterError, open_adapter
     from machine_sim import SpindlePlant, preset
     from machine_sim.vcnc import SimClock, VirtualCNC, VirtualMachine, running
-
-    from cnc_adapters import AdapterError, open_adapter
 
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
     with running(VirtualCNC(vm)) as cnc:  # a real asyncua server

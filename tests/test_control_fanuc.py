@@ -26,15 +26,15 @@ from cnc_adapters import (
     WriteRejectedError,
     open_adapter,
 )
-from cnc_adapters.focas import FocasAdapter, command, decode_scaled, request_packet
 from cnc_adapters.control_profiles import profile
+from cnc_adapters.focas import FocasAdapter, command, decode_scaled, request_packet
+from compensator.clock import SteppedClock
+from compensator.io import read_run_log
+from compensator.speed_programs import Program
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.focas_server import FocasServer, PlainControl, encode_scaled
 from machine_sim.vcnc import VirtualMachine
-from compensator.clock import SteppedClock
-from compensator.io import read_run_log
-from compensator.speed_programs import Program
 
 FANUC = profile("fanuc")
 # a warm-up, two operations with a tool change, a run-down: half an hour of the thermal transient
@@ -176,7 +176,7 @@ def test_a_vacant_variable_is_a_bad_value_not_a_zero():
 
 
 def test_a_refused_write_is_write_rejected_and_the_control_keeps_its_value():
-    vm, control = fanuc_machine()
+    _vm, control = fanuc_machine()
     with FocasServer(control) as srv:
         link = open_adapter({"profile": "fanuc", "host": "127.0.0.1", "port": srv.port})
         try:
@@ -196,7 +196,7 @@ def test_a_refused_write_is_write_rejected_and_the_control_keeps_its_value():
 def test_the_ladder_refusing_shows_in_the_ack_not_in_focas():
     """On a real control the macro variable takes any number: the refusal is the ladder's, so
     only ``ack_macro`` (the value the control took) reveals it."""
-    vm, control = fanuc_machine()
+    _vm, control = fanuc_machine()
     with FocasServer(control, ack_macro=501, refuse_in="ladder") as srv:
         plain = open_adapter({"profile": "fanuc", "host": "127.0.0.1", "port": srv.port})
         acked = open_adapter(

@@ -29,17 +29,17 @@ from cnc_adapters import (
     check_adapter,
     open_adapter,
 )
-from cnc_adapters.haas_mdc import HaasMdcAdapter, HaasMdcSettings
 from cnc_adapters.control_profiles import profile
+from cnc_adapters.haas_mdc import HaasMdcAdapter, HaasMdcSettings
 from cnc_adapters.serial_link import HaasSettings
-from machine_sim import SpindlePlant, preset
-from machine_sim.controls import EmulatedControl
-from machine_sim.haas_server import HaasMdcServer
-from machine_sim.vcnc import VirtualMachine
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError
 from compensator.io import read_run_log
 from compensator.speed_programs import Program
+from machine_sim import SpindlePlant, preset
+from machine_sim.controls import EmulatedControl
+from machine_sim.haas_server import HaasMdcServer
+from machine_sim.vcnc import VirtualMachine
 
 HAAS = profile("haas")
 PROGRAM = Program(
@@ -122,7 +122,7 @@ def test_round_trips_in_the_controls_own_units(rig):
 
 
 def test_the_macro_value_is_not_the_applied_wear_until_a_safe_point(rig):
-    clock, vm, control, server, link = rig
+    clock, vm, _control, server, link = rig
     link.write_offset_um(-20.0)
     clock.advance(5.0)
     vm.advance()
@@ -187,7 +187,7 @@ def test_the_haas_options_are_the_serial_links():
 
 
 def test_a_refused_write_is_write_rejected_and_changes_nothing(rig):
-    _, _, control, server, link = rig
+    _, _, control, _server, link = rig
     link.write_offset_um(-10.0)
     with pytest.raises(WriteRejectedError, match=r"\?E10500 0\.6000"):
         link.write_offset_um(-600.0)  # 0.6 mm: past the control's 0.5 mm
@@ -219,7 +219,7 @@ def test_unknown_requests_and_variables_are_refused(rig):
 
 
 def test_the_probe_cycles_measurement_handshake(rig):
-    _, _, _, server, link = rig
+    _, _, _, server, _link = rig
     probe = client(
         server, measurement_var=10510, measurement_sequence_var=10511, measurement_sigma_var=10512
     )
@@ -272,7 +272,7 @@ def test_the_first_request_on_a_new_connection_is_sent_again_once():
 
 
 def test_output_another_client_asked_for_earlier_is_dropped(rig):
-    _, vm, _, server, link = rig
+    _, _vm, _, server, link = rig
     link.write_offset_um(-7.0)
     with socket.create_connection(("127.0.0.1", server.port), timeout=2) as other:
         other.sendall(b"?Q600 3027\r\n")  # the control sends its reply to both connections

@@ -29,15 +29,15 @@ from cnc_adapters import (
     check_adapter,
     open_adapter,
 )
-from cnc_adapters.plc import PlcAdapter, encode_number, parse_address
 from cnc_adapters.control_profiles import ControllerProfile, profile
+from cnc_adapters.plc import PlcAdapter, encode_number, parse_address
+from compensator.clock import SteppedClock
+from compensator.io import read_run_log
+from compensator.speed_programs import Program
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
 from machine_sim.vcnc import VirtualMachine
-from compensator.clock import SteppedClock
-from compensator.io import read_run_log
-from compensator.speed_programs import Program
 from thermocomp.runtime import Alarm
 
 # each protocol: the emulated PLC, where its program keeps the variables, the control behind it

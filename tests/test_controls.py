@@ -17,6 +17,11 @@ from test_transients import assert_slow_while_cutting
 
 from cnc_adapters import check_adapter
 from cnc_adapters.control_profiles import PROFILES, adapter_settings, profile
+from compensator.clock import SteppedClock
+from compensator.errors import ConfigError
+from compensator.io import read_run_log
+from compensator.shaping import OffsetShaper, ShaperConfig
+from compensator.speed_programs import Program
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.vcnc import (
@@ -27,11 +32,6 @@ from machine_sim.vcnc import (
     running,
     step,
 )
-from compensator.clock import SteppedClock
-from compensator.errors import ConfigError
-from compensator.io import read_run_log
-from compensator.speed_programs import Program
-from compensator.shaping import OffsetShaper, ShaperConfig
 from thermocomp.runtime import Alarm
 from thermocomp.runtime.config import load_config
 

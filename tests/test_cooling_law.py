@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -14,15 +15,15 @@ from compensator.errors import ConfigError, NonFiniteInputError
 
 
 def law(**kw):
-    cfg = dict(
-        rite_um=17.0,
-        preheat_c=16.0,
-        min_c=10.0,
-        max_c=24.0,
-        rate_k_per_min=1.0,
-        resolution_c=0.1,
-        derivative_filter_s=5.0,
-    )
+    cfg = {
+        "rite_um": 17.0,
+        "preheat_c": 16.0,
+        "min_c": 10.0,
+        "max_c": 24.0,
+        "rate_k_per_min": 1.0,
+        "resolution_c": 0.1,
+        "derivative_filter_s": 5.0,
+    }
     cfg.update(kw)
     return CoolingLaw(**cfg)
 
@@ -49,7 +50,7 @@ def test_preheat_until_rite_then_closed_without_a_bump():
     # above RITE the error is negative: the command goes colder, one count at a time
     later = [s.setpoint_c for s in states[first:]]
     assert later[-1] < 16.0
-    assert max(abs(a - b) for a, b in zip(later, later[1:])) <= 0.1 + 1e-9
+    assert max(abs(a - b) for a, b in itertools.pairwise(later)) <= 0.1 + 1e-9
 
 
 def test_immediate_start_and_a_long_rest_returns_to_preheat():
@@ -109,7 +110,7 @@ def test_derivative_filter_damps_a_noisy_estimate():
         law(gains=gains, derivative_filter_s=30.0, rate_k_per_min=1000.0, resolution_c=0.0),
         [17.0, *noisy],
     )
-    spread = lambda xs: float(np.std([x.setpoint_c for x in xs[100:]]))  # noqa: E731
+    spread = lambda xs: float(np.std([x.setpoint_c for x in xs[100:]]))
     assert spread(filt) < spread(raw) / 4
 
 
@@ -124,7 +125,7 @@ def test_no_estimate_holds_then_goes_to_the_constant_and_resumes_bumplessly():
     assert back.phase == "closed" and abs(back.setpoint_c - before) <= 0.1 + 1e-9
     gone = run(cl, [math.nan] * 600, state=s)
     assert gone[-1].setpoint_c == pytest.approx(16.0)  # the constant after hold_s, ramped
-    assert all(abs(a.setpoint_c - b.setpoint_c) <= 0.1 + 1e-9 for a, b in zip(gone, gone[1:]))
+    assert all(abs(a.setpoint_c - b.setpoint_c) <= 0.1 + 1e-9 for a, b in itertools.pairwise(gone))
 
 
 def test_dew_point_guard_wins_over_the_rate():

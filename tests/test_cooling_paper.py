@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from calibration import cooling_commands, cooling_studies
-from machine_sim.plant import preset
 from compensator.io import read_run_log, save_model, write_run_log
+from machine_sim.plant import preset
 from thermocomp.cli import main
 
 
@@ -55,7 +55,7 @@ def test_tune_identifies_the_step_and_derives_simc_gains(tmp_path, capsys):
     # the logged step run gives the same model
     assert main(["cooling", "tune", "--log", str(step)]) == 0
     again = capsys.readouterr().out
-    line = lambda text: next(x for x in text.splitlines() if x.startswith("step model"))  # noqa: E731
+    line = lambda text: next(x for x in text.splitlines() if x.startswith("step model"))
     assert line(out) == line(again)
     t = cooling_commands.tune_plant(preset("mechanical-cooled"))
     # colder coolant, smaller growth: a positive gain of the order the plant shows (~1 um/K)

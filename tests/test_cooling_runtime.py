@@ -12,13 +12,13 @@ import pytest
 
 from calibration.cooling_studies import fit_cooling_model
 from cnc_adapters.chiller import open_chiller
+from compensator.errors import ConfigError
+from compensator.io import save_model
+from compensator.speed_programs import Program
 from machine_sim.adapter import SimAdapter
 from machine_sim.chiller_server import ChillerServer
 from machine_sim.plant import SpindlePlant, preset
 from machine_sim.vcnc import VirtualMachine
-from compensator.errors import ConfigError
-from compensator.io import save_model
-from compensator.speed_programs import Program
 from thermocomp.runtime.config import load_config
 from thermocomp.runtime.cooling import CHILLER_FAILED, CoolingRuntime
 from thermocomp.runtime.spindle import SpindleRuntime
@@ -154,7 +154,7 @@ def test_pid_over_modbus_holds_the_error_and_the_offset_cancels_the_rest(tmp_pat
     rt.close()
     path = next(rig.cfg.journal_path.glob("s1.cooling-*.csv"))
     with open(path) as fh:
-        body = [r for r in csv.DictReader(x for x in fh if not x.startswith("#"))]
+        body = list(csv.DictReader(x for x in fh if not x.startswith("#")))
     assert len(body) == len(rows)
     assert {r["phase"] for r in body} == {"preheat", "closed"}
     assert all(r["supply_c"] != "" for r in body)

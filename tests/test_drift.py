@@ -90,7 +90,7 @@ def measure(bench, y: float, cycles: int = 60) -> dict:
 
 
 @pytest.fixture
-def settled(tmp_path, simple_model):  # noqa: F811
+def settled(tmp_path, simple_model):
     b = Bench(tmp_path / "a", simple_model, observer="enabled = true\ngate_sigma = 1000.0")
     b.run(1200)  # 12 time constants at speed: the model has settled
     return b
@@ -106,7 +106,7 @@ def test_a_model_that_holds_raises_no_drift(settled, caplog):
 
 def test_a_sustained_shift_raises_model_drift_naming_its_size_and_start(
     settled, caplog, tmp_path, simple_model
-):  # noqa: F811
+):
     caplog.set_level(logging.INFO)
     for k in range(6):
         measure(settled, model_only(settled.rt) + (0.2 if k % 2 else -0.2))

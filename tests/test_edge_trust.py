@@ -4,6 +4,7 @@ and checks the class of fault, not only the case."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import signal
@@ -17,11 +18,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_closed_loop import simple_model  # noqa: F401 - the model file fixture
 
-from cnc_adapters import AdapterError, BadValueError
+from cnc_adapters import AdapterError
 from cnc_adapters.opcua import OpcUaAdapter
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.errors import ConfigError, ModelError, NonFiniteInputError
 from compensator.estimate import Estimate
@@ -31,6 +29,9 @@ from compensator.io.retention import DAY_S, day_start_s
 from compensator.io.state import load_state
 from compensator.observer import SIGMA_LIMIT_UM, ObserverConfig, ObserverState, measurement_update
 from compensator.shaping import ShaperConfig
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
 from thermocomp.runtime.lock import AlreadyRunningError, StateDirLock
@@ -96,7 +97,7 @@ class Rig:
 
 
 @pytest.fixture
-def rig(tmp_path, simple_model):  # noqa: F811 - the fixture imported above
+def rig(tmp_path, simple_model):
     r = Rig(tmp_path, simple_model)
     yield r
     r.rt.close()
@@ -158,7 +159,7 @@ def test_an_absurd_held_offset_is_never_written_back(rig, held):
 
 
 @pytest.mark.parametrize("over_range", ["clamp", "extrapolate"])
-def test_an_impossible_speed_is_a_failed_read_in_every_mode(tmp_path, simple_model, over_range):  # noqa: F811
+def test_an_impossible_speed_is_a_failed_read_in_every_mode(tmp_path, simple_model, over_range):
     r = Rig(tmp_path, simple_model, faults=f'over_range = "{over_range}"')
     try:
         r.vm.override_speed(10000.0)
@@ -202,7 +203,7 @@ def test_a_write_a_hung_controller_took_late_is_followed_at_the_slew_limit(rig):
     rig.cycles(5, dt=0.03)
     rig.cycles(20)
     assert len(done) > 10
-    for (t0, a0), (t1, a1) in zip(done, done[1:]):
+    for (t0, a0), (t1, a1) in itertools.pairwise(done):
         limit = rig.rt.cfg.shaping.rate_limit_um_per_s * (t1 - t0)
         assert abs(a1 - a0) <= limit + 1e-9, (t0, t1, a0, a1)
 
@@ -260,7 +261,7 @@ def test_a_speed_or_signal_with_a_bad_status_is_never_used():
                 link.close()
 
 
-def test_a_clock_behind_at_the_start_is_corrected_at_its_first_step(tmp_path, simple_model):  # noqa: F811
+def test_a_clock_behind_at_the_start_is_corrected_at_its_first_step(tmp_path, simple_model):
     """A box without a real-time clock boots with the clock where it stopped; 10 h later in
     truth. Time synchronisation steps the clock +10 h a minute after the start: the downtime is
     measured again, and the estimate ends where a right clock would have put it."""
@@ -297,7 +298,7 @@ def test_a_clock_behind_at_the_start_is_corrected_at_its_first_step(tmp_path, si
 
 def test_a_latin1_byte_in_the_configuration_is_one_line_and_a_reload_keeps_running(
     tmp_path, simple_model
-):  # noqa: F811
+):
     cfg = write_config(tmp_path, simple_model)
     bad = cfg.read_bytes() + "# für 20°C\n".encode("latin-1")
     other = tmp_path / "bad.toml"
@@ -321,7 +322,7 @@ def test_a_latin1_byte_in_the_configuration_is_one_line_and_a_reload_keeps_runni
         svc.close()
 
 
-def test_signals_during_the_start_are_kept_not_fatal(tmp_path, simple_model):  # noqa: F811
+def test_signals_during_the_start_are_kept_not_fatal(tmp_path, simple_model):
     from thermocomp.cli import _EarlySignals
 
     saved = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)}
@@ -339,7 +340,7 @@ def test_signals_during_the_start_are_kept_not_fatal(tmp_path, simple_model):  #
             signal.signal(s, h)
 
 
-def test_a_fifo_in_place_of_the_state_or_model_never_hangs_the_start(tmp_path, simple_model):  # noqa: F811
+def test_a_fifo_in_place_of_the_state_or_model_never_hangs_the_start(tmp_path, simple_model):
     cfg = write_config(tmp_path, simple_model)
     state = tmp_path / "state"
     state.mkdir()
@@ -351,7 +352,7 @@ def test_a_fifo_in_place_of_the_state_or_model_never_hangs_the_start(tmp_path, s
             svc = Service(cfg, clock=lambda: 0.0, wall=lambda: WALL0)
             result["alarms"] = svc.spindles["s1"]._startup_alarms
             svc.close()
-        except Exception as err:  # noqa: BLE001 - reported below
+        except Exception as err:
             result["error"] = err
 
     th = threading.Thread(target=start, daemon=True)
@@ -380,7 +381,7 @@ def test_the_lock_holds_when_its_file_is_removed(tmp_path):
 # -- the record lost ------------------------------------------------------------------------------
 
 
-def test_a_clock_months_ahead_deletes_no_history(tmp_path, simple_model):  # noqa: F811
+def test_a_clock_months_ahead_deletes_no_history(tmp_path, simple_model):
     cfg = write_config(tmp_path, simple_model)
     jdir = tmp_path / "state" / "journal"
     jdir.mkdir(parents=True)
@@ -403,8 +404,9 @@ def test_a_clock_months_ahead_deletes_no_history(tmp_path, simple_model):  # noq
 
 
 def test_a_stray_quote_or_a_huge_line_in_a_journal_loses_no_other_row(tmp_path, capsys):
-    from thermocomp.commands.journal import export
     import argparse
+
+    from thermocomp.commands.journal import export
 
     jdir = tmp_path / "journal"
     j = Journal(jdir, "s1", {"spindle": "s1"})
@@ -457,12 +459,12 @@ def _day(epoch_s: float) -> str:
     return utc_day(epoch_s)
 
 
-def test_an_export_across_an_older_journal_replays(tmp_path, simple_model):  # noqa: F811
+def test_an_export_across_an_older_journal_replays(tmp_path, simple_model):
     """A day written by a version whose journal had 9 columns, then one with the cutting columns:
     what `journal export` writes, `replay` reads."""
-    from calibration.replay import replay
     import argparse
 
+    from calibration.replay import replay
     from thermocomp.commands.journal import export
 
     jdir = tmp_path / "journal"
@@ -502,7 +504,7 @@ def test_an_export_across_an_older_journal_replays(tmp_path, simple_model):  # n
 
 def test_idle_connections_to_the_control_socket_never_keep_a_measurement_waiting(
     tmp_path, simple_model
-):  # noqa: F811
+):
     import socket
 
     from test_measure import Rig as ServiceRig
@@ -549,7 +551,7 @@ def test_a_broker_that_takes_the_connection_and_never_answers_is_an_outage(caplo
         srv.close()
 
 
-def test_no_secret_is_echoed_and_a_host_with_a_password_is_refused(tmp_path, simple_model):  # noqa: F811
+def test_no_secret_is_echoed_and_a_host_with_a_password_is_refused(tmp_path, simple_model):
     base = write_config(tmp_path, simple_model).read_text()
     for extra, secret in (
         ('[mqtt]\nhost = "broker"\npassword = "hunter2-secret"\n', "hunter2-secret"),
@@ -571,7 +573,7 @@ def test_no_secret_is_echoed_and_a_host_with_a_password_is_refused(tmp_path, sim
 
 def test_a_spindle_whose_every_cycle_fails_stops_the_service_with_one_line(
     tmp_path, simple_model, caplog
-):  # noqa: F811
+):
     import logging
 
     t = [0.0]
@@ -596,7 +598,7 @@ def test_a_spindle_whose_every_cycle_fails_stops_the_service_with_one_line(
         svc.close()
 
 
-def test_cycles_that_run_late_are_said_and_so_is_their_end(tmp_path, simple_model, caplog):  # noqa: F811
+def test_cycles_that_run_late_are_said_and_so_is_their_end(tmp_path, simple_model, caplog):
     """A box too busy (or a link too slow) for its period lags the offset behind the growth: the
     service says so when a cycle runs a whole period late, in its status meanwhile, and again when
     ten cycles in a row ran on time. Time moves only by the test's hand."""

@@ -12,13 +12,12 @@ from pathlib import Path
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
+from test_runtime_statespace import WALL0, Bench, events, speed_only, with_inputs, write_config
 
 from compensator.expected import MIN_FORWARD_FOLDS, Band, ExpectedError, Figure
 from compensator.io import read_run_log, save_model
 from thermocomp.runtime import Alarm, Service
 from thermocomp.runtime.status import metrics_text, snapshot, spindle_status
-
-from test_runtime_statespace import WALL0, Bench, events, speed_only, with_inputs, write_config
 
 MID = "3333-6667 rpm"  # the band of the bench's 5000 rpm
 

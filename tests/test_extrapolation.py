@@ -128,8 +128,8 @@ def test_bounded_sensitivities_keep_only_the_penalties_physics_allows():
     """Two nearly equal sensors whose small difference happens to follow the growth: an
     unpenalised fit trades them off at large opposite gains (+24 and -16 um/K); the bounded structure keeps only the penalties that bring each
     within the bound, and fails in one line when none does."""
-    from compensator.errors import CalibrationError
     from calibration.estimators import ridge_bank as rb
+    from compensator.errors import CalibrationError
 
     rng = np.random.default_rng(4)
     size = 2000

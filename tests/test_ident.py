@@ -23,8 +23,8 @@ from calibration.estimators.ridge_bank import (
     hac_stderr,
 )
 from calibration.folds import CYCLE_RULE, describe_cycles, split_cycles
-from compensator.filters import filter_bank
 from compensator.errors import CalibrationError, NonFiniteInputError
+from compensator.filters import filter_bank
 
 H = 3600.0
 
@@ -438,7 +438,7 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
     from calibration.identify import LogData, identify
 
     t, n, sensors, y = _collinear()
-    a, b = split_cycles(t, n)[2]
+    a, _b = split_cycles(t, n)[2]
     two = identify(
         [LogData("two", t[:a], n[:a], y[:a], {k: v[:a] for k, v in sensors.items()})],
         tuple(sensors),
@@ -448,7 +448,7 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
     four = identify(
         [LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None
     )
-    names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]  # noqa: E731
+    names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]
     assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs"]
     assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca", "ridge+bounded"]
     few = identify(
@@ -471,7 +471,7 @@ def test_the_fit_states_the_error_to_expect_by_speed_band():
     from calibration.identify import LogData, identify
     from calibration.metrics import expected_error
 
-    t, n, inputs, y = synthetic()
+    t, n, _inputs, y = synthetic()
     fit = identify([LogData("s", t, n, y)], physical=False, probe_target_um=None)
     bands = fit.model.fit["expected_error"]["bands"]
     assert bands[0]["speed_rpm"] == [0.0, 1.0] and len(bands) == 4
@@ -497,7 +497,7 @@ def test_the_error_to_expect_grows_where_the_inputs_left_the_trained_range():
     from calibration.metrics import against_expected, expected_error
 
     rng = np.random.default_rng(2)
-    t, n, inputs, y = synthetic()
+    t, n, _inputs, _y = synthetic()
     dist = np.where(np.arange(t.size) % 3 == 0, 0.4, 0.0)
     r = rng.normal(0, 1.0, t.size) * np.where(dist > 0, 4.0, 1.0)
     stated = expected_error(r, None, n, float(n.max()), dist, forward_folds=3)

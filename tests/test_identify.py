@@ -188,15 +188,15 @@ def test_fit_refusals_are_one_line_and_write_nothing(tmp_path, real):
 
 
 def _speed_model(**kw):
-    base = dict(
-        fitted_dt_s=15.0,
-        speed_range_rpm=(0.0, 10000.0),
-        taus_s=(600.0, 5400.0),
-        drive_um=((0.5, 0.05), (2.0, 0.2)),
-        feedthrough_um=(0.1, 0.0),
-        offset_um=0.3,
-        max_measured_um=40.0,
-    )
+    base = {
+        "fitted_dt_s": 15.0,
+        "speed_range_rpm": (0.0, 10000.0),
+        "taus_s": (600.0, 5400.0),
+        "drive_um": ((0.5, 0.05), (2.0, 0.2)),
+        "feedthrough_um": (0.1, 0.0),
+        "offset_um": 0.3,
+        "max_measured_um": 40.0,
+    }
     return StateSpaceModel(**{**base, **kw})
 
 
@@ -208,16 +208,16 @@ def _input_model(**kw):
         trained_range=(20.0, 30.0),
         valid_range=(10.0, 40.0),
     )
-    base = dict(
-        fitted_dt_s=15.0,
-        speed_range_rpm=(0.0, 10000.0),
-        taus_s=(600.0, 5400.0),
-        drive_um=((0.5, 0.05, 0.2), (2.0, 0.2, 0.5)),
-        feedthrough_um=(0.1, 0.0, 0.1),
-        inputs=(ch,),
-        max_measured_um=40.0,
-        fallback=_speed_model(),
-    )
+    base = {
+        "fitted_dt_s": 15.0,
+        "speed_range_rpm": (0.0, 10000.0),
+        "taus_s": (600.0, 5400.0),
+        "drive_um": ((0.5, 0.05, 0.2), (2.0, 0.2, 0.5)),
+        "feedthrough_um": (0.1, 0.0, 0.1),
+        "inputs": (ch,),
+        "max_measured_um": 40.0,
+        "fallback": _speed_model(),
+    }
     return StateSpaceModel(**{**base, **kw})
 
 

@@ -15,13 +15,13 @@ from plantdata import inputs_model
 
 from calibration.fit import fit_data
 from calibration.identify import LogData
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualMachine
 from compensator.errors import CalibrationError, ConfigError
 from compensator.io import load_any_model, load_model, read_run_log, save_model, write_run_log
 from compensator.speed_programs import Program, job_shop_day, paper_calibration, random_validation
 from compensator.statespace import StateSpaceModel
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -41,7 +41,7 @@ def short_stairs() -> Program:
     """Short steps up and down with no stops: unlike the long holds of calibration."""
     return Program(
         "short-stairs",
-        tuple((120.0 + 60 * (i % 3), 3000.0 * (1 + i % 9)) for i in range(120)) + ((3600.0, 0.0),),
+        (*tuple((120.0 + 60 * (i % 3), 3000.0 * (1 + i % 9)) for i in range(120)), (3600.0, 0.0)),
     )
 
 
@@ -353,8 +353,8 @@ def test_input_channels_over_opcua_and_modbus(tmp_path):
 
     from cnc_adapters import open_adapter
     from cnc_adapters.modbus import ModbusRtuAdapter
-    from machine_sim.vcnc import VirtualCNC, running, step
     from compensator.clock import SteppedClock
+    from machine_sim.vcnc import VirtualCNC, running, step
 
     # lock-step: the machine stands still between two reads, so the reading and the truth are of
     # one instant

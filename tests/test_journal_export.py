@@ -18,9 +18,6 @@ import numpy as np
 import pytest
 
 from calibration.replay import replay
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import SENSOR_KEYS, VirtualMachine
 from compensator.errors import ConfigError, RunLogError, ThermocompError
 from compensator.io import (
     CoolingJournal,
@@ -32,6 +29,9 @@ from compensator.io import (
 )
 from compensator.io.retention import day_start_s
 from compensator.speed_programs import job_shop_day
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import SENSOR_KEYS, VirtualMachine
 from thermocomp.commands.journal import export
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config

@@ -17,10 +17,10 @@ from plantdata import identify_runs, plant_run
 from test_closed_loop import Bench, simple_model  # noqa: F401 - the model file fixture
 
 from calibration.learning import Rule, Score, decide
+from calibration.nc_programs import with_probe_stops
 from compensator.io import load_any_model, model_digest, read_run_log, save_model
 from compensator.io.history import ModelHistory
 from compensator.speed_programs import job_shop_day
-from calibration.nc_programs import with_probe_stops
 from machine_sim import SpindlePlant, preset
 from machine_sim.vcnc import ToolSetter, VirtualMachine
 from thermocomp.cli import main as cli
@@ -121,7 +121,7 @@ def test_the_promotion_rule_holds_back_unless_better_by_the_margin():
 
 def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(
     tmp_path, simple_model, capsys
-):  # noqa: F811
+):
     """The live model (2 um per krpm, tau 100 s) is far from the plant: a day of production with a
     measurement every 30 min gives a candidate that misses less on the newest measurements, open
     loop and with the observer; it is promoted. Rolled back during the run, the offset walks back
@@ -197,7 +197,7 @@ def test_a_candidate_from_a_faulty_setter_is_rejected_and_the_live_model_untouch
     )
 
 
-def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model, capsys):  # noqa: F811
+def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model, capsys):
     """With ``shadow_h``, a candidate the rule accepts first runs beside the live model: stepped
     every cycle and journaled, never written to the controller. The next refit holds it while it
     has run too short, then promotes it on its own misses at the measurements taken meanwhile."""
@@ -239,7 +239,7 @@ def test_a_candidate_runs_in_shadow_before_it_is_promoted(tmp_path, simple_model
     assert [r.event for r in history.records()] == ["in_use", "shadow", "promoted"]
 
 
-def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, simple_model, capsys):  # noqa: F811
+def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, simple_model, capsys):
     """A contact setter measures at rest: a candidate fitted on that misses less at rest than the
     poor live model, but nothing there vouches for the growth while the spindle turns, and the
     candidate changes it: it is rejected for that, and the live model stays."""
@@ -255,7 +255,7 @@ def test_measurements_at_rest_cannot_take_away_the_growth_at_speed(tmp_path, sim
     assert model.read_bytes() == first
 
 
-def test_too_few_measurements_hold_the_refit_back(tmp_path, simple_model, capsys):  # noqa: F811
+def test_too_few_measurements_hold_the_refit_back(tmp_path, simple_model, capsys):
     model = own_copy(simple_model, tmp_path)
     b = shop(tmp_path, model, hours=6)  # 12 measurements: fewer than 16 + 6
     b.cfg_path = tmp_path / "machine.toml"

@@ -183,7 +183,7 @@ class LinuxCnc:
     def stop(self) -> None:
         try:
             self.rsh.cmd("shutdown")
-        except Exception:  # noqa: BLE001 - it goes down anyway
+        except Exception:
             pass
         try:
             self.proc.wait(30)
@@ -290,7 +290,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
         "thermocomp.eoffset-counts",
     )
     data = sample(cnc, 6.0, pins)
-    t, offset, eoffset, request, growth, tip, counts = data.T
+    _t, offset, eoffset, request, growth, tip, _counts = data.T
     # axis.z.eoffset follows the model's offset: +Z by the growth (A = -S, offset_sign -1)
     # counts x scale at 0.01 um resolution; a read may fall between the component's pin writes
     # and the next servo period, so one cycle's step (0.5 um at most) now and then
@@ -342,7 +342,7 @@ def test_linuxcnc_compensates_z_through_external_offsets(cnc):
     def three_reseeds():
         try:
             j = journal(cnc)
-        except Exception:  # noqa: BLE001 - a row being written: read again
+        except Exception:
             return None
         not_ready = (j["alarms"].astype(int) & 128) != 0
         return j if (not_ready[:-1] & ~not_ready[1:]).sum() >= 3 else None

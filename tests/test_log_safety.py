@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.runs import MIN_GAP_S, bridge_gaps, gap_threshold_s, run_from_log
 from calibration.replay import replay
+from calibration.runs import MIN_GAP_S, bridge_gaps, gap_threshold_s, run_from_log
 from compensator.errors import CalibrationError, RunLogError, ThermocompError
 from compensator.io import RunLog, read_run_log, save_model, write_run_log
 from compensator.io.runlog import MAX_ABS_TIME_S, MAX_SPEED_RPM

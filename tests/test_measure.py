@@ -47,7 +47,7 @@ def write_config(
 
 
 @pytest.fixture(scope="module")
-def model_file(simple_model: Path) -> Path:  # noqa: F811 - the fixture imported above
+def model_file(simple_model: Path) -> Path:
     return simple_model
 
 

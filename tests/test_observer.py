@@ -78,7 +78,7 @@ def test_replay_probe_every_fuses_and_keeps_the_open_loop_beside(tmp_path):
     from compensator.model import ThermalModel
 
     run = lambda *a: subprocess.run(
-        [sys.executable, "-m", "thermocomp", *map(str, a)],  # noqa: E731
+        [sys.executable, "-m", "thermocomp", *map(str, a)],
         capture_output=True,
         text=True,
     )
@@ -121,7 +121,7 @@ def test_replay_fuses_real_measurements_from_a_file(tmp_path):
     from compensator.model import ThermalModel
 
     run = lambda *a: subprocess.run(
-        [sys.executable, "-m", "thermocomp", *map(str, a)],  # noqa: E731
+        [sys.executable, "-m", "thermocomp", *map(str, a)],
         capture_output=True,
         text=True,
     )

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from compensator.speed_programs import paper_calibration
 from machine_sim import PRESETS, SpindlePlant, preset
 from machine_sim.plant import _system
-from compensator.speed_programs import paper_calibration
 
 
 def run(name, dt, seed=0, **changes):
@@ -20,8 +20,8 @@ def run(name, dt, seed=0, **changes):
 
 
 def test_motorized_preset_matches_the_paper_figures():
-    t, n, r = run("motorized-27k", 1.0)
-    at = lambda minutes: r.true_um[int(minutes * 60)]  # noqa: E731
+    _t, n, r = run("motorized-27k", 1.0)
+    at = lambda minutes: r.true_um[int(minutes * 60)]
     assert at(180) == pytest.approx(34.4, abs=1.5)  # paper: 34.4 um at 27 000 rpm
     assert at(180) - at(181) > 10.0  # paper: -16.5 um within a minute of the drop to 12 000
     assert n[180 * 60] == 27000 and n[181 * 60] == 12000
@@ -63,7 +63,7 @@ def test_mechanical_preset_is_slow_and_large():
 
 
 def test_step_size_invariance_of_the_plant():
-    calm = dict(ambient_daily_amplitude_k=0.0, ambient_walk_k_per_sqrt_h=0.0)
+    calm = {"ambient_daily_amplitude_k": 0.0, "ambient_walk_k_per_sqrt_h": 0.0}
     _, _, fine = run("motorized-27k", 1.0, **calm)
     _, _, coarse = run("motorized-27k", 60.0, **calm)
     np.testing.assert_allclose(fine.true_um[::60], coarse.true_um, rtol=1e-9, atol=1e-9)
@@ -101,7 +101,7 @@ def _chiller_run(dt_s):
 def test_the_chiller_lags_ramps_and_the_step_is_exact_at_any_dt():
     t1, fine = _chiller_run(1.0)
     t60, coarse = _chiller_run(60.0)
-    at = lambda t, x, s: x[np.searchsorted(t, s)]  # noqa: E731
+    at = lambda t, x, s: x[np.searchsorted(t, s)]
     for s in (1800.0, 3660.0, 3600 + 300.0, 7200.0 + 600.0, 14400.0):
         # same trajectory at the shared instants, however the set point ramp falls in a step
         assert at(t1, fine.temps_c[:, 2], s) == pytest.approx(

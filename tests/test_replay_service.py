@@ -19,12 +19,12 @@ from plantdata import inputs_model
 from calibration.fit import fit_data
 from calibration.identify import LogData
 from calibration.replay import probes_from_file, replay
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import ToolSetter, VirtualMachine
 from compensator.io import load_any_model, read_run_log, save_model
 from compensator.speed_programs import Program, job_shop_day, paper_calibration, random_validation
 from compensator.units import RANGE_TOLERANCE
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import ToolSetter, VirtualMachine
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -179,7 +179,7 @@ def test_the_vectorised_replay_is_the_cycle_by_cycle_estimate(calibrated_model):
         (float(d), float(f) * top)
         for d, f in zip(rng.uniform(120, 900, 24), rng.uniform(0, 1.3, 24))
     )
-    t, n = Program("over-range", steps + ((1800.0, 0.0),)).sample(1.0)
+    t, n = Program("over-range", (*steps, (1800.0, 0.0))).sample(1.0)
     t = np.cumsum(rng.uniform(0.5, 1.5, t.size))  # a clock that wanders
     t[t.size // 2 :] += 1800.0  # and a gap
     for policy in ("clamp", "extrapolate"):

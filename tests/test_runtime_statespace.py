@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualMachine
 from compensator import ConfigError
 from compensator.io import load_state, read_run_log, save_model
 from compensator.statespace import InputChannel, StateSpaceModel
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualMachine
 from compensator import ConfigError
 from compensator.io import read_run_log, save_model
 from compensator.model import ThermalModel
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 from thermocomp.runtime.events import JsonLines

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from machine_sim import SpindlePlant, preset
-from machine_sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from compensator import ConfigError
 from compensator.clock import SteppedClock
 from compensator.io import load_state, read_run_log
 from compensator.speed_programs import job_shop_day
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, free_port, running
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -125,11 +125,11 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
 
 def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
     # from 23:30 UTC: the journal rotates at midnight, half an hour in
-    vm, svc, journal = run_service_against_vcnc(
+    vm, _svc, journal = run_service_against_vcnc(
         tmp_path, model_file, hours=1.0, wall0=1700006400.0 - 1800
     )
     h = vm.history()
-    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    rms = lambda e: float(np.sqrt(np.mean(e**2)))
     assert rms(h.tool_tip_error_um) < 0.5 * rms(h.true_um)
     assert [p.name for p in journal] == ["s1-2023-11-14.csv", "s1-2023-11-15.csv"]
     logs = [read_run_log(p) for p in journal]  # each file is a run log replay can read
@@ -169,7 +169,7 @@ def test_service_end_to_end_over_opcua_halves_the_error(tmp_path, model_file):
 
 @pytest.mark.parametrize("outage_s", [20.0, 600.0])
 def test_outage_of_the_controller(tmp_path, model_file, outage_s):
-    vm, svc, journal = run_service_against_vcnc(
+    vm, _svc, journal = run_service_against_vcnc(
         tmp_path, model_file, hours=0.5, outage=(600, outage_s)
     )
     assert len(journal) == 1
@@ -208,7 +208,7 @@ def test_outage_of_the_controller(tmp_path, model_file, outage_s):
 def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
 
     t = {"now": 0.0}
-    clock = lambda: t["now"]  # noqa: E731
+    clock = lambda: t["now"]
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)
     vm.override_speed(20000.0)
     from machine_sim.adapter import SimAdapter

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -228,7 +229,7 @@ def test_hold_moves_on_from_what_the_controller_holds_through_the_slew_limit():
     assert sh.output_um == 80.0
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 40)
     assert outs[:3] == pytest.approx([50.0, 49.0, 48.0])  # the clamp, and the slew limit from there
-    assert all(b < a for a, b in zip(outs, outs[1:]))
+    assert all(b < a for a, b in itertools.pairwise(outs))
     outs, _, _ = run(sh, [(10.0, 0, 1.0)] * 60)
     assert outs[-1] == pytest.approx(-10.0)  # and on to the model's value
     for absurd in (1e6, 1e308, -1e308):  # far beyond: one step to the clamp, whatever the float
@@ -286,7 +287,7 @@ def test_dual_slew_lands_the_elastic_step_during_the_run_up_and_creeps_while_cut
 
 def test_a_controller_signal_overrides_the_inference_both_ways():
     sh = OffsetShaper(dual(), 0.0)
-    outs, res, _ = run(sh, [(0.0, 0, 1.0)])
+    _outs, res, _ = run(sh, [(0.0, 0, 1.0)])
     # the controller says cutting while the speed jumps: slow, whatever the speed does
     res = [sh.update(10.0, 20000, 1.0, True) for _ in range(3)]
     assert [r.offset_um for r in res] == pytest.approx([-1.0, -2.0, -3.0])

@@ -16,8 +16,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from test_mqtt import MOSQUITTO, TOPIC, FakeClock, Subscriber, run_for, wait_for
-from test_mqtt import brokers  # noqa: F401 - the fixture: mosquitto on loopback
+from test_mqtt import (
+    MOSQUITTO,
+    TOPIC,
+    FakeClock,
+    Subscriber,
+    brokers,  # noqa: F401 - the fixture: mosquitto on loopback
+    run_for,
+    wait_for,
+)
 
 from compensator.io import read_run_log
 from machine_sim.vcnc import free_port
@@ -105,16 +112,16 @@ def status_cli(url: str, *extra: str) -> subprocess.CompletedProcess:
 
 
 def facts(**kw) -> SpindleFacts:
-    base = dict(
-        now_s=WALL0 + 100.0,
-        period_s=1.0,
-        not_writing_cycles=3,
-        cycles=100,
-        link_up=True,
-        last_in_step_s=WALL0 + 100.0,
-        last_write_s=WALL0 + 90.0,
-        since_s=WALL0,
-    )
+    base = {
+        "now_s": WALL0 + 100.0,
+        "period_s": 1.0,
+        "not_writing_cycles": 3,
+        "cycles": 100,
+        "link_up": True,
+        "last_in_step_s": WALL0 + 100.0,
+        "last_write_s": WALL0 + 90.0,
+        "since_s": WALL0,
+    }
     return SpindleFacts(**{**base, **kw})
 
 

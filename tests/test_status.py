@@ -114,9 +114,7 @@ def test_status_history_and_metrics_of_a_running_service(service):
     st = json.loads(get(base + "status")[1])
     fams = {f.name: f for f in text_string_to_metric_families(body.decode())}
     val = lambda fam, **lab: next(
-        s.value
-        for s in fams[fam].samples  # noqa: E731
-        if all(s.labels.get(k) == v for k, v in lab.items())
+        s.value for s in fams[fam].samples if all(s.labels.get(k) == v for k, v in lab.items())
     )
     assert val("thermocomp_up") == 1.0
     assert val("thermocomp_elongation_micrometres", spindle="s1") == pytest.approx(
@@ -127,7 +125,7 @@ def test_status_history_and_metrics_of_a_running_service(service):
     )
     assert val("thermocomp_alarm", spindle="s1", alarm="LINK_DOWN") == 0.0
     assert val("thermocomp_cycles", spindle="s1") == st["spindles"][0]["counters"]["cycles"]
-    assert len([s for s in fams["thermocomp_alarm"].samples]) == len([a for a in Alarm if a])
+    assert len(list(fams["thermocomp_alarm"].samples)) == len([a for a in Alarm if a])
 
 
 def test_alarms_show_in_status_history_and_metrics(service):

@@ -13,6 +13,7 @@ import pytest
 
 from cnc_adapters import AdapterError, BadValueError, ConfigError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
+from compensator.speed_programs import Program
 from machine_sim import SpindlePlant, preset
 from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import (
@@ -25,7 +26,6 @@ from machine_sim.vcnc import (
     call,
     running,
 )
-from compensator.speed_programs import Program
 
 SPEED = 20000.0
 

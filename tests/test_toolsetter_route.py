@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from devices import LineDevice, PtyPair
 
-from calibration.acquire import AcquireConfig, Problem, Recorder
+from calibration.acquire import AcquireConfig, Recorder
 from calibration.fit import fit_logs
 from calibration.nc_programs import (
     DIALECTS,
@@ -204,7 +204,7 @@ def test_the_tool_setter_recording_is_a_sparse_log_measured_at_rest(tmp_path):
             "sinumerik",
         )
     )
-    rec, vm, clock = setter_recording(tmp_path, prog)
+    rec, vm, _clock = setter_recording(tmp_path, prog)
     result = rec.run()
     assert result.complete and result.measurements == len(prog.probe_at_s) == 12
     assert not result.flagged, result.events  # no "not following" while the program waits
@@ -236,7 +236,7 @@ def test_a_laser_value_at_speed_keeps_the_speed_it_was_taken_at(tmp_path):
     prog = parse_nc(
         to_nc(calibration_profile(MAX_RPM, step_min=6, cooldown_min=15, probe_every_s=120), "fanuc")
     )
-    rec, vm, clock = setter_recording(tmp_path, prog, at_speed=True, touches=4)
+    rec, vm, _clock = setter_recording(tmp_path, prog, at_speed=True, touches=4)
     assert vm.tool_setter.cycle_s == pytest.approx(23.6)
     held = []
     finish = vm._finish_probe
@@ -322,7 +322,7 @@ def test_the_tool_setter_route_refuses_what_cannot_work(tmp_path):
 
 def test_a_stop_without_a_measurement_times_out_in_wall_seconds(tmp_path):
     prog = Program("one", ((120.0, 12000.0), (60.0, 0.0)), (60.0, 180.0))
-    rec, vm, clock = setter_recording(tmp_path, prog)
+    rec, vm, _clock = setter_recording(tmp_path, prog)
     vm.tool_setter = ToolSetter(dwell_s=10_000.0)  # a cycle that never ends: the setter alarmed
     with pytest.raises(Exception, match=r"no tool-setter measurement .* after probe stop 1/2"):
         rec.run()

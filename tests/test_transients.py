@@ -8,6 +8,7 @@ The OPC UA, LinuxCNC and Modbus links carry the same signal: their tests are in
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import subprocess
@@ -19,13 +20,13 @@ import pytest
 
 from calibration.replay import replay
 from cnc_adapters import AdapterError
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualMachine
 from compensator import ConfigError
 from compensator.io import read_run_log, save_model
 from compensator.model import ThermalModel
 from compensator.speed_programs import Program
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -464,10 +465,10 @@ def test_a_speed_not_read_never_opens_the_fast_limit(tmp_path, model_file):
         b.rt.adapter.failing = 100 <= k < 140
         b.t += 1.0
         rows.append(b.rt.cycle())
-    unread = [r for r in rows[100:140]]
+    unread = list(rows[100:140])
     assert all(r["alarms"] & Alarm.SPEED_READ_FAILED for r in unread)
     assert any(r["alarms"] & Alarm.IDLE_ASSUMED for r in unread)  # the model took it as at rest ...
     assert all(r["cutting"] and r["cutting_source"] == "unread" for r in unread)
-    moved = [abs(b2["offset_um"] - a["offset_um"]) for a, b2 in zip(rows[99:], rows[100:])]
+    moved = [abs(b2["offset_um"] - a["offset_um"]) for a, b2 in itertools.pairwise(rows)]
     assert max(moved) <= MAX_RATE * 1.0 + 1e-9  # ... but the offset crept, through and after it
     assert rows[140]["cutting"] and rows[140]["cutting_source"] == "speed"

@@ -6,7 +6,6 @@ server on a pseudo-terminal."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -23,11 +22,11 @@ from test_transients import (  # noqa: F401 - model_file is a fixture
 )
 
 from cnc_adapters import open_adapter
-from machine_sim import SpindlePlant, preset
-from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
 from compensator.speed_programs import Program
+from machine_sim import SpindlePlant, preset
+from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
 from thermocomp.runtime import Alarm, SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -98,7 +97,7 @@ def opcua_day(tmp_path: Path, model: Path, adapter_extra: str = "", program: Pro
 
 
 def test_opcua_the_controllers_cutting_node_keeps_the_offset_slow_in_the_cut(tmp_path, model_file):
-    rows, truth, log = opcua_day(tmp_path, model_file)
+    _rows, truth, log = opcua_day(tmp_path, model_file)
     assert set(log.extras["cutting_source"]) == {"controller"}
     journaled = np.asarray(log.extras["cutting"], float) == 1
     assert (journaled == truth).all()

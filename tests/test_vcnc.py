@@ -13,6 +13,7 @@ import pytest
 
 from cnc_adapters import BadValueError, UnreachableError, open_adapter
 from cnc_adapters.opcua import OpcUaAdapter
+from compensator.speed_programs import Program
 from machine_sim import SpindlePlant, preset
 from machine_sim.vcnc import (
     NAMESPACE_URI,
@@ -23,7 +24,6 @@ from machine_sim.vcnc import (
     free_port,
     running,
 )
-from compensator.speed_programs import Program
 
 JS = Path(__file__).parent / "js"
 

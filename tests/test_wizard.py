@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from compensator.clock import SteppedClock
+from compensator.io import read_run_log, write_run_log
 from machine_sim import SpindlePlant, preset
 from machine_sim.nc import parse_nc
 from machine_sim.vcnc import (
@@ -30,8 +32,6 @@ from machine_sim.vcnc import (
     running,
     step,
 )
-from compensator.clock import SteppedClock
-from compensator.io import read_run_log, write_run_log
 
 # simulated seconds per wall second, where the wizard runs as its own process against a free-running
 # virtual CNC (the bad-input test; nothing there depends on how far the simulated time got)
@@ -154,8 +154,8 @@ def at_a_terminal(monkeypatch):
     from pexpect import fdpexpect
 
     master, slave = os.openpty()
-    tty_in = open(slave, "r", closefd=False)  # noqa: SIM115 - closed below
-    tty_out = open(slave, "w", closefd=False)  # noqa: SIM115
+    tty_in = open(slave, closefd=False)
+    tty_out = open(slave, "w", closefd=False)
     monkeypatch.setattr(sys, "stdin", tty_in)
     try:
         yield fdpexpect.fdspawn(master, encoding="utf-8", timeout=60), tty_out
@@ -173,7 +173,7 @@ def in_thread(fn) -> tuple[threading.Thread, list[object]]:
     def run() -> None:
         try:
             result.append(fn())
-        except BaseException as err:  # noqa: BLE001 - handed to the test
+        except BaseException as err:
             result.append(err)
 
     th = threading.Thread(target=run, daemon=True)
@@ -536,7 +536,7 @@ def test_wizard_imports_daq_logs(tmp_path):
 
 
 def test_wizard_bad_input_gives_one_line_and_exit_2(tmp_path, vcnc):
-    vm, cnc = vcnc
+    _vm, cnc = vcnc
     cases = [
         (["--workdir", str(tmp_path), "--model-spindle-id", "s"], "--machine-id is needed"),
         (

@@ -51,7 +51,7 @@ def test_new_keeps_the_earlier_session_aside_and_starts_a_fresh_log(lockstep, tm
     )
     out = said(ls)
     assert "a new session" in out and "resuming" not in out
-    aside = [p for p in (sdir / "earlier").iterdir()]
+    aside = list((sdir / "earlier").iterdir())
     assert len(aside) == 1 and (aside[0] / "runs" / "calibration.csv").is_file()
     # named so that it opens from where the wizard ran (here, absolute: tmp_path is elsewhere)
     assert f"kept in {aside[0].resolve()}" in out

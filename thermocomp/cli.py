@@ -95,7 +95,7 @@ class _ModelParser(_Parser):
         i = 0
         while i < len(words) and words[i].startswith("-"):
             i += 2 if words[i] in valued else 1
-        if i >= len(words) or i == 0 and words[0] in actions.choices:
+        if i >= len(words) or (i == 0 and words[0] in actions.choices):
             return words
         if words[i] in actions.choices:
             return [words[i], *words[:i], *words[i + 1 :]]

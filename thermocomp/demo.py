@@ -35,6 +35,9 @@ from rich.table import Table
 from calibration.fit import fit_logs
 from calibration.plots import Panel, plot_panels
 from cnc_adapters.control_profiles import profile
+from compensator.clock import SteppedClock
+from compensator.io import read_run_log, save_model, write_run_log
+from compensator.speed_programs import job_shop_day, paper_calibration, random_validation
 from machine_sim import SpindlePlant, preset
 from machine_sim.controls import EmulatedControl
 from machine_sim.vcnc import (
@@ -48,9 +51,6 @@ from machine_sim.vcnc import (
     running,
     step,
 )
-from compensator.clock import SteppedClock
-from compensator.io import read_run_log, save_model, write_run_log
-from compensator.speed_programs import job_shop_day, paper_calibration, random_validation
 
 from .runtime.service import Service
 

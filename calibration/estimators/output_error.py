@@ -28,10 +28,10 @@ from compensator.model import ThermalModel, ThermalStateCoefficients, filter_sta
 from compensator.statespace import GAIN_BOUND
 
 from .. import folds as fl
-from ..runs import Run, resample
 from ..candidate import Candidate
 from ..dataset import Dataset
 from ..metrics import fold_scores, pooled_stats
+from ..runs import Run, resample
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ from compensator.filters import constant_decay, decaying_sum
 from compensator.units import SPEED_SCALE_RPM
 
 from .. import folds as fl
-from ..checks import as_series, as_times
 from ..candidate import Candidate
+from ..checks import as_series, as_times
 from ..dataset import Dataset
 from ..metrics import fold_scores, pooled_stats
 

@@ -240,5 +240,5 @@ class ModbusTransport:
 def _quietly(fn: Callable[[], Any]) -> None:
     try:
         fn()
-    except Exception:  # noqa: BLE001, S110 - closing what may already be dead
+    except Exception:  # noqa: BLE001 - closing what may already be dead
         pass

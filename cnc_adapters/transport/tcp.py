@@ -90,7 +90,7 @@ class TcpTransport:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self.keepalive:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-        except OSError:  # noqa: S110 - an option the platform lacks is no reason to fail
+        except OSError:
             pass
         self.sock, self.pending, self._tail = sock, b"", b""
         if handshake is not None:
@@ -108,7 +108,7 @@ class TcpTransport:
         if self.sock is not None and goodbye is not None:
             try:
                 goodbye()
-            except Exception:  # noqa: BLE001, S110 - closing goes on
+            except Exception:  # noqa: BLE001 - closing goes on
                 pass
         self.abort()
 
@@ -120,7 +120,7 @@ class TcpTransport:
         if sock is not None:
             try:
                 sock.shutdown(socket.SHUT_RDWR)
-            except OSError:  # noqa: S110 - already down
+            except OSError:
                 pass
             sock.close()
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import math
 import os
 import re
 import signal
@@ -25,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from machine_sim.vcnc import NAMESPACE_URI, NODE_PATHS, free_port
 from compensator import ThermalModel, ThermalStateCoefficients
 from compensator.io import read_run_log
+from machine_sim.vcnc import NAMESPACE_URI, NODE_PATHS, free_port
 from thermocomp.runtime import Alarm
 
 PYTHON = sys.executable
@@ -325,7 +324,7 @@ class ServiceProcess:
                 stderr=err,
                 stdin=subprocess.DEVNULL,
                 # preexec_fn: only a setrlimit, async-signal-safe enough for the fork
-                preexec_fn=preexec_fn,  # noqa: PLW1509
+                preexec_fn=preexec_fn,
                 env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
             )
         self.t_start = time.monotonic()

@@ -33,9 +33,9 @@ from conftest import first_order  # tests/conftest.py: the hand-built first-orde
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from machine_sim.adapter import SimAdapter
 from compensator.io import STATE_FORMAT, load_any_model, load_state, model_digest, save_model
 from compensator.io.checksum import digest
+from machine_sim.adapter import SimAdapter
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
 

@@ -29,13 +29,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cnc_adapters import AdapterError, AdapterTimeoutError
-from machine_sim import SpindlePlant, preset
-from machine_sim.adapter import SimAdapter
-from machine_sim.vcnc import VirtualMachine
 from compensator.errors import ConfigError
 from compensator.io import Journal, load_state, read_run_log, save_model
 from compensator.model import ThermalModel
 from compensator.speed_programs import job_shop_day
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
 from thermocomp.runtime import SpindleRuntime
 from thermocomp.runtime.config import load_config
 
@@ -292,8 +292,8 @@ NODES = ("act_speed", "cutting", "bearing_temp_c", "motor_temp_c")
 @pytest.fixture(scope="module")
 def lockstep_cnc():
     from cnc_adapters.opcua import OpcUaAdapter
-    from machine_sim.vcnc import VirtualCNC, running, step
     from compensator.clock import SteppedClock
+    from machine_sim.vcnc import VirtualCNC, running, step
 
     clock = SteppedClock()
     vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=clock)

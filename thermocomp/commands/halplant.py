@@ -19,9 +19,9 @@ import signal
 import time
 
 from cnc_adapters.linuxcnc import import_linuxcnc
+from compensator.errors import ConfigError
 from machine_sim.plant import SpindlePlant, preset
 from machine_sim.vcnc import SimClock
-from compensator.errors import ConfigError
 
 
 def hal_plant(args: argparse.Namespace) -> int:

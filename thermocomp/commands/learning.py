@@ -115,7 +115,6 @@ def _judge_shadow(
     """The candidate in shadow: held while it has run less than ``shadow_h``; then promoted or
     rejected on its own misses, and taken out of shadow either way."""
     from calibration.learning import judge_shadow
-
     from compensator.io.journal import SHADOW_COLUMN
 
     out: dict[str, Any] = {"spindle": sc.name, "shadow": shadow.short}
@@ -217,7 +216,7 @@ def _opened(
 def refit_cmd(args: argparse.Namespace) -> int:
     from calibration.learning import Rule, refit
 
-    cfg, sc, history, now, live_rec = _opened(args)
+    cfg, sc, history, _now, live_rec = _opened(args)
     live_model = _checked(sc, Path(sc.model))
     start = parse_when(args.from_, "--from") if args.from_ else live_rec.at_wall_s
     rule = Rule(

@@ -10,6 +10,9 @@ import signal
 import time
 from pathlib import Path
 
+from compensator.errors import ConfigError
+from compensator.io import read_text, write_run_log
+from compensator.speed_programs import program
 from machine_sim.nc import NcSyntaxError, parse_nc
 from machine_sim.plant import PlantParams, SpindlePlant, preset
 from machine_sim.vcnc import (
@@ -21,9 +24,6 @@ from machine_sim.vcnc import (
     VirtualMachine,
     running,
 )
-from compensator.errors import ConfigError
-from compensator.io import read_text, write_run_log
-from compensator.speed_programs import program
 
 
 def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:

@@ -17,13 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from compensator.errors import ConfigError, ThermocompError
-
 from thermocomp.status_codes import (  # the command line's help reads the same
     DEFAULT_URL,
     EXIT_ATTENTION,
     EXIT_NOT_WRITING,
     EXIT_OK,
-    EXIT_UNREACHABLE,
 )
 
 

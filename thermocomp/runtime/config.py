@@ -21,8 +21,8 @@ from cnc_adapters.control_profiles import ControllerProfile, control_count_um, p
 from compensator.cooling_law import CoolingLaw, PidGains
 from compensator.errors import ConfigError, ModelError, clip
 from compensator.estimate import Estimate
-from compensator.io.atomic import read_regular, read_text
 from compensator.fusion import observer_config_of
+from compensator.io.atomic import read_regular, read_text
 from compensator.observer import SIGMA_LIMIT_UM, ObserverConfig
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig

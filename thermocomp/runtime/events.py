@@ -126,7 +126,7 @@ class JsonLines(logging.Formatter):
 
 def _finite(obj: dict[str, Any]) -> bool:
     return all(
-        not (isinstance(v, float) and v != v or v in (float("inf"), float("-inf")))
+        not ((isinstance(v, float) and v != v) or v in (float("inf"), float("-inf")))
         for v in obj.values()
         if isinstance(v, float)
     )

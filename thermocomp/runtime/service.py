@@ -154,7 +154,11 @@ class Service:
             sim = ScaledClock(self.cfg.time_scale, time.monotonic)
             w0 = wall()
             clock, wall = sim, (lambda: w0 + sim())
-            sleep = lambda s, _k=self.cfg.time_scale: time.sleep(s / _k)
+            k = self.cfg.time_scale
+
+            def sleep(s: float) -> None:
+                time.sleep(s / k)
+
         self.clock, self.wall, self.sleep = clock, wall, sleep
         self.clock_synchronized = clock_synchronized or kernel_clock_synchronized
         self._age_paused_said = False
@@ -529,11 +533,11 @@ class Service:
             self._cooling_due = max(self._cooling_due + period, now)
             try:
                 self.cooling.cycle()
-            except Exception as err:  # noqa: BLE001 - the chiller loop never stops the offset
+            except Exception as err:
                 log.exception("cooling cycle skipped: %s", err)
         try:
             self._publish(now)
-        except Exception as err:  # noqa: BLE001 - the status never stops the offset
+        except Exception as err:
             if now - self._publish_warned >= 600.0:  # one traceback per 10 min, not per tick
                 self._publish_warned = now
                 log.exception("status not published: %s", err)

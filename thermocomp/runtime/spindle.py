@@ -68,6 +68,8 @@ from pathlib import Path
 from typing import Any
 
 from cnc_adapters import AdapterError, UnreachableError, WriteRejectedError, open_adapter
+from compensator.drift import DriftConfig, DriftState, miss_sd_um
+from compensator.drift import update as drift_update
 from compensator.errors import (
     AdapterTimeoutError,
     BadValueError,
@@ -75,14 +77,9 @@ from compensator.errors import (
     ModelError,
     ModelFileError,
 )
-from compensator.drift import DriftConfig, DriftState, miss_sd_um
-from compensator.drift import update as drift_update
 from compensator.estimate import Estimate, EstimateState, Step
 from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
 from compensator.fusion import FusedState
-from compensator.io.history import ModelHistory, fit_summary
-from compensator.io.journal import ALARM_COLD_START, SHADOW_COLUMN
-from compensator.io.journal_export import iso
 from compensator.io import (
     Journal,
     MeasurementJournal,
@@ -92,6 +89,9 @@ from compensator.io import (
     quarantine,
     save_state,
 )
+from compensator.io.history import ModelHistory, fit_summary
+from compensator.io.journal import ALARM_COLD_START, SHADOW_COLUMN
+from compensator.io.journal_export import iso
 from compensator.modelbase import SAVED_LIMIT_UM, saved_numbers
 from compensator.observer import SIGMA_LIMIT_UM
 from compensator.predictor import Predictor

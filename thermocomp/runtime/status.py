@@ -361,7 +361,7 @@ class History:
 
     def __init__(self, hours: float, every_s: float):
         self.every_s = every_s
-        self._n = max(2, int(math.ceil(hours * 3600.0 / every_s)))
+        self._n = max(2, math.ceil(hours * 3600.0 / every_s))
         self._points: dict[str, collections.deque[tuple]] = {}
         self._open: dict[str, list] = {}  # the interval being gathered: [start, point, alarm bits]
         self._lock = threading.Lock()
@@ -652,7 +652,7 @@ class _Server(http.server.ThreadingHTTPServer):
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         # a broken client is one debug line, never a traceback on stderr
-        log.debug("status: request from %s failed", client_address, exc_info=True)
+        log.debug("status: request from %s failed", client_address, exc_info=True)  # noqa: LOG014 - socketserver calls this inside its handler
 
 
 class _V6Server(_Server):
@@ -665,7 +665,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     sys_version = ""
     timeout = 10.0  # a client that stalls holds one thread of the server, never the service
 
-    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the stdlib's name
+    def log_message(self, format: str, *args: Any) -> None:
         # the request line may carry ?token=: never log a query
         path = urlsplit(getattr(self, "path", "") or "").path[:100]  # unset on a malformed request
         log.debug("status: %s: %s %s", self.address_string(), getattr(self, "command", None), path)
@@ -692,10 +692,10 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     def _json(self, code: int, data: Any) -> None:
         self._send(code, json.dumps(data, allow_nan=False).encode(), "application/json")
 
-    def do_HEAD(self) -> None:  # noqa: N802 - the stdlib's name
+    def do_HEAD(self) -> None:
         self.do_GET()
 
-    def do_GET(self) -> None:  # noqa: N802 - the stdlib's name
+    def do_GET(self) -> None:
         try:
             url = urlsplit(self.path)
             query = parse_qs(url.query)
