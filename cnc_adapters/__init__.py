@@ -17,6 +17,7 @@ from .base import (
     WriteRejectedError,
     redact_url,
 )
+from .reading import Capabilities, Failure, FailureKind, Measurement, Reading, Wants, WriteResult
 from .registry import BACKENDS, backend, check_adapter, open_adapter, settings_model
 
 __all__ = [
@@ -26,10 +27,17 @@ __all__ = [
     "AdapterSettings",
     "AdapterTimeoutError",
     "BadValueError",
+    "Capabilities",
     "ConfigError",
+    "Failure",
+    "FailureKind",
     "Link",
+    "Measurement",
+    "Reading",
     "UnreachableError",
+    "Wants",
     "WriteRejectedError",
+    "WriteResult",
     "backend",
     "check_adapter",
     "open_adapter",

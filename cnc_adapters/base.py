@@ -47,6 +47,8 @@ from compensator.errors import (
 )
 from compensator.units import ControllerUnits
 
+from .reading import Capabilities, Failure, Measurement, Reading, Wants, WriteResult
+
 __all__ = [
     "RUNTIME_ONLY",
     "Adapter",
@@ -55,13 +57,19 @@ __all__ = [
     "AdapterTimeoutError",
     "Allowed",
     "BadValueError",
+    "Capabilities",
     "ConfigError",
+    "Failure",
     "Link",
     "LinkSettings",
+    "Measurement",
     "Problem",
+    "Reading",
     "SettingsError",
     "UnreachableError",
+    "Wants",
     "WriteRejectedError",
+    "WriteResult",
     "build",
     "check_settings",
     "did_you_mean",
@@ -735,15 +743,7 @@ class RawMeasurement:
     sigma: Any = None
 
 
-@dataclass(frozen=True)
-class Measurement:
-    """A new tool-setter or probe measurement of the elongation [um] (positive: the tool grew
-    toward the workpiece), its sigma [um] when the controller states one, and its sequence."""
-
-    elongation_um: float
-    sigma_um: float | None
-    sequence: int
-    source: str
+_NOTHING_MORE = Wants()
 
 
 class Adapter(Link):
@@ -798,6 +798,82 @@ class Adapter(Link):
     @property
     def offset_sign(self) -> int:
         return self.units.sign
+
+    # -- one cycle: one read, one write ----------------------------------------
+
+    @property
+    def capabilities(self) -> Capabilities:
+        """What this configured link can read, beside the speed."""
+        return Capabilities(
+            held_offset=bool(self.can_read_offset),
+            cutting=bool(self.can_read_cutting),
+            measurement=bool(self.can_read_measurement),
+            inputs=tuple(self.input_channels()),
+        )
+
+    def read(self, wants: Wants = _NOTHING_MORE) -> Reading:
+        """This cycle's values, the speed first, then what ``wants`` asks for and the link can
+        read. Never raises for a controller's value or a failed request: each becomes a
+        :class:`Failure` in its field. Once a request finds the link lost, nothing more is
+        asked this cycle (those fields stay None).
+
+        The default calls the per-value methods one after the other, each converting and
+        checking its value; a backend that can ask for all in one request overrides it."""
+        speed = _guarded(self.read_speed)
+        if isinstance(speed, Failure) and speed.link_lost:
+            return Reading(speed, reconnects=self.reconnects)
+        # a deferred check of the last write, where the backend makes one
+        refused = None if isinstance(speed, Failure) else _guarded(self.take_write_mismatch)
+        fields: dict[str, Any] = {"write_refused_um": _finite_or_none(refused)}
+        caps = self.capabilities
+        steps: list[tuple[str, bool, Callable[[], Any]]] = [
+            ("cutting", wants.cutting and caps.cutting, self.read_cutting),
+            ("not_ready_offset_um", True, self.not_ready_offset_um),
+            ("held_offset_um", wants.held_offset and caps.held_offset, self.read_offset_um),
+            ("inputs", wants.inputs and bool(caps.inputs), self._read_inputs_checked),
+            ("measurement", wants.measurement and caps.measurement, self.read_measurement),
+        ]
+        for name, wanted, call in steps:
+            if not wanted or (
+                name == "held_offset_um" and fields["not_ready_offset_um"] is not None
+            ):
+                continue  # a controller that is not ready applies its own offset
+            value = _guarded(call)
+            fields[name] = value
+            if isinstance(value, Failure) and value.link_lost:
+                break
+        return Reading(speed, reconnects=self.reconnects, **fields)
+
+    def write(self, offset_um: float) -> WriteResult:
+        """Write the thermal offset [um]: taken, or the failure (refused by the controller, the
+        link lost, a value that is not finite). Never raises for a failure of the link."""
+        try:
+            self.write_offset_um(offset_um)
+        except AdapterError as err:
+            return WriteResult(Failure.of(err))
+        return WriteResult(pending=self._write_pending())
+
+    def _write_pending(self) -> bool:
+        """Whether the last write is checked with the next reading (a deferred check)."""
+        return False
+
+    def _read_inputs_checked(self) -> dict[str, float | Failure]:
+        """The input channels by name, each a finite number or the failure of its value."""
+        self.open()
+        out: dict[str, float | Failure] = {}
+        for name, raw in self._read_inputs_raw().items():
+            if isinstance(raw, BaseException):
+                out[str(name)] = Failure.of(raw)
+                continue
+            value = _finite(raw)
+            out[str(name)] = (
+                value
+                if value is not None
+                else Failure.of(
+                    BadValueError(f"{self.name}: input {name} is {short(raw)}, not a finite number")
+                )
+            )
+        return out
 
     # -- template methods ------------------------------------------------------
 
@@ -925,7 +1001,11 @@ class Adapter(Link):
         scale = self.measurement_scale or self.units.scale
         sigma = None
         if raw.sigma is not None:
-            sigma = abs(float(raw.sigma)) / scale
+            sigma = (
+                abs(float(raw.sigma)) / scale
+                if isinstance(raw.sigma, numbers.Real) and not isinstance(raw.sigma, bool)
+                else math.nan
+            )
             if not (math.isfinite(sigma) and sigma > 0):
                 raise BadValueError(
                     f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
@@ -978,6 +1058,31 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
+
+
+def _finite(raw: Any) -> float | None:
+    """``raw`` as a finite float, or None (a boolean, a string, an array, an overflow, NaN)."""
+    if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
+        return None
+    try:
+        value = float(raw)
+    except (OverflowError, ValueError, TypeError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _finite_or_none(value: Any) -> float | None:
+    return None if isinstance(value, Failure) else _finite(value)
+
+
+def _guarded(call: Callable[[], Any]) -> Any:
+    """``call()``, or the :class:`Failure` it raised: a link's error, or a conversion that a
+    controller's value made fail (a TypeError, ValueError, OverflowError ...). Anything else is a
+    fault of this program and is raised."""
+    try:
+        return call()
+    except (AdapterError, TypeError, ValueError, ArithmeticError, UnicodeError) as err:
+        return Failure.of(err)
 
 
 def cutting_of(name: str, raw: Any, values: tuple[Any, ...]) -> bool:
