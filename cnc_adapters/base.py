@@ -822,20 +822,18 @@ class Adapter(Link):
         speed = _guarded(self.read_speed)
         if isinstance(speed, Failure) and speed.link_lost:
             return Reading(speed, reconnects=self.reconnects)
-        # a deferred check of the last write, where the backend makes one
-        refused = None if isinstance(speed, Failure) else _guarded(self.take_write_mismatch)
-        fields: dict[str, Any] = {"write_refused_um": _finite_or_none(refused)}
+        fields: dict[str, Any] = {}
         caps = self.capabilities
         steps: list[tuple[str, bool, Callable[[], Any]]] = [
             ("cutting", wants.cutting and caps.cutting, self.read_cutting),
-            ("not_ready_offset_um", True, self.not_ready_offset_um),
+            ("not_ready_offset_um", True, self._not_ready_checked),
             ("held_offset_um", wants.held_offset and caps.held_offset, self.read_offset_um),
             ("inputs", wants.inputs and bool(caps.inputs), self._read_inputs_checked),
             ("measurement", wants.measurement and caps.measurement, self.read_measurement),
         ]
         for name, wanted, call in steps:
             if not wanted or (
-                name == "held_offset_um" and fields["not_ready_offset_um"] is not None
+                name == "held_offset_um" and fields.get("not_ready_offset_um") is not None
             ):
                 continue  # a controller that is not ready applies its own offset
             value = _guarded(call)
@@ -847,30 +845,48 @@ class Adapter(Link):
     def write(self, offset_um: float) -> WriteResult:
         """Write the thermal offset [um]: taken, or the failure (refused by the controller, the
         link lost, a value that is not finite). Never raises for a failure of the link."""
-        try:
-            self.write_offset_um(offset_um)
-        except AdapterError as err:
-            return WriteResult(Failure.of(err))
+        done = _guarded(lambda: self.write_offset_um(offset_um))
+        if isinstance(done, Failure):
+            return WriteResult(done)
         return WriteResult(pending=self._write_pending())
 
     def _write_pending(self) -> bool:
         """Whether the last write is checked with the next reading (a deferred check)."""
         return False
 
+    def _not_ready_checked(self) -> float | None:
+        """:meth:`not_ready_offset_um`, a value that is not a finite number refused."""
+        um = self.not_ready_offset_um()
+        if um is None:
+            return None
+        value = _finite(um)
+        if value is None:
+            raise BadValueError(
+                f"{self.name}: the offset applied while not ready {short(um)} is not a number"
+            )
+        return value
+
     def _read_inputs_checked(self) -> dict[str, float | Failure]:
         """The input channels by name, each a finite number or the failure of its value."""
         self.open()
+        return self._inputs_of(self._read_inputs_raw())
+
+    def _inputs_of(self, raw: Mapping[Any, Any]) -> dict[str, float | Failure]:
+        """Raw input values by name, each as a finite number or the failure of its value (an
+        exception in a value's place is that value's failure)."""
         out: dict[str, float | Failure] = {}
-        for name, raw in self._read_inputs_raw().items():
-            if isinstance(raw, BaseException):
-                out[str(name)] = Failure.of(raw)
+        for name, value in raw.items():
+            if isinstance(value, BaseException):
+                out[str(name)] = Failure.of(value)
                 continue
-            value = _finite(raw)
+            number = _finite(value)
             out[str(name)] = (
-                value
-                if value is not None
+                number
+                if number is not None
                 else Failure.of(
-                    BadValueError(f"{self.name}: input {name} is {short(raw)}, not a finite number")
+                    BadValueError(
+                        f"{self.name}: input {name} is {short(value)}, not a finite number"
+                    )
                 )
             )
         return out
@@ -881,13 +897,17 @@ class Adapter(Link):
         """Actual spindle speed [rpm], as a magnitude (reverse rotation heats alike);
         :class:`BadValueError` when not a finite number. The one check of every backend's speed."""
         self.open()
-        raw = self._read_speed_raw()
+        return self._speed_of(self._read_speed_raw())
+
+    def _speed_of(self, raw: Any) -> float:
+        """A raw speed in rpm, as a magnitude; :class:`BadValueError` for anything that is not
+        a finite number (a boolean, a string that is no number, an overflow, NaN)."""
         if isinstance(raw, bool):
-            raise BadValueError(f"{self.name}: speed {raw!r} is not a number")
+            raise BadValueError(f"{self.name}: speed {short(raw)} is not a number")
         try:
             rpm = abs(float(raw) * self.speed_scale)
-        except (TypeError, ValueError) as err:
-            raise BadValueError(f"{self.name}: speed {raw!r} is not a number") from err
+        except (TypeError, ValueError, OverflowError) as err:
+            raise BadValueError(f"{self.name}: speed {short(raw)} is not a number") from err
         if not math.isfinite(rpm):
             raise BadValueError(f"{self.name}: speed is {rpm}")
         return rpm
@@ -902,15 +922,24 @@ class Adapter(Link):
                 "controller holds (can_read_offset is false)"
             )
         self.open()
-        raw = self._read_offset_raw()
+        return self._offset_of(self._read_offset_raw())
+
+    def _offset_of(self, raw: Any) -> float:
+        """A raw offset the controller holds, in um; :class:`BadValueError` for anything that
+        is not a finite number."""
         if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
             raise BadValueError(
                 f"{self.name}: the controller's offset {short(raw)} is not a number"
             )
-        value = float(raw)
-        if not math.isfinite(value):
-            raise BadValueError(f"{self.name}: the controller's offset is {value}")
-        return self.units.to_um(value)
+        value = _finite(raw)
+        if value is None:
+            raise BadValueError(f"{self.name}: the controller's offset is {short(raw)}")
+        um = self.units.to_um(value)
+        if not math.isfinite(um):  # a huge value in a small unit
+            raise BadValueError(
+                f"{self.name}: the controller's offset {short(raw)} is out of range"
+            )
+        return um
 
     def write_offset_um(self, offset_um: float) -> None:
         """Write the thermal offset [um]; a non-finite value never leaves this method."""
@@ -981,37 +1010,37 @@ class Adapter(Link):
         if not self.can_read_measurement:
             return None
         self.open()
-        raw = self._read_measurement_raw()
+        return self._measurement_of(self._read_measurement_raw())
+
+    def _measurement_of(self, raw: RawMeasurement | None) -> Measurement | None:
+        """The handshake of :meth:`read_measurement` on what the controller holds now: a new
+        counter gives its value (in um) once; :class:`BadValueError` for a value or sigma that
+        is not a finite number (the counter is then taken as seen, so it is refused once)."""
         if raw is None:
             return None
-        seq = raw.sequence
+        seq = whole_sequence(self.name, raw.sequence)
         last = self._measurement_seq
         self._measurement_seq = seq
         if last is None or seq == last:
             return None
-        if (
-            isinstance(raw.value, bool)
-            or not isinstance(raw.value, numbers.Real)
-            or not math.isfinite(float(raw.value))
-        ):
+        scale = self.measurement_scale or self.units.scale
+        value = _finite(raw.value)
+        elongation_um = None if value is None else value / scale
+        if elongation_um is None or not math.isfinite(elongation_um):
             raise BadValueError(
                 f"{self.name}: measurement {short(raw.value)} (sequence {seq}) is "
                 "not a finite number"
             )
-        scale = self.measurement_scale or self.units.scale
-        sigma = None
+        sigma_um = None
         if raw.sigma is not None:
-            sigma = (
-                abs(float(raw.sigma)) / scale
-                if isinstance(raw.sigma, numbers.Real) and not isinstance(raw.sigma, bool)
-                else math.nan
-            )
-            if not (math.isfinite(sigma) and sigma > 0):
+            spread = _finite(raw.sigma)  # a string, a boolean, an array: no sigma, refused
+            sigma_um = math.nan if spread is None else abs(spread / scale)
+            if not (math.isfinite(sigma_um) and sigma_um > 0):
                 raise BadValueError(
                     f"{self.name}: measurement sigma {short(raw.sigma)} (sequence "
                     f"{seq}) is not a positive number"
                 )
-        return Measurement(float(raw.value) / scale, sigma, seq, self.name)
+        return Measurement(elongation_um, sigma_um, seq, self.name)
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         """Backend hook: the controller's (sequence, value[, sigma]) as they stand now, in its
@@ -1071,10 +1100,6 @@ def _finite(raw: Any) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def _finite_or_none(value: Any) -> float | None:
-    return None if isinstance(value, Failure) else _finite(value)
-
-
 def _guarded(call: Callable[[], Any]) -> Any:
     """``call()``, or the :class:`Failure` it raised: a link's error, or a conversion that a
     controller's value made fail (a TypeError, ValueError, OverflowError ...). Anything else is a
@@ -1089,9 +1114,8 @@ def cutting_of(name: str, raw: Any, values: tuple[Any, ...]) -> bool:
     """A raw cutting signal as a bool: True when it is one of ``values``. A configured boolean
     matches the signal's truth (a bit, or a 0/1 number), a configured number its whole value (a
     state code; a boolean signal counts as 0 or 1)."""
-    if isinstance(raw, bool) or (
-        isinstance(raw, numbers.Real) and math.isfinite(float(raw)) and float(raw) == int(raw)
-    ):
+    number = _finite(raw)
+    if isinstance(raw, bool) or (number is not None and number.is_integer()):
         code = int(raw)
         return any((v == (code != 0)) if isinstance(v, bool) else v == code for v in values)
     raise BadValueError(
@@ -1131,12 +1155,8 @@ CuttingValues = Annotated[
 def whole_sequence(name: str, raw: Any) -> int:
     """A measurement's sequence counter as an int (an analog output or a register may hold it as
     a float); :class:`BadValueError` when it is not a whole number."""
-    if (
-        isinstance(raw, bool)
-        or not isinstance(raw, numbers.Real)
-        or not math.isfinite(float(raw))
-        or float(raw) != int(raw)
-    ):
+    number = _finite(raw)
+    if isinstance(raw, bool) or number is None or not number.is_integer():
         raise BadValueError(f"{name}: measurement sequence {short(raw)} is not a whole number")
     return int(raw)
 

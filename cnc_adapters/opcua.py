@@ -53,6 +53,7 @@ from urllib.parse import urlsplit
 from pydantic import AfterValidator, BaseModel, Field, model_validator
 
 from .base import (
+    _NOTHING_MORE,
     SETTINGS_CONFIG,
     Adapter,
     AdapterError,
@@ -69,12 +70,17 @@ from .base import (
     Text,
     UnreachableError,
     WriteRejectedError,
+    _finite,
+    _guarded,
+    cutting_of,
     one_of,
     query_params,
     redact_url,
+    short,
     url_has_password,
     whole_sequence,
 )
+from .reading import Failure, Reading, Wants
 
 log = logging.getLogger("thermocomp.adapters.opcua")
 
@@ -651,8 +657,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if verify_writes not in (True, False, "immediate", "deferred"):
             raise AdapterError("opcua: verify_writes is true, false, 'immediate' or 'deferred'")
         self.verify_writes = "immediate" if verify_writes is True else verify_writes
-        self._unverified: float | None = None
-        self._mismatch: float | None = None
+        self._unverified: float | None = None  # a write the next read() checks (deferred)
         if read_mode not in ("poll", "subscribe"):
             raise AdapterError("opcua: read_mode is 'poll' or 'subscribe'")
         self.read_mode = read_mode
@@ -663,8 +668,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             input_nodes if input_nodes is not None else p.get("input_nodes", {})
         )
         self._inputs: dict[str, Any] = {}
-        self._speed = None
-        self._offset = None
+        self._speed: Any = None
+        self._offset: Any = None
         # the probe cycle's handshake: (sequence, value[, sigma]), node ids or browse paths
         if measurement_node is None and measurement_sequence_node is None:
             measurement_node = p.get("measurement_node")
@@ -674,7 +679,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             raise AdapterError(
                 "opcua: a measurement needs both measurement_node and measurement_sequence_node"
             )
-        self.measurement_refs = (
+        self.measurement_refs: tuple[str, ...] = (
             tuple(
                 r
                 for r in (measurement_sequence_node, measurement_node, measurement_sigma_node)
@@ -689,15 +694,12 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             None  # resolved lazily: a bad node never stops the link
         )
         # the cutting signal; "" turns a preset's off
-        self.cutting_ref = p.get("cutting_node") if cutting_node is None else (cutting_node or None)
+        self.cutting_ref: str | None = (
+            p.get("cutting_node") if cutting_node is None else (cutting_node or None)
+        )
         self.can_read_cutting = bool(self.cutting_ref)
         self.cutting_values = tuple(cutting_values)
-        self._cutting_node = None  # resolved at its first read
-        self._cutting = None  # its node, once read on its own: then read with the speed
-        self._cutting_raw: tuple[Any] | None = None  # read with this cycle's speed
-        # the offset, input and measurement nodes read in the speed's request, each taken once
-        # by its own read in the same cycle: one round trip a cycle instead of four
-        self._ridden: dict[str, list[Any]] = {}
+        self._cutting_node: Any = None  # resolved at its first read
         self._ns = ""
 
     @classmethod
@@ -730,81 +732,122 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 "subscribe to speed node", sub.subscribe_data_change, self._speed, node=self._speed
             )
 
-    def _riders(self) -> dict[str, list[Any]]:
-        """The nodes this cycle's other reads will ask for, once known (resolved): read with the speed."""
-        riders = {"offset": [self._offset]} if self._offset is not None else {}
-        if self._inputs:
-            riders["inputs"] = list(self._inputs.values())
-        if self._measurement is not None:
-            riders["measurement"] = list(self._measurement)
-        return riders
+    # -- one cycle: one request --------------------------------------------------
 
-    def _with_riders(self, what: str, head: list[Any], node: Any, checked: bool) -> list[Any]:
-        """Read ``head`` (the speed first) and this cycle's riders in one request; ``head``'s
-        values, each status checked (``checked``: a :class:`BadValueError` in its place, else the
-        speed's own read refuses a bad status as a lone ``read_value`` would)."""
-        from asyncua import ua
-
-        riders = self._riders()
-        nodes = head + [n for group in riders.values() for n in group]
-        dvs = self._call(what, self._client.read_attributes, nodes, node=node)
-        k = len(head)
-        for name, group in riders.items():
-            self._ridden[name] = dvs[k : k + len(group)]
-            k += len(group)
-        if checked:
-            return self._read_checked(what, head, dvs[: len(head)])
+    def read(self, wants: Wants = _NOTHING_MORE) -> Reading:
+        """This cycle's values in one ``Read`` request: the speed (polling; with a subscription,
+        its last notification), and what ``wants`` asks for of the cutting signal, the held
+        offset, the inputs and the probe's handshake, and the offset a deferred write check
+        needs. Each value's status and type are checked and converted by the base's checks;
+        a node that cannot be resolved fails its own field, never the cycle."""
         try:
-            dvs[0].StatusCode.check()
-        except ua.UaStatusCodeError as err:
-            raise AdapterError(f"{self._where(what, node)}: {type(err).__name__}") from err
-        return [None if dvs[0].Value is None else dvs[0].Value.Value]
-
-    def _ride(self, name: str) -> list[Any] | None:
-        """What the speed's request read for ``name`` this cycle, once; None: read it now."""
-        return self._ridden.pop(name, None)
-
-    def _read_speed_raw(self) -> Any:
-        self._ridden = {}  # last cycle's, if unread: never taken for this one's
+            self.open()
+        except AdapterError as err:
+            return Reading(Failure.of(err), reconnects=self.reconnects)
+        speed: float | Failure | None = None
         if self._latest is not None:
-            value = self._latest.get(self.timeout_s)
-            if isinstance(value, BadValueError):
-                raise value
-            if isinstance(value, BaseException):
-                raise self._link_lost(f"{self._where('speed subscription', self._speed)}: {value}")
-            if value is None:
-                raise self._link_lost(
-                    f"{self._where('speed subscription', self._speed)}: no "
-                    f"notification within {self.timeout_s:g} s",
-                    AdapterTimeoutError,
+            speed = _guarded(self._subscribed_speed)
+            if isinstance(speed, Failure) and speed.link_lost:
+                return Reading(speed, reconnects=self.reconnects)
+        caps = self.capabilities
+        fields: dict[str, Any] = {}
+        request: dict[str, list[Any]] = {}  # the request's nodes, by field, in order
+        if speed is None:
+            request["speed"] = [self._speed]
+        if self._unverified is not None or (wants.held_offset and caps.held_offset):
+            request["offset"] = [self._offset]
+        if wants.cutting and caps.cutting:
+            node = _guarded(self._cutting_resolved)
+            if isinstance(node, Failure):
+                fields["cutting"] = node
+            else:
+                request["cutting"] = [node]
+        if wants.inputs and caps.inputs:
+            request["inputs"] = list(self._inputs.values())
+        if wants.measurement and caps.measurement:
+            nodes = _guarded(self._measurement_resolved)
+            if isinstance(nodes, Failure):
+                fields["measurement"] = nodes
+            else:
+                request["measurement"] = nodes
+        nodes = [n for group in request.values() for n in group]
+        dvs: Any = []
+        if nodes:
+            dvs = _guarded(
+                lambda: self._call("read", self._client.read_attributes, nodes, node=nodes)
+            )
+            if not isinstance(dvs, Failure) and len(dvs) != len(nodes):
+                dvs = Failure.of(
+                    BadValueError(
+                        f"{self._where('read')}: {len(dvs)} values for {len(nodes)} nodes"
+                    )
                 )
-        elif self._unverified is not None:
-            nodes = [self._speed, self._offset, *self._with_speed()]
-            value, held, *cut = self._with_riders(
-                "read speed and offset nodes", nodes, nodes, checked=True
+            if isinstance(dvs, Failure):  # the whole request: every value asked for fails
+                for name in request:
+                    fields["held_offset_um" if name == "offset" else name] = dvs
+                if speed is None:
+                    speed = fields.pop("speed")
+                return Reading(speed, reconnects=self.reconnects, **fields)
+        got: dict[str, list[Any]] = {}
+        k = 0
+        for name, group in request.items():
+            got[name] = list(dvs[k : k + len(group)])
+            k += len(group)
+        if "speed" in got:
+            speed = _guarded(lambda: self._speed_of(self._speed_raw_of(got["speed"][0])))
+        assert speed is not None
+        if "offset" in got:
+            held = _guarded(lambda: self._offset_of(self._offset_raw_of(got["offset"][0])))
+            if self._unverified is not None:
+                fields["write_refused_um"] = self._check_deferred(got["offset"][0])
+            if wants.held_offset and caps.held_offset:
+                fields["held_offset_um"] = held
+        if "cutting" in got:
+            fields["cutting"] = _guarded(
+                lambda: cutting_of(
+                    self.name, self._cutting_raw_of(got["cutting"][0]), self.cutting_values
+                )
             )
-            self._cutting_raw = (cut[0],) if cut else None
-            wrote, self._unverified = self._unverified, None
-            if isinstance(held, BadValueError):  # not known: checked again by the next read-back
-                log.warning("opcua: deferred write check: %s", held)
-            elif not (
-                isinstance(held, (int, float))
-                and math.isclose(held, wrote, rel_tol=1e-9, abs_tol=1e-9)
-            ):
-                self._mismatch = held
-                log.warning("opcua: wrote %r, controller holds %r", wrote, held)
-        elif self._cutting is not None:
-            nodes = [self._speed, self._cutting]
-            value, cut = self._with_riders(
-                "read speed and cutting nodes", nodes, nodes, checked=True
+        if "inputs" in got:
+            fields["inputs"] = _guarded(lambda: self._inputs_of(self._inputs_raw_of(got["inputs"])))
+        if "measurement" in got:
+            fields["measurement"] = _guarded(
+                lambda: self._measurement_of(self._measurement_raw_of(got["measurement"]))
             )
-            self._cutting_raw = (cut,)
-        else:
-            (value,) = self._with_riders(
-                "read speed node", [self._speed], self._speed, checked=False
-            )
+        return Reading(speed, reconnects=self.reconnects, **fields)
+
+    def _check_deferred(self, dv: Any) -> float | None:
+        """The deferred check of the last write against the offset node's value read with this
+        cycle: what the controller holds [um] when it did not take the write, else None."""
+        wrote, self._unverified = self._unverified, None
+        held = _good_value(self._offset, dv, self._where("deferred write check", self._offset))
+        if isinstance(held, BadValueError):  # not known: the next read-back checks it again
+            log.warning("opcua: deferred write check: %s", held)
+            return None
+        number = _finite(held)
+        if number is not None and math.isclose(number, wrote, rel_tol=1e-9, abs_tol=1e-9):
+            return None
+        log.warning("opcua: wrote %r, controller holds %s", wrote, short(held))
+        if number is None:
+            return None  # no number to report; the held offset's own read says what it holds
+        um = self.units.to_um(number)
+        return um if math.isfinite(um) else None
+
+    def _write_pending(self) -> bool:
+        return self._unverified is not None
+
+    # -- the nodes' values: each status and type checked ------------------------
+
+    def _checked(self, what: str, node: Any, dv: Any, error: type[AdapterError]) -> Any:
+        """A DataValue's value; ``error`` naming the node and its status when it is not Good
+        (a BadSensorFailure may carry a number: never taken)."""
+        value = _good_value(node, dv, self._where(what, node))
         if isinstance(value, BadValueError):
-            raise value
+            raise error(str(value))
+        return value
+
+    def _speed_raw_of(self, dv: Any) -> Any:
+        value = self._checked("read speed node", self._speed, dv, AdapterError)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise BadValueError(
                 f"{self._where('read speed node', self._speed)}: holds "
@@ -812,94 +855,111 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             )
         return value
 
-    def _read_checked(self, what: str, nodes: list[Any], dvs: list[Any] | None = None) -> list[Any]:
-        """The values of ``nodes`` in one request (or ``dvs``, read already with the speed), each
-        one's status checked: a node whose status is not Good gives a :class:`BadValueError` in
-        its place, never its value (a BadSensorFailure may carry a number)."""
-        if dvs is None:
-            dvs = self._call(what, self._client.read_attributes, nodes, node=nodes)
-        return [_good_value(node, dv, self._where(what, node)) for node, dv in zip(nodes, dvs)]
+    def _offset_raw_of(self, dv: Any) -> Any:
+        return self._checked("read offset node", self._offset, dv, BadValueError)
 
-    def _with_speed(self) -> list[Any]:
-        return [] if self._cutting is None else [self._cutting]
+    def _cutting_raw_of(self, dv: Any) -> Any:
+        return self._checked("read cutting node", self._cutting_node, dv, AdapterError)
 
-    def _read_cutting_raw(self) -> Any:
-        """The cutting signal read with this cycle's speed; else (the first time, and with a
-        subscription) on its own, its status checked."""
-        if self._cutting_raw is not None:
-            (raw,), self._cutting_raw = self._cutting_raw, None
-            if isinstance(raw, BadValueError):
-                raise raw
-            return raw
-        ref = self.cutting_ref
-        assert ref is not None
-        if self._cutting_node is None:
-            self._cutting_node = self._resolve_ref(self._client, ref, self._ns, "cutting node")
-        (dv,) = self._call(
-            "read cutting node",
-            self._client.read_attributes,
-            [self._cutting_node],
-            node=self._cutting_node,
-        )
-        if not dv.StatusCode.is_good():
-            raise AdapterError(
-                f"{self._where('read cutting node', self._cutting_node)}: {dv.StatusCode.name}"
-            )
-        if self._latest is None:
-            self._cutting = self._cutting_node  # good: read in the speed's request from now on
-        return None if dv.Value is None else dv.Value.Value
-
-    def input_channels(self) -> tuple[str, ...]:
-        return tuple(self.input_nodes)
-
-    def _read_inputs_raw(self) -> dict[str, Any]:
+    def _inputs_raw_of(self, dvs: list[Any]) -> dict[str, Any]:
         # an input whose status is not Good is missing, as one that holds no number
-        values = self._read_checked(
-            "read input nodes", list(self._inputs.values()), self._ride("inputs")
-        )
         return {
-            name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
-            for name, v in zip(self._inputs, values)
+            name: _good_value(node, dv, self._where("read input node", node))
+            for (name, node), dv in zip(self._inputs.items(), dvs, strict=True)
         }
 
-    def _read_offset_raw(self) -> Any:
-        (held,) = self._read_checked("read offset node", [self._offset], self._ride("offset"))
-        if isinstance(held, BadValueError):
-            raise held
-        return held
+    def _measurement_raw_of(self, dvs: list[Any]) -> RawMeasurement:
+        nodes = self._measurement or []
+        seq, value, *sigma = (
+            self._checked("read measurement node", node, dv, AdapterError)
+            for node, dv in zip(nodes, dvs, strict=True)
+        )
+        return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
 
-    def _read_measurement_raw(self) -> RawMeasurement:
-        """The probe cycle's counter, value (and sigma), in one request, the counter first: the
-        cycle writes the value before it changes the counter, so a new counter never comes with
-        an old value."""
+    def _subscribed_speed(self) -> float:
+        """The speed [rpm] from the subscription's last notification, checked."""
+        return self._speed_of(self._subscribed_raw())
+
+    def _subscribed_raw(self) -> float:
+        """The subscription's last notification of the speed, a number (raw)."""
+        assert self._latest is not None
+        value = self._latest.get(self.timeout_s)
+        if isinstance(value, BadValueError):
+            raise value
+        if isinstance(value, BaseException):
+            raise self._link_lost(f"{self._where('speed subscription', self._speed)}: {value}")
+        if value is None:
+            raise self._link_lost(
+                f"{self._where('speed subscription', self._speed)}: no "
+                f"notification within {self.timeout_s:g} s",
+                AdapterTimeoutError,
+            )
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise BadValueError(
+                f"{self._where('speed subscription', self._speed)}: holds "
+                f"{type(value).__name__}, not a number"
+            )
+        return value
+
+    def _cutting_resolved(self) -> Any:
+        if self._cutting_node is None:
+            assert self.cutting_ref is not None
+            self._cutting_node = self._resolve_ref(
+                self._client, self.cutting_ref, self._ns, "cutting node"
+            )
+        return self._cutting_node
+
+    def _measurement_resolved(self) -> list[Any]:
         if self._measurement is None:
             self._measurement = [
                 self._resolve_ref(self._client, ref, self._ns, "measurement node")
                 for ref in self.measurement_refs
             ]
-        dvs = self._ride("measurement")
-        if dvs is None:
-            dvs = self._call(
-                "read measurement nodes",
-                self._client.read_attributes,
-                self._measurement,
-                node=self._measurement,
-            )
-        for node, dv in zip(self._measurement, dvs):
-            if not dv.StatusCode.is_good():
-                raise AdapterError(
-                    f"{self._where('read measurement node', node)}: {dv.StatusCode.name}"
-                )
-        seq, value, *sigma = (None if dv.Value is None else dv.Value.Value for dv in dvs)
-        return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
+        return self._measurement
+
+    def _read_one(self, what: str, nodes: list[Any]) -> list[Any]:
+        """The DataValues of ``nodes``, in a request of their own."""
+        return list(self._call(what, self._client.read_attributes, nodes, node=nodes))
+
+    # -- the per-value reads (the wizard, run --check): each its own request ------
+
+    def _read_speed_raw(self) -> Any:
+        if self._latest is not None:
+            return self._subscribed_raw()
+        (dv,) = self._read_one("read speed node", [self._speed])
+        return self._speed_raw_of(dv)
+
+    def _read_cutting_raw(self) -> Any:
+        node = self._cutting_resolved()
+        (dv,) = self._read_one("read cutting node", [node])
+        return self._cutting_raw_of(dv)
+
+    def input_channels(self) -> tuple[str, ...]:
+        return tuple(self.input_nodes)
+
+    def _read_inputs_raw(self) -> dict[str, Any]:
+        raw = self._inputs_raw_of(self._read_one("read input nodes", list(self._inputs.values())))
+        return {
+            name: (v if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
+            for name, v in raw.items()
+        }
+
+    def _read_offset_raw(self) -> Any:
+        (dv,) = self._read_one("read offset node", [self._offset])
+        return self._offset_raw_of(dv)
+
+    def _read_measurement_raw(self) -> RawMeasurement:
+        """The probe cycle's counter, value (and sigma), in one request, the counter first: the
+        cycle writes the value before it changes the counter, so a new counter never comes with
+        an old value."""
+        nodes = self._measurement_resolved()
+        return self._measurement_raw_of(self._read_one("read measurement nodes", nodes))
 
     def _write_offset_raw(self, value: float) -> None:
         from asyncua import ua
 
-        self._ridden.pop(
-            "offset", None
-        )  # read before this write: not what the controller holds now
         dv = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
+        self._unverified = None
         try:
             self._call(
                 "write offset node",
@@ -915,33 +975,23 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 f"{err}: the server's user may not write {self.offset_node or self.offset_path}; on a SINUMERIK, setting "
                 "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)"
             ) from err
-        if self.verify_writes == "deferred" and self._latest is None:
+        if self.verify_writes == "deferred":
             self._unverified = value
         elif self.verify_writes:
-            back = self._call("read back offset node", self._offset.read_value, node=self._offset)
-            if not (
-                isinstance(back, (int, float))
-                and math.isclose(back, value, rel_tol=1e-9, abs_tol=1e-9)
-            ):
+            (back_dv,) = self._read_one("read back offset node", [self._offset])
+            back = self._checked("read back offset node", self._offset, back_dv, AdapterError)
+            number = _finite(back)
+            if number is None or not math.isclose(number, value, rel_tol=1e-9, abs_tol=1e-9):
                 raise WriteRejectedError(
                     f"{self._where('write offset node', self._offset)}: wrote "
-                    f"{value!r}, controller holds {back!r}"
+                    f"{value!r}, controller holds {short(back)}"
                 )
-
-    def _take_mismatch_raw(self) -> Any:
-        """What the controller holds, if a deferred check found that it did not take the last
-        write; reported once."""
-        held, self._mismatch = self._mismatch, None
-        return held
 
     def _forget(self) -> None:
         self._latest = None
         self._unverified = None
         self._measurement = None
         self._cutting_node = None
-        self._cutting = None
-        self._cutting_raw = None
-        self._ridden = {}
 
 
 def _node_id(node: Any) -> str:
@@ -954,9 +1004,8 @@ def _node_id(node: Any) -> str:
 def _good_value(node: Any, dv: Any, where: str) -> Any:
     """A DataValue's value if its status is Good, else a :class:`BadValueError` saying
     ``where`` (the operation, the node, the server) and the status."""
-    status = getattr(dv, "StatusCode", None)
-    if status is not None and not status.is_good():
-        return BadValueError(f"{where}: status {status.name}")
+    if not dv.StatusCode.is_good():
+        return BadValueError(f"{where}: status {dv.StatusCode.name}")
     return None if dv.Value is None else dv.Value.Value
 
 
@@ -971,12 +1020,12 @@ class _Latest:
         self._value: Any = None
         self._event = threading.Event()
 
-    def datachange_notification(self, node, val, data) -> None:
-        dv = getattr(getattr(data, "monitored_item", None), "Value", None)
-        self._value = _good_value(node, dv, self.where) if dv is not None else val
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        # data: asyncua's DataChangeNotificationData; its DataValue carries the status
+        self._value = _good_value(node, data.monitored_item.Value, self.where)
         self._event.set()
 
-    def status_change_notification(self, status) -> None:
+    def status_change_notification(self, status: Any) -> None:
         self._value = UnreachableError(f"{self.where}: subscription status {status}")
         self._event.set()
 

@@ -37,7 +37,9 @@ from cnc_adapters import (
     BadValueError,
     ConfigError,
     UnreachableError,
+    Wants,
     WriteRejectedError,
+    WriteResult,
     backend,
     open_adapter,
 )
@@ -639,16 +641,18 @@ def test_opcua_deferred_write_check_reports_a_write_the_controller_did_not_take(
         clock.advance(60.0)  # up to speed
         step(cnc)
         with OpcUaAdapter(cnc.url, preset="virtual-cnc", verify_writes="deferred") as link:
-            link.write_offset_um(-3.0)  # taken
+            assert link.write(-3.0) == WriteResult(pending=True)  # taken, checked by the next read
             step(cnc)
             assert vm.offset_um == -3.0
-            assert link.read_speed() == 9000.0 and link.take_write_mismatch() is None
-            link.write_offset_um(-5000.0)  # beyond what this CNC accepts: it reverts the variable
+            got = link.read(Wants())
+            assert got.speed_rpm == 9000.0 and got.write_refused_um is None
+            assert link.write(-5000.0).pending  # beyond what this CNC accepts: it reverts it
             step(cnc)
             assert vm.rejected_writes == 1
-            assert link.read_speed() == 9000.0
-            assert link.take_write_mismatch() == -3.0  # what it holds, reported once
-            assert link.take_write_mismatch() is None
+            got = link.read(Wants())
+            assert got.speed_rpm == 9000.0
+            assert got.write_refused_um == -3.0  # what it holds, reported once
+            assert link.read(Wants()).write_refused_um is None
     with pytest.raises(AdapterError, match="verify_writes"):
         OpcUaAdapter("opc.tcp://127.0.0.1:1", preset="virtual-cnc", verify_writes="sometimes")
 
