@@ -30,6 +30,7 @@ import numpy as np
 from compensator.errors import CalibrationError
 from compensator.io.journal import Journal
 from compensator.io.runlog import RunLog
+from compensator.modelbase import with_fit
 from compensator.plausibility import MIN_TOLERANCE_UM, not_following_refusal, steady_growth_refusal
 
 from . import closedloop
@@ -159,14 +160,14 @@ def fit_data(
         **meta,
     )
     result.warnings[:0] = coverage_warnings(data)
-    record: dict[str, Any] = {}
+    stated: dict[str, Any] = {}
     if share is not None:
-        record["not_following_share"] = round(share, 4)
+        stated["not_following_share"] = round(share, 4)
     if direction is not None:
-        record["growth_direction"] = int(direction)
+        stated["growth_direction"] = int(direction)
     model = result.model
-    if record:
-        model = result.model = model.model_copy(update={"fit": {**model.fit, **record}})
+    if stated:
+        model = result.model = with_fit(model, **stated)
     why = steady_growth_refusal(model, direction, measured_um=span_um)
     if why is not None:
         raise CalibrationError(f"calibration refused: {model.form}: {why}")

@@ -40,6 +40,9 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError
+from compensator.expected import ExpectedError
+from compensator.fitrecord import FIT_SCHEMA_VERSION, FitRecord
+from compensator.modelbase import with_fit
 from compensator.plausibility import steady_growth_refusal
 
 from . import closedloop
@@ -490,12 +493,9 @@ def identify(
     if loop is not None:
         fb = model.fallback
         fb_loop = loop_of(chosen) if fb is not None else None
-        update: dict[str, Any] = {"fit": {**model.fit, "observer": loop.observer.model_dump()}}
+        model = with_fit(model, observer=loop.observer)
         if fb is not None and fb_loop is not None:  # the fallback keeps the observer fitted to it
-            update["fallback"] = fb.model_copy(
-                update={"fit": {**fb.fit, "observer": fb_loop.observer.model_dump()}}
-            )
-        model = model.model_copy(update=update)
+            model = model.model_copy(update={"fallback": with_fit(fb, observer=fb_loop.observer)})
     return Identification(
         ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop
     )
@@ -752,9 +752,7 @@ def extrapolation(
     )
 
 
-def _expected(
-    c: Candidate, ds: Dataset, forward: np.ndarray | None = None
-) -> dict[str, Any] | None:
+def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> ExpectedError | None:
     """The error to expect by speed band, inside and outside the trained input range
     (:func:`~calibration.metrics.expected_error`); ``forward`` is the forward residual under the
     extrapolation chosen (default: the candidate's own)."""
@@ -767,7 +765,7 @@ def _expected(
     else:
         forward_res = c.forward_residual_um if forward is None else forward
         folds = len(c.forward_folds_rms_um)
-    out = expected_error(
+    return expected_error(
         forward_res,
         c.held_out_residual_um,
         ds.speed_rpm,
@@ -775,27 +773,28 @@ def _expected(
         c.forward_distance,
         forward_folds=folds,
     )
-    return out.model_dump(mode="json") if out is not None else None
 
 
 def _with_fit(c: Candidate, ds: Dataset, reason: str, forward: np.ndarray | None = None) -> Any:
-    fit = {
+    """The candidate's model with its fit record: built here, once, for every model fit writes."""
+    entries: dict[str, Any] = {
+        "schema_version": FIT_SCHEMA_VERSION,
         "method": c.name,
         "scored_by": f"{ds.scheme} free run",
         "folds": len(ds.folds),
         "cv_rms_um": round(c.cv_rms_um, 4),
         "cv_max_abs_um": round(c.cv_max_abs_um, 4),
-        "folds_rms_um": [round(v, 4) for v in c.folds_rms_um],
+        "folds_rms_um": tuple(round(v, 4) for v in c.folds_rms_um),
         "reason": reason,
+        "expected_error": _expected(c, ds, forward),
     }
-    expected = _expected(c, ds, forward)
-    if expected is not None:
-        fit["expected_error"] = expected
     if c.nested_rms_um is not None:
-        fit["nested_rms_um"] = round(c.nested_rms_um, 4)
+        entries["nested_rms_um"] = round(c.nested_rms_um, 4)
     if c.forward_rms_um is not None:
-        fit["forward_rms_um"] = round(c.forward_rms_um, 4)
+        entries["forward_rms_um"] = round(c.forward_rms_um, 4)
     if "alpha" in c.details:
-        fit["alpha"] = c.details["alpha"]
-        fit["grid"] = c.details["grid"]
-    return c.model.model_copy(update={"fit": fit})
+        entries["alpha"] = c.details["alpha"]
+        entries["grid"] = c.details["grid"]
+    # entries left None are not written: a record states what the fit measured
+    record = FitRecord.of({k: v for k, v in entries.items() if v is not None})
+    return c.model.model_copy(update={"fit": record})

@@ -34,8 +34,10 @@ import numpy as np
 
 from compensator.errors import CalibrationError
 from compensator.estimate import Estimate
+from compensator.fitrecord import fit_of
 from compensator.io import RunLog
 from compensator.io.journal import FAULT_ALARMS, SHADOW_COLUMN
+from compensator.modelbase import with_fit
 from compensator.plausibility import direction_of
 from compensator.predictor import Predictor
 
@@ -288,7 +290,7 @@ def refit(
     names = tuple(getattr(live.model, "input_names", ()) or ())
     # the growth points the way the live model's calibration measured it: a stretch of production
     # (a chip on the setter, a cool week) must not turn it round
-    direction = direction_of((getattr(live.model, "fit", None) or {}).get("growth_direction"))
+    direction = direction_of(fit_of(live.model).growth_direction)
     if direction is None:
         top = live.model.speed_range_rpm[1]
         g = live.model.steady_state_um(top) - live.model.steady_state_um(0.0)
@@ -314,14 +316,12 @@ def refit(
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default_sigma_um)
     observer = live.fused is not None
     candidate = ident.model
-    live_observer = (getattr(live.model, "fit", None) or {}).get("observer")
-    if live_observer is not None and "observer" not in (candidate.fit or {}):
+    live_observer = fit_of(live.model).observer
+    if live_observer is not None and candidate.fit.observer is None:
         # the observer's noise was fitted on the calibration's dense residuals, which measurements
         # minutes apart cannot give: the candidate keeps the live model's, so both are judged, and
         # the promoted one runs, with the observer the service has
-        candidate = candidate.model_copy(
-            update={"fit": {**candidate.fit, "observer": live_observer}}
-        )
+        candidate = with_fit(candidate, observer=live_observer)
         out.candidate = candidate
     out.live = score(live, clean, held, rows, sigma, observer)
     out.scored = score(make_estimate(candidate), clean, held, rows, sigma, observer)

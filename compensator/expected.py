@@ -12,6 +12,7 @@ valid range ends and a value is taken for a sensor fault).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Literal
@@ -183,10 +184,15 @@ def place(label: str) -> str:
 
 
 def parse_expected(fit: object) -> ExpectedError | None:
-    """The statement in a model's fit record (None when it has none). An unreadable one is None
-    too: it is advice, and the model runs without it."""
-    raw = fit.get("expected_error") if isinstance(fit, dict) else None
-    if not isinstance(raw, dict):
+    """The statement in a model's fit record (None when it has none): the typed record's
+    (``compensator.fitrecord.FitRecord.expected_error``, which new code reads directly) or a
+    record's JSON form. An unreadable one is None too: it is advice, and the model runs
+    without it."""
+    typed = getattr(fit, "expected_error", None)
+    if isinstance(typed, ExpectedError):
+        return typed
+    raw = fit.get("expected_error") if isinstance(fit, Mapping) else None
+    if not isinstance(raw, Mapping):
         return None
     try:
         return ExpectedError.model_validate(raw)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ModelError
+from .fitrecord import FitRecord
 from .modelbase import saved_numbers
 from .observer import (
     COV_LIMIT,
@@ -40,9 +41,14 @@ def observer_config_of(
 ) -> ObserverConfig:
     """The observer settings fitted with ``model`` (``fit["observer"]``), else the defaults;
     ``override`` (the runtime's configuration) wins key by key. ``ModelError`` if invalid."""
-    fit = getattr(model, "fit", None) or {}
-    stored = fit.get(OBSERVER_KEY) or {}
-    data = {k: v for k, v in dict(stored).items() if k in ObserverConfig.model_fields}
+    fit = getattr(model, "fit", None)
+    stored: Any = None
+    if isinstance(fit, FitRecord):
+        stored = None if fit.observer is None else fit.observer.model_dump(exclude_unset=True)
+    elif isinstance(fit, Mapping):  # a record's JSON form (a model that is no ModelBase)
+        stored = fit.get(OBSERVER_KEY)
+    stored = stored if isinstance(stored, Mapping) else {}
+    data = {k: v for k, v in stored.items() if k in ObserverConfig.model_fields}
     data.update(override or {})
     try:
         return ObserverConfig(**data)

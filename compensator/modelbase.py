@@ -6,6 +6,8 @@
 - :class:`Channel`: a measured input (name, unit, plausible range), and :func:`check_inputs`,
   the one judge of the values a model is about to use: a bool is not a number.
 - :func:`saved_numbers`: numbers read back from a saved runtime state.
+- :func:`with_fit`: the model with entries of its fit record
+  (:class:`~compensator.fitrecord.FitRecord`) changed.
 
 :mod:`compensator.model` (speed only), :mod:`compensator.statespace` and
 :mod:`compensator.inputs` build on it; their file formats are unchanged.
@@ -15,11 +17,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Self, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ModelError
+from .fitrecord import FitRecord
 from .units import RANGE_TOLERANCE, speed_magnitude_rpm
 
 SAVED_LIMIT_UM = 1e4
@@ -133,7 +136,7 @@ class ModelBase(BaseModel):
     format: str
     spindle_id: str = "unknown"
     machine_id: str = ""
-    fit: dict[str, Any] = Field(default_factory=dict, description="fit statistics")
+    fit: FitRecord = Field(default_factory=FitRecord, description="fit statistics")
     created_utc: str | None = None
 
     def __init__(self, **data: Any) -> None:
@@ -148,6 +151,19 @@ class ModelBase(BaseModel):
             return super().model_validate(obj, **kwargs)
         except ValidationError as err:
             raise model_error(err) from err
+
+    @field_validator("fit", mode="before")
+    @classmethod
+    def _fit_record(cls, value: Any) -> FitRecord:
+        # None (no record) is the empty record: readers never check for it
+        return FitRecord.of(value)
+
+    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> Self:
+        """pydantic's copy, with a ``fit`` in ``update`` made a checked :class:`FitRecord`
+        (a copy does not validate, and a dict there would reach the file and the runtime)."""
+        if update is not None and "fit" in update:
+            update = {**update, "fit": FitRecord.of(update["fit"])}
+        return super().model_copy(update=update, deep=deep)
 
     @model_validator(mode="after")
     def _distinct_inputs(self) -> ModelBase:
@@ -172,7 +188,7 @@ class ModelBase(BaseModel):
     def fit_lines(self) -> list[str]:
         """The fit record's headline figures for a description, one line; its nested records
         (the error to expect, the observer) have their own printouts."""
-        shown = [f"{k}={v}" for k, v in self.fit.items() if k in FIT_SUMMARY]
+        shown = [f"{k}={v}" for k, v in self.fit.as_dict().items() if k in FIT_SUMMARY]
         return ["  fit: " + ", ".join(shown)] if shown else []
 
     def check_inputs(self, values: Mapping[str, Any]) -> str | None:
@@ -184,3 +200,13 @@ class ModelBase(BaseModel):
         model has a ``speed_range_rpm``, a field or its speed part's."""
         top = self.speed_range_rpm[1]  # type: ignore[attr-defined]
         return speed_magnitude_rpm(speed_rpm) > top * (1 + RANGE_TOLERANCE)
+
+
+M = TypeVar("M", bound=ModelBase)
+
+
+def with_fit(model: M, **changes: Any) -> M:
+    """``model`` with entries of its fit record changed (:meth:`FitRecord.with_changes`): the
+    one way a step after the identification adds to the record (the observer, the growth
+    direction...)."""
+    return model.model_copy(update={"fit": model.fit.with_changes(**changes)})

@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from .fitrecord import fit_of
+
 POINTS = 101
 """Speeds at which the steady growth is judged, evenly from rest to the calibrated top."""
 MIN_TOLERANCE_UM = 0.5
@@ -68,7 +70,7 @@ def steady_growth_um(model: Any, speed_rpm: np.ndarray) -> np.ndarray:
 
 def held_out_rms_um(model: Any) -> float:
     """The model's held-out free-run RMS from its fit record (``cv_rms_um``) [um], 0 if none."""
-    value = (getattr(model, "fit", None) or {}).get("cv_rms_um")
+    value = fit_of(model).cv_rms_um
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return 0.0
     return max(float(value), 0.0)

@@ -123,7 +123,7 @@ def test_an_input_twice_is_one_model_error(make):
 def test_every_model_shares_the_base_fields_and_fails_with_a_model_error():
     for model in (first_order(), state_space("amb_c"), augmented("amb_c")):
         assert isinstance(model, ModelBase)
-        assert (model.spindle_id, model.machine_id, model.fit, model.created_utc) == (
+        assert (model.spindle_id, model.machine_id, model.fit.as_dict(), model.created_utc) == (
             "unknown",
             "",
             {},

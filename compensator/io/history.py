@@ -22,6 +22,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..errors import ConfigError, ModelFileError
+from ..fitrecord import fit_of
 from .atomic import atomic_write
 from .modelfile import load_any_model, model_digest
 
@@ -212,7 +213,7 @@ class ModelHistory:
 
 def fit_summary(model: Any) -> dict[str, Any]:
     """The headline figures of a model's fit record, for a history record."""
-    fit = getattr(model, "fit", None) or {}
+    fit = fit_of(model).as_dict()
     keys = ("method", "folds", "nested_rms_um", "forward_rms_um", "cv_rms_um", "alpha")
     out: dict[str, Any] = {
         "form": getattr(model, "form", None),
