@@ -232,7 +232,14 @@ class LineAdapter(SerialLine, Adapter):
             raise BadValueError(
                 f"{self._head('read speed', self.speed_request)}: unexpected reply {reply!r}"
             )
-        return float(m.group("value"))
+        return self._number(m.group("value"), "read speed", self.speed_request)
+
+    def _number(self, text: str, op: str, request: str) -> float:
+        """The reply's value group as a float (a configured pattern may match a word)."""
+        try:
+            return float(text)
+        except ValueError as err:
+            raise BadValueError(f"{self._head(op, request)}: {text!r} is not a number") from err
 
     def _read_offset_raw(self) -> float:
         if self.offset_query is None:  # read_offset_um checks can_read_offset first
@@ -245,7 +252,7 @@ class LineAdapter(SerialLine, Adapter):
         reply = self.exchange(request, op)
         m = reply_pattern.match(reply)
         if m is not None:
-            return float(m.group("value"))
+            return self._number(m.group("value"), op, request)
         if self.reject_reply.match(reply):
             raise AdapterError(f"{self._head(op, request)}: controller refused it: {reply!r}")
         raise BadValueError(f"{self._head(op, request)}: unexpected reply {reply!r}")

@@ -11,6 +11,7 @@ the part) like a controller's cutting signal.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import replace
 from typing import Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
@@ -125,7 +126,9 @@ class SimAdapter(Adapter):
         m = self.machine
         seq = m.probe_sequence  # the counter first: it changes after the value
         scale = self.measurement_scale or self.units.scale  # the controller's unit
-        return RawMeasurement(seq, m.probe_value_um * scale, m.probe_sigma_um * scale)
+        return RawMeasurement(
+            seq, _scaled(m.probe_value_um, scale), _scaled(m.probe_sigma_um, scale)
+        )
 
     def _read_cutting_raw(self) -> bool:
         self.machine.advance()
@@ -142,3 +145,10 @@ class SimAdapter(Adapter):
 
     def _disconnect(self) -> None:
         pass
+
+
+def _scaled(value: Any, scale: float) -> Any:
+    """A number in the controller's unit; anything else as it is (the base refuses it)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return value
+    return float(value) * scale

@@ -36,6 +36,9 @@ from cnc_adapters import (
     AdapterTimeoutError,
     BadValueError,
     ConfigError,
+    Failure,
+    FailureKind,
+    Reading,
     UnreachableError,
     Wants,
     WriteRejectedError,
@@ -348,6 +351,88 @@ def test_close_is_idempotent_and_final(rig):
         link.read_speed()
 
 
+# -- one cycle: read(wants) and write, typed ------------------------------------------
+
+ALL = Wants(cutting=True, held_offset=True, inputs=True, measurement=True)
+
+
+def assert_reading(r: Reading) -> None:
+    """The Reading's contract: every value None, a Failure, or a finite value of its type."""
+
+    def number(v: object) -> bool:
+        return isinstance(v, Failure) or (type(v) is float and math.isfinite(v))
+
+    assert number(r.speed_rpm), r.speed_rpm
+    assert r.cutting is None or isinstance(r.cutting, (bool, Failure))
+    assert r.held_offset_um is None or number(r.held_offset_um)
+    assert r.not_ready_offset_um is None or number(r.not_ready_offset_um)
+    assert r.write_refused_um is None or number(r.write_refused_um)
+    assert r.inputs is None or isinstance(r.inputs, Failure) or all(map(number, r.inputs.values()))
+    m = r.measurement
+    assert (
+        m is None
+        or isinstance(m, Failure)
+        or (
+            number(m.elongation_um)
+            and type(m.sequence) is int
+            and (m.sigma_um is None or (number(m.sigma_um) and m.sigma_um > 0))
+        )
+    )
+    assert type(r.reconnects) is int
+
+
+def test_one_cycle_reads_checked_values_and_writes_without_raising(rig):
+    rig.set_speed(12345.0)
+    with rig.make() as link:
+        caps = link.capabilities
+        assert caps.held_offset == link.can_read_offset
+        assert wait_for(lambda: link.read(ALL).speed_rpm == pytest.approx(12345.0))
+        r = link.read(ALL)
+        assert_reading(r)
+        for wanted, got in (
+            (caps.cutting, r.cutting),
+            (caps.measurement, r.measurement if not isinstance(r.measurement, Failure) else 0),
+            (bool(caps.inputs), r.inputs),
+            (caps.held_offset, r.held_offset_um),
+        ):
+            if not wanted:
+                assert got is None  # what the link cannot read is not read
+        assert link.read(Wants()).held_offset_um is None  # nor what is not asked for
+        done = link.write(-7.5)
+        assert done.taken, done.failure
+        assert wait_for(lambda: rig.held_offset() == pytest.approx(-7.5, abs=1e-4))
+        if caps.held_offset:
+            assert wait_for(lambda: link.read(ALL).held_offset_um == pytest.approx(-7.5, abs=1e-4))
+        for bad in (math.nan, math.inf, None, "5", True):
+            refused = link.write(bad).failure  # type: ignore[arg-type]
+            assert refused is not None and refused.kind is FailureKind.VALUE
+        assert rig.held_offset() == pytest.approx(-7.5, abs=1e-4)
+    closed = link.read(ALL)  # a closed link: failures, never an exception
+    assert isinstance(closed.speed_rpm, Failure)
+    assert_reading(closed)
+    assert link.write(1.0).failure is not None
+
+
+@pytest.mark.parametrize(
+    "garbage",
+    ["12", b"12", [1.0], True, None, math.nan, math.inf, 10**400, -(10**400), object()],
+    ids=lambda g: type(g).__name__ + ":" + repr(g)[:12],
+)
+def test_whatever_the_controller_holds_a_cycle_gives_a_value_or_a_failure(garbage):
+    """The virtual CNC made to hold garbage in every value it hands over."""
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=SimClock(60))
+    with SimAdapter(machine=vm) as link:
+        link.read(ALL)  # the probe's counter found first is stale
+        for name in ("offset_um", "probe_value_um", "probe_sigma_um"):
+            setattr(vm, name, garbage)
+        vm.probe_sequence = garbage if not isinstance(garbage, float) else vm.probe_sequence + 1
+        vm.advance = lambda: None  # type: ignore[method-assign] - it holds what it holds
+        r = link.read(ALL)
+        assert_reading(r)
+        assert isinstance(r.held_offset_um, Failure) and isinstance(r.measurement, Failure)
+        assert r.held_offset_um.kind is FailureKind.VALUE
+
+
 # -- registry -----------------------------------------------------------------------
 
 
@@ -475,6 +560,48 @@ def test_serial_bad_replies(haas, mode, error):
     dev.mode = "ok"
     time.sleep(0.35)  # let a late reply arrive; it must not be taken for the next answer
     assert link.read_speed() == 6000.0
+
+
+@pytest.mark.parametrize(
+    "reply",
+    [
+        ">MACRO, {var}, 1e999",
+        ">MACRO, {var}, nan",
+        ">MACRO, {var}, 99999999999999999999999999999999999999",
+        ">MACRO, {var}, 1.5.5",
+        ">MACRO, {var}, " + "9" * 400,
+        ">MACRO, {var}",
+        ">MACRO, {var}, \x00\x07",
+        "?, UNKNOWN COMMAND",
+        "",
+    ],
+)
+def test_a_haas_line_that_is_no_number_is_a_failure_of_its_value(tmp_path, reply):
+    """Every value a Haas control hands over, replaced by a malformed reply: the cycle reads
+    a finite value or a Failure, and a write's check a Failure."""
+    pty = PtyPair(tmp_path)
+
+    def handle(text: str, mode: str) -> str | None:
+        m = re.match(r"^\?Q600 (\d+)$", text)
+        return reply.format(var=m.group(1)) if m else reply
+
+    dev = LineDevice(pty.dev, handle)
+    link = HaasAdapter(
+        pty.ctl,
+        timeout_s=0.3,
+        measurement_var=10501,
+        measurement_sequence_var=10502,
+        measurement_sigma_var=10503,
+    )
+    try:
+        r = link.read(ALL)
+        assert_reading(r)
+        assert isinstance(r.speed_rpm, Failure) or r.speed_rpm == 1e38  # the huge one is finite
+        assert not link.write(-2.0).taken
+    finally:
+        link.close()
+        dev.stop()
+        pty.close()
 
 
 def test_serial_write_refused(haas):

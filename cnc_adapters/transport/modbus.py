@@ -215,6 +215,8 @@ class ModbusTransport:
         """One bit: a ``coil`` or a discrete input (``di``)."""
         method = "read_coils" if table == "coil" else "read_discrete_inputs"
         rr = self.request(f"{what} {table} {address}", method, address, count=1)
+        if not rr.bits:
+            raise BadValueError(f"{self.label} {what} {table} {address} at {self.where}: no bit")
         return bool(rr.bits[0])
 
     def read_value(self, what: str, table: str, address: int, dtype: str) -> int | float:
