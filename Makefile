@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 NODE_STAMP := tests/js/node_modules/.package-lock.json
 
-.PHONY: demo test bench venv clean system-packages system-deps lint-imports slim test-lowest fresh-check docs
+.PHONY: demo test bench venv clean system-packages system-deps lint lint-imports slim test-lowest fresh-check docs
 
 venv: $(STAMP)
 
@@ -36,6 +36,15 @@ system-deps: system-packages
 lint-imports: $(STAMP)
 	$(VENV)/bin/lint-imports
 
+# ruff's rules and format, the import contracts, mypy (configured in pyproject.toml). Each runs
+# whatever the one before found, so one run shows every finding; any finding fails the target.
+lint: $(STAMP)
+	@status=0; \
+	for tool in 'ruff check .' 'ruff format --check .' lint-imports mypy; do \
+		echo "lint: $$tool"; $(VENV)/bin/$$tool || status=1; \
+	done; \
+	exit $$status
+
 # the edge box's install, without extras (tests/test_slim_install.py measures and runs it)
 slim:
 	bash scripts/slim-venv.sh
@@ -51,7 +60,7 @@ XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist workste
 # build this checkout (slim, LinuxCNC) one after the other, as they share ./build
 test:
 	$(MAKE) --no-print-directory -j2 $(STAMP) system-packages
-	$(MAKE) --no-print-directory system-deps lint-imports slim
+	$(MAKE) --no-print-directory system-deps lint slim
 	$(PY) -m pytest -q $(XDIST)
 
 # The oldest versions pyproject.toml allows (uv's lowest-direct resolution: every direct
@@ -101,4 +110,5 @@ bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) .venv-slim $(LOWEST) demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info
+	rm -rf $(VENV) .venv-slim $(LOWEST) demo-output .pytest_cache .hypothesis tests/js/node_modules build *.egg-info \
+		.mypy_cache .ruff_cache .import_linter_cache
