@@ -6,14 +6,15 @@ configuration. Every question has a flag; with ``--yes`` (or without a terminal)
 asked and a missing answer is an error. The session lives in
 ``<workdir>/<machine>/<spindle>/session.json``: after an interruption the wizard resumes
 where it stopped, appending to the same run log.
+
+This module is the terminal: it asks, prints and drives the steps of ``calibration.session``,
+which take the typed session (``calibration.session.model.WizardSession``) and return new values.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import re
 import sys
 import time
 from collections.abc import Callable
@@ -21,43 +22,16 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from rich.console import Console
 from rich.markup import escape
 from rich.prompt import Confirm, FloatPrompt, Prompt
 from rich.table import Table
 
-from compensator.errors import (
-    AcquisitionError,
-    CalibrationError,
-    ConfigError,
-    ThermocompError,
-    clip,
-)
-from compensator.io import (
-    RunLog,
-    atomic_write,
-    load_model,
-    read_daq_csv,
-    read_run_log,
-    read_text,
-    save_model,
-    versioned_path,
-    write_run_log,
-    write_text,
-)
+from compensator.errors import AcquisitionError, CalibrationError, ConfigError, clip
+from compensator.io import load_model, versioned_path, write_text
+from compensator.speed_programs import Program
 
-from .acquire import (
-    EXCLUDED,
-    AcquireConfig,
-    Event,
-    Problem,
-    Recorder,
-    Sample,
-    progress_fraction,
-    sparkline,
-)
-from .fit import FEW_LEVELS, NO_COOLDOWN
+from .acquire import AcquireConfig, Event, Problem, Recorder, Sample, progress_fraction, sparkline
 from .nc_programs import (
     DIALECTS,
     EXTENSIONS,
@@ -66,27 +40,60 @@ from .nc_programs import (
     rest_hours,
     to_nc,
     validation_profile,
-    with_probe_stops,
 )
+from .session.fit import advise, clean, fit, read_runs, report, validate
+from .session.model import (
+    ID_PATTERN,
+    LIVE,
+    RUNS,
+    SESSION_FORMAT,
+    SOURCES,
+    WizardSession,
+    check_id,
+    inside,
+    load_session,
+    write_session,
+)
+from .session.plan import (
+    PROBE_MOVES_S,
+    cycle_s,
+    former_time_constants,
+    plan_probes,
+    programs,
+    write_programs,
+)
+from .session.record import (
+    ImportOptions,
+    LinkFailed,
+    check_controller,
+    check_sensor,
+    import_run,
+    open_links,
+    record,
+    rows_in,
+)
+from .session.save import save
 
-SESSION_FORMAT = "thermocomp.wizard/1"
-RUNS = ("calibration", "validation")
-SOURCES = ("sensor", "tool-setter", "import")
-"""Where the displacement comes from: an eddy-current sensor read live, the machine's tool setter
-(the program stops for it every few minutes; the controller link reads its measurement), or a
-DAQ file recorded beside the controller."""
-LIVE = ("sensor", "tool-setter")
-"""The sources the wizard records itself."""
-PROBE_MOVES_S = 10.0
-"""The rapid moves to the tool setter and back, on top of the cycle's measuring time [s]: the
-default of ``--probe-dwell-s`` with the cycle's measuring time."""
-
-ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
-"""A machine or spindle id (and no ``..`` in it): it names a directory and files, so nothing
-that could leave the work directory or trouble a shell (``/``, ``\\``, NUL, spaces, ...)."""
+__all__ = [
+    "ID_PATTERN",
+    "LIVE",
+    "PROBE_MOVES_S",
+    "RUNS",
+    "SESSION_FORMAT",
+    "SOURCES",
+    "Wizard",
+    "WizardSession",
+    "advise",
+    "clean",
+    "main",
+    "profile_cmd",
+]
 
 
 class Wizard:
+    """The terminal around the session's steps: every answer from its flag, the resumed session
+    or a prompt; every step's value printed; the session file kept after each answer."""
+
     def __init__(
         self,
         args: argparse.Namespace,
@@ -98,12 +105,15 @@ class Wizard:
         self.out = console or _console()
         self.interactive = not args.yes and sys.stdin.isatty()
         self._clock = clock
+        self.clock: Callable[[], float] = clock or time.time
         self.sleep = (
             sleep if args.time_scale == 1.0 else (lambda s: time.sleep(s / args.time_scale))
         )
-        self.session: dict[str, Any] = {}
+        self.session = WizardSession()
         self.workdir: Path = Path(args.workdir).resolve()
         self.dir: Path = self.workdir
+        self.model: Any = None
+        """The model step 4 fitted, for step 5 to save."""
 
     # -- questions ---------------------------------------------------------------
 
@@ -116,26 +126,31 @@ class Wizard:
         default: Any = None,
         kind: type = str,
         choices: list[str] | None = None,
+        check: Callable[[Any], Any] | None = None,
     ) -> Any:
-        """The answer from the flag, else the resumed session, else a prompt (or an error)."""
-        from rich.markup import escape
+        """The answer from the flag, else the resumed session, else a prompt (or an error);
+        ``check`` converts it, or refuses it in one line, before the session keeps it."""
 
         def shown(answer: Any) -> str:
             # an answer is checked after it is echoed: a huge or markup-laden one must echo safely
             return escape(clip(str(answer), 120))
 
+        def checked(answer: Any) -> Any:
+            return answer if check is None else check(answer)
+
         question = escape(question)
         value = getattr(self.args, key.replace("-", "_"), None)
         if value is not None:
             self.out.print(f"  {question}: [cyan]{shown(value)}[/]  (from {flag})")
-            return value
-        if key in self.session:
-            self.out.print(f"  {question}: [cyan]{shown(self.session[key])}[/]  (from the session)")
-            return self.session[key]
+            return checked(value)
+        held = self.session.get(key)
+        if held is not None:
+            self.out.print(f"  {question}: [cyan]{shown(held)}[/]  (from the session)")
+            return checked(held)
         if not self.interactive:
             if default is not None:
                 self.out.print(f"  {question}: [cyan]{shown(default)}[/]  (default)")
-                return default
+                return checked(default)
             raise ConfigError(f"{flag} is needed when the wizard runs unattended")
         while True:
             if kind is float:
@@ -145,7 +160,8 @@ class Wizard:
                     f"  {question}", console=self.out, default=default, choices=choices
                 )
             if answer not in (None, ""):
-                self.session[key] = answer
+                answer = checked(answer)
+                self.session = self.session.updated(**{key: answer})
                 if (self.dir / "session.json").parent.is_dir() and self.dir != self.workdir:
                     self.save_session()  # kept at once: an interruption loses no answer
                 return answer
@@ -156,53 +172,58 @@ class Wizard:
         return Confirm.ask(f"  {question}", console=self.out, default=default)
 
     def save_session(self) -> None:
-        self.session["format"] = SESSION_FORMAT
-        self.session["updated_utc"] = _now()
-        # private: it keeps the controller and sensor links as typed, which may carry credentials
-        with atomic_write(self.dir / "session.json", mode=0o600) as fh:
-            json.dump(self.session, fh, indent=2)
+        self.session = write_session(self.dir / "session.json", self.session, _now())
 
     # -- step 1 ------------------------------------------------------------------
 
     def step_identify(self) -> None:
         a = self.args
         self.out.rule("[bold]1/5 Identify the spindle")
-        machine = _ident(self.ask("machine_id", "Machine id", flag="--machine-id"), "--machine-id")
-        spindle = _ident(
-            self.ask("spindle_id", "Spindle id", flag="--model-spindle-id"), "--model-spindle-id"
+        machine = self.ask(
+            "machine_id",
+            "Machine id",
+            flag="--machine-id",
+            check=lambda v: check_id(v, "--machine-id"),
         )
-        self.dir = _inside(self.workdir, self.workdir / machine / spindle, "the session directory")
+        spindle = self.ask(
+            "spindle_id",
+            "Spindle id",
+            flag="--model-spindle-id",
+            check=lambda v: check_id(v, "--model-spindle-id"),
+        )
+        self.dir = inside(self.workdir, self.workdir / machine / spindle, "the session directory")
         path = self.dir / "session.json"
         if path.exists() and not a.new:
-            try:
-                self.session = json.loads(read_text(path))
-            except ValueError as err:
-                raise ConfigError(f"{path}: not a wizard session: {err}") from err
-            if self.session.get("format") != SESSION_FORMAT:
-                raise ConfigError(f"{path}: not a wizard session ({self.session.get('format')!r})")
+            self.session = load_session(path)
             self.out.print(
-                f"  resuming the session of {self.session.get('updated_utc', '?')} in {self.dir} "
+                f"  resuming the session of {self.session.updated_utc or '?'} in {self.dir} "
                 f"(recorded: {self._recorded()})"
             )
             if self.interactive and not a.resume and not self.confirm("Resume this session?"):
-                self.session = {}
+                self.session = WizardSession()
                 self._set_aside()
         elif path.exists() and a.new:
             self._set_aside()
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.session.update(machine_id=machine, spindle_id=spindle)
         # a faster clock (virtual machine tool) must read the same in a resumed process
-        anchor = self.session.setdefault("time_anchor_s", time.time())
-        self.session["time_scale"] = float(a.time_scale)  # the service must run at the same
-        self.clock = self._clock or _clock(a.time_scale, anchor)
-        max_rpm = float(
-            self.ask("max_rpm", "Maximum spindle speed [rpm]", flag="--max-rpm", kind=float)
+        anchor = self.session.time_anchor_s
+        anchor = time.time() if anchor is None else anchor
+        self.session = self.session.updated(
+            machine_id=machine,
+            spindle_id=spindle,
+            time_anchor_s=anchor,
+            time_scale=float(a.time_scale),  # the service must run at the same
         )
-        if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):
-            raise ConfigError(
-                f"--max-rpm {max_rpm:g}: not a plausible spindle speed (100 to 200000)"
+        self.clock = self._clock or _clock(a.time_scale, anchor)
+        self.session = self.session.updated(
+            max_rpm=self.ask(
+                "max_rpm",
+                "Maximum spindle speed [rpm]",
+                flag="--max-rpm",
+                kind=float,
+                check=_max_rpm,
             )
-        self.session["max_rpm"] = max_rpm
+        )
         source = self.ask(
             "source",
             "Displacement from (sensor: live eddy-current reading; tool-setter: "
@@ -211,31 +232,36 @@ class Wizard:
             flag="--source",
             default="sensor",
             choices=list(SOURCES),
+            check=_choice("--source", SOURCES),
         )
-        if source not in SOURCES:
-            raise ConfigError(f"--source {source!r}: choose from {', '.join(SOURCES)}")
-        self.session["source"] = source
+        self.session = self.session.updated(source=source)
         if source in LIVE:
             while True:
-                self.session["controller"] = self.ask(
+                controller = self.ask(
                     "controller",
                     "Controller link (URL, as in the runtime configuration)",
                     flag="--controller",
+                    check=str,
                 )
+                self.session = self.session.updated(controller=controller)
                 if source == "sensor":
-                    self.session["sensor"] = self.ask(
+                    sensor = self.ask(
                         "sensor",
                         "Sensor (serial:///dev/ttyUSB1?scale=1, ...?protocol=modbus&register=0, "
                         "opc.tcp://...)",
                         flag="--sensor",
+                        check=str,
                     )
-                self.session["rate_s"] = float(
-                    self.ask(
-                        "rate_s", "Sample period [s]", flag="--rate-s", default=1.0, kind=float
-                    )
+                    self.session = self.session.updated(sensor=sensor)
+                rate_s = self.ask(
+                    "rate_s",
+                    "Sample period [s]",
+                    flag="--rate-s",
+                    default=1.0,
+                    kind=float,
+                    check=_rate_s,
                 )
-                if not self.session["rate_s"] > 0:
-                    raise ConfigError("--rate-s must be > 0")
+                self.session = self.session.updated(rate_s=rate_s)
                 self.save_session()
                 if a.no_connection_test or not (
                     self.interactive is False or self.confirm("Test the connections now?")
@@ -244,40 +270,39 @@ class Wizard:
                 try:
                     self.test_connections()
                     break
-                except ConfigError as err:
+                except LinkFailed as err:
                     if not self.interactive:
                         raise
                     # back to the question that failed; every other answer is kept
-                    which = getattr(err, "link", None) or "controller"
-                    self.session.pop(which, None)
-                    setattr(a, which, None)
+                    self.session = self.session.updated(**{err.link: None})
+                    setattr(a, err.link, None)
                     self.save_session()
                     self.out.print(
                         f"  [red]connection test failed:[/] {escape(str(err))}; answer again"
                     )
         else:
-            self.session["controller"] = a.controller or self.session.get("controller")
+            self.session = self.session.updated(controller=a.controller or self.session.controller)
         self.save_session()
 
     def _recorded(self) -> str:
         """What the session holds: complete runs, and the rows of one cut short."""
         parts = []
-        for name, info in self.session.get("runs", {}).items():
-            log = Path(str(info.get("log", "")))
-            if info.get("complete"):
+        for name, info in (self.session.runs or {}).items():
+            log = Path(info.log)
+            if info.complete:
                 parts.append(f"{name} complete")
-            elif log.is_file() and _rows(log):
-                parts.append(f"{name} {_rows(log)} rows, not complete")
+            elif log.is_file() and rows_in(log):
+                parts.append(f"{name} {rows_in(log)} rows, not complete")
         return ", ".join(parts) or "nothing yet"
 
     def _set_aside(self) -> None:
         """A new session: the earlier one's answers, run logs, programs and plot move to
         ``earlier/<when it was last updated>/``; models, reports and configurations stay."""
+        import re
         import shutil
 
         stamp = (
-            re.sub(r"[^0-9A-Za-z]", "", str(self.session.get("updated_utc") or _now()))[:15]
-            or "session"
+            re.sub(r"[^0-9A-Za-z]", "", str(self.session.updated_utc or _now()))[:15] or "session"
         )
         aside = self.dir / "earlier" / stamp
         k = 2
@@ -296,7 +321,7 @@ class Wizard:
         aside.mkdir(parents=True)
         for p in moved:
             shutil.move(str(p), str(aside / p.name))
-        self.session = {}
+        self.session = WizardSession()
         self.out.print(
             f"  a new session: the earlier one (answers, run logs, programs) was kept in "
             f"{_shown(aside)}"
@@ -304,83 +329,34 @@ class Wizard:
 
     def _set_run_aside(self, name: str) -> None:
         """A run to record again: its log kept beside as ``<name>.refused-N.csv``."""
-        info = self.session["runs"][name]
-        log = Path(info["log"])
+        info = self.session.run(name)
+        if info is None:
+            return
+        log = Path(info.log)
         if log.exists():
             log.rename(versioned_path(log.with_name(f"{log.stem}.refused.csv")))
-        info.update(complete=False, rows=0)
+        self.session = self.session.with_run(name, complete=False, rows=0)
         self.save_session()
 
-    def _links(self):
-        """The controller link, and the displacement sensor's (None on the tool-setter route: the
-        controller reads the tool setter's measurements)."""
-        from cnc_adapters import open_adapter
-        from cnc_adapters.sensors import open_sensor
-
-        ctl = open_adapter(self.session["controller"])
-        if self.session["source"] == "tool-setter":
-            return ctl, None
-        return ctl, open_sensor(self.session["sensor"])
-
     def test_connections(self) -> None:
-        from cnc_adapters.base import AdapterError, redact_url
-
-        def failed(link: str, message: str) -> ConfigError:
-            err = ConfigError(message)
-            err.link = link  # type: ignore[attr-defined]
-            return err
-
-        from cnc_adapters import open_adapter
-        from cnc_adapters.sensors import open_sensor
-
-        try:
-            ctl = open_adapter(self.session["controller"])
-        except (AdapterError, ConfigError) as err:
-            raise failed("controller", f"controller link: {err}") from err
-        setter = self.session["source"] == "tool-setter"
-        if setter and not ctl.can_read_measurement:
-            ctl.close()
-            raise failed(
-                "controller",
-                f"controller {redact_url(self.session['controller'])}: the link reads "
-                "no tool-setter measurement: give it the probe cycle's value and counter variables "
-                "(measurement_node and measurement_sequence_node, or the control's own keys)",
-            )
-        try:
-            sensor = None if setter else open_sensor(self.session["sensor"])
-        except (AdapterError, ConfigError) as err:
-            raise failed("sensor", f"sensor link: {err}") from err
-        try:
-            with ctl:
-                rpm = ctl.read_speed()
-                if setter:
-                    ctl.read_measurement()  # the variables exist and read; a value there is stale
-            self.out.print(
-                f"  controller: [green]ok[/], spindle at {rpm:.0f} rpm"
-                + (", the tool setter's variables read" if setter else "")
-            )
-        except AdapterError as err:
-            raise failed(
-                "controller", f"controller {redact_url(self.session['controller'])}: {err}"
-            ) from err
-        if sensor is None:
+        """Each link read once (``calibration.session.record``), and said as it answers."""
+        ctl = check_controller(self.session)
+        self.out.print(
+            f"  controller: [green]ok[/], spindle at {ctl.speed_rpm:.0f} rpm"
+            + (", the tool setter's variables read" if ctl.tool_setter else "")
+        )
+        seen = check_sensor(self.session)
+        if seen is None:
             return
-        try:
-            with sensor:
-                um = sensor.read_um()
-            rng = sensor.range_um
-            where = ""
-            if rng is not None:
-                frac = (um - rng[0]) / (rng[1] - rng[0])
-                where = f", {frac:.0%} of its range"
-                if not 0.2 <= frac <= 0.8:
-                    self.out.print(
-                        f"  [yellow]warning:[/] the probe reads {um:.1f} um{where}: set the gap "
-                        "near mid-range so the growth cannot saturate it"
-                    )
-            self.out.print(f"  sensor: [green]ok[/], {um:.2f} um{where}")
-        except AdapterError as err:
-            raise failed("sensor", f"sensor {redact_url(self.session['sensor'])}: {err}") from err
+        where = ""
+        if seen.range_fraction is not None:
+            where = f", {seen.range_fraction:.0%} of its range"
+            if not 0.2 <= seen.range_fraction <= 0.8:
+                self.out.print(
+                    f"  [yellow]warning:[/] the probe reads {seen.sensor_um:.1f} um{where}: set "
+                    "the gap near mid-range so the growth cannot saturate it"
+                )
+        self.out.print(f"  sensor: [green]ok[/], {seen.sensor_um:.2f} um{where}")
 
     def both(self, seconds: float) -> str:
         """A duration of the machine's (simulated) time, with the wall time it takes when the
@@ -401,403 +377,238 @@ class Wizard:
 
     # -- step 2 ------------------------------------------------------------------
 
-    def programs(self) -> dict[str, Any]:
-        s = self.session
-        every = s.get("probe_every_s") if s.get("source") == "tool-setter" else None
-        cal = calibration_profile(
-            s["max_rpm"],
-            step_min=s["step_min"],
-            cooldown_min=s["cooldown_min"],
-            probe_every_s=every,
-        )
-        progs = {"calibration": cal}
-        if s["validation"]:
-            val = validation_profile(s["max_rpm"], seed=s["validation_seed"])
-            # with the tool setter alone, the validation run is measured by the same stops
-            progs["validation"] = val if every is None else with_probe_stops(val, every)
-        return progs
-
-    def plan_probes(self) -> None:
-        """The tool-setter route: how often the program stops for a measurement, and what the
-        stops cost (``calibration.toolsetter_plan``)."""
-        from .probeprog import MAX_TOUCHES, measuring_time_s, probe_cycle, touch_time_s
-        from .toolsetter_plan import plan_probe_interval
-
-        a, s = self.args, self.session
-        s["probe_spindle"] = a.probe_spindle or s.get("probe_spindle") or "stop"
-        touches = (
-            a.probe_touches
-            if getattr(a, "probe_touches", None) is not None
-            else s.get("probe_touches")
-        )
-        if touches is not None:
-            if not (
-                math.isfinite(touches) and touches == int(touches) and 1 <= touches <= MAX_TOUCHES
-            ):
-                raise ConfigError(
-                    f"--probe-touches {touches:g}: a whole number from 1 to {MAX_TOUCHES}"
-                )
-            if int(touches) > 1 and s["dialect"] == "heidenhain":
-                raise ConfigError(
-                    "--probe-touches is not for heidenhain: TCH PROBE 481 measures once per call"
-                )
-            touches = s["probe_touches"] = int(touches)
-        if a.probe_dwell_s is not None:
-            s["probe_dwell_s"] = float(a.probe_dwell_s)
-            s["probe_touch_s"] = 0.0  # the cycle as timed on the machine, every touch included
-        if "probe_dwell_s" not in s:
-            # the cycle's own measuring time with its default feeds, one touch, and the moves to and
-            # from the setter; each further touch adds one slow touch's time
-            cycle = probe_cycle(
-                s["dialect"],
-                spindle=s["probe_spindle"],
-                approach_z_mm=-5.0 if s["dialect"] == "heidenhain" else None,
-            )
-            s["probe_dwell_s"] = round(measuring_time_s(cycle) + PROBE_MOVES_S)
-            s["probe_touch_s"] = 0.0 if s["dialect"] == "heidenhain" else touch_time_s(cycle)
-        dwell = s["probe_dwell_s"]
-        if not (math.isfinite(dwell) and 0 <= dwell <= 3600):
-            raise ConfigError(
-                f"--probe-dwell-s {dwell:g}: one tool-setter cycle's seconds, 0 to 3600"
-            )
-        taus = self._former_time_constants()
-        plan = plan_probe_interval(
-            60 * s["step_min"],
-            60 * s["cooldown_min"],
-            dwell,
-            min(taus) if taus else None,
-            at_speed=s["probe_spindle"] == "keep",
-            touches=touches,
-            touch_s=float(s.get("probe_touch_s") or 0.0),
-        )
-        every_min = a.probe_every_min if a.probe_every_min is not None else s.get("probe_every_min")
-        if every_min is not None:
-            every_min = float(every_min)
-            if not (math.isfinite(every_min) and 1 <= every_min <= 240):
-                raise ConfigError(f"--probe-every-min {every_min:g}: 1 to 240 minutes")
-            s["probe_every_min"] = every_min
-            if 60 * every_min > plan.interval_s:
-                self.out.print(
-                    f"  [yellow]warning:[/] a stop every {every_min:g} min is sparser than the plan's "
-                    f"{plan.interval_s / 60:.0f} min: the fastest growth may be missed"
-                )
-        s["probe_every_s"] = 60 * every_min if every_min is not None else plan.interval_s
-        for line in plan.lines():
-            self.out.print(f"  {escape(line)}", highlight=False)
-        if every_min is not None:
-            self.out.print(
-                f"  the program stops every {every_min:g} min, as given (--probe-every-min)"
-            )
-        s["probe_plan"] = {
-            "interval_s": s["probe_every_s"],
-            "planned_interval_s": plan.interval_s,
-            "dwell_s": plan.cycle_s,
-            "touches": plan.touches,
-            "bound": plan.bound,
-            "fastest_tau_s": plan.fastest_tau_s,
-            "tau_assumed": plan.tau_assumed,
-        }
-
     def step_programs(self) -> None:
         a = self.args
         self.out.rule("[bold]2/5 Calibration program")
         s = self.session
-        s["dialect"] = self.ask(
-            "dialect", "NC dialect", flag="--dialect", default="fanuc", choices=list(DIALECTS)
+        dialect = self.ask(
+            "dialect",
+            "NC dialect",
+            flag="--dialect",
+            default="fanuc",
+            choices=list(DIALECTS),
+            check=_choice("--dialect", DIALECTS),
         )
-        if s["dialect"] not in DIALECTS:
-            raise ConfigError(f"--dialect {s['dialect']!r}: choose from {', '.join(DIALECTS)}")
-        s["step_min"] = float(a.step_min if a.step_min is not None else s.get("step_min", 20.0))
-        s["cooldown_min"] = float(
-            a.cooldown_min if a.cooldown_min is not None else s.get("cooldown_min", 60.0)
+        s = s.updated(
+            dialect=dialect,
+            step_min=float(a.step_min if a.step_min is not None else s.step_min or 20.0),
+            cooldown_min=float(
+                a.cooldown_min
+                if a.cooldown_min is not None
+                else (s.cooldown_min if s.cooldown_min is not None else 60.0)
+            ),
         )
-        if "validation" not in s or a.validation is not None:
-            s["validation"] = (
-                bool(a.validation)
+        if s.validation is None or a.validation is not None:
+            s = s.updated(
+                validation=bool(a.validation)
                 if a.validation is not None
                 else (self.confirm("Also record a different validation profile (recommended)?"))
             )
-        s["validation_seed"] = int(s.get("validation_seed", a.validation_seed))
-        if s["source"] == "tool-setter":
-            self.plan_probes()
-        rest = rest_hours(self._former_time_constants())
-        s["rest_h"] = rest
-        ext = EXTENSIONS[s["dialect"]]
+        self.session = s = s.updated(
+            validation_seed=int(
+                s.validation_seed if s.validation_seed is not None else a.validation_seed
+            )
+        )
+        taus = former_time_constants(self.dir)
+        if s.source == "tool-setter":
+            self._plan_probes(taus)
+        written = write_programs(self.session, self.dir, taus)
+        self.session = s = written.session
+        rest = float(s.rest_h or 0.0)
         t = Table(title="NC programs")
         for col in ("run", "file", "duration", "top speed"):
             t.add_column(col)
-        files = {}
-        for name, prog in self.programs().items():
-            text = to_nc(
-                prog,
-                s["dialect"],
-                name=f"TC_{name[:5]}",
-                notes=(
-                    f"MACHINE {s['machine_id']} SPINDLE {s['spindle_id']}",
-                    f"COLD START: SPINDLE AT REST FOR {rest:g} H BEFOREHAND",
-                ),
-            )
-            path = self.dir / f"{name}{ext}"
-            write_text(path, text)
-            files[name] = str(path)
-            # with the tool setter, the program waits at each stop for the cycle
-            cycles_s = len(prog.probe_at_s) * self._cycle_s()
-            t.add_row(
-                name,
-                str(path),
-                self.both(prog.duration_s + cycles_s),
-                f"{max(sp for _, sp in prog.segments):.0f} rpm",
-            )
-        s["programs"] = files
+        for f in written.files:
+            t.add_row(f.run, str(f.path), self.both(f.duration_s), f"{f.top_rpm:.0f} rpm")
         self.out.print(t)
         self.out.print(
             f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
             f"{rest:g} h (five of its slowest time constants, or a night when no model exists "
             "yet). A warm spindle biases the model."
         )
-        if s["source"] == "tool-setter":
-            d = s["dialect"]
-            n = (s.get("probe_plan") or {}).get("touches", 1)
+        if s.source == "tool-setter":
+            d = str(s.dialect)
+            ext = EXTENSIONS[d]
+            n = s.probe_plan.touches if s.probe_plan is not None else 1
             touches = f" --touches {n}" if n > 1 else ""
             self.out.print(
                 f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
                 f"cold-reference program, for this machine's tool and setter:\n"
                 f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
-                f"    thermocomp probe-program --dialect {d} --probe-spindle {s['probe_spindle']}{touches} "
+                f"    thermocomp probe-program --dialect {d} --probe-spindle {s.probe_spindle}{touches} "
                 f"--output tcprobe{ext}\n"
                 "  then run the reference program once on the cold spindle, before each run's first start.",
                 highlight=False,
             )
         self.save_session()
 
-    def _cycle_s(self) -> float:
-        """One tool-setter stop as planned, every touch included [s] (0 without the tool setter)."""
-        plan = self.session.get("probe_plan") or {}
-        return float(plan.get("dwell_s", self.session.get("probe_dwell_s") or 0.0))
-
-    def _former_time_constants(self) -> tuple[float, ...] | None:
-        models = (
-            sorted((self.dir / "models").glob("*.json")) if (self.dir / "models").is_dir() else []
+    def _plan_probes(self, taus: tuple[float, ...] | None) -> None:
+        """The tool-setter route's probe plan (:func:`calibration.session.plan.plan_probes`),
+        from the flags, and what it costs."""
+        a = self.args
+        planned = plan_probes(
+            self.session,
+            probe_spindle=a.probe_spindle,
+            touches=getattr(a, "probe_touches", None),
+            dwell_s=a.probe_dwell_s,
+            every_min=a.probe_every_min,
+            former_taus=taus,
         )
-        for p in reversed(models):
-            try:
-                return load_model(p).time_constants_s()
-            except ThermocompError:
-                continue
-        return None
+        self.session = s = planned.session
+        if planned.sparser_than_planned:
+            self.out.print(
+                f"  [yellow]warning:[/] a stop every {s.probe_every_min:g} min is sparser than the "
+                f"plan's {planned.plan.interval_s / 60:.0f} min: the fastest growth may be missed"
+            )
+        for line in planned.plan.lines():
+            self.out.print(f"  {escape(line)}", highlight=False)
+        if s.probe_every_min is not None:
+            self.out.print(
+                f"  the program stops every {s.probe_every_min:g} min, as given (--probe-every-min)"
+            )
 
     # -- step 3 ------------------------------------------------------------------
 
     def step_acquire(self) -> None:
         self.out.rule("[bold]3/5 Record")
-        runs = self.session.setdefault("runs", {})
-        for name, prog in self.programs().items():
-            info = runs.setdefault(
-                name, {"log": str(self.dir / "runs" / f"{name}.csv"), "complete": False}
-            )
-            _inside(self.workdir, info["log"], f"the {name} run log")  # session.json is editable
+        for name, prog in programs(self.session).items():
+            if self.session.run(name) is None:
+                runs: dict[str, Any] = dict(self.session.runs or {})
+                runs[name] = {"log": str(self.dir / "runs" / f"{name}.csv"), "complete": False}
+                self.session = self.session.updated(runs=runs)
+            info = self.session.run(name)
+            assert info is not None
+            inside(self.workdir, info.log, f"the {name} run log")  # session.json is editable
             self.save_session()
-            if info.get("complete"):
-                self.out.print(f"  {name}: already recorded ({info['log']})")
+            if info.complete:
+                self.out.print(f"  {name}: already recorded ({info.log})")
                 continue
-            if self.session["source"] == "import":
-                self.import_run(name, info)
+            if self.session.source == "import":
+                self._import(name)
                 continue
-            self.record_run(name, prog, info)
+            self._record(name, prog)
 
-    def record_run(self, name: str, prog, info: dict[str, Any]) -> None:
+    def _record(self, name: str, prog: Program) -> None:
         s = self.session
-        log = Path(info["log"])
+        info = s.run(name)
+        assert info is not None and s.programs is not None
+        log = Path(info.log)
         resuming = log.exists() and log.stat().st_size > 0
-        cycles_s = len(prog.probe_at_s) * self._cycle_s()
+        cycles_s = len(prog.probe_at_s) * cycle_s(s)
         self.out.print(
-            f"  [bold]{name}[/]: load [cyan]{s['programs'][name]}[/] on the controller "
+            f"  [bold]{name}[/]: load [cyan]{s.programs[name]}[/] on the controller "
             f"({self.both(prog.duration_s + cycles_s)}); the spindle must be cold (rested "
-            f"{self.both(s['rest_h'] * 3600)})."
+            f"{self.both(float(s.rest_h or 0.0) * 3600)})."
         )
         if resuming:
             self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
         elif self.interactive and not self.confirm(
             "Spindle cold, "
-            + ("cold reference taken" if s["source"] == "tool-setter" else "probe set")
+            + ("cold reference taken" if s.source == "tool-setter" else "probe set")
             + ", program loaded: start recording?"
         ):
             raise AcquisitionError(f"{name}: recording not started")
-        ctl, sensor = self._links()
-        cfg = AcquireConfig(rate_s=s["rate_s"], **_acquire_overrides(self.args))
-        meta = {
-            "source": "thermocomp wizard",
-            "machine_id": s["machine_id"],
-            "spindle_id": s["spindle_id"],
-            "run": name,
-            "program": s["programs"][name],
-            "controller": s["controller"],
-            "sensor": s.get("sensor") or "the controller's tool setter",
-            "max_rpm": s["max_rpm"],
-        }
+        links = open_links(s)
+        cfg = AcquireConfig(rate_s=float(s.rate_s or 1.0), **_acquire_overrides(self.args))
         live = _LiveView(self.out, prog, name, self.args.time_scale)
         pressed = _StartKey(self.interactive, bool(getattr(self.args, "start_now", False)))
-        rec = Recorder(
-            ctl,
-            sensor,
-            log,
-            prog,
-            max_rpm=s["max_rpm"],
-            config=cfg,
-            metadata=meta,
-            clock=self.clock,
-            sleep=self.sleep,
-            on_sample=live.sample,
-            on_event=live.event,
-            start_now=pressed,
-            at_speed=s.get("probe_spindle") == "keep",
-        )
-        self.out.print(
-            "  recording: waiting for the spindle to start (press Cycle Start"
-            + (
-                "; press Enter here to start the program clock now, for a program that opens at rest)"
-                if self.interactive
-                else ")"
-            ),
-            highlight=False,
-        )
+
+        def waiting() -> None:
+            self.out.print(
+                "  recording: waiting for the spindle to start (press Cycle Start"
+                + (
+                    "; press Enter here to start the program clock now, for a program that opens at rest)"
+                    if self.interactive
+                    else ")"
+                ),
+                highlight=False,
+            )
+
         try:
-            with live:
-                result = rec.run()
-        except AcquisitionError as err:
-            kept = _rows(log)
-            raise AcquisitionError(
-                f"{name}: recording stopped: {err}; {kept} rows kept in {log}; fix it and "
-                "run the wizard again to resume"
-            ) from err
+            done = record(
+                s,
+                name,
+                prog,
+                links=links,
+                config=cfg,
+                clock=self.clock,
+                sleep=self.sleep,
+                on_sample=live.sample,
+                on_event=live.event,
+                start_now=pressed,
+                on_start=waiting,
+                view=live,
+            )
         except KeyboardInterrupt:
             self.out.print(
-                f"\n  interrupted: {_rows(log)} rows kept in {log}; run the wizard again to resume"
+                f"\n  interrupted: {rows_in(log)} rows kept in {log}; run the wizard again to resume"
             )
             raise
-        finally:
-            ctl.close()
-            if sensor is not None:
-                sensor.close()
-        info.update(
-            complete=result.complete,
-            rows=_rows(log),
-            flagged=result.flagged,
-            events=[f"{e.time_s:.0f} s: {e.message}" for e in result.events if e.problem][:50],
-        )
+        self.session = done.session
         self.save_session()
-        if rec.channels:
-            info["inputs"] = list(rec.channels)
-        if sensor is None:
-            info["measurements"] = int(read_run_log(log).measured.sum())
+        setter = done.measurements is not None
+        flagged = done.recording.flagged
         self.out.print(
-            f"  {name}: [green]recorded[/] {info['rows']} rows to {log}"
-            + (f", {info['measurements']} tool-setter measurements" if sensor is None else "")
-            + (f"; flagged: {result.flagged}" if result.flagged else "")
+            f"  {name}: [green]recorded[/] {done.rows} rows to {log}"
+            + (f", {done.measurements} tool-setter measurements" if setter else "")
+            + (f"; flagged: {flagged}" if flagged else "")
         )
 
-    def import_run(self, name: str, info: dict[str, Any]) -> None:
+    def _import(self, name: str) -> None:
         a = self.args
         src = getattr(a, f"import_{name}", None)
         if src is None:
             if name == "validation":
                 self.out.print("  validation: no --import-validation file; skipped")
-                self.session["validation"] = False
+                self.session = self.session.updated(validation=False)
                 return
             raise ConfigError("--import-calibration is needed with --source import")
-        cols = {"displacement": a.import_displacement_column}
-        if a.import_speed_column:
-            cols["speed"] = a.import_speed_column
-        t, data = read_daq_csv(src, a.import_time_column, cols)
-        disp = data["displacement"] * a.import_scale + a.import_offset_um
-        if "speed" in data:
-            speed = np.abs(data["speed"])
-        elif a.import_speed_log:
-            ctl = read_run_log(a.import_speed_log)
-            # the controller logs the speed held up to each of its samples
-            idx = np.clip(np.searchsorted(ctl.time_s, t, side="left"), 0, len(ctl) - 1)
-            speed = np.abs(ctl.speed_rpm[idx])
-            outside = (t < ctl.time_s[0]) | (t > ctl.time_s[-1])
-            if outside.mean() > 0.05:
-                raise CalibrationError(
-                    f"{src}: {outside.mean():.0%} of its rows fall outside the speed log "
-                    f"{a.import_speed_log}: do both use the same clock?"
-                )
-        else:
-            raise ConfigError(
-                "give --import-speed-column or --import-speed-log: a DAQ file needs the speed too"
-            )
-        elong = disp - disp[0]
-        write_run_log(
-            info["log"],
-            {
-                "time_s": t - t[0],
-                "speed_rpm": speed,
-                "elongation_um": elong,
-                "sensor_um": disp,
-                "flags": np.zeros(t.size, dtype=int),
-            },
-            {
-                "source": f"imported from {src}",
-                "machine_id": self.session["machine_id"],
-                "spindle_id": self.session["spindle_id"],
-                "run": name,
-            },
+        options = ImportOptions(
+            time_column=a.import_time_column,
+            displacement_column=a.import_displacement_column,
+            speed_column=a.import_speed_column,
+            speed_log=a.import_speed_log,
+            scale=a.import_scale,
+            offset_um=a.import_offset_um,
         )
-        info.update(complete=True, rows=int(t.size), imported_from=str(src))
+        done = import_run(self.session, name, src, options)
+        self.session = done.session
         self.save_session()
-        self.out.print(f"  {name}: imported {t.size} rows from {src} into {info['log']}")
+        log = self.session.run(name)
+        self.out.print(
+            f"  {name}: imported {done.rows} rows from {src} into {log.log if log else '?'}"
+        )
 
     # -- step 4 ------------------------------------------------------------------
 
     def step_fit(self) -> dict[str, Any]:
         from .commands import print_identification
-        from .fit import fit_logs
-        from .metrics import residual_stats
-        from .plots import Panel, plot_panels
-        from .replay import replay
 
         self.out.rule("[bold]4/5 Fit and validate (free run)")
         s = self.session
-        logs = {
-            name: _clean(read_run_log(_inside(self.workdir, info["log"], f"the {name} run log")))
-            for name, info in s["runs"].items()
-            if info.get("complete")
-        }
-        if "calibration" not in logs:
+        runs = read_runs(s, self.workdir)
+        if "calibration" not in runs:
             raise CalibrationError("no complete calibration run to fit")
-        cal_log, dropped = logs["calibration"]
-        if dropped:
+        if runs["calibration"].dropped:
             self.out.print(
-                f"  {dropped} calibration rows left out (flagged saturated, frozen or jump)"
+                f"  {runs['calibration'].dropped} calibration rows left out (flagged saturated, "
+                "frozen or jump)"
             )
-        for name, (lg, _) in logs.items():
-            long = [g for g in lg.gaps if g.duration_s > 60]
-            if long:
+        for name, run in runs.items():
+            if run.long_gaps:
                 self.out.print(
-                    f"  [yellow]warning:[/] {name} run has {len(long)} gap(s) (interruptions), "
-                    f"{sum(g.duration_s for g in long):.0f} s in all: the speed over a gap is "
+                    f"  [yellow]warning:[/] {name} run has {run.long_gaps} gap(s) (interruptions), "
+                    f"{run.gap_s:.0f} s in all: the speed over a gap is "
                     "the last one logged before it"
                 )
-        # the one identification `thermocomp fit` runs: the same log gives the same model
-        # a live recording measures growth toward the part as positive; an imported DAQ file's
-        # sign is the device's, so the data says it
-        direction = 1 if s.get("source") in LIVE else None
         try:
-            result = fit_logs(
-                [cal_log],
-                labels=["calibration"],
-                spindle_id=s["spindle_id"],
-                machine_id=s["machine_id"],
-                created_utc=_now(),
-                growth_direction=direction,
-            )
+            fitted = fit(s, runs, _now())
         except CalibrationError as err:
             # nothing is saved: a model physics forbids, or a run that did not follow its program
             self.out.print(f"  [red]refused:[/] {escape(str(err))}")
             if (
                 self.interactive
-                and s.get("source") in LIVE
+                and s.source in LIVE
                 and "did not follow" in str(err)
                 and self.confirm(
                     "Record the calibration run again (the machine must run the "
@@ -809,57 +620,19 @@ class Wizard:
                 self.step_acquire()
                 return self.step_fit()
             raise
-
-        report = result.report()
-        print_identification(result, report, self.out)
-        model = result.model
-        j = result.dataset
-        fitted = result.free_run_um()["calibration"]
-        cal_res = j.elongation_um - fitted  # NaN where not measured (the tool-setter route)
-        summary: dict[str, Any] = {
-            "form": model.form,
-            "reason": result.reason,
-            "calibration": residual_stats(cal_res[j.measured]),
-            "warnings": list(result.warnings),
-            "report": report,
-        }
-        panels = [Panel("calibration run", j.time_s, j.speed_rpm, fitted, j.elongation_um)]
-        peak = float(np.max(np.abs(j.elongation_um[j.measured])))
-        if "validation" in logs:
-            vlog, vdrop = logs["validation"]
-            rep = replay(model, vlog)
-            res = rep.residual_um
-            summary["validation"] = residual_stats(res[np.isfinite(res)])
-            summary["validation_report"] = rep.report
-            panels.append(
-                Panel(
-                    "validation run (held out)",
-                    rep.time_s,
-                    rep.speed_rpm,
-                    rep.predicted_um,
-                    rep.measured_um,
-                )
-            )
-            v = summary["validation"]
-            what = "tool-setter measurements" if s.get("source") == "tool-setter" else "samples"
+        print_identification(fitted.result, fitted.report, self.out)
+        checked = validate(fitted)
+        if checked.replay is not None and checked.stats is not None:
+            v = checked.stats
+            what = "tool-setter measurements" if s.source == "tool-setter" else "samples"
             self.out.print(
                 f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
                 f"max {v['max_abs_um']:.2f} um over {v['samples']} {what}"
-                + (f" ({vdrop} flagged rows left out)" if vdrop else "")
+                + (f" ({checked.dropped} flagged rows left out)" if checked.dropped else "")
             )
-            if j.dense and bool(np.isfinite(res).all()):
-                # how often a tool setter would have to measure, judged on the held-out run
-                from .closedloop import plan_on_run
-
-                loop = plan_on_run(
-                    j.time_s, cal_res, rep.time_s, res, max(model.time_constants_s(0.0))
-                )
-                for line in loop.lines():
+            if checked.closed_loop is not None:
+                for line in checked.closed_loop.lines():
                     self.out.print(f"  {line}", markup=False, highlight=False)
-                summary["closed_loop"] = loop.report()
-                model = model.model_copy(
-                    update={"fit": {**model.fit, "observer": loop.observer.model_dump()}}
-                )
             else:
                 # the observer's noise is fitted from a residual on every row; measurements minutes
                 # apart cannot give it, so the service starts from the product's observer defaults
@@ -868,33 +641,12 @@ class Wizard:
                     "model (the observer's default noise; a dense run is needed to fit it)",
                     highlight=False,
                 )
-        # the standard's drift test, from the same runs: what a shop hands its customer
-        from .iso230_3 import report_rows, spindle_thermal_test
-
-        tests = {
-            "calibration": spindle_thermal_test(j.time_s, j.speed_rpm, j.elongation_um, fitted)
-        }
-        if "validation" in summary:
-            tests["validation"] = spindle_thermal_test(
-                rep.time_s, rep.speed_rpm, rep.measured_um, rep.predicted_um
-            )
-        summary["iso230_3"] = report_rows(tests)
-        plot = self.dir / "fit.png"
-        plot_panels(
-            plot,
-            panels,
-            f"{s['machine_id']} / {s['spindle_id']}: {model.form}",
-            max_rpm=s["max_rpm"],
-        )
-        summary["plot"] = str(plot)
-        summary["peak_um"] = peak
-        summary["advice"] = advise(summary, s)
-        self.out.print(f"  plot: {plot}")
-        chans = sorted({c for info in s["runs"].values() for c in info.get("inputs", [])})
-        if chans and len(logs) > 1:
-            files = " ".join(
-                str(info["log"]) for info in s["runs"].values() if info.get("complete")
-            )
+        summary = report(s, fitted, checked, self.dir / "fit.png")
+        self.out.print(f"  plot: {summary['plot']}")
+        all_runs = (s.runs or {}).values()
+        chans = sorted({c for info in all_runs for c in info.inputs or []})
+        if chans and len(runs) > 1:
+            files = " ".join(info.log for info in all_runs if info.complete)
             self.out.print(
                 f"  the controller's own channels were logged too ({', '.join(chans)}): "
                 f"`thermocomp fit {files} --inputs {','.join(chans)} --output …` keeps those "
@@ -904,55 +656,40 @@ class Wizard:
             self.out.print(f"  [yellow]advice:[/] {line}")
         if not summary["advice"]:
             self.out.print("  [green]the model is good[/]: no re-run needed")
-        self._model = model
+        self.model = checked.model
         return summary
 
     # -- step 5 ------------------------------------------------------------------
 
     def step_save(self, summary: dict[str, Any]) -> dict[str, str]:
-        from .report import calibration_report, runtime_config
-
         self.out.rule("[bold]5/5 Save")
-        s = self.session
-        stamp = datetime.now(UTC).strftime("%Y-%m-%d")
-        base = f"{s['machine_id']}_{s['spindle_id']}_{stamp}"
-        model_path = versioned_path(self.dir / "models" / f"{base}.json")
-        model_path.parent.mkdir(parents=True, exist_ok=True)
-        save_model(model_path, self._model)
-        version = model_path.stem[len(base) :].lstrip(".") or "v1"
-        fmt = self.args.report_format
-        report_path = versioned_path(self.dir / "reports" / f"{base}.{fmt}")
-        write_text(
-            report_path, calibration_report(s, summary, self._model, model_path, fmt, version)
+        done = save(
+            self.session,
+            self.dir,
+            summary,
+            self.model,
+            report_format=self.args.report_format,
+            date=datetime.now(UTC).strftime("%Y-%m-%d"),
+            now_utc=_now(),
         )
-        config_path = versioned_path(self.dir / "config" / f"{base}.toml")
-        write_text(
-            config_path, runtime_config(s, self._model, model_path, config_dir=config_path.parent)
-        )
-        older = sorted(p.name for p in (self.dir / "models").glob("*.json") if p != model_path)
-        s["saved"] = {
-            "model": str(model_path),
-            "report": str(report_path),
-            "config": str(config_path),
-            "version": version,
-            "at_utc": _now(),
-        }
+        self.session = done.session
         self.save_session()
+        saved = done.saved
         t = Table(title="Written")
         t.add_column("what")
         t.add_column("file")
-        t.add_row("model", str(model_path))
-        t.add_row("report", str(report_path))
-        t.add_row("runtime config", str(config_path))
+        t.add_row("model", saved.model)
+        t.add_row("report", saved.report)
+        t.add_row("runtime config", saved.config)
         self.out.print(t)
-        if older:
-            self.out.print(f"  earlier models kept: {', '.join(older)}")
+        if done.older:
+            self.out.print(f"  earlier models kept: {', '.join(done.older)}")
         self.out.print(
-            f"  next: check it with [bold]thermocomp run --config {config_path} --check[/], "
+            f"  next: check it with [bold]thermocomp run --config {saved.config} --check[/], "
             f"or replay a logged day as the service would run it with "
-            f"[bold]thermocomp replay LOG --config {config_path}[/]"
+            f"[bold]thermocomp replay LOG --config {saved.config}[/]"
         )
-        return s["saved"]
+        return saved.model_dump()
 
     def run(self) -> int:
         self.step_identify()
@@ -969,104 +706,27 @@ class Wizard:
 # -- helpers ------------------------------------------------------------------------
 
 
-def advise(summary: dict[str, Any], session: dict[str, Any]) -> list[str]:
-    """What to re-run when the fit is poor, from the figures and warnings."""
-    out: list[str] = []
-    peak = max(summary.get("peak_um", 0.0), 1e-9)
-    cal = summary["calibration"]
-    val = summary.get("validation")
-    limit = max(1.0, 0.1 * peak)
-    warnings = " ".join(summary.get("warnings", []))
-    if NO_COOLDOWN in warnings:
-        out.append(
-            "record the calibration run again with its cool-down (>= 60 min at 0 rpm at the end)"
-        )
-    if FEW_LEVELS in warnings:
-        out.append("the run has too few speed levels: run the full staircase")
-    if cal["rms_um"] is not None and cal["rms_um"] > limit:
-        out.append(
-            f"the model misses the calibration run itself (RMS {cal['rms_um']:.2f} um > {limit:.2f} um): "
-            "check the probe bracket for its own thermal drift (Invar bracket, coolant off the probe) "
-            "and that the spindle was cold at the start"
-        )
-    if val is None:
-        if not session.get("validation"):
-            out.append(
-                "no validation run: record one (a different profile) to see how the model does "
-                "on speeds it was not fitted on"
-            )
-    elif val["rms_um"] is not None and val["rms_um"] > limit:
-        out.append(
-            f"the model does not carry over to the validation run (RMS {val['rms_um']:.2f} um > "
-            f"{limit:.2f} um): record a second calibration run and fit both with "
-            "`thermocomp fit cal1.csv cal2.csv`, or check that ambient and coolant were steady"
-        )
-    if session.get("source") == "tool-setter" and session.get("probe_spindle", "stop") != "keep":
-        out.append(
-            "the tool setter measured at rest: the growth that exists only while the spindle turns "
-            "(centrifugal, bearing preload; 10 um and more on a fast spindle) is not in the model, so "
-            "it is good at rest and misses that part while cutting; calibrate with a laser setter at "
-            "speed (--probe-spindle keep) or an eddy-current sensor, or keep probing in production so "
-            "the observer carries it"
-        )
-    for name, info in session.get("runs", {}).items():
-        bad = sum(v for k, v in (info.get("flagged") or {}).items() if Problem[k] & EXCLUDED)
-        if bad > 0.05 * max(info.get("rows", 1), 1):
-            out.append(
-                f"{name}: {bad} flagged samples (saturated, frozen, jumps): fix the sensor set-up and "
-                "record it again"
-            )
-    return out
+def _max_rpm(value: Any) -> float:
+    max_rpm = float(value)
+    if not (math.isfinite(max_rpm) and 100 <= max_rpm <= 200_000):
+        raise ConfigError(f"--max-rpm {max_rpm:g}: not a plausible spindle speed (100 to 200000)")
+    return max_rpm
 
 
-def _clean(log: RunLog) -> tuple[RunLog, int]:
-    """The log without rows flagged saturated, frozen or jump (by the recorder)."""
-    flags = log.extras.get("flags")
-    if flags is None or flags.dtype == object:
-        return log, 0
-    keep = (flags.astype(int) & int(EXCLUDED)) == 0
-    if keep.all():
-        return log, 0
-    return RunLog(
-        log.time_s[keep],
-        log.speed_rpm[keep],
-        None if log.elongation_um is None else log.elongation_um[keep],
-        {k: v[keep] for k, v in log.extras.items()},
-        log.metadata,
-        log.gaps,
-        log.source,
-    ), int((~keep).sum())
+def _rate_s(value: Any) -> float:
+    rate = float(value)
+    if not rate > 0 or not math.isfinite(rate):
+        raise ConfigError("--rate-s must be > 0")
+    return rate
 
 
-def _rows(path: Path) -> int:
-    try:
-        return len(read_run_log(path))
-    except ThermocompError:
-        return 0
+def _choice(flag: str, allowed: tuple[str, ...]) -> Callable[[Any], str]:
+    def check(value: Any) -> str:
+        if value not in allowed:
+            raise ConfigError(f"{flag} {value!r}: choose from {', '.join(allowed)}")
+        return str(value)
 
-
-def _ident(value: Any, flag: str) -> str:
-    """``value`` as an id (surrounding blanks dropped), or a one-line ConfigError naming it."""
-    text = str(value).strip()
-    if not ID_PATTERN.fullmatch(text) or ".." in text:
-        raise ConfigError(
-            f"{flag} {clip(repr(text), 80)}: an id names files, so 1 to 64 of A-Z a-z 0-9 "
-            "'_' '.' '-', starting with a letter or digit, without '..'"
-        )
-    return text
-
-
-def _inside(root: Path, path: str | Path, what: str) -> Path:
-    """``path`` resolved, if it stays inside ``root`` (a resolved directory); else a ConfigError."""
-    try:
-        resolved = Path(path).resolve()
-    except (OSError, ValueError) as err:  # a NUL byte, a symlink loop
-        raise ConfigError(
-            f"{what} {clip(repr(str(path)), 200)}: not a usable path ({err})"
-        ) from err
-    if not resolved.is_relative_to(root):
-        raise ConfigError(f"{what} {clip(str(resolved), 200)} is outside the work directory {root}")
-    return resolved
+    return check
 
 
 def _console() -> Console:
@@ -1129,10 +789,10 @@ class _LiveView:
     """Progress, the latest reading and a sparkline: a rich live panel on a terminal, a plain
     line every 5 % otherwise. Times in the machine's hours, and wall minutes when it runs faster."""
 
-    def __init__(self, console: Console, program, name: str, time_scale: float = 1.0):
+    def __init__(self, console: Console, program: Program, name: str, time_scale: float = 1.0):
         self.out, self.program, self.name = console, program, name
         self.scale = float(time_scale)
-        self.live = None
+        self.live: Any = None
         self.next_mark = 0.0
         self.lines: list[str] = []
 

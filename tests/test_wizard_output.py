@@ -21,7 +21,7 @@ from plantdata import plant_run
 from rich.console import Console
 
 from calibration.report import calibration_report, runtime_config
-from calibration.wizard import SESSION_FORMAT, Wizard
+from calibration.wizard import SESSION_FORMAT, Wizard, WizardSession
 from compensator.errors import ConfigError
 from compensator.io import load_model, save_model, write_run_log
 from compensator.shaping import ShaperConfig
@@ -71,23 +71,25 @@ def session(tmp_path_factory):
     )
     wiz = Wizard(args, console=Console(file=io.StringIO(), width=130))
     wiz.dir = sdir
-    wiz.session = {
-        "format": SESSION_FORMAT,
-        "machine_id": "vmc-7",
-        "spindle_id": "main",
-        "max_rpm": preset("motorized-27k").max_rpm,
-        "source": "import",
-        "controller": CONTROLLER,
-        "validation": True,
-        "runs": runs,
-    }
+    wiz.session = WizardSession.model_validate(
+        {
+            "format": SESSION_FORMAT,
+            "machine_id": "vmc-7",
+            "spindle_id": "main",
+            "max_rpm": preset("motorized-27k").max_rpm,
+            "source": "import",
+            "controller": CONTROLLER,
+            "validation": True,
+            "runs": runs,
+        }
+    )
     summary = wiz.step_fit()
     saved = wiz.step_save(summary)
     return {
         "dir": sdir,
-        "session": wiz.session,
+        "session": wiz.session.as_dict(),
         "summary": summary,
-        "model": wiz._model,
+        "model": wiz.model,
         "model_path": Path(saved["model"]),
         "report": Path(saved["report"]),
         "config": Path(saved["config"]),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import socket
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -137,3 +138,189 @@ def test_unattended_wizard_on_a_machine_not_running_the_program_saves_nothing(lo
         ls.wizard(unattended_args(work, ls.cnc, "--no-validation"))
     assert not (sdir / "models").exists() and not (sdir / "config").exists()
     assert "refused" in said(ls)
+
+
+# -- the typed session and its steps -----------------------------------------------------------
+
+SESSIONS = Path(__file__).parent / "data" / "wizard-sessions"
+"""Session files as the wizard wrote them before its session was typed: a live sensor route, the
+tool-setter route and an import, each recorded (or imported), fitted and saved."""
+
+
+@pytest.mark.parametrize("name", ["sensor", "tool-setter", "import"])
+def test_a_session_file_written_before_the_typed_session_loads_and_writes_back_the_same(
+    name, tmp_path
+):
+    from calibration.session.model import SCHEMA_VERSION, load_session, write_session
+
+    raw = json.loads((SESSIONS / f"{name}.json").read_text())
+    s = load_session(SESSIONS / f"{name}.json")
+    assert s.schema_version == SCHEMA_VERSION == 1 and s.source == name
+    assert s.machine_id == raw["machine_id"] and s.max_rpm == raw["max_rpm"]
+    assert set(s.runs) == {"calibration", "validation"} and all(r.complete for r in s.runs.values())
+    assert s.saved is not None and s.saved.model == raw["saved"]["model"]
+    # written back: every value it held, the same; the version added; a null answer left out
+    path = tmp_path / "session.json"
+    stamped = write_session(path, s, "2030-01-01T00:00:00+00:00")
+    back = json.loads(path.read_text())
+    assert back.pop("schema_version") == 1
+    assert back.pop("updated_utc") == "2030-01-01T00:00:00+00:00"
+    assert back == {k: v for k, v in raw.items() if k != "updated_utc" and v is not None}, (
+        "the session file changed"
+    )
+    assert load_session(path) == stamped and path.stat().st_mode & 0o777 == 0o600
+
+
+def test_the_tool_setter_sessions_plan_and_an_import_sessions_runs_are_typed():
+    from calibration.session.model import load_session
+
+    setter = load_session(SESSIONS / "tool-setter.json")
+    assert setter.probe_plan is not None and setter.probe_plan.touches == 1
+    assert setter.probe_dwell_s == 21.0 and setter.probe_every_s == setter.probe_plan.interval_s
+    assert setter.run("calibration").measurements > 0 and setter.sensor is None
+    imported = load_session(SESSIONS / "import.json")
+    assert imported.controller is None and imported.run("validation").imported_from.endswith(
+        "val-daq.csv"
+    )
+
+
+@pytest.mark.parametrize(
+    "edit, said",
+    [
+        ("{not json", "not a wizard session: "),
+        ('{"format": "thermocomp.wizard/9"}', "not a wizard session ('thermocomp.wizard/9')"),
+        ("[1, 2]", "not a wizard session ('list')"),
+        ('{"format": "thermocomp.wizard/1", "max_rpm": 5}', "max_rpm"),
+        ('{"format": "thermocomp.wizard/1", "machine_id": "../up"}', "machine_id"),
+        ('{"format": "thermocomp.wizard/1", "dialect": "cobol"}', "dialect"),
+        ('{"format": "thermocomp.wizard/1", "rate_s": "NaN"}', "rate_s"),
+        ('{"format": "thermocomp.wizard/1", "runs": {"calibration": {}}}', "runs.calibration.log"),
+        ('{"format": "thermocomp.wizard/1", "sensr": "typo"}', "sensr"),
+    ],
+)
+def test_a_session_file_that_is_not_one_is_refused_in_one_line(tmp_path, edit, said):
+    from calibration.session.model import load_session
+    from compensator.errors import ConfigError
+
+    path = tmp_path / "session.json"
+    path.write_text(edit)
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    msg = str(info.value)
+    assert msg.startswith(str(path)) and said in msg and "\n" not in msg, msg
+
+
+def test_a_session_is_a_value_each_change_is_checked_and_makes_a_new_one():
+    from pydantic import ValidationError
+
+    from calibration.session.model import load_session
+    from compensator.errors import ConfigError
+
+    s = load_session(SESSIONS / "sensor.json")
+    with pytest.raises(ValidationError):
+        s.max_rpm = 1.0
+    t = s.updated(max_rpm=12000.0)
+    assert t.max_rpm == 12000.0 and s.max_rpm == 27000.0
+    with pytest.raises(ConfigError, match="max_rpm"):
+        s.updated(max_rpm=float("inf"))
+    u = s.with_run("calibration", complete=False, rows=0)
+    assert not u.run("calibration").complete and s.run("calibration").complete
+    assert u.run("validation") == s.run("validation")
+
+
+def test_the_plan_step_returns_the_planned_session_and_asks_nothing(tmp_path):
+    """The probe plan and the programs as values: the same session in, a new one out, the files
+    written where asked; a stop sparser than the plan is said, not prompted."""
+    from calibration.nc_programs import to_nc  # noqa: F401 - the program writer the step uses
+    from calibration.session.model import WizardSession
+    from calibration.session.plan import plan_probes, programs, write_programs
+
+    s = WizardSession(
+        machine_id="m1",
+        spindle_id="s1",
+        max_rpm=12000.0,
+        source="tool-setter",
+        dialect="fanuc",
+        step_min=10.0,
+        cooldown_min=60.0,
+        validation=True,
+        validation_seed=1,
+    )
+    planned = plan_probes(
+        s, probe_spindle=None, touches=None, dwell_s=None, every_min=None, former_taus=None
+    )
+    p = planned.session
+    assert s.probe_plan is None and p.probe_plan is not None and not planned.sparser_than_planned
+    assert p.probe_spindle == "stop" and p.probe_every_s == planned.plan.interval_s == 180.0
+    sparse = plan_probes(
+        s, probe_spindle="keep", touches=None, dwell_s=30.0, every_min=20.0, former_taus=None
+    )
+    assert sparse.sparser_than_planned and sparse.session.probe_every_s == 1200.0
+    assert sparse.session.probe_dwell_s == 30.0 and sparse.session.probe_touch_s == 0.0
+    from compensator.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--probe-every-min 0.5: 1 to 240 minutes"):
+        plan_probes(
+            s, probe_spindle=None, touches=None, dwell_s=None, every_min=0.5, former_taus=None
+        )
+    written = write_programs(p, tmp_path, None)
+    assert set(written.session.programs) == {"calibration", "validation"} == set(programs(p))
+    assert written.session.rest_h == 8.0 and p.programs is None
+    for f in written.files:
+        prog = programs(p)[f.run]
+        assert f.path.is_file() and f.path.suffix == ".nc"
+        assert f.top_rpm == max(sp for _, sp in prog.segments) <= 12000.0
+        # the program waits at each stop for the cycle: its length counts the stops
+        assert f.duration_s == pytest.approx(
+            prog.duration_s + len(prog.probe_at_s) * p.probe_plan.dwell_s
+        )
+
+
+def test_the_fit_step_is_the_identification_thermocomp_fit_runs_and_the_steps_save_it(tmp_path):
+    """fit, validate, report and save on a session of two plant runs, with no terminal: the fit
+    step's model is ``calibration.fit.fit_logs``'s for the same log, the save step writes it."""
+    from plantdata import plant_run
+
+    from calibration.fit import fit_logs
+    from calibration.session.fit import fit, read_runs, report, validate
+    from calibration.session.model import WizardSession
+    from calibration.session.save import save
+    from compensator.io import load_model, read_run_log
+
+    work = tmp_path / "w"
+    sdir = work / "m1" / "s1"
+    (sdir / "runs").mkdir(parents=True)
+    runs = {}
+    for name, seed in (("calibration", 1), ("validation", 2)):
+        run = plant_run(name, 20.0, seed)
+        log = sdir / "runs" / f"{name}.csv"
+        write_run_log(
+            log,
+            {"time_s": run.time_s, "speed_rpm": run.speed_rpm, "elongation_um": run.elongation_um},
+        )
+        runs[name] = {"log": str(log), "complete": True, "rows": len(run.time_s)}
+    s = WizardSession(
+        machine_id="m1", spindle_id="s1", max_rpm=27000.0, source="sensor", validation=True
+    ).updated(runs=runs)
+    data = read_runs(s, work.resolve())
+    fitted = fit(s, data, "2030-01-01T00:00:00+00:00")
+    direct = fit_logs(
+        [read_run_log(sdir / "runs" / "calibration.csv")],
+        labels=["calibration"],
+        spindle_id="s1",
+        machine_id="m1",
+        created_utc="2030-01-01T00:00:00+00:00",
+        growth_direction=1,
+    )
+    assert fitted.model.model_dump() == direct.model.model_dump()
+    checked = validate(fitted)
+    assert checked.stats["samples"] == len(plant_run("validation", 20.0, 2).time_s)
+    assert checked.closed_loop is not None and "observer" in checked.model.fit
+    summary = report(s, fitted, checked, sdir / "fit.png")
+    assert (sdir / "fit.png").is_file() and summary["validation"] == checked.stats
+    rows = {r[0] for r in summary["iso230_3"]}
+    assert {"calibration: machine", "validation: with thermocomp"} <= rows, rows
+    done = save(s, sdir, summary, checked.model, report_format="md", date="2030-01-01", now_utc="x")
+    assert done.session.saved == done.saved and s.saved is None
+    assert load_model(done.saved.model).fit["observer"] == checked.model.fit["observer"]
+    assert done.saved.version == "v1" and Path(done.saved.report).read_text().startswith("#")
