@@ -300,11 +300,22 @@ class CoolingLaw(BaseModel):
         return lines
 
 
+Phase = Literal["preheat", "closed", "hold"]
+_PHASES: dict[str, Phase] = {"preheat": "preheat", "closed": "closed", "hold": "hold"}
+
+
+def _saved_float(value: object) -> float:
+    """A number read back from a saved state, as ``float()`` takes it; TypeError otherwise."""
+    if isinstance(value, (int, float, str)):
+        return float(value)
+    raise TypeError(f"{type(value).__name__} is not a number")
+
+
 @dataclass(frozen=True)
 class CoolingState:
     """The controller's runtime state: ``setpoint_c`` is the command to send."""
 
-    phase: Literal["preheat", "closed", "hold"]
+    phase: Phase
     setpoint_c: float
     ramp_c: float
     """The continuous command behind the whole counts [degC]."""
@@ -332,21 +343,22 @@ class CoolingState:
     @classmethod
     def from_dict(cls, data: dict[str, object]) -> CoolingState:
         try:
+            phase = str(data["phase"])
             state = cls(
-                phase=str(data["phase"]),
-                setpoint_c=float(data["setpoint_c"]),  # type: ignore[arg-type]
-                ramp_c=float(data["ramp_c"]),
-                bias_c=float(data["bias_c"]),  # type: ignore[arg-type]
-                derivative_um_per_s=float(data["derivative_um_per_s"]),  # type: ignore[arg-type]
+                phase="preheat",  # checked below, with the numbers
+                setpoint_c=_saved_float(data["setpoint_c"]),
+                ramp_c=_saved_float(data["ramp_c"]),
+                bias_c=_saved_float(data["bias_c"]),
+                derivative_um_per_s=_saved_float(data["derivative_um_per_s"]),
                 estimate_um=math.nan,
-                idle_s=float(data.get("idle_s", 0.0)),  # type: ignore[arg-type]
-                held_s=float(data.get("held_s", 0.0)),
+                idle_s=_saved_float(data.get("idle_s", 0.0)),
+                held_s=_saved_float(data.get("held_s", 0.0)),
                 was_closed=bool(data.get("was_closed", False)),
-            )  # type: ignore[arg-type]
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"cooling state: {err}") from err
-        if state.phase not in ("preheat", "closed", "hold") or not all(
+        if phase not in _PHASES or not all(
             math.isfinite(v) for v in (state.setpoint_c, state.ramp_c, state.bias_c)
         ):
             raise ConfigError("cooling state: not a state this version wrote")
-        return state
+        return replace(state, phase=_PHASES[phase])

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -170,6 +170,8 @@ class Estimate:
     input_recover_s: float = 60.0
     max_speed_rpm: float | None = None
     """The spindle's rated maximum speed; None: not stated (see :attr:`speed_limit_rpm`)."""
+    _core: Predictor = field(init=False, repr=False, compare=False)
+    """The speed-only model, fused with the observer when there is one (:attr:`core`)."""
 
     def __post_init__(self) -> None:
         speed_only = self.model.fallback or self.model
@@ -183,7 +185,7 @@ class Estimate:
     @property
     def core(self) -> Predictor:
         """The speed-only model, fused with the observer when there is one."""
-        return self._core  # type: ignore[attr-defined]
+        return self._core
 
     @property
     def fused(self) -> FusedPredictor | None:

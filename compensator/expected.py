@@ -15,14 +15,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Literal
+from typing import Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .units import RANGE_TOLERANCE
 
-EXPECTED_FORMAT = "thermocomp.expected-error/1"
+EXPECTED_FORMAT: Final = "thermocomp.expected-error/1"
 
 MIN_FORWARD_FOLDS = 2
 """A statement from fewer folds predicted forward is not validated: held-out past cycles alone
@@ -111,7 +111,8 @@ class ExpectedError(BaseModel):
         ok = n <= self.bands[-1].speed_rpm[1] * (1 + RANGE_TOLERANCE)
         if distance is not None:
             ok &= np.nan_to_num(np.asarray(distance, float)) <= self.outside_validated
-        return ok & (self.forward_folds >= MIN_FORWARD_FOLDS)
+        valid: np.ndarray = ok & (self.forward_folds >= MIN_FORWARD_FOLDS)
+        return valid
 
     def why_unvalidated(self, speed_rpm: float, spans: float) -> list[str]:
         """Why validation scored no prediction like this one (:meth:`validated`), in words."""
@@ -156,7 +157,7 @@ class ExpectedError(BaseModel):
         """The stated 95 % bound [um] per row: the band's, its outside figure where the inputs
         lie outside (never below the inside one)."""
         which = self.band_index(speed_rpm)
-        inside = np.array([b.p95_abs_um for b in self.bands])[which]
+        inside: np.ndarray = np.array([b.p95_abs_um for b in self.bands])[which]
         if distance is None:
             return inside
         out = np.array(
@@ -165,7 +166,8 @@ class ExpectedError(BaseModel):
                 for b in self.bands
             ]
         )[which]
-        return np.where(np.asarray(distance, float) > 0, out, inside)
+        bound: np.ndarray = np.where(np.asarray(distance, float) > 0, out, inside)
+        return bound
 
     def at(self, speed_rpm: float, distance: float = 0.0) -> Expectation:
         """The error to expect at ``speed_rpm`` with the inputs ``distance`` spans outside the

@@ -73,7 +73,8 @@ def rate_step(x: float, rate_per_s: float, drive: float, dt_s: float) -> float:
 
 def one_minus_exp(ld: np.ndarray) -> np.ndarray:
     """1 - exp(-ld), accurate for tiny ld: the input gain of every step."""
-    return -np.expm1(-ld)
+    gain: np.ndarray = -np.expm1(-ld)
+    return gain
 
 
 def constant_decay(a: float, inc: np.ndarray, x0: float, gain: float = 1.0) -> np.ndarray:
@@ -81,7 +82,8 @@ def constant_decay(a: float, inc: np.ndarray, x0: float, gain: float = 1.0) -> n
     (``scipy.signal.lfilter``: the same recursion, with its constant coefficients)."""
     from scipy.signal import lfilter  # batch work only: the runtime's install has no scipy
 
-    return lfilter([gain], [1.0, -a], inc, zi=[a * x0])[0]
+    x: np.ndarray = lfilter([gain], [1.0, -a], inc, zi=[a * x0])[0]  # scipy has no types
+    return x
 
 
 def decaying_sum(
@@ -246,7 +248,7 @@ def lag(steps: Steps, u: np.ndarray, tau_s: float, y0: float | None = None) -> n
         b = -math.expm1(-ld)
         start = y[0]
         # lfilter's first output is b*u_0 + zi: the state that makes it y_0
-        y = lfilter([b], [1.0, -math.exp(-ld)], u, zi=[start - b * float(u[0])])[0]
+        y = np.asarray(lfilter([b], [1.0, -math.exp(-ld)], u, zi=[start - b * float(u[0])])[0])
         y[0] = start
         return y
     if runs is not None:
@@ -345,4 +347,5 @@ def filter_bank(time_s: Any, u: Any, taus_s: Sequence[float]) -> np.ndarray:
 def decay(time_s: np.ndarray, tau_s: float) -> np.ndarray:
     """exp(-(t - t_0)/tau): how much of an initial error is left at each sample (0 < tau)."""
     with np.errstate(over="ignore"):
-        return np.exp(-np.minimum((time_s - time_s[0]) / tau_s, _LD_MAX))
+        left: np.ndarray = np.exp(-np.minimum((time_s - time_s[0]) / tau_s, _LD_MAX))
+    return left

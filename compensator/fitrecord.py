@@ -57,35 +57,54 @@ class FitRecord(BaseModel):
     model_config = ConfigDict(frozen=True, extra="allow")
 
     schema_version: int = Field(
-        1, ge=1, description="version of the record; absent in records written before it was typed"
+        default=1,
+        ge=1,
+        description="version of the record; absent in records written before it was typed",
     )
-    method: str | None = Field(None, description="the candidate chosen (calibration.identify)")
-    scored_by: str | None = Field(None, description="how the candidates were scored")
-    folds: int | None = Field(None, ge=0, description="folds scored")
-    cv_rms_um: Number | None = Field(None, description="held-out free-run RMS over the folds")
-    cv_max_abs_um: Number | None = Field(None, description="held-out free-run largest |error|")
-    folds_rms_um: tuple[Number, ...] | None = Field(None, description="held-out RMS per fold")
-    reason: str | None = Field(None, description="why this candidate was chosen")
+    method: str | None = Field(
+        default=None, description="the candidate chosen (calibration.identify)"
+    )
+    scored_by: str | None = Field(default=None, description="how the candidates were scored")
+    folds: int | None = Field(default=None, ge=0, description="folds scored")
+    cv_rms_um: Number | None = Field(
+        default=None, description="held-out free-run RMS over the folds"
+    )
+    cv_max_abs_um: Number | None = Field(
+        default=None, description="held-out free-run largest |error|"
+    )
+    folds_rms_um: tuple[Number, ...] | None = Field(
+        default=None, description="held-out RMS per fold"
+    )
+    reason: str | None = Field(default=None, description="why this candidate was chosen")
     expected_error: ExpectedError | None = Field(
-        None, description="the error to expect by speed band (compensator.expected)"
+        default=None, description="the error to expect by speed band (compensator.expected)"
     )
-    nested_rms_um: Number | None = Field(None, description="RMS with the choice itself held out")
-    forward_rms_um: Number | None = Field(None, description="RMS predicting later folds forward")
-    alpha: Number | None = Field(None, description="the ridge strength chosen")
-    grid: str | None = Field(None, description="the filter bank's time-constant grid")
+    nested_rms_um: Number | None = Field(
+        default=None, description="RMS with the choice itself held out"
+    )
+    forward_rms_um: Number | None = Field(
+        default=None, description="RMS predicting later folds forward"
+    )
+    alpha: Number | None = Field(default=None, description="the ridge strength chosen")
+    grid: str | None = Field(default=None, description="the filter bank's time-constant grid")
     observer: ObserverConfig | None = Field(
-        None, description="observer settings fitted from held-out residuals"
+        default=None, description="observer settings fitted from held-out residuals"
     )
     not_following_share: Number | None = Field(
-        None, description="share of calibration rows the spindle did not follow its program"
+        default=None, description="share of calibration rows the spindle did not follow its program"
     )
     growth_direction: Literal[-1, 1] | None = Field(
-        None, description="+1: the tool tip grows toward the workpiece as measured; -1: away"
+        default=None,
+        description="+1: the tool tip grows toward the workpiece as measured; -1: away",
     )
-    in_sample_rms_um: Number | None = Field(None, description="in-sample RMS (older records)")
-    score_rms_um: Number | None = Field(None, description="the score chosen by (older records)")
-    runs: int | None = Field(None, ge=0, description="runs fitted (older records)")
-    fit_dt_s: Number | None = Field(None, description="time step fitted at (older records)")
+    in_sample_rms_um: Number | None = Field(
+        default=None, description="in-sample RMS (older records)"
+    )
+    score_rms_um: Number | None = Field(
+        default=None, description="the score chosen by (older records)"
+    )
+    runs: int | None = Field(default=None, ge=0, description="runs fitted (older records)")
+    fit_dt_s: Number | None = Field(default=None, description="time step fitted at (older records)")
 
     _unreadable: dict[str, Any] = PrivateAttr(default_factory=dict)
     """Advice entries (:data:`_ADVICE`) read from a file but not understood: written back as read."""

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -32,7 +32,7 @@ from .model import ModelState, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers
 from .units import require_dt
 
-AUGMENTED_FORMAT = "thermocomp.augmented-model/1"
+AUGMENTED_FORMAT: Final = "thermocomp.augmented-model/1"
 
 
 class InputTerm(Channel):
@@ -123,7 +123,8 @@ class AugmentedModel(ModelBase):
         base = self.speed_model.simulate(
             np.asarray(speed_rpm, float), np.asarray(time_s, float), state
         ).elongation_um
-        return base + response
+        elongation_um: np.ndarray = base + response
+        return elongation_um
 
     # -- the runtime's step ---------------------------------------------------------
 

@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -50,7 +50,7 @@ from .filters import constant_decay, decaying_sum, one_minus_exp, rate_gains, ra
 from .modelbase import SAVED_LIMIT_UM, ModelBase, saved_numbers, speed_range  # noqa: F401 (their old home)
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_krpm
 
-MODEL_FORMAT = "thermocomp.model/1"
+MODEL_FORMAT: Final = "thermocomp.model/1"
 
 _CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
 _MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
@@ -430,7 +430,7 @@ def _advance_block(
     n: np.ndarray,
     dt: np.ndarray,
     x0: float,
-    elapsed: np.ndarray,
+    elapsed: np.ndarray | None,
     uniform: bool,
     scale: float,
 ) -> np.ndarray:
@@ -452,7 +452,7 @@ def _advance_general(
     n: np.ndarray,
     dt: np.ndarray,
     x0: float,
-    elapsed: np.ndarray,
+    elapsed: np.ndarray | None,
     scale: float,
 ) -> np.ndarray:
     """Time-varying pole a_k = exp(-lambda(n_k)*dt_k), in closed form
@@ -478,6 +478,8 @@ def _advance_general(
     inc = _generation(st, n, np.empty_like(n), scale)
     inc *= gain
     if lam is None:
+        # elapsed is left out only for uniform steps of speed-independent poles: lfilter's
+        assert elapsed is not None
         return decaying_sum(inc, x0, cum=elapsed * d0, span=_MAX_LOG_SPAN)
     return decaying_sum(inc, x0, ld=ld, span=_MAX_LOG_SPAN)
 

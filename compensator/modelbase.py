@@ -146,7 +146,7 @@ class ModelBase(BaseModel):
             raise model_error(err) from err
 
     @classmethod
-    def model_validate(cls, obj: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+    def model_validate(cls, obj: Any, **kwargs: Any) -> Self:
         try:
             return super().model_validate(obj, **kwargs)
         except ValidationError as err:
@@ -198,7 +198,8 @@ class ModelBase(BaseModel):
     def above_range(self, speed_rpm: float) -> bool:
         """True above the calibrated range (with ``RANGE_TOLERANCE``): extrapolation. Every
         model has a ``speed_range_rpm``, a field or its speed part's."""
-        top = self.speed_range_rpm[1]  # type: ignore[attr-defined]
+        # each subclass has it (ModelBase declares no field a subclass could not narrow)
+        top = float(self.speed_range_rpm[1])  # type: ignore[attr-defined]
         return speed_magnitude_rpm(speed_rpm) > top * (1 + RANGE_TOLERANCE)
 
 

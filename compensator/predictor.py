@@ -24,9 +24,17 @@ class PredictorState(Protocol):
 class Predictor(Protocol):
     """A thermal-elongation model. Speeds in rpm (sign ignored), time in s, elongation in um."""
 
-    format: str
-    spindle_id: str
-    machine_id: str
+    # read-only, as every model value is immutable
+    @property
+    def spindle_id(self) -> str: ...
+
+    @property
+    def machine_id(self) -> str: ...
+
+    @property
+    def format(self) -> str:
+        """The file format's name (read-only: each model class fixes its own literal)."""
+        ...
 
     @property
     def form(self) -> str: ...
@@ -97,6 +105,6 @@ class Predictor(Protocol):
         """Human-readable lines: form, inputs, time constants and equilibria."""
         ...
 
-    def model_dump(self, **kwargs: Any) -> dict[str, Any]:
-        """The immutable coefficients as a JSON-able mapping (pydantic)."""
+    def model_dump(self, *, mode: str = ...) -> dict[str, Any]:
+        """The immutable coefficients as a mapping (pydantic's; ``mode="json"``: JSON-able)."""
         ...

@@ -44,7 +44,7 @@ import enum
 import functools
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -81,14 +81,20 @@ class TransientPolicy(BaseModel):
 
     enabled: bool = True
     mode: Literal["dual-slew", "slow", "hold"] = "dual-slew"
-    speed_rate_rpm_per_s: float = Field(500.0, gt=0, description="slow/hold: |dn/dt| threshold")
-    speed_step_rpm: float = Field(3000.0, gt=0, description="slow/hold: |n_k - n_{k-1}| threshold")
-    window_s: float = Field(
-        60.0, ge=0, description="slow/hold: window length after the last trigger"
+    speed_rate_rpm_per_s: float = Field(
+        default=500.0, gt=0, description="slow/hold: |dn/dt| threshold"
     )
-    slow_period_s: float = Field(15.0, gt=0, description="slow: target refresh period")
+    speed_step_rpm: float = Field(
+        default=3000.0, gt=0, description="slow/hold: |n_k - n_{k-1}| threshold"
+    )
+    window_s: float = Field(
+        default=60.0, ge=0, description="slow/hold: window length after the last trigger"
+    )
+    slow_period_s: float = Field(default=15.0, gt=0, description="slow: target refresh period")
     release_rate_um_per_s: float | None = Field(
-        None, gt=0, description="slow/hold: rate inside and after a window; default max_rate/4"
+        default=None,
+        gt=0,
+        description="slow/hold: rate inside and after a window; default max_rate/4",
     )
 
 
@@ -106,9 +112,11 @@ class CuttingSignal(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     signal: Literal["auto", "controller", "speed"] = "auto"
-    settle_s: float = Field(2.0, gt=0, le=3600, description="speed held this long: cutting")
-    speed_tolerance_rpm: float = Field(30.0, gt=0, le=10000, description="speed band [rpm]")
-    speed_tolerance_pct: float = Field(1.0, ge=0, le=50, description="speed band [% of the speed]")
+    settle_s: float = Field(default=2.0, gt=0, le=3600, description="speed held this long: cutting")
+    speed_tolerance_rpm: float = Field(default=30.0, gt=0, le=10000, description="speed band [rpm]")
+    speed_tolerance_pct: float = Field(
+        default=1.0, ge=0, le=50, description="speed band [% of the speed]"
+    )
 
 
 class ShaperConfig(BaseModel):
@@ -116,21 +124,21 @@ class ShaperConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    max_offset_um: float = Field(100.0, gt=0, description="clamp: |A| <= max_offset_um")
+    max_offset_um: float = Field(default=100.0, gt=0, description="clamp: |A| <= max_offset_um")
     max_rate_um_per_s: float = Field(
-        1.0,
+        default=1.0,
         gt=0,
         description="slew limit while cutting (and always, unless the policy is dual-slew)",
     )
     not_cutting_rate_um_per_s: float | None = Field(
-        None,
+        default=None,
         gt=0,
         description="dual-slew: slew limit while the tool is not cutting; default "
         f"{NOT_CUTTING_RATE_UM_PER_S:g} um/s, or max_rate_um_per_s if that is higher",
     )
-    deadband_um: float = Field(0.1, ge=0, description="no write for smaller changes")
+    deadband_um: float = Field(default=0.1, ge=0, description="no write for smaller changes")
     resolution_um: float = Field(
-        0.0,
+        default=0.0,
         ge=0,
         description="one count of the controller's value [um] (0: continuous): the "
         "output moves in whole counts, a count only once the slew limit allows a whole one since "
@@ -188,12 +196,13 @@ class ShaperConfig(BaseModel):
         """The same limits under another transient policy (:data:`POLICIES`), for comparisons."""
         if policy not in POLICIES:
             raise ValueError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
-        change = {
+        changes: dict[str, dict[str, Any]] = {
             "slow-slew": {"enabled": False},
             "dual-slew": {"enabled": True, "mode": "dual-slew"},
             "longer-cycle": {"enabled": True, "mode": "slow"},
             "hold": {"enabled": True, "mode": "hold"},
-        }[policy]
+        }
+        change = changes[policy]
         return self.model_copy(update={"transient": self.transient.model_copy(update=change)})
 
 
@@ -302,7 +311,8 @@ def _limits(config: ShaperConfig) -> _Limits:
 
 _WORDS = ("cutting", "clear", "window", "releasing", "tracking")
 
-_State = tuple  # ShaperState's fields, in order
+_State = tuple[float, float, float | None, float, float, bool, float | None, float, float]
+"""ShaperState's fields, in order."""
 
 
 def _advance(

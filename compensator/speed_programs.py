@@ -10,6 +10,7 @@ count that time.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,7 +128,7 @@ def job_shop_day(max_rpm: float = 27000.0, seed: int = 7, hours: float = 8.0) ->
     return Program(f"job-shop-day-{seed}", tuple(segs))
 
 
-PROGRAMS = {
+PROGRAMS: dict[str, Callable[..., Program]] = {
     "paper-calibration": paper_calibration,
     "random-validation": random_validation,
     "job-shop-day": job_shop_day,
@@ -140,5 +141,5 @@ def program(name: str, max_rpm: float, seed: int | None = None) -> Program:
     except KeyError as err:
         raise KeyError(f"unknown program {name!r}; choose from {', '.join(PROGRAMS)}") from err
     if seed is None or name == "paper-calibration":
-        return factory(max_rpm)  # type: ignore[operator]
-    return factory(max_rpm, seed=seed)  # type: ignore[operator]
+        return factory(max_rpm)
+    return factory(max_rpm, seed=seed)

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Final, Literal, Union
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -50,7 +50,7 @@ from .model import MODEL_FORMAT, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers, speed_range
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
 
-STATE_SPACE_FORMAT = "thermocomp.state-space-model/1"
+STATE_SPACE_FORMAT: Final = "thermocomp.state-space-model/1"
 
 MAX_TAU_S = 10 * 86400.0
 """Longest time constant a model may hold: ten days. Slower cannot be told from drift."""
@@ -211,7 +211,8 @@ class StateSpaceModel(ModelBase):
 
     def total_gains(self) -> np.ndarray:
         """Steady gains on [n, n^2, inputs...]: the feed-through plus every state's drive."""
-        return self._d + self._b.sum(axis=0)
+        gains: np.ndarray = self._d + self._b.sum(axis=0)
+        return gains
 
     def steady_range_um(self) -> float:
         """Largest |steady elongation change| the gains imply over the trained ranges."""
@@ -329,7 +330,8 @@ class StateSpaceModel(ModelBase):
         r = lag_step(state.residual_um, 0.0, dt_s, self._slowest_s)
         if self.extrapolation != "blend" or self.fallback is None:
             return StateSpaceState(x, r, float(self.offset_um + self._d @ v))
-        fb = (
+        # the fallback's own state, of the fallback's type (a start of it, or what it stepped to)
+        fb: Any = (
             state.fallback if state.fallback is not None else self.fallback.start(state.own_um, 0.0)
         )
         return StateSpaceState(
@@ -393,7 +395,7 @@ class StateSpaceModel(ModelBase):
                         self._refuse_non_finite(logged)
                     np.clip(w, lo, hi, out=w)
             np.matmul(gains, vb, out=y[:, s:e])
-        out = y[0]
+        out: np.ndarray = y[0]
         out += constant
         for tau, drive in zip(self.taus_s, y[1:]):
             out += lag(steps, drive, tau)

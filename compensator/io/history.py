@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -26,7 +26,7 @@ from ..fitrecord import fit_of
 from .atomic import atomic_write
 from .modelfile import load_any_model, model_digest
 
-HISTORY_FORMAT = "thermocomp.model-history/1"
+HISTORY_FORMAT: Final = "thermocomp.model-history/1"
 RECORDS = "history.jsonl"
 MAX_RECORDS = 1000
 """Records kept once the file holds twice as many."""

@@ -63,7 +63,7 @@ MAX_PENDING_ROWS = 250_000
 class Journal:
     """The runtime's journal: the common run-log format, one file per UTC day."""
 
-    COLUMNS = (
+    COLUMNS: tuple[str, ...] = (
         "time_s",
         "speed_rpm",
         "predicted_um",

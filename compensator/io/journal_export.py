@@ -174,20 +174,20 @@ def export_journal(
         if lo_day <= f.day <= hi_day:
             tables[f.kind].read(d / f.name)
     cyc, meas, cool = tables["cycles"], tables["measurements"], tables["cooling"]
-    for t in tables.values():
-        t.sort()
+    for table in tables.values():
+        table.sort()
     lo = -math.inf if start_s is None else start_s
     hi = math.inf if end_s is None else end_s
     first = bisect.bisect_left([r[0] for r in cyc.rows], lo)
     rows = [r for r in cyc.rows[first:] if r[0] < hi]
     if not rows:
         days = [f.day for f in mine if f.kind == "cycles"]
-        have = (
+        held = (
             f"its journal has {days[0]} .. {days[-1]} (UTC)" if days else "it has no cycle journal"
         )
         raise RunLogError(
             f"no journal rows of spindle {name} in [{iso(lo) if start_s is not None else 'start'}, "
-            f"{iso(hi) if end_s is not None else 'end'}): {have}",
+            f"{iso(hi) if end_s is not None else 'end'}): {held}",
             str(d),
         )
     if REQUIRED_COLUMNS[1] not in cyc.columns:
@@ -259,9 +259,9 @@ def export_journal(
         if cool.rows:
             k = bisect.bisect_right(cool_t, t) - 1
             if k >= 0:
-                c = cool.rows[k]
-                used.add(c[2])
-                line += [c[1].get("setpoint_c", ""), c[1].get("supply_c", "")]
+                command = cool.rows[k]
+                used.add(command[2])
+                line += [command[1].get("setpoint_c", ""), command[1].get("supply_c", "")]
             else:
                 line += ["", ""]
         out.writerow(line)

@@ -44,7 +44,9 @@ def _number(text: str, col: str, src: str, line: int) -> float:
 def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> Measurements:
     """Read a measurements file; :class:`RunLogError` naming file and line on any fault."""
     src = os.fspath(path)
-    times, values, sigmas = [], [], []
+    times: list[float] = []
+    values: list[float] = []
+    sigmas: list[float] = []
     try:
         with open(src, newline="", encoding="utf-8") as fh:
             rows = (

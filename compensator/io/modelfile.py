@@ -21,7 +21,10 @@ from ..statespace import STATE_SPACE_FORMAT, StateSpaceModel
 from .atomic import atomic_write, read_regular
 from .checksum import digest
 
-MODEL_TYPES: dict[str, Any] = {
+ModelClass = type[ThermalModel] | type[AugmentedModel] | type[StateSpaceModel]
+"""The model classes a file can hold (a new form joins here and in :data:`MODEL_TYPES`)."""
+
+MODEL_TYPES: dict[str, ModelClass] = {
     MODEL_FORMAT: ThermalModel,
     AUGMENTED_FORMAT: AugmentedModel,
     STATE_SPACE_FORMAT: StateSpaceModel,
@@ -179,7 +182,8 @@ def load_any_model(path: str | os.PathLike[str]) -> Predictor:
             f"{src}: checksum mismatch: the file was modified after it was written"
         )
     try:
-        return cls.model_validate(payload)
+        model: Predictor = cls.model_validate(payload)
+        return model
     except (
         ValueError,
         TypeError,

@@ -103,7 +103,8 @@ class RunLog:
         on the empty cells of a sparse log)."""
         if self.elongation_um is None:
             return np.zeros(len(self), dtype=bool)
-        return np.isfinite(np.asarray(self.elongation_um, dtype=float))
+        measured: np.ndarray = np.isfinite(np.asarray(self.elongation_um, dtype=float))
+        return measured
 
     @property
     def sparse(self) -> bool:
