@@ -28,7 +28,7 @@ import typing
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Self
 from urllib.parse import parse_qsl, urlsplit
 
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
@@ -141,7 +141,7 @@ class Link(ABC):
         self._down = False
         self.reconnects = 0
 
-    def open(self) -> Link:
+    def open(self) -> Self:
         if self._closed:
             raise AdapterError(f"{self.name} link is closed")
         if self._open:
@@ -209,7 +209,7 @@ class Link(ABC):
         """Drop a link that is dead or hung; by default the same as closing it."""
         self._disconnect()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:
@@ -332,7 +332,7 @@ class AdapterSettings(LinkSettings):
     )
     offset_resolution: Annotated[
         float, Field(ge=0), Allowed("a number >= 0 (controller units)")
-    ] = Field(
+    ] = Field(  # type: ignore[assignment]
         None,
         description="one count of the controller's offset, in its unit; the written value "
         "is rounded to it (a controller profile sets it); default 0: continuous",
@@ -789,7 +789,8 @@ class Adapter(Link):
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> Adapter:
         """An adapter from its URL (``overrides`` win), checked against ``Settings``."""
-        return build(f"{cls.name} adapter", cls, {**cls.url_options(url), **overrides})
+        adapter: Adapter = build(f"{cls.name} adapter", cls, {**cls.url_options(url), **overrides})
+        return adapter
 
     @property
     def offset_scale(self) -> float:

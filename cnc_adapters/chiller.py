@@ -36,7 +36,7 @@ import math
 import numbers
 from abc import abstractmethod
 from collections.abc import Mapping
-from typing import Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -258,8 +258,12 @@ class Chiller(Link):
 
 # -- modbus -------------------------------------------------------------------------------
 
-ChillerDataType = one_of("int16", "float32")
-Transport = one_of("tcp", "rtu")
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    ChillerDataType = str
+    Transport = str
+else:
+    ChillerDataType = one_of("int16", "float32")
+    Transport = one_of("tcp", "rtu")
 DEFAULT_TCP_PORT = 502
 
 

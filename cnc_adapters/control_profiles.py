@@ -460,7 +460,7 @@ def control_count_um(settings: Any) -> float:
     ``offset_resolution`` (a profile's, or the user's), a Haas link's ``offset_decimals``, a
     LinuxCNC link's ``count_um``; 0 where the value is continuous. The shaper must move in whole
     multiples of it, or the rounding at the controller could cross the clamp or the slew limit."""
-    scale = abs(getattr(settings, "offset_scale", None) or 1.0)
+    scale = float(abs(getattr(settings, "offset_scale", None) or 1.0))
     resolution = getattr(settings, "offset_resolution", None)
     if resolution:
         return float(resolution) / scale

@@ -82,7 +82,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from typing import Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
 from pydantic import BeforeValidator, Field, model_validator
@@ -145,11 +145,18 @@ ComponentName = Annotated[str, Field(pattern=HAL_NAME), Allowed("a HAL component
 PinName = Annotated[
     str, Field(pattern=r"^$|" + HAL_NAME), Allowed("a HAL pin name, or '' for none")
 ]
-SpeedUnit = one_of("rps", "rpm")
-AxisUnits = one_of("mm", "inch")
-MachineState = one_of("stat", "pins")
-SequenceType = one_of("float", "s32", "u32")
-CuttingSource = one_of("none", "pin", "at-speed", "feed")
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    SpeedUnit = str
+    AxisUnits = str
+    MachineState = str
+    SequenceType = str
+    CuttingSource = str
+else:
+    SpeedUnit = one_of("rps", "rpm")
+    AxisUnits = one_of("mm", "inch")
+    MachineState = one_of("stat", "pins")
+    SequenceType = one_of("float", "s32", "u32")
+    CuttingSource = one_of("none", "pin", "at-speed", "feed")
 FEED_MOTION_TYPES = (2, 3)
 """motion.motion-type of a feed move: linear (G1) and arc (G2/G3) feed (motion(9))."""
 
@@ -193,8 +200,9 @@ class LinuxCncSettings(AdapterSettings):
         description="the cutting signal: pin (a bit), at-speed, "
         "feed (at-speed and motion-type), or none (inferred from the speed)",
     )
-    cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        list(FEED_MOTION_TYPES), description="feed: the motion types that count as cutting"
+    cutting_values: CuttingValues = Field(
+        list(FEED_MOTION_TYPES),  # type: ignore[arg-type]  # a list, as documented
+        description="feed: the motion types that count as cutting",
     )
 
     @model_validator(mode="after")
@@ -273,9 +281,10 @@ class LinuxCncAdapter(Adapter):
         self.can_read_cutting = cutting != "none"  # type: ignore[misc]
         # a bit is compared with True; the feed source hands over the motion type
         self.cutting_values = tuple(cutting_values) if cutting == "feed" else (True,)
-        self._comp = None
-        self._stat = None
-        self._lcnc = None
+        # HAL's component, the status channel and the linuxcnc module: untyped C extensions
+        self._comp: Any = None
+        self._stat: Any = None
+        self._lcnc: Any = None
         self._ready = False
 
     @classmethod

@@ -26,7 +26,7 @@ The cutting signal: ``cutting_register`` (in ``cutting_table``, an integer of
 from __future__ import annotations
 
 import warnings
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -48,10 +48,16 @@ from .base import (
 )
 from .transport.modbus import WIDTH, ModbusTransport, RegisterCodec
 
-DataType = one_of(*WIDTH)
-Table = one_of("input", "holding")
-Order = one_of("big", "little")
-Parity = one_of("N", "E", "O")
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    DataType = str
+    Table = str
+    Order = str
+    Parity = str
+else:
+    DataType = one_of(*WIDTH)
+    Table = one_of("input", "holding")
+    Order = one_of("big", "little")
+    Parity = one_of("N", "E", "O")
 Register = Annotated[int, Field(ge=0, le=65535), Allowed("a register address 0..65535")]
 
 
@@ -116,7 +122,10 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
     )
     cutting_table: Table = "holding"
     cutting_type: DataType = "uint16"
-    cutting_values: CuttingValues = Field([1], description="the values that mean cutting")  # type: ignore[assignment]
+    cutting_values: CuttingValues = Field(
+        [1],  # type: ignore[arg-type]  # a list, as documented
+        description="the values that mean cutting",
+    )
 
     @model_validator(mode="after")
     def _measurement(self) -> ModbusSettings:
@@ -137,7 +146,7 @@ class ModbusLink:
     port (:class:`~cnc_adapters.transport.ModbusTransport`). Call :meth:`_init_modbus` from
     ``__init__``."""
 
-    name: str
+    name: ClassVar[str]
 
     def _init_modbus(
         self,
@@ -194,7 +203,7 @@ def check_measurement(
             f"{prefix}a measurement needs both measurement_register and measurement_sequence_register "
             "(the handshake), measurement_sigma_register only with them"
         )
-    if value is None:
+    if value is None or sequence is None:
         return
     spans = [
         (value, dtype, "measurement_register"),
@@ -289,7 +298,7 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
                 measurement_sequence_register,
                 measurement_sigma_register,
             )
-            if measurement_register is not None
+            if measurement_register is not None and measurement_sequence_register is not None
             else None
         )
         self.can_read_measurement = self.measurement is not None  # type: ignore[misc]
@@ -342,7 +351,8 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         return self._read_value("read offset", "holding", self.offset_register, self.offset_type)
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
-        table, dtype, seq_type, value, seq, sigma = self.measurement  # type: ignore[misc]
+        assert self.measurement is not None  # can_read_measurement
+        table, dtype, seq_type, value, seq, sigma = self.measurement
         # one request each: the counter is read twice, around the value
         return read_handshake(
             self.name,

@@ -47,7 +47,7 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from urllib.parse import urlsplit
 
 from pydantic import AfterValidator, BaseModel, Field, model_validator
@@ -198,8 +198,12 @@ CredentialName = Annotated[
 VerifyWrites = Annotated[
     bool | Literal["immediate", "deferred"], Allowed("true, false, 'immediate' or 'deferred'")
 ]
-Preset = one_of(*PRESETS)
-ReadMode = one_of("poll", "subscribe")
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    Preset = str
+    ReadMode = str
+else:
+    Preset = one_of(*PRESETS)
+    ReadMode = one_of("poll", "subscribe")
 
 
 class OpcUaLinkSettings(BaseModel):
@@ -275,8 +279,9 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
         description="the controller's cutting signal (node id or browse path): a boolean or "
         "an enumeration; '' for none, where a preset names one",
     )
-    cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        [True], description="the values of cutting_node that mean cutting"
+    cutting_values: CuttingValues = Field(
+        [True],  # type: ignore[arg-type]  # a list, as documented
+        description="the values of cutting_node that mean cutting",
     )
 
     @model_validator(mode="after")
@@ -306,7 +311,13 @@ class OpcUaLink:
     optional security and credentials, shared by the adapter and the OPC UA sensor. Call
     :meth:`_init_opcua` from ``__init__``; implement :meth:`_on_connected` to look up nodes."""
 
-    name: str
+    name: ClassVar[str]
+
+    if TYPE_CHECKING:  # the Link's, which every class with this mixin derives from
+
+        def _link_lost(
+            self, message: str, error: type[AdapterError] = UnreachableError
+        ) -> AdapterError: ...
 
     def _init_opcua(
         self,
@@ -352,7 +363,7 @@ class OpcUaLink:
         self.password_file = password_file
         self.password_credential = password_credential
         self.application_uri = application_uri
-        self._client = None
+        self._client: Any = None  # an asyncua.sync.Client while open
 
     def _call(
         self, what: str, fn, *args, node: Any = None, refused: type[AdapterError] = AdapterError
@@ -688,7 +699,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             if measurement_node
             else ()
         )
-        self.can_read_measurement = bool(self.measurement_refs)
+        self.can_read_measurement = bool(self.measurement_refs)  # type: ignore[misc]
         self.measurement_scale = measurement_scale
         self._measurement: list[Any] | None = (
             None  # resolved lazily: a bad node never stops the link
@@ -697,7 +708,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.cutting_ref: str | None = (
             p.get("cutting_node") if cutting_node is None else (cutting_node or None)
         )
-        self.can_read_cutting = bool(self.cutting_ref)
+        self.can_read_cutting = bool(self.cutting_ref)  # type: ignore[misc]
         self.cutting_values = tuple(cutting_values)
         self._cutting_node: Any = None  # resolved at its first read
         self._ns = ""
@@ -820,6 +831,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         """The deferred check of the last write against the offset node's value read with this
         cycle: what the controller holds [um] when it did not take the write, else None."""
         wrote, self._unverified = self._unverified, None
+        assert wrote is not None  # called only with a write to check
         held = _good_value(self._offset, dv, self._where("deferred write check", self._offset))
         if isinstance(held, BadValueError):  # not known: the next read-back checks it again
             log.warning("opcua: deferred write check: %s", held)
@@ -874,6 +886,8 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             self._checked("read measurement node", node, dv, AdapterError)
             for node, dv in zip(nodes, dvs, strict=True)
         )
+        if sigma and sigma[0] is None:  # a sigma node that holds nothing: refused, not "none"
+            sigma = [_EMPTY]
         return RawMeasurement(whole_sequence(self.name, seq), value, sigma[0] if sigma else None)
 
     def _subscribed_speed(self) -> float:
@@ -992,6 +1006,16 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._unverified = None
         self._measurement = None
         self._cutting_node = None
+
+
+class _Empty:
+    """A node's value that is null (an empty variant), where a value is due."""
+
+    def __repr__(self) -> str:
+        return "null"
+
+
+_EMPTY = _Empty()
 
 
 def _node_id(node: Any) -> str:

@@ -47,7 +47,7 @@ import ipaddress
 import math
 import re
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
 from pydantic import AfterValidator, Field, model_validator
@@ -221,6 +221,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
                 f"{role}_type {dtype} does not fit {key} {addr} (a DB{width} holds "
                 f"{' or '.join(own)})"
             )
+        assert m is not None  # checked with the syntax above
         found = Address(
             addr.upper(),
             dtype,
@@ -292,8 +293,12 @@ NetId = Annotated[
     Allowed("an AMS Net ID: six numbers 0..255 joined by dots, e.g. 5.12.34.56.1.1"),
 ]
 Port = Annotated[int, Field(ge=1, le=65535), Allowed("a TCP port 1..65535")]
-Order = one_of("big", "little")
-Protocol = one_of(*PROTOCOLS)
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    Order = str
+    Protocol = str
+else:
+    Order = one_of("big", "little")
+    Protocol = one_of(*PROTOCOLS)
 
 # options of one protocol only: given for another, they are a mistake
 _OWN = {
@@ -356,8 +361,9 @@ class PlcSettings(AdapterSettings):
     cutting_type: PlcType = Field(  # type: ignore[assignment]
         None, description="default: BOOL (a Modbus register: INT)"
     )
-    cutting_values: CuttingValues = Field(  # type: ignore[assignment]
-        [True], description="the values that mean cutting (a bit: true; false for an inverted one)"
+    cutting_values: CuttingValues = Field(
+        [True],  # type: ignore[arg-type]  # a list, as documented
+        description="the values that mean cutting (a bit: true; false for an inverted one)",
     )
 
     @model_validator(mode="after")
@@ -432,8 +438,22 @@ class _Driver:
     def lost(self, message: str, error: type[AdapterError] = UnreachableError) -> AdapterError:
         return self.owner._link_lost(message, error)
 
+    def connect(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def read(self, what: str, a: Address) -> Any:
+        raise NotImplementedError
+
+    def write(self, what: str, a: Address, value: float) -> None:
+        raise NotImplementedError
+
 
 class _S7(_Driver):
+    client: Any = None  # a snap7 Client while open
+
     def connect(self) -> None:
         from snap7.client import Client
         from snap7.error import S7Error
@@ -449,12 +469,13 @@ class _S7(_Driver):
                 f"{self.name}: no S7 PLC at {o.host}:{o.port} (rack {o.rack}, slot {o.slot}): {err}"
             ) from err
         # python-snap7 waits 5 s by default; a request waits timeout_s
-        client.connection.timeout = o.timeout_s
-        client.connection.socket.settimeout(o.timeout_s)
+        connection: Any = client.connection  # set by connect()
+        connection.timeout = o.timeout_s
+        connection.socket.settimeout(o.timeout_s)
         self.client = client
 
     def close(self) -> None:
-        client, self.client = getattr(self, "client", None), None
+        client, self.client = self.client, None
         if client is not None:
             _quietly(client.disconnect)
 
@@ -489,19 +510,29 @@ class _S7(_Driver):
         if len(data) < a.size:
             raise BadValueError(f"{self.head(what)}: {len(data)} bytes, not {a.size}")
         if a.dtype == "BOOL":
-            return get_bool(data, 0, a.bit)
+            return get_bool(data, 0, a.bit or 0)
         return {"REAL": get_real, "DINT": get_dint, "INT": get_int}[a.dtype](data, 0)
 
     def write(self, what: str, a: Address, value: float) -> None:
         from snap7.util import set_dint, set_int, set_real
 
         data = bytearray(a.size)
-        {"REAL": set_real, "DINT": set_dint, "INT": set_int}[a.dtype](data, 0, value)
+        if a.dtype == "REAL":
+            set_real(data, 0, value)
+        else:  # a whole number (encode_number rounded it)
+            {"DINT": set_dint, "INT": set_int}[a.dtype](data, 0, int(value))
         self._call(what, self.client.db_write, a.number, a.start, data, refused=WriteRejectedError)
 
 
 class _ModbusTcp(_Driver):
     """Through the Modbus transport: its codec, and its error policy."""
+
+    modbus: ModbusTransport | None = None
+
+    @property
+    def _modbus(self) -> ModbusTransport:
+        assert self.modbus is not None  # the adapter reads and writes only while open
+        return self.modbus
 
     def connect(self) -> None:
         o = self.owner
@@ -518,19 +549,19 @@ class _ModbusTcp(_Driver):
         self.modbus = modbus
 
     def close(self) -> None:
-        modbus, self.modbus = getattr(self, "modbus", None), None
+        modbus, self.modbus = self.modbus, None
         if modbus is not None:
             modbus.close()
 
     def read(self, what: str, a: Address) -> Any:
         if a.area in ("coil", "di"):
-            return self.modbus.read_bit(what, a.area, a.start)
+            return self._modbus.read_bit(what, a.area, a.start)
         table = "holding" if a.area == "hr" else "input"
-        regs = self.modbus.read_registers(what, table, a.start, a.registers)
-        return self.modbus.codec.decode(regs, _REGISTER_TYPE[a.dtype])
+        regs = self._modbus.read_registers(what, table, a.start, a.registers)
+        return self._modbus.codec.decode(regs, _REGISTER_TYPE[a.dtype])
 
     def write(self, what: str, a: Address, value: float) -> None:
-        self.modbus.write_value(what, a.start, value, _REGISTER_TYPE[a.dtype])
+        self._modbus.write_value(what, a.start, value, _REGISTER_TYPE[a.dtype])
 
 
 _REGISTER_TYPE = {"REAL": "float32", "DINT": "int32", "INT": "int16"}
@@ -542,6 +573,8 @@ _ADS_TIMEOUT = 0x745
 
 
 class _Ads(_Driver):
+    conn: Any = None  # a pyads Connection while open
+
     def connect(self) -> None:
         try:
             import pyads
@@ -578,7 +611,7 @@ class _Ads(_Driver):
         self.conn = conn
 
     def close(self) -> None:
-        conn, self.conn = getattr(self, "conn", None), None
+        conn, self.conn = self.conn, None
         if conn is not None:
             _quietly(conn.close)
 

@@ -165,5 +165,5 @@ def open_adapter(target: str | Mapping[str, Any], **overrides: Any) -> Adapter:
     validated first (:func:`check_adapter`)."""
     kind, cls, options = _resolve(target, overrides)
     if options is None:
-        return construct(f"{kind} adapter", cls.from_url, target, **overrides)  # type: ignore[arg-type]
+        return construct(f"{kind} adapter", cls.from_url, target, **overrides)
     return build(f"{kind} adapter", cls, options)

@@ -29,7 +29,7 @@ import re
 import warnings
 from abc import abstractmethod
 from collections.abc import Mapping
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from urllib.parse import urlsplit
 
 from pydantic import BaseModel, BeforeValidator, Field, model_validator
@@ -129,7 +129,10 @@ with warnings.catch_warnings():
         ] = None
 
 
-SensorPreset = one_of("virtual-cnc")
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    SensorPreset = str
+else:
+    SensorPreset = one_of("virtual-cnc")
 
 
 class OpcUaSensorSettings(OpcUaLinkSettings, SensorSettings):
@@ -328,7 +331,7 @@ class OpcUaSensor(OpcUaLink, Sensor):
             application_uri=application_uri,
             password_credential=password_credential,
         )
-        self._node = None
+        self._node: Any = None  # its asyncua Node, once connected
 
     def _on_connected(self, client: Any, ns: str) -> None:
         self._node = self._resolve(client, self.node_id, self.path, ns)

@@ -113,14 +113,14 @@ class SerialLine:
     """Mixin for :class:`~cnc_adapters.base.Link` subclasses: one ASCII line per request
     and per reply on a serial port. Call :meth:`_init_serial` from ``__init__``."""
 
-    name: str
+    name: ClassVar[str]
 
     def _init_serial(self, port: str, baudrate: int, timeout_s: float, eol: str) -> None:
         self.port = port
         self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
         self.eol = eol
-        self._ser = None
+        self._ser: Any = None  # a serial.Serial while open
 
     def _connect(self) -> None:
         import serial
@@ -155,6 +155,7 @@ class SerialLine:
         ser = self._ser
         end = self.eol[-1].encode("ascii")
         head = self._head(op, request)
+        vanished: tuple[type[BaseException], ...] = (serial.SerialException, *_PORT_ERRORS)
         try:
             ser.reset_input_buffer()
             if request is not None:
@@ -162,7 +163,7 @@ class SerialLine:
             else:
                 ser.read_until(end)  # most likely the tail of a line: dropped
             raw = ser.read_until(end)
-        except (serial.SerialException, *_PORT_ERRORS) as err:
+        except vanished as err:
             raise self._link_lost(f"{head}: the port vanished: {err}") from err  # type: ignore[attr-defined]
         if not raw:
             raise AdapterTimeoutError(f"{head}: no reply within {self.timeout_s:g} s")
@@ -310,15 +311,16 @@ class HaasSettings(HaasMacros, LineSettings):
     """The options of :class:`HaasAdapter`; the requests and replies (line options) default to
     the Q/E commands for ``speed_var`` and ``offset_var``."""
 
-    speed_request: Text | None = None
-    speed_reply: ValuePattern | None = None
-    offset_request: OffsetRequest | None = None
-    offset_reply: Pattern | None = None
-    reject_reply: Pattern | None = None
-    offset_query: str | None = Field(
+    # None: the Haas commands' own (the line options' defaults are another protocol's)
+    speed_request: Text | None = None  # type: ignore[assignment]
+    speed_reply: ValuePattern | None = None  # type: ignore[assignment]
+    offset_request: OffsetRequest | None = None  # type: ignore[assignment]
+    offset_reply: Pattern | None = None  # type: ignore[assignment]
+    reject_reply: Pattern | None = None  # type: ignore[assignment]
+    offset_query: str | None = Field(  # type: ignore[assignment]
         None, description="default '?Q600 <offset_var>'; empty: no read-back"
     )
-    offset_query_reply: ValuePattern | None = None
+    offset_query_reply: ValuePattern | None = None  # type: ignore[assignment]
 
 
 def check_macros(
@@ -402,6 +404,9 @@ class HaasAdapter(LineAdapter):
         self.measurement_scale = measurement_scale
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
-        reads = [lambda q=q: self._query(*q, "read measurement") for q in self.measurement_queries]
+        reads = [
+            lambda q=q: self._query(q[0], q[1], "read measurement")
+            for q in self.measurement_queries
+        ]
         # one request each: the counter is read twice, around the value
         return read_handshake(self.name, reads[0], reads[1], reads[2] if len(reads) > 2 else None)

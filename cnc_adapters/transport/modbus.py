@@ -131,9 +131,10 @@ class ModbusTransport:
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
         # retries=0: a retry would answer a late reply with the next request's
+        client: ModbusTcpClient | ModbusSerialClient
         if self.tcp:
             client = ModbusTcpClient(
-                self.host, port=int(self.port), timeout=self.timeout_s, retries=0
+                str(self.host), port=int(self.port), timeout=self.timeout_s, retries=0
             )
         else:
             client = ModbusSerialClient(
