@@ -413,6 +413,27 @@ def test_one_cycle_reads_checked_values_and_writes_without_raising(rig):
     assert link.write(1.0).failure is not None
 
 
+# the rigs whose controller holds the raw value it is given (the others run a plant)
+RAW_VALUE_BACKENDS = ["haas", "line", "modbus", "plc-s7", "plc-modbus-tcp", "plc-ads"]
+
+
+@pytest.mark.parametrize("rig", RAW_VALUE_BACKENDS, indirect=True)
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_speed_and_offset_that_are_not_finite_are_failures_of_their_own(rig, bad):
+    """What a controller can hold that is no finite number, where a value is due: the cycle
+    reads it as a Failure of that value, never an exception."""
+    with rig.make() as link:
+        rig.set_speed(bad)
+        rig.outside_write(bad)
+        r = link.read(ALL)
+        assert_reading(r)
+        assert wait_for(lambda: isinstance(link.read(ALL).speed_rpm, Failure))
+        if link.capabilities.held_offset:
+            assert wait_for(lambda: isinstance(link.read(ALL).held_offset_um, Failure))
+        rig.set_speed(9000.0)
+        assert wait_for(lambda: link.read(ALL).speed_rpm == pytest.approx(9000.0))
+
+
 @pytest.mark.parametrize(
     "garbage",
     ["12", b"12", [1.0], True, None, math.nan, math.inf, 10**400, -(10**400), object()],
