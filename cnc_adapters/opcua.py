@@ -21,9 +21,19 @@ so a wrong node is a failed measurement, never a failed link.
 The cutting signal: ``cutting_node`` names a boolean (at speed and feeding, a cut in
 progress) or an enumeration (a program or motion state); ``cutting_values`` are the values
 that mean "cutting" (default ``[true]``; ``[false]`` for an inverted bit such as feed hold).
-Polling, it is read on its own at first, then in the same request as the speed, so both
-describe one instant; with a subscription, on its own each cycle. A wrong node is a failed cutting read (the runtime then infers it from the speed),
-never a failed link.
+It is looked up at the first read: a wrong node is a failed cutting read (the runtime then
+infers it from the speed), never a failed link.
+
+One cycle, one request: :meth:`OpcUaAdapter.read` asks for every node the cycle wants in one
+``Read`` (the speed, the cutting signal, the held offset, the inputs, the probe's handshake),
+so all describe one instant; with a subscription the speed is its last notification and the
+rest one request. Every value's status and type are checked where it enters: a value that is
+not Good, or not a number where a number is due (a string, a boolean, an array, a byte string,
+a date, null), is a :class:`~cnc_adapters.reading.Failure` of that value alone.
+``verify_writes``: ``true``/``"immediate"`` reads the offset back after each write (a write
+the controller did not take is refused); ``"deferred"`` checks it with the next cycle's read,
+in the same request (:attr:`~cnc_adapters.reading.Reading.write_refused_um`); ``false`` never.
+The per-value reads (``read_speed``, ``read_offset_um``, ...) ask the controller each time.
 
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
@@ -664,7 +674,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         if self.offset_node:
             self.offset_node = self.offset_node.replace("{r}", str(r_parameter))
         # True/"immediate": read the offset back after each write (one more round trip);
-        # "deferred": check it within the next speed read (one batched request); False: never
+        # "deferred": check it in the next read()'s request; False: never
         if verify_writes not in (True, False, "immediate", "deferred"):
             raise AdapterError("opcua: verify_writes is true, false, 'immediate' or 'deferred'")
         self.verify_writes = "immediate" if verify_writes is True else verify_writes
