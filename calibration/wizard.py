@@ -28,7 +28,7 @@ from rich.prompt import Confirm, FloatPrompt, Prompt
 from rich.table import Table
 
 from compensator.errors import AcquisitionError, CalibrationError, ConfigError, clip
-from compensator.io import load_model, versioned_path, write_text
+from compensator.io import load_model, write_text
 from compensator.speed_programs import Program
 
 from .acquire import AcquireConfig, Event, Problem, Recorder, Sample, progress_fraction, sparkline
@@ -52,6 +52,7 @@ from .session.model import (
     check_id,
     inside,
     load_session,
+    set_aside,
     write_session,
 )
 from .session.plan import (
@@ -70,7 +71,10 @@ from .session.record import (
     import_run,
     open_links,
     record,
+    recorded,
     rows_in,
+    set_run_aside,
+    with_runs,
 )
 from .session.save import save
 
@@ -197,7 +201,7 @@ class Wizard:
             self.session = load_session(path)
             self.out.print(
                 f"  resuming the session of {self.session.updated_utc or '?'} in {self.dir} "
-                f"(recorded: {self._recorded()})"
+                f"(recorded: {recorded(self.session)})"
             )
             if self.interactive and not a.resume and not self.confirm("Resume this session?"):
                 self.session = WizardSession()
@@ -284,59 +288,13 @@ class Wizard:
             self.session = self.session.updated(controller=a.controller or self.session.controller)
         self.save_session()
 
-    def _recorded(self) -> str:
-        """What the session holds: complete runs, and the rows of one cut short."""
-        parts = []
-        for name, info in (self.session.runs or {}).items():
-            log = Path(info.log)
-            if info.complete:
-                parts.append(f"{name} complete")
-            elif log.is_file() and rows_in(log):
-                parts.append(f"{name} {rows_in(log)} rows, not complete")
-        return ", ".join(parts) or "nothing yet"
-
     def _set_aside(self) -> None:
-        """A new session: the earlier one's answers, run logs, programs and plot move to
-        ``earlier/<when it was last updated>/``; models, reports and configurations stay."""
-        import re
-        import shutil
-
-        stamp = (
-            re.sub(r"[^0-9A-Za-z]", "", str(self.session.updated_utc or _now()))[:15] or "session"
-        )
-        aside = self.dir / "earlier" / stamp
-        k = 2
-        while aside.exists():
-            aside, k = self.dir / "earlier" / f"{stamp}-{k}", k + 1
-        moved = [
-            p
-            for p in (
-                self.dir / "session.json",
-                self.dir / "runs",
-                self.dir / "fit.png",
-                *(self.dir / f"{r}{ext}" for r in RUNS for ext in set(EXTENSIONS.values())),
-            )
-            if p.exists()
-        ]
-        aside.mkdir(parents=True)
-        for p in moved:
-            shutil.move(str(p), str(aside / p.name))
+        aside = set_aside(self.dir, self.session, _now())
         self.session = WizardSession()
         self.out.print(
             f"  a new session: the earlier one (answers, run logs, programs) was kept in "
             f"{_shown(aside)}"
         )
-
-    def _set_run_aside(self, name: str) -> None:
-        """A run to record again: its log kept beside as ``<name>.refused-N.csv``."""
-        info = self.session.run(name)
-        if info is None:
-            return
-        log = Path(info.log)
-        if log.exists():
-            log.rename(versioned_path(log.with_name(f"{log.stem}.refused.csv")))
-        self.session = self.session.with_run(name, complete=False, rows=0)
-        self.save_session()
 
     def test_connections(self) -> None:
         """Each link read once (``calibration.session.record``), and said as it answers."""
@@ -357,23 +315,6 @@ class Wizard:
                     "the gap near mid-range so the growth cannot saturate it"
                 )
         self.out.print(f"  sensor: [green]ok[/], {seen.sensor_um:.2f} um{where}")
-
-    def both(self, seconds: float) -> str:
-        """A duration of the machine's (simulated) time, with the wall time it takes when the
-        virtual machine tool runs faster than the wall."""
-        scale = float(self.args.time_scale)
-        own = f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
-        if scale == 1.0:
-            return own
-        wall = seconds / scale
-        shown = (
-            f"{wall / 3600:.2f} h"
-            if wall >= 3600
-            else f"{wall / 60:.1f} min"
-            if wall >= 60
-            else f"{wall:.0f} s"
-        )
-        return f"{own} ({shown} wall at {scale:g}x)"
 
     # -- step 2 ------------------------------------------------------------------
 
@@ -419,7 +360,12 @@ class Wizard:
         for col in ("run", "file", "duration", "top speed"):
             t.add_column(col)
         for f in written.files:
-            t.add_row(f.run, str(f.path), self.both(f.duration_s), f"{f.top_rpm:.0f} rpm")
+            t.add_row(
+                f.run,
+                str(f.path),
+                _both(self.args.time_scale, f.duration_s),
+                f"{f.top_rpm:.0f} rpm",
+            )
         self.out.print(t)
         self.out.print(
             f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
@@ -472,10 +418,7 @@ class Wizard:
     def step_acquire(self) -> None:
         self.out.rule("[bold]3/5 Record")
         for name, prog in programs(self.session).items():
-            if self.session.run(name) is None:
-                runs: dict[str, Any] = dict(self.session.runs or {})
-                runs[name] = {"log": str(self.dir / "runs" / f"{name}.csv"), "complete": False}
-                self.session = self.session.updated(runs=runs)
+            self.session = with_runs(self.session, [name], self.dir)
             info = self.session.run(name)
             assert info is not None
             inside(self.workdir, info.log, f"the {name} run log")  # session.json is editable
@@ -497,8 +440,8 @@ class Wizard:
         cycles_s = len(prog.probe_at_s) * cycle_s(s)
         self.out.print(
             f"  [bold]{name}[/]: load [cyan]{s.programs[name]}[/] on the controller "
-            f"({self.both(prog.duration_s + cycles_s)}); the spindle must be cold (rested "
-            f"{self.both(float(s.rest_h or 0.0) * 3600)})."
+            f"({_both(self.args.time_scale, prog.duration_s + cycles_s)}); the spindle must be cold (rested "
+            f"{_both(self.args.time_scale, float(s.rest_h or 0.0) * 3600)})."
         )
         if resuming:
             self.out.print(f"  resuming into {log} (the interruption shows as a gap)")
@@ -616,7 +559,8 @@ class Wizard:
                     default=False,
                 )
             ):
-                self._set_run_aside("calibration")
+                self.session = set_run_aside(self.session, "calibration")
+                self.save_session()
                 self.step_acquire()
                 return self.step_fit()
             raise
@@ -727,6 +671,24 @@ def _choice(flag: str, allowed: tuple[str, ...]) -> Callable[[Any], str]:
         return str(value)
 
     return check
+
+
+def _both(time_scale: float, seconds: float) -> str:
+    """A duration of the machine's (simulated) time, with the wall time it takes when the
+    virtual machine tool runs faster than the wall."""
+    scale = float(time_scale)
+    own = f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+    if scale == 1.0:
+        return own
+    wall = seconds / scale
+    shown = (
+        f"{wall / 3600:.2f} h"
+        if wall >= 3600
+        else f"{wall / 60:.1f} min"
+        if wall >= 60
+        else f"{wall:.0f} s"
+    )
+    return f"{own} ({shown} wall at {scale:g}x)"
 
 
 def _console() -> Console:

@@ -11,6 +11,7 @@ import numpy as np
 
 from compensator.errors import CalibrationError
 from compensator.io import RunLog, read_run_log
+from compensator.modelbase import with_fit
 
 from ..acquire import EXCLUDED, Problem
 from ..fit import FEW_LEVELS, NO_COOLDOWN
@@ -153,9 +154,7 @@ def validate(fitted: Fitted) -> Validated:
         loop = plan_on_run(
             j.time_s, fitted.residual_um, rep.time_s, res, max(model.time_constants_s(0.0))
         )
-        model = model.model_copy(
-            update={"fit": {**model.fit, "observer": loop.observer.model_dump()}}
-        )
+        model = with_fit(model, observer=loop.observer)
     return Validated(model, rep, stats, val.dropped, loop)
 
 

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from compensator.errors import ConfigError, clip
 from compensator.io import atomic_write, read_text
 
-from ..nc_programs import DIALECTS
+from ..nc_programs import DIALECTS, EXTENSIONS
 
 SESSION_FORMAT: Final = "thermocomp.wizard/1"
 SCHEMA_VERSION: Final = 1
@@ -241,3 +241,30 @@ def inside(root: Path, path: str | Path, what: str) -> Path:
     if not resolved.is_relative_to(root):
         raise ConfigError(f"{what} {clip(str(resolved), 200)} is outside the work directory {root}")
     return resolved
+
+
+def set_aside(directory: Path, session: WizardSession, now_utc: str) -> Path:
+    """A new session in ``directory``: the earlier one's answers, run logs, programs and plot move
+    to ``earlier/<when it was last updated>/`` (returned); models, reports and configurations
+    stay."""
+    import shutil
+
+    stamp = re.sub(r"[^0-9A-Za-z]", "", str(session.updated_utc or now_utc))[:15] or "session"
+    aside = directory / "earlier" / stamp
+    k = 2
+    while aside.exists():
+        aside, k = directory / "earlier" / f"{stamp}-{k}", k + 1
+    moved = [
+        p
+        for p in (
+            directory / "session.json",
+            directory / "runs",
+            directory / "fit.png",
+            *(directory / f"{r}{ext}" for r in RUNS for ext in set(EXTENSIONS.values())),
+        )
+        if p.exists()
+    ]
+    aside.mkdir(parents=True)
+    for p in moved:
+        shutil.move(str(p), str(aside / p.name))
+    return aside

@@ -3,7 +3,7 @@ file. Nothing here asks or prints; the recorder's progress goes to the callbacks
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import AcquisitionError, CalibrationError, ConfigError, ThermocompError
-from compensator.io import read_daq_csv, read_run_log, write_run_log
+from compensator.io import read_daq_csv, read_run_log, versioned_path, write_run_log
 from compensator.speed_programs import Program
 
 from ..acquire import AcquireConfig, Event, Recorder, Recording, Sample
@@ -25,6 +25,38 @@ def rows_in(path: Path) -> int:
         return len(read_run_log(path))
     except ThermocompError:
         return 0
+
+
+def recorded(session: WizardSession) -> str:
+    """What the session holds: complete runs, and the rows of one cut short."""
+    parts = []
+    for name, info in (session.runs or {}).items():
+        log = Path(info.log)
+        if info.complete:
+            parts.append(f"{name} complete")
+        elif log.is_file() and rows_in(log):
+            parts.append(f"{name} {rows_in(log)} rows, not complete")
+    return ", ".join(parts) or "nothing yet"
+
+
+def with_runs(session: WizardSession, names: Iterable[str], directory: Path) -> WizardSession:
+    """The session with a record for each run of ``names`` it has none for yet, its log in
+    ``directory/runs``."""
+    runs: dict[str, Any] = dict(session.runs or {})
+    for name in names:
+        runs.setdefault(name, {"log": str(directory / "runs" / f"{name}.csv"), "complete": False})
+    return session.updated(runs=runs)
+
+
+def set_run_aside(session: WizardSession, name: str) -> WizardSession:
+    """Run ``name`` to record again: its log kept beside as ``<name>.refused-N.csv``."""
+    info = session.run(name)
+    if info is None:
+        return session
+    log = Path(info.log)
+    if log.exists():
+        log.rename(versioned_path(log.with_name(f"{log.stem}.refused.csv")))
+    return session.with_run(name, complete=False, rows=0)
 
 
 class LinkFailed(ConfigError):
