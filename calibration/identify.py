@@ -118,7 +118,7 @@ def _ridge(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
 
 def _ridge_inputs(
     ds: Dataset, ctx: Context, structure: str = "all"
-) -> tuple[Candidate, rb.RidgeFit]:
+) -> tuple[Candidate, rb.RidgeFit | None]:
     names = ctx["names"]
     try:
         res = rb.fit(
@@ -377,14 +377,15 @@ def identify(
                 max(c.model.time_constants_s(0.0)) if c.model is not None else 0.0
             )
             ok = c.held_out_residual_um is not None and tau > 0 and len(ds.folds) >= 2 and ds.dense
-            plans[c.name] = (
+            planned = (
                 closedloop.plan(ds.time_s, c.held_out_residual_um, ds.folds, tau, target, intervals)
                 if ok
                 else None
             )
-            if plans[c.name] is not None:
+            plans[c.name] = planned
+            if planned is not None:
                 c.details["closed_loop_rms_um"] = {
-                    f"{r['interval_s']:.0f}": round(r["rms_um"], 4) for r in plans[c.name].table[1:]
+                    f"{r['interval_s']:.0f}": round(r["rms_um"], 4) for r in planned.table[1:]
                 }
         return plans[c.name]
 

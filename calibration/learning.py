@@ -38,7 +38,7 @@ from compensator.fitrecord import fit_of
 from compensator.io import RunLog
 from compensator.io.journal import FAULT_ALARMS, SHADOW_COLUMN
 from compensator.modelbase import with_fit
-from compensator.plausibility import direction_of
+from compensator.plausibility import direction_of, steady_state_um
 from compensator.predictor import Predictor
 
 from .folds import IDLE_RPM
@@ -207,10 +207,10 @@ def unseen_at_speed(live: Predictor, candidate: Predictor, margin: float) -> str
             worst = (frac * top, a, b, allowed)
     if worst is None:
         return None
-    n, a, b, allowed = worst
+    at_rpm, a, b, allowed = worst
     return (
         f"every measurement was taken at rest, so nothing vouches for the growth while the spindle "
-        f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {n:.0f} rpm it "
+        f"turns, and the candidate changes it: {AT_SPEED_CHECK_S:.0f} s after a start to {at_rpm:.0f} rpm it "
         f"predicts {b:+.2f} um where the live model predicts {a:+.2f} um (more than {allowed:.2f} um apart); "
         "measure at speed (a laser setter, --probe-spindle keep) to refit that part"
     )
@@ -293,7 +293,7 @@ def refit(
     direction = direction_of(fit_of(live.model).growth_direction)
     if direction is None:
         top = live.model.speed_range_rpm[1]
-        g = live.model.steady_state_um(top) - live.model.steady_state_um(0.0)
+        g = steady_state_um(live.model, top) - steady_state_um(live.model, 0.0)
         direction = 1 if g >= 0 else -1
     try:
         ident = fit_logs(

@@ -13,6 +13,7 @@ from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
 from cnc_adapters.base import redact_url, url_has_password
+from compensator.plausibility import steady_state_um
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
@@ -150,7 +151,7 @@ def _sections(
         ["displacement", displacement],
         ["model file", f"{model_path.name} ({version})"],
         ["model form", model.form],
-        ["created (UTC)", str(model.created_utc or "")],
+        ["created (UTC)", str(getattr(model, "created_utc", None) or "")],
     ]
     runs = [["run", "log", "rows", "flagged", "program", "in this report"]]
     for name, info in runs_info.items():
@@ -200,7 +201,7 @@ def _sections(
     steady = [["speed [rpm]", "steady growth [um]"]]
     for frac in (0.25, 0.5, 0.75, 1.0):
         n = frac * session["max_rpm"]
-        steady.append([f"{n:.0f}", _f(model.steady_state_um(n))])
+        steady.append([f"{n:.0f}", _f(steady_state_um(model, n))])
     notes = list(summary.get("warnings", []))
     v = summary.get("validation")
     if v and str(rep.get("scored_by", "")).startswith("blocked"):
@@ -462,7 +463,7 @@ def runtime_config(
                     f"averages {touches} touches (probe-program --touches {touches})",
                 )
             )
-    top = abs(model.steady_state_um(session["max_rpm"]))
+    top = abs(steady_state_um(model, session["max_rpm"]))
     default = ShaperConfig().max_offset_um
     at = f"{top:.0f} um predicted at {session['max_rpm']:.0f} rpm"
     if math.isfinite(top):

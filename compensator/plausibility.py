@@ -58,14 +58,21 @@ def speed_only(model: Any) -> Any:
     return model
 
 
-def steady_growth_um(model: Any, speed_rpm: np.ndarray) -> np.ndarray:
-    """g(n) = S(n) - S(0): the steady growth relative to rest at each speed [um], inputs at their
-    references (a model without ``steady_state_um`` by its speed part's)."""
+def steady_state_um(model: Any, speed_rpm: float) -> float:
+    """S(n): the model's steady elongation held at ``speed_rpm`` [um], inputs at their references
+    (a model without ``steady_state_um`` of its own, the earlier with-inputs form, by its speed
+    part's)."""
     steady = getattr(model, "steady_state_um", None)
     if steady is None:
         steady = model.speed_model.steady_state_um
-    rest_um = float(steady(0.0))
-    return np.array([float(steady(float(n))) - rest_um for n in np.asarray(speed_rpm, float)])
+    return float(steady(float(speed_rpm)))
+
+
+def steady_growth_um(model: Any, speed_rpm: np.ndarray) -> np.ndarray:
+    """g(n) = S(n) - S(0): the steady growth relative to rest at each speed [um], inputs at their
+    references (:func:`steady_state_um`)."""
+    rest_um = steady_state_um(model, 0.0)
+    return np.array([steady_state_um(model, n) - rest_um for n in np.asarray(speed_rpm, float)])
 
 
 def held_out_rms_um(model: Any) -> float:
