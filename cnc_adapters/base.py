@@ -23,6 +23,7 @@ import math
 import numbers
 import random
 import re
+import struct
 import time
 import typing
 from abc import ABC, abstractmethod
@@ -1103,11 +1104,18 @@ def _finite(raw: Any) -> float | None:
 
 def _guarded(call: Callable[[], Any]) -> Any:
     """``call()``, or the :class:`Failure` it raised: a link's error, or a conversion that a
-    controller's value made fail (a TypeError, ValueError, OverflowError ...). Anything else is a
-    fault of this program and is raised."""
+    controller's value made fail (a TypeError, ValueError, OverflowError, a short reply's
+    IndexError or struct.error ...). Anything else is a fault of this program and is raised."""
     try:
         return call()
-    except (AdapterError, TypeError, ValueError, ArithmeticError, UnicodeError) as err:
+    except (
+        AdapterError,
+        TypeError,
+        ValueError,
+        ArithmeticError,
+        IndexError,  # a reply shorter than its format
+        struct.error,  # bytes that do not unpack
+    ) as err:
         return Failure.of(err)
 
 

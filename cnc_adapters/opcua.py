@@ -1029,10 +1029,13 @@ _EMPTY = _Empty()
 
 
 def _node_id(node: Any) -> str:
-    """A node's id as a user writes it (``ns=2;s=Speed``)."""
-    nodeid = getattr(node, "nodeid", node)
-    to_string = getattr(nodeid, "to_string", None)
-    return to_string() if callable(to_string) else str(nodeid)
+    """A node's id as a user writes it (``ns=2;s=Speed``): a client's node, or a node id."""
+    from asyncua import Node, ua
+    from asyncua.sync import SyncNode
+
+    if isinstance(node, (Node, SyncNode)):
+        node = node.nodeid
+    return node.to_string() if isinstance(node, ua.NodeId) else str(node)
 
 
 def _good_value(node: Any, dv: Any, where: str) -> Any:
