@@ -217,8 +217,8 @@ def simulate_cooling(
     names = tuple(model.input_names)
     state: Any = model.start(0.0, 0.0, _inputs(vm, names))  # the growth counts from the cold start
     law_state: CoolingState | None = law.initial(params.chiller_c) if law is not None else None
-    steps = round(program.duration_s / dt_s)
-    every = max(1, round(sample_s / dt_s))
+    steps = int(round(program.duration_s / dt_s))
+    every = max(1, int(round(sample_s / dt_s)))
     rows: list[tuple[float, ...]] = []
     switch_s = None
     for k in range(1, steps + 1):

@@ -38,7 +38,7 @@ class Program:
 
     def sample(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Times 0, dt, 2dt, ... to the end, and the speed held up to each."""
-        n = round(self.duration_s / dt_s)
+        n = int(round(self.duration_s / dt_s))
         t = np.arange(n + 1) * dt_s
         edges = np.cumsum([d for d, _ in self.segments])
         speeds = np.array([s for _, s in self.segments], dtype=float)

@@ -271,7 +271,7 @@ def job_shop_log(path: Path, share: float) -> Path:
     flagged NOT_FOLLOWING by the recorder."""
     run = plant_run("jobshop", 60.0, 3)
     flags = np.zeros(run.time_s.size, dtype=int)
-    flags[: round(share * flags.size)] = int(Problem.NOT_FOLLOWING)
+    flags[: int(round(share * flags.size))] = int(Problem.NOT_FOLLOWING)
     write_run_log(
         path,
         {
@@ -297,7 +297,7 @@ def test_the_fit_command_refuses_it_in_one_line_and_writes_no_model(tmp_path):
     assert r.returncode != 0 and r.stdout == ""
     assert r.stderr.count("\n") == 1
     rows = plant_run("jobshop", 60.0, 3).time_s.size
-    flagged = round(0.9 * rows)
+    flagged = int(round(0.9 * rows))
     assert r.stderr.startswith(
         f"thermocomp: error: calibration refused: {flagged / rows:.1%} of the "
         "calibration rows did not follow the program's speed (NOT_FOLLOWING)"

@@ -469,6 +469,6 @@ def test_a_speed_not_read_never_opens_the_fast_limit(tmp_path, model_file):
     assert all(r["alarms"] & Alarm.SPEED_READ_FAILED for r in unread)
     assert any(r["alarms"] & Alarm.IDLE_ASSUMED for r in unread)  # the model took it as at rest ...
     assert all(r["cutting"] and r["cutting_source"] == "unread" for r in unread)
-    moved = [abs(b2["offset_um"] - a["offset_um"]) for a, b2 in itertools.pairwise(rows)]
+    moved = [abs(b2["offset_um"] - a["offset_um"]) for a, b2 in itertools.pairwise(rows[99:])]
     assert max(moved) <= MAX_RATE * 1.0 + 1e-9  # ... but the offset crept, through and after it
     assert rows[140]["cutting"] and rows[140]["cutting_source"] == "speed"
