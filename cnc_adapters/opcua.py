@@ -761,10 +761,9 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         offset, the inputs and the probe's handshake, and the offset a deferred write check
         needs. Each value's status and type are checked and converted by the base's checks;
         a node that cannot be resolved fails its own field, never the cycle."""
-        try:
-            self.open()
-        except AdapterError as err:
-            return Reading(Failure.of(err), reconnects=self.reconnects)
+        opened = _guarded(self.open)
+        if isinstance(opened, Failure):
+            return Reading(opened, reconnects=self.reconnects)
         speed: float | Failure | None = None
         if self._latest is not None:
             speed = _guarded(self._subscribed_speed)

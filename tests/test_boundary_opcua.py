@@ -408,3 +408,17 @@ def test_a_write_the_server_refuses_is_a_refused_failure(controller):
     with adapter(controller, offset_node=controller.node_id("speed")) as a:  # not writable
         got = a.write(-1.0)
         assert got.failure is not None and got.failure.kind is FailureKind.REFUSED
+
+
+def test_no_server_is_a_link_failure_of_the_cycle_and_of_the_write():
+    a = OpcUaAdapter(
+        f"opc.tcp://127.0.0.1:{free_port()}", speed_node="ns=2;s=S", offset_node="ns=2;s=O"
+    )
+    try:
+        r = a.read(ALL)
+        assert isinstance(r.speed_rpm, Failure) and r.speed_rpm.link_lost
+        assert (r.cutting, r.held_offset_um, r.inputs, r.measurement) == (None,) * 4
+        refused = a.write(-1.0).failure
+        assert refused is not None and refused.link_lost  # in the back-off: not even tried
+    finally:
+        a.close()
