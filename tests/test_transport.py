@@ -24,9 +24,12 @@ import pytest
 from devices import PtyPair
 
 from cnc_adapters.base import (
+    Adapter,
     AdapterError,
     AdapterTimeoutError,
+    Failure,
     UnreachableError,
+    Wants,
     WriteRejectedError,
 )
 from cnc_adapters.chiller import ModbusChiller
@@ -163,10 +166,10 @@ def free_port() -> int:
 class TcpPeer:
     """A loopback server that answers the backend's handshake, then plays ``fault`` on every
     request: ``silent`` (reads, never answers), ``close`` (the first bytes of a reply, then
-    closes) or ``exception`` (a Modbus exception reply)."""
+    closes), ``exception`` (a Modbus exception reply) or ``garbage`` (these bytes for a reply)."""
 
-    def __init__(self, backend: Backend, fault: str):
-        self.backend, self.fault = backend, fault
+    def __init__(self, backend: Backend, fault: str, garbage: bytes = b""):
+        self.backend, self.fault, self.garbage = backend, fault, garbage
         self.server = socket.create_server((HOST, 0))
         self.where = (HOST, self.server.getsockname()[1])
         self.accepted = 0
@@ -195,6 +198,8 @@ class TcpPeer:
                     return
                 if self.fault == "exception":
                     conn.sendall(_modbus_tcp_exception(request))
+                if self.fault == "garbage":
+                    conn.sendall(self.garbage)
 
     def close(self) -> None:
         self.server.close()
@@ -205,12 +210,12 @@ class TcpPeer:
 
 class RtuPeer:
     """A Modbus RTU device on the far end of a pty pair, playing ``fault`` on every request:
-    ``silent``, ``close`` (the first bytes of a reply, then the line is unplugged) or
-    ``exception``."""
+    ``silent``, ``close`` (the first bytes of a reply, then the line is unplugged),
+    ``exception`` or ``garbage`` (these bytes for a reply)."""
 
-    def __init__(self, tmp_path: Path, fault: str):
+    def __init__(self, tmp_path: Path, fault: str, garbage: bytes = b""):
         self.pty = PtyPair(tmp_path)
-        self.fault = fault
+        self.fault, self.garbage = fault, garbage
         self.where = self.pty.ctl
         self._fd = os.open(self.pty.dev, os.O_RDWR | os.O_NOCTTY)
         self._halt = threading.Event()
@@ -245,6 +250,8 @@ class RtuPeer:
             if self.fault == "exception":
                 reply = bytes([request[0], request[1] | 0x80, 2])
                 os.write(self._fd, reply + _crc16(reply))
+            if self.fault == "garbage":
+                os.write(self._fd, self.garbage)
 
     def close(self) -> None:
         self._halt.set()
@@ -263,8 +270,12 @@ def peer(backend: Backend, tmp_path: Path):
     """``peer(fault)``: a peer for ``backend`` playing ``fault``, closed after the test."""
     made: list[Any] = []
 
-    def make(fault: str) -> Any:
-        p = TcpPeer(backend, fault) if backend.wire == "tcp" else RtuPeer(tmp_path, fault)
+    def make(fault: str, garbage: bytes = b"") -> Any:
+        p = (
+            TcpPeer(backend, fault, garbage)
+            if backend.wire == "tcp"
+            else RtuPeer(tmp_path, fault, garbage)
+        )
         made.append(p)
         return p
 
@@ -323,3 +334,31 @@ def test_an_exception_reply_refuses_the_request_and_keeps_the_link(backend, peer
             backend.read(link)
         assert type(again.value) is AdapterError
         assert p.accepted == 1  # one connection throughout
+
+
+# what a confused peer may send for a reply: bytes of no protocol, a FOCAS packet with a body
+# that breaks its own length fields, a line of no ASCII, a Haas reply with no number in it,
+# a Modbus TCP header that announces more than comes
+GARBAGE = {
+    "ff": b"\xff" * 40,
+    "focas-lengths": SYNC + b"\x00\x02\x21\x02\x00\x08\x00\x01\xff\xff\x00\x00\x00\x00",
+    "no-ascii": b"\x02\xfe\xfd\x17\r\n",
+    "haas-word": b"\x02MACRO, 3027, abc\x17\r\n",
+    "modbus-header": b"\x00\x01\x00\x00\xff\xff\x01\x04\xfe",
+}
+ADAPTERS = [b for b in BACKENDS if b.name in ("focas", "haas-mdc", "plc modbus-tcp", "modbus rtu")]
+
+
+@pytest.mark.parametrize("garbage", list(GARBAGE.values()), ids=list(GARBAGE))
+@pytest.mark.parametrize("backend", ADAPTERS, ids=[b.name for b in ADAPTERS], indirect=True)
+def test_a_reply_of_garbage_is_a_failure_of_the_cycle_and_the_write(backend, peer, garbage):
+    """Whatever bytes come back, a cycle's read and a write give Failures, never raise."""
+    p = peer("garbage", garbage)
+    with link_to(backend, p.where, SHORT_S) as link:
+        assert isinstance(link, Adapter)
+        for _ in range(2):  # the first on a new connection, the next after the fault
+            r = link.read(Wants(cutting=True, held_offset=True, inputs=True, measurement=True))
+            assert isinstance(r.speed_rpm, Failure), r.speed_rpm
+            for value in (r.cutting, r.held_offset_um, r.inputs, r.measurement):
+                assert value is None or isinstance(value, Failure), value
+            assert link.write(1.0).failure is not None
