@@ -984,7 +984,7 @@ class Adapter(Link):
         for name, raw in self._read_inputs_raw().items():
             try:
                 out[name] = float(raw)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 out[name] = math.nan
         return out
 
