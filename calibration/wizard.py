@@ -41,7 +41,7 @@ from .nc_programs import (
     to_nc,
     validation_profile,
 )
-from .session.fit import advise, clean, fit, read_runs, report, validate
+from .session.fit import RunData, Validated, advise, clean, fit, read_runs, report, validate
 from .session.model import (
     ID_PATTERN,
     LIVE,
@@ -57,6 +57,8 @@ from .session.model import (
 )
 from .session.plan import (
     PROBE_MOVES_S,
+    ProbesPlanned,
+    ProgramFile,
     cycle_s,
     former_time_constants,
     plan_probes,
@@ -66,6 +68,7 @@ from .session.plan import (
 from .session.record import (
     ImportOptions,
     LinkFailed,
+    SensorChecked,
     check_controller,
     check_sensor,
     import_run,
@@ -76,7 +79,7 @@ from .session.record import (
     set_run_aside,
     with_runs,
 )
-from .session.save import save
+from .session.save import SavedFiles, save
 
 __all__ = [
     "ID_PATTERN",
@@ -304,17 +307,8 @@ class Wizard:
             + (", the tool setter's variables read" if ctl.tool_setter else "")
         )
         seen = check_sensor(self.session)
-        if seen is None:
-            return
-        where = ""
-        if seen.range_fraction is not None:
-            where = f", {seen.range_fraction:.0%} of its range"
-            if not 0.2 <= seen.range_fraction <= 0.8:
-                self.out.print(
-                    f"  [yellow]warning:[/] the probe reads {seen.sensor_um:.1f} um{where}: set "
-                    "the gap near mid-range so the growth cannot saturate it"
-                )
-        self.out.print(f"  sensor: [green]ok[/], {seen.sensor_um:.2f} um{where}")
+        if seen is not None:
+            _say_sensor(self.out, seen)
 
     # -- step 2 ------------------------------------------------------------------
 
@@ -355,37 +349,7 @@ class Wizard:
             self._plan_probes(taus)
         written = write_programs(self.session, self.dir, taus)
         self.session = s = written.session
-        rest = float(s.rest_h or 0.0)
-        t = Table(title="NC programs")
-        for col in ("run", "file", "duration", "top speed"):
-            t.add_column(col)
-        for f in written.files:
-            t.add_row(
-                f.run,
-                str(f.path),
-                _both(self.args.time_scale, f.duration_s),
-                f"{f.top_rpm:.0f} rpm",
-            )
-        self.out.print(t)
-        self.out.print(
-            f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
-            f"{rest:g} h (five of its slowest time constants, or a night when no model exists "
-            "yet). A warm spindle biases the model."
-        )
-        if s.source == "tool-setter":
-            d = str(s.dialect)
-            ext = EXTENSIONS[d]
-            n = s.probe_plan.touches if s.probe_plan is not None else 1
-            touches = f" --touches {n}" if n > 1 else ""
-            self.out.print(
-                f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
-                f"cold-reference program, for this machine's tool and setter:\n"
-                f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
-                f"    thermocomp probe-program --dialect {d} --probe-spindle {s.probe_spindle}{touches} "
-                f"--output tcprobe{ext}\n"
-                "  then run the reference program once on the cold spindle, before each run's first start.",
-                highlight=False,
-            )
+        _say_programs(self.out, s, written.files, self.args.time_scale)
         self.save_session()
 
     def _plan_probes(self, taus: tuple[float, ...] | None) -> None:
@@ -400,18 +364,8 @@ class Wizard:
             every_min=a.probe_every_min,
             former_taus=taus,
         )
-        self.session = s = planned.session
-        if planned.sparser_than_planned:
-            self.out.print(
-                f"  [yellow]warning:[/] a stop every {s.probe_every_min:g} min is sparser than the "
-                f"plan's {planned.plan.interval_s / 60:.0f} min: the fastest growth may be missed"
-            )
-        for line in planned.plan.lines():
-            self.out.print(f"  {escape(line)}", highlight=False)
-        if s.probe_every_min is not None:
-            self.out.print(
-                f"  the program stops every {s.probe_every_min:g} min, as given (--probe-every-min)"
-            )
+        self.session = planned.session
+        _say_plan(self.out, planned)
 
     # -- step 3 ------------------------------------------------------------------
 
@@ -532,18 +486,7 @@ class Wizard:
         runs = read_runs(s, self.workdir)
         if "calibration" not in runs:
             raise CalibrationError("no complete calibration run to fit")
-        if runs["calibration"].dropped:
-            self.out.print(
-                f"  {runs['calibration'].dropped} calibration rows left out (flagged saturated, "
-                "frozen or jump)"
-            )
-        for name, run in runs.items():
-            if run.long_gaps:
-                self.out.print(
-                    f"  [yellow]warning:[/] {name} run has {run.long_gaps} gap(s) (interruptions), "
-                    f"{run.gap_s:.0f} s in all: the speed over a gap is "
-                    "the last one logged before it"
-                )
+        _say_runs(self.out, runs)
         try:
             fitted = fit(s, runs, _now())
         except CalibrationError as err:
@@ -566,40 +509,9 @@ class Wizard:
             raise
         print_identification(fitted.result, fitted.report, self.out)
         checked = validate(fitted)
-        if checked.replay is not None and checked.stats is not None:
-            v = checked.stats
-            what = "tool-setter measurements" if s.source == "tool-setter" else "samples"
-            self.out.print(
-                f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
-                f"max {v['max_abs_um']:.2f} um over {v['samples']} {what}"
-                + (f" ({checked.dropped} flagged rows left out)" if checked.dropped else "")
-            )
-            if checked.closed_loop is not None:
-                for line in checked.closed_loop.lines():
-                    self.out.print(f"  {line}", markup=False, highlight=False)
-            else:
-                # the observer's noise is fitted from a residual on every row; measurements minutes
-                # apart cannot give it, so the service starts from the product's observer defaults
-                self.out.print(
-                    "  closed loop: the service fuses the tool setter's measurements with the "
-                    "model (the observer's default noise; a dense run is needed to fit it)",
-                    highlight=False,
-                )
+        _say_validation(self.out, s, checked)
         summary = report(s, fitted, checked, self.dir / "fit.png")
-        self.out.print(f"  plot: {summary['plot']}")
-        all_runs = (s.runs or {}).values()
-        chans = sorted({c for info in all_runs for c in info.inputs or []})
-        if chans and len(runs) > 1:
-            files = " ".join(info.log for info in all_runs if info.complete)
-            self.out.print(
-                f"  the controller's own channels were logged too ({', '.join(chans)}): "
-                f"`thermocomp fit {files} --inputs {','.join(chans)} --output …` keeps those "
-                "that help on held-out runs"
-            )
-        for line in summary["advice"]:
-            self.out.print(f"  [yellow]advice:[/] {line}")
-        if not summary["advice"]:
-            self.out.print("  [green]the model is good[/]: no re-run needed")
+        _say_report(self.out, s, len(runs), summary)
         self.model = checked.model
         return summary
 
@@ -619,20 +531,7 @@ class Wizard:
         self.session = done.session
         self.save_session()
         saved = done.saved
-        t = Table(title="Written")
-        t.add_column("what")
-        t.add_column("file")
-        t.add_row("model", saved.model)
-        t.add_row("report", saved.report)
-        t.add_row("runtime config", saved.config)
-        self.out.print(t)
-        if done.older:
-            self.out.print(f"  earlier models kept: {', '.join(done.older)}")
-        self.out.print(
-            f"  next: check it with [bold]thermocomp run --config {saved.config} --check[/], "
-            f"or replay a logged day as the service would run it with "
-            f"[bold]thermocomp replay LOG --config {saved.config}[/]"
-        )
+        _say_saved(self.out, done)
         return saved.model_dump()
 
     def run(self) -> int:
@@ -648,6 +547,140 @@ class Wizard:
 
 
 # -- helpers ------------------------------------------------------------------------
+
+
+def _say_sensor(out: Console, seen: SensorChecked) -> None:
+    where = ""
+    if seen.range_fraction is not None:
+        where = f", {seen.range_fraction:.0%} of its range"
+        if not 0.2 <= seen.range_fraction <= 0.8:
+            out.print(
+                f"  [yellow]warning:[/] the probe reads {seen.sensor_um:.1f} um{where}: set "
+                "the gap near mid-range so the growth cannot saturate it"
+            )
+    out.print(f"  sensor: [green]ok[/], {seen.sensor_um:.2f} um{where}")
+
+
+def _say_programs(
+    out: Console, s: WizardSession, files: tuple[ProgramFile, ...], time_scale: float
+) -> None:
+    """The NC programs written, the cold start they need, and the tool setter's programs."""
+    t = Table(title="NC programs")
+    for col in ("run", "file", "duration", "top speed"):
+        t.add_column(col)
+    for f in files:
+        t.add_row(f.run, str(f.path), _both(time_scale, f.duration_s), f"{f.top_rpm:.0f} rpm")
+    out.print(t)
+    out.print(
+        f"  [yellow]Cold start:[/] each run starts with the spindle at rest for at least "
+        f"{float(s.rest_h or 0.0):g} h (five of its slowest time constants, or a night when no "
+        "model exists yet). A warm spindle biases the model."
+    )
+    if s.source == "tool-setter":
+        d = str(s.dialect)
+        ext = EXTENSIONS[d]
+        n = s.probe_plan.touches if s.probe_plan is not None else 1
+        touches = f" --touches {n}" if n > 1 else ""
+        out.print(
+            f"  [yellow]Tool setter:[/] the programs call the cycle {escape(probe_call(d))}. Write it, and the "
+            f"cold-reference program, for this machine's tool and setter:\n"
+            f"    thermocomp probe-program --dialect {d} --reference --output tcref{ext}\n"
+            f"    thermocomp probe-program --dialect {d} --probe-spindle {s.probe_spindle}{touches} "
+            f"--output tcprobe{ext}\n"
+            "  then run the reference program once on the cold spindle, before each run's first start.",
+            highlight=False,
+        )
+
+
+def _say_plan(out: Console, planned: ProbesPlanned) -> None:
+    """The probe plan and what its stops cost."""
+    every_min = planned.session.probe_every_min
+    if planned.sparser_than_planned:
+        out.print(
+            f"  [yellow]warning:[/] a stop every {every_min:g} min is sparser than the "
+            f"plan's {planned.plan.interval_s / 60:.0f} min: the fastest growth may be missed"
+        )
+    for line in planned.plan.lines():
+        out.print(f"  {escape(line)}", highlight=False)
+    if every_min is not None:
+        out.print(f"  the program stops every {every_min:g} min, as given (--probe-every-min)")
+
+
+def _say_runs(out: Console, runs: dict[str, RunData]) -> None:
+    """What the fit leaves out of the runs, and their interruptions."""
+    if runs["calibration"].dropped:
+        out.print(
+            f"  {runs['calibration'].dropped} calibration rows left out (flagged saturated, "
+            "frozen or jump)"
+        )
+    for name, run in runs.items():
+        if run.long_gaps:
+            out.print(
+                f"  [yellow]warning:[/] {name} run has {run.long_gaps} gap(s) (interruptions), "
+                f"{run.gap_s:.0f} s in all: the speed over a gap is "
+                "the last one logged before it"
+            )
+
+
+def _say_validation(out: Console, s: WizardSession, checked: Validated) -> None:
+    """The held-out run's figures, and the probe-interval plan judged on it."""
+    if checked.replay is None or checked.stats is None:
+        return
+    v = checked.stats
+    what = "tool-setter measurements" if s.source == "tool-setter" else "samples"
+    out.print(
+        f"  validation run, free run on data the fit never saw: RMS {v['rms_um']:.2f} um, "
+        f"max {v['max_abs_um']:.2f} um over {v['samples']} {what}"
+        + (f" ({checked.dropped} flagged rows left out)" if checked.dropped else "")
+    )
+    if checked.closed_loop is not None:
+        for line in checked.closed_loop.lines():
+            out.print(f"  {line}", markup=False, highlight=False)
+    else:
+        # the observer's noise is fitted from a residual on every row; measurements minutes
+        # apart cannot give it, so the service starts from the product's observer defaults
+        out.print(
+            "  closed loop: the service fuses the tool setter's measurements with the "
+            "model (the observer's default noise; a dense run is needed to fit it)",
+            highlight=False,
+        )
+
+
+def _say_report(out: Console, s: WizardSession, n_runs: int, summary: dict[str, Any]) -> None:
+    """The plot, the channels a fit with inputs could use, and the advice."""
+    out.print(f"  plot: {summary['plot']}")
+    all_runs = (s.runs or {}).values()
+    chans = sorted({c for info in all_runs for c in info.inputs or []})
+    if chans and n_runs > 1:
+        files = " ".join(info.log for info in all_runs if info.complete)
+        out.print(
+            f"  the controller's own channels were logged too ({', '.join(chans)}): "
+            f"`thermocomp fit {files} --inputs {','.join(chans)} --output …` keeps those "
+            "that help on held-out runs"
+        )
+    for line in summary["advice"]:
+        out.print(f"  [yellow]advice:[/] {line}")
+    if not summary["advice"]:
+        out.print("  [green]the model is good[/]: no re-run needed")
+
+
+def _say_saved(out: Console, done: SavedFiles) -> None:
+    """The files written, the models kept, and what to run next."""
+    saved = done.saved
+    t = Table(title="Written")
+    t.add_column("what")
+    t.add_column("file")
+    t.add_row("model", saved.model)
+    t.add_row("report", saved.report)
+    t.add_row("runtime config", saved.config)
+    out.print(t)
+    if done.older:
+        out.print(f"  earlier models kept: {', '.join(done.older)}")
+    out.print(
+        f"  next: check it with [bold]thermocomp run --config {saved.config} --check[/], "
+        f"or replay a logged day as the service would run it with "
+        f"[bold]thermocomp replay LOG --config {saved.config}[/]"
+    )
 
 
 def _max_rpm(value: Any) -> float:
