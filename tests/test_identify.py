@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from compensator.errors import ModelError, ModelFileError
+from compensator.fitrecord import FIT_SCHEMA_VERSION
 from compensator.io import load_any_model, read_run_log, save_model
 from compensator.io.checksum import digest
 from compensator.statespace import InputChannel, StateSpaceModel
@@ -153,6 +154,11 @@ def test_speed_only_fit_beats_the_papers_method_on_ch1(real, tmp_path):
     never, *rows = loop["intervals"]
     assert never["interval_s"] is None and all(r["rms_um"] < never["rms_um"] for r in rows)
     assert load_any_model(tmp_path / "m.json").fit["observer"] == loop["observer"]
+    # the record the identification wrote is the typed one, in this version
+    fit = load_any_model(tmp_path / "m.json").fit
+    assert fit.schema_version == FIT_SCHEMA_VERSION and fit.method == rep["chosen"]
+    assert fit.observer is not None and fit.observer.model_dump() == loop["observer"]
+    assert fit.expected_error is not None and fit.growth_direction in (-1, 1)
     r = tc("replay", real["ch1"], "--model", tmp_path / "m.json", "--probe-every", 1800, "--json")
     rp = json.loads(r.stdout)
     assert rp["rms_residual_um"] < rp["open_loop_rms_residual_um"] / 2, rp
