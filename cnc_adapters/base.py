@@ -958,8 +958,10 @@ class Adapter(Link):
         self._write_offset_raw(raw)
 
     def take_write_mismatch(self) -> float | None:
-        """For backends that check writes later: the offset [um] the controller holds when it
-        did not take the last write, reported once; None when all is well."""
+        """For a third-party backend that checks writes later through ``_take_mismatch_raw``:
+        the offset [um] the controller holds when it did not take the last write, reported once;
+        None when all is well. The built-in backends report a deferred check in
+        :attr:`Reading.write_refused_um` instead (:meth:`read`)."""
         raw = self._take_mismatch_raw()
         if raw is None or isinstance(raw, bool) or not isinstance(raw, (int, float)):
             return None
