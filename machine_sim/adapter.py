@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import replace
-from typing import Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
 from pydantic import Field
@@ -34,8 +34,12 @@ from compensator.speed_programs import program as make_program
 from .plant import PRESETS, SpindlePlant
 from .vcnc import SimClock, VirtualMachine
 
-PlantPreset = one_of(*PRESETS)
-ProgramName = one_of(*PROGRAMS)
+if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
+    PlantPreset = str
+    ProgramName = str
+else:
+    PlantPreset = one_of(*PRESETS)
+    ProgramName = one_of(*PROGRAMS)
 
 
 class SimSettings(AdapterSettings):
@@ -77,7 +81,7 @@ class SimAdapter(Adapter):
         if machine is None:
             if preset not in PRESETS:
                 raise AdapterError(f"unknown sim preset {preset!r}; known: {', '.join(PRESETS)}")
-            drive = {
+            drive: dict[str, Any] = {
                 k: v
                 for k, v in (("accel_rpm_per_s", accel_rpm_per_s), ("approach_s", approach_s))
                 if v is not None
