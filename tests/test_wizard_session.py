@@ -221,7 +221,7 @@ def test_a_session_is_a_value_each_change_is_checked_and_makes_a_new_one():
         s.max_rpm = 1.0
     t = s.updated(max_rpm=12000.0)
     assert t.max_rpm == 12000.0 and s.max_rpm == 27000.0
-    with pytest.raises(ConfigError, match="max_rpm"):
+    with pytest.raises(ConfigError, match="^--max-rpm inf: "):
         s.updated(max_rpm=float("inf"))
     u = s.with_run("calibration", complete=False, rows=0)
     assert not u.run("calibration").complete and s.run("calibration").complete
@@ -324,3 +324,34 @@ def test_the_fit_step_is_the_identification_thermocomp_fit_runs_and_the_steps_sa
     assert done.session.saved == done.saved and s.saved is None
     assert load_model(done.saved.model).fit["observer"] == checked.model.fit["observer"]
     assert done.saved.version == "v1" and Path(done.saved.report).read_text().startswith("#")
+
+
+@pytest.mark.parametrize(
+    "flag, value, said",
+    [
+        ("--step-min", "0", "--step-min 0.0: Input should be greater than 0"),
+        ("--cooldown-min", "-5", "--cooldown-min -5.0: Input should be greater than or equal"),
+        ("--step-min", "nan", "--step-min nan"),
+    ],
+)
+def test_a_flag_the_session_cannot_hold_is_refused_in_one_line_naming_it(
+    tmp_path, flag, value, said
+):
+    """A value the screen passes on unchecked is checked where it enters the session."""
+    import io
+
+    from rich.console import Console
+
+    from calibration.wizard import Wizard
+    from compensator.errors import ConfigError
+    from thermocomp.cli import build_parser
+
+    argv = "wizard --yes --machine-id m1 --model-spindle-id s1 --max-rpm 9000 --source import"
+    argv += " --dialect fanuc --no-validation"
+    args = build_parser().parse_args([*argv.split(), "--workdir", str(tmp_path), flag, value])
+    wiz = Wizard(args, console=Console(file=io.StringIO()))
+    wiz.step_identify()
+    with pytest.raises(ConfigError) as info:
+        wiz.step_programs()
+    assert str(info.value).startswith(said) and "\n" not in str(info.value), str(info.value)
+    assert not list((tmp_path / "m1" / "s1").glob("calibration.*"))  # no program written

@@ -39,6 +39,11 @@ that could leave the work directory or trouble a shell (``/``, ``\\``, NUL, spac
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid")
 
+FLAGGED = frozenset(
+    {"max_rpm", "rate_s", "dialect", "step_min", "cooldown_min", "time_scale", "source"}
+)
+"""Answers given as the wizard's flag of the same name (``step_min``: ``--step-min``)."""
+
 
 class RunRecord(BaseModel):
     """One run of the session: its log, and what its recording or import found."""
@@ -156,18 +161,16 @@ class WizardSession(BaseModel):
             raise ValueError(f"{clip(repr(v), 80)}: not an id")
         return v
 
-    def has(self, key: str) -> bool:
-        """The session holds an answer for ``key``."""
-        return getattr(self, key, None) is not None
-
     def get(self, key: str) -> Any:
+        """The answer for ``key`` (None: not given yet)."""
         return getattr(self, key, None)
 
     def updated(self, **changes: Any) -> WizardSession:
-        """A new session with ``changes``, checked as a loaded file is (a ConfigError if not)."""
+        """A new session with ``changes``, checked as a loaded file is: a ConfigError in one line
+        naming the flag of a value it refuses."""
         data = self.model_dump(exclude_none=True)
         data.update(changes)
-        return _checked(data, "the session")
+        return _checked(data, None)
 
     def with_run(self, name: str, **changes: Any) -> WizardSession:
         """A new session with run ``name``'s record changed (the run must exist)."""
@@ -185,15 +188,20 @@ class WizardSession(BaseModel):
         return {"format": data.pop("format"), **data}
 
 
-def _checked(data: Any, where: str) -> WizardSession:
+def _checked(data: Any, path: str | None) -> WizardSession:
+    """``data`` as a session; a one-line ConfigError naming the file (``path``) or, for a value
+    just given, its flag."""
     try:
         return WizardSession.model_validate(data)
     except ValidationError as err:
         first = err.errors()[0]
         at = ".".join(str(p) for p in first["loc"]) or "the session"
+        why = clip(first["msg"], 200)
+        if path is None:
+            flag = "--" + at.replace("_", "-") if at in FLAGGED else at
+            raise ConfigError(f"{flag} {clip(repr(first.get('input')), 80)}: {why}") from err
         raise ConfigError(
-            f"{where}: not a wizard session: {at}: {clip(first['msg'], 200)} "
-            f"({err.error_count()} problem(s))"
+            f"{path}: not a wizard session: {at}: {why} ({err.error_count()} problem(s))"
         ) from err
 
 
