@@ -458,7 +458,7 @@ def identify(
         reason += f" ({kept_why})"
     elif chosen is not best:
         reason += f" (within {PARSIMONY:.0%} of {best.name}, and simpler)"
-    model = _with_fit(chosen, ds, reason)
+    model = _with_record(chosen, ds, reason)
     final = chosen
     with_inputs = _best_with_inputs([c for c in cands if c.family == "inputs"], score)
     if with_inputs is not None:
@@ -674,7 +674,7 @@ def with_inputs_or_not(
     policy, span, residual, why = extrapolation(c_in, chosen)
     c_in.details["extrapolation"] = why
     c_in.model = c_in.model.model_copy(update={"extrapolation": policy, "blend_span": span})
-    return _with_fit(c_in, ds, f"{reason}; {why}", forward=residual), c_in, reason
+    return _with_record(c_in, ds, f"{reason}; {why}", forward=residual), c_in, reason
 
 
 BLEND_SPANS = (0.25, 1.0)
@@ -776,7 +776,7 @@ def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> E
     )
 
 
-def _with_fit(c: Candidate, ds: Dataset, reason: str, forward: np.ndarray | None = None) -> Any:
+def _with_record(c: Candidate, ds: Dataset, reason: str, forward: np.ndarray | None = None) -> Any:
     """The candidate's model with its fit record: built here, once, for every model fit writes."""
     entries: dict[str, Any] = {
         "schema_version": FIT_SCHEMA_VERSION,
