@@ -575,11 +575,11 @@ class Recorder:
                     extra: tuple[float, ...] = ()
                     if len(self.columns) > len(COLUMNS):
                         try:
-                            got = self.controller.read_inputs()
+                            inputs = self.controller.read_inputs()
                         except AdapterError:
-                            got = {}
+                            inputs = {}
                         extra = tuple(
-                            float(got.get(c, math.nan)) for c in self.columns[len(COLUMNS) :]
+                            float(inputs.get(c, math.nan)) for c in self.columns[len(COLUMNS) :]
                         )
                     for row_t, row_speed, row_elong, row_value, row_cmd in rows:
                         appender.append(
@@ -595,7 +595,7 @@ class Recorder:
                         )
                         rec.rows += 1
                         for p in Problem:
-                            if flags & p:
+                            if flags & p and p.name is not None:  # a member has its name
                                 rec.flagged[p.name] = rec.flagged.get(p.name, 0) + 1
                     if elong is not None:
                         self.recent.append(float(elong))

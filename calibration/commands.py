@@ -454,6 +454,8 @@ def replay_cmd(
             write_run_log(args.output, rep.columns(), meta)
         if args.plot:
             say("plotting")
+            applied = rep.applied_offset_um
+            assert applied is not None  # replay() always shapes
             plot_panels(
                 args.plot,
                 [
@@ -463,7 +465,7 @@ def replay_cmd(
                         rep.speed_rpm,
                         rep.predicted_um,
                         rep.measured_um,
-                        extra=(("applied (-offset written)", -rep.applied_offset_um),),
+                        extra=(("applied (-offset written)", -applied),),
                     )
                 ],
                 f"replay: model {model.form} (spindle {model.spindle_id})",

@@ -248,19 +248,19 @@ def simulate_cooling(
                 )
             )
     a = np.array(rows, dtype=float)
-    t, n, true, meas, est = a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4]
+    t, n, true_um, meas_um, est_um = a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4]
     off = np.zeros_like(t)
     if offset:
         cfg = shaper or ShaperConfig()
-        off = shape_series(cfg, t, n, est).offset_um
+        off = shape_series(cfg, t, n, est_um).offset_um
     mode = ("pid" if law is not None else "constant") + ("+offset" if offset else "")
     return CoolingRun(
         mode,
         t,
         n,
-        true,
-        meas,
-        est,
+        true_um,
+        meas_um,
+        est_um,
         a[:, 5],
         a[:, 6],
         a[:, 7],

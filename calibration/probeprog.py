@@ -66,13 +66,13 @@ DEFAULT_VARIABLES = {
 }
 
 # per dialect: prefix -> allowed number ranges; the first prefix is the one a bare number takes
-_VARIABLES = {
+_VARIABLES: dict[str, dict[str, tuple[tuple[int, int], ...]]] = {
     "fanuc": {"#": ((100, 199), (500, 999))},  # common variables; #100-#199 cleared at power off
     "sinumerik": {"R": ((0, 9999),)},  # how many exist: MD28050 MM_NUM_R_PARAM
     "heidenhain": {"QR": ((0, 499),), "Q": ((1600, 1999),)},  # QR non-volatile, Q1600+ free
     "linuxcnc": {"#": ((31, 5000),)},  # user parameters; persistent once listed in the .var file
 }
-_RETAINED = {
+_RETAINED: dict[str, tuple[tuple[int, int], ...] | None] = {
     "fanuc": ((500, 999),),
     "heidenhain": None,
 }  # the cold reference must survive power off

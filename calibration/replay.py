@@ -41,7 +41,8 @@ class Replay:
     speed_rpm: np.ndarray
     predicted_um: np.ndarray
     measured_um: np.ndarray | None
-    initial_um: float
+    initial_um: float | None
+    """The elongation the estimate started from (None: the model's own initial state)."""
     report: dict[str, Any]
     applied_offset_um: np.ndarray | None = None
     """The offset the runtime's shaper would have written."""
@@ -430,18 +431,19 @@ def replay(
             )
         )
     outside = getattr(model, "outside_trained", None)  # models that record trained input ranges
-    for name in model.input_names if outside is not None else ():
-        col = inputs[name]
-        for k in (int(np.argmin(col)), int(np.argmax(col))):
-            why = outside({name: float(col[k])})
-            if why is not None:
-                line = log.line_of(k)
-                warnings.append(
-                    f"{why}"
-                    + (f" (line {line})" if line else "")
-                    + ": predictions there are extrapolated"
-                )
-                break
+    if outside is not None:
+        for name in model.input_names:
+            col = inputs[name]
+            for k in (int(np.argmin(col)), int(np.argmax(col))):
+                why = outside({name: float(col[k])})
+                if why is not None:
+                    line = log.line_of(k)
+                    warnings.append(
+                        f"{why}"
+                        + (f" (line {line})" if line else "")
+                        + ": predictions there are extrapolated"
+                    )
+                    break
     if log.duration_s > MAX_SPAN_S:
         warnings.append(
             f"the log spans {log.duration_s / 86400:.0f} days: no equilibrium time or "

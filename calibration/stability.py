@@ -285,13 +285,15 @@ class StabilityFigures:
                 f"never in equilibrium (|STE| >= {limit} at the end of the record)",
                 f"largest |error| {self.max_abs_um:.2f} um",
             ]
+        ste_after = self.ste_max_after_um_per_s
+        assert ste_after is not None  # known from the equilibrium on
         return [
             (
                 f"equilibrium at {self.equilibrium_s / 60:.1f} min (|STE| < {limit}), "
                 f"TEVR {self.tevr_um:.2f} um"
             ),
             (
-                f"after equilibrium: |STE| <= {self.ste_max_after_um_per_s * 1e3:.2f}e-3 um/s, "
+                f"after equilibrium: |STE| <= {ste_after * 1e3:.2f}e-3 um/s, "
                 f"mean error {self.mean_after_um:.2f} um"
             ),
             f"largest |error| {self.max_abs_um:.2f} um (STE from a {self.method} fit)",

@@ -34,7 +34,10 @@ import asyncio
 import math
 import struct
 import threading
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self, cast
+
+if TYPE_CHECKING:
+    from pymodbus.constants import ExcCodes
 
 __all__ = ["HOLDING", "INPUT", "SCALE_C", "ChillerServer"]
 
@@ -111,6 +114,7 @@ class ChillerServer:
         async def go() -> Any:
             from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 
+            server: ModbusSerialServer | ModbusTcpServer
             if self.serial_port is not None:
                 server = ModbusSerialServer(
                     self._device(), port=self.serial_port, baudrate=self.baudrate
@@ -180,8 +184,8 @@ class ChillerServer:
         address: int,
         count: int,
         registers: list[int],
-        values: list[int] | None,
-    ) -> Any:
+        values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
         """pymodbus's hook on every access (in its loop thread): a read shows the plant as it
         is now; a write goes to the plant, and the register keeps what it took."""
         from pymodbus.constants import ExcCodes
@@ -206,6 +210,7 @@ class ChillerServer:
             return None
         if fc not in _WRITES:
             return None
+        values = cast(list[int], values)  # the writes are of registers, never of bits
         self.writes += 1
         if self.refuse_writes:
             return ExcCodes.DEVICE_FAILURE

@@ -98,18 +98,19 @@ class EmulatedControl:
         with self._lock:
             reason = self.check(raw)
             t = self.machine.plant.time_s
+            # a number as written; what check() takes always is one
+            value = (
+                float(raw)
+                if isinstance(raw, (int, float)) and not isinstance(raw, bool)
+                else math.nan
+            )
             if reason:
                 self.refused += 1
                 self.last_refusal = reason
-                value = (
-                    float(raw)
-                    if isinstance(raw, (int, float)) and not isinstance(raw, bool)
-                    else math.nan
-                )
                 self.writes.append(Write(t, value, False, reason))
                 return False
-            self.held_raw = float(raw)
-            self.writes.append(Write(t, float(raw), True))
+            self.held_raw = value
+            self.writes.append(Write(t, value, True))
             return True
 
     def sync(self) -> None:
@@ -121,7 +122,9 @@ class EmulatedControl:
             self._synced_s = now
             target = self.held_um
             diff = target - self.applied_um
-            step = math.inf if self.rate_um_per_s == math.inf else self.rate_um_per_s * dt
+            rate = self.rate_um_per_s
+            assert rate is not None  # resolved by __post_init__
+            step = math.inf if rate == math.inf else rate * dt
             self.applied_um = (
                 target if abs(diff) <= step else self.applied_um + math.copysign(step, diff)
             )

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any, overload
 
 import numpy as np
 from scipy.linalg import expm
@@ -485,6 +486,10 @@ class SpindlePlant:
             commanded if sp is not None else None,
         )
 
+    @overload
+    def heat_w(self, speed_rpm: float) -> float: ...
+    @overload
+    def heat_w(self, speed_rpm: np.ndarray) -> np.ndarray: ...
     def heat_w(self, speed_rpm: float | np.ndarray) -> float | np.ndarray:
         """Total heat the spindle dissipates at a speed [W]: what the drive's load shows."""
         n = np.abs(np.asarray(speed_rpm, dtype=float)) / 1000.0
@@ -511,7 +516,8 @@ class SpindlePlant:
         )
         return out
 
-    def with_params(self, **changes: float) -> SpindlePlant:
+    def with_params(self, **changes: Any) -> SpindlePlant:
+        """The same plant with the named parameters changed (any field of :class:`PlantParams`)."""
         return SpindlePlant(replace(self.params, **changes), seed=self.seed)
 
 

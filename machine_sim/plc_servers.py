@@ -363,7 +363,7 @@ class ModbusTcpPlc(EmulatedPlc):
             self._run(self.server.shutdown())
             self.server = None
 
-    def close(self) -> None:  # type: ignore[override]
+    def close(self) -> None:
         self.stop()
         if self._loop is not None:
             self._loop.call_soon_threadsafe(self._loop.stop)

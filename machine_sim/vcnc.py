@@ -45,7 +45,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -54,6 +54,9 @@ from compensator.filters import lag_step
 from compensator.speed_programs import Program
 
 from .plant import SENSORS, SpindlePlant
+
+if TYPE_CHECKING:
+    from asyncua import Node, Server
 
 NAMESPACE_URI = "urn:thermocomp:virtual-cnc"
 NODE_PATHS = {
@@ -399,7 +402,8 @@ class VirtualMachine:
             arr = np.array(self._hist, dtype=float).reshape(-1, 6)
             if clear:
                 self._hist.clear()
-        return History(*(arr[:, i].copy() for i in range(5)), arr[:, 5] != 0)
+        time_s, speed_rpm, true_um, measured_um, offset_um = (arr[:, i].copy() for i in range(5))
+        return History(time_s, speed_rpm, true_um, measured_um, offset_um, arr[:, 5] != 0)
 
 
 class VirtualCNC:
@@ -443,7 +447,7 @@ class VirtualCNC:
         self.port = port or free_port(host)
         self.tick_s = tick_s
         self.url = f"opc.tcp://{host}:{self.port}/thermocomp/virtual-cnc/"
-        self._server = None
+        self._server: Server | None = None
         self._nodes: dict = {}
         self._task: asyncio.Task | None = None
         self.ns = 2
@@ -494,9 +498,9 @@ class VirtualCNC:
             server.set_identity_tokens([ua.UserNameIdentityToken])
         self.ns = await server.register_namespace(NAMESPACE_URI)
         objects = server.nodes.objects
-        folders = {}
+        folders: dict[str, Node] = {}
 
-        async def folder(path: str):
+        async def folder(path: str) -> Node:
             if path in folders:
                 return folders[path]
             parent_path, _, name = path.rpartition("/")
@@ -564,7 +568,7 @@ class VirtualCNC:
         self._server = server
         await self._publish()
         if self.tick_s is not None:
-            self._task = asyncio.create_task(self._run())
+            self._task = asyncio.create_task(self._run(self.tick_s))
 
     async def _add_sinumerik(self, server, folder, ua, uamethod) -> None:
         """SINUMERIK's own ids (in this server's namespace, ns=2 as on a SINUMERIK), setting datum
@@ -669,10 +673,10 @@ class VirtualCNC:
             await self._server.stop()
             self._server = None
 
-    async def _run(self) -> None:
+    async def _run(self, tick_s: float) -> None:
         while True:
             await self.tick()
-            await asyncio.sleep(self.tick_s)
+            await asyncio.sleep(tick_s)
 
     async def tick(self) -> None:
         """Take the offset a client wrote, advance the plant to the clock, publish."""

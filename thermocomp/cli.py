@@ -14,7 +14,7 @@ import math
 import signal
 import sys
 from collections.abc import Callable, Sequence
-from typing import NoReturn
+from typing import Any, NoReturn, overload
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -62,7 +62,10 @@ class _IntermixedParser(_Parser):
 
     _inside = False
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+    # one signature for argparse's overloads (a namespace passed in is the one returned)
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
         if self._inside:  # parse_known_intermixed_args calls back here
             return super().parse_known_args(args, namespace)
         self._inside = True
@@ -77,7 +80,10 @@ class _ModelParser(_Parser):
     FILE``), ``model --schema`` (now ``model schema``), and options before the action
     (``model --json check FILE``), which a subcommand's own parser would not take."""
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+    # one signature for argparse's overloads (a namespace passed in is the one returned)
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
         return super().parse_known_args(self._current_form(list(args or ())), namespace)
 
     def _current_form(self, words: list[str]) -> list[str]:
@@ -125,14 +131,21 @@ class _OldSpelling(argparse.Action):
             nargs=current.nargs,
             const=current.const,
             default=argparse.SUPPRESS,
-            type=current.type,
             choices=current.choices,
             metavar=current.metavar,
             help=argparse.SUPPRESS,
         )
+        # set as argparse's __init__ would: the type may be a registered type's name
+        self.type = current.type
         self.current = current
 
-    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[Any] | None,
+        option_string: str | None = None,
+    ) -> None:
         now = self.current.option_strings[-1]
         deprecated(str(option_string), use=now)
         self.current(parser, namespace, values, now)
@@ -162,7 +175,13 @@ class _NoLongerNeeded(argparse.Action):
         )
         self.why = why
 
-    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[Any] | None,
+        option_string: str | None = None,
+    ) -> None:
         deprecated(str(option_string), note=f"does nothing ({self.why})")
 
 
@@ -194,7 +213,11 @@ class _Choices(Sequence[str]):
             self._values = (*found, *self._extra)
         return self._values
 
-    def __getitem__(self, i):  # type: ignore[override]
+    @overload
+    def __getitem__(self, i: int) -> str: ...
+    @overload
+    def __getitem__(self, i: slice) -> Sequence[str]: ...
+    def __getitem__(self, i: int | slice) -> str | Sequence[str]:
         return self._all()[i]
 
     def __len__(self) -> int:

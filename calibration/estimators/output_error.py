@@ -107,7 +107,9 @@ def _ols(x: np.ndarray, y: np.ndarray):
 def _response(d0: float, d1: float, power: int, run: Run) -> np.ndarray:
     g = [0.0, 0.0, 0.0, 0.0]
     g[power] = 1.0
-    st = ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g))
+    st = ThermalStateCoefficients(
+        dissipation_per_s=(d0, d1), generation_um_per_s=(g[0], g[1], g[2], g[3])
+    )
     return filter_state(st, run.n_krpm, run.dt_s, 0.0)
 
 
@@ -277,7 +279,9 @@ def solve_output_error(
     extra_gains, extra_se = (gains[n_gain:], se[n_gain:]) if extra is not None else (None, None)
     gains, se = gains[:n_gain], se[:n_gain]
     assert gains.size == n_gain
-    st_coefs, coefs, k = [], [], 0
+    st_coefs: list[ThermalStateCoefficients] = []
+    coefs: list[dict[str, float | str | None]] = []
+    k = 0
     for j, (d0, d1) in enumerate(states):
         g = [0.0, 0.0, 0.0, 0.0]
         for p in _powers(j):
@@ -292,7 +296,9 @@ def solve_output_error(
             )
             k += 1
         st_coefs.append(
-            ThermalStateCoefficients(dissipation_per_s=(d0, d1), generation_um_per_s=tuple(g))
+            ThermalStateCoefficients(
+                dissipation_per_s=(d0, d1), generation_um_per_s=(g[0], g[1], g[2], g[3])
+            )
         )
         coefs.append({"name": f"tau[{j + 1}]", "value": 1.0 / d0, "stderr": None, "unit": "s"})
         if d1:
@@ -380,7 +386,7 @@ def runs_of(ds: Dataset, rows: np.ndarray) -> list[Run]:
     it. Restarting after the fold from its next measurement instead put that measurement's
     elastic growth (taken at speed) and noise into the thermal state: with a tool setter's
     sparse measurements it cost up to 3x the eddy-current model's error."""
-    runs = []
+    runs: list[Run] = []
     for a, b in ds.segments:
         hit = np.flatnonzero(rows[a:b] & ds.measured[a:b])
         hi = a + int(hit[-1]) + 1 if hit.size else a

@@ -31,6 +31,7 @@ import numpy as np
 from compensator.errors import CalibrationError, ModelError
 from compensator.expected import distance_outside
 from compensator.filters import filter_bank
+from compensator.fitrecord import FitRecord
 from compensator.model import ModelState, ThermalModel, ThermalStateCoefficients
 from compensator.statespace import (
     GAIN_BOUND,
@@ -522,7 +523,7 @@ class RidgeFit:
             inputs=tuple(inputs),
             max_measured_um=max(self.max_measured_um, 1e-3),
             fallback=fallback,
-            fit=dict(fit or {}),
+            fit=FitRecord.of(dict(fit or {})),
             **fields,
         )
 
@@ -772,8 +773,8 @@ def fit(
     names = tuple(sorted(input_names))
     dt_s = ds.dt_s
     cand = list(grids) if grids is not None else [auto_grid(t, sp, ds.cycles, bool(names))]
-    for g in cand:
-        _validate_grid(g, dt_s, names)
+    for grid in cand:
+        _validate_grid(grid, dt_s, names)
     drives = speed_terms(sp)
     refs: dict[str, float] = {}
     ranges: dict[str, tuple[float, float]] = {}
@@ -824,7 +825,10 @@ def fit(
     x = bank.design(cfg.grid, cfg.names)
     res = cv_residuals(x, y0, measured, folds, (alpha,))[:, 0]
     cv_rms, cv_max = measured_stats(res)
-    nested_folds = nested_rms = nested_max = outer = None
+    nested_folds: tuple[FoldScore, ...] | None = None
+    nested_rms: float | None = None
+    nested_max: float | None = None
+    outer: np.ndarray | None = None
     if nested and len(folds) >= 3:
         outer = np.full(t.size, np.nan)
         for i, fold in enumerate(folds):
@@ -837,7 +841,12 @@ def fit(
             outer[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
         nested_folds = fold_scores(outer, folds)
         nested_rms, nested_max = measured_stats(outer)
-    fwd_folds = fwd_rms = fwd_max = ahead = clipped = distance = None
+    fwd_folds: tuple[FoldScore, ...] | None = None
+    fwd_rms: float | None = None
+    fwd_max: float | None = None
+    ahead: np.ndarray | None = None
+    clipped: np.ndarray | None = None
+    distance: np.ndarray | None = None
     fwd_spread: tuple[float, ...] = ()
     splits = fl.forward_splits(folds, first=FORWARD_FIRST)
     if forward and splits:
@@ -851,7 +860,8 @@ def fit(
             g, c = ridge_path(xi[measured & train], y0[measured & train], (al,))
             scored = a + np.flatnonzero(measured[a:b])
             ahead[scored] = y0[scored] - (xi[scored] @ g[:, 0] + c[0])
-            if names:  # the same gains with the inputs held to the past's range, and how far out
+            # with inputs: the same gains with the inputs held to the past's range, and how far out
+            if clipped is not None and distance is not None:
                 used = names if structure == "pca" else ci.names
                 xc, d = _held_to_range(bank, ds, train, used, mixes, ci, b)
                 clipped[scored] = y0[scored] - (xc[scored] @ g[:, 0] + c[0])
@@ -986,7 +996,7 @@ def fit_ridge_cv(
         ds, grids=grids, input_names=tuple(inputs or ()), alphas=alphas, nested=nested, rule=rule
     )
     base = fit_baseline(ds, nested=nested)
-    baseline = {
+    baseline: dict[str, float | None] = {
         "tau_s": base.grid.speed_taus_s[0],
         "cv_rms_um": base.cv_rms_um,
         "cv_max_abs_um": base.cv_max_abs_um,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import overload
 
 from compensator.errors import ConfigError
 from compensator.io.journal_export import export_journal, iso
@@ -20,6 +21,12 @@ from compensator.io.journal_export import export_journal, iso
 WHEN_FORMS = "2024-05-01, 2024-05-01T13:30, 2024-05-01T13:30:00+02:00"
 
 
+@overload
+def parse_when(text: str, flag: str) -> float: ...
+@overload
+def parse_when(text: None, flag: str) -> None: ...
+@overload
+def parse_when(text: str | None, flag: str) -> float | None: ...
 def parse_when(text: str | None, flag: str) -> float | None:
     """Epoch seconds [s] of an ISO date (00:00 UTC) or date-time (UTC without a zone); None for
     None. A one-line :class:`ConfigError` for anything else."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from compensator.errors import ConfigError, ThermocompError
 from compensator.io import load_any_model, model_digest, read_run_log, save_model
-from compensator.io.history import HistoryRecord, ModelHistory, fit_summary
+from compensator.io.history import Event, HistoryRecord, ModelHistory, fit_summary
 from compensator.io.journal_export import export_journal, iso
 
 from ..runtime.config import RuntimeConfig, SpindleConfig, load_config
@@ -137,11 +137,11 @@ def _judge_shadow(
     )
     ran_h = (
         0.0
-        if ran is None or not ran.size
+        if log is None or ran is None or not ran.size
         else float(log.time_s[ran[-1]] - log.time_s[ran[0]]) / 3600.0
     )
     out["ran_h"] = round(ran_h, 3)
-    if ran_h < sc.learning.shadow_h:
+    if log is None or ran_h < sc.learning.shadow_h:
         why = (
             "the service has not run it yet (reload it)"
             if ran is None or not ran.size
@@ -162,7 +162,7 @@ def _judge_shadow(
                     model = _checked(sc, path)
                 except ThermocompError as err:
                     decision = type(decision)(False, f"the checks of a reload refused it: {err}")
-            event = (
+            event: Event = (
                 "promoted"
                 if decision.promote and not args.dry_run
                 else "candidate"
@@ -263,6 +263,7 @@ def refit_cmd(args: argparse.Namespace) -> int:
         say += [f"  {n}" for n in result.notes]
         decision = result.decision
         if result.candidate is not None:
+            assert result.cut_s is not None  # the cut is made before a candidate is fitted
             # the journal's time is the wall clock's (anchored once): an instant as it is
             say.append(
                 f"  fitted on {result.train} measurement(s) before {iso(result.cut_s)}, judged on "
@@ -283,7 +284,7 @@ def refit_cmd(args: argparse.Namespace) -> int:
                     decision = type(decision)(False, f"the checks of a reload refused it: {err}")
             judged = {**result.figures(), "rule": vars(rule), "reason": decision.reason}
             to_shadow = decision.promote and not args.dry_run and sc.learning.shadow_h > 0
-            event = (
+            event: Event = (
                 "shadow"
                 if to_shadow
                 else "promoted"

@@ -8,6 +8,7 @@ import json
 from typing import Any
 
 from compensator.errors import ConfigError, ThermocompError, clip
+from compensator.fitrecord import fit_of
 from compensator.io import MODEL_TYPES, load_any_model, model_digest
 from compensator.model import MODEL_FORMAT
 from compensator.plausibility import direction_of, not_following_refusal, steady_growth_refusal
@@ -86,9 +87,9 @@ def check(path: str, as_json: bool = False) -> int:
         m = load_any_model(path)
         why = implausible(m.fallback or m)
         if why is None:
-            why = not_following_refusal(m.fit.get("not_following_share"))
+            why = not_following_refusal(fit_of(m).not_following_share)
         if why is None:
-            why = steady_growth_refusal(m, direction_of(m.fit.get("growth_direction")))
+            why = steady_growth_refusal(m, direction_of(fit_of(m).growth_direction))
         if why is not None:
             raise ConfigError(f"{path}: {why}")
     except ThermocompError as err:
