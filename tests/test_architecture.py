@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 import sys
@@ -85,6 +86,19 @@ def test_a_controller_value_that_is_not_a_number_is_rewritten_not_followed():
     assert off.held_um == -4.0 and off.shaper.output_um == -4.0  # still moves on from -4
     shaped = off.plan(4.0, 0, 1.0)
     assert off.wants_write(shaped) and shaped.offset_um == pytest.approx(-4.0)
+
+
+@pytest.mark.parametrize("held", [999.0, -1e308])
+def test_a_held_value_beyond_the_clamp_counts_as_the_clamps_edge(held):
+    """A foreign value beyond the clamp is never what the offset counts as held (nor journals):
+    the clamp's edge on its side is, and the next write goes from there."""
+    off = OffsetTracker(_cfg(rate=2.0), held_um=-4.0)
+    assert off.observe(held, 0.5) == pytest.approx(held + 4.0)
+    assert off.held_um == math.copysign(40.0, held) and off.pending
+    off.kept(True)  # the write did not go through: still the edge, never the foreign value
+    assert off.held_um == math.copysign(40.0, held)
+    shaped = off.plan(4.0, 0, 1.0)
+    assert abs(shaped.offset_um) <= 40.0
 
 
 def test_a_backend_option_typo_is_a_one_line_config_error():

@@ -310,7 +310,7 @@ def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(
     for r in rows:  # the estimate is the model's plus the same bias
         assert r["alarms"] & Alarm.PROBE_REJECTED  # held until a measurement is taken again
     assert rows[-1]["predicted_um"] == pytest.approx(
-        b.rt.speed_only_state.elongation_um + bias, abs=1e-12
+        b.rt.est.speed_only.elongation_um + bias, abs=1e-12
     )
     (rejected,) = events(caplog, "probe_rejected")
     assert (

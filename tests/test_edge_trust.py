@@ -350,7 +350,7 @@ def test_a_fifo_in_place_of_the_state_or_model_never_hangs_the_start(tmp_path, s
     def start() -> None:
         try:
             svc = Service(cfg, clock=lambda: 0.0, wall=lambda: WALL0)
-            result["alarms"] = svc.spindles["s1"]._startup_alarms
+            result["alarms"] = svc.spindles["s1"].pace.startup
             svc.close()
         except Exception as err:
             result["error"] = err

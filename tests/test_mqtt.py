@@ -306,7 +306,7 @@ def test_broker_down_at_start_then_up(tmp_path, calibrated_model, brokers, servi
     run_for(svc, clock, 1800)
     rt = svc.spindles["s1"]
     assert rt.counters["cycles"] >= 1700 and rt.counters["writes"] > 100
-    assert abs(rt.offset.held_um) > 1.0 and rt.last_write_s is not None
+    assert abs(rt.offset.held_um) > 1.0 and rt.offset.last_write_s is not None
     assert svc.mqtt.published == 0 and 150 <= svc.mqtt.skipped <= 200  # one per 10 s due
     (lost,) = mqtt_events(caplog, "mqtt_lost")  # one line for the outage, not one per attempt
     assert "refused" in lost.fields["reason"].lower() and lost.levelno == logging.WARNING

@@ -159,7 +159,7 @@ def test_a_cold_start_puts_the_model_with_inputs_at_its_equilibrium(tmp_path):
     # the equilibrium holds: an hour later at the same speed and inputs, the same elongation
     last = b.run(3600)[-1]
     assert last["predicted_um"] == pytest.approx(expected, abs=1e-6)
-    assert b.rt.refs is None  # absolute references live in the model, not the state file
+    assert b.rt.est.references is None  # absolute references live in the model, not the state file
     b.rt.close()
 
 

@@ -296,7 +296,7 @@ def test_writes_that_stop_turn_to_not_writing_after_n_cycles(
     run_for(svc, clock, 120)
     assert (
         svc.snapshot["spindles"][0]["state"] == "compensating"
-        and rt.last_in_step_s == rt.last["time_s"]
+        and rt.offset.last_in_step_s == rt.last["time_s"]
     )
     real, vm.apply_offset = vm.apply_offset, (lambda v: False)  # the controller refuses every write
     before = []
@@ -382,7 +382,7 @@ def test_cold_start_on_a_turning_spindle_alarms_until_settled(
     assert m[("thermocomp_alarm", (("alarm", "COLD_START_TURNING"), ("spindle", "s1")))] == 1.0
     raised = [r for r in caplog.records if getattr(r, "event", None) == "cold_start_turning"]
     assert len(raised) == 1 and raised[0].fields["speed_rpm"] == pytest.approx(20000.0, rel=0.01)
-    settles = rt.cold_settle_s
+    settles = rt.cold.settle_s
     run_for(svc, clock, settles - clock.t - 10.0)
     assert "COLD_START_TURNING" in svc.snapshot["spindles"][0]["alarms"]
     run_for(svc, clock, 20.0)
@@ -437,7 +437,7 @@ def test_cold_start_on_a_turning_spindle_clears_at_an_accepted_measurement(
             break
     assert outcomes[-1] in ("accepted", "restarted"), outcomes
     assert (
-        clock.t < 3600.0 + 600.0 < rt.created_s + 3600.0 + slowest_tau_s(rt.estimate.model)
+        clock.t < 3600.0 + 600.0 < rt.pace.created_s + 3600.0 + slowest_tau_s(rt.estimate.model)
     )  # long before settling
     cleared = [r for r in caplog.records if getattr(r, "event", None) == "cold_start_settled"]
     assert len(cleared) == 1 and cleared[0].fields["reason"] == "measurement"
@@ -450,11 +450,11 @@ def test_cold_start_on_a_turning_spindle_clears_at_an_accepted_measurement(
 def test_an_unsettled_cold_start_survives_a_restart(tmp_path, calibrated_model, services):
     svc, clock = warm_cold_start(tmp_path, calibrated_model, services)
     run_for(svc, clock, 60)
-    settles = svc.spindles["s1"].cold_settle_s
+    settles = svc.spindles["s1"].cold.settle_s
     svc.close()  # saves the state, with when the estimate settles
     clock.t += 600.0
     again, _ = services(svc.config_path, clock)
-    assert again.spindles["s1"].cold_settle_s == pytest.approx(settles, abs=1.0)  # the same instant
+    assert again.spindles["s1"].cold.settle_s == pytest.approx(settles, abs=1.0)  # the same instant
     again.start_status()
     run_for(again, clock, 10)
     assert "COLD_START_TURNING" in again.snapshot["spindles"][0]["alarms"]

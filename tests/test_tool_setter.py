@@ -201,22 +201,19 @@ def test_opcua_each_probe_value_is_used_once_and_a_stale_one_is_ignored():
 
 
 def test_opcua_a_cycles_reads_ride_in_the_speeds_request():
-    """After the first cycle, the offset read-back, the inputs and the probe's handshake come in
-    the speed's request: one round trip a cycle. Each is the cycle's own (a later read asks
-    again), and a write in between makes the read-back ask the controller itself."""
+    """A cycle's read is one request from the first cycle on: the speed, the offset read-back,
+    the inputs and the probe's handshake. Each is the cycle's own (a later read asks again), and
+    a write in between makes the next read-back the controller's own value."""
+    from cnc_adapters import Wants
     from machine_sim.vcnc import NODE_PATHS
 
+    every = Wants(cutting=True, held_offset=True, inputs=True, measurement=True)
     clock = FakeClock()
     vm = machine(clock)
     inputs = {"bearing_temp_c": f"ns={{ns}};s={NODE_PATHS['bearing_temp_c']}"}
     with running(VirtualCNC(vm)) as cnc, generic(cnc.url, input_nodes=inputs) as link:
         call(cnc, cnc.tick)
-        (
-            link.read_speed(),
-            link.read_measurement(),
-            link.read_inputs(),
-            link.read_offset_um(),
-        )  # nodes resolved
+        link.open()
         requests = []
         real = link._client.read_attributes
 
@@ -228,27 +225,25 @@ def test_opcua_a_cycles_reads_ride_in_the_speeds_request():
         for k in range(3):
             clock.t += 1.0
             call(cnc, cnc.tick)
-            assert link.read_speed() == pytest.approx(vm.speed_rpm)
-            assert link.read_measurement() is None
-            assert link.read_inputs()["bearing_temp_c"] == pytest.approx(
+            r = link.read(every)
+            assert r.speed_rpm == pytest.approx(vm.speed_rpm)
+            assert r.measurement is None
+            assert r.inputs["bearing_temp_c"] == pytest.approx(
                 vm.sensor_values()["bearing_temp_c"], abs=1.0
             )
-            assert link.read_offset_um() == pytest.approx(vm.offset_um)
-            assert requests == [1 + 1 + 1 + 3] * (
-                k + 1
-            )  # speed, offset, input, the handshake's three
-        value = probe(
-            vm, clock
-        )  # a cycle of the tool setter, read in the same request as the speed
+            assert r.held_offset_um == pytest.approx(vm.offset_um)
+            # speed, offset, input, the handshake's three
+            assert requests == [1 + 1 + 1 + 3] * (k + 1)
+        value = probe(vm, clock)  # a cycle of the tool setter, read in the same request
         call(cnc, cnc.tick)
-        link.read_speed()
-        assert link.read_measurement().elongation_um == pytest.approx(value) and len(requests) == 4
+        assert link.read(every).measurement.elongation_um == pytest.approx(value)
+        assert len(requests) == 4
         link.read_inputs()
-        link.read_inputs()  # a second read in one cycle asks again
-        assert len(requests) == 5
+        link.read_inputs()  # a read of its own asks the controller, each time
+        assert len(requests) == 6
         link.write_offset_um(-3.0)
         call(cnc, cnc.tick)
-        assert link.read_offset_um() == pytest.approx(-3.0)  # not the value read before the write
+        assert link.read(every).held_offset_um == pytest.approx(-3.0)  # not a value from before
 
 
 def test_opcua_a_non_finite_measurement_is_refused_once():

@@ -21,7 +21,7 @@ from test_transients import (  # noqa: F401 - model_file is a fixture
     model_file,
 )
 
-from cnc_adapters import open_adapter
+from cnc_adapters import Wants, open_adapter
 from compensator.clock import SteppedClock
 from compensator.io import read_run_log
 from compensator.speed_programs import Program
@@ -140,8 +140,7 @@ def test_opcua_cutting_values_read_an_enumeration_or_an_inverted_bit():
                 False,
                 None,
             )
-            plain.read_speed()  # from now on the signal comes in the speed's request
-            assert plain._cutting is not None and plain.read_cutting() is True
+            assert plain.read(Wants(cutting=True)).cutting is True  # in the speed's request
         finally:
             for a in (inverted, plain, off):
                 a.close()

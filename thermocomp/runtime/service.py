@@ -735,7 +735,7 @@ def shaping_check(sc, link) -> str:
         "hold": f"hold in transients, {sh.max_rate_um_per_s:g} um/s",
         "slow-slew": f"one slew limit, {sh.max_rate_um_per_s:g} um/s",
     }
-    if cutting_from_controller(sc, link):
+    if cutting_from_controller(sc, link.capabilities):
         source = f"cutting signal from the controller, now {'cutting' if link.read_cutting() else 'not cutting'}"
     else:
         source = (

@@ -257,13 +257,13 @@ def spindle_facts(rt: Any, now_s: float) -> SpindleFacts:
         link_up=rt.link.up,
         link_state=rt.link.state.value,
         link_down_since_s=at(rt.link.down_since),
-        link_error=rt.link_error,
-        last_in_step_s=at(rt.last_in_step_s),
-        last_write_s=at(rt.last_write_s),
-        since_s=a + rt.created_s,
+        link_error=rt.link.error,
+        last_in_step_s=at(rt.offset.last_in_step_s),
+        last_write_s=at(rt.offset.last_write_s),
+        since_s=a + rt.pace.created_s,
         alarm_bits=int(rt.alarms),
         offset_mode=rt.offset.mode.value,
-        cold_settle_s=at(rt.cold_settle_s),
+        cold_settle_s=at(rt.cold.settle_s),
     )
 
 
@@ -276,9 +276,10 @@ def spindle_status(rt: Any, now_s: float, state: SpindleState | None = None) -> 
     """One spindle's status at clock time ``now_s`` (the service's clock); ``state`` as the
     service derived it this tick (derived here when not given)."""
     state = state if state is not None else state_of(rt, now_s)
-    last = rt.last or {}
+    last = rt.last.as_dict() if rt.last is not None else {}
     alarms = int(rt.alarms)
-    write_age = None if rt.last_write_s is None else max(0.0, now_s - rt.last_write_s)
+    offset = rt.offset
+    write_age = None if offset.last_write_s is None else max(0.0, now_s - offset.last_write_s)
     journal = rt.journal
     return _clean(
         {
@@ -292,15 +293,15 @@ def spindle_status(rt: Any, now_s: float, state: SpindleState | None = None) -> 
             "estimate": last.get("estimate"),
             "offset_target_um": last.get("target_um"),
             "offset_held_um": rt.offset.held_um,
-            "offset_read_back_um": rt.last_readback_um,
+            "offset_read_back_um": offset.last_readback_um,
             "offset_mode": rt.offset.mode.value,
             "writes_offset": rt.writes_offset,
             "last_write_age_s": write_age,
             "last_in_step_age_s": None
-            if rt.last_in_step_s is None
-            else max(0.0, now_s - rt.last_in_step_s),
+            if offset.last_in_step_s is None
+            else max(0.0, now_s - offset.last_in_step_s),
             "cold_start_settles_s": (
-                None if rt.cold_settle_s is None else rt.anchor_s + rt.cold_settle_s
+                None if rt.cold.settle_s is None else rt.anchor_s + rt.cold.settle_s
             ),
             "cutting": last.get("cutting"),
             "cutting_source": last.get("cutting_source"),

@@ -1,0 +1,358 @@
+"""One spindle's state on disk: restore at start, save when due with back-off, and the downtime
+measured again when the clock was wrong at the start.
+
+- start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
+  than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start;
+- a state save that cannot be written raises an alarm naming the file and the OS error and is
+  retried with back-off; compensation goes on; no save for ``faults.state_stale_s``: STATE_STALE;
+- the first forward clock step within ``DOWNTIME_RECHECK_S`` of a restore measures the downtime
+  again (a box without a real-time clock boots with its clock behind until time
+  synchronisation steps it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from compensator.errors import ConfigError, ModelError, ModelFileError
+from compensator.estimate import Estimate, EstimateState
+from compensator.io import load_state, quarantine, save_state
+from compensator.io.history import ModelHistory, fit_summary
+from compensator.modelbase import saved_numbers
+
+from .alarms import Alarm
+from .config import SpindleConfig
+from .events import event
+
+log = logging.getLogger("thermocomp.runtime")
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+CLOCK_STEP_S = 2.0
+"""A jump of the wall clock against the monotonic clock larger than this is a clock step."""
+
+DOWNTIME_RECHECK_S = 3600.0
+"""For this long after a restore [s], the first forward clock step measures the downtime again
+(a box that booted with its clock behind, until time synchronisation steps it)."""
+
+
+@dataclass(frozen=True)
+class Restored:
+    """A saved state that fits, advanced through the downtime."""
+
+    est: EstimateState
+    held_um: float
+    downtime_s: float
+    unsettled_until_wall_s: float | None
+    """An unsettled cold start's end (wall time) the state carried: a restart does not settle it."""
+
+
+@dataclass(frozen=True)
+class Cold:
+    """No saved state fits: a cold start, and why."""
+
+    reason: str
+
+
+class StateKeeper:
+    """The state file: restore, save with back-off, and the alarms of saving."""
+
+    def __init__(self, cfg: SpindleConfig, path: Path, counters: dict[str, int]):
+        self.cfg = cfg
+        self.path = path
+        self.counters = counters
+        self.last_save_s = -math.inf
+        self.last_good_save_s: float | None = None
+        self.failures = 0
+        self.next_try_s = -math.inf
+        self.error: str | None = None
+        self.stale = False
+        self.alarms = Alarm.NONE  # of the last save
+
+    def follow(self, old: StateKeeper, *, same_model: bool) -> None:
+        """Go on from ``old`` (a reload): its save bookkeeping; another model's state is saved
+        at once."""
+        self.last_save_s = old.last_save_s if same_model else -math.inf
+        self.last_good_save_s, self.failures = old.last_good_save_s, old.failures
+        self.next_try_s, self.error = old.next_try_s, old.error
+        self.stale, self.alarms = old.stale, old.alarms
+
+    def restore(
+        self, estimate: Estimate, digest: str, now_wall: float
+    ) -> tuple[Restored | Cold, Alarm, Any]:
+        """The saved state advanced through the downtime, or why there is none that fits; the
+        start-up alarms; and the parsed saved state (for the downtime re-check). A corrupt file
+        is moved aside and never crashes the start."""
+        cfg = self.cfg
+        try:
+            saved = load_state(self.path)
+            if saved is None:
+                return Cold("no saved state"), Alarm.NONE, None
+            sha = saved.get("model_sha256")
+            if not (isinstance(sha, str) and _SHA256.fullmatch(sha)):
+                raise ModelFileError(f"model_sha256 is {str(sha)[:70]!r}, not a digest")
+            if sha != digest:
+                return Cold("saved state belongs to another model"), Alarm.NONE, None
+            saved_wall = saved_numbers("saved_wall_s", [saved["saved_wall_s"]], 1e11)[0]
+            held = saved_numbers("offset_um", [saved.get("offset_um", 0.0)])[0]
+            if saved_wall <= 0:
+                raise ModelFileError(f"saved_wall_s {saved_wall:g} is not a time")
+            parsed = estimate.parse_saved(saved)
+        except (
+            ModelError,
+            ValueError,
+            TypeError,
+            KeyError,
+            AttributeError,
+            RecursionError,
+            OverflowError,
+        ) as err:
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now_wall))
+            moved = quarantine(self.path, stamp)
+            event(
+                "state_corrupt",
+                cfg.name,
+                "%s: state file %s is corrupt (%s); kept as %s",
+                cfg.name,
+                self.path,
+                str(err)[:200],
+                moved or "(could not be moved)",
+                level=logging.ERROR,
+                path=str(self.path),
+                kept_as=moved,
+            )
+            return Cold("corrupt state file"), Alarm.STATE_CORRUPT, None
+        age = now_wall - saved_wall
+        if age > cfg.max_state_age_s:
+            return Cold(f"saved state is {age / 3600:.1f} h old"), Alarm.NONE, None
+        downtime = max(0.0, age)
+        # the spindle stood still while we were down: the model's own cooling; the input
+        # model's state is advanced once the inputs are read
+        est = estimate.resume(parsed, downtime, now_wall, cfg.max_state_age_s)
+        unsettled = saved.get("cold_start_unsettled_until_wall_s")
+        until = (
+            float(unsettled)
+            if isinstance(unsettled, (int, float))
+            and not isinstance(unsettled, bool)
+            and math.isfinite(unsettled)
+            and unsettled > now_wall
+            else None
+        )
+        return Restored(est, held, downtime, until), Alarm.NONE, (parsed, saved_wall)
+
+    def due(self, now: float) -> bool:
+        """A save is due and not backing off."""
+        return now - self.last_save_s >= self.cfg.state_save_every_s and now >= self.next_try_s
+
+    def save(self, now: float, record: Mapping[str, Any]) -> bool:
+        """Save ``record``; a failure is an alarm and a retry with back-off, never an exception."""
+        try:
+            save_state(self.path, dict(record))
+        except (OSError, ValueError) as err:
+            self.counters["state_save_failed"] += 1
+            self.failures += 1
+            faults = self.cfg.faults
+            self.next_try_s = now + min(
+                faults.max_write_backoff_s, faults.state_retry_s * 2 ** (self.failures - 1)
+            )
+            why = f"{self.path}: {getattr(err, 'strerror', None) or err}"  # not the temp file
+            if why != self.error:
+                event(
+                    "state_save_failed",
+                    self.cfg.name,
+                    "%s: cannot save the state: %s; compensation goes on, retrying",
+                    self.cfg.name,
+                    why,
+                    level=logging.ERROR,
+                    path=str(self.path),
+                    error=why,
+                )
+            self.error = why
+            return False
+        self.last_save_s = now
+        self.last_good_save_s = now
+        if self.error is not None:
+            event(
+                "state_saved_again",
+                self.cfg.name,
+                "%s: state saved again after %d failure(s)",
+                self.cfg.name,
+                self.failures,
+                path=str(self.path),
+            )
+        self.error, self.failures, self.stale = None, 0, False
+        self.next_try_s = -math.inf
+        return True
+
+    def judge(self, now: float, first_s: float | None) -> Alarm:
+        """The alarms of saving at ``now``: STATE_SAVE_FAILED while the last save failed, and
+        STATE_STALE once no save has landed for ``faults.state_stale_s``."""
+        if self.error is None:
+            self.alarms = Alarm.NONE
+            return self.alarms
+        alarms = Alarm.STATE_SAVE_FAILED
+        since = self.last_good_save_s if self.last_good_save_s is not None else first_s
+        if since is not None and now - since > self.cfg.faults.state_stale_s:
+            alarms |= Alarm.STATE_STALE
+            if not self.stale:
+                self.stale = True
+                event(
+                    "state_stale",
+                    self.cfg.name,
+                    "%s: no state saved for %.0f s: %s",
+                    self.cfg.name,
+                    now - since,
+                    self.error,
+                    level=logging.CRITICAL,
+                    path=str(self.path),
+                    error=self.error,
+                )
+        self.alarms = alarms
+        return alarms
+
+
+Replay = tuple[float, float, float, float, Any, "str | None"]
+"""One cycle since a restore: speed, dt, clock time, wall time, inputs, input error."""
+
+
+class DowntimeCheck:
+    """Clock steps, and the downtime measured again after the first forward step soon after a
+    restore: where it was longer, the estimate restarts from the saved state advanced through
+    it, then is stepped again through every cycle since the start."""
+
+    def __init__(self, name: str, anchor_s: float, max_state_age_s: float):
+        self.name = name
+        self.anchor_s = anchor_s
+        self.max_state_age_s = max_state_age_s
+        self.skew_s: float | None = None
+        # after a restore: the saved state, its wall time, the downtime applied, the clock and
+        # wall times of the restore, and the cycles since
+        self.restored: tuple[Any, float, float, float, float] | None = None
+        self.since: list[Replay] | None = None
+
+    def follow(self, old: DowntimeCheck, *, same_model: bool) -> None:
+        self.skew_s = old.skew_s
+        if same_model:
+            self.restored, self.since = old.restored, old.since
+
+    def started(self, saved: tuple[Any, float], downtime_s: float, now: float, wall: float) -> None:
+        self.restored, self.since = (saved[0], saved[1], downtime_s, now, wall), []
+
+    def measured(self) -> None:
+        """The estimate has been measured: it is not re-run from the start."""
+        self.since = None
+
+    def record(self, cycle: Replay) -> None:
+        """A cycle stepped, kept for a clock found wrong at the start."""
+        if self.since is None or self.restored is None:
+            return
+        self.since.append(cycle)
+        if cycle[2] - self.restored[3] > DOWNTIME_RECHECK_S:
+            self.since = None
+
+    def clock_step(
+        self,
+        now: float,
+        wall_now: float,
+        again: Callable[[float, float], None],
+    ) -> Alarm:
+        """CLOCK_STEP when the wall clock jumped against the monotonic one; a forward step
+        soon after a restore calls ``again(now, wall_now)``."""
+        skew = wall_now - (self.anchor_s + now)
+        prev, self.skew_s = self.skew_s, skew
+        if prev is None or abs(skew - prev) <= CLOCK_STEP_S:
+            return Alarm.NONE
+        event(
+            "clock_step",
+            self.name,
+            "%s: the wall clock stepped by %+.1f s; the journal keeps its monotonic time",
+            self.name,
+            skew - prev,
+            level=logging.WARNING,
+            step_s=round(skew - prev, 3),
+        )
+        if skew > prev and self.since is not None:
+            again(now, wall_now)
+        return Alarm.CLOCK_STEP
+
+    def rerun(
+        self, estimate: Estimate, est: EstimateState, now: float, wall_now: float
+    ) -> EstimateState:
+        """The estimate with the downtime measured again on the corrected clock (once); ``est``
+        where the downtime was not longer or cannot be applied."""
+        assert self.restored is not None and self.since is not None
+        parsed, saved_wall, applied, started, restore_wall = self.restored
+        since, self.since = self.since, None  # once
+        start_wall = wall_now - (now - started)
+        downtime = start_wall - saved_wall
+        if downtime <= applied + CLOCK_STEP_S:
+            return est
+        before = est.estimate_um
+        try:
+            new = estimate.resume(parsed, downtime, start_wall, self.max_state_age_s)
+            for speed, dt, t, wall, inputs, error in since:
+                new, _ = estimate.step(
+                    new,
+                    speed,
+                    dt,
+                    now_s=t,
+                    wall_s=wall + (start_wall - restore_wall),
+                    inputs=inputs,
+                    input_error=error,
+                )
+        except ModelError as err:
+            log.warning("%s: the downtime could not be applied again: %s", self.name, err)
+            return est
+        event(
+            "downtime_corrected",
+            self.name,
+            "%s: the clock was wrong at the start: the downtime was %.0f s, not %.0f s; the "
+            "saved state advanced through it again: S %.2f -> %.2f um",
+            self.name,
+            downtime,
+            applied,
+            before,
+            new.estimate_um,
+            level=logging.WARNING,
+            downtime_s=round(downtime, 3),
+            applied_s=round(applied, 3),
+            elongation_um=new.estimate_um,
+        )
+        return new
+
+
+def record_in_use(
+    history: ModelHistory,
+    cfg: SpindleConfig,
+    model: Any,
+    digest: str,
+    reason: str,
+    wall_s: float,
+) -> None:
+    """Keep the model in the spindle's history when it is not the one recorded in use (a
+    promotion or a rollback recorded it already). The history is a record: failing to write it
+    never stops compensation."""
+    try:
+        live = history.live()
+        if live is None or live.digest != digest:
+            history.add(
+                "in_use", cfg.model, reason=reason, at_wall_s=wall_s, fit=fit_summary(model)
+            )
+    except (OSError, ConfigError) as err:
+        event(
+            "history_failed",
+            cfg.name,
+            "%s: the model history %s could not be written: %s; compensation goes on",
+            cfg.name,
+            history.directory,
+            getattr(err, "strerror", None) or err,
+            level=logging.WARNING,
+            path=str(history.directory),
+        )
