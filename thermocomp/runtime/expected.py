@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from compensator.estimate import Estimate, EstimateState
-from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, parse_expected, place
+from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, place
+from compensator.fitrecord import fit_of
 
 from .alarms import Alarm
 from .config import SpindleConfig
@@ -48,9 +49,9 @@ class ExpectedWatch:
         self.name = cfg.name
         self.bound_um = cfg.max_expected_error_um
         fallback = getattr(model, "fallback", None)
-        self.expected: ExpectedError | None = parse_expected(getattr(model, "fit", None))
+        self.expected: ExpectedError | None = fit_of(model).expected_error
         self.fallback: ExpectedError | None = (
-            None if fallback is None else parse_expected(getattr(fallback, "fit", None))
+            None if fallback is None else fit_of(fallback).expected_error
         )
         self.high: str | None = None  # why EXPECTED_ERROR_HIGH is raised, while it is
         if self.bound_um is None:
