@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -43,13 +44,13 @@ class CoolingRuntime:
         spindle: Any,
         journal_dir: Path,
         *,
-        clock,
-        wall,
+        clock: Callable[[], float],
+        wall: Callable[[], float],
         anchor_s: float,
         journal_fsync_s: float = 10.0,
         chiller: Chiller | None = None,
         previous: CoolingRuntime | None = None,
-    ):
+    ) -> None:
         self.cfg = cfg
         self.law = cfg.law()
         self.spindle = spindle

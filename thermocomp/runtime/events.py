@@ -107,8 +107,9 @@ class JsonLines(logging.Formatter):
         name = getattr(record, "event", None)
         if name is not None:
             out["event"] = name
-            if getattr(record, "spindle", None) is not None:
-                out["spindle"] = record.spindle
+            spindle = getattr(record, "spindle", None)
+            if spindle is not None:
+                out["spindle"] = spindle
             for k, v in (getattr(record, "fields", None) or {}).items():
                 out.setdefault(k, clip(v, 200) if isinstance(v, str) else v)
         if record.exc_info:

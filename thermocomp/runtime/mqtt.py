@@ -27,6 +27,8 @@ import threading
 from typing import Any
 
 import paho.mqtt.client as paho
+from paho.mqtt.properties import Properties
+from paho.mqtt.reasoncodes import ReasonCode
 
 from compensator.errors import ConfigError
 
@@ -103,7 +105,14 @@ class MqttPublisher:
 
     # -- paho's thread ------------------------------------------------------------------------
 
-    def _on_connect(self, client, userdata, flags, reason, properties) -> None:
+    def _on_connect(
+        self,
+        client: paho.Client,
+        userdata: Any,
+        flags: paho.ConnectFlags,
+        reason: ReasonCode,
+        properties: Properties | None,
+    ) -> None:
         if reason.is_failure:  # e.g. "Not authorized": paho retries, we say it once
             self._lost(f"refused: {reason}")
             return
@@ -120,12 +129,19 @@ class MqttPublisher:
             port=self.cfg.port,
         )
 
-    def _on_disconnect(self, client, userdata, flags, reason, properties) -> None:
+    def _on_disconnect(
+        self,
+        client: paho.Client,
+        userdata: Any,
+        flags: paho.DisconnectFlags,
+        reason: ReasonCode,
+        properties: Properties | None,
+    ) -> None:
         was, self.connected = self.connected, False
         if was and not self._closing:
             self._lost(f"connection lost: {reason}")
 
-    def _on_fail(self, client, userdata) -> None:
+    def _on_fail(self, client: paho.Client, userdata: Any) -> None:
         err = sys.exc_info()[1]  # paho calls this inside its `except OSError`: the cause
         self._lost(f"cannot connect: {err or 'unreachable'}")
 
