@@ -825,6 +825,10 @@ class Adapter(Link):
         if isinstance(speed, Failure) and speed.link_lost:
             return Reading(speed, reconnects=self.reconnects)
         fields: dict[str, Any] = {}
+        if not isinstance(speed, Failure):  # a backend that checks its writes later says so here
+            refused = _guarded(self.take_write_mismatch)
+            if refused is not None and not isinstance(refused, Failure) and math.isfinite(refused):
+                fields["write_refused_um"] = float(refused)
         caps = self.capabilities
         steps: list[tuple[str, bool, Callable[[], Any]]] = [
             ("cutting", wants.cutting and caps.cutting, self.read_cutting),

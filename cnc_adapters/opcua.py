@@ -790,6 +790,13 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 fields["measurement"] = nodes
             else:
                 request["measurement"] = nodes
+        lost = next((f for f in fields.values() if isinstance(f, Failure) and f.link_lost), None)
+        if lost is not None or self._client is None:
+            # the session dropped while a node was looked up: nothing more is asked this cycle
+            lost = lost or Failure.of(UnreachableError(f"{self._where('read')}: session lost"))
+            return Reading(
+                speed if speed is not None else lost, reconnects=self.reconnects, **fields
+            )
         nodes = [n for group in request.values() for n in group]
         dvs: Any = []
         if nodes:

@@ -194,17 +194,23 @@ class ProbeIntake:
 
     def close(self, now: float) -> None:
         """Answer what is still queued, and close the journal."""
-        for _, _, reply in self.queued:
-            if reply is not None:
-                reply(
-                    {
-                        "ok": False,
-                        "spindle": self.cfg.name,
-                        "error": "the spindle stopped before the measurement was fused",
-                    }
-                )
-        self.queued.clear()
-        self.journal.close(now)
+        try:
+            for _, _, reply in self.queued:
+                if reply is None:
+                    continue
+                try:
+                    reply(
+                        {
+                            "ok": False,
+                            "spindle": self.cfg.name,
+                            "error": "the spindle stopped before the measurement was fused",
+                        }
+                    )
+                except Exception as err:  # noqa: BLE001 - one caller gone must not lose the journal
+                    log.warning("%s: a measurement's reply failed: %s", self.cfg.name, err)
+            self.queued.clear()
+        finally:
+            self.journal.close(now)
 
     # -- one cycle ------------------------------------------------------------------------
 
@@ -232,7 +238,13 @@ class ProbeIntake:
             isinstance(got, (Measurement, Failure))
             or not any(
                 isinstance(v, Failure) and v.link_lost
-                for v in (reading.cutting, reading.held_offset_um, reading.inputs)
+                for v in (
+                    reading.speed_rpm,
+                    reading.cutting,
+                    reading.not_ready_offset_um,
+                    reading.held_offset_um,
+                    reading.inputs,
+                )
             )
         )
         measured = False

@@ -75,6 +75,8 @@ class Heard:
     """The speed the shaper infers from when the speed was not read (the last one read)."""
     not_ready_um: float | None
     """A controller not ready to take our offset applies this one."""
+    ready_unknown: bool = False
+    """Whether the controller is ready could not be read: no write this cycle."""
 
     @property
     def unread(self) -> bool:
@@ -128,6 +130,11 @@ class LinkWatch:
         """The speed, the cutting signal, reconnects and readiness of this cycle's reading."""
         read_rpm, alarms, restored = self.speed(now, reading.speed_rpm, limit_rpm)
         came_back = self.reconnected_by_itself(reading.reconnects) or restored
+        # a request after the speed that found the link lost: down as much as a lost speed
+        later = (reading.cutting, reading.not_ready_offset_um, reading.inputs, reading.measurement)
+        lost = next((v for v in later if isinstance(v, Failure) and v.link_lost), None)
+        if lost is not None and self.up:
+            alarms |= self.failed(now, lost)
         cutting, source, cutting_alarms = self.cutting.take(reading.cutting, self.up)
         shaper_rpm = None
         # a speed not read (held, or idle assumed) says nothing of the tool: it is taken to cut
@@ -135,13 +142,23 @@ class LinkWatch:
         if alarms & UNREAD and cutting is None:
             cutting, source, shaper_rpm = True, "unread", self.last_speed_rpm
         not_ready = reading.not_ready_offset_um if self.up else None
+        unknown = isinstance(not_ready, Failure)
         if isinstance(not_ready, Failure):
             log.warning(
-                "%s: whether the controller is ready is not known: %s", self.name, not_ready
+                "%s: whether the controller is ready is not known (%s): no write this cycle",
+                self.name,
+                not_ready,
             )
             not_ready = None
         return Heard(
-            read_rpm, alarms | cutting_alarms, came_back, cutting, source, shaper_rpm, not_ready
+            read_rpm,
+            alarms | cutting_alarms,
+            came_back,
+            cutting,
+            source,
+            shaper_rpm,
+            not_ready,
+            unknown,
         )
 
     def speed(

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from cnc_adapters import Failure, FailureKind, Reading, WriteResult
 from compensator.shaping import Flag, OffsetShaper, ShapedOffset, ShaperConfig
 
-from .alarms import UNREAD, Alarm
+from .alarms import Alarm
 from .config import FaultPolicy
 from .events import event
 from .link import Heard, LinkWatch
@@ -138,6 +138,8 @@ class ControllerOffset(OffsetTracker):
         self.since_readback = 0
         self.mismatch_streak = 0
         self.wrote_since_check = False
+        self.foreign_um: float | None = None  # a value beyond the clamp last read back
+        self.unsure = False  # this cycle cannot vouch for what the controller holds: no write
         self.paused_until_s = -math.inf
         self.last_readback_um: float | None = None  # what the controller held when last read back
         self.last_write_s: float | None = None  # clock time of the last offset written
@@ -159,12 +161,16 @@ class ControllerOffset(OffsetTracker):
         """What this cycle's reading says of the offset the controller holds: a deferred write
         check, a reconnect, the read-back when due."""
         alarms = Alarm.NONE
-        if reading.write_refused_um is not None and not heard.alarms & UNREAD:
+        if reading.write_refused_um is not None:
             alarms |= self.write_refused(now, reading.write_refused_um)
         if heard.came_back:
             self.reconnected()
         if heard.not_ready_um is None and self.writes:
             alarms |= self.read_back(now, reading.held_offset_um, link)
+        # after a reconnect the controller may hold anything: where it can be read back and was
+        # not in this reading, write nothing until it is (the next cycle asks for it)
+        unread = self.need_readback and self.can_read_back and reading.held_offset_um is None
+        self.unsure = heard.ready_unknown or (heard.came_back and unread)
         return alarms
 
     def wants_readback(self, link_up: bool) -> bool:
@@ -220,8 +226,12 @@ class ControllerOffset(OffsetTracker):
         """The controller holds ``held_um``; act on it if it is not what we wrote."""
         expected = self.held_um
         faults = self.faults
-        diff = self.observe(held_um, faults.offset_tolerance_um)
         wrote_since, self.wrote_since_check = self.wrote_since_check, False
+        if held_um == self.foreign_um and not wrote_since:
+            return Alarm.NONE  # the same foreign value, nothing written since: no news
+        diff = self.observe(held_um, faults.offset_tolerance_um)
+        limit = self.shaper.config.max_offset_um
+        self.foreign_um = held_um if diff is not None and abs(held_um) > limit else None
         if diff is None:
             if wrote_since:  # it took a write of ours: not refusing
                 self.mismatch_streak = 0
@@ -298,7 +308,7 @@ class ControllerOffset(OffsetTracker):
         if heard.not_ready_um is not None:
             alarms |= Alarm.NOT_READY
             self.controller_holds(heard.not_ready_um)
-        elif link.up and wanted and self.writes and not self.paused(now):
+        elif link.up and wanted and self.writes and not self.paused(now) and not self.unsure:
             result = write(shaped.offset_um)
             alarms |= self.took(now, result, clock(), link)
             wrote = result.taken

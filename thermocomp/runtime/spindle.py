@@ -413,8 +413,8 @@ class SpindleRuntime:
         got = reading.inputs
         if got is None or isinstance(got, Failure):
             why = f"inputs not read: {got if got is not None else self.link.error or 'the link is down'}"
-            if self.estimate.with_inputs is None and isinstance(got, Failure):
-                self.recorder.inputs_failed(now, got.reason)
+            if self.estimate.with_inputs is None and isinstance(got, Failure) and not got.link_lost:
+                self.recorder.inputs_failed(now, got.reason)  # a slow channel, not a lost link
             return {}, why
         return {k: (math.nan if isinstance(v, Failure) else v) for k, v in got.items()}, None
 
@@ -497,7 +497,7 @@ class SpindleRuntime:
         taken = self.intake.take(
             self.estimate,
             self.est,
-            reading if wants.measurement and self.link.up else None,
+            reading if wants.measurement else None,
             source=str(self.adapter.name),
             now=now,
             wall_now=wall_now,
@@ -519,8 +519,10 @@ class SpindleRuntime:
         finally:
             try:
                 now = self.clock()
-                self.intake.close(now)
-                self.recorder.close(now)
+                try:
+                    self.intake.close(now)
+                finally:
+                    self.recorder.close(now)
             finally:
                 try:
                     self.adapter.close()
