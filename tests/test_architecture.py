@@ -227,3 +227,44 @@ def test_the_architecture_tree_names_every_module():
         f"not in the tree: {sorted(found - listed)}; "
         f"in the tree, not in the code: {sorted(listed - found)}"
     )
+
+
+def test_the_runtime_stays_in_small_parts():
+    """Every module of thermocomp/runtime is at most 600 lines, and every class in it spans at
+    most 400 lines and assigns at most 20 distinct attributes of ``self``: a part that grows past
+    them is split, rather than the service growing back into one class that holds everything."""
+    import ast
+
+    root = Path(__file__).parents[1] / "thermocomp" / "runtime"
+    too_big = []
+    for path in sorted(root.rglob("*.py")):
+        text = path.read_text()
+        lines = len(text.splitlines())
+        if lines > 600:
+            too_big.append(f"{path.name}: {lines} lines")
+        for cls in ast.walk(ast.parse(text)):
+            if not isinstance(cls, ast.ClassDef):
+                continue
+            span = (cls.end_lineno or cls.lineno) - cls.lineno + 1
+            attrs = set()
+            for node in ast.walk(cls):
+                targets = (
+                    node.targets
+                    if isinstance(node, ast.Assign)
+                    else [node.target]
+                    if isinstance(node, (ast.AnnAssign, ast.AugAssign))
+                    else []
+                )
+                for target in targets:
+                    for t in ast.walk(target):
+                        if (
+                            isinstance(t, ast.Attribute)
+                            and isinstance(t.value, ast.Name)
+                            and t.value.id == "self"
+                        ):
+                            attrs.add(t.attr)
+            if span > 400:
+                too_big.append(f"{path.name}: class {cls.name}: {span} lines")
+            if len(attrs) > 20:
+                too_big.append(f"{path.name}: class {cls.name}: {len(attrs)} attributes")
+    assert not too_big, too_big
