@@ -20,7 +20,7 @@ from compensator.errors import ConfigError
 from compensator.io.atomic import read_regular, read_text
 
 from .spindle_settings import (
-    _FROZEN,
+    FROZEN,
     DriftSettings,
     FaultPolicy,
     LearningSettings,
@@ -46,7 +46,7 @@ class CoolingConfig(BaseModel):
     cancels what the cooling leaves). The estimate is the spindle's own: its model, with its
     inputs or fused with probes, whatever the spindle runs."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
     mode: Literal["off", "cooling", "both"] = "off"
     spindle: str | None = Field(
         None, description="whose estimate drives the chiller; default the only spindle"
@@ -133,7 +133,7 @@ class StatusConfig(BaseModel):
     (``Authorization: Bearer <token>`` or ``?token=``), read from ``token_file`` or the
     environment variable ``THERMOCOMP_STATUS_TOKEN``; never from this file."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     enabled: bool = True
     bind: str = Field(
@@ -210,7 +210,7 @@ class MqttConfig(BaseModel):
     ``<topic>/availability`` is ``online`` while the service runs and ``offline`` once it stops
     or is lost (the broker's last will). A broker that is down never stops compensation."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     enabled: bool = True
     host: str = Field(min_length=1, max_length=255)
@@ -264,7 +264,7 @@ class JournalRetention(BaseModel):
     older than ``max_age_days`` or the journal directory's journal files exceed ``max_size_mb``;
     the files being written are never removed."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     max_age_days: float = Field(90.0, gt=0, le=36500)
     max_size_mb: float = Field(1024.0, gt=0, le=1e7)
@@ -274,7 +274,7 @@ class JournalRetention(BaseModel):
 
 
 class RuntimeConfig(BaseModel):
-    model_config = _FROZEN
+    model_config = FROZEN
 
     state_dir: Path = Path("/var/lib/thermocomp")
     journal_dir: Path | None = Field(None, description="default: <state_dir>/journal")

@@ -21,7 +21,8 @@ from compensator.observer import SIGMA_LIMIT_UM, ObserverConfig
 from compensator.predictor import Predictor
 from compensator.shaping import ShaperConfig
 
-_FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+"""Every section of the configuration: immutable, no unknown key, no NaN or infinity."""
 
 
 def spindle_scope(name: str) -> str:
@@ -32,7 +33,7 @@ def spindle_scope(name: str) -> str:
 class FaultPolicy(BaseModel):
     """What the runtime does when the inputs, the controller or the disk misbehave."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     speed_hold_s: float = Field(
         30.0,
@@ -120,7 +121,7 @@ class DriftSettings(BaseModel):
     """The drift detector on the model's misses at each measurement (``compensator.drift``): a
     two-sided CUSUM in units of the error the fit stated, raising MODEL_DRIFT."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     k: float = Field(
         0.5, ge=0, le=10, description="reference value [sd]: half the shift to find quickly"
@@ -140,7 +141,7 @@ class LearningSettings(BaseModel):
     """Refits from production (``thermocomp refit``) and the model history
     (``<state_dir>/history/<spindle>/``): when a candidate may replace the live model."""
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     min_train: int = Field(
         24, ge=4, le=100_000, description="measurements a candidate must be fitted on, at least"
@@ -185,7 +186,7 @@ class ObserverSettings(BaseModel):
     (``fit.observer`` in the model file), key by key; unset, the fitted (or default) value holds.
     """
 
-    model_config = _FROZEN
+    model_config = FROZEN
 
     enabled: bool = Field(
         False,
@@ -222,7 +223,7 @@ class ObserverSettings(BaseModel):
 
 
 class SpindleConfig(BaseModel):
-    model_config = _FROZEN
+    model_config = FROZEN
 
     name: str = Field(
         pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="used in file names and logs"
