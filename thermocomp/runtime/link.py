@@ -130,11 +130,8 @@ class LinkWatch:
         """The speed, the cutting signal, reconnects and readiness of this cycle's reading."""
         read_rpm, alarms, restored = self.speed(now, reading.speed_rpm, limit_rpm)
         came_back = self.reconnected_by_itself(reading.reconnects) or restored
-        # a request after the speed that found the link lost: down as much as a lost speed
-        later = (reading.cutting, reading.not_ready_offset_um, reading.inputs, reading.measurement)
-        lost = next((v for v in later if isinstance(v, Failure) and v.link_lost), None)
-        if lost is not None and self.up:
-            alarms |= self.failed(now, lost)
+        # the speed, the read-back and the write judge the link; the cutting signal, the inputs
+        # and a probe source that fail are their own alarms, never a link down
         cutting, source, cutting_alarms = self.cutting.take(reading.cutting, self.up)
         shaper_rpm = None
         # a speed not read (held, or idle assumed) says nothing of the tool: it is taken to cut
