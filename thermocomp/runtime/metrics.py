@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 if TYPE_CHECKING:  # prometheus_client is imported when /metrics is first served
     from prometheus_client.metrics_core import GaugeMetricFamily, Metric
+    from prometheus_client.registry import Collector
 
 from .states import ALARM_NAMES, STATES, finite
 
@@ -16,9 +17,10 @@ def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
     (a registry of one collector that reads this snapshot)."""
     from prometheus_client import CollectorRegistry, generate_latest
     from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily
-    from prometheus_client.registry import Collector
 
-    class _Snapshot(Collector):
+    # any object with collect() is a collector: the Collector base is newer than the oldest
+    # prometheus_client this project supports
+    class _Snapshot:
         def collect(self) -> Iterator[Metric]:
             up = GaugeMetricFamily("thermocomp_up", "1 while the service runs and has a snapshot")
             up.add_metric([], 0.0 if snap is None else 1.0)
@@ -167,7 +169,7 @@ def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
                 )
 
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(_Snapshot())
+    registry.register(cast("Collector", _Snapshot()))
     return generate_latest(registry)
 
 
