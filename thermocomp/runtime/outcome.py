@@ -62,7 +62,7 @@ class CycleOutcome:
 
 class Pace:
     """The cycle's own timing: since when it runs, the last cycle, a run-up that wants the fast
-    period, the alarms still to be journaled from the start, and a refused step."""
+    period, and the alarms still to be journaled from the start."""
 
     def __init__(self, created_s: float):
         self.created_s = created_s
@@ -70,7 +70,6 @@ class Pace:
         self.last_s: float | None = None
         self.run_up_until_s = -math.inf  # the speed was seen changing, the tool not cutting
         self.startup = Alarm.NONE  # journaled with the first cycle
-        self.refused: str | None = None  # why the estimate's last step was refused, while it is
 
     def follow(self, old: Pace) -> None:
         self.created_s, self.first_s, self.last_s = old.created_s, old.first_s, old.last_s

@@ -46,37 +46,25 @@ from compensator.io.history import ModelHistory
 from compensator.predictor import Predictor
 
 from .alarms import Alarm
-from .cold import TURNING_MIN_RPM, ColdStart, slowest_tau_s
+from .cold import ColdStart, slowest_tau_s
 from .config import SpindleConfig
 from .expected import ExpectedWatch
 from .intake import ProbeIntake, Reply
-from .keeper import (
-    CLOCK_STEP_S,
-    DOWNTIME_RECHECK_S,
-    Cold,
-    DowntimeCheck,
-    StateKeeper,
-    record_in_use,
-)
+from .keeper import Cold, DowntimeCheck, StateKeeper, record_in_use
 from .link import LinkWatch
-from .offset import ControllerOffset, mismatch_cause
+from .offset import ControllerOffset
 from .outcome import CycleOutcome, Pace
-from .recorder import JOURNAL_INPUTS_RETRY_S, Recorder
+from .recorder import Recorder
 from .shadow import Shadow
 from .stepper import EstimateRunner
 
 __all__ = [
-    "CLOCK_STEP_S",
-    "DOWNTIME_RECHECK_S",
-    "JOURNAL_INPUTS_RETRY_S",
-    "TURNING_MIN_RPM",
     "Alarm",
     "Carry",
     "CycleOutcome",
     "Reply",
     "SpindleRuntime",
     "cutting_from_controller",
-    "mismatch_cause",
     "slowest_tau_s",
 ]
 
@@ -121,7 +109,6 @@ class Carry:
 
     digest: str
     est: EstimateState
-    estimate_um: float
     pace: Pace
     link: LinkWatch
     offset: ControllerOffset
@@ -335,7 +322,6 @@ class SpindleRuntime:
         return Carry(
             self.digest,
             self.est,
-            self.est.estimate_um,
             self.pace,
             self.link,
             self.offset,

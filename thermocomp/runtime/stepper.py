@@ -81,7 +81,7 @@ class EstimateRunner:
         if same:
             self.est = self.estimate.adopt(carry.est)
             return
-        self.est = self.estimate.begin(carry.estimate_um, speed_rpm)
+        self.est = self.estimate.begin(carry.est.estimate_um, speed_rpm)
         event(
             "model_switched",
             self.name,
@@ -89,11 +89,11 @@ class EstimateRunner:
             self.name,
             digest[:16],
             carry.digest[:16],
-            carry.estimate_um,
+            carry.est.estimate_um,
             level=logging.WARNING,
             digest=digest,
             previous=carry.digest,
-            elongation_um=carry.estimate_um,
+            elongation_um=carry.est.estimate_um,
         )
 
     @property
