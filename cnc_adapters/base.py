@@ -48,7 +48,7 @@ from compensator.errors import (
 )
 from compensator.units import ControllerUnits
 
-from .reading import Capabilities, Failure, Measurement, Reading, Wants, WriteResult
+from .reading import Capabilities, Failure, Life, Measurement, Reading, Wants, WriteResult
 
 __all__ = [
     "RUNTIME_ONLY",
@@ -61,6 +61,7 @@ __all__ = [
     "Capabilities",
     "ConfigError",
     "Failure",
+    "Life",
     "Link",
     "LinkSettings",
     "Measurement",
@@ -811,6 +812,7 @@ class Adapter(Link):
             cutting=bool(self.can_read_cutting),
             measurement=bool(self.can_read_measurement),
             inputs=tuple(self.input_channels()),
+            life_sign=bool(self.writes_life),
         )
 
     def read(self, wants: Wants = _NOTHING_MORE) -> Reading:
@@ -848,13 +850,54 @@ class Adapter(Link):
                 break
         return Reading(speed, reconnects=self.reconnects, **fields)
 
-    def write(self, offset_um: float) -> WriteResult:
-        """Write the thermal offset [um]: taken, or the failure (refused by the controller, the
-        link lost, a value that is not finite). Never raises for a failure of the link."""
-        done = _guarded(lambda: self.write_offset_um(offset_um))
+    def write(self, offset_um: float | None, life: Life | None = None) -> WriteResult:
+        """Write the thermal offset [um] and the sign of life: taken, or the failure (refused by
+        the controller, the link lost, a value that is not finite). ``offset_um`` None confirms
+        the offset the controller holds: only the sign of life is written. A link configured
+        without a sign of life (:attr:`writes_life` False) ignores ``life``. Never raises for a
+        failure of the link."""
+        life = life if self.writes_life else None
+        if offset_um is None and life is None:
+            return WriteResult()
+        done = _guarded(lambda: self._write_checked(offset_um, life))
         if isinstance(done, Failure):
             return WriteResult(done)
-        return WriteResult(pending=self._write_pending())
+        return WriteResult(pending=offset_um is not None and self._write_pending())
+
+    def _write_checked(self, offset_um: float | None, life: Life | None) -> None:
+        """The one path of every write: the offset checked and converted, then the backend's
+        :meth:`_write_raw`."""
+        raw = None
+        if offset_um is not None:
+            if (
+                isinstance(offset_um, bool)
+                or not isinstance(offset_um, (int, float))
+                or not math.isfinite(offset_um)
+            ):
+                raise BadValueError(f"{self.name}: refusing to write offset {offset_um!r}")
+            raw = self.units.to_controller(offset_um)
+            log.debug("%s: write offset %.4f um (raw %r)", self.name, offset_um, raw)
+        self.open()
+        if offset_um is not None:
+            self.offset_um_requested = float(offset_um)
+        self._write_raw(raw, life)
+
+    writes_life: bool = False
+    """Whether this configured link writes a sign of life (a life counter and a "compensation
+    valid" flag) with the offset. A backend sets it from its settings; default False."""
+
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        """Backend hook: write the offset (in the controller's unit; None: leave it) and the
+        sign of life (None: none this time). A backend that can put both into one request
+        overrides this; the default writes the offset, then the life sign."""
+        if raw is not None:
+            self._write_offset_raw(raw)
+        if life is not None:
+            self._write_life_raw(life)
+
+    def _write_life_raw(self, life: Life) -> None:
+        """Backend hook: write the life counter and the valid flag."""
+        raise AdapterError(f"{self.name}: this link writes no sign of life")
 
     def _write_pending(self) -> bool:
         """Whether the last write is checked with the next reading (a deferred check)."""
@@ -948,18 +991,10 @@ class Adapter(Link):
         return um
 
     def write_offset_um(self, offset_um: float) -> None:
-        """Write the thermal offset [um]; a non-finite value never leaves this method."""
-        if (
-            isinstance(offset_um, bool)
-            or not isinstance(offset_um, (int, float))
-            or not math.isfinite(offset_um)
-        ):
-            raise BadValueError(f"{self.name}: refusing to write offset {offset_um!r}")
-        self.open()
-        raw = self.units.to_controller(offset_um)
-        log.debug("%s: write offset %.4f um (raw %r)", self.name, offset_um, raw)
-        self.offset_um_requested = float(offset_um)
-        self._write_offset_raw(raw)
+        """Write the thermal offset [um] alone; a non-finite value never leaves this method."""
+        if offset_um is None:
+            raise BadValueError(f"{self.name}: refusing to write offset None")
+        self._write_checked(offset_um, None)
 
     def take_write_mismatch(self) -> float | None:
         """For a third-party backend that checks writes later through ``_take_mismatch_raw``:

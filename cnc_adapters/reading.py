@@ -28,6 +28,7 @@ __all__ = [
     "Capabilities",
     "Failure",
     "FailureKind",
+    "Life",
     "Measurement",
     "Reading",
     "Wants",
@@ -124,6 +125,8 @@ class Capabilities:
     """It takes tool-setter or probe measurements from the controller."""
     inputs: tuple[str, ...] = ()
     """The names of the input channels it reads."""
+    life_sign: bool = False
+    """It writes a sign of life (:class:`Life`) with the offset: the control can watch it."""
 
 
 def _frozen(values: Mapping[str, float | Failure] | None) -> Mapping[str, float | Failure] | None:
@@ -164,6 +167,30 @@ class Reading:
     @property
     def speed_read(self) -> bool:
         return not isinstance(self.speed_rpm, Failure)
+
+
+LIFE_MODULUS = 32767
+"""The life counter runs 1 .. 32767 and wraps to 1: it fits a signed 16-bit word of every
+control, and 0 means "never written" (a control that finds 0 knows thermocomp never ran)."""
+
+
+@dataclass(frozen=True)
+class Life:
+    """The sign of life written with the offset: a counter the control watches (it moves every
+    cycle the service writes or confirms the offset; a counter that stops means thermocomp has
+    stopped), and whether compensation is valid (false while the service holds, does not
+    write, or stops cleanly)."""
+
+    counter: int
+    valid: bool
+
+    def __post_init__(self) -> None:
+        if isinstance(self.counter, bool) or not 0 <= self.counter <= LIFE_MODULUS:
+            raise ValueError(f"life counter {self.counter!r} is not in 0..{LIFE_MODULUS}")
+
+    def next(self, valid: bool) -> Life:
+        """The next beat: the counter moved on (1 .. 32767, then 1 again), ``valid`` as given."""
+        return Life(self.counter % LIFE_MODULUS + 1, bool(valid))
 
 
 @dataclass(frozen=True)
