@@ -17,11 +17,22 @@ from .base import (
     WriteRejectedError,
     redact_url,
 )
-from .reading import Capabilities, Failure, FailureKind, Measurement, Reading, Wants, WriteResult
+from .reading import (
+    LIFE_MODULUS,
+    Capabilities,
+    Failure,
+    FailureKind,
+    Life,
+    Measurement,
+    Reading,
+    Wants,
+    WriteResult,
+)
 from .registry import BACKENDS, backend, check_adapter, open_adapter, settings_model
 
 __all__ = [
     "BACKENDS",
+    "LIFE_MODULUS",
     "Adapter",
     "AdapterError",
     "AdapterSettings",
@@ -31,6 +42,7 @@ __all__ = [
     "ConfigError",
     "Failure",
     "FailureKind",
+    "Life",
     "Link",
     "Measurement",
     "Reading",

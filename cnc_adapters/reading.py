@@ -25,6 +25,7 @@ from compensator.errors import (
 )
 
 __all__ = [
+    "LIFE_MODULUS",
     "Capabilities",
     "Failure",
     "FailureKind",
