@@ -29,7 +29,18 @@ measurement.sigma    float  in  only with ``measurement_sigma = true``: the meas
 cutting              bit    in  only with ``cutting = "pin"``: the tool is in the part
 at-speed             bit    in  with ``cutting = "at-speed"`` or ``"feed"``: net to spindle.N.at-speed
 motion-type          s32    in  with ``cutting = "feed"``: net motion.motion-type
+life-counter         s32    out the sign of life: 1 .. 32767, one step each cycle thermocomp writes
+life-toggle          bit    out flips with each step of the counter (for HAL's ``watchdog``)
+comp-valid           bit    out true while thermocomp compensates (false: holding, not writing, stopped)
 ==================== ====== === ===========================================================
+
+The sign of life: each cycle that writes or confirms the offset moves ``life-counter`` on and
+flips ``life-toggle``, in the same call that sets the offset pins (the offset first, so a beat
+never runs ahead of its offset). ``comp-valid`` is false while the runtime holds or cannot write,
+and after a clean stop (its last beat). A killed thermocomp leaves every pin where it was: the
+toggle stops, and that is what the control watches. The HAL recipe that watches it and its
+reactions (an alarm that stops the next cycle start, a feed hold, a fade of the offset to zero)
+are ``examples/linuxcnc/thermocomp-watchdog.hal`` and its companions (docs/controls/linuxcnc.md).
 
 External offsets are accumulated count deltas times the scale, zeroed at every machine-on and
 honoured only once all joints are homed (LinuxCNC's external-offsets chapter). So while the
@@ -94,6 +105,7 @@ from .base import (
     Allowed,
     BadValueError,
     CuttingValues,
+    Life,
     NonZero,
     Positive,
     RawMeasurement,
@@ -224,6 +236,7 @@ class LinuxCncAdapter(Adapter):
     Settings: ClassVar[type[AdapterSettings]] = LinuxCncSettings
     can_read_offset: ClassVar[bool] = True  # an instance with held_pin = "" cannot
     can_read_measurement: ClassVar[bool] = True  # an instance without measurement = true cannot
+    writes_life = True  # the life pins are always exported: a HAL file nets them or not
 
     def __init__(
         self,
@@ -286,6 +299,7 @@ class LinuxCncAdapter(Adapter):
         self._stat: Any = None
         self._lcnc: Any = None
         self._ready = False
+        self._toggle = False  # life-toggle as last written
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -328,6 +342,9 @@ class LinuxCncAdapter(Adapter):
                 c.newpin("at-speed", hal.HAL_BIT, hal.HAL_IN)
             if self.cutting == "feed":
                 c.newpin("motion-type", hal.HAL_S32, hal.HAL_IN)
+            c.newpin("life-counter", hal.HAL_S32, hal.HAL_OUT)
+            c.newpin("life-toggle", hal.HAL_BIT, hal.HAL_OUT)
+            c.newpin("comp-valid", hal.HAL_BIT, hal.HAL_OUT)
             c["eoffset-scale"] = self.count
             c["eoffset-counts"] = 0
             c["eoffset-enable"] = True
@@ -396,17 +413,36 @@ class LinuxCncAdapter(Adapter):
                 "axis.<L>.eoffset-request of the axis the counts drive)"
             ) from err
 
-    def _write_offset_raw(self, value: float) -> None:
+    def _counts(self, value: float) -> int:
         counts = round(value / self.count)
         if abs(counts) > S32:
             raise BadValueError(
                 f"linuxcnc write offset pin {self.component}.eoffset-counts: {value:g} "
                 f"does not fit the s32 counts at this scale"
             )
+        return counts
+
+    def _write_offset_raw(self, value: float) -> None:
+        self._write_raw(value, None)
+
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        # the offset checked before any pin moves: a refused offset writes no beat either
+        counts = None if raw is None else self._counts(raw)
         c = self._comp
-        c["offset-um"] = self.offset_um_requested
-        if self._ready:
-            c["eoffset-counts"] = counts
+        if counts is not None:
+            c["offset-um"] = self.offset_um_requested
+            if self._ready:
+                c["eoffset-counts"] = counts
+        if life is not None:
+            self._write_life_raw(life)
+
+    def _write_life_raw(self, life: Life) -> None:
+        c = self._comp
+        if life.counter != c["life-counter"]:  # the same beat again is no new beat
+            self._toggle = not self._toggle
+        c["life-counter"] = life.counter
+        c["life-toggle"] = self._toggle
+        c["comp-valid"] = life.valid
 
     def input_channels(self) -> tuple[str, ...]:
         return self.inputs
