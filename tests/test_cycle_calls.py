@@ -85,7 +85,12 @@ def test_a_cycle_reads_once_and_writes_at_most_once(tmp_path: Path) -> None:
             assert made.get("read") == 1, made
             assert made.get("write", 0) <= 1 and set(made) <= {"read", "write"}, made
             writes += made.get("write", 0)
-            assert out.written == bool(made.get("write", 0)) or k in down
+            # the one write carries the offset, or only the sign of life that confirms it
+            assert not out.written or made.get("write") == 1
+            if k not in down:  # every cycle the link is up: the sign of life
+                assert made.get("write") == 1, (k, made)
+            assert sim.writes_life and (rt.offset.life is not None)
     finally:
         rt.close()
     assert writes >= 10 and link.calls["read"] == 300  # it compensated through it all
+    assert rt.offset.life is not None and rt.offset.life.counter == 300 - len(down)

@@ -41,7 +41,7 @@ def test_a_controller_that_keeps_a_foreign_value_gets_writes_again_once_it_takes
         held = [80.0]  # beyond the 50 um clamp
         refusing = [True]
 
-        def write(value: float) -> WriteResult:
+        def write(value: float | None, life: object = None) -> WriteResult:
             if refusing[0]:
                 return WriteResult(Failure(FailureKind.REFUSED, "locked by the control"))
             held[0] = value

@@ -120,6 +120,8 @@ class Builder:
         for name, rt in running.spindles.items():
             if name in built:
                 built[name].take_journal(rt)
+            else:  # no longer compensated: its control is told so
+                last_beat(rt)
             rt.close()
         if running.cooling is not None:
             running.cooling.close()
@@ -137,6 +139,23 @@ class Builder:
             err,
             level=logging.ERROR,
             error=str(err)[:300],
+        )
+
+
+def last_beat(rt: SpindleRuntime) -> None:
+    """Spindle ``rt``'s last sign of life at a clean stop (compensation not valid); never
+    raises."""
+    try:
+        life = rt.offset.last_beat(rt.adapter.write, rt.link.up)
+    except Exception as err:  # noqa: BLE001 - stopping goes on; the counter stops anyway
+        log.warning("%s: last sign of life not written: %s", rt.cfg.name, err)
+        return
+    if life is not None:
+        log.info(
+            "%s: last sign of life %d: compensation no longer valid; the control holds %.3f um",
+            rt.cfg.name,
+            life.counter,
+            rt.offset.held_um,
         )
 
 

@@ -11,6 +11,13 @@ write check, a machine that is off and applies 0), :meth:`rewrite` for a link th
   or the transient policy;
 - ``HOLDING``: the controller keeps an older value because a write was not possible; the
   shaper moves on from that value, so when writes resume the offset ramps, never jumps.
+
+Where the link writes a sign of life (:class:`cnc_adapters.Life`), it goes with the offset in
+the cycle's one write: a cycle that writes the offset sends both, one that has no new offset to
+write (none due, or holding) confirms the held one with the sign of life alone. The counter
+moves only when the controller took the write, so a control that watches it sees thermocomp
+stop, hang or lose the link; the "compensation valid" flag says whether the offset the
+controller holds follows the estimate now.
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ import logging
 import math
 from collections.abc import Callable
 
-from cnc_adapters import Failure, FailureKind, Reading, WriteResult
+from cnc_adapters import Failure, FailureKind, Life, Reading, WriteResult
 from compensator.shaping import Flag, OffsetShaper, ShapedOffset, ShaperConfig
 
 from .alarms import Alarm
@@ -31,6 +38,15 @@ from .link import Heard, LinkWatch
 log = logging.getLogger("thermocomp.runtime")
 
 _SLOWED = Flag.SLEW_LIMITED | Flag.TRANSIENT | Flag.RELEASING
+NOT_COMPENSATING = (
+    Alarm.NOT_READY
+    | Alarm.ESTIMATE_REFUSED
+    | Alarm.IDLE_ASSUMED
+    | Alarm.SPEED_READ_FAILED
+    | Alarm.WRITE_BACKOFF
+)
+"""A cycle with any of these holds the offset: compensation is not valid (the status's
+``holding`` or ``not writing``, :func:`.states.spindle_state`)."""
 
 
 class OffsetMode(enum.Enum):
@@ -126,6 +142,7 @@ class ControllerOffset(OffsetTracker):
         *,
         held_um: float = 0.0,
         can_read_back: bool = False,
+        writes_life: bool = False,
     ):
         super().__init__(config, held_um)
         self.name = name
@@ -147,6 +164,10 @@ class ControllerOffset(OffsetTracker):
         # the last cycle the controller held the offset the shaper aimed at (a write went
         # through, or none was due): the spindle's state counts cycles from here
         self.last_in_step_s: float | None = None
+        # the sign of life last taken by the controller (counter 0: none yet); None: this link
+        # writes none
+        self.life: Life | None = Life(0, False) if writes_life else None
+        self.life_error: str | None = None  # why the sign of life alone fails, while it does
 
     def follow(self, old: ControllerOffset) -> None:
         """Go on from ``old`` (a reload): the shaper's settling and the timing of the writes.
@@ -154,6 +175,8 @@ class ControllerOffset(OffsetTracker):
         self.shaper.follow(old.shaper)
         self.last_write_s, self.write_done_s = old.last_write_s, old.write_done_s
         self.last_in_step_s = old.last_in_step_s
+        if self.life is not None and old.life is not None:
+            self.life = old.life  # the control's watcher sees the counter go on, never restart
 
     # -- the read-back ------------------------------------------------------------------
 
@@ -296,23 +319,33 @@ class ControllerOffset(OffsetTracker):
         shaped: ShapedOffset,
         heard: Heard,
         link: LinkWatch,
-        write: Callable[[float], WriteResult],
+        write: Callable[[float | None, Life | None], WriteResult],
         clock: Callable[[], float],
+        cycle_alarms: Alarm = Alarm.NONE,
     ) -> tuple[bool, Alarm]:
-        """Write ``shaped`` when due and the controller can take it; whether it was written and
-        the alarms. A controller that is not ready (machine off, in E-stop, not homed) applies
-        its own offset; once it is ready the offset is re-seeded from there through the slew
-        limit."""
+        """Write ``shaped`` when due and the controller can take it, with the sign of life;
+        where no offset is written and the link is up, the sign of life alone confirms the held
+        one. Whether the offset was written and the alarms. ``cycle_alarms``: the cycle's so
+        far, for the "compensation valid" flag. A controller that is not ready (machine off, in
+        E-stop, not homed) applies its own offset; once it is ready the offset is re-seeded
+        from there through the slew limit."""
         wanted = self.wants_write(shaped)
         wrote, alarms = False, Alarm.NONE
         if heard.not_ready_um is not None:
             alarms |= Alarm.NOT_READY
             self.controller_holds(heard.not_ready_um)
+            alarms |= self.confirm(now, write, link, valid=self.valid(False, alarms))
         elif link.up and wanted and self.writes and not self.paused(now) and not self.unsure:
-            result = write(shaped.offset_um)
+            life = None if self.life is None else self.life.next(self.valid(True, cycle_alarms))
+            result = write(shaped.offset_um, life)
             alarms |= self.took(now, result, clock(), link)
             wrote = result.taken
-        elif not link.up:
+            if wrote and life is not None:
+                self.life = life
+        elif link.up:  # nothing due, or held: confirm
+            in_step = not wanted and not self.paused(now)
+            alarms |= self.confirm(now, write, link, valid=self.valid(in_step, cycle_alarms))
+        else:
             self.counters["link_down_cycles"] += 1
         self.settle(
             now,
@@ -325,6 +358,61 @@ class ControllerOffset(OffsetTracker):
         if self.paused(now):
             alarms |= Alarm.WRITE_BACKOFF
         return wrote, alarms
+
+    def valid(self, in_step: bool, alarms: Alarm) -> bool:
+        """Whether compensation is valid once this cycle's write is taken: the controller then
+        holds the offset aimed at (``in_step``: a write of it, or none due) and nothing holds
+        it (:data:`NOT_COMPENSATING`); the same rule as the spindle's state
+        (:func:`.states.spindle_state`), which a test holds them to. The chiller alone
+        compensates while it runs."""
+        if not self.writes:
+            return True
+        return in_step and not alarms & NOT_COMPENSATING
+
+    def confirm(
+        self,
+        now: float,
+        write: Callable[[float | None, Life | None], WriteResult],
+        link: LinkWatch,
+        *,
+        valid: bool,
+    ) -> Alarm:
+        """The sign of life alone (no offset): the counter moves on when the controller took
+        it. A link without one is not asked at all."""
+        if self.life is None or not link.up:
+            return Alarm.NONE
+        life = self.life.next(valid)
+        failure = write(None, life).failure
+        if failure is None:
+            if self.life_error is not None:
+                log.warning("%s: sign of life written again", self.name)
+            self.life, self.life_error = life, None
+            return Alarm.NONE
+        if failure.link_lost:
+            return link.failed(now, failure)
+        if self.life_error is None:  # once while it fails, not every cycle
+            log.error("%s: sign of life not written: %s", self.name, failure.reason)
+        self.life_error = failure.reason
+        if failure.kind is FailureKind.REFUSED:
+            self.counters["write_rejected"] += 1
+            return Alarm.WRITE_REJECTED
+        return Alarm.NONE
+
+    def last_beat(
+        self, write: Callable[[float | None, Life | None], WriteResult], link_up: bool
+    ) -> Life | None:
+        """A clean stop: one last sign of life with compensation not valid, the offset left
+        where it is (the control's watcher reacts as its integrator chose). The sign written,
+        or None (no sign of life on this link, the link down or the write failed)."""
+        if self.life is None or not link_up:
+            return None
+        life = self.life.next(False)
+        result = write(None, life)
+        if not result.taken:
+            log.warning("%s: last sign of life not written: %s", self.name, result.failure)
+            return None
+        self.life = life
+        return life
 
     def took(self, now: float, result: WriteResult, done_s: float, link: LinkWatch) -> Alarm:
         """The outcome of this cycle's write, returned at clock time ``done_s``."""

@@ -24,6 +24,7 @@ from .status import (
     spindle_status,
     start_server,
     state_of,
+    stopped_state,
 )
 
 if TYPE_CHECKING:  # paho is imported only where MQTT is configured
@@ -79,10 +80,16 @@ class Publisher:
                     reason=str(err)[:200],
                 )
 
-    def derive(self, spindles: Mapping[str, SpindleRuntime], now: float) -> dict[str, SpindleState]:
-        """Each spindle's state at ``now`` (:func:`.states.spindle_state`, the one derivation);
-        a change is one ``spindle_state`` event."""
-        states = {name: state_of(rt, now) for name, rt in spindles.items()}
+    def derive(
+        self, spindles: Mapping[str, SpindleRuntime], now: float, *, stopped: bool = False
+    ) -> dict[str, SpindleState]:
+        """Each spindle's state at ``now`` (:func:`.states.spindle_state`, the one derivation;
+        ``stopped``: what a clean stop leaves, :func:`.states.stopped_state`); a change is one
+        ``spindle_state`` event."""
+        states = {
+            name: stopped_state(rt) if stopped else state_of(rt, now)
+            for name, rt in spindles.items()
+        }
         for name, st in states.items():
             before = self.states.get(name)
             if before is None or before.state != st.state:
@@ -92,7 +99,9 @@ class Publisher:
                     "%s: %s",
                     name,
                     st.line,
-                    level=logging.INFO if st.compensating or before is None else logging.WARNING,
+                    level=logging.INFO
+                    if st.compensating or before is None or st.state == "stopped"
+                    else logging.WARNING,
                     state=st.state,
                     reason=st.reason,
                     was=None if before is None else before.state,
@@ -110,10 +119,13 @@ class Publisher:
         uptime_s: float,
         reload_failed: bool,
         cooling: dict[str, Any] | None,
+        stopped: bool = False,
     ) -> None:
         """Derive the states, build the snapshot and hand it to the endpoint, the history and
-        the broker. ``text``: the status line, read once the states are derived."""
-        states = self.derive(spindles, now)
+        the broker. ``text``: the status line, read once the states are derived. ``stopped``:
+        the last one, as the service stops cleanly (each spindle ``stopped``, with the offset
+        the control holds; retained on the broker)."""
+        states = self.derive(spindles, now, stopped=stopped)
         if self.server is None and self.mqtt is None and self.history is None:
             return
         sp = [spindle_status(rt, now, states[name]) for name, rt in spindles.items()]

@@ -33,7 +33,7 @@ from .config import RuntimeConfig, load_config
 from .control import ControlChannel
 from .cooling import CoolingRuntime
 from .events import event
-from .fleet import Builder, Fleet
+from .fleet import Builder, Fleet, last_beat
 from .host import TIME_ERROR, Systemd, kernel_clock_synchronized, sd_notify, setup_logging
 from .inbox import Inbox
 from .lock import AlreadyRunningError, StateDirLock
@@ -179,7 +179,7 @@ class Service:
         except Exception as err:  # noqa: BLE001 - the status never stops the offset
             log.error("status not published: %s", err)
 
-    def _publish(self, now: float) -> None:
+    def _publish(self, now: float, *, stopped: bool = False) -> None:
         self.publisher.publish(
             self.spindles,
             now,
@@ -188,6 +188,7 @@ class Service:
             uptime_s=now - self._started_s,
             reload_failed=self.reload_failed,
             cooling=None if self.cooling is None else self.cooling.status(),
+            stopped=stopped,
         )
 
     def _open_control(self) -> None:
@@ -308,7 +309,9 @@ class Service:
         ones), then each one that does not, with why, and what else needs attention."""
         states = self.states or self.publisher.derive(self.spindles, self.clock())
         good = [n for n, st in states.items() if st.compensating]
-        if len(good) == len(states):
+        if states and all(st.state == "stopped" for st in states.values()):
+            head = "stopped"
+        elif len(good) == len(states):
             head = f"compensating {len(states)} spindle(s)"
         elif not good:
             head = f"NOT compensating (0 of {len(states)} spindle(s))"
@@ -375,7 +378,16 @@ class Service:
         return self.exit_code
 
     def close(self) -> None:
+        """A clean stop: each spindle's last sign of life says compensation is no longer valid
+        and the offset stays where it is (the control's watcher reacts as its integrator chose);
+        the status and the broker say so, then everything closes."""
         self.inbox.close()
+        for rt in self.spindles.values():
+            last_beat(rt)
+        try:
+            self._publish(self.clock(), stopped=True)
+        except Exception as err:  # noqa: BLE001 - stopping goes on
+            log.error("status not published at the stop: %s", err)
         self.publisher.close(self.cfg.state_dir / "status.url")
         for rt in self.spindles.values():
             rt.close()
@@ -390,7 +402,13 @@ class Service:
 def main(args: argparse.Namespace) -> int:
     if args.check:
         return check(args.config)
-    cfg = load_config(args.config)
-    setup_logging(cfg)  # before anything else is said
-    service = Service(args.config, cfg=cfg)
-    return service.run(getattr(args, "early_signals", None))
+    try:
+        cfg = load_config(args.config)
+        setup_logging(cfg)  # before anything else is said
+        service = Service(args.config, cfg=cfg)
+        return service.run(getattr(args, "early_signals", None))
+    finally:
+        # Python puts back SIGHUP's default action (death) as the interpreter shuts down: a
+        # reload asked for then would kill a service that stopped cleanly
+        if hasattr(signal, "SIGHUP"):
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)

@@ -9,7 +9,9 @@ state and events:
 - :class:`~.link.LinkWatch`: the speed to step with (held up to ``faults.speed_hold_s`` while a
   read fails, then idle assumed), link down and ``OUTAGE``, the cutting signal;
 - :class:`~.offset.ControllerOffset`: the read-back (``OFFSET_MISMATCH``), write back-off, and
-  the shaped offset ``A = -S`` written at most once a cycle (:meth:`cnc_adapters.Adapter.write`);
+  the shaped offset ``A = -S`` written at most once a cycle (:meth:`cnc_adapters.Adapter.write`),
+  with the sign of life where the link writes one (or the sign alone, confirming the held
+  offset);
 - the estimate (:class:`compensator.estimate.Estimate`, as replay runs it): the model, its
   speed-only fallback while an input fails, the speed clamp;
 - :class:`~.intake.ProbeIntake`: measurements fused by the observer, ``PROBE_*``,
@@ -226,6 +228,7 @@ class SpindleRuntime:
             self.counters,
             held_um=held_um,
             can_read_back=caps.held_offset,
+            writes_life=caps.life_sign,
         )
 
     # -- views --------------------------------------------------------------------------
@@ -439,7 +442,7 @@ class SpindleRuntime:
             # a controller may refresh its speed less often than we read: stay fast one period
             self.pace.run_up_until_s = now + self.cfg.period_s
         wrote, write_alarms = self.offset.apply(
-            now, shaped, heard, self.link, self.adapter.write, self.clock
+            now, shaped, heard, self.link, self.adapter.write, self.clock, alarms
         )
         alarms |= write_alarms
         latency_ms = (time.perf_counter() - t_read) * 1e3

@@ -34,9 +34,10 @@ def finite(value: Any) -> float | None:
 # -- the spindle's state: one derivation ------------------------------------------------------
 
 STATES = ("compensating", "holding", "not writing")
-"""Every state a spindle can be in, best first."""
+"""Every state a running spindle can be in, best first. A clean stop leaves a fourth,
+``stopped`` (:func:`stopped_state`), in the last status the service publishes."""
 
-StateWord = Literal["compensating", "holding", "not writing"]
+StateWord = Literal["compensating", "holding", "not writing", "stopped"]
 
 
 class SpindleFacts(BaseModel):
@@ -204,3 +205,13 @@ def spindle_facts(rt: SpindleRuntime, now_s: float) -> SpindleFacts:
 def state_of(rt: SpindleRuntime, now_s: float) -> SpindleState:
     """Runtime ``rt``'s state at clock time ``now_s``."""
     return spindle_state(spindle_facts(rt, now_s))
+
+
+def stopped_state(rt: SpindleRuntime) -> SpindleState:
+    """What a clean stop leaves: the offset the controller holds (last written or read back)
+    stays there; the control's watcher reacts as its integrator chose."""
+    if not rt.writes_offset:
+        return SpindleState(state="stopped", reason="no offset was written (the chiller only)")
+    held = rt.offset.held_um
+    known = "" if rt.link.up else " (as last known: the link is down)"
+    return SpindleState(state="stopped", reason=f"the control holds {held:.2f} µm{known}")

@@ -44,6 +44,7 @@ from .states import (
     spindle_facts,
     spindle_state,
     state_of,
+    stopped_state,
 )
 
 __all__ = [
@@ -66,6 +67,7 @@ __all__ = [
     "spindle_status",
     "start_server",
     "state_of",
+    "stopped_state",
 ]
 
 

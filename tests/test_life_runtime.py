@@ -1,0 +1,347 @@
+"""The sign of life the runtime writes with the offset (a counter the control watches and a
+"compensation valid" flag), the clean stop that says so, and a stop that SIGHUPs cannot turn
+into a death by signal.
+
+Cycle-level tests run the real sim link in lock-step (an injected clock); the link below only
+records what the runtime hands to its one write, so what a control would see can be asserted
+beat by beat."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cnc_adapters import BadValueError, Failure, FailureKind, Life, WriteResult
+from compensator.io import save_model
+from compensator.model import ThermalModel
+from compensator.speed_programs import job_shop_day
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import VirtualMachine
+from thermocomp.runtime import Service, SpindleRuntime
+from thermocomp.runtime.alarms import Alarm
+from thermocomp.runtime.config import load_config
+from thermocomp.runtime.states import state_of
+
+WALL0 = 1.77e9
+
+
+class LifeLink(SimAdapter):
+    """The sim link with a sign of life: every write the runtime asks for is recorded (the
+    offset or None, the life sign), and the controller's counter and flag are what it took.
+    ``refuse`` makes the controller refuse the next writes."""
+
+    writes_life = True
+
+    def __init__(self, **kw: Any) -> None:
+        super().__init__(**kw)
+        self.asked: list[tuple[float | None, Life | None]] = []
+        self.taken: list[Life] = []  # what the controller holds, beat by beat
+        self.refuse = False
+        self.not_ready_um: float | None = None  # E-stop: the control applies this offset
+        self.bad_speed = False  # the speed reads as a value that is no number
+
+    def _read_speed_raw(self) -> float:
+        if self.bad_speed:
+            raise BadValueError("speed: not a number")
+        return super()._read_speed_raw()
+
+    def not_ready_offset_um(self) -> float | None:
+        return self.not_ready_um
+
+    def write(self, offset_um: float | None, life: Life | None = None) -> WriteResult:
+        self.asked.append((offset_um, life))
+        if self.refuse:
+            return WriteResult(Failure(FailureKind.REFUSED, "the control refuses"))
+        return super().write(offset_um, life)
+
+    def _write_life_raw(self, life: Life) -> None:
+        self.taken.append(life)
+
+
+def _model(tmp_path: Path) -> Path:
+    model = tmp_path / "model.json"
+    save_model(
+        model,
+        ThermalModel.from_discrete(0.99, (0.0, 0.002, 0.0, 0.0), 1.0, speed_range_rpm=(0, 24000)),
+    )
+    return model
+
+
+def _config(tmp_path: Path, extra: str = "") -> Path:
+    path = tmp_path / "machine.toml"
+    path.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
+        f'model = "{_model(tmp_path)}"\nperiod_s = 1.0\nadapter = {{url = "sim://"}}\n'
+        "[spindle.shaping]\nmax_offset_um = 40.0\nmax_rate_um_per_s = 2.0\n"
+        "deadband_um = 0.1\n" + extra
+    )
+    return path
+
+
+class Rig:
+    """One spindle's runtime on a LifeLink over the virtual machine, in simulated time."""
+
+    def __init__(self, tmp_path: Path, extra: str = "") -> None:
+        self.cfg = load_config(_config(tmp_path, extra))
+        self.t = [0.0]
+        vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=3), None, clock=lambda: self.t[0]
+        )
+        vm.load_program(job_shop_day(preset("motorized-27k").max_rpm, seed=3, hours=1))
+        self.link = LifeLink(machine=vm)
+        self.rt = self.runtime()
+
+    def runtime(self, previous: SpindleRuntime | None = None) -> SpindleRuntime:
+        return SpindleRuntime(
+            self.cfg.spindle[0],
+            self.cfg.state_dir,
+            self.cfg.journal_path,
+            clock=lambda: self.t[0],
+            wall=lambda: WALL0 + self.t[0],
+            adapter=self.link,
+            previous=previous,
+        )
+
+    def cycle(self) -> tuple[Any, list[tuple[float | None, Life | None]]]:
+        self.t[0] += 1.0
+        before = len(self.link.asked)
+        out = self.rt.cycle()
+        return out, self.link.asked[before:]
+
+
+def test_every_cycle_with_the_link_up_writes_one_beat_and_the_counter_moves_by_one(
+    tmp_path: Path,
+) -> None:
+    """An offset written carries the beat; a cycle with no new offset due confirms the held one
+    with the beat alone. Either way one write, and the counter the control sees moves by one
+    each cycle, valid while the spindle compensates."""
+    rig = Rig(tmp_path)
+    try:
+        confirms = offsets = 0
+        for k in range(1, 121):
+            out, asked = rig.cycle()
+            assert len(asked) == 1, asked  # the one write of the cycle
+            offset, life = asked[0]
+            assert life is not None and life.counter == k
+            assert rig.link.taken[-1] == life and len(rig.link.taken) == k
+            assert rig.rt.offset.life == life
+            if offset is None:
+                confirms += 1
+                assert not out.written
+            else:
+                offsets += 1
+                assert out.written and offset == out.offset_um
+            # the flag is the spindle's state as the status derives it after the cycle
+            assert life.valid == state_of(rig.rt, rig.t[0]).compensating, k
+        assert offsets >= 10 and confirms >= 10  # both kinds of beat happened
+        assert all(life.valid for life in rig.link.taken[5:])  # it compensates
+    finally:
+        rig.rt.close()
+
+
+def test_a_refused_write_does_not_move_the_counter(tmp_path: Path) -> None:
+    """The controller refuses every write: the counter stays where the controller last took
+    it, and each write asks for the next one, never further: no gap when it comes back."""
+    rig = Rig(tmp_path)
+    try:
+        for _ in range(30):
+            rig.cycle()
+        assert rig.link.taken[-1] == Life(30, True) and rig.rt.offset.life == Life(30, True)
+        rig.link.refuse = True
+        for _ in range(20):
+            _, asked = rig.cycle()
+            assert len(asked) == 1 and rig.rt.offset.life == Life(30, True)
+        assert len(rig.link.taken) == 30
+        assert {life.counter for _, life in rig.link.asked[30:] if life is not None} == {31}
+        rig.link.refuse = False
+        rig.cycle()
+        assert rig.link.taken[-1].counter == 31
+    finally:
+        rig.rt.close()
+
+
+def test_holding_on_a_sensor_fault_beats_with_compensation_not_valid(tmp_path: Path) -> None:
+    """The speed cannot be read (a bad value, the link up): the spindle holds; the beat goes
+    on (the service lives) and says compensation is not valid, then valid again."""
+    rig = Rig(tmp_path)
+    try:
+        for _ in range(20):
+            rig.cycle()
+        rig.link.bad_speed = True
+        for _ in range(5):
+            out, asked = rig.cycle()
+            assert out.alarms & Alarm.SPEED_READ_FAILED and len(asked) == 1
+            assert asked[0][1] == rig.link.taken[-1] and not rig.link.taken[-1].valid
+        assert rig.link.taken[-1].counter == 25
+        rig.link.bad_speed = False
+        rig.cycle()
+        assert rig.link.taken[-1] == Life(26, True)
+    finally:
+        rig.rt.close()
+
+
+def test_writes_backed_off_confirm_with_compensation_not_valid(tmp_path: Path) -> None:
+    """Something on the control keeps zeroing the offset: the writes back off and the offset
+    is held, then not written; the beat alone goes on, not valid, until writes follow again."""
+    rig = Rig(
+        tmp_path,
+        "[spindle.faults]\nreadback_every = 1\nmax_mismatches = 1\nmax_write_backoff_s = 8\n",
+    )
+    try:
+        for _ in range(120):
+            rig.cycle()
+        assert abs(rig.rt.offset.held_um) > 1.0 and rig.link.taken[-1].valid
+        paused = 0
+        for _ in range(30):
+            rig.link.machine.offset_um = 0.0  # an NC program zeroes it each cycle
+            out, asked = rig.cycle()
+            assert len(asked) == 1 and asked[0][1] == rig.link.taken[-1]
+            if out.alarms & Alarm.WRITE_BACKOFF:
+                paused += 1
+                assert asked[0][0] is None and not rig.link.taken[-1].valid
+        assert paused >= 10 and rig.link.taken[-1].counter == 150
+        for _ in range(30):
+            rig.cycle()
+        assert rig.link.taken[-1] == Life(180, True)
+    finally:
+        rig.rt.close()
+
+
+def test_a_machine_that_is_not_ready_gets_the_beat_with_compensation_not_valid(
+    tmp_path: Path,
+) -> None:
+    rig = Rig(tmp_path)
+    try:
+        for _ in range(10):
+            rig.cycle()
+        rig.link.not_ready_um = 0.0  # E-stop: the control applies its own offset
+        for _ in range(5):
+            out, asked = rig.cycle()
+            assert out.alarms & Alarm.NOT_READY
+            assert asked == [(None, rig.link.taken[-1])] and not rig.link.taken[-1].valid
+        rig.link.not_ready_um = None
+        for _ in range(5):
+            out, asked = rig.cycle()
+        assert rig.link.taken[-1].valid and rig.link.taken[-1].counter == 20
+    finally:
+        rig.rt.close()
+
+
+def test_the_counter_survives_a_reload(tmp_path: Path) -> None:
+    """A reload (the same model) and a promotion start the new runtime from the old one's:
+    the control sees the counter go on, never back to 1."""
+    rig = Rig(tmp_path)
+    try:
+        for _ in range(25):
+            rig.cycle()
+        old = rig.rt
+        rig.rt = rig.runtime(previous=old)
+        rig.rt.take_journal(old)
+        assert rig.rt.offset.life == old.offset.life and old.offset.life is not None
+        assert old.offset.life.counter == 25
+        _, asked = rig.cycle()
+        assert asked[0][1] is not None and asked[0][1].counter == 26
+    finally:
+        rig.rt.close()
+
+
+def test_a_clean_stop_writes_valid_false_once_and_leaves_the_offset(tmp_path: Path) -> None:
+    """The service's own stop: one last beat per spindle, compensation not valid, no offset;
+    the status says stopped and what the control holds."""
+    cfg = _config(tmp_path)
+    t = [0.0]
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=3), None, clock=lambda: t[0])
+    vm.load_program(job_shop_day(preset("motorized-27k").max_rpm, seed=3, hours=1))
+    link = LifeLink(machine=vm)
+
+    def sleep(s: float) -> None:
+        t[0] += s
+
+    service = Service(cfg, clock=lambda: t[0], wall=lambda: WALL0 + t[0], sleep=sleep, lock=False)
+    service.spindles["s1"].close()
+    service.spindles["s1"] = SpindleRuntime(
+        service.cfg.spindle[0],
+        service.cfg.state_dir,
+        service.cfg.journal_path,
+        clock=lambda: t[0],
+        wall=lambda: WALL0 + t[0],
+        adapter=link,
+        anchor_s=service.anchor_s,
+    )
+    rt = service.spindles["s1"]
+    while t[0] < 200:
+        wait = service.tick()
+        sleep(max(wait, 0.01))
+    held = rt.offset.held_um
+    assert abs(held) > 1.0 and link.taken[-1].valid
+    n_asked, counter = len(link.asked), link.taken[-1].counter
+    service.close()
+    assert link.asked[n_asked:] == [(None, Life(counter + 1, False))]  # once, no offset
+    assert link.taken[-1] == Life(counter + 1, False)
+    assert vm.offset_um == pytest.approx(held)  # the offset stays where it was
+    st = service.states["s1"]
+    assert st.state == "stopped" and st.line == f"stopped: the control holds {held:.2f} µm"
+    assert service.status_text().startswith("stopped; s1 stopped: the control holds")
+
+
+def _wait_for(path: Path, text: str, proc: subprocess.Popen[str]) -> None:
+    """Until ``text`` is in the log at ``path`` (the service is up), or the process ended."""
+    while proc.poll() is None:
+        if path.exists() and text in path.read_text():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"the service ended before {text!r}: {proc.returncode}")
+
+
+def test_sighups_while_the_service_stops_never_kill_it(tmp_path: Path) -> None:
+    """SIGHUPs every 2 ms, then SIGTERM, and more SIGHUPs until the process is gone: it stops
+    cleanly (exit 0, never a death by SIGHUP's default action as the interpreter shuts down).
+    Several runs: before the fix every one of them died."""
+    model = _model(tmp_path)
+    log = tmp_path / "log.jsonl"
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\nlog_file = "{log}"\n'
+        f'[[spindle]]\nname = "s1"\nmodel = "{model}"\nperiod_s = 0.5\n'
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=2"}\n'
+    )
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    for run in range(3):
+        log.unlink(missing_ok=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        try:
+            _wait_for(log, '"event": "started"', proc)
+            for _ in range(100):
+                proc.send_signal(signal.SIGHUP)
+                time.sleep(0.002)
+            proc.send_signal(signal.SIGTERM)
+            while proc.poll() is None:  # SIGHUPs all through the stop and the exit
+                try:
+                    os.kill(proc.pid, signal.SIGHUP)
+                except ProcessLookupError:
+                    break
+                time.sleep(0.002)
+            code = proc.wait(60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        err = proc.stderr.read() if proc.stderr else ""
+        assert code == 0, (run, code, err[-2000:])
+        msgs = [json.loads(line)["msg"] for line in log.read_text().splitlines()]
+        assert msgs[-1] == "stopped; state saved"
