@@ -116,7 +116,7 @@ class Rsh:
 
 
 class LinuxCnc:
-    def __init__(self, directory: Path):
+    def __init__(self, directory: Path, env: dict[str, str] | None = None):
         self.dir = directory
         self.port = free_port()
         ini = (directory / "thermocomp_sim.ini").read_text()
@@ -126,6 +126,7 @@ class LinuxCnc:
             "PATH": f"{linuxcnc_venv() / 'bin'}:/usr/bin:/bin",
             "HOME": str(directory),
             "LANG": "C.UTF-8",
+            **(env or {}),
         }
         self.proc = subprocess.Popen(
             as_user(

@@ -1,0 +1,220 @@
+"""The control's watch on thermocomp's sign of life, as the virtual CNC runs it.
+
+thermocomp writes a life counter (1 .. 32767, wrapping to 1; 0 = never written) and a
+"compensation valid" flag with the offset. The control judges them on its own clock (here the
+virtual machine's simulated time, never the wall clock):
+
+- **waiting**: the counter has never been written (0). thermocomp has never run on this control,
+  so there is nothing to watch and nothing happens: the virtual CNC works without thermocomp.
+  The watch arms at the first beat (a counter that moves to a value other than 0) and stays
+  armed until the control restarts.
+- **ok**: the counter moved within ``timeout_s`` and the flag is true.
+- **stale**: the counter has not moved for ``timeout_s`` (thermocomp died, hangs or lost the link).
+- **invalid**: the flag is false (thermocomp stopped cleanly, holds, or knows its offset is
+  wrong): the control reacts at once, whatever the counter does.
+
+Leaving ok (for stale or invalid) is a *trip*; the reaction the integrator chose starts then:
+
+- ``none``: today's behaviour: the offset stays as it is; the state is shown, nothing else.
+- ``alarm``: an alarm text is set and the next cycle start is refused; the running program goes
+  on to its end. The alarm is latched: the operator's reset clears it, and only once the sign of
+  life is back (ok); a reset while it is still missing leaves it standing.
+- ``feed-hold``: the running program pauses where it is (its time stops, the axes stand, the
+  tool does not cut). The spindle keeps its speed, as on most controls, where a feed hold stops
+  the feed and not the spindle: the spindle's growth stays where the offset was right.
+  Latched: the operator's cycle start resumes the program, and only once the sign of life is
+  back; the machine never moves on by itself.
+- ``fade``: the applied offset goes to zero first-order, with time constant ``fade_tau_s`` (a
+  spindle's cooling constant: the growth it compensated decays about as fast once the spindle
+  stops), never faster than ``fade_max_rate_um_per_s``. The fade stops by itself when the sign
+  of life is back (thermocomp writes its offset again); the offset stays where the fade left it
+  until then.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from cnc_adapters.reading import LIFE_MODULUS
+
+Reaction = Literal["none", "alarm", "feed-hold", "fade"]
+REACTIONS: tuple[Reaction, ...] = ("none", "alarm", "feed-hold", "fade")
+WatchState = Literal["waiting", "ok", "stale", "invalid"]
+
+FADE_TAU_S = 1200.0
+"""The default fade: the virtual motorized spindle's cooling time constant at rest (its growth
+falls by 1/e in 18 to 22 min once the elastic part has gone), typical of motorized spindles."""
+FADE_RATE_UM_PER_S = 1.0
+"""The default cap on the fade's rate: the slow slew limit the service itself keeps while cutting."""
+FADE_ZERO_UM = 0.001
+"""A fading offset below this is zero: a first-order decay would never end."""
+ALARM_STALE = "7001 THERMAL COMPENSATION: no sign of life from thermocomp for {timeout:g} s"
+ALARM_INVALID = "7002 THERMAL COMPENSATION: thermocomp says its offset is not valid"
+
+
+@dataclass(frozen=True)
+class WatchSettings:
+    """How the control watches the sign of life and how it reacts (see the module)."""
+
+    timeout_s: float = 3.0
+    reaction: Reaction = "none"
+    fade_tau_s: float = FADE_TAU_S
+    fade_max_rate_um_per_s: float = FADE_RATE_UM_PER_S
+
+    def __post_init__(self) -> None:
+        if self.reaction not in REACTIONS:
+            raise ValueError(
+                f"watch reaction {self.reaction!r} is not one of {', '.join(REACTIONS)}"
+            )
+        for name in ("timeout_s", "fade_tau_s", "fade_max_rate_um_per_s"):
+            v = getattr(self, name)
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not (math.isfinite(v) and v > 0)
+            ):
+                raise ValueError(f"watch {name} must be a finite number > 0, got {v!r}")
+
+
+class Watch:
+    """The watcher: fed the counter and the flag as the control reads them (:meth:`beat`) and
+    judged on the machine's clock (:meth:`update`). Pure: it owns no clock and moves nothing; the
+    machine asks it what is in force (:attr:`alarm`, :attr:`held`, :attr:`fading`)."""
+
+    def __init__(self, settings: WatchSettings | None = None) -> None:
+        self.settings = settings or WatchSettings()
+        self.restart()
+
+    def restart(self) -> None:
+        """The control (re)starts: the nodes read 0 and false, nothing is armed or latched."""
+        self.counter = 0
+        self.valid = False
+        self.last_beat_s: float | None = None
+        """Machine time the counter last moved; None: never (the watch waits)."""
+        self.state: WatchState = "waiting"
+        self.trips = 0
+        self.tripped_at_s: float | None = None
+        """Machine time of the last trip; None: never."""
+        self.alarm = ""
+        """The latched alarm text ('' when none): the next cycle start is refused."""
+        self.held = False
+        """The latched feed hold: the program pauses until the operator resumes it."""
+        self.fading = False
+        """The offset is fading to zero."""
+
+    @property
+    def armed(self) -> bool:
+        return self.last_beat_s is not None
+
+    @property
+    def ok(self) -> bool:
+        """Nothing to react to: the sign of life is there, or it has never been."""
+        return self.state in ("waiting", "ok")
+
+    def with_reaction(self, reaction: Reaction) -> None:
+        """Change the reaction. A watch that has tripped acts as if it had been set so at the trip
+        (a what-if from a copy of the machine: the reaction follows from the trip alone)."""
+        self.settings = replace(self.settings, reaction=reaction)
+        self.alarm, self.held, self.fading = "", False, False
+        if not self.ok:
+            self._react()
+
+    def beat(self, counter: object, valid: object, now_s: float) -> WatchState:
+        """The counter and the flag as the control reads them at ``now_s``. A beat is a counter
+        that moved to another value in 1 .. 32767; 0 (never written), a value out of range or
+        not a whole number moves nothing. A flag that is not a Boolean true is false."""
+        good = (
+            isinstance(counter, int)
+            and not isinstance(counter, bool)
+            and 0 < counter <= LIFE_MODULUS
+        )
+        if good and counter != self.counter:
+            self.last_beat_s = float(now_s)
+        if good or counter == 0:
+            self.counter = int(counter)  # type: ignore[call-overload]
+        self.valid = valid is True
+        return self.update(now_s)
+
+    def update(self, now_s: float) -> WatchState:
+        """Judge at ``now_s`` (machine time): the state, tripping (the reaction starts) when it
+        leaves ok, and ending a fade when the sign of life is back."""
+        new: WatchState
+        if self.last_beat_s is None:
+            new = "waiting"
+        elif not self.valid:
+            new = "invalid"
+        elif now_s - self.last_beat_s >= self.settings.timeout_s - 1e-9:
+            new = "stale"
+        else:
+            new = "ok"
+        if new in ("stale", "invalid") and self.state in ("waiting", "ok"):
+            self.state = new
+            self.trips += 1
+            self.tripped_at_s = float(now_s)
+            self._react()
+        elif new == "ok":
+            self.fading = False  # thermocomp writes its offset again
+        self.state = new
+        return new
+
+    def _react(self) -> None:
+        r = self.settings.reaction
+        if r == "alarm":
+            self.alarm = (
+                ALARM_INVALID
+                if self.state == "invalid"
+                else ALARM_STALE.format(timeout=self.settings.timeout_s)
+            )
+        elif r == "feed-hold":
+            self.held = True
+        elif r == "fade":
+            self.fading = True
+
+    @property
+    def refusal(self) -> str:
+        """Why the next cycle start is refused ('' when it is not)."""
+        if self.alarm:
+            return self.alarm
+        if self.held and not self.ok:
+            return "feed hold: the sign of life from thermocomp is missing"
+        return ""
+
+    def reset(self) -> bool:
+        """The operator's reset: the alarm clears if the sign of life is back (True when
+        nothing is latched after it)."""
+        if self.ok:
+            self.alarm = ""
+        return not self.alarm
+
+    def resume(self) -> bool:
+        """The operator's cycle start during a feed hold: the program resumes if the sign of
+        life is back (True when it does)."""
+        if self.held and self.ok and not self.alarm:
+            self.held = False
+            return True
+        return False
+
+    def fade(self, offset_um: float, dt_s: float) -> float:
+        """The offset ``dt_s`` later while fading: first-order toward 0 with ``fade_tau_s``,
+        never faster than ``fade_max_rate_um_per_s``; 0 once below :data:`FADE_ZERO_UM`."""
+        s = self.settings
+        target = offset_um * math.exp(-dt_s / s.fade_tau_s)
+        cap = s.fade_max_rate_um_per_s * dt_s
+        step = max(-cap, min(cap, target - offset_um))
+        out = offset_um + step
+        return 0.0 if abs(out) < FADE_ZERO_UM else out
+
+    def reaction_text(self) -> str:
+        """What the control does now, for its status node: '' when nothing is in force."""
+        if self.ok and not (self.alarm or self.held):
+            return ""
+        parts = []
+        if self.alarm:
+            parts.append("alarm: cycle start refused")
+        if self.held:
+            parts.append("feed hold: program paused")
+        if self.fading:
+            parts.append("fade: offset to zero")
+        return "; ".join(parts) or "none: offset kept"

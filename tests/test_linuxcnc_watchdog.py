@@ -1,0 +1,249 @@
+"""The sign of life against the real LinuxCNC: the example sim configuration with the shipped
+watchdog recipe (examples/linuxcnc/thermocomp-watchdog.hal and its reactions), thermocomp's
+HAL component beating, then killed with SIGKILL.
+
+Time is HAL's own: a few stock components appended for the test count servo-thread time
+(``integ``) from the last flip of the life toggle HAL saw to the watchdog's ok falling, and
+stamp the samples of the fade. The wall clock only bounds how long the test waits."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+from pathlib import Path
+
+import pytest
+from test_linuxcnc import EXAMPLE, ROOT, USER, LinuxCnc, as_user, hal_lock, on_and_homed, why_not
+
+pytestmark = pytest.mark.skipif(why_not() is not None, reason=why_not() or "")
+
+SERVO_PERIOD_S = 0.001  # [EMCMOT]SERVO_PERIOD of thermocomp_sim.ini
+TIMEOUT_S = 2.0  # beats every 0.1 s: twenty missed before the watchdog speaks
+FADE_TAU_S = 1.0  # the first-order fade's time constant ...
+FADE_CAP = 500.0  # ... and its cap [counts/s]: 5 um/s at 0.01 um per count
+OFFSET_UM = -10.0  # thermocomp's sign: +10 um on Z, 1000 counts
+COUNTS = 1000
+
+# the adapter as the service drives it: the offset and a beat each 0.1 s, valid once the
+# machine is on and homed (before, the runtime confirms with valid false)
+BEAT = """
+import os, sys, time
+from cnc_adapters import Life
+from cnc_adapters.linuxcnc import LinuxCncAdapter
+
+a = LinuxCncAdapter(component="thermocomp", cutting="feed")
+a.open()
+life = Life(0, False)
+while True:
+    ready = a.read().not_ready_offset_um is None
+    life = life.next(ready)
+    result = a.write(float(sys.argv[1]), life)
+    assert result.taken, result.failure
+    time.sleep(0.1)
+"""
+
+# HAL's clocks for the test: seconds of servo time since the last flip of the life toggle
+# while the watchdog is ok (frozen once it falls), the largest such gap, the smallest ok seen,
+# the time thermocomp-ok has been false, and a plain clock
+MEASURE = """
+loadrt edge           names=tcw-beat
+loadrt conv_bit_float names=tcw-ok-f,tcw-not-ok-f
+loadrt integ          names=tcw-since-beat,tcw-since-fault,tcw-clock
+loadrt minmax         names=tcw-gap,tcw-ok-min
+addf tcw-beat       servo-thread
+addf tcw-ok-f       servo-thread
+addf tcw-not-ok-f   servo-thread
+addf tcw-since-beat servo-thread
+addf tcw-since-fault servo-thread
+addf tcw-clock      servo-thread
+addf tcw-gap        servo-thread
+addf tcw-ok-min     servo-thread
+setp tcw-beat.both 1
+setp tcw-clock.in 1
+net thermocomp-life                           => tcw-beat.in
+net tcw-beat          tcw-beat.out            => tcw-since-beat.reset
+net thermocomp-beating                        => tcw-ok-f.in
+net tcw-ok-f          tcw-ok-f.out            => tcw-since-beat.in tcw-ok-min.in
+net tcw-since-beat    tcw-since-beat.out      => tcw-gap.in
+net thermocomp-not-ok                         => tcw-not-ok-f.in
+net tcw-not-ok-f      tcw-not-ok-f.out        => tcw-since-fault.in
+"""
+
+RECIPE = (
+    "thermocomp-watchdog.hal",
+    "thermocomp-alarm.hal",
+    "thermocomp-feedhold.hal",
+    "thermocomp-fade.hal",
+)
+
+PROGRAM = """o<thermocomp_check> call
+M68 E2 Q1
+G1 X40 F60
+M2
+"""
+
+
+@contextlib.contextmanager
+def watched_rig(beat: str | None = BEAT):
+    """The example configuration with the whole recipe; thermocomp's component is the adapter
+    driven by ``beat`` (None: the thermocomp service of the example, from this tree)."""
+    directory = Path(tempfile.mkdtemp(prefix="thermocomp-watchdog-", dir="/tmp"))
+    shutil.copytree(EXAMPLE, directory, dirs_exist_ok=True)
+    hal = directory / "thermocomp.hal"
+    if beat is not None:
+        (directory / "beat.py").write_text(beat)
+        text = hal.read_text()
+        service = "loadusr -Wn thermocomp thermocomp run --config thermocomp.toml"
+        assert service in text
+        hal.write_text(text.replace(service, f"loadusr -Wn thermocomp python beat.py {OFFSET_UM}"))
+    (directory / "measure.hal").write_text(MEASURE)
+    (directory / "run.ngc").write_text(PROGRAM)
+    ini = directory / "thermocomp_sim.ini"
+    halfiles = "".join(f"HALFILE = {f}\n" for f in (*RECIPE, "measure.hal"))
+    text = ini.read_text().replace(
+        "HALFILE = thermocomp.hal\n", f"TWOPASS = on\nHALFILE = thermocomp.hal\n{halfiles}"
+    )
+    gain = 1 - math.exp(-SERVO_PERIOD_S / FADE_TAU_S)
+    text += (
+        f"\n[THERMOCOMP]\nWATCHDOG_TIMEOUT_S = {TIMEOUT_S}\nFADE_GAIN = {gain!r}\n"
+        f"FADE_MAX_COUNTS_PER_S = {FADE_CAP}\n"
+    )
+    ini.write_text(text)
+    if os.geteuid() == 0:
+        shutil.chown(directory, USER)
+        for p in directory.rglob("*"):
+            shutil.chown(p, USER)
+    with hal_lock():
+        rig = LinuxCnc(directory, env={"PYTHONPATH": str(ROOT)})
+        try:
+            yield rig
+        finally:
+            rig.stop()
+            shutil.rmtree(directory, ignore_errors=True)
+
+
+def component_pid(cnc: LinuxCnc, name: str) -> int:
+    """The process that owns HAL component ``name`` (halcmd's PID column)."""
+    r = subprocess.run(
+        as_user(["halcmd", "-s", "show", "comp", name]), capture_output=True, text=True, timeout=20
+    )
+    for line in r.stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 4 and parts[1] == "User" and parts[2] == name:
+            return int(parts[3])
+    raise AssertionError(f"no user component {name}: {r.stdout}")
+
+
+def setp(pin: str, value: object) -> None:
+    subprocess.run(as_user(["halcmd", "setp", pin, str(value)]), check=True, timeout=20)
+
+
+def rsh_status(cnc: LinuxCnc) -> str:
+    return cnc.rsh.cmd("get program_status")
+
+
+def run_program(cnc: LinuxCnc) -> None:
+    """run.ngc in auto mode, its marker (motion.analog-out-02) cleared first."""
+    r = cnc.rsh
+    r.set("mode mdi")
+    r.set("mdi m68 e2 q0")
+    assert cnc.wait(lambda: cnc.getp("motion.analog-out-02") == 0.0)
+    r.set("mode auto")
+    r.set(f"open {cnc.dir / 'run.ngc'}")
+    r.set("run")
+
+
+def fade_model(t_s: float) -> float:
+    """The counts ``t_s`` seconds of HAL time after ok fell: first order toward 0 with
+    FADE_TAU_S, never faster than FADE_CAP (whichever is slower at each instant)."""
+    return max(COUNTS * math.exp(-t_s / FADE_TAU_S), COUNTS - FADE_CAP * t_s, 0.0)
+
+
+def test_killed_thermocomp_stops_the_machine_within_the_timeout():
+    with watched_rig() as cnc:
+        r = cnc.rsh
+        # in E-stop at start: thermocomp not valid, the watchdog not armed, nothing applied
+        pins = ("watchdog.ok-out", "thermocomp.comp-valid", "thermocomp-ok.out")
+        assert cnc.getps(pins) == [False, False, False]
+        on_and_homed(cnc)
+        # valid once on and homed: the watchdog is armed, the counts go through unchanged
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True)
+        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
+        counts, life = cnc.getps(("thermocomp.eoffset-counts", "thermocomp.life-counter"))
+        assert counts == COUNTS and life > 1
+        for tracker in ("tcw-ok-min", "tcw-gap", "tcw-since-fault"):  # from here on
+            setp(f"{tracker}.reset", 1)
+            setp(f"{tracker}.reset", 0)
+
+        # a cycle start is let through: the check passes, the marker is set, the cut begins
+        run_program(cnc)
+        assert cnc.wait(lambda: cnc.getp("motion.analog-out-02") == 1.0)
+        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
+        # beats at 10 Hz with a 2 s timeout: ok all along, 3 s of HAL time
+        t0 = cnc.getp("tcw-clock.out")
+        cnc.wait(lambda: cnc.getp("tcw-clock.out") - t0 > 3.0)
+        gap, ok_min, ok = cnc.getps(("tcw-gap.max", "tcw-ok-min.min", "thermocomp-ok.out"))
+        assert ok_min == 1.0 and ok is True
+        assert gap < TIMEOUT_S / 2, gap
+        assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+        assert cnc.getp("axis.z.eoffset-request") == pytest.approx(COUNTS * 1e-5)
+
+        # SIGKILL of the process that owns the component: no last word, every pin stays
+        os.kill(component_pid(cnc, "thermocomp"), signal.SIGKILL)
+        assert cnc.wait(lambda: cnc.getp("watchdog.ok-out") is False, timeout=60)
+        # the reaction time on HAL's clock: from the last flip HAL saw to ok falling
+        since = cnc.getp("tcw-since-beat.out")
+        # each sample between two readings of HAL's clock (halcmd reads one pin after the
+        # other, and a loaded machine may deschedule it between them)
+        samples = []
+        watched = (
+            "tcw-since-fault.out",
+            "axis.z.eoffset-counts",
+            "axis.z.eoffset-request",
+            "motion.current-vel",
+            "joint.0.pos-fb",
+            "tcw-since-fault.out",
+        )
+
+        def faded() -> bool:
+            samples.append([float(v) for v in cnc.getps(watched)])
+            return samples[-1][1] == 0.0
+
+        cnc.wait(faded, timeout=120, every=0.02)
+        print(
+            f"\nlargest beat gap {gap:.3f} s; ok fell {since:.3f} s after the last beat "
+            f"(timeout {TIMEOUT_S} s, servo period {SERVO_PERIOD_S * 1e3:g} ms); faded to 0 "
+            f"{samples[-1][0]:.3f} s later ({len(samples)} samples)"
+        )
+        assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
+        # the dead component's pins: valid still true, only the watchdog tells
+        assert cnc.getps(("thermocomp.comp-valid", "thermocomp-ok.out")) == [True, False]
+
+        # (c) the fade: first order with tau, capped, on HAL's clock; the counts truncated
+        t_a, counts, request, vel, x, t_b = (list(c) for c in zip(*samples, strict=True))
+        assert len(counts) >= 5 and t_a[0] < 1.0  # seen from the start of the fade
+        for ta, ci, ri, tb in zip(t_a, counts, request, t_b, strict=True):
+            assert fade_model(tb) - 1 <= ci <= fade_model(ta) + 1e-6, (ta, tb, ci)
+            assert abs(ri * 1e5 - ci) <= FADE_CAP * (tb - ta) + 2  # motion holds the chain's
+        for i in range(1, len(counts)):
+            step = counts[i - 1] - counts[i]
+            assert 0 <= step <= FADE_CAP * (t_b[i] - t_a[i - 1]) + 1, (i, step)
+        assert counts[-1] == 0 and abs(request[-1]) < 1e-9
+
+        # (b) the feed hold: the cut stopped where it was, the program still running
+        held = [i for i in range(len(t_a)) if t_a[i] > 0.05]
+        assert held and all(vel[i] == 0.0 and x[i] == x[held[0]] for i in held)
+        assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+
+        # (a) the next cycle start is refused at the program's first line, with the message
+        r.set("abort")
+        assert cnc.wait(lambda: rsh_status(cnc) == "PROGRAM_STATUS IDLE")
+        run_program(cnc)
+        assert cnc.wait(lambda: rsh_status(cnc) == "PROGRAM_STATUS IDLE")
+        assert "thermal compensation stopped - cycle start refused" in r.cmd("get error")
+        assert cnc.getp("motion.analog-out-02") == 0.0  # its next line never ran
