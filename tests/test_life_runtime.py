@@ -345,3 +345,84 @@ def test_sighups_while_the_service_stops_never_kill_it(tmp_path: Path) -> None:
         assert code == 0, (run, code, err[-2000:])
         msgs = [json.loads(line)["msg"] for line in log.read_text().splitlines()]
         assert msgs[-1] == "stopped; state saved"
+
+
+def test_a_clean_stop_leaves_stopped_retained_on_the_broker(
+    tmp_path: Path, calibrated_model: Path
+) -> None:
+    """A real broker (mosquitto): the clean stop publishes each spindle as ``stopped`` with the
+    offset the control holds, retained, before ``offline``; a dashboard that connects later
+    reads it."""
+    from test_mqtt import MOSQUITTO, TOPIC, Brokers, FakeClock, Subscriber, config, wait_for
+
+    if not MOSQUITTO.exists():
+        pytest.skip("mosquitto is not installed (scripts/system-deps.sh installs it)")
+    brokers = Brokers(tmp_path)
+    try:
+        port = brokers.start()
+        cfg = config(tmp_path, calibrated_model, f'host = "127.0.0.1"\nport = {port}')
+        clock = FakeClock()
+        svc = Service(cfg, clock=clock, wall=lambda: WALL0 + clock.t, lock=False)
+        svc.start_status()
+        live = Subscriber(port)
+        try:
+            assert svc.mqtt is not None
+            wait_for(lambda: svc.mqtt is not None and svc.mqtt.connected, 10, "the connection")
+            while clock.t < 300:
+                clock.t += max(svc.tick(), 0.25)
+            held = svc.spindles["s1"].offset.held_um
+            assert abs(held) > 1.0
+            svc.close()
+            live.wait("availability", lambda p, r: p == "offline")
+            with live.lock:
+                got = list(live.messages)
+            offline = max(
+                i for i, m in enumerate(got) if m[:2] == (f"{TOPIC}/availability", "offline")
+            )
+            last = max(i for i, m in enumerate(got) if m[0] == f"{TOPIC}/spindle/s1")
+            assert last < offline and json.loads(got[last][1])["state"] == "stopped"
+        finally:
+            live.close()
+        late = Subscriber(port)
+        try:
+            sp = json.loads(late.wait("spindle/s1", lambda p, r: r))
+            assert sp["state"] == "stopped"
+            assert sp["state_reason"] == f"the control holds {held:.2f} µm"
+            st = json.loads(late.wait("status", lambda p, r: r))
+            assert st["status"].startswith("stopped; s1 stopped: the control holds")
+            assert late.wait("availability", lambda p, r: r) == "offline"
+        finally:
+            late.close()
+    finally:
+        brokers.stop()
+
+
+def test_run_check_warns_where_the_control_cannot_see_the_service_stop(
+    tmp_path: Path, calibrated_model: Path
+) -> None:
+    """`run --check` on the virtual CNC over OPC UA: its preset names the life counter and the
+    flag (no warning); with both turned off, one warning line naming the family's page."""
+    from machine_sim.vcnc import VirtualCNC, running, step
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: 0.0)
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
+        out = {}
+        for name, life in (("with", ""), ("without", ', life_node = "", valid_node = ""')):
+            cfg = tmp_path / f"{name}.toml"
+            cfg.write_text(
+                f'state_dir = "{tmp_path / "state"}"\n[[spindle]]\nname = "s1"\n'
+                f'model = "{calibrated_model}"\n'
+                f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc"{life}}}\n'
+            )
+            r = subprocess.run(
+                [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+            assert r.returncode == 0, r.stderr
+            out[name] = r.stdout
+    warning = "s1: warning: the control cannot tell when thermocomp stops; see docs/controls/"
+    assert warning not in out["with"] and "link ok" in out["with"]
+    assert f"{warning}index.md\n" in out["without"]

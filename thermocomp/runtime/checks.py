@@ -8,7 +8,7 @@ import argparse
 import json
 import math
 
-from cnc_adapters import open_adapter
+from cnc_adapters import BACKENDS, open_adapter
 from cnc_adapters.base import Adapter
 from cnc_adapters.chiller import open_chiller
 from compensator.errors import ConfigError, ControlError
@@ -65,6 +65,37 @@ def shaping_check(sc: SpindleConfig, link: Adapter) -> str:
     return f"shaping: {words[sh.policy]}; {source}"
 
 
+FAMILY_DOCS = {
+    "linuxcnc": "linuxcnc",
+    "focas": "fanuc",
+    "haas": "haas",
+    "haas-mdc": "haas",
+    "plc": "plc",
+    "modbus": "plc",
+}
+"""A link's backend -> its control family's page in ``docs/controls/`` (the others: the index)."""
+
+
+def family_doc(sc: SpindleConfig, link: Adapter) -> str:
+    """The page of the control family a spindle's link drives: its profile's, else its
+    backend's family, else the index of the families."""
+    if sc.profile is not None:
+        return sc.profile.doc
+    spec = f"{type(link).__module__}:{type(link).__name__}"
+    kind = next((name for name, where in BACKENDS.items() if where == spec), "")
+    return f"docs/controls/{FAMILY_DOCS.get(kind, 'index')}.md"
+
+
+def life_check(sc: SpindleConfig, link: Adapter) -> str | None:
+    """A warning where the link writes no sign of life: the control cannot watch the service."""
+    if link.capabilities.life_sign:
+        return None
+    return (
+        f"{sc.name}: warning: the control cannot tell when thermocomp stops; see "
+        f"{family_doc(sc, link)}"
+    )
+
+
 def check(config_path: str) -> int:
     """Validate the configuration, load the models, connect, read one speed; write nothing."""
     cfg = load_config(config_path)
@@ -88,7 +119,10 @@ def check(config_path: str) -> int:
             if getattr(link, "can_read_offset", False):
                 extra += f", holds offset {link.read_offset_um():.3f} um"
             extra += "; " + shaping_check(sc, link)
+            life = life_check(sc, link)
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
+        if life is not None:
+            print(life)
         if sc.profile is not None:
             res = (
                 f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"

@@ -10,6 +10,10 @@ later sees the latest at once:
   ``offline`` from the broker itself (the last will) when the service dies or goes silent for
   1.5 ``keepalive_s``.
 
+A clean stop publishes one last status before ``offline``: each spindle ``stopped``, with the
+offset the control holds ("stopped: the control holds X µm"), retained. After a kill the
+spindle topics keep the last status sent while it ran; ``offline`` (the will) says it is stale.
+
 Publishing never waits on the network: paho's own thread connects, reconnects with an
 exponential back-off (1 s doubling to :data:`RECONNECT_MAX_S`) and sends what :meth:`publish`
 hands it. While disconnected nothing is queued (a stale status is worth nothing later); the
