@@ -47,13 +47,22 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from .errors import ModelError, NonFiniteInputError, UnstableModelError
 from .filters import constant_decay, decaying_sum, one_minus_exp, rate_gains, rate_step
-from .modelbase import SAVED_LIMIT_UM, ModelBase, saved_numbers, speed_range  # noqa: F401 (their old home)
+from .modelbase import (  # noqa: F401 (SAVED_LIMIT_UM, saved_numbers: their old home)
+    MAX_FITTED_DT_S,
+    MAX_MODEL_UM,
+    MIN_FITTED_DT_S,
+    SAVED_LIMIT_UM,
+    ModelBase,
+    saved_numbers,
+    speed_range,
+)
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_krpm
 
 MODEL_FORMAT: Final = "thermocomp.model/1"
 
 _CHUNK = 16384  # samples per block: keeps the per-block temporaries in cache
 _MAX_LOG_SPAN = 500.0  # exp(500) is far from overflow; bounds the rescaling
+_BOUND_POINTS = 33  # speeds at which the equilibrium is held to MAX_MODEL_UM, rest to top
 
 
 class ThermalStateCoefficients(BaseModel):
@@ -95,9 +104,14 @@ class ThermalModel(ModelBase):
 
     format: Literal["thermocomp.model/1"] = MODEL_FORMAT
     form: str = Field("paper", description="name of the model form chosen by calibration")
-    fitted_dt_s: float = Field(gt=0, description="sample period of the calibration data [s]")
+    fitted_dt_s: float = Field(
+        gt=0,
+        description="sample period of the calibration data [s]",
+        # held to these by ModelBase's validator, which says why in its own words
+        json_schema_extra={"minimum": MIN_FITTED_DT_S, "maximum": MAX_FITTED_DT_S},
+    )
     speed_range_rpm: tuple[float, float] = Field(
-        description="(min, max) |speed| seen in calibration [rpm]"
+        description="(min, max) |speed| seen in calibration [rpm]; max 10 .. 1e6 rpm"
     )
     states: tuple[ThermalStateCoefficients, ...] = Field(min_length=1)
     elastic_um: tuple[float, float] = Field(
@@ -129,6 +143,35 @@ class ThermalModel(ModelBase):
                         f"state {j} is unstable at {n * SPEED_SCALE_RPM:.0f} rpm: "
                         f"a(n) = {a:.6g} >= 1 at dt = {self.fitted_dt_s:g} s "
                         f"(dissipation {lam:.3g} 1/s)"
+                    )
+        return self
+
+    @model_validator(mode="after")
+    def _bounded(self) -> ThermalModel:
+        # finite coefficients can still hold an equilibrium no calibration measured (a gain
+        # x 1e300): refused here, at load, before any arithmetic overflows on it
+        lo, hi = self.speed_range_rpm
+        for i in range(_BOUND_POINTS):
+            rpm = lo + (hi - lo) * i / (_BOUND_POINTS - 1)
+            n = rpm / SPEED_SCALE_RPM
+            parts = [
+                (f"state {j}", st.generation(n) / st.rate_per_s(n))
+                for j, st in enumerate(self.states, start=1)
+            ]
+            parts.append(("the elastic part", self.elastic(rpm)))
+            parts.append(
+                (
+                    "the model",
+                    math.fsum(v for _, v in parts)
+                    if all(math.isfinite(v) for _, v in parts)
+                    else math.inf,
+                )
+            )
+            for what, um in parts:
+                if not abs(um) <= MAX_MODEL_UM:
+                    raise ModelError(
+                        f"{what} holds {um:.4g} um at equilibrium at {rpm:.0f} rpm: beyond "
+                        f"{MAX_MODEL_UM:g} um, more than any calibration measures"
                     )
         return self
 

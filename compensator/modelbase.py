@@ -28,6 +28,24 @@ from .units import RANGE_TOLERANCE, speed_magnitude_rpm
 SAVED_LIMIT_UM = 1e4
 """No thermal state of a spindle is 10 mm: a saved value beyond this is a corrupt file."""
 
+MIN_TOP_RPM = 10.0
+"""The least top speed a calibration reaches [rpm]: a spindle turned slower heats too little to
+calibrate (the largest vertical lathes still turn their table at tens of rpm). A lower top makes
+every real speed read as impossible (above twice the calibrated top), compensation effectively
+off."""
+MAX_TOP_RPM = 1e6
+"""The most a calibrated top speed can be [rpm]: no run log holds a faster one
+(``compensator.io.runlog.MAX_SPEED_RPM``)."""
+MIN_FITTED_DT_S = 1e-3
+"""The shortest sample period of a calibration [s]: a thermal log is sampled in seconds."""
+MAX_FITTED_DT_S = 86400.0
+"""The longest sample period of a calibration [s]: sampled more rarely than daily, a log sees
+no thermal time constant."""
+MAX_MODEL_UM = 1e6
+"""The largest |elongation| a model may hold at equilibrium anywhere in its calibrated range, per
+thermal state or in all [um]: no run log holds more (``compensator.io.runlog``'s 1 m), so no
+calibration fits more, and beyond it a model's arithmetic nears a double's range (overflow)."""
+
 CHANNEL_NAME = r"^[A-Za-z0-9_.-]+$"
 """An input's name: a run-log column and a runtime channel."""
 
@@ -68,17 +86,28 @@ def model_error(err: ValidationError) -> ModelError:
     return ModelError(f"{where}: {item['msg']}{more}")
 
 
-def speed_range(value: tuple[float, float], *, positive_max: bool = False) -> tuple[float, float]:
-    """A calibrated |speed| range: finite, 0 <= min <= max (and max > 0 if ``positive_max``)."""
+def speed_range(value: tuple[float, float], *, positive_max: bool = True) -> tuple[float, float]:
+    """A calibrated |speed| range, one a calibration can produce: finite, 0 <= min <= max and
+    :data:`MIN_TOP_RPM` <= max <= :data:`MAX_TOP_RPM`. (``positive_max`` is kept for callers:
+    every form now needs a top speed a spindle turns at.)"""
     lo, hi = value
-    if (
-        not (math.isfinite(lo) and math.isfinite(hi))
-        or lo < 0
-        or hi < lo
-        or (positive_max and hi <= 0)
-    ):
-        need = "0 <= min <= max, max > 0" if positive_max else "0 <= min <= max"
-        raise ValueError(f"speed_range_rpm must satisfy {need}, got {value}")
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo:
+        raise ValueError(f"speed_range_rpm must satisfy 0 <= min <= max, got {value}")
+    if not MIN_TOP_RPM <= hi <= MAX_TOP_RPM:
+        raise ModelError(
+            f"speed_range_rpm tops at {hi:g} rpm: a calibration tops between {MIN_TOP_RPM:g} and "
+            f"{MAX_TOP_RPM:g} rpm (below, every real speed would count as impossible)"
+        )
+    return value
+
+
+def fitted_dt(value: float) -> float:
+    """A calibration's sample period: :data:`MIN_FITTED_DT_S` .. :data:`MAX_FITTED_DT_S`."""
+    if not MIN_FITTED_DT_S <= value <= MAX_FITTED_DT_S:
+        raise ModelError(
+            f"fitted_dt_s {value:g} s is no calibration's sample period "
+            f"({MIN_FITTED_DT_S:g} .. {MAX_FITTED_DT_S:g} s)"
+        )
     return value
 
 
@@ -151,6 +180,12 @@ class ModelBase(BaseModel):
             return super().model_validate(obj, **kwargs)
         except ValidationError as err:
             raise model_error(err) from err
+
+    # every form's sample period (the field is each form's own)
+    @field_validator("fitted_dt_s", check_fields=False)
+    @classmethod
+    def _fitted_dt(cls, value: float) -> float:
+        return fitted_dt(value)
 
     @field_validator("fit", mode="before")
     @classmethod

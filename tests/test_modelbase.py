@@ -165,9 +165,11 @@ def test_the_above_range_rule_is_one_for_every_model():
         assert not model.above_range(top * 1.01) and model.above_range(-top * 1.03)
 
 
-def test_speed_only_model_still_accepts_a_zero_top_speed_and_the_state_space_does_not():
-    ThermalModel(**{**first_order().model_dump(), "speed_range_rpm": (0.0, 0.0)})
-    with pytest.raises(ModelError, match="max > 0"):
+def test_no_form_accepts_a_top_speed_no_calibration_reaches():
+    # a zero top made every real speed count as impossible: compensation off
+    with pytest.raises(ModelError, match="tops at 0 rpm"):
+        ThermalModel(**{**first_order().model_dump(), "speed_range_rpm": (0.0, 0.0)})
+    with pytest.raises(ModelError, match="tops at 0 rpm"):
         StateSpaceModel(**{**speed_only().model_dump(), "speed_range_rpm": (0.0, 0.0)})
 
 

@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
+import sys
 import tempfile
 import time
 from datetime import UTC, datetime
@@ -28,15 +30,18 @@ from typing import Any
 
 import numpy as np
 
-from compensator.errors import ConfigError, ThermocompError
+from compensator.errors import ConfigError, ThermocompError, clip
 from compensator.io import load_any_model, model_digest, read_run_log, save_model
-from compensator.io.history import Event, HistoryRecord, ModelHistory, fit_summary
+from compensator.io.history import DIGEST_CHARS, Event, HistoryRecord, ModelHistory, fit_summary
 from compensator.io.journal_export import export_journal, iso
 
 from ..runtime.config import RuntimeConfig, SpindleConfig, load_config
 from ..runtime.lock import holder
 from ..runtime.service import plausible
 from .journal import parse_when
+
+SHADOW_KEPT = "shadow.json"
+"""The shadow candidate's file, kept aside while it leaves shadow (its record copies it)."""
 
 
 def _spindle(cfg: RuntimeConfig, name: str | None) -> SpindleConfig:
@@ -51,6 +56,39 @@ def _spindle(cfg: RuntimeConfig, name: str | None) -> SpindleConfig:
         if sc.name == name:
             return sc
     raise ConfigError(f"--spindle {name!r}: the configuration names {', '.join(names)}")
+
+
+def _entries(path: str | os.PathLike[str]) -> list[Path]:
+    """The directory entries reading ``path`` passes through: its own, then each symlink's target
+    in turn. Writing a file replaces its own entry (the first) and nothing behind it."""
+    out: list[Path] = []
+    p = Path(os.path.abspath(path))
+    for _ in range(40):  # the kernel's own limit on a chain of links
+        entry = Path(os.path.realpath(p.parent)) / p.name
+        if entry in out:
+            break
+        out.append(entry)
+        if not entry.is_symlink():
+            break
+        p = entry.parent / os.readlink(entry)
+    return out
+
+
+def _refuse_shared(cfg: RuntimeConfig, sc: SpindleConfig, what: str) -> None:
+    """A write of ``sc``'s model file must change no other spindle's model: refused (ConfigError)
+    when another spindle reads the same file, by the same name or through a link."""
+    written = _entries(sc.model)[0]
+    others = [o.name for o in cfg.spindle if o is not sc and written in _entries(o.model)]
+    if others:
+        raise ConfigError(
+            clip(
+                f"spindle {sc.name}: its model file {sc.model} is also spindle "
+                f"{', '.join(others)}'s: {what} would change {'their' if len(others) > 1 else 'its'} "
+                "model too; give each spindle its own copy of the file (model = in its "
+                "[[spindle]]) and reload the service, then try again",
+                500,
+            )
+        )
 
 
 def _history(cfg: RuntimeConfig, sc: SpindleConfig) -> ModelHistory:
@@ -97,10 +135,28 @@ def _tell_service(cfg: RuntimeConfig) -> str:
     return f"the service (pid {pid}) reloads, carrying its state over"
 
 
-def _put_in_use(cfg: RuntimeConfig, sc: SpindleConfig, model: Any) -> str:
-    """Write ``model`` over the configured model file (atomically) and have the service reload."""
-    save_model(sc.model, model)
-    return f"written to {sc.model}; " + _tell_service(cfg)
+def _write_model(sc: SpindleConfig, model: Any, path: Path | None = None) -> None:
+    """Write ``model`` over the configured model file (or ``path``), atomically; a write that
+    fails is a one-line ConfigError, and the file is as it was."""
+    target = Path(sc.model) if path is None else path
+    try:
+        save_model(target, model)
+    except OSError as err:
+        raise ConfigError(
+            clip(f"spindle {sc.name}: {target}: cannot write: {err.strerror or err}", 500)
+        ) from err
+
+
+def _record(history: ModelHistory, event: Event, model_file: Path, **kw: Any) -> str | None:
+    """Append a record of what took effect; a history that cannot be written does not undo it:
+    said on stderr, and the words for the summary returned (None: recorded)."""
+    try:
+        history.add(event, model_file, **kw)
+    except (OSError, ConfigError) as err:
+        why = f"the model history {history.directory} could not be written ({getattr(err, 'strerror', None) or err})"
+        print(f"thermocomp: warning: {why}; the {event} took effect", file=sys.stderr)
+        return why
+    return None
 
 
 def _judge_shadow(
@@ -169,10 +225,18 @@ def _judge_shadow(
                 if decision.promote
                 else "rejected"
             )
-            if not args.dry_run or not decision.promote:
-                history.add(
+            if args.dry_run:
+                # nothing takes effect, so nothing is recorded: it stays in shadow
+                out.update(
+                    outcome="candidate" if decision.promote else "rejected", reason=decision.reason
+                )
+            else:
+                said = _leave_shadow(
+                    cfg,
+                    sc,
+                    history,
+                    model if decision.promote else None,
                     event,
-                    path,
                     source=shadow.source,
                     reason=decision.reason,
                     at_wall_s=end_s,
@@ -180,13 +244,6 @@ def _judge_shadow(
                     data=shadow.data,
                     judged={**judged.figures(), "reason": decision.reason},
                 )
-            if args.dry_run:
-                out.update(
-                    outcome="candidate" if decision.promote else "rejected", reason=decision.reason
-                )
-            else:
-                path.unlink()  # out of shadow either way
-                said = _put_in_use(cfg, sc, model) if decision.promote else _tell_service(cfg)
                 out.update(
                     outcome="promoted" if decision.promote else "rejected",
                     reason=decision.reason,
@@ -202,12 +259,46 @@ def _judge_shadow(
     return 0
 
 
+def _leave_shadow(
+    cfg: RuntimeConfig,
+    sc: SpindleConfig,
+    history: ModelHistory,
+    promoted: Any,
+    event: Event,
+    **record: Any,
+) -> str:
+    """Take the candidate out of shadow: ``promoted`` (the candidate, checked) over the model
+    file first, or rejected; then its record (of what took effect); then the service told."""
+    path = history.shadow_path
+    with tempfile.TemporaryDirectory(prefix="thermocomp-shadow-") as tmp:
+        kept = Path(tmp) / SHADOW_KEPT
+        shutil.copyfile(path, kept)  # what the record keeps a copy of, once the file is gone
+        if promoted is not None:
+            _write_model(sc, promoted)
+        try:
+            path.unlink()
+        except OSError as err:
+            if promoted is None:
+                raise ConfigError(
+                    clip(f"spindle {sc.name}: {path}: cannot remove: {err.strerror or err}", 500)
+                ) from err
+            # promoted all the same: it runs beside itself until the next refit clears it
+            print(f"thermocomp: warning: {path}: cannot remove: {err.strerror}", file=sys.stderr)
+        unrecorded = _record(history, event, kept, **record)
+    said = (f"written to {sc.model}; " if promoted is not None else "") + _tell_service(cfg)
+    return said if unrecorded is None else f"{said}; {unrecorded}"
+
+
 def _opened(
-    args: argparse.Namespace,
+    args: argparse.Namespace, writes: str | None
 ) -> tuple[RuntimeConfig, SpindleConfig, ModelHistory, float, HistoryRecord]:
-    """The configuration, the spindle, its history, now, and the live model's record."""
+    """The configuration, the spindle, its history, now, and the live model's record. ``writes``:
+    what the command may do to the model file, refused before anything is recorded when the
+    file is another spindle's too (None: it writes none)."""
     cfg = load_config(args.config)
     sc = _spindle(cfg, args.spindle)
+    if writes is not None:
+        _refuse_shared(cfg, sc, writes)
     history = _history(cfg, sc)
     now = time.time()
     return cfg, sc, history, now, _live(history, sc, now)
@@ -216,7 +307,9 @@ def _opened(
 def refit_cmd(args: argparse.Namespace) -> int:
     from calibration.learning import Rule, refit
 
-    cfg, sc, history, _now, live_rec = _opened(args)
+    cfg, sc, history, _now, live_rec = _opened(
+        args, None if args.dry_run else "a promotion of its candidate"
+    )
     live_model = _checked(sc, Path(sc.model))
     start = parse_when(args.from_, "--from") if args.from_ else live_rec.at_wall_s
     rule = Rule(
@@ -295,40 +388,54 @@ def refit_cmd(args: argparse.Namespace) -> int:
             )
             # dated at the end of the data it was judged on: the journal's clock, which the next
             # refit's export starts from
-            rec = history.add(
-                event,
-                cand_path,
-                source=f"refit of {data['from']} .. {data['to']}",
-                reason=decision.reason,
-                at_wall_s=done.last_s,
-                fit=fit_summary(result.candidate),
-                data=data,
-                judged=judged,
-            )
+            record: dict[str, Any] = {
+                "source": f"refit of {data['from']} .. {data['to']}",
+                "reason": decision.reason,
+                "at_wall_s": done.last_s,
+                "fit": fit_summary(result.candidate),
+                "data": data,
+                "judged": judged,
+            }
+            short = model_digest(result.candidate)[:DIGEST_CHARS]
             out["candidate"] = {
                 **out.get("candidate", {}),
-                "digest": rec.short,
+                "digest": short,
                 "form": result.candidate.form,
             }
+            # what takes effect (the shadow file, the model file) first, then its record: the
+            # history holds only what took effect; the service is told last
             if to_shadow:
-                save_model(history.shadow_path, result.candidate)
+                _write_model(sc, result.candidate, history.shadow_path)
+                try:
+                    history.add(event, cand_path, **record)
+                except (OSError, ConfigError):
+                    # unrecorded, the next refit would not know it: not left in shadow
+                    history.shadow_path.unlink(missing_ok=True)
+                    raise
                 said = _tell_service(cfg)
                 say.append(
-                    f"into shadow for {sc.learning.shadow_h:g} h: {rec.short} ({decision.reason}); {said}"
+                    f"into shadow for {sc.learning.shadow_h:g} h: {short} ({decision.reason}); {said}"
                 )
                 out.update(outcome="shadow", reason=decision.reason, written=said)
-            elif decision.promote and not args.dry_run:
-                said = _put_in_use(cfg, sc, result.candidate)
-                say.append(f"promoted {rec.short}: {decision.reason}; {said}")
+            elif event == "promoted":
+                _write_model(sc, result.candidate)
+                unrecorded = _record(history, event, cand_path, **record)
+                said = f"written to {sc.model}; " + _tell_service(cfg)
+                if unrecorded is not None:
+                    said += f"; {unrecorded}"
+                say.append(f"promoted {short}: {decision.reason}; {said}")
                 out.update(outcome="promoted", reason=decision.reason, written=said)
-            elif decision.promote:
-                say.append(
-                    f"would promote {rec.short} (--dry-run: kept as a candidate): {decision.reason}"
-                )
-                out.update(outcome="candidate", reason=decision.reason)
             else:
-                say.append(f"rejected {rec.short}, kept in the history: {decision.reason}")
-                out.update(outcome="rejected", reason=decision.reason)
+                # a candidate, promoted or not, is kept in the history: the record is the effect
+                history.add(event, cand_path, **record)
+                if decision.promote:
+                    say.append(
+                        f"would promote {short} (--dry-run: kept as a candidate): {decision.reason}"
+                    )
+                    out.update(outcome="candidate", reason=decision.reason)
+                else:
+                    say.append(f"rejected {short}, kept in the history: {decision.reason}")
+                    out.update(outcome="rejected", reason=decision.reason)
         else:
             say.append(
                 f"held back: {decision.reason}"
@@ -399,7 +506,7 @@ def history_cmd(args: argparse.Namespace) -> int:
 
 
 def rollback_cmd(args: argparse.Namespace) -> int:
-    cfg, sc, history, now, live = _opened(args)
+    cfg, sc, history, now, live = _opened(args, "a rollback")
     if args.digest:
         target = history.find(args.digest)
     else:
@@ -418,7 +525,11 @@ def rollback_cmd(args: argparse.Namespace) -> int:
         return 0
     model = _checked(sc, history.copy_path(target))
     reason = args.reason or f"rolled back by hand from {live.short}"
-    history.add(
+    # the file first: the history records only what took effect; then the service, which
+    # finds the model recorded
+    _write_model(sc, model)
+    unrecorded = _record(
+        history,
         "rollback",
         history.copy_path(target),
         source=target.source,
@@ -428,9 +539,10 @@ def rollback_cmd(args: argparse.Namespace) -> int:
         data=target.data,
         judged=target.judged,
     )
-    said = _put_in_use(cfg, sc, model)
+    said = f"written to {sc.model}; " + _tell_service(cfg)
     print(
         f"{sc.name}: rolled back to {target.short} ({target.event} {iso(target.at_wall_s)}, "
         f"{target.fit.get('form') or '-'}); {said}"
+        + ("" if unrecorded is None else f"; {unrecorded}")
     )
     return 0
