@@ -46,7 +46,10 @@ External offsets are accumulated count deltas times the scale, zeroed at every m
 honoured only once all joints are homed (LinuxCNC's external-offsets chapter). So while the
 machine is off, in E-stop or not homed the counts are held at zero and the runtime is told that
 the controller applies no offset (:meth:`not_ready_offset_um`); once it is on and homed the
-runtime re-seeds the offset from zero through its slew limit.
+runtime re-seeds the offset from zero through its slew limit. The counts then start from what
+motion holds (``held_pin``): 0 after a machine-on, and after a restart of thermocomp on a
+machine that stayed on, the offset motion still applies (the old counts, or what the control's
+watchdog faded them to): taking over never moves the offset by itself.
 
 Sign: thermocomp's offset is ``A = -S`` with positive ``S`` toward the workpiece. On a vertical
 spindle that is -Z, so the Z external offset is ``+S``: ``offset_sign = -1`` (the default).
@@ -92,6 +95,7 @@ the tool is clear of the part and slowly while it cuts (``cutting``):
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from urllib.parse import urlsplit
@@ -380,9 +384,17 @@ class LinuxCncAdapter(Adapter):
         ready = self._machine_ready()
         c = self._comp
         if ready != self._ready:
+            held = self._held_counts() if ready else None
+            if held is not None:
+                # the counts start from what motion holds: 0 after a machine-on; after a restart
+                # of thermocomp, what it applies still (faded, maybe, by the control's watchdog)
+                c["eoffset-counts"] = held
             log.info(
                 "linuxcnc: machine %s",
-                "on and homed: external offsets honoured, re-seeding from 0"
+                (
+                    "on and homed: external offsets honoured, re-seeding from "
+                    + ("0" if not held else f"the {held} counts motion holds")
+                )
                 if ready
                 else "off, in E-stop or not homed: counts held at 0",
             )
@@ -390,6 +402,19 @@ class LinuxCncAdapter(Adapter):
         if not ready:
             c["eoffset-counts"] = 0  # zeroed at machine-on anyway: no jump when it comes back
         c["ready"] = ready
+
+    def _held_counts(self) -> int | None:
+        """The external offset motion applies, in counts (None: no read-back configured, or
+        it failed: the read-back itself reports that)."""
+        if self.held_pin is None:
+            return None
+        hal = import_linuxcnc("hal")
+        try:
+            held = float(hal.get_value(self.held_pin))
+        except (AttributeError, RuntimeError, TypeError, ValueError):
+            return None
+        counts = round(held / self.count) if math.isfinite(held) else None
+        return counts if counts is not None and abs(counts) <= S32 else None
 
     def _read_speed_raw(self) -> float:
         self._update()

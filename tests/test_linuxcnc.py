@@ -210,7 +210,8 @@ def linuxcnc_rig(adapter_options: str, hal_lines: str = ""):
         for p in directory.rglob("*"):
             shutil.chown(p, USER)
     with hal_lock():
-        rig = LinuxCnc(directory)
+        # thermocomp from this tree (the environment's own copy is from its last install)
+        rig = LinuxCnc(directory, env={"PYTHONPATH": str(ROOT)})
         try:
             yield rig
         finally:
@@ -535,3 +536,61 @@ def test_linuxcnc_a_probe_programs_m68_reaches_the_measurement_pins():
         r.set("mdi m68 e1 q1")  # ... then the counter
         assert cnc.wait(lambda: cnc.getps(pins) == [0.0125, 1.0])
         assert "Traceback" not in cnc.log()  # thermocomp run took measurement = true
+
+
+# -- the sign of life and taking over: the component's pins in a real HAL ---------------------
+
+LIFE_SCRIPT = """
+import json
+import hal
+from cnc_adapters import Life
+from cnc_adapters.linuxcnc import LinuxCncAdapter
+
+# motion's accumulated external offset [mm], as a restarted thermocomp finds it
+motion = hal.component("fake-motion")
+motion.newpin("eoffset-request", hal.HAL_FLOAT, hal.HAL_OUT)
+motion.ready()
+motion["eoffset-request"] = 0.0042
+
+a = LinuxCncAdapter(component="tc-life", machine_state="pins", held_pin="fake-motion.eoffset-request")
+a.open()
+pins = ("life-counter", "life-toggle", "comp-valid", "eoffset-counts")
+
+
+def state():
+    return [hal.get_value("tc-life." + p) for p in pins]
+
+
+out = {"exported": state(), "caps": a.capabilities.life_sign}
+out["not_ready"] = [a.write(-1.0, Life(1, False)).taken, state()]  # counts held at 0
+hal.set_p("tc-life.machine-on", "1")
+hal.set_p("tc-life.homed", "1")
+a.read()  # takes over: the counts start from what motion holds, 0.0042 mm
+out["took_over"] = state()
+out["confirm"] = [a.write(None, Life(2, True)).taken, state()]
+out["same_beat"] = [a.write(None, Life(2, True)).taken, state()]
+out["both"] = [a.write(-5.0, Life(3, True)).taken, state()]
+out["refused"] = [a.write(-1e12, Life(4, True)).failure.reason, state()]
+out["stop"] = [a.write(None, Life(4, False)).taken, state()]
+print("@@", json.dumps(out), flush=True)
+"""
+
+
+def test_linuxcnc_life_pins_beat_with_the_offset_and_a_restart_takes_over_what_motion_holds():
+    out = run_in_hal(LIFE_SCRIPT)
+    assert out["exported"] == [0, False, False, 0] and out["caps"] is True
+    # machine off: the beat goes out (valid false), the counts stay at 0
+    assert out["not_ready"] == [True, [1, True, False, 0]]
+    # ready: 0.0042 mm at 1e-5 mm per count, taken over as it is (no move of its own)
+    assert out["took_over"] == [1, True, False, 420]
+    # a confirm: the counter moves, the toggle flips, valid; the offset untouched
+    assert out["confirm"] == [True, [2, False, True, 420]]
+    # the same beat again is no new beat: the toggle stays
+    assert out["same_beat"] == [True, [2, False, True, 420]]
+    # the offset and the beat in one call: -5 um is +500 counts on Z
+    assert out["both"] == [True, [3, True, True, 500]]
+    # an offset refused: no beat either (the watchdog must not see a write that did not happen)
+    reason, pins = out["refused"]
+    assert "does not fit the s32 counts" in reason and pins == [3, True, True, 500]
+    # a clean stop's last beat: valid false, the offset left
+    assert out["stop"] == [True, [4, False, False, 500]]
