@@ -48,7 +48,16 @@ from compensator.errors import (
 )
 from compensator.units import ControllerUnits
 
-from .reading import Capabilities, Failure, Life, Measurement, Reading, Wants, WriteResult
+from .reading import (
+    LIFE_MODULUS,
+    Capabilities,
+    Failure,
+    Life,
+    Measurement,
+    Reading,
+    Wants,
+    WriteResult,
+)
 
 __all__ = [
     "RUNTIME_ONLY",
@@ -74,8 +83,10 @@ __all__ = [
     "WriteResult",
     "build",
     "check_settings",
+    "checked_life",
     "did_you_mean",
     "host_options",
+    "life_configured",
     "option_names",
     "query_params",
     "redact_url",
@@ -868,6 +879,8 @@ class Adapter(Link):
         """The one path of every write: the offset checked and converted, then the backend's
         :meth:`_write_raw`."""
         raw = None
+        if life is not None:
+            life = checked_life(self.name, life)
         if offset_um is not None:
             if (
                 isinstance(offset_um, bool)
@@ -1130,6 +1143,36 @@ class Adapter(Link):
 
     @abstractmethod
     def _write_offset_raw(self, value: float) -> None: ...
+
+
+def checked_life(name: str, life: Any) -> Life:
+    """``life`` as it may leave for the controller: a :class:`Life` whose counter is a whole
+    number 0 .. :data:`~cnc_adapters.reading.LIFE_MODULUS` (it fits a signed 16-bit word) and
+    whose flag is a bool; :class:`BadValueError` otherwise, before anything is sent."""
+    counter = getattr(life, "counter", None)
+    valid = getattr(life, "valid", None)
+    if (
+        not isinstance(life, Life)
+        or type(counter) is not int
+        or not 0 <= counter <= LIFE_MODULUS
+        or type(valid) is not bool
+    ):
+        raise BadValueError(f"{name}: refusing to write the sign of life {short(life)}")
+    return life
+
+
+def life_configured(counter: Any, flag: Any, counter_key: str, flag_key: str) -> bool:
+    """Whether a link's settings name a sign of life: both the counter's and the flag's address
+    (True), or neither (False; None or ``""``, which turns a preset's or profile's default off).
+    One alone is a ValueError naming both keys."""
+    has_counter = counter is not None and counter != ""
+    has_flag = flag is not None and flag != ""
+    if has_counter != has_flag:
+        raise ValueError(
+            f"the sign of life needs both {counter_key} and {flag_key}, or neither "
+            f'({counter_key} = "" and {flag_key} = "" turn a profile\'s or preset\'s default off)'
+        )
+    return has_counter
 
 
 def _finite(raw: Any) -> float | None:

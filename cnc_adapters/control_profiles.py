@@ -92,6 +92,10 @@ class ControllerProfile(BaseModel):
     rate_source: str = Field("", description="where the control's rate limit comes from")
     readback: str = Field(description="how the held value is read back")
     snippet: str = Field(description="the NC/PLC code that applies the value (the short form)")
+    life_sign: str = Field(
+        "",
+        description="the sign of life: what the control watches, and where the routes write it",
+    )
     doc: str = Field(description="the full recipe, relative to the repository")
     routes: dict[str, Route]
 
@@ -161,8 +165,24 @@ class ControllerProfile(BaseModel):
             f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
             f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
             f"{rate}; read-back: {self.readback}; on the control: {r.control_side}; "
-            f"recipe: {self.doc}"
+            f"sign of life: {self.life_sign or 'none'}{_life_addresses(r)}; recipe: {self.doc}"
         )
+
+
+_LIFE_KEYS = (
+    ("life_node", "valid_node"),
+    ("life_address", "valid_address"),
+    ("life_macro", "valid_macro"),
+    ("life_var", "valid_var"),
+)
+
+
+def _life_addresses(route: Route) -> str:
+    """`` (life_macro = 502, valid_macro = 503)``: the route's default sign-of-life addresses."""
+    for keys in _LIFE_KEYS:
+        if all(k in route.adapter for k in keys):
+            return " (" + ", ".join(f"{k} = {route.adapter[k]!r}" for k in keys) + ")"
+    return ""
 
 
 _SINUMERIK_SNIPPET = """\
@@ -218,10 +238,17 @@ PROFILES: dict[str, ControllerProfile] = {
             "factor 0.01 of an example 30 m/min; read yours off the machine",
             readback="SD43900 read back (OPC UA), or the DB word the NC reports (S7)",
             snippet=_SINUMERIK_SNIPPET,
+            life_sign="a synchronized action checks that a counter moves and a valid flag is 1: "
+            "R98/R99 (OPC UA) or DB100.DBW14/DBW16 (S7)",
             doc="docs/controls/sinumerik.md",
             routes={
                 "opcua": Route(
-                    adapter={"type": "opcua", "preset": "sinumerik-sea"},
+                    adapter={
+                        "type": "opcua",
+                        "preset": "sinumerik-sea",
+                        "life_node": "ns=2;s=/Channel/Parameter/R[u1,98]",
+                        "valid_node": "ns=2;s=/Channel/Parameter/R[u1,99]",
+                    },
                     library="asyncua",
                     tested="the virtual CNC's SINUMERIK-like address space (asyncua "
                     "server): SD43900 node, writes refused without the SeaWrite right",
@@ -230,7 +257,14 @@ PROFILES: dict[str, ControllerProfile] = {
                     requires=("url", "offset_node|offset_path"),
                 ),
                 "s7": Route(
-                    adapter={"type": "plc", "protocol": "s7", "rack": 0, "slot": 2},
+                    adapter={
+                        "type": "plc",
+                        "protocol": "s7",
+                        "rack": 0,
+                        "slot": 2,
+                        "life_address": "DB100.DBW14",
+                        "valid_address": "DB100.DBW16",
+                    },
                     library="python-snap7",
                     tested="python-snap7's own S7 server (snap7.server) on "
                     "loopback, the synchronized action emulated",
@@ -252,10 +286,12 @@ PROFILES: dict[str, ControllerProfile] = {
             max_step=9998.0,
             readback="#500 read back over FOCAS, or ack_macro: the value the ladder reports after THREND",
             snippet=_FANUC_SNIPPET,
+            life_sign="a macro or the ladder checks that #502 (counter) moves and #503 "
+            "(valid) is 1",
             doc="docs/controls/fanuc.md",
             routes={
                 "focas": Route(
-                    adapter={"type": "focas"},
+                    adapter={"type": "focas", "life_macro": 502, "valid_macro": 503},
                     library="socket (own FOCAS client, pyfocas's documented packet format)",
                     tested="a loopback FOCAS server built from the documented packet format; pyfocas, "
                     "an independent client, talks to it",
@@ -279,6 +315,8 @@ PROFILES: dict[str, ControllerProfile] = {
             "9231's rate is not documented publicly, taken the same",
             readback="the PLC word read back (any PLC route)",
             snippet=_HEIDENHAIN_SNIPPET,
+            life_sign="the PLC checks that a counter word moves and a valid word is 1: give "
+            "life_address and valid_address on the gateway (no default)",
             doc="docs/controls/heidenhain.md",
             routes={
                 "plc": Route(
@@ -302,10 +340,12 @@ PROFILES: dict[str, ControllerProfile] = {
             limit=0.5,
             readback="the macro variable read back with ?Q600",
             snippet=_HAAS_SNIPPET,
+            life_sign="the program's macro checks that #10501 (counter) moves and #10502 "
+            "(valid) is 1",
             doc="docs/controls/haas.md",
             routes={
                 "mdc": Route(
-                    adapter={"type": "haas-mdc"},
+                    adapter={"type": "haas-mdc", "life_var": 10501, "valid_var": 10502},
                     library="socket (MDC over TCP)",
                     tested="a loopback MDC server (threaded TCP) "
                     "emulating the reply forms reported for NGC over TCP and RS-232, the two-connection "
@@ -316,7 +356,7 @@ PROFILES: dict[str, ControllerProfile] = {
                     fixed={"offset_decimals": 4},
                 ),
                 "serial": Route(
-                    adapter={"type": "haas"},
+                    adapter={"type": "haas", "life_var": 10501, "valid_var": 10502},
                     library="pyserial",
                     tested="pseudo-terminals: real serial links to an emulated Haas",
                     control_side="the RS-232 port; the same macro as the MDC route",
@@ -338,6 +378,8 @@ PROFILES: dict[str, ControllerProfile] = {
             readback="axis.z.eoffset-request (the external offset motion is asked to apply; "
             "axis.z.eoffset, what it has reached, lags and stops at a soft limit)",
             snippet=_LINUXCNC_SNIPPET,
+            life_sign="HAL logic watches thermocomp.life-counter (or life-toggle) and "
+            "thermocomp.comp-valid, always exported",
             doc="docs/controls/linuxcnc.md",
             routes={
                 "hal": Route(
@@ -360,10 +402,18 @@ PROFILES: dict[str, ControllerProfile] = {
             limit=10000.0,
             readback="the PLC's copy of TEMPC::actual_offset (held_address), or the variable read back",
             snippet=_BECKHOFF_SNIPPET,
+            life_sign="a TON timer checks that GVL_Thermo.nLifeCounter moves and "
+            "GVL_Thermo.bCompValid is TRUE",
             doc="docs/controls/beckhoff.md",
             routes={
                 "ads": Route(
-                    adapter={"type": "plc", "protocol": "ads", "offset_type": "DINT"},
+                    adapter={
+                        "type": "plc",
+                        "protocol": "ads",
+                        "offset_type": "DINT",
+                        "life_address": "GVL_Thermo.nLifeCounter",
+                        "valid_address": "GVL_Thermo.bCompValid",
+                    },
                     library="pyads",
                     tested="pyads's own ADS test server on loopback",
                     control_side="an ADS route to the PC; temp_comp = 1, slope 0; the PLC checks "
@@ -383,10 +433,14 @@ PROFILES: dict[str, ControllerProfile] = {
             limit=1000.0,
             readback="ThermalOffset read back",
             snippet="(none: the virtual CNC applies ThermalOffset)",
+            life_sign="its watcher checks that LifeCounter moves and CompensationValid is true",
             doc="docs/reference/virtual-machine-tool.md",
             routes={
                 "opcua": Route(
-                    adapter={"type": "opcua", "preset": "virtual-cnc"},
+                    adapter={
+                        "type": "opcua",
+                        "preset": "virtual-cnc",  # it names LifeCounter and CompensationValid
+                    },
                     library="asyncua",
                     tested="the virtual CNC (asyncua server)",
                     control_side="nothing",

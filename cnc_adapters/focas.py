@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 import struct
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
@@ -52,9 +52,12 @@ from .base import (
     Seconds,
     UnreachableError,
     WriteRejectedError,
+    checked_life,
     host_options,
+    life_configured,
     one_of,
 )
+from .reading import Life
 from .transport.tcp import TcpTransport
 
 __all__ = ["FocasAdapter", "FocasSettings", "decode_scaled", "focas_error", "request_packet"]
@@ -111,6 +114,10 @@ def _common_variable(v: int) -> int:
 
 CommonVariable = Annotated[
     int, AfterValidator(_common_variable), Allowed("a common macro variable: 100..199 or 500..999")
+]
+LifeVariable = Annotated[
+    Annotated[int, AfterValidator(_common_variable)] | Literal[""],
+    Allowed("a common macro variable: 100..199 or 500..999, or '' for none"),
 ]
 
 
@@ -170,11 +177,23 @@ class FocasSettings(AdapterSettings):
     speed_macro: CommonVariable = Field(  # type: ignore[assignment]
         None, description="with speed_source = 'macro': the variable holding the actual speed"
     )
+    life_macro: LifeVariable | None = Field(
+        None, description="the sign of life: the variable of the counter the control watches"
+    )
+    valid_macro: LifeVariable | None = Field(
+        None, description="the sign of life: the variable of the valid flag (1/0)"
+    )
 
     @model_validator(mode="after")
     def _variables(self) -> FocasSettings:
         check_variables(
-            self.offset_macro, self.ack_macro, self.speed_source, self.speed_macro, ValueError
+            self.offset_macro,
+            self.ack_macro,
+            self.speed_source,
+            self.speed_macro,
+            ValueError,
+            self.life_macro,
+            self.valid_macro,
         )
         return self
 
@@ -185,14 +204,23 @@ def check_variables(
     source: str,
     speed: int | None,
     error: type[Exception] = ConfigError,
-) -> None:
-    """The macro variables: a speed variable exactly with ``speed_source = "macro"``, and no
-    two of them the same."""
+    life: int | str | None = None,
+    valid: int | str | None = None,
+) -> bool:
+    """The macro variables: a speed variable exactly with ``speed_source = "macro"``, the sign
+    of life's two or neither, and no two of them the same. Whether a sign of life is
+    configured."""
     if source not in ("acts", "macro"):
         raise error(f"speed_source is 'acts' or 'macro', not {source!r}")
     if (source == "macro") != (speed is not None):
         raise error("speed_macro goes with speed_source = 'macro' (and is needed there)")
+    try:
+        configured = life_configured(life, valid, "life_macro", "valid_macro")
+    except ValueError as err:
+        raise error(str(err)) from None
     used = [("offset_macro", offset), ("ack_macro", ack), ("speed_macro", speed)]
+    if configured:
+        used += [("life_macro", int(life)), ("valid_macro", int(valid))]  # type: ignore[arg-type]
     used = [(k, v) for k, v in used if v is not None]
     for k, v in used:
         if not any(v in r for r in COMMON_VARIABLES):
@@ -201,6 +229,7 @@ def check_variables(
         for kb, vb in used[i + 1 :]:
             if va == vb:
                 raise error(f"{ka} and {kb} are both #{va}")
+    return configured
 
 
 class FocasAdapter(Adapter):
@@ -227,10 +256,21 @@ class FocasAdapter(Adapter):
         ack_macro: int | None = None,
         speed_source: str = "acts",
         speed_macro: int | None = None,
+        life_macro: int | str | None = None,
+        valid_macro: int | str | None = None,
         **scaling: Any,
     ):
         super().__init__(**scaling)
-        check_variables(offset_macro, ack_macro, speed_source, speed_macro)
+        configured = check_variables(
+            offset_macro, ack_macro, speed_source, speed_macro, ConfigError, life_macro, valid_macro
+        )
+        # the sign of life: the counter's and the flag's variables
+        self.life_macros: tuple[int, int] | None = (
+            (int(life_macro), int(valid_macro))  # type: ignore[arg-type]
+            if configured
+            else None
+        )
+        self.writes_life = self.life_macros is not None
         if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
             raise ConfigError(f"focas: timeout_s must be a number > 0, not {timeout_s!r}")
         self.host = str(host)
@@ -294,23 +334,33 @@ class FocasAdapter(Adapter):
     def _exchange(self, what: str, cmd: bytes, refused: type[AdapterError]) -> bytes:
         """Send one command, return the payload of its reply; a FOCAS return code other than 0
         raises ``refused``. The socket's faults are the TCP transport's."""
+        return self._exchange_many([(what, cmd)], refused)[0]
+
+    def _exchange_many(
+        self, commands: list[tuple[str, bytes]], refused: type[AdapterError]
+    ) -> list[bytes]:
+        """Send ``commands`` (what each is, and its bytes) in ONE generic request, return the
+        payloads of their replies, in order; the first return code other than 0 raises
+        ``refused``, naming its command."""
+        what = " + ".join(w for w, _ in commands)
         deadline = self._tcp.deadline()
-        self._tcp.send(what, request_packet(cmd))
+        self._tcp.send(what, request_packet(*(c for _, c in commands)))
         try:
             ptype, body = self._read_packet(what, deadline)
             if ptype != RESPONSE:
                 raise _Malformed(f"packet type {ptype:#06x}, not {RESPONSE:#06x}")
-            code, payload = _reply(body, cmd[:6])
+            replies = _replies(body, [c[:6] for _, c in commands])
         except _Malformed as err:
             raise self._link_lost(
                 f"{self.name} {what} at {self._tcp.address}: malformed reply ({err}); session dropped",
                 AdapterError,
             ) from err
-        if code != 0:
-            raise refused(
-                f"{self.name} {what} at {self._tcp.address}: the CNC answered {focas_error(code)}"
-            )
-        return payload
+        for (one, _), (code, _) in zip(commands, replies, strict=True):
+            if code != 0:
+                raise refused(
+                    f"{self.name} {one} at {self._tcp.address}: the CNC answered {focas_error(code)}"
+                )
+        return [payload for _, payload in replies]
 
     # -- macro variables -----------------------------------------------------------------
 
@@ -386,21 +436,62 @@ class FocasAdapter(Adapter):
     def _write_offset_raw(self, value: float) -> None:
         self._write_macro(self.offset_macro, float(value))
 
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        """The offset, the counter and the flag (1/0) in ONE FOCAS request of three "write
+        macro" subpackets (two for a confirmation); the first one the CNC refuses is the
+        failure, naming its variable."""
+        if life is None:
+            if raw is not None:
+                self._write_offset_raw(raw)
+            return
+        life = checked_life(self.name, life)
+        assert self.life_macros is not None  # writes_life
+        counter_var, flag_var = self.life_macros
+        values = [] if raw is None else [(self.offset_macro, float(raw))]
+        values += [(counter_var, float(life.counter)), (flag_var, float(life.valid))]
+        self._exchange_many(
+            [
+                (
+                    f"write #{number} = {value:g}",
+                    command(
+                        WRITE_MACRO_DOUBLE, number, 0, 0, 0, 8, payload=struct.pack(">d", value)
+                    ),
+                )
+                for number, value in values
+            ],
+            WriteRejectedError,
+        )
+
 
 def _reply(body: bytes, echo: bytes) -> tuple[int, bytes]:
     """The FOCAS return code and the payload of a one-subpacket reply whose command must be
     ``echo``."""
-    if len(body) < 2 or struct.unpack(">H", body[:2])[0] != 1:
-        raise _Malformed("not one subpacket")
-    n = struct.unpack(">H", body[2:4])[0] if len(body) >= 4 else 0
-    sub = body[4 : 2 + n]
-    if n < 16 or len(body) != 2 + n:
-        raise _Malformed(f"subpacket of {n} bytes in a body of {len(body)}")
-    if sub[:6] != echo:
-        raise _Malformed(f"reply to {sub[:6].hex(' ')}, not to {echo.hex(' ')}")
-    code = struct.unpack(">h", sub[6:8])[0]
-    length = struct.unpack(">H", sub[12:14])[0]
-    payload = sub[14 : 14 + length]
-    if len(payload) != length:
-        raise _Malformed(f"payload of {len(payload)} bytes, not {length}")
-    return code, payload
+    return _replies(body, [echo])[0]
+
+
+def _replies(body: bytes, echoes: list[bytes]) -> list[tuple[int, bytes]]:
+    """The FOCAS return code and the payload of each subpacket of a reply, whose commands must
+    be ``echoes``, in order."""
+    if len(body) < 2 or struct.unpack(">H", body[:2])[0] != len(echoes):
+        raise _Malformed(
+            "not one subpacket" if len(echoes) == 1 else f"not {len(echoes)} subpackets"
+        )
+    out = []
+    k = 2
+    for echo in echoes:
+        n = struct.unpack(">H", body[k : k + 2])[0] if len(body) >= k + 2 else 0
+        sub = body[k + 2 : k + n]
+        if n < 16 or len(body) < k + n:
+            raise _Malformed(f"subpacket of {n} bytes in a body of {len(body)}")
+        if sub[:6] != echo:
+            raise _Malformed(f"reply to {sub[:6].hex(' ')}, not to {echo.hex(' ')}")
+        code = struct.unpack(">h", sub[6:8])[0]
+        length = struct.unpack(">H", sub[12:14])[0]
+        payload = sub[14 : 14 + length]
+        if len(payload) != length:
+            raise _Malformed(f"payload of {len(payload)} bytes, not {length}")
+        out.append((code, payload))
+        k += n
+    if k != len(body):
+        raise _Malformed(f"subpackets of {k - 2} bytes in a body of {len(body)}")
+    return out

@@ -53,6 +53,7 @@ from .base import (
     WriteRejectedError,
     query_params,
 )
+from .reading import Life
 from .serial_link import HaasAdapter, HaasMacros
 from .transport.tcp import TcpTransport
 
@@ -126,6 +127,8 @@ class HaasMdcAdapter(Adapter):
         measurement_sequence_var: int | None = None,
         measurement_sigma_var: int | None = None,
         measurement_scale: float | None = None,
+        life_var: int | str | None = None,
+        valid_var: int | str | None = None,
         **scaling: Any,
     ):
         super().__init__(**scaling)
@@ -154,7 +157,10 @@ class HaasMdcAdapter(Adapter):
             measurement_sequence_var=measurement_sequence_var,
             measurement_sigma_var=measurement_sigma_var,
             measurement_scale=measurement_scale,
+            life_var=life_var,
+            valid_var=valid_var,
         )
+        self.writes_life = self._proto.writes_life
         self.speed_var = self._proto.speed_var
         self._proto_decimals = int(offset_decimals)
         self.offset_var = self._proto.offset_var
@@ -281,6 +287,11 @@ class HaasMdcAdapter(Adapter):
                 f"wrote {value!r}, the "
                 f"control holds {held!r} (another client's reply taken for ours?)"
             )
+
+    def _write_life_raw(self, life: Life) -> None:
+        # one ?E a variable; not read back (a missed beat is one the control's watchdog
+        # tolerates; a stop that is missed stops the counter, which the watchdog sees)
+        self._proto._write_life_raw(life)
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         return self._proto._read_measurement_raw()

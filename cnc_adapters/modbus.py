@@ -42,10 +42,13 @@ from .base import (
     NonZero,
     RawMeasurement,
     Seconds,
+    checked_life,
+    life_configured,
     one_of,
     read_handshake,
     serial_options,
 )
+from .reading import Life
 from .transport.modbus import WIDTH, ModbusTransport, RegisterCodec
 
 if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
@@ -59,6 +62,10 @@ else:
     Order = one_of("big", "little")
     Parity = one_of("N", "E", "O")
 Register = Annotated[int, Field(ge=0, le=65535), Allowed("a register address 0..65535")]
+LifeRegister = Annotated[
+    Annotated[int, Field(ge=0, le=65535)] | Literal[""],
+    Allowed("a holding register address 0..65535, or '' for none"),
+]
 
 
 class ModbusLinkSettings(BaseModel):
@@ -126,6 +133,14 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
         [1],  # type: ignore[arg-type]  # a list, as documented
         description="the values that mean cutting",
     )
+    life_register: LifeRegister | None = Field(
+        None, description="the sign of life: the holding register(s) of the counter the PLC watches"
+    )
+    life_type: DataType = Field("int16", description="the counter's data type")
+    valid_register: LifeRegister | None = Field(
+        None, description="the sign of life: the holding register(s) of the valid flag (1/0)"
+    )
+    valid_type: DataType = Field("int16", description="the valid flag's data type")
 
     @model_validator(mode="after")
     def _measurement(self) -> ModbusSettings:
@@ -136,6 +151,15 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
             self.measurement_sigma_register,
             self.measurement_type,
             self.measurement_sequence_type,
+            ValueError,
+        )
+        check_life(
+            self.offset_register,
+            self.offset_type,
+            self.life_register,
+            self.life_type,
+            self.valid_register,
+            self.valid_type,
             ValueError,
         )
         return self
@@ -217,6 +241,37 @@ def check_measurement(
                 raise error(f"{prefix}{na} {a} ({ta}) and {nb} {b} ({tb}) overlap")
 
 
+def check_life(
+    offset: int,
+    offset_type: str,
+    life: int | str | None,
+    life_type: str,
+    valid: int | str | None,
+    valid_type: str,
+    error: type[Exception] = AdapterError,
+) -> bool:
+    """Whether a sign of life is configured: both registers or neither (``""``: none); none
+    of the offset's, the counter's and the flag's registers overlapping."""
+    try:
+        configured = life_configured(life, valid, "life_register", "valid_register")
+    except ValueError as err:
+        raise error(str(err)) from None
+    if not configured:
+        return False
+    spans = [
+        (offset, offset_type, "offset_register"),
+        (int(life), life_type, "life_register"),  # type: ignore[arg-type]
+        (int(valid), valid_type, "valid_register"),  # type: ignore[arg-type]
+    ]
+    for i, (a, ta, na) in enumerate(spans):
+        if a + WIDTH[ta] > 65536:
+            raise error(f"{na} {a}: a {ta} runs past register 65535")
+        for b, tb, nb in spans[i + 1 :]:
+            if a < b + WIDTH[tb] and b < a + WIDTH[ta]:
+                raise error(f"{na} {a} ({ta}) and {nb} {b} ({tb}) overlap")
+    return True
+
+
 def check_types(name: str, *types: str) -> None:
     for t in types:
         if t not in WIDTH:
@@ -256,6 +311,10 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         cutting_table: Literal["input", "holding"] = "holding",
         cutting_type: str = "uint16",
         cutting_values: tuple[Any, ...] = (1,),
+        life_register: int | str | None = None,
+        life_type: str = "int16",
+        valid_register: int | str | None = None,
+        valid_type: str = "int16",
         **scaling: Any,
     ):
         super().__init__(**scaling)
@@ -266,7 +325,21 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
             measurement_type,
             measurement_sequence_type,
             cutting_type,
+            life_type,
+            valid_type,
         )
+        # the sign of life: (register, type) of the counter and of the flag
+        self.life: tuple[tuple[int, str], tuple[int, str]] | None = None
+        if check_life(
+            int(offset_register),
+            offset_type,
+            life_register,
+            life_type,
+            valid_register,
+            valid_type,
+        ):
+            self.life = ((int(life_register), life_type), (int(valid_register), valid_type))  # type: ignore[arg-type]
+        self.writes_life = self.life is not None
         if cutting_type == "float32":
             raise AdapterError(
                 "modbus: cutting_type is an integer type (a state, not a measurement)"
@@ -369,3 +442,34 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
 
     def _write_offset_raw(self, value: float) -> None:
         self._modbus.write_value("write offset", self.offset_register, value, self.offset_type)
+
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        """The offset, the counter and the flag: one ``write_registers`` per run of adjacent
+        registers (all three adjacent: one request). Every value encoded first, so that one
+        that does not fit sends nothing."""
+        if life is None:
+            if raw is not None:
+                self._write_offset_raw(raw)
+            return
+        life = checked_life(self.name, life)
+        assert self.life is not None  # writes_life
+        (counter_at, counter_type), (flag_at, flag_type) = self.life
+        values: list[tuple[str, int, str, float]] = [
+            ("life counter", counter_at, counter_type, life.counter)
+        ]
+        values.append(("valid flag", flag_at, flag_type, int(life.valid)))
+        if raw is not None:
+            values.append(("offset", self.offset_register, self.offset_type, raw))
+        encoded = []
+        for name, at, dtype, value in sorted(values, key=lambda v: v[1]):
+            where = f"{self.name} write {name} holding register {at} at {self._modbus.where}"
+            encoded.append((name, at, self._modbus.codec.encode(value, dtype, where)))
+        run: list[tuple[str, int, list[int]]] = []
+        for item in [*encoded, ("", -1, [])]:  # the sentinel ends the last run
+            if run and item[1] != run[-1][1] + len(run[-1][2]):
+                what = "write " + ", ".join(name for name, _, _ in run)
+                self._modbus.write_registers(
+                    what, run[0][1], [r for _, _, regs in run for r in regs]
+                )
+                run = []
+            run.append(item)

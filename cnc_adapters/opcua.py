@@ -35,6 +35,15 @@ the controller did not take is refused); ``"deferred"`` checks it with the next 
 in the same request (:attr:`~cnc_adapters.reading.Reading.write_refused_um`); ``false`` never.
 The per-value reads (``read_speed``, ``read_offset_um``, ...) ask the controller each time.
 
+The sign of life: ``life_node`` (or ``life_path``) names the counter the control watches and
+``valid_node`` (or ``valid_path``) the "compensation valid" flag; both, or neither (``""`` for
+both turns a preset's off; the ``virtual-cnc`` preset names its ``LifeCounter`` and
+``CompensationValid``). Each is written in its variable's own type (its DataType attribute is
+read once a session): the counter as an integer or floating-point number, the flag as a
+Boolean, or 1/0 in a number. They go in ONE ``Write`` request with the offset (a confirmation,
+offset None: with each other); a node that does not exist or refuses the write fails the write,
+naming the node.
+
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
 a server whose certificate is not in the trust list is refused. The user name and password
@@ -82,7 +91,9 @@ from .base import (
     WriteRejectedError,
     _finite,
     _guarded,
+    checked_life,
     cutting_of,
+    life_configured,
     one_of,
     query_params,
     redact_url,
@@ -90,7 +101,7 @@ from .base import (
     url_has_password,
     whole_sequence,
 )
-from .reading import Failure, Reading, Wants
+from .reading import Failure, Life, Reading, Wants
 
 log = logging.getLogger("thermocomp.adapters.opcua")
 
@@ -114,6 +125,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "measurement_sequence_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
         "measurement_sigma_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sigma",
         "cutting_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/Cutting",
+        # the sign of life its watcher checks
+        "life_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/LifeCounter",
+        "valid_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/CompensationValid",
     },
     "sinumerik": {
         "speed_node": "ns=2;s=/Channel/Spindle/actSpeed[u1,1]",
@@ -293,6 +307,18 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
         [True],  # type: ignore[arg-type]  # a list, as documented
         description="the values of cutting_node that mean cutting",
     )
+    life_node: str | None = Field(
+        None,
+        description="the sign of life: the counter the control watches (node id; an integer "
+        "or floating-point variable); '' for none, where a preset names one",
+    )
+    life_path: str | None = Field(None, description="the life counter by browse path")
+    valid_node: str | None = Field(
+        None,
+        description="the sign of life: the 'compensation valid' flag (node id; a Boolean, or "
+        "a number written 1/0); '' for none, where a preset names one",
+    )
+    valid_path: str | None = Field(None, description="the valid flag by browse path")
 
     @model_validator(mode="after")
     def _nodes(self) -> OpcUaSettings:
@@ -313,7 +339,21 @@ class OpcUaSettings(OpcUaLinkSettings, AdapterSettings):
                 "a measurement needs both measurement_node and measurement_sequence_node "
                 "(the handshake), measurement_sigma_node only with them"
             )
+        life_configured(
+            life_ref(self.life_node, self.life_path, p.get("life_node")),
+            life_ref(self.valid_node, self.valid_path, p.get("valid_node")),
+            "life_node (or life_path)",
+            "valid_node (or valid_path)",
+        )
         return self
+
+
+def life_ref(node: str | None, path: str | None, preset: str | None) -> str | None:
+    """The configured reference of a sign-of-life variable: the node id or browse path given,
+    else the preset's; ``""`` (given for either) turns the preset's off."""
+    if node is None and path is None:
+        return preset or None
+    return node or path or None
 
 
 class OpcUaLink:
@@ -637,6 +677,10 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         measurement_scale: float | None = None,
         cutting_node: str | None = None,
         cutting_values: tuple[Any, ...] = (True,),
+        life_node: str | None = None,
+        life_path: str | None = None,
+        valid_node: str | None = None,
+        valid_path: str | None = None,
         **scaling: Any,
     ):
         if preset not in PRESETS:
@@ -721,6 +765,21 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self.can_read_cutting = bool(self.cutting_ref)  # type: ignore[misc]
         self.cutting_values = tuple(cutting_values)
         self._cutting_node: Any = None  # resolved at its first read
+        # the sign of life: (counter, flag) references; "" turns a preset's off
+        life = life_ref(life_node, life_path, p.get("life_node"))
+        valid = life_ref(valid_node, valid_path, p.get("valid_node"))
+        try:
+            configured = life_configured(
+                life, valid, "life_node (or life_path)", "valid_node (or valid_path)"
+            )
+        except ValueError as err:
+            raise AdapterError(f"opcua: {err}") from None
+        self.life_refs: tuple[str, str] | None = (
+            (life, valid) if configured and life and valid else None
+        )
+        self.writes_life = self.life_refs is not None
+        # resolved at the first write of a session: [(node, its VariantType)] counter, flag
+        self._life: list[tuple[Any, Any]] | None = None
         self._ns = ""
 
     @classmethod
@@ -999,12 +1058,130 @@ class OpcUaAdapter(OpcUaLink, Adapter):
                 refused=WriteRejectedError,
             )
         except WriteRejectedError as err:
-            if "AccessDenied" not in str(err):
-                raise
-            raise WriteRejectedError(
-                f"{err}: the server's user may not write {self.offset_node or self.offset_path}; on a SINUMERIK, setting "
-                "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)"
-            ) from err
+            raise self._offset_refused(err) from err
+        self._offset_written(value)
+
+    def _offset_refused(self, err: WriteRejectedError) -> WriteRejectedError:
+        """A refused offset write, with the access right it needs where the server said so."""
+        if "AccessDenied" not in str(err):
+            return err
+        return WriteRejectedError(
+            f"{err}: the server's user may not write {self.offset_node or self.offset_path}; on a SINUMERIK, setting "
+            "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)"
+        )
+
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        """The offset and the sign of life in ONE Write request (three WriteValues; two for a
+        confirmation), each result checked: a refused offset is the offset's failure, a refused
+        counter or flag the sign of life's, naming its node."""
+        from asyncua import ua
+
+        if life is None:
+            if raw is not None:
+                self._write_offset_raw(raw)
+            return
+        life_values = self._life_values(life)  # converted and checked: nothing sent before
+        nodes: list[Any] = []
+        dvs: list[Any] = []
+        if raw is not None:
+            nodes.append(self._offset)
+            dvs.append(ua.DataValue(ua.Variant(float(raw), ua.VariantType.Double)))
+            self._unverified = None
+        for (node, _), dv in zip(self._life or [], life_values, strict=True):
+            nodes.append(node)
+            dvs.append(dv)
+        what = "write offset and sign of life" if raw is not None else "write sign of life"
+        results = self._call(
+            what,
+            self._client.write_values,
+            nodes,
+            dvs,
+            False,  # each result is checked below, by its node
+            node=nodes,
+            refused=WriteRejectedError,
+        )
+        if len(results) != len(nodes):
+            raise BadValueError(
+                f"{self._where(what, nodes)}: {len(results)} results for {len(nodes)} nodes"
+            )
+        if raw is not None:
+            status = results[0]
+            if not status.is_good():
+                raise self._offset_refused(
+                    WriteRejectedError(
+                        f"{self._where('write offset node', self._offset)}: {status.name}"
+                    )
+                )
+            self._offset_written(raw)
+        for (node, _), status, key in zip(
+            self._life or [], results[-2:], ("life counter", "valid flag"), strict=True
+        ):
+            if not status.is_good():
+                option = "life_node" if key == "life counter" else "valid_node"
+                raise WriteRejectedError(
+                    f"{self._where('write ' + key + ' node', node)}: {status.name} (check "
+                    f'{option}; {option} = "" turns the sign of life off)'
+                )
+
+    def _life_values(self, life: Life) -> list[Any]:
+        """The counter and the flag as DataValues of their nodes' own types (the nodes looked
+        up at the first write of a session); :class:`BadValueError` for a value the node's
+        type cannot hold, before anything is sent."""
+        from asyncua import ua
+
+        life = checked_life(self.name, life)
+        out = []
+        for (node, vtype), value, key in zip(
+            self._life_resolved(),
+            (life.counter, life.valid),
+            ("life counter", "valid flag"),
+            strict=True,
+        ):
+            out.append(
+                ua.DataValue(
+                    ua.Variant(
+                        _as_type(value, vtype, self._where("write " + key + " node", node)), vtype
+                    )
+                )
+            )
+        return out
+
+    def _life_resolved(self) -> list[tuple[Any, Any]]:
+        """The counter's and the flag's nodes and their VariantTypes, read in one request
+        (their DataType attribute) at the first write of a session."""
+        from asyncua import ua
+
+        if self._life is None:
+            assert self.life_refs is not None  # writes_life
+            nodes = [
+                self._resolve_ref(self._client, ref, self._ns, key)
+                for ref, key in zip(
+                    self.life_refs, ("life counter node", "valid flag node"), strict=True
+                )
+            ]
+            dvs = self._call(
+                "read sign of life data types",
+                self._client.read_attributes,
+                nodes,
+                ua.AttributeIds.DataType,
+                node=nodes,
+            )
+            found = []
+            for node, dv, key, option in zip(
+                nodes, dvs, ("life counter", "valid flag"), ("life_node", "valid_node"), strict=True
+            ):
+                where = self._where(f"look up {key} node", node)
+                if not dv.StatusCode.is_good():
+                    raise AdapterError(
+                        f"{where}: {dv.StatusCode.name} (check {option}; "
+                        f'{option} = "" turns the sign of life off)'
+                    )
+                found.append((node, _variant_type(dv.Value.Value if dv.Value else None, where)))
+            self._life = found
+        return self._life
+
+    def _offset_written(self, value: float) -> None:
+        """The offset's write was taken: its verification, as ``verify_writes`` says."""
         if self.verify_writes == "deferred":
             self._unverified = value
         elif self.verify_writes:
@@ -1022,6 +1199,55 @@ class OpcUaAdapter(OpcUaLink, Adapter):
         self._unverified = None
         self._measurement = None
         self._cutting_node = None
+        self._life = None
+
+
+_NUMBER_TYPES = {
+    "SByte": (-(2**7), 2**7 - 1),
+    "Byte": (0, 2**8 - 1),
+    "Int16": (-(2**15), 2**15 - 1),
+    "UInt16": (0, 2**16 - 1),
+    "Int32": (-(2**31), 2**31 - 1),
+    "UInt32": (0, 2**32 - 1),
+    "Int64": (-(2**63), 2**63 - 1),
+    "UInt64": (0, 2**64 - 1),
+}
+_ABSTRACT = {26: "Double", 27: "Int32", 28: "UInt32"}  # Number, Integer, UInteger
+
+
+def _variant_type(datatype: Any, where: str) -> Any:
+    """The VariantType a variable of ``datatype`` (a NodeId of the standard namespace) takes:
+    a Boolean, an integer or a floating-point type; :class:`AdapterError` for any other."""
+    from asyncua import ua
+
+    ident = getattr(datatype, "Identifier", None)
+    ns = getattr(datatype, "NamespaceIndex", None)
+    name = None
+    if ns == 0 and isinstance(ident, int):
+        name = _ABSTRACT.get(ident) or (ua.VariantType(ident).name if 1 <= ident <= 11 else None)
+    if name is None:
+        raise AdapterError(
+            f"{where}: its data type {_node_id(datatype) if datatype is not None else None} "
+            "is not a Boolean, an integer or a floating-point type"
+        )
+    return ua.VariantType[name]
+
+
+def _as_type(value: int | bool, vtype: Any, where: str) -> Any:
+    """A counter (int) or flag (bool) as a variable of ``vtype`` holds it: a Boolean takes a
+    flag only; a number takes a flag as 1/0; an integer type must hold the counter."""
+    name = vtype.name
+    if name == "Boolean":
+        if not isinstance(value, bool):
+            raise BadValueError(f"{where}: a Boolean variable cannot hold the counter {value}")
+        return value
+    number = int(value)
+    if name in ("Float", "Double"):
+        return float(number)
+    lo, hi = _NUMBER_TYPES[name]
+    if not lo <= number <= hi:
+        raise BadValueError(f"{where}: {number} does not fit its {name}")
+    return number
 
 
 class _Empty:

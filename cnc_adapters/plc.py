@@ -65,10 +65,13 @@ from .base import (
     Text,
     UnreachableError,
     WriteRejectedError,
+    checked_life,
     host_options,
+    life_configured,
     one_of,
     short,
 )
+from .reading import Life
 from .transport.modbus import ModbusTransport, RegisterCodec
 
 __all__ = ["PlcAdapter", "PlcSettings", "parse_address", "plc_type"]
@@ -137,7 +140,7 @@ def encode_number(name: str, value: float, dtype: str) -> float | int | bool:
 
 # -- addresses ----------------------------------------------------------------------------
 
-ROLES = ("offset", "speed", "held", "cutting")
+ROLES = ("offset", "speed", "held", "cutting", "life", "valid")
 
 
 @dataclass(frozen=True)
@@ -187,13 +190,24 @@ SYNTAX = {"s7": S7_SYNTAX, "modbus-tcp": MODBUS_SYNTAX, "ads": ADS_SYNTAX}
 
 # what each role may hold: the offset, its read-back and the speed are numbers
 _NUMBERS = ("REAL", "LREAL", "DINT", "INT")
-_NOUN = {"offset": "offset", "speed": "speed", "held": "held value", "cutting": "cutting signal"}
+_NOUN = {
+    "offset": "offset",
+    "speed": "speed",
+    "held": "held value",
+    "cutting": "cutting signal",
+    "life": "life counter",
+    "valid": "valid flag",
+}
+_WRITTEN = ("offset", "life", "valid")
+"""The roles thermocomp writes: a table a client can write, and no bit inside a byte."""
 
 
 def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None) -> Address:
-    """The address ``text`` of ``role`` (offset, speed, held, cutting) for ``protocol``, with
-    its data type (``dtype``, or the address's own, or ``REAL``; a cutting signal: ``BOOL``).
-    ValueError with one line that names the option, the value and the syntax allowed."""
+    """The address ``text`` of ``role`` (offset, speed, held, cutting, life, valid) for
+    ``protocol``, with its data type (``dtype``, or the address's own, or ``REAL``; a cutting
+    signal and an ADS or coil valid flag: ``BOOL``; a life counter and a register's valid flag:
+    ``INT``, a DBD's ``DINT``). ValueError with one line that names the option, the value and
+    the syntax allowed."""
     key = f"{role}_address"
     if not isinstance(text, str):  # a ValueError: the settings' one-line message
         raise ValueError(f"{key} = {short(text)}: expected {SYNTAX[protocol]}")
@@ -211,10 +225,17 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
         if bad:
             raise ValueError(f"{key} = {short(text)}: expected {S7_SYNTAX}")
         own = {"D": ("REAL", "DINT"), "W": ("INT",), "X": ("BOOL",)}[width]
+        if width == "X" and role == "valid":
+            raise ValueError(
+                f"{key} {addr} is a bit: writing it would write its whole byte over the PLC's "
+                "other bits; give a word (a DBW, INT 1/0)"
+            )
         if width == "X" and role != "cutting":
             raise ValueError(
                 f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (a DBD or a DBW)"
             )
+        if role in ("life", "valid") and width == "D":
+            own = ("DINT", "REAL")
         dtype = dtype or own[0]
         if dtype not in own:
             raise ValueError(
@@ -236,11 +257,19 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
             raise ValueError(f"{key} = {short(text)}: expected {MODBUS_SYNTAX}")
         area = (m.group(1) or "hr").lower()
         bits = area in ("coil", "di")
-        if bits and role != "cutting":
+        if role in ("life", "valid") and area not in ("hr", "coil" if role == "valid" else "hr"):
+            raise ValueError(
+                f"{key} = {short(text)}: expected a holding register (hr:<n>)"
+                + (" or a coil (coil:<n>)" if role == "valid" else "")
+                + ", the tables a client writes"
+            )
+        if bits and role not in ("cutting", "valid"):
             raise ValueError(
                 f"{key} {addr} is a bit; the {_NOUN[role]} needs a number (hr:<n> or ir:<n>)"
             )
-        dtype = dtype or ("BOOL" if bits else "INT" if role == "cutting" else "REAL")
+        dtype = dtype or (
+            "BOOL" if bits else "INT" if role in ("cutting", "life", "valid") else "REAL"
+        )
         if bits != (dtype == "BOOL") or dtype == "LREAL":
             allowed = "BOOL" if bits else "REAL (real32), DINT (int32) or INT (int16)"
             raise ValueError(
@@ -258,7 +287,9 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
         index = _ADS_INDEX_RE.fullmatch(addr)
         if index is None and _ADS_RE.fullmatch(addr) is None:
             raise ValueError(f"{key} = {short(text)}: expected {ADS_SYNTAX}")
-        dtype = dtype or ("BOOL" if role == "cutting" else "REAL")
+        dtype = dtype or (
+            "BOOL" if role in ("cutting", "valid") else "INT" if role == "life" else "REAL"
+        )
         if index is not None:  # an object by its index (a CNC object, %MB of a PLC), no symbol
             group, offset = (int(x, 0) for x in index.groups())
             if group > 0xFFFFFFFF or offset > 0xFFFFFFFF:
@@ -266,7 +297,7 @@ def parse_address(protocol: str, role: str, text: Any, dtype: str | None = None)
             found = Address(addr, dtype, "index", number=group, start=offset)
         else:
             found = Address(addr, dtype, "symbol", symbol=addr)
-    if role != "cutting" and found.dtype not in _NUMBERS:
+    if role not in ("cutting", "valid") and found.dtype not in _NUMBERS:
         raise ValueError(
             f"{role}_type = {found.dtype!r}: expected a number type (REAL, LREAL, DINT, INT)"
         )
@@ -299,6 +330,10 @@ if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the cho
 else:
     Order = one_of("big", "little")
     Protocol = one_of(*PROTOCOLS)
+
+LifeAddress = Annotated[
+    str, Allowed("an address of the protocol (as offset_address), or '' for none")
+]
 
 # options of one protocol only: given for another, they are a mistake
 _OWN = {
@@ -365,6 +400,22 @@ class PlcSettings(AdapterSettings):
         [True],  # type: ignore[arg-type]  # a list, as documented
         description="the values that mean cutting (a bit: true; false for an inverted one)",
     )
+    life_address: LifeAddress = Field(  # type: ignore[assignment]
+        None,
+        description="the sign of life: the counter the PLC watches (a word: S7 DBW, hr:<n>, an "
+        "INT symbol); '' for none, where a profile names one",
+    )
+    life_type: PlcType = Field(  # type: ignore[assignment]
+        None, description="default: INT (an S7 DBD: DINT)"
+    )
+    valid_address: LifeAddress = Field(  # type: ignore[assignment]
+        None,
+        description="the sign of life: the 'compensation valid' flag (S7 DBW 1/0, hr:<n> 1/0 or "
+        "coil:<n>, a BOOL symbol); '' for none, where a profile names one",
+    )
+    valid_type: PlcType = Field(  # type: ignore[assignment]
+        None, description="default: BOOL (ADS, a coil), INT (a register or DBW)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> PlcSettings:
@@ -395,9 +446,14 @@ def check_plc(
         if wrong:
             raise error(f"{wrong[0]} is an option of protocol {other!r}, not of {protocol!r}")
     out: dict[str, Address] = {}
+    life, valid = addresses.get("life", (None, None)), addresses.get("valid", (None, None))
+    try:
+        life_configured(life[0], valid[0], "life_address", "valid_address")
+    except ValueError as err:
+        raise error(str(err)) from None
     for role, (text, dtype) in addresses.items():
-        if text is None:
-            if dtype is not None and role in ("held", "cutting"):
+        if text is None or (text == "" and role in ("life", "valid")):
+            if dtype is not None and role in ("held", "cutting", "life", "valid"):
                 raise error(f"{role}_type needs {role}_address")
             continue
         try:
@@ -409,6 +465,11 @@ def check_plc(
             out["held"] = parse_address(protocol, "held", addresses["held"][0], out["offset"].dtype)
         except ValueError:
             pass  # an S7 DBW beside a DBD: its own type
+    written = [(r, out[r]) for r in _WRITTEN if r in out]
+    for i, (ra, a) in enumerate(written):
+        for rb, b in written[i + 1 :]:
+            if _overlap(a, b):
+                raise error(f"{ra}_address {a.text} and {rb}_address {b.text} overlap")
     if protocol == "ads" and ams_net_id is None:
         try:
             ipaddress.IPv4Address(host)
@@ -418,6 +479,23 @@ def check_plc(
                 "derive it from (<ip>.1.1)"
             ) from None
     return out
+
+
+def _overlap(a: Address, b: Address) -> bool:
+    """Whether two addresses share a byte (S7), a register or coil (Modbus) or a symbol."""
+    if a.area != b.area or a.number != b.number:
+        return False
+    if a.area == "symbol":
+        return a.symbol.lower() == b.symbol.lower()
+    width = (lambda x: x.size) if a.area in ("DB", "index") else (lambda x: x.registers)
+    return a.start < b.start + width(b) and b.start < a.start + width(a)
+
+
+def encode_flag(valid: bool, dtype: str) -> bool | int | float:
+    """The valid flag as ``dtype`` holds it: a BOOL true/false, a number 1/0."""
+    if dtype == "BOOL":
+        return bool(valid)
+    return float(valid) if dtype in ("REAL", "LREAL") else int(valid)
 
 
 # -- the protocols ------------------------------------------------------------------------
@@ -449,6 +527,41 @@ class _Driver:
 
     def write(self, what: str, a: Address, value: float) -> None:
         raise NotImplementedError
+
+    def write_many(self, items: list[Item]) -> None:
+        """Write each (name, address, value), in as few requests as the protocol allows; by
+        default one each, in order."""
+        for name, a, value in items:
+            self.write(f"write {name} ({a.text})", a, value)
+
+
+Item = tuple[str, Address, Any]
+"""One value to write: what it is (``offset``, ``life counter``, ``valid flag``), its address
+and its value, encoded for the address's type."""
+
+
+def runs(items: list[Item], width: Any) -> list[list[Item]]:
+    """``items`` in runs of adjacent addresses (one request each): sorted by area, number and
+    start, a run going on while the next starts where the last ends (``width(address)``)."""
+    out: list[list[Item]] = []
+    for item in sorted(items, key=lambda i: (i[1].area, i[1].number, i[1].start)):
+        last = out[-1][-1][1] if out else None
+        a = item[1]
+        if (
+            last is not None
+            and last.area == a.area
+            and last.number == a.number
+            and a.start == last.start + width(last)
+        ):
+            out[-1].append(item)
+        else:
+            out.append([item])
+    return out
+
+
+def _what(run: list[Item]) -> str:
+    """``write offset, life counter (DB100.DBD0, DB100.DBW4)``: a request's head."""
+    return f"write {', '.join(n for n, _, _ in run)} ({', '.join(a.text for _, a, _ in run)})"
 
 
 class _S7(_Driver):
@@ -523,6 +636,30 @@ class _S7(_Driver):
             {"DINT": set_dint, "INT": set_int}[a.dtype](data, 0, int(value))
         self._call(what, self.client.db_write, a.number, a.start, data, refused=WriteRejectedError)
 
+    def write_many(self, items: list[Item]) -> None:
+        """One ``db_write`` per run of adjacent bytes in one DB (python-snap7's
+        ``write_multi_vars`` sends one request per item: no fewer requests)."""
+        from snap7.util import set_dint, set_int, set_real
+
+        for run in runs(items, lambda a: a.size):
+            first = run[0][1]
+            data = bytearray(sum(a.size for _, a, _ in run))
+            k = 0
+            for _, a, value in run:
+                if a.dtype == "REAL":
+                    set_real(data, k, float(value))
+                else:
+                    {"DINT": set_dint, "INT": set_int}[a.dtype](data, k, int(value))
+                k += a.size
+            self._call(
+                _what(run),
+                self.client.db_write,
+                first.number,
+                first.start,
+                data,
+                refused=WriteRejectedError,
+            )
+
 
 class _ModbusTcp(_Driver):
     """Through the Modbus transport: its codec, and its error policy."""
@@ -562,6 +699,27 @@ class _ModbusTcp(_Driver):
 
     def write(self, what: str, a: Address, value: float) -> None:
         self._modbus.write_value(what, a.start, value, _REGISTER_TYPE[a.dtype])
+
+    def write_many(self, items: list[Item]) -> None:
+        """One ``write_registers`` per run of adjacent holding registers; a coil its own."""
+        for run in runs(items, lambda a: a.registers):
+            first = run[0][1]
+            if first.area == "coil":
+                for name, a, value in run:
+                    self._modbus.request(
+                        f"write {name} coil {a.start}",
+                        "write_coil",
+                        a.start,
+                        bool(value),
+                        refused=WriteRejectedError,
+                    )
+                continue
+            regs: list[int] = []
+            for _, a, value in run:
+                regs += self._modbus.codec.encode(
+                    value, _REGISTER_TYPE[a.dtype], f"{self.name} {_what(run)}"
+                )
+            self._modbus.write_registers(_what(run), first.start, regs)
 
 
 _REGISTER_TYPE = {"REAL": "float32", "DINT": "int32", "INT": "int16"}
@@ -637,6 +795,29 @@ class _Ads(_Driver):
             return self._call(what, self.conn.read, a.number, a.start, t, refused=AdapterError)
         return self._call(what, self.conn.read_by_name, a.symbol, t, refused=AdapterError)
 
+    def write_many(self, items: list[Item]) -> None:
+        """Symbols: ONE ADS sum-write (pyads's ``write_list_by_name``; each symbol's info is
+        asked once a connection); each result checked. Index-group addresses: one write each."""
+        named = [i for i in items if i[1].area == "symbol"]
+        for name, a, value in items:
+            if a.area != "symbol":
+                self.write(f"write {name} ({a.text})", a, value)
+        if not named:
+            return
+        what = _what(named)
+        results = self._call(
+            what,
+            self.conn.write_list_by_name,
+            {a.symbol: value for _, a, value in named},
+            refused=WriteRejectedError,
+        )
+        for name, a, _ in named:
+            said = str(results.get(a.symbol, "no result")) if isinstance(results, dict) else ""
+            if said != "no error":
+                raise WriteRejectedError(
+                    f"{self.head(f'write {name} ({a.text})')}: the target refused: {said}"
+                )
+
     def write(self, what: str, a: Address, value: float) -> None:
         t = self.types[a.dtype]
         if a.area == "index":
@@ -694,6 +875,10 @@ class PlcAdapter(Adapter):
         cutting_address: str | None = None,
         cutting_type: str | None = None,
         cutting_values: tuple[Any, ...] = (True,),
+        life_address: str | None = None,
+        life_type: str | None = None,
+        valid_address: str | None = None,
+        valid_type: str | None = None,
         **scaling: Any,
     ):
         super().__init__(**scaling)
@@ -735,6 +920,8 @@ class PlcAdapter(Adapter):
                 "speed": (speed_address, typed(speed_type)),
                 "held": (held_address, typed(held_type)),
                 "cutting": (cutting_address, typed(cutting_type)),
+                "life": (life_address, typed(life_type)),
+                "valid": (valid_address, typed(valid_type)),
             },
         )
         self.protocol = protocol
@@ -752,6 +939,10 @@ class PlcAdapter(Adapter):
         self.cutting = found.get("cutting")
         self.can_read_cutting = self.cutting is not None  # type: ignore[misc]
         self.cutting_values = tuple(cutting_values)
+        # the sign of life: both addresses, or neither ("" turns a profile's default off)
+        self.life = found.get("life")
+        self.valid = found.get("valid")
+        self.writes_life = self.life is not None and self.valid is not None
         self._driver: _Driver | None = None
 
     @classmethod
@@ -795,3 +986,22 @@ class PlcAdapter(Adapter):
         a = self.offset
         packed = encode_number(self.name, value, a.dtype)  # refused here: nothing is sent
         self._driver.write(f"write offset ({a.text})", a, packed)  # type: ignore[union-attr]
+
+    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+        """The offset and the sign of life in as few requests as the protocol allows (see
+        :meth:`_Driver.write_many`): every value encoded first, so that a value that does not
+        fit sends nothing."""
+        if life is None:
+            if raw is not None:
+                self._write_offset_raw(raw)
+            return
+        life = checked_life(self.name, life)
+        assert self.life is not None and self.valid is not None  # writes_life
+        items: list[Item] = []
+        if raw is not None:
+            items.append(("offset", self.offset, encode_number(self.name, raw, self.offset.dtype)))
+        items.append(
+            ("life counter", self.life, encode_number(self.name, life.counter, self.life.dtype))
+        )
+        items.append(("valid flag", self.valid, encode_flag(life.valid, self.valid.dtype)))
+        self._driver.write_many(items)  # type: ignore[union-attr]

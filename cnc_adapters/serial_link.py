@@ -30,7 +30,7 @@ counter found at the first read is stale.
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import AfterValidator, BaseModel, Field, model_validator
 
@@ -43,6 +43,7 @@ from .base import (
     Allowed,
     BadValueError,
     Baud,
+    ConfigError,
     Count,
     NonZero,
     Pattern,
@@ -52,9 +53,12 @@ from .base import (
     UnreachableError,
     ValuePattern,
     WriteRejectedError,
+    checked_life,
+    life_configured,
     read_handshake,
     serial_options,
 )
+from .reading import Life
 
 try:
     import termios
@@ -93,6 +97,23 @@ OffsetRequest = Annotated[
     Allowed("a request with {value} in it, e.g. 'OFFSET {value:.4f}'"),
 ]
 
+_LIFE_REQUEST = "a request with {counter} and {valid} in it, e.g. 'LIFE {counter} {valid}', or ''"
+
+
+def _life_request(v: str) -> str:
+    if v == "":
+        return v
+    try:
+        v.format(counter=1, valid=1)
+    except (KeyError, IndexError, ValueError):
+        raise ValueError(_LIFE_REQUEST) from None
+    if "{counter" not in v or "{valid" not in v:
+        raise ValueError(_LIFE_REQUEST)
+    return v
+
+
+LifeRequest = Annotated[str, AfterValidator(_life_request), Allowed(_LIFE_REQUEST)]
+
 
 class LineSettings(SerialSettings, AdapterSettings):
     """The options of :class:`LineAdapter`."""
@@ -107,6 +128,11 @@ class LineSettings(SerialSettings, AdapterSettings):
         description="reads the offset back (e.g. '?OFFSET'); empty: the device has no such query",
     )
     offset_query_reply: ValuePattern = rf"^OFFSET\s*=?\s*(?P<value>{NUMBER})$"
+    life_request: LifeRequest = Field(
+        "",
+        description="the sign of life, one line after the offset's: {counter} (1..32767) and "
+        "{valid} (1/0), answered like the offset; empty: none",
+    )
 
 
 class SerialLine:
@@ -201,10 +227,16 @@ class LineAdapter(SerialLine, Adapter):
         eol: str = "\r\n",
         offset_query: str = "",
         offset_query_reply: str = rf"^OFFSET\s*=?\s*(?P<value>{NUMBER})$",
+        life_request: str = "",
         **scaling: Any,
     ):
         super().__init__(**scaling)
         self._init_serial(port, baudrate, timeout_s, eol)
+        try:
+            self.life_request = _life_request(life_request) or None
+        except ValueError as err:
+            raise AdapterError(f"{self.name}: life_request: expected {err}") from None
+        self.writes_life = self.life_request is not None
         self.speed_request = speed_request
         self.offset_request = offset_request
         self.offset_query = offset_query or None
@@ -270,6 +302,29 @@ class LineAdapter(SerialLine, Adapter):
                 f"{self._head('write offset', request)}: unexpected reply {reply!r}"
             )
 
+    def _write_life_raw(self, life: Life) -> None:
+        life = checked_life(self.name, life)
+        assert self.life_request is not None  # writes_life
+        self._write_line(
+            self.life_request.format(counter=life.counter, valid=int(life.valid)),
+            "write sign of life",
+        )
+
+    def _write_line(self, request: str, op: str) -> None:
+        """One write request, answered like the offset's: refused (``reject_reply``) is
+        :class:`WriteRejectedError`, anything but ``offset_reply`` :class:`BadValueError`."""
+        reply = self.exchange(request, op)
+        if self.reject_reply.match(reply):
+            raise WriteRejectedError(f"{self._head(op, request)}: controller refused it: {reply!r}")
+        if not self.offset_reply.match(reply):
+            raise BadValueError(f"{self._head(op, request)}: unexpected reply {reply!r}")
+
+
+LifeVar = Annotated[
+    Annotated[int, Field(ge=0)] | Literal[""],
+    Allowed("a macro variable number >= 0, or '' for none"),
+]
+
 
 class HaasMacros(BaseModel):
     """The Haas macro-variable options, shared by the serial and the MDC (TCP) link."""
@@ -293,6 +348,12 @@ class HaasMacros(BaseModel):
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="macro unit per um of the measurement; default offset_scale"
     )
+    life_var: LifeVar | None = Field(
+        None, description="the sign of life: the macro variable of the counter the program checks"
+    )
+    valid_var: LifeVar | None = Field(
+        None, description="the sign of life: the macro variable of the valid flag (1/0)"
+    )
 
     @model_validator(mode="after")
     def _measurement(self) -> HaasMacros:
@@ -303,6 +364,8 @@ class HaasMacros(BaseModel):
             self.measurement_sequence_var,
             self.measurement_sigma_var,
             ValueError,
+            self.life_var,
+            self.valid_var,
         )
         return self
 
@@ -322,6 +385,14 @@ class HaasSettings(HaasMacros, LineSettings):
     )
     offset_query_reply: ValuePattern | None = None  # type: ignore[assignment]
 
+    @model_validator(mode="after")
+    def _life(self) -> HaasSettings:
+        if self.life_request:
+            raise ValueError(
+                "haas: the sign of life goes to life_var and valid_var, not life_request"
+            )
+        return self
+
 
 def check_macros(
     prefix: str,
@@ -330,9 +401,12 @@ def check_macros(
     sequence: int | None,
     sigma: int | None,
     error: type[Exception] = AdapterError,
-) -> None:
+    life: int | str | None = None,
+    valid: int | str | None = None,
+) -> bool:
     """The measurement's macro variables: the value and its counter together, the sigma only
-    with them, all different and none the offset's."""
+    with them; the sign of life's two or neither; all different and none the offset's. Whether
+    a sign of life is configured."""
     if (value is None) != (sequence is None) or (sigma is not None and value is None):
         raise error(
             f"{prefix}a measurement needs both measurement_var and measurement_sequence_var "
@@ -344,6 +418,18 @@ def check_macros(
             f"{prefix}offset_var, measurement_var, measurement_sequence_var and "
             f"measurement_sigma_var must be different macro variables, not {given}"
         )
+    try:
+        configured = life_configured(life, valid, "life_var", "valid_var")
+    except ValueError as err:
+        raise error(f"{prefix}{err}") from None
+    if configured:
+        mine = [int(life), int(valid)]  # type: ignore[arg-type]
+        if len(set(mine)) < 2 or set(mine) & set(given):
+            raise error(
+                f"{prefix}life_var and valid_var must be two macro variables of their own, "
+                f"not {mine} (offset_var and the measurement's: {given})"
+            )
+    return configured
 
 
 class HaasAdapter(LineAdapter):
@@ -366,17 +452,26 @@ class HaasAdapter(LineAdapter):
         measurement_sequence_var: int | None = None,
         measurement_sigma_var: int | None = None,
         measurement_scale: float | None = None,
+        life_var: int | str | None = None,
+        valid_var: int | str | None = None,
         **kw: Any,
     ):
         self.speed_var = int(speed_var)
         self.offset_var = int(offset_var)
-        check_macros(
+        configured = check_macros(
             "haas: ",
             self.offset_var,
             measurement_var,
             measurement_sequence_var,
             measurement_sigma_var,
+            AdapterError,
+            life_var,
+            valid_var,
         )
+        if kw.get("life_request"):
+            raise ConfigError(
+                "haas: the sign of life goes to life_var and valid_var, not life_request"
+            )
         macro = rf"^>?\s*MACRO,\s*{{}},\s*(?P<value>{NUMBER})$"
         # (request, reply) per macro variable of the probe cycle: sequence, value[, sigma]; a
         # NaN is taken as read, so that it is refused once, like any value that is no number
@@ -402,6 +497,20 @@ class HaasAdapter(LineAdapter):
         super().__init__(port, **kw)
         self.can_read_measurement = bool(self.measurement_queries)  # type: ignore[misc]
         self.measurement_scale = measurement_scale
+        # the sign of life: the counter's and the flag's macro variables
+        self.life_vars: tuple[int, int] | None = (
+            (int(life_var), int(valid_var)) if configured else None  # type: ignore[arg-type]
+        )
+        self.writes_life = self.life_vars is not None
+
+    def _write_life_raw(self, life: Life) -> None:
+        """``?E<life_var> <counter>`` then ``?E<valid_var> 1`` (or 0): one line each, the Haas
+        commands write one variable each."""
+        life = checked_life(self.name, life)
+        assert self.life_vars is not None  # writes_life
+        counter_var, flag_var = self.life_vars
+        self._write_line(f"?E{counter_var} {life.counter}", "write life counter")
+        self._write_line(f"?E{flag_var} {int(life.valid)}", "write valid flag")
 
     def _read_measurement_raw(self) -> RawMeasurement | None:
         reads = [

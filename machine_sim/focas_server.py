@@ -25,7 +25,8 @@ with ``write_raw``, ``held_raw`` and ``speed_rpm``). A write to ``offset_macro``
 
 ``ack_macro`` reads ``control.held_raw``; ``speed_macro`` reads ``control.speed_rpm`` (a ladder
 copying the actual speed); the other common variables (#100-#199, #500-#999) start vacant and
-hold what is written; any other number answers return code 3 (EW_NUMBER).
+hold what is written (the sign of life's counter and flag among them); any other number answers
+return code 3 (EW_NUMBER), and a write to one of ``protected`` return code 7 (EW_PROT).
 
 Faults for tests: :meth:`stop` (the control is gone: connections reset, nothing listens) and
 :meth:`start` again on the same port; ``fault = "hang"`` (requests are read and never answered)
@@ -56,7 +57,7 @@ OPEN, OPEN_REPLY, CLOSE, CLOSE_REPLY, GENERIC, GENERIC_REPLY = (
     0x2102,
 )
 READ_MACRO, WRITE_MACRO_DOUBLE, ACTS = 0x15, 0xA8, 0x25
-EW_OK, EW_FUNC, EW_LENGTH, EW_NUMBER, EW_DATA = 0, 1, 2, 3, 5
+EW_OK, EW_FUNC, EW_LENGTH, EW_NUMBER, EW_DATA, EW_PROT = 0, 1, 2, 3, 5, 7
 COMMON = (range(100, 200), range(500, 1000))
 
 __all__ = ["FocasServer", "PlainControl", "encode_scaled"]
@@ -117,8 +118,8 @@ class FocasServer:
     """A FOCAS/Ethernet server in front of ``control`` (see the module docstring).
 
     ``received`` lists every value written to ``offset_macro``, in the control's unit, taken or
-    not; ``calls`` counts the requests by function; ``sessions`` and ``closes`` count the open
-    and close requests."""
+    not; ``calls`` counts the subpackets by function, ``requests`` the generic requests;
+    ``sessions`` and ``closes`` count the open and close requests."""
 
     def __init__(
         self,
@@ -129,6 +130,7 @@ class FocasServer:
         speed_macro: int | None = None,
         refuse_in: str = "focas",
         acts: bool = True,
+        protected: tuple[int, ...] = (),
         host: str = "127.0.0.1",
         port: int = 0,
     ):
@@ -140,6 +142,7 @@ class FocasServer:
         self.speed_macro = speed_macro
         self.refuse_in = refuse_in
         self.acts = acts
+        self.protected = frozenset(protected)
         self.host = host
         self.port = port
         self.fault = ""
@@ -148,6 +151,7 @@ class FocasServer:
         self.calls: Counter[int] = Counter()
         self.sessions = 0
         self.closes = 0
+        self.requests = 0  # generic requests, whatever their number of subpackets
         self.lock = threading.RLock()  # one request at a time touches the control
         self._server: socketserver.ThreadingTCPServer | None = None
         self._thread: threading.Thread | None = None
@@ -233,6 +237,7 @@ class FocasServer:
                     conn.sendall(_packet(CLOSE_REPLY, b""))
                     return
                 elif ptype == GENERIC:
+                    self.requests += 1
                     conn.sendall(_packet(GENERIC_REPLY, self._generic(body)))
                 else:
                     return  # an unknown packet: the control drops the session
@@ -317,6 +322,8 @@ class FocasServer:
             return _reply(cmd, EW_NUMBER)
         if not all(math.isfinite(v) for v in values):
             return _reply(cmd, EW_DATA)
+        if any(n in self.protected for n in numbers):
+            return _reply(cmd, EW_PROT)
         for n, v in zip(numbers, values):
             if n == self.offset_macro:
                 self.received.append(v)

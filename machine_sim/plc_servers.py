@@ -8,6 +8,10 @@ not a fake of the wire format.
 - :class:`AdsPlc`: pyads's ``AdsTestServer`` with the symbols the addresses name (unknown
   symbols and writes of the wrong size are refused with the ADS error a TwinCAT gives).
 
+Each also holds the sign of life's words (``life`` and ``valid``: by default where the
+controller profiles put them, S7 ``DB100.DBW14``/``DBW16``, ADS ``GVL_Thermo.nLifeCounter``/
+``bCompValid``; none on Modbus TCP unless given), read with :meth:`EmulatedPlc.get`.
+
 Each plays the machine builder's PLC program: :meth:`EmulatedPlc.sync` (once per lock-step
 cycle, after ``machine.advance()`` and before ``control.sync()``) hands a newly written offset
 to ``control.write_raw``, then publishes the value the control holds at the held address, the
@@ -119,6 +123,21 @@ class EmulatedPlc:
         return float(value)
 
 
+def _life_roles(
+    addresses: dict[str, tuple[str, str]],
+    life_address: str | None,
+    life_type: str,
+    valid_address: str | None,
+    valid_type: str,
+) -> None:
+    """The sign of life's words in the PLC's memory (the controller profiles' defaults, where
+    they name one): thermocomp writes them, the builder's program watches them."""
+    if life_address:
+        addresses["life"] = (life_address, life_type)
+    if valid_address:
+        addresses["valid"] = (valid_address, valid_type)
+
+
 # -- S7 -----------------------------------------------------------------------------------
 
 _S7 = re.compile(r"DB(\d+)\.DB([XWD])(\d+)(?:\.([0-7]))?", re.IGNORECASE)
@@ -149,6 +168,10 @@ class S7Plc(EmulatedPlc):
         held_type: str | None = None,
         cutting_address: str | None = "DB100.DBX12.0",
         cutting_type: str = "BOOL",
+        life_address: str | None = "DB100.DBW14",
+        life_type: str = "INT",
+        valid_address: str | None = "DB100.DBW16",
+        valid_type: str = "INT",
         db_size: int = 64,
     ):
         addresses = {"offset": (offset_address, offset_type), "speed": (speed_address, speed_type)}
@@ -156,6 +179,7 @@ class S7Plc(EmulatedPlc):
             addresses["held"] = (held_address, held_type or offset_type)
         if cutting_address:
             addresses["cutting"] = (cutting_address, cutting_type)
+        _life_roles(addresses, life_address, life_type, valid_address, valid_type)
         super().__init__(control, addresses)
         self._where = {role: _s7(a) for role, (a, _) in self.addresses.items()}
         sizes: dict[int, int] = {}
@@ -286,6 +310,10 @@ class ModbusTcpPlc(EmulatedPlc):
         held_type: str | None = None,
         cutting_address: str | None = "di:0",
         cutting_type: str = "BOOL",
+        life_address: str | None = None,
+        life_type: str = "INT",
+        valid_address: str | None = None,
+        valid_type: str = "INT",
         device_id: int = 1,
         word_order: str = "big",
         size: int = 64,
@@ -295,6 +323,7 @@ class ModbusTcpPlc(EmulatedPlc):
             addresses["held"] = (held_address, held_type or offset_type)
         if cutting_address:
             addresses["cutting"] = (cutting_address, cutting_type)
+        _life_roles(addresses, life_address, life_type, valid_address, valid_type)
         super().__init__(control, addresses)
         self.device_id = device_id
         self.word_order = word_order
@@ -484,12 +513,17 @@ class AdsPlc(EmulatedPlc):
         held_type: str | None = None,
         cutting_address: str | None = "GVL_Thermo.bCutting",
         cutting_type: str = "BOOL",
+        life_address: str | None = "GVL_Thermo.nLifeCounter",
+        life_type: str = "INT",
+        valid_address: str | None = "GVL_Thermo.bCompValid",
+        valid_type: str = "BOOL",
     ):
         addresses = {"offset": (offset_address, offset_type), "speed": (speed_address, speed_type)}
         if held_address:
             addresses["held"] = (held_address, held_type or offset_type)
         if cutting_address:
             addresses["cutting"] = (cutting_address, cutting_type)
+        _life_roles(addresses, life_address, life_type, valid_address, valid_type)
         super().__init__(control, addresses)
         from pyads import constants
         from pyads.testserver import PLCVariable
