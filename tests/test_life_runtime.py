@@ -426,3 +426,52 @@ def test_run_check_warns_where_the_control_cannot_see_the_service_stop(
     warning = "s1: warning: the control cannot tell when thermocomp stops; see docs/controls/"
     assert warning not in out["with"] and "link ok" in out["with"]
     assert f"{warning}index.md\n" in out["without"]
+
+
+def test_the_page_says_stopped_and_what_the_control_holds(
+    tmp_path: Path, calibrated_model: Path
+) -> None:
+    """The status page in a real headless Chromium: the clean stop's last status shows the
+    spindle stopped with the offset the control holds, and once the service is gone the page
+    still says so."""
+    from test_status_page import CHROMIUM, JS, Page
+
+    if not CHROMIUM.exists() or not (JS / "node_modules" / "playwright-core").is_dir():
+        pytest.skip("Chromium and tests/js/node_modules: scripts/system-deps.sh installs them")
+    from machine_sim.vcnc import free_port
+
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(
+        f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
+        f"[status]\nport = {free_port()}\nhistory_every_s = 5\n"
+        f'[[spindle]]\nname = "s1"\nmodel = "{calibrated_model}"\n'
+        'adapter = {url = "sim://motorized-27k?program=job-shop-day&seed=1"}\n'
+    )
+    t = [0.0]
+    svc = Service(cfg, clock=lambda: t[0], wall=lambda: WALL0 + t[0], lock=False)
+    svc.start_status()
+    page, closed = None, False
+    try:
+        while t[0] < 300:
+            t[0] += max(svc.tick(), 0.25)
+        assert svc.status_server is not None
+        page = Page(svc.status_server.url, tmp_path / "stopped.png", "stopped", tmp_path / "b.log")
+        live = page.expect("live")
+        assert live["state_class"].startswith("state compensating") and live["errors"] == []
+        held = svc.spindles["s1"].offset.held_um
+        said = f"the control holds {held:.2f} µm"
+        svc._publish(t[0], stopped=True)  # what close() publishes, served until it closes
+        stopped = page.expect("stopped")
+        assert stopped["state_class"] == "state stopped"
+        assert "STOPPED" in stopped["state_bar"] and said in stopped["state_bar"]
+        svc.close()
+        closed = True
+        gone = page.expect("gone")
+        assert gone["conn"] == "not reachable" and gone["state_class"] == "state stopped"
+        assert f"The service stopped cleanly: {said}." in gone["offline"]
+        assert page.finish() == 0, (tmp_path / "b.log").read_text()[-3000:]
+    finally:
+        if page is not None:
+            page.close()
+        if not closed:
+            svc.close()

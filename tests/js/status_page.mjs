@@ -10,6 +10,8 @@
 //     service: "unreachable" (screenshot); starts it again: "recovered".
 //   SCENARIO "not_writing": a service whose link is down: the state bar and the header say so
 //     (screenshot, "not_writing").
+//   SCENARIO "stopped": compensating ("live"); the test publishes the clean stop's status
+//     ("stopped"), then closes the service: the page keeps saying what the control holds ("gone").
 // Every wait is for a condition with a generous timeout: nothing here compares clocks.
 import { chromium } from "playwright-core";
 
@@ -110,6 +112,17 @@ try {
                header: svc.innerText, header_color: getComputedStyle(svc).color };
     });
     emit("not_writing", { document_status: resp.status(), ...(await look(page)), ...bar, screenshot: shot, errors });
+  } else if (scenario === "stopped") {
+    const bar = () => page.evaluate(() => ({ state_bar: document.getElementById("state").innerText,
+                                             state_class: document.getElementById("state").className }));
+    const resp = await page.goto(url);
+    await until(page, () => window.thermocomp.state === "live" && window.thermocomp.spindle_state === "compensating");
+    emit("live", { document_status: resp.status(), ...(await look(page)), ...(await bar()), errors });
+    await until(page, () => window.thermocomp.spindle_state === "stopped");
+    emit("stopped", { ...(await look(page)), ...(await bar()), errors });
+    await until(page, () => window.thermocomp.state === "unreachable");
+    await page.screenshot({ path: shot });
+    emit("gone", { ...(await look(page)), ...(await bar()), screenshot: shot, errors });
   } else {
     throw new Error(`unknown scenario ${scenario}`);
   }
