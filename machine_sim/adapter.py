@@ -6,7 +6,9 @@ written offset moves the virtual tool tip (``machine.history().tool_tip_error_um
 read back from the machine (:attr:`VirtualMachine.offset_um`). The machine's tool setter
 (:meth:`VirtualMachine.start_probe`) is read like a controller's probe variables, with the
 sequence-counter handshake, and its cutting state (:attr:`VirtualMachine.cutting`: the tool in
-the part) like a controller's cutting signal.
+the part) like a controller's cutting signal. The sign of life (life counter and "compensation
+valid" flag) goes to the machine's watch (:meth:`VirtualMachine.life_beat`), which reacts as
+its settings say when it stops.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from cnc_adapters.base import (
     AdapterError,
     AdapterSettings,
     Allowed,
+    Life,
     Positive,
     RawMeasurement,
     WriteRejectedError,
@@ -64,6 +67,7 @@ class SimAdapter(Adapter):
     can_read_offset: ClassVar[bool] = True
     can_read_measurement: ClassVar[bool] = True
     can_read_cutting: ClassVar[bool] = True
+    writes_life = True  # the virtual machine's control watches it
 
     def __init__(
         self,
@@ -124,6 +128,9 @@ class SimAdapter(Adapter):
     def _write_offset_raw(self, value: float) -> None:
         if not self.machine.apply_offset(value):
             raise WriteRejectedError(f"sim: offset {value!r} refused by the virtual CNC")
+
+    def _write_life_raw(self, life: Life) -> None:
+        self.machine.life_beat(life.counter, life.valid)
 
     def _read_measurement_raw(self) -> RawMeasurement:
         self.machine.advance()

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import math
 import socket
 import threading
@@ -54,6 +55,7 @@ from compensator.filters import lag_step
 from compensator.speed_programs import Program
 
 from .plant import SENSORS, SpindlePlant
+from .watchdog import Watch, WatchSettings
 
 if TYPE_CHECKING:
     from asyncua import Node, Server
@@ -86,6 +88,25 @@ TOOL_SETTER_PATHS = {
     "probe_sequence": "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Sequence",
 }
 PROBE_METHOD_PATH = "/CncInterface/CncSpindleList/Spindle1/ToolSetter/Probe"
+LIFE_PATHS = {
+    "life_counter": "/CncInterface/CncSpindleList/Spindle1/LifeCounter",
+    "compensation_valid": "/CncInterface/CncSpindleList/Spindle1/CompensationValid",
+}
+"""thermocomp's sign of life, writable by any client: the life counter (Int32, 1 .. 32767, 0 =
+never written) and the "compensation valid" flag (Boolean). The machine's watch judges them
+(:mod:`machine_sim.watchdog`)."""
+WATCH_PATHS = {
+    "compensation_watch": "/CncInterface/CncSpindleList/Spindle1/CompensationWatch",
+    "compensation_reaction": "/CncInterface/CncSpindleList/Spindle1/CompensationReaction",
+    "compensation_alarm": "/CncInterface/CncSpindleList/Spindle1/CompensationAlarm",
+    "compensation_trips": "/CncInterface/CncSpindleList/Spindle1/CompensationTrips",
+    "compensation_tripped_at": "/CncInterface/CncSpindleList/Spindle1/CompensationTrippedAt",
+}
+"""What the watch sees and does, read-only: its state (String: waiting, ok, stale, invalid), the
+reaction in force (String, '' when none), the alarm text (String, '' when none), how often it
+tripped (UInt32) and the simulated time of the last trip (Double, s; -1 never)."""
+RESET_PATH = "/CncInterface/Simulation/Reset"
+"""Write true: the operator's reset (clears the watch's alarm once the sign of life is back)."""
 SENSOR_KEYS = ("bearing_temp_c", "motor_temp_c", "coolant_temp_c", "ambient_c", "spindle_load_pct")
 CYCLE_START_PATH = "/CncInterface/Simulation/CycleStart"
 OFFSET_LIMIT_UM = 1000.0
@@ -96,6 +117,13 @@ SINUMERIK_SD43900_NODE = "/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_ABS_VALUE[u3]"
 """With a SINUMERIK profile: setting datum SD43900 of axis 3 (Z) [mm]. The id is this virtual
 CNC's; a real server's is browsed under /Sinumerik/SEA or read off its documentation, and
 configured (``offset_node``), never assumed."""
+SINUMERIK_LIFE_NODES = {
+    "life_counter": "/Channel/Parameter/R[u1,98]",
+    "compensation_valid": "/Channel/Parameter/R[u1,99]",
+}
+"""With a SINUMERIK profile: the sign of life in R parameters R98 (counter) and R99 (valid, 1/0),
+Doubles as R parameters are, where the profile's OPC UA route writes it; the watch reads them
+instead of ``LIFE_PATHS``."""
 SINUMERIK_GIVE_ACCESS = "/Methods/GiveUserAccess"
 """``GiveUserAccess(user, right)``: grants ``right`` (``SeaWrite``: write setting data) to a
 user; only the administrators may call it."""
@@ -186,7 +214,10 @@ class VirtualMachine:
         clock: Callable[[], float] | None = None,
         plant_dt_s: float = 0.5,
         tool_setter: ToolSetter | None = None,
+        watch: WatchSettings | None = None,
     ):
+        """``watch``: how the control watches thermocomp's sign of life and reacts when it is
+        missing (default: a 3 s timeout and no reaction, the state shown only)."""
         self.plant = plant
         self.program = program
         self._program_start_s = 0.0
@@ -217,6 +248,32 @@ class VirtualMachine:
         self.probe_true_um = 0.0
         self.probe_sigma_um = self.tool_setter.sigma_um
         self.probe_sequence = 0
+        self.watch = Watch(watch)
+        self.refused_starts = 0  # cycle starts the watch refused
+
+    def fork(self, clock: Callable[[], float]) -> VirtualMachine:
+        """An independent copy of the machine as it is now (plant, program, offset, watch and
+        record) on ``clock``: a what-if from the same moment."""
+        with self._lock:
+            state = {k: v for k, v in vars(self).items() if k not in ("_lock", "clock")}
+            twin_state = copy.deepcopy(state)
+        twin = VirtualMachine.__new__(VirtualMachine)
+        vars(twin).update(twin_state)
+        twin._lock = threading.Lock()
+        twin.clock = clock
+        return twin
+
+    def life_beat(self, counter: object, valid: object) -> None:
+        """thermocomp's sign of life as the control reads it now (the plant's time): the life
+        counter and the "compensation valid" flag, judged by :attr:`watch`."""
+        with self._lock:
+            self.watch.beat(counter, valid, self.plant.time_s)
+
+    def reset(self) -> bool:
+        """The operator's reset: clears the watch's alarm once the sign of life is back; True
+        when no alarm stands after it."""
+        with self._lock:
+            return self.watch.reset()
 
     def load_program(self, program: Program | None) -> None:
         """Start ``program`` now (sim time); None idles the spindle. The program's probe stops
@@ -230,6 +287,15 @@ class VirtualMachine:
         self.pending = program
 
     def cycle_start(self) -> bool:
+        """The operator's cycle start: resumes a program the watch's feed hold paused, else
+        starts the loaded one. Refused (False) while the watch's alarm stands or its feed hold
+        waits for the sign of life (:attr:`Watch.refusal` says why)."""
+        with self._lock:
+            if self.watch.refusal:
+                self.refused_starts += 1
+                return False
+            if self.watch.resume():
+                return True
         if self.pending is None:
             return False
         self.load_program(self.pending)
@@ -319,8 +385,9 @@ class VirtualMachine:
 
     @property
     def cutting(self) -> bool:
-        """The tool is in the part now (never during a probe cycle: the spindle is stopped)."""
-        return self._probe_until_s is None and self.plant.cutting
+        """The tool is in the part now (never during a probe cycle: the spindle is stopped; never
+        in a feed hold: the axes stand)."""
+        return self._probe_until_s is None and not self.watch.held and self.plant.cutting
 
     @property
     def measured_um(self) -> float:
@@ -345,9 +412,14 @@ class VirtualMachine:
             target = self.clock()
             h = self.plant_dt_s
             while self.plant.time_s + h <= target + 1e-9:
+                self.watch.update(self.plant.time_s)
+                if self.watch.held and self._probe_until_s is None:
+                    self._program_start_s += h  # a feed hold: the program's time stands
                 self._stop_if_due()
                 rpm = self.commanded_rpm(self.plant.time_s + h / 2)
                 self.plant.drive(rpm, h)  # the drive ramps to it
+                if self.watch.fading:
+                    self.offset_um = self.watch.fade(self.offset_um, h)
                 for name, node, lag_s, *_ in SENSORS:
                     x = (
                         self.plant.air_c(self.plant.time_s)
@@ -372,6 +444,7 @@ class VirtualMachine:
                     and self.plant.time_s >= self._probe_until_s - 1e-9
                 ):
                     self._finish_probe()
+            self.watch.update(self.plant.time_s)
 
     def sensor_values(self) -> dict[str, float]:
         """What the machine's sensors read now (noise, resolution, injected faults)."""
@@ -559,8 +632,10 @@ class VirtualCNC:
         )
         await start.set_writable()
         self._nodes["cycle_start"] = start
+        await self._add_watch(folder, ua)
         # a controller that restarts has lost the variable: 0, whatever the machine held before
         self.machine.apply_offset(0.0)
+        self.machine.watch.restart()  # ... and its watch: the life counter reads 0 again
         if self.control is not None:
             self.control.reset()
             self._seen_raw = 0.0
@@ -569,6 +644,28 @@ class VirtualCNC:
         await self._publish()
         if self.tick_s is not None:
             self._task = asyncio.create_task(self._run(self.tick_s))
+
+    async def _add_watch(self, folder, ua) -> None:
+        """The sign of life's nodes (writable by any client, as a control's variables), the
+        watch's status (read-only) and the operator's reset."""
+        types = {
+            "life_counter": ua.Variant(0, ua.VariantType.Int32),
+            "compensation_valid": ua.Variant(False, ua.VariantType.Boolean),
+            "compensation_watch": ua.Variant("waiting", ua.VariantType.String),
+            "compensation_reaction": ua.Variant("", ua.VariantType.String),
+            "compensation_alarm": ua.Variant("", ua.VariantType.String),
+            "compensation_trips": ua.Variant(0, ua.VariantType.UInt32),
+            "compensation_tripped_at": ua.Variant(-1.0, ua.VariantType.Double),
+            "reset": ua.Variant(False, ua.VariantType.Boolean),
+        }
+        for key, path in (*LIFE_PATHS.items(), *WATCH_PATHS.items(), ("reset", RESET_PATH)):
+            parent_path, _, name = path.rpartition("/")
+            node = await (await folder(parent_path)).add_variable(
+                f"ns={self.ns};s={path}", f"{self.ns}:{name}", types[key]
+            )
+            if key in LIFE_PATHS or key == "reset":
+                await node.set_writable()
+            self._nodes[key] = node
 
     async def _add_sinumerik(self, server, folder, ua, uamethod) -> None:
         """SINUMERIK's own ids (in this server's namespace, ns=2 as on a SINUMERIK), setting datum
@@ -585,6 +682,14 @@ class VirtualCNC:
             ua.Variant(0.0, ua.VariantType.Double),
         )
         await sd.set_writable()
+        for key, path in SINUMERIK_LIFE_NODES.items():
+            r = await (await folder("/Channel/Parameter")).add_variable(
+                f"ns={self.ns};s={path}",
+                f"{self.ns}:{path.rpartition('/')[2]}",
+                ua.Variant(0.0, ua.VariantType.Double),
+            )
+            await r.set_writable()
+            self._nodes[f"sinumerik_{key}"] = r
         self._nodes["sinumerik_speed"] = speed
         self._nodes["sd43900"] = sd
         sd_id = sd.nodeid
@@ -693,12 +798,38 @@ class VirtualCNC:
                     await node.write_value(float(self.control.held_raw))
                 self._seen_raw = float(self.control.held_raw)
             self.control.sync()  # the axis moves to the held value at the control's rate
-        if m.pending is not None and await self._nodes["cycle_start"].read_value():
+        # the sign of life as written since the last tick: at the plant's time, like the offset
+        life = "sinumerik_" if self.sinumerik else ""
+        m.life_beat(
+            await self._nodes[f"{life}life_counter"].read_value(),
+            await self._nodes[f"{life}compensation_valid"].read_value(),
+        )
+        if await self._nodes["reset"].read_value() is True:
+            m.reset()
+            await self._nodes["reset"].write_value(False)
+        if (m.pending is not None or m.watch.held) and await self._nodes[
+            "cycle_start"
+        ].read_value():
             m.advance()  # the program starts now, not at the last tick
-            m.cycle_start()
+            m.cycle_start()  # refused while the watch's alarm or feed hold stands: a press is spent
             await self._nodes["cycle_start"].write_value(False)
         m.advance()
+        if m.watch.fading:  # the control rewrites its own variable as the offset fades
+            await self._follow_fade()
         await self._publish()
+
+    async def _follow_fade(self) -> None:
+        """The fading offset is the variable's value: a read-back sees it, and a client's next
+        write starts from it."""
+        m = self.machine
+        if self.control is None:
+            await self._nodes["thermal_offset"].write_value(float(m.offset_um))
+            return
+        c = self.control
+        c.applied_um = m.offset_um
+        c.held_raw = c.profile.units.to_controller(m.offset_um)
+        self._seen_raw = float(c.held_raw)
+        await self._nodes[self._offset_key].write_value(float(c.held_raw))
 
     async def _publish(self) -> None:
         from asyncua import ua
@@ -742,6 +873,21 @@ class VirtualCNC:
             ua.Variant(float(sigma), ua.VariantType.Double)
         )
         await self._nodes["probe_sequence"].write_value(ua.Variant(int(seq), ua.VariantType.UInt32))
+        w = m.watch
+        for key, variant in (
+            ("compensation_watch", ua.Variant(w.state, ua.VariantType.String)),
+            ("compensation_reaction", ua.Variant(w.reaction_text(), ua.VariantType.String)),
+            ("compensation_alarm", ua.Variant(w.alarm, ua.VariantType.String)),
+            ("compensation_trips", ua.Variant(int(w.trips), ua.VariantType.UInt32)),
+            (
+                "compensation_tripped_at",
+                ua.Variant(
+                    -1.0 if w.tripped_at_s is None else float(w.tripped_at_s),
+                    ua.VariantType.Double,
+                ),
+            ),
+        ):
+            await self._nodes[key].write_value(variant)
 
 
 def call(vcnc: VirtualCNC, coro_fn) -> None:

@@ -78,6 +78,17 @@ class WatchSettings:
                 raise ValueError(f"watch {name} must be a finite number > 0, got {v!r}")
 
 
+def _whole(value: object) -> int | None:
+    """``value`` as a whole number (an int, or a finite float with no fraction); None else."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        return int(value)
+    return None
+
+
 class Watch:
     """The watcher: fed the counter and the flag as the control reads them (:meth:`beat`) and
     judged on the machine's clock (:meth:`update`). Pure: it owns no clock and moves nothing; the
@@ -123,18 +134,18 @@ class Watch:
 
     def beat(self, counter: object, valid: object, now_s: float) -> WatchState:
         """The counter and the flag as the control reads them at ``now_s``. A beat is a counter
-        that moved to another value in 1 .. 32767; 0 (never written), a value out of range or
-        not a whole number moves nothing. A flag that is not a Boolean true is false."""
-        good = (
-            isinstance(counter, int)
-            and not isinstance(counter, bool)
-            and 0 < counter <= LIFE_MODULUS
-        )
-        if good and counter != self.counter:
-            self.last_beat_s = float(now_s)
-        if good or counter == 0:
-            self.counter = int(counter)  # type: ignore[call-overload]
-        self.valid = valid is True
+        that moved to another whole number in 1 .. 32767 (an integer, or a whole floating-point
+        number where the variable is one, a SINUMERIK R parameter); 0 (never written), a value
+        out of range or not a whole number moves nothing. The flag is true as a Boolean true or
+        the number 1; anything else is false."""
+        n = _whole(counter)
+        if n is not None and 0 < n <= LIFE_MODULUS:
+            if n != self.counter:
+                self.last_beat_s = float(now_s)
+            self.counter = n
+        elif n == 0:
+            self.counter = 0
+        self.valid = valid is True or _whole(valid) == 1
         return self.update(now_s)
 
     def update(self, now_s: float) -> WatchState:

@@ -1,0 +1,348 @@
+"""The virtual CNC's watch on thermocomp's sign of life: a real asyncua server in lock-step with
+a SteppedClock, the life counter and the valid flag written by a real OPC UA client (or the sim
+link), each reaction asserted on the machine's own simulated time."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from cnc_adapters.reading import LIFE_MODULUS, Life
+from compensator.clock import SteppedClock
+from compensator.speed_programs import Program
+from machine_sim import SpindlePlant, preset
+from machine_sim.adapter import SimAdapter
+from machine_sim.vcnc import (
+    CYCLE_START_PATH,
+    LIFE_PATHS,
+    NAMESPACE_URI,
+    NODE_PATHS,
+    RESET_PATH,
+    STATE_PATHS,
+    WATCH_PATHS,
+    VirtualCNC,
+    VirtualMachine,
+    running,
+    step,
+)
+from machine_sim.watchdog import ALARM_INVALID, Watch, WatchSettings
+
+TICK_S = 0.5  # one lock-step tick: the plant's grid
+DAY = Program("day", ((600.0, 20000.0), (600.0, 12000.0), (3600.0, 0.0)))
+
+
+def machine(clock: SteppedClock, **watch) -> VirtualMachine:
+    return VirtualMachine(
+        SpindlePlant(preset("motorized-27k"), seed=1),
+        None,
+        clock=clock,
+        watch=WatchSettings(**watch) if watch else None,
+    )
+
+
+class Rig:
+    """A virtual CNC in lock-step and an asyncua client that writes what thermocomp writes."""
+
+    def __init__(self, cnc: VirtualCNC, clock: SteppedClock, client) -> None:
+        self.cnc, self.clock, self.vm = cnc, clock, cnc.machine
+        ns = client.get_namespace_index(NAMESPACE_URI)
+        paths = {**NODE_PATHS, **STATE_PATHS, **LIFE_PATHS, **WATCH_PATHS}
+        paths.update(cycle_start=CYCLE_START_PATH, reset=RESET_PATH)
+        self.node = {k: client.get_node(f"ns={ns};s={p}") for k, p in paths.items()}
+        self.life = Life(0, False)
+
+    def tick(self, n: int = 1) -> None:
+        for _ in range(n):
+            self.clock.advance(TICK_S)
+            step(self.cnc)
+
+    def beat(self, valid: bool = True) -> None:
+        """One beat as the service writes it (Int32 counter, Boolean flag), then one tick."""
+        from asyncua import ua
+
+        self.life = self.life.next(valid)
+        self.node["life_counter"].write_value(ua.Variant(self.life.counter, ua.VariantType.Int32))
+        self.node["compensation_valid"].write_value(ua.Variant(valid, ua.VariantType.Boolean))
+        self.tick()
+
+    def press(self, key: str) -> None:
+        from asyncua import ua
+
+        self.node[key].write_value(ua.Variant(True, ua.VariantType.Boolean))
+        self.tick()
+
+    def read(self, key: str):
+        return self.node[key].read_value()
+
+    def tick_until_tripped(self, limit_s: float = 30.0) -> float:
+        """Ticks until the watch node leaves ok; the machine time it was first seen."""
+        end = self.vm.plant.time_s + limit_s
+        while self.read("compensation_watch") == "ok":
+            assert self.vm.plant.time_s < end, "the watch never tripped"
+            self.tick()
+        return self.vm.plant.time_s
+
+
+def rig(**watch):
+    from asyncua.sync import Client
+
+    clock = SteppedClock()
+    cnc = VirtualCNC(machine(clock, **watch), tick_s=None)
+    with running(cnc), Client(cnc.url, timeout=10) as client:
+        r = Rig(cnc, clock, client)
+        r.tick()
+        yield r
+
+
+@pytest.fixture
+def alarm_rig():
+    yield from rig(reaction="alarm")
+
+
+@pytest.fixture
+def hold_rig():
+    yield from rig(reaction="feed-hold")
+
+
+@pytest.fixture
+def fade_rig():
+    yield from rig(reaction="fade", fade_tau_s=60.0, fade_max_rate_um_per_s=0.2)
+
+
+@pytest.fixture
+def none_rig():
+    yield from rig()
+
+
+def beats_then_silence(r: Rig, beats: int = 10) -> tuple[float, float]:
+    """Beats every tick, then none: (machine time of the last beat's tick, of the trip)."""
+    for _ in range(beats):
+        r.beat()
+        assert r.read("compensation_watch") == "ok"
+    last = r.vm.plant.time_s - TICK_S  # taken at the plant's time when the tick began
+    tripped = r.tick_until_tripped()
+    return last, tripped
+
+
+# -- the pure watch ---------------------------------------------------------------------
+
+
+def test_the_watch_waits_for_a_first_beat_and_trips_at_the_timeout_on_machine_time():
+    w = Watch(WatchSettings(timeout_s=3.0, reaction="alarm"))
+    for t in range(100):  # never written: thermocomp never ran here, nothing to react to
+        assert w.beat(0, False, float(t)) == "waiting"
+    assert w.refusal == "" and w.trips == 0
+    w.beat(1, True, 100.0)
+    assert w.update(102.9) == "ok"
+    assert w.update(103.0) == "stale" and w.tripped_at_s == 103.0
+    assert w.refusal.startswith("7001") and "3 s" in w.refusal
+    assert not w.reset()  # the sign of life is still missing: the alarm stands
+    w.beat(2, True, 104.0)
+    assert w.state == "ok" and w.refusal  # latched until the operator's reset
+    assert w.reset() and w.refusal == "" and w.trips == 1
+
+
+def test_only_a_counter_that_moves_within_its_range_is_a_beat():
+    w = Watch(WatchSettings(timeout_s=3.0))
+    w.beat(7, True, 0.0)
+    for t, counter in (
+        (1, 7),
+        (1.5, True),
+        (2, 7.5),
+        (2.5, 7.0),
+        (2.7, LIFE_MODULUS + 1),
+        (2.9, 0),
+    ):
+        w.beat(counter, True, t)
+    assert w.update(3.0) == "stale" and w.last_beat_s == 0.0
+    w.beat(LIFE_MODULUS, True, 3.5)  # a real move
+    assert w.state == "ok" and w.last_beat_s == 3.5
+    w.beat(1, "true", 4.0)  # only a Boolean true or the number 1 is true
+    assert w.state == "invalid"
+    w.beat(2.0, 1.0, 4.5)  # an R parameter: a whole Double moves, 1.0 is valid
+    assert w.state == "ok" and (w.counter, w.last_beat_s) == (2, 4.5)
+    w.beat(2.5, 1, 5.0)
+    assert w.last_beat_s == 4.5 and w.state == "ok"
+
+
+def test_a_fade_is_first_order_and_never_faster_than_its_rate():
+    w = Watch(WatchSettings(reaction="fade", fade_tau_s=100.0, fade_max_rate_um_per_s=0.1))
+    x, dt = -30.0, 0.5
+    for _ in range(20000):
+        y = w.fade(x, dt)
+        assert abs(y - x) <= 0.1 * dt + 1e-12 and abs(y) <= abs(x) and y <= 0.0
+        if abs(x) * (1 - math.exp(-dt / 100.0)) < 0.1 * dt:  # the cap does not bind: first order
+            assert y == pytest.approx(x * math.exp(-dt / 100.0)) or y == 0.0
+        x = y
+    assert x == 0.0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"timeout_s": 0.0}, {"timeout_s": math.nan}, {"reaction": "stop"}, {"fade_tau_s": -1.0}],
+)
+def test_watch_settings_refuse_what_no_control_could_run(bad):
+    with pytest.raises(ValueError, match="watch"):
+        WatchSettings(**bad)
+
+
+# -- the virtual CNC over OPC UA, in lock-step ----------------------------------------------
+
+
+def test_alarm_at_the_timeout_refuses_cycle_start_until_the_beats_are_back_and_reset(
+    alarm_rig,
+):
+    r = alarm_rig
+    r.vm.load_pending(DAY)
+    last, tripped = beats_then_silence(r)
+    assert tripped - last == pytest.approx(3.0, abs=TICK_S)
+    assert r.read("compensation_tripped_at") == pytest.approx(last + 3.0, abs=TICK_S)
+    assert r.read("compensation_watch") == "stale"
+    assert r.read("compensation_alarm").startswith("7001 THERMAL COMPENSATION")
+    assert "cycle start refused" in r.read("compensation_reaction")
+    r.press("cycle_start")
+    assert r.vm.program is None and r.vm.pending is DAY and r.vm.refused_starts == 1
+    assert r.read("cycle_start") is False  # the press is spent
+    r.press("reset")  # the sign of life still missing: the alarm stands
+    assert r.read("compensation_alarm")
+    r.beat()
+    assert r.read("compensation_watch") == "ok" and r.read("compensation_alarm")
+    r.press("cycle_start")
+    assert r.vm.program is None and r.vm.refused_starts == 2
+    r.press("reset")
+    assert r.read("compensation_alarm") == "" and r.read("compensation_reaction") == ""
+    r.beat()
+    r.press("cycle_start")
+    assert r.vm.program is DAY and r.vm.pending is None
+    assert r.read("compensation_trips") == 1
+
+
+def test_a_valid_false_reacts_at_once(alarm_rig):
+    r = alarm_rig
+    r.vm.load_pending(DAY)
+    for _ in range(4):
+        r.beat()
+    t = r.vm.plant.time_s
+    r.beat(valid=False)  # a clean stop: one last beat, valid false
+    assert r.read("compensation_watch") == "invalid"
+    assert r.read("compensation_tripped_at") == t  # the tick that took it
+    assert r.read("compensation_alarm") == ALARM_INVALID
+    r.press("cycle_start")
+    assert r.vm.program is None
+
+
+def test_feed_hold_at_the_timeout_pauses_the_program_with_the_spindle_turning(hold_rig):
+    r = hold_rig
+    r.vm.load_program(DAY)
+    r.tick(60)  # 30 s: at 20 000 rpm, cutting
+    assert r.vm.cutting and r.read("act_speed") == 20000.0
+    last, tripped = beats_then_silence(r)
+    assert tripped - last == pytest.approx(3.0, abs=TICK_S)
+    assert "feed hold" in r.read("compensation_reaction")
+    r.tick(1400)  # 700 s: past the program's first segment, were it running
+    assert r.read("cmd_speed") == 20000.0 and r.read("act_speed") == 20000.0  # spindle kept
+    assert not r.vm.cutting and r.read("cutting") is False  # the axes stand
+    h = r.vm.history()
+    held = h.time_s > tripped
+    assert not h.cutting[held].any() and (h.speed_rpm[held] == 20000.0).all()
+    r.press("cycle_start")  # refused: the sign of life is missing
+    assert r.vm.watch.held and r.vm.refused_starts == 1
+    for _ in range(20):  # back: the machine still does not move on by itself
+        r.beat()
+    assert r.read("compensation_watch") == "ok"
+    assert r.vm.watch.held and not r.vm.cutting
+    r.press("cycle_start")
+    assert not r.vm.watch.held
+    for _ in range(20):
+        r.beat()
+    assert r.vm.cutting and r.read("cmd_speed") == 20000.0  # it cuts where it paused
+
+
+def test_fade_at_the_timeout_takes_the_offset_to_zero_within_its_rate(fade_rig):
+    r = fade_rig
+    r.node["thermal_offset"].write_value(-20.0)
+    r.tick()
+    assert r.vm.offset_um == -20.0
+    last, tripped = beats_then_silence(r)
+    assert tripped - last == pytest.approx(3.0, abs=TICK_S)
+    assert r.read("compensation_reaction") == "fade: offset to zero"
+    r.tick(2400)  # 20 min: 20 time constants
+    h = r.vm.history()
+    after = h.time_s >= tripped - 1e-9
+    off = h.offset_um
+    assert (off[~after][-5:] == -20.0).all()  # nothing moved before the trip
+    rate = (abs(off[1:] - off[:-1]) / TICK_S)[after[:-1]]  # each step from the trip on
+    assert rate.max() <= 0.2 + 1e-9  # never faster than the cap ...
+    assert rate[:10] == pytest.approx([0.2] * 10)  # ... which binds at first (20/60 > 0.2)
+    assert off[after][1] > -20.0
+    assert abs(off[after][-1]) == 0.0  # ~0: below the fade's floor
+    assert r.read("thermal_offset") == 0.0  # the control's variable itself faded
+    # the tool tip sees the faded offset
+    assert h.tool_tip_error_um[-1] == pytest.approx(h.true_um[-1])
+    r.beat()  # the sign of life is back: the fade ends, a write is taken as before
+    assert r.read("compensation_watch") == "ok" and not r.vm.watch.fading
+    r.node["thermal_offset"].write_value(-5.0)
+    for _ in range(10):
+        r.beat()
+    assert r.vm.offset_um == -5.0
+    r.tick(10)  # silent again: a second trip, a second fade
+    assert r.read("compensation_trips") == 2 and r.vm.offset_um > -5.0
+
+
+def test_none_keeps_the_offset_and_shows_the_state(none_rig):
+    r = none_rig
+    r.node["thermal_offset"].write_value(-18.94)
+    r.vm.load_pending(DAY)
+    last, tripped = beats_then_silence(r)
+    assert tripped - last == pytest.approx(3.0, abs=TICK_S)
+    r.tick(600)
+    assert r.read("compensation_watch") == "stale"
+    assert r.read("compensation_reaction") == "none: offset kept"
+    assert r.vm.offset_um == -18.94 and r.read("compensation_alarm") == ""
+    r.press("cycle_start")
+    assert r.vm.program is DAY
+
+
+def test_without_thermocomp_the_virtual_cnc_never_reacts(alarm_rig):
+    r = alarm_rig
+    r.vm.load_pending(DAY)
+    r.tick(200)  # 100 s, nothing ever written
+    assert r.read("compensation_watch") == "waiting" and r.read("life_counter") == 0
+    assert r.read("compensation_trips") == 0
+    r.press("cycle_start")
+    assert r.vm.program is DAY
+
+
+def test_a_restarted_virtual_cnc_forgets_the_sign_of_life(alarm_rig):
+    from machine_sim.vcnc import call
+
+    r = alarm_rig
+    r.beat()
+    r.beat(valid=False)
+    assert r.vm.watch.alarm
+    call(r.cnc, r.cnc.stop)
+    call(r.cnc, r.cnc.start)
+    assert r.vm.watch.state == "waiting" and not r.vm.watch.alarm
+
+
+# -- the sim link --------------------------------------------------------------------------
+
+
+def test_the_sim_link_writes_the_sign_of_life_to_the_machines_watch():
+    clock = SteppedClock()
+    vm = machine(clock, reaction="fade")
+    link = SimAdapter(machine=vm)
+    assert link.writes_life and link.capabilities.life_sign
+    life = Life(0, True)
+    for _ in range(5):
+        life = life.next(True)
+        assert link.write(-10.0, life).failure is None
+        clock.advance(1.0)
+        link.read_speed()
+    assert vm.watch.state == "ok" and vm.watch.counter == 5
+    assert link.write(None, life.next(False)).failure is None  # a confirm: the sign only
+    assert vm.watch.state == "invalid" and vm.watch.fading
+    clock.advance(10.0)
+    link.read_speed()
+    assert -10.0 < vm.offset_um < 0.0
