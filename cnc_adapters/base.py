@@ -1273,7 +1273,8 @@ def read_handshake(
 
 
 def query_params(url: str) -> dict[str, str]:
-    return dict(parse_qsl(urlsplit(url).query))
+    """A URL's query; an empty value is kept (``life_node=`` turns a preset's default off)."""
+    return dict(parse_qsl(urlsplit(url).query, keep_blank_values=True))
 
 
 def host_options(label: str, url: str) -> dict[str, Any]:

@@ -25,6 +25,11 @@ raises a decoding error, a refused read loses its return code, and it has no ``c
 This client sends the same bytes (the tests compare them), frames replies by their length
 field and checks every return code.
 
+The sign of life: ``life_macro`` takes the counter the ladder or a macro watches and
+``valid_macro`` the "compensation valid" flag (1/0), common variables both (the ``fanuc``
+profile: #502 and #503). They go with the offset in ONE generic request of three "write macro"
+subpackets (the packet format carries any number); a refusal names its variable.
+
 Errors, the socket's mapped by the TCP transport (:mod:`cnc_adapters.transport.tcp`): a
 refused or unanswered connect, a closed or dropped session is :class:`UnreachableError`, no
 reply within ``timeout_s`` (the open request's too) :class:`AdapterTimeoutError` (the session
@@ -177,11 +182,13 @@ class FocasSettings(AdapterSettings):
     speed_macro: CommonVariable = Field(  # type: ignore[assignment]
         None, description="with speed_source = 'macro': the variable holding the actual speed"
     )
-    life_macro: LifeVariable | None = Field(
-        None, description="the sign of life: the variable of the counter the control watches"
+    life_macro: LifeVariable = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the variable of the counter the control watches",
     )
-    valid_macro: LifeVariable | None = Field(
-        None, description="the sign of life: the variable of the valid flag (1/0)"
+    valid_macro: LifeVariable = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the variable of the valid flag (1/0)",
     )
 
     @model_validator(mode="after")

@@ -9,6 +9,9 @@ answered ``!`` (taken) or ``?`` (refused: :class:`WriteRejectedError`), and the 
 measurement handshake reads ``measurement_sequence_var``, ``measurement_var`` (and
 ``measurement_sigma_var``) the same way.
 
+The sign of life (``life_var``, ``valid_var``) goes as the serial link's, one ``?E`` each after
+the offset, and is not read back.
+
 One request line and one reply line, over the TCP transport (:mod:`cnc_adapters.transport.tcp`,
 which maps the socket's faults):
 

@@ -18,6 +18,11 @@ The closed loop: a probe or tool-setter cycle leaves its measurement in
 and byte order; an integer type in units of ``measurement_scale``, by default
 ``offset_scale``); each value is used once, and the counter found at the first read is stale.
 
+The sign of life: ``life_register`` (the counter the PLC watches, ``life_type`` default
+``int16``) and ``valid_register`` (the "compensation valid" flag, 1/0, ``valid_type``), holding
+registers both, or neither. The offset's, the counter's and the flag's registers go in one
+``write_registers`` per run of adjacent registers: one request when all three are adjacent.
+
 The cutting signal: ``cutting_register`` (in ``cutting_table``, an integer of
 ``cutting_type``) holds a state the PLC sets; ``cutting_values`` are the values that mean
 "cutting" (default 1). Without one, the runtime infers it from the speed.
@@ -133,12 +138,14 @@ class ModbusSettings(ModbusLinkSettings, AdapterSettings):
         [1],  # type: ignore[arg-type]  # a list, as documented
         description="the values that mean cutting",
     )
-    life_register: LifeRegister | None = Field(
-        None, description="the sign of life: the holding register(s) of the counter the PLC watches"
+    life_register: LifeRegister = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the holding register(s) of the counter the PLC watches",
     )
     life_type: DataType = Field("int16", description="the counter's data type")
-    valid_register: LifeRegister | None = Field(
-        None, description="the sign of life: the holding register(s) of the valid flag (1/0)"
+    valid_register: LifeRegister = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the holding register(s) of the valid flag (1/0)",
     )
     valid_type: DataType = Field("int16", description="the valid flag's data type")
 

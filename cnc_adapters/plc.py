@@ -31,6 +31,14 @@ or has not taken yet, shows there); without one, the offset's own address is rea
 proves only that the value arrived. ``cutting_address`` (optional) is a bit (or a state
 register, with ``cutting_values``) that says the tool is in the part.
 
+The sign of life: ``life_address`` takes the counter the PLC watches (an ``INT`` by default; an
+S7 DBD a ``DINT``) and ``valid_address`` the "compensation valid" flag (``BOOL`` for an ADS
+symbol or a coil, else a word holding 1/0; an S7 bit is refused: a byte write would overwrite
+its neighbours). Both, or neither (``""`` turns a profile's off). They go with the offset in as
+few requests as the protocol allows: S7 and Modbus TCP one request per run of adjacent words
+(python-snap7's multi-variable write sends one request per variable), ADS one sum-write of all
+three symbols.
+
 A connection that fails or drops is :class:`UnreachableError`, a request that goes unanswered
 :class:`AdapterTimeoutError` (both drop the link; the next call reconnects), a write the PLC
 refuses (an address outside the DB, access denied, a symbol it does not have)

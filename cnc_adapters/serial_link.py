@@ -20,6 +20,11 @@ one, answered ``!``. The spindle speed is macro #3027 by default; the offset goe
 configurable macro variable, which the part program or a macro applies as a tool-length
 offset (for example ``#2000 + T`` wear, via ``G10``), and is read back with ``?Q600`` too.
 
+The sign of life: Haas writes the counter to ``life_var`` and the "compensation valid" flag
+(1/0) to ``valid_var`` after the offset, one ``?E`` each (the ``haas`` profile: #10501 and
+#10502); the generic protocol sends ``life_request`` (``{counter}`` and ``{valid}``, e.g.
+``LIFE {counter} {valid}``) after the offset's line, answered like it.
+
 The closed loop, Haas: a probe or tool-setter cycle leaves its measurement in macro
 ``measurement_var`` and then changes a counter in ``measurement_sequence_var`` (optional: a
 sigma in ``measurement_sigma_var``), in the offset's unit (or ``measurement_scale``); all are
@@ -348,11 +353,13 @@ class HaasMacros(BaseModel):
     measurement_scale: NonZero = Field(  # type: ignore[assignment]
         None, description="macro unit per um of the measurement; default offset_scale"
     )
-    life_var: LifeVar | None = Field(
-        None, description="the sign of life: the macro variable of the counter the program checks"
+    life_var: LifeVar = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the macro variable of the counter the program checks",
     )
-    valid_var: LifeVar | None = Field(
-        None, description="the sign of life: the macro variable of the valid flag (1/0)"
+    valid_var: LifeVar = Field(
+        None,  # type: ignore[arg-type]  # not validated: None is "none"
+        description="the sign of life: the macro variable of the valid flag (1/0)",
     )
 
     @model_validator(mode="after")

@@ -7,7 +7,8 @@ alarm, a write without the access right), and may move the axis to it at a limit
 in front of a :class:`~machine_sim.vcnc.VirtualMachine`, so the virtual workpiece error
 shows the offset as the control applies it. Every emulated server (OPC UA, S7, Modbus TCP, ADS,
 FOCAS, Haas MDC) hands the written value to :meth:`EmulatedControl.write_raw` and serves the
-read-back from :attr:`EmulatedControl.held_raw`.
+read-back from :attr:`EmulatedControl.held_raw`, and thermocomp's sign of life (the counter and
+the valid flag it writes) to :meth:`EmulatedControl.life_beat`.
 
 Lock-step: call :meth:`EmulatedControl.sync` once the machine's clock has moved on (before or
 after ``machine.advance()``); it moves the applied value toward the held one over the clock
@@ -112,6 +113,13 @@ class EmulatedControl:
             self.held_raw = value
             self.writes.append(Write(t, value, True))
             return True
+
+    def life_beat(self, counter: object, valid: object) -> None:
+        """thermocomp's sign of life as the control's program reads it (the emulated PLC's
+        scan, a macro variable written): handed to the machine's watch, where it has one."""
+        beat = getattr(self.machine, "life_beat", None)
+        if beat is not None:
+            beat(counter, valid)
 
     def sync(self) -> None:
         """Move the applied value toward the held one over the clock time since the last call, at

@@ -26,7 +26,9 @@ with ``write_raw``, ``held_raw`` and ``speed_rpm``). A write to ``offset_macro``
 ``ack_macro`` reads ``control.held_raw``; ``speed_macro`` reads ``control.speed_rpm`` (a ladder
 copying the actual speed); the other common variables (#100-#199, #500-#999) start vacant and
 hold what is written (the sign of life's counter and flag among them); any other number answers
-return code 3 (EW_NUMBER), and a write to one of ``protected`` return code 7 (EW_PROT).
+return code 3 (EW_NUMBER), and a write to one of ``protected`` return code 7 (EW_PROT). A write
+to ``life_macros`` (the sign of life's counter and flag, the ``fanuc`` profile's #502 and #503)
+goes to ``control.life_beat`` too, where the control has one.
 
 Faults for tests: :meth:`stop` (the control is gone: connections reset, nothing listens) and
 :meth:`start` again on the same port; ``fault = "hang"`` (requests are read and never answered)
@@ -131,6 +133,7 @@ class FocasServer:
         refuse_in: str = "focas",
         acts: bool = True,
         protected: tuple[int, ...] = (),
+        life_macros: tuple[int, int] | None = (502, 503),
         host: str = "127.0.0.1",
         port: int = 0,
     ):
@@ -143,6 +146,8 @@ class FocasServer:
         self.refuse_in = refuse_in
         self.acts = acts
         self.protected = frozenset(protected)
+        self.life_macros = life_macros
+        self._life_written = 0
         self.host = host
         self.port = port
         self.fault = ""
@@ -263,10 +268,16 @@ class FocasServer:
     def _generic(self, body: bytes) -> bytes:
         count = struct.unpack(">H", body[:2])[0]
         replies, n = [], 2
+        life_before = self._life_written
         for _ in range(count):
             size = struct.unpack(">H", body[n : n + 2])[0]
             replies.append(self._command(body[n + 2 : n + size]))
             n += size
+        if self._life_written != life_before:  # one beat a request: the macro's watch
+            beat = getattr(self.control, "life_beat", None)
+            if beat is not None and self.life_macros is not None:
+                with self.lock:
+                    beat(*(self.variables.get(v) for v in self.life_macros))
         return struct.pack(">H", len(replies)) + b"".join(
             struct.pack(">H", len(r) + 2) + r for r in replies
         )
@@ -333,6 +344,8 @@ class FocasServer:
                         return _reply(cmd, EW_DATA)
                     continue
             self.variables[n] = v
+        if self.life_macros is not None and any(n in self.life_macros for n in numbers):
+            self._life_written += 1
         return _reply(cmd, EW_OK)
 
 

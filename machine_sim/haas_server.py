@@ -16,7 +16,9 @@ What it serves: #``speed_var`` (3027) is the spindle's speed (:attr:`EmulatedCon
 #``offset_var`` is the macro variable thermocomp writes: a write goes through
 :meth:`EmulatedControl.write_raw` (``?`` when the control refuses it) and a read returns
 :attr:`EmulatedControl.held_raw`. Other variables are those :meth:`HaasMdcServer.set_macro` set
-(a probe cycle's measurement); a ``?E`` outside ``writable`` is refused.
+(a probe cycle's measurement); a ``?E`` outside ``writable`` is refused. A ``?E`` of ``life_vars``
+(the sign of life's counter and flag, the ``haas`` profile's #10501 and #10502) goes to
+:meth:`EmulatedControl.life_beat` too.
 
 The Haas semantics the route depends on: the written macro value is not the applied wear. The
 control applies a tool-length wear only when a G43 takes the offset again, so the macro template
@@ -125,6 +127,7 @@ class HaasMdcServer:
         broadcast: bool = True,
         safe_point_every_s: float | None = None,
         wear_var: int = 2201,
+        life_vars: tuple[int, int] | None = (10501, 10502),
         port: int = 0,
     ):
         if style not in ("ngc", "framed"):
@@ -141,6 +144,7 @@ class HaasMdcServer:
         self.broadcast = broadcast
         self.safe_point_every_s = safe_point_every_s
         self.wear_var = int(wear_var)
+        self.life_vars = life_vars
         self.mode = "ok"
         self.crosstalk: str | None = None
         """A request of another MDC client, answered (to every connection) just before each
@@ -321,6 +325,13 @@ class HaasMdcServer:
                 return "?"
             with self._lock:
                 self.macros[var] = value
+                life = (
+                    tuple(self.macros.get(v) for v in self.life_vars)
+                    if self.life_vars is not None and var in self.life_vars
+                    else None
+                )
+            if life is not None:  # the program's macro watches the sign of life
+                self.control.life_beat(*life)
             return "!"
         return "?"
 

@@ -99,7 +99,8 @@ class EmulatedPlc:
 
     def sync(self) -> None:
         """One scan of the builder's PLC program: a new offset to the control, then the held
-        value, the speed and the cutting state back into the PLC's memory."""
+        value, the speed and the cutting state back into the PLC's memory; the sign of life
+        to the control's watch."""
         raw = self.get("offset")
         if raw != self._last:
             self.control.write_raw(float(raw))
@@ -109,6 +110,8 @@ class EmulatedPlc:
         self.put("speed", self.control.speed_rpm)
         if "cutting" in self.addresses:
             self.put("cutting", self.control.machine.cutting)
+        if "life" in self.addresses and "valid" in self.addresses:  # the program's watch
+            self.control.life_beat(self.get("life"), self.get("valid"))
         self._last = self.get("offset")  # after the write-back: the held address may be the same
 
     def _number(self, role: str, value: Any) -> Any:

@@ -674,6 +674,11 @@ def test_profiles_default_the_sign_of_life_and_an_empty_value_turns_it_off() -> 
         assert not off.writes_life, (name, route)
         with pytest.raises(ConfigError, match="needs both"):
             check_adapter({**cfg, key: ""})  # one alone
+    # in a URL too: an empty value turns the preset's off
+    assert open_adapter("opc.tcp://h:4840?preset=virtual-cnc").writes_life
+    assert not open_adapter(
+        "opc.tcp://h:4840?preset=virtual-cnc&life_node=&valid_node="
+    ).writes_life
     # no default without a profile: a bare link writes no sign of life
     assert not open_adapter("focas://h:8193").writes_life
     assert not open_adapter(
@@ -761,3 +766,75 @@ def test_a_bad_sign_of_life_setting_is_one_clear_line(cfg: dict[str, Any], says:
         check_adapter(cfg)
     assert says in str(err.value)
     assert "\n" not in str(err.value)
+
+
+# -- the emulated controls hand the sign of life to their watch --------------------------------
+
+
+class Watching:
+    """A control's watch as the emulated servers feed it: the beats it was given."""
+
+    def __init__(self) -> None:
+        self.beats: list[tuple[Any, Any]] = []
+
+    def life_beat(self, counter: object, valid: object) -> None:
+        self.beats.append((counter, valid))
+
+
+def test_the_emulated_controls_hand_the_sign_of_life_to_their_watch() -> None:
+    from compensator.clock import SteppedClock
+    from machine_sim import SpindlePlant, preset
+    from machine_sim.controls import EmulatedControl
+    from machine_sim.focas_server import FocasServer, PlainControl
+    from machine_sim.haas_server import HaasMdcServer
+    from machine_sim.plc_servers import S7Plc
+    from machine_sim.vcnc import VirtualMachine
+
+    class FocasControl(PlainControl, Watching):
+        def __init__(self) -> None:
+            PlainControl.__init__(self)
+            Watching.__init__(self)
+
+    class Control(EmulatedControl):
+        def life_beat(self, counter: object, valid: object) -> None:
+            self.__dict__.setdefault("beats", []).append((counter, valid))
+
+    focas = FocasControl()
+    with FocasServer(focas) as srv:
+        with open_adapter({"profile": "fanuc", "host": "127.0.0.1", "port": srv.port}) as link:
+            assert link.write(-3.0, Life(1, True)).taken
+            assert link.write(None, Life(2, False)).taken
+    assert focas.beats == [(1.0, 1.0), (2.0, 0.0)]
+
+    def machine(name: str) -> Control:
+        clock = SteppedClock()
+        vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=4), None, clock=clock)
+        return Control(vm, PROFILES[name])
+
+    haas = machine("haas")
+    with HaasMdcServer(haas) as srv:
+        cfg = {"profile": "haas", "host": "127.0.0.1", "port": srv.port}
+        with open_adapter(cfg) as link:
+            assert link.write(-3.0, Life(7, True)).taken
+    # each ?E is a beat: the counter first (the flag not yet written), then both
+    assert haas.__dict__["beats"] == [(7.0, None), (7.0, 1.0)]
+
+    s7 = machine("sinumerik")
+    plc = S7Plc(s7).start()  # the sinumerik profile's DB100 layout
+    try:
+        cfg = {
+            "profile": "sinumerik",
+            "route": "s7",
+            "host": plc.host,
+            "port": plc.port,
+            "offset_address": "DB100.DBD0",
+            "speed_address": "DB100.DBD4",
+        }
+        with open_adapter(cfg) as link:
+            assert link.write(-3.0, Life(9, True)).taken
+            plc.sync()  # the PLC's scan
+            assert link.write(None, Life(10, False)).taken
+            plc.sync()
+        assert s7.__dict__["beats"] == [(9, 1), (10, 0)]
+    finally:
+        plc.close()
