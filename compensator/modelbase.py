@@ -187,6 +187,18 @@ class ModelBase(BaseModel):
     def _fitted_dt(cls, value: float) -> float:
         return fitted_dt(value)
 
+    # the largest growth a calibration measured (the state-space form's gains are held to ten
+    # times it): no more than a run log can hold
+    @field_validator("max_measured_um", check_fields=False)
+    @classmethod
+    def _measured(cls, value: float) -> float:
+        if not value <= MAX_MODEL_UM:
+            raise ModelError(
+                f"max_measured_um {value:g} um is more than any calibration measures "
+                f"({MAX_MODEL_UM:g} um)"
+            )
+        return value
+
     @field_validator("fit", mode="before")
     @classmethod
     def _fit_record(cls, value: Any) -> FitRecord:
@@ -205,6 +217,21 @@ class ModelBase(BaseModel):
         names = self.input_names
         if len(set(names)) != len(names):
             raise ModelError("an input appears twice")
+        return self
+
+    @model_validator(mode="after")
+    def _inputs_bounded(self) -> ModelBase:
+        # an input's own gain (the earlier with-inputs form) over its valid range: within what a
+        # calibration measures, as the speed part's equilibrium is
+        for c in self.channels:
+            gain = getattr(c, "gain_um_per_unit", None)
+            lo, hi = c.valid_range
+            if gain is not None and not abs(gain) * (hi - lo) <= MAX_MODEL_UM:
+                raise ModelError(
+                    f"input {c.name}: its gain {gain:g} um per {c.unit} moves the elongation "
+                    f"{abs(gain) * (hi - lo):.4g} um over its valid range: beyond "
+                    f"{MAX_MODEL_UM:g} um, more than any calibration measures"
+                )
         return self
 
     def replace(self, **changes: Any) -> Any:

@@ -23,6 +23,7 @@ from typing import Any
 
 import pytest
 
+from compensator.inputs import AugmentedModel, InputTerm
 from compensator.io import load_any_model, model_digest, save_model
 from compensator.io.checksum import digest
 from compensator.io.history import ModelHistory
@@ -341,12 +342,14 @@ def huge_gain(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def speed_log(tmp_path: Path) -> Path:
-    """An hour of a spindle at 12 000 and 3 000 rpm in turn, with its measured growth."""
+    """An hour of a spindle at 12 000 and 3 000 rpm in turn, with its measured growth and the
+    hall's temperature (the input a model with inputs reads)."""
     p = tmp_path / "run.csv"
-    rows = ["time_s,speed_rpm,elongation_um"]
+    rows = ["time_s,speed_rpm,elongation_um,amb_c"]
     for k in range(360):
         t = 10.0 * k
-        rows.append(f"{t:g},{12000.0 if (k // 60) % 2 == 0 else 3000.0},{5.0 + t / 1000.0:.3f}")
+        speed = 12000.0 if (k // 60) % 2 == 0 else 3000.0
+        rows.append(f"{t:g},{speed},{5.0 + t / 1000.0:.3f},{24.0 + t / 1800.0:.3f}")
     p.write_text("\n".join(rows) + "\n")
     return p
 
@@ -360,6 +363,59 @@ def test_replay_refuses_a_gain_times_1e300_in_one_line(tmp_path, huge_gain, spee
     assert done.stderr.count("\n") == 1 and "Warning" not in done.stderr, done.stderr
     assert done.stderr.startswith(f"thermocomp: error: {huge_gain}: invalid model: state 1 holds ")
     assert "beyond 1e+06 um" in done.stderr
+
+
+def augmented_model() -> AugmentedModel:
+    term = InputTerm(
+        name="amb_c",
+        unit="degC",
+        reference=25.0,
+        gain_um_per_unit=0.5,
+        tau_s=600.0,
+        valid_range=(10.0, 40.0),
+    )
+    return AugmentedModel(speed_model=old_model(), inputs=(term,), fallback=old_model())
+
+
+def _gains_and_measured(d: dict[str, Any]) -> None:
+    # the state-space form's gains are held to 10 x the growth measured: both x 1e300
+    d["drive_um"][0][0] *= 1e300
+    d["max_measured_um"] *= 1e300
+
+
+OTHER_FORMS = {
+    "state space": (
+        speed_only_state_space,
+        _gains_and_measured,
+        "max_measured_um 4e+301 um is more than any calibration measures",
+    ),
+    "augmented": (
+        augmented_model,
+        lambda d: d["inputs"][0].update(gain_um_per_unit=0.5e300),
+        "input amb_c: its gain 5e+299 um per degC moves the elongation",
+    ),
+    "augmented's speed part": (
+        augmented_model,
+        lambda d: d["speed_model"]["states"][0]["generation_um_per_s"].__setitem__(1, 2e298),
+        "state 1 holds",
+    ),
+}
+
+
+@pytest.mark.parametrize("make, edit, reason", OTHER_FORMS.values(), ids=OTHER_FORMS.keys())
+def test_every_form_refuses_a_gain_times_1e300_at_load(tmp_path, speed_log, make, edit, reason):
+    """The same for the other forms: each form's gains held to what a calibration measures, so
+    no form can carry a gain whose arithmetic overflows."""
+    bad = tmp_path / "bad.json"
+    save_model(bad, make())
+    resealed(bad, edit)
+    done = thermocomp("replay", "--model", bad, speed_log, "--json")
+    assert done.returncode == 2 and done.stdout == "", done
+    assert done.stderr.count("\n") == 1 and "Warning" not in done.stderr, done.stderr
+    assert (
+        done.stderr.startswith(f"thermocomp: error: {bad}: invalid model: ")
+        and reason in done.stderr
+    )
 
 
 def test_the_service_refuses_a_gain_times_1e300_at_start_and_at_a_reload(
