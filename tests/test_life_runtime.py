@@ -113,8 +113,10 @@ class Rig:
 
     def cycle(self) -> tuple[Any, list[tuple[float | None, Life | None]]]:
         self.t[0] += 1.0
-        before = len(self.link.asked)
+        before, beats = len(self.link.asked), len(self.link.taken)
         out = self.rt.cycle()
+        if len(self.link.taken) > beats:  # the flag is the state the status derives, every beat
+            assert self.link.taken[-1].valid == state_of(self.rt, self.t[0]).compensating
         return out, self.link.asked[before:]
 
 
@@ -475,3 +477,52 @@ def test_the_page_says_stopped_and_what_the_control_holds(
             page.close()
         if not closed:
             svc.close()
+
+
+def test_a_spindle_a_reload_removes_is_told_compensation_stopped(tmp_path: Path) -> None:
+    """SIGHUP with a spindle gone from the configuration: its control gets the last beat
+    (compensation not valid); the spindle that stays goes on counting."""
+    model = _model(tmp_path)
+    spindle = (
+        '[[spindle]]\nname = "{}"\nmodel = "' + str(model) + '"\nperiod_s = 1.0\n'
+        'adapter = {{url = "sim://"}}\n'
+    )
+    cfg = tmp_path / "machine.toml"
+    head = f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n'
+    cfg.write_text(head + spindle.format("a") + spindle.format("b"))
+    t = [0.0]
+
+    def sleep(s: float) -> None:
+        t[0] += s
+
+    svc = Service(cfg, clock=lambda: t[0], wall=lambda: WALL0 + t[0], sleep=sleep, lock=False)
+    links = {}
+    for name in ("a", "b"):
+        vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: t[0])
+        vm.override_speed(12000.0)
+        links[name] = LifeLink(machine=vm)
+        svc.spindles[name].close()
+        svc.spindles[name] = SpindleRuntime(
+            svc.cfg.spindle[0 if name == "a" else 1],
+            svc.cfg.state_dir,
+            svc.cfg.journal_path,
+            clock=lambda: t[0],
+            wall=lambda: WALL0 + t[0],
+            adapter=links[name],
+            anchor_s=svc.anchor_s,
+        )
+    try:
+        while t[0] < 60:
+            sleep(max(svc.tick(), 0.01))
+        b = links["b"].taken[-1]
+        assert b.valid and b.counter >= 50
+        a = svc.spindles["a"].offset.life
+        cfg.write_text(head + spindle.format("a"))
+        svc.reload()
+        assert list(svc.spindles) == ["a"]
+        assert links["b"].asked[-1] == (None, Life(b.counter + 1, False))
+        assert links["b"].taken[-1] == Life(b.counter + 1, False)
+        # a's new runtime (a new sim link of the configuration) goes on from a's counter
+        assert a is not None and svc.spindles["a"].offset.life == a
+    finally:
+        svc.close()
