@@ -187,16 +187,17 @@ def test_a_write_a_hung_controller_took_late_is_followed_at_the_slew_limit(rig):
     rig.vm.override_speed(15000.0)
     rig.cycles(3)
     done: list[tuple[float, float]] = []
-    write = rig.adapter.write_offset_um
+    write = rig.adapter._write_raw
     hang = {"s": 0.0}
 
-    def slow_write(value: float) -> None:
+    def slow_write(raw: float | None, life: object) -> None:
         rig.t += hang["s"]  # the time the write took, on the test's clock
         hang["s"] = 0.0
-        write(value)
-        done.append((rig.t, value))
+        write(raw, life)  # type: ignore[arg-type]
+        if raw is not None:  # an offset, not only a sign of life
+            done.append((rig.t, rig.adapter.offset_um_requested))
 
-    rig.adapter.write_offset_um = slow_write  # type: ignore[method-assign]
+    rig.adapter._write_raw = slow_write  # type: ignore[method-assign]
     rig.cycles(5)
     hang["s"] = 18.0
     rig.cycles(1)
