@@ -304,6 +304,10 @@ class LinuxCncAdapter(Adapter):
         self._lcnc: Any = None
         self._ready = False
         self._toggle = False  # life-toggle as last written
+        self._counter = 0  # life-counter as last written
+        # the counts this process stands for while ready (None: none yet), set again with each
+        # write: a pin netted after it was set takes the signal's old value
+        self._counts_now: int | None = None
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -388,7 +392,7 @@ class LinuxCncAdapter(Adapter):
             if held is not None:
                 # the counts start from what motion holds: 0 after a machine-on; after a restart
                 # of thermocomp, what it applies still (faded, maybe, by the control's watchdog)
-                c["eoffset-counts"] = held
+                c["eoffset-counts"] = self._counts_now = held
             log.info(
                 "linuxcnc: machine %s",
                 (
@@ -401,6 +405,7 @@ class LinuxCncAdapter(Adapter):
             self._ready = ready
         if not ready:
             c["eoffset-counts"] = 0  # zeroed at machine-on anyway: no jump when it comes back
+            self._counts_now = 0
         c["ready"] = ready
 
     def _held_counts(self) -> int | None:
@@ -457,14 +462,19 @@ class LinuxCncAdapter(Adapter):
         if counts is not None:
             c["offset-um"] = self.offset_um_requested
             if self._ready:
-                c["eoffset-counts"] = counts
+                self._counts_now = counts
+        if self._ready and self._counts_now is not None:
+            # a confirm too: a thermocomp restarted under a running LinuxCNC is netted after its
+            # first cycle, and its pin then holds the signal's old counts until set again
+            c["eoffset-counts"] = self._counts_now
         if life is not None:
             self._write_life_raw(life)
 
     def _write_life_raw(self, life: Life) -> None:
         c = self._comp
-        if life.counter != c["life-counter"]:  # the same beat again is no new beat
+        if life.counter != self._counter:  # the same beat again is no new beat
             self._toggle = not self._toggle
+        self._counter = life.counter
         c["life-counter"] = life.counter
         c["life-toggle"] = self._toggle
         c["comp-valid"] = life.valid

@@ -1,6 +1,7 @@
 """The sign of life against the real LinuxCNC: the example sim configuration with the shipped
-watchdog recipe (examples/linuxcnc/thermocomp-watchdog.hal and its reactions), thermocomp's
-HAL component beating, then killed with SIGKILL.
+watchdog recipe (examples/linuxcnc/thermocomp-watchdog.hal and its three reactions),
+thermocomp's HAL component beating, then killed with SIGKILL; and the thermocomp service
+itself stopped cleanly, started again by hand and killed.
 
 Time is HAL's own: a few stock components appended for the test count servo-thread time
 (``integ``) from the last flip of the life toggle HAL saw to the watchdog's ok falling, and
@@ -11,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -18,7 +20,17 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from test_linuxcnc import EXAMPLE, ROOT, USER, LinuxCnc, as_user, hal_lock, on_and_homed, why_not
+from test_linuxcnc import (
+    EXAMPLE,
+    ROOT,
+    USER,
+    LinuxCnc,
+    as_user,
+    hal_lock,
+    linuxcnc_venv,
+    on_and_homed,
+    why_not,
+)
 
 pytestmark = pytest.mark.skipif(why_not() is not None, reason=why_not() or "")
 
@@ -32,7 +44,7 @@ COUNTS = 1000
 # the adapter as the service drives it: the offset and a beat each 0.1 s, valid once the
 # machine is on and homed (before, the runtime confirms with valid false)
 BEAT = """
-import os, sys, time
+import sys, time
 from cnc_adapters import Life
 from cnc_adapters.linuxcnc import LinuxCncAdapter
 
@@ -89,7 +101,7 @@ M2
 
 
 @contextlib.contextmanager
-def watched_rig(beat: str | None = BEAT):
+def watched_rig(beat: str | None = BEAT, tau_s: float = FADE_TAU_S, cap: float = FADE_CAP):
     """The example configuration with the whole recipe; thermocomp's component is the adapter
     driven by ``beat`` (None: the thermocomp service of the example, from this tree)."""
     directory = Path(tempfile.mkdtemp(prefix="thermocomp-watchdog-", dir="/tmp"))
@@ -108,10 +120,10 @@ def watched_rig(beat: str | None = BEAT):
     text = ini.read_text().replace(
         "HALFILE = thermocomp.hal\n", f"TWOPASS = on\nHALFILE = thermocomp.hal\n{halfiles}"
     )
-    gain = 1 - math.exp(-SERVO_PERIOD_S / FADE_TAU_S)
+    gain = 1 - math.exp(-SERVO_PERIOD_S / tau_s)
     text += (
         f"\n[THERMOCOMP]\nWATCHDOG_TIMEOUT_S = {TIMEOUT_S}\nFADE_GAIN = {gain!r}\n"
-        f"FADE_MAX_COUNTS_PER_S = {FADE_CAP}\n"
+        f"FADE_MAX_COUNTS_PER_S = {cap}\n"
     )
     ini.write_text(text)
     if os.geteuid() == 0:
@@ -127,8 +139,8 @@ def watched_rig(beat: str | None = BEAT):
             shutil.rmtree(directory, ignore_errors=True)
 
 
-def component_pid(cnc: LinuxCnc, name: str) -> int:
-    """The process that owns HAL component ``name`` (halcmd's PID column)."""
+def component_pid(name: str) -> int | None:
+    """The process that owns HAL component ``name`` (halcmd's PID column); None: no such."""
     r = subprocess.run(
         as_user(["halcmd", "-s", "show", "comp", name]), capture_output=True, text=True, timeout=20
     )
@@ -136,7 +148,13 @@ def component_pid(cnc: LinuxCnc, name: str) -> int:
         parts = line.split()
         if len(parts) >= 4 and parts[1] == "User" and parts[2] == name:
             return int(parts[3])
-    raise AssertionError(f"no user component {name}: {r.stdout}")
+    return None
+
+
+def kill(name: str, sig: signal.Signals) -> None:
+    pid = component_pid(name)
+    assert pid is not None, f"no user component {name}"
+    os.kill(pid, sig)
 
 
 def setp(pin: str, value: object) -> None:
@@ -158,10 +176,12 @@ def run_program(cnc: LinuxCnc) -> None:
     r.set("run")
 
 
-def fade_model(t_s: float) -> float:
-    """The counts ``t_s`` seconds of HAL time after ok fell: first order toward 0 with
-    FADE_TAU_S, never faster than FADE_CAP (whichever is slower at each instant)."""
-    return max(COUNTS * math.exp(-t_s / FADE_TAU_S), COUNTS - FADE_CAP * t_s, 0.0)
+def fade_model(
+    t_s: float, c0: float = COUNTS, tau_s: float = FADE_TAU_S, cap: float = FADE_CAP
+) -> float:
+    """The counts ``t_s`` seconds of HAL time after ok fell from ``c0`` (> 0): first order
+    toward 0 with ``tau_s``, never faster than ``cap`` (whichever is slower at each instant)."""
+    return max(c0 * math.exp(-t_s / tau_s), c0 - cap * t_s, 0.0)
 
 
 def test_killed_thermocomp_stops_the_machine_within_the_timeout():
@@ -194,7 +214,7 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
         assert cnc.getp("axis.z.eoffset-request") == pytest.approx(COUNTS * 1e-5)
 
         # SIGKILL of the process that owns the component: no last word, every pin stays
-        os.kill(component_pid(cnc, "thermocomp"), signal.SIGKILL)
+        kill("thermocomp", signal.SIGKILL)
         assert cnc.wait(lambda: cnc.getp("watchdog.ok-out") is False, timeout=60)
         # the reaction time on HAL's clock: from the last flip HAL saw to ok falling
         since = cnc.getp("tcw-since-beat.out")
@@ -247,3 +267,81 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
         assert cnc.wait(lambda: rsh_status(cnc) == "PROGRAM_STATUS IDLE")
         assert "thermal compensation stopped - cycle start refused" in r.cmd("get error")
         assert cnc.getp("motion.analog-out-02") == 0.0  # its next line never ran
+
+
+def restart_thermocomp(cnc: LinuxCnc) -> None:
+    """examples/linuxcnc/thermocomp-restart.hal, run by hand as its comment says."""
+    env = [
+        "env",
+        f"PATH={linuxcnc_venv() / 'bin'}:/usr/bin:/bin",
+        f"PYTHONPATH={ROOT}",
+        f"HOME={cnc.dir}",
+    ]
+    # to a file: the service started inherits halcmd's output, a pipe would stay open
+    with open(cnc.dir / "restart.out", "w") as out:
+        r = subprocess.run(
+            as_user([*env, "halcmd", "-f", "thermocomp-restart.hal"]),
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            timeout=300,  # loadusr -Wn: until the component is ready
+            cwd=cnc.dir,
+        )
+    assert r.returncode == 0, (cnc.dir / "restart.out").read_text() + cnc.log()
+
+
+def gets(signal_name: str) -> str:
+    """A signal's value (a component that exited cleanly has left its signals behind)."""
+    r = subprocess.run(
+        as_user(["halcmd", "-s", "gets", signal_name]), capture_output=True, text=True, timeout=20
+    )
+    assert r.returncode == 0, r.stderr
+    return r.stdout.strip()
+
+
+def test_the_service_stopped_says_so_restarted_takes_over_killed_is_caught():
+    slow = {"tau_s": 20.0, "cap": 100.0}  # a restart comes while the offset still fades
+    with watched_rig(beat=None, **slow) as cnc:
+        r = cnc.rsh
+        on_and_homed(cnc)
+        r.set("mdi m3 s12000")  # the spindle grows: thermocomp writes counts on Z
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=60)
+        assert cnc.wait(lambda: cnc.getp("thermocomp.eoffset-counts") > 300, timeout=120)
+
+        # a clean stop: the last beat says "not valid", ok falls at once, the watchdog itself
+        # never timed out; the offset starts to fade
+        kill("thermocomp", signal.SIGTERM)
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is False)
+        assert cnc.getp("watchdog.ok-out") is True
+        assert cnc.wait(lambda: component_pid("thermocomp") is None, timeout=60)  # exited
+        assert gets("thermocomp-valid") == "FALSE"  # what its pin said last
+        stopped_at = float(gets("thermocomp-counts"))
+        assert cnc.wait(lambda: 0 < cnc.getp("axis.z.eoffset-counts") < stopped_at - 20)
+
+        # started again by hand: it takes over what motion holds, the watchdog re-arms
+        restart_thermocomp(cnc)
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=120)
+        took = re.findall(r"re-seeding from the (\d+) counts motion holds", cnc.log())
+        assert took and 0 < int(took[-1]) < stopped_at, (took, stopped_at)
+
+        # killed: the watchdog falls once the timeout has run out on HAL's clock, and the
+        # offset fades from where the dead component left it
+        setp("tcw-since-fault.reset", 1)
+        setp("tcw-since-fault.reset", 0)
+        kill("thermocomp", signal.SIGKILL)
+        assert cnc.wait(lambda: cnc.getp("watchdog.ok-out") is False, timeout=60)
+        since, c0 = cnc.getps(("tcw-since-beat.out", "thermocomp.eoffset-counts"))
+        print(f"\nthe service killed: ok fell {since:.3f} s after its last beat; fading from {c0}")
+        assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
+        assert c0 > 0  # the spindle grew toward the part: +Z
+        samples = []
+        watched = ("tcw-since-fault.out", "axis.z.eoffset-counts", "tcw-since-fault.out")
+
+        def faded() -> bool:
+            samples.append([float(v) for v in cnc.getps(watched)])
+            return samples[-1][0] > 3.0
+
+        cnc.wait(faded, timeout=120, every=0.05)
+        assert len(samples) >= 5 and samples[0][0] < 1.0
+        for ta, ci, tb in samples:
+            lo = fade_model(tb, c0, **slow) - 1
+            assert lo <= ci <= fade_model(ta, c0, **slow) + 1e-6, (ta, tb, ci)
