@@ -838,3 +838,17 @@ def test_the_emulated_controls_hand_the_sign_of_life_to_their_watch() -> None:
         assert s7.__dict__["beats"] == [(9, 1), (10, 0)]
     finally:
         plc.close()
+
+
+@pytest.mark.parametrize("verify", [True, "deferred"])
+def test_opcua_checks_the_offset_of_a_combined_write_as_configured(
+    ua_controller: UaController, verify: Any
+) -> None:
+    ctl = ua_controller
+    ua_reset(ctl)
+    with ua_link(ctl, verify_writes=verify) as link:
+        done = link.write(-8.0, Life(5, True))
+        assert done.taken and done.pending == (verify == "deferred")
+        assert link.read().write_refused_um is None  # the controller holds what was written
+        assert link.write(None, Life(6, True)) == WriteResult()  # a confirmation: no check due
+    assert len(ctl.writes) == 2 and ctl.value("ThermalOffset") == -8.0
