@@ -423,9 +423,14 @@ class Estimate:
 
     # -- measurements -------------------------------------------------------------------------
     def measure(
-        self, state: EstimateState, measured_um: float, sigma_um: float
+        self,
+        state: EstimateState,
+        measured_um: float,
+        sigma_um: float,
+        source: str = "measurement",
     ) -> tuple[EstimateState, Update, float]:
-        """Fuse one measurement against this cycle's reference (:meth:`step`). Returns the new
+        """Fuse one measurement from ``source`` against this cycle's reference (:meth:`step`),
+        within the observer's bounds (the correction's, and ``source``'s move). Returns the new
         state, the observer's update and the estimate the measurement met [um]."""
         fused = self.fused
         if fused is None or not isinstance(state.core, FusedState):
@@ -437,7 +442,11 @@ class Estimate:
         )
         before = ref + state.bias_um
         out, up = fused.measure(
-            replace(state.core, model=state.in_use), measured_um, sigma_um, model_at_probe_um=ref
+            replace(state.core, model=state.in_use),
+            measured_um,
+            sigma_um,
+            model_at_probe_um=ref,
+            source=source,
         )
         new = replace(state, core=replace(out, model=state.speed_only))
         _check(new, f"the measurement {measured_um:g} um")
@@ -480,12 +489,13 @@ class Estimate:
         dt_s: np.ndarray | None = None,
         wall_s: np.ndarray | None = None,
         inputs: Mapping[str, np.ndarray] | None = None,
-        probes: Sequence[tuple[int, float, float]] = (),
+        probes: Sequence[tuple[int, float, float] | tuple[int, float, float, str]] = (),
     ) -> Series:
         """:meth:`step` over every row of a log, as the service ran it: ``dt_s`` per row (default
         the time steps, 0 on the first row), ``inputs`` per row (a NaN cell is an input the
-        service could not use), and ``probes`` (row, measured [um], sigma [um]), fused after
-        that row's step in their order."""
+        service could not use), and ``probes`` (row, measured [um], sigma [um][, source]), fused
+        after that row's step in their order (without a source, all count as one:
+        ``measurement``)."""
         t = np.asarray(time_s, dtype=float)
         n = t.size
         dt = np.diff(t, prepend=t[:1]) if dt_s is None else np.asarray(dt_s, dtype=float)
@@ -495,9 +505,11 @@ class Estimate:
         est, model, used = np.empty(n), np.empty(n), np.empty(n)
         over, fallback = np.zeros(n, bool), np.zeros(n, bool)
         outcomes: list[str] = []
-        by_row: dict[int, list[tuple[float, float]]] = {}
-        for row, y, sigma in probes:
-            by_row.setdefault(int(row), []).append((float(y), float(sigma)))
+        by_row: dict[int, list[tuple[float, float, str]]] = {}
+        for probe in probes:
+            row, y, sigma = probe[:3]
+            source = str(probe[3]) if len(probe) > 3 else "measurement"
+            by_row.setdefault(int(row), []).append((float(y), float(sigma), source))
         st = state
         for k in range(n):
             values = {name: float(col[k]) for name, col in cols.items()} if cols else None
@@ -509,11 +521,9 @@ class Estimate:
                 wall_s=float(wall[k]),
                 inputs=values,
             )
-            for y, sigma in by_row.get(k, ()):
-                st, up, _ = self.measure(st, y, sigma)
-                outcomes.append(
-                    "accepted" if up.accepted else "restarted" if up.restarted else "rejected"
-                )
+            for y, sigma, source in by_row.get(k, ()):
+                st, up, _ = self.measure(st, y, sigma, source)
+                outcomes.append(up.outcome)
             est[k], model[k], used[k] = (
                 st.estimate_um,
                 float(st.in_use.elongation_um),

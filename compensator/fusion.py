@@ -8,6 +8,9 @@ measurements it steps like the model (the observer's time update runs with it, e
 real Δt); :meth:`FusedPredictor.measure` fuses one measurement. The runtime and replay use it
 like any model (through :class:`compensator.estimate.Estimate`), so a closed loop needs no
 special case.
+
+A fused model always bounds what measurements can do (:mod:`compensator.observer`): an observer
+setting without ``max_correction_um`` gets :func:`default_max_correction_um` of the model.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from .errors import ModelError
 from .fitrecord import FitRecord
 from .modelbase import saved_numbers
 from .observer import (
+    CORRECTION_LIMIT_UM,
     COV_LIMIT,
     ObserverConfig,
     ObserverState,
@@ -30,7 +34,15 @@ from .observer import (
     measurement_update,
     time_update,
 )
+from .plausibility import POINTS, speed_only, steady_growth_um
 from .predictor import Predictor
+
+MIN_CORRECTION_UM = 10.0
+"""The smallest default bound of the correction [um]: the order of what a speed-only model
+misses over a day (the paper's largest residuals are 4 um, a hall's day-long drift some more)."""
+
+CORRECTION_SHARE = 0.5
+"""The default bound of the correction as a share of the model's steady growth over its range."""
 
 OBSERVER_KEY = "observer"
 """Where a model's fit keeps the observer settings fitted at calibration."""
@@ -54,6 +66,34 @@ def observer_config_of(
         return ObserverConfig(**data)
     except ValueError as err:
         raise ModelError(f"observer settings: {str(err).splitlines()[-1].strip()}") from err
+
+
+def default_max_correction_um(model: Predictor) -> float:
+    """The bound of the correction when none is configured [um]: half the model's largest steady
+    growth over its calibrated range (a speed-only model's, or a model with inputs' fallback),
+    and at least :data:`MIN_CORRECTION_UM`. A correction that large means the model no longer
+    describes the spindle: refit. And an estimate pulled that far from the model by a faulty or
+    hostile source leaves at most half the error of no compensation at all."""
+    judged = speed_only(model)
+    try:
+        with np.errstate(all="ignore"):
+            growth = steady_growth_um(
+                judged, np.linspace(0.0, float(judged.speed_range_rpm[1]), POINTS)
+            )
+        span = float(np.max(np.abs(growth)))
+    except (AttributeError, ArithmeticError, ValueError, ModelError):
+        span = 0.0  # a model without a steady state of its own: the floor
+    if not math.isfinite(span):
+        span = 0.0
+    return max(MIN_CORRECTION_UM, CORRECTION_SHARE * span)
+
+
+def with_bounds(config: ObserverConfig, model: Predictor) -> ObserverConfig:
+    """``config`` with its correction bound filled in from ``model`` where it has none."""
+    if config.max_correction_um is not None:
+        return config
+    bound = min(default_max_correction_um(model), CORRECTION_LIMIT_UM)
+    return config.model_copy(update={"max_correction_um": bound})
 
 
 @dataclass(frozen=True)
@@ -84,6 +124,8 @@ class FusedPredictor:
     def __post_init__(self) -> None:
         if isinstance(self.model, FusedPredictor):
             raise ModelError("a fused model cannot be fused again")
+        # the bounds hold wherever a model is fused: the service, replay, a test
+        object.__setattr__(self, "config", with_bounds(self.config, self.model))
 
     # -- what the wrapped model says --------------------------------------------------
     @property
@@ -168,15 +210,20 @@ class FusedPredictor:
         measured_um: float,
         sigma_um: float,
         model_at_probe_um: float | None = None,
+        source: str = "measurement",
     ) -> tuple[FusedState, Update]:
-        """Fuse one measurement of the elongation [um], with its sigma [um].
+        """Fuse one measurement of the elongation [um], with its sigma [um], from ``source`` (the
+        bounds count each source's moves apart).
 
         ``model_at_probe_um``: the model's own elongation at the instant the measurement was
         taken, when that was not now (a tool setter measures with the spindle stopped, and the
         value is read after it has started again: the model's fast part has moved since). The
         bias is taken as unchanged over that short while. Default: the model's now."""
         at = float(state.model.elongation_um) if model_at_probe_um is None else model_at_probe_um
-        up = measurement_update(self.config, state.observer, measured_um, at, sigma_um)
+        first = state.since_measurement_s is None  # none taken yet: a start from nothing
+        up = measurement_update(
+            self.config, state.observer, measured_um, at, sigma_um, source, first
+        )
         age = 0.0 if up.accepted or up.restarted else state.since_measurement_s
         return FusedState(state.model, up.state, age), up
 
@@ -203,6 +250,7 @@ class FusedPredictor:
                 "drift_um_per_s": z.drift_um_per_s,
                 "cov": [list(r) for r in z.cov],
                 "since_measurement_s": state.since_measurement_s,
+                "moved_um": dict(z.moved_um),
             },
         }
 
@@ -218,11 +266,19 @@ class FusedPredictor:
             age = saved.get("since_measurement_s")
             if age is not None:
                 (age,) = saved_numbers("observer age", [age])
+            moved_in = saved.get("moved_um") or {}  # a state saved before the bounds: none
+            if not isinstance(moved_in, Mapping):
+                raise TypeError("moved_um is no mapping")
+            moved = tuple(
+                (str(k), v)
+                for k, v in zip(moved_in, saved_numbers("observer moves", list(moved_in.values())))
+                if v != 0.0
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved observer state is not valid ({err})") from err
         if len(c) != 4 or c[0] < 0 or c[3] < 0 or (age is not None and age < 0):
             raise ModelError("saved observer state is not valid (covariance or age)")
-        return FusedState(inner, ObserverState(b, r, ((c[0], c[1]), (c[2], c[3]))), age)
+        return FusedState(inner, ObserverState(b, r, ((c[0], c[1]), (c[2], c[3])), (), moved), age)
 
     def describe(self) -> list[str]:
         c = self.config
@@ -231,4 +287,6 @@ class FusedPredictor:
             f"  observer: bias random walk {math.sqrt(c.bias_q_um2_per_s * 3600):.2f} um/sqrt(h), "
             f"drift {'on' if c.drift_q_um2_per_s3 > 0 else 'off'}, model sd {c.model_sd_um:.2f} um, "
             f"gate {c.gate_sigma:g} sd, restart after {c.reaccept_after} agreeing refusals",
+            f"  observer bounds: |correction| <= {c.max_correction_um:g} um, one source moves it "
+            f"<= {c.source_move_um:g} um net per {c.window_s:g} s",
         ]

@@ -21,21 +21,53 @@ beyond ``gate_sigma`` standard deviations is rejected (the runtime raises ``PROB
 ``reaccept_after`` consecutive rejected measurements that agree with each other are taken as a
 real change (a step the model cannot know, e.g. a crash or a new tool holder) and the bias
 restarts from them, so that one early refusal cannot lock the filter out for good.
+
+Bounds on what measurements can do, whatever the filter concludes (:func:`measurement_update`):
+
+- the **correction** (the bias: the estimate minus the model's free run) never leaves
+  ``max_correction_um`` in either direction. A correction that large says the model no longer
+  describes the spindle, or a source lies; measurements do not take it further.
+- each **source** (the control socket, the controller's probe nodes, ...) moves the correction by
+  at most ``max_source_move_um`` net: its moves are summed with their signs, and the sum drains
+  toward zero by that much every ``source_window_s``. One source alone moves the correction at
+  most that far at once, and that far per window after; moves that cancel (noise) cost nothing.
+  The first measurement an observer takes (a start from nothing) is exempt (``first``).
+
+A measurement either limit cuts is taken only as far as the limit allows (:attr:`Update.limited`
+says which), and the filter's covariance is left as it was: its information was not taken.
+A correction already beyond the bound (a state restored from a wider setting, a switch between a
+model with inputs and its fallback) is not cut: measurements can only take it back inside.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+)
 
 from .errors import ModelError
 from .units import require_dt, require_finite
 
 COV_LIMIT = 1e12  # um^2: a gap of years forgets the prior; the numbers stay finite
 
+
+CORRECTION_LIMIT_UM = 1000.0
+"""The largest correction bound that may be configured [um]: no spindle grows a millimetre."""
+
+DEFAULT_WINDOW_S = 3600.0
+"""The window of a source's move, unless configured: one hour."""
+
+BOUND_KEYS = ("max_correction_um", "max_source_move_um", "source_window_s")
+"""The settings of the bounds: left out of a stored record while unset."""
 
 SIGMA_LIMIT_UM = 1000.0
 """The largest sigma a measurement may state [um]. One less sure than a millimetre says nothing
@@ -70,6 +102,49 @@ class ObserverConfig(BaseModel):
         ge=0,
         description="consecutive rejected measurements that agree restart the bias (0 = never)",
     )
+    max_correction_um: float | None = Field(
+        None,
+        gt=0,
+        le=CORRECTION_LIMIT_UM,
+        description="the largest |correction| (estimate minus the model's free run) measurements "
+        "may build [um]; None: unbounded here, derived from the model where a model is fused "
+        "(compensator.fusion.default_max_correction_um)",
+    )
+    max_source_move_um: float | None = Field(
+        None,
+        gt=0,
+        le=CORRECTION_LIMIT_UM,
+        description="the most one source may move the correction, net, per source_window_s "
+        "[um]; None: half of max_correction_um",
+    )
+    source_window_s: float | None = Field(
+        None,
+        gt=0,
+        le=365 * 86400.0,
+        description="the window of max_source_move_um [s]; None: one hour",
+    )
+
+    @model_serializer(mode="wrap")
+    def _as_stored(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # the bounds only where set: a fit record written before them dumps as it was read, so
+        # the checksum of its model file stays the same
+        out: dict[str, Any] = handler(self)
+        for key in BOUND_KEYS:
+            if key not in self.model_fields_set and out.get(key) is None:
+                out.pop(key, None)
+        return out
+
+    @property
+    def source_move_um(self) -> float | None:
+        """The net move one source may make per window [um]; None: unbounded."""
+        if self.max_source_move_um is not None:
+            return self.max_source_move_um
+        return None if self.max_correction_um is None else self.max_correction_um / 2.0
+
+    @property
+    def window_s(self) -> float:
+        """The window of :attr:`source_move_um` [s]."""
+        return DEFAULT_WINDOW_S if self.source_window_s is None else self.source_window_s
 
     def noise_var_um2(self, sigma_um: float) -> float:
         """Variance of one measurement's error as the filter sees it [um^2]."""
@@ -78,13 +153,15 @@ class ObserverConfig(BaseModel):
 
 @dataclass(frozen=True)
 class ObserverState:
-    """Disturbance estimate (bias [um], drift rate [um/s]), its covariance, and the implied
-    biases of the rejected measurements since the last accepted one."""
+    """Disturbance estimate (bias [um], drift rate [um/s]), its covariance, the implied
+    biases of the rejected measurements since the last accepted one, and each source's net move
+    of the bias that has not drained yet [um] (sources with none left out)."""
 
     bias_um: float
     drift_um_per_s: float
     cov: tuple[tuple[float, float], tuple[float, float]]
     pending_um: tuple[float, ...] = ()
+    moved_um: tuple[tuple[str, float], ...] = ()
 
     @classmethod
     def prior(cls, cfg: ObserverConfig) -> ObserverState:
@@ -96,6 +173,28 @@ class ObserverState:
     @property
     def bias_sd_um(self) -> float:
         return math.sqrt(max(self.cov[0][0], 0.0))
+
+    def moved_by(self, source: str) -> float:
+        """The net move of the bias ``source`` made that has not drained yet [um]."""
+        return dict(self.moved_um).get(source, 0.0)
+
+
+def at_bound(cfg: ObserverConfig, bias_um: float) -> bool:
+    """The correction is at (or beyond) ``max_correction_um``: measurements move it no further
+    out."""
+    b = cfg.max_correction_um
+    return b is not None and abs(bias_um) >= b * (1.0 - 1e-9)
+
+
+def _drained(
+    cfg: ObserverConfig, moved: tuple[tuple[str, float], ...], dt: float
+) -> tuple[tuple[str, float], ...]:
+    """Each source's net move, drained toward zero over ``dt`` seconds."""
+    limit = cfg.source_move_um
+    if not moved or limit is None or dt <= 0:
+        return moved
+    d = limit / cfg.window_s * dt
+    return tuple((k, math.copysign(abs(m) - d, m)) for k, m in moved if abs(m) > d)
 
 
 def _cov(p: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -110,9 +209,19 @@ def time_update(cfg: ObserverConfig, z: ObserverState, dt_s: float) -> ObserverS
     f = np.array([[1.0, dt], [0.0, 1.0]])
     qb, qr = cfg.bias_q_um2_per_s, cfg.drift_q_um2_per_s3
     q = np.array([[qb * dt + qr * dt**3 / 3, qr * dt**2 / 2], [qr * dt**2 / 2, qr * dt]])
+    bias, drift = z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s
+    bound = cfg.max_correction_um
+    if bound is not None and abs(bias) > max(bound, abs(z.bias_um)):
+        # a drift rate carries the correction no further than measurements may: it stops there
+        bias, drift = math.copysign(max(bound, abs(z.bias_um)), bias), 0.0
     return ObserverState(
-        z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s, _cov(f @ p @ f.T + q), z.pending_um
+        bias, drift, _cov(f @ p @ f.T + q), z.pending_um, _drained(cfg, z.moved_um, dt)
     )
+
+
+Limit = Literal["bound", "source"]
+"""Why a measurement was taken only in part: the correction reached ``max_correction_um``
+(``bound``), or its source its ``max_source_move_um`` (``source``)."""
 
 
 @dataclass(frozen=True)
@@ -124,12 +233,76 @@ class Update:
     restarted: bool = False
     """The measurement was outside the gate but agreed with the ones rejected before it: the
     bias restarted from them."""
+    limited: Limit | None = None
+    """The bias moved less than the filter concluded (a bound cut it; see the module)."""
+    wanted_bias_um: float | None = None
+    """Where the filter would have put the bias, when ``limited``."""
+
+    @property
+    def outcome(self) -> str:
+        """``limited``, ``restarted``, ``accepted`` or ``rejected``: one word for journals."""
+        if self.limited is not None:
+            return "limited"
+        return "accepted" if self.accepted else "restarted" if self.restarted else "rejected"
 
 
 def measurement_update(
+    cfg: ObserverConfig,
+    z: ObserverState,
+    measured_um: float,
+    predicted_um: float,
+    sigma_um: float,
+    source: str = "measurement",
+    first: bool = False,
+) -> Update:
+    """Fuse one measurement of the elongation taken now, from ``source``; refused beyond the
+    gate, taken only in part beyond the bounds (see the module). ``first``: the observer has
+    taken no measurement yet (a start from nothing); the source's move is not cut then, only
+    the correction's bound holds (nothing is known yet to protect, and a cold start on a warm
+    spindle needs the whole of its first measurement)."""
+    up = _filtered(cfg, z, measured_um, predicted_um, sigma_um)
+    return _bounded(cfg, z, up, source, first)
+
+
+def _bounded(cfg: ObserverConfig, z: ObserverState, up: Update, source: str, first: bool) -> Update:
+    """``up`` with the bias's move cut to the source's net move and the correction's bound."""
+    if not (up.accepted or up.restarted):
+        return up
+    b0, wanted = z.bias_um, up.state.bias_um
+    step = wanted - b0
+    why: Limit | None = None
+    moved = z.moved_by(source)
+    n = cfg.source_move_um
+    if n is not None and not first:
+        # as far as the source's net move allows, never back the other way
+        cap = max(n - moved, 0.0) if step > 0 else min(-n - moved, 0.0)
+        if abs(step) > abs(cap):
+            step, why = cap, "source"
+    bound = cfg.max_correction_um
+    if bound is not None:
+        lo, hi = min(-bound, b0), max(bound, b0)  # never further out than it already is
+        if not lo <= b0 + step <= hi:
+            step, why = min(max(b0 + step, lo), hi) - b0, "bound"
+    rest = tuple((k, m) for k, m in z.moved_um if k != source)
+    left = moved + step
+    state_moved = (*rest, (source, left)) if left != 0.0 else rest
+    if why is None:
+        return replace(up, state=replace(up.state, moved_um=state_moved))
+    # taken in part: the covariance stays as it was (the measurement's information was not
+    # taken); refusals a restart was cut from still wait, so that the next agreeing one (from
+    # another source, say) restarts again, as far as its own move allows
+    pending: tuple[float, ...] = ()
+    if up.restarted:
+        keep = max(cfg.reaccept_after, 1)
+        pending = (*z.pending_um, up.innovation_um + b0)[-keep:]
+    kept = ObserverState(b0 + step, z.drift_um_per_s, z.cov, pending, state_moved)
+    return replace(up, state=kept, limited=why, wanted_bias_um=wanted)
+
+
+def _filtered(
     cfg: ObserverConfig, z: ObserverState, measured_um: float, predicted_um: float, sigma_um: float
 ) -> Update:
-    """Fuse one measurement of the elongation taken now; refused beyond the gate."""
+    """The filter's own update: the gate, a restart, or the Kalman update (the bias unbounded)."""
     y = require_finite("measured_um", measured_um)
     s_model = require_finite("predicted_um", predicted_um)
     sigma = require_finite("sigma_um", sigma_um)
@@ -150,11 +323,17 @@ def measurement_update(
             and max(pending) - min(pending) <= cfg.gate_sigma * math.sqrt(2.0 * r)
         )
         if not agree:
-            return Update(ObserverState(z.bias_um, z.drift_um_per_s, z.cov, pending), False, nu, sd)
+            return Update(replace(z, pending_um=pending), False, nu, sd)
         # a real change: start again from the agreeing measurements, drift forgotten
         n = len(pending)
         p0 = np.array([[r / n, 0.0], [0.0, ObserverState.prior(cfg).cov[1][1]]])
-        return Update(ObserverState(float(np.mean(pending)), 0.0, _cov(p0)), False, nu, sd, True)
+        return Update(
+            ObserverState(float(np.mean(pending)), 0.0, _cov(p0), (), z.moved_um),
+            False,
+            nu,
+            sd,
+            True,
+        )
     k = p[:, 0] / s
     x = np.array([z.bias_um, z.drift_um_per_s]) + k * nu
     i_kh = np.eye(2) - np.outer(k, [1.0, 0.0])  # Joseph form: stays symmetric and positive
@@ -162,7 +341,7 @@ def measurement_update(
     if not (np.isfinite(x).all() and np.isfinite(p).all()):
         # never a state no spindle can have: the measurement is refused, the state kept
         raise ModelError(f"the measurement {y:g} um (sigma {sigma:g} um) gives no finite estimate")
-    return Update(ObserverState(float(x[0]), float(x[1]), _cov(p)), True, nu, sd)
+    return Update(ObserverState(float(x[0]), float(x[1]), _cov(p), (), z.moved_um), True, nu, sd)
 
 
 @dataclass(frozen=True)

@@ -265,8 +265,12 @@ def test_a_probe_seen_once_the_spindle_runs_again_is_compared_at_rest(tmp_path, 
 # -- safety: slew limit, outliers, failing sources, staleness ------------------------------------
 
 
+WIDE = "enabled = true\nmax_correction_um = 100.0\nmax_source_move_um = 100.0"
+"""Bounds wide enough for the one large correction these tests make (test_observer_bounds)."""
+
+
 def test_slew_limits_respected_after_a_large_correction(tmp_path, simple_model):
-    b = Bench(tmp_path, simple_model)
+    b = Bench(tmp_path, simple_model, observer=WIDE)
     b.run(600)
     s = b.rows[-1]["predicted_um"]
     assert b.vm.offset_um == pytest.approx(-s, abs=1e-6)
@@ -292,7 +296,7 @@ def test_slew_limits_respected_after_a_large_correction(tmp_path, simple_model):
 def test_an_outlier_raises_probe_rejected_and_leaves_the_estimate_unchanged(
     tmp_path, simple_model, caplog
 ):
-    b = Bench(tmp_path, simple_model)
+    b = Bench(tmp_path, simple_model, observer=WIDE)
     b.run(300)
     b.rt.submit(b.rows[-1]["predicted_um"] + 1.0, 0.5)
     b.run(10)

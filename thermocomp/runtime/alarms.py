@@ -40,6 +40,9 @@ class Alarm(enum.IntFlag):
     # time constant have passed (the start's error decayed to exp(-k), 5 %), or until the observer
     # takes a measurement (accepted, or the bias restarted from it); a restart does not clear it.
     COLD_START_TURNING = 33554432
+    # the observer's correction (estimate minus the model's free run) is at max_correction_um, or
+    # a source's last measurement was cut to its max_source_move_um: measurements are held back
+    OBSERVER_BOUND = 67108864
 
 
 UNREAD = Alarm.SPEED_READ_FAILED | Alarm.IDLE_ASSUMED

@@ -337,6 +337,8 @@ class Service:
                 notes.append(f"{name}: last measurement rejected")
             if obs["failed_sources"]:
                 notes.append(f"{name}: measurement source failing")
+            if obs.get("bounded"):
+                notes.append(f"{name}: OBSERVER_BOUND (measurements taken only in part)")
         if self.cooling is not None and self.cooling.alarm:
             notes.append(f"cooling: {self.cooling.alarm} ({self.cooling.error})")
         return head + ("; " + "; ".join(notes) if notes else "")

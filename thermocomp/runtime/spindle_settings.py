@@ -209,6 +209,25 @@ class ObserverSettings(BaseModel):
     gate_sigma: float | None = Field(None, gt=0, le=1000)
     initial_bias_sd_um: float | None = Field(None, gt=0, le=1e4)
     reaccept_after: int | None = Field(None, ge=0, le=1000)
+    max_correction_um: float | None = Field(
+        None,
+        gt=0,
+        le=1000,
+        description="the largest |correction| (the estimate minus the model's free run) "
+        "measurements may build [um]; reached: OBSERVER_BOUND. Unset: half the model's largest "
+        "steady growth over its calibrated range, at least 10 um",
+    )
+    max_source_move_um: float | None = Field(
+        None,
+        gt=0,
+        le=1000,
+        description="the most one measurement source (the control socket, the controller's "
+        "probe) may move the correction, net, per source_window_s [um]; beyond: OBSERVER_BOUND. "
+        "Unset: half of max_correction_um",
+    )
+    source_window_s: float | None = Field(
+        None, gt=0, le=365 * 86400, description="the window of max_source_move_um; unset: 3600"
+    )
 
     @model_validator(mode="after")
     def _valid(self) -> ObserverSettings:
