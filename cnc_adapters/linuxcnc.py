@@ -46,10 +46,12 @@ External offsets are accumulated count deltas times the scale, zeroed at every m
 honoured only once all joints are homed (LinuxCNC's external-offsets chapter). So while the
 machine is off, in E-stop or not homed the counts are held at zero and the runtime is told that
 the controller applies no offset (:meth:`not_ready_offset_um`); once it is on and homed the
-runtime re-seeds the offset from zero through its slew limit. The counts then start from what
-motion holds (``held_pin``): 0 after a machine-on, and after a restart of thermocomp on a
-machine that stayed on, the offset motion still applies (the old counts, or what the control's
-watchdog faded them to): taking over never moves the offset by itself.
+runtime re-seeds the offset from zero through its slew limit. Motion holds the change of its
+counts pin since machine-on times the scale, so at that moment thermocomp takes over from what
+motion holds (``held_pin``) and what its pin sees (``axis.L.eoffset-counts`` beside it): 0 and 0
+after a machine-on; after a restart of thermocomp the offset motion still applies (faded, maybe,
+by the control's watchdog), and a counts signal that kept an old value through a machine-on is
+allowed for. Taking over never moves the offset by itself.
 
 Sign: thermocomp's offset is ``A = -S`` with positive ``S`` toward the workpiece. On a vertical
 spindle that is -Z, so the Z external offset is ``+S``: ``offset_sign = -1`` (the default).
@@ -308,6 +310,9 @@ class LinuxCncAdapter(Adapter):
         # the counts this process stands for while ready (None: none yet), set again with each
         # write: a pin netted after it was set takes the signal's old value
         self._counts_now: int | None = None
+        # motion's pin at machine-on, in counts: 0 unless thermocomp took over a machine that
+        # was switched on while its counts signal held an old value
+        self._base = 0
 
     @classmethod
     def url_options(cls, url: str) -> dict[str, Any]:
@@ -388,16 +393,20 @@ class LinuxCncAdapter(Adapter):
         ready = self._machine_ready()
         c = self._comp
         if ready != self._ready:
-            held = self._held_counts() if ready else None
-            if held is not None:
-                # the counts start from what motion holds: 0 after a machine-on; after a restart
-                # of thermocomp, what it applies still (faded, maybe, by the control's watchdog)
-                c["eoffset-counts"] = self._counts_now = held
+            took = self._take_over() if ready else None
+            if took is not None:
+                # motion holds (pin - pin at machine-on) x scale: the counts go on from what its
+                # pin sees now, the offset from what it holds (0 after a machine-on; after a
+                # restart of thermocomp, what it still applies, faded maybe by the watchdog)
+                held, at_pin = took
+                self._base = at_pin - held
+                c["eoffset-counts"] = self._counts_now = at_pin
             log.info(
                 "linuxcnc: machine %s",
                 (
                     "on and homed: external offsets honoured, re-seeding from "
-                    + ("0" if not held else f"the {held} counts motion holds")
+                    + ("0" if took is None or not took[0] else f"the {took[0]} counts motion holds")
+                    + (f" (counts offset by {self._base})" if took and self._base else "")
                 )
                 if ready
                 else "off, in E-stop or not homed: counts held at 0",
@@ -408,17 +417,28 @@ class LinuxCncAdapter(Adapter):
             self._counts_now = 0
         c["ready"] = ready
 
-    def _held_counts(self) -> int | None:
-        """The external offset motion applies, in counts (None: no read-back configured, or
-        it failed: the read-back itself reports that)."""
+    def _take_over(self) -> tuple[int, int] | None:
+        """The external offset motion holds, in counts, and the counts its pin sees now
+        (``axis.L.eoffset-counts`` beside ``held_pin``; the held ones where the held pin is
+        another). None: no read-back configured, or it failed (the read-back reports that)."""
         if self.held_pin is None:
             return None
+        held = self._pin_counts(self.held_pin, self.count)
+        if held is None:
+            return None
+        if not self.held_pin.endswith(".eoffset-request"):
+            return held, held
+        at_pin = self._pin_counts(self.held_pin.removesuffix("-request") + "-counts", 1)
+        return held, held if at_pin is None else at_pin
+
+    @staticmethod
+    def _pin_counts(pin: str, per_count: float) -> int | None:
         hal = import_linuxcnc("hal")
         try:
-            held = float(hal.get_value(self.held_pin))
+            value = float(hal.get_value(pin))
         except (AttributeError, RuntimeError, TypeError, ValueError):
             return None
-        counts = round(held / self.count) if math.isfinite(held) else None
+        counts = round(value / per_count) if math.isfinite(value) else None
         return counts if counts is not None and abs(counts) <= S32 else None
 
     def _read_speed_raw(self) -> float:
@@ -444,7 +464,7 @@ class LinuxCncAdapter(Adapter):
             ) from err
 
     def _counts(self, value: float) -> int:
-        counts = round(value / self.count)
+        counts = round(value / self.count) + self._base
         if abs(counts) > S32:
             raise BadValueError(
                 f"linuxcnc write offset pin {self.component}.eoffset-counts: {value:g} "

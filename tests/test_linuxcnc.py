@@ -546,11 +546,14 @@ import hal
 from cnc_adapters import Life
 from cnc_adapters.linuxcnc import LinuxCncAdapter
 
-# motion's accumulated external offset [mm], as a restarted thermocomp finds it
+# motion as a restarted thermocomp finds it: 0.0042 mm accumulated, its counts pin at 1000
+# (the signal kept 580 counts through a machine-on)
 motion = hal.component("fake-motion")
 motion.newpin("eoffset-request", hal.HAL_FLOAT, hal.HAL_OUT)
+motion.newpin("eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
 motion.ready()
 motion["eoffset-request"] = 0.0042
+motion["eoffset-counts"] = 1000
 
 a = LinuxCncAdapter(component="tc-life", machine_state="pins", held_pin="fake-motion.eoffset-request")
 a.open()
@@ -581,16 +584,17 @@ def test_linuxcnc_life_pins_beat_with_the_offset_and_a_restart_takes_over_what_m
     assert out["exported"] == [0, False, False, 0] and out["caps"] is True
     # machine off: the beat goes out (valid false), the counts stay at 0
     assert out["not_ready"] == [True, [1, True, False, 0]]
-    # ready: 0.0042 mm at 1e-5 mm per count, taken over as it is (no move of its own)
-    assert out["took_over"] == [1, True, False, 420]
+    # ready: taken over as motion sees it (no move of its own): its pin's 1000 counts, of which
+    # 0.0042 mm (420 counts of 1e-5 mm) are held
+    assert out["took_over"] == [1, True, False, 1000]
     # a confirm: the counter moves, the toggle flips, valid; the offset untouched
-    assert out["confirm"] == [True, [2, False, True, 420]]
+    assert out["confirm"] == [True, [2, False, True, 1000]]
     # the same beat again is no new beat: the toggle stays
-    assert out["same_beat"] == [True, [2, False, True, 420]]
-    # the offset and the beat in one call: -5 um is +500 counts on Z
-    assert out["both"] == [True, [3, True, True, 500]]
+    assert out["same_beat"] == [True, [2, False, True, 1000]]
+    # the offset and the beat in one call: -5 um is +500 counts on Z, on top of the 580
+    assert out["both"] == [True, [3, True, True, 1080]]
     # an offset refused: no beat either (the watchdog must not see a write that did not happen)
     reason, pins = out["refused"]
-    assert "does not fit the s32 counts" in reason and pins == [3, True, True, 500]
+    assert "does not fit the s32 counts" in reason and pins == [3, True, True, 1080]
     # a clean stop's last beat: valid false, the offset left
-    assert out["stop"] == [True, [4, False, False, 500]]
+    assert out["stop"] == [True, [4, False, False, 1080]]
