@@ -34,6 +34,7 @@ Leaving ok (for stale or invalid) is a *trip*; the reaction the integrator chose
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -50,6 +51,7 @@ FADE_RATE_UM_PER_S = 1.0
 """The default cap on the fade's rate: the slow slew limit the service itself keeps while cutting."""
 FADE_ZERO_UM = 0.001
 """A fading offset below this is zero: a first-order decay would never end."""
+CHANGES_KEPT = 1000
 ALARM_STALE = "7001 THERMAL COMPENSATION: no sign of life from thermocomp for {timeout:g} s"
 ALARM_INVALID = "7002 THERMAL COMPENSATION: thermocomp says its offset is not valid"
 
@@ -114,6 +116,8 @@ class Watch:
         """The latched feed hold: the program pauses until the operator resumes it."""
         self.fading = False
         """The offset is fading to zero."""
+        self.changes: deque[tuple[float, WatchState]] = deque(maxlen=CHANGES_KEPT)
+        """The last changes of state: (machine time, the new state)."""
 
     @property
     def armed(self) -> bool:
@@ -167,6 +171,8 @@ class Watch:
             self._react()
         elif new == "ok":
             self.fading = False  # thermocomp writes its offset again
+        if new != (self.changes[-1][1] if self.changes else "waiting"):
+            self.changes.append((float(now_s), new))
         self.state = new
         return new
 
