@@ -86,6 +86,8 @@ class Probes:
     elongation_um: np.ndarray
     sigma_um: np.ndarray
     source: str
+    sources: tuple[str, ...] = ()
+    """Each measurement's source, where known (the service's journal): bounded apart."""
 
 
 def probes_every(log: RunLog, every_s: float, noise_um: float = 0.5, seed: int = 0) -> Probes:
@@ -131,7 +133,11 @@ def probes_from_file(log: RunLog, path: str, default_sigma_um: float = 0.5) -> P
             path,
         )
     return Probes(
-        m.time_s, m.elongation_um, m.sigma_um, f"{m.time_s.size} measurement(s) from {path}"
+        m.time_s,
+        m.elongation_um,
+        m.sigma_um,
+        f"{m.time_s.size} measurement(s) from {path}",
+        m.sources,
     )
 
 
@@ -371,11 +377,21 @@ def replay(
     if probes is None and estimate.with_inputs is None:
         pred = open_loop = estimate.simulate_um(speed_sim, step_time, initial_um)
     else:  # the service's estimate, cycle by cycle: inputs that fail, probes fused
-        at = np.searchsorted(log.time_s, np.asarray([] if probes is None else probes.time_s) - 1e-3)
-        fused = (
+        # the measurement journal moves each further measurement of one cycle 1 ms on (its times
+        # must increase), and a journal's times read back carry float noise: up to 5 ms after a
+        # row, a measurement is that row's cycle's
+        at = np.searchsorted(log.time_s, np.asarray([] if probes is None else probes.time_s) - 5e-3)
+        fused: list[tuple[int, float, float, str]] = (
             []
             if probes is None
-            else list(zip(at.tolist(), probes.elongation_um.tolist(), probes.sigma_um.tolist()))
+            else list(
+                zip(
+                    at.tolist(),
+                    probes.elongation_um.tolist(),
+                    probes.sigma_um.tolist(),
+                    probes.sources or ("measurement",) * len(at),
+                )
+            )
         )
         series = estimate.run(
             _start(estimate, log, initial_um, float(speed_sim[0])),
@@ -481,6 +497,7 @@ def replay(
             probes=int(probes.time_s.size),
             probes_rejected=series.outcomes.count("rejected"),
             probe_restarts=series.outcomes.count("restarted"),
+            probes_limited=series.outcomes.count("limited"),
             probe_source=probes.source,
         )
     report["measured_samples"] = int(rows.sum()) if measured is not None else 0

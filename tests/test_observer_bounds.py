@@ -570,3 +570,35 @@ def test_the_first_measurement_of_a_fresh_observer_is_held_to_the_bound_only():
     st = fused.start(0.0, SPEED)
     st, up = fused.measure(st, 40.0, 0.5, source="setter")
     assert up.limited == "bound" and st.bias_um == pytest.approx(15.0)
+
+
+def test_replay_of_the_services_journal_cuts_the_same_measurements(tmp_path, model_file):
+    """`thermocomp replay --measurements` over the service's own journal of the two-source
+    attack: each measurement's source is read from the journal, so replay cuts the same ones and
+    gives the service's estimate, step for step."""
+    from calibration.replay import probes_from_file, replay
+    from compensator.io import load_any_model, read_run_log
+
+    rig = SocketAttack(tmp_path, model_file)
+    try:
+        rig.warm()
+        got = rig.run(probe_too=True)
+        for _ in range(5):  # the cycle journal goes on past the last measurement
+            rig.tick()
+        sc = load_config(tmp_path / "machine.toml").spindle[0]
+    finally:
+        rig.close()
+    journal_dir = rig.state_dir / "journal"
+    (journal,) = sorted(journal_dir.glob("s1-*.csv"))
+    (measurements,) = sorted(journal_dir.glob("s1.measurements-*.csv"))
+    log = read_run_log(journal)
+    probes = probes_from_file(log, str(measurements), 0.5)
+    assert set(probes.sources) == {"control", "sim"}
+    model = load_any_model(model_file)
+    rep = replay(
+        model, log, shaping=sc.shaping, probes=probes, estimate=sc.estimate(model), compare=False
+    )
+    service = np.asarray(log.extras["predicted_um"], dtype=float)
+    np.testing.assert_allclose(rep.predicted_um, service, rtol=0, atol=1e-6)
+    assert rep.report["probes_limited"] == got["limited"]
+    assert float(np.min(rep.predicted_um)) == pytest.approx(got["min"], abs=1e-6)

@@ -29,6 +29,9 @@ class Measurements:
     elongation_um: np.ndarray
     sigma_um: np.ndarray
     source: str
+    sources: tuple[str, ...] = ()
+    """Each row's ``source`` column (the service's journal names the probe or the control
+    socket), where the file has one: the observer bounds each source's moves apart."""
 
 
 def _number(text: str, col: str, src: str, line: int) -> float:
@@ -47,6 +50,7 @@ def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> 
     times: list[float] = []
     values: list[float] = []
     sigmas: list[float] = []
+    sources: list[str] = []
     try:
         with open(src, newline="", encoding="utf-8") as fh:
             rows = (
@@ -69,6 +73,7 @@ def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> 
             it, iy = cols.index("time_s"), cols.index("elongation_um")
             isg = cols.index("sigma_um") if "sigma_um" in cols else None
             io = cols.index("outcome") if "outcome" in cols else None
+            isrc = cols.index("source") if "source" in cols else None
             for line, row in rows:
                 if len(row) != len(cols):
                     raise RunLogError(
@@ -90,6 +95,8 @@ def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> 
                 times.append(t)
                 values.append(y)
                 sigmas.append(s)
+                if isrc is not None:
+                    sources.append(row[isrc].strip() or "measurement")
     except OSError as err:
         raise RunLogError(f"cannot read: {err.strerror or err}", src) from err
     except UnicodeError as err:
@@ -98,4 +105,4 @@ def read_measurements(path: str | os.PathLike[str], default_sigma_um: float) -> 
         raise RunLogError(f"malformed CSV: {err}", src) from err
     if not times:
         raise RunLogError("no measurements", src)
-    return Measurements(np.array(times), np.array(values), np.array(sigmas), src)
+    return Measurements(np.array(times), np.array(values), np.array(sigmas), src, tuple(sources))
