@@ -602,3 +602,31 @@ def test_replay_of_the_services_journal_cuts_the_same_measurements(tmp_path, mod
     np.testing.assert_allclose(rep.predicted_um, service, rtol=0, atol=1e-6)
     assert rep.report["probes_limited"] == got["limited"]
     assert float(np.min(rep.predicted_um)) == pytest.approx(got["min"], abs=1e-6)
+
+
+def test_thermocomp_measure_says_limited_and_exits_1(tmp_path, model_file, capsys):
+    """`thermocomp measure` against the running service: a value the bound cuts is answered
+    `limited`, exit 1 (not taken whole), and the estimate moved only to the bound."""
+    import threading
+
+    from thermocomp.cli import main as cli
+
+    rig = SocketAttack(tmp_path, model_file, observer="max_correction_um = 2.0")
+    try:
+        rig.warm()
+        assert rig.svc.control is not None
+        rig.svc.control.request_timeout_s = float("inf")  # the fake clock runs as we tick
+        codes: list[int] = []
+        um = rig.rt.estimate_um() + 5.0
+        args = ["measure", "--um", f"{um:.3f}", "--state-dir", str(rig.state_dir)]
+        client = threading.Thread(target=lambda: codes.append(cli(args)))
+        client.start()
+        while client.is_alive() and rig.t < 1e4:
+            rig.tick()
+        client.join()
+        bias = rig.rt.est.bias_um
+    finally:
+        rig.close()
+    assert codes == [1]
+    assert capsys.readouterr().out.startswith("s1: limited: measured")
+    assert bias == pytest.approx(2.0)

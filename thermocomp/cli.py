@@ -581,7 +581,8 @@ def _add_measure(sub: argparse._SubParsersAction) -> None:
         "measure",
         help="send a tool-setter or probe measurement to the running service",
         description="The service fuses it at the spindle's next cycle and answers: "
-        "accepted (exit 0), rejected by the innovation gate (exit 1); an error exits 2.",
+        "accepted (exit 0), rejected by the innovation gate or taken only in part by the "
+        "observer's bounds (exit 1); an error exits 2.",
     )
     p.add_argument(
         "--um",

@@ -168,7 +168,8 @@ def check(config_path: str) -> int:
 
 def measure(args: argparse.Namespace) -> int:
     """``thermocomp measure``: one measurement to the running service; exit 0 when it was
-    taken (accepted, or the bias restarted from it), 1 when the observer rejected it."""
+    taken (accepted, or the bias restarted from it), 1 when the observer rejected it or took it
+    only in part (its bounds: ``limited``)."""
     um, sigma = args.um, args.sigma_um
     if not math.isfinite(um) or abs(um) > 1e4:
         raise ConfigError(f"--um must be a finite elongation in um (|um| <= 10000), not {um:g}")
@@ -197,4 +198,4 @@ def measure(args: argparse.Namespace) -> int:
             f"{answer.get('innovation_um', math.nan):+.3f} um (sd {answer.get('innovation_sd_um', math.nan):.3f} "
             f"um); bias now {answer.get('bias_um', math.nan):+.3f} um"
         )
-    return 1 if answer.get("outcome") == "rejected" else 0
+    return 1 if answer.get("outcome") in ("rejected", "limited") else 0
