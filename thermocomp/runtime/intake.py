@@ -26,13 +26,14 @@ from compensator.drift import DriftConfig, DriftState, miss_sd_um
 from compensator.drift import update as drift_update
 from compensator.errors import ModelError
 from compensator.estimate import Estimate, EstimateState
-from compensator.fusion import FusedPredictor, FusedState
+from compensator.fusion import FusedState
 from compensator.io import MeasurementJournal
 from compensator.io.journal_export import iso
 from compensator.modelbase import SAVED_LIMIT_UM
-from compensator.observer import SIGMA_LIMIT_UM, Update, at_bound
+from compensator.observer import SIGMA_LIMIT_UM
 
 from .alarms import Alarm
+from .bounds import BoundWatch
 from .config import SpindleConfig
 from .events import event
 
@@ -166,13 +167,7 @@ class ProbeIntake:
         self.source_errors: dict[str, tuple[str, bool]] = {}
         self.stale = False
         self.drift = DriftWatch(cfg, anchor_s)
-        counters.setdefault("probes_limited", 0)
-        # source -> why its last measurement was cut (bound or source), until one is taken whole
-        self.limited: dict[str, str] = {}
-        self.limited_counts: dict[str, int] = {}
-        self.bounded = False  # OBSERVER_BOUND raised (its event once on entry)
-        self.at_bound = False  # the correction is at max_correction_um
-        self.bound_um: float | None = None  # max_correction_um, as the last cycle had it
+        self.bounds = BoundWatch(cfg.name, counters)
 
     def follow(self, old: ProbeIntake, *, same_model: bool) -> None:
         """Go on from ``old`` (a reload): its queue (moved, not copied); the same model keeps
@@ -182,8 +177,7 @@ class ProbeIntake:
             self.rejected, self.source_errors = old.rejected, dict(old.source_errors)
             self.stale = old.stale
             self.drift = old.drift
-            self.limited, self.limited_counts = dict(old.limited), dict(old.limited_counts)
-            self.bounded = old.bounded
+            self.bounds = old.bounds
 
     def take_journal(self, old: ProbeIntake) -> None:
         """Write on through ``old``'s measurement journal (a reload): its rows are not lost."""
@@ -293,7 +287,7 @@ class ProbeIntake:
             alarms |= Alarm.MODEL_DRIFT
         if self.source_errors:
             alarms |= Alarm.PROBE_FAILED
-        alarms |= self._bound(estimate, est)
+        alarms |= self.bounds.alarm(estimate, est)
         return Taken(est, alarms | self._staleness(est, now, first_s), measured, settled)
 
     def _source_failed(
@@ -397,10 +391,8 @@ class ProbeIntake:
             "innovation_sd_um": up.innovation_sd_um,
             "bias_um": z.bias_um,
         }
-        if outcome != "rejected" and up.limited is None:
-            self.limited.pop(source, None)  # taken whole: the source is within its bounds again
         if up.limited is not None:
-            self._limited(fused, source, up, y, before, fields)
+            self.bounds.cut(fused, source, up, y, before, fields)
         elif outcome == "rejected":
             event(
                 "probe_rejected",
@@ -417,6 +409,7 @@ class ProbeIntake:
                 **fields,
             )
         elif outcome == "restarted":
+            self.bounds.taken_whole(source)
             event(
                 "probe_restart",
                 name,
@@ -430,6 +423,7 @@ class ProbeIntake:
                 **fields,
             )
         else:
+            self.bounds.taken_whole(source)
             event(
                 "probe_accepted",
                 name,
@@ -461,97 +455,6 @@ class ProbeIntake:
             "elongation_um": est.estimate_um,
             "time_s": self.anchor_s + now,
         }
-
-    def _limited(
-        self,
-        fused: FusedPredictor,
-        source: str,
-        up: Update,
-        y: float,
-        before: float,
-        fields: dict[str, Any],
-    ) -> None:
-        """A measurement the bounds cut: counted per source, evented (PROBE_LIMITED)."""
-        cfg = fused.config
-        assert up.limited is not None
-        self.limited[source] = up.limited
-        self.limited_counts[source] = self.limited_counts.get(source, 0) + 1
-        limit = (
-            f"the correction's bound of {cfg.max_correction_um:g} um"
-            if up.limited == "bound"
-            else f"{source}'s move of {cfg.source_move_um:g} um per {cfg.window_s:g} s"
-        )
-        event(
-            "probe_limited",
-            self.cfg.name,
-            "%s: measurement %.3f um from %s taken only in part: it would set the correction to "
-            "%+.3f um, %s holds it at %+.3f um (estimate was %.3f um)",
-            self.cfg.name,
-            y,
-            source,
-            up.wanted_bias_um,
-            limit,
-            up.state.bias_um,
-            before,
-            level=logging.WARNING,
-            limited=up.limited,
-            wanted_bias_um=up.wanted_bias_um,
-            max_correction_um=cfg.max_correction_um,
-            max_source_move_um=cfg.source_move_um,
-            source_window_s=cfg.window_s,
-            **fields,
-        )
-
-    def _bound(self, estimate: Estimate, est: EstimateState) -> Alarm:
-        """OBSERVER_BOUND while the correction is at its bound or a source's last measurement
-        was cut; one event on entry, one on leaving."""
-        fused = estimate.fused
-        state = est.core
-        assert fused is not None and isinstance(state, FusedState)
-        cfg = fused.config
-        bias = est.bias_um
-        reached = at_bound(cfg, bias)
-        # a cut is over once its source's move has drained, or the correction left the bound
-        self.limited = {
-            k: why
-            for k, why in self.limited.items()
-            if (why == "source" and state.observer.moved_by(k) != 0.0)
-            or (why == "bound" and reached)
-        }
-        bounded = reached or bool(self.limited)
-        if bounded and not self.bounded:
-            event(
-                "observer_bound",
-                self.cfg.name,
-                "%s: OBSERVER_BOUND: %s; measurements that pull further are taken only in part. "
-                "Check the measurement sources (%s); if the spindle really has changed, refit "
-                "(thermocomp refit) or recalibrate",
-                self.cfg.name,
-                f"the correction is at {bias:+.3f} um, its bound is {cfg.max_correction_um:g} um"
-                if reached
-                else f"a source moved the correction by its {cfg.source_move_um:g} um per "
-                f"{cfg.window_s:g} s",
-                ", ".join(f"{k}: {n} cut" for k, n in sorted(self.limited_counts.items()))
-                or "none cut",
-                level=logging.WARNING,
-                bias_um=bias,
-                max_correction_um=cfg.max_correction_um,
-                max_source_move_um=cfg.source_move_um,
-                source_window_s=cfg.window_s,
-                sources=dict(self.limited),
-            )
-        elif self.bounded and not bounded:
-            event(
-                "observer_bound_cleared",
-                self.cfg.name,
-                "%s: OBSERVER_BOUND cleared: the correction %+.3f um is within its bound and "
-                "the measurements are taken whole",
-                self.cfg.name,
-                bias,
-                bias_um=bias,
-            )
-        self.bounded, self.at_bound, self.bound_um = bounded, reached, cfg.max_correction_um
-        return Alarm.OBSERVER_BOUND if bounded else Alarm.NONE
 
     def _staleness(self, est: EstimateState, now: float, first_s: float | None) -> Alarm:
         """OBSERVER_STALE once no measurement has been taken for ``stale_after_s`` (counted from
@@ -600,10 +503,6 @@ class ProbeIntake:
             "stale": self.stale,
             "rejected": self.rejected,
             "failed_sources": {k: why for k, (why, _) in self.source_errors.items()},
-            "bounded": self.bounded,
-            "at_bound": self.at_bound,
-            "max_correction_um": self.bound_um,
-            "limited_sources": dict(self.limited),
-            "limited": dict(self.limited_counts),
+            **self.bounds.status(),
             "moved_um": dict(z.moved_um),
         }
