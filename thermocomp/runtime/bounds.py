@@ -99,8 +99,9 @@ class BoundWatch:
                 "observer_bound",
                 self.name,
                 "%s: OBSERVER_BOUND: %s; measurements that pull further are taken only in part. "
-                "Check the measurement sources (%s); if the spindle really has changed, refit "
-                "(thermocomp refit) or recalibrate",
+                "Check the measurement sources (%s); if the spindle really has changed, "
+                "re-run the cold reference or recalibrate (refit learns only from measurements "
+                "taken whole)",
                 self.name,
                 f"the correction is at {bias:+.3f} um, its bound is {cfg.max_correction_um:g} um"
                 if reached
