@@ -223,6 +223,17 @@ class Watch:
         out = offset_um + step
         return 0.0 if abs(out) < FADE_ZERO_UM else out
 
+    def summary(self) -> str:
+        """One line for a report: the state, the counter and flag, the trips, the reaction."""
+        if not self.armed:
+            return "never written: thermocomp did not run here, nothing to watch"
+        doing = self.reaction_text()
+        return (
+            f"{self.state} (counter {self.counter}, valid {str(self.valid).lower()}), tripped "
+            f"{self.trips} times; reaction {self.settings.reaction}"
+            + (f": {doing}" if doing else "")
+        )
+
     def reaction_text(self) -> str:
         """What the control does now, for its status node: '' when nothing is in force."""
         if self.ok and not (self.alarm or self.held):

@@ -130,6 +130,7 @@ def beats_then_silence(r: Rig, beats: int = 10) -> tuple[float, float]:
 
 def test_the_watch_waits_for_a_first_beat_and_trips_at_the_timeout_on_machine_time():
     w = Watch(WatchSettings(timeout_s=3.0, reaction="alarm"))
+    assert w.summary().startswith("never written")
     for t in range(100):  # never written: thermocomp never ran here, nothing to react to
         assert w.beat(0, False, float(t)) == "waiting"
     assert w.refusal == "" and w.trips == 0
@@ -343,6 +344,89 @@ def test_the_sim_link_writes_the_sign_of_life_to_the_machines_watch():
     assert vm.watch.state == "ok" and vm.watch.counter == 5
     assert link.write(None, life.next(False)).failure is None  # a confirm: the sign only
     assert vm.watch.state == "invalid" and vm.watch.fading
+    assert vm.watch.summary() == (
+        "invalid (counter 6, valid false), tripped 1 times; reaction fade: fade: offset to zero"
+    )
     clock.advance(10.0)
     link.read_speed()
     assert -10.0 < vm.offset_um < 0.0
+
+
+# -- thermocomp virtual-cnc ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [("--watch-timeout-s", "0"), ("--fade-tau-s", "nan"), ("--fade-rate-um-per-s", "-1")],
+)
+def test_virtual_cnc_refuses_a_watch_it_cannot_run_in_one_line(flag, value):
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-m", "thermocomp", "virtual-cnc", flag, value, "--port", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"thermocomp: error: virtual-cnc: {flag} must be a finite number > 0, got {float(value)!r}"
+    ]
+
+
+def test_virtual_cnc_process_raises_its_alarm_when_the_beats_stop(tmp_path):
+    """``thermocomp virtual-cnc --watch-reaction alarm`` as a process: a client's beats arm it,
+    their end trips it, and the alarm shows on its nodes (the timing is the lock-step tests')."""
+    import subprocess
+    import sys
+    import time
+
+    from asyncua import ua
+    from asyncua.sync import Client
+
+    from machine_sim.vcnc import free_port
+
+    port = free_port()
+    out = tmp_path / "vcnc.out"
+    with open(out, "w") as fh:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "thermocomp",
+                "virtual-cnc",
+                "--port",
+                str(port),
+                "--time-scale",
+                "60",
+                "--watch-reaction",
+                "alarm",
+            ],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+        )
+    try:
+        end = time.monotonic() + 120
+        while "virtual CNC (" not in out.read_text():
+            assert proc.poll() is None and time.monotonic() < end, out.read_text()
+            time.sleep(0.05)
+        assert "sign of life: watched once LifeCounter moves; 3 s still" in out.read_text()
+        url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
+        with Client(url, timeout=10) as c:
+            ns = c.get_namespace_index(NAMESPACE_URI)
+            node = {
+                k: c.get_node(f"ns={ns};s={p}") for k, p in {**LIFE_PATHS, **WATCH_PATHS}.items()
+            }
+            node["compensation_valid"].write_value(ua.Variant(True, ua.VariantType.Boolean))
+            node["life_counter"].write_value(ua.Variant(1, ua.VariantType.Int32))
+            end = time.monotonic() + 60
+            while node["compensation_trips"].read_value() == 0:
+                assert time.monotonic() < end, "the watch never tripped"
+                time.sleep(0.02)
+            assert node["compensation_watch"].read_value() == "stale"
+            assert node["compensation_alarm"].read_value().startswith("7001")
+    finally:
+        proc.terminate()
+        proc.wait(30)

@@ -544,6 +544,34 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="seconds from at-speed to the first cut (default: the preset's, 3)",
     )
+    p.add_argument(
+        "--watch-reaction",
+        choices=["none", "alarm", "feed-hold", "fade"],
+        default="none",
+        help="what the control does once thermocomp's sign of life is missing (LifeCounter "
+        "still for --watch-timeout-s, or CompensationValid false): none (keep the offset; the "
+        "state is shown), alarm (refuse the next cycle start until a reset), feed-hold (pause "
+        "the program, the spindle turning), fade (the offset to zero, first-order)",
+    )
+    p.add_argument(
+        "--watch-timeout-s",
+        type=float,
+        default=3.0,
+        help="simulated seconds the life counter may stand still (default 3)",
+    )
+    p.add_argument(
+        "--fade-tau-s",
+        type=float,
+        default=1200.0,
+        help="with --watch-reaction fade: its time constant, simulated seconds (default 1200, "
+        "the spindle's cooling)",
+    )
+    p.add_argument(
+        "--fade-rate-um-per-s",
+        type=float,
+        default=1.0,
+        help="with --watch-reaction fade: its fastest rate (default 1 um/s)",
+    )
     p.set_defaults(handler="thermocomp.commands.sim:virtual_cnc")
 
 

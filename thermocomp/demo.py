@@ -321,6 +321,8 @@ def main(args: argparse.Namespace) -> int:
                 next_report[0] += 3600.0
 
         rt = serve(config, clock, cnc, prog, report)
+        step(cnc)  # the control takes the service's last sign of life, written as it stopped
+        out.print(f"    the virtual CNC's watch on the sign of life: {vm.watch.summary()}")
     hist = vm.history()
     times, speeds, true, offset = hist.time_s, hist.speed_rpm, hist.true_um, hist.offset_um
     compensated = hist.tool_tip_error_um

@@ -24,6 +24,7 @@ from machine_sim.vcnc import (
     VirtualMachine,
     running,
 )
+from machine_sim.watchdog import WatchSettings
 
 
 def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
@@ -88,6 +89,22 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         raise ConfigError(str(err.args[0])) from err
     except NcSyntaxError as err:
         raise ConfigError(f"{args.program}: {err}") from err
+    try:
+        watch = WatchSettings(
+            timeout_s=getattr(args, "watch_timeout_s", 3.0),
+            reaction=getattr(args, "watch_reaction", "none"),
+            fade_tau_s=getattr(args, "fade_tau_s", 1200.0),
+            fade_max_rate_um_per_s=getattr(args, "fade_rate_um_per_s", 1.0),
+        )
+    except ValueError as err:
+        text = str(err)
+        for name, flag in (
+            ("timeout_s", "--watch-timeout-s"),
+            ("fade_tau_s", "--fade-tau-s"),
+            ("fade_max_rate_um_per_s", "--fade-rate-um-per-s"),
+        ):
+            text = text.replace(f"watch {name} ", f"{flag} ")
+        raise ConfigError(f"virtual-cnc: {text}") from err
     vm = VirtualMachine(
         SpindlePlant(params, seed=args.seed),
         None if args.wait_start else prog,
@@ -96,6 +113,7 @@ def virtual_cnc(args: argparse.Namespace) -> int:
             at_speed=getattr(args, "tool_setter", "rest") == "speed",
             touches=getattr(args, "tool_setter_touches", 1),
         ),
+        watch=watch,
     )
     if args.wait_start:
         vm.load_pending(prog)
@@ -113,6 +131,11 @@ def virtual_cnc(args: argparse.Namespace) -> int:
                 flush=True,
             )
         print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
+        print(
+            f"sign of life: watched once LifeCounter moves; {watch.timeout_s:g} s still or "
+            f"CompensationValid false: {watch.reaction}",
+            flush=True,
+        )
         if args.wait_start and args.start_delay is not None:
             print(f"... or it starts by itself in {args.start_delay:g} s", flush=True)
         t0 = time.monotonic()
