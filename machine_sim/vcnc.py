@@ -825,9 +825,11 @@ class VirtualCNC:
         if self.control is None:
             await self._nodes["thermal_offset"].write_value(float(m.offset_um))
             return
-        c = self.control
+        c, units = self.control, self.control.profile.units
         c.applied_um = m.offset_um
-        c.held_raw = c.profile.units.to_controller(m.offset_um)
+        # the control fades in its own arithmetic, not in whole counts: a count's rounding each
+        # tick would hold a slow fade where it is
+        c.held_raw = m.offset_um * units.scale * units.sign
         self._seen_raw = float(c.held_raw)
         await self._nodes[self._offset_key].write_value(float(c.held_raw))
 

@@ -430,3 +430,30 @@ def test_virtual_cnc_process_raises_its_alarm_when_the_beats_stop(tmp_path):
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_a_fade_through_an_emulated_control_fades_its_held_value_too():
+    """With a control profile (FANUC: +S in whole um counts) the control's own variable fades:
+    the held value, the node a read-back sees and the applied offset move together."""
+    from asyncua.sync import Client
+
+    from cnc_adapters.control_profiles import profile
+    from machine_sim.controls import EmulatedControl
+
+    clock = SteppedClock()
+    vm = machine(clock, reaction="fade", fade_tau_s=60.0, fade_max_rate_um_per_s=1.0)
+    control = EmulatedControl(vm, profile("fanuc"))
+    cnc = VirtualCNC(vm, tick_s=None, control=control)
+    with running(cnc), Client(cnc.url, timeout=10) as client:
+        r = Rig(cnc, clock, client)
+        r.node["thermal_offset"].write_value(12.0)  # +S: the control applies -12 um
+        r.tick()
+        assert vm.offset_um == -12.0
+        _, tripped = beats_then_silence(r)
+        r.tick(120)  # 60 s: one time constant
+        assert control.held_um == pytest.approx(vm.offset_um)
+        assert r.read("thermal_offset") == pytest.approx(control.held_raw)
+        elapsed = vm.plant.time_s - tripped
+        assert vm.offset_um == pytest.approx(-12.0 * math.exp(-elapsed / 60.0), rel=1e-9)
+        r.tick(1200)
+        assert vm.offset_um == 0.0 and control.held_raw == 0.0
