@@ -24,13 +24,15 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import errno
 import logging
 import math
 import os
+import stat
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from ..errors import ConfigError
 from .runlog import header_text
@@ -58,6 +60,21 @@ SHADOW_COLUMN = "shadow_um"
 beside the live model, never written to the controller."""
 MAX_PENDING_ROWS = 250_000
 """Rows kept in memory while the disk refuses them (about 3 days at one cycle a second)."""
+KIND_SUFFIXES = (".measurements", ".cooling")
+"""What a spindle's measurement and cooling journals add to its name (``NAME.cooling-DAY.csv``)."""
+
+
+def spindle_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a spindle's journals, or None. A name ending in a kind's suffix
+    would make its cycle journal read as another spindle's measurements or chiller commands
+    (``a.cooling-DAY.csv`` is spindle ``a``'s cooling journal)."""
+    for suffix in KIND_SUFFIXES:
+        if name.endswith(suffix):
+            return (
+                f"may not end in {suffix}: its journal files would read as "
+                f"spindle {name.removesuffix(suffix)!r}'s"
+            )
+    return None
 
 
 class Journal:
@@ -79,6 +96,9 @@ class Journal:
         "slew_limit_um_per_s",
     )
 
+    KIND = ""
+    """What this kind of journal adds to the spindle's name in its files' names."""
+
     def __init__(
         self,
         directory: str | os.PathLike[str],
@@ -92,6 +112,10 @@ class Journal:
         input_columns: tuple[str, ...] = (),
     ):
         self.directory = Path(directory)
+        spindle = name.removesuffix(self.KIND)
+        problem = spindle_name_problem(spindle)
+        if problem is not None:
+            raise ConfigError(f"spindle name {spindle!r} {problem}")
         bad = sorted(
             {c for c in input_columns if _word(c) != c or not c}
             | (set(input_columns) & set(type(self).COLUMNS))
@@ -236,7 +260,7 @@ class Journal:
             if (last is None or last < first_t) and _header(path) in (None, header):
                 break
             part += 1
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
         try:
             if os.fstat(fd).st_size == 0:
                 self._write_all(fd, header_text(self.columns, self.metadata))
@@ -291,15 +315,53 @@ def _word(text: str, also: str = "-_") -> str:
     return "".join(c for c in text if c.isalnum() or c in also)[:40]
 
 
-def _header(path: Path) -> str | None:
-    """The column line of an existing run log, or None (missing or empty)."""
+_NOT_FOLLOWED = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+_NOT_FOLLOWED |= getattr(os, "O_CLOEXEC", 0)
+
+
+def open_regular(path: Path, flags: int) -> int:
+    """A descriptor of the regular file ``path`` (``flags`` as for :func:`os.open`, created with
+    mode 0666 less the umask). Anything planted in its place is an ``OSError`` naming it, never
+    followed: a symbolic link (the journal would write, or cut, whatever it points to), a FIFO
+    (opened without blocking, so none can hang a cycle) or a device."""
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                if line.strip() and not line.startswith("#"):
-                    return line.strip()
+        fd = os.open(path, flags | _NOT_FOLLOWED, 0o666)
+    except OSError as err:
+        if err.errno == errno.ELOOP or (err.errno == errno.ENXIO and path.is_fifo()):
+            raise _not_regular(path) from err
+        raise
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise _not_regular(path)
+        os.set_blocking(fd, True)
+    except OSError:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _not_regular(path: Path) -> OSError:
+    return OSError(
+        errno.EINVAL, "not a regular file (a symbolic link, FIFO or device): left alone", str(path)
+    )
+
+
+def _header(path: Path) -> str | None:
+    """The column line of an existing run log, or None (missing, empty or not a regular file)."""
+    try:
+        fd = open_regular(path, os.O_RDONLY)
     except OSError:
         return None
+    with os.fdopen(fd, "rb") as fh:
+        return _header_of(fh)
+
+
+def _header_of(fh: BinaryIO) -> str | None:
+    """The column line of a run log open for binary reading from its start, or None."""
+    for raw in fh:
+        line = raw.decode("utf-8", "replace")
+        if line.strip() and not line.startswith("#"):
+            return line.strip()
     return None
 
 
@@ -315,6 +377,8 @@ class MeasurementJournal(Journal):
     (beyond the gate), ``restarted`` (the bias restarted from agreeing refusals) or ``refused``
     (not a usable value: its cells are empty). Its ``time_s,elongation_um,sigma_um`` columns
     are a measurements file as replay reads one."""
+
+    KIND = ".measurements"
 
     COLUMNS = (
         "time_s",
@@ -334,7 +398,7 @@ class MeasurementJournal(Journal):
     def __init__(
         self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], **kw: Any
     ):
-        super().__init__(directory, f"{name}.measurements", metadata, **kw)
+        super().__init__(directory, name + self.KIND, metadata, **kw)
 
     def record(
         self,
@@ -384,6 +448,7 @@ class CoolingJournal(Journal):
     temperature and the alarm. ``<spindle>.cooling-YYYY-MM-DD.csv`` beside the journal, on its
     time base; it never raises."""
 
+    KIND = ".cooling"
     COLUMNS = (
         "time_s",
         "estimate_um",
@@ -399,7 +464,7 @@ class CoolingJournal(Journal):
     def __init__(
         self, directory: str | os.PathLike[str], name: str, metadata: Mapping[str, Any], **kw: Any
     ):
-        super().__init__(directory, f"{name}.cooling", metadata, **kw)
+        super().__init__(directory, name + self.KIND, metadata, **kw)
 
     def record(
         self,
@@ -443,12 +508,18 @@ TAIL_BYTES = 1 << 16
 def cut_torn_tail(path: Path) -> Path | None:
     """Cut a run log back to its last complete row: a power loss can leave a partial last line,
     or a tail of NUL bytes (the size written, the data not). What is cut is kept beside it as
-    ``<path>.torn-<offset>``; that path, or None when the file was whole (or missing)."""
-    header = _header(path)
-    if header is None:
-        return None
+    ``<path>.torn-<offset>``; that path, or None when the file was whole (or missing). Only a
+    regular file is ever cut: a symbolic link (or a FIFO, a device) is left alone, as is what
+    it points to."""
     try:
-        with open(path, "r+b") as fh:
+        fd = open_regular(path, os.O_RDWR)
+    except OSError:
+        return None  # missing, or not ours to cut: the append fails and says so
+    try:
+        with os.fdopen(fd, "r+b") as fh:
+            header = _header_of(fh)
+            if header is None:
+                return None
             size = fh.seek(0, os.SEEK_END)
             start = max(0, size - TAIL_BYTES)
             fh.seek(start)
@@ -468,9 +539,7 @@ def cut_torn_tail(path: Path) -> Path | None:
                 break
             if end == len(tail) or (start == 0 and header.encode() + b"\n" not in tail[:end]):
                 return None  # whole; or the column line itself is torn: a new part follows
-            aside = path.with_name(f"{path.name}.torn-{start + end}")
-            with contextlib.suppress(OSError):
-                aside.write_bytes(tail[end:])
+            aside = _keep_aside(path, start + end, tail[end:])
             fh.truncate(start + end)
     except OSError:
         return None  # not readable or not writable: the append fails and says so
@@ -481,6 +550,24 @@ def cut_torn_tail(path: Path) -> Path | None:
         aside.name,
     )
     return aside
+
+
+def _keep_aside(path: Path, offset: int, data: bytes) -> Path:
+    """Write a torn tail to a new file beside ``path``: ``<path>.torn-<offset>`` (``.2``, ``.3``,
+    ... when taken). Created exclusively, so nothing planted under that name is written through."""
+    name = f"{path.name}.torn-{offset}"
+    for k in range(1, 10):
+        aside = path.with_name(name if k == 1 else f"{name}.{k}")
+        try:
+            fd = os.open(aside, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOT_FOLLOWED, 0o666)
+        except FileExistsError:
+            continue
+        except OSError:
+            break
+        with contextlib.suppress(OSError), os.fdopen(fd, "wb") as out:
+            out.write(data)
+        return aside
+    return path.with_name(name)  # not kept: the cut goes on, a power loss's bytes are no row
 
 
 def _whole_line(line: bytes, header: str) -> bool:
@@ -531,7 +618,7 @@ def _row(line: bytes, header: str) -> bool:
 def _last_time(path: Path) -> float | None:
     """``time_s`` of the last row of an existing run log, or None (missing, empty, no rows)."""
     try:
-        with open(path, "rb") as fh:
+        with os.fdopen(open_regular(path, os.O_RDONLY), "rb") as fh:
             fh.seek(0, os.SEEK_END)
             size = fh.tell()
             fh.seek(max(0, size - 4096))

@@ -18,6 +18,7 @@ from cnc_adapters.chiller import check_chiller
 from compensator.cooling_law import CoolingLaw, PidGains
 from compensator.errors import ConfigError
 from compensator.io.atomic import read_regular, read_text
+from compensator.io.journal import spindle_name_problem
 
 from .spindle_settings import (
     FROZEN,
@@ -397,22 +398,16 @@ def load_config(path: str | os.PathLike[str]) -> RuntimeConfig:
     except ValidationError as err:
         raise config_error(p, data, err) from err
     names = [s.name for s in cfg.spindle]
-    twice = [(i, n) for i, n in enumerate(names) if n in names[:i]]
-    if twice:
-        raise ConfigError(
-            problem_lines(
-                [
-                    config_line(
-                        p,
-                        data,
-                        Problem(
-                            f"spindle[{i}].name",
-                            "another [[spindle]] has this name: names must be unique",
-                            n,
-                        ),
-                    )
-                    for i, n in twice
-                ]
-            )
-        )
+    problems = [
+        Problem(f"spindle[{i}].name", "another [[spindle]] has this name: names must be unique", n)
+        for i, n in enumerate(names)
+        if n in names[:i]
+    ]
+    problems += [
+        Problem(f"spindle[{i}].name", why, n)
+        for i, n in enumerate(names)
+        if (why := spindle_name_problem(n)) is not None
+    ]
+    if problems:
+        raise ConfigError(problem_lines([config_line(p, data, q) for q in problems]))
     return cfg

@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 
 from compensator.errors import ThermocompError
+from compensator.io.atomic import write_text
 
 LOCK_NAME = "thermocomp.lock"
 
@@ -45,8 +46,8 @@ class StateDirLock:
                 "one instance per state directory"
             ) from err
         try:
-            with open(self.path, "w", encoding="ascii") as fh:
-                fh.write(f"{os.getpid()}\n")
+            # a link planted there is replaced, never written through
+            write_text(self.path, f"{os.getpid()}\n")
         except OSError as err:  # a read-only state directory: the lock holds all the same
             self.read_only = err.errno in (errno.EROFS, errno.EACCES, errno.EPERM)
         self._fd = fd
