@@ -3,6 +3,11 @@ measured again when the clock was wrong at the start.
 
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
   than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start;
+- a state saved ahead of the clock (the clock was set back, or ran ahead at the save) raises
+  CLOCK_STEP: up to ``DOWNTIME_RECHECK_S`` ahead (a box that booted with its clock where it
+  stopped) the downtime is taken as 0 s until the clock's first step forward measures it; further
+  ahead its age is unknown, and the start is cold;
+- a held offset saved beyond the clamp is restored as the clamp's edge;
 - a state save that cannot be written raises an alarm naming the file and the OS error and is
   retried with back-off; compensation goes on; no save for ``faults.state_stale_s``: STATE_STALE;
 - the first forward clock step within ``DOWNTIME_RECHECK_S`` of a restore measures the downtime
@@ -132,6 +137,38 @@ class StateKeeper:
         age = now_wall - saved_wall
         if age > cfg.max_state_age_s:
             return Cold(f"saved state is {age / 3600:.1f} h old"), Alarm.NONE, None
+        alarms = Alarm.NONE
+        if age < -CLOCK_STEP_S:
+            # saved "in the future": the clock was set back since, or ran ahead at the save;
+            # either way the downtime is unknown
+            alarms = Alarm.CLOCK_STEP
+            if -age > DOWNTIME_RECHECK_S:
+                # far beyond a clock that boots where it stopped: the state's age, and so
+                # whether it is younger than max_state_age_s, cannot be known
+                ahead = _duration(-age)
+                event(
+                    "clock_step",
+                    cfg.name,
+                    "%s: the state was saved %s ahead of the clock: its age is unknown, "
+                    "the state is not used",
+                    cfg.name,
+                    ahead,
+                    level=logging.ERROR,
+                    step_s=round(age, 3),
+                    path=str(self.path),
+                )
+                return Cold(f"saved state is dated {ahead} ahead of the clock"), alarms, None
+            event(
+                "clock_step",
+                cfg.name,
+                "%s: the state was saved %.0f s ahead of the clock: the downtime is taken as "
+                "0 s and measured again at the clock's first step forward",
+                cfg.name,
+                -age,
+                level=logging.WARNING,
+                step_s=round(age, 3),
+                path=str(self.path),
+            )
         downtime = max(0.0, age)
         # the spindle stood still while we were down: the model's own cooling; the input
         # model's state is advanced once the inputs are read
@@ -145,7 +182,11 @@ class StateKeeper:
             and unsettled > now_wall
             else None
         )
-        return Restored(est, held, downtime, until), Alarm.NONE, (parsed, saved_wall)
+        # an old version saved a foreign value beyond the clamp, or the clamp was lowered since:
+        # the clamp's edge counts as held (and is journaled), as for a value read back
+        limit = cfg.shaping.max_offset_um
+        held = min(max(held, -limit), limit)
+        return Restored(est, held, downtime, until), alarms, (parsed, saved_wall)
 
     def due(self, now: float) -> bool:
         """A save is due and not backing off."""
@@ -216,6 +257,12 @@ class StateKeeper:
                 )
         self.alarms = alarms
         return alarms
+
+
+def _duration(seconds: float) -> str:
+    """A long time for people: days (or years) rather than seconds."""
+    days = seconds / 86400.0
+    return f"{days / 365.25:.1f} years" if days >= 365.25 else f"{days:.1f} days"
 
 
 Replay = tuple[float, float, float, float, Any, "str | None"]
