@@ -215,6 +215,37 @@ def test_a_link_planted_as_the_state_directorys_lock_file_is_not_written_through
         assert not lock.is_symlink() and lock.read_text() == f"{os.getpid()}\n"
 
 
+def test_links_planted_for_the_history_and_the_status_url_are_not_written_through(
+    tmp_path: Path, model: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The model history's record file and ``status.url`` live in the state directory too: a
+    link planted as either leaves its target as it was; the start goes on."""
+    config = write_config(tmp_path, model)
+    text = config.read_text().replace("[status]\nenabled = false", "[status]\nport = 0")
+    config.write_text(text)
+    victim = tmp_path / "precious.txt"
+    victim.write_bytes(b"keep me\n")
+    state = tmp_path / "state"
+    (state / "history" / "s1").mkdir(parents=True)
+    (state / "history" / "s1" / "history.jsonl").symlink_to(victim)
+    (state / "status.url").symlink_to(victim)
+    t = [0.0]
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        svc = Service(config, clock=lambda: t[0], wall=lambda: WALL0 + t[0])
+        try:
+            svc.start_status()
+            t[0] += 1.0
+            svc.tick()
+            assert victim.read_bytes() == b"keep me\n"
+            url = state / "status.url"
+            assert not url.is_symlink() and url.read_text().startswith("http://127.0.0.1:")
+            assert events(caplog, "history_failed")
+            assert svc.spindles["s1"].counters["cycles"] == 1
+        finally:
+            svc.close()
+    assert victim.read_bytes() == b"keep me\n"
+
+
 # -- spindle names that end like a journal kind -----------------------------------------------
 
 

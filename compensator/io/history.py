@@ -180,7 +180,9 @@ class ModelHistory:
             judged=judged or {},
         )
         line = rec.model_dump_json() + "\n"
-        fd = os.open(self.records_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        # O_NOFOLLOW: a link planted in the state directory is never appended through
+        flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_NOFOLLOW", 0)
+        fd = os.open(self.records_path, flags, 0o644)
         try:
             os.write(fd, line.encode("utf-8"))
             os.fsync(fd)

@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from compensator.io.atomic import write_text
+
 from .config import StatusConfig
 from .events import event
 from .history import History
@@ -230,7 +232,7 @@ def start_server(cfg: StatusConfig, history: History, url_file: Path) -> StatusS
         )
         return None
     try:
-        url_file.write_text(server.url + "\n", encoding="utf-8")
+        write_text(url_file, server.url + "\n")  # replaces a link planted there, never follows it
     except OSError as err:
         log.warning("status: cannot write %s: %s", url_file, err.strerror or err)
     event("status_listening", None, "status on %s", server.url, url=server.url)
