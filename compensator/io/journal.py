@@ -71,8 +71,8 @@ def spindle_name_problem(name: str) -> str | None:
     for suffix in KIND_SUFFIXES:
         if name.endswith(suffix):
             return (
-                f"may not end in {suffix}: its journal files would read as "
-                f"spindle {name.removesuffix(suffix)!r}'s"
+                f"may not end in {suffix}: its journal files would read as those of "
+                f"spindle {name.removesuffix(suffix)!r}"
             )
     return None
 
