@@ -227,11 +227,9 @@ class Watch:
         """One line for a report: the state, the counter and flag, the trips, the reaction."""
         if not self.armed:
             return "never written: thermocomp did not run here, nothing to watch"
-        doing = self.reaction_text()
         return (
             f"{self.state} (counter {self.counter}, valid {str(self.valid).lower()}), tripped "
-            f"{self.trips} times; reaction {self.settings.reaction}"
-            + (f": {doing}" if doing else "")
+            f"{self.trips} times; {self.reaction_text() or f'reaction {self.settings.reaction}'}"
         )
 
     def reaction_text(self) -> str:

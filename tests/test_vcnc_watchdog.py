@@ -345,7 +345,7 @@ def test_the_sim_link_writes_the_sign_of_life_to_the_machines_watch():
     assert link.write(None, life.next(False)).failure is None  # a confirm: the sign only
     assert vm.watch.state == "invalid" and vm.watch.fading
     assert vm.watch.summary() == (
-        "invalid (counter 6, valid false), tripped 1 times; reaction fade: fade: offset to zero"
+        "invalid (counter 6, valid false), tripped 1 times; fade: offset to zero"
     )
     clock.advance(10.0)
     link.read_speed()

@@ -322,7 +322,9 @@ def main(args: argparse.Namespace) -> int:
 
         rt = serve(config, clock, cnc, prog, report)
         step(cnc)  # the control takes the service's last sign of life, written as it stopped
-        out.print(f"    the virtual CNC's watch on the sign of life: {vm.watch.summary()}")
+        out.print(
+            f"    the virtual CNC's watch on the sign of life, at the stop: {vm.watch.summary()}"
+        )
     hist = vm.history()
     times, speeds, true, offset = hist.time_s, hist.speed_rpm, hist.true_um, hist.offset_um
     compensated = hist.tool_tip_error_um
