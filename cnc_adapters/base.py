@@ -866,19 +866,39 @@ class Adapter(Link):
         the controller, the link lost, a value that is not finite). ``offset_um`` None confirms
         the offset the controller holds: only the sign of life is written. A link configured
         without a sign of life (:attr:`writes_life` False) ignores ``life``. Never raises for a
-        failure of the link."""
+        failure of the link.
+
+        The offset goes whatever happens to the sign of life: a counter or flag the controller
+        refuses or does not have is :attr:`WriteResult.life_failure`, the offset taken. A lost
+        link is :attr:`WriteResult.failure`, whatever the write carried."""
         life = life if self.writes_life else None
         if offset_um is None and life is None:
             return WriteResult()
-        done = _guarded(lambda: self._write_checked(offset_um, life))
+        life_failure: list[Failure | None] = []
+        done = _guarded(lambda: life_failure.append(self._write_checked(offset_um, life)))
         if isinstance(done, Failure):
+            if offset_um is None and not done.link_lost and self._sending:
+                return WriteResult(life_failure=done)  # a confirmation: only the life was sent
             return WriteResult(done)
-        return WriteResult(pending=offset_um is not None and self._write_pending())
+        return WriteResult(
+            pending=offset_um is not None and self._write_pending(), life_failure=life_failure[0]
+        )
 
-    def _write_checked(self, offset_um: float | None, life: Life | None) -> None:
+    _sending = False
+    """Whether the write under way got past its checks (a value refused before anything is
+    sent is the write's failure, not the sign of life's)."""
+
+    _offset_sent_alone = False
+    """Whether the write under way sent the offset in a request of its own (a backend sets it
+    before that request): its failure is the offset's, and the offset is not sent again."""
+
+    def _write_checked(self, offset_um: float | None, life: Life | None) -> Failure | None:
         """The one path of every write: the offset checked and converted, then the backend's
-        :meth:`_write_raw`."""
+        :meth:`_write_raw`; the sign of life's failure, the offset taken. A request that carried
+        both and failed (not a lost link) is followed by the offset alone: one more request,
+        only then, so that a refused counter or flag never keeps the offset from the control."""
         raw = None
+        self._sending = False
         if life is not None:
             life = checked_life(self.name, life)
         if offset_um is not None:
@@ -893,20 +913,49 @@ class Adapter(Link):
         self.open()
         if offset_um is not None:
             self.offset_um_requested = float(offset_um)
-        self._write_raw(raw, life)
+        self._sending = True
+        self._offset_sent_alone = False
+        if raw is None or life is None:
+            return self._write_raw(raw, life)
+        try:
+            return self._write_raw(raw, life)
+        except _LINK_FAILURES as err:
+            failure = Failure.of(err)
+            if failure.link_lost or self._offset_sent_alone:
+                raise  # the offset's own failure: no other request would tell more
+        log.info("%s: %s; writing the offset alone", self.name, failure.reason)
+        self._write_raw(raw, None)  # its failure is the offset's own
+        return failure
 
     writes_life: bool = False
     """Whether this configured link writes a sign of life (a life counter and a "compensation
     valid" flag) with the offset. A backend sets it from its settings; default False."""
 
-    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+    def _write_raw(self, raw: float | None, life: Life | None) -> Failure | None:
         """Backend hook: write the offset (in the controller's unit; None: leave it) and the
-        sign of life (None: none this time). A backend that can put both into one request
-        overrides this; the default writes the offset, then the life sign."""
+        sign of life (None: none this time). The offset goes first, and a refused offset sends
+        no sign of life: it raises. Returns the sign of life's failure when the offset was
+        taken (:meth:`_life_part`); a request that carried both may also raise, and the offset
+        is then written alone. A backend that can put both into one request whose values are
+        taken all or none overrides this; the default writes the offset, then the life sign."""
         if raw is not None:
+            self._offset_sent_alone = True
             self._write_offset_raw(raw)
-        if life is not None:
-            self._write_life_raw(life)
+        if life is None:
+            return None
+        return self._life_part(lambda: self._write_life_raw(life))
+
+    def _life_part(self, call: Callable[[], Any]) -> Failure | None:
+        """Send the sign of life's part of a write (the offset's is done): its failure, or
+        None. A lost link is raised: the write's failure."""
+        try:
+            call()
+        except _LINK_FAILURES as err:
+            failure = Failure.of(err)
+            if failure.link_lost:
+                raise
+            return failure
+        return None
 
     def _write_life_raw(self, life: Life) -> None:
         """Backend hook: write the life counter and the valid flag."""
@@ -1186,20 +1235,24 @@ def _finite(raw: Any) -> float | None:
     return value if math.isfinite(value) else None
 
 
+_LINK_FAILURES = (
+    AdapterError,
+    TypeError,
+    ValueError,
+    ArithmeticError,
+    IndexError,  # a reply shorter than its format
+    struct.error,  # bytes that do not unpack
+)
+"""What a link's call may raise for a failure of the link or of a controller's value."""
+
+
 def _guarded(call: Callable[[], Any]) -> Any:
     """``call()``, or the :class:`Failure` it raised: a link's error, or a conversion that a
     controller's value made fail (a TypeError, ValueError, OverflowError, a short reply's
     IndexError or struct.error ...). Anything else is a fault of this program and is raised."""
     try:
         return call()
-    except (
-        AdapterError,
-        TypeError,
-        ValueError,
-        ArithmeticError,
-        IndexError,  # a reply shorter than its format
-        struct.error,  # bytes that do not unpack
-    ) as err:
+    except _LINK_FAILURES as err:
         return Failure.of(err)
 
 

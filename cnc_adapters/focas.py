@@ -27,8 +27,10 @@ field and checks every return code.
 
 The sign of life: ``life_macro`` takes the counter the ladder or a macro watches and
 ``valid_macro`` the "compensation valid" flag (1/0), common variables both (the ``fanuc``
-profile: #502 and #503). They go with the offset in ONE generic request of three "write macro"
-subpackets (the packet format carries any number); a refusal names its variable.
+profile: #502 and #503). They go after the offset's own request was taken, both in ONE generic
+request of two "write macro" subpackets; a refusal names its variable. The CNC takes each
+subpacket on its own: in the offset's request, the beat would reach the control even with the
+offset refused. A refused counter or flag leaves the offset taken (the write's ``life_failure``).
 
 Errors, the socket's mapped by the TCP transport (:mod:`cnc_adapters.transport.tcp`): a
 refused or unanswered connect, a closed or dropped session is :class:`UnreachableError`, no
@@ -443,19 +445,16 @@ class FocasAdapter(Adapter):
     def _write_offset_raw(self, value: float) -> None:
         self._write_macro(self.offset_macro, float(value))
 
-    def _write_raw(self, raw: float | None, life: Life | None) -> None:
-        """The offset, the counter and the flag (1/0) in ONE FOCAS request of three "write
-        macro" subpackets (two for a confirmation); the first one the CNC refuses is the
-        failure, naming its variable."""
-        if life is None:
-            if raw is not None:
-                self._write_offset_raw(raw)
-            return
+    def _write_life_raw(self, life: Life) -> None:
+        """The counter and the flag (1/0) in ONE FOCAS request of two "write macro"
+        subpackets, after the offset's own request was taken: the CNC takes each subpacket on
+        its own, so a beat in the offset's request would reach the control even when the
+        offset is refused. The first subpacket the CNC refuses is the failure, naming its
+        variable."""
         life = checked_life(self.name, life)
         assert self.life_macros is not None  # writes_life
         counter_var, flag_var = self.life_macros
-        values = [] if raw is None else [(self.offset_macro, float(raw))]
-        values += [(counter_var, float(life.counter)), (flag_var, float(life.valid))]
+        values = [(counter_var, float(life.counter)), (flag_var, float(life.valid))]
         self._exchange_many(
             [
                 (

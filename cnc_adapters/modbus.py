@@ -21,7 +21,10 @@ and byte order; an integer type in units of ``measurement_scale``, by default
 The sign of life: ``life_register`` (the counter the PLC watches, ``life_type`` default
 ``int16``) and ``valid_register`` (the "compensation valid" flag, 1/0, ``valid_type``), holding
 registers both, or neither. The offset's, the counter's and the flag's registers go in one
-``write_registers`` per run of adjacent registers: one request when all three are adjacent.
+``write_registers`` per run of adjacent registers: one request when all three are adjacent;
+the offset's run first, so that a refused offset sends no beat. A request is taken whole or
+refused whole; one that carried the offset and the sign of life and was refused is followed by
+the offset alone: a refused counter or flag leaves the offset taken (``life_failure``).
 
 The cutting signal: ``cutting_register`` (in ``cutting_table``, an integer of
 ``cutting_type``) holds a state the PLC sets; ``cutting_values`` are the values that mean
@@ -53,7 +56,7 @@ from .base import (
     read_handshake,
     serial_options,
 )
-from .reading import Life
+from .reading import Failure, Life
 from .transport.modbus import WIDTH, ModbusTransport, RegisterCodec
 
 if TYPE_CHECKING:  # a plain string to the type checker; pydantic checks the choice
@@ -450,14 +453,16 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
     def _write_offset_raw(self, value: float) -> None:
         self._modbus.write_value("write offset", self.offset_register, value, self.offset_type)
 
-    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+    def _write_raw(self, raw: float | None, life: Life | None) -> Failure | None:
         """The offset, the counter and the flag: one ``write_registers`` per run of adjacent
-        registers (all three adjacent: one request). Every value encoded first, so that one
-        that does not fit sends nothing."""
+        registers (all three adjacent: one request), the offset's run first, so that a refused
+        offset sends no beat. Every value encoded first, so that one that does not fit sends
+        nothing. A later run (the sign of life's alone) that fails is the sign of life's
+        failure, the offset taken."""
         if life is None:
             if raw is not None:
                 self._write_offset_raw(raw)
-            return
+            return None
         life = checked_life(self.name, life)
         assert self.life is not None  # writes_life
         (counter_at, counter_type), (flag_at, flag_type) = self.life
@@ -471,12 +476,26 @@ class ModbusRtuAdapter(ModbusLink, Adapter):
         for name, at, dtype, value in sorted(values, key=lambda v: v[1]):
             where = f"{self.name} write {name} holding register {at} at {self._modbus.where}"
             encoded.append((name, at, self._modbus.codec.encode(value, dtype, where)))
-        run: list[tuple[str, int, list[int]]] = []
-        for item in [*encoded, ("", -1, [])]:  # the sentinel ends the last run
-            if run and item[1] != run[-1][1] + len(run[-1][2]):
-                what = "write " + ", ".join(name for name, _, _ in run)
+        runs: list[list[tuple[str, int, list[int]]]] = []
+        for item in encoded:
+            if runs and item[1] == runs[-1][-1][1] + len(runs[-1][-1][2]):
+                runs[-1].append(item)
+            else:
+                runs.append([item])
+        runs.sort(key=lambda run: all(name != "offset" for name, _, _ in run))  # offset first
+        for run in runs:
+            what = "write " + ", ".join(name for name, _, _ in run)
+
+            def send(run: list[tuple[str, int, list[int]]] = run, what: str = what) -> None:
                 self._modbus.write_registers(
                     what, run[0][1], [r for _, _, regs in run for r in regs]
                 )
-                run = []
-            run.append(item)
+
+            if raw is not None and any(name == "offset" for name, _, _ in run):
+                self._offset_sent_alone = len(run) == 1
+                send()  # the offset's failure (with the life in it: the offset is sent alone)
+            else:
+                failure = self._life_part(send)
+                if failure is not None:
+                    return failure
+        return None

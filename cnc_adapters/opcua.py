@@ -40,9 +40,11 @@ The sign of life: ``life_node`` (or ``life_path``) names the counter the control
 both turns a preset's off; the ``virtual-cnc`` preset names its ``LifeCounter`` and
 ``CompensationValid``). Each is written in its variable's own type (its DataType attribute is
 read once a session): the counter as an integer or floating-point number, the flag as a
-Boolean, or 1/0 in a number. They go in ONE ``Write`` request with the offset (a confirmation,
-offset None: with each other); a node that does not exist or refuses the write fails the write,
-naming the node.
+Boolean, or 1/0 in a number. They go in ONE ``Write`` request of their own, sent once the
+offset's ``Write`` came back Good: a server takes each node of a request on its own, so a beat
+in the offset's request would reach the control even with the offset refused. A life node that
+does not exist, cannot hold the value or refuses the write leaves the offset taken: the write's
+``life_failure`` names the node and how to turn the sign of life off (``life_node = ""``).
 
 Security: ``security="Basic256Sha256,SignAndEncrypt"`` (or ``,Sign``) with a client
 ``certificate`` and ``private_key`` and a ``trust_dir`` of server certificates (DER or PEM);
@@ -1070,32 +1072,17 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             "data need the SeaWrite right (GiveUserAccess, docs/controls/sinumerik.md)"
         )
 
-    def _write_raw(self, raw: float | None, life: Life | None) -> None:
-        """The offset and the sign of life in ONE Write request (three WriteValues; two for a
-        confirmation), each result checked: a refused offset is the offset's failure, a refused
-        counter or flag the sign of life's, naming its node."""
-        from asyncua import ua
-
-        if life is None:
-            if raw is not None:
-                self._write_offset_raw(raw)
-            return
+    def _write_life_raw(self, life: Life) -> None:
+        """The counter and the flag in ONE Write request (the offset's own Write came back Good
+        before: a refused offset sends no beat), each result checked, naming its node."""
         life_values = self._life_values(life)  # converted and checked: nothing sent before
-        nodes: list[Any] = []
-        dvs: list[Any] = []
-        if raw is not None:
-            nodes.append(self._offset)
-            dvs.append(ua.DataValue(ua.Variant(float(raw), ua.VariantType.Double)))
-            self._unverified = None
-        for (node, _), dv in zip(self._life or [], life_values, strict=True):
-            nodes.append(node)
-            dvs.append(dv)
-        what = "write offset and sign of life" if raw is not None else "write sign of life"
+        nodes = [node for node, _ in self._life or []]
+        what = "write sign of life"
         results = self._call(
             what,
             self._client.write_values,
             nodes,
-            dvs,
+            life_values,
             False,  # each result is checked below, by its node
             node=nodes,
             refused=WriteRejectedError,
@@ -1104,18 +1091,7 @@ class OpcUaAdapter(OpcUaLink, Adapter):
             raise BadValueError(
                 f"{self._where(what, nodes)}: {len(results)} results for {len(nodes)} nodes"
             )
-        if raw is not None:
-            status = results[0]
-            if not status.is_good():
-                raise self._offset_refused(
-                    WriteRejectedError(
-                        f"{self._where('write offset node', self._offset)}: {status.name}"
-                    )
-                )
-            self._offset_written(raw)
-        for (node, _), status, key in zip(
-            self._life or [], results[-2:], ("life counter", "valid flag"), strict=True
-        ):
+        for node, status, key in zip(nodes, results, ("life counter", "valid flag"), strict=True):
             if not status.is_good():
                 option = "life_node" if key == "life counter" else "valid_node"
                 raise WriteRejectedError(

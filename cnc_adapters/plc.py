@@ -35,9 +35,13 @@ The sign of life: ``life_address`` takes the counter the PLC watches (an ``INT``
 S7 DBD a ``DINT``) and ``valid_address`` the "compensation valid" flag (``BOOL`` for an ADS
 symbol or a coil, else a word holding 1/0; an S7 bit is refused: a byte write would overwrite
 its neighbours). Both, or neither (``""`` turns a profile's off). They go with the offset in as
-few requests as the protocol allows: S7 and Modbus TCP one request per run of adjacent words
-(python-snap7's multi-variable write sends one request per variable), ADS one sum-write of all
-three symbols.
+few requests as the protocol allows, the offset's request first, so that a refused offset sends
+no beat: S7 and Modbus TCP one request per run of adjacent words (python-snap7's
+multi-variable write sends one request per variable), each taken or refused whole (one that
+carried the offset and the sign of life and was refused is followed by the offset alone); ADS
+the offset's write, then one sum-write of the counter and the flag (a sum-write takes each
+symbol on its own: with the offset in it, the beat would go even with the offset refused). A
+refused counter or flag leaves the offset taken (the write's ``life_failure``).
 
 A connection that fails or drops is :class:`UnreachableError`, a request that goes unanswered
 :class:`AdapterTimeoutError` (both drop the link; the next call reconnects), a write the PLC
@@ -79,7 +83,7 @@ from .base import (
     one_of,
     short,
 )
-from .reading import Life
+from .reading import Failure, Life
 from .transport.modbus import ModbusTransport, RegisterCodec
 
 __all__ = ["PlcAdapter", "PlcSettings", "parse_address", "plc_type"]
@@ -536,11 +540,19 @@ class _Driver:
     def write(self, what: str, a: Address, value: float) -> None:
         raise NotImplementedError
 
-    def write_many(self, items: list[Item]) -> None:
-        """Write each (name, address, value), in as few requests as the protocol allows; by
-        default one each, in order."""
-        for name, a, value in items:
-            self.write(f"write {name} ({a.text})", a, value)
+    atomic = False
+    """Whether a request of several values is taken whole or refused whole: then the offset
+    may share its request with the sign of life (a refused offset takes no beat along)."""
+
+    def requests(self, items: list[Item]) -> list[list[Item]]:
+        """``items`` (name, address, value) in as few requests as the protocol allows, the
+        values of each; by default one each, in order."""
+        return [[item] for item in items]
+
+    def send(self, request: list[Item]) -> None:
+        """Send one request of :meth:`requests`."""
+        ((name, a, value),) = request
+        self.write(f"write {name} ({a.text})", a, value)
 
 
 Item = tuple[str, Address, Any]
@@ -644,29 +656,34 @@ class _S7(_Driver):
             {"DINT": set_dint, "INT": set_int}[a.dtype](data, 0, int(value))
         self._call(what, self.client.db_write, a.number, a.start, data, refused=WriteRejectedError)
 
-    def write_many(self, items: list[Item]) -> None:
+    atomic = True  # one db_write: the PLC takes the bytes or refuses them
+
+    def requests(self, items: list[Item]) -> list[list[Item]]:
         """One ``db_write`` per run of adjacent bytes in one DB (python-snap7's
         ``write_multi_vars`` sends one request per item: no fewer requests)."""
+        return runs(items, lambda a: a.size)
+
+    def send(self, request: list[Item]) -> None:
         from snap7.util import set_dint, set_int, set_real
 
-        for run in runs(items, lambda a: a.size):
-            first = run[0][1]
-            data = bytearray(sum(a.size for _, a, _ in run))
-            k = 0
-            for _, a, value in run:
-                if a.dtype == "REAL":
-                    set_real(data, k, float(value))
-                else:
-                    {"DINT": set_dint, "INT": set_int}[a.dtype](data, k, int(value))
-                k += a.size
-            self._call(
-                _what(run),
-                self.client.db_write,
-                first.number,
-                first.start,
-                data,
-                refused=WriteRejectedError,
-            )
+        run = request
+        first = run[0][1]
+        data = bytearray(sum(a.size for _, a, _ in run))
+        k = 0
+        for _, a, value in run:
+            if a.dtype == "REAL":
+                set_real(data, k, float(value))
+            else:
+                {"DINT": set_dint, "INT": set_int}[a.dtype](data, k, int(value))
+            k += a.size
+        self._call(
+            _what(run),
+            self.client.db_write,
+            first.number,
+            first.start,
+            data,
+            refused=WriteRejectedError,
+        )
 
 
 class _ModbusTcp(_Driver):
@@ -708,26 +725,34 @@ class _ModbusTcp(_Driver):
     def write(self, what: str, a: Address, value: float) -> None:
         self._modbus.write_value(what, a.start, value, _REGISTER_TYPE[a.dtype])
 
-    def write_many(self, items: list[Item]) -> None:
+    atomic = True  # a Modbus exception reply: nothing of the request was written
+
+    def requests(self, items: list[Item]) -> list[list[Item]]:
         """One ``write_registers`` per run of adjacent holding registers; a coil its own."""
+        out: list[list[Item]] = []
         for run in runs(items, lambda a: a.registers):
-            first = run[0][1]
-            if first.area == "coil":
-                for name, a, value in run:
-                    self._modbus.request(
-                        f"write {name} coil {a.start}",
-                        "write_coil",
-                        a.start,
-                        bool(value),
-                        refused=WriteRejectedError,
-                    )
-                continue
-            regs: list[int] = []
-            for _, a, value in run:
-                regs += self._modbus.codec.encode(
-                    value, _REGISTER_TYPE[a.dtype], f"{self.name} {_what(run)}"
-                )
-            self._modbus.write_registers(_what(run), first.start, regs)
+            out += [[item] for item in run] if run[0][1].area == "coil" else [run]
+        return out
+
+    def send(self, request: list[Item]) -> None:
+        run = request
+        first = run[0][1]
+        if first.area == "coil":
+            ((name, a, value),) = run
+            self._modbus.request(
+                f"write {name} coil {a.start}",
+                "write_coil",
+                a.start,
+                bool(value),
+                refused=WriteRejectedError,
+            )
+            return
+        regs: list[int] = []
+        for _, a, value in run:
+            regs += self._modbus.codec.encode(
+                value, _REGISTER_TYPE[a.dtype], f"{self.name} {_what(run)}"
+            )
+        self._modbus.write_registers(_what(run), first.start, regs)
 
 
 _REGISTER_TYPE = {"REAL": "float32", "DINT": "int32", "INT": "int16"}
@@ -803,15 +828,21 @@ class _Ads(_Driver):
             return self._call(what, self.conn.read, a.number, a.start, t, refused=AdapterError)
         return self._call(what, self.conn.read_by_name, a.symbol, t, refused=AdapterError)
 
-    def write_many(self, items: list[Item]) -> None:
+    def requests(self, items: list[Item]) -> list[list[Item]]:
         """Symbols: ONE ADS sum-write (pyads's ``write_list_by_name``; each symbol's info is
-        asked once a connection); each result checked. Index-group addresses: one write each."""
+        asked once a connection). Index-group addresses: one write each. (The PLC takes each
+        symbol of a sum-write on its own: the adapter asks for the offset's and the sign of
+        life's requests apart.)"""
         named = [i for i in items if i[1].area == "symbol"]
-        for name, a, value in items:
-            if a.area != "symbol":
-                self.write(f"write {name} ({a.text})", a, value)
-        if not named:
+        return [[i] for i in items if i[1].area != "symbol"] + ([named] if named else [])
+
+    def send(self, request: list[Item]) -> None:
+        """An index-group write, or a sum-write of symbols whose every result is checked (one
+        request, a single symbol's too, once its info is known)."""
+        if request[0][1].area != "symbol":
+            super().send(request)
             return
+        named = request
         what = _what(named)
         results = self._call(
             what,
@@ -995,21 +1026,37 @@ class PlcAdapter(Adapter):
         packed = encode_number(self.name, value, a.dtype)  # refused here: nothing is sent
         self._driver.write(f"write offset ({a.text})", a, packed)  # type: ignore[union-attr]
 
-    def _write_raw(self, raw: float | None, life: Life | None) -> None:
+    def _write_raw(self, raw: float | None, life: Life | None) -> Failure | None:
         """The offset and the sign of life in as few requests as the protocol allows (see
-        :meth:`_Driver.write_many`): every value encoded first, so that a value that does not
-        fit sends nothing."""
+        :meth:`_Driver.requests`), the offset's first: a refused offset sends no beat. Every
+        value encoded first, so that a value that does not fit sends nothing. A request of the
+        sign of life alone that fails is its failure, the offset taken."""
         if life is None:
             if raw is not None:
                 self._write_offset_raw(raw)
-            return
+            return None
         life = checked_life(self.name, life)
         assert self.life is not None and self.valid is not None  # writes_life
-        items: list[Item] = []
+        driver = self._driver
+        assert driver is not None  # open
+        mine: list[Item] = []
         if raw is not None:
-            items.append(("offset", self.offset, encode_number(self.name, raw, self.offset.dtype)))
-        items.append(
-            ("life counter", self.life, encode_number(self.name, life.counter, self.life.dtype))
-        )
-        items.append(("valid flag", self.valid, encode_flag(life.valid, self.valid.dtype)))
-        self._driver.write_many(items)  # type: ignore[union-attr]
+            mine.append(("offset", self.offset, encode_number(self.name, raw, self.offset.dtype)))
+        beat: list[Item] = [
+            ("life counter", self.life, encode_number(self.name, life.counter, self.life.dtype)),
+            ("valid flag", self.valid, encode_flag(life.valid, self.valid.dtype)),
+        ]
+        if driver.atomic:
+            requests = driver.requests(mine + beat)
+        else:  # each value taken on its own: the offset in a request of its own
+            requests = driver.requests(mine) + driver.requests(beat)
+        requests.sort(key=lambda r: all(name != "offset" for name, _, _ in r))  # offset first
+        for request in requests:
+            if any(name == "offset" for name, _, _ in request):
+                self._offset_sent_alone = len(request) == 1
+                driver.send(request)  # the offset's failure (with the life in it: sent alone)
+            else:
+                failure = self._life_part(lambda r=request: driver.send(r))  # type: ignore[misc]
+                if failure is not None:
+                    return failure
+        return None

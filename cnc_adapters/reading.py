@@ -196,11 +196,18 @@ class Life:
 
 @dataclass(frozen=True)
 class WriteResult:
-    """The outcome of one write: taken (None), or the failure."""
+    """The outcome of one write: the offset taken (``failure`` None), or the offset's failure;
+    and, apart, the sign of life's."""
 
     failure: Failure | None = None
+    """The offset's failure only (None for a confirmation, whose offset is not written, unless
+    the link was lost: a lost link is this failure, whatever the write carried)."""
     pending: bool = False
     """Taken, to be checked with the next reading (:attr:`Reading.write_refused_um`)."""
+    life_failure: Failure | None = None
+    """The offset was taken (or confirmed) but the sign of life was not: a counter or flag
+    refused, missing or of a type that cannot hold it. The control's watch sees a counter that
+    does not move; the offset still reached the controller."""
 
     @property
     def taken(self) -> bool:

@@ -58,6 +58,8 @@ class LifeRig:
     """The offset the controller holds, raw."""
     life: Callable[[], tuple[Any, Any]]
     """The counter and the flag the controller holds, as it holds them."""
+    refused_offset: dict[str, Any]
+    """Options that put the offset where the controller refuses a write."""
 
 
 def counter_of(v: Any) -> int | None:
@@ -242,6 +244,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
             lambda: ua_link(ctl, valid_node=node("Locked")),
             lambda: ctl.value("ThermalOffset"),
             lambda: (ctl.value("LifeCounter"), ctl.value("CompensationValid")),
+            {"offset_node": node("Locked")},
         )
     elif kind == "modbus":
         pty = PtyPair(tmp_path)
@@ -263,6 +266,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                 lambda: open_adapter({**base, "life_register": 2, "valid_register": 40}),
                 dev.offset,
                 life,
+                {"offset_register": 40},
             )
         finally:
             dev.close()
@@ -270,19 +274,21 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
     elif kind.startswith("plc-"):
         from machine_sim.plc_servers import AdsPlc, ModbusTcpPlc, S7Plc
 
-        cls, addresses, life_at, refused = {
+        cls, addresses, life_at, refused, refused_offset = {
             # the counter and the flag next to the offset: one request for all three
             "plc-s7": (
                 S7Plc,
                 {"offset_address": "DB100.DBD0", "speed_address": "DB100.DBD8"},
                 {"life_address": "DB100.DBW4", "valid_address": "DB100.DBW6"},
                 "DB999.DBW0",  # no such DB on the PLC
+                {"offset_address": "DB999.DBD0"},
             ),
             "plc-modbus-tcp": (
                 ModbusTcpPlc,
                 {"offset_address": "hr:0", "speed_address": "ir:0"},
                 {"life_address": "hr:2", "valid_address": "hr:3"},
                 "hr:200",  # past its 64 registers
+                {"offset_address": "hr:200"},
             ),
             "plc-ads": (
                 AdsPlc,
@@ -296,6 +302,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                     "valid_address": "GVL_Thermo.bCompValid",
                 },
                 "GVL_Thermo.bNoSuchFlag",
+                {"offset_address": "GVL_Thermo.nNoSuchComp"},
             ),
         }[kind]
         plc = cls(None, held_address=None, cutting_address=None, **addresses, **life_at).start()  # type: ignore[arg-type]
@@ -313,6 +320,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                 lambda: open_adapter({**base, **life_at, "valid_address": refused}),
                 lambda: plc.get("offset"),
                 lambda: (plc.get("life"), plc.get("valid")),
+                refused_offset,
             )
         finally:
             plc.close()
@@ -328,6 +336,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                 lambda: open_adapter({**base, "life_macro": 502, "valid_macro": 599}),
                 lambda: control.held_raw,
                 lambda: (srv.variables.get(502), srv.variables.get(503)),
+                {"offset_macro": 599},
             )
     elif kind == "haas-mdc":
         from compensator.clock import SteppedClock
@@ -348,6 +357,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                 lambda: open_adapter({**base, "valid_var": 9999}),  # not writable over MDC
                 lambda: control.held_um,  # the profile's unit (mm) and sign, as um
                 lambda: (srv.macros.get(10501), srv.macros.get(10502)),
+                {"offset_var": 9999},
             )
     else:  # a line device: Haas Q/E, or the generic line protocol
         pty = PtyPair(tmp_path)
@@ -357,12 +367,14 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
             base = {"type": "haas", "port": pty.ctl}
             life = {"life_var": 10501, "valid_var": 10502}
             refusing = {"life_var": 10501, "valid_var": 10999}
+            refused_offset: dict[str, Any] = {"offset_var": 10999}
             held = (10501, 10502)
         else:
             dev = LineDevice(pty.dev, line_device(regs))
             base = {"type": "line", "port": pty.ctl}
             life = {"life_request": "LIFE {counter} {valid}"}
             refusing = {"life_request": "NOLIFE {counter} {valid}"}  # answered "ERR unknown"
+            refused_offset = {"offset_request": "NOOFFSET {value:.4f}"}
             held = (1, 2)
         try:
             yield LifeRig(
@@ -371,6 +383,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
                 lambda: open_adapter({**base, **refusing}),
                 lambda: regs.offset,
                 lambda: (regs.macros.get(held[0]), regs.macros.get(held[1])),
+                refused_offset,
             )
         finally:
             dev.stop()
@@ -415,15 +428,37 @@ def test_a_link_without_a_sign_of_life_ignores_it(rig: LifeRig) -> None:
     assert rig.life() == before
 
 
-def test_a_refused_counter_or_flag_is_a_failed_write_not_an_exception(rig: LifeRig) -> None:
+def test_a_refused_counter_or_flag_leaves_the_offset_taken(rig: LifeRig) -> None:
+    # a control without the counter or the flag (or refusing them) still gets its offset: the
+    # sign of life's failure is apart, never an exception
     with rig.refusing() as link:
         assert link.writes_life
         done = link.write(-6.0, Life(7, True))
-        assert done.failure is not None
-        assert done.failure.kind in (FailureKind.REFUSED, FailureKind.FAILED), done.failure
+        assert done.taken and done.failure is None
+        assert done.life_failure is not None
+        assert done.life_failure.kind in (FailureKind.REFUSED, FailureKind.FAILED), done
+        assert rig.offset() == pytest.approx(-6.0)
         confirm = link.write(None, Life(8, False))
-        assert confirm.failure is not None
+        assert confirm.failure is None  # a confirmation writes no offset
+        assert confirm.life_failure is not None
+        assert link.write(-4.0, Life(9, True)).life_failure is not None  # each time
+        assert rig.offset() == pytest.approx(-4.0)
         assert link.read().speed_read  # the link itself is up
+
+
+def test_a_refused_offset_sends_no_beat(rig: LifeRig) -> None:
+    # the offset goes first: a control never sees a beat that says "valid" for an offset it
+    # refused
+    with rig.make() as link:
+        assert link.write(-7.0, Life(41, True)).taken
+    before = rig.life()
+    with rig.make(**rig.refused_offset) as link:
+        done = link.write(-6.0, Life(42, True))
+        assert done.failure is not None, done
+        assert done.failure.kind in (FailureKind.REFUSED, FailureKind.FAILED), done.failure
+        assert done.life_failure is None  # the offset's failure, nothing said of the life
+    assert rig.life() == before
+    assert rig.offset() == pytest.approx(-7.0)
 
 
 def test_a_bad_sign_of_life_never_leaves(rig: LifeRig) -> None:
@@ -442,9 +477,10 @@ def test_a_bad_sign_of_life_never_leaves(rig: LifeRig) -> None:
 # -- one request where the protocol allows ----------------------------------------------------
 
 
-def test_opcua_writes_offset_counter_and_flag_in_one_write_request(
+def test_opcua_writes_the_offset_then_counter_and_flag_in_one_write_request(
     ua_controller: UaController,
 ) -> None:
+    # a server takes each node of a Write on its own: the beat goes once the offset is Good
     ctl = ua_controller
     ua_reset(ctl)
     offset, life, valid = (
@@ -454,7 +490,7 @@ def test_opcua_writes_offset_counter_and_flag_in_one_write_request(
         for k in range(1, 4):
             assert link.write(-2.0 * k, Life(k, k % 2 == 1)).taken
         assert link.write(None, Life(4, False)).taken
-    assert ctl.writes == [[offset, life, valid]] * 3 + [[life, valid]]
+    assert ctl.writes == [[offset], [life, valid]] * 3 + [[life, valid]]
     assert ctl.value("LifeCounter") == 4 and ctl.value("CompensationValid") is False
     assert ctl.value("ThermalOffset") == -6.0
 
@@ -476,12 +512,15 @@ def test_opcua_writes_each_value_in_its_nodes_own_type(ua_controller: UaControll
     with ua_link(ctl, life_node=node("Counter8")) as link:  # a Byte cannot hold 300
         ctl.writes.clear()
         done = link.write(2.5, Life(300, True))
-        assert done.failure is not None and done.failure.kind is FailureKind.VALUE
-        assert "300 does not fit its Byte" in done.failure.reason
-        assert ctl.writes == []  # nothing sent
+        assert done.taken  # the offset went
+        assert done.life_failure is not None and done.life_failure.kind is FailureKind.VALUE
+        assert "300 does not fit its Byte" in done.life_failure.reason
+        assert ctl.writes == [[f"ns={ctl.ns};s={SPINDLE}ThermalOffset"]]  # no beat sent
+        assert ctl.value("ThermalOffset") == 2.5
     with ua_link(ctl, life_node=node("Name")) as link:  # a String is no counter
         done = link.write(None, Life(5, True))
-        assert done.failure is not None and "not a Boolean, an integer" in done.failure.reason
+        assert done.failure is None and done.life_failure is not None
+        assert "not a Boolean, an integer" in done.life_failure.reason
 
 
 def test_opcua_a_node_that_does_not_exist_is_a_failed_write_that_names_it(
@@ -491,10 +530,12 @@ def test_opcua_a_node_that_does_not_exist_is_a_failed_write_that_names_it(
     ua_reset(ctl)
     with ua_link(ctl, life_node=node("NoSuchCounter")) as link:
         done = link.write(-3.0, Life(1, True))
-        assert done.failure is not None and done.failure.kind is FailureKind.FAILED
-        assert "NoSuchCounter" in done.failure.reason
-        assert "BadNodeIdUnknown" in done.failure.reason
-        assert 'life_node = ""' in done.failure.reason  # how to turn it off
+        assert done.taken and ctl.value("ThermalOffset") == -3.0
+        failure = done.life_failure
+        assert failure is not None and failure.kind is FailureKind.FAILED
+        assert "NoSuchCounter" in failure.reason
+        assert "BadNodeIdUnknown" in failure.reason
+        assert 'life_node = ""' in failure.reason  # how to turn it off
         assert link.read().speed_read
 
 
@@ -505,12 +546,16 @@ def test_opcua_a_refused_flag_names_its_node_and_the_offset_still_counts(
     ua_reset(ctl)
     with ua_link(ctl, valid_node=node("Locked")) as link:
         done = link.write(-4.0, Life(3, True))
-        assert done.failure is not None and done.failure.kind is FailureKind.REFUSED
-        assert "Locked" in done.failure.reason and "valid flag" in done.failure.reason
-    assert ctl.value("ThermalOffset") == -4.0  # one request: the server took the offset
+        assert done.taken
+        failure = done.life_failure
+        assert failure is not None and failure.kind is FailureKind.REFUSED
+        assert "Locked" in failure.reason and "valid flag" in failure.reason
+    assert ctl.value("ThermalOffset") == -4.0
 
 
-def test_focas_writes_all_three_in_one_request() -> None:
+def test_focas_writes_the_offset_then_counter_and_flag_in_one_request() -> None:
+    # the CNC takes each subpacket of a request on its own: the beat goes once the offset is
+    # taken
     from machine_sim.focas_server import FocasServer, PlainControl
 
     control = PlainControl()
@@ -520,9 +565,9 @@ def test_focas_writes_all_three_in_one_request() -> None:
         ) as link:
             before = srv.requests
             assert link.write(-12.0, Life(5, True)).taken
-            assert srv.requests == before + 1
-            assert link.write(None, Life(6, False)).taken
             assert srv.requests == before + 2
+            assert link.write(None, Life(6, False)).taken
+            assert srv.requests == before + 3
     assert control.held_raw == 12.0  # the profile's sign: +S
     assert (srv.variables[502], srv.variables[503]) == (6.0, 0.0)
 
@@ -606,7 +651,8 @@ def test_plc_writes_adjacent_words_in_one_request() -> None:
         plc.close()
 
 
-def test_ads_writes_the_symbols_in_one_sum_request() -> None:
+def test_ads_writes_the_offset_then_the_life_symbols_in_one_sum_request() -> None:
+    # a sum-write takes each symbol on its own: the beat goes once the offset is taken
     from machine_sim.plc_servers import AdsPlc
 
     plc = AdsPlc(None).start()  # type: ignore[arg-type]  # the beckhoff profile's symbols
@@ -632,9 +678,9 @@ def test_ads_writes_the_symbols_in_one_sum_request() -> None:
             assert link.write(-1.0, Life(1, True)).taken  # asks each symbol's info once
             requests.clear()
             assert link.write(-1.5, Life(2, True)).taken
-            assert len(requests) == 1
+            assert len(requests) == 2  # the offset's, then the counter's and the flag's
             assert link.write(None, Life(3, False)).taken
-            assert len(requests) == 2
+            assert len(requests) == 3
         assert (plc.get("offset"), plc.get("life"), plc.get("valid")) == (15, 3, False)
     finally:
         plc.close()
@@ -851,4 +897,99 @@ def test_opcua_checks_the_offset_of_a_combined_write_as_configured(
         assert done.taken and done.pending == (verify == "deferred")
         assert link.read().write_refused_um is None  # the controller holds what was written
         assert link.write(None, Life(6, True)) == WriteResult()  # a confirmation: no check due
-    assert len(ctl.writes) == 2 and ctl.value("ThermalOffset") == -8.0
+    assert len(ctl.writes) == 3 and ctl.value("ThermalOffset") == -8.0
+
+
+# -- a sign of life that cannot be written never keeps the offset from the controller ----------
+#
+# The profiles and the virtual-cnc preset default a counter and a flag. A server that does not
+# have them (any control commissioned before; a SINUMERIK whose user may not write R
+# parameters; a Beckhoff project without GVL_Thermo) still gets its offset; the write says
+# apart that the sign of life failed.
+
+
+def test_a_missing_life_node_does_not_keep_the_offset_from_the_controller(
+    ua_controller: UaController,
+) -> None:
+    ctl = ua_controller
+    ua_reset(ctl)
+    with ua_link(ctl, life_node=node("NoSuchCounter")) as link:
+        done = link.write(-3.0, Life(1, True))
+    assert done.life_failure is not None  # the sign of life failed, and says so
+    assert done.failure is None
+    assert ctl.value("ThermalOffset") == -3.0, "the offset never reached the controller"
+
+
+def test_modbus_a_refused_run_of_offset_and_life_is_followed_by_the_offset_alone(
+    tmp_path: Any,
+) -> None:
+    # the device has 16 holding registers: the offset (float32) in 14..15 and the counter and
+    # flag at 16 and 17 make one run the device refuses whole; the offset then goes alone
+    pty = PtyPair(tmp_path)
+    dev = ModbusDevice(pty.dev)
+    try:
+        link = open_adapter(
+            {
+                "type": "modbus",
+                "port": pty.ctl,
+                "baudrate": 115200,
+                "offset_register": 14,
+                "life_register": 16,
+                "valid_register": 17,
+            }
+        )
+        with link:
+            client = link._modbus.client  # type: ignore[attr-defined]
+            sent: list[tuple[int, int]] = []
+            real = client.write_registers
+
+            def counted(address: int, values: list[int], **kw: Any) -> Any:  # the real call
+                sent.append((address, len(values)))
+                return real(address, values, **kw)
+
+            client.write_registers = counted
+            done = link.write(-7.5, Life(12, True))
+            assert done.taken and done.life_failure is not None
+            assert "life counter" in done.life_failure.reason
+            assert sent == [(14, 4), (14, 2)]  # one more request, only for the refusal
+            assert link.read_offset_um() == pytest.approx(-7.5)
+            sent.clear()
+            confirm = link.write(None, Life(13, True))
+            assert confirm.failure is None and confirm.life_failure is not None
+            assert sent == [(16, 2)]
+    finally:
+        dev.close()
+        pty.close()
+
+
+@pytest.mark.parametrize(
+    ("life", "writes"),
+    [
+        ({"life_register": 12, "valid_register": 13}, [(8, 2), (12, 2)]),  # after the offset
+        ({"life_register": 0, "valid_register": 1}, [(8, 2), (0, 2)]),  # before it: still 2nd
+    ],
+)
+def test_modbus_the_offset_goes_first(
+    tmp_path: Any, life: dict[str, int], writes: list[tuple[int, int]]
+) -> None:
+    pty = PtyPair(tmp_path)
+    dev = ModbusDevice(pty.dev)
+    try:
+        link = open_adapter(
+            {"type": "modbus", "port": pty.ctl, "baudrate": 115200, "offset_register": 8, **life}
+        )
+        with link:
+            client = link._modbus.client  # type: ignore[attr-defined]
+            sent: list[tuple[int, int]] = []
+            real = client.write_registers
+
+            def counted(address: int, values: list[int], **kw: Any) -> Any:  # the real call
+                sent.append((address, len(values)))
+                return real(address, values, **kw)
+
+            client.write_registers = counted
+            assert link.write(-7.5, Life(12, True)) == WriteResult()
+            assert sent == writes
+    finally:
+        dev.close()
+        pty.close()
