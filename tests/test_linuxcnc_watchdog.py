@@ -1,7 +1,8 @@
 """The sign of life against the real LinuxCNC: the example sim configuration with the shipped
 watchdog recipe (examples/linuxcnc/thermocomp-watchdog.hal and its three reactions),
-thermocomp's HAL component beating, then killed with SIGKILL; and the thermocomp service
-itself stopped cleanly, started again by hand and killed.
+thermocomp's HAL component beating, then killed with SIGKILL, or stopped (SIGSTOP) past the
+timeout and let go on; and the thermocomp service itself stopped cleanly, started again by hand
+and killed.
 
 Time is HAL's own: a few stock components appended for the test count servo-thread time
 (``integ``) from the last flip of the life toggle HAL saw to the watchdog's ok falling, and
@@ -61,9 +62,12 @@ while True:
 
 # HAL's clocks for the test: seconds of servo time since the last flip of the life toggle
 # while the watchdog is ok (frozen once it falls), the largest such gap, the smallest ok seen,
-# the time thermocomp-ok has been false, and a plain clock
+# the time thermocomp-ok has been false, a plain clock, and a latch set when thermocomp-ok is
+# false while the toggle still counts as fresh (ok fell on comp-valid, not on the timeout)
 MEASURE = """
 loadrt edge           names=tcw-beat
+loadrt and2           names=tcw-early-and
+loadrt flipflop       names=tcw-early
 loadrt conv_bit_float names=tcw-ok-f,tcw-not-ok-f
 loadrt integ          names=tcw-since-beat,tcw-since-fault,tcw-clock
 loadrt minmax         names=tcw-gap,tcw-ok-min
@@ -75,6 +79,8 @@ addf tcw-since-fault servo-thread
 addf tcw-clock      servo-thread
 addf tcw-gap        servo-thread
 addf tcw-ok-min     servo-thread
+addf tcw-early-and  servo-thread
+addf tcw-early      servo-thread
 setp tcw-beat.both 1
 setp tcw-clock.in 1
 net thermocomp-life                           => tcw-beat.in
@@ -84,6 +90,9 @@ net tcw-ok-f          tcw-ok-f.out            => tcw-since-beat.in tcw-ok-min.in
 net tcw-since-beat    tcw-since-beat.out      => tcw-gap.in
 net thermocomp-not-ok                         => tcw-not-ok-f.in
 net tcw-not-ok-f      tcw-not-ok-f.out        => tcw-since-fault.in
+net thermocomp-beating                        => tcw-early-and.in0
+net thermocomp-not-ok                         => tcw-early-and.in1
+net tcw-early-set     tcw-early-and.out       => tcw-early.set
 """
 
 RECIPE = (
@@ -187,11 +196,11 @@ def fade_model(
 def test_killed_thermocomp_stops_the_machine_within_the_timeout():
     with watched_rig() as cnc:
         r = cnc.rsh
-        # in E-stop at start: thermocomp not valid, the watchdog not armed, nothing applied
-        pins = ("watchdog.ok-out", "thermocomp.comp-valid", "thermocomp-ok.out")
-        assert cnc.getps(pins) == [False, False, False]
+        # in E-stop at start: it beats, but it is not valid: not ok, nothing applied
+        pins = ("thermocomp.comp-valid", "thermocomp-ok.out")
+        assert cnc.getps(pins) == [False, False]
         on_and_homed(cnc)
-        # valid once on and homed: the watchdog is armed, the counts go through unchanged
+        # valid once on and homed: ok, the counts go through unchanged
         assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True)
         assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
         counts, life = cnc.getps(("thermocomp.eoffset-counts", "thermocomp.life-counter"))
@@ -214,7 +223,7 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
 
         # SIGKILL of the process that owns the component: no last word, every pin stays
         kill("thermocomp", signal.SIGKILL)
-        assert cnc.wait(lambda: cnc.getp("watchdog.ok-out") is False, timeout=60)
+        assert cnc.wait(lambda: cnc.getp("thermocomp-beat.out") is False, timeout=60)
         # the reaction time on HAL's clock: from the last flip HAL saw to ok falling
         since = cnc.getp("tcw-since-beat.out")
         # each sample between two readings of HAL's clock (halcmd reads one pin after the
@@ -268,6 +277,59 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
         assert cnc.getp("motion.analog-out-02") == 0.0  # its next line never ran
 
 
+def test_a_beat_late_past_the_timeout_holds_the_machine_only_until_the_beats_return():
+    """The watchdog does not latch: thermocomp stopped (SIGSTOP: a hang, a late cycle) past the
+    timeout and let go on, nothing else done: ok falls after the timeout on HAL's clock and
+    returns with the next beat; the feed hold releases and the fade gives the counts back."""
+    with watched_rig() as cnc:
+        on_and_homed(cnc)
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True)
+        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
+        run_program(cnc)
+        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
+        for tracker in ("tcw-since-fault", "tcw-early"):
+            setp(f"{tracker}.reset", 1)
+            setp(f"{tracker}.reset", 0)
+
+        pid = component_pid("thermocomp")
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is False, timeout=60)
+            since, valid, early = cnc.getps(
+                ("tcw-since-beat.out", "thermocomp.comp-valid", "tcw-early.out")
+            )
+            # on the timeout, not on the flag: comp-valid still true, the toggle stale
+            assert valid is True and early is False
+            assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
+            # held: the feed stopped, the counts fading, the program still running
+            assert cnc.wait(lambda: cnc.getp("motion.current-vel") == 0.0)
+            assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") < COUNTS)
+            assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+        finally:
+            os.kill(pid, signal.SIGCONT)
+
+        # the beats again, nothing else: ok returns, the cut goes on, the counts are back
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=60)
+        gap = cnc.getp("tcw-since-fault.out")
+        assert gap > 0.0  # ok was false for this long on HAL's clock, and now is true again
+        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
+        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
+        assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+        assert cnc.getp("thermocomp-beat.out") is True
+        # and it stays: beats at 10 Hz, 3 s of HAL time without a fault
+        setp("tcw-ok-min.reset", 1)
+        setp("tcw-ok-min.reset", 0)
+        t0 = cnc.getp("tcw-clock.out")
+        assert cnc.wait(lambda: cnc.getp("tcw-clock.out") - t0 > 3.0, timeout=60)
+        assert cnc.getp("tcw-ok-min.min") == 1.0
+        assert cnc.getp("tcw-since-fault.out") == gap
+        print(
+            f"\nstopped past the timeout: ok fell {since:.3f} s after the last beat, was false "
+            f"for {gap:.3f} s, true again with the next beat (timeout {TIMEOUT_S} s)"
+        )
+
+
 def restart_thermocomp(cnc: LinuxCnc) -> None:
     """examples/linuxcnc/thermocomp-restart.hal, run by hand as its comment says."""
     env = [
@@ -306,28 +368,30 @@ def test_the_service_stopped_says_so_restarted_takes_over_killed_is_caught():
         assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=60)
         assert cnc.wait(lambda: cnc.getp("thermocomp.eoffset-counts") > 300, timeout=120)
 
-        # a clean stop: the last beat says "not valid", ok falls at once, the watchdog itself
-        # never timed out; the offset starts to fade
+        # a clean stop: the last beat says "not valid", ok falls at once, before the timeout
+        # could run out; the offset starts to fade
+        setp("tcw-early.reset", 1)
+        setp("tcw-early.reset", 0)
         kill("thermocomp", signal.SIGTERM)
         assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is False)
-        assert cnc.getp("watchdog.ok-out") is True
+        assert cnc.getp("tcw-early.out") is True  # ok fell while the toggle was still fresh
         assert cnc.wait(lambda: component_pid("thermocomp") is None, timeout=60)  # exited
         assert gets("thermocomp-valid") == "FALSE"  # what its pin said last
         stopped_at = float(gets("thermocomp-counts"))
         assert cnc.wait(lambda: 0 < cnc.getp("axis.z.eoffset-counts") < stopped_at - 20)
 
-        # started again by hand: it takes over what motion holds, the watchdog re-arms
+        # started again by hand: it takes over what motion holds, ok comes back
         restart_thermocomp(cnc)
         assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=120)
         took = re.findall(r"re-seeding from the (\d+) counts motion holds", cnc.log())
         assert took and 0 < int(took[-1]) < stopped_at, (took, stopped_at)
 
-        # killed: the watchdog falls once the timeout has run out on HAL's clock, and the
+        # killed: ok falls once the timeout has run out on HAL's clock, and the
         # offset fades from where the dead component left it
         setp("tcw-since-fault.reset", 1)
         setp("tcw-since-fault.reset", 0)
         kill("thermocomp", signal.SIGKILL)
-        assert cnc.wait(lambda: cnc.getp("watchdog.ok-out") is False, timeout=60)
+        assert cnc.wait(lambda: cnc.getp("thermocomp-beat.out") is False, timeout=60)
         since, c0 = cnc.getps(("tcw-since-beat.out", "thermocomp.eoffset-counts"))
         print(f"\nthe service killed: ok fell {since:.3f} s after its last beat; fading from {c0}")
         assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
