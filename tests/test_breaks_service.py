@@ -13,6 +13,7 @@ import csv
 import logging
 import math
 import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -523,3 +524,55 @@ def test_a_sigma_that_is_no_number_is_refused_and_the_service_runs_on(
     tick(svc, t, 2)
     rt.measurements.flush(t[0])
     assert journal_rows(rt.measurements.path)[-1]["outcome"] == "accepted"
+
+
+def test_a_fifo_planted_as_the_history_hangs_neither_the_start_nor_a_reload(
+    tmp_path: Path, model: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A FIFO in the model history's record file: the start and a SIGHUP reload read and append
+    the history; each says in one line that it could not, and the service compensates on."""
+    config = write_config(tmp_path, model)
+    fifo = tmp_path / "state" / "history" / "s1" / "history.jsonl"
+    fifo.parent.mkdir(parents=True)
+    os.mkfifo(fifo)
+    t = [0.0]
+    done: list[int] = []
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            svc = Service(config, clock=lambda: t[0], wall=lambda: WALL0 + t[0])
+            try:
+                t[0] += 1.0
+                svc.tick()
+                done.append(svc.spindles["s1"].counters["cycles"])
+                svc.reload()
+                for _ in range(3):
+                    t[0] += 1.0
+                    svc.tick()
+                done.append(svc.spindles["s1"].counters["cycles"])
+            finally:
+                svc.close()
+        except BaseException as err:  # handed to the test's thread
+            failed.append(err)
+
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        worker.join(timeout=120.0)  # generous: a hang waits for a FIFO's writer forever
+        if worker.is_alive():
+            # a reader and a writer end whatever open still waits, so that the thread ends
+            r = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+            w = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            os.close(w)
+            worker.join(timeout=10.0)
+            os.close(r)
+            pytest.fail("the service hung on the FIFO planted as its model history")
+    assert not failed, failed
+    assert done[0] == 1 and done[1] >= 2  # compensating after the start and after the reload
+    said = events(caplog, "history_failed")
+    assert len(said) >= 2  # the start and the reload
+    for rec in said:
+        text = rec.getMessage()
+        assert "\n" not in text and "not a regular file" in text and str(fifo.parent) in text
+    assert fifo.is_fifo()  # left alone

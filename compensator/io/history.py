@@ -23,7 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..errors import ConfigError, ModelFileError
 from ..fitrecord import fit_of
-from .atomic import atomic_write
+from .atomic import atomic_write, read_regular
+from .journal import open_regular
 from .modelfile import load_any_model, model_digest
 
 HISTORY_FORMAT: Final = "thermocomp.model-history/1"
@@ -90,7 +91,8 @@ class ModelHistory:
     def records(self) -> list[HistoryRecord]:
         """Every readable record, oldest first (a damaged line is skipped)."""
         try:
-            text = self.records_path.read_text(encoding="utf-8")
+            # a FIFO or a device planted there is refused at once, never waited on
+            text = read_regular(self.records_path).decode("utf-8", "replace")
         except FileNotFoundError:
             return []
         except OSError as err:
@@ -180,9 +182,8 @@ class ModelHistory:
             judged=judged or {},
         )
         line = rec.model_dump_json() + "\n"
-        # O_NOFOLLOW: a link planted in the state directory is never appended through
-        flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_NOFOLLOW", 0)
-        fd = os.open(self.records_path, flags, 0o644)
+        # a link, FIFO or device planted in the state directory is never appended through
+        fd = open_regular(self.records_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
         try:
             os.write(fd, line.encode("utf-8"))
             os.fsync(fd)
