@@ -251,6 +251,7 @@ class FusedPredictor:
                 "cov": [list(r) for r in z.cov],
                 "since_measurement_s": state.since_measurement_s,
                 "moved_um": dict(z.moved_um),
+                "drift_by_um_per_s": dict(z.drift_by_um_per_s),
             },
         }
 
@@ -274,11 +275,22 @@ class FusedPredictor:
                 for k, v in zip(moved_in, saved_numbers("observer moves", list(moved_in.values())))
                 if v != 0.0
             )
+            shares_in = saved.get("drift_by_um_per_s") or {}  # saved before: nobody's drift
+            if not isinstance(shares_in, Mapping):
+                raise TypeError("drift_by_um_per_s is no mapping")
+            shares = tuple(
+                (str(k), v)
+                for k, v in zip(
+                    shares_in, saved_numbers("observer drift", list(shares_in.values()))
+                )
+                if v != 0.0
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise ModelError(f"saved observer state is not valid ({err})") from err
         if len(c) != 4 or c[0] < 0 or c[3] < 0 or (age is not None and age < 0):
             raise ModelError("saved observer state is not valid (covariance or age)")
-        return FusedState(inner, ObserverState(b, r, ((c[0], c[1]), (c[2], c[3])), (), moved), age)
+        cov = ((c[0], c[1]), (c[2], c[3]))
+        return FusedState(inner, ObserverState(b, r, cov, (), moved, shares), age)
 
     def describe(self) -> list[str]:
         c = self.config

@@ -32,6 +32,11 @@ Bounds on what measurements can do, whatever the filter concludes (:func:`measur
   toward zero by that much every ``source_window_s``. One source alone moves the correction at
   most that far at once, and that far per window after; moves that cancel (noise) cost nothing.
   The first measurement an observer takes (a start from nothing) is exempt (``first``).
+  A drift rate moves the correction too: each source's share of the drift (what its
+  measurements changed of it) is charged to that source as the time update carries the
+  correction on, and once that source's move is spent its share stops (the drift rate loses
+  it). The drift a source taught thus moves the correction no further than its own
+  measurements may.
 
 A measurement either limit cuts is taken only as far as the limit allows (:attr:`Update.limited`
 says which), and the filter's covariance is left as it was: its information was not taken.
@@ -154,14 +159,17 @@ class ObserverConfig(BaseModel):
 @dataclass(frozen=True)
 class ObserverState:
     """Disturbance estimate (bias [um], drift rate [um/s]), its covariance, the implied
-    biases of the rejected measurements since the last accepted one, and each source's net move
-    of the bias that has not drained yet [um] (sources with none left out)."""
+    biases of the rejected measurements since the last accepted one, each source's net move
+    of the bias that has not drained yet [um] (sources with none left out), and each source's
+    share of the drift rate, what its measurements changed of it [um/s] (a drift rate no
+    source taught, e.g. restored from a state saved without shares, is nobody's)."""
 
     bias_um: float
     drift_um_per_s: float
     cov: tuple[tuple[float, float], tuple[float, float]]
     pending_um: tuple[float, ...] = ()
     moved_um: tuple[tuple[str, float], ...] = ()
+    drift_by_um_per_s: tuple[tuple[str, float], ...] = ()
 
     @classmethod
     def prior(cls, cfg: ObserverConfig) -> ObserverState:
@@ -177,6 +185,10 @@ class ObserverState:
     def moved_by(self, source: str) -> float:
         """The net move of the bias ``source`` made that has not drained yet [um]."""
         return dict(self.moved_um).get(source, 0.0)
+
+    def drift_of(self, source: str) -> float:
+        """``source``'s share of the drift rate [um/s]."""
+        return dict(self.drift_by_um_per_s).get(source, 0.0)
 
 
 def at_bound(cfg: ObserverConfig, bias_um: float) -> bool:
@@ -209,14 +221,32 @@ def time_update(cfg: ObserverConfig, z: ObserverState, dt_s: float) -> ObserverS
     f = np.array([[1.0, dt], [0.0, 1.0]])
     qb, qr = cfg.bias_q_um2_per_s, cfg.drift_q_um2_per_s3
     q = np.array([[qb * dt + qr * dt**3 / 3, qr * dt**2 / 2], [qr * dt**2 / 2, qr * dt]])
-    bias, drift = z.bias_um + dt * z.drift_um_per_s, z.drift_um_per_s
+    moved = _drained(cfg, z.moved_um, dt)
+    step, drift, shares = dt * z.drift_um_per_s, z.drift_um_per_s, z.drift_by_um_per_s
+    n = cfg.source_move_um
+    if n is not None and shares:
+        # the drift each source taught moves the correction on that source's account, as its
+        # measurements would: as far as its net move allows, then its share stops
+        spent = dict(moved)
+        kept: list[tuple[str, float]] = []
+        for source, rate in shares:
+            want, have = rate * dt, spent.get(source, 0.0)
+            cap = max(n - have, 0.0) if want > 0 else min(-n - have, 0.0)
+            if abs(want) > abs(cap):
+                step += cap - want
+                drift -= rate
+                want = cap
+            else:
+                kept.append((source, rate))
+            spent[source] = have + want
+        moved = tuple((k, m) for k, m in spent.items() if m != 0.0)
+        shares = tuple(kept)
+    bias = z.bias_um + step
     bound = cfg.max_correction_um
     if bound is not None and abs(bias) > max(bound, abs(z.bias_um)):
         # a drift rate carries the correction no further than measurements may: it stops there
-        bias, drift = math.copysign(max(bound, abs(z.bias_um)), bias), 0.0
-    return ObserverState(
-        bias, drift, _cov(f @ p @ f.T + q), z.pending_um, _drained(cfg, z.moved_um, dt)
-    )
+        bias, drift, shares = math.copysign(max(bound, abs(z.bias_um)), bias), 0.0, ()
+    return ObserverState(bias, drift, _cov(f @ p @ f.T + q), z.pending_um, moved, shares)
 
 
 Limit = Literal["bound", "source"]
@@ -287,7 +317,14 @@ def _bounded(cfg: ObserverConfig, z: ObserverState, up: Update, source: str, fir
     left = moved + step
     state_moved = (*rest, (source, left)) if left != 0.0 else rest
     if why is None:
-        return replace(up, state=replace(up.state, moved_um=state_moved))
+        # what this measurement changed of the drift rate is this source's to answer for
+        # (a restart forgets the drift, and every share with it)
+        shares: tuple[tuple[str, float], ...] = ()
+        if not up.restarted:
+            others = tuple((k, r) for k, r in z.drift_by_um_per_s if k != source)
+            mine = z.drift_of(source) + up.state.drift_um_per_s - z.drift_um_per_s
+            shares = (*others, (source, mine)) if mine != 0.0 else others
+        return replace(up, state=replace(up.state, moved_um=state_moved, drift_by_um_per_s=shares))
     # taken in part: the covariance stays as it was (the measurement's information was not
     # taken); refusals a restart was cut from still wait, so that the next agreeing one (from
     # another source, say) restarts again, as far as its own move allows
@@ -295,7 +332,9 @@ def _bounded(cfg: ObserverConfig, z: ObserverState, up: Update, source: str, fir
     if up.restarted:
         keep = max(cfg.reaccept_after, 1)
         pending = (*z.pending_um, up.innovation_um + b0)[-keep:]
-    kept = ObserverState(b0 + step, z.drift_um_per_s, z.cov, pending, state_moved)
+    kept = ObserverState(
+        b0 + step, z.drift_um_per_s, z.cov, pending, state_moved, z.drift_by_um_per_s
+    )
     return replace(up, state=kept, limited=why, wanted_bias_um=wanted)
 
 

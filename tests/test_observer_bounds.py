@@ -630,3 +630,56 @@ def test_thermocomp_measure_says_limited_and_exits_1(tmp_path, model_file, capsy
     assert codes == [1]
     assert capsys.readouterr().out.startswith("s1: limited: measured")
     assert bias == pytest.approx(2.0)
+
+
+# -- a drift rate moves the correction on its source's account --------------------------------
+
+
+def test_one_source_with_a_drift_state_stays_within_its_move_per_window() -> None:
+    # With a drift state (drift_q_um2_per_s3 > 0, which calibration.closedloop.fit_noise(drift=
+    # True) fits), one source's measurements teach the filter a drift rate, and the time update
+    # carries the correction on: that move is charged to the source that taught it.
+    cfg = ObserverConfig(max_correction_um=15.0, drift_q_um2_per_s3=1e-7)
+    assert cfg.source_move_um == 7.5 and cfg.window_s == 3600.0
+    z = ObserverState.prior(cfg)
+    # an honest first measurement (exempt from the source's budget), on the model
+    z = measurement_update(cfg, z, 0.0, 0.0, 0.5, "control", True).state
+    t = 0
+    for _ in range(20):  # 20 minutes, one measurement a minute from one source: a slow ramp
+        for _ in range(60):
+            z = time_update(cfg, z, 1.0)
+            t += 1
+            assert abs(z.moved_by("control")) <= cfg.source_move_um + 1e-9
+        z = measurement_update(cfg, z, -0.02 * t, 0.0, 0.5, "control", False).state
+    print(f"bias {z.bias_um:+.3f} um, charged {z.moved_by('control'):+.3f} um after {t} s")
+    # within one window the source may move the correction its move, plus what drained
+    # meanwhile (7.5 um per hour: 2.5 um in these 20 minutes), never the full bound
+    assert abs(z.bias_um) <= cfg.source_move_um + cfg.source_move_um * t / cfg.window_s + 1e-9
+    assert abs(z.bias_um) < cfg.max_correction_um - 4.0
+
+
+def test_each_sources_share_of_the_drift_is_saved_and_a_state_saved_before_them_loads():
+    fused = FusedPredictor(thirty_um_model(), ObserverConfig(drift_q_um2_per_s3=1e-7))
+    st = fused.start(0.0, 0.0)
+    st, _ = fused.measure(st, 0.0, 0.5, source="control")
+    for k in range(1, 4):
+        st = fused.step(st, 0.0, 60.0)
+        st, up = fused.measure(st, -1.0 * k, 0.5, source="control")
+        assert up.limited is None
+    assert st.observer.drift_of("control") == pytest.approx(st.observer.drift_um_per_s)
+    assert st.observer.drift_um_per_s < 0.0
+    saved = json.loads(json.dumps(fused.state_dict(st)))
+    back = fused.state_from_dict(saved)
+    assert back.observer.drift_by_um_per_s == st.observer.drift_by_um_per_s
+    # carried on, the drift is charged to the source that taught it
+    before = back.observer.moved_by("control")
+    later = fused.step(back, 0.0, 10.0)
+    moved = later.observer.bias_um - back.observer.bias_um
+    assert moved < 0.0
+    drained = fused.config.source_move_um / fused.config.window_s * 10.0
+    assert later.observer.moved_by("control") == pytest.approx(before + drained + moved)
+    del saved["observer"]["drift_by_um_per_s"]
+    assert fused.state_from_dict(saved).observer.drift_by_um_per_s == ()
+    saved["observer"]["drift_by_um_per_s"] = {"control": "fast"}
+    with pytest.raises(ModelError, match="observer"):
+        fused.state_from_dict(saved)
