@@ -349,6 +349,56 @@ def test_sighups_while_the_service_stops_never_kill_it(tmp_path: Path) -> None:
         assert msgs[-1] == "stopped; state saved"
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_stop_ends_a_long_wait_between_cycles_at_once(
+    tmp_path: Path, calibrated_model: Path, sig: signal.Signals
+) -> None:
+    """The real service on the virtual CNC over OPC UA with period_s = 600: after its first
+    beat it is sent SIGTERM (SIGINT): the wait for the next cycle ends at once and it stops
+    cleanly (exit 0) with its last beat, compensation not valid, in the control's variables.
+    A wait that went on after the signal would write it only 600 s later."""
+    from machine_sim.vcnc import VirtualCNC, running, step
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: 0.0)
+    log = tmp_path / "log.jsonl"
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
+        cfg = tmp_path / "machine.toml"
+        cfg.write_text(
+            f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\nlog_file = "{log}"\n'
+            f'[[spindle]]\nname = "s1"\nmodel = "{calibrated_model}"\nperiod_s = 600.0\n'
+            f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc"}}\n'
+        )
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        try:
+            deadline = time.monotonic() + 120  # a bound on a loaded box, not a measurement
+            while vm.watch.counter == 0:  # the first cycle's beat, as the control took it
+                assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+                assert time.monotonic() < deadline, "no first beat"
+                time.sleep(0.05)
+                step(cnc)
+            assert vm.watch.counter == 1
+            proc.send_signal(sig)
+            code = proc.wait(120)  # far less than the period: the wait did not run on
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        step(cnc)
+        err = proc.stderr.read() if proc.stderr else ""
+        assert code == 0, err[-2000:]
+        assert (vm.watch.counter, vm.watch.valid) == (2, False)  # the last beat
+    msgs = [json.loads(line)["msg"] for line in log.read_text().splitlines()]
+    assert any(m.startswith("s1: last sign of life 2: compensation no longer valid") for m in msgs)
+    assert msgs[-1] == "stopped; state saved"
+
+
 def test_a_clean_stop_leaves_stopped_retained_on_the_broker(
     tmp_path: Path, calibrated_model: Path
 ) -> None:

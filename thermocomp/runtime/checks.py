@@ -120,9 +120,13 @@ def check(config_path: str) -> int:
                 extra += f", holds offset {link.read_offset_um():.3f} um"
             extra += "; " + shaping_check(sc, link)
             life = life_check(sc, link)
+            # looked up, not written: the offset goes without them, the control's watch does not
+            life_problems = link.life_problems()
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
         if life is not None:
             print(life)
+        for line in life_problems:
+            print(f"{sc.name}: warning: the sign of life cannot be written: {line}")
         if sc.profile is not None:
             res = (
                 f"; the offset moves in whole counts of {sc.shaping.resolution_um:g} um"

@@ -1,11 +1,12 @@
 """The box the service runs on: systemd's notify protocol and watchdog, the kernel's word on the
-wall clock, and the JSON log."""
+wall clock, the JSON log, and the wait between cycles that a stop ends at once."""
 
 from __future__ import annotations
 
 import logging
 import math
 import os
+import select
 import socket
 import time
 
@@ -78,3 +79,54 @@ class Systemd:
         if text != self._status:
             self._status = text
             sd_notify(f"STATUS={text}")
+
+
+class Wake:
+    """The wait between cycles, which :meth:`set` (SIGTERM's and SIGINT's handler) ends at once.
+
+    ``time.sleep`` goes on sleeping after a signal's handler returns (PEP 475), so a spindle with
+    a long ``period_s`` would write its last beat only when the period ends, or never: systemd
+    kills it first. Nor may the handler set a ``threading.Event``: it runs between two bytecodes
+    of the main thread, which may hold the event's lock at that moment (a deadlock). The handler
+    writes one byte to a pipe instead (no lock), and the wait is a ``select`` on it: a signal
+    that came before the wait began ends it as well. Until :meth:`open` (and after
+    :meth:`close`) the wait is a plain sleep."""
+
+    def __init__(self) -> None:
+        self._fds: tuple[int, int] | None = None
+
+    def open(self) -> None:
+        if self._fds is None:
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            os.set_blocking(w, False)  # a handler never blocks on a full pipe
+            self._fds = (r, w)
+
+    def set(self) -> None:
+        """End the wait now, or the next one at once (safe in a signal handler)."""
+        if self._fds is not None:
+            try:
+                os.write(self._fds[1], b"\0")
+            except OSError:  # full: a wake is already pending
+                pass
+
+    def wait(self, seconds: float) -> bool:
+        """Wait up to ``seconds``; True where :meth:`set` ended it."""
+        if self._fds is None:
+            time.sleep(max(0.0, seconds))
+            return False
+        r = self._fds[0]
+        ready, _, _ = select.select([r], [], [], max(0.0, seconds))
+        if not ready:
+            return False
+        try:
+            while os.read(r, 512):
+                pass
+        except BlockingIOError:
+            pass
+        return True
+
+    def close(self) -> None:
+        fds, self._fds = self._fds, None
+        for fd in fds or ():
+            os.close(fd)

@@ -2,12 +2,13 @@
 
 All spindles of one configuration in one process, each run by a
 :class:`~thermocomp.runtime.spindle.SpindleRuntime` every ``period_s``; JSON logs with one
-structured event per transition, systemd's notify protocol and watchdog, SIGTERM to stop and
-SIGHUP to reload. One instance per state directory (:mod:`.lock`). A reload that does not
+structured event per transition, systemd's notify protocol and watchdog, SIGTERM to stop (at once, even
+in the middle of a long wait between cycles) and SIGHUP to reload. One instance per state directory (:mod:`.lock`). A reload that does not
 validate (bad configuration, a model that cannot be loaded or is implausible) keeps the running
 one and raises ``RELOAD_FAILED``. A full disk never stops it: ``SIGXFSZ`` is ignored so a file
 size limit is an error on the write, which the spindle turns into an alarm. Time is injected
-(``clock`` monotonic seconds, ``wall`` epoch seconds, ``sleep``) so tests run in simulated time.
+(``clock`` monotonic seconds, ``wall`` epoch seconds, ``sleep``) so tests run in simulated time;
+the real wait between cycles is a :class:`~.host.Wake` that SIGTERM and SIGINT end at once.
 
 With a spindle's observer enabled the service listens on ``<state_dir>/control.sock``
 (:mod:`.control`): each tick it takes, without blocking, the measurements ``thermocomp measure``
@@ -34,7 +35,7 @@ from .control import ControlChannel
 from .cooling import CoolingRuntime
 from .events import event
 from .fleet import Builder, Fleet, last_beat
-from .host import TIME_ERROR, Systemd, kernel_clock_synchronized, sd_notify, setup_logging
+from .host import TIME_ERROR, Systemd, Wake, kernel_clock_synchronized, sd_notify, setup_logging
 from .inbox import Inbox
 from .lock import AlreadyRunningError, StateDirLock
 from .publish import Publisher
@@ -82,12 +83,15 @@ class Service:
         *,
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
-        sleep: Callable[[float], None] = time.sleep,
+        sleep: Callable[[float], object] | None = None,
         cfg: RuntimeConfig | None = None,
         lock: bool = True,
         clock_synchronized: Callable[[], bool | None] | None = None,
     ) -> None:
         self.cfg = cfg if cfg is not None else load_config(config_path)
+        # the real wait between cycles: ended at once by a stop (``sleep`` None)
+        self._wake = Wake()
+        wait: Callable[[float], object] = self._wake.wait if sleep is None else sleep
         if self.cfg.time_scale != 1.0 and clock is time.monotonic:
             sim = ScaledClock(self.cfg.time_scale, time.monotonic)
             w0 = wall()
@@ -97,11 +101,11 @@ class Service:
                 return w0 + sim()
 
             def sim_sleep(s: float) -> None:
-                time.sleep(s / k)
+                self._wake.wait(s / k)
 
-            clock, wall, sleep = sim, sim_wall, sim_sleep
+            clock, wall, wait = sim, sim_wall, sim_sleep
 
-        self.clock, self.wall, self.sleep = clock, wall, sleep
+        self.clock, self.wall, self.sleep = clock, wall, wait
         self.anchor_s = wall() - clock()  # one journal time base for every spindle and reload
         self.builder = Builder(config_path, clock=clock, wall=wall, anchor_s=self.anchor_s)
         self.watch = CycleWatch()
@@ -237,7 +241,9 @@ class Service:
         )
 
     def request_stop(self, *_: object) -> None:
+        """SIGTERM, SIGINT: stop after the tick that runs, ending the wait for the next one."""
         self._stop = True
+        self._wake.set()
 
     def request_reload(self, *_: object) -> None:
         self.builder.requested = True
@@ -346,6 +352,7 @@ class Service:
     def run(self, early: EarlySignals | None = None) -> int:
         """Compensate until SIGTERM or SIGINT; SIGHUP reloads. ``early``: the signals recorded
         while the service started (``stop``, ``reload``), acted on now."""
+        self._wake.open()  # before the handlers: a stop from now on ends the wait
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
         if hasattr(signal, "SIGHUP"):
@@ -376,7 +383,10 @@ class Service:
                     self.sleep(wait)
         finally:
             sd_notify("STOPPING=1")
-            self.close()
+            try:
+                self.close()
+            finally:
+                self._wake.close()
         return self.exit_code
 
     def close(self) -> None:
