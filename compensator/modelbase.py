@@ -33,6 +33,13 @@ MIN_TOP_RPM = 10.0
 calibrate (the largest vertical lathes still turn their table at tens of rpm). A lower top makes
 every real speed read as impossible (above twice the calibrated top), compensation effectively
 off."""
+MIN_RANGE_SHARE = 0.05
+"""The least share of a spindle's rated top speed (``faults.max_speed_rpm``) its model's calibrated
+range must reach. The calibration programs step the spindle across its range (each step at 11 %
+of the top or more, the highest near the top), so no calibration of that spindle tops below 5 %;
+a model calibrated on part of the range (a shop that never runs the top) stays well above it.
+Below it the model is another spindle's, or a test's: every speed the spindle turns is clamped
+to a top at which it barely heats."""
 MAX_TOP_RPM = 1e6
 """The most a calibrated top speed can be [rpm]: no run log holds a faster one
 (``compensator.io.runlog.MAX_SPEED_RPM``)."""
@@ -99,6 +106,19 @@ def speed_range(value: tuple[float, float], *, positive_max: bool = True) -> tup
             f"{MAX_TOP_RPM:g} rpm (below, every real speed would count as impossible)"
         )
     return value
+
+
+def range_share_refusal(top_rpm: float, max_speed_rpm: float | None) -> str | None:
+    """Why a model whose calibrated range tops at ``top_rpm`` cannot be the model of a spindle
+    rated ``max_speed_rpm``, or None (also where no rated speed is configured)."""
+    if max_speed_rpm is None or top_rpm >= MIN_RANGE_SHARE * max_speed_rpm:
+        return None
+    return (
+        f"the model's calibrated range tops at {top_rpm:g} rpm, under {100 * MIN_RANGE_SHARE:g} % "
+        f"of the spindle's max_speed_rpm {max_speed_rpm:g} ({MIN_RANGE_SHARE * max_speed_rpm:g} "
+        "rpm): no calibration of this spindle tops that low; calibrate it on this spindle, or "
+        "correct faults.max_speed_rpm"
+    )
 
 
 def fitted_dt(value: float) -> float:

@@ -446,3 +446,77 @@ def test_the_service_refuses_a_gain_times_1e300_at_start_and_at_a_reload(
         assert len(refused) == 1 and "state 1 holds" in refused[0].fields["error"]
     finally:
         svc.close()
+
+
+# -- a calibrated range that is a sliver of the spindle's ------------------------------------
+
+
+def ten_rpm_model() -> ThermalModel:
+    # a range MIN_TOP_RPM lets through: on a 24 000 rpm spindle every real speed is clamped to it
+    return ThermalModel.from_discrete(0.99, (0.0, 0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 10.0))
+
+
+def part_range_model() -> ThermalModel:
+    # calibrated on the quarter of the range the shop runs: normal, taken
+    return ThermalModel.from_discrete(
+        0.99, (0.0, 0.02, 0.0, 0.0), 1.0, speed_range_rpm=(0.0, 6000.0)
+    )
+
+
+def with_max_speed(path: Path, max_speed_rpm: float) -> Path:
+    path.write_text(path.read_text() + f"[spindle.faults]\nmax_speed_rpm = {max_speed_rpm!r}\n")
+    return path
+
+
+def test_a_model_covering_a_sliver_of_the_spindles_speeds_is_refused(tmp_path, capsys, caplog):
+    """A model whose calibrated range tops at 10 rpm on a spindle rated 24 000 rpm: refused in
+    one line by ``run --check`` and at the start, and a reload keeps the running model. Without
+    a rated speed, and for a model calibrated on part of the range, nothing changes."""
+    sliver = tmp_path / "sliver.json"
+    save_model(sliver, ten_rpm_model())
+    reason = (
+        "the model's calibrated range tops at 10 rpm, under 5 % of the spindle's max_speed_rpm "
+        "24000 (1200 rpm)"
+    )
+    cfg = with_max_speed(write_config(tmp_path / "sliver", {"s1": sliver}), 24000.0)
+    code, out, err = run(capsys, "run", "--check", "--config", cfg)
+    assert code == 2 and out == "" and err.count("\n") == 1, (code, out, err)
+    assert reason in err
+    started = thermocomp("run", "--config", cfg)
+    assert started.returncode == 2 and started.stderr.count("\n") == 1, started
+    assert reason in started.stderr
+
+    # no rated speed configured: as before, it loads (the check needs the spindle's top)
+    code, out, err = run(
+        capsys, "run", "--check", "--config", write_config(tmp_path / "no-max", {"s1": sliver})
+    )
+    assert code == 0, (code, out, err)
+    # a quarter of the range: taken
+    part = tmp_path / "part.json"
+    save_model(part, part_range_model())
+    part_cfg = with_max_speed(write_config(tmp_path / "part", {"s1": part}), 24000.0)
+    code, out, err = run(capsys, "run", "--check", "--config", part_cfg)
+    assert code == 0, (code, out, err)
+
+    # a reload to the sliver: refused, the running model kept, compensating on
+    live = tmp_path / "model.json"
+    save_model(live, old_model())
+    clock = Clock()
+    svc = service(with_max_speed(write_config(tmp_path, {"s1": live}), 24000.0), clock)
+    try:
+        clock.t += 1.0
+        svc.tick()
+        running = svc.spindles["s1"].digest
+        shutil.copy(sliver, live)
+        with caplog.at_level(logging.WARNING):
+            reload(svc, clock)
+        assert svc.reload_failed and svc.spindles["s1"].alarms & Alarm.RELOAD_FAILED
+        assert svc.spindles["s1"].digest == running
+        refused = [r for r in caplog.records if getattr(r, "event", None) == "reload_refused"]
+        assert len(refused) == 1 and reason in refused[0].fields["error"]
+        cycles = svc.spindles["s1"].counters["cycles"]
+        clock.t += 1.0
+        svc.tick()
+        assert svc.spindles["s1"].counters["cycles"] == cycles + 1
+    finally:
+        svc.close()

@@ -115,7 +115,7 @@ def _checked(sc: SpindleConfig, path: Path) -> Any:
     """What a reload checks: the file loads and verifies, names this spindle, is plausible."""
     model = load_any_model(path)
     sc.refuse_other_spindle(model.spindle_id)
-    plausible(model.fallback or model, sc.name)
+    plausible(model.fallback or model, sc.name, sc.faults.max_speed_rpm)
     return model
 
 

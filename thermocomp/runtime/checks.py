@@ -13,6 +13,7 @@ from cnc_adapters.base import Adapter
 from cnc_adapters.chiller import open_chiller
 from compensator.errors import ConfigError, ControlError
 from compensator.io import load_any_model
+from compensator.modelbase import range_share_refusal
 from compensator.observer import SIGMA_LIMIT_UM
 from compensator.plausibility import steady_state_um
 from compensator.predictor import Predictor
@@ -37,9 +38,10 @@ def implausible(model: Predictor) -> str | None:
     return None
 
 
-def plausible(model: Predictor, name: str) -> None:
-    """Refuse a model that loads but cannot be a spindle's (ConfigError)."""
-    why = implausible(model)
+def plausible(model: Predictor, name: str, max_speed_rpm: float | None = None) -> None:
+    """Refuse a model that loads but cannot be a spindle's, or this one's, rated
+    ``max_speed_rpm`` (ConfigError)."""
+    why = implausible(model) or range_share_refusal(model.speed_range_rpm[1], max_speed_rpm)
     if why is not None:
         raise ConfigError(f"{spindle_scope(name)}: {why}")
 
@@ -102,7 +104,7 @@ def check(config_path: str) -> int:
     for sc in cfg.spindle:
         model = load_any_model(sc.model)
         sc.refuse_other_spindle(model.spindle_id)
-        plausible(model.fallback or model, sc.name)
+        plausible(model.fallback or model, sc.name, sc.faults.max_speed_rpm)
         with open_adapter(sc.adapter) as link:
             speed = link.read_speed()
             extra = ""

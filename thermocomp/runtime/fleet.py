@@ -55,7 +55,7 @@ class Builder:
         for sc in cfg.spindle:
             loaded = load_any_model(sc.model)
             sc.refuse_other_spindle(loaded.spindle_id)
-            plausible(loaded.fallback or loaded, sc.name)
+            plausible(loaded.fallback or loaded, sc.name, sc.faults.max_speed_rpm)
         out: dict[str, SpindleRuntime] = {}
         try:
             for sc in cfg.spindle:
