@@ -957,6 +957,13 @@ class Adapter(Link):
             return failure
         return None
 
+    def life_problems(self) -> list[str]:
+        """The sign of life's variables looked up where the link can do so without writing
+        (``thermocomp run --check``): one line per problem, naming the variable and the option
+        to change. Empty: found, or a link that cannot look them up (they are seen at the
+        first write). A lost link raises."""
+        return []
+
     def _write_life_raw(self, life: Life) -> None:
         """Backend hook: write the life counter and the valid flag."""
         raise AdapterError(f"{self.name}: this link writes no sign of life")

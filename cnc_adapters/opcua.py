@@ -103,7 +103,7 @@ from .base import (
     url_has_password,
     whole_sequence,
 )
-from .reading import Failure, Life, Reading, Wants
+from .reading import LIFE_MODULUS, Failure, Life, Reading, Wants
 
 log = logging.getLogger("thermocomp.adapters.opcua")
 
@@ -1124,37 +1124,69 @@ class OpcUaAdapter(OpcUaLink, Adapter):
 
     def _life_resolved(self) -> list[tuple[Any, Any]]:
         """The counter's and the flag's nodes and their VariantTypes, read in one request
-        (their DataType attribute) at the first write of a session."""
-        from asyncua import ua
-
+        (their DataType attribute) at the first write of a session; :class:`AdapterError`
+        naming each node that cannot be looked up."""
         if self._life is None:
-            assert self.life_refs is not None  # writes_life
-            nodes = [
-                self._resolve_ref(self._client, ref, self._ns, key)
-                for ref, key in zip(
-                    self.life_refs, ("life counter node", "valid flag node"), strict=True
-                )
-            ]
-            dvs = self._call(
-                "read sign of life data types",
-                self._client.read_attributes,
-                nodes,
-                ua.AttributeIds.DataType,
-                node=nodes,
-            )
-            found = []
-            for node, dv, key, option in zip(
-                nodes, dvs, ("life counter", "valid flag"), ("life_node", "valid_node"), strict=True
-            ):
-                where = self._where(f"look up {key} node", node)
-                if not dv.StatusCode.is_good():
-                    raise AdapterError(
-                        f"{where}: {dv.StatusCode.name} (check {option}; "
-                        f'{option} = "" turns the sign of life off)'
-                    )
-                found.append((node, _variant_type(dv.Value.Value if dv.Value else None, where)))
+            found, problems = self._life_lookup()
+            if problems:
+                raise AdapterError("; ".join(problems))
             self._life = found
         return self._life
+
+    def _life_lookup(self) -> tuple[list[tuple[Any, Any]], list[str]]:
+        """The sign of life's nodes and their VariantTypes (one Read of their DataType), and a
+        line for each node that cannot be looked up, naming it and the option to change. A lost
+        link is raised."""
+        from asyncua import ua
+
+        assert self.life_refs is not None  # writes_life
+        keys = ("life counter", "valid flag")
+        options = ("life_node", "valid_node")
+        problems: list[str] = []
+
+        def problem(option: str, text: str) -> None:
+            problems.append(f'{text} (check {option}; {option} = "" turns the sign of life off)')
+
+        nodes: list[Any] = []
+        for ref, key, option in zip(self.life_refs, keys, options, strict=True):
+            try:
+                nodes.append(self._resolve_ref(self._client, ref, self._ns, key + " node"))
+            except (UnreachableError, AdapterTimeoutError):
+                raise
+            except AdapterError as err:
+                problem(option, str(err))
+        if problems:
+            return [], problems
+        dvs = self._call(
+            "read sign of life data types",
+            self._client.read_attributes,
+            nodes,
+            ua.AttributeIds.DataType,
+            node=nodes,
+        )
+        found = []
+        for node, dv, key, option in zip(nodes, dvs, keys, options, strict=True):
+            where = self._where(f"look up {key} node", node)
+            if not dv.StatusCode.is_good():
+                problem(option, f"{where}: {dv.StatusCode.name}")
+                continue
+            try:
+                vtype = _variant_type(dv.Value.Value if dv.Value else None, where)
+                # the counter runs to LIFE_MODULUS: a type that cannot hold it fails one day
+                _as_type(LIFE_MODULUS if key == "life counter" else True, vtype, where)
+            except AdapterError as err:
+                problem(option, str(err))
+                continue
+            found.append((node, vtype))
+        return found, problems
+
+    def life_problems(self) -> list[str]:
+        """The sign of life's nodes looked up, nothing written: one line per node that does not
+        exist or whose type cannot hold the counter (up to 32767) or the flag."""
+        if not self.writes_life:
+            return []
+        self.open()
+        return self._life_lookup()[1]
 
     def _offset_written(self, value: float) -> None:
         """The offset's write was taken: its verification, as ``verify_writes`` says."""

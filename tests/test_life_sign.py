@@ -509,12 +509,13 @@ def test_opcua_writes_each_value_in_its_nodes_own_type(ua_controller: UaControll
     with ua_link(ctl, life_node=node("Counter16")) as link:  # an Int16 counter
         assert link.write(None, Life(LIFE_MODULUS, True)).taken
         assert ctl.value("Counter16") == LIFE_MODULUS
-    with ua_link(ctl, life_node=node("Counter8")) as link:  # a Byte cannot hold 300
+    with ua_link(ctl, life_node=node("Counter8")) as link:  # a Byte cannot hold 32767
         ctl.writes.clear()
         done = link.write(2.5, Life(300, True))
         assert done.taken  # the offset went
-        assert done.life_failure is not None and done.life_failure.kind is FailureKind.VALUE
-        assert "300 does not fit its Byte" in done.life_failure.reason
+        assert done.life_failure is not None and done.life_failure.kind is FailureKind.FAILED
+        # the counter runs to 32767: a Byte is refused from the first beat, not the 256th
+        assert "32767 does not fit its Byte" in done.life_failure.reason
         assert ctl.writes == [[f"ns={ctl.ns};s={SPINDLE}ThermalOffset"]]  # no beat sent
         assert ctl.value("ThermalOffset") == 2.5
     with ua_link(ctl, life_node=node("Name")) as link:  # a String is no counter
@@ -993,3 +994,44 @@ def test_modbus_the_offset_goes_first(
     finally:
         dev.close()
         pty.close()
+
+
+def test_run_check_looks_up_the_life_nodes_and_says_each_missing_one(
+    tmp_path: Any, calibrated_model: Any
+) -> None:
+    """`run --check` on the virtual CNC over OPC UA looks the sign of life's nodes up (nothing
+    written): the preset's are there (no line); missing ones: one warning line each, naming
+    the node and how to turn the sign of life off; the check still passes."""
+    import subprocess
+    import sys
+
+    from machine_sim import SpindlePlant, preset
+    from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: 0.0)
+    missing = f', life_node = "{node("NoSuchCounter")}", valid_node = "{node("NoSuchFlag")}"'
+    out = {}
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
+        for name, life in (("found", ""), ("missing", missing)):
+            cfg = tmp_path / f"{name}.toml"
+            cfg.write_text(
+                f'state_dir = "{tmp_path / "state"}"\n[[spindle]]\nname = "s1"\n'
+                f'model = "{calibrated_model}"\n'
+                f'adapter = {{url = "{cnc.url}", preset = "virtual-cnc"{life}}}\n'
+            )
+            r = subprocess.run(
+                [sys.executable, "-m", "thermocomp", "run", "--config", str(cfg), "--check"],
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+            assert r.returncode == 0, r.stderr
+            out[name] = r.stdout
+    head = "s1: warning: the sign of life cannot be written: "
+    assert "link ok" in out["found"] and head not in out["found"]
+    lines = [line for line in out["missing"].splitlines() if line.startswith(head)]
+    assert len(lines) == 2, out["missing"]
+    assert "NoSuchCounter" in lines[0] and "BadNodeIdUnknown" in lines[0]
+    assert 'life_node = ""' in lines[0]
+    assert "NoSuchFlag" in lines[1] and 'valid_node = ""' in lines[1]
