@@ -98,7 +98,9 @@ from __future__ import annotations
 
 import logging
 import math
+import subprocess
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 from urllib.parse import urlsplit
 
@@ -149,6 +151,32 @@ def import_linuxcnc(module: str):
 
 
 HAL_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
+
+
+def _component_pid(name: str) -> int | None:
+    """The process that owns userspace HAL component ``name`` (halcmd's PID column)."""
+    try:
+        r = subprocess.run(
+            ["halcmd", "-s", "show", "comp", name], capture_output=True, text=True, timeout=10
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    for line in r.stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 4 and parts[1] == "User" and parts[2] == name and parts[3].isdigit():
+            return int(parts[3])
+    return None
+
+
+def _process_alive(pid: int) -> bool:
+    """True unless ``pid`` is gone or a zombie (killed, not yet reaped by its parent)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True  # cannot tell: say it runs, never call a live process dead
+    return stat.rsplit(")", 1)[-1].split()[:1] != ["Z"]
 
 
 def _names(v: Any) -> Any:
@@ -326,8 +354,11 @@ class LinuxCncAdapter(Adapter):
                 c = hal.component(self.component)
             except hal.error as err:
                 raise UnreachableError(
-                    f"linuxcnc create HAL component {self.component!r}: {err} "
-                    "(is LinuxCNC running, and the name free?)"
+                    self._name_taken(hal)
+                    or (
+                        f"linuxcnc create HAL component {self.component!r}: {err} "
+                        "(is LinuxCNC running?)"
+                    )
                 ) from err
             c.newpin("speed-in", hal.HAL_FLOAT, hal.HAL_IN)
             c.newpin("eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
@@ -376,6 +407,34 @@ class LinuxCncAdapter(Adapter):
                 raise UnreachableError(
                     f"linuxcnc open status channel (linuxcnc.stat): {err}"
                 ) from err
+
+    def _name_taken(self, hal: Any) -> str | None:
+        """Why the component's name is taken, in one line; None: it is not (HAL refused for
+        another reason)."""
+        try:
+            if not hal.component_exists(self.component):
+                return None
+        except (AttributeError, hal.error):
+            return None
+        name = self.component
+        pid = _component_pid(name)
+        if pid is None:
+            return (
+                f"linuxcnc: HAL component {name!r} exists already: another thermocomp, or one "
+                "killed (HAL keeps its name until LinuxCNC restarts); see halcmd show comp"
+            )
+        if _process_alive(pid):
+            return (
+                f"linuxcnc: HAL component {name!r} belongs to process {pid}, which runs: stop "
+                "it first, or give this thermocomp another component name"
+            )
+        # HAL frees a userspace component only when its own process says so: a killed one's
+        # name stays taken, and halcmd unload only signals the process, which is gone
+        return (
+            f"linuxcnc: HAL component {name!r} is left from process {pid}, which ended "
+            "without removing it (killed or crashed): LinuxCNC keeps the name until it "
+            "restarts; restart LinuxCNC"
+        )
 
     def _machine_ready(self) -> bool:
         c = self._comp

@@ -359,6 +359,32 @@ def gets(signal_name: str) -> str:
     return r.stdout.strip()
 
 
+# a second thermocomp's link opened while the component's name is taken: what it says
+OPEN = """
+from cnc_adapters.linuxcnc import LinuxCncAdapter
+from compensator.errors import UnreachableError
+try:
+    LinuxCncAdapter(component="thermocomp", machine_state="pins").open()
+except UnreachableError as err:
+    print(err)
+"""
+
+
+def second_thermocomp(cnc: LinuxCnc) -> str:
+    """The error of a second thermocomp's link opened now (stdout only: HAL's own message on
+    stderr is not ours)."""
+    env = ["env", f"PATH={linuxcnc_venv() / 'bin'}:/usr/bin:/bin", f"PYTHONPATH={ROOT}"]
+    r = subprocess.run(
+        as_user([*env, "python", "-c", OPEN]),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cnc.dir,
+    )
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
 def test_the_service_stopped_says_so_restarted_takes_over_killed_is_caught():
     slow = {"tau_s": 20.0, "cap": 100.0}  # a restart comes while the offset still fades
     with watched_rig(beat=None, **slow) as cnc:
@@ -388,6 +414,12 @@ def test_the_service_stopped_says_so_restarted_takes_over_killed_is_caught():
 
         # killed: ok falls once the timeout has run out on HAL's clock, and the
         # offset fades from where the dead component left it
+        pid = component_pid("thermocomp")
+        said = second_thermocomp(cnc)  # the name taken by a live one: it says so
+        assert said == (
+            f"linuxcnc: HAL component 'thermocomp' belongs to process {pid}, which runs: stop "
+            "it first, or give this thermocomp another component name\n"
+        ), said
         setp("tcw-since-fault.reset", 1)
         setp("tcw-since-fault.reset", 0)
         kill("thermocomp", signal.SIGKILL)
@@ -408,3 +440,9 @@ def test_the_service_stopped_says_so_restarted_takes_over_killed_is_caught():
         for ta, ci, tb in samples:
             lo = fade_model(tb, c0, **slow) - 1
             assert lo <= ci <= fade_model(ta, c0, **slow) + 1e-6, (ta, tb, ci)
+
+        # started again now, it cannot have the dead one's name: one line that says why
+        assert component_pid("thermocomp") == pid  # HAL keeps it
+        said = second_thermocomp(cnc)
+        assert said.count("\n") == 1 and f"left from process {pid}, which ended" in said, said
+        assert said.rstrip().endswith("restart LinuxCNC"), said
