@@ -9,6 +9,7 @@ beat by beat."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -236,6 +237,146 @@ def test_a_machine_that_is_not_ready_gets_the_beat_with_compensation_not_valid(
         assert rig.link.taken[-1].valid and rig.link.taken[-1].counter == 20
     finally:
         rig.rt.close()
+
+
+class ReadinessUnknownLink(LifeLink):
+    """A control whose readiness (off, E-stop, not homed) cannot be read while ``unknown``."""
+
+    unknown = False
+
+    def not_ready_offset_um(self) -> float | None:
+        if self.unknown:
+            raise BadValueError("ready: the machine's state cannot be read")
+        return None
+
+
+def test_a_cycle_that_cannot_tell_whether_the_machine_is_ready_is_not_valid(
+    tmp_path: Path,
+) -> None:
+    """Whether the machine is ready cannot be read: no offset is written, the beat goes on
+    and says compensation is not valid (a control in E-stop or not homed applies its own
+    offset), and the state says holding with why (not writing once that lasts more than
+    ``faults.not_writing_cycles`` cycles); valid again once it reads."""
+    rig = Rig(tmp_path)
+    rig.rt.close()
+    link = ReadinessUnknownLink(machine=rig.link.machine)
+    rig.link = link
+    rig.rt = rig.runtime()
+    try:
+        for _ in range(3):
+            rig.cycle()
+        link.unknown = True
+        beats, states = [], []
+        for _ in range(5):
+            _, asked = rig.cycle()
+            beats += [life for offset, life in asked if life is not None]
+            assert all(offset is None for offset, _ in asked)  # no offset written: it holds
+            st = state_of(rig.rt, rig.t[0])
+            assert st.state != "compensating", st
+            assert "whether the machine is ready cannot be read" in st.reason, st
+            states.append(st.state)
+        assert beats, "no beat at all"
+        assert not any(b.valid for b in beats), f"valid while readiness is unknown: {beats}"
+        assert states[0] == "holding" and states[-1] == "not writing", states
+        link.unknown = False
+        for _ in range(3):
+            rig.cycle()
+        assert link.taken[-1].valid and state_of(rig.rt, rig.t[0]).compensating
+    finally:
+        rig.rt.close()
+
+
+class LifeRefusedLink(LifeLink):
+    """A control that takes the offset but not the sign of life while ``life_refused`` (a
+    counter variable it lacks, a flag the user may not write): the write reports the offset
+    taken and the sign's failure apart."""
+
+    life_refused = False
+
+    def write(self, offset_um: float | None, life: Life | None = None) -> WriteResult:
+        if not self.life_refused:
+            return super().write(offset_um, life)
+        self.asked.append((offset_um, life))
+        done = SimAdapter.write(self, offset_um, None) if offset_um is not None else WriteResult()
+        if done.failure is not None:
+            return done
+        refused = Failure(FailureKind.REFUSED, "life counter R98: no such variable")
+        return WriteResult(pending=done.pending, life_failure=refused)
+
+
+def _service_on(tmp_path: Path, link: LifeLink, t: list[float]) -> Service:
+    """The service of one spindle on ``link``, in simulated time ``t``."""
+    service = Service(_config(tmp_path), clock=lambda: t[0], wall=lambda: WALL0 + t[0], lock=False)
+    service.spindles["s1"].close()
+    service.spindles["s1"] = SpindleRuntime(
+        service.cfg.spindle[0],
+        service.cfg.state_dir,
+        service.cfg.journal_path,
+        clock=lambda: t[0],
+        wall=lambda: WALL0 + t[0],
+        adapter=link,
+        anchor_s=service.anchor_s,
+    )
+    return service
+
+
+def _events(caplog: pytest.LogCaptureFixture, name: str) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if getattr(r, "event", None) == name]
+
+
+def test_a_sign_of_life_the_control_refuses_never_keeps_the_offset_from_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The control takes the offset but refuses the life counter (a variable it lacks after an
+    upgrade): every offset still reaches it and counts as written, the counter stays where the
+    control last took it, SIGN_OF_LIFE is raised each cycle with one event where the run of
+    failures begins, and the status line names it. Once the counter is taken again the alarm
+    clears (one event) and the counter goes on from where it stopped."""
+    t = [0.0]
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k"), seed=3), None, clock=lambda: t[0])
+    vm.override_speed(18000.0)  # warming: an offset due every cycle
+    link = LifeRefusedLink(machine=vm)
+    service = _service_on(tmp_path, link, t)
+    rt = service.spindles["s1"]
+    caplog.set_level(logging.INFO, logger="thermocomp.runtime")
+    try:
+        for _ in range(10):
+            t[0] += 1.0
+            service.tick()
+        before = rt.offset.life
+        assert before == Life(10, True) and link.taken[-1] == before
+        link.life_refused = True
+        written, writes = 0, rt.counters["writes"]
+        for k in range(30):
+            t[0] += 1.0
+            service.tick()
+            out = rt.last
+            assert out is not None and out.alarms & Alarm.SIGN_OF_LIFE, k
+            assert not out.alarms & Alarm.WRITE_REJECTED, k
+            written += out.written
+            assert vm.offset_um == pytest.approx(rt.offset.held_um)  # the control holds it
+            assert rt.offset.life == before and link.taken[-1] == before  # the counter stands
+        assert written >= 5 and rt.counters["writes"] == writes + written
+        assert abs(rt.offset.held_um) > 1.0
+        assert rt.counters["life_failed"] == 30
+        (failed,) = _events(caplog, "sign_of_life_failed")  # once, not every cycle
+        assert "R98" in failed.getMessage() and "counter stop at 10" in failed.getMessage()
+        assert state_of(rt, t[0]).compensating  # the offset follows the estimate
+        line = service.status_text()
+        assert line.startswith("compensating 1 spindle(s)")
+        assert "s1: SIGN_OF_LIFE (the sign of life is not written: life counter R98" in line
+        # the last beat of a stop cannot be written either: said, never raised
+        assert rt.offset.last_beat(link.write, True) is None
+        link.life_refused = False
+        t[0] += 1.0
+        service.tick()
+        assert rt.offset.life == Life(11, True) and link.taken[-1] == Life(11, True)
+        assert rt.last is not None and not rt.last.alarms & Alarm.SIGN_OF_LIFE
+        assert len(_events(caplog, "sign_of_life_restored")) == 1
+        assert "SIGN_OF_LIFE" not in service.status_text()
+    finally:
+        service.close()
+    assert len(_events(caplog, "sign_of_life_failed")) == 1
 
 
 def test_the_counter_survives_a_reload(tmp_path: Path) -> None:

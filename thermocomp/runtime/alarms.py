@@ -43,6 +43,10 @@ class Alarm(enum.IntFlag):
     # the observer's correction (estimate minus the model's free run) is at max_correction_um, or
     # a source's last measurement was cut to its max_source_move_um: measurements are held back
     OBSERVER_BOUND = 67108864
+    # the offset was written (or confirmed) but the sign of life was not: a life counter or
+    # valid flag refused, missing or of a type that cannot hold it. The counter stays where the
+    # control last took it, so the control's watch reacts as if thermocomp had stopped
+    SIGN_OF_LIFE = 134217728
 
 
 UNREAD = Alarm.SPEED_READ_FAILED | Alarm.IDLE_ASSUMED

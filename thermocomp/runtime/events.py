@@ -78,6 +78,8 @@ EVENTS = (
     "spindle_state",
     "cycles_late",
     "cycles_on_time",
+    "sign_of_life_failed",
+    "sign_of_life_restored",
 )
 """Every event name the runtime emits (documented in docs/reference)."""
 

@@ -15,9 +15,11 @@ write check, a machine that is off and applies 0), :meth:`rewrite` for a link th
 Where the link writes a sign of life (:class:`cnc_adapters.Life`), it goes with the offset in
 the cycle's one write: a cycle that writes the offset sends both, one that has no new offset to
 write (none due, or holding) confirms the held one with the sign of life alone. The counter
-moves only when the controller took the write, so a control that watches it sees thermocomp
+moves only when the controller took the sign, so a control that watches it sees thermocomp
 stop, hang or lose the link; the "compensation valid" flag says whether the offset the
-controller holds follows the estimate now.
+controller holds follows the estimate now. The offset never waits on the sign of life: an offset
+the controller took counts as written even where the counter or the flag was refused or is
+missing (``SIGN_OF_LIFE``, once in the log at the start of a run of failures).
 """
 
 from __future__ import annotations
@@ -156,7 +158,9 @@ class ControllerOffset(OffsetTracker):
         self.mismatch_streak = 0
         self.wrote_since_check = False
         self.foreign_um: float | None = None  # a value beyond the clamp last read back
-        self.unsure = False  # this cycle cannot vouch for what the controller holds: no write
+        # why this cycle cannot vouch for what the controller holds (no write, not in step), or
+        # None: whether the machine is ready could not be read, or a reconnect not yet read back
+        self.unsure: str | None = None
         self.paused_until_s = -math.inf
         self.last_readback_um: float | None = None  # what the controller held when last read back
         self.last_write_s: float | None = None  # clock time of the last offset written
@@ -167,7 +171,7 @@ class ControllerOffset(OffsetTracker):
         # the sign of life last taken by the controller (counter 0: none yet); None: this link
         # writes none
         self.life: Life | None = Life(0, False) if writes_life else None
-        self.life_error: str | None = None  # why the sign of life alone fails, while it does
+        self.life_error: str | None = None  # why the sign of life fails, while it does
 
     def follow(self, old: ControllerOffset) -> None:
         """Go on from ``old`` (a reload): the shaper's settling and the timing of the writes.
@@ -193,7 +197,11 @@ class ControllerOffset(OffsetTracker):
         # after a reconnect the controller may hold anything: where it can be read back and was
         # not in this reading, write nothing until it is (the next cycle asks for it)
         unread = self.need_readback and self.can_read_back and reading.held_offset_um is None
-        self.unsure = heard.ready_unknown or (heard.came_back and unread)
+        self.unsure = None
+        if heard.ready_unknown:
+            self.unsure = "whether the machine is ready cannot be read"
+        elif heard.came_back and unread:
+            self.unsure = "the offset the controller holds is read back first after a reconnect"
         return alarms
 
     def wants_readback(self, link_up: bool) -> bool:
@@ -328,7 +336,8 @@ class ControllerOffset(OffsetTracker):
         one. Whether the offset was written and the alarms. ``cycle_alarms``: the cycle's so
         far, for the "compensation valid" flag. A controller that is not ready (machine off, in
         E-stop, not homed) applies its own offset; once it is ready the offset is re-seeded
-        from there through the slew limit."""
+        from there through the slew limit. A cycle that cannot vouch for what the controller
+        holds (:attr:`unsure`) writes no offset and is not in step: compensation not valid."""
         wanted = self.wants_write(shaped)
         wrote, alarms = False, Alarm.NONE
         if heard.not_ready_um is not None:
@@ -340,10 +349,10 @@ class ControllerOffset(OffsetTracker):
             result = write(shaped.offset_um, life)
             alarms |= self.took(now, result, clock(), link)
             wrote = result.taken
-            if wrote and life is not None:
-                self.life = life
+            if wrote and life is not None:  # the offset taken, whatever befell the sign
+                alarms |= self.beat(now, life, result.life_failure, link)
         elif link.up:  # nothing due, or held: confirm
-            in_step = not wanted and not self.paused(now)
+            in_step = not wanted and not self.paused(now) and not self.unsure
             alarms |= self.confirm(now, write, link, valid=self.valid(in_step, cycle_alarms))
         else:
             self.counters["link_down_cycles"] += 1
@@ -382,21 +391,45 @@ class ControllerOffset(OffsetTracker):
         if self.life is None or not link.up:
             return Alarm.NONE
         life = self.life.next(valid)
-        failure = write(None, life).failure
+        result = write(None, life)
+        # a confirmation's own failure is a lost link; a link that reports the sign's refusal
+        # there instead is taken as the sign's failure
+        return self.beat(now, life, result.failure or result.life_failure, link)
+
+    def beat(self, now: float, life: Life, failure: Failure | None, link: LinkWatch) -> Alarm:
+        """The sign of life's part of a write the controller took: the counter moves on, or,
+        where the counter or the flag was not written, stays where the controller last took it
+        and ``SIGN_OF_LIFE`` is raised (an event where a run of failures begins and where it
+        ends, not every cycle). The offset's part stands either way."""
         if failure is None:
             if self.life_error is not None:
-                log.warning("%s: sign of life written again", self.name)
+                event(
+                    "sign_of_life_restored",
+                    self.name,
+                    "%s: sign of life written again (counter %d)",
+                    self.name,
+                    life.counter,
+                    counter=life.counter,
+                )
             self.life, self.life_error = life, None
             return Alarm.NONE
         if failure.link_lost:
             return link.failed(now, failure)
-        if self.life_error is None:  # once while it fails, not every cycle
-            log.error("%s: sign of life not written: %s", self.name, failure.reason)
+        self.counters["life_failed"] += 1
+        if self.life_error is None:
+            event(
+                "sign_of_life_failed",
+                self.name,
+                "%s: SIGN_OF_LIFE: the sign of life is not written (%s); the offset is, but "
+                "the control's watch sees the counter stop at %d",
+                self.name,
+                failure.reason,
+                0 if self.life is None else self.life.counter,
+                level=logging.ERROR,
+                error=failure.reason,
+            )
         self.life_error = failure.reason
-        if failure.kind is FailureKind.REFUSED:
-            self.counters["write_rejected"] += 1
-            return Alarm.WRITE_REJECTED
-        return Alarm.NONE
+        return Alarm.SIGN_OF_LIFE
 
     def last_beat(
         self, write: Callable[[float | None, Life | None], WriteResult], link_up: bool
@@ -408,8 +441,9 @@ class ControllerOffset(OffsetTracker):
             return None
         life = self.life.next(False)
         result = write(None, life)
-        if not result.taken:
-            log.warning("%s: last sign of life not written: %s", self.name, result.failure)
+        failure = result.failure or result.life_failure
+        if failure is not None:
+            log.warning("%s: last sign of life not written: %s", self.name, failure)
             return None
         self.life = life
         return life
@@ -454,7 +488,7 @@ class ControllerOffset(OffsetTracker):
     ) -> None:
         """The cycle's end: what the controller holds now, and whether it is what the shaper
         aims at."""
-        if wrote or (not wanted and link_up and ready and self.writes):
+        if wrote or (not wanted and link_up and ready and self.writes and not self.unsure):
             self.last_in_step_s = now  # the controller holds what the shaper aims at
         if wrote:
             self.written(shaped)

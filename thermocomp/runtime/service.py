@@ -345,6 +345,11 @@ class Service:
                 notes.append(f"{name}: measurement source failing")
             if obs.get("bounded"):
                 notes.append(f"{name}: OBSERVER_BOUND (measurements taken only in part)")
+        notes += [
+            f"{name}: SIGN_OF_LIFE (the sign of life is not written: {rt.offset.life_error})"
+            for name, rt in self.spindles.items()
+            if rt.alarms & Alarm.SIGN_OF_LIFE
+        ]
         if self.cooling is not None and self.cooling.alarm:
             notes.append(f"cooling: {self.cooling.alarm} ({self.cooling.error})")
         return head + ("; " + "; ".join(notes) if notes else "")

@@ -87,6 +87,7 @@ COUNTERS = (
     "probes_restarted",
     "probes_failed",
     "steps_refused",
+    "life_failed",
 )
 
 

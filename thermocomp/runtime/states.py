@@ -69,6 +69,11 @@ class SpindleFacts(BaseModel):
         None,
         description="COLD_START_TURNING: when the estimate settles (inf: only at a measurement)",
     )
+    unsure: str | None = Field(
+        None,
+        description="why the last cycle could not vouch for the offset the controller holds "
+        "(whether the machine is ready could not be read, a reconnect not yet read back)",
+    )
 
 
 class SpindleState(BaseModel):
@@ -102,8 +107,9 @@ def spindle_state(f: SpindleFacts) -> SpindleState:
       controller has not held the offset aimed at for more than ``not_writing_cycles`` cycles
       (no write went through while one was due: refused, backed off, cycles failing);
     - ``holding``: the link is up and writes reach the controller, but the offset does not follow
-      the estimate now: the machine is not ready (the controller applies its own), the estimate
-      step was refused, the speed cannot be read (a sensor fault: last speed held, or idle
+      the estimate now: the machine is not ready (the controller applies its own), whether it
+      is ready or what the controller holds cannot be told this cycle, the estimate step was
+      refused, the speed cannot be read (a sensor fault: last speed held, or idle
       assumed), or a write is pending (refused, backed off) for fewer cycles than that;
     - ``compensating``: otherwise; the reason then names what the estimate rests on when it is
       not the model as calibrated (an unsettled cold start, the speed-only fallback), or the
@@ -140,10 +146,14 @@ def spindle_state(f: SpindleFacts) -> SpindleState:
             cause = "the controller keeps refusing the offset: writes paused"
         elif bits & Alarm.WRITE_REJECTED:
             cause = "the controller refuses the offset"
+        elif f.unsure:
+            cause = f"{f.unsure}: no offset written"
         else:
             # a time, not a duration: the line stays the same while nothing changes
             cause = f"no write has gone through since {clock_time(ref)}"
         return SpindleState(state="not writing", reason=f"{cause}; {last}")
+    if f.unsure:
+        return SpindleState(state="holding", reason=f"{f.unsure}: no offset written")
     if bits & Alarm.ESTIMATE_REFUSED:
         return SpindleState(
             state="holding", reason="estimate step refused: offset held at its last value"
@@ -199,6 +209,7 @@ def spindle_facts(rt: SpindleRuntime, now_s: float) -> SpindleFacts:
         alarm_bits=int(rt.alarms),
         offset_mode=rt.offset.mode.value,
         cold_settle_s=at(rt.cold.settle_s),
+        unsure=rt.offset.unsure,
     )
 
 
