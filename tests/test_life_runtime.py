@@ -379,6 +379,54 @@ def test_a_sign_of_life_the_control_refuses_never_keeps_the_offset_from_it(
     assert len(_events(caplog, "sign_of_life_failed")) == 1
 
 
+def test_a_life_node_the_control_lacks_never_keeps_the_offset_from_it(
+    tmp_path: Path, calibrated_model: Path
+) -> None:
+    """The real OPC UA link to the virtual CNC, its life counter pointed at a node the control
+    does not have (a control commissioned before the sign of life): every offset reaches the
+    control as the runtime counts it written, SIGN_OF_LIFE is raised every cycle, and the
+    control's watch never sees a beat."""
+    from machine_sim.vcnc import VirtualCNC, running, step
+
+    t = [0.0]
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: t[0])
+    vm.override_speed(18000.0)
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
+        missing = "ns=2;s=/CncInterface/CncSpindleList/Spindle1/NoSuchCounter"
+        path = tmp_path / "machine.toml"
+        path.write_text(
+            f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
+            f'model = "{calibrated_model}"\nperiod_s = 1.0\nadapter = {{url = "{cnc.url}", '
+            f'preset = "virtual-cnc", life_node = "{missing}"}}\n'
+        )
+        sc = load_config(path).spindle[0]
+        rt = SpindleRuntime(
+            sc,
+            tmp_path / "state",
+            tmp_path / "journal",
+            clock=lambda: t[0],
+            wall=lambda: WALL0 + t[0],
+        )
+        try:
+            assert rt.adapter.capabilities.life_sign
+            written = 0
+            for k in range(25):
+                t[0] += 1.0
+                out = rt.cycle()
+                step(cnc)  # the control takes what was written
+                assert out.alarms & Alarm.SIGN_OF_LIFE, k
+                assert not out.alarms & (Alarm.WRITE_REJECTED | Alarm.LINK_DOWN), k
+                written += out.written
+                assert vm.offset_um == pytest.approx(rt.offset.held_um, abs=1e-6), k
+            assert written >= 5 and abs(rt.offset.held_um) > 1.0
+            assert rt.offset.life == Life(0, False) and vm.watch.counter == 0
+            assert rt.counters["life_failed"] == 25
+            assert rt.offset.life_error is not None and "NoSuchCounter" in rt.offset.life_error
+        finally:
+            rt.close()
+
+
 def test_the_counter_survives_a_reload(tmp_path: Path) -> None:
     """A reload (the same model) and a promotion start the new runtime from the old one's:
     the control sees the counter go on, never back to 1."""
