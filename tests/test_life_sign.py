@@ -1035,3 +1035,47 @@ def test_run_check_looks_up_the_life_nodes_and_says_each_missing_one(
     assert "NoSuchCounter" in lines[0] and "BadNodeIdUnknown" in lines[0]
     assert 'life_node = ""' in lines[0]
     assert "NoSuchFlag" in lines[1] and 'valid_node = ""' in lines[1]
+
+
+def test_plc_a_refused_run_of_offset_and_life_is_followed_by_the_offset_alone() -> None:
+    # the PLC's DB100 ends at byte 64: the offset's REAL in 60..63 and the counter and flag
+    # words at 64 and 66 make one db_write the PLC refuses whole; the offset then goes alone
+    from machine_sim.plc_servers import S7Plc
+
+    plc = S7Plc(
+        None,
+        held_address=None,
+        cutting_address=None,
+        offset_address="DB100.DBD60",
+        speed_address="DB100.DBD8",
+    ).start()  # type: ignore[arg-type]
+    try:
+        link = open_adapter(
+            {
+                "type": "plc",
+                "protocol": "s7",
+                "host": plc.host,
+                "port": plc.port,
+                "offset_address": "DB100.DBD60",
+                "speed_address": "DB100.DBD8",
+                "life_address": "DB100.DBW64",
+                "valid_address": "DB100.DBW66",
+            }
+        )
+        with link:
+            client = link._driver.client  # type: ignore[attr-defined]
+            sent: list[tuple[int, int, int]] = []
+            real = client.db_write
+
+            def counted(db: int, start: int, data: bytearray) -> Any:  # the real call
+                sent.append((db, start, len(data)))
+                return real(db, start, data)
+
+            client.db_write = counted
+            done = link.write(-2.5, Life(77, True))
+            assert done.taken and done.life_failure is not None
+            assert "DB100.DBW64" in done.life_failure.reason
+            assert sent == [(100, 60, 8), (100, 60, 4)]
+        assert plc.get("offset") == -2.5
+    finally:
+        plc.close()
