@@ -32,6 +32,7 @@ from machine_sim.adapter import SimAdapter
 from machine_sim.vcnc import VirtualMachine, free_port
 from thermocomp.runtime import Alarm, Service, SpindleRuntime
 from thermocomp.runtime.config import load_config
+from thermocomp.runtime.keeper import ScaledWall
 from thermocomp.runtime.lock import LOCK_NAME, StateDirLock
 
 __all__ = ["controller"]  # the asyncua server of test_boundary_opcua, one for this module
@@ -362,6 +363,113 @@ def test_a_state_saved_a_second_ahead_is_restored_as_before(
     first = r.cycles(1)[0]
     assert not first.alarms & (Alarm.CLOCK_STEP | Alarm.COLD_START)
     assert r.rt.estimate_um() > 0.9 * hot
+    r.rt.close()
+
+
+# -- a state saved on a simulated clock (time_scale) ----------------------------------------
+
+SCALE = 60.0
+
+
+class ScaledRig(Rig):
+    """A runtime on the virtual machine tool's simulated clock, ``SCALE`` times real time, as
+    the service runs it with ``time_scale``; both clocks move only with the test (``real`` is
+    the real wall clock)."""
+
+    def __init__(self, directory: Path, model: Path, *, real0: float):
+        self.real = real0
+        cfg = load_config(write_config(directory, model))
+        self.t = 0.0
+        self.vm = VirtualMachine(
+            SpindlePlant(preset("motorized-27k"), seed=1), None, clock=lambda: self.t
+        )
+        self.journal_dir = cfg.journal_path
+        self.rt = SpindleRuntime(
+            cfg.spindle[0],
+            cfg.state_dir,
+            cfg.journal_path,
+            clock=lambda: self.t,
+            wall=ScaledWall(lambda: self.t, lambda: self.real, SCALE),
+            adapter=SimAdapter(machine=self.vm),
+        )
+
+    def cycles(self, n: int) -> list[Any]:
+        out = []
+        for _ in range(n):
+            self.t += 1.0
+            self.real += 1.0 / SCALE
+            out.append(self.rt.cycle())
+        return out
+
+
+def test_a_time_scaled_restart_advances_the_real_downtime_times_the_scale(
+    tmp_path: Path, model: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """10 real s of running (600 simulated) then 2 real s down: the restart advances the state
+    120 simulated seconds idle and raises no CLOCK_STEP (the simulated save time is 590 s ahead
+    of the real clock)."""
+    warm = ScaledRig(tmp_path, model, real0=WALL0)
+    assert warm.vm is not None
+    warm.vm.override_speed(15000.0)
+    warm.cycles(600)
+    warm.rt.close()
+    hot = warm.rt.state.elongation_um
+    saved = load_state(tmp_path / "state" / "s1.state.json")
+    assert saved["time_scale"] == SCALE
+    assert saved["saved_real_wall_s"] == pytest.approx(WALL0 + 10.0)
+    assert saved["saved_wall_s"] == pytest.approx(WALL0 + 600.0)  # simulated
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        r = ScaledRig(tmp_path, model, real0=warm.real + 2.0)
+        assert r.vm is not None
+        r.vm.override_speed(0.0)
+        first = r.cycles(1)[0]
+    assert not first.alarms & (Alarm.CLOCK_STEP | Alarm.COLD_START)
+    assert not events(caplog, "clock_step")
+    (restored,) = events(caplog, "state_restored")
+    assert restored.__dict__["fields"]["downtime_s"] == pytest.approx(120.0)
+    # the model's own cooling (0.99 per second) through 120 s, then one idle cycle
+    assert restored.__dict__["fields"]["elongation_um"] == pytest.approx(hot * 0.99**120, rel=1e-6)
+    r.rt.close()
+    again = load_state(r.rt.state_path)
+    assert again["saved_real_wall_s"] == pytest.approx(warm.real + 2.0 + 1.0 / SCALE)
+
+
+def test_a_time_scaled_state_saved_ten_real_years_ahead_still_starts_cold(
+    tmp_path: Path, model: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    warm = ScaledRig(tmp_path, model, real0=WALL0 + 10 * YEAR_S)
+    assert warm.vm is not None
+    warm.vm.override_speed(15000.0)
+    warm.cycles(600)
+    warm.rt.close()
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        r = ScaledRig(tmp_path, model, real0=WALL0)
+        first = r.cycles(1)[0]
+    assert first.alarms & Alarm.CLOCK_STEP and first.alarms & Alarm.COLD_START
+    assert "10.0 years ahead" in events(caplog, "clock_step")[0].getMessage()
+    assert not events(caplog, "state_restored")
+    r.rt.close()
+
+
+def test_a_state_without_the_real_time_is_read_as_before(
+    tmp_path: Path, model: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A state file of an older version (no real time, no scale) under a time scale: its
+    saved_wall_s is compared with the clock as before (1200 s ahead: CLOCK_STEP, 0 s)."""
+    warm_state(tmp_path, model, WALL0)
+    path = tmp_path / "state" / "s1.state.json"
+    old = load_state(path)
+    for k in ("saved_real_wall_s", "time_scale", "format"):
+        old.pop(k)
+    save_state(path, old)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
+        r = ScaledRig(tmp_path, model, real0=old["saved_wall_s"] - 1200.0)
+        first = r.cycles(1)[0]
+    assert first.alarms & Alarm.CLOCK_STEP and not first.alarms & Alarm.COLD_START
+    assert "1200 s ahead of the clock" in events(caplog, "clock_step")[0].getMessage()
     r.rt.close()
 
 

@@ -3,6 +3,10 @@ measured again when the clock was wrong at the start.
 
 - start-up: the saved state is advanced through the downtime as an idle spindle; missing, older
   than ``max_state_age_s`` or corrupt (kept aside as ``*.corrupt-<time>``): a cold start;
+- on a simulated clock (``time_scale``, the virtual machine tool) the state also records the real
+  wall time and the scale: the downtime is the real time since the save times the scale, and
+  "ahead of the clock" compares real times (the simulated wall clock runs ahead of the real one;
+  a state without these fields is taken as before);
 - a state saved ahead of the clock (the clock was set back, or ran ahead at the save) raises
   CLOCK_STEP: up to ``DOWNTIME_RECHECK_S`` ahead (a box that booted with its clock where it
   stopped) the downtime is taken as 0 s until the clock's first step forward measures it; further
@@ -48,6 +52,26 @@ DOWNTIME_RECHECK_S = 3600.0
 (a box that booted with its clock behind, until time synchronisation steps it)."""
 
 
+SIM_FIELDS = ("saved_wall_s", "input_wall_s", "cold_start_unsettled_until_wall_s")
+"""A state's times on the simulated wall clock: moved onto the restarted service's clock."""
+
+
+class ScaledWall:
+    """The wall clock of a service on a simulated clock: the real wall time at the start plus
+    the simulated seconds since (``sim``); ``real`` is the real wall clock, ``scale`` the
+    simulated seconds per real second. The state keeper saves the real time too, so a restart
+    can tell the real downtime."""
+
+    def __init__(self, sim: Callable[[], float], real: Callable[[], float], scale: float):
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError("time scale must be > 0")
+        self.real, self.scale, self._sim = real, float(scale), sim
+        self._w0 = real()
+
+    def __call__(self) -> float:
+        return self._w0 + self._sim()
+
+
 @dataclass(frozen=True)
 class Restored:
     """A saved state that fits, advanced through the downtime."""
@@ -69,8 +93,19 @@ class Cold:
 class StateKeeper:
     """The state file: restore, save with back-off, and the alarms of saving."""
 
-    def __init__(self, cfg: SpindleConfig, path: Path, counters: dict[str, int]):
+    def __init__(
+        self,
+        cfg: SpindleConfig,
+        path: Path,
+        counters: dict[str, int],
+        wall: Callable[[], float] | None = None,
+    ):
         self.cfg = cfg
+        # the real wall clock and the time scale: a simulated wall clock saves the real time too
+        self.real_wall: Callable[[], float] | None = (
+            wall.real if isinstance(wall, ScaledWall) else wall
+        )
+        self.time_scale = wall.scale if isinstance(wall, ScaledWall) else 1.0
         self.path = path
         self.counters = counters
         self.last_save_s = -math.inf
@@ -109,6 +144,17 @@ class StateKeeper:
             held = saved_numbers("offset_um", [saved.get("offset_um", 0.0)])[0]
             if saved_wall <= 0:
                 raise ModelFileError(f"saved_wall_s {saved_wall:g} is not a time")
+            real = self._real_age(saved, now_wall)
+            if real is not None:
+                # a simulated clock: the state's times moved onto this run's simulated clock,
+                # which started at the real time of the start
+                age = real * self.time_scale
+                shift = (now_wall - age) - saved_wall
+                saved = {
+                    k: (v + shift if k in SIM_FIELDS and _number(v) else v)
+                    for k, v in saved.items()
+                }
+                saved_wall = now_wall - age
             parsed = estimate.parse_saved(saved)
         except (
             ModelError,
@@ -135,40 +181,44 @@ class StateKeeper:
             )
             return Cold("corrupt state file"), Alarm.STATE_CORRUPT, None
         age = now_wall - saved_wall
+        # how far ahead of the clock the state was saved, in real seconds (on a simulated
+        # clock the simulated wall time of the save runs ahead of the real one)
+        ahead = -age if real is None else -real
         if age > cfg.max_state_age_s:
             return Cold(f"saved state is {age / 3600:.1f} h old"), Alarm.NONE, None
         alarms = Alarm.NONE
-        if age < -CLOCK_STEP_S:
+        if ahead > CLOCK_STEP_S:
             # saved "in the future": the clock was set back since, or ran ahead at the save;
             # either way the downtime is unknown
             alarms = Alarm.CLOCK_STEP
-            if -age > DOWNTIME_RECHECK_S:
+            if ahead > DOWNTIME_RECHECK_S:
                 # far beyond a clock that boots where it stopped: the state's age, and so
                 # whether it is younger than max_state_age_s, cannot be known
-                ahead = _duration(-age)
+                far = _duration(ahead)
                 event(
                     "clock_step",
                     cfg.name,
                     "%s: the state was saved %s ahead of the clock: its age is unknown, "
                     "the state is not used",
                     cfg.name,
-                    ahead,
+                    far,
                     level=logging.ERROR,
-                    step_s=round(age, 3),
+                    step_s=round(-ahead, 3),
                     path=str(self.path),
                 )
-                return Cold(f"saved state is dated {ahead} ahead of the clock"), alarms, None
+                return Cold(f"saved state is dated {far} ahead of the clock"), alarms, None
             event(
                 "clock_step",
                 cfg.name,
                 "%s: the state was saved %.0f s ahead of the clock: the downtime is taken as "
                 "0 s and measured again at the clock's first step forward",
                 cfg.name,
-                -age,
+                ahead,
                 level=logging.WARNING,
-                step_s=round(age, 3),
+                step_s=round(-ahead, 3),
                 path=str(self.path),
             )
+            age = min(age, 0.0)  # on a simulated clock too: the downtime is unknown
         downtime = max(0.0, age)
         # the spindle stood still while we were down: the model's own cooling; the input
         # model's state is advanced once the inputs are read
@@ -188,14 +238,34 @@ class StateKeeper:
         held = min(max(held, -limit), limit)
         return Restored(est, held, downtime, until), alarms, (parsed, saved_wall)
 
+    def _real_age(self, saved: Mapping[str, Any], now_wall: float) -> float | None:
+        """Real seconds since the save, where this run or the save was on a simulated clock
+        and the state recorded the real time (a state from before: None, taken as before)."""
+        real_saved, scale = saved.get("saved_real_wall_s"), saved.get("time_scale")
+        if real_saved is None or scale is None:
+            return None  # an older state file: its saved_wall_s only
+        real_saved = saved_numbers("saved_real_wall_s", [real_saved], 1e11)[0]
+        scale = saved_numbers("time_scale", [scale], 1e4)[0]
+        if real_saved <= 0 or scale <= 0:
+            raise ModelFileError(f"saved_real_wall_s {real_saved:g} or time_scale {scale:g} wrong")
+        if scale == 1.0 and self.time_scale == 1.0:
+            return None  # real time both: saved_wall_s is the real time, as before
+        real_now = self.real_wall() if self.real_wall is not None else now_wall
+        return real_now - real_saved
+
     def due(self, now: float) -> bool:
         """A save is due and not backing off."""
         return now - self.last_save_s >= self.cfg.state_save_every_s and now >= self.next_try_s
 
     def save(self, now: float, record: Mapping[str, Any]) -> bool:
         """Save ``record``; a failure is an alarm and a retry with back-off, never an exception."""
+        body = dict(record)
+        if self.real_wall is not None:
+            # the real time too: on a simulated clock, saved_wall_s runs ahead of it
+            body["saved_real_wall_s"] = self.real_wall()
+            body["time_scale"] = self.time_scale
         try:
-            save_state(self.path, dict(record))
+            save_state(self.path, body)
         except (OSError, ValueError) as err:
             self.counters["state_save_failed"] += 1
             self.failures += 1
@@ -257,6 +327,10 @@ class StateKeeper:
                 )
         self.alarms = alarms
         return alarms
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _duration(seconds: float) -> str:

@@ -37,6 +37,7 @@ from .events import event
 from .fleet import Builder, Fleet, last_beat
 from .host import TIME_ERROR, Systemd, Wake, kernel_clock_synchronized, sd_notify, setup_logging
 from .inbox import Inbox
+from .keeper import ScaledWall
 from .lock import AlreadyRunningError, StateDirLock
 from .publish import Publisher
 from .spindle import Alarm, SpindleRuntime
@@ -94,11 +95,9 @@ class Service:
         wait: Callable[[float], object] = self._wake.wait if sleep is None else sleep
         if self.cfg.time_scale != 1.0 and clock is time.monotonic:
             sim = ScaledClock(self.cfg.time_scale, time.monotonic)
-            w0 = wall()
             k = self.cfg.time_scale
-
-            def sim_wall() -> float:
-                return w0 + sim()
+            # the real wall time goes with it: a restart measures the downtime on it
+            sim_wall = ScaledWall(sim, wall, k)
 
             def sim_sleep(s: float) -> None:
                 self._wake.wait(s / k)

@@ -196,7 +196,9 @@ class SpindleRuntime:
             reconnects=self.adapter.reconnects,
         )
         self.cold = ColdStart(cfg.name, cfg.cold_start_settle_taus, anchor)
-        self.keeper = StateKeeper(cfg, Path(state_dir) / f"{cfg.name}.state.json", self.counters)
+        self.keeper = StateKeeper(
+            cfg, Path(state_dir) / f"{cfg.name}.state.json", self.counters, wall
+        )
         self.pace = Pace(clock())
         self.offset = self._offset(caps, 0.0)
         self.sticky_alarms = Alarm.NONE  # set by the service (a refused reload)
