@@ -5,12 +5,18 @@ answer as it came. Each spindle's state (compensating, holding, not writing) and
 the service's own (:func:`thermocomp.runtime.status.spindle_state`): this only prints them.
 
 With ``--exit-code`` the exit status says how things stand (:data:`thermocomp.status_codes.EXIT_CODES`).
+
+With ``--config``, a service that cannot be reached and does not hold its state directory is not
+running: each spindle's saved state says what the control was left holding, and the exit status
+is :data:`~thermocomp.status_codes.EXIT_STOPPED` (with or without ``--exit-code``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -22,6 +28,7 @@ from thermocomp.status_codes import (  # the command line's help reads the same
     EXIT_ATTENTION,
     EXIT_NOT_WRITING,
     EXIT_OK,
+    EXIT_STOPPED,
 )
 
 
@@ -169,9 +176,83 @@ def table(st: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
+def stopped(config: str, now_wall: float) -> dict[str, Any] | None:
+    """Each spindle's saved state while no service runs on ``config``'s state directory; None
+    while one holds it (running, its endpoint not answering). Nothing is moved or written."""
+    from compensator.errors import ModelError
+    from thermocomp.runtime.config import load_config
+    from thermocomp.runtime.keeper import read_saved, state_file
+    from thermocomp.runtime.lock import holder
+
+    cfg = load_config(config)
+    held, _ = holder(cfg.state_dir)
+    if held:
+        return None
+    spindles: list[dict[str, Any]] = []
+    for sp in cfg.spindle:
+        path = state_file(cfg.state_dir, sp.name)
+        row: dict[str, Any] = {"name": sp.name, "state": "stopped", "state_file": str(path)}
+        try:
+            saved = read_saved(path)
+        except ModelError as err:
+            row.update(state="unknown", error=str(err))
+        else:
+            if saved is None:
+                row["state"] = "never ran"
+            else:
+                row.update(
+                    offset_held_um=saved.held_um,
+                    saved_wall_s=saved.saved_wall_s,
+                    age_s=now_wall - saved.saved_wall_s,
+                    clean_stop=saved.clean_stop,
+                )
+        spindles.append(row)
+    return {"status": "not running", "state_dir": str(cfg.state_dir), "spindles": spindles}
+
+
+def _ago(s: float) -> str:
+    if not math.isfinite(s):
+        return "?"
+    if s < 0:
+        return f"{_age(-s)} ahead of this computer's clock"
+    return f"{_age(s)} ago"
+
+
+def stopped_lines(st: dict[str, Any]) -> str:
+    """The saved states as lines for people."""
+    out = [f"thermocomp is not running (state directory {st['state_dir']})"]
+    for s in st["spindles"]:
+        if s["state"] == "never ran":
+            out.append(f"{s['name']}: never ran (no saved state)")
+        elif s["state"] == "unknown":
+            out.append(f"{s['name']}: unknown: {s['error']}")
+        else:
+            at = time.strftime("%Y-%m-%d %H:%M:%SZ", time.gmtime(s["saved_wall_s"]))
+            how = {
+                True: "; a clean stop",
+                False: "; not by a clean stop: killed, crashed, powered off, or its last "
+                "save failed",
+                None: "",  # an older version's state does not say
+            }[s["clean_stop"]]
+            out.append(
+                f"{s['name']}: stopped: the control holds {s['offset_held_um']:.2f} µm "
+                f"(state saved at {at}, {_ago(s['age_s'])}{how})"
+            )
+    return "\n".join(out)
+
+
 def main(args) -> int:
     url = _url_of(args)
-    st = fetch(url, _token(args), args.timeout_s)
+    try:
+        st = fetch(url, _token(args), args.timeout_s)
+    except StatusUnreachableError:
+        if not args.config:
+            raise  # no state directory to read
+        down = stopped(args.config, time.time())
+        if down is None:
+            raise  # a service holds the state directory: running, not answering
+        print(json.dumps(down, allow_nan=False) if args.json else stopped_lines(down))
+        return EXIT_STOPPED
     if args.json:
         print(json.dumps(st, allow_nan=False))
     else:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import stat
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -106,6 +107,9 @@ class StateKeeper:
             wall.real if isinstance(wall, ScaledWall) else wall
         )
         self.time_scale = wall.scale if isinstance(wall, ScaledWall) else 1.0
+        # set by the service's clean stop for its last save: `thermocomp status` tells a
+        # clean stop from a kill by it
+        self.stopping = False
         self.path = path
         self.counters = counters
         self.last_save_s = -math.inf
@@ -264,6 +268,7 @@ class StateKeeper:
             # the real time too: on a simulated clock, saved_wall_s runs ahead of it
             body["saved_real_wall_s"] = self.real_wall()
             body["time_scale"] = self.time_scale
+        body["clean_stop"] = self.stopping
         try:
             save_state(self.path, body)
         except (OSError, ValueError) as err:
@@ -327,6 +332,55 @@ class StateKeeper:
                 )
         self.alarms = alarms
         return alarms
+
+
+@dataclass(frozen=True)
+class SavedView:
+    """What a spindle's state file says for people while the service is not running."""
+
+    held_um: float
+    """The offset the control held at the last save [µm]."""
+    saved_wall_s: float
+    """When it was saved: the real wall time (on a simulated clock too)."""
+    clean_stop: bool | None
+    """Saved by a clean stop; False: by a cycle (then killed, crashed, or a stop could not save);
+    None: a state of an older version, which does not say."""
+
+
+def state_file(state_dir: Path, spindle: str) -> Path:
+    """A spindle's state file in ``state_dir``."""
+    return Path(state_dir) / f"{spindle}.state.json"
+
+
+def read_saved(path: Path) -> SavedView | None:
+    """A spindle's saved state read as the service restores it, for people (nothing is moved
+    or written); None where there is none. ``ModelFileError`` for one that cannot be read, or a
+    link, which is never followed."""
+    try:
+        before = path.lstat()
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        raise ModelFileError(f"{path}: unreadable state file ({err.strerror or err})") from err
+    if stat.S_ISLNK(before.st_mode):
+        raise ModelFileError(f"{path}: a link, not a state file: not followed")
+    saved = load_state(path)
+    if saved is None:
+        return None  # removed since
+    try:
+        after = path.lstat()
+    except OSError:
+        after = None
+    if after is None or (after.st_dev, after.st_ino) != (before.st_dev, before.st_ino):
+        raise ModelFileError(f"{path}: replaced while it was read")
+    try:
+        wall = saved.get("saved_real_wall_s", saved["saved_wall_s"])
+        saved_wall = saved_numbers("saved_wall_s", [wall], 1e11)[0]
+        held = saved_numbers("offset_um", [saved.get("offset_um", 0.0)])[0]
+    except (ModelError, KeyError, TypeError, ValueError) as err:
+        raise ModelFileError(f"{path}: {str(err)[:200]}") from err
+    clean = saved.get("clean_stop")
+    return SavedView(held, saved_wall, clean if isinstance(clean, bool) else None)
 
 
 def _number(v: Any) -> bool:

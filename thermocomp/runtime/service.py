@@ -406,6 +406,7 @@ class Service:
             log.error("status not published at the stop: %s", err)
         self.publisher.close(self.cfg.state_dir / "status.url")
         for rt in self.spindles.values():
+            rt.keeper.stopping = True  # its last save says so (`thermocomp status`)
             rt.close()
         if self.cooling is not None:
             self.cooling.close()
