@@ -215,9 +215,12 @@ class VirtualMachine:
         plant_dt_s: float = 0.5,
         tool_setter: ToolSetter | None = None,
         watch: WatchSettings | None = None,
+        say: Callable[[float, str], None] | None = None,
     ):
         """``watch``: how the control watches thermocomp's sign of life and reacts when it is
-        missing (default: a 3 s timeout and no reaction, the state shown only)."""
+        missing (default: a 3 s timeout and no reaction, the state shown only). ``say``: called
+        with (machine time, one line) for each trip and its reaction, the sign of life coming
+        back, a reset and a refused or resumed cycle start (the control's message line)."""
         self.plant = plant
         self.program = program
         self._program_start_s = 0.0
@@ -248,7 +251,7 @@ class VirtualMachine:
         self.probe_true_um = 0.0
         self.probe_sigma_um = self.tool_setter.sigma_um
         self.probe_sequence = 0
-        self.watch = Watch(watch)
+        self.watch = Watch(watch, say)
         self.refused_starts = 0  # cycle starts the watch refused
 
     def fork(self, clock: Callable[[], float]) -> VirtualMachine:
@@ -256,11 +259,13 @@ class VirtualMachine:
         record) on ``clock``: a what-if from the same moment."""
         with self._lock:
             state = {k: v for k, v in vars(self).items() if k not in ("_lock", "clock")}
-            twin_state = copy.deepcopy(state)
+            # the watch's message sink is not copied (a bound method would drag its owner along)
+            twin_state = copy.deepcopy(state, {id(self.watch.say): None})
         twin = VirtualMachine.__new__(VirtualMachine)
         vars(twin).update(twin_state)
         twin._lock = threading.Lock()
         twin.clock = clock
+        twin.watch.say = None  # a what-if: its trips are not the machine's to report
         return twin
 
     def life_beat(self, counter: object, valid: object) -> None:
@@ -273,7 +278,7 @@ class VirtualMachine:
         """The operator's reset: clears the watch's alarm once the sign of life is back; True
         when no alarm stands after it."""
         with self._lock:
-            return self.watch.reset()
+            return self.watch.reset(self.plant.time_s)
 
     def load_program(self, program: Program | None) -> None:
         """Start ``program`` now (sim time); None idles the spindle. The program's probe stops
@@ -291,10 +296,13 @@ class VirtualMachine:
         starts the loaded one. Refused (False) while the watch's alarm stands or its feed hold
         waits for the sign of life (:attr:`Watch.refusal` says why)."""
         with self._lock:
+            now = self.plant.time_s
             if self.watch.refusal:
                 self.refused_starts += 1
+                self.watch.note(now, f"cycle start refused: {self.watch.refusal}")
                 return False
             if self.watch.resume():
+                self.watch.note(now, "cycle start: the program resumes after the feed hold")
                 return True
         if self.pending is None:
             return False

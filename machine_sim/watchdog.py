@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -54,6 +55,33 @@ FADE_ZERO_UM = 0.001
 CHANGES_KEPT = 1000
 ALARM_STALE = "7001 THERMAL COMPENSATION: no sign of life from thermocomp for {timeout:g} s"
 ALARM_INVALID = "7002 THERMAL COMPENSATION: thermocomp says its offset is not valid"
+WALL_TIMEOUT_S = 3.0
+"""The watch's default timeout in wall seconds: a real control's, whatever the time scale."""
+WALL_TIMEOUT_MIN_S = 1.0
+"""A timeout shorter than this in wall time trips on a late cycle of a healthy service."""
+
+
+def default_timeout_s(time_scale: float) -> float:
+    """The default timeout in machine (simulated) seconds for a control running ``time_scale``
+    times faster than the wall clock: :data:`WALL_TIMEOUT_S` of wall time. A watch judged on
+    simulated time with a fixed 3 s would give a service at 60x 50 ms of wall time per beat, and
+    trip over and over while it runs normally. Never under 3 s of machine time (a slower
+    machine than real time keeps a real control's 3 s)."""
+    return WALL_TIMEOUT_S * max(1.0, float(time_scale))
+
+
+def timeout_warning(timeout_s: float, time_scale: float) -> str:
+    """One line when ``timeout_s`` (machine seconds) is under :data:`WALL_TIMEOUT_MIN_S` of wall
+    time at ``time_scale``; '' when it is not."""
+    wall_s = timeout_s / time_scale
+    if wall_s >= WALL_TIMEOUT_MIN_S:
+        return ""
+    return (
+        f"--watch-timeout-s {timeout_s:g} is {wall_s * 1000:.0f} ms of wall time at "
+        f"--time-scale {time_scale:g}: a late cycle of a healthy service will trip the watch; "
+        f"give at least {WALL_TIMEOUT_MIN_S * time_scale:g} (the default is "
+        f"{default_timeout_s(time_scale):g})"
+    )
 
 
 @dataclass(frozen=True)
@@ -94,11 +122,25 @@ def _whole(value: object) -> int | None:
 class Watch:
     """The watcher: fed the counter and the flag as the control reads them (:meth:`beat`) and
     judged on the machine's clock (:meth:`update`). Pure: it owns no clock and moves nothing; the
-    machine asks it what is in force (:attr:`alarm`, :attr:`held`, :attr:`fading`)."""
+    machine asks it what is in force (:attr:`alarm`, :attr:`held`, :attr:`fading`).
 
-    def __init__(self, settings: WatchSettings | None = None) -> None:
+    ``say``: called with (machine time, one line) for each trip and its reaction, the sign of
+    life coming back, a reset and what the machine adds (:meth:`note`: a refused cycle start),
+    as a control's message line; None: silent."""
+
+    def __init__(
+        self,
+        settings: WatchSettings | None = None,
+        say: Callable[[float, str], None] | None = None,
+    ) -> None:
         self.settings = settings or WatchSettings()
+        self.say = say
         self.restart()
+
+    def note(self, now_s: float, text: str) -> None:
+        """One line for the control's message log (nothing without ``say``)."""
+        if self.say is not None:
+            self.say(float(now_s), text)
 
     def restart(self) -> None:
         """The control (re)starts: the nodes read 0 and false, nothing is armed or latched."""
@@ -169,7 +211,10 @@ class Watch:
             self.trips += 1
             self.tripped_at_s = float(now_s)
             self._react()
+            self.note(now_s, self._trip_text())
         elif new == "ok":
+            if self.state in ("stale", "invalid"):
+                self.note(now_s, self._back_text())
             self.fading = False  # thermocomp writes its offset again
         if new != (self.changes[-1][1] if self.changes else "waiting"):
             self.changes.append((float(now_s), new))
@@ -189,6 +234,32 @@ class Watch:
         elif r == "fade":
             self.fading = True
 
+    def _trip_text(self) -> str:
+        if self.state == "invalid":
+            why = "invalid: the valid flag is false"
+        else:
+            last = "" if self.last_beat_s is None else f" (last beat at {self.last_beat_s:.1f} s)"
+            why = f"stale: the life counter still for {self.settings.timeout_s:g} s{last}"
+        r = self.settings.reaction
+        did = {
+            "none": "the offset kept",
+            "alarm": f"alarm {self.alarm}; the next cycle start is refused until a reset",
+            "feed-hold": "feed hold, the program paused (the spindle turns)",
+            "fade": (
+                f"the offset fades to zero (tau {self.settings.fade_tau_s:g} s, at most "
+                f"{self.settings.fade_max_rate_um_per_s:g} um/s)"
+            ),
+        }[r]
+        return f"watch tripped ({self.trips}): {why}; reaction {r}: {did}"
+
+    def _back_text(self) -> str:
+        then = ""
+        if self.alarm:
+            then = "; the alarm stands until a reset"
+        elif self.held:
+            then = "; the feed hold waits for cycle start"
+        return f"watch ok: the sign of life is back (counter {self.counter}){then}"
+
     @property
     def refusal(self) -> str:
         """Why the next cycle start is refused ('' when it is not)."""
@@ -198,11 +269,23 @@ class Watch:
             return "feed hold: the sign of life from thermocomp is missing"
         return ""
 
-    def reset(self) -> bool:
+    def reset(self, now_s: float | None = None) -> bool:
         """The operator's reset: the alarm clears if the sign of life is back (True when
-        nothing is latched after it)."""
+        nothing is latched after it). ``now_s``: the machine time, for its message line."""
+        had = self.alarm
         if self.ok:
             self.alarm = ""
+        if now_s is not None:
+            if had and not self.alarm:
+                self.note(now_s, f"reset: alarm cleared ({had.split(' ', 1)[0]})")
+            elif self.alarm:
+                self.note(
+                    now_s,
+                    f"reset: alarm {self.alarm.split(' ', 1)[0]} stands, the sign of life is "
+                    f"still missing ({self.state})",
+                )
+            else:
+                self.note(now_s, "reset: no alarm to clear")
         return not self.alarm
 
     def resume(self) -> bool:

@@ -32,12 +32,13 @@ TICK_S = 0.5  # one lock-step tick: the plant's grid
 DAY = Program("day", ((600.0, 20000.0), (600.0, 12000.0), (3600.0, 0.0)))
 
 
-def machine(clock: SteppedClock, **watch) -> VirtualMachine:
+def machine(clock: SteppedClock, say=None, settings=None, **watch) -> VirtualMachine:
     return VirtualMachine(
         SpindlePlant(preset("motorized-27k"), seed=1),
         None,
         clock=clock,
-        watch=WatchSettings(**watch) if watch else None,
+        watch=settings or (WatchSettings(**watch) if watch else None),
+        say=say,
     )
 
 
@@ -84,11 +85,11 @@ class Rig:
         return self.vm.plant.time_s
 
 
-def rig(**watch):
+def rig(say=None, settings=None, **watch):
     from asyncua.sync import Client
 
     clock = SteppedClock()
-    cnc = VirtualCNC(machine(clock, **watch), tick_s=None)
+    cnc = VirtualCNC(machine(clock, say, settings, **watch), tick_s=None)
     with running(cnc), Client(cnc.url, timeout=10) as client:
         r = Rig(cnc, clock, client)
         r.tick()
@@ -412,7 +413,14 @@ def test_virtual_cnc_process_raises_its_alarm_when_the_beats_stop(tmp_path):
         while "virtual CNC (" not in out.read_text():
             assert proc.poll() is None and time.monotonic() < end, out.read_text()
             time.sleep(0.05)
-        assert "sign of life: watched once LifeCounter moves; 3 s still" in out.read_text()
+        text = out.read_text()
+        # 3 s of wall time, not 3 simulated seconds (50 ms at 60x: a late cycle tripped it)
+        assert (
+            "sign of life: watched once LifeCounter moves; 180 s still (3 s of wall time at 60x)"
+        ) in text
+        nodes = next(line for line in text.splitlines() if line.startswith("nodes: "))
+        for path in (*LIFE_PATHS.values(), *WATCH_PATHS.values(), RESET_PATH):
+            assert f"ns=2;s={path}" in nodes, path
         url = f"opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/"
         with Client(url, timeout=10) as c:
             ns = c.get_namespace_index(NAMESPACE_URI)
@@ -427,6 +435,11 @@ def test_virtual_cnc_process_raises_its_alarm_when_the_beats_stop(tmp_path):
                 time.sleep(0.02)
             assert node["compensation_watch"].read_value() == "stale"
             assert node["compensation_alarm"].read_value().startswith("7001")
+        end = time.monotonic() + 30
+        while "watch tripped" not in out.read_text():  # printed before the node is published
+            assert time.monotonic() < end, out.read_text()
+            time.sleep(0.05)
+        assert "watch tripped (1): stale: the life counter still for 180 s" in out.read_text()
     finally:
         proc.terminate()
         proc.wait(30)
@@ -457,3 +470,121 @@ def test_a_fade_through_an_emulated_control_fades_its_held_value_too():
         assert vm.offset_um == pytest.approx(-12.0 * math.exp(-elapsed / 60.0), rel=1e-9)
         r.tick(1200)
         assert vm.offset_um == 0.0 and control.held_raw == 0.0
+
+
+# -- the watch's timeout against the wall clock, and its message lines ----------------------
+
+
+def vcnc_watch(*argv: str) -> tuple[WatchSettings, str]:
+    from thermocomp.cli import build_parser
+    from thermocomp.commands.sim import watch_settings
+
+    return watch_settings(build_parser().parse_args(["virtual-cnc", *argv]))
+
+
+def test_the_default_timeout_is_3_s_of_wall_time_at_the_time_scale():
+    assert vcnc_watch("--time-scale", "60")[0].timeout_s == 180.0
+    assert vcnc_watch("--time-scale", "5")[0].timeout_s == 15.0
+    assert vcnc_watch("--time-scale", "1")[0].timeout_s == 3.0
+    assert vcnc_watch("--time-scale", "0.5")[0].timeout_s == 3.0  # never under a real control's
+    assert vcnc_watch()[0].timeout_s == 180.0  # the default scale: 60
+    for argv in (("--time-scale", "60"), ("--time-scale", "0.5")):
+        assert vcnc_watch(*argv)[1] == ""  # a default never warns
+    # a value given is taken as given; under 1 s of wall time it is warned about
+    watch, warning = vcnc_watch("--time-scale", "60", "--watch-timeout-s", "3")
+    assert watch.timeout_s == 3.0
+    assert warning == (
+        "--watch-timeout-s 3 is 50 ms of wall time at --time-scale 60: a late cycle of a healthy "
+        "service will trip the watch; give at least 60 (the default is 180)"
+    )
+    assert vcnc_watch("--time-scale", "60", "--watch-timeout-s", "60") == (
+        WatchSettings(timeout_s=60.0),
+        "",
+    )
+    assert vcnc_watch("--time-scale", "1", "--watch-timeout-s", "0.5")[1].startswith(
+        "--watch-timeout-s 0.5 is 500 ms of wall time at --time-scale 1:"
+    )
+
+
+def test_at_60x_the_virtual_cnc_trips_180_s_of_machine_time_after_the_last_beat():
+    """The settings ``thermocomp virtual-cnc --time-scale 60`` runs with, in lock-step: beats
+    1 s apart in machine time (a 1 s period) never trip it, and silence trips it at 180 s."""
+    settings, _ = vcnc_watch("--time-scale", "60", "--watch-reaction", "alarm")
+    for r in rig(settings=settings):
+        for _ in range(60):
+            r.beat()
+            r.tick()  # 1 s of machine time between beats
+        assert r.read("compensation_trips") == 0
+        last = r.vm.plant.time_s - 2 * TICK_S  # the beat's tick began a tick before the last
+        r.tick(int((179.0 - (r.vm.plant.time_s - last)) / TICK_S))
+        assert r.vm.plant.time_s - last == 179.0
+        assert r.read("compensation_watch") == "ok"  # 179 s still: 2.98 s of wall time at 60x
+        tripped = r.tick_until_tripped(limit_s=5.0)
+        assert tripped - last == pytest.approx(180.0, abs=TICK_S)
+        assert r.read("compensation_alarm").startswith(
+            "7001 THERMAL COMPENSATION: no sign of life from thermocomp for 180 s"
+        )
+
+
+def test_the_virtual_cnc_says_each_trip_refused_start_reset_and_resume():
+    said: list[tuple[float, str]] = []
+    for r in rig(say=lambda t, text: said.append((t, text)), reaction="alarm"):
+        r.vm.load_pending(DAY)
+        last, tripped = beats_then_silence(r)
+        assert said == [
+            (
+                pytest.approx(tripped - TICK_S, abs=TICK_S),
+                f"watch tripped (1): stale: the life counter still for 3 s (last beat at "
+                f"{last:.1f} s); reaction alarm: alarm {r.read('compensation_alarm')}; the next "
+                "cycle start is refused until a reset",
+            )
+        ]
+        said.clear()
+        r.press("cycle_start")
+        r.press("reset")
+        r.beat()
+        r.press("reset")
+        r.press("reset")
+        texts = [text for _, text in said]
+        assert texts == [
+            "cycle start refused: 7001 THERMAL COMPENSATION: no sign of life from thermocomp "
+            "for 3 s",
+            "reset: alarm 7001 stands, the sign of life is still missing (stale)",
+            f"watch ok: the sign of life is back (counter {r.life.counter}); the alarm stands "
+            "until a reset",
+            "reset: alarm cleared (7001)",
+            "reset: no alarm to clear",
+        ]
+        times = [t for t, _ in said]  # machine time, one tick apart: the five ticks above
+        assert times == sorted(times) and r.vm.plant.time_s - 5 * TICK_S <= times[0]
+    said.clear()
+    for r in rig(say=lambda t, text: said.append((t, text)), reaction="feed-hold"):
+        r.vm.load_program(DAY)
+        for _ in range(4):
+            r.beat()
+        r.beat(valid=False)
+        r.press("cycle_start")
+        r.beat()
+        r.press("cycle_start")
+        assert [text for _, text in said] == [
+            "watch tripped (1): invalid: the valid flag is false; reaction feed-hold: feed hold, "
+            "the program paused (the spindle turns)",
+            "cycle start refused: feed hold: the sign of life from thermocomp is missing",
+            f"watch ok: the sign of life is back (counter {r.life.counter}); the feed hold "
+            "waits for cycle start",
+            "cycle start: the program resumes after the feed hold",
+        ]
+
+
+def test_a_fork_of_the_machine_says_nothing():
+    """The bench's what-ifs run on copies: their trips are not the machine's to report."""
+    said: list[str] = []
+    clock = SteppedClock()
+    vm = machine(clock, lambda t, text: said.append(text), reaction="fade")
+    vm.life_beat(1, True)
+    twin = vm.fork(SteppedClock(clock()))
+    assert twin.watch.say is None and vm.watch.say is not None
+    twin.life_beat(2, False)
+    assert twin.watch.state == "invalid" and said == []
+    vm.life_beat(2, False)
+    assert said and said[0].startswith("watch tripped (1): invalid")

@@ -556,8 +556,9 @@ def _add_virtual_cnc(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--watch-timeout-s",
         type=float,
-        default=3.0,
-        help="simulated seconds the life counter may stand still (default 3)",
+        default=None,
+        help="simulated seconds the life counter may stand still (default 3 s of wall time: "
+        "3 x --time-scale, at least 3)",
     )
     p.add_argument(
         "--fade-tau-s",

@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 import math
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -17,14 +18,20 @@ from machine_sim.nc import NcSyntaxError, parse_nc
 from machine_sim.plant import PlantParams, SpindlePlant, preset
 from machine_sim.vcnc import (
     CYCLE_START_PATH,
+    LIFE_PATHS,
     NODE_PATHS,
+    PROBE_METHOD_PATH,
+    RESET_PATH,
+    STATE_PATHS,
+    TOOL_SETTER_PATHS,
+    WATCH_PATHS,
     SimClock,
     ToolSetter,
     VirtualCNC,
     VirtualMachine,
     running,
 )
-from machine_sim.watchdog import WatchSettings
+from machine_sim.watchdog import WatchSettings, default_timeout_s, timeout_warning
 
 
 def drive_params(params: PlantParams, args: argparse.Namespace) -> PlantParams:
@@ -89,22 +96,9 @@ def virtual_cnc(args: argparse.Namespace) -> int:
         raise ConfigError(str(err.args[0])) from err
     except NcSyntaxError as err:
         raise ConfigError(f"{args.program}: {err}") from err
-    try:
-        watch = WatchSettings(
-            timeout_s=getattr(args, "watch_timeout_s", 3.0),
-            reaction=getattr(args, "watch_reaction", "none"),
-            fade_tau_s=getattr(args, "fade_tau_s", 1200.0),
-            fade_max_rate_um_per_s=getattr(args, "fade_rate_um_per_s", 1.0),
-        )
-    except ValueError as err:
-        text = str(err)
-        for name, flag in (
-            ("timeout_s", "--watch-timeout-s"),
-            ("fade_tau_s", "--fade-tau-s"),
-            ("fade_max_rate_um_per_s", "--fade-rate-um-per-s"),
-        ):
-            text = text.replace(f"watch {name} ", f"{flag} ")
-        raise ConfigError(f"virtual-cnc: {text}") from err
+    watch, warning = watch_settings(args)
+    if warning:
+        print(f"thermocomp: warning: {warning}", file=sys.stderr, flush=True)
     vm = VirtualMachine(
         SpindlePlant(params, seed=args.seed),
         None if args.wait_start else prog,
@@ -114,6 +108,7 @@ def virtual_cnc(args: argparse.Namespace) -> int:
             touches=getattr(args, "tool_setter_touches", 1),
         ),
         watch=watch,
+        say=_say,
     )
     if args.wait_start:
         vm.load_pending(prog)
@@ -130,27 +125,35 @@ def virtual_cnc(args: argparse.Namespace) -> int:
                 f"program loaded; write true to ns={cnc.ns};s={CYCLE_START_PATH} to start it",
                 flush=True,
             )
-        print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in NODE_PATHS.values()), flush=True)
+        paths = (*NODE_PATHS.values(), *STATE_PATHS.values(), CYCLE_START_PATH, RESET_PATH)
+        paths += (*TOOL_SETTER_PATHS.values(), PROBE_METHOD_PATH)
+        paths += (*LIFE_PATHS.values(), *WATCH_PATHS.values())
+        print("nodes: " + ", ".join(f"ns={cnc.ns};s={p}" for p in paths), flush=True)
+        wall = watch.timeout_s / args.time_scale
         print(
-            f"sign of life: watched once LifeCounter moves; {watch.timeout_s:g} s still or "
-            f"CompensationValid false: {watch.reaction}",
+            f"sign of life: watched once LifeCounter moves; {watch.timeout_s:g} s still "
+            f"({wall:.3g} s of wall time at {args.time_scale:g}x) or CompensationValid false: "
+            f"{watch.reaction}",
             flush=True,
         )
         if args.wait_start and args.start_delay is not None:
             print(f"... or it starts by itself in {args.start_delay:g} s", flush=True)
         t0 = time.monotonic()
         end = None if args.duration is None else t0 + args.duration
+        pressed = False  # the delayed press is made once, as an operator's: a refusal spends it
         try:
             while end is None or time.monotonic() < end:
                 time.sleep(0.2)
                 if (
-                    vm.pending is not None
+                    not pressed
+                    and vm.pending is not None
                     and args.start_delay is not None
                     and time.monotonic() - t0 >= args.start_delay
                 ):
+                    pressed = True
                     vm.advance()
-                    vm.cycle_start()
-                    print("cycle start", flush=True)
+                    if vm.cycle_start():  # a refusal says why on its own line
+                        print("cycle start", flush=True)
                 if vm.program is not None and vm.pending is None and vm.program_done:
                     print("program finished; the spindle idles", flush=True)
                     if history:
@@ -161,6 +164,37 @@ def virtual_cnc(args: argparse.Namespace) -> int:
     if history:
         write_history(history, vm, params.name, prog.name)
     return 0
+
+
+def watch_settings(args: argparse.Namespace) -> tuple[WatchSettings, str]:
+    """The watch the options ask for, and a warning line ('' when none). Without
+    ``--watch-timeout-s`` the timeout is 3 s of wall time (3 s x the time scale, never under 3 s
+    of machine time), as generous against the wall clock as a real control's; a value given is
+    taken as it is, with a warning when it is under 1 s of wall time."""
+    scale = float(getattr(args, "time_scale", 1.0))
+    given = getattr(args, "watch_timeout_s", None)
+    try:
+        watch = WatchSettings(
+            timeout_s=default_timeout_s(scale) if given is None else given,
+            reaction=getattr(args, "watch_reaction", "none"),
+            fade_tau_s=getattr(args, "fade_tau_s", 1200.0),
+            fade_max_rate_um_per_s=getattr(args, "fade_rate_um_per_s", 1.0),
+        )
+    except ValueError as err:
+        text = str(err)
+        for name, flag in (
+            ("timeout_s", "--watch-timeout-s"),
+            ("fade_tau_s", "--fade-tau-s"),
+            ("fade_max_rate_um_per_s", "--fade-rate-um-per-s"),
+        ):
+            text = text.replace(f"watch {name} ", f"{flag} ")
+        raise ConfigError(f"virtual-cnc: {text}") from err
+    return watch, "" if given is None else timeout_warning(watch.timeout_s, scale)
+
+
+def _say(now_s: float, text: str) -> None:
+    """The control's message line: the watch's trips, resets and refused cycle starts."""
+    print(f"[{now_s:9.1f} s] {text}", flush=True)
 
 
 def _interrupt(signum: int, frame: object) -> None:
