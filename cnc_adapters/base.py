@@ -32,7 +32,15 @@ from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Self
 from urllib.parse import parse_qsl, urlsplit
 
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
 
 from compensator.errors import (
     MAX_MESSAGE_CHARS,
@@ -50,6 +58,7 @@ from compensator.units import ControllerUnits
 
 from .reading import (
     LIFE_MODULUS,
+    LIFE_OPTION_PAIRS,
     Capabilities,
     Failure,
     Life,
@@ -87,6 +96,7 @@ __all__ = [
     "did_you_mean",
     "host_options",
     "life_configured",
+    "life_pair_refusal",
     "option_names",
     "query_params",
     "redact_url",
@@ -350,6 +360,21 @@ class AdapterSettings(LinkSettings):
         description="one count of the controller's offset, in its unit; the written value "
         "is rounded to it (a controller profile sets it); default 0: continuous",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _life_pairs(cls, data: Any) -> Any:
+        """The sign of life's counter and flag given together, or neither: one alone would
+        silently pair with a preset's or profile's default for the other."""
+        if isinstance(data, Mapping):
+            for counters, flags in LIFE_OPTION_PAIRS:
+                if counters[0] not in cls.model_fields:
+                    continue
+                if any(data.get(k) is not None for k in counters) != any(
+                    data.get(k) is not None for k in flags
+                ):
+                    raise ValueError(life_pair_refusal(_either(counters), _either(flags)))
+        return data
 
 
 RUNTIME_ONLY = frozenset({"clock", "rng", "on_link_change", "machine"})
@@ -1217,6 +1242,20 @@ def checked_life(name: str, life: Any) -> Life:
     return life
 
 
+def _either(keys: tuple[str, ...]) -> str:
+    """``life_node (or life_path)``: the keys that name one variable."""
+    return keys[0] + "".join(f" (or {k})" for k in keys[1:])
+
+
+def life_pair_refusal(counter_key: str, flag_key: str) -> str:
+    """The one line for a sign of life given by half."""
+    return (
+        f"the sign of life needs both {counter_key} and {flag_key}, or neither "
+        f'({counter_key.split()[0]} = "" and {flag_key.split()[0]} = "" turn a profile\'s or '
+        "preset's default off)"
+    )
+
+
 def life_configured(counter: Any, flag: Any, counter_key: str, flag_key: str) -> bool:
     """Whether a link's settings name a sign of life: both the counter's and the flag's address
     (True), or neither (False; None or ``""``, which turns a preset's or profile's default off).
@@ -1224,10 +1263,7 @@ def life_configured(counter: Any, flag: Any, counter_key: str, flag_key: str) ->
     has_counter = counter is not None and counter != ""
     has_flag = flag is not None and flag != ""
     if has_counter != has_flag:
-        raise ValueError(
-            f"the sign of life needs both {counter_key} and {flag_key}, or neither "
-            f'({counter_key} = "" and {flag_key} = "" turn a profile\'s or preset\'s default off)'
-        )
+        raise ValueError(life_pair_refusal(counter_key, flag_key))
     return has_counter
 
 

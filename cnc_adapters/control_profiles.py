@@ -33,12 +33,15 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from compensator.errors import ConfigError, unknown
 from compensator.units import ControllerUnits
 
+from .reading import LIFE_OPTION_PAIRS
+
 __all__ = [
     "PROFILES",
     "ControllerProfile",
     "Route",
     "adapter_settings",
     "control_count_um",
+    "life_options",
     "profile",
 ]
 
@@ -144,8 +147,35 @@ class ControllerProfile(BaseModel):
                 f"profile {self.name!r} has no route {key!r}; known: {', '.join(self.routes)}"
             ) from None
 
-    def describe(self, route: str | None = None) -> str:
-        """One paragraph: what the profile will do (``thermocomp run --check`` prints it)."""
+    def life_text(
+        self,
+        route: str | None = None,
+        settings: Mapping[str, Any] | None = None,
+        writes_life: bool = True,
+    ) -> str:
+        """The sign of life, in words: the route's defaults; or, given a link's ``settings``
+        (:func:`adapter_settings`' result) and ``writes_life`` (whether that link writes one),
+        what the link writes, or ``off``."""
+        r = self.route(route)
+        default = life_options(r.adapter)
+        text = self.life_sign or "none"
+        if settings is None:
+            return f"{text} ({_shown(default)})" if default else text
+        if not writes_life:
+            return "off (the control cannot tell when thermocomp stops)"
+        given = life_options(settings)
+        if not given or given == default:  # the profile's own (or HAL pins, always there)
+            return f"{text} ({_shown(given)})" if given else text
+        return f"{_shown(given)} (the control's check must watch these)"
+
+    def describe(
+        self,
+        route: str | None = None,
+        settings: Mapping[str, Any] | None = None,
+        writes_life: bool = True,
+    ) -> str:
+        """One paragraph: what the profile will do (``thermocomp run --check`` prints it, with
+        the link's ``settings``: see :meth:`life_text`)."""
         r = self.route(route)
         key = self.route_name(route)
         res = (
@@ -165,24 +195,28 @@ class ControllerProfile(BaseModel):
             f"profile {self.name} ({self.title}), route {key} via {r.library}: writes {sign} "
             f"in {self.unit}, {res}, |value| <= {self.limit:g} ({self.limit_um:g} um){step}; "
             f"{rate}; read-back: {self.readback}; on the control: {r.control_side}; "
-            f"sign of life: {self.life_sign or 'none'}{_life_addresses(r)}; recipe: {self.doc}"
+            f"sign of life: {self.life_text(route, settings, writes_life)}; recipe: {self.doc}"
         )
 
 
-_LIFE_KEYS = (
-    ("life_node", "valid_node"),
-    ("life_address", "valid_address"),
-    ("life_macro", "valid_macro"),
-    ("life_var", "valid_var"),
-)
+def _life_groups() -> list[tuple[str, ...]]:
+    """Each backend's sign-of-life options, the counter's and the flag's together."""
+    return [counters + flags for counters, flags in LIFE_OPTION_PAIRS]
 
 
-def _life_addresses(route: Route) -> str:
-    """`` (life_macro = 502, valid_macro = 503)``: the route's default sign-of-life addresses."""
-    for keys in _LIFE_KEYS:
-        if all(k in route.adapter for k in keys):
-            return " (" + ", ".join(f"{k} = {route.adapter[k]!r}" for k in keys) + ")"
-    return ""
+def life_options(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """The sign-of-life options an adapter's settings (:func:`adapter_settings`' result, or a
+    route's) name: ``{"life_macro": 502, "valid_macro": 503}``; ``{}`` for none (``""``
+    turns a default off)."""
+    for counters, flags in LIFE_OPTION_PAIRS:
+        found = {k: settings[k] for k in (*counters, *flags) if settings.get(k) is not None}
+        if found:
+            return found if all(v != "" for v in found.values()) else {}
+    return {}
+
+
+def _shown(options: Mapping[str, Any]) -> str:
+    return ", ".join(f"{k} = {v!r}" for k, v in options.items())
 
 
 _SINUMERIK_SNIPPET = """\
@@ -439,7 +473,11 @@ PROFILES: dict[str, ControllerProfile] = {
                 "opcua": Route(
                     adapter={
                         "type": "opcua",
-                        "preset": "virtual-cnc",  # it names LifeCounter and CompensationValid
+                        "preset": "virtual-cnc",
+                        # the preset's own, named here so that run --check can show them
+                        "life_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/LifeCounter",
+                        "valid_node": "ns={ns};s=/CncInterface/CncSpindleList/Spindle1/"
+                        "CompensationValid",
                     },
                     library="asyncua",
                     tested="the virtual CNC (asyncua server)",
@@ -503,7 +541,13 @@ def adapter_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     units: dict[str, Any] = {"offset_scale": p.scale, "offset_sign": p.sign}
     if p.resolution:
         units["offset_resolution"] = p.resolution
-    merged = {**r.adapter, **units, **user}
+    # a sign of life given by half keeps none of the route's: the settings refuse the half
+    route = {
+        k: v
+        for k, v in r.adapter.items()
+        if not any(k in pair and any(u in user for u in pair) for pair in _life_groups())
+    }
+    merged = {**route, **units, **user}
     if not math.isfinite(float(merged["offset_scale"])):
         raise ConfigError("adapter: offset_scale must be finite")
     return merged

@@ -26,6 +26,7 @@ from compensator.errors import (
 
 __all__ = [
     "LIFE_MODULUS",
+    "LIFE_OPTION_PAIRS",
     "Capabilities",
     "Failure",
     "FailureKind",
@@ -36,8 +37,20 @@ __all__ = [
     "WriteResult",
 ]
 
-REASON_CHARS = 200
-"""A failure's reason is cut to this many characters: it goes into events and status lines."""
+REASON_CHARS = 400
+"""A failure's reason is cut to this many characters: it goes into events and status lines.
+Room for a long URL and node id, and the status code and hint that come after them."""
+
+
+LIFE_OPTION_PAIRS: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = (
+    (("life_node", "life_path"), ("valid_node", "valid_path")),
+    (("life_register",), ("valid_register",)),
+    (("life_address",), ("valid_address",)),
+    (("life_macro",), ("valid_macro",)),
+    (("life_var",), ("valid_var",)),
+)
+"""Each backend's sign-of-life options: (the counter's keys, the flag's keys), either key of
+a group naming it (an OPC UA node id or browse path)."""
 
 
 class FailureKind(enum.Enum):

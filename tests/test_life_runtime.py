@@ -398,7 +398,8 @@ def test_a_life_node_the_control_lacks_never_keeps_the_offset_from_it(
         path.write_text(
             f'state_dir = "{tmp_path / "state"}"\nwatchdog = false\n[[spindle]]\nname = "s1"\n'
             f'model = "{calibrated_model}"\nperiod_s = 1.0\nadapter = {{url = "{cnc.url}", '
-            f'preset = "virtual-cnc", life_node = "{missing}"}}\n'
+            f'preset = "virtual-cnc", life_node = "{missing}", valid_node = '
+            '"ns={ns};s=/CncInterface/CncSpindleList/Spindle1/CompensationValid"}\n'
         )
         sc = load_config(path).spindle[0]
         rt = SpindleRuntime(
@@ -664,9 +665,9 @@ def test_run_check_warns_where_the_control_cannot_see_the_service_stop(
             )
             assert r.returncode == 0, r.stderr
             out[name] = r.stdout
-    warning = "s1: warning: the control cannot tell when thermocomp stops; see docs/controls/"
+    warning = "s1: warning: the control cannot tell when thermocomp stops: set life_node and "
     assert warning not in out["with"] and "link ok" in out["with"]
-    assert f"{warning}index.md\n" in out["without"]
+    assert f"{warning}valid_node (docs/reference/virtual-machine-tool.md)\n" in out["without"]
 
 
 def test_the_page_says_stopped_and_what_the_control_holds(

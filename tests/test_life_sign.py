@@ -159,7 +159,10 @@ def ua_reset(ctl: UaController) -> None:
 
 
 def ua_link(ctl: UaController, **kw: Any) -> Adapter:
-    """The virtual CNC's preset (its sign of life by default), its other channels off."""
+    """The virtual CNC's preset (its sign of life by default), its other channels off; a
+    counter or flag given alone is paired with the preset's other one (both must be given)."""
+    if ("life_node" in kw) != ("valid_node" in kw):
+        kw = {"life_node": node("LifeCounter"), "valid_node": node("CompensationValid"), **kw}
     return open_adapter(
         {
             "type": "opcua",
@@ -354,7 +357,8 @@ def rig(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[LifeRig]:
             yield LifeRig(
                 lambda **kw: open_adapter({**base, **kw}),  # the profile's #10501 and #10502
                 lambda: open_adapter({**base, "life_var": "", "valid_var": ""}),
-                lambda: open_adapter({**base, "valid_var": 9999}),  # not writable over MDC
+                # not writable over MDC (the counter: the profile's, given with it)
+                lambda: open_adapter({**base, "life_var": 10501, "valid_var": 9999}),
                 lambda: control.held_um,  # the profile's unit (mm) and sign, as um
                 lambda: (srv.macros.get(10501), srv.macros.get(10502)),
                 {"offset_var": 9999},
@@ -1079,3 +1083,224 @@ def test_plc_a_refused_run_of_offset_and_life_is_followed_by_the_offset_alone() 
         assert plc.get("offset") == -2.5
     finally:
         plc.close()
+
+
+# -- what run --check says, and a half-given sign of life ------------------------------------
+
+HALF_GIVEN = {
+    "fanuc alone": {"profile": "fanuc", "host": "h", "life_macro": 600},
+    "beckhoff alone": {
+        "profile": "beckhoff",
+        "host": "10.0.0.7",
+        "offset_address": "G.a",
+        "speed_address": "G.b",
+        "life_address": "MAIN.nBeat",
+    },
+    "sinumerik opcua flag alone": {
+        "profile": "sinumerik",
+        "url": "opc.tcp://h:4840",
+        "offset_node": "ns=2;s=X",
+        "valid_node": "ns=2;s=/Channel/Parameter/R[u1,97]",
+    },
+    "sinumerik s7 flag alone": {
+        "profile": "sinumerik",
+        "route": "s7",
+        "host": "h",
+        "offset_address": "DB100.DBD0",
+        "speed_address": "DB100.DBD4",
+        "valid_address": "DB100.DBW20",
+    },
+    "haas mdc alone": {"profile": "haas", "host": "h", "life_var": 10601},
+    "haas serial alone": {
+        "profile": "haas",
+        "route": "serial",
+        "port": "/dev/null",
+        "valid_var": 1,
+    },
+    "virtual by path alone": {"profile": "virtual", "url": "opc.tcp://h:4840", "life_path": "0:X"},
+    "virtual-cnc preset alone": {
+        "type": "opcua",
+        "url": "opc.tcp://h:4840",
+        "preset": "virtual-cnc",
+        "life_node": "ns=2;s=X",
+    },
+    "preset in a URL": {"url": "opc.tcp://h:4840?preset=virtual-cnc&valid_node=ns=2;s=X"},
+    "one empty": {"profile": "fanuc", "host": "h", "life_macro": ""},
+}
+
+
+@pytest.mark.parametrize("cfg", HALF_GIVEN.values(), ids=HALF_GIVEN.keys())
+def test_a_sign_of_life_given_by_half_is_refused_where_a_profile_or_preset_has_the_other(
+    cfg: dict[str, Any],
+) -> None:
+    """One alone never pairs with the profile's or preset's default for the other: one line."""
+    with pytest.raises(ConfigError) as err:
+        check_adapter(cfg)
+    text = str(err.value)
+    assert "\n" not in text and "the sign of life needs both" in text, text
+    assert "or neither" in text and '= ""' in text, text
+
+
+def test_both_given_or_both_empty_pass_with_a_profile() -> None:
+    base = {"profile": "fanuc", "host": "h"}
+    assert open_adapter({**base, "life_macro": 600, "valid_macro": 601}).life_macros == (600, 601)  # type: ignore[attr-defined]
+    assert not open_adapter({**base, "life_macro": "", "valid_macro": ""}).writes_life
+    assert open_adapter(base).life_macros == (502, 503)  # type: ignore[attr-defined]
+
+
+def test_the_profile_line_says_what_the_configured_link_writes() -> None:
+    """``describe`` with the link's settings: its own addresses, or off; never the profile's
+    defaults the configuration replaced or turned off."""
+    p = PROFILES["beckhoff"]
+    base = {"profile": "beckhoff", "host": "h", "offset_address": "G.a", "speed_address": "G.b"}
+    default = p.describe(None, adapter_settings(base), True)
+    assert "GVL_Thermo.nLifeCounter" in default and "GVL_Thermo.bCompValid" in default
+    own = adapter_settings({**base, "life_address": "MAIN.nBeat", "valid_address": "MAIN.bOk"})
+    text = p.describe(None, own, True)
+    assert "life_address = 'MAIN.nBeat', valid_address = 'MAIN.bOk'" in text
+    assert "GVL_Thermo" not in text
+    off = adapter_settings({**base, "life_address": "", "valid_address": ""})
+    text = p.describe(None, off, False)
+    assert "sign of life: off" in text and "GVL_Thermo" not in text
+    # without settings (thermocomp controls): the route's defaults
+    assert "CompensationValid" in PROFILES["virtual"].describe()
+    assert "valid_macro = 503" in PROFILES["fanuc"].describe()
+
+
+def test_the_virtual_profile_names_its_presets_own_sign_of_life() -> None:
+    from cnc_adapters.opcua import PRESETS
+
+    route = PROFILES["virtual"].route()
+    for key in ("life_node", "valid_node"):
+        assert route.adapter[key] == PRESETS[route.adapter["preset"]][key]
+
+
+def test_run_check_prints_the_sign_of_life_the_link_writes_and_names_the_options_when_off(
+    tmp_path: Any, calibrated_model: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`run --check` with the virtual profile on the virtual CNC: the preset's nodes; the
+    configured ones; off, with a warning naming the two options and the virtual CNC's page."""
+    from machine_sim import SpindlePlant, preset
+    from machine_sim.vcnc import VirtualCNC, VirtualMachine, running, step
+    from thermocomp.runtime.checks import check
+
+    vm = VirtualMachine(SpindlePlant(preset("motorized-27k")), None, clock=lambda: 0.0)
+    variants = {
+        "default": "",
+        "own": f', life_node = "{node("OtherCounter")}", valid_node = "{node("OtherFlag")}"',
+        "off": ', life_node = "", valid_node = ""',
+    }
+    out = {}
+    with running(VirtualCNC(vm, tick_s=None)) as cnc:
+        step(cnc)
+        for name, life in variants.items():
+            cfg = tmp_path / f"{name}.toml"
+            cfg.write_text(
+                f'state_dir = "{tmp_path / "state"}"\n[[spindle]]\nname = "s1"\n'
+                f'model = "{calibrated_model}"\n'
+                f'adapter = {{profile = "virtual", url = "{cnc.url}"{life}}}\n'
+            )
+            assert check(str(cfg)) == 0
+            out[name] = capsys.readouterr().out
+    profile_line = {
+        k: next(x for x in v.splitlines() if x.startswith("s1: profile virtual"))
+        for k, v in out.items()
+    }
+    assert "LifeCounter" in profile_line["default"], profile_line["default"]
+    assert "OtherCounter" in profile_line["own"] and "OtherFlag" in profile_line["own"]
+    assert "/Spindle1/LifeCounter" not in profile_line["own"]
+    assert "sign of life: off" in profile_line["off"]
+    assert "LifeCounter" not in profile_line["off"]
+    warning = (
+        "s1: warning: the control cannot tell when thermocomp stops: set life_node and "
+        "valid_node (docs/reference/virtual-machine-tool.md)"
+    )
+    assert warning in out["off"].splitlines()
+    assert warning not in out["default"] and warning not in out["own"]
+
+
+@pytest.mark.parametrize(
+    ("cfg", "says"),
+    [
+        ({"type": "focas", "host": "h"}, "set life_macro and valid_macro (docs/controls/fanuc.md)"),
+        (
+            {
+                "type": "plc",
+                "protocol": "s7",
+                "host": "h",
+                "offset_address": "DB1.DBD0",
+                "speed_address": "DB1.DBD4",
+            },
+            "set life_address and valid_address (docs/controls/plc.md)",
+        ),
+        ({"type": "haas-mdc", "host": "h"}, "set life_var and valid_var (docs/controls/haas.md)"),
+        (
+            {
+                "type": "opcua",
+                "url": "opc.tcp://h:4840",
+                "offset_node": "ns=2;s=A",
+                "speed_node": "ns=2;s=B",
+            },
+            "set life_node and valid_node (docs/controls/index.md)",
+        ),
+    ],
+)
+def test_the_no_sign_of_life_warning_names_the_backends_two_options(
+    cfg: dict[str, Any], says: str, calibrated_model: Any, tmp_path: Any
+) -> None:
+    from thermocomp.runtime.checks import life_check
+    from thermocomp.runtime.config import SpindleConfig
+
+    sc = SpindleConfig.model_validate(
+        {"name": "s1", "model": str(calibrated_model), "adapter": cfg}
+    )
+    link = open_adapter(cfg)  # not connected: the warning needs none
+    assert (
+        life_check(sc, link)
+        == f"s1: warning: the control cannot tell when thermocomp stops: {says}"
+    )
+
+
+def test_a_long_sign_of_life_refusal_keeps_its_status_code_and_hint_in_the_event() -> None:
+    """A long URL and node id before the status code: the failure's reason, the event's msg and
+    its error field keep the code and the hint after it whole."""
+    import json
+    import logging
+
+    from cnc_adapters import Failure, WriteRejectedError
+    from thermocomp.runtime.events import JsonLines, event
+
+    reason = (
+        f"opcua write life counter node ns=2;s={SPINDLE}LifeCounter at "
+        "opc.tcp://cnc-hall2-machine17.example.com:4840/freeopcua/server/: BadUserAccessDenied "
+        '(check life_node; life_node = "" turns the sign of life off)'
+    )
+    assert len(reason) > 200
+    failure = Failure.of(WriteRejectedError(reason))
+    assert failure.reason == reason
+    records: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    log = logging.getLogger("thermocomp.runtime")
+    keep = Keep()
+    log.addHandler(keep)
+    try:
+        event(
+            "sign_of_life_failed",
+            "s1",
+            "%s: SIGN_OF_LIFE: the sign of life is not written (%s); the offset is, but "
+            "the control's watch sees the counter stop at %d",
+            "s1",
+            failure.reason,
+            7,
+            level=logging.ERROR,
+            error=failure.reason,
+        )
+    finally:
+        log.removeHandler(keep)
+    out = json.loads(JsonLines().format(records[-1]))
+    assert out["error"] == reason
+    assert f"({reason})" in out["msg"] and "characters cut" not in out["msg"]

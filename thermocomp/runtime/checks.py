@@ -9,8 +9,9 @@ import json
 import math
 
 from cnc_adapters import BACKENDS, open_adapter
-from cnc_adapters.base import Adapter
+from cnc_adapters.base import Adapter, query_params
 from cnc_adapters.chiller import open_chiller
+from cnc_adapters.control_profiles import adapter_settings, profile
 from compensator.errors import ConfigError, ControlError
 from compensator.io import load_any_model
 from compensator.modelbase import range_share_refusal
@@ -78,24 +79,52 @@ FAMILY_DOCS = {
 """A link's backend -> its control family's page in ``docs/controls/`` (the others: the index)."""
 
 
+LIFE_OPTIONS = {
+    "opcua": "life_node and valid_node",
+    "modbus": "life_register and valid_register",
+    "plc": "life_address and valid_address",
+    "focas": "life_macro and valid_macro",
+    "haas": "life_var and valid_var",
+    "haas-mdc": "life_var and valid_var",
+    "line": "life_request",
+}
+"""A link's backend -> the options that name its sign of life."""
+
+
+def _backend(link: Adapter) -> str:
+    spec = f"{type(link).__module__}:{type(link).__name__}"
+    return next((name for name, where in BACKENDS.items() if where == spec), "")
+
+
 def family_doc(sc: SpindleConfig, link: Adapter) -> str:
     """The page of the control family a spindle's link drives: its profile's, else its
     backend's family, else the index of the families."""
     if sc.profile is not None:
         return sc.profile.doc
-    spec = f"{type(link).__module__}:{type(link).__name__}"
-    kind = next((name for name, where in BACKENDS.items() if where == spec), "")
-    return f"docs/controls/{FAMILY_DOCS.get(kind, 'index')}.md"
+    if sc.adapter.get("preset") == "virtual-cnc":  # the virtual CNC's, without its profile
+        return profile("virtual").doc
+    return f"docs/controls/{FAMILY_DOCS.get(_backend(link), 'index')}.md"
 
 
 def life_check(sc: SpindleConfig, link: Adapter) -> str | None:
-    """A warning where the link writes no sign of life: the control cannot watch the service."""
+    """A warning where the link writes no sign of life: the control cannot watch the service;
+    it names the backend's options that would write one, and the page of its recipe."""
     if link.capabilities.life_sign:
         return None
+    options = LIFE_OPTIONS.get(_backend(link))
+    fix = f"set {options}" if options else "this link writes none"
     return (
-        f"{sc.name}: warning: the control cannot tell when thermocomp stops; see "
-        f"{family_doc(sc, link)}"
+        f"{sc.name}: warning: the control cannot tell when thermocomp stops: {fix} "
+        f"({family_doc(sc, link)})"
     )
+
+
+def life_settings(sc: SpindleConfig) -> dict[str, object]:
+    """The spindle's adapter settings as the link gets them (a profile's route merged, a URL's
+    query under the keys given): what ``run --check`` says its sign of life is."""
+    settings = adapter_settings(sc.adapter)
+    url = settings.get("url")
+    return {**query_params(url), **settings} if isinstance(url, str) else settings
 
 
 def check(config_path: str) -> int:
@@ -122,6 +151,7 @@ def check(config_path: str) -> int:
                 extra += f", holds offset {link.read_offset_um():.3f} um"
             extra += "; " + shaping_check(sc, link)
             life = life_check(sc, link)
+            writes_life = link.capabilities.life_sign
             # looked up, not written: the offset goes without them, the control's watch does not
             life_problems = link.life_problems()
         print(f"{sc.name}: model {model.form} ({sc.model}), link ok, speed {speed:.0f} rpm{extra}")
@@ -135,7 +165,8 @@ def check(config_path: str) -> int:
                 if sc.shaping.resolution_um
                 else ""
             )
-            print(f"{sc.name}: {sc.profile.describe(sc.route)}{res}")
+            described = sc.profile.describe(sc.route, life_settings(sc), writes_life)
+            print(f"{sc.name}: {described}{res}")
             ctl = sc.profile.control_rate_um_per_s
             if ctl is not None and ctl < sc.shaping.rate_limit_um_per_s:
                 print(

@@ -11,6 +11,7 @@ import json
 import logging
 from typing import Any
 
+from cnc_adapters.reading import REASON_CHARS
 from compensator.errors import clip
 
 log = logging.getLogger("thermocomp.runtime")
@@ -116,7 +117,8 @@ class JsonLines(logging.Formatter):
             if spindle is not None:
                 out["spindle"] = spindle
             for k, v in (getattr(record, "fields", None) or {}).items():
-                out.setdefault(k, clip(v, 200) if isinstance(v, str) else v)
+                # a failure's reason whole: its status code and hint come last
+                out.setdefault(k, clip(v, REASON_CHARS) if isinstance(v, str) else v)
         if record.exc_info:
             out["exc"] = clip(
                 self.formatException(record.exc_info).splitlines()[-1], self.MAX_MESSAGE
