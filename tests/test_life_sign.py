@@ -134,7 +134,9 @@ def ua_controller() -> Iterator[UaController]:
             nodes[name] = var
 
         async def count(event: Any, _dispatcher: Any) -> None:
-            writes.append([w.NodeId.to_string() for w in event.request_params.NodesToWrite])
+            ids = [w.NodeId for w in event.request_params.NodesToWrite]
+            if any(i.NamespaceIndex == ns for i in ids):  # not the server's own status updates
+                writes.append([i.to_string() for i in ids])
 
         server.subscribe_server_callback(CallbackType.PostWrite, count)
         await server.start()
