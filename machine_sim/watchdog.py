@@ -10,6 +10,8 @@ virtual machine's simulated time, never the wall clock):
   armed until the control restarts.
 - **ok**: the counter moved within ``timeout_s`` and the flag is true.
 - **stale**: the counter has not moved for ``timeout_s`` (thermocomp died, hangs or lost the link).
+  ``timeout_s`` is machine time; a machine that runs faster than the wall clock takes 3 s of
+  wall time by default (:func:`default_timeout_s`), as a real control would.
 - **invalid**: the flag is false (thermocomp stopped cleanly, holds, or knows its offset is
   wrong): the control reacts at once, whatever the counter does.
 
