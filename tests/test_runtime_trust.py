@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cnc_adapters.reading import REASON_CHARS
 from compensator import ConfigError
 from compensator.io import read_run_log, save_model
 from compensator.model import ThermalModel
@@ -302,4 +303,4 @@ def test_events_are_json_lines_with_their_fields_and_short_messages():
     rec.event, rec.spindle, rec.fields = "outage", "s1", {"down_s": 12.5, "error": "e" * 5000}
     out = json.loads(fmt.format(rec))
     assert out["event"] == "outage" and out["spindle"] == "s1" and out["down_s"] == 12.5
-    assert len(out["msg"]) <= JsonLines.MAX_MESSAGE and len(out["error"]) <= 200
+    assert len(out["msg"]) <= JsonLines.MAX_MESSAGE and len(out["error"]) <= REASON_CHARS
