@@ -251,7 +251,7 @@ def test_a_probe_cycle_drifting_through_the_controllers_nodes_is_bounded_too(
                 call(cnc, cnc.tick)  # the virtual CNC publishes, then the runtime reads
                 rt.cycle()
 
-            for _ in range(3000):
+            for _ in range(600):  # a minute warm: any start will do, the attack is relative
                 t[0] += 0.1
                 rt.cycle()
             start = rt.estimate_um()
