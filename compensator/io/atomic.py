@@ -91,21 +91,45 @@ def write_text(path: str | os.PathLike[str], text: str, *, overwrite: bool = Tru
     return target
 
 
-def read_regular(path: str | os.PathLike[str], limit: int | None = None) -> bytes:
-    """The bytes of a regular file (at most ``limit + 1`` of them, so that a caller can tell a
-    file over its limit). Anything else (a FIFO, a device, a directory) is an ``OSError`` at
-    once: the file is opened without blocking, so a FIFO that no one writes cannot hang a start."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+NOT_FOLLOWED = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+NOT_FOLLOWED |= getattr(os, "O_CLOEXEC", 0)
+"""Flags of a file that is never followed nor waited on: a link is refused, a FIFO opens
+without blocking."""
+
+
+def open_regular(path: str | os.PathLike[str], flags: int, *, follow: bool = False) -> int:
+    """A descriptor of the regular file ``path`` (``flags`` as for :func:`os.open`, created with
+    mode 0666 less the umask). Anything planted in its place is an ``OSError`` naming it: a
+    symbolic link unless ``follow`` (a journal would write, or cut, whatever it points to), a
+    FIFO (opened without blocking, so none can hang a cycle) or a device."""
+    extra = NOT_FOLLOWED if not follow else NOT_FOLLOWED & ~getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags | extra, 0o666)
+    except OSError as err:
+        if err.errno == errno.ELOOP or (err.errno == errno.ENXIO and Path(path).is_fifo()):
+            raise _not_regular(path, follow) from err
+        raise
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise OSError(errno.EINVAL, "not a regular file", os.fspath(path))
+            raise _not_regular(path, follow)
         os.set_blocking(fd, True)
-        with os.fdopen(fd, "rb") as fh:
-            fd = -1  # the file object closes it
-            return fh.read(-1 if limit is None else limit + 1)
-    finally:
-        if fd >= 0:
-            os.close(fd)
+    except OSError:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _not_regular(path: str | os.PathLike[str], follow: bool) -> OSError:
+    what = "a FIFO, device or directory" if follow else "a symbolic link, FIFO or device"
+    return OSError(errno.EINVAL, f"not a regular file ({what}): left alone", os.fspath(path))
+
+
+def read_regular(path: str | os.PathLike[str], limit: int | None = None) -> bytes:
+    """The bytes of a regular file, links followed (at most ``limit + 1`` of them, so that a
+    caller can tell a file over its limit). Anything else (a FIFO, a device, a directory) is an
+    ``OSError`` at once (:func:`open_regular`): a FIFO that no one writes cannot hang a start."""
+    with os.fdopen(open_regular(path, os.O_RDONLY, follow=True), "rb") as fh:
+        return fh.read(-1 if limit is None else limit + 1)
 
 
 def read_text(path: str | os.PathLike[str], limit: int | None = None) -> str:

@@ -23,8 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..errors import ConfigError, ModelFileError
 from ..fitrecord import fit_of
-from .atomic import atomic_write, read_regular
-from .journal import open_regular
+from .atomic import atomic_write, open_regular, read_regular
 from .modelfile import load_any_model, model_digest
 
 HISTORY_FORMAT: Final = "thermocomp.model-history/1"

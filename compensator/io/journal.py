@@ -24,17 +24,16 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import errno
 import logging
 import math
 import os
-import stat
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from ..errors import ConfigError
+from .atomic import NOT_FOLLOWED, open_regular
 from .runlog import header_text
 
 log = logging.getLogger("thermocomp.journal")
@@ -315,37 +314,6 @@ def _word(text: str, also: str = "-_") -> str:
     return "".join(c for c in text if c.isalnum() or c in also)[:40]
 
 
-_NOT_FOLLOWED = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
-_NOT_FOLLOWED |= getattr(os, "O_CLOEXEC", 0)
-
-
-def open_regular(path: Path, flags: int) -> int:
-    """A descriptor of the regular file ``path`` (``flags`` as for :func:`os.open`, created with
-    mode 0666 less the umask). Anything planted in its place is an ``OSError`` naming it, never
-    followed: a symbolic link (the journal would write, or cut, whatever it points to), a FIFO
-    (opened without blocking, so none can hang a cycle) or a device."""
-    try:
-        fd = os.open(path, flags | _NOT_FOLLOWED, 0o666)
-    except OSError as err:
-        if err.errno == errno.ELOOP or (err.errno == errno.ENXIO and path.is_fifo()):
-            raise _not_regular(path) from err
-        raise
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise _not_regular(path)
-        os.set_blocking(fd, True)
-    except OSError:
-        os.close(fd)
-        raise
-    return fd
-
-
-def _not_regular(path: Path) -> OSError:
-    return OSError(
-        errno.EINVAL, "not a regular file (a symbolic link, FIFO or device): left alone", str(path)
-    )
-
-
 def _header(path: Path) -> str | None:
     """The column line of an existing run log, or None (missing, empty or not a regular file)."""
     try:
@@ -559,7 +527,7 @@ def _keep_aside(path: Path, offset: int, data: bytes) -> Path:
     for k in range(1, 10):
         aside = path.with_name(name if k == 1 else f"{name}.{k}")
         try:
-            fd = os.open(aside, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOT_FOLLOWED, 0o666)
+            fd = os.open(aside, os.O_WRONLY | os.O_CREAT | os.O_EXCL | NOT_FOLLOWED, 0o666)
         except FileExistsError:
             continue
         except OSError:
