@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from compensator.expected import Band, ExpectedError, Figure
+from compensator.expected import COVERAGE, MIN_FORWARD_FOLDS, Band, ExpectedError, Figure
 
 PARSIMONY = 0.02
 """A simpler grid (or a larger α), or a simpler candidate, wins when its CV RMS is within 2 % of
@@ -90,18 +90,119 @@ SPEED_BANDS = 3
 
 
 MIN_BAND_ROWS = 10
+"""A region with fewer residuals than this states nothing of its own."""
+
+MIN_FOLD_ROWS = math.ceil(COVERAGE / (1 - COVERAGE))
+"""The fewest residuals whose finite-sample quantile (:func:`conformal_quantile`) is finite at
+:data:`~compensator.expected.COVERAGE`: 19 at 95 %. A fold with fewer in a region is pooled."""
 
 
-def _figure(source: str, r: np.ndarray) -> Figure | None:
+def conformal_quantile(abs_residual: np.ndarray, coverage: float = COVERAGE) -> float:
+    """The split-conformal half-width of ``n`` exchangeable |residuals| [um]: the
+    ``ceil((n + 1) * coverage)``-th smallest, so that a new residual exchangeable with them lies
+    within it with probability at least ``coverage`` (Vovk et al. 2005; Lei et al. 2018). inf
+    when ``n`` is too small for the level (fewer than :data:`MIN_FOLD_ROWS` at 95 %)."""
+    r = np.sort(np.abs(np.asarray(abs_residual, float)))
+    r = r[np.isfinite(r)]
+    k = math.ceil((r.size + 1) * coverage)
+    return float(r[k - 1]) if 0 < k <= r.size else math.inf
+
+
+def fold_quantile(
+    groups: Sequence[np.ndarray], coverage: float = COVERAGE
+) -> tuple[float, int] | None:
+    """The 95 % half-width [um] of residuals grouped by fold, and the folds behind it; None when
+    fewer than :data:`~compensator.expected.MIN_FORWARD_FOLDS` folds hold
+    :data:`MIN_FOLD_ROWS` residuals each.
+
+    The rows of one fold follow one another and err together: pooled, they would count as many
+    independent draws, and the quantile of the pool holds on average over folds but not on the
+    next one. So each fold gives its own conformal half-width (:func:`conformal_quantile`), and
+    the folds are taken as the exchangeable units: the ``ceil((m + 1) * coverage)``-th smallest
+    of the ``m`` fold half-widths, which is the worst fold below 19 folds. The next fold's own
+    95 % half-width exceeds it with probability at most ``1 / (m + 1)``."""
+    qs = sorted(
+        conformal_quantile(g, coverage) for g in groups if np.isfinite(g).sum() >= MIN_FOLD_ROWS
+    )
+    m = len(qs)
+    if m < MIN_FORWARD_FOLDS:
+        return None
+    return qs[min(m, math.ceil((m + 1) * coverage)) - 1], m
+
+
+def _groups(r: np.ndarray, keys: np.ndarray) -> list[np.ndarray]:
+    fin = np.isfinite(r)
+    return [r[fin & (keys == k)] for k in np.unique(keys[fin])]
+
+
+def _forward_figure(
+    source: str,
+    r: np.ndarray,
+    keys: np.ndarray | None,
+    widen: Figure | None = None,
+    folds: int = 0,
+) -> Figure | None:
+    """The region's figure from the forward residuals ``r`` (NaN: not in it) grouped by fold
+    ``keys``: per fold (:func:`fold_quantile`); where too few folds hold enough residuals, the
+    pooled figure ``widen`` (all speeds) widened to the region's own largest |residual|, with
+    the region's folds; None below :data:`MIN_BAND_ROWS` residuals or without either. Without
+    ``keys`` (the folds unknown) the pooled conformal quantile, said to rest on ``folds``."""
+    fin = np.isfinite(r)
+    if fin.sum() < MIN_BAND_ROWS:
+        return None
+    rf = r[fin]
+    rms = round(float(np.sqrt(np.mean(rf * rf))), 4)
+    if keys is None:
+        q = conformal_quantile(rf)
+        return Figure(
+            source=f"{source}, pooled",
+            samples=int(rf.size),
+            rms_um=rms,
+            p95_abs_um=round(q if math.isfinite(q) else float(np.max(np.abs(rf))), 4),
+            folds=folds,
+        )
+    got = fold_quantile(_groups(r, keys))
+    if got is not None:
+        q, m = got
+        return Figure(
+            source=f"{source}, per fold",
+            samples=int(rf.size),
+            rms_um=rms,
+            p95_abs_um=round(q, 4),
+            folds=m,
+        )
+    if widen is None:
+        return None
+    return Figure(
+        source=f"{source}, all speeds widened",
+        samples=int(rf.size),
+        rms_um=rms,
+        p95_abs_um=round(max(widen.p95_abs_um, float(np.max(np.abs(rf)))), 4),
+        folds=min(len(np.unique(keys[fin])), widen.folds or 0),
+    )
+
+
+def _held_figure(r: np.ndarray) -> Figure | None:
     r = r[np.isfinite(r)]
     if r.size < MIN_BAND_ROWS:
         return None
+    q = conformal_quantile(r)
     return Figure(
-        source=source,
+        source="held out",
         samples=int(r.size),
         rms_um=round(float(np.sqrt(np.mean(r * r))), 4),
-        p95_abs_um=round(float(np.quantile(np.abs(r), 0.95)), 4),
+        p95_abs_um=round(float(np.max(np.abs(r))) if not math.isfinite(q) else q, 4),
+        folds=0,
     )
+
+
+def fold_keys(size: int, folds: Sequence[tuple[int, int]]) -> np.ndarray:
+    """Per row, the index of the fold (half-open row range) that holds it; -1 outside every
+    fold (one group of its own)."""
+    keys = np.full(size, -1, int)
+    for i, (a, b) in enumerate(folds):
+        keys[a:b] = i
+    return keys
 
 
 def expected_error(
@@ -113,18 +214,26 @@ def expected_error(
     *,
     forward_folds: int = 0,
     idle_rpm: float = 1.0,
+    folds: Sequence[tuple[int, int]] | None = None,
 ) -> ExpectedError | None:
     """The error a model can be expected to make, by operating region
-    (:class:`compensator.expected.ExpectedError`): RMS and the 95th percentile of |residual|
+    (:class:`compensator.expected.ExpectedError`): RMS and the 95 % half-width of |residual|
     [um] at rest and in :data:`SPEED_BANDS` bands of the calibrated speed range, inside the
-    trained input range and outside it. ``forward`` (rolling origin) and ``held_out`` residuals
-    took no part in the fit that made them (NaN on the rows not predicted); ``distance`` is how
-    far the inputs of each forward row lay outside the range its past saw.
+    trained input range and outside it. ``forward`` residuals (rolling origin: each predicted by
+    a model fitted on the rows before it, NaN on the rows not predicted) state it; ``folds``
+    (half-open row ranges, the cycles) group them, since one fold's rows err together;
+    ``distance`` is how far the inputs of each forward row lay outside the range its past saw.
+    Without ``folds`` the residuals are pooled (each region's conformal quantile, said to rest
+    on ``forward_folds``).
 
-    Inside, a band states the larger of the two figures that have :data:`MIN_BAND_ROWS` there:
-    the forward one holds what the future brings, the held-out one covers the bands the
-    forward splits never reached. Outside, the forward rows that left their range state it,
-    the band's own where it has enough, else all speeds pooled. None when no band is covered."""
+    A region's half-width is the split-conformal quantile per fold, the worst fold when folds
+    are few (:func:`fold_quantile`). A speed band whose folds hold too few residuals each takes
+    the figure pooled over all speeds, widened to its own largest residual; one with fewer than
+    :data:`MIN_BAND_ROWS` forward residuals states no validated figure. Speeds above the fastest
+    a forward residual was measured at are not validated (``measured_rpm``). ``held_out``
+    residuals (past cycles predicted from the others) state a band only where no forward one
+    does, and never as validated (a floor): held out, past cycles understated the next cycle's
+    error many-fold. None when no band has residuals."""
     n = np.abs(np.asarray(speed_rpm, float))
     nan = np.full(n.shape, np.nan)
     fwd = nan if forward is None else np.asarray(forward, float)
@@ -134,43 +243,44 @@ def expected_error(
         if distance is None
         else np.nan_to_num(np.asarray(distance, float), nan=0.0)
     )
+    keys = None if folds is None else fold_keys(n.size, folds)
     out_rows = dist > 0
-    pooled = _figure("forward, outside, all speeds", np.where(out_rows, fwd, np.nan))
+    f = forward_folds
+    pooled_in = _forward_figure("forward", np.where(~out_rows, fwd, np.nan), keys, None, f)
+    pooled_out = _forward_figure("forward, outside", np.where(out_rows, fwd, np.nan), keys, None, f)
     edges = np.linspace(0.0, max(top_rpm, idle_rpm), SPEED_BANDS + 1)
     regions = [(0.0, idle_rpm, n <= idle_rpm)]
     for lo, hi in itertools.pairwise(edges):
         regions.append((max(lo, idle_rpm), float(hi), (n > max(lo, idle_rpm)) & (n <= hi)))
     bands = []
     for lo, hi, inside in regions:
-        figs = [
-            f
-            for f in (
-                _figure("forward", np.where(inside & ~out_rows, fwd, np.nan)),
-                _figure("held out", np.where(inside, held, np.nan)),
-            )
-            if f is not None
-        ]
-        if not figs:
+        fig = _forward_figure(
+            "forward", np.where(inside & ~out_rows, fwd, np.nan), keys, pooled_in, f
+        ) or _held_figure(np.where(inside, held, np.nan))
+        if fig is None:
             continue
-        worst = max(figs, key=lambda f: f.p95_abs_um)
-        outside = _figure("forward, outside", np.where(inside & out_rows, fwd, np.nan)) or pooled
+        outside = _forward_figure(
+            "forward, outside", np.where(inside & out_rows, fwd, np.nan), keys, pooled_out, f
+        )
         bands.append(
             Band(
                 speed_rpm=(round(float(lo), 1), round(float(hi), 1)),
-                source=worst.source,
-                samples=worst.samples,
-                rms_um=worst.rms_um,
-                p95_abs_um=worst.p95_abs_um,
+                source=fig.source,
+                samples=fig.samples,
+                rms_um=fig.rms_um,
+                p95_abs_um=fig.p95_abs_um,
                 outside=outside,
+                folds=fig.folds,
             )
         )
     if not bands:
         return None
-    seen = dist[np.isfinite(fwd)]
+    seen = np.isfinite(fwd)
     return ExpectedError(
         bands=tuple(bands),
-        outside_validated=round(float(seen.max()), 4) if seen.size else 0.0,
+        outside_validated=round(float(dist[seen].max()), 4) if seen.any() else 0.0,
         forward_folds=forward_folds,
+        measured_rpm=round(float(n[seen].max()), 1) if seen.any() else 0.0,
     )
 
 
@@ -212,6 +322,12 @@ def against_expected(
                 "validated_samples": int((sel & valid).sum()),
                 "rms_um": float(np.sqrt(np.mean(r[sel] ** 2))),
                 "within_p95": float(np.mean(np.abs(r[sel]) <= bound[sel])),
+                # the promise is where validation measured: the rest is a floor
+                "within_p95_validated": (
+                    float(np.mean(np.abs(r[sel & valid]) <= bound[sel & valid]))
+                    if (sel & valid).any()
+                    else None
+                ),
             }
         )
     return out

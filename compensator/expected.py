@@ -8,6 +8,16 @@ raises an alarm when it exceeds a configured bound; replay sets a log's errors b
 The distance outside the trained range (:func:`distance_outside`) is measured in spans of that
 range, the largest over the inputs: 0 inside, 1 one whole span beyond an end (where the model's
 valid range ends and a value is taken for a sensor fault).
+
+A band's 95 % half-width is calibrated on forward residuals (split conformal prediction, taken
+per fold because the rows of one fold are not independent; ``calibration.metrics``). A band
+states a validated figure only where forward residuals were measured: a speed above the fastest
+the calibration measured at (a model fitted on measurements at rest, say) is "not validated at
+speed", and its figure, if any, is a floor.
+
+Formats: ``thermocomp.expected-error/2`` adds, per band and outside figure, the folds behind it,
+and the fastest speed the forward residuals were measured at; ``/1`` records read as they always
+did (every band validated by the statement's fold count, up to its top band's speed).
 """
 
 from __future__ import annotations
@@ -22,7 +32,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .units import RANGE_TOLERANCE
 
-EXPECTED_FORMAT: Final = "thermocomp.expected-error/1"
+EXPECTED_FORMAT: Final = "thermocomp.expected-error/2"
+EXPECTED_FORMAT_1: Final = "thermocomp.expected-error/1"
+"""The first format: no folds per band, no measured speed (still read)."""
+
+COVERAGE: Final = 0.95
+"""The share of errors a band states to hold."""
 
 MIN_FORWARD_FOLDS = 2
 """A statement from fewer folds predicted forward is not validated: held-out past cycles alone
@@ -51,6 +66,11 @@ class Figure(BaseModel):
     samples: int = Field(ge=1)
     rms_um: float = Field(ge=0)
     p95_abs_um: float = Field(ge=0)
+    folds: int | None = Field(
+        None,
+        ge=0,
+        description="folds predicted forward behind it (None: the statement's forward_folds)",
+    )
 
 
 class Band(BaseModel):
@@ -67,6 +87,11 @@ class Band(BaseModel):
     rms_um: float = Field(ge=0)
     p95_abs_um: float = Field(ge=0)
     outside: Figure | None = Field(None, description="with the inputs outside the trained range")
+    folds: int | None = Field(
+        None,
+        ge=0,
+        description="folds predicted forward behind it (None: the statement's forward_folds)",
+    )
 
     @property
     def label(self) -> str:
@@ -87,6 +112,16 @@ class Expectation:
     validated: bool
     """Validation scored predictions like this one (:meth:`ExpectedError.validated`; False: the
     figure is a floor, not a measure)."""
+    unvalidated: str | None = None
+    """Where it is not validated, in a few words: ``at speed``, ``outside the trained range``."""
+
+    @property
+    def claim(self) -> str:
+        """What a display says: the figure where validated, else that it is not validated (a
+        floor is no promise)."""
+        if self.validated:
+            return f"expect ±{self.p95_abs_um:.1f} µm (95 %)"
+        return "not validated" + (f" {self.unvalidated}" if self.unvalidated else "")
 
 
 class ExpectedError(BaseModel):
@@ -94,7 +129,7 @@ class ExpectedError(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    format: Literal["thermocomp.expected-error/1"] = EXPECTED_FORMAT
+    format: Literal["thermocomp.expected-error/1", "thermocomp.expected-error/2"] = EXPECTED_FORMAT
     bands: tuple[Band, ...] = Field(min_length=1)
     outside_validated: float = Field(
         0.0,
@@ -102,17 +137,73 @@ class ExpectedError(BaseModel):
         description="largest distance outside the trained range that validation scored, in spans",
     )
     forward_folds: int = Field(0, ge=0, description="folds predicted forward behind the statement")
+    measured_rpm: float | None = Field(
+        None,
+        ge=0,
+        description="the fastest |speed| a forward residual was measured at; above it the "
+        "statement is not validated (None: the top band's speed, as older records)",
+    )
+
+    def _folds(self, own: int | None) -> int:
+        return self.forward_folds if own is None else own
+
+    @property
+    def measured_top_rpm(self) -> float:
+        """The fastest speed validation measured at (older records: the top band's)."""
+        return self.bands[-1].speed_rpm[1] if self.measured_rpm is None else self.measured_rpm
+
+    def _above(self, n: np.ndarray) -> np.ndarray:
+        """Faster than validation measured at (2 % over counts as in range)."""
+        top = self.measured_top_rpm if self.measured_rpm is None else max(self.measured_rpm, 1.0)
+        above: np.ndarray = n > top * (1 + RANGE_TOLERANCE)
+        return above
 
     def validated(self, speed_rpm: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
-        """Per row, whether validation scored predictions like it: enough folds predicted
-        forward (:data:`MIN_FORWARD_FOLDS`), a speed within the calibrated range and inputs no
-        farther out than validation reached. Elsewhere the stated figure is a floor."""
+        """Per row, whether validation scored predictions like it: the row's band (and, with the
+        inputs outside the trained range, its outside figure) rests on enough folds predicted
+        forward (:data:`MIN_FORWARD_FOLDS`), the speed is no faster than validation measured at
+        and the inputs no farther out than it reached. Elsewhere the stated figure is a floor."""
         n = np.abs(np.asarray(speed_rpm, float))
-        ok = n <= self.bands[-1].speed_rpm[1] * (1 + RANGE_TOLERANCE)
+        which = self.band_index(n)
+        ok = ~self._above(n) & self._in_band(n, which)
+        ok &= np.array([self._folds(b.folds) >= MIN_FORWARD_FOLDS for b in self.bands])[which]
         if distance is not None:
-            ok &= np.nan_to_num(np.asarray(distance, float)) <= self.outside_validated
+            d = np.nan_to_num(np.asarray(distance, float))
+            ok &= d <= self.outside_validated
+            if self.format != EXPECTED_FORMAT_1:  # older records: the band's figure covers it
+                out_ok = np.array(
+                    [
+                        b.outside is not None and self._folds(b.outside.folds) >= MIN_FORWARD_FOLDS
+                        for b in self.bands
+                    ]
+                )[which]
+                ok &= (d <= 0) | out_ok
         valid: np.ndarray = ok & (self.forward_folds >= MIN_FORWARD_FOLDS)
         return valid
+
+    def _in_band(self, n: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Whether each speed lies in the band it was given (not in a band left out, nor above
+        the top one)."""
+        if self.format == EXPECTED_FORMAT_1:  # older records: a gap took the top band's figure
+            return np.ones(n.shape, bool)
+        lo, hi = self._edges
+        inside: np.ndarray = (n <= hi[which]) & ((n > lo[which]) | (lo[which] == 0.0))
+        # above the top band only the speed check (measured_rpm, 2 % over) speaks
+        out: np.ndarray = inside | (n > hi[-1])
+        return out
+
+    def unvalidated_where(self, speed_rpm: float, spans: float) -> str | None:
+        """Where a prediction is not validated, in a few words (None: validated)."""
+        n = np.array([speed_rpm])
+        if bool(self.validated(n, np.array([spans]))[0]):
+            return None
+        if (self.measured_rpm is not None and bool(self._above(np.abs(n))[0])) or not bool(
+            self._in_band(np.abs(n), self.band_index(n))[0]
+        ):
+            return "at speed" if abs(speed_rpm) > 1.0 else "at rest"
+        if spans > 0 and bool(self.validated(n, np.array([0.0]))[0]):
+            return "outside the trained range"
+        return None
 
     def why_unvalidated(self, speed_rpm: float, spans: float) -> list[str]:
         """Why validation scored no prediction like this one (:meth:`validated`), in words."""
@@ -121,14 +212,38 @@ class ExpectedError(BaseModel):
             why.append(
                 f"the fit predicted {self.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}"
             )
+        n = abs(speed_rpm)
         top = self.bands[-1].speed_rpm[1]
-        if abs(speed_rpm) > top * (1 + RANGE_TOLERANCE):
-            why.append(f"{abs(speed_rpm):.0f} rpm is above the calibrated {top:.0f} rpm")
+        if self.measured_rpm is None:
+            if n > top * (1 + RANGE_TOLERANCE):
+                why.append(f"{n:.0f} rpm is above the calibrated {top:.0f} rpm")
+        elif bool(self._above(np.array([n]))[0]):
+            where = (
+                "at rest only" if self.measured_rpm <= 1.0 else f"up to {self.measured_rpm:.0f} rpm"
+            )
+            why.append(f"not validated at speed: the calibration measured the error {where}")
+        else:
+            b = self.band_of(speed_rpm)
+            if not bool(self._in_band(np.array([n]), self.band_index(np.array([n])))[0]):
+                why.append(f"no error was measured forward at {n:.0f} rpm")
+            elif (
+                self.forward_folds >= MIN_FORWARD_FOLDS and self._folds(b.folds) < MIN_FORWARD_FOLDS
+            ):
+                why.append(
+                    f"{place(b.label)} the figure rests on {self._folds(b.folds)} fold(s) predicted "
+                    f"forward ({b.source})"
+                )
         if spans > self.outside_validated:
             why.append(
                 f"inputs {spans:.2f} spans outside the trained range, further than validation "
                 f"scored ({self.outside_validated:.2f})"
             )
+        elif spans > 0 and self.format != EXPECTED_FORMAT_1:
+            b = self.band_of(speed_rpm)
+            if b.outside is None or self._folds(b.outside.folds) < MIN_FORWARD_FOLDS:
+                why.append(
+                    f"no forward fold measured the error {place(b.label)} with the inputs outside the trained range"
+                )
         return why or ["validation scored no prediction like this one"]
 
     @cached_property
@@ -174,10 +289,11 @@ class ExpectedError(BaseModel):
         trained range (:func:`distance_outside`)."""
         b = self.band_of(speed_rpm)
         ok = bool(self.validated(np.array([speed_rpm]), np.array([distance]))[0])
+        where = None if ok else self.unvalidated_where(speed_rpm, distance)
         if distance > 0 and b.outside is not None and b.outside.p95_abs_um > b.p95_abs_um:
             fig = b.outside
-            return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True, ok)
-        return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0, ok)
+            return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True, ok, where)
+        return Expectation(b.label, b.rms_um, b.p95_abs_um, b.source, distance > 0, ok, where)
 
 
 def place(label: str) -> str:

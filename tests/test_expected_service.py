@@ -107,6 +107,7 @@ def test_the_stated_error_is_in_the_status_and_the_metrics(tmp_path):
         "outside_spans": 0.0,
         "validated": True,
         "bound_um": None,
+        "claim": "expect ±9.3 µm (95 %)",
     }
     assert not any(high([row]))  # no bound configured: no alarm
     assert spindle_status(b.rt, b.t)["expected_error"] == row["expected_error"]

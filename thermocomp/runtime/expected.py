@@ -36,6 +36,9 @@ class ExpectedNow:
     outside_spans: float
     validated: bool
     bound_um: float | None
+    claim: str = ""
+    """What a display shows: ``expect ±X µm (95 %)``, or ``not validated at speed`` where
+    validation never measured (the figure is then a floor, not shown as a promise)."""
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -105,7 +108,15 @@ class ExpectedWatch:
             spans = float(est.outside_spans) if on_inputs else 0.0
             e = stated.at(speed_rpm, spans)
             out = ExpectedNow(
-                e.band, e.rms_um, e.p95_abs_um, e.source, e.outside, spans, e.validated, bound
+                e.band,
+                e.rms_um,
+                e.p95_abs_um,
+                e.source,
+                e.outside,
+                spans,
+                e.validated,
+                bound,
+                e.claim,
             )
             if bound is not None and (e.p95_abs_um > bound or not e.validated):
                 where = place(e.band)

@@ -1,0 +1,254 @@
+"""The stated error band holds what it states: the finite-sample quantile of forward residuals,
+taken per fold because one fold's rows err together; no validated figure where validation never
+measured (a model calibrated at rest says "not validated at speed", in the service as well); and
+older statements still read as they did. Synthetic residuals of known distribution; the service
+runs in lock-step on the virtual machine."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+from test_runtime_statespace import Bench, speed_only
+
+from calibration.metrics import (
+    MIN_FOLD_ROWS,
+    against_expected,
+    conformal_quantile,
+    expected_error,
+    fold_quantile,
+)
+from compensator.expected import (
+    EXPECTED_FORMAT,
+    EXPECTED_FORMAT_1,
+    ExpectedError,
+    parse_expected,
+)
+
+# -- the quantile ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [19, 40, 99])
+def test_the_conformal_quantile_holds_its_finite_sample_guarantee(n):
+    """A new draw exchangeable with n others lies within their ceil((n+1)*0.95)-th smallest
+    |value| with probability at least 95 %, and at most 95 % + 1/(n+1) (continuous draws)."""
+    rng = np.random.default_rng(n)
+    draws = np.abs(rng.standard_t(3, size=(20000, n + 1)))  # heavy tails: no normal shortcut
+    q = np.array([conformal_quantile(d[:n]) for d in draws])
+    covered = float(np.mean(draws[:, n] <= q))
+    sd = math.sqrt(0.95 * 0.05 / draws.shape[0])
+    assert 0.95 - 3 * sd <= covered <= 0.95 + 1 / (n + 1) + 3 * sd
+    # the order statistic itself
+    x = np.arange(1.0, n + 1)
+    assert conformal_quantile(-x) == x[math.ceil((n + 1) * 0.95) - 1]
+
+
+def test_too_few_residuals_state_no_finite_quantile():
+    assert MIN_FOLD_ROWS == 19
+    assert math.isinf(conformal_quantile(np.ones(MIN_FOLD_ROWS - 1)))
+    assert conformal_quantile(np.full(MIN_FOLD_ROWS, 2.0)) == 2.0
+    # a fold with fewer rows is not a fold of its own; fewer than two folds state nothing
+    big, small = np.linspace(0, 1, 50), np.ones(5)
+    assert fold_quantile([big, small]) is None
+    assert fold_quantile([big, 2 * big]) == (pytest.approx(2 * conformal_quantile(big)), 2)
+
+
+def folds_of(rng, m: int, size: int = 200, sims: int = 2000) -> np.ndarray:
+    """``sims`` runs of ``m`` folds each: every fold errs around its own offset (N(0, 1)) with
+    slow AR(1) noise (sd 0.3, 0.95 per row), so its rows are far from independent."""
+    offsets = rng.normal(0.0, 1.0, (sims, m, 1))
+    white = rng.normal(0.0, 0.3 * math.sqrt(1 - 0.95**2), (sims, m, size))
+    return offsets + lfilter([1.0], [1.0, -0.95], white, axis=-1)
+
+
+def test_per_fold_the_next_fold_holds_where_the_pooled_quantile_promises_too_much():
+    """With autocorrelated folds the pooled quantile counts every row as a draw; per fold, the
+    next fold's own 95 % half-width stays within the worst of m folds with probability at least
+    m/(m+1), and its rows are covered more often than by the pooled figure."""
+    rng = np.random.default_rng(11)
+    m = 4
+    runs = folds_of(rng, m + 1)
+    held_fold, held_pool, cov_fold, cov_pool = [], [], [], []
+    for run in runs:
+        q, used = fold_quantile(list(run[:m]))
+        assert used == m
+        qp = conformal_quantile(run[:m].ravel())
+        nxt = np.abs(run[m])
+        cov_fold.append(np.mean(nxt <= q))
+        cov_pool.append(np.mean(nxt <= qp))
+        held_fold.append(conformal_quantile(nxt) <= q)
+        held_pool.append(conformal_quantile(nxt) <= qp)
+    sd = math.sqrt(0.8 * 0.2 / len(runs))
+    assert np.mean(held_fold) >= m / (m + 1) - 3 * sd
+    assert np.mean(held_pool) < np.mean(held_fold) - 0.02
+    assert np.mean(cov_fold) > np.mean(cov_pool) + 0.02
+
+
+def test_below_nineteen_folds_the_worst_fold_states_it_above_the_order_statistic():
+    rng = np.random.default_rng(3)
+    few = [rng.normal(0, s, 60) for s in (1.0, 3.0, 2.0)]
+    q, m = fold_quantile(few)
+    assert m == 3 and q == max(conformal_quantile(f) for f in few)
+    many = [rng.normal(0, 1 + k / 10, 60) for k in range(39)]
+    q, m = fold_quantile(many)
+    per = sorted(conformal_quantile(f) for f in many)
+    assert m == 39 and q == per[37]  # ceil(40 * 0.95) = 38th of 39
+
+
+# -- the statement ---------------------------------------------------------------------------
+
+CYCLE = 600
+TOP_RPM = 24000.0
+
+
+def log_at_rest_measurements(folds: int = 4):
+    """Cycles of a staircase to 24000 rpm and a rest, measured at rest only (a contact tool
+    setter): the forward residuals exist at rest, never at speed."""
+    k = np.arange(folds * CYCLE)
+    phase = k % CYCLE
+    speed = np.where(phase < CYCLE // 2, 6000.0 * (1 + phase // 75), 0.0)
+    rng = np.random.default_rng(5)
+    residual = np.where(speed == 0.0, rng.normal(0.0, 1.0, k.size), np.nan)
+    residual[: 2 * CYCLE] = np.nan  # the first two cycles are only fitted on
+    cycles = [(i * CYCLE, (i + 1) * CYCLE) for i in range(folds)]
+    return speed, residual, cycles
+
+
+def test_a_calibration_at_rest_is_not_validated_at_speed():
+    speed, residual, cycles = log_at_rest_measurements()
+    stated = expected_error(
+        residual, None, speed, TOP_RPM, forward_folds=len(cycles) - 2, folds=cycles
+    )
+    assert stated is not None and stated.format == EXPECTED_FORMAT
+    assert [b.label for b in stated.bands] == ["at rest"] and stated.measured_rpm == 0.0
+    rest, fast = stated.at(0.0), stated.at(17600.0)
+    assert rest.validated and rest.claim == f"expect ±{rest.p95_abs_um:.1f} µm (95 %)"
+    assert not fast.validated and fast.claim == "not validated at speed"
+    assert stated.why_unvalidated(17600.0, 0.0) == [
+        "not validated at speed: the calibration measured the error at rest only"
+    ]
+    assert not stated.validated(np.array([1.5, 300.0, 17600.0])).any()
+    # the same record in the first format took the at-rest band for every speed (a floor)
+    older = ExpectedError.model_validate(
+        {**stated.model_dump(mode="json", exclude={"measured_rpm"}), "format": EXPECTED_FORMAT_1}
+    )
+    assert older.at(17600.0).p95_abs_um == rest.p95_abs_um
+
+
+def test_the_service_shows_not_validated_at_speed_instead_of_a_figure(tmp_path):
+    speed, residual, cycles = log_at_rest_measurements()
+    stated = expected_error(residual, None, speed, TOP_RPM, forward_folds=2, folds=cycles)
+    model = speed_only(spindle_id="sp-A")
+    model = model.model_copy(
+        update={"fit": {**model.fit, "expected_error": stated.model_dump(mode="json")}}
+    )
+    b = Bench(tmp_path, model)
+    row = b.run(3)[-1]
+    assert row["speed_rpm"] > 1000.0
+    ex = row["expected_error"]
+    assert ex["validated"] is False and ex["claim"] == "not validated at speed"
+    b.vm.override_speed(0.0)
+    ex = b.run(3)[-1]["expected_error"]
+    assert ex["validated"] is True and ex["claim"].startswith("expect ±")
+    b.rt.close()
+    # the status page prints the claim, not the figure, where there is one
+    page = (Path(__file__).parents[1] / "thermocomp/runtime/static/status.html").read_text()
+    assert "ex.claim ||" in page
+
+
+def test_a_speed_band_without_forward_residuals_states_no_validated_figure():
+    """Residuals at rest and up to 8000 rpm: 8000-16000 rpm has none (the fit's own held-out
+    figure stays, as a floor), and above 8000 rpm nothing is validated."""
+    n = np.tile(np.r_[np.zeros(100), np.full(100, 4000.0), np.full(100, 7900.0)], 4)
+    n_log = n.copy()
+    n_log[0] = TOP_RPM  # the log reached 24000 rpm once, unmeasured
+    rng = np.random.default_rng(9)
+    fwd = rng.normal(0, 1.0, n.size)
+    fwd[:300] = np.nan
+    fwd[0] = np.nan
+    held = rng.normal(0, 0.5, n.size)
+    cycles = [(i * 300, (i + 1) * 300) for i in range(4)]
+    stated = expected_error(fwd, held, n_log, TOP_RPM, forward_folds=3, folds=cycles)
+    assert stated.measured_rpm == 7900.0
+    assert stated.validated(np.array([0.0, 4000.0, 7900.0])).all()
+    assert not stated.validated(np.array([8100.0, 12000.0, 20000.0])).any()
+    assert stated.at(12000.0).claim == "not validated at speed"
+
+
+def test_outside_the_trained_range_only_what_forward_folds_measured_there_is_validated():
+    rng = np.random.default_rng(4)
+    n = np.full(4 * 300, 5000.0)
+    cycles = [(i * 300, (i + 1) * 300) for i in range(4)]
+    fwd = rng.normal(0, 1.0, n.size)
+    fwd[:300] = np.nan
+    inside_only = expected_error(
+        fwd, None, n, 5000.0, np.zeros(n.size), forward_folds=3, folds=cycles
+    )
+    assert inside_only.validated(np.array([5000.0]), np.array([0.0]))[0]
+    at = inside_only.at(5000.0, 0.1)
+    assert not at.validated and at.claim == "not validated outside the trained range"
+
+
+def test_forward_residuals_without_folds_are_pooled_and_the_held_out_ones_never_validate():
+    rng = np.random.default_rng(1)
+    n = np.tile(np.linspace(0, 9000, 300), 3)
+    r = rng.normal(0, 2.0, n.size)
+    pooled = expected_error(r, None, n, 9000.0, forward_folds=3)
+    which = pooled.band_index(n)
+    for k, b in enumerate(pooled.bands):
+        assert b.source == "forward, pooled" and b.folds == 3
+        assert np.mean(np.abs(r[which == k]) <= b.p95_abs_um) >= 0.95
+    held = expected_error(None, r, n, 9000.0, forward_folds=0)
+    assert {b.source for b in held.bands} == {"held out"}
+    assert not held.validated(n).any()
+
+
+def test_replay_counts_the_rows_a_validated_band_covers():
+    speed, residual, cycles = log_at_rest_measurements()
+    stated = expected_error(residual, None, speed, TOP_RPM, forward_folds=2, folds=cycles)
+    r = np.random.default_rng(2).normal(0, 1.0, speed.size)
+    rows = against_expected(stated, r, speed)
+    (rest,) = rows  # every speed above rest falls to the band at rest, never validated there
+    assert rest["validated_samples"] == int((speed == 0).sum())
+    assert rest["within_p95_validated"] is not None
+
+
+# -- older statements ------------------------------------------------------------------------
+
+FIRST_FORMAT = {
+    "format": "thermocomp.expected-error/1",
+    "bands": [
+        {"speed_rpm": [0.0, 1.0], "source": "held out", "samples": 30, "rms_um": 0.3,
+         "p95_abs_um": 0.6, "outside": None},
+        {"speed_rpm": [1.0, 4000.0], "source": "forward", "samples": 90, "rms_um": 1.1,
+         "p95_abs_um": 2.4, "outside": None},
+        {"speed_rpm": [8000.0, 12000.0], "source": "forward", "samples": 90, "rms_um": 2.1,
+         "p95_abs_um": 4.4, "outside": {"source": "forward, outside", "samples": 20,
+                                        "rms_um": 3.0, "p95_abs_um": 6.0}},
+    ],
+    "outside_validated": 0.3,
+    "forward_folds": 3,
+}  # fmt: skip
+
+
+def test_a_statement_in_the_first_format_still_loads_and_reads_as_it_did():
+    stated = parse_expected({"expected_error": FIRST_FORMAT})
+    assert stated is not None and stated.format == EXPECTED_FORMAT_1
+
+    def drop_none(v):
+        if isinstance(v, dict):
+            return {k: drop_none(x) for k, x in v.items() if x is not None}
+        return [drop_none(x) for x in v] if isinstance(v, list) else v
+
+    assert stated.model_dump(mode="json", exclude_none=True) == drop_none(FIRST_FORMAT)
+    # as before: a speed in the gap takes the top band's figure, validated up to the top band;
+    # outside the range within the distance validated, the band's outside figure
+    gap = stated.at(6000.0)
+    assert gap.p95_abs_um == 4.4 and gap.validated
+    assert stated.at(12500.0).validated is False
+    assert stated.at(10000.0, 0.2).p95_abs_um == 6.0 and stated.at(10000.0, 0.2).validated
+    assert stated.at(3000.0, 0.2).validated  # the first format had no outside figure per band
+    assert stated.at(0.0).validated  # the statement's three folds, as before
