@@ -289,20 +289,12 @@ def print_identification(result, report: dict[str, Any], out: Console) -> None:
         out.print(dt)
     expected = parse_expected(m.fit)
     if expected is not None:
-        out.print("Error to expect (free run, held out), by speed band:", markup=False)
-        for b in expected.bands:
-            far = (
-                f"; inputs outside the trained range: RMS {b.outside.rms_um:.2f} um, 95 % within "
-                f"{b.outside.p95_abs_um:.2f} um ({b.outside.source})"
-                if b.outside is not None
-                else ""
-            )
-            out.print(
-                f"  {b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
-                f"({b.source}, {b.samples} samples){far}",
-                markup=False,
-                highlight=False,
-            )
+        out.print(
+            "Error to expect (the next cycle's, measured predicting forward), by speed band:",
+            markup=False,
+        )
+        for line in expected.describe():
+            out.print(f"  {line}", markup=False, highlight=False)
     for line in m.describe():
         out.print(line, markup=False, highlight=False)
     for line in result.closed_loop.lines() if result.closed_loop is not None else ():

@@ -246,6 +246,31 @@ class ExpectedError(BaseModel):
                 )
         return why or ["validation scored no prediction like this one"]
 
+    def describe(self) -> list[str]:
+        """The statement in words, one line per band, and where it is not validated (what
+        ``thermocomp fit`` prints)."""
+        lines = []
+        for b in self.bands:
+            folds = min(self._folds(b.folds), self.forward_folds)
+            far = (
+                f"; inputs outside the trained range: RMS {b.outside.rms_um:.2f} um, 95 % within "
+                f"{b.outside.p95_abs_um:.2f} um ({b.outside.source})"
+                if b.outside is not None
+                else ""
+            )
+            floor = "" if folds >= MIN_FORWARD_FOLDS else ", not validated: a floor"
+            lines.append(
+                f"{b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
+                f"({b.source}, {b.samples} samples, {self._folds(b.folds)} fold(s){floor}){far}"
+            )
+        if self.measured_rpm is not None:
+            lines.append(
+                "validated at rest only: not validated at speed"
+                if self.measured_rpm <= 1.0
+                else f"validated up to {self.measured_rpm:.0f} rpm: not validated at speed above it"
+            )
+        return lines
+
     @cached_property
     def _edges(self) -> tuple[np.ndarray, np.ndarray]:
         # the statement is frozen and parsed once per model load; the service reads it every cycle

@@ -131,6 +131,8 @@ def test_a_calibration_at_rest_is_not_validated_at_speed():
         "not validated at speed: the calibration measured the error at rest only"
     ]
     assert not stated.validated(np.array([1.5, 300.0, 17600.0])).any()
+    # what the fit prints
+    assert stated.describe()[-1] == "validated at rest only: not validated at speed"
     # the same record in the first format took the at-rest band for every speed (a floor)
     older = ExpectedError.model_validate(
         {**stated.model_dump(mode="json", exclude={"measured_rpm"}), "format": EXPECTED_FORMAT_1}
