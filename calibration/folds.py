@@ -133,6 +133,85 @@ def forward_splits(folds: Sequence[Fold], first: int = 1) -> list[tuple[tuple[Fo
     return [(tuple(folds[:k]), folds[k]) for k in range(max(first, 1), len(folds))]
 
 
+def run_end(time_s: Any, speed_rpm: Any, fold: Fold, idle_rpm: float = IDLE_RPM) -> int | None:
+    """Where a cycle's cool-down begins: the row after its last running sample (rests shorter
+    than :data:`MIN_REST_S` bridged, as :func:`split_cycles` does). None when the cycle has no
+    run or no rest after it (the log's last cycle may end running)."""
+    a, b = fold
+    t = np.asarray(time_s, float)
+    running = np.abs(np.asarray(speed_rpm, float)[a:b]) > idle_rpm
+    if not running.any():
+        return None
+    end = a + int(np.flatnonzero(running)[-1]) + 1
+    return end if end < b and duration_s(t, end, b) >= MIN_RUN_S else None
+
+
+def halves(time_s: Any, speed_rpm: Any, folds: Sequence[Fold]) -> tuple[Fold, ...]:
+    """The folds cut where each cycle's cool-down begins (:func:`run_end`): a heat-up and its
+    cool-down, in order; a cycle without both stays whole."""
+    out: list[Fold] = []
+    for a, b in folds:
+        mid = run_end(time_s, speed_rpm, (a, b))
+        out += (
+            [(a, b)]
+            if mid is None or mid - a < MIN_FOLD_ROWS or b - mid < MIN_FOLD_ROWS
+            else [
+                (a, mid),
+                (mid, b),
+            ]
+        )
+    return tuple(out)
+
+
+Split = tuple[tuple[Fold, ...], Fold]
+"""(the past as folds, the stretch predicted)."""
+
+FORWARD_ORIGIN_RULE = (
+    "forward origins every half cycle: at each cycle's start and where its cool-down begins, "
+    "once the past holds a whole cycle and the heat-up of the next; each predicts the stretch to "
+    "the next origin in free run from the log's start, with a model chosen and fitted on the rows "
+    "before the origin only"
+)
+
+
+def forward_origins(time_s: Any, speed_rpm: Any, folds: Sequence[Fold]) -> list[Split]:
+    """Rolling origin inside cycles as well as at their boundaries (:data:`FORWARD_ORIGIN_RULE`).
+    The past of each split is its whole cycles plus, for an origin where a cool-down begins, the
+    heat-up before it as a fold of its own (a model choosing its penalty by leave-one-fold-out
+    on the past has two folds or more). Four cycles give five splits, five give seven (whole
+    cycles alone: two and three); two cycles give one, the cool-down of the second."""
+    out: list[Split] = []
+    for k, (a, b) in enumerate(folds):
+        if k == 0:
+            continue
+        past = tuple(folds[:k])
+        mid = run_end(time_s, speed_rpm, (a, b))
+        if mid is not None and (mid - a < MIN_FOLD_ROWS or b - mid < MIN_FOLD_ROWS):
+            mid = None
+        if k >= 2:
+            out.append((past, (a, mid if mid is not None else b)))
+        if mid is not None:
+            out.append(((*past, (a, mid)), (mid, b)))
+    return out
+
+
+def forward_of(
+    time_s: Any,
+    speed_rpm: Any,
+    folds: Sequence[Fold],
+    by_cycle: bool,
+    measured: np.ndarray | None = None,
+) -> list[Split]:
+    """The forward splits the identification scores every candidate on: origins every half
+    cycle (:func:`forward_origins`) when the folds are cycles; rolling origin over whole folds
+    from the third (:func:`forward_splits`) when they are blocks of one cycle. With ``measured``
+    (sparse targets), a split whose stretch has no measured row is left out."""
+    out = forward_origins(time_s, speed_rpm, folds) if by_cycle else forward_splits(folds, first=2)
+    if measured is None:
+        return out
+    return [(p, (a, b)) for p, (a, b) in out if np.asarray(measured[a:b]).any()]
+
+
 def rows_of(size: int, folds: Sequence[Fold], rows: np.ndarray | None = None) -> np.ndarray:
     """The rows of ``folds`` (within ``rows`` when given)."""
     out = np.zeros(size, bool)

@@ -444,7 +444,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
     c.cv_rms_um, c.cv_max_abs_um = pooled_stats(res, ds.measured)
     c.folds_rms_um = [f.rms_um for f in fold_scores(res, ds.folds)]
     c.held_out_residual_um = res
-    splits = fl.forward_splits(ds.folds, first=2)
+    splits = fl.forward_of(ds.time_s, ds.speed_rpm, ds.folds, ds.unit == "cycle", ds.measured)
     if splits:  # rolling origin: fitted on the folds before, scored on the next
         ahead = np.full(ds.time_s.size, np.nan)
         for past, (a, b) in splits:

@@ -152,7 +152,7 @@ def candidate(ds: Dataset, ctx: Mapping[str, Any]) -> tuple[Candidate, Any]:
             f = fit(ds, fl.without(ds.time_s.size, (a, b)))
             per_fold.append(f.a)
             res[a:b] = (ds.elongation_um - free_run(f, ds))[a:b]
-        splits = fl.forward_splits(ds.folds, first=2)
+        splits = fl.forward_of(ds.time_s, ds.speed_rpm, ds.folds, ds.unit == "cycle", ds.measured)
         ahead = np.full(ds.time_s.size, np.nan)
         for past, (a, b) in splits:
             ahead[a:b] = (

@@ -209,13 +209,15 @@ def forward_residuals(
     alphas: Sequence[float],
     train: np.ndarray | None = None,
     first: int = FORWARD_FIRST,
+    splits: Sequence[fl.Split] | None = None,
 ) -> np.ndarray:
     """Held-out residuals [um] (rows, alphas) of rolling-origin ridge: each fold from index
     ``first`` predicted by gains fitted on the measured rows of the folds before it (within
-    ``train``); NaN on the earlier folds and on every row not measured."""
+    ``train``); NaN on the earlier folds and on every row not measured. ``splits`` (the past,
+    the stretch predicted) replace the whole folds when given."""
     base = measured if train is None else measured & train
     res = np.full((y.size, len(alphas)), np.nan)
-    for past, (a, b) in fl.forward_splits(folds, first):
+    for past, (a, b) in fl.forward_splits(folds, first) if splits is None else splits:
         tr = fl.rows_of(y.size, past, base)
         if tr.sum() < 2:
             continue
@@ -318,6 +320,42 @@ def select(
         )  # unreachable: best is one of them
     k, j = choice
     return k, configs[k].alphas[j], table
+
+
+def select_chained(
+    bank: FilterBank,
+    y: np.ndarray,
+    measured: np.ndarray,
+    config: Config,
+    blocks: Folds,
+    train: np.ndarray | None = None,
+) -> tuple[float, list[dict[str, Any]]] | None:
+    """(alpha, table) chosen on forward-chained ``blocks`` (half cycles,
+    :func:`calibration.folds.halves`): each from the third predicted in free run by gains fitted on
+    the blocks before it; the largest alpha whose pooled mean square is within
+    :data:`~calibration.metrics.PARSIMONY` of the best. Only the future judges the penalty, as a
+    user fitting on the past and running on the next shift would. None when no block can be
+    predicted (fewer than three blocks)."""
+    if len(blocks) < 3:
+        return None
+    x = bank.design(config.grid, config.names)
+    res = forward_residuals(x, y, measured, blocks, config.alphas, train, first=2)
+    rows = np.flatnonzero(~np.isnan(res[:, 0]))
+    if rows.size == 0:
+        return None
+    p = _pooled_mse(res, rows)
+    ok = np.flatnonzero(p <= float(p.min()) * (1 + PARSIMONY) ** 2)
+    j = int(ok[np.argmax(np.asarray(config.alphas)[ok])])
+    return config.alphas[j], [
+        {
+            "grid": config.grid.label,
+            "alpha": config.alphas[j],
+            "score_rms_um": math.sqrt(p[j]),
+            "chained_blocks": len(blocks),
+            "best_alpha": config.alphas[int(np.argmin(p))],
+            "best_score_rms_um": math.sqrt(float(p.min())),
+        }
+    ]
 
 
 # -- the result -------------------------------------------------------------------------------
@@ -730,6 +768,7 @@ def fit(
     penalty_forward: bool = False,
     structure: str = "all",
     units: Mapping[str, str] | None = None,
+    alpha_by: str = "folds",
 ) -> RidgeFit:
     """Ridge banks fitted on the measured rows of ``rows`` (default: all), α and grid chosen by
     leave-one-fold-out free-run error on the measured rows of ``ds.folds``.
@@ -752,7 +791,14 @@ def fit(
     :data:`MAX_FEW`, each kept only when it lowers the held-out error by more than PARSIMONY);
     the model then reads those inputs only; ``bounded``, a bank per input with α kept to those
     whose steady sensitivity to every temperature (``units`` says which inputs are, in degC or K)
-    stays within :data:`BOUND_UM_PER_K`: shrunk until physically plausible."""
+    stays within :data:`BOUND_UM_PER_K`: shrunk until physically plausible.
+
+    ``alpha_by="chained"`` chooses α (one grid only) on forward-chained half cycles
+    (:func:`select_chained`) instead of leave-one-fold-out; where the past holds fewer than three
+    half cycles it falls back to leave-one-fold-out.
+
+    Forward splits are origins every half cycle (:func:`calibration.folds.forward_of`) when the
+    folds are cycles, whole folds from the third when they are blocks of one cycle."""
     cpu0 = time.process_time()
     t = as_times(ds.time_s)
     sp = as_series("speed_rpm", ds.speed_rpm, t.size)
@@ -771,6 +817,8 @@ def fit(
             "two folds or more, each with a measured row, are needed to validate"
         )
     names = tuple(sorted(input_names))
+    if alpha_by not in ("folds", "chained"):
+        raise CalibrationError(f"alpha_by must be 'folds' or 'chained', got {alpha_by!r}")
     dt_s = ds.dt_s
     cand = list(grids) if grids is not None else [auto_grid(t, sp, ds.cycles, bool(names))]
     for grid in cand:
@@ -816,6 +864,10 @@ def fit(
             configs = _bounded(
                 bank, y0, measured if train is None else measured & train, configs, limits
             )
+        if alpha_by == "chained" and len(configs) == 1:
+            got = select_chained(bank, y0, measured, configs[0], fl.halves(t, sp, over), train)
+            if got is not None:
+                return configs[0], got[0], got[1]
         ki, al, tab = select(
             bank, y0, measured, configs, over, train, rule=rule, forward=penalty_forward
         )
@@ -848,7 +900,7 @@ def fit(
     clipped: np.ndarray | None = None
     distance: np.ndarray | None = None
     fwd_spread: tuple[float, ...] = ()
-    splits = fl.forward_splits(folds, first=FORWARD_FIRST)
+    splits = fl.forward_of(t, sp, folds, ds.unit == "cycle", measured)
     if forward and splits:
         ahead = np.full(t.size, np.nan)
         if names:
@@ -870,7 +922,8 @@ def fit(
         fwd_rms, fwd_max = measured_stats(ahead)
         later = fl.rows_of(t.size, [f for _, f in splits], measured)
         by_alpha = _pooled_mse(
-            forward_residuals(x, y0, measured, folds, alphas), np.flatnonzero(later)
+            forward_residuals(x, y0, measured, folds, alphas, splits=splits),
+            np.flatnonzero(later),
         )
         fwd_spread = tuple(math.sqrt(v) if math.isfinite(v) else math.inf for v in by_alpha)
     g, c = ridge_path(x[measured], y0[measured], (alpha,))
