@@ -1,6 +1,7 @@
 """The one dataset every estimator fits: the logs end to end, with the measured rows as a mask.
 
-- :func:`log_data` checks each run log and bridges its gaps by one rule, the last logged speed
+- :func:`log_data` checks each run log (its time must be seconds: judged by its sample period
+  and span, :func:`compensator.io.runlog.time_unit_refusal`) and bridges its gaps by one rule, the last logged speed
   held across a gap (:func:`calibration.runs.bridge_gaps`): a gap that begins at rest cools, one
   that begins at speed heats.
 - :func:`join` puts the logs end to end (time shifted so it keeps increasing; each log is a
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError
-from compensator.io.runlog import RunLog
+from compensator.io.runlog import MIN_CALIBRATION_SPAN_S, RunLog, time_unit_refusal
 
 from . import folds as fl
 from .runs import MIN_MEASURED_ROWS, bridge_gaps, run_from_log
@@ -102,6 +103,10 @@ def log_data(
     data, notes = [], []
     for label, lg in zip(labels, logs):
         run = run_from_log(lg, name=label, sparse=True)
+        # the reader judged the unit; a calibration also needs a span of minutes at least
+        why = time_unit_refusal(run.time_s, min_span_s=MIN_CALIBRATION_SPAN_S)
+        if why is not None:
+            raise CalibrationError(f"{lg.source or label}: {why}")
         speed, gaps = bridge_gaps(run.time_s, run.speed_rpm)
         name = Path(label).name
         if gaps:

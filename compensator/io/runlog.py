@@ -9,8 +9,10 @@ simulator)::
     60,3000,1.52,22.0
 
 ``time_s`` and ``speed_rpm`` are required; ``elongation_um`` is optional; any
-other column is kept. Time must strictly increase and be in seconds (see
-:data:`MAX_ABS_TIME_S`); speed and elongation must be physically possible
+other column is kept. Time must strictly increase and be in seconds: a stamp beyond
+:data:`MAX_ABS_TIME_S`, or a sample period and span no spindle's log has
+(:func:`time_unit_refusal`: milliseconds counted from 0, say), is refused naming the likely unit;
+speed and elongation must be physically possible
 (:data:`MAX_SPEED_RPM`, :data:`MAX_ABS_ELONGATION_UM`). Gaps are allowed and
 reported. Every error is one line naming the file and line.
 
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -52,13 +55,35 @@ MAX_ABS_TIME_S = 1e11
 1e11 s after the epoch is the year 5138, so no time in seconds (relative, or epoch seconds,
 ~1.7e9 today) comes near it, while epoch milliseconds exceed it for any date after
 1973-03-03 (~1.7e12 today): those are refused with "divide by 1000" (and microseconds and
-nanoseconds with their factor). The rule uses magnitude only, never the step: a log sampled
-every 1000 s is legitimate, so milliseconds counted from 0 are not detectable from the
-numbers; a header that says so (a ``time_ms`` column) is refused by name.
+nanoseconds with their factor). Milliseconds counted from 0 are told by the sample period and
+span instead (:func:`time_unit_refusal`); a header that says so (a ``time_ms`` column) is
+refused by name.
 """
 
 TIME_UNIT_COLUMNS = {"time_ms": 1e3, "time_us": 1e6, "time_ns": 1e9}
 """Time columns in another unit, each with the factor that turns them into seconds."""
+
+MIN_SAMPLE_PERIOD_S = 1e-4
+"""Shortest median step read as seconds (10 kHz): loggers of a spindle's heating sample from
+~10 ms to ~10 min; a shorter step is a clock in hours or minutes read as seconds."""
+MAX_SAMPLE_PERIOD_S = 3600.0
+"""Longest median step read as seconds: an hour, six times the slowest logger (~10 min), so a
+log sampled every 1000 s stays legitimate; a longer step is milliseconds read as seconds."""
+MAX_SPAN_S = 366 * 86400.0
+"""Longest log read as seconds: a year (a calibration spans minutes to weeks, a journal export
+months); 40 h in milliseconds spans 4.6 "years"."""
+MIN_CALIBRATION_SPAN_S = 60.0
+"""Shortest calibration log: a minute (a spindle's time constants are minutes to hours); 40 h
+in hours spans 40 "s". Only where a log is to calibrate: replays and journals may be short."""
+MIN_ROWS_TO_JUDGE = 10
+"""A log with fewer rows has no sample period to tell its unit by: it is not judged."""
+TIME_UNITS = (
+    ("ms", "milliseconds", 1e-3),
+    ("us", "microseconds", 1e-6),
+    ("min", "minutes", 60.0),
+    ("h", "hours", 3600.0),
+)
+"""The units a time column is taken in by mistake: (suffix, name, seconds per unit)."""
 
 MAX_SPEED_RPM = 1e6
 """Largest |speed_rpm| accepted: the fastest spindles turn ~3e5 rpm; beyond is a unit or
@@ -236,6 +261,69 @@ def _check_time_unit(time_s: np.ndarray, src: str) -> None:
     )
 
 
+def _duration_text(seconds: float) -> str:
+    """A duration in the unit a person reads it in."""
+    s = abs(seconds)
+    if s >= 2 * _YEAR_S:
+        return f"{seconds / _YEAR_S:.1f} years"
+    if s >= 3 * 86400:
+        return f"{seconds / 86400:.1f} days"
+    if s >= 2 * 3600:
+        return f"{seconds / 3600:.3g} h"
+    if s >= 120:
+        return f"{seconds / 60:.3g} min"
+    if s >= 0.1:
+        return f"{seconds:.3g} s"
+    return f"{seconds * 1e3:.3g} ms"
+
+
+def _plausible_s(step_s: float, span_s: float, min_span_s: float) -> bool:
+    return (
+        MIN_SAMPLE_PERIOD_S <= step_s <= MAX_SAMPLE_PERIOD_S and min_span_s <= span_s <= MAX_SPAN_S
+    )
+
+
+def time_unit_refusal(
+    time_s: Any, column: str = "time_s", *, min_span_s: float = 0.0, also: str = ""
+) -> str | None:
+    """Why ``time_s`` cannot be seconds, in one line naming the likely unit and the fix, or None.
+
+    Judged by the median step (the sample period) and the span (the time covered, gaps left
+    out: :data:`GAP_FACTOR`), against what a spindle's logs have (:data:`MIN_SAMPLE_PERIOD_S` .. :data:`MAX_SAMPLE_PERIOD_S`, up to :data:`MAX_SPAN_S`,
+    from ``min_span_s``: :data:`MIN_CALIBRATION_SPAN_S` where a log is to calibrate). A log of
+    fewer than :data:`MIN_ROWS_TO_JUDGE` rows is not judged. The numbers cannot tell every
+    mistake: minutes read as seconds look like a short, fast log, and are caught (if at all) by
+    the fitted time constants (:func:`compensator.plausibility.time_constant_refusal`).
+    ``also``: another way out, said after the conversion (``{unit}``: the likely unit's suffix).
+    """
+    t = np.asarray(time_s, dtype=float)
+    if t.size < MIN_ROWS_TO_JUDGE or not np.isfinite(t).all():
+        return None
+    steps_s = np.diff(t)
+    step_s = float(np.median(steps_s))
+    if step_s <= 0:
+        return None
+    # the time the log covers, its gaps left out: a journal may pause for a year
+    span_s = float(steps_s[steps_s <= GAP_FACTOR * step_s].sum())
+    if _plausible_s(step_s, span_s, min_span_s):
+        return None
+    seen = f"steps of {_duration_text(step_s)} over {_duration_text(span_s)}"
+    fits = [
+        (abs(math.log10(step_s * f / 10.0)) + abs(math.log10(span_s * f / 86400.0)), u, name, f)
+        for u, name, f in TIME_UNITS
+        if _plausible_s(step_s * f, span_s * f, max(min_span_s, MIN_CALIBRATION_SPAN_S))
+    ]
+    if not fits:
+        return f"{column} is not seconds: {seen} are no spindle log's; convert it to seconds{also}"
+    _, unit, name, factor = min(fits)
+    how = f"divide it by {_factor_text(1 / factor)}" if factor < 1 else f"multiply it by {factor:g}"
+    return (
+        f"{column} looks like {name}: {seen} are no spindle log's (in {unit}: "
+        f"{_duration_text(step_s * factor)} steps over {_duration_text(span_s * factor)}); "
+        f"{how} to make it seconds{also.format(unit=unit)}"
+    )
+
+
 def _check_magnitude(
     values: np.ndarray, limit: float, col: str, unit: str, why: str, src: str
 ) -> None:
@@ -300,6 +388,14 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
             src,
             header_line,
         )
+    slow_unit = [u for u in TIME_UNITS if f"time_{u[0]}" in df.columns and u[2] > 1]
+    if "time_s" in missing and slow_unit:
+        raise RunLogError(
+            f"column time_{slow_unit[0][0]}: time must be in seconds, in a column time_s; "
+            f"multiply by {slow_unit[0][2]:g} and rename",
+            src,
+            header_line,
+        )
     if missing:
         raise RunLogError(
             f"missing column(s) {', '.join(missing)} in header {','.join(df.columns)}",
@@ -345,6 +441,9 @@ def read_run_log(path: str | os.PathLike[str]) -> RunLog:
             src,
             _line_of_row(src, row),
         )
+    why = time_unit_refusal(time_s)
+    if why is not None:
+        raise RunLogError(why, src)
     _check_magnitude(speed, MAX_SPEED_RPM, "speed_rpm", "rpm", "no spindle turns that fast", src)
     if elong is not None:
         _check_magnitude(
@@ -504,14 +603,33 @@ class RunLogAppender:
         self.close()
 
 
+def time_unit_of(column: str) -> tuple[str, str, float] | None:
+    """(suffix, name, seconds per unit) when a column's name says its time unit other than
+    seconds: ``time_ms``, ``t_min``, ``Time [ms]``, ``time (h)``; None when it says seconds or
+    nothing."""
+    m = _UNIT_IN_NAME.search(column.strip().lower())
+    if m is None:
+        return None
+    said = m.group(1).replace("µ", "u")
+    return next((u for u in TIME_UNITS if u[0] == said), None)
+
+
+_UNIT_IN_NAME = re.compile(r"(?:^|[_\s\[(])(ms|us|µs|min|h|s)[\])]?$")
+
+
 def read_daq_csv(
-    path: str | os.PathLike[str], time_column: str, columns: Mapping[str, str]
+    path: str | os.PathLike[str],
+    time_column: str,
+    columns: Mapping[str, str],
+    *,
+    seconds_per_unit: float = 1.0,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Time [s] and named columns from a CSV a data-acquisition system wrote.
 
     ``columns`` maps the names wanted to the file's column names. The time column may hold
-    seconds or date-times (ISO 8601); date-times become seconds since the epoch. Rows are
-    sorted by time; an unreadable cell is reported with its line.
+    seconds (or numbers in another unit, ``seconds_per_unit`` each) or date-times (ISO 8601);
+    date-times become seconds since the epoch. Rows are sorted by time; an unreadable cell is
+    reported with its line; time that cannot be seconds (:func:`time_unit_refusal`) is refused.
     """
     import pandas as pd
 
@@ -551,6 +669,8 @@ def read_daq_csv(
     elif not np.isfinite(t).all():
         row = int(np.flatnonzero(~np.isfinite(t))[0])
         raise bad(row, time_column, raw_t.iloc[row])
+    else:
+        t = t * seconds_per_unit
     out: dict[str, np.ndarray] = {}
     for name, col in columns.items():
         v = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float)
@@ -561,4 +681,11 @@ def read_daq_csv(
     order = np.argsort(t, kind="stable")
     t = t[order]
     keep = np.r_[True, np.diff(t) > 0]  # repeated instants: the first reading is kept
+    why = time_unit_refusal(
+        t[keep],
+        time_column,
+        also=", or call the column time_{unit}: the import converts it",
+    )
+    if why is not None:
+        raise RunLogError(why, src)
     return t[keep], {k: v[order][keep] for k, v in out.items()}
