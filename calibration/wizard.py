@@ -472,6 +472,8 @@ class Wizard:
         self.session = done.session
         self.save_session()
         log = self.session.run(name)
+        if done.converted:
+            self.out.print(f"  {name}: {escape(done.converted)}")
         self.out.print(
             f"  {name}: imported {done.rows} rows from {src} into {log.log if log else '?'}"
         )

@@ -13,6 +13,7 @@ import numpy as np
 
 from compensator.errors import AcquisitionError, CalibrationError, ConfigError, ThermocompError
 from compensator.io import read_daq_csv, read_run_log, versioned_path, write_run_log
+from compensator.io.runlog import MIN_CALIBRATION_SPAN_S, time_unit_of, time_unit_refusal
 from compensator.speed_programs import Program
 
 from ..acquire import AcquireConfig, Event, Recorder, Recording, Sample
@@ -255,6 +256,8 @@ class Imported:
     session: WizardSession
     rows: int
     source: str
+    converted: str | None = None
+    """What the import did to the time column, when its name says another unit than seconds."""
 
 
 def import_run(
@@ -269,7 +272,18 @@ def import_run(
     cols = {"displacement": o.displacement_column}
     if o.speed_column:
         cols["speed"] = o.speed_column
-    t, data = read_daq_csv(source, o.time_column, cols)
+    # a column named for its unit (time_ms, "Time [min]") is converted, and said; any other
+    # is seconds or date-times, and refused in one line when its steps and span are no spindle's
+    unit = time_unit_of(o.time_column)
+    t, data = read_daq_csv(source, o.time_column, cols, seconds_per_unit=unit[2] if unit else 1.0)
+    converted = (
+        f"{o.time_column} read as {unit[1]} (its name says so) and converted to seconds"
+        if unit
+        else None
+    )
+    why = time_unit_refusal(t, o.time_column, min_span_s=MIN_CALIBRATION_SPAN_S)
+    if why is not None:
+        raise CalibrationError(f"{source}: {why}")
     disp = data["displacement"] * o.scale + o.offset_um
     if "speed" in data:
         speed = np.abs(data["speed"])
@@ -305,4 +319,4 @@ def import_run(
         },
     )
     done = session.with_run(name, complete=True, rows=int(t.size), imported_from=str(source))
-    return Imported(done, int(t.size), str(source))
+    return Imported(done, int(t.size), str(source), converted)
