@@ -31,7 +31,12 @@ from compensator.errors import CalibrationError
 from compensator.io.journal import Journal
 from compensator.io.runlog import RunLog
 from compensator.modelbase import with_fit
-from compensator.plausibility import MIN_TOLERANCE_UM, not_following_refusal, steady_growth_refusal
+from compensator.plausibility import (
+    MIN_TOLERANCE_UM,
+    not_following_refusal,
+    steady_growth_refusal,
+    time_constant_refusal,
+)
 
 from . import closedloop
 from .acquire import Problem
@@ -168,7 +173,9 @@ def fit_data(
     model = result.model
     if stated:
         model = result.model = with_fit(model, **stated)
-    why = steady_growth_refusal(model, direction, measured_um=span_um)
+    why = steady_growth_refusal(model, direction, measured_um=span_um) or time_constant_refusal(
+        model
+    )
     if why is not None:
         raise CalibrationError(f"calibration refused: {model.form}: {why}")
     return result

@@ -4,8 +4,10 @@ Heat rises with speed, so a spindle's steady growth does too: a model whose stea
 against the direction the calibration measured, falls back as speed rises, or stays flat while
 the calibration measured a large growth was fitted to something other than the spindle's
 heating (a job running instead of the calibration program, a loose sensor). And a calibration
-whose rows mostly did not follow the program did not calibrate. ``thermocomp fit`` (every fit)
-and ``thermocomp model check`` refuse both, in one line, with the numbers and the rule.
+whose rows mostly did not follow the program did not calibrate. A model whose time scale is no
+spindle's (heat that takes days to settle, a sample period of hours: a log whose time was not
+seconds) was not fitted to a spindle either. ``thermocomp fit`` (every fit) and ``thermocomp
+model check`` refuse all three, in one line, with the numbers and the rule.
 
 The growth direction is +1 when the growth is positive by the product's convention (elongation
 toward the part: what the wizard's sensors measure) and -1 when a log measured it the other way.
@@ -19,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from .fitrecord import fit_of
+from .io.runlog import MAX_SAMPLE_PERIOD_S
 
 POINTS = 101
 """Speeds at which the steady growth is judged, evenly from rest to the calibrated top."""
@@ -31,6 +34,13 @@ MEASURED_FACTOR = 5.0
 tolerances."""
 NOT_FOLLOWING_LIMIT = 0.5
 """Above this share of calibration rows flagged NOT_FOLLOWING, the run did not calibrate."""
+MAX_TIME_CONSTANT_S = 48 * 3600.0
+"""The slowest a spindle's heat settles: 48 h to come 63 % of the way (spindles take minutes to
+hours; a machine's structure a few hours more)."""
+MIN_TIME_CONSTANT_S = 30.0
+"""The fastest a spindle's slowest time constant can be: half a minute."""
+RESPONSE_HORIZON_S = 1e7
+"""How far (116 days) a step response is followed to time it."""
 
 RULE = (
     "the steady growth relative to rest, g(n) = S(n) - S(0) from 0 to the calibrated top speed, "
@@ -41,6 +51,14 @@ RULE = (
     f"{TOLERANCE_SHARE:.0%} of max|g|); a model with inputs is judged by its speed-only fallback"
 )
 """The growth rule in one sentence, for reports."""
+
+TIME_RULE = (
+    f"the model's time scale must be a spindle's: fitted at a sample period of at most "
+    f"{MAX_SAMPLE_PERIOD_S / 3600:g} h, its slowest time constant at least "
+    f"{MIN_TIME_CONSTANT_S:g} s, and its growth after a step from rest to the top speed 63 % "
+    f"of the way from its instant part to steady within {MAX_TIME_CONSTANT_S / 3600:g} h"
+)
+"""The time-scale rule in one sentence, for reports."""
 
 NOT_FOLLOWING_RULE = (
     f"at most {NOT_FOLLOWING_LIMIT:.0%} of the calibration rows may be flagged "
@@ -143,6 +161,72 @@ def steady_growth_refusal(
             f"steady growth only {growth_um[-1]:+.2f} um at the top speed {top_rpm:.0f} rpm ({way}; "
             f"tolerance {tol_um:.2f} um) while the calibration measured up to {abs(measured):.2f} um: "
             "the model does not grow with speed"
+        )
+    return None
+
+
+def time_constants_s(model: Any) -> tuple[float, ...]:
+    """The model's time constants [s] (a state-space model's ``taus_s``, a physical model's at
+    rest); () for a model that states none."""
+    taus = getattr(model, "taus_s", None)
+    if taus is None and callable(getattr(model, "time_constants_s", None)):
+        taus = model.time_constants_s(0.0)
+    return tuple(float(t) for t in taus or ())
+
+
+def response_time_s(model: Any, speed_rpm: float) -> float | None:
+    """How long the model's growth after a step from rest to ``speed_rpm`` takes to come 63 %
+    of the way from its instant part (a static term) to steady [s]: the time constant that
+    carries the heat, whatever the form. inf beyond :data:`RESPONSE_HORIZON_S`; None when the
+    model has no lagging growth to time (within :data:`MIN_TOLERANCE_UM`)."""
+    time_s = np.r_[0.0, 1e-3, np.geomspace(1.0, RESPONSE_HORIZON_S, 600)]
+    speed = np.r_[0.0, np.full(time_s.size - 1, float(speed_rpm))]
+    growth_um = np.asarray(model.simulate_um(speed, time_s), float)
+    growth_um = growth_um - growth_um[0]
+    lag_um = steady_state_um(model, speed_rpm) - steady_state_um(model, 0.0) - growth_um[1]
+    if not (math.isfinite(lag_um) and abs(lag_um) > MIN_TOLERANCE_UM):
+        return None
+    share = (growth_um - growth_um[1]) / lag_um
+    reached = np.flatnonzero(share >= 1 - math.exp(-1))
+    return float(time_s[reached[0]]) if reached.size else math.inf
+
+
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.3g} h" if seconds >= 3600 else f"{seconds:.3g} s"
+
+
+def time_constant_refusal(model: Any) -> str | None:
+    """Why ``model``'s time scale is no spindle's, in one line, or None (see
+    :data:`TIME_RULE`): fitted at a sample period no spindle's logger has, a heat that settles
+    slower than :data:`MAX_TIME_CONSTANT_S`, or time constants all under
+    :data:`MIN_TIME_CONSTANT_S`. Each is what a log whose time was not seconds fits (milliseconds
+    read as seconds stretch every time constant a thousandfold). A model with inputs is judged
+    by its speed-only fallback."""
+    judged = speed_only(model)
+    dt_s = getattr(judged, "fitted_dt_s", None)
+    if isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > MAX_SAMPLE_PERIOD_S:
+        return (
+            f"fitted at a sample period of {dt_s:g} s ({_hours(dt_s)}), longer than "
+            f"{_hours(MAX_SAMPLE_PERIOD_S)}: no spindle's log samples that slowly; was the "
+            "log's time in milliseconds? Refit on a log whose time is in seconds"
+        )
+    taus = [t for t in time_constants_s(judged) if t > 0]
+    if taus and max(taus) < MIN_TIME_CONSTANT_S:
+        return (
+            f"its slowest time constant is {max(taus):.3g} s, under {MIN_TIME_CONSTANT_S:g} s: no "
+            "spindle heats that fast; was the log's time in minutes or hours? Refit on a log "
+            "whose time is in seconds"
+        )
+    top_rpm = float(judged.speed_range_rpm[1])
+    settle_s = response_time_s(judged, top_rpm) if top_rpm > 0 else None
+    if settle_s is not None and settle_s > MAX_TIME_CONSTANT_S:
+        took = "longer than 116 days" if math.isinf(settle_s) else _hours(settle_s)
+        shown = ", ".join(f"{t / 60:.1f}" for t in sorted(taus))
+        return (
+            f"its growth at {top_rpm:.0f} rpm takes {took} to come 63 % of the way to steady"
+            + (f" (time constants {shown} min)" if shown else "")
+            + f", over {_hours(MAX_TIME_CONSTANT_S)}: no spindle heats that slowly; was the "
+            "log's time in milliseconds? Refit on a log whose time is in seconds"
         )
     return None
 

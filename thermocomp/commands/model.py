@@ -11,7 +11,12 @@ from compensator.errors import ConfigError, ThermocompError, clip
 from compensator.fitrecord import fit_of
 from compensator.io import MODEL_TYPES, load_any_model, model_digest
 from compensator.model import MODEL_FORMAT
-from compensator.plausibility import direction_of, not_following_refusal, steady_growth_refusal
+from compensator.plausibility import (
+    direction_of,
+    not_following_refusal,
+    steady_growth_refusal,
+    time_constant_refusal,
+)
 
 REASON_CHARS = 500
 
@@ -79,8 +84,8 @@ def check(path: str, as_json: bool = False) -> int:
     """Would the runtime take this file: verified and sane (:func:`load_any_model`), plausible
     (the runtime's own check), and one physics allows (:mod:`compensator.plausibility`: a
     calibration that followed its program, a steady growth that rises with speed in the growth
-    direction its fit record states, else its own). Exit 0, or 2 with a one-line reason, as any
-    refusal."""
+    direction its fit record states, else its own, and a spindle's time scale). Exit 0, or 2
+    with a one-line reason, as any refusal."""
     from thermocomp.runtime.service import implausible  # the runtime's own rule, loaded only here
 
     try:
@@ -90,6 +95,8 @@ def check(path: str, as_json: bool = False) -> int:
             why = not_following_refusal(fit_of(m).not_following_share)
         if why is None:
             why = steady_growth_refusal(m, direction_of(fit_of(m).growth_direction))
+        if why is None:
+            why = time_constant_refusal(m)
         if why is not None:
             raise ConfigError(f"{path}: {why}")
     except ThermocompError as err:
