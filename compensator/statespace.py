@@ -45,7 +45,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .errors import ModelError
 from .expected import distance_outside
-from .filters import Steps, decay, lag, lag_step, series
+from .filters import Steps, decay, decaying_sum, lag, lag_step, series
 from .model import MODEL_FORMAT, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers, speed_range
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
@@ -60,10 +60,6 @@ largest elongation measured in calibration."""
 SPEED_CLIP = 2.0
 """|speed| is clipped to this many times the calibrated maximum inside the model, so any finite
 input gives a finite output (above the range the runtime raises an extrapolation alarm anyway)."""
-_PRODUCT_SIZE = 400_000
-"""Multiply-adds per block of the signals' product: it stays in cache, and OpenBLAS keeps a
-product this small on one thread (a larger one is split over threads, which on a busy machine
-costs more than it saves)."""
 
 
 def _finite(values: Any) -> bool:
@@ -351,10 +347,13 @@ class StateSpaceModel(ModelBase):
     ) -> np.ndarray:
         """Free run over a whole log, ``speed_rpm[k]`` held over ``(time_s[k-1], time_s[k]]``;
         states at equilibrium with the first sample, ``initial_um`` as in :meth:`start`.
-        Vectorised: one matrix product gives the static part and every state's drive, then one
-        exact first-order filter per state (:func:`compensator.filters.lag`)."""
-        steps = Steps.of(time_s)
-        size = steps.size
+
+        The same exact zero-order-hold step as :meth:`step` at every sample, whatever its Δt,
+        computed a block of samples at a time so that everything stays in cache: one matrix
+        product gives the static part and every state's drive, then every state's recursion
+        in closed form (:class:`_Recursion`)."""
+        t = series("time_s", time_s)
+        size = t.size
         if size == 0:
             raise ModelError("cannot simulate an empty log")
         sp = series("speed_rpm", speed_rpm, size)
@@ -374,12 +373,13 @@ class StateSpaceModel(ModelBase):
         valid = self._limits()
         lo, hi = valid[:, :1], valid[:, 1:]
         cap = SPEED_CLIP * self.speed_range_rpm[1]
-        y = np.empty((gains.shape[0], size))
-        chunk = max(1024, _PRODUCT_SIZE // gains.size)
-        v = np.empty((gains.shape[1], min(chunk, size)))
-        for s in range(0, size, chunk):  # the signals [n, n^2, inputs...] a block at a time
-            e = min(s + chunk, size)
-            vb = v[:, : e - s]
+        rec = _Recursion(self.taus_s, t)
+        out = np.empty(size)
+        v = np.empty((gains.shape[1], min(_BLOCK, size)))
+        y = np.empty((gains.shape[0], v.shape[1]))
+        for s in range(0, size, _BLOCK):  # the signals [n, n^2, inputs...] a block at a time
+            e = min(s + _BLOCK, size)
+            vb, yb = v[:, : e - s], y[:, : e - s]
             np.abs(sp[s:e], out=vb[0])
             np.minimum(vb[0], cap, out=vb[0])
             vb[0] /= SPEED_SCALE_RPM
@@ -394,20 +394,18 @@ class StateSpaceModel(ModelBase):
                     if not (np.isfinite(low).all() and np.isfinite(high).all()):
                         self._refuse_non_finite(logged)
                     np.clip(w, lo, hi, out=w)
-            np.matmul(gains, vb, out=y[:, s:e])
-        out: np.ndarray = y[0]
-        out += constant
-        for tau, drive in zip(self.taus_s, y[1:]):
-            out += lag(steps, drive, tau)
+            np.matmul(gains, vb, out=yb)
+            ob = out[s:e]
+            np.add(yb[0], constant, out=ob)
+            rec.block(s, yb[1:], ob)
+        rec.finish(out)
         if initial_um is not None:
-            out += (require_finite("initial_um", initial_um) - out[0]) * decay(
-                steps.time_s, self._slowest_s
-            )
+            out += (require_finite("initial_um", initial_um) - out[0]) * decay(t, self._slowest_s)
         if self.extrapolation == "blend" and self.fallback is not None:
             w = np.minimum(
                 self.distance_outside(dict(zip(self.input_names, logged))) / self.blend_span, 1.0
             )
-            out += w * (self.fallback.simulate_um(sp, steps.time_s, None, initial_um) - out)
+            out += w * (self.fallback.simulate_um(sp, t, None, initial_um) - out)
         return out
 
     def _refuse_non_finite(self, logged: list[np.ndarray]) -> None:
@@ -504,6 +502,172 @@ class StateSpaceState:
         if self.fallback is None or self.weight == 0.0:
             return self.own_um
         return (1.0 - self.weight) * self.own_um + self.weight * float(self.fallback.elongation_um)
+
+
+_BLOCK = 8192
+"""Samples per block of a free run: a block's signals, drives and states stay in cache."""
+_SUB = 16
+"""Samples per sub-block: a running sum or a state's response inside one is a product with a
+small matrix, which a BLAS does faster than numpy's running sum."""
+_SPAN = 200.0
+"""Largest decay exponent inside one closed-form stretch of a free run: exp(200) ~ 7e86, far
+from overflow for any drive the checked gains give (an overflow is redone scaled, exactly)."""
+_LD_MAX = 1e4  # dt/tau beyond this is a full reset (exp(-1e4) == 0)
+_UPPER = np.triu(np.ones((_SUB, _SUB)))
+"""[j, k] = 1 where j <= k: a running sum over a sub-block as a product."""
+
+
+def _buffer(store: np.ndarray, *shape: int) -> np.ndarray:
+    """A contiguous view of ``shape`` at the start of ``store``: no allocation per block (a
+    fresh array of this size is often fresh pages from the system, each a fault)."""
+    return store[: math.prod(shape)].reshape(shape)
+
+
+class _Recursion:
+    """Every state's exact step ``x_k = a_k*x_{k-1} + (1 - a_k)*d_k``, ``a_k = exp(-dt_k/tau)``
+    (:func:`compensator.filters.lag_step` at each sample) over a log, a block at a time, added
+    into the output; no Python loop over samples.
+
+    - A block whose steps all equal the log's usual step: per sub-block of ``_SUB`` samples, the
+      response from rest is a product with a fixed lower-triangular matrix of ``(1 - a)*a**i``,
+      the state carried from one sub-block to the next is the same recursion with ``a**_SUB``
+      (in closed form), and what it adds at each sample is its decay ``a**(i + 1)``.
+    - Any other block: closed form over a stretch from its start s, with L the time since s
+      over tau, ``x_k = (x_s + sum_{s<j<=k} (1 - a_j)*d_j*exp(L_j)) * exp(-L_k)``, each step
+      with its own Δt; a step longer than ``_SPAN`` time constants alone.
+    - A state whose time constant is within a few usual steps: over the whole log at the end
+      (:func:`compensator.filters.lag`), where that pays.
+    """
+
+    def __init__(self, taus_s: tuple[float, ...], t: np.ndarray) -> None:
+        self.t = t
+        self.taus = np.asarray(taus_s, dtype=float)
+        usual = 0.0
+        if t.size > 1:  # the median of about a thousand steps: for the tables only
+            stride = max(1, (t.size - 1) // 1024)
+            usual = float(np.median(t[1::stride] - t[:-1:stride]))
+        regular = math.isfinite(usual) and usual > 0
+        fast = _BLOCK * usual > _SPAN * self.taus if regular else self.taus < 0
+        self.slow, self.fast = np.flatnonzero(~fast), np.flatnonzero(fast)
+        rows = self.slow.size
+        self.tau = self.taus[self.slow][:, None]
+        self.rate = 1.0 / self.tau
+        self.ones = np.ones(rows)
+        self.x = np.empty(rows)
+        self.fast_drive = np.empty((self.fast.size, t.size if self.fast.size else 0))
+        size = min(_BLOCK, t.size)
+        self.dt = np.empty(size)
+        self.work = [np.empty(rows * size) for _ in range(3)]
+        self.sums = np.empty(size)
+        self.usual = usual if regular and rows else math.nan
+        if math.isnan(self.usual):
+            return
+        ld = usual * self.rate  # (states, 1)
+        i = np.arange(_SUB)
+        lower = np.subtract.outer(i, i).T  # [j, k] = k - j: sample j's weight at sample k
+        self.rest = np.where(lower >= 0, np.exp(-np.maximum(lower, 0) * ld[:, :, None]), 0.0)
+        self.rest *= -np.expm1(-ld)[:, :, None]  # (states, _SUB, _SUB)
+        self.carry = np.exp(-(i + 1.0) * ld)  # (states, _SUB)
+        b = np.arange(1.0, _BLOCK // _SUB + 1) * (_SUB * ld)  # the carry's own closed form
+        self.grow, self.shrink = np.exp(b), np.exp(-b)
+
+    def block(self, s: int, drives: np.ndarray, out: np.ndarray) -> None:
+        """Samples s.. of every state, from their drives (a row each), added into ``out``."""
+        if self.fast.size:
+            self.fast_drive[:, s : s + drives.shape[1]] = drives[self.fast]
+        if not self.slow.size:
+            return
+        d = drives if self.slow.size == drives.shape[0] else drives[self.slow]
+        first = 0
+        if s == 0:  # at equilibrium with the first sample
+            self.x[:] = d[:, 0]
+            out[0] += math.fsum(self.x)
+            first = 1
+        m = d.shape[1] - first
+        if m <= 0:
+            return
+        t, s1 = self.t, s + first
+        dt = np.subtract(t[s1 : s1 + m], t[s1 - 1 : s1 + m - 1], out=self.dt[:m])
+        lo, hi = float(dt.min()), float(dt.max())
+        if not (lo >= 0 and math.isfinite(hi)):
+            Steps.of(t)  # raises, naming the sample
+            raise ModelError("time_s is not usable")
+        whole = m - m % _SUB if lo == hi == self.usual else 0
+        if whole and self._regular(d[:, first : first + whole], out[first : first + whole]):
+            first += whole
+        else:
+            whole = 0
+        if whole < m:
+            self._stretches(s + first, d[:, first:], dt[whole:], out[first:])
+
+    def _regular(self, d: np.ndarray, out: np.ndarray) -> bool:
+        """Samples at the usual step, a whole number of sub-blocks; False (nothing changed) if
+        the carry's closed form overflows (a drive near the float range)."""
+        rows, nb = d.shape[0], d.shape[1] // _SUB
+        local = _buffer(self.work[0], rows, nb, _SUB)
+        np.matmul(d.reshape(rows, nb, _SUB), self.rest, out=local)
+        ends = np.multiply(local[:, :, -1], self.grow[:, :nb], out=_buffer(self.work[1], rows, nb))
+        np.cumsum(ends, axis=1, out=ends)  # the state at each sub-block's end
+        ends += self.x[:, None]
+        ends *= self.shrink[:, :nb]
+        if not np.isfinite(ends[:, -1]).all():
+            return False
+        before = _buffer(self.work[2], nb, rows)  # the state before each sub-block
+        before[0] = self.x
+        before[1:] = ends[:, :-1].T
+        sums = _buffer(self.sums, nb * _SUB)
+        out += np.matmul(self.ones, local.reshape(rows, -1), out=sums)
+        out += np.matmul(before, self.carry, out=sums.reshape(nb, _SUB)).reshape(-1)
+        self.x[:] = ends[:, -1]
+        return True
+
+    def _stretches(self, s: int, d: np.ndarray, dt: np.ndarray, out: np.ndarray) -> None:
+        """Samples s..s+len(dt)-1 from each step's own Δt, in stretches of at most _SPAN of the
+        fastest state's time constant (one longer step alone)."""
+        t, m, rows = self.t, dt.size, self.x.size
+        reach = _SPAN * float(self.tau.min())
+        p = 0
+        while p < m:
+            q = min(m, int(np.searchsorted(t, t[s + p - 1] + reach, side="right")) - s)
+            if q <= p + 1:  # one step: directly
+                ld = np.minimum(dt[p] / self.tau[:, 0], _LD_MAX)
+                self.x *= np.exp(-ld)
+                self.x -= np.expm1(-ld) * d[:, p]
+                out[p] += math.fsum(self.x)
+                p += 1
+                continue
+            if q - p >= _SUB:  # whole sub-blocks, for the running sum (the rest next)
+                q -= (q - p) % _SUB
+            n = q - p
+            inc = np.multiply(dt[p:q], -self.rate, out=_buffer(self.work[0], rows, n))
+            np.expm1(inc, out=inc)
+            inc *= d[:, p:q]  # -(1 - a_k)*d_k
+            g = _buffer(self.work[1], rows, n)
+            np.multiply(t[s + p : s + q] - t[s + p - 1], self.rate, out=g)  # L
+            np.exp(g, out=g)
+            c = np.multiply(inc, g, out=_buffer(self.work[2], rows, n))
+            if n < 2 * _SUB or n % _SUB:
+                np.cumsum(c, axis=1, out=c)
+            else:  # the running sum inside sub-blocks as a product, then each one's total on
+                r = np.matmul(c.reshape(rows, -1, _SUB), _UPPER, out=inc.reshape(rows, -1, _SUB))
+                r[:, 1:, :] += np.cumsum(r[:, :-1, -1], axis=1)[:, :, None]
+                c, inc = inc, c
+            np.subtract(self.x[:, None], c, out=c)
+            c /= g
+            for i in np.flatnonzero(~np.isfinite(c[:, -1])):  # a drive near the float range
+                span = (t[s + p : s + q] - t[s + p - 1]) * self.rate[i]
+                inc[i] = np.expm1(dt[p:q] * -self.rate[i]) * d[i, p:q]
+                c[i] = decaying_sum(-inc[i], float(self.x[i]), cum=span)
+            out[p:q] += np.matmul(self.ones, c, out=self.sums[:n])
+            self.x[:] = c[:, -1]
+            p = q
+
+    def finish(self, out: np.ndarray) -> None:
+        """The fast states, over the whole log."""
+        if self.fast.size:
+            steps = Steps.of(self.t)
+            for i, drive in zip(self.fast.tolist(), self.fast_drive):
+                out += lag(steps, drive, float(self.taus[i]))
 
 
 __all__ = [
