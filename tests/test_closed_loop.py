@@ -6,9 +6,12 @@ probe variables, or takes it from `thermocomp measure` (``SpindleRuntime.submit`
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
+import shutil
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +114,7 @@ class Bench:
             clock=self.clock,
             wall=self.wall,
             adapter=self.adapter_cls(machine=self.vm),
+            journal_fsync_s=self.cfg.journal_fsync_s,  # as the service passes it
             previous=previous,
         )
 
@@ -159,11 +163,37 @@ def fitted_model(calibrated_model) -> Path:
     return calibrated_model
 
 
-def drift_day(
-    tmp_path: Path, model: Path, enabled: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, Bench]:
+@dataclass(frozen=True)
+class Day:
+    """What a drift day left: each cycle's time, estimate error, tool-tip error and alarms, the
+    measurement journal's rows, the runtime's and the machine's probe counts, and the observer's
+    bounds (None: no observer)."""
+
+    t: np.ndarray
+    est: np.ndarray
+    tip: np.ndarray
+    alarms: list[int]
+    rows: list[dict[str, str]]
+    accepted: int
+    probes: int
+    max_correction_um: float | None
+    source_move_um: float | None
+
+    def save(self, d: Path) -> None:
+        np.savez(d / "day.npz", t=self.t, est=self.est, tip=self.tip)
+        rest = {k: v for k, v in vars(self).items() if k not in ("t", "est", "tip")}
+        (d / "day.json").write_text(json.dumps(rest))
+
+    @classmethod
+    def load(cls, d: Path) -> Day:
+        with np.load(d / "day.npz") as a:
+            arrays = {k: a[k] for k in ("t", "est", "tip")}
+        return cls(**arrays, **json.loads((d / "day.json").read_text()))
+
+
+def drift_day(tmp_path: Path, model: Path, enabled: bool, observer: str = "") -> Day:
     """Eight hours of a job shop while the hall warms by 1 K/h, a probe cycle every 30 min
-    (the spindle stops for the tool setter either way): times, estimate errors, tool-tip errors."""
+    (the spindle stops for the tool setter either way); ``observer``: more observer settings."""
     p = preset("motorized-27k")
 
     def warming_hall(clock) -> VirtualMachine:
@@ -178,12 +208,12 @@ def drift_day(
 
     # the hall warms 1 K/h, which a calibration at constant temperature never saw: its fitted bias
     # random walk is far too small for that, so the shop states the one it sees (5 um per sqrt(h))
-    observer = f"enabled = {str(enabled).lower()}\nbias_q_um2_per_s = {25.0 / 3600.0!r}"
     b = Bench(
         tmp_path,
         model,
         make_vm=warming_hall,
-        observer=observer,
+        observer=f"enabled = {str(enabled).lower()}\n"
+        f"bias_q_um2_per_s = {25.0 / 3600.0!r}\n{observer}",
         period_s=10.0,
         shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 1.0\ndeadband_um = 0.0",
     )
@@ -194,22 +224,44 @@ def drift_day(
             vm.start_probe()  # the NC program's probe cycle
             next_probe += 1800.0
         b.run(1)
+    rows = b.measurements()
     b.rt.close()
+    fused = b.rt.estimate.fused
     h = vm.history()
     t = np.array([r["time_s"] for r in b.rows])
-    est = np.interp(t, h.time_s, h.true_um) - np.array([r["predicted_um"] for r in b.rows])
-    tip = np.interp(t, h.time_s, h.tool_tip_error_um)
-    return t, est, tip, b
+    return Day(
+        t=t,
+        est=np.interp(t, h.time_s, h.true_um) - np.array([r["predicted_um"] for r in b.rows]),
+        tip=np.interp(t, h.time_s, h.tool_tip_error_um),
+        alarms=[int(r["alarms"]) for r in b.rows],
+        rows=rows,
+        accepted=b.rt.counters["probes_accepted"],
+        probes=vm.probe_sequence,
+        max_correction_um=None if fused is None else fused.config.max_correction_um,
+        source_move_um=None if fused is None else fused.config.source_move_um,
+    )
 
 
-def vm_probes(b: Bench) -> int:
-    return b.vm.probe_sequence
+def fused_day(computed_once, model: Path) -> tuple[Day, Path]:
+    """drift_day with the observer's default bounds, run once per test session (it takes a
+    while): test_observer_bounds checks the bounds on the same day. With the model it ran."""
+
+    def make(d: Path) -> None:
+        shutil.copyfile(model, d / "model.json")
+        drift_day(d, d / "model.json", enabled=True).save(d)
+
+    d = computed_once("fused-drift-day", make)
+    return Day.load(d), d / "model.json"
 
 
-def test_observer_on_the_virtual_plant_with_unmodelled_ambient_drift(tmp_path, fitted_model):
-    t, open_est, open_tip, _ = drift_day(tmp_path / "open", fitted_model, enabled=False)
-    t2, fused_est, fused_tip, b = drift_day(tmp_path / "fused", fitted_model, enabled=True)
-    assert np.array_equal(t, t2)
+def test_observer_on_the_virtual_plant_with_unmodelled_ambient_drift(
+    tmp_path, fitted_model, computed_once
+):
+    opened = drift_day(tmp_path / "open", fitted_model, enabled=False)
+    fused, _ = fused_day(computed_once, fitted_model)
+    t, open_est, open_tip = opened.t, opened.est, opened.tip
+    fused_est, fused_tip = fused.est, fused.tip
+    assert np.array_equal(t, fused.t)
     hour = np.minimum((t // 3600).astype(int), 7)
     rms = lambda e, k: float(np.sqrt(np.mean(e[hour == k] ** 2)))
     open_by_hour = [rms(open_est, k) for k in range(8)]
@@ -225,13 +277,12 @@ def test_observer_on_the_virtual_plant_with_unmodelled_ambient_drift(tmp_path, f
     # what the part sees, shaper and all: better too
     late = t > 6 * 3600.0
     assert np.sqrt(np.mean(fused_tip[late] ** 2)) < 0.6 * np.sqrt(np.mean(open_tip[late] ** 2))
-    rows = b.measurements()
-    assert len(rows) == b.rt.counters["probes_accepted"] == vm_probes(b) >= 15
+    rows = fused.rows
+    assert len(rows) == fused.accepted == fused.probes >= 15
     assert {r["outcome"] for r in rows} == {"accepted"} and {r["source"] for r in rows} == {"sim"}
     assert [int(r["sequence"]) for r in rows] == list(range(1, len(rows) + 1))
     assert not any(
-        r["alarms"] & (Alarm.PROBE_REJECTED | Alarm.PROBE_FAILED | Alarm.OBSERVER_STALE)
-        for r in b.rows
+        a & (Alarm.PROBE_REJECTED | Alarm.PROBE_FAILED | Alarm.OBSERVER_STALE) for a in fused.alarms
     )
 
 
@@ -544,6 +595,7 @@ def test_the_runtime_takes_the_controllers_probe_once_over_opcua_and_refuses_a_n
             clock=lambda: t[0],
             wall=lambda: WALL0 + t[0],
             adapter=link,
+            journal_fsync_s=cfg.journal_fsync_s,
         )
         try:
             opcua_probe_cycles(cnc, vm, rt, t, caplog)

@@ -282,76 +282,40 @@ def test_a_probe_cycle_drifting_through_the_controllers_nodes_is_bounded_too(
 # -- honest measurements of a real drift are followed as before -------------------------------
 
 
-def drift_day(tmp_path: Path, model: Path, observer: str):
-    """test_closed_loop's day: eight hours of a job shop while the hall warms 1 K/h (which the
-    calibration never saw), the tool setter every 30 min. Estimate errors, tool-tip errors, rows."""
-    from test_closed_loop import Bench
-
-    from compensator.speed_programs import job_shop_day
-    from machine_sim import SpindlePlant, preset
-    from machine_sim.vcnc import VirtualMachine
-
-    p = preset("motorized-27k")
-
-    def warming_hall(clock) -> VirtualMachine:
-        vm = VirtualMachine(
-            SpindlePlant(p, seed=5).with_params(ambient_drift_k_per_h=1.0),
-            None,
-            clock=clock,
-            plant_dt_s=2.0,
-        )
-        vm.load_program(job_shop_day(p.max_rpm, seed=5, hours=8))
-        return vm
-
-    b = Bench(
-        tmp_path,
-        model,
-        make_vm=warming_hall,
-        observer=f"enabled = true\nbias_q_um2_per_s = {25.0 / 3600.0!r}\n{observer}",
-        period_s=10.0,
-        shaping="max_offset_um = 60.0\nmax_rate_um_per_s = 1.0\ndeadband_um = 0.0",
-    )
-    next_probe = 1800.0
-    while not b.vm.program_done:
-        if b.t >= next_probe:
-            b.vm.start_probe()
-            next_probe += 1800.0
-        b.run(1)
-    rows = b.measurements()
-    cfg = b.rt.estimate.fused.config  # type: ignore[union-attr]
-    b.rt.close()
-    h = b.vm.history()
-    t = np.array([r["time_s"] for r in b.rows])
-    est = np.interp(t, h.time_s, h.true_um) - np.array([r["predicted_um"] for r in b.rows])
-    tip = np.interp(t, h.time_s, h.tool_tip_error_um)
-    return t, est, tip, rows, b.rows, cfg
-
-
 def test_honest_measurements_of_a_real_drift_are_followed_as_without_bounds(
-    tmp_path, calibrated_model
+    tmp_path, calibrated_model, computed_once
 ):
-    t, est, tip, rows, cycles, cfg = drift_day(tmp_path / "bounded", calibrated_model, "")
-    _, free_est, _, free_rows, _, _ = drift_day(
+    """test_closed_loop's day: eight hours of a job shop while the hall warms 1 K/h (which the
+    calibration never saw), the tool setter every 30 min; with the default bounds (the day
+    test_closed_loop runs, made once) and without."""
+    from test_closed_loop import drift_day, fused_day
+
+    day, model = fused_day(computed_once, calibrated_model)
+    t, est, rows = day.t, day.est, day.rows
+    free = drift_day(
         tmp_path / "free",
-        calibrated_model,
-        "max_correction_um = 1000.0\nmax_source_move_um = 1000.0",
+        model,
+        enabled=True,
+        observer="max_correction_um = 1000.0\nmax_source_move_um = 1000.0",
     )
+    assert day.max_correction_um is not None and day.source_move_um is not None
+    assert free.max_correction_um == 1000.0  # the free day's bounds are out of reach
     bias = np.array([float(r["bias_um"]) for r in rows])
     hour = np.minimum((t // 3600).astype(int), 7)
     by_hour = [float(np.sqrt(np.mean(est[hour == k] ** 2))) for k in range(8)]
     late = t > 6 * 3600.0
     print(
-        f"bound {cfg.max_correction_um:.2f} um, source {cfg.source_move_um:.2f} um/h; bias "
+        f"bound {day.max_correction_um:.2f} um, source {day.source_move_um:.2f} um/h; bias "
         f"{bias.min():+.2f}..{bias.max():+.2f} um; rms by hour {np.round(by_hour, 3).tolist()}; "
         f"max |est| after the first probe {np.abs(est[t > 1830.0]).max():.3f} um; "
-        f"tip rms late {np.sqrt(np.mean(tip[late] ** 2)):.3f} um"
+        f"tip rms late {np.sqrt(np.mean(day.tip[late] ** 2)):.3f} um"
     )
     # the defaults leave the day's measurements alone: every one taken whole, the same estimate
     assert {r["outcome"] for r in rows} == {"accepted"} and len(rows) >= 15
-    assert [r["outcome"] for r in free_rows] == [r["outcome"] for r in rows]
-    assert np.array_equal(est, free_est)
-    assert not any(c["alarms"] & Alarm.OBSERVER_BOUND for c in cycles)
-    assert np.abs(bias).max() < cfg.max_correction_um / 2  # far from the bound
+    assert [r["outcome"] for r in free.rows] == [r["outcome"] for r in rows]
+    assert np.array_equal(est, free.est)
+    assert not any(a & Alarm.OBSERVER_BOUND for a in day.alarms)
+    assert np.abs(bias).max() < day.max_correction_um / 2  # far from the bound
     # the closed loop's figures (test_closed_loop): 1.18 um worst hour, 2.63 um worst after
     assert max(by_hour) < 1.5 and np.abs(est[t > 1830.0]).max() < 3.0
 
