@@ -12,7 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from compensator.expected import COVERAGE, MIN_FORWARD_FOLDS, Band, ExpectedError, Figure
+from compensator.expected import (
+    COVERAGE,
+    MIN_FORWARD_FOLDS,
+    Band,
+    ExpectedError,
+    Figure,
+    recent_rpm,
+)
 
 PARSIMONY = 0.02
 """A simpler grid (or a larger α), or a simpler candidate, wins when its CV RMS is within 2 % of
@@ -215,6 +222,8 @@ def expected_error(
     forward_folds: int = 0,
     idle_rpm: float = 1.0,
     folds: Sequence[tuple[int, int]] | None = None,
+    time_s: np.ndarray | None = None,
+    memory_s: float | None = None,
 ) -> ExpectedError | None:
     """The error a model can be expected to make, by operating region
     (:class:`compensator.expected.ExpectedError`): RMS and the 95 % half-width of |residual|
@@ -224,7 +233,10 @@ def expected_error(
     (half-open row ranges, the cycles) group them, since one fold's rows err together;
     ``distance`` is how far the inputs of each forward row lay outside the range its past saw.
     Without ``folds`` the residuals are pooled (each region's conformal quantile, said to rest
-    on ``forward_folds``).
+    on ``forward_folds``). With ``time_s`` and ``memory_s`` (how long a speed stays in the
+    thermal state, :func:`compensator.expected.memory_s_of`) the statement also records the
+    fastest speed within ``memory_s`` before any forward residual (``history_rpm``): after
+    running faster, at rest too, the spindle is where validation never measured.
 
     A region's half-width is the split-conformal quantile per fold, the worst fold when folds
     are few (:func:`fold_quantile`). A speed band whose folds hold too few residuals each takes
@@ -276,11 +288,16 @@ def expected_error(
     if not bands:
         return None
     seen = np.isfinite(fwd)
+    history = None
+    if time_s is not None and memory_s is not None and memory_s > 0 and seen.any():
+        history = round(float(recent_rpm(np.asarray(time_s, float), n, memory_s)[seen].max()), 1)
     return ExpectedError(
         bands=tuple(bands),
         outside_validated=round(float(dist[seen].max()), 4) if seen.any() else 0.0,
         forward_folds=forward_folds,
         measured_rpm=round(float(n[seen].max()), 1) if seen.any() else 0.0,
+        history_rpm=history,
+        memory_s=round(float(memory_s), 1) if history is not None and memory_s else None,
     )
 
 
@@ -290,11 +307,13 @@ def against_expected(
     speed_rpm: np.ndarray,
     distance: np.ndarray | None = None,
     min_rows: int = MIN_BAND_ROWS,
+    recent: np.ndarray | None = None,
 ) -> list[dict[str, object]]:
     """A residual [um] measured after the fit, band by band against what the fit stated: the
     stated RMS and 95th percentile beside the measured RMS and the share of errors within the
     stated bound (about 95 % when the statement holds; outside the trained range the bound is
-    the outside one, :meth:`ExpectedError.p95_at`)."""
+    the outside one, :meth:`ExpectedError.p95_at`); ``within_p95_validated`` counts the rows
+    the statement vouches for alone (``recent``: :meth:`ExpectedError.recent_rpm` of the log)."""
     r = np.asarray(residual, float)
     n = np.asarray(speed_rpm, float)
     which = expected.band_index(n)
@@ -304,7 +323,7 @@ def against_expected(
         if distance is None
         else np.nan_to_num(np.asarray(distance, float)) > 0
     )
-    valid = expected.validated(n, distance)
+    valid = expected.validated(n, distance, recent)
     out = []
     for k, b in enumerate(expected.bands):
         sel = (which == k) & np.isfinite(r)

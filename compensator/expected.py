@@ -25,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Final, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -55,6 +55,50 @@ def distance_outside(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.n
     span = np.maximum(hi - lo, _MIN_SPAN * np.maximum(np.maximum(np.abs(lo), np.abs(hi)), 1.0))
     out = np.maximum(np.maximum(lo - u, u - hi), 0.0) / span
     return np.max(out, axis=1) if out.shape[1] else np.zeros(out.shape[0])
+
+
+MEMORY_TAUS = 3.0
+"""A speed counts in the spindle's thermal state for this many of the model's slowest time
+constants (its effect has then decayed to exp(-3), 5 %)."""
+
+
+def memory_s_of(model: object) -> float | None:
+    """How long a speed stays in the thermal state of ``model`` [s]: :data:`MEMORY_TAUS` times
+    its slowest time constant, its input lags and its fallback's included; None where it states
+    none."""
+    taus: list[float] = []
+    parts: tuple[Any, ...] = (model, getattr(model, "fallback", None))
+    for m in parts:
+        if m is None:
+            continue
+        own = getattr(m, "taus_s", None)
+        if own is None and callable(getattr(m, "time_constants_s", None)):
+            own = m.time_constants_s(0.0)
+        taus += [float(t) for t in own or ()]
+        taus += [float(getattr(c, "tau_s", 0.0)) for c in getattr(m, "inputs", None) or ()]
+    taus = [t for t in taus if np.isfinite(t) and t > 0]
+    return MEMORY_TAUS * max(taus) if taus else None
+
+
+def recent_rpm(time_s: np.ndarray, speed_rpm: np.ndarray, memory_s: float) -> np.ndarray:
+    """Per row, the fastest |speed| within ``memory_s`` up to it, its own included. A time that
+    runs backwards (the next log of several) starts a new history."""
+    t = np.asarray(time_s, float)
+    n = np.abs(np.nan_to_num(np.asarray(speed_rpm, float)))
+    out = np.empty(n.size)
+    window: list[int] = []  # row indices, their speeds decreasing: the front is the window's max
+    head = 0
+    for i in range(n.size):
+        if i and t[i] < t[i - 1]:
+            window, head = [], 0
+        while len(window) > head and n[window[-1]] <= n[i]:
+            window.pop()
+        head = min(head, len(window))
+        window.append(i)
+        while t[window[head]] < t[i] - memory_s:
+            head += 1
+        out[i] = n[window[head]]
+    return out
 
 
 class Figure(BaseModel):
@@ -143,6 +187,30 @@ class ExpectedError(BaseModel):
         description="the fastest |speed| a forward residual was measured at; above it the "
         "statement is not validated (None: the top band's speed, as older records)",
     )
+    history_rpm: float | None = Field(
+        None,
+        ge=0,
+        description="the fastest |speed| within memory_s before any forward residual: after "
+        "running faster, the spindle's heat lies where validation never measured",
+    )
+    memory_s: float | None = Field(
+        None, gt=0, description="how long a speed counts in the thermal state (history_rpm)"
+    )
+
+    def recent_rpm(self, time_s: np.ndarray, speed_rpm: np.ndarray) -> np.ndarray | None:
+        """Per row of a log, the fastest |speed| within :attr:`memory_s` up to it (None when
+        the statement keeps no history): what :meth:`validated` takes as ``recent_rpm``."""
+        if self.history_rpm is None or self.memory_s is None:
+            return None
+        return recent_rpm(time_s, speed_rpm, self.memory_s)
+
+    def _ran_faster(self, recent: np.ndarray | None) -> np.ndarray | bool:
+        if recent is None or self.history_rpm is None:
+            return False
+        hot: np.ndarray = np.asarray(recent, float) > max(self.history_rpm, 1.0) * (
+            1 + RANGE_TOLERANCE
+        )
+        return hot
 
     def _folds(self, own: int | None) -> int:
         return self.forward_folds if own is None else own
@@ -158,14 +226,21 @@ class ExpectedError(BaseModel):
         above: np.ndarray = n > top * (1 + RANGE_TOLERANCE)
         return above
 
-    def validated(self, speed_rpm: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
+    def validated(
+        self,
+        speed_rpm: np.ndarray,
+        distance: np.ndarray | None = None,
+        recent_rpm: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Per row, whether validation scored predictions like it: the row's band (and, with the
         inputs outside the trained range, its outside figure) rests on enough folds predicted
-        forward (:data:`MIN_FORWARD_FOLDS`), the speed is no faster than validation measured at
-        and the inputs no farther out than it reached. Elsewhere the stated figure is a floor."""
+        forward (:data:`MIN_FORWARD_FOLDS`), the speed is no faster than validation measured at,
+        the spindle ran no faster lately (``recent_rpm``, :meth:`recent_rpm`) than before any
+        forward residual, and the inputs lie no farther out than validation reached. Elsewhere
+        the stated figure is a floor."""
         n = np.abs(np.asarray(speed_rpm, float))
         which = self.band_index(n)
-        ok = ~self._above(n) & self._in_band(n, which)
+        ok = ~self._above(n) & self._in_band(n, which) & ~self._ran_faster(recent_rpm)
         ok &= np.array([self._folds(b.folds) >= MIN_FORWARD_FOLDS for b in self.bands])[which]
         if distance is not None:
             d = np.nan_to_num(np.asarray(distance, float))
@@ -192,11 +267,16 @@ class ExpectedError(BaseModel):
         out: np.ndarray = inside | (n > hi[-1])
         return out
 
-    def unvalidated_where(self, speed_rpm: float, spans: float) -> str | None:
+    def unvalidated_where(
+        self, speed_rpm: float, spans: float, recent: float | None = None
+    ) -> str | None:
         """Where a prediction is not validated, in a few words (None: validated)."""
         n = np.array([speed_rpm])
-        if bool(self.validated(n, np.array([spans]))[0]):
+        r = None if recent is None else np.array([recent])
+        if bool(self.validated(n, np.array([spans]), r)[0]):
             return None
+        if r is not None and bool(np.any(self._ran_faster(r))) and not self._above(np.abs(n))[0]:
+            return "after running faster than calibrated"
         if (self.measured_rpm is not None and bool(self._above(np.abs(n))[0])) or not bool(
             self._in_band(np.abs(n), self.band_index(n))[0]
         ):
@@ -205,9 +285,17 @@ class ExpectedError(BaseModel):
             return "outside the trained range"
         return None
 
-    def why_unvalidated(self, speed_rpm: float, spans: float) -> list[str]:
+    def why_unvalidated(
+        self, speed_rpm: float, spans: float, recent: float | None = None
+    ) -> list[str]:
         """Why validation scored no prediction like this one (:meth:`validated`), in words."""
         why = []
+        if recent is not None and bool(np.any(self._ran_faster(np.array([recent])))):
+            why.append(
+                f"the spindle ran at {recent:.0f} rpm within the last "
+                f"{(self.memory_s or 0.0) / 3600:.1f} h, faster than before any error the "
+                f"calibration measured forward ({self.history_rpm or 0.0:.0f} rpm)"
+            )
         if self.forward_folds < MIN_FORWARD_FOLDS:
             why.append(
                 f"the fit predicted {self.forward_folds} fold(s) forward, fewer than {MIN_FORWARD_FOLDS}"
@@ -309,12 +397,16 @@ class ExpectedError(BaseModel):
         bound: np.ndarray = np.where(np.asarray(distance, float) > 0, out, inside)
         return bound
 
-    def at(self, speed_rpm: float, distance: float = 0.0) -> Expectation:
+    def at(
+        self, speed_rpm: float, distance: float = 0.0, recent: float | None = None
+    ) -> Expectation:
         """The error to expect at ``speed_rpm`` with the inputs ``distance`` spans outside the
-        trained range (:func:`distance_outside`)."""
+        trained range (:func:`distance_outside`), the spindle having run at up to ``recent``
+        rpm lately (:meth:`recent_rpm`; None: not known)."""
         b = self.band_of(speed_rpm)
-        ok = bool(self.validated(np.array([speed_rpm]), np.array([distance]))[0])
-        where = None if ok else self.unvalidated_where(speed_rpm, distance)
+        r = None if recent is None else np.array([recent])
+        ok = bool(self.validated(np.array([speed_rpm]), np.array([distance]), r)[0])
+        where = None if ok else self.unvalidated_where(speed_rpm, distance, recent)
         if distance > 0 and b.outside is not None and b.outside.p95_abs_um > b.p95_abs_um:
             fig = b.outside
             return Expectation(b.label, fig.rms_um, fig.p95_abs_um, fig.source, True, ok, where)

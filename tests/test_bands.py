@@ -24,8 +24,10 @@ from calibration.metrics import (
 from compensator.expected import (
     EXPECTED_FORMAT,
     EXPECTED_FORMAT_1,
+    Band,
     ExpectedError,
     parse_expected,
+    recent_rpm,
 )
 
 # -- the quantile ----------------------------------------------------------------------------
@@ -254,3 +256,78 @@ def test_a_statement_in_the_first_format_still_loads_and_reads_as_it_did():
     assert stated.at(10000.0, 0.2).p95_abs_um == 6.0 and stated.at(10000.0, 0.2).validated
     assert stated.at(3000.0, 0.2).validated  # the first format had no outside figure per band
     assert stated.at(0.0).validated  # the statement's three folds, as before
+
+
+# -- after running faster than validation saw ------------------------------------------------
+
+
+def test_the_speed_lately_is_the_fastest_within_the_memory():
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.5, 3.0, 500))
+    n = rng.uniform(-9000.0, 9000.0, 500)
+    got = recent_rpm(t, n, 50.0)
+    want = np.array([np.abs(n[(t >= ti - 50.0) & (t <= ti)]).max() for ti in t])
+    assert np.array_equal(got, want)
+    # a second log (time restarts) starts its own history
+    assert recent_rpm(np.r_[0.0, 10.0, 0.0], np.r_[0.0, 8000.0, 100.0], 1e6).tolist() == [
+        0.0,
+        8000.0,
+        100.0,
+    ]
+
+
+def test_a_spindle_cooling_from_a_speed_validation_never_saw_is_not_validated():
+    """Forward residuals after running up to 3750 rpm: at rest after 5000 rpm the at-rest band
+    is not vouched for until the memory (3 slowest time constants) has passed."""
+    t = np.arange(4 * 300) * 60.0
+    n = np.tile(np.r_[np.full(150, 3750.0), np.zeros(150)], 4)
+    cycles = [(i * 300, (i + 1) * 300) for i in range(4)]
+    fwd = np.random.default_rng(6).normal(0, 1.0, n.size)
+    fwd[:300] = np.nan
+    stated = expected_error(
+        fwd, None, n, 3750.0, forward_folds=3, folds=cycles, time_s=t, memory_s=7200.0
+    )
+    assert stated.history_rpm == 3750.0 and stated.memory_s == 7200.0
+    assert stated.at(0.0, 0.0, recent=3750.0).validated
+    cooling = stated.at(0.0, 0.0, recent=5000.0)
+    assert not cooling.validated
+    assert cooling.claim == "not validated after running faster than calibrated"
+    assert stated.why_unvalidated(0.0, 0.0, 5000.0)[0].startswith(
+        "the spindle ran at 5000 rpm within the last 2.0 h"
+    )
+    # over a log: rows within 2 h after the 5000 rpm stretch are not validated, later ones are
+    t2 = np.arange(400) * 60.0
+    n2 = np.r_[np.full(100, 5000.0), np.zeros(300)]
+    ok = stated.validated(n2, None, stated.recent_rpm(t2, n2))
+    assert not ok[:220].any() and ok[221:].all()
+
+
+def test_the_service_remembers_the_speed_it_ran_at(tmp_path):
+    stated = ExpectedError(
+        bands=(
+            Band(speed_rpm=(0.0, 1.0), source="forward", samples=50, rms_um=0.4, p95_abs_um=0.8),
+            Band(
+                speed_rpm=(1.0, 10000.0), source="forward", samples=50, rms_um=1.0, p95_abs_um=2.0
+            ),
+        ),
+        forward_folds=3,
+        measured_rpm=10000.0,
+        history_rpm=3000.0,
+        memory_s=60.0,
+    )
+    model = speed_only(spindle_id="sp-A")
+    model = model.model_copy(
+        update={"fit": {**model.fit, "expected_error": stated.model_dump(mode="json")}}
+    )
+    b = Bench(tmp_path, model)
+    ex = b.run(3)[-1]["expected_error"]  # 5000 rpm, faster than any before a forward residual
+    assert ex["validated"] is False
+    assert ex["claim"] == "not validated after running faster than calibrated"
+    b.vm.override_speed(0.0)
+    rows = b.run(80)
+    claims = [r["expected_error"]["claim"] for r in rows]
+    # at rest the memory of 5000 rpm lasts 60 s of the service's clock, then the band holds
+    assert claims[0] == "not validated after running faster than calibrated"
+    assert claims[-1] == "expect ±0.8 µm (95 %)"
+    assert 50 <= claims.index("expect ±0.8 µm (95 %)") <= 62
+    b.rt.close()

@@ -57,6 +57,14 @@ class ExpectedWatch:
             None if fallback is None else fit_of(fallback).expected_error
         )
         self.high: str | None = None  # why EXPECTED_ERROR_HIGH is raised, while it is
+        # the speeds lately, (time, |rpm|) with the speeds decreasing: the first within a
+        # statement's memory is the fastest it remembers (a spindle cooling from a speed faster
+        # than validation saw is where validation never measured, at rest too)
+        self.lately: list[tuple[float, float]] = []
+        self.memory_s = max(
+            (e.memory_s or 0.0 for e in (self.expected, self.fallback) if e is not None),
+            default=0.0,
+        )
         if self.bound_um is None:
             return
         if self.expected is None and self.fallback is None:
@@ -84,6 +92,18 @@ class ExpectedWatch:
 
     def follow(self, old: ExpectedWatch) -> None:
         self.high = old.high  # raised still: no second entry event
+        self.lately = old.lately
+
+    def _recent(self, stated: ExpectedError, speed_rpm: float, now: float | None) -> float | None:
+        """The fastest |speed| within ``stated``'s memory up to ``now`` (None: no history)."""
+        if now is None or self.memory_s <= 0:
+            return None
+        n = abs(speed_rpm) if speed_rpm == speed_rpm else 0.0  # an unread speed adds nothing
+        keep = [(t, v) for t, v in self.lately if t >= now - self.memory_s and v > n]
+        self.lately = [*keep, (now, n)]
+        if stated.memory_s is None or stated.history_rpm is None:
+            return None
+        return next(v for t, v in self.lately if t >= now - stated.memory_s)
 
     def stated(self, estimate: Estimate, est: EstimateState) -> tuple[ExpectedError | None, bool]:
         """The statement of the model in use (the fallback's while it stands in), and whether
@@ -93,12 +113,13 @@ class ExpectedWatch:
         return (self.expected if use_main else self.fallback), on_inputs
 
     def at(
-        self, estimate: Estimate, est: EstimateState, speed_rpm: float
+        self, estimate: Estimate, est: EstimateState, speed_rpm: float, now: float | None = None
     ) -> tuple[ExpectedNow | None, Alarm]:
         """The error to expect at ``speed_rpm`` (None where the model in use states none), and
         ``EXPECTED_ERROR_HIGH`` while a bound is set and the figure (95 % of |error|) exceeds it
         or validation scored no prediction like this one (too few folds predicted forward, a
-        speed above the calibrated range, inputs further out than it reached: the figure is
+        speed above the calibrated range, a speed faster than validation saw within the
+        statement's memory before ``now``, inputs further out than it reached: the figure is
         then a floor). Advice only: the offset is never changed for it."""
         stated, on_inputs = self.stated(estimate, est)
         bound = self.bound_um
@@ -106,7 +127,8 @@ class ExpectedWatch:
         why: str | None = None
         if stated is not None:
             spans = float(est.outside_spans) if on_inputs else 0.0
-            e = stated.at(speed_rpm, spans)
+            recent = self._recent(stated, speed_rpm, now)
+            e = stated.at(speed_rpm, spans, recent)
             out = ExpectedNow(
                 e.band,
                 e.rms_um,
@@ -131,7 +153,7 @@ class ExpectedWatch:
                 )
                 if not e.validated:  # the figure is a floor: the bound cannot be vouched for
                     why += ", not validated here: " + "; ".join(
-                        stated.why_unvalidated(speed_rpm, spans)
+                        stated.why_unvalidated(speed_rpm, spans, recent)
                     )
                 elif e.outside:
                     why += ", inputs outside the trained range"

@@ -432,7 +432,7 @@ class SpindleRuntime:
         if self.estimate.fused is not None:
             alarms |= self._measure(now, wall_now, reading, wants)
         alarms |= self.cold.alarm(now)
-        expected, expected_alarm = self.expected.at(self.estimate, self.est, read_rpm)
+        expected, expected_alarm = self.expected.at(self.estimate, self.est, read_rpm, now)
         alarms |= expected_alarm  # the real speed, not the clamped one
         s = self.est.estimate_um
         shaper_rpm = speed if heard.shaper_rpm is None else heard.shaper_rpm
