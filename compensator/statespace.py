@@ -45,7 +45,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .errors import ModelError
 from .expected import distance_outside
-from .filters import Steps, decay, decaying_sum, lag, lag_step, series
+from .filters import Steps, decay, lag, lag_step, series
 from .model import MODEL_FORMAT, ThermalModel
 from .modelbase import Channel, ModelBase, saved_numbers, speed_range
 from .units import SPEED_SCALE_RPM, require_dt, require_finite, speed_magnitude_rpm
@@ -573,6 +573,10 @@ class _Recursion:
 
     def block(self, s: int, drives: np.ndarray, out: np.ndarray) -> None:
         """Samples s.. of every state, from their drives (a row each), added into ``out``."""
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is found and redone
+            self._block(s, drives, out)
+
+    def _block(self, s: int, drives: np.ndarray, out: np.ndarray) -> None:
         if self.fast.size:
             self.fast_drive[:, s : s + drives.shape[1]] = drives[self.fast]
         if not self.slow.size:
@@ -655,12 +659,26 @@ class _Recursion:
             np.subtract(self.x[:, None], c, out=c)
             c /= g
             for i in np.flatnonzero(~np.isfinite(c[:, -1])):  # a drive near the float range
-                span = (t[s + p : s + q] - t[s + p - 1]) * self.rate[i]
-                inc[i] = np.expm1(dt[p:q] * -self.rate[i]) * d[i, p:q]
-                c[i] = decaying_sum(-inc[i], float(self.x[i]), cum=span)
+                c[i] = self._scaled(
+                    float(self.x[i]), np.expm1(dt[p:q] * -self.rate[i]), d[i, p:q], g[i]
+                )
             out[p:q] += np.matmul(self.ones, c, out=self.sums[:n])
             self.x[:] = c[:, -1]
             p = q
+
+    @staticmethod
+    def _scaled(x: float, gain: np.ndarray, d: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """One state's stretch, its values scaled by a power of two (exact) so that the sums
+        stay far from overflow; ``gain`` is -(1 - a_k), ``g`` exp(L)."""
+        inc = gain * d
+        e = math.frexp(max(float(np.max(np.abs(inc))), abs(x)))[1]
+        c = np.ldexp(inc, -e)
+        c *= g
+        np.cumsum(c, out=c)
+        np.subtract(math.ldexp(x, -e), c, out=c)
+        c /= g
+        out: np.ndarray = np.ldexp(c, e)
+        return out
 
     def finish(self, out: np.ndarray) -> None:
         """The fast states, over the whole log."""
