@@ -193,7 +193,13 @@ def fade_model(
     return max(c0 * math.exp(-t_s / tau_s), c0 - cap * t_s, 0.0)
 
 
-def test_killed_thermocomp_stops_the_machine_within_the_timeout():
+def test_a_late_beat_holds_the_machine_until_the_beats_return_a_kill_stops_it():
+    """One LinuxCNC for both (its start, homing and the cut under way are a third of each run).
+    The watchdog does not latch: thermocomp stopped (SIGSTOP: a hang, a late cycle) past the
+    timeout and let go on, nothing else done: ok falls after the timeout on HAL's clock and
+    returns with the next beat; the feed hold releases and the fade gives the counts back. Then
+    beats at 10 Hz keep it ok, and thermocomp killed (SIGKILL) stops the machine within the
+    timeout: the fade, the feed hold and the refused cycle start."""
     with watched_rig() as cnc:
         r = cnc.rsh
         # in E-stop at start: it beats, but it is not valid: not ok, nothing applied
@@ -205,23 +211,62 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
         assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
         counts, life = cnc.getps(("thermocomp.eoffset-counts", "thermocomp.life-counter"))
         assert counts == COUNTS and life > 1
-        for tracker in ("tcw-ok-min", "tcw-gap", "tcw-since-fault"):  # from here on
-            setp(f"{tracker}.reset", 1)
-            setp(f"{tracker}.reset", 0)
 
         # a cycle start is let through: the check passes, the marker is set, the cut begins
         run_program(cnc)
         assert cnc.wait(lambda: cnc.getp("motion.analog-out-02") == 1.0)
         assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
-        # beats at 10 Hz with a 2 s timeout: ok all along, 3 s of HAL time
+
+        # -- a late beat: stopped past the timeout, then let go on
+        for tracker in ("tcw-since-fault", "tcw-early"):
+            setp(f"{tracker}.reset", 1)
+            setp(f"{tracker}.reset", 0)
+        pid = component_pid("thermocomp")
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is False, timeout=60)
+            since, valid, early = cnc.getps(
+                ("tcw-since-beat.out", "thermocomp.comp-valid", "tcw-early.out")
+            )
+            # on the timeout, not on the flag: comp-valid still true, the toggle stale
+            assert valid is True and early is False
+            assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
+            # held: the feed stopped, the counts fading, the program still running
+            assert cnc.wait(lambda: cnc.getp("motion.current-vel") == 0.0)
+            assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") < COUNTS)
+            assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+        finally:
+            os.kill(pid, signal.SIGCONT)
+
+        # the beats again, nothing else: ok returns, the cut goes on, the counts are back
+        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=60)
+        late_gap = cnc.getp("tcw-since-fault.out")
+        assert late_gap > 0.0  # ok was false for this long on HAL's clock, and now is true again
+        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
+        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
+        assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
+        assert cnc.getp("thermocomp-beat.out") is True
+        print(
+            f"\nstopped past the timeout: ok fell {since:.3f} s after the last beat, was false "
+            f"for {late_gap:.3f} s, true again with the next beat (timeout {TIMEOUT_S} s)"
+        )
+
+        # -- beats at 10 Hz with a 2 s timeout: ok all along, 3 s of HAL time
+        for tracker in ("tcw-ok-min", "tcw-gap"):  # from here on
+            setp(f"{tracker}.reset", 1)
+            setp(f"{tracker}.reset", 0)
         t0 = cnc.getp("tcw-clock.out")
-        cnc.wait(lambda: cnc.getp("tcw-clock.out") - t0 > 3.0)
+        assert cnc.wait(lambda: cnc.getp("tcw-clock.out") - t0 > 3.0, timeout=60)
         gap, ok_min, ok = cnc.getps(("tcw-gap.max", "tcw-ok-min.min", "thermocomp-ok.out"))
         assert ok_min == 1.0 and ok is True, gap
+        assert cnc.getp("tcw-since-fault.out") == late_gap  # no fault since
         assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
         assert cnc.getp("axis.z.eoffset-request") == pytest.approx(COUNTS * 1e-5)
 
-        # SIGKILL of the process that owns the component: no last word, every pin stays
+        # -- SIGKILL of the process that owns the component: no last word, every pin stays
+        setp("tcw-since-fault.reset", 1)
+        setp("tcw-since-fault.reset", 0)
         kill("thermocomp", signal.SIGKILL)
         assert cnc.wait(lambda: cnc.getp("thermocomp-beat.out") is False, timeout=60)
         # the reaction time on HAL's clock: from the last flip HAL saw to ok falling
@@ -244,7 +289,7 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
 
         cnc.wait(faded, timeout=120, every=0.02)
         print(
-            f"\nlargest beat gap {gap:.3f} s; ok fell {since:.3f} s after the last beat "
+            f"largest beat gap {gap:.3f} s; ok fell {since:.3f} s after the last beat "
             f"(timeout {TIMEOUT_S} s, servo period {SERVO_PERIOD_S * 1e3:g} ms); faded to 0 "
             f"{samples[-1][0]:.3f} s later ({len(samples)} samples)"
         )
@@ -275,59 +320,6 @@ def test_killed_thermocomp_stops_the_machine_within_the_timeout():
         assert cnc.wait(lambda: rsh_status(cnc) == "PROGRAM_STATUS IDLE")
         assert "thermal compensation stopped - cycle start refused" in r.cmd("get error")
         assert cnc.getp("motion.analog-out-02") == 0.0  # its next line never ran
-
-
-def test_a_beat_late_past_the_timeout_holds_the_machine_only_until_the_beats_return():
-    """The watchdog does not latch: thermocomp stopped (SIGSTOP: a hang, a late cycle) past the
-    timeout and let go on, nothing else done: ok falls after the timeout on HAL's clock and
-    returns with the next beat; the feed hold releases and the fade gives the counts back."""
-    with watched_rig() as cnc:
-        on_and_homed(cnc)
-        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True)
-        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
-        run_program(cnc)
-        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
-        for tracker in ("tcw-since-fault", "tcw-early"):
-            setp(f"{tracker}.reset", 1)
-            setp(f"{tracker}.reset", 0)
-
-        pid = component_pid("thermocomp")
-        assert pid is not None
-        os.kill(pid, signal.SIGSTOP)
-        try:
-            assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is False, timeout=60)
-            since, valid, early = cnc.getps(
-                ("tcw-since-beat.out", "thermocomp.comp-valid", "tcw-early.out")
-            )
-            # on the timeout, not on the flag: comp-valid still true, the toggle stale
-            assert valid is True and early is False
-            assert TIMEOUT_S - SERVO_PERIOD_S <= since <= TIMEOUT_S + 3 * SERVO_PERIOD_S
-            # held: the feed stopped, the counts fading, the program still running
-            assert cnc.wait(lambda: cnc.getp("motion.current-vel") == 0.0)
-            assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") < COUNTS)
-            assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
-        finally:
-            os.kill(pid, signal.SIGCONT)
-
-        # the beats again, nothing else: ok returns, the cut goes on, the counts are back
-        assert cnc.wait(lambda: cnc.getp("thermocomp-ok.out") is True, timeout=60)
-        gap = cnc.getp("tcw-since-fault.out")
-        assert gap > 0.0  # ok was false for this long on HAL's clock, and now is true again
-        assert cnc.wait(lambda: cnc.getp("motion.current-vel") > 0.5 / 60)
-        assert cnc.wait(lambda: cnc.getp("axis.z.eoffset-counts") == COUNTS)
-        assert rsh_status(cnc) == "PROGRAM_STATUS RUNNING"
-        assert cnc.getp("thermocomp-beat.out") is True
-        # and it stays: beats at 10 Hz, 3 s of HAL time without a fault
-        setp("tcw-ok-min.reset", 1)
-        setp("tcw-ok-min.reset", 0)
-        t0 = cnc.getp("tcw-clock.out")
-        assert cnc.wait(lambda: cnc.getp("tcw-clock.out") - t0 > 3.0, timeout=60)
-        assert cnc.getp("tcw-ok-min.min") == 1.0
-        assert cnc.getp("tcw-since-fault.out") == gap
-        print(
-            f"\nstopped past the timeout: ok fell {since:.3f} s after the last beat, was false "
-            f"for {gap:.3f} s, true again with the next beat (timeout {TIMEOUT_S} s)"
-        )
 
 
 def restart_thermocomp(cnc: LinuxCnc) -> None:
