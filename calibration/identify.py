@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -46,6 +46,7 @@ from compensator.modelbase import with_fit
 from compensator.plausibility import steady_growth_refusal
 
 from . import closedloop
+from . import folds as fl
 from .candidate import MIN_FORWARD_FOLDS, Candidate
 from .dataset import Dataset, LogData, join
 from .estimators import baseline, output_error, paper_ols
@@ -160,6 +161,24 @@ def _ridge_inputs(
     return c, res
 
 
+def _ridge_static(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
+    names = ctx["names"]
+    res = rb.fit(ds, grids=[static_grid(ds)], input_names=names, alpha_by="chained")
+    what = (
+        f"ridge over n, n² through a filter bank and {len(names)} input(s) static (no filter); "
+        "alpha on forward-chained half cycles"
+    )
+    c = _from_ridge("ridge+static", "inputs", what, res, ds)
+    c.details["inputs_used"] = list(res.input_names)
+    return c, res
+
+
+def static_grid(ds: Dataset) -> rb.TauGrid:
+    """The speed bank of :func:`~calibration.estimators.ridge_bank.auto_grid`, the inputs static
+    only: a temperature's effect taken as it stands, no lag for the inputs to fit."""
+    return rb.TauGrid(rb.auto_grid(ds.time_s, ds.speed_rpm, ds.cycles, False).speed_taus_s, (0.0,))
+
+
 @dataclass(frozen=True)
 class Entry:
     """One candidate structure: how to fit and score it on a dataset (``evaluate`` returns the
@@ -181,10 +200,28 @@ class Entry:
     min_inputs: int = 0
     """Fewer inputs than this leave it out: sharing strength is for many nearly collinear
     sensors (16 on one casting); three independent ones keep a bank each."""
+    complexity: int = 0
+    """Its place in the order of structures, simple to flexible (:data:`COMPLEXITY`): a more
+    flexible one is chosen over a simpler one only when the folds say it is better by more than
+    their spread."""
 
 
 MIN_SHARED_INPUTS = 6
 """The structures that share strength among inputs are tried from this many inputs."""
+
+COMPLEXITY = {
+    baseline.NAME: 0,
+    output_error.NAME: 1,
+    "ridge": 2,
+    "ridge+static": 3,
+    "ridge+few": 4,
+    "ridge+pca": 4,
+    "ridge+bounded": 4,
+    "ridge+inputs": 5,
+}
+"""The structures from simple to flexible: the exponential baseline, the physical form, ridge on
+speed, ridge with the inputs static, ridge with the inputs sharing strength (a few, their
+principal components, bounded sensitivities), ridge with every input through its own bank."""
 
 REGISTRY: tuple[Entry, ...] = (
     Entry(baseline.NAME, "speed", _baseline, "fitting the exponential baseline"),
@@ -194,10 +231,24 @@ REGISTRY: tuple[Entry, ...] = (
         output_error.candidate,
         f"fitting {output_error.PHYSICAL_FORM} per fold",
         option="physical",
+        complexity=1,
     ),
-    Entry("ridge", "speed", _ridge, "fitting ridge (speed)"),
+    Entry("ridge", "speed", _ridge, "fitting ridge (speed)", complexity=2),
     Entry(
-        "ridge+inputs", "inputs", _ridge_inputs, "fitting ridge with the inputs", needs_inputs=True
+        "ridge+inputs",
+        "inputs",
+        _ridge_inputs,
+        "fitting ridge with the inputs",
+        needs_inputs=True,
+        complexity=5,
+    ),
+    Entry(
+        "ridge+static",
+        "inputs",
+        _ridge_static,
+        "fitting ridge with the inputs static",
+        needs_inputs=True,
+        complexity=3,
     ),
     Entry(
         "ridge+few",
@@ -207,6 +258,7 @@ REGISTRY: tuple[Entry, ...] = (
         needs_inputs=True,
         min_folds=3,
         min_inputs=MIN_SHARED_INPUTS,
+        complexity=4,
     ),
     Entry(
         "ridge+pca",
@@ -216,6 +268,7 @@ REGISTRY: tuple[Entry, ...] = (
         needs_inputs=True,
         min_folds=3,
         min_inputs=MIN_SHARED_INPUTS,
+        complexity=4,
     ),
     Entry(
         "ridge+bounded",
@@ -225,6 +278,7 @@ REGISTRY: tuple[Entry, ...] = (
         needs_inputs=True,
         min_folds=3,
         min_inputs=MIN_SHARED_INPUTS,
+        complexity=4,
     ),
     Entry(
         paper_ols.NAME, "reference", paper_ols.candidate, "scoring the paper's OLS", every_row=True
@@ -273,6 +327,13 @@ class Identification:
             "scored_by": f"{ds.scheme} free run",
             "forward_decides": ds.unit == "cycle",
             "folds": [[int(a), int(b)] for a, b in ds.folds],
+            "forward_splits": [
+                [int(a), int(b)]
+                for _, (a, b) in fl.forward_of(
+                    ds.time_s, ds.speed_rpm, ds.folds, ds.unit == "cycle", ds.measured
+                )
+            ],
+            "forward_rule": fl.FORWARD_ORIGIN_RULE if ds.unit == "cycle" else None,
             "logs": list(ds.names),
             "candidates": [c.row() for c in self.candidates],
             "chosen": self.chosen.name,
@@ -425,10 +486,45 @@ def identify(
             if why is not None:
                 c.accepted, c.refusals = False, [*c.refusals, f"physics: {why}"]
     speed = [c for c in cands if c.family == "speed" and c.accepted and c.model is not None]
+    fallback_note: str | None = None
     if not speed:
-        raise CalibrationError(
-            "no speed-only candidate passed the checks: "
-            + "; ".join(f"{c.name}: {', '.join(c.refusals)}" for c in cands if c.family == "speed")
+        # a model with inputs that passed needs a speed-only stand-in, not a refusal
+        safe = None
+        if any(c.family == "inputs" and c.accepted for c in cands):
+            safe = conservative_fallback(ds, fitted, growth_direction, measured_span_um, meta)
+        if safe is None:
+            raise CalibrationError(
+                "no speed-only candidate passed the checks: "
+                + "; ".join(
+                    f"{c.name}: {', '.join(c.refusals)}" for c in cands if c.family == "speed"
+                )
+            )
+        failed = [c.name for c in cands if c.family == "speed"]
+        fallback_note = (
+            f"no speed-only candidate passed the checks ({', '.join(failed)}); the fallback, used "
+            f"only when an input fails, is {safe.name}: {safe.description}"
+        )
+        warnings.append(fallback_note)
+        cands.append(safe)
+        speed = [safe]
+    splits = fl.forward_of(ds.time_s, ds.speed_rpm, ds.folds, ds.unit == "cycle", ds.measured)
+    if probe_every_s is None and ds.unit == "cycle":
+        chosen, final, model, reason = _choose_by_folds(
+            cands, speed, fitted, ds, splits, warnings, fallback_note, len(names), units, meta
+        )
+        return _finish(
+            ds,
+            cands,
+            chosen,
+            final,
+            model,
+            reason,
+            warnings,
+            fitted,
+            loop_of,
+            probe_target_um,
+            cpu0,
+            say,
         )
     best = min(speed, key=score)
     chosen = next(c for c in speed if score(c) <= score(best) * (1 + PARSIMONY))
@@ -476,12 +572,49 @@ def identify(
             units=units,
             meta=meta,
         )
-    statement = _speed_alone(ds, chosen, final, fitted.get("ridge"), loop_of if ds.dense else None)
-    if statement:
-        warnings.append(statement)
+    if fallback_note is not None:
+        reason += f"; {fallback_note}"
     paper = next((c for c in cands if c.family == "reference"), None)
     if paper is not None and math.isfinite(paper.cv_rms_um):
         reason += f"; the paper's OLS scores {paper.cv_rms_um:.2f} um"
+    return _finish(
+        ds,
+        cands,
+        chosen,
+        final,
+        model,
+        reason,
+        warnings,
+        fitted,
+        loop_of,
+        probe_target_um,
+        cpu0,
+        say,
+    )
+
+
+def _finish(
+    ds: Dataset,
+    cands: list[Candidate],
+    chosen: Candidate,
+    final: Candidate,
+    model: Any,
+    reason: str,
+    warnings: list[str],
+    fitted: Mapping[str, Any],
+    loop_of: Callable[[Candidate], closedloop.Plan | None],
+    probe_target_um: float | None,
+    cpu0: float,
+    say: Callable[[str], None],
+) -> Identification:
+    """What every choice ends with: the line on speed alone, the derived quantities, the
+    closed-loop plan and its observer."""
+    if final is not chosen and chosen.name == baseline.MONOTONE_NAME:
+        # the model file says why its fallback is the conservative one
+        model = with_fit(model, fallback=next(w for w in warnings if "no speed-only" in w))
+    statement = _speed_alone(ds, chosen, final, fitted.get("ridge"), loop_of if ds.dense else None)
+    if statement:
+        warnings.append(statement)
     derived = (
         rb.derived(fitted[final.name], ds)
         if isinstance(fitted.get(final.name), rb.RidgeFit) and final.name != baseline.NAME
@@ -500,6 +633,257 @@ def identify(
     return Identification(
         ds, cands, final, model, reason, warnings, time.process_time() - cpu0, derived, loop
     )
+
+
+MIN_PAIRED = 3
+"""Folds a one-standard-error comparison needs; with fewer forward folds the whole-cycle
+leave-one-out folds join them."""
+
+
+def _fold_mse(
+    residual: np.ndarray | None, folds: Sequence[fl.Fold], rows: np.ndarray
+) -> np.ndarray:
+    """Mean square [um²] of ``residual`` on the ``rows`` of each fold (NaN where none)."""
+    out = np.full(len(folds), np.nan)
+    if residual is None:
+        return out
+    for i, (a, b) in enumerate(folds):
+        ok = rows[a:b] & ~np.isnan(residual[a:b])
+        if ok.any():
+            r = np.where(np.isfinite(residual[a:b][ok]), residual[a:b][ok], 1e9)
+            out[i] = float(np.mean(r * r))
+    return out
+
+
+@dataclass(frozen=True)
+class Duel:
+    """A more flexible candidate against the simpler one standing, fold by fold."""
+
+    rich: Candidate
+    simple: Candidate
+    won: bool
+    text: str
+
+
+def _duel(rich: Candidate, simple: Candidate, splits: Sequence[fl.Split], ds: Dataset) -> Duel:
+    """Whether ``rich`` displaces ``simple``: its per-fold mean square lower on average by more
+    than one standard error of the paired differences (Hastie, Tibshirani and Friedman, section
+    7.10), and neither its median nor its worst forward fold worse than the simpler one's by more
+    than :data:`PARSIMONY`. The folds are the forward ones; with fewer than :data:`MIN_PAIRED`
+    the whole-cycle leave-one-out folds join them, and with fewer than that in all, ``rich``
+    must be lower on every fold by more than PARSIMONY."""
+    targets = [f for _, f in splits]
+    fa = _fold_mse(rich.forward_residual_um, targets, ds.measured)
+    fb = _fold_mse(simple.forward_residual_um, targets, ds.measured)
+    ok = np.isfinite(fa) & np.isfinite(fb)
+    fa, fb = fa[ok], fb[ok]
+    pa, pb, where = fa, fb, f"{fa.size} forward fold(s)"
+    if fa.size < MIN_PAIRED:
+        la = _fold_mse(rich.held_out_residual_um, ds.folds, ds.measured)
+        lb = _fold_mse(simple.held_out_residual_um, ds.folds, ds.measured)
+        both = np.isfinite(la) & np.isfinite(lb)
+        pa, pb = np.concatenate([fa, la[both]]), np.concatenate([fb, lb[both]])
+        where += f" and {int(both.sum())} leave-one-{ds.unit}-out fold(s)"
+    if pa.size == 0:
+        return Duel(rich, simple, False, f"{rich.name}: no fold to compare on")
+    wa, wb = (fa, fb) if fa.size else (pa, pb)
+    med_a, med_b = math.sqrt(float(np.median(wa))), math.sqrt(float(np.median(wb)))
+    worst_a, worst_b = math.sqrt(float(wa.max())), math.sqrt(float(wb.max()))
+    d = pb - pa
+    if d.size >= MIN_PAIRED:
+        gain, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
+        better = gain > se
+        how = (
+            f"lower by {gain:.2f} um² in mean square per fold, "
+            f"{'more' if better else 'less'} than one standard error ({se:.2f} um²) over {where}"
+        )
+    else:
+        better = bool(np.all(np.sqrt(pa) < np.sqrt(pb) * (1 - PARSIMONY)))
+        how = f"{'lower' if better else 'not lower'} on every one of {where} by {PARSIMONY:.0%}"
+    tail_ok = med_a <= med_b * (1 + PARSIMONY) and worst_a <= worst_b * (1 + PARSIMONY)
+    figures = (
+        f"median {med_a:.2f} against {med_b:.2f} um, worst {worst_a:.2f} against {worst_b:.2f} um"
+    )
+    if better and not tail_ok:
+        how += f", but its median or worst fold is higher by more than {PARSIMONY:.0%}"
+    won = better and tail_ok
+    return Duel(rich, simple, won, f"{rich.name} against {simple.name}: {figures}; {how}")
+
+
+def _forward_figures(c: Candidate, splits: Sequence[fl.Split], ds: Dataset) -> tuple[float, float]:
+    """(median, worst) forward fold RMS [um] of ``c`` on ``splits``; NaN without."""
+    f = _fold_mse(c.forward_residual_um, [t for _, t in splits], ds.measured)
+    f = f[np.isfinite(f)]
+    if not f.size:
+        return math.nan, math.nan
+    return math.sqrt(float(np.median(f))), math.sqrt(float(f.max()))
+
+
+def _walk(
+    order: Sequence[Candidate], splits: Sequence[fl.Split], ds: Dataset
+) -> tuple[Candidate, list[Duel]]:
+    """Simple to flexible: the first stands, each next one displaces the one standing only when
+    it wins their :func:`_duel`."""
+    standing, duels = order[0], []
+    for c in order[1:]:
+        duel = _duel(c, standing, splits, ds)
+        duels.append(duel)
+        if duel.won:
+            standing = c
+    return standing, duels
+
+
+def _choose_by_folds(
+    cands: list[Candidate],
+    speed: list[Candidate],
+    fitted: Mapping[str, Any],
+    ds: Dataset,
+    splits: Sequence[fl.Split],
+    warnings: list[str],
+    fallback_note: str | None,
+    n_inputs: int,
+    units: Mapping[str, str] | None,
+    meta: Mapping[str, Any],
+) -> tuple[Candidate, Candidate, Any, str]:
+    """The choice when the folds are cycles: structures walked from simple to flexible
+    (:data:`COMPLEXITY`), a flexible one taken only when it wins its :func:`_duel` against the
+    one standing; the speed-only ones first (the fallback), then the inputs from it. Returns
+    (the speed-only choice, the final choice, its model, the reason in one paragraph)."""
+
+    def rank(c: Candidate) -> int:
+        return COMPLEXITY.get(c.name, len(COMPLEXITY))
+
+    chosen, speed_duels = _walk(sorted(speed, key=rank), splits, ds)
+    rich = sorted((c for c in cands if c.family == "inputs" and c.accepted), key=rank)
+    pool = [*sorted(speed, key=rank), *rich]
+    final, input_duels = _walk([chosen, *rich], splits, ds) if rich else (chosen, [])
+    for duel in input_duels:
+        if duel.rich is not final and not duel.won:  # lost to the one standing
+            duel.rich.accepted = False
+            duel.rich.refusals.append(duel.text)
+        elif duel.won and duel.simple is not chosen:  # displaced by a more flexible one
+            duel.simple.accepted = False
+            duel.simple.refusals.append(duel.text)
+    model = _with_record(
+        chosen, ds, "speed-only fallback: " + _paragraph(chosen, speed, speed_duels, splits, ds)
+    )
+    reason = _paragraph(
+        final,
+        pool,
+        speed_duels + input_duels,
+        splits,
+        ds,
+    )
+    if final is not chosen:
+        reason += f" {chosen.name} stands in, speed only, when an input fails."
+    if fallback_note is not None:
+        reason += f" Note: {fallback_note}."
+    if final is chosen:
+        model = _with_record(chosen, ds, reason)
+        return chosen, chosen, model, reason
+    model, kept, reason = with_inputs_or_not(
+        final,
+        chosen,
+        fitted[final.name],
+        model,
+        ds,
+        reason,
+        warnings,
+        score=lambda c: c.decisive_rms_um,
+        what="",
+        n_inputs=n_inputs,
+        units=units,
+        meta=meta,
+        judged=True,
+    )
+    return chosen, kept, model, reason
+
+
+def _paragraph(
+    final: Candidate,
+    pool: Sequence[Candidate],
+    duels: Sequence[Duel],
+    splits: Sequence[fl.Split],
+    ds: Dataset,
+) -> str:
+    """What was chosen, over what, and why, in one paragraph a user can read."""
+    med, worst = _forward_figures(final, splits, ds)
+    others = [c for c in pool if c is not final]
+    ranked = sorted(
+        others, key=lambda c: _forward_figures(c, splits, ds)[0] if splits else c.honest_rms_um
+    )
+    runner = next((c for c in ranked if math.isfinite(_forward_figures(c, splits, ds)[0])), None)
+    text = (
+        f"{final.name} chosen among {len(pool)} candidate(s) "
+        f"({', '.join(c.name for c in pool)}), judged in free run on {len(splits)} forward fold(s) "
+        f"(origins every half cycle, each predicted by a model fitted on the rows before it) and "
+        f"{len(ds.folds)} leave-one-{ds.unit}-out fold(s)."
+    )
+    if math.isfinite(med):
+        text += f" Forward RMS per fold: median {med:.2f} um, worst {worst:.2f} um"
+        text += f" (leave-one-{ds.unit}-out {final.honest_rms_um:.2f} um)."
+    else:
+        text += f" Leave-one-{ds.unit}-out RMS {final.honest_rms_um:.2f} um."
+    if runner is not None:
+        rm, rw = _forward_figures(runner, splits, ds)
+        text += f" Runner-up: {runner.name}, median {rm:.2f} um, worst {rw:.2f} um."
+    text += (
+        " Rule: structures are tried from simple to flexible, and a more flexible one is taken "
+        "only when it is better by more than one standard error of the paired per-fold "
+        f"difference and its median and worst forward folds are no more than {PARSIMONY:.0%} "
+        "higher."
+    )
+    decisive = [d for d in duels if d.rich is final and d.won] + [
+        d for d in duels if d.simple is final and d.rich is runner
+    ]
+    if decisive:
+        text += " Deciding: " + "; ".join(d.text for d in decisive) + "."
+    return text
+
+
+def conservative_fallback(
+    ds: Dataset,
+    fitted: Mapping[str, Any],
+    growth_direction: int | None,
+    measured_span_um: float | None,
+    meta: Mapping[str, Any],
+) -> Candidate | None:
+    """The speed-only stand-in for a model with inputs when every speed-only candidate failed the
+    checks: one first-order state with its steady growth held to rise with speed
+    (:func:`~calibration.estimators.baseline.fit_monotone`), its time constant the one of the
+    exponential baseline's grid with the lowest leave-one-fold-out RMS among those that pass the
+    physics check. None when none does (a calibration whose growth speed cannot explain in the
+    measured direction at any time constant)."""
+    base = fitted.get(baseline.NAME)
+    if not isinstance(base, rb.RidgeFit):
+        return None
+    n = base.speed_max_rpm / 1000.0  # the sign the data leans to, at the top speed
+    top = float(base.speed_gains_um.sum(axis=1) @ np.array([n, n * n]))
+    direction = growth_direction if growth_direction is not None else (1 if top >= 0 else -1)
+    best: tuple[float, float] | None = None
+    for tau in rb.BASELINE_TAUS_S:
+        if tau < ds.dt_s:
+            continue
+        res = baseline.fit_monotone(ds, replace(base, grid=rb.TauGrid((tau,))), direction)
+        model, refusal = rb.to_model_or_refuse(res, "x", fit={"cv_rms_um": res.cv_rms_um})
+        if model is None or refusal:
+            continue
+        if steady_growth_refusal(model, growth_direction, measured_um=measured_span_um) is None:
+            if best is None or res.cv_rms_um < best[1]:
+                best = (tau, res.cv_rms_um)
+    if best is None:
+        return None
+    splits = fl.forward_of(ds.time_s, ds.speed_rpm, ds.folds, ds.unit == "cycle", ds.measured)
+    res = baseline.fit_monotone(ds, replace(base, grid=rb.TauGrid((best[0],))), direction, splits)
+    c = _from_ridge(baseline.MONOTONE_NAME, "speed", baseline.MONOTONE_DESCRIPTION, res, ds)
+    c.details["tau_s"] = best[0]
+    c.forward_decides = ds.unit == "cycle"
+    c.model, refusal = rb.to_model_or_refuse(res, c.name, fit={}, **meta)
+    if c.model is None or refusal:
+        return None
+    c.model = _with_record(c, ds, "conservative fallback")
+    c.accepted = True
+    return c
 
 
 def _paired_fold_mse_um2(
@@ -648,11 +1032,13 @@ def with_inputs_or_not(
     n_inputs: int,
     units: Any,
     meta: Mapping[str, Any],
+    judged: bool = False,
 ) -> tuple[Any, Candidate, str]:
     """The model with inputs when it beats the chosen speed-only one by ``score`` (``what`` names
     the figure), with that one as its fallback; else the speed-only one, and why. Returns
-    (model, the candidate chosen, the reason); refusals go to ``c_in`` and ``warnings``."""
-    if c_in.accepted and score(c_in) >= score(chosen):
+    (model, the candidate chosen, the reason); refusals go to ``c_in`` and ``warnings``.
+    ``judged``: the choice was made already (the reason says why); the model is built."""
+    if not judged and c_in.accepted and score(c_in) >= score(chosen):
         c_in.accepted = False
         c_in.refusals.append(
             f"no better than speed only ({what} {score(c_in):.2f} um against "
@@ -667,10 +1053,11 @@ def with_inputs_or_not(
     if not c_in.accepted:
         warnings.append(f"the inputs did not help: {'; '.join(c_in.refusals)}")
         return model, chosen, reason + f"; inputs refused: {'; '.join(c_in.refusals)}"
-    reason += (
-        f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
-        f"{chosen.name} stands in when one fails"
-    )
+    if not judged:
+        reason += (
+            f"; with inputs {score(c_in):.2f} um: the model uses {n_inputs} input(s), "
+            f"{chosen.name} stands in when one fails"
+        )
     policy, span, residual, why = extrapolation(c_in, chosen)
     c_in.details["extrapolation"] = why
     c_in.model = c_in.model.model_copy(update={"extrapolation": policy, "blend_span": span})

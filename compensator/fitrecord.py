@@ -97,6 +97,11 @@ class FitRecord(BaseModel):
         default=None,
         description="+1: the tool tip grows toward the workpiece as measured; -1: away",
     )
+    fallback: str | None = Field(
+        default=None,
+        description="how the speed-only fallback was chosen when no speed-only candidate "
+        "passed the checks",
+    )
     in_sample_rms_um: Number | None = Field(
         default=None, description="in-sample RMS (older records)"
     )

@@ -370,10 +370,10 @@ def test_paper_ols_recovers_its_own_form_and_runs_free():
 
 
 def test_the_forward_figure_uses_only_the_past(fitted):
-    """Rolling origin: the third cycle is predicted from the first two only, so corrupting the
-    last cycle leaves its score alone and ruins the last one's."""
+    """Rolling origin every half cycle: the second cool-down is predicted from the rows before
+    it only, so corrupting the last cycle leaves its score alone and ruins the last one's."""
     res, (t, n, inputs, y) = fitted
-    assert len(res.forward_folds) == len(res.cycles) - 2 == 2
+    assert len(res.forward_folds) == 2 * len(res.cycles) - 3 == 5
     corrupt = y.copy()
     a, b = res.cycles[-1]
     corrupt[a:b] += 50.0
@@ -449,15 +449,21 @@ def test_input_structures_compete_only_on_three_folds_and_six_inputs_or_more():
         [LogData("four", t, n, y, sensors)], tuple(sensors), physical=False, probe_target_um=None
     )
     names = lambda r: [c.name for c in r.candidates if c.family == "inputs"]
-    assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs"]
-    assert names(four) == ["ridge+inputs", "ridge+few", "ridge+pca", "ridge+bounded"]
+    assert len(two.dataset.folds) == 2 and names(two) == ["ridge+inputs", "ridge+static"]
+    assert names(four) == [
+        "ridge+inputs",
+        "ridge+static",
+        "ridge+few",
+        "ridge+pca",
+        "ridge+bounded",
+    ]
     few = identify(
         [LogData("few", t, n, y, {k: sensors[k] for k in list(sensors)[:3]})],
         tuple(sensors)[:3],
         physical=False,
         probe_target_um=None,
     )
-    assert names(few) == ["ridge+inputs"]
+    assert names(few) == ["ridge+inputs", "ridge+static"]
     assert sum(c.accepted for c in four.candidates if c.family == "inputs") == 1
     assert any(
         r.startswith("ridge+") for c in four.candidates if c.family == "inputs" for r in c.refusals
@@ -620,3 +626,68 @@ def test_replay_sets_the_error_beside_what_the_fit_expected(tmp_path):
                 and said
                 and "probe or recalibrate" in said[0]
             )
+
+
+# -- forward origins and the choice between structures ----------------------------------------
+
+
+def _four_cycles():
+    return profile([(2 * H, 6000), (3 * H, 0)] * 4, dt_s=60.0)
+
+
+def test_forward_origins_every_half_cycle_use_only_the_rows_before():
+    """Four cycles give five forward splits (whole cycles alone gave two): each cycle's start
+    from the third and each cool-down from the second, the past ending where the stretch
+    predicted begins, a heat-up in the past a fold of its own."""
+    from calibration import folds as fl
+
+    t, n = _four_cycles()
+    cycles = split_cycles(t, n)
+    assert len(cycles) == 4
+    splits = fl.forward_origins(t, n, cycles)
+    assert len(splits) == 5 and len(fl.forward_splits(cycles, first=2)) == 2
+    for past, (a, b) in splits:
+        assert past[0][0] == 0 and past[-1][1] == a and b > a  # the rows before, nothing after
+        assert all(x[1] == y[0] for x, y in itertools.pairwise(past))
+    first_past, (a, _b) = splits[0]
+    assert first_past[-1] == (cycles[1][0], a) and n[a] == 0 and n[a - 1] == 6000
+    assert [s[1] for s in splits][-1][1] == t.size  # the last stretch ends with the log
+    assert len(fl.forward_origins(t, n, cycles[:2])) == 1  # two cycles: the second cool-down
+    blocks = fl.halves(t, n, cycles)  # the blocks a penalty chosen forward-chained is judged on
+    assert len(blocks) == 8 and all(
+        (n[a:b] > 0).all() == (k % 2 == 0) for k, (a, b) in enumerate(blocks[1:], 1)
+    )
+
+
+def _duel_of(rich_fold_um, simple_fold_um):
+    """The choice's duel between two candidates whose forward residual is the given constant on
+    each of the five forward folds of four cycles."""
+    from calibration import folds as fl
+    from calibration.candidate import Candidate
+    from calibration.dataset import from_arrays
+    from calibration.identify import _duel
+
+    t, n = _four_cycles()
+    ds = from_arrays(t, n, np.zeros(t.size), None)
+    splits = fl.forward_of(t, n, ds.folds, True)
+
+    def cand(name, per_fold):
+        r = np.full(t.size, np.nan)
+        for (_p, (a, b)), v in zip(splits, per_fold, strict=True):
+            r[a:b] = v
+        return Candidate(name, "inputs", name, forward_residual_um=r, held_out_residual_um=r)
+
+    return _duel(cand("rich", rich_fold_um), cand("simple", simple_fold_um), splits, ds)
+
+
+def test_a_flexible_structure_must_beat_the_simpler_by_more_than_the_folds_spread():
+    """One standard error of the paired per-fold difference, and no worse median or worst fold:
+    lower on every fold wins; lower on one fold and higher on another does not; lower on
+    average by far but with a worse worst fold does not either."""
+    ones = [1.0] * 5
+    assert _duel_of([0.5] * 5, ones).won
+    lucky = _duel_of([0.5, 1.1, 1.0, 1.0, 1.0], ones)
+    assert not lucky.won and "less than one standard error" in lucky.text
+    tail = _duel_of([0.1, 0.1, 0.1, 0.1, 1.5], ones)
+    assert not tail.won and "worst 1.50 against 1.00 um" in tail.text
+    assert "more than one standard error" in tail.text  # the average alone would have taken it
