@@ -99,16 +99,19 @@ def model_rich() -> ThermalModel:
 
 
 @pytest.fixture(scope="session")
-def calibrated_model(tmp_path_factory) -> Path:
+def calibrated_model(computed_once) -> Path:
     """A model calibrated on the virtual plant's own data (as tests/test_service.py does): the
-    workpiece error of an end-to-end test then shows the route, not a model that does not fit."""
-    from plantdata import identify_runs, plant_run
+    workpiece error of an end-to-end test then shows the route, not a model that does not fit.
+    Fitted once per run, whatever the number of workers (it takes seconds)."""
 
-    from compensator.io import save_model
+    def make(d: Path) -> None:
+        from plantdata import identify_runs, plant_run
 
-    model = identify_runs(
-        [plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]
-    ).model
-    path = tmp_path_factory.mktemp("calibrated-model") / "model.json"
-    save_model(path, model)
-    return path
+        from compensator.io import save_model
+
+        model = identify_runs(
+            [plant_run("calibration", 60.0, 0), plant_run("validation", 60.0, 1)]
+        ).model
+        save_model(d / "model.json", model)
+
+    return computed_once("calibrated-model", make) / "model.json"
