@@ -377,27 +377,29 @@ class StateSpaceModel(ModelBase):
         out = np.empty(size)
         v = np.empty((gains.shape[1], min(_BLOCK, size)))
         y = np.empty((gains.shape[0], v.shape[1]))
-        for s in range(0, size, _BLOCK):  # the signals [n, n^2, inputs...] a block at a time
-            e = min(s + _BLOCK, size)
-            vb, yb = v[:, : e - s], y[:, : e - s]
-            np.abs(sp[s:e], out=vb[0])
-            np.minimum(vb[0], cap, out=vb[0])
-            vb[0] /= SPEED_SCALE_RPM
-            np.multiply(vb[0], vb[0], out=vb[1])
-            if logged:
-                w = vb[2:]
-                np.stack([u[s:e] for u in logged], out=w)
-                # the extremes say both whether to clip (rarely: a sensor fault) and whether a
-                # value is not finite (NaN fails every comparison; the clip would hide an inf)
-                low, high = np.minimum.reduce(w, axis=1), np.maximum.reduce(w, axis=1)
-                if not ((low >= lo[:, 0]).all() and (high <= hi[:, 0]).all()):
-                    if not (np.isfinite(low).all() and np.isfinite(high).all()):
-                        self._refuse_non_finite(logged)
-                    np.clip(w, lo, hi, out=w)
-            np.matmul(gains, vb, out=yb)
-            ob = out[s:e]
-            np.add(yb[0], constant, out=ob)
-            rec.block(s, yb[1:], ob)
+        with np.errstate(over="ignore", invalid="ignore"):  # the states' overflow is redone
+            for s in range(0, size, _BLOCK):  # the signals [n, n^2, inputs...] a block at a time
+                e = min(s + _BLOCK, size)
+                vb, yb = v[:, : e - s], y[:, : e - s]
+                np.abs(sp[s:e], out=vb[0])
+                np.minimum(vb[0], cap, out=vb[0])
+                vb[0] /= SPEED_SCALE_RPM
+                np.multiply(vb[0], vb[0], out=vb[1])
+                if logged:
+                    w = vb[2:]
+                    for i, u in enumerate(logged):
+                        w[i] = u[s:e]
+                    # the extremes say both whether to clip (rarely: a sensor fault) and whether a
+                    # value is not finite (NaN fails every comparison; the clip would hide an inf)
+                    low, high = np.minimum.reduce(w, axis=1), np.maximum.reduce(w, axis=1)
+                    if not ((low >= lo[:, 0]).all() and (high <= hi[:, 0]).all()):
+                        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+                            self._refuse_non_finite(logged)
+                        np.clip(w, lo, hi, out=w)
+                np.matmul(gains, vb, out=yb)
+                ob = out[s:e]
+                np.add(yb[0], constant, out=ob)
+                rec.block(s, yb[1:], ob)
         rec.finish(out)
         if initial_um is not None:
             out += (require_finite("initial_um", initial_um) - out[0]) * decay(t, self._slowest_s)
@@ -504,7 +506,7 @@ class StateSpaceState:
         return (1.0 - self.weight) * self.own_um + self.weight * float(self.fallback.elongation_um)
 
 
-_BLOCK = 8192
+_BLOCK = 4096
 """Samples per block of a free run: a block's signals, drives and states stay in cache."""
 _SUB = 16
 """Samples per sub-block: a running sum or a state's response inside one is a product with a
@@ -572,11 +574,9 @@ class _Recursion:
         self.grow, self.shrink = np.exp(b), np.exp(-b)
 
     def block(self, s: int, drives: np.ndarray, out: np.ndarray) -> None:
-        """Samples s.. of every state, from their drives (a row each), added into ``out``."""
-        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is found and redone
-            self._block(s, drives, out)
-
-    def _block(self, s: int, drives: np.ndarray, out: np.ndarray) -> None:
+        """Samples s.. of every state, from their drives (a row each), added into ``out``.
+        Call under ``numpy.errstate(over="ignore", invalid="ignore")``: an overflow of the
+        closed form is found and redone scaled."""
         if self.fast.size:
             self.fast_drive[:, s : s + drives.shape[1]] = drives[self.fast]
         if not self.slow.size:
