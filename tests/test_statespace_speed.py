@@ -146,7 +146,8 @@ def test_short_logs_and_block_edges(size):
 def test_drives_near_the_float_range_stay_exact():
     """Two states whose gains of 1e300 cancel in steady state (so the model is valid): the
     closed form's sums overflow; they are redone scaled, and stay exact."""
-    m = model()
+    m = model(taus=(30.0, 1800.0, 7200.0))
+    assert 1e300 / 30.0 * math.exp(_BLOCK / 30.0) > 1e308  # a block's sums would overflow
     big = np.array(m.drive_um[0]) * 1e300
     m = m.model_copy(update={"drive_um": (tuple(big), tuple(-big), m.drive_um[2])})
     m = StateSpaceModel.model_validate(m.model_dump())  # the checks hold
