@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from compensator.errors import CalibrationError
-from compensator.expected import ExpectedError
+from compensator.expected import ExpectedError, memory_s_of
 from compensator.fitrecord import FIT_SCHEMA_VERSION, FitRecord
 from compensator.modelbase import with_fit
 from compensator.plausibility import steady_growth_refusal
@@ -1160,6 +1160,9 @@ def _expected(c: Candidate, ds: Dataset, forward: np.ndarray | None = None) -> E
         top,
         c.forward_distance,
         forward_folds=folds,
+        folds=ds.folds,  # one cycle's rows err together: the band is taken per fold
+        time_s=ds.time_s,
+        memory_s=memory_s_of(c.model),
     )
 
 
