@@ -387,8 +387,10 @@ class StateSpaceModel(ModelBase):
                 np.multiply(vb[0], vb[0], out=vb[1])
                 if logged:
                     w = vb[2:]
-                    for i, u in enumerate(logged):
-                        w[i] = u[s:e]
+                    if e - s == _BLOCK:  # one call: the block's rows are contiguous
+                        np.concatenate([u[s:e] for u in logged], out=w.reshape(-1))
+                    else:
+                        np.stack([u[s:e] for u in logged], out=w)
                     # the extremes say both whether to clip (rarely: a sensor fault) and whether a
                     # value is not finite (NaN fails every comparison; the clip would hide an inf)
                     low, high = np.minimum.reduce(w, axis=1), np.maximum.reduce(w, axis=1)
