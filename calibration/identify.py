@@ -512,6 +512,9 @@ def identify(
         chosen, final, model, reason = _choose_by_folds(
             cands, speed, fitted, ds, splits, warnings, fallback_note, len(names), units, meta
         )
+        paper = next((c for c in cands if c.family == "reference"), None)
+        if paper is not None and math.isfinite(paper.cv_rms_um):  # for the comparison
+            reason += f" For comparison, the paper's OLS scores {paper.cv_rms_um:.2f} um."
         return _finish(
             ds,
             cands,
@@ -638,6 +641,11 @@ def _finish(
 MIN_PAIRED = 3
 """Folds a one-standard-error comparison needs; with fewer forward folds the whole-cycle
 leave-one-out folds join them."""
+TAIL = 0.10
+"""A more flexible structure that lowers the worst forward fold by more than this share, with a
+median no more than this share higher, is taken even within one standard error: one stretch
+predicted badly is what the folds' spread hides (on the real record the static structure missed
+one heat-up by 16 um where the banks missed it by 5)."""
 
 
 def _fold_mse(
@@ -669,9 +677,11 @@ def _duel(rich: Candidate, simple: Candidate, splits: Sequence[fl.Split], ds: Da
     """Whether ``rich`` displaces ``simple``: its per-fold mean square lower on average by more
     than one standard error of the paired differences (Hastie, Tibshirani and Friedman, section
     7.10), and neither its median nor its worst forward fold worse than the simpler one's by more
-    than :data:`PARSIMONY`. The folds are the forward ones; with fewer than :data:`MIN_PAIRED`
-    the whole-cycle leave-one-out folds join them, and with fewer than that in all, ``rich``
-    must be lower on every fold by more than PARSIMONY."""
+    than :data:`PARSIMONY`; or, the worst fold deciding, its mean square lower on average, its
+    worst forward fold lower by more than :data:`TAIL` and its median no more than TAIL higher.
+    The folds are the forward ones; with fewer than :data:`MIN_PAIRED` the whole-cycle
+    leave-one-out folds join them in the paired difference, and with fewer than that in all,
+    ``rich`` must be lower on every fold by more than PARSIMONY."""
     targets = [f for _, f in splits]
     fa = _fold_mse(rich.forward_residual_um, targets, ds.measured)
     fb = _fold_mse(simple.forward_residual_um, targets, ds.measured)
@@ -707,6 +717,12 @@ def _duel(rich: Candidate, simple: Candidate, splits: Sequence[fl.Split], ds: Da
     if better and not tail_ok:
         how += f", but its median or worst fold is higher by more than {PARSIMONY:.0%}"
     won = better and tail_ok
+    if not won and d.mean() > 0 and worst_a < worst_b * (1 - TAIL) and med_a <= med_b * (1 + TAIL):
+        won = True
+        how += (
+            f"; its worst forward fold is lower by more than {TAIL:.0%} with the median within "
+            f"{TAIL:.0%}: the worst fold decides"
+        )
     return Duel(rich, simple, won, f"{rich.name} against {simple.name}: {figures}; {how}")
 
 
@@ -831,7 +847,8 @@ def _paragraph(
         " Rule: structures are tried from simple to flexible, and a more flexible one is taken "
         "only when it is better by more than one standard error of the paired per-fold "
         f"difference and its median and worst forward folds are no more than {PARSIMONY:.0%} "
-        "higher."
+        f"higher, or when it lowers the worst forward fold by more than {TAIL:.0%} with a median "
+        f"no more than {TAIL:.0%} higher."
     )
     decisive = [d for d in duels if d.rich is final and d.won] + [
         d for d in duels if d.simple is final and d.rich is runner
