@@ -634,7 +634,8 @@ class _Recursion:
         reach = _SPAN * float(self.tau.min())
         p = 0
         while p < m:
-            q = min(m, int(np.searchsorted(t, t[s + p - 1] + reach, side="right")) - s)
+            # within this block's samples only: they are checked to be in order
+            q = p + int(np.searchsorted(t[s + p : s + m], t[s + p - 1] + reach, side="right"))
             if q <= p + 1:  # one step: directly
                 ld = np.minimum(dt[p] / self.tau[:, 0], _LD_MAX)
                 self.x *= np.exp(-ld)
