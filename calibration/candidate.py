@@ -85,6 +85,12 @@ class Candidate:
             "forward_rms_um": num(self.forward_rms_um),
             "forward_max_abs_um": num(self.forward_max_abs_um),
             "forward_folds_rms_um": [num(v) for v in self.forward_folds_rms_um],
+            "forward_median_rms_um": num(
+                float(np.median(self.forward_folds_rms_um)) if self.forward_folds_rms_um else None
+            ),
+            "forward_worst_rms_um": num(
+                max(self.forward_folds_rms_um) if self.forward_folds_rms_um else None
+            ),
             "decisive_rms_um": num(self.decisive_rms_um),
             "in_sample_rms_um": num(self.in_sample_rms_um),
             "in_sample_max_abs_um": num(self.in_sample_max_abs_um),
