@@ -677,8 +677,9 @@ def _duel(rich: Candidate, simple: Candidate, splits: Sequence[fl.Split], ds: Da
     """Whether ``rich`` displaces ``simple``: its per-fold mean square lower on average by more
     than one standard error of the paired differences (Hastie, Tibshirani and Friedman, section
     7.10), and neither its median nor its worst forward fold worse than the simpler one's by more
-    than :data:`PARSIMONY`; or, the worst fold deciding, its mean square lower on average, its
-    worst forward fold lower by more than :data:`TAIL` and its median no more than TAIL higher.
+    than :data:`PARSIMONY`; or, the worst fold deciding, its mean square lower on average over
+    the forward folds, its worst forward fold lower by more than :data:`TAIL` and its median no
+    more than TAIL higher.
     The folds are the forward ones; with fewer than :data:`MIN_PAIRED` the whole-cycle
     leave-one-out folds join them in the paired difference, and with fewer than that in all,
     ``rich`` must be lower on every fold by more than PARSIMONY."""
@@ -717,7 +718,8 @@ def _duel(rich: Candidate, simple: Candidate, splits: Sequence[fl.Split], ds: Da
     if better and not tail_ok:
         how += f", but its median or worst fold is higher by more than {PARSIMONY:.0%}"
     won = better and tail_ok
-    if not won and d.mean() > 0 and worst_a < worst_b * (1 - TAIL) and med_a <= med_b * (1 + TAIL):
+    ahead = float((wb - wa).mean())  # the forward folds' own mean gain
+    if not won and ahead > 0 and worst_a < worst_b * (1 - TAIL) and med_a <= med_b * (1 + TAIL):
         won = True
         how += (
             f"; its worst forward fold is lower by more than {TAIL:.0%} with the median within "
