@@ -15,9 +15,14 @@ states a validated figure only where forward residuals were measured: a speed ab
 the calibration measured at (a model fitted on measurements at rest, say) is "not validated at
 speed", and its figure, if any, is a floor.
 
+The thermal state remembers the speeds of the last hours: after running faster than any speed
+in the memory of a forward residual (``history_rpm`` within ``memory_s``, :func:`memory_s_of`),
+at rest too, the spindle is where validation never measured.
+
 Formats: ``thermocomp.expected-error/2`` adds, per band and outside figure, the folds behind it,
-and the fastest speed the forward residuals were measured at; ``/1`` records read as they always
-did (every band validated by the statement's fold count, up to its top band's speed).
+the fastest speed the forward residuals were measured at and the speed history behind them;
+``/1`` records read as they always did (every band validated by the statement's fold count, up
+to its top band's speed).
 """
 
 from __future__ import annotations
@@ -346,7 +351,14 @@ class ExpectedError(BaseModel):
                 if b.outside is not None
                 else ""
             )
-            floor = "" if folds >= MIN_FORWARD_FOLDS else ", not validated: a floor"
+            # with m folds as the exchangeable units, the next one's own 95 % half-width stays
+            # within the worst of them with probability at least m / (m + 1)
+            floor = (
+                f"; 95 % of the next cycle within it with probability ≥ "
+                f"{100 * folds / (folds + 1):.0f} %"
+                if folds >= MIN_FORWARD_FOLDS
+                else ", not validated: a floor"
+            )
             lines.append(
                 f"{b.label:>16}: RMS {b.rms_um:.2f} um, 95 % within {b.p95_abs_um:.2f} um "
                 f"({b.source}, {b.samples} samples, {self._folds(b.folds)} fold(s){floor}){far}"

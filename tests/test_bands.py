@@ -135,6 +135,11 @@ def test_a_calibration_at_rest_is_not_validated_at_speed():
     assert not stated.validated(np.array([1.5, 300.0, 17600.0])).any()
     # what the fit prints
     assert stated.describe()[-1] == "validated at rest only: not validated at speed"
+    # two folds: the next cycle's 95 % stays within the worst of them with probability 2/3
+    assert (
+        "2 fold(s); 95 % of the next cycle within it with probability ≥ 67 %"
+        in (stated.describe()[0])
+    )
     # the same record in the first format took the at-rest band for every speed (a floor)
     older = ExpectedError.model_validate(
         {**stated.model_dump(mode="json", exclude={"measured_rpm"}), "format": EXPECTED_FORMAT_1}
