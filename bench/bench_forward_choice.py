@@ -391,6 +391,27 @@ def table(ch: str, info: dict, fits: dict, prefixes: list[int], methods: list[st
     return out
 
 
+def summary(result: dict, prefixes: list[int], methods: list[str]) -> None:
+    """Per channel and method: median / worst over the origins of each prefix, the next cycle's
+    RMS after it in brackets, refused folds after a +."""
+    print("\n## Summary: median / worst RMS [um] over the origins (future: the next cycle)")
+    cols = ["channel", "method", *(f"{k} cycles" for k in prefixes)]
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for ch, per in result.items():
+        for m in methods:
+            cells = []
+            for k in prefixes:
+                r = per[k][m]
+                c = f"{fmt(r['median_um'])} / {fmt(r['worst_um'])}"
+                if r["future_um"] is not None or k < 5:
+                    c += f" ({fmt(r['future_um'])})"
+                if r["refused"]:
+                    c += f" +{r['refused']} ref."
+                cells.append(c)
+            print(f"| {ch} | {METHODS[m]} | " + " | ".join(cells) + " |")
+
+
 def checks(result: dict, prefixes: list[int]) -> list[str]:
     """The acceptance checks, one line each."""
     lines = []
@@ -520,6 +541,7 @@ def main() -> int:
         info = infos[ch]
         print(f"\n## {ch}: cycles {info['cycles']}")
         result[ch] = table(ch, info, fits[ch], prefixes, methods)
+    summary(result, prefixes, methods)
     print("\n## Acceptance checks")
     lines = checks(result, prefixes)
     for line in lines or ["(need the new choice with the ridge, and today's, to check)"]:
