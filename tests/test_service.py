@@ -95,6 +95,10 @@ def run_service_against_vcnc(tmp_path, model_file, hours=1.0, outage=None, wall0
         model_file,
         f'adapter = {{url = "opc.tcp://127.0.0.1:{port}/thermocomp/virtual-cnc/", '
         'preset = "virtual-cnc", timeout_s = 1.0, backoff_s = 0.2, max_backoff_s = 2.0}',
+        # hours of simulated time in seconds: the journal's and the state's fsyncs are not what
+        # these runs check (the stop saves the state, the journal is read after the close)
+        top={"journal_fsync_s": 3600.0},
+        save_every=600.0,
     )
     cnc = VirtualCNC(vm, port=port, tick_s=None)
     with running(cnc):
