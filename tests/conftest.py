@@ -12,7 +12,11 @@ from compensator import ThermalModel, ThermalStateCoefficients
 # The modules with the longest tests, collected first: pytest-xdist hands tests out in collection
 # order and a worker can take over only tests not yet started, so a long test left to the end keeps
 # the run waiting on one core. Each module's tests stay together (their module fixtures).
+# LinuxCNC's first: about 100 s that mostly wait on its servo clock, one HAL at a time (a lock),
+# so one worker runs them while the others have both cores.
 LONG_MODULES = (
+    "test_linuxcnc_watchdog.py",
+    "test_linuxcnc.py",
     "test_cli.py",
     "test_learning.py",
     "test_cooling_paper.py",
