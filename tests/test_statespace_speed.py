@@ -114,6 +114,15 @@ def test_the_free_run_is_the_cycle_path_at_any_clock(clock):
     same(m.simulate_um(speed, t, temps), stepped(m, speed, t, temps))
 
 
+@pytest.mark.parametrize("clock", CLOCKS.values(), ids=CLOCKS.keys())
+def test_a_speed_only_model_runs_the_same(clock):
+    m = model().fallback
+    assert m is not None and not m.input_names
+    t = clock(np.random.default_rng(3), _BLOCK + 900)
+    speed, _ = log(t, seed=12)
+    same(m.simulate_um(speed, t, None, 4.0), stepped(m, speed, t, {}, 4.0))
+
+
 @pytest.mark.parametrize("initial_um", [None, -12.5])
 @pytest.mark.parametrize("policy", ["linear", "clip", "blend"])
 def test_a_measured_start_and_every_policy_carry_through_the_blocks(initial_um, policy):
