@@ -26,6 +26,7 @@ import platform
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -144,8 +145,8 @@ def main(repeat: int, days: float) -> dict:
         assert diff <= 1e-9 * scale, f"{name}: the free runs differ by {diff:g} um"
         runs: dict[str, Callable[[], object]] = {
             "lfilter": lambda: lfilter([0.01], [1.0, -0.99], speed),
-            "free run": lambda t=t: m.simulate_um(speed, t, temps),
-            "previous": lambda t=t: previous_free_run(m, speed, t, temps),
+            "free run": partial(m.simulate_um, speed, t, temps),
+            "previous": partial(previous_free_run, m, speed, t, temps),
         }
         best = {k: [np.inf, np.inf] for k in runs}
         for _ in range(repeat):  # interleaved: a burst of load touches all three alike

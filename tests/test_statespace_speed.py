@@ -12,15 +12,14 @@ import numpy as np
 import pytest
 
 from compensator.errors import ModelError, NonFiniteInputError
-from compensator.statespace import _BLOCK, InputChannel, StateSpaceModel
+from compensator.statespace import _BLOCK, Extrapolation, InputChannel, StateSpaceModel
 
 NAMES = ("a_c", "b_c", "c_c")
 
 
 def model(
     taus: tuple[float, ...] = (300.0, 1800.0, 7200.0),
-    scale: float = 1.0,
-    policy: str = "linear",
+    policy: Extrapolation = "linear",
 ) -> StateSpaceModel:
     rng = np.random.default_rng(5)
     width = 2 + len(NAMES)
@@ -28,18 +27,18 @@ def model(
         fitted_dt_s=1.0,
         speed_range_rpm=(0.0, 20000.0),
         taus_s=(600.0,),
-        drive_um=((1.0 * scale, 0.1 * scale),),
-        feedthrough_um=(0.1 * scale, 0.0),
-        max_measured_um=60.0 * scale,
+        drive_um=((1.0, 0.1),),
+        feedthrough_um=(0.1, 0.0),
+        max_measured_um=60.0,
     )
     return StateSpaceModel(
         fitted_dt_s=1.0,
         speed_range_rpm=(0.0, 20000.0),
         taus_s=taus,
-        drive_um=tuple(tuple(rng.normal(0, 0.3, width) * scale) for _ in taus),
-        feedthrough_um=tuple(rng.normal(0, 0.05, width) * scale),
-        offset_um=0.7 * scale,
-        max_measured_um=60.0 * scale,
+        drive_um=tuple(tuple(rng.normal(0, 0.3, width)) for _ in taus),
+        feedthrough_um=tuple(rng.normal(0, 0.05, width)),
+        offset_um=0.7,
+        max_measured_um=60.0,
         inputs=tuple(
             InputChannel(
                 name=n,
@@ -117,7 +116,7 @@ def test_the_free_run_is_the_cycle_path_at_any_clock(clock):
 @pytest.mark.parametrize("clock", CLOCKS.values(), ids=CLOCKS.keys())
 def test_a_speed_only_model_runs_the_same(clock):
     m = model().fallback
-    assert m is not None and not m.input_names
+    assert isinstance(m, StateSpaceModel) and not m.input_names
     t = clock(np.random.default_rng(3), _BLOCK + 900)
     speed, _ = log(t, seed=12)
     same(m.simulate_um(speed, t, None, 4.0), stepped(m, speed, t, {}, 4.0))
