@@ -47,5 +47,10 @@ def control_runtime(
     path.write_text("\n".join(lines) + "\n")
     cfg = load_config(path)
     return SpindleRuntime(
-        cfg.spindle[0], cfg.state_dir, cfg.journal_path, clock=clock, wall=lambda: WALL0 + clock()
+        cfg.spindle[0],
+        cfg.state_dir,
+        cfg.journal_path,
+        clock=clock,
+        wall=lambda: WALL0 + clock(),
+        journal_fsync_s=cfg.journal_fsync_s,
     )

@@ -83,6 +83,7 @@ class Rig:
             cfg.spindle[0],
             cfg.state_dir,
             cfg.journal_path,
+            journal_fsync_s=cfg.journal_fsync_s,
             clock=lambda: self.t,
             wall=lambda: self.wall0 + self.t,
             adapter=self.adapter,

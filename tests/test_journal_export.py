@@ -113,6 +113,7 @@ def sim(tmp_path_factory, calibrated_model):
         cfg.spindle[0],
         cfg.state_dir,
         cfg.journal_path,
+        journal_fsync_s=cfg.journal_fsync_s,
         clock=clock,
         wall=lambda: WALL0 + t["now"],
         adapter=SimAdapter(machine=vm),

@@ -98,6 +98,7 @@ def test_replay_of_a_service_journal_reproduces_its_estimate_and_offset_step_for
             cfg.spindle[0],
             cfg.state_dir,
             cfg.journal_path,
+            journal_fsync_s=cfg.journal_fsync_s,
             clock=lambda: clock["t"],
             wall=lambda: WALL0 + clock["t"],
             adapter=SimAdapter(machine=vm),

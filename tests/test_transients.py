@@ -104,6 +104,7 @@ class Bench:
             self.cfg.spindle[0],
             self.cfg.state_dir,
             self.cfg.journal_path,
+            journal_fsync_s=self.cfg.journal_fsync_s,
             clock=self.clock,
             wall=lambda: WALL0 + self.t,
             adapter=adapter_cls(machine=self.vm),

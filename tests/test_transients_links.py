@@ -62,6 +62,7 @@ def runtime(tmp_path: Path, model: Path, adapter: str, clock, **kw) -> SpindleRu
         cfg.spindle[0],
         cfg.state_dir,
         cfg.journal_path,
+        journal_fsync_s=cfg.journal_fsync_s,
         clock=clock,
         wall=lambda: WALL0 + clock(),
         **kw,

@@ -122,6 +122,7 @@ class Runtime:
             cfg.spindle[0],
             cfg.state_dir,
             cfg.journal_path,
+            journal_fsync_s=cfg.journal_fsync_s,
             clock=lambda: self.t,
             wall=lambda: WALL0 + self.t + self.skew,
             adapter=self.adapter,
