@@ -118,7 +118,9 @@ def sim(tmp_path_factory, calibrated_model):
         wall=lambda: WALL0 + t["now"],
         adapter=SimAdapter(machine=vm),
     )
-    chiller = CoolingJournal(cfg.journal_path, "s1", {"spindle": "s1", "source": "test"})
+    chiller = CoolingJournal(
+        cfg.journal_path, "s1", {"spindle": "s1", "source": "test"}, fsync_every_s=3600.0
+    )
     rng = np.random.default_rng(0)
     for i in range(CYCLES):
         t["now"] += PERIOD_S
