@@ -188,10 +188,14 @@ def git(where: Path, *args: str) -> str:
 
 
 def code_key(tree: Path) -> str:
-    """The tree's commit and a hash of its uncommitted product diff: a cached fit of another
-    state of the code is not reused."""
-    diff = git(tree, "diff", "HEAD", "--", "calibration", "compensator", "thermocomp")
-    return f"{git(tree, 'rev-parse', '--short', 'HEAD')}+{hashlib.sha1(diff.encode()).hexdigest()[:10]}"
+    """A hash of the product's sources as they are in ``tree`` (committed or not): a cached fit
+    of other code is not reused, and a commit elsewhere (docs, tests) keeps the cache."""
+    h = hashlib.sha1()
+    for sub in ("calibration", "compensator", "thermocomp"):
+        for f in sorted((tree / sub).rglob("*.py")):
+            h.update(str(f.relative_to(tree)).encode())
+            h.update(f.read_bytes())
+    return f"{git(tree, 'rev-parse', '--short', 'HEAD')[:7]}~{h.hexdigest()[:12]}"
 
 
 def ensure_today(tree: Path) -> None:
@@ -507,7 +511,7 @@ def main() -> int:
 
     def run(job: tuple[str, str, int]) -> None:
         m, ch, o = job
-        key = f"{m}|{keys[m]}|{ch}|{o}"
+        key = f"{m}|{keys[m].split('~')[-1]}|{ch}|{o}"
         hit = cache.get(key)
         if hit is None:
             info = infos[ch]
