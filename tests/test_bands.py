@@ -215,6 +215,26 @@ def test_forward_residuals_without_folds_are_pooled_and_the_held_out_ones_never_
     assert not held.validated(n).any()
 
 
+def test_held_out_cycles_widen_a_forward_band_and_never_narrow_it():
+    """Each held-out cycle was predicted by a model fitted without it (the jackknife+ draws):
+    taken per cycle as the forward folds are, it widens a band where it reaches further."""
+    rng = np.random.default_rng(8)
+    n = np.full(4 * 200, 3000.0)
+    cycles = [(i * 200, (i + 1) * 200) for i in range(4)]
+    fwd = rng.normal(0, 1.0, n.size)
+    fwd[:200] = np.nan
+    wide = rng.normal(0, 3.0, n.size)
+    base = expected_error(fwd, None, n, 3000.0, forward_folds=3, folds=cycles).bands[-1]
+    widened = expected_error(fwd, wide, n, 3000.0, forward_folds=3, folds=cycles).bands[-1]
+    assert widened.p95_abs_um == pytest.approx(
+        max(conformal_quantile(wide[a:b]) for a, b in cycles)
+    )
+    assert widened.p95_abs_um > 2 * base.p95_abs_um and widened.folds == base.folds == 3
+    assert widened.source == "forward, per fold, widened to held out"
+    narrow = expected_error(fwd, wide / 10, n, 3000.0, forward_folds=3, folds=cycles).bands[-1]
+    assert narrow == base
+
+
 def test_replay_counts_the_rows_a_validated_band_covers():
     speed, residual, cycles = log_at_rest_measurements()
     stated = expected_error(residual, None, speed, TOP_RPM, forward_folds=2, folds=cycles)
