@@ -657,7 +657,8 @@ class _Recursion:
                 np.cumsum(c, axis=1, out=c)
             else:  # the running sum inside sub-blocks as a product, then each one's total on
                 r = np.matmul(c.reshape(rows, -1, _SUB), _UPPER, out=inc.reshape(rows, -1, _SUB))
-                r[:, 1:, :] += np.cumsum(r[:, :-1, -1], axis=1)[:, :, None]
+                before = np.cumsum(r[:, :-1, -1], axis=1)  # (a row of 16 per add is slow)
+                r[:, 1:, :] += np.repeat(before, _SUB, axis=1).reshape(rows, -1, _SUB)
                 c, inc = inc, c
             np.subtract(self.x[:, None], c, out=c)
             c /= g
