@@ -109,8 +109,10 @@ class SocketAttack:
             self.tick()
             return json.loads(s.makefile("rb").readline())
 
-    def warm(self) -> None:
-        for _ in range(3000):  # 300 s at speed: the estimate near the model's 15 um
+    def warm(self, seconds: float = 300.0) -> None:
+        """300 s at speed: the estimate near the model's 15 um; shorter where any start will do
+        (the attack is relative to the estimate)."""
+        for _ in range(round(seconds / 0.1)):
             self.tick()
 
     def run(self, probe_too: bool = False) -> dict:
@@ -196,7 +198,7 @@ def test_two_sources_together_stop_at_the_bound_of_the_correction(tmp_path, mode
     bound, and no further."""
     rig = SocketAttack(tmp_path, model_file)
     try:
-        rig.warm()
+        rig.warm(60.0)
         with caplog.at_level(logging.INFO, logger="thermocomp.runtime"):
             got = rig.run(probe_too=True)
         status = rig.rt.observer_status()
@@ -545,7 +547,7 @@ def test_replay_of_the_services_journal_cuts_the_same_measurements(tmp_path, mod
 
     rig = SocketAttack(tmp_path, model_file)
     try:
-        rig.warm()
+        rig.warm(60.0)
         got = rig.run(probe_too=True)
         for _ in range(5):  # the cycle journal goes on past the last measurement
             rig.tick()
@@ -577,7 +579,7 @@ def test_thermocomp_measure_says_limited_and_exits_1(tmp_path, model_file, capsy
 
     rig = SocketAttack(tmp_path, model_file, observer="max_correction_um = 2.0")
     try:
-        rig.warm()
+        rig.warm(60.0)
         assert rig.svc.control is not None
         rig.svc.control.request_timeout_s = float("inf")  # the fake clock runs as we tick
         codes: list[int] = []
