@@ -421,7 +421,8 @@ def test_structures_that_share_strength_map_onto_the_runtime_model(structure):
     else:
         assert 1 <= len(res.input_names) <= rb.MAX_FEW and "decoy_c" not in res.input_names
         assert res.structure_detail.startswith("kept ")
-    assert res.nested_rms_um < 0.2 and res.forward_rms_um < 0.2  # the plant is still represented
+    # the plant is still represented; the forward folds start from a cycle and a half of past
+    assert res.nested_rms_um < 0.2 and np.median([f.rms_um for f in res.forward_folds]) < 0.2
     speed_only = fit_ridge_cv(t, n, y, grids=[TauGrid(GRID.speed_taus_s)]).to_model(
         "ridge", spindle_id="t"
     )
