@@ -36,7 +36,7 @@ from compensator.errors import CalibrationError
 from compensator.estimate import Estimate
 from compensator.fitrecord import fit_of
 from compensator.io import RunLog
-from compensator.io.journal import FAULT_ALARMS, SHADOW_COLUMN
+from compensator.io.journal import FAULT_ALARMS
 from compensator.modelbase import with_fit
 from compensator.plausibility import direction_of, steady_state_um
 from compensator.predictor import Predictor
@@ -59,6 +59,15 @@ class Rule:
     """Open loop, the candidate must miss less than the live model by this share."""
     observer_tolerance: float = 0.05
     """With the observer, it may miss more than the live model by this share at most."""
+    fit_days: float = 7.0
+    """The candidate is fitted on the newest this many days before the held-out measurements
+    (0: everything since the live model went into use): a spindle that changes is described by
+    its newest weeks."""
+    shadow_min: int = 24
+    """Measurements a candidate in shadow must be judged on, at least."""
+    t_crit: float = 2.0
+    """In shadow, the paired difference of the squared misses must lie this many standard
+    errors below zero: better beyond the measurements' own noise."""
 
     def holdout(self, n: int) -> int:
         return max(self.min_holdout, math.ceil(self.holdout_share * n))
@@ -286,7 +295,14 @@ def refit(
     y = np.asarray(log.elongation_um, dtype=float)
     y_usable = np.where(rows, y, np.nan)
     clean = replace(log, elongation_um=y_usable)
-    train = _rows(clean, slice(0, first_held))
+    first_train = 0
+    if rule.fit_days > 0:
+        first_train = int(np.searchsorted(log.time_s, out.cut_s - rule.fit_days * 86400.0))
+        kept = int(rows[first_train:first_held].sum())
+        if kept < rule.min_train:  # too few in the window: the newest min_train instead
+            first_train = int(k[max(0, n - h - rule.min_train)])
+        out.train = int(rows[first_train:first_held].sum())
+    train = _rows(clean, slice(first_train, first_held))
     names = tuple(getattr(live.model, "input_names", ()) or ())
     # the growth points the way the live model's calibration measured it: a stretch of production
     # (a chip on the setter, a cool week) must not turn it round
@@ -354,6 +370,10 @@ class ShadowJudgement:
     live: Score | None = None
     shadow: Score | None = None
     measurements: int = 0
+    t_stat: float | None = None
+    """The paired difference of the squared misses (candidate - live), in standard errors."""
+    effective: float | None = None
+    """The measurements' effective number once weighted to the time cut at each speed."""
 
     def figures(self) -> dict[str, Any]:
         out: dict[str, Any] = {"measurements": self.measurements}
@@ -362,44 +382,176 @@ class ShadowJudgement:
                 out[name] = {
                     "open_loop_rms_um": round(sc.open_loop_rms_um, 4),
                     "open_loop_max_um": round(sc.open_loop_max_um, 4),
-                    "observer_rms_um": None,
+                    "observer_rms_um": None
+                    if sc.observer_rms_um is None
+                    else round(sc.observer_rms_um, 4),
                 }
+        if self.t_stat is not None:
+            out["paired_t"] = round(self.t_stat, 2)
+        if self.effective is not None:
+            out["effective_measurements"] = round(self.effective, 1)
         return out
 
 
-def judge_shadow(log: RunLog, live: Estimate, rule: Rule = Rule()) -> ShadowJudgement:
-    """A candidate that ran in shadow, judged on its own journaled estimate (``shadow_um``)
-    against the live model's open loop over the same stretch, at the measurements taken while it
-    ran: better by the margin on ``min_holdout`` measurements or more, or it is rejected."""
+SPEED_BANDS = 5
+"""The calibrated range in this many bands of speed, and rest: the measurements are weighted so
+that each band counts as long as the spindle cut in it."""
+
+
+def misses(
+    estimate: Estimate,
+    log: RunLog,
+    rows: np.ndarray,
+    sigma_um: np.ndarray,
+    start: int,
+    initial_um: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``estimate`` run as the service runs it over ``log`` from row ``start`` (begun at
+    ``initial_um``, as a start or a promotion begins it), fusing the measurements of ``rows``:
+    at each of them from ``start`` on, the miss of the estimate it met (before it was fused) and
+    the model's own miss; and the estimate every row (NaN before ``start``)."""
+    from .replay import _steps
+
+    t, dt, wall = _steps(log)
+    wall = t if wall is None else wall
+    y = np.asarray(log.elongation_um, dtype=float)
+    speed = np.asarray(log.speed_rpm, dtype=float)
+    names = estimate.model.input_names
+    cols = {n: np.asarray(log.extras[n], dtype=float) for n in names}
+    st = estimate.begin(initial_um, float(speed[start]))
+    met, own = [], []
+    path = np.full(len(log), np.nan)
+    for k in range(start, len(log)):
+        values = {n: float(c[k]) for n, c in cols.items()} if cols else None
+        st, _ = estimate.step(
+            st,
+            float(speed[k]),
+            0.0 if k == start else float(dt[k]),
+            now_s=float(t[k]),
+            wall_s=float(wall[k]),
+            inputs=values,
+        )
+        if rows[k]:
+            ref = (
+                st.probe_reference_um
+                if st.probe_reference_um is not None
+                else float(st.in_use.elongation_um)
+            )
+            own.append(y[k] - ref)
+            if estimate.fused is not None:
+                st, _, before = estimate.measure(st, float(y[k]), float(sigma_um[k]), "journal")
+                met.append(y[k] - before)
+            else:
+                met.append(y[k] - ref)
+        path[k] = st.estimate_um
+    return np.asarray(met), np.asarray(own), path
+
+
+def cutting_weights(log: RunLog, rows: np.ndarray, top_rpm: float) -> np.ndarray:
+    """A weight for each measurement of ``rows`` (summing to 1): the share of the time the
+    spindle cut in its speed band over the log, shared among the band's measurements. What a
+    user feels is the error while cutting; a tool setter measures where the program stops,
+    which is not where it cuts."""
+    speed = np.abs(np.asarray(log.speed_rpm, dtype=float))
+    cut = log.extras.get("cutting")
+    cutting = (
+        speed > IDLE_RPM
+        if cut is None or np.asarray(cut).dtype == object
+        else np.nan_to_num(np.asarray(cut, dtype=float), nan=0.0) > 0.5
+    )
+    edges = np.r_[
+        0.0,
+        IDLE_RPM,
+        np.linspace(IDLE_RPM, max(top_rpm, 2 * IDLE_RPM), SPEED_BANDS + 1)[1:-1],
+        np.inf,
+    ]
+    band = np.clip(np.digitize(speed, edges) - 1, 0, edges.size - 2)
+    dt = np.diff(np.asarray(log.time_s, dtype=float), append=log.time_s[-1])
+    time_in = np.bincount(band[cutting], weights=dt[cutting], minlength=edges.size - 1)
+    k = np.flatnonzero(rows)
+    count = np.bincount(band[k], minlength=edges.size - 1)
+    w = time_in[band[k]] / np.maximum(count[band[k]], 1)
+    if not w.sum() > 0:
+        return np.full(k.size, 1.0 / max(k.size, 1))
+    return w / w.sum()
+
+
+def judge_shadow(
+    log: RunLog,
+    live: Estimate,
+    candidate: Estimate,
+    start_s: float,
+    rule: Rule = Rule(),
+    default_sigma_um: float = 0.5,
+) -> ShadowJudgement:
+    """A candidate that ran in shadow from ``start_s``, judged on what it would have done: both
+    estimates run as the service runs them (the same observer fusing the same measurements),
+    the live one over the whole of ``log`` (the journal since it went into use), the candidate
+    from ``start_s``, begun at the live estimate there as a promotion begins it. At each usable
+    measurement from ``start_s`` on, each one's miss of the estimate the measurement met,
+    weighted to the time the spindle cut at each speed (:func:`cutting_weights`). Promoted only
+    on ``shadow_min`` measurements or more, better by the margin and beyond the noise: the paired
+    difference of the squared misses ``t_crit`` standard errors below zero."""
     rows, _ = usable_measurements(log)
-    log, rows = at_the_reference_row(log, rows)
-    shadow = np.asarray(log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)
-    have = rows & np.isfinite(shadow)
-    n = int(have.sum())
+    start = int(np.searchsorted(log.time_s, start_s))
+    judged = rows.copy()
+    judged[:start] = False
+    n = int(judged.sum())
     out = ShadowJudgement(Decision(False, ""), measurements=n)
-    if n < rule.min_holdout:
+    if n < rule.shadow_min or start >= len(log):
         out.decision = Decision(
             False,
-            f"{n} measurement(s) while it ran in shadow: the rule needs {rule.min_holdout}",
+            f"{n} measurement(s) while it ran in shadow: the rule needs {rule.shadow_min}",
             held_back=True,
         )
         return out
-    first = int(np.flatnonzero(np.isfinite(shadow))[0])
-    # the live model from where the shadow started (both began at the live estimate there)
-    live_open = replay(
-        live.model,
-        _rows(log, slice(first, len(log))),
-        initial_um=float(shadow[first]),
-        compare=False,
-        estimate=replace(live, observer=None),
-    ).predicted_um
-    y = np.asarray(log.elongation_um, dtype=float)
-    k = np.flatnonzero(have)
-    miss_live, miss_shadow = y[k] - live_open[k - first], y[k] - shadow[k]
-    out.live = Score(float(np.sqrt(np.mean(miss_live**2))), None, float(np.max(np.abs(miss_live))))
-    out.shadow = Score(
-        float(np.sqrt(np.mean(miss_shadow**2))), None, float(np.max(np.abs(miss_shadow)))
+    sigma = np.asarray(
+        log.extras.get("measurement_sigma_um", np.full(len(log), default_sigma_um)), dtype=float
     )
-    d = decide(rule, out.live, out.shadow)
-    out.decision = Decision(d.promote, "in shadow: " + d.reason)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default_sigma_um)
+    journaled = log.extras.get("predicted_um")
+    first = (
+        float(journaled[0])
+        if journaled is not None and np.isfinite(np.asarray(journaled, dtype=float)[0])
+        else None
+    )
+    lmet, lown, lpath = misses(live, log, rows, sigma, 0, first)  # type: ignore[arg-type]
+    at = np.isin(np.flatnonzero(rows), np.flatnonzero(judged))
+    lmet, lown = lmet[at], lown[at]
+    begin_um = float(lpath[start - 1]) if start > 0 else float(lpath[start])
+    cmet, cown, _ = misses(candidate, log, judged, sigma, start, begin_um)
+    w = cutting_weights(log, judged, float(live.speed_range_rpm[1]))
+    fused = live.fused is not None
+
+    def sc(met: np.ndarray, own: np.ndarray) -> Score:
+        return Score(
+            float(np.sqrt(np.sum(w * own**2))),
+            float(np.sqrt(np.sum(w * met**2))) if fused else None,
+            float(np.max(np.abs(own))),
+        )
+
+    out.live, out.shadow = sc(lmet, lown), sc(cmet, cown)
+    d = cmet**2 - lmet**2
+    mean = float(np.sum(w * d))
+    se = float(np.sqrt(np.sum(w**2 * (d - mean) ** 2)))
+    out.t_stat = mean / se if se > 0 else (0.0 if mean == 0 else math.copysign(math.inf, mean))
+    out.effective = float(1.0 / np.sum(w**2))
+    a = out.live.observer_rms_um if fused else out.live.open_loop_rms_um
+    b = out.shadow.observer_rms_um if fused else out.shadow.open_loop_rms_um
+    assert a is not None and b is not None
+    what = "with the observer, as the service runs it," if fused else "open loop"
+    figs = (
+        f"{what} it misses {b:.2f} um RMS at the {n} measurements taken while it ran in shadow "
+        f"(weighted to the time cut at each speed) against the live model's {a:.2f} um"
+    )
+    if not b <= (1.0 - rule.margin) * a:
+        out.decision = Decision(False, f"in shadow: {figs}: not {100 * rule.margin:.0f} % better")
+    elif not out.t_stat <= -rule.t_crit:
+        out.decision = Decision(
+            False,
+            f"in shadow: {figs}, but within the measurements' noise (paired t {out.t_stat:+.1f}, "
+            f"needs {-rule.t_crit:+.1f})",
+        )
+    else:
+        out.decision = Decision(True, f"in shadow: {figs} (paired t {out.t_stat:+.1f})")
     return out

@@ -167,9 +167,13 @@ def _judge_shadow(
     shadow: HistoryRecord,
     live_model: Any,
     rule: Any,
-) -> int:
-    """The candidate in shadow: held while it has run less than ``shadow_h``; then promoted or
-    rejected on its own misses, and taken out of shadow either way."""
+    since_s: float,
+) -> dict[str, Any]:
+    """The candidate in shadow: held while it has run less than ``shadow_h``; then judged on
+    what it would have done (:func:`calibration.learning.judge_shadow`, over the journal since
+    the live model went into use, ``since_s``), promoted or rejected, and taken out of shadow
+    either way. What happened, for the output (``outcome``: held back, promoted, rejected,
+    candidate)."""
     from calibration.learning import judge_shadow
     from compensator.io.journal import SHADOW_COLUMN
 
@@ -177,7 +181,7 @@ def _judge_shadow(
     with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
         export = Path(tmp) / "shadow.csv"
         try:
-            export_journal(cfg.journal_path, export, spindle=sc.name, start_s=shadow.at_wall_s)
+            export_journal(cfg.journal_path, export, spindle=sc.name, start_s=since_s)
             log = read_run_log(export)
         except ThermocompError:
             log = None
@@ -197,66 +201,71 @@ def _judge_shadow(
         else float(log.time_s[ran[-1]] - log.time_s[ran[0]]) / 3600.0
     )
     out["ran_h"] = round(ran_h, 3)
-    if log is None or ran_h < sc.learning.shadow_h:
+    if log is None or ran is None or not ran.size or ran_h < sc.learning.shadow_h:
         why = (
             "the service has not run it yet (reload it)"
             if ran is None or not ran.size
             else f"it has run {ran_h:.1f} h of {sc.learning.shadow_h:g} h"
         )
         out.update(outcome="held back", reason=f"candidate {shadow.short} in shadow: {why}")
-    else:
-        judged = judge_shadow(log, sc.estimate(live_model), rule)
-        end_s = float(log.time_s[-1])
+        return out
+    path = history.shadow_path
+    try:
+        candidate = load_any_model(path)
+    except ThermocompError as err:
+        candidate, failed = None, f"the candidate in shadow does not load: {err}"
+    if candidate is not None:
+        judged = judge_shadow(
+            log,
+            sc.estimate(live_model),
+            sc.estimate(candidate),
+            float(log.time_s[ran[0]]),
+            rule,
+            default_sigma_um=sc.observer.sigma_um,
+        )
         out.update(judged.figures())
         decision = judged.decision
-        if judged.decision.held_back:
-            out.update(outcome="held back", reason=decision.reason)
-        else:
-            path = history.shadow_path
-            if decision.promote:
-                try:
-                    model = _checked(sc, path)
-                except ThermocompError as err:
-                    decision = type(decision)(False, f"the checks of a reload refused it: {err}")
-            event: Event = (
-                "promoted"
-                if decision.promote and not args.dry_run
-                else "candidate"
-                if decision.promote
-                else "rejected"
-            )
-            if args.dry_run:
-                # nothing takes effect, so nothing is recorded: it stays in shadow
-                out.update(
-                    outcome="candidate" if decision.promote else "rejected", reason=decision.reason
-                )
-            else:
-                said = _leave_shadow(
-                    cfg,
-                    sc,
-                    history,
-                    model if decision.promote else None,
-                    event,
-                    source=shadow.source,
-                    reason=decision.reason,
-                    at_wall_s=end_s,
-                    fit=shadow.fit,
-                    data=shadow.data,
-                    judged={**judged.figures(), "reason": decision.reason},
-                )
-                out.update(
-                    outcome="promoted" if decision.promote else "rejected",
-                    reason=decision.reason,
-                    written=said,
-                )
-    if args.json:
-        print(json.dumps(out, indent=2))
+        figures = judged.figures()
     else:
-        print(
-            f"refit {sc.name}: {out['outcome']} the candidate {shadow.short} in shadow: {out['reason']}"
-            + (f"; {out['written']}" if "written" in out else "")
-        )
-    return 0
+        from calibration.learning import Decision
+
+        decision, figures = Decision(False, failed), {}
+    end_s = float(log.time_s[-1])
+    if decision.held_back:
+        out.update(outcome="held back", reason=decision.reason)
+        return out
+    if decision.promote:
+        try:
+            model = _checked(sc, path)
+        except ThermocompError as err:
+            decision = type(decision)(False, f"the checks of a reload refused it: {err}")
+    if args.dry_run:
+        # nothing takes effect, so nothing is recorded: it stays in shadow
+        out.update(outcome="candidate" if decision.promote else "rejected", reason=decision.reason)
+        return out
+    event: Event = "promoted" if decision.promote else "rejected"
+    said = _leave_shadow(
+        cfg,
+        sc,
+        history,
+        model if decision.promote else None,
+        event,
+        source=shadow.source,
+        reason=decision.reason,
+        at_wall_s=end_s,
+        fit=shadow.fit,
+        data=shadow.data,
+        judged={**figures, "reason": decision.reason},
+    )
+    out.update(outcome=event, reason=decision.reason, written=said)
+    return out
+
+
+def _say_shadow(out: dict[str, Any]) -> str:
+    return (
+        f"refit {out['spindle']}: {out['outcome']} the candidate {out['shadow']} in shadow: {out['reason']}"
+        + (f"; {out['written']}" if "written" in out else "")
+    )
 
 
 def _leave_shadow(
@@ -318,11 +327,27 @@ def refit_cmd(args: argparse.Namespace) -> int:
         holdout_share=sc.learning.holdout_share,
         margin=sc.learning.margin,
         observer_tolerance=sc.learning.observer_tolerance,
+        fit_days=sc.learning.fit_days,
+        shadow_min=sc.learning.shadow_min,
     )
     shadow = history.shadow()
+    judged_shadow: dict[str, Any] | None = None
     if shadow is not None:
-        return _judge_shadow(args, cfg, sc, history, shadow, live_model, rule)
+        judged_shadow = _judge_shadow(
+            args, cfg, sc, history, shadow, live_model, rule, live_rec.at_wall_s
+        )
+        if judged_shadow["outcome"] != "rejected" or args.dry_run:
+            # held back, promoted (nothing since it went into use to fit on) or a dry run
+            if args.json:
+                print(json.dumps(judged_shadow, indent=2))
+            else:
+                print(_say_shadow(judged_shadow))
+            return 0
+        # rejected: a new candidate from the same journal goes on where it left off
+        print(_say_shadow(judged_shadow), file=sys.stderr if args.json else sys.stdout)
     out: dict[str, Any] = {"spindle": sc.name, "live": live_rec.short, "from": iso(start)}
+    if judged_shadow is not None:
+        out["shadow_judged"] = judged_shadow
     with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
         export = Path(tmp) / "production.csv"
         try:

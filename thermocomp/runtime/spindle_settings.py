@@ -169,13 +169,27 @@ class LearningSettings(BaseModel):
         20, ge=2, le=1000, description="model copies kept in the history (the live one always)"
     )
     shadow_h: float = Field(
-        0.0,
+        24.0,
         ge=0,
         le=24 * 365,
         description="a candidate the rule accepts first runs in "
-        "shadow this long (hours): stepped beside the live model and journaled, never written; "
-        "the next refit promotes it only if its own misses there beat the live model's by the "
-        "margin. 0: promote at once",
+        "shadow at least this long (hours): stepped beside the live model and journaled, never "
+        "written; the next refit promotes it only if, run as the service runs it (the same "
+        "observer fusing the same measurements), it missed the measurements taken meanwhile "
+        "by the margin less than the live model, beyond their noise. 0: promote at once",
+    )
+    shadow_min: int = Field(
+        24,
+        ge=3,
+        le=100_000,
+        description="measurements a candidate in shadow must be judged on, at least",
+    )
+    fit_days: float = Field(
+        7.0,
+        ge=0,
+        le=3650,
+        description="a candidate is fitted on the newest this many days of the journal before "
+        "the measurements that judge it (0: all since the live model went into use)",
     )
 
 
