@@ -217,7 +217,16 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
     vm.override_speed(20000.0)
     from machine_sim.adapter import SimAdapter
 
-    cfg = load_config(write_config(tmp_path, model_file, 'adapter = {url = "sim://"}'))
+    # the state the restart reads is the one the stop saves (no periodic save, no fsync needed)
+    cfg = load_config(
+        write_config(
+            tmp_path,
+            model_file,
+            'adapter = {url = "sim://"}',
+            top={"journal_fsync_s": 3600.0},
+            save_every=3600.0,
+        )
+    )
     sc = cfg.spindle[0]
     a = SpindleRuntime(
         sc,
@@ -226,6 +235,7 @@ def test_restart_advances_the_state_through_the_downtime(tmp_path, model_file):
         clock=clock,
         wall=lambda: 1e9 + t["now"],
         adapter=SimAdapter(machine=vm),
+        journal_fsync_s=cfg.journal_fsync_s,
     )
     assert a.alarms & Alarm.COLD_START
     for _ in range(1800):
