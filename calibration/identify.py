@@ -11,6 +11,8 @@ The candidates are the entries of :data:`REGISTRY`, one per model structure
 - ``physical``: the output-error form ``speed-state+elastic`` (a thermal state whose dissipation
   depends on speed, plus an elastic term), refitted per fold.
 - ``ridge``: ridge over n, n² through a bank of first-order filters, α by CV.
+- ``ridge+static``: ridge over n, n² through a filter bank and every named input static, α on
+  forward-chained half cycles.
 - ``ridge+inputs``: the same with the named inputs (temperatures...) through their own banks.
 - ``paper-ols``: the paper's one-step OLS, scored in free run for the comparison; never chosen.
 
@@ -20,13 +22,18 @@ is scored on the measured rows of the held-out fold. With sparse targets (a jour
 candidates that need the elongation on every row are left out, and the report says so.
 
 Two held-out figures per candidate: leave-one-fold-out (nested where its hyperparameters were
-chosen by CV) and forward (rolling origin: each fold from the third predicted by a model chosen
-and fitted on the folds before it only). The choice reads the worse of the two, so a candidate
-that does well backwards but badly forwards is not chosen. A candidate is refused when that
-figure is worse than the baseline's, or when its gains fail the sanity bound. Among the
-speed-only candidates left, the lowest wins, a simpler one (earlier in the registry) when within
-:data:`~calibration.metrics.PARSIMONY`; the inputs are kept only when they beat that, with the
-speed-only model as their fallback.
+chosen by CV) and forward (:func:`calibration.folds.forward_of`: origins every half cycle, each
+stretch predicted in free run by a model chosen and fitted on the rows before its origin). A
+candidate is refused when the worse of the two is worse than the baseline's, or when its gains
+fail the sanity bound. With two cycles or more the structures are then walked from simple to
+flexible (:data:`COMPLEXITY`), speed-only first (the fallback), then the inputs from it: a more
+flexible one displaces the one standing only when the forward folds show it better by more than
+one standard error of the paired per-fold difference with no worse median or worst fold, or
+lower the worst fold by more than :data:`TAIL` with a median within TAIL (:func:`_duel`). The
+reason is one paragraph. On a log of one cycle (blocks) or judged in closed loop, the lowest
+figure wins, a simpler one within :data:`~calibration.metrics.PARSIMONY`, as before. When every
+speed-only candidate fails the physics check but one with inputs passed, the fallback is the
+most conservative speed-only model (:func:`conservative_fallback`), and the channel still fits.
 """
 
 from __future__ import annotations
