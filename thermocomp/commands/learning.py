@@ -185,7 +185,8 @@ def _judge_shadow(
             log = read_run_log(export)
         except ThermocompError:
             log = None
-    # how long it ran, by the journal's own clock: the rows that carry its estimate
+    # how long it ran, by the journal's own clock: the rows that carry its estimate since it went
+    # into shadow (an earlier candidate's rows before it are another model's)
     ran = (
         None
         if log is None
@@ -193,6 +194,7 @@ def _judge_shadow(
             np.isfinite(
                 np.asarray(log.extras.get(SHADOW_COLUMN, np.full(len(log), np.nan)), dtype=float)
             )
+            & (np.asarray(log.time_s, dtype=float) >= shadow.at_wall_s)
         )
     )
     ran_h = (
