@@ -338,15 +338,23 @@ def refit_cmd(args: argparse.Namespace) -> int:
         judged_shadow = _judge_shadow(
             args, cfg, sc, history, shadow, live_model, rule, live_rec.at_wall_s
         )
-        if judged_shadow["outcome"] != "rejected" or args.dry_run:
-            # held back, promoted (nothing since it went into use to fit on) or a dry run
+        promoted = judged_shadow["outcome"] == "promoted"
+        if not (promoted or judged_shadow["outcome"] == "rejected") or args.dry_run:
+            # held back, or a dry run: nothing took effect
             if args.json:
                 print(json.dumps(judged_shadow, indent=2))
             else:
                 print(_say_shadow(judged_shadow))
             return 0
-        # rejected: a new candidate from the same journal goes on where it left off
+        # decided: a new candidate goes into shadow in its place, fitted on the newest journal
         print(_say_shadow(judged_shadow), file=sys.stderr if args.json else sys.stdout)
+        if promoted:
+            # judged against the model now in use; its record begins where the shadow's data
+            # end, so the newest fit_days before that are the spindle's newest measurements
+            live_rec = history.live() or live_rec
+            live_model = _checked(sc, Path(sc.model))
+            if not args.from_:
+                start = live_rec.at_wall_s - 86400.0 * (rule.fit_days or 7.0)
     out: dict[str, Any] = {"spindle": sc.name, "live": live_rec.short, "from": iso(start)}
     if judged_shadow is not None:
         out["shadow_judged"] = judged_shadow
