@@ -13,14 +13,18 @@ setter at rest (``--setter rest``: what a refit cannot see at speed, it must lea
 
 - ``fixed``: the day-0 model all month;
 - ``learning``: ``thermocomp refit`` every 7 days on the service's own journal (the same command
-  a shop runs from its timer), promoting by the rule; the service then reloads the model.
+  a shop runs from its timer) with the default rule: a candidate that passes the held-out
+  judgement runs in shadow, and the next refit promotes or rejects it on what it would have done
+  there; the service then reloads (the promoted model, the candidate in shadow).
 
-Per week: the tool tip's error while cutting (the growth the offset did not cancel), RMS and
-max, and the open-loop model's error at the measurements; when ``MODEL_DRIFT`` fired; each
-refit's decision with its reason. A PNG of the error over the month (``--plot``).
+Per week: the tool tip's error while cutting in steady phases (the growth the offset did not
+cancel), RMS and max, learning against kept; when ``MODEL_DRIFT`` fired; each refit's decisions
+with their judgement figures. A PNG of the error over the month (``--plot``). The two runs go side
+by side, one process each; ``--modes`` runs one; ``--keep DIR`` keeps each run's configuration,
+journal, model history and the machine's history for a look afterwards.
 
 Run: .venv/bin/python bench/bench_learning.py [--days 30] [--plot docs/learning.png] [--json out.json]
-About 5 minutes on 2 shared cores.
+About 30 minutes on 2 cores shared with other work (the fits of the weekly refits dominate).
 """
 
 from __future__ import annotations
@@ -204,7 +208,12 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
                 out = json.loads(buf.getvalue())
                 out["day"] = day + 1
                 refits.append(out)
-                if out.get("outcome") == "promoted":
+                print(
+                    f"  day {day + 1}: refit {out.get('outcome')}: {out.get('reason', '')}",
+                    flush=True,
+                )
+                if out.get("outcome") in ("promoted", "shadow"):
+                    # what SIGHUP does: the promoted model, or the candidate in shadow, taken up
                     new = start(previous=rt)
                     new.take_journal(rt)
                     rt.close()
@@ -213,6 +222,15 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
         logging.getLogger("thermocomp.runtime").removeHandler(drifts)
         rt.close()
     h = vm.history()
+    if args.keep:
+        np.savez_compressed(
+            d / "history.npz",
+            time_s=h.time_s,
+            speed_rpm=h.speed_rpm,
+            true_um=h.true_um,
+            offset_um=h.offset_um,
+            cutting=h.cutting,
+        )
     err = h.tool_tip_error_um
     # steady: 5 min or more after the spindle last changed speed (a 30 s service cycle lags a
     # speed change's elastic step by up to one cycle, the same for both models)
@@ -262,8 +280,18 @@ def main() -> int:
         help="the production tool setter: a laser measuring the turning tool (default), or a "
         "contact setter at rest",
     )
+    ap.add_argument(
+        "--modes",
+        default="fixed,learning",
+        help="the runs, comma-separated (fixed, learning): one alone for a quicker look",
+    )
     ap.add_argument("--plot", help="PNG of the error while cutting over the month")
     ap.add_argument("--json", help="write every figure here")
+    ap.add_argument(
+        "--keep",
+        help="keep each run's configuration, journal, model history and the machine's history "
+        "(history.npz: the true growth and the offset held, every plant step) in this directory",
+    )
     args = ap.parse_args()
     params = preset("motorized-27k")
     started = time.monotonic()
@@ -273,18 +301,36 @@ def main() -> int:
         f"season {args.season_k:g} K, tool setter at {args.setter}"
     )
     with tempfile.TemporaryDirectory(prefix="bench-learning-") as tmp:
-        work = Path(tmp)
+        work = Path(args.keep or tmp)
+        work.mkdir(parents=True, exist_ok=True)
         model0 = calibrate(params, args.seed, work)
-        results = {m: run(m, args, params, model0, work) for m in ("fixed", "learning")}
+        modes = args.modes.split(",")
+        if len(modes) > 1:  # the runs are independent: side by side, one process each
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(len(modes)) as pool:
+                futures = {m: pool.submit(run, m, args, params, model0, work) for m in modes}
+                results = {m: f.result() for m, f in futures.items()}
+        else:
+            results = {m: run(m, args, params, model0, work) for m in modes}
     print(
         "\nweek | uncompensated RMS | fixed model: RMS / max while cutting, steady RMS / max | "
         "learning: RMS / max while cutting, steady RMS / max"
     )
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+    if set(results) != {"fixed", "learning"}:
+        return 0
+    print(
+        "\nweek | uncompensated RMS | day-0 model kept: steady RMS / max | learning service: "
+        "steady RMS / max | learning against kept"
+    )
     for a, b in zip(results["fixed"]["weeks"], results["learning"]["weeks"]):
         print(
             f"{a['week']:4d} | {a['uncompensated_rms_um']:6.2f} um | "
-            f"{a['cutting_rms_um']:5.2f} / {a['cutting_max_um']:5.2f}, {a['steady_rms_um']:5.2f} / {a['steady_max_um']:5.2f} um | "
-            f"{b['cutting_rms_um']:5.2f} / {b['cutting_max_um']:5.2f}, {b['steady_rms_um']:5.2f} / {b['steady_max_um']:5.2f} um"
+            f"{a['steady_rms_um']:5.2f} / {a['steady_max_um']:5.2f} um | "
+            f"{b['steady_rms_um']:5.2f} / {b['steady_max_um']:5.2f} um | "
+            f"{100 * (b['steady_rms_um'] / a['steady_rms_um'] - 1):+5.1f} %"
         )
     for mode in ("fixed", "learning"):
         for dft in results[mode]["drifts"]:
@@ -292,14 +338,22 @@ def main() -> int:
                 f"{mode}: MODEL_DRIFT from day {dft['day']:.2f}: {dft['size_um']:+.2f} um over "
                 f"{dft['measurements']} measurements"
             )
+    print("\nrefits (judged with the observer, as the service runs it):")
     for r in results["learning"]["refits"]:
-        figs = ""
-        if "candidate" in r and "live" in r:
-            figs = (
-                f" (candidate {r['candidate'].get('open_loop_rms_um', float('nan')):.2f} um open loop, "
-                f"live {r['live'].get('open_loop_rms_um', float('nan')):.2f} um)"
-            )
-        print(f"day {r['day']}: refit {r['outcome']}{figs}: {r.get('reason', '')}")
+        for what in (r.get("shadow_judged"), r):
+            if what is None:
+                continue
+            figs = ""
+            if "candidate" in what and "live" in what:
+                c, lv = what["candidate"], what["live"]
+                if c.get("observer_rms_um") is not None:
+                    figs = (
+                        f" [observer {c['observer_rms_um']:.2f} vs {lv['observer_rms_um']:.2f} um"
+                    )
+                    figs += f", open loop {c['open_loop_rms_um']:.2f} vs {lv['open_loop_rms_um']:.2f} um"
+                    figs += "" if "paired_t" not in what else f", paired t {what['paired_t']:+.1f}"
+                    figs += f", {what.get('measurements', '?')} measurements]"
+            print(f"day {r['day']}: {what.get('outcome')}{figs}: {what.get('reason', '')}")
     print(f"{time.monotonic() - started:.0f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2, default=float))
