@@ -267,6 +267,71 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
     }
 
 
+def plot(results: dict, args, path: str) -> None:
+    """The error while cutting over the month, daily, with each refit's decision."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for mode, color in (("fixed", "tab:red"), ("learning", "tab:blue")):
+        dd = {float(k): v for k, v in results[mode]["daily"].items()}  # a JSON key is text
+        x = np.array(sorted(dd))
+        ax.plot(
+            x + 0.5,
+            [dd[k] for k in sorted(dd)],
+            "o-",
+            ms=3,
+            color=color,
+            label="day-0 model kept" if mode == "fixed" else "learning service",
+        )
+    for r in results["learning"]["refits"]:
+        judged = r.get("shadow_judged") or {}
+        promoted = "promoted" in (r["outcome"], judged.get("outcome"))
+        label = (
+            "promoted"
+            if promoted
+            else "rejected in shadow"
+            if judged.get("outcome") == "rejected"
+            else "into shadow"
+            if r["outcome"] == "shadow"
+            else r["outcome"]
+        )
+        ax.axvline(r["day"], color="tab:green" if promoted else "0.6", lw=1, ls="--")
+        ax.text(
+            r["day"],
+            ax.get_ylim()[1] * 0.97,
+            " " + label,
+            fontsize=8,
+            va="top",
+            color="tab:green" if promoted else "0.4",
+        )
+    for mode, marker in (("fixed", "v"), ("learning", "^")):
+        ds = [d["day"] for d in results[mode]["drifts"]]
+        ax.plot(
+            ds,
+            [0.02] * len(ds),
+            marker,
+            color="tab:orange",
+            ms=6,
+            ls="none",
+            label="MODEL_DRIFT (" + ("day-0 model" if mode == "fixed" else "refit") + ")",
+        )
+    ax.set_xlabel("day")
+    ax.set_ylabel("tool-tip error while cutting,\nsteady phases, daily RMS [um]")
+    ax.set_title(
+        f"Spindle heat +{100 * args.heat_rise:.0f} % over {args.days:g} days, air +/-{args.season_k:g} K; "
+        f"tool setter at {args.setter}, every 30 min",
+        fontsize=10,
+    )
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"plot: {path}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--days", type=float, default=30.0)
@@ -358,57 +423,7 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2, default=float))
     if args.plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(10, 4))
-        for mode, color in (("fixed", "tab:red"), ("learning", "tab:blue")):
-            dd = results[mode]["daily"]
-            x = np.array(sorted(dd))
-            ax.plot(
-                x + 0.5,
-                [dd[k] for k in sorted(dd)],
-                "o-",
-                ms=3,
-                color=color,
-                label="day-0 model kept" if mode == "fixed" else "weekly refit",
-            )
-        for r in results["learning"]["refits"]:
-            promoted = r["outcome"] == "promoted"
-            ax.axvline(r["day"], color="tab:green" if promoted else "0.6", lw=1, ls="--")
-            ax.text(
-                r["day"],
-                ax.get_ylim()[1] * 0.97,
-                " promoted" if promoted else " rejected",
-                fontsize=8,
-                va="top",
-                color="tab:green" if promoted else "0.4",
-            )
-        for mode, marker in (("fixed", "v"), ("learning", "^")):
-            ds = [d["day"] for d in results[mode]["drifts"]]
-            ax.plot(
-                ds,
-                [0.02] * len(ds),
-                marker,
-                color="tab:orange",
-                ms=6,
-                ls="none",
-                label="MODEL_DRIFT (" + ("day-0 model" if mode == "fixed" else "refit") + ")",
-            )
-        ax.set_xlabel("day")
-        ax.set_ylabel("tool-tip error while cutting,\nsteady phases, daily RMS [um]")
-        ax.set_title(
-            f"Spindle heat +{100 * args.heat_rise:.0f} % over {args.days:g} days, air +/-{args.season_k:g} K; "
-            f"tool setter at {args.setter}, every 30 min",
-            fontsize=10,
-        )
-        ax.set_ylim(bottom=0)
-        ax.legend(fontsize=8, loc="upper left")
-        fig.tight_layout()
-        fig.savefig(args.plot, dpi=110)
-        print(f"plot: {args.plot}")
+        plot(results, args, args.plot)
     return 0
 
 
