@@ -265,7 +265,8 @@ def _judge_shadow(
 
 def _say_shadow(out: dict[str, Any]) -> str:
     return (
-        f"refit {out['spindle']}: {out['outcome']} the candidate {out['shadow']} in shadow: {out['reason']}"
+        f"refit {out['spindle']}: {out['outcome']} the candidate {out['shadow']} in shadow: "
+        + out["reason"].removeprefix("in shadow: ")
         + (f"; {out['written']}" if "written" in out else "")
     )
 
