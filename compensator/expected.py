@@ -30,10 +30,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Final, Literal
+from typing import Any, ClassVar, Final, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
 
 from .units import RANGE_TOLERANCE
 
@@ -106,10 +106,27 @@ def recent_rpm(time_s: np.ndarray, speed_rpm: np.ndarray, memory_s: float) -> np
     return out
 
 
-class Figure(BaseModel):
+class _Stored(BaseModel):
+    """A part of the statement as stored: the fields added by a later format are left out where
+    they are unset (None), so a record read from an older file writes back byte for byte (the
+    model's checksum, which saved state names, stays the same)."""
+
+    ADDED: ClassVar[tuple[str, ...]] = ()
+
+    @model_serializer(mode="wrap")
+    def _without_unset(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        data: dict[str, Any] = handler(self)
+        for name in type(self).ADDED:
+            if data.get(name, 0) is None:
+                del data[name]
+        return data
+
+
+class Figure(_Stored):
     """RMS and 95th percentile of |error| [um] over ``samples`` residuals of ``source``."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+    ADDED = ("folds",)
 
     source: str = Field(description="which residuals: forward (rolling origin) or held out")
     samples: int = Field(ge=1)
@@ -122,11 +139,12 @@ class Figure(BaseModel):
     )
 
 
-class Band(BaseModel):
+class Band(_Stored):
     """One speed band: the error inside the trained input range and, where validation saw it,
     outside."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+    ADDED = ("folds",)
 
     speed_rpm: tuple[float, float] = Field(
         description="(low, high] |speed| [rpm]; rest is (0, idle]"
@@ -173,10 +191,11 @@ class Expectation:
         return "not validated" + (f" {self.unvalidated}" if self.unvalidated else "")
 
 
-class ExpectedError(BaseModel):
+class ExpectedError(_Stored):
     """What the fit states, stored in the model's fit record under ``expected_error``."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+    ADDED = ("measured_rpm", "history_rpm", "memory_s")
 
     format: Literal["thermocomp.expected-error/1", "thermocomp.expected-error/2"] = EXPECTED_FORMAT
     bands: tuple[Band, ...] = Field(min_length=1)

@@ -158,7 +158,7 @@ def at_a_terminal(monkeypatch):
     tty_out = open(slave, "w", closefd=False)
     monkeypatch.setattr(sys, "stdin", tty_in)
     try:
-        yield fdpexpect.fdspawn(master, encoding="utf-8", timeout=60), tty_out
+        yield fdpexpect.fdspawn(master, encoding="utf-8", timeout=180), tty_out
     finally:
         os.close(master)
         tty_in.close()
