@@ -50,7 +50,7 @@ from compensator.errors import CalibrationError
 from compensator.expected import ExpectedError, memory_s_of
 from compensator.fitrecord import FIT_SCHEMA_VERSION, FitRecord
 from compensator.modelbase import with_fit
-from compensator.plausibility import steady_growth_refusal
+from compensator.plausibility import steady_growth_refusal, time_constant_refusal
 
 from . import closedloop
 from . import folds as fl
@@ -490,8 +490,11 @@ def identify(
                 c.accepted, c.refusals = False, [*c.refusals, refusal]
     judged = growth_direction is not None or measured_span_um is not None  # fit_data's callers
     for c in cands:
-        if judged and c.family == "speed" and c.accepted and c.model is not None:
-            why = steady_growth_refusal(c.model, growth_direction, measured_um=measured_span_um)
+        if c.family == "speed" and c.accepted and c.model is not None:
+            # a time scale no spindle has falls to the next candidate, not the whole fit
+            why = time_constant_refusal(c.model)
+            if why is None and judged:
+                why = steady_growth_refusal(c.model, growth_direction, measured_um=measured_span_um)
             if why is not None:
                 c.accepted, c.refusals = False, [*c.refusals, f"physics: {why}"]
     speed = [c for c in cands if c.family == "speed" and c.accepted and c.model is not None]
