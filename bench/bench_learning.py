@@ -212,7 +212,11 @@ def run(mode: str, args, params, model0: Path, workdir: Path) -> dict:
                     f"  day {day + 1}: refit {out.get('outcome')}: {out.get('reason', '')}",
                     flush=True,
                 )
-                if out.get("outcome") in ("promoted", "shadow"):
+                judged = out.get("shadow_judged") or {}
+                if (
+                    "promoted" in (out.get("outcome"), judged.get("outcome"))
+                    or out.get("outcome") == "shadow"
+                ):
                     # what SIGHUP does: the promoted model, or the candidate in shadow, taken up
                     new = start(previous=rt)
                     new.take_journal(rt)
