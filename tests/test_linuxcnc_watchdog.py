@@ -306,7 +306,8 @@ def test_a_late_beat_holds_the_machine_until_the_beats_return_a_kill_stops_it():
         for i in range(1, len(counts)):
             step = counts[i - 1] - counts[i]
             assert 0 <= step <= FADE_CAP * (t_b[i] - t_a[i - 1]) + 1, (i, step)
-        assert counts[-1] == 0 and abs(request[-1]) < 1e-9
+        # the request may still hold less than one count, which the counts truncate to none
+        assert counts[-1] == 0 and abs(request[-1]) * 1e5 < 1 + 1e-6
 
         # (b) the feed hold: the cut stopped where it was, the program still running
         held = [i for i in range(len(t_a)) if t_a[i] > 0.05]
