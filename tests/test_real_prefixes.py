@@ -11,7 +11,8 @@ growth fails the physics check, and the channel is refused when none is left. Le
 form out takes one speed-only candidate away, so these fits are, if anything, more exposed to that
 refusal than the full fit. The nested figure stays: without it the scores change which candidates
 are refused as worse than the baseline, and fewer channels were refused than by ``thermocomp fit``
-(ch1 and ch2 on three cycles). One test per channel x prefix, so that pytest-xdist spreads them.
+(ch1 and ch2 on three cycles). On four and five cycles, where no channel was ever refused and a
+fit costs most, it is left out. One test per channel x prefix, so that pytest-xdist spreads them.
 """
 
 from __future__ import annotations
@@ -70,7 +71,9 @@ def test_every_channel_fits_on_every_prefix(real, tmp_path, channel, cycles):
     log = read_run_log(prefix_log(full, CYCLES[cycles - 1][1], tmp_path / "prefix.csv"))
     assert len(log.time_s) == CYCLES[cycles - 1][1]
 
-    result = fit_logs([log], TEMPS, physical=False, probe_target_um=None)
+    # the nested figure where channels were refused (two and three cycles); four and five
+    # cycles, never refused, without it (it is 40 % of a fit's time)
+    result = fit_logs([log], TEMPS, physical=False, probe_target_um=None, nested=cycles <= 3)
 
     path = tmp_path / "model.json"
     save_model(path, result.model)
