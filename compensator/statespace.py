@@ -516,6 +516,9 @@ small matrix, which a BLAS does faster than numpy's running sum."""
 _SPAN = 200.0
 """Largest decay exponent inside one closed-form stretch of a free run: exp(200) ~ 7e86, far
 from overflow for any drive the checked gains give (an overflow is redone scaled, exactly)."""
+_FEW_ODD = 8
+"""Steps off the usual one in a block up to which the block's usual runs still go by
+sub-blocks; beyond, the clock is irregular and the whole block goes by stretches."""
 _LD_MAX = 1e4  # dt/tau beyond this is a full reset (exp(-1e4) == 0)
 _UPPER = np.triu(np.ones((_SUB, _SUB)))
 """[j, k] = 1 where j <= k: a running sum over a sub-block as a product."""
@@ -532,7 +535,8 @@ class _Recursion:
     (:func:`compensator.filters.lag_step` at each sample) over a log, a block at a time, added
     into the output; no Python loop over samples.
 
-    - A block whose steps all equal the log's usual step: per sub-block of ``_SUB`` samples, the
+    - Runs of the log's usual step (a whole block, or a block cut by a few odd steps such as a
+      gap, each then taken alone): per sub-block of ``_SUB`` samples, the
       response from rest is a product with a fixed lower-triangular matrix of ``(1 - a)*a**i``,
       the state carried from one sub-block to the next is the same recursion with ``a**_SUB``
       (in closed form), and what it adds at each sample is its decay ``a**(i + 1)``.
@@ -598,13 +602,27 @@ class _Recursion:
         if not (lo >= 0 and math.isfinite(hi)):
             Steps.of(t)  # raises, naming the sample
             raise ModelError("time_s is not usable")
-        whole = m - m % _SUB if lo == hi == self.usual else 0
-        if whole and self._regular(d[:, first : first + whole], out[first : first + whole]):
-            first += whole
+        if lo == hi == self.usual:
+            odd = np.empty(0, dtype=np.intp)
+        elif math.isnan(self.usual):
+            odd = np.arange(m)
         else:
-            whole = 0
-        if whole < m:
-            self._stretches(s + first, d[:, first:], dt[whole:], out[first:])
+            odd = np.flatnonzero(dt != self.usual)
+        if odd.size > _FEW_ODD:  # an irregular clock: closed-form stretches throughout
+            self._stretches(s + first, d[:, first:], dt, out[first:])
+            return
+        # runs of the usual step by sub-blocks, each odd step (a gap, a jitter) on its own
+        i = 0
+        for end, with_odd in [*((k + 1, 1) for k in odd.tolist()), (m, 0)]:
+            run = end - i - with_odd  # samples reached by the usual step
+            whole = run - run % _SUB if run > 0 else 0
+            a = first + i
+            if whole and self._regular(d[:, a : a + whole], out[a : a + whole]):
+                i += whole
+            if i < end:
+                a = first + i
+                self._stretches(s + a, d[:, a : first + end], dt[i:end], out[a : first + end])
+                i = end
 
     def _regular(self, d: np.ndarray, out: np.ndarray) -> bool:
         """Samples at the usual step, a whole number of sub-blocks; False (nothing changed) if

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from compensator.errors import ModelError, NonFiniteInputError
-from compensator.statespace import _BLOCK, Extrapolation, InputChannel, StateSpaceModel
+from compensator.statespace import _BLOCK, _FEW_ODD, Extrapolation, InputChannel, StateSpaceModel
 
 NAMES = ("a_c", "b_c", "c_c")
 
@@ -96,10 +96,21 @@ def regular_with_gaps(n: int) -> np.ndarray:
     return 1.7e9 + np.concatenate([[0.0], np.cumsum(dt)])
 
 
+def scattered_odd_steps(n: int) -> np.ndarray:
+    """Odd steps where the block's usual runs are cut: at a block's first and last step,
+    side by side, a run shorter than a sub-block; then a block with just too many to cut."""
+    dt = np.ones(n - 1)
+    odd = [0, 1, 17, 40, 41, 42, _BLOCK - 2, _BLOCK - 1]  # the first block (its step 0 is none)
+    odd += [_BLOCK + 5 * k for k in range(_FEW_ODD + 1)]  # the second: past the few
+    dt[odd] = 2.5
+    return np.concatenate([[0.0], np.cumsum(dt)])
+
+
 CLOCKS = {
     "regular": lambda rng, n: 1.7e9 + np.arange(n) * 1.0,
     "regular, 15 s": lambda rng, n: np.arange(n) * 15.0,
     "regular with gaps": lambda rng, n: regular_with_gaps(n),
+    "scattered odd steps": lambda rng, n: scattered_odd_steps(n),
     "wandering": lambda rng, n: 1.7e9 + np.cumsum(rng.uniform(0.9, 1.1, n)),
     "mixed, repeated stamps": lambda rng, n: np.cumsum(rng.choice([0.0, 0.1, 1.0, 60.0, 600.0], n)),
 }
