@@ -660,7 +660,7 @@ def test_forward_origins_every_half_cycle_use_only_the_rows_before():
     )
 
 
-def _duel_of(rich_fold_um, simple_fold_um):
+def _duel_of(rich_fold_um, simple_fold_um, need=0):
     """The choice's duel between two candidates whose forward residual is the given constant on
     each of the five forward folds of four cycles."""
     from calibration import folds as fl
@@ -678,7 +678,7 @@ def _duel_of(rich_fold_um, simple_fold_um):
             r[a:b] = v
         return Candidate(name, "inputs", name, forward_residual_um=r, held_out_residual_um=r)
 
-    return _duel(cand("rich", rich_fold_um), cand("simple", simple_fold_um), splits, ds)
+    return _duel(cand("rich", rich_fold_um), cand("simple", simple_fold_um), splits, ds, need)
 
 
 def test_a_flexible_structure_must_beat_the_simpler_by_more_than_the_folds_spread():
@@ -697,3 +697,37 @@ def test_a_flexible_structure_must_beat_the_simpler_by_more_than_the_folds_sprea
     rescue = _duel_of([1.05, 1.05, 1.05, 1.05, 1.0], [1.0, 1.0, 1.0, 1.0, 3.0])
     assert rescue.won and "less than one standard error" in rescue.text
     assert "the worst fold decides" in rescue.text
+
+
+def test_past_the_static_structure_a_flexible_one_needs_four_forward_folds():
+    """Lower on every fold by half wins on five forward folds; asked for six, it cannot try, and
+    says how many folds it had and how many it needed."""
+    from calibration.identify import MIN_FLEXIBLE_FOLDS
+
+    assert MIN_FLEXIBLE_FOLDS == 4
+    assert _duel_of([0.5] * 5, [1.0] * 5, need=MIN_FLEXIBLE_FOLDS).won
+    short = _duel_of([0.5] * 5, [1.0] * 5, need=6)
+    assert not short.won and "5 forward fold(s), fewer than the 6" in short.text
+
+
+def test_with_inputs_the_static_structure_stands_first_and_keeps_them():
+    """On two cycles (one forward fold) the static structure is the choice with inputs, whatever
+    the more flexible ones score, and the inputs are not dropped for speed alone; the reason
+    says so. On one cycle (blocks) too."""
+    from calibration.identify import STATIC, LogData, identify
+
+    t, n, sensors, y = _collinear()
+    a, _b = split_cycles(t, n)[2]
+    for end in (a, split_cycles(t, n)[1][0]):
+        got = identify(
+            [LogData("short", t[:end], n[:end], y[:end], {k: v[:end] for k, v in sensors.items()})],
+            tuple(sensors),
+            physical=False,
+            probe_target_um=None,
+        )
+        assert got.chosen.name == STATIC, (end, got.reason)
+        assert set(got.model.input_names) == set(sensors)
+        assert got.model.fallback is not None  # speed only stands in when an input fails
+        flexible = [c for c in got.candidates if c.family == "inputs" and c.name != STATIC]
+        assert flexible and not any(c.accepted for c in flexible)
+        assert STATIC in got.reason and "stands" in got.reason

@@ -332,14 +332,16 @@ def select_chained(
 ) -> tuple[float, list[dict[str, Any]]] | None:
     """(alpha, table) chosen on forward-chained ``blocks`` (half cycles,
     :func:`calibration.folds.halves`): each from the third predicted in free run by gains fitted on
-    the blocks before it; the largest alpha whose pooled mean square is within
+    the blocks before it (with two blocks, a heat-up and its cool-down, the second from the
+    first); the largest alpha whose pooled mean square is within
     :data:`~calibration.metrics.PARSIMONY` of the best. Only the future judges the penalty, as a
     user fitting on the past and running on the next shift would. None when no block can be
-    predicted (fewer than three blocks)."""
-    if len(blocks) < 3:
+    predicted (fewer than two blocks)."""
+    if len(blocks) < 2:
         return None
     x = bank.design(config.grid, config.names)
-    res = forward_residuals(x, y, measured, blocks, config.alphas, train, first=2)
+    first = 1 if len(blocks) == 2 else 2
+    res = forward_residuals(x, y, measured, blocks, config.alphas, train, first=first)
     rows = np.flatnonzero(~np.isnan(res[:, 0]))
     if rows.size == 0:
         return None
@@ -865,7 +867,11 @@ def fit(
                 bank, y0, measured if train is None else measured & train, configs, limits
             )
         if alpha_by == "chained" and len(configs) == 1:
-            got = select_chained(bank, y0, measured, configs[0], fl.halves(t, sp, over), train)
+            blocks = fl.halves(t, sp, over)
+            if ds.unit != "cycle" and train is None and len(ds.cycles) == 1:
+                # one cycle: its heat-up predicts its cool-down, as the next shift would see
+                blocks = fl.halves(t, sp, ds.cycles)
+            got = select_chained(bank, y0, measured, configs[0], blocks, train)
             if got is not None:
                 return configs[0], got[0], got[1]
         ki, al, tab = select(
