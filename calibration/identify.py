@@ -691,10 +691,12 @@ def _finish(
 STATIC = "ridge+static"
 """With inputs, the structure that stands first: a plain ridge over the static inputs and a
 bank of speed lags, the one the real record's forward folds never found far off."""
-MIN_FLEXIBLE_FOLDS = 4
-"""Forward folds a structure more flexible than :data:`STATIC` needs to displace it (three
-and a half cycles): on the real record, with three, the banks per input won their duel at
-2.5 cycles and erred 7.5-8.0 um on the next half cycle, where the static one erred 5.8-6.3."""
+MIN_FLEXIBLE_FOLDS = 5
+"""Forward folds a structure more flexible than :data:`STATIC` needs to displace it (four
+cycles of past). On the real record's half-cycle origins, every flexible structure that won
+its duel on three or four folds erred more on the next half cycle than the static one (7.5-8.0
+against 5.8-6.3 um at 2.5 cycles; 2.6-5.8 against 1.5-3.3 um at 3.5 cycles), and every one that
+won on five or six folds erred less (0.8-2.3 against 1.4-2.7 um)."""
 MIN_PAIRED = 3
 """Folds a one-standard-error comparison needs; with fewer forward folds the whole-cycle
 leave-one-out folds join them."""
@@ -1201,6 +1203,18 @@ def extrapolation(
             1.0,
             r_lin,
             "outside the trained range: linear (no forward split to choose by)",
+        )
+    if not c_in.forward_decides:
+        # blocks of one cycle: a block predicted forward lies at speeds and temperatures its past
+        # never ran, which the model fitted on the whole cycle does not reach (on the real
+        # record, held at the range's ends by such a choice, the next half cycle erred 5.6 um
+        # against 3.3 carried on)
+        return (
+            "linear",
+            1.0,
+            r_lin,
+            "outside the trained range: linear (one cycle: its blocks are no forward split to "
+            "choose by)",
         )
     d = np.nan_to_num(dist, nan=0.0)
     out = np.isfinite(r_lin) & (d > 0)
