@@ -64,7 +64,7 @@ from .dataset import Dataset, LogData, join
 from .estimators import baseline, output_error, paper_ols
 from .estimators import ridge_bank as rb
 from .folds import CYCLE_RULE
-from .metrics import MIN_BAND_ROWS, PARSIMONY, expected_error, measured_stats
+from .metrics import MIN_BAND_ROWS, PARSIMONY, expected_error, finite, measured_stats
 
 __all__ = ["REGISTRY", "Candidate", "Entry", "Identification", "LogData", "identify"]
 
@@ -717,9 +717,15 @@ def _fold_mse(
     for i, (a, b) in enumerate(folds):
         ok = rows[a:b] & ~np.isnan(residual[a:b])
         if ok.any():
-            r = np.where(np.isfinite(residual[a:b][ok]), residual[a:b][ok], 1e9)
+            r = finite(residual[a:b][ok])  # a diverged free run scores huge
             out[i] = float(np.mean(r * r))
     return out
+
+
+def _one_se(d: np.ndarray) -> tuple[float, float]:
+    """The mean of paired per-fold differences and its standard error: the one-standard-error
+    rule's two figures (Hastie, Tibshirani and Friedman, section 7.10)."""
+    return float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
 
 
 @dataclass(frozen=True)
@@ -776,7 +782,7 @@ def _duel(
     worst_a, worst_b = math.sqrt(float(wa.max())), math.sqrt(float(wb.max()))
     d = pb - pa
     if d.size >= MIN_PAIRED:
-        gain, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
+        gain, se = _one_se(d)
         better = gain > se
         how = (
             f"lower by {gain:.2f} um² in mean square per fold, "
@@ -993,14 +999,12 @@ def _paired_fold_mse_um2(
     a, b = simple.held_out_residual_um, rich.held_out_residual_um
     if a is None or b is None:
         return None
-    d = []
-    for lo, hi in ds.folds:
-        ok = np.isfinite(a[lo:hi]) & np.isfinite(b[lo:hi]) & ds.measured[lo:hi]
-        if ok.any():
-            d.append(float(np.mean(a[lo:hi][ok] ** 2) - np.mean(b[lo:hi][ok] ** 2)))
-    if len(d) < 3:
+    both = ds.measured & np.isfinite(a) & np.isfinite(b)  # the rows both scored
+    d = _fold_mse(a, ds.folds, both) - _fold_mse(b, ds.folds, both)
+    d = d[np.isfinite(d)]
+    if d.size < MIN_PAIRED:
         return None
-    return float(np.mean(d)), float(np.std(d, ddof=1) / math.sqrt(len(d))), len(d)
+    return (*_one_se(d), int(d.size))
 
 
 def _physical_within_noise(

@@ -731,3 +731,28 @@ def test_with_inputs_the_static_structure_stands_first_and_keeps_them():
         flexible = [c for c in got.candidates if c.family == "inputs" and c.name != STATIC]
         assert flexible and not any(c.accepted for c in flexible)
         assert STATIC in got.reason and "stands" in got.reason
+
+
+def test_the_held_out_paired_difference_uses_the_rows_both_scored():
+    """The physical form's one-standard-error check: per fold, the difference of the two
+    candidates' mean square on the rows both scored (a row one of them did not score, or
+    diverged on, leaves both out), then its mean and standard error over the folds."""
+    from calibration.candidate import Candidate
+    from calibration.dataset import from_arrays
+    from calibration.identify import _paired_fold_mse_um2
+
+    t, n = _four_cycles()
+    ds = from_arrays(t, n, np.zeros(t.size), None)
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(0, 1.0, t.size), rng.normal(0, 0.8, t.size)
+    a[5], b[7] = np.inf, np.nan
+    cand = lambda r: Candidate("c", "speed", "c", held_out_residual_um=r)
+    d = []
+    for lo, hi in ds.folds:
+        ok = np.isfinite(a[lo:hi]) & np.isfinite(b[lo:hi])
+        d.append(np.mean(a[lo:hi][ok] ** 2) - np.mean(b[lo:hi][ok] ** 2))
+    mean, se, k = _paired_fold_mse_um2(cand(a), cand(b), ds)
+    assert k == len(ds.folds) == 4
+    assert mean == pytest.approx(np.mean(d), rel=1e-12)
+    assert se == pytest.approx(np.std(d, ddof=1) / np.sqrt(len(d)), rel=1e-12)
+    assert mean > 0  # the first errs more
