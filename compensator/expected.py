@@ -27,6 +27,7 @@ to its top band's speed).
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -85,24 +86,55 @@ def memory_s_of(model: object) -> float | None:
     return MEMORY_TAUS * max(taus) if taus else None
 
 
+class RecentMax:
+    """The fastest |speed| within ``span_s`` up to the newest time pushed, kept as it comes: a
+    sliding-window maximum (the times, with their speeds decreasing; the first within a span is
+    the fastest it remembers). O(1) per push, amortised, and no allocation per push.
+
+    ``restart``: a time that runs backwards starts a new history (the next log of several);
+    without it (a service's clock) what came before stays remembered, the safe side."""
+
+    def __init__(self, span_s: float, restart: bool = False) -> None:
+        self.span_s = span_s
+        self.restart = restart
+        self._times: deque[float] = deque()
+        self._speeds: deque[float] = deque()
+
+    def push(self, time_s: float, speed_rpm: float) -> None:
+        """Add one |speed| [rpm] at ``time_s``; a NaN speed (unread) adds nothing."""
+        n = abs(speed_rpm) if speed_rpm == speed_rpm else 0.0
+        if self.restart and self._times and time_s < self._times[-1]:
+            self._times.clear()
+            self._speeds.clear()
+        while self._speeds and self._speeds[-1] <= n:
+            self._times.pop()
+            self._speeds.pop()
+        self._times.append(time_s)
+        self._speeds.append(n)
+        while self._times[0] < time_s - self.span_s:
+            self._times.popleft()
+            self._speeds.popleft()
+
+    def fastest(self, time_s: float, span_s: float | None = None) -> float:
+        """The fastest |speed| within ``span_s`` (default, and at most, :attr:`span_s`) up to
+        ``time_s``, the newest pushed; 0 before any."""
+        since = time_s - (self.span_s if span_s is None else min(span_s, self.span_s))
+        for t, v in zip(self._times, self._speeds):
+            if t >= since:
+                return v
+        return 0.0
+
+
 def recent_rpm(time_s: np.ndarray, speed_rpm: np.ndarray, memory_s: float) -> np.ndarray:
     """Per row, the fastest |speed| within ``memory_s`` up to it, its own included. A time that
     runs backwards (the next log of several) starts a new history."""
-    t = np.asarray(time_s, float)
-    n = np.abs(np.nan_to_num(np.asarray(speed_rpm, float)))
-    out = np.empty(n.size)
-    window: list[int] = []  # row indices, their speeds decreasing: the front is the window's max
-    head = 0
-    for i in range(n.size):
-        if i and t[i] < t[i - 1]:
-            window, head = [], 0
-        while len(window) > head and n[window[-1]] <= n[i]:
-            window.pop()
-        head = min(head, len(window))
-        window.append(i)
-        while t[window[head]] < t[i] - memory_s:
-            head += 1
-        out[i] = n[window[head]]
+    t = np.asarray(time_s, float).tolist()
+    n = np.nan_to_num(np.asarray(speed_rpm, float)).tolist()
+    window = RecentMax(memory_s, restart=True)
+    out = np.empty(len(n))
+    for i, (ti, ni) in enumerate(zip(t, n)):
+        window.push(ti, ni)
+        out[i] = window.fastest(ti)
     return out
 
 

@@ -26,6 +26,7 @@ from compensator.expected import (
     EXPECTED_FORMAT_1,
     Band,
     ExpectedError,
+    RecentMax,
     parse_expected,
     recent_rpm,
 )
@@ -284,6 +285,26 @@ def test_a_statement_in_the_first_format_still_loads_and_reads_as_it_did():
 
 
 # -- after running faster than validation saw ------------------------------------------------
+
+
+def test_the_service_window_keeps_what_a_clock_step_back_would_forget():
+    """The service's window (no restart): the fastest within a shorter span asked of it, an
+    unread speed adding nothing, and a clock that steps back keeping the faster speed it saw,
+    where a log's window starts over."""
+    w = RecentMax(100.0)
+    for t, n in [(0.0, 9000.0), (40.0, -3000.0), (80.0, float("nan")), (90.0, 1000.0)]:
+        w.push(t, n)
+    assert w.fastest(90.0) == 9000.0 and w.fastest(90.0, 60.0) == 3000.0
+    assert w.fastest(90.0, 5.0) == 1000.0
+    w.push(50.0, 500.0)  # the clock stepped back
+    assert w.fastest(50.0) == 9000.0
+    log = RecentMax(100.0, restart=True)
+    log.push(0.0, 9000.0)
+    log.push(-5.0, 500.0)
+    assert log.fastest(-5.0) == 500.0
+    w.span_s = 20.0  # a model with a shorter memory, loaded after
+    w.push(200.0, 0.0)
+    assert w.fastest(200.0) == 0.0
 
 
 def test_the_speed_lately_is_the_fastest_within_the_memory():

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from compensator.estimate import Estimate, EstimateState
-from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, place
+from compensator.expected import MIN_FORWARD_FOLDS, ExpectedError, RecentMax, place
 from compensator.fitrecord import fit_of
 
 from .alarms import Alarm
@@ -57,14 +57,13 @@ class ExpectedWatch:
             None if fallback is None else fit_of(fallback).expected_error
         )
         self.high: str | None = None  # why EXPECTED_ERROR_HIGH is raised, while it is
-        # the speeds lately, (time, |rpm|) with the speeds decreasing: the first within a
-        # statement's memory is the fastest it remembers (a spindle cooling from a speed faster
-        # than validation saw is where validation never measured, at rest too)
-        self.lately: list[tuple[float, float]] = []
         self.memory_s = max(
             (e.memory_s or 0.0 for e in (self.expected, self.fallback) if e is not None),
             default=0.0,
         )
+        # the speeds lately: a spindle cooling from a speed faster than validation saw is where
+        # validation never measured, at rest too
+        self.lately = RecentMax(self.memory_s)
         if self.bound_um is None:
             return
         if self.expected is None and self.fallback is None:
@@ -93,17 +92,16 @@ class ExpectedWatch:
     def follow(self, old: ExpectedWatch) -> None:
         self.high = old.high  # raised still: no second entry event
         self.lately = old.lately
+        self.lately.span_s = self.memory_s  # this model's memory from now on
 
     def _recent(self, stated: ExpectedError, speed_rpm: float, now: float | None) -> float | None:
         """The fastest |speed| within ``stated``'s memory up to ``now`` (None: no history)."""
         if now is None or self.memory_s <= 0:
             return None
-        n = abs(speed_rpm) if speed_rpm == speed_rpm else 0.0  # an unread speed adds nothing
-        keep = [(t, v) for t, v in self.lately if t >= now - self.memory_s and v > n]
-        self.lately = [*keep, (now, n)]
+        self.lately.push(now, speed_rpm)
         if stated.memory_s is None or stated.history_rpm is None:
             return None
-        return next(v for t, v in self.lately if t >= now - stated.memory_s)
+        return self.lately.fastest(now, stated.memory_s)
 
     def stated(self, estimate: Estimate, est: EstimateState) -> tuple[ExpectedError | None, bool]:
         """The statement of the model in use (the fallback's while it stands in), and whether
