@@ -87,6 +87,7 @@ def metrics(b: Bench) -> dict:
             "thermocomp_expected_error_p95_micrometres",
             "thermocomp_expected_error_rms_micrometres",
             "thermocomp_expected_error_bound_micrometres",
+            "thermocomp_expected_error_validated",
         )
     }
 
@@ -115,6 +116,7 @@ def test_the_stated_error_is_in_the_status_and_the_metrics(tmp_path):
     assert m["thermocomp_expected_error_p95_micrometres"] == {"s1": 9.3}
     assert m["thermocomp_expected_error_rms_micrometres"] == {"s1": 4.1}
     assert m["thermocomp_expected_error_bound_micrometres"] == {}  # none configured: absent, not 0
+    assert m["thermocomp_expected_error_validated"] == {"s1": 1.0}
     # the figure follows the speed: at rest the next cycle
     b.vm.override_speed(0.0)
     rows = b.run(5)
@@ -233,6 +235,11 @@ def test_a_floor_alarms_under_a_bound_whatever_its_figure(tmp_path, caplog):
     assert (
         row["expected_error"]["validated"] is False and row["expected_error"]["p95_abs_um"] == 11.0
     )
+    # a floor is no promise: the metrics publish no figure there, and say why not
+    m = metrics(b)
+    assert m["thermocomp_expected_error_validated"] == {"s1": 0.0}
+    assert m["thermocomp_expected_error_p95_micrometres"] == {}
+    assert m["thermocomp_expected_error_rms_micrometres"] == {}
     (entered,) = events(caplog, "expected_error_high")
     assert entered.getMessage().endswith(
         "at least 11.0 um (95 %) at 6667-10000 rpm (bound 20 um), not "

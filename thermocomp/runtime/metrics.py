@@ -112,19 +112,29 @@ def metrics_text(snap: Mapping[str, Any] | None) -> bytes:
                     if s.get("observer")
                 ],
             )
-            # absent for a spindle whose model states no expected error
+            # absent for a spindle whose model states no expected error; the figures only where
+            # validation measured (elsewhere a floor, never to be read as a promise)
             stated = [(s["name"], s["expected_error"]) for s in sp if s.get("expected_error")]
+            vouched = [(name, e) for name, e in stated if e.get("validated")]
+            yield _gauge(
+                "thermocomp_expected_error_validated",
+                "1 while the error to expect now is validated, 0 where validation never measured "
+                "(at a speed, or after running faster, or with inputs further out than "
+                "calibration saw: no figure is then published)",
+                ["spindle"],
+                [([name], 1.0 if e.get("validated") else 0.0) for name, e in stated],
+            )
             yield _gauge(
                 "thermocomp_expected_error_p95_micrometres",
                 "the error to expect now, as the fit stated it: 95th percentile of |error| [um]",
                 ["spindle"],
-                [([name], e.get("p95_abs_um")) for name, e in stated],
+                [([name], e.get("p95_abs_um")) for name, e in vouched],
             )
             yield _gauge(
                 "thermocomp_expected_error_rms_micrometres",
                 "the error to expect now, as the fit stated it: RMS [um]",
                 ["spindle"],
-                [([name], e.get("rms_um")) for name, e in stated],
+                [([name], e.get("rms_um")) for name, e in vouched],
             )
             yield _gauge(
                 "thermocomp_expected_error_bound_micrometres",
