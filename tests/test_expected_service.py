@@ -16,6 +16,7 @@ from test_runtime_statespace import WALL0, Bench, events, speed_only, with_input
 
 from compensator.expected import MIN_FORWARD_FOLDS, Band, ExpectedError, Figure
 from compensator.io import read_run_log, save_model
+from thermocomp.commands.status import table
 from thermocomp.runtime import Alarm, Service
 from thermocomp.runtime.status import metrics_text, snapshot, spindle_status
 
@@ -117,6 +118,7 @@ def test_the_stated_error_is_in_the_status_and_the_metrics(tmp_path):
     assert m["thermocomp_expected_error_rms_micrometres"] == {"s1": 4.1}
     assert m["thermocomp_expected_error_bound_micrometres"] == {}  # none configured: absent, not 0
     assert m["thermocomp_expected_error_validated"] == {"s1": 1.0}
+    assert "; error: expect ±9.3 µm (95 %)" in table({"spindles": [spindle_status(b.rt, b.t)]})
     # the figure follows the speed: at rest the next cycle
     b.vm.override_speed(0.0)
     rows = b.run(5)
@@ -235,7 +237,11 @@ def test_a_floor_alarms_under_a_bound_whatever_its_figure(tmp_path, caplog):
     assert (
         row["expected_error"]["validated"] is False and row["expected_error"]["p95_abs_um"] == 11.0
     )
-    # a floor is no promise: the metrics publish no figure there, and say why not
+    # a floor is no promise: the metrics publish no figure there, and say why not; the
+    # command line says what the status page says
+    lines = table({"spindles": [spindle_status(b.rt, b.t)]}).splitlines()
+    claim = row["expected_error"]["claim"]
+    assert claim.startswith("not validated") and any(f"; error: {claim}" in x for x in lines)
     m = metrics(b)
     assert m["thermocomp_expected_error_validated"] == {"s1": 0.0}
     assert m["thermocomp_expected_error_p95_micrometres"] == {}

@@ -165,6 +165,13 @@ def table(st: dict[str, Any]) -> str:
                 f"{_age(obs.get('since_measurement_s'))} ago"
                 + (" (stale)" if obs.get("stale") else "")
             )
+        ex = s.get("expected_error")
+        if ex:  # the figure only as a promise where validated, as the status page shows it
+            claim = ex.get("claim") or (
+                f"expect ±{_num(ex.get('p95_abs_um'), '.1f')} µm (95 %)"
+                + ("" if ex.get("validated") else ", not validated here: a floor")
+            )
+            line += f"; error: {claim}"
         out.append(line)
     c = st.get("cooling")
     if c:
