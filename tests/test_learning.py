@@ -139,6 +139,7 @@ def test_a_poor_model_is_replaced_from_production_and_can_be_rolled_back(
     assert out["outcome"] == "promoted", out
     assert out["measurements"] >= 22 and out["holdout"] >= 6
     assert out["candidate"]["open_loop_rms_um"] < 0.9 * out["live"]["open_loop_rms_um"]
+    assert isinstance(out["live_model"], str) and out["live_model"]  # named beside its figures
     new = load_any_model(model)
     assert (
         model_digest(new) != old_digest and new.spindle_id == old.spindle_id

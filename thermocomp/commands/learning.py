@@ -356,7 +356,8 @@ def refit_cmd(args: argparse.Namespace) -> int:
             live_model = _checked(sc, Path(sc.model))
             if not args.from_:
                 start = live_rec.at_wall_s - 86400.0 * (rule.fit_days or 7.0)
-    out: dict[str, Any] = {"spindle": sc.name, "live": live_rec.short, "from": iso(start)}
+    # the live model by name; its figures, once judged, go under "live" (as the candidate's do)
+    out: dict[str, Any] = {"spindle": sc.name, "live_model": live_rec.short, "from": iso(start)}
     if judged_shadow is not None:
         out["shadow_judged"] = judged_shadow
     with tempfile.TemporaryDirectory(prefix="thermocomp-refit-") as tmp:
