@@ -27,8 +27,9 @@ to its top band's speed).
 
 from __future__ import annotations
 
+import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, ClassVar, Final, Literal
@@ -86,6 +87,10 @@ def memory_s_of(model: object) -> float | None:
     return MEMORY_TAUS * max(taus) if taus else None
 
 
+SAVED_LATELY = 256
+"""Entries of the speeds lately a state file keeps at most (thinned on the safe side)."""
+
+
 class RecentMax:
     """The fastest |speed| within ``span_s`` up to the newest time pushed, kept as it comes: a
     sliding-window maximum (the times, with their speeds decreasing; the first within a span is
@@ -114,6 +119,25 @@ class RecentMax:
         while self._times[0] < time_s - self.span_s:
             self._times.popleft()
             self._speeds.popleft()
+
+    def to_wall(self, now: float, wall_now: float, most: int = SAVED_LATELY) -> list[list[float]]:
+        """What a state file keeps: ``[wall time, |rpm|]`` pairs, oldest first, at most
+        ``most``: consecutive entries merged, each group's fastest speed taking its latest time,
+        so that a thinned history remembers a speed no shorter than the full one."""
+        pairs = [(wall_now - (now - t), v) for t, v in zip(self._times, self._speeds)]
+        step = max(1, math.ceil(len(pairs) / most))
+        # speeds decrease along the window: a group's first speed is its fastest
+        return [
+            [pairs[min(i + step, len(pairs)) - 1][0], pairs[i][1]]
+            for i in range(0, len(pairs), step)
+        ]
+
+    def from_wall(self, pairs: Sequence[Sequence[float]], now: float, wall_now: float) -> None:
+        """Take up a saved history (``[wall time, |rpm|]`` pairs, oldest first, checked by the
+        reader) onto the clock read as ``now`` at ``wall_now``; what is older than the span
+        drops out as it would have."""
+        for wall_t, rpm in pairs:
+            self.push(now - (wall_now - wall_t), rpm)
 
     def fastest(self, time_s: float, span_s: float | None = None) -> float:
         """The fastest |speed| within ``span_s`` (default, and at most, :attr:`span_s`) up to

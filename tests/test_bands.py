@@ -6,6 +6,7 @@ runs in lock-step on the virtual machine."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from compensator.expected import (
     parse_expected,
     recent_rpm,
 )
+from thermocomp.runtime import Alarm
 
 # -- the quantile ----------------------------------------------------------------------------
 
@@ -307,6 +309,21 @@ def test_the_service_window_keeps_what_a_clock_step_back_would_forget():
     assert w.fastest(200.0) == 0.0
 
 
+def test_a_saved_history_is_thinned_on_the_safe_side():
+    """A slow run-down leaves a long window; the state file keeps at most 256 entries, and the
+    history taken up from them remembers every speed at least as long as the full one."""
+    full = RecentMax(5000.0)
+    for k in range(1000):  # 10000 rpm down to 10 rpm, one a second
+        full.push(float(k), 10000.0 - 10.0 * k)
+    pairs = full.to_wall(999.0, 1.7e9 + 999.0)
+    assert len(pairs) <= 256 and pairs[0][1] == 10000.0
+    back = RecentMax(5000.0)
+    back.from_wall(pairs, 2999.0, 1.7e9 + 999.0)  # restarted at the same wall time, another clock
+    for later in (0.0, 100.0, 1000.0, 4000.0, 4999.0):
+        assert back.fastest(2999.0 + later) >= full.fastest(999.0 + later)
+    assert back.fastest(2999.0, 0.5) >= full.fastest(999.0, 0.5)
+
+
 def test_the_speed_lately_is_the_fastest_within_the_memory():
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.uniform(0.5, 3.0, 500))
@@ -346,6 +363,62 @@ def test_a_spindle_cooling_from_a_speed_validation_never_saw_is_not_validated():
     n2 = np.r_[np.full(100, 5000.0), np.zeros(300)]
     ok = stated.validated(n2, None, stated.recent_rpm(t2, n2))
     assert not ok[:220].any() and ok[221:].all()
+
+
+def _remembering(memory_s: float = 60.0):
+    """A speed-only model whose statement validated at rest after at most 3000 rpm, with a
+    thermal memory of ``memory_s``."""
+    stated = ExpectedError(
+        bands=(
+            Band(speed_rpm=(0.0, 1.0), source="forward", samples=50, rms_um=0.4, p95_abs_um=0.8),
+            Band(
+                speed_rpm=(1.0, 10000.0), source="forward", samples=50, rms_um=1.0, p95_abs_um=2.0
+            ),
+        ),
+        forward_folds=3,
+        measured_rpm=10000.0,
+        history_rpm=3000.0,
+        memory_s=memory_s,
+    )
+    model = speed_only(spindle_id="sp-A")
+    return model.model_copy(
+        update={"fit": {**model.fit, "expected_error": stated.model_dump(mode="json")}}
+    )
+
+
+def test_a_restart_within_the_memory_still_knows_the_spindle_ran_faster(tmp_path):
+    """The speeds lately go into the state file: a service stopped after 5000 rpm and started
+    again 30 s later, at rest, does not claim the at-rest band until the memory has passed; one
+    started after the memory does at once. A saved history that is not one is a corrupt state."""
+    faster = "not validated after running faster than calibrated"
+    b = Bench(tmp_path / "soon", _remembering(600.0))
+    b.run(20)  # 5000 rpm
+    b.rt.close()  # a clean stop saves the state
+    saved = json.loads(next((tmp_path / "soon" / "state").glob("*.json")).read_text())
+    assert saved["speeds_lately"][-1][1] == 5000.0
+    b.t += 30.0
+    b.vm.override_speed(0.0)
+    b.rt = b.start()
+    claims = [r["expected_error"]["claim"] for r in b.run(600)]
+    assert claims[0] == faster and claims[-1] == "expect ±0.8 µm (95 %)"
+    assert 560 <= claims.index("expect ±0.8 µm (95 %)") <= 575  # 600 s after the last 5000 rpm
+    b.rt.close()
+    late = Bench(tmp_path / "late", _remembering(600.0))
+    late.run(20)
+    late.rt.close()
+    late.t += 700.0
+    late.vm.override_speed(0.0)
+    late.rt = late.start()
+    assert late.run(1)[0]["expected_error"]["claim"] == "expect ±0.8 µm (95 %)"
+    late.rt.close()
+    for bad in ([[1.0, -5.0]], [[2.0, 1.0], [1.0, 1.0]], "5000", [[1.0, "5000"]]):
+        state = next((tmp_path / "late" / "state").glob("*.json"))
+        body = json.loads(state.read_text())
+        body["speeds_lately"] = bad
+        state.write_text(json.dumps(body))
+        late.rt = late.start()
+        assert late.rt.alarms & Alarm.STATE_CORRUPT, bad
+        late.rt.close()
 
 
 def test_the_service_remembers_the_speed_it_ran_at(tmp_path):

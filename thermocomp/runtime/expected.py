@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -88,6 +89,19 @@ class ExpectedWatch:
                 folds,
                 MIN_FORWARD_FOLDS,
             )
+
+    def saved_fields(self, now: float, wall_now: float) -> dict[str, Any]:
+        """What the state file keeps of the speeds lately (wall times): a restart within the
+        memory still knows the spindle ran faster than validation saw."""
+        if self.memory_s <= 0:
+            return {}
+        pairs = self.lately.to_wall(now, wall_now)
+        return {"speeds_lately": pairs} if pairs else {}
+
+    def restored(self, pairs: Sequence[Sequence[float]], now: float, wall_now: float) -> None:
+        """The speeds lately a state file kept (checked where it was read)."""
+        if self.memory_s > 0:
+            self.lately.from_wall(pairs, now, wall_now)
 
     def follow(self, old: ExpectedWatch) -> None:
         self.high = old.high  # raised still: no second entry event

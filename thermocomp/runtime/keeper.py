@@ -21,6 +21,7 @@ measured again when the clock was wrong at the start.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import re
@@ -57,6 +58,34 @@ SIM_FIELDS = ("saved_wall_s", "input_wall_s", "cold_start_unsettled_until_wall_s
 """A state's times on the simulated wall clock: moved onto the restarted service's clock."""
 
 
+MAX_SAVED_LATELY = 4096
+"""Entries of the speeds lately a state file may hold (a service writes at most 256)."""
+
+
+def _speeds_lately(
+    value: Any, saved_wall: float, shift: float = 0.0
+) -> tuple[tuple[float, float], ...]:
+    """The saved speeds lately, checked: absent (an older state) is none; otherwise a list of
+    [wall time, |rpm|] pairs, at most :data:`MAX_SAVED_LATELY`, times in order and not after
+    the save, speeds at or above 0; :class:`ModelError` otherwise (the state is corrupt). The
+    times move by ``shift`` onto a simulated clock, as the save's own time did."""
+    if value is None:
+        return ()
+    if not isinstance(value, list) or len(value) > MAX_SAVED_LATELY:
+        raise ModelError(
+            f"saved speeds_lately is not a list of at most {MAX_SAVED_LATELY} [time, rpm] pairs"
+        )
+    if not all(isinstance(p, list) and len(p) == 2 for p in value):
+        raise ModelError("saved speeds_lately holds something other than [time, rpm] pairs")
+    times = tuple(t + shift for t in saved_numbers("speeds_lately", [p[0] for p in value], 1e11))
+    speeds = saved_numbers("speeds_lately", [p[1] for p in value], 1e7)
+    if any(b < a for a, b in itertools.pairwise(times)) or (times and times[-1] > saved_wall + 1.0):
+        raise ModelError("saved speeds_lately: times out of order or after the save")
+    if any(v < 0 for v in speeds):
+        raise ModelError("saved speeds_lately holds a negative speed")
+    return tuple(zip(times, speeds))
+
+
 class ScaledWall:
     """The wall clock of a service on a simulated clock: the real wall time at the start plus
     the simulated seconds since (``sim``); ``real`` is the real wall clock, ``scale`` the
@@ -82,6 +111,9 @@ class Restored:
     downtime_s: float
     unsettled_until_wall_s: float | None
     """An unsettled cold start's end (wall time) the state carried: a restart does not settle it."""
+    speeds_lately: tuple[tuple[float, float], ...] = ()
+    """The speeds lately (wall time, |rpm|), oldest first: a restart still knows the spindle ran
+    faster than validation saw."""
 
 
 @dataclass(frozen=True)
@@ -149,6 +181,7 @@ class StateKeeper:
             if saved_wall <= 0:
                 raise ModelFileError(f"saved_wall_s {saved_wall:g} is not a time")
             real = self._real_age(saved, now_wall)
+            shift = 0.0
             if real is not None:
                 # a simulated clock: the state's times moved onto this run's simulated clock,
                 # which started at the real time of the start
@@ -160,6 +193,7 @@ class StateKeeper:
                 }
                 saved_wall = now_wall - age
             parsed = estimate.parse_saved(saved)
+            lately = _speeds_lately(saved.get("speeds_lately"), saved_wall, shift)
         except (
             ModelError,
             ValueError,
@@ -240,7 +274,7 @@ class StateKeeper:
         # the clamp's edge counts as held (and is journaled), as for a value read back
         limit = cfg.shaping.max_offset_um
         held = min(max(held, -limit), limit)
-        return Restored(est, held, downtime, until), alarms, (parsed, saved_wall)
+        return Restored(est, held, downtime, until, lately), alarms, (parsed, saved_wall)
 
     def _real_age(self, saved: Mapping[str, Any], now_wall: float) -> float | None:
         """Real seconds since the save, where this run or the save was on a simulated clock

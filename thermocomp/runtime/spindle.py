@@ -318,6 +318,7 @@ class SpindleRuntime:
             self.cold.started()
             return
         self.runner.restored(got, saved, self.clock(), now_wall)
+        self.expected.restored(got.speeds_lately, self.clock(), now_wall)
         # what we last wrote; the first cycle reads back what the controller really holds
         self.offset = self._offset(self.adapter.capabilities, got.held_um)
         if got.unsettled_until_wall_s is not None:
@@ -375,6 +376,7 @@ class SpindleRuntime:
                 **self.estimate.state_dict(self.est, wall_now),
                 "offset_um": self.offset.held_um,
                 **self.cold.saved_fields(now, wall_now),
+                **self.expected.saved_fields(now, wall_now),
             },
         )
 
