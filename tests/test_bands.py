@@ -422,22 +422,7 @@ def test_a_restart_within_the_memory_still_knows_the_spindle_ran_faster(tmp_path
 
 
 def test_the_service_remembers_the_speed_it_ran_at(tmp_path):
-    stated = ExpectedError(
-        bands=(
-            Band(speed_rpm=(0.0, 1.0), source="forward", samples=50, rms_um=0.4, p95_abs_um=0.8),
-            Band(
-                speed_rpm=(1.0, 10000.0), source="forward", samples=50, rms_um=1.0, p95_abs_um=2.0
-            ),
-        ),
-        forward_folds=3,
-        measured_rpm=10000.0,
-        history_rpm=3000.0,
-        memory_s=60.0,
-    )
-    model = speed_only(spindle_id="sp-A")
-    model = model.model_copy(
-        update={"fit": {**model.fit, "expected_error": stated.model_dump(mode="json")}}
-    )
+    model = _remembering(60.0)
     b = Bench(tmp_path, model)
     ex = b.run(3)[-1]["expected_error"]  # 5000 rpm, faster than any before a forward residual
     assert ex["validated"] is False
