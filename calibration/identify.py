@@ -176,7 +176,12 @@ def _ridge_inputs(
 def _ridge_static(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
     names = ctx["names"]
     res = rb.fit(
-        ds, grids=[static_grid(ds)], input_names=names, alpha_by="chained", nested=ctx["nested"]
+        ds,
+        grids=[static_grid(ds)],
+        input_names=names,
+        alpha_by="chained",
+        nested=ctx["nested"],
+        units=ctx.get("units"),
     )
     what = (
         f"ridge over n, n² through a filter bank and {len(names)} input(s) static (no filter); "

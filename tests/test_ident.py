@@ -756,3 +756,32 @@ def test_the_held_out_paired_difference_uses_the_rows_both_scored():
     assert mean == pytest.approx(np.mean(d), rel=1e-12)
     assert se == pytest.approx(np.std(d, ddof=1) / np.sqrt(len(d)), rel=1e-12)
     assert mean > 0  # the first errs more
+
+
+def test_a_temperatures_valid_range_reaches_ten_kelvin_beyond_calibration():
+    """A sensor reading one span beyond a narrow calibration is a warmer machine, not a fault:
+    a temperature's valid range reaches 10 K beyond what calibration saw (or one span, when
+    that is wider); another input keeps one span."""
+    from calibration.dataset import from_arrays
+    from calibration.estimators import ridge_bank as rb
+
+    t, n = _four_cycles()
+    warm = 22.0 + 0.5 * np.sin(t / 3600.0)  # a 1 K span
+    wide = 22.0 + 15.0 * np.sin(t / 3600.0)  # a 30 K span
+    load = 2.0 + 0.5 * np.sin(t / 1800.0)
+    y = 0.001 * n + 3.0 * (warm - 22.0) + 0.1 * (wide - 22.0) + 0.2 * load
+    ds = from_arrays(t, n, y, {"warm_c": warm, "wide_c": wide, "load_w": load})
+    res = rb.fit(
+        ds,
+        input_names=("warm_c", "wide_c", "load_w"),
+        units={"warm_c": "degC", "wide_c": "degC", "load_w": "W"},
+        nested=False,
+    )
+    span = lambda u: float(u.max() - u.min())
+    assert res.valid_ranges["warm_c"] == pytest.approx((warm.min() - 10.0, warm.max() + 10.0))
+    assert res.valid_ranges["wide_c"] == pytest.approx(
+        (wide.min() - span(wide), wide.max() + span(wide))
+    )
+    assert res.valid_ranges["load_w"] == pytest.approx(
+        (load.min() - span(load), load.max() + span(load))
+    )
