@@ -124,7 +124,10 @@ class RecentMax:
         """What a state file keeps: ``[wall time, |rpm|]`` pairs, oldest first, at most
         ``most``: consecutive entries merged, each group's fastest speed taking its latest time,
         so that a thinned history remembers a speed no shorter than the full one."""
-        pairs = [(wall_now - (now - t), v) for t, v in zip(self._times, self._speeds)]
+        pairs, latest = [], -math.inf
+        for t, v in zip(self._times, self._speeds):
+            latest = max(latest, t)  # in order even after a clock that stepped back
+            pairs.append((wall_now - max(0.0, now - latest), v))  # never after the save
         step = max(1, math.ceil(len(pairs) / most))
         # speeds decrease along the window: a group's first speed is its fastest
         return [
@@ -137,7 +140,8 @@ class RecentMax:
         reader) onto the clock read as ``now`` at ``wall_now``; what is older than the span
         drops out as it would have."""
         for wall_t, rpm in pairs:
-            self.push(now - (wall_now - wall_t), rpm)
+            # a wall clock set back while the service was down: nothing later than now
+            self.push(min(now, now - (wall_now - wall_t)), rpm)
 
     def fastest(self, time_s: float, span_s: float | None = None) -> float:
         """The fastest |speed| within ``span_s`` (default, and at most, :attr:`span_s`) up to

@@ -304,6 +304,14 @@ def test_the_service_window_keeps_what_a_clock_step_back_would_forget():
     log.push(0.0, 9000.0)
     log.push(-5.0, 500.0)
     assert log.fastest(-5.0) == 500.0
+    # what a state file keeps is in time order even so, and taken up no later than now
+    pairs = w.to_wall(50.0, 1000.0)
+    assert [p[0] for p in pairs] == sorted(p[0] for p in pairs) and pairs[0][1] == 9000.0
+    assert pairs[-1][0] <= 1000.0  # never after the save
+    again = RecentMax(100.0)
+    again.from_wall([[2000.0, 7000.0]], 10.0, 1000.0)  # saved "after" the restart's wall time
+    again.push(11.0, 0.0)
+    assert again.fastest(11.0) == 7000.0 and again.to_wall(11.0, 1001.0)[0][0] <= 1001.0
     w.span_s = 20.0  # a model with a shorter memory, loaded after
     w.push(200.0, 0.0)
     assert w.fastest(200.0) == 0.0
