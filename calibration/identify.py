@@ -71,6 +71,10 @@ __all__ = ["REGISTRY", "Candidate", "Entry", "Identification", "LogData", "ident
 
 # -- the registry -------------------------------------------------------------------------------
 
+STATIC = "ridge+static"
+"""With inputs, the structure that stands first: a plain ridge over the static inputs and a
+bank of speed lags, the one the real record's forward folds never found far off."""
+
 Context = Mapping[str, Any]
 """What every entry may read: ``names`` (the inputs), ``nested``, ``meta`` (model fields)."""
 
@@ -187,7 +191,7 @@ def _ridge_static(ds: Dataset, ctx: Context) -> tuple[Candidate, rb.RidgeFit]:
         f"ridge over n, n² through a filter bank and {len(names)} input(s) static (no filter); "
         "alpha on forward-chained half cycles"
     )
-    c = _from_ridge("ridge+static", "inputs", what, res, ds)
+    c = _from_ridge(STATIC, "inputs", what, res, ds)
     c.details["inputs_used"] = list(res.input_names)
     return c, res
 
@@ -235,7 +239,7 @@ COMPLEXITY = {
     baseline.NAME: 0,
     output_error.NAME: 1,
     "ridge": 2,
-    "ridge+static": 3,
+    STATIC: 3,
     "ridge+few": 4,
     "ridge+pca": 4,
     "ridge+bounded": 4,
@@ -265,7 +269,7 @@ REGISTRY: tuple[Entry, ...] = (
         complexity=5,
     ),
     Entry(
-        "ridge+static",
+        STATIC,
         "inputs",
         _ridge_static,
         "fitting ridge with the inputs static",
@@ -693,9 +697,6 @@ def _finish(
     )
 
 
-STATIC = "ridge+static"
-"""With inputs, the structure that stands first: a plain ridge over the static inputs and a
-bank of speed lags, the one the real record's forward folds never found far off."""
 MIN_FLEXIBLE_FOLDS = 5
 """Forward folds a structure more flexible than :data:`STATIC` needs to displace it (four
 cycles of past). On the real record's half-cycle origins, every flexible structure that won
